@@ -1,0 +1,254 @@
+"""The experiment spec of SPEC section 10: parse, validate, normalise.
+
+``parse_spec(dict) -> ExperimentSpec`` is the one entry point used by the
+CLI, the REST API and the scheduler; every error is a :class:`SpecError`
+naming the field.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from .errors import SpecError
+from .systems import SystemSpec, resolve_system
+
+ESTIMATORS = ("ols", "svr", "shrunk-ols")
+STAGES = ("estimate", "bounds", "gain", "cost", "cost_bound", "sls")
+# A stage needs the ones before it in this order (cost_bound needs cost's J).
+STAGE_NEEDS = {
+    "estimate": (),
+    "bounds": ("estimate",),
+    "gain": ("estimate", "bounds"),
+    "cost": ("estimate", "bounds", "gain"),
+    "cost_bound": ("estimate", "bounds", "gain", "cost"),
+    "sls": ("estimate", "bounds"),
+}
+
+SPEC_KEYS = {
+    "systems", "sigma_w", "N", "T0", "gamma", "estimators", "loss_scale", "data",
+    "reps", "M", "delta", "stages", "mc_runs", "horizon", "mc_reps", "margin",
+    "reuse_gain", "gamma_ref", "sls", "seed", "x0_std",
+}
+MAX_GRID = 100_000  # any single list longer than this is surely a mistake
+
+
+@dataclass(frozen=True)
+class ExperimentSpec:
+    """A validated section 10 spec. ``to_dict()`` gives the normalised JSON."""
+
+    systems: tuple[SystemSpec, ...]
+    sigma_w: tuple[float, ...]
+    N: tuple[int, ...]
+    T0: int = 11
+    gamma: tuple[float, ...] = (0.05,)
+    estimators: tuple[str, ...] = ("ols", "svr")
+    loss_scale: str = "sum"
+    data: str = "all"
+    reps: int = 45
+    M: float = 1.1
+    delta: float = 0.01
+    stages: tuple[str, ...] = ("estimate", "bounds")
+    mc_runs: int = 1000
+    horizon: int = 200
+    mc_reps: int | None = None
+    margin: float = 0.01
+    reuse_gain: bool = False
+    gamma_ref: float = 0.1
+    sls_T_fir: int = 30
+    sls_C_bound: float | None = None
+    seed: int = 0
+    x0_std: float = 0.0
+    raw_systems: tuple = field(default=(), compare=False)
+
+    def has(self, stage: str) -> bool:
+        return stage in self.stages
+
+    @property
+    def cells_per_rep(self) -> int:
+        """Records per (system, sigma_w, N, rep): one per (estimator, gamma)."""
+        return sum(1 if e == "ols" else len(self.gamma) for e in self.estimators)
+
+    @property
+    def n_cells(self) -> int:
+        return len(self.systems) * len(self.sigma_w) * len(self.N) * self.reps * self.cells_per_rep
+
+    def to_dict(self) -> dict:
+        return {
+            "systems": [s if isinstance(s, str) else s for s in self.raw_systems],
+            "sigma_w": list(self.sigma_w),
+            "N": list(self.N),
+            "T0": self.T0,
+            "gamma": list(self.gamma),
+            "estimators": list(self.estimators),
+            "loss_scale": self.loss_scale,
+            "data": self.data,
+            "reps": self.reps,
+            "M": self.M,
+            "delta": self.delta,
+            "stages": list(self.stages),
+            "mc_runs": self.mc_runs,
+            "horizon": self.horizon,
+            "mc_reps": self.mc_reps,
+            "margin": self.margin,
+            "reuse_gain": self.reuse_gain,
+            "gamma_ref": self.gamma_ref,
+            "sls": {"T_fir": self.sls_T_fir, "C_bound": self.sls_C_bound},
+            "seed": self.seed,
+            "x0_std": self.x0_std,
+        }
+
+
+def _int(value, name: str, *, lo: int, hi: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        else:
+            raise SpecError(name, "must be an integer")
+    if value < lo:
+        raise SpecError(name, f"must be >= {lo}")
+    if hi is not None and value > hi:
+        raise SpecError(name, f"must be <= {hi}")
+    return value
+
+
+def _float(value, name: str, *, positive: bool = False, nonneg: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SpecError(name, "must be a number")
+    v = float(value)
+    if not math.isfinite(v):
+        raise SpecError(name, "must be finite (no NaN or inf)")
+    if positive and v <= 0:
+        raise SpecError(name, "must be > 0")
+    if nonneg and v < 0:
+        raise SpecError(name, "must be >= 0")
+    return v
+
+
+def _list(value, name: str) -> list:
+    if not isinstance(value, list) or not value:
+        raise SpecError(name, "must be a non-empty list")
+    if len(value) > MAX_GRID:
+        raise SpecError(name, f"has more than {MAX_GRID} entries")
+    return value
+
+
+def _choice(value, name: str, options) -> str:
+    if value not in options:
+        raise SpecError(name, f"must be one of {list(options)}, got {value!r}")
+    return value
+
+
+def _n_grid(value) -> tuple[int, ...]:
+    if isinstance(value, dict):
+        unknown = set(value) - {"start", "stop", "step"}
+        if unknown:
+            raise SpecError(f"N.{sorted(unknown)[0]}", "unknown field")
+        for key in ("start", "stop"):
+            if key not in value:
+                raise SpecError(f"N.{key}", "is required")
+        start = _int(value["start"], "N.start", lo=1)
+        stop = _int(value["stop"], "N.stop", lo=start)
+        step = _int(value.get("step", 1), "N.step", lo=1)
+        if (stop - start) // step + 1 > MAX_GRID:
+            raise SpecError("N", f"has more than {MAX_GRID} entries")
+        return tuple(range(start, stop + 1, step))
+    items = _list(value, "N")
+    out = tuple(_int(v, f"N[{i}]", lo=1) for i, v in enumerate(items))
+    return _unique(out, "N")
+
+
+def _unique(values: tuple, name: str) -> tuple:
+    if len(set(values)) != len(values):
+        raise SpecError(name, "has duplicate entries")
+    return values
+
+
+def parse_spec(obj) -> ExperimentSpec:
+    """Validate a section 10 spec (a dict from JSON) and fill the defaults."""
+    if not isinstance(obj, dict):
+        raise SpecError("spec", "must be a JSON object")
+    unknown = set(obj) - SPEC_KEYS
+    if unknown:
+        raise SpecError(sorted(unknown)[0], "unknown field")
+    for key in ("systems", "sigma_w", "N"):
+        if key not in obj:
+            raise SpecError(key, "is required")
+
+    raw_systems = _list(obj["systems"], "systems")
+    systems = tuple(resolve_system(s, f"systems[{i}]") for i, s in enumerate(raw_systems))
+    _unique(tuple(s.name for s in systems), "systems")
+    sigma_w = tuple(
+        _float(v, f"sigma_w[{i}]", nonneg=True) for i, v in enumerate(_list(obj["sigma_w"], "sigma_w"))
+    )
+    _unique(sigma_w, "sigma_w")
+    N = _n_grid(obj["N"])
+    T0 = _int(obj.get("T0", 11), "T0", lo=2, hi=10_000)
+
+    estimators = tuple(
+        _choice(e, f"estimators[{i}]", ESTIMATORS)
+        for i, e in enumerate(_list(obj.get("estimators", ["ols", "svr"]), "estimators"))
+    )
+    _unique(estimators, "estimators")
+    gamma = tuple(
+        _float(g, f"gamma[{i}]", positive=True)
+        for i, g in enumerate(_list(obj.get("gamma", [0.05]), "gamma"))
+    )
+    _unique(gamma, "gamma")
+
+    stages = tuple(
+        _choice(s, f"stages[{i}]", STAGES)
+        for i, s in enumerate(_list(obj.get("stages", ["estimate", "bounds"]), "stages"))
+    )
+    _unique(stages, "stages")
+    for s in stages:
+        for need in STAGE_NEEDS[s]:
+            if need not in stages:
+                raise SpecError("stages", f"stage {s!r} needs stage {need!r}")
+    stages = tuple(s for s in STAGES if s in stages)
+
+    sls = obj.get("sls") or {}
+    if not isinstance(sls, dict):
+        raise SpecError("sls", "must be an object {T_fir, C_bound}")
+    unknown = set(sls) - {"T_fir", "C_bound"}
+    if unknown:
+        raise SpecError(f"sls.{sorted(unknown)[0]}", "unknown field")
+    c_bound = sls.get("C_bound")
+
+    mc_reps = obj.get("mc_reps")
+    reuse = obj.get("reuse_gain", False)
+    if not isinstance(reuse, bool):
+        raise SpecError("reuse_gain", "must be true or false")
+    delta = _float(obj.get("delta", 0.01), "delta", positive=True)
+    if delta >= 1:
+        raise SpecError("delta", "must be < 1")
+    margin = _float(obj.get("margin", 0.01), "margin", nonneg=True)
+    if margin >= 1:
+        raise SpecError("margin", "must be < 1")
+    seed = _int(obj.get("seed", 0), "seed", lo=0, hi=2**63 - 1)
+
+    return ExperimentSpec(
+        systems=systems,
+        sigma_w=sigma_w,
+        N=N,
+        T0=T0,
+        gamma=gamma,
+        estimators=estimators,
+        loss_scale=_choice(obj.get("loss_scale", "sum"), "loss_scale", ("sum", "mean")),
+        data=_choice(obj.get("data", "all"), "data", ("all", "final")),
+        reps=_int(obj.get("reps", 45), "reps", lo=1, hi=1_000_000),
+        M=_float(obj.get("M", 1.1), "M", positive=True),
+        delta=delta,
+        stages=stages,
+        mc_runs=_int(obj.get("mc_runs", 1000), "mc_runs", lo=2, hi=1_000_000),
+        horizon=_int(obj.get("horizon", 200), "horizon", lo=1, hi=100_000),
+        mc_reps=None if mc_reps is None else _int(mc_reps, "mc_reps", lo=0),
+        margin=margin,
+        reuse_gain=reuse,
+        gamma_ref=_float(obj.get("gamma_ref", 0.1), "gamma_ref", positive=True),
+        sls_T_fir=_int(sls.get("T_fir", 30), "sls.T_fir", lo=2, hi=1000),
+        sls_C_bound=None if c_bound is None else _float(c_bound, "sls.C_bound", positive=True),
+        seed=seed,
+        x0_std=_float(obj.get("x0_std", 0.0), "x0_std", nonneg=True),
+        raw_systems=tuple(raw_systems),
+    )

@@ -1,0 +1,124 @@
+"""System specs and the paper's presets (SPEC sections 1 and 9)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import SpecError
+
+_PAPER_B = [[1.0], [1.5], [2.0]]
+
+
+def _paper_A(diag: float) -> list[list[float]]:
+    return [[diag, 0.01, 0.0], [0.01, diag, 0.01], [0.0, 0.01, diag]]
+
+
+PRESETS: dict[str, dict] = {
+    "paper-stable": {"A": _paper_A(0.9), "B": _PAPER_B, "sigma_u": 1.0, "sigma_v": 0.1},
+    "paper-unstable": {"A": _paper_A(1.01), "B": _PAPER_B, "sigma_u": 1.0, "sigma_v": 0.1},
+}
+
+
+@dataclass(frozen=True)
+class SystemSpec:
+    """One true system: x+ = A x + B u + w, y = C x + v (SPEC section 1)."""
+
+    name: str
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    sigma_u: float = 1.0
+    sigma_v: float = 0.1
+
+    @property
+    def n(self) -> int:
+        return self.A.shape[0]
+
+    @property
+    def m(self) -> int:
+        return self.B.shape[1]
+
+    @property
+    def p(self) -> int:
+        return self.C.shape[0]
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "A": self.A.tolist(),
+            "B": self.B.tolist(),
+            "C": self.C.tolist(),
+            "sigma_u": self.sigma_u,
+            "sigma_v": self.sigma_v,
+        }
+
+
+def _matrix(value, field: str) -> np.ndarray:
+    try:
+        arr = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise SpecError(field, "must be a matrix of numbers (a list of rows)") from None
+    if arr.ndim == 1 and arr.size > 0 and field.endswith(".B"):
+        arr = arr[:, None]  # a column vector written as a flat list
+    if arr.ndim != 2 or arr.size == 0:
+        raise SpecError(field, "must be a non-empty matrix (a list of equal-length rows)")
+    if not np.all(np.isfinite(arr)):
+        raise SpecError(field, "contains NaN or inf")
+    return arr
+
+
+def _positive_number(value, field: str, *, allow_zero: bool) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SpecError(field, "must be a number")
+    v = float(value)
+    if not np.isfinite(v):
+        raise SpecError(field, "must be finite")
+    if v < 0 or (v == 0 and not allow_zero):
+        raise SpecError(field, "must be > 0" if not allow_zero else "must be >= 0")
+    return v
+
+
+_SYSTEM_KEYS = {"name", "A", "B", "C", "sigma_u", "sigma_v"}
+
+
+def resolve_system(obj, field: str = "systems[0]") -> SystemSpec:
+    """A preset name or a ``{name, A, B, C, sigma_u, sigma_v}`` object -> SystemSpec."""
+    if isinstance(obj, str):
+        if obj not in PRESETS:
+            raise SpecError(field, f"unknown preset {obj!r}; known: {sorted(PRESETS)}")
+        obj = {"name": obj, **PRESETS[obj]}
+    if not isinstance(obj, dict):
+        raise SpecError(field, "must be a preset name or an object {name, A, B, ...}")
+    unknown = set(obj) - _SYSTEM_KEYS
+    if unknown:
+        raise SpecError(f"{field}.{sorted(unknown)[0]}", "unknown field")
+    for key in ("name", "A", "B"):
+        if key not in obj:
+            raise SpecError(f"{field}.{key}", "is required")
+    name = obj["name"]
+    if not isinstance(name, str) or not name.strip() or len(name) > 64:
+        raise SpecError(f"{field}.name", "must be a non-empty string of at most 64 characters")
+    A = _matrix(obj["A"], f"{field}.A")
+    if A.shape[0] != A.shape[1]:
+        raise SpecError(f"{field}.A", f"must be square, got {A.shape[0]}x{A.shape[1]}")
+    n = A.shape[0]
+    B = _matrix(obj["B"], f"{field}.B")
+    if B.shape[0] != n:
+        raise SpecError(f"{field}.B", f"must have {n} rows (as many as A), got {B.shape[0]}")
+    C = np.eye(n) if obj.get("C") is None else _matrix(obj["C"], f"{field}.C")
+    if C.shape[1] != n:
+        raise SpecError(f"{field}.C", f"must have {n} columns (as many as A), got {C.shape[1]}")
+    sigma_u = _positive_number(obj.get("sigma_u", 1.0), f"{field}.sigma_u", allow_zero=False)
+    sigma_v = _positive_number(obj.get("sigma_v", 0.1), f"{field}.sigma_v", allow_zero=True)
+    if sigma_v == 0.0:
+        square = C.shape[0] == C.shape[1]
+        if not square or np.linalg.matrix_rank(C) < n:
+            raise SpecError(
+                f"{field}.sigma_v",
+                "sigma_v = 0 needs a square invertible C (SPEC section 5)",
+            )
+    for arr in (A, B, C):
+        arr.setflags(write=False)
+    return SystemSpec(name=name.strip(), A=A, B=B, C=C, sigma_u=sigma_u, sigma_v=sigma_v)
