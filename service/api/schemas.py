@@ -1,0 +1,141 @@
+"""Request and response bodies. Request bodies forbid unknown fields (HTTP 422):
+the team and owner always come from the API key, never from a body."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Any, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, create_model
+
+from svrobs_core.spec import SPEC_KEYS
+
+# Loose types: svrobs_core.parse_spec does the real validation with field-named errors.
+_SPEC_HINTS: dict[str, Any] = {
+    "systems": (list[Any], ...),
+    "sigma_w": (list[Any], ...),
+    "N": (list[Any] | dict[str, Any], ...),
+    "gamma": (Optional[list[Any]], None),
+    "estimators": (Optional[list[Any]], None),
+    "stages": (Optional[list[Any]], None),
+    "sls": (Optional[dict[str, Any]], None),
+}
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+def _spec_fields() -> dict[str, Any]:
+    return {k: _SPEC_HINTS.get(k, (Any, None)) for k in sorted(SPEC_KEYS)}
+
+
+TagStr = Annotated[str, StringConstraints(min_length=1, max_length=100)]
+Tag = Field(default_factory=list, max_length=50)
+
+JobSubmit = create_model(
+    "JobSubmit",
+    __base__=_Strict,
+    __doc__="A SPEC section 10 experiment spec plus an optional name and tags.",
+    name=(Optional[str], Field(None, max_length=200)),
+    tags=(list[TagStr], Tag),
+    **_spec_fields(),
+)
+
+SPEC_FIELD_NAMES = tuple(sorted(SPEC_KEYS))
+
+
+class Progress(BaseModel):
+    done: int
+    total: int
+    fraction: float
+
+
+class JobOut(BaseModel):
+    id: int
+    name: str | None
+    tags: list[str]
+    status: str
+    progress: Progress
+    n_cells: int
+    owner: str | None
+    schedule_id: int | None
+    idempotency_key: str | None
+    spec: dict[str, Any]
+    provenance: dict[str, Any]
+    error: str | None
+    timings: dict[str, Any]
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+class Page(BaseModel):
+    total: int
+    limit: int
+    offset: int
+
+
+class JobPage(Page):
+    items: list[JobOut]
+
+
+class ResultPage(Page):
+    items: list[dict[str, Any]]
+
+
+class SummaryOut(BaseModel):
+    job_id: int
+    partial: bool
+    groups: list[dict[str, Any]]
+
+
+class CompareOut(BaseModel):
+    metric: str
+    by: list[str]
+    jobs: list[int]
+    rows: list[dict[str, Any]]
+
+
+class ScheduleCreate(_Strict):
+    name: str = Field(min_length=1, max_length=200)
+    cron: str = Field(min_length=1, max_length=200)
+    timezone: str = Field("UTC", min_length=1, max_length=64)
+    spec_template: dict[str, Any]
+    tags: list[TagStr] = Tag
+    enabled: bool = True
+
+
+class ScheduleUpdate(_Strict):
+    name: str | None = Field(None, min_length=1, max_length=200)
+    cron: str | None = Field(None, min_length=1, max_length=200)
+    timezone: str | None = Field(None, min_length=1, max_length=64)
+    spec_template: dict[str, Any] | None = None
+    tags: list[TagStr] | None = Field(None, max_length=50)
+    enabled: bool | None = None
+
+
+class ScheduleOut(BaseModel):
+    id: int
+    name: str
+    cron: str
+    timezone: str
+    spec_template: dict[str, Any]
+    tags: list[str]
+    enabled: bool
+    next_run_at: datetime | None
+    created_at: datetime
+    updated_at: datetime
+
+
+class ScheduleRunOut(BaseModel):
+    id: int
+    due_at: datetime
+    job_id: int | None
+    error: str | None
+    created_at: datetime
+
+
+class ErrorOut(BaseModel):
+    detail: Any
+    field: str | None = None

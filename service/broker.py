@@ -1,0 +1,138 @@
+"""The single place Celery is configured, and publishing of work units.
+
+The worker does ``celery_app = make_celery(get_settings())`` and registers
+its task under :data:`RUN_UNIT_TASK`; the API and the relay publish with
+:func:`publish_units` after the job is committed.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterable
+
+from celery import Celery
+
+from service.config import Settings
+
+log = logging.getLogger(__name__)
+
+RUN_UNIT_TASK = "svrobs.run_unit"
+# Publishing from a request must not hang while the broker is down: one quick
+# retry, then the relay re-publishes from the DB later.
+PUBLISH_RETRY_POLICY = {"max_retries": 1, "interval_start": 0, "interval_step": 0.2,
+                        "interval_max": 0.2}
+
+
+def is_filesystem(url: str) -> bool:
+    return url.startswith("filesystem:")
+
+
+def filesystem_folders(settings: Settings) -> dict[str, str]:
+    base = os.path.abspath(settings.BROKER_DIR)
+    return {
+        "data_folder_in": os.path.join(base, "queue"),
+        "data_folder_out": os.path.join(base, "queue"),
+        "processed_folder": os.path.join(base, "processed"),
+        "control_folder": os.path.join(base, "control"),
+    }
+
+
+def _ensure_folders(settings: Settings) -> dict[str, str]:
+    folders = filesystem_folders(settings)
+    for path in folders.values():
+        os.makedirs(path, exist_ok=True)
+    return folders
+
+
+def make_celery(settings: Settings, name: str = "svrobs") -> Celery:
+    """A Celery app for ``settings.BROKER_URL`` (JSON only, late acks, prefetch 1)."""
+    app = Celery(name, broker=settings.BROKER_URL)
+    limit = int(settings.TASK_TIME_LIMIT)
+    conf: dict = dict(
+        task_serializer="json",
+        result_serializer="json",
+        accept_content=["json"],
+        event_serializer="json",
+        task_acks_late=True,
+        task_reject_on_worker_lost=True,
+        worker_prefetch_multiplier=1,
+        task_time_limit=limit,
+        task_soft_time_limit=max(1, limit - min(60, limit // 10)),
+        task_ignore_result=True,
+        result_backend=None,
+        task_default_queue="svrobs",
+        broker_connection_retry_on_startup=True,
+        broker_connection_timeout=settings.BROKER_TIMEOUT,
+        task_publish_retry_policy=PUBLISH_RETRY_POLICY,
+        worker_hijack_root_logger=False,
+        timezone="UTC",
+        enable_utc=True,
+    )
+    if is_filesystem(settings.BROKER_URL):
+        conf["broker_transport_options"] = {**_ensure_folders(settings), "store_processed": False}
+        # broadcast (remote control, mingle, gossip) is not reliable across processes on files
+        conf["worker_enable_remote_control"] = False
+    elif settings.BROKER_URL.startswith(("redis:", "rediss:")):
+        conf["broker_transport_options"] = {
+            # a unit not acked within this time is redelivered: keep it above the longest task
+            "visibility_timeout": limit + 600,
+            "socket_connect_timeout": settings.BROKER_TIMEOUT,
+            "socket_timeout": max(5.0, settings.BROKER_TIMEOUT),
+            "retry_on_timeout": True,
+        }
+    app.conf.update(conf)
+    return app
+
+
+def publish_units(celery: Celery, unit_ids: Iterable[int], *, raise_errors: bool = False
+                  ) -> list[int]:
+    """Send one ``svrobs.run_unit(unit_id)`` task per unit; returns the ids sent.
+
+    On a broker error the ids sent so far are returned (the caller marks those
+    published; the relay sends the rest later) unless ``raise_errors``.
+    """
+    sent: list[int] = []
+    ids = [int(u) for u in unit_ids]
+    if not ids:
+        return sent
+    try:
+        with celery.producer_or_acquire() as producer:
+            for uid in ids:
+                celery.send_task(
+                    RUN_UNIT_TASK, args=[uid], producer=producer, retry=True,
+                    retry_policy=PUBLISH_RETRY_POLICY,
+                )
+                sent.append(uid)
+    except Exception as exc:  # broker down: the relay re-publishes from the DB
+        log.warning("publishing %d units failed after %d: %s", len(ids), len(sent), exc)
+        if raise_errors:
+            raise
+    return sent
+
+
+def check_broker(celery: Celery, timeout: float = 2.0) -> None:
+    """Raise if the broker cannot be reached (used by /readyz)."""
+    url = celery.conf.broker_url or ""
+    if is_filesystem(url):
+        opts = celery.conf.broker_transport_options or {}
+        for key in ("data_folder_in", "data_folder_out"):
+            path = opts.get(key)
+            if not path or not os.path.isdir(path) or not os.access(path, os.W_OK):
+                raise RuntimeError(f"broker folder {path!r} is missing or not writable")
+        return
+    with celery.connection_for_write() as conn:
+        conn.ensure_connection(max_retries=1, timeout=timeout)
+        if url.startswith(("redis:", "rediss:")):
+            conn.default_channel.client.ping()
+
+
+def relay_once(celery: Celery, session, limit: int = 500) -> int:
+    """Publish the units that :func:`~service.db.crud.units_to_publish` returns and
+    mark them; returns how many were sent. The caller commits ``session``."""
+    from service.db import crud
+
+    ids = crud.units_to_publish(session, limit=limit)
+    sent = publish_units(celery, ids)
+    crud.mark_published(session, sent)
+    return len(sent)

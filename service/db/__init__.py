@@ -1,0 +1,1 @@
+"""DB models, sessions and the CRUD functions shared by the API, the worker and beat."""

@@ -1,0 +1,259 @@
+"""SQLAlchemy 2 ORM models. Tables are created only by Alembic (migrations/).
+
+Result rows carry one SQL column per scalar of SPEC section 10 (booleans as
+Boolean, the rest Float/Integer) and the matrices as JSON, keyed uniquely on
+(job, system, sigma_w, N, estimator, gamma_key, rep) where ``gamma_key`` is
+gamma, or -1 for ols (NULLs are never equal in a UNIQUE constraint).
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+from sqlalchemy.types import TypeDecorator
+
+from svrobs_core.records import BOOL_FIELDS, MATRIX_FIELDS, NUMERIC_FIELDS
+
+JOB_STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
+JOB_ACTIVE = ("queued", "running")
+UNIT_STATUSES = ("pending", "running", "done", "failed", "cancelled")
+OLS_GAMMA_KEY = -1.0
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+class UTCDateTime(TypeDecorator):
+    """Timezone-aware UTC datetimes on every dialect (SQLite stores them naive)."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value, dialect):
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            value = value.replace(tzinfo=UTC)
+        value = value.astimezone(UTC)
+        if dialect.name == "sqlite":
+            return value.replace(tzinfo=None)
+        return value
+
+    def process_result_value(self, value, dialect):
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            return value.replace(tzinfo=UTC)
+        return value.astimezone(UTC)
+
+
+class Base(DeclarativeBase):
+    type_annotation_map = {datetime: UTCDateTime(), dict[str, Any]: JSON, list[Any]: JSON}
+
+
+class Team(Base):
+    __tablename__ = "teams"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(200), unique=True)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class User(Base):
+    __tablename__ = "users"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    team_id: Mapped[int] = mapped_column(ForeignKey("teams.id", ondelete="CASCADE"), index=True)
+    email: Mapped[str] = mapped_column(String(320), unique=True)
+    is_admin: Mapped[bool] = mapped_column(Boolean, default=False)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    team: Mapped[Team] = relationship()
+
+
+class ApiKey(Base):
+    __tablename__ = "api_keys"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    prefix: Mapped[str] = mapped_column(String(16), unique=True, index=True)
+    key_hash: Mapped[str] = mapped_column(String(64))  # sha256 hex of the whole key
+    team_id: Mapped[int] = mapped_column(ForeignKey("teams.id", ondelete="CASCADE"), index=True)
+    user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"))
+    name: Mapped[str | None] = mapped_column(String(200))
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    expires_at: Mapped[datetime | None]
+    revoked_at: Mapped[datetime | None]
+    last_used_at: Mapped[datetime | None]
+    user: Mapped[User | None] = relationship()
+
+
+class Job(Base):
+    __tablename__ = "jobs"
+    __table_args__ = (
+        UniqueConstraint("team_id", "idempotency_key", name="uq_jobs_team_idempotency"),
+        Index("ix_jobs_team_status", "team_id", "status"),
+        Index("ix_jobs_team_created", "team_id", "created_at"),
+    )
+    id: Mapped[int] = mapped_column(primary_key=True)
+    team_id: Mapped[int] = mapped_column(ForeignKey("teams.id", ondelete="CASCADE"))
+    user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id", ondelete="SET NULL"))
+    schedule_id: Mapped[int | None] = mapped_column(
+        ForeignKey("schedules.id", ondelete="SET NULL"), index=True
+    )
+    name: Mapped[str | None] = mapped_column(String(200))
+    tags: Mapped[list[Any]] = mapped_column(default=list)
+    spec: Mapped[dict[str, Any]]
+    status: Mapped[str] = mapped_column(String(16), default="queued")
+    progress_done: Mapped[int] = mapped_column(default=0)
+    progress_total: Mapped[int] = mapped_column(default=0)
+    n_cells: Mapped[int] = mapped_column(default=0)
+    provenance: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    idempotency_key: Mapped[str | None] = mapped_column(String(200))
+    error: Mapped[str | None] = mapped_column(Text)
+    timings: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    started_at: Mapped[datetime | None]
+    finished_at: Mapped[datetime | None]
+
+    user: Mapped[User | None] = relationship()
+    tag_rows: Mapped[list[JobTag]] = relationship(
+        cascade="all, delete-orphan", passive_deletes=True
+    )
+
+
+class JobTag(Base):
+    """One row per (job, tag) so that ``GET /jobs?tag=`` is an indexed lookup."""
+
+    __tablename__ = "job_tags"
+    job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
+    tag: Mapped[str] = mapped_column(String(200), primary_key=True, index=True)
+
+
+class WorkUnit(Base):
+    __tablename__ = "work_units"
+    __table_args__ = (
+        UniqueConstraint("job_id", "index", name="uq_work_units_job_index"),
+        Index("ix_work_units_status_published", "status", "published_at"),
+    )
+    id: Mapped[int] = mapped_column(primary_key=True)
+    job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"))
+    index: Mapped[int]
+    payload: Mapped[dict[str, Any]]
+    n_cells: Mapped[int] = mapped_column(default=0)
+    status: Mapped[str] = mapped_column(String(16), default="pending")
+    attempts: Mapped[int] = mapped_column(default=0)
+    worker: Mapped[str | None] = mapped_column(String(200))
+    published_at: Mapped[datetime | None]
+    lease_expires_at: Mapped[datetime | None]
+    error: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    started_at: Mapped[datetime | None]
+    finished_at: Mapped[datetime | None]
+    job: Mapped[Job] = relationship()
+
+
+def _numeric_type(field: str):
+    if field in BOOL_FIELDS:
+        return Boolean
+    if field in ("N", "N0", "rep"):
+        return Integer
+    return Float
+
+
+# Columns of `results` that hold record fields, in SPEC section 10 order.
+RESULT_SCALAR_FIELDS = tuple(NUMERIC_FIELDS)
+RESULT_MATRIX_FIELDS = tuple(MATRIX_FIELDS)
+
+
+BigIntPK = BigInteger().with_variant(Integer, "sqlite")  # SQLite rowids are 64-bit already
+
+
+class Result(Base):
+    __tablename__ = "results"
+    __table_args__ = (
+        UniqueConstraint(
+            "job_id", "system", "sigma_w", "N", "estimator", "gamma_key", "rep",
+            name="uq_results_cell",
+        ),
+        Index("ix_results_job_N", "job_id", "N"),
+        Index("ix_results_job_estimator", "job_id", "estimator", "gamma_key"),
+        Index("ix_results_job_rep", "job_id", "rep"),
+        Index("ix_results_job_sigma", "job_id", "sigma_w"),
+    )
+    id: Mapped[int] = mapped_column(BigIntPK, primary_key=True)
+    job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"))
+    system: Mapped[str] = mapped_column(String(200))
+    estimator: Mapped[str] = mapped_column(String(32))
+    gamma_key: Mapped[float] = mapped_column(Float)
+    seed_key: Mapped[Any | None] = mapped_column(JSON)
+    sls_status: Mapped[str | None] = mapped_column(String(64))
+    notes: Mapped[str | None] = mapped_column(Text)
+
+    # One column per numeric field and per matrix field, named exactly as in SPEC section 10
+    # (a class body's namespace is a plain dict, so the loop can add them).
+    _ns = locals()
+    for _f in RESULT_SCALAR_FIELDS:
+        _ns[_f] = mapped_column(_f, _numeric_type(_f), nullable=_f not in ("sigma_w", "N", "rep"))
+    for _f in RESULT_MATRIX_FIELDS:
+        _ns[_f] = mapped_column(_f, JSON, nullable=True)
+    del _ns, _f
+
+
+
+
+class Summary(Base):
+    __tablename__ = "summaries"
+    __table_args__ = (
+        UniqueConstraint(
+            "job_id", "system", "sigma_w", "N", "estimator", "gamma_key", name="uq_summaries_group"
+        ),
+    )
+    id: Mapped[int] = mapped_column(primary_key=True)
+    job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    system: Mapped[str] = mapped_column(String(200))
+    sigma_w: Mapped[float] = mapped_column(Float)
+    N: Mapped[int] = mapped_column("N", Integer)
+    estimator: Mapped[str] = mapped_column(String(32))
+    gamma: Mapped[float | None] = mapped_column(Float)
+    gamma_key: Mapped[float] = mapped_column(Float)
+    count: Mapped[int]
+    stats: Mapped[dict[str, Any]]
+
+
+class Schedule(Base):
+    __tablename__ = "schedules"
+    __table_args__ = (UniqueConstraint("team_id", "name", name="uq_schedules_team_name"),)
+    id: Mapped[int] = mapped_column(primary_key=True)
+    team_id: Mapped[int] = mapped_column(ForeignKey("teams.id", ondelete="CASCADE"), index=True)
+    user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id", ondelete="SET NULL"))
+    name: Mapped[str] = mapped_column(String(200))
+    cron: Mapped[str] = mapped_column(String(200))
+    timezone: Mapped[str] = mapped_column(String(64), default="UTC")
+    spec_template: Mapped[dict[str, Any]]
+    tags: Mapped[list[Any]] = mapped_column(default=list)
+    enabled: Mapped[bool] = mapped_column(Boolean, default=True)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(default=utcnow, onupdate=utcnow)
+
+
+class ScheduleRun(Base):
+    __tablename__ = "schedule_runs"
+    __table_args__ = (UniqueConstraint("schedule_id", "due_at", name="uq_schedule_runs_due"),)
+    id: Mapped[int] = mapped_column(primary_key=True)
+    schedule_id: Mapped[int] = mapped_column(ForeignKey("schedules.id", ondelete="CASCADE"))
+    due_at: Mapped[datetime]
+    job_id: Mapped[int | None] = mapped_column(ForeignKey("jobs.id", ondelete="SET NULL"))
+    error: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)

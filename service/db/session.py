@@ -1,0 +1,114 @@
+"""Engines and sessions, cached per URL; the one place connections are configured.
+
+SQLite (the embedded default) is shared by the API, the worker and beat
+processes, so every connection gets WAL, foreign keys and a busy timeout,
+and transactions are begun explicitly: ``BEGIN IMMEDIATE`` for writing
+sessions (the default: no SQLITE_BUSY when a reader upgrades to a writer) and
+a deferred ``BEGIN`` for read-only sessions (long result streams never block
+writers in WAL mode). Savepoints work because pysqlite's own transaction
+handling is switched off (SQLAlchemy's documented recipe).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from sqlalchemy import Engine, create_engine, event
+from sqlalchemy.engine import make_url
+from sqlalchemy.orm import Session, sessionmaker
+
+_lock = threading.Lock()
+_engines: dict[tuple[str, bool], Engine] = {}
+_makers: dict[tuple[str, bool], sessionmaker] = {}
+
+SQLITE_BUSY_TIMEOUT_MS = 30_000
+
+
+def _ensure_sqlite_dir(url: str) -> None:
+    u = make_url(url)
+    db = u.database
+    if db and db != ":memory:" and not db.startswith("file:"):
+        parent = os.path.dirname(os.path.abspath(db))
+        os.makedirs(parent, exist_ok=True)
+
+
+def _sqlite_hooks(engine: Engine, immediate: bool) -> None:
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_conn, _record):
+        dbapi_conn.isolation_level = None  # we emit BEGIN ourselves (savepoints work)
+        cur = dbapi_conn.cursor()
+        cur.execute(f"PRAGMA busy_timeout = {SQLITE_BUSY_TIMEOUT_MS}")
+        cur.execute("PRAGMA foreign_keys = ON")
+        cur.execute("PRAGMA journal_mode = WAL")
+        cur.execute("PRAGMA synchronous = NORMAL")
+        cur.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(conn):
+        conn.exec_driver_sql("BEGIN IMMEDIATE" if immediate else "BEGIN")
+
+
+def create_db_engine(url: str, *, write: bool = True) -> Engine:
+    """A new engine (not cached); see :func:`get_engine`."""
+    if url.startswith("sqlite"):
+        _ensure_sqlite_dir(url)
+        engine = create_engine(
+            url, connect_args={"check_same_thread": False, "timeout": SQLITE_BUSY_TIMEOUT_MS / 1000}
+        )
+        _sqlite_hooks(engine, immediate=write)
+        return engine
+    kwargs: dict = {"pool_pre_ping": True}
+    if url.startswith("postgresql"):
+        kwargs["connect_args"] = {"connect_timeout": 5}
+    return create_engine(url, **kwargs)
+
+
+def get_engine(url: str | None = None, *, write: bool = True) -> Engine:
+    """The engine for ``url`` (default: settings.DATABASE_URL), one per (URL, write) per process."""
+    if url is None:
+        from service.config import get_settings
+
+        url = get_settings().DATABASE_URL
+    key = (url, write)
+    with _lock:
+        engine = _engines.get(key)
+        if engine is None:
+            engine = _engines[key] = create_db_engine(url, write=write)
+        return engine
+
+
+def get_sessionmaker(url: str | None = None, *, write: bool = True) -> sessionmaker:
+    """A sessionmaker bound to :func:`get_engine` (``expire_on_commit=False``)."""
+    engine = get_engine(url, write=write)
+    key = (str(engine.url.render_as_string(hide_password=False)), write)
+    with _lock:
+        maker = _makers.get(key)
+        if maker is None:
+            maker = _makers[key] = sessionmaker(bind=engine, expire_on_commit=False)
+        return maker
+
+
+@contextmanager
+def session_scope(url: str | None = None, *, write: bool = True) -> Iterator[Session]:
+    """``with session_scope() as s: ...`` commits on success, rolls back on error."""
+    session = get_sessionmaker(url, write=write)()
+    try:
+        yield session
+        session.commit()
+    except BaseException:
+        session.rollback()
+        raise
+    finally:
+        session.close()
+
+
+def dispose_all() -> None:
+    """Dispose every cached engine (tests; after fork)."""
+    with _lock:
+        for engine in _engines.values():
+            engine.dispose()
+        _engines.clear()
+        _makers.clear()

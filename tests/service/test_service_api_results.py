@@ -1,0 +1,158 @@
+"""REST: results filters, pagination, CSV/JSONL streams, summary, compare, presets."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+import pytest
+from sqlalchemy import select
+from svc_fakes import run_job_units
+from svc_helpers import SMALL_SPEC
+
+from service.db.crud import row_to_record
+from service.db.models import Result
+from svrobs_core.records import MATRIX_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
+
+API = "/api/v1"
+
+
+@pytest.fixture
+def done_job(client, session, make_account):
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    run_job_units(session, jid)
+    rows = session.scalars(select(Result).where(Result.job_id == jid)).all()
+    return acc, jid, [row_to_record(r) for r in rows]
+
+
+def _key(r):
+    return (r["system"], r["sigma_w"], r["N"], r["estimator"],
+            -1 if r["gamma"] is None else r["gamma"], r["rep"])
+
+
+def test_results_page_and_filters(client, done_job):
+    acc, jid, stored = done_job
+    r = client.get(f"{API}/jobs/{jid}/results", headers=acc.headers).json()
+    assert r["total"] == 72 and r["limit"] == 100 and len(r["items"]) == 72
+    item = r["items"][0]
+    assert list(item) == list(RECORD_FIELDS)
+    assert isinstance(item["A_hat"], list) and isinstance(item["A_hat"][0], list)
+    assert item["rmse_B"] is None  # NaN -> null
+    assert [_key(x) for x in r["items"]] == sorted(_key(x) for x in stored)
+
+    def get(**params):
+        return client.get(f"{API}/jobs/{jid}/results", params=params, headers=acc.headers)
+
+    f = get(system="paper-unstable", N=40, estimator="svr", gamma=0.1).json()
+    assert f["total"] == 2 * 3  # sigma_w x rep
+    assert all(x["system"] == "paper-unstable" and x["N"] == 40 and x["gamma"] == 0.1
+               for x in f["items"])
+    ols = get(gamma="null").json()
+    assert ols["total"] == 24 and {x["estimator"] for x in ols["items"]} == {"ols"}
+    two = get(N=[20, 40], rep=[0, 2], sigma_w=0.5).json()
+    assert two["total"] == 2 * 2 * 2 * 3
+    page1 = get(limit=10).json()
+    page2 = get(limit=10, offset=10).json()
+    assert len(page1["items"]) == 10 and page1["total"] == 72
+    assert page1["items"][-1] != page2["items"][0]
+    assert [_key(x) for x in page1["items"] + page2["items"]] == sorted(
+        _key(x) for x in stored)[:20]
+    assert get(gamma="abc").json()["field"] == "gamma"
+    assert get(sigma_w="nan").status_code == 422
+    assert get(limit=0).status_code == 422
+    assert get(format="xml").json()["field"] == "format"
+
+
+def _parse_csv_value(field, text):
+    if text == "":
+        return None
+    if field in MATRIX_FIELDS or field == "seed_key":
+        return json.loads(text)
+    if text in ("true", "false"):
+        return text == "true"
+    if field in NUMERIC_FIELDS:
+        return int(text) if field in ("N", "N0", "rep") else float(text)
+    return text
+
+
+def test_csv_and_jsonl_round_trip(client, done_job):
+    acc, jid, stored = done_job
+    by_key = {_key(r): r for r in stored}
+    r = client.get(f"{API}/jobs/{jid}/results", params={"format": "csv"}, headers=acc.headers)
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
+    rows = list(csv.reader(io.StringIO(r.text)))
+    assert rows[0] == list(RECORD_FIELDS)
+    parsed = [{f: _parse_csv_value(f, v) for f, v in zip(rows[0], row)} for row in rows[1:]]
+    assert len(parsed) == 72
+    for rec in parsed:
+        assert rec == by_key[_key(rec)]
+    r = client.get(f"{API}/jobs/{jid}/results", params={"format": "jsonl", "N": 20},
+                   headers=acc.headers)
+    assert r.headers["content-type"].startswith("application/x-ndjson")
+    lines = [json.loads(x) for x in r.text.splitlines()]
+    assert len(lines) == 36 and all(x == by_key[_key(x)] for x in lines)
+    assert "NaN" not in r.text
+
+
+def test_summary(client, done_job):
+    acc, jid, stored = done_job
+    s = client.get(f"{API}/jobs/{jid}/summary", headers=acc.headers).json()
+    assert s["partial"] is False and len(s["groups"]) == 24
+    g = next(x for x in s["groups"] if x["system"] == "paper-stable" and x["sigma_w"] == 0.5
+             and x["N"] == 20 and x["estimator"] == "ols")
+    vals = [r["rmse_A"] for r in stored if r["system"] == "paper-stable" and r["sigma_w"] == 0.5
+            and r["N"] == 20 and r["estimator"] == "ols"]
+    assert g["count"] == 3 and g["gamma"] is None
+    assert g["stats"]["rmse_A"]["mean"] == pytest.approx(sum(vals) / 3)
+    assert g["stats"]["rmse_B"] == {"mean": None, "std": None, "count": 0}
+
+
+def test_summary_of_running_job_is_partial(client, session, make_account):
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    s = client.get(f"{API}/jobs/{jid}/summary", headers=acc.headers).json()
+    assert s == {"job_id": jid, "partial": True, "groups": []}
+
+
+def test_compare(client, session, done_job):
+    acc, jid, stored = done_job
+    jid2 = client.post(f"{API}/jobs", json={**SMALL_SPEC, "N": [20]},
+                       headers=acc.headers).json()["id"]
+    run_job_units(session, jid2)
+    r = client.get(f"{API}/compare", params={"jobs": f"{jid},{jid2}", "metric": "rmse_A",
+                                              "by": "N,estimator"}, headers=acc.headers)
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["metric"] == "rmse_A" and body["by"] == ["N", "estimator"]
+    rows = {(x["job_id"], x["N"], x["estimator"]): x for x in body["rows"]}
+    assert set(rows) == {(j, n, e) for j in (jid, jid2) for n in ((20, 40) if j == jid else (20,))
+                         for e in ("ols", "svr")}
+    vals = [x["rmse_A"] for x in stored if x["N"] == 40 and x["estimator"] == "svr"]
+    assert rows[(jid, 40, "svr")]["count"] == len(vals) == 24
+    assert rows[(jid, 40, "svr")]["mean"] == pytest.approx(sum(vals) / len(vals))
+    # identical cells in both jobs give the same numbers
+    assert rows[(jid, 20, "ols")]["mean"] == pytest.approx(rows[(jid2, 20, "ols")]["mean"])
+    b = client.get(f"{API}/compare", params={"jobs": jid, "metric": "thm1_holds_A", "by": "N"},
+                   headers=acc.headers).json()
+    assert all(0 <= x["mean"] <= 1 for x in b["rows"])
+
+    def bad(**params):
+        r = client.get(f"{API}/compare", params=params, headers=acc.headers)
+        assert r.status_code == 422, r.text
+        return r.json()["field"]
+
+    assert bad(jobs=jid, metric="notes") == "metric"
+    assert bad(jobs=jid, metric="A_hat") == "metric"
+    assert bad(jobs=jid, metric="rmse_A", by="N,color") == "by"
+    assert bad(jobs="1,x", metric="rmse_A") == "jobs"
+    assert bad(metric="rmse_A") == "jobs"
+
+
+def test_presets(client, make_account):
+    acc = make_account()
+    r = client.get(f"{API}/presets", headers=acc.headers).json()
+    names = [p["name"] for p in r]
+    assert "paper-stable" in names and "paper-unstable" in names
+    assert r[0]["A"] and r[0]["B"]

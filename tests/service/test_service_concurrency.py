@@ -1,0 +1,96 @@
+"""Real concurrent transactions (separate connections, committed data, cleaned up):
+a doubled beat tick makes one job; two units finishing together finish the job."""
+
+from __future__ import annotations
+
+import threading
+from datetime import UTC, datetime
+
+import pytest
+from sqlalchemy import delete, func, select
+from sqlalchemy.orm import sessionmaker
+from svc_fakes import fake_records
+from svc_helpers import SMALL_SPEC
+
+from service import admin
+from service.db import crud
+from service.db.models import Job, Schedule, Team
+
+
+@pytest.fixture
+def real_sessions(engine):
+    maker = sessionmaker(bind=engine, expire_on_commit=False)
+    team_ids = []
+    yield maker, team_ids
+    with maker() as s:
+        for tid in team_ids:
+            s.execute(delete(Team).where(Team.id == tid))
+        s.commit()
+
+
+def _parallel(fns):
+    errors = []
+    barrier = threading.Barrier(len(fns))
+
+    def wrap(fn):
+        try:
+            barrier.wait(5)
+            fn()
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    threads = [threading.Thread(target=wrap, args=(f,)) for f in fns]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert not errors, errors
+
+
+def test_two_ticks_at_once_make_one_job(real_sessions):
+    maker, team_ids = real_sessions
+    with maker() as s:
+        team = admin.create_team(s, "concurrent-beat")
+        team_ids.append(team.id)
+        s.add(Schedule(team_id=team.id, name="n", cron="*/5 * * * *", timezone="UTC",
+                       spec_template=SMALL_SPEC, tags=[],
+                       created_at=datetime(2024, 1, 1, tzinfo=UTC)))
+        s.commit()
+    now = datetime(2024, 6, 1, 12, 7, tzinfo=UTC)
+
+    def tick():
+        with maker() as s:
+            crud.create_due_schedule_jobs(s, now)
+            s.commit()
+
+    _parallel([tick, tick, tick])
+    with maker() as s:
+        assert s.scalar(select(func.count(Job.id)).where(Job.team_id == team_ids[0])) == 1
+
+
+def test_units_finishing_together_finish_the_job(real_sessions):
+    maker, team_ids = real_sessions
+    with maker() as s:
+        team = admin.create_team(s, "concurrent-units")
+        team_ids.append(team.id)
+        job = crud.create_job(s, team_id=team.id, user_id=None, spec=SMALL_SPEC)
+        s.commit()
+        ids = crud.unit_ids_of_job(s, job.id)
+        for uid in ids:
+            crud.start_unit(s, uid, "w", 60)
+        s.commit()
+        payloads = {uid: crud.start_unit(s, uid, "w", 60) for uid in ids}
+        s.commit()
+
+    def finisher(uid):
+        def fn():
+            with maker() as s:
+                spec, payload = payloads[uid]
+                crud.complete_unit(s, uid, fake_records(spec, payload))
+                s.commit()
+        return fn
+
+    _parallel([finisher(u) for u in ids])
+    with maker() as s:
+        j = s.get(Job, job.id)
+        assert j.status == "succeeded" and j.progress_done == len(ids)

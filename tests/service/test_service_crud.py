@@ -1,0 +1,263 @@
+"""crud: jobs, units, idempotent completion, relay, schedules, cancel."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime, timedelta
+
+import pytest
+from sqlalchemy import func, select
+from svc_fakes import fake_records, run_job_units
+from svc_helpers import SMALL_SPEC
+
+from service.db import crud
+from service.db.models import Job, Result, Schedule, ScheduleRun, Summary, WorkUnit
+from svrobs_core.errors import SpecError
+from svrobs_core.spec import parse_spec
+
+
+def _count(session, model, **where):
+    q = select(func.count()).select_from(model)
+    for k, v in where.items():
+        q = q.where(getattr(model, k) == v)
+    return session.scalar(q)
+
+
+def test_create_job_writes_job_and_units(session, make_account):
+    acc = make_account()
+    job = crud.create_job(session, team_id=acc.team.id, user_id=acc.user.id, spec=SMALL_SPEC,
+                          name="small", tags=["a", "b", "a"])
+    session.commit()
+    assert job.was_created and job.status == "queued"
+    assert job.n_cells == parse_spec(SMALL_SPEC).n_cells == 2 * 2 * 2 * 3 * 3
+    assert job.spec == parse_spec(SMALL_SPEC).to_dict()
+    assert job.tags == ["a", "b"]
+    assert job.provenance["seed"] == 7 and job.provenance["version"]
+    assert {"python", "numpy", "git_commit"} <= set(job.provenance)
+    assert _count(session, WorkUnit, job_id=job.id) == job.progress_total == 8
+
+
+def test_idempotency_key_returns_same_job(session, make_account):
+    acc = make_account()
+    kw = dict(team_id=acc.team.id, user_id=acc.user.id, spec=SMALL_SPEC, idempotency_key="k1")
+    a = crud.create_job(session, **kw)
+    session.commit()
+    b = crud.create_job(session, **kw)
+    session.commit()
+    assert a.id == b.id and not b.was_created
+    assert _count(session, Job, team_id=acc.team.id) == 1
+    assert _count(session, WorkUnit, job_id=a.id) == 8
+    with pytest.raises(crud.IdempotencyConflict):
+        crud.create_job(session, **{**kw, "spec": {**SMALL_SPEC, "seed": 8}})
+    # the key is per team
+    other = make_account()
+    c = crud.create_job(session, **{**kw, "team_id": other.team.id, "user_id": other.user.id})
+    assert c.id != a.id
+
+
+def test_bad_and_too_large_specs_raise(session, make_account):
+    acc = make_account()
+    with pytest.raises(SpecError) as e:
+        crud.create_job(session, team_id=acc.team.id, user_id=None,
+                        spec={**SMALL_SPEC, "gamma": [0.1, -1]})
+    assert e.value.field == "gamma[1]"
+    with pytest.raises(crud.JobTooLarge) as e:
+        crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC,
+                        max_cells=10)
+    assert e.value.field == "spec"
+    assert _count(session, Job, team_id=acc.team.id) == 0
+
+
+def test_queued_job_cap(session, make_account):
+    acc = make_account()
+    for _ in range(2):
+        crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC,
+                        max_active_jobs=2)
+    with pytest.raises(crud.QuotaExceeded):
+        crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC,
+                        max_active_jobs=2)
+
+
+def test_unit_lifecycle_and_double_completion(session, make_account):
+    acc = make_account()
+    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    session.commit()
+    ids = crud.unit_ids_of_job(session, job.id)
+    spec, payload = crud.start_unit(session, ids[0], "w1", 60)
+    session.commit()
+    session.refresh(job)
+    assert job.status == "running" and job.started_at is not None
+    recs = fake_records(spec, payload)
+    crud.complete_unit(session, ids[0], recs)
+    crud.complete_unit(session, ids[0], recs)  # a redelivered task
+    session.commit()
+    assert _count(session, Result, job_id=job.id) == len(recs)
+    session.refresh(job)
+    assert job.progress_done == 1 and job.status == "running"
+    assert crud.start_unit(session, ids[0], "w2", 60) is None  # done units are skipped
+    run_job_units(session, job.id)
+    session.refresh(job)
+    assert job.status == "succeeded" and job.progress_done == job.progress_total == 8
+    assert job.finished_at and "run_seconds" in job.timings
+    assert _count(session, Result, job_id=job.id) == job.n_cells
+    # one row per cell even after a full second pass
+    for uid in ids:
+        unit = session.get(WorkUnit, uid)
+        crud.complete_unit(session, uid, fake_records(job.spec, unit.payload))
+    session.commit()
+    assert _count(session, Result, job_id=job.id) == job.n_cells
+    groups = session.scalars(select(Summary).where(Summary.job_id == job.id)).all()
+    assert len(groups) == 2 * 2 * 2 * 3  # system x sigma_w x N x (ols, svr 0.05, svr 0.1)
+    assert all(g.count == 3 for g in groups)
+    ols = [g for g in groups if g.estimator == "ols"]
+    assert all(g.gamma is None and g.gamma_key == -1 for g in ols)
+
+
+def test_stored_values_round_trip(session, make_account):
+    acc = make_account()
+    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    session.commit()
+    uid = crud.unit_ids_of_job(session, job.id)[0]
+    spec, payload = crud.start_unit(session, uid, "w", 60)
+    recs = fake_records(spec, payload)
+    crud.complete_unit(session, uid, recs)
+    session.commit()
+    rows = session.execute(select(Result).where(Result.job_id == job.id)).scalars().all()
+    got = {(r.system, r.sigma_w, r.N, r.estimator, r.gamma, r.rep): crud.row_to_record(r)
+           for r in rows}
+    for rec in recs:
+        back = got[(rec["system"], rec["sigma_w"], rec["N"], rec["estimator"], rec["gamma"],
+                    rec["rep"])]
+        assert back["A_hat"] == rec["A_hat"]  # bit-identical through JSON
+        assert back["rmse_A"] == rec["rmse_A"]
+        assert back["rmse_B"] is None  # NaN is stored as NULL
+        assert back["thm1_holds_A"] is rec["thm1_holds_A"]
+        assert back["seed_key"] == rec["seed_key"]
+
+
+def test_fail_unit_final_names_cells(session, make_account):
+    acc = make_account()
+    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    session.commit()
+    ids = crud.unit_ids_of_job(session, job.id)
+    crud.start_unit(session, ids[1], "w", 60)
+    crud.fail_unit(session, ids[1], "boom", final=False)
+    assert session.get(WorkUnit, ids[1]).status == "pending"
+    crud.fail_unit(session, ids[1], "boom", final=True)
+    session.commit()
+    session.refresh(job)
+    assert job.status == "failed"
+    assert "boom" in job.error and "system=paper-stable" in job.error and "N=[40]" in job.error
+    assert session.get(WorkUnit, ids[2]).status == "cancelled"
+    assert crud.start_unit(session, ids[0], "w", 60) is None
+
+
+def test_max_attempts_fails_the_unit(session, make_account):
+    acc = make_account()
+    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    uid = crud.unit_ids_of_job(session, job.id)[0]
+    for _ in range(3):
+        assert crud.start_unit(session, uid, "w", 60, max_attempts=3) is not None
+    assert crud.start_unit(session, uid, "w", 60, max_attempts=3) is None
+    session.refresh(job)
+    assert job.status == "failed" and "3 attempts" in job.error
+
+
+def test_relay_publishes_unpublished_and_expired(session, make_account):
+    acc = make_account()
+    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    session.commit()
+    ids = crud.unit_ids_of_job(session, job.id)
+    assert crud.units_to_publish(session) == ids
+    crud.mark_published(session, ids[:5])
+    assert crud.units_to_publish(session) == ids[5:]
+    crud.mark_published(session, ids[5:])
+    assert crud.units_to_publish(session) == []
+    later = datetime.now(UTC) + timedelta(hours=2)
+    # published but never started -> re-published after the retry time
+    assert crud.units_to_publish(session, now=later, retry_seconds=600) == ids
+    crud.start_unit(session, ids[0], "w", lease_seconds=60)
+    assert ids[0] not in crud.units_to_publish(session)
+    assert ids[0] in crud.units_to_publish(session, now=later)  # the lease ran out
+    crud.mark_published(session, [ids[0]], now=later)
+    assert session.get(WorkUnit, ids[0]).status == "pending"
+    crud.cancel_job(session, job)
+    assert crud.units_to_publish(session, now=later) == []
+
+
+def test_cancel_job(session, make_account):
+    acc = make_account()
+    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    session.commit()
+    ids = crud.unit_ids_of_job(session, job.id)
+    crud.start_unit(session, ids[0], "w", 60)
+    job = crud.cancel_job(session, job)
+    session.commit()
+    assert job.status == "cancelled" and job.finished_at
+    statuses = {u.status for u in session.scalars(select(WorkUnit).where(
+        WorkUnit.job_id == job.id))}
+    assert statuses == {"running", "cancelled"}
+    assert crud.start_unit(session, ids[1], "w", 60) is None
+    # the running unit may still finish; the job stays cancelled
+    spec = job.spec
+    crud.complete_unit(session, ids[0], fake_records(spec, session.get(WorkUnit, ids[0]).payload))
+    session.refresh(job)
+    assert job.status == "cancelled"
+
+
+def _schedule(session, acc, **kw):
+    s = Schedule(team_id=acc.team.id, user_id=acc.user.id, name=kw.pop("name", "nightly"),
+                 cron=kw.pop("cron", "0 2 * * *"), timezone=kw.pop("timezone", "Europe/Paris"),
+                 spec_template=kw.pop("spec_template", SMALL_SPEC), tags=["sweep"],
+                 created_at=kw.pop("created_at", datetime(2024, 1, 1, tzinfo=UTC)),
+                 **kw)
+    session.add(s)
+    session.flush()
+    return s
+
+
+def test_due_schedule_ticked_twice_gives_one_job(session, make_account):
+    acc = make_account()
+    s = _schedule(session, acc)
+    session.commit()
+    now = datetime(2024, 6, 1, 0, 30, tzinfo=UTC)  # 02:30 in Paris (CEST)
+    first = crud.create_due_schedule_jobs(session, now)
+    session.commit()
+    second = crud.create_due_schedule_jobs(session, now + timedelta(minutes=1))
+    session.commit()
+    mine = [j for j in first if j.team_id == acc.team.id]
+    assert len(mine) == 1 and not [j for j in second if j.team_id == acc.team.id]
+    job = mine[0]
+    assert job.schedule_id == s.id and "schedule:nightly" in job.tags
+    runs = session.scalars(select(ScheduleRun).where(ScheduleRun.schedule_id == s.id)).all()
+    assert len(runs) == 1 and runs[0].job_id == job.id
+    assert runs[0].due_at == datetime(2024, 6, 1, 0, 0, tzinfo=UTC)
+    assert _count(session, Job, schedule_id=s.id) == 1
+    # the next day is a new run
+    nxt = crud.create_due_schedule_jobs(session, now + timedelta(days=1))
+    assert len([j for j in nxt if j.team_id == acc.team.id]) == 1
+
+
+def test_schedule_not_due_before_creation_or_disabled(session, make_account):
+    acc = make_account()
+    created = datetime(2024, 6, 1, 0, 10, tzinfo=UTC)
+    _schedule(session, acc, created_at=created)
+    _schedule(session, acc, name="off", enabled=False)
+    jobs = crud.create_due_schedule_jobs(session, created + timedelta(minutes=5))
+    assert not [j for j in jobs if j.team_id == acc.team.id]
+
+
+def test_schedule_with_broken_template_records_error(session, make_account):
+    acc = make_account()
+    s = _schedule(session, acc, spec_template={"systems": ["nope"], "sigma_w": [1], "N": [5]})
+    jobs = crud.create_due_schedule_jobs(session, datetime(2024, 6, 1, 3, tzinfo=UTC))
+    assert not [j for j in jobs if j.team_id == acc.team.id]
+    run = session.scalar(select(ScheduleRun).where(ScheduleRun.schedule_id == s.id))
+    assert run.job_id is None and "systems[0]" in run.error
+
+
+def test_latest_due_in_time_zone():
+    now = datetime(2024, 1, 15, 1, 30, tzinfo=UTC)  # 02:30 Paris (CET)
+    assert crud.latest_due("0 2 * * *", "Europe/Paris", now) == datetime(
+        2024, 1, 15, 1, 0, tzinfo=UTC)
+    exact = datetime(2024, 1, 15, 1, 0, tzinfo=UTC)
+    assert crud.latest_due("0 2 * * *", "Europe/Paris", exact) == exact
