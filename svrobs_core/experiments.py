@@ -167,7 +167,7 @@ def _run_stages(spec, system, sigma_w, N, N0, keys, A_hat, B_hat, gamma, axis, o
     return state
 
 
-_CELL_FIELDS_RE = (
+_CELL_FIELDS = (
     "A_hat", "B_hat", "rmse_A", "rmse_B", "H_A", "H_B", "r_A", "r_B", "eps_A", "eps_B",
     "coverage_A", "coverage_B", "thm1_holds_A", "thm1_holds_B", "rho_upper_bound",
     "stable_certified", "L", "g_L", "certified", "rho_true", "K", "J_exact", "J_stationary",
@@ -176,20 +176,33 @@ _CELL_FIELDS_RE = (
 )
 
 
+def _as_lists(arr) -> list:
+    """An (R, E, ...) field -> nested Python lists, NaN/inf -> None (one pass per field)."""
+    arr = np.asarray(arr)
+    if arr.dtype == object or arr.dtype == bool:
+        return arr.tolist()
+    arr = arr.astype(float, copy=False)
+    finite = np.isfinite(arr)
+    cell_ok = finite.reshape(finite.shape[:2] + (-1,)).all(axis=-1)
+    out = np.where(finite, arr, 0.0).tolist()
+    for ri, ei in zip(*np.nonzero(~cell_ok)):
+        out[ri][ei] = json_value(arr[ri, ei])
+    return out
+
+
 def _records(spec, si, wi, N, N0, reps, axis, fields, notes) -> list[dict]:
     system = spec.systems[si]
+    present = {f: _as_lists(fields[f]) for f in _CELL_FIELDS if fields.get(f) is not None}
+    sigma_w = spec.sigma_w[wi]
     recs = []
     for ri, rep in enumerate(reps):
+        key = list(seed_key(si, wi, N, rep))
         for ei, (name, g) in enumerate(zip(axis.names, axis.gammas)):
             rec = empty_record()
-            rec.update(
-                system=system.name, sigma_w=spec.sigma_w[wi], N=N, N0=N0, estimator=name,
-                gamma=g, rep=rep, seed_key=list(seed_key(si, wi, N, rep)),
-            )
-            for f in _CELL_FIELDS_RE:
-                arr = fields.get(f)
-                if arr is not None:
-                    rec[f] = json_value(arr[ri, ei])
+            rec.update(system=system.name, sigma_w=sigma_w, N=N, N0=N0, estimator=name,
+                       gamma=g, rep=rep, seed_key=list(key))
+            for f, values in present.items():
+                rec[f] = values[ri][ei]
             cell_notes = notes.items[ri, ei]
             rec["notes"] = "; ".join(cell_notes) if cell_notes else None
             recs.append(rec)

@@ -44,14 +44,25 @@ def draw_noise(seed, keys, *, N, T0, n, m, sigma_u, sigma_w, x0_std=0.0):
 
 
 def simulate(A, B, x0, u, w) -> np.ndarray:
-    """x_{k+1} = A x_k + B u_k + w_k for all rollouts at once -> x (R, N, T0+1, n)."""
-    R, N, T0, _ = u.shape
-    x = np.empty((R, N, T0 + 1, A.shape[0]))
-    x[:, :, 0] = x0
-    At, Bt = A.T, B.T
+    """x_{k+1} = A x_k + B u_k + w_k for all rollouts at once -> x (R, N, T0+1, n).
+
+    Written as elementwise multiply-adds (no BLAS), so every rollout's
+    numbers are the same to the bit whatever the batch size.
+    """
+    R, N, T0, m = u.shape
+    n = A.shape[0]
+    x = np.empty((T0 + 1, R, N, n))
+    x[0] = x0
+    ut = np.moveaxis(u, 2, 0)
+    wt = np.moveaxis(w, 2, 0)
     for k in range(T0):
-        x[:, :, k + 1] = x[:, :, k] @ At + u[:, :, k] @ Bt + w[:, :, k]
-    return x
+        xn = wt[k].copy()
+        for j in range(n):
+            xn += x[k, ..., j, None] * A[:, j]
+        for j in range(m):
+            xn += ut[k, ..., j, None] * B[:, j]
+        x[k + 1] = xn
+    return np.moveaxis(x, 0, 2)
 
 
 def regression_data(x, u, data: str = "all"):
