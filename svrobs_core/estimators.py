@@ -49,8 +49,8 @@ def ridge_parameters(gammas, N0: int, loss_scale: str = "sum") -> np.ndarray:
     raise ValueError(f"loss_scale must be one of {LOSS_SCALES}, got {loss_scale!r}")
 
 
-REFINE_STEPS = 2
-REFINE_COND_LIMIT = 1e10  # above this cond(Z Z^T) the normal equations are not trusted
+REFINE_STEPS = 1
+REFINE_COND_LIMIT = 1e8  # above this cond(Z Z^T) one refinement step is not enough: use QR
 
 
 def fit_ols(Z: np.ndarray, F: np.ndarray) -> np.ndarray:

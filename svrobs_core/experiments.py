@@ -228,10 +228,30 @@ def run_spec(
     spec: ExperimentSpec,
     progress: Callable[[int, int], None] | None = None,
     units: list[dict] | None = None,
+    n_jobs: int = 1,
 ) -> Iterator[list[dict]]:
-    """Run every unit in process, yielding each unit's records."""
+    """Run every unit in process, yielding each unit's records in unit order.
+
+    ``n_jobs > 1`` runs units in that many worker processes (scikit-learn's
+    convention); the records are the same to the bit either way.
+    """
     units = plan_units(spec) if units is None else units
+    if n_jobs > 1 and len(units) > 1:
+        yield from _run_parallel(spec, units, progress, n_jobs)
+        return
     for i, unit in enumerate(units):
         yield run_unit(spec, unit)
         if progress is not None:
             progress(i + 1, len(units))
+
+
+def _run_parallel(spec, units, progress, n_jobs):
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else None
+    with ProcessPoolExecutor(max_workers=n_jobs, mp_context=ctx) as pool:
+        for i, batch in enumerate(pool.map(run_unit, [spec] * len(units), units, chunksize=4)):
+            yield batch
+            if progress is not None:
+                progress(i + 1, len(units))

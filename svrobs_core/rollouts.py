@@ -24,62 +24,66 @@ def rng_for(seed: int, key: tuple, stream: tuple = DATA_STREAM) -> np.random.Gen
 
 
 def draw_noise(seed, keys, *, N, T0, n, m, sigma_u, sigma_w, x0_std=0.0):
-    """Draw (x0, u, w) for every key; order per key: x0 (if x0_std > 0), u, w.
+    """Draw (x0, u, w) for every key, in the layout the simulation uses.
 
-    Returns x0 (R, N, n), u (R, N, T0, m), w (R, N, T0, n). The Python loop
-    here is one generator call per repetition (the seeding contract needs a
-    generator per key); all arithmetic is vectorised.
+    Order of draws per key (the reproducibility contract): x0 of shape
+    (n, N) if x0_std > 0, then u of shape (m, T0, N), then w of shape
+    (n, T0, N), each one ``standard_normal`` call scaled by its sigma.
+    Returns x0 (R, n, N), u (R, m, T0, N), w (R, n, T0, N). The Python loop
+    is one generator per repetition (the seeding contract needs a generator
+    per key); all arithmetic is vectorised.
     """
     R = len(keys)
-    x0 = np.zeros((R, N, n))
-    u = np.empty((R, N, T0, m))
-    w = np.empty((R, N, T0, n))
+    x0 = np.zeros((R, n, N))
+    u = np.empty((R, m, T0, N))
+    w = np.empty((R, n, T0, N))
     for i, key in enumerate(keys):
         g = rng_for(seed, key)
         if x0_std > 0:
-            x0[i] = g.standard_normal((N, n)) * x0_std
-        u[i] = g.standard_normal((N, T0, m)) * sigma_u
-        w[i] = g.standard_normal((N, T0, n)) * sigma_w
+            g.standard_normal(out=x0[i])
+        g.standard_normal(out=u[i])
+        g.standard_normal(out=w[i])
+    if x0_std > 0:
+        x0 *= x0_std
+    u *= sigma_u
+    w *= sigma_w
     return x0, u, w
 
 
 def simulate(A, B, x0, u, w) -> np.ndarray:
-    """x_{k+1} = A x_k + B u_k + w_k for all rollouts at once -> x (R, N, T0+1, n).
+    """x_{k+1} = A x_k + B u_k + w_k for all rollouts at once -> x (R, n, T0+1, N).
 
     Written as elementwise multiply-adds (no BLAS), so every rollout's
     numbers are the same to the bit whatever the batch size.
     """
-    R, N, T0, m = u.shape
+    R, m, T0, N = u.shape
     n = A.shape[0]
-    x = np.empty((T0 + 1, R, N, n))
-    x[0] = x0
-    ut = np.moveaxis(u, 2, 0)
-    wt = np.moveaxis(w, 2, 0)
+    x = np.empty((R, n, T0 + 1, N))
+    x[:, :, 0] = x0
     for k in range(T0):
-        xn = wt[k].copy()
+        xn = w[:, :, k].copy()
         for j in range(n):
-            xn += x[k, ..., j, None] * A[:, j]
+            xn += A[None, :, j, None] * x[:, j, None, k]
         for j in range(m):
-            xn += ut[k, ..., j, None] * B[:, j]
-        x[k + 1] = xn
-    return np.moveaxis(x, 0, 2)
+            xn += B[None, :, j, None] * u[:, j, None, k]
+        x[:, :, k + 1] = xn
+    return x
 
 
 def regression_data(x, u, data: str = "all"):
-    """Stack regressors Z = [x_k; u_k] (R, n+m, N0) and targets F = x_{k+1} (R, n, N0).
+    """Regressors Z = [x_k; u_k] (R, n+m, N0) and targets F = x_{k+1} (R, n, N0).
 
     ``data="all"``: k = 1..T0-1 of every rollout, N0 = (T0-1) N;
-    ``data="final"``: k = T0-1 only, N0 = N. Columns are rollout-major.
+    ``data="final"``: k = T0-1 only, N0 = N. Columns are time-major
+    (all rollouts at k = 1, then k = 2, ...).
     """
+    R, n, _, N = x.shape
     T0 = u.shape[2]
-    ks = slice(1, T0) if data == "all" else slice(T0 - 1, T0)
-    xs = x[:, :, ks]            # (R, N, K, n)
-    us = u[:, :, ks]            # (R, N, K, m)
-    xn = x[:, :, ks.start + 1 : ks.stop + 1]
-    R = x.shape[0]
-    Z = np.concatenate([xs, us], axis=-1).reshape(R, -1, xs.shape[-1] + us.shape[-1])
-    F = xn.reshape(R, -1, xn.shape[-1])
-    return np.ascontiguousarray(Z.transpose(0, 2, 1)), np.ascontiguousarray(F.transpose(0, 2, 1))
+    k0 = 1 if data == "all" else T0 - 1
+    K = T0 - k0
+    Z = np.concatenate([x[:, :, k0:T0], u[:, :, k0:T0]], axis=1).reshape(R, -1, K * N)
+    F = np.ascontiguousarray(x[:, :, k0 + 1 : T0 + 1]).reshape(R, n, K * N)
+    return Z, F
 
 
 def collect(system, sigma_w, N, T0, seed, keys, data="all", x0_std=0.0):

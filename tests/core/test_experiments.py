@@ -15,7 +15,7 @@ ALL_STAGES = ["estimate", "bounds", "gain", "cost", "cost_bound"]
 SMALL = {
     "systems": ["paper-stable", "paper-unstable"], "sigma_w": [0.1, 1.0], "N": [10, 30],
     "gamma": [0.01, 0.1], "estimators": ["ols", "svr", "shrunk-ols"], "reps": 3,
-    "stages": ALL_STAGES, "mc_runs": 50, "mc_reps": 1, "horizon": 40, "seed": 11,
+    "stages": ALL_STAGES, "mc_runs": 400, "mc_reps": 1, "horizon": 40, "seed": 11,
 }
 
 

@@ -12,18 +12,18 @@ def naive(system, sigma_w, N, T0, seed, key, data, x0_std=0.0):
     """One rollout at a time, one step at a time, drawing in the documented order."""
     g = np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=key)))
     n, m = system.n, system.m
-    x0 = g.standard_normal((N, n)) * x0_std if x0_std > 0 else np.zeros((N, n))
-    u = g.standard_normal((N, T0, m)) * system.sigma_u
-    w = g.standard_normal((N, T0, n)) * sigma_w
-    Zc, Fc = [], []
+    x0 = g.standard_normal((n, N)) * x0_std if x0_std > 0 else np.zeros((n, N))
+    u = g.standard_normal((m, T0, N)) * system.sigma_u
+    w = g.standard_normal((n, T0, N)) * sigma_w
+    traj = []
     for i in range(N):
-        x = [x0[i]]
+        x = [x0[:, i]]
         for k in range(T0):
-            x.append(system.A @ x[k] + system.B @ u[i, k] + w[i, k])
-        ks = range(1, T0) if data == "all" else [T0 - 1]
-        for k in ks:
-            Zc.append(np.concatenate([x[k], u[i, k]]))
-            Fc.append(x[k + 1])
+            x.append(system.A @ x[k] + system.B @ u[:, k, i] + w[:, k, i])
+        traj.append(x)
+    ks = range(1, T0) if data == "all" else [T0 - 1]
+    Zc = [np.concatenate([traj[i][k], u[:, k, i]]) for k in ks for i in range(N)]
+    Fc = [traj[i][k + 1] for k in ks for i in range(N)]
     return np.array(Zc).T, np.array(Fc).T
 
 
