@@ -183,10 +183,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         log.exception("unhandled error")
         return error_response(500, "internal server error")
 
-    from service.api.routes import health, jobs, presets, results, schedules
+    from service.api.routes import health, jobs, presets, reports, results, schedules
 
     app.include_router(health.router)
-    for module in (jobs, results, presets, schedules):
+    for module in (jobs, results, presets, reports, schedules):
         app.include_router(module.router, prefix=API_PREFIX)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.MAX_BODY_BYTES)
     return app
