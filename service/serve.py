@@ -1,0 +1,377 @@
+"""`svrobs serve` / `make run`: migrate, bootstrap an admin key, run every process.
+
+One command starts the whole embedded stack (or any stack the environment
+points at)::
+
+    uvicorn service.api.main:app            the REST API on API_HOST:API_PORT
+    celery -A worker.celery_app worker      one worker (prefork, concurrency 1)
+    celery -A worker.celery_app beat        the scheduler (runs the tick)
+
+Each child gets its own process group (so a terminal Ctrl-C reaches only this
+supervisor, which then stops the children in order) and, on Linux, a
+parent-death signal (so a SIGKILLed supervisor leaves no orphans). Ctrl-C or
+SIGTERM is forwarded to every child as SIGTERM; a child still running after
+``grace`` seconds gets SIGKILL (its whole group: the prefork pool too). A
+second Ctrl-C kills at once. If any child exits on its own, the others are
+stopped and ``serve`` returns non-zero.
+
+The helpers (:func:`prepare_dirs`, :func:`migrate`, :func:`child_commands`,
+:class:`Child`) are what the integration tests and ``bench/service.py`` use,
+so they start exactly the processes ``serve`` starts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from service.config import Settings, get_settings
+
+ROOT = Path(__file__).resolve().parent.parent
+THREAD_ENV = {
+    "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1",
+}
+
+
+# --------------------------------------------------------------------------- setup
+def var_dir(settings: Settings) -> Path:
+    """The state folder: ``./var`` by default (the parent of BROKER_DIR)."""
+    explicit = getattr(settings, "VAR_DIR", None)
+    return Path(explicit) if explicit else Path(settings.BROKER_DIR).resolve().parent
+
+
+def beat_schedule_file(settings: Settings) -> Path:
+    return var_dir(settings) / "celerybeat-schedule"
+
+
+def broker_folders(settings: Settings) -> list[Path]:
+    """The filesystem-broker folders make_celery configured (none for Redis)."""
+    if not settings.BROKER_URL.startswith("filesystem"):
+        return []
+    from service.broker import make_celery
+
+    opts = make_celery(settings).conf.broker_transport_options or {}
+    folders = {Path(settings.BROKER_DIR)}
+    folders |= {Path(v) for k, v in opts.items() if k.endswith("folder") or k.startswith("data_folder")}
+    return sorted(folders)
+
+
+def prepare_dirs(settings: Settings) -> None:
+    """Create ./var, the SQLite file's folder and the filesystem-broker folders."""
+    var_dir(settings).mkdir(parents=True, exist_ok=True)
+    if settings.DATABASE_URL.startswith("sqlite"):
+        from sqlalchemy.engine import make_url
+
+        db = make_url(settings.DATABASE_URL).database
+        if db and db != ":memory:":
+            Path(db).resolve().parent.mkdir(parents=True, exist_ok=True)
+    for folder in broker_folders(settings):
+        folder.mkdir(parents=True, exist_ok=True)
+
+
+def alembic_config(url: str):
+    from alembic.config import Config
+
+    ini = ROOT / "alembic.ini"
+    cfg = Config(str(ini)) if ini.exists() else Config()
+    cfg.set_main_option("script_location", str(ROOT / "migrations"))
+    cfg.set_main_option("sqlalchemy.url", url.replace("%", "%%"))
+    return cfg
+
+
+def migrate(settings: Settings | None = None, revision: str = "head") -> None:
+    """``alembic upgrade head`` against settings.DATABASE_URL (S1's helper if present)."""
+    settings = settings or get_settings()
+    try:
+        from service.db import migrate as db_migrate
+    except ImportError:
+        db_migrate = None
+    fn = None
+    if db_migrate is not None:
+        fn = next((getattr(db_migrate, n) for n in ("upgrade", "upgrade_head", "migrate")
+                   if callable(getattr(db_migrate, n, None))), None)
+    if fn is not None and revision == "head":
+        import inspect
+
+        params = inspect.signature(fn).parameters
+        if "url" in params:
+            fn(url=settings.DATABASE_URL)
+        else:
+            fn(settings.DATABASE_URL) if params else fn()
+        return
+    from alembic import command
+
+    command.upgrade(alembic_config(settings.DATABASE_URL), revision)
+
+
+ADMIN_TEAM = "admin"
+ADMIN_EMAIL = "admin@localhost"
+
+
+def bootstrap_admin(settings: Settings | None = None) -> str | None:
+    """First start (no team in the DB): create team ``admin``, its admin user and a key.
+
+    Returns the plaintext key (shown once; only its hash is stored), else None.
+    Racing first starts are safe: the team name is unique, the loser gets None.
+    """
+    from sqlalchemy import func, select
+    from sqlalchemy.exc import IntegrityError
+
+    from service import admin
+    from service.db.models import Team
+    from service.db.session import session_scope
+
+    url = (settings or get_settings()).DATABASE_URL
+    try:
+        with session_scope(url) as s:
+            if s.scalar(select(func.count(Team.id))):
+                return None
+            admin.create_team(s, ADMIN_TEAM)
+            admin.create_user(s, ADMIN_TEAM, ADMIN_EMAIL, is_admin=True)
+            _row, key = admin.create_key(s, ADMIN_EMAIL, name="bootstrap")
+        return key
+    except (IntegrityError, admin.AdminError):
+        return None
+
+
+# --------------------------------------------------------------------------- children
+def child_env(settings: Settings | None = None, extra: dict | None = None) -> dict:
+    """The environment every child gets: ours, single-threaded BLAS, repo on PYTHONPATH."""
+    env = dict(os.environ)
+    env.update(THREAD_ENV)
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])
+    )
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    if settings is not None:
+        # children read the same settings the supervisor resolved, with the
+        # relative ./var paths made absolute (they must not depend on a cwd)
+        for key in ("DATABASE_URL", "BROKER_URL", "BROKER_DIR", "API_HOST", "API_PORT"):
+            env[f"SVROBS_{key}"] = str(getattr(settings, key))
+        env["SVROBS_BROKER_DIR"] = str(Path(settings.BROKER_DIR).resolve())
+        env["SVROBS_DATABASE_URL"] = _absolute_sqlite(settings.DATABASE_URL)
+    env.update(extra or {})
+    return env
+
+
+def _absolute_sqlite(url: str) -> str:
+    if not url.startswith("sqlite"):
+        return url
+    from sqlalchemy.engine import make_url
+
+    u = make_url(url)
+    if not u.database or u.database == ":memory:" or u.database.startswith("file:"):
+        return url
+    return u.set(database=str(Path(u.database).resolve())).render_as_string(hide_password=False)
+
+
+def api_command(host: str, port: int) -> list[str]:
+    return [sys.executable, "-m", "uvicorn", "service.api.main:app", "--host", host,
+            "--port", str(port), "--workers", "1", "--no-access-log"]
+
+
+def worker_command(name: str = "worker1", concurrency: int = 1, loglevel: str = "info") -> list[str]:
+    return [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker",
+            "--concurrency", str(concurrency), "--pool", "prefork", "-l", loglevel,
+            "-n", f"{name}@%h", "--without-gossip", "--without-mingle"]
+
+
+def beat_command(schedule_file: Path, loglevel: str = "info") -> list[str]:
+    return [sys.executable, "-m", "celery", "-A", "worker.celery_app", "beat", "-l", loglevel,
+            "-s", str(schedule_file), "-S", "worker.beat:TickScheduler"]
+
+
+def child_commands(settings: Settings, *, workers: int = 1, concurrency: int = 1,
+                   beat: bool = True) -> list[tuple[str, list[str]]]:
+    cmds = [("api", api_command(settings.API_HOST, settings.API_PORT))]
+    cmds += [(f"worker{i + 1}", worker_command(f"worker{i + 1}", concurrency))
+             for i in range(workers)]
+    if beat:
+        cmds.append(("beat", beat_command(beat_schedule_file(settings))))
+    return cmds
+
+
+def _load_prctl():
+    """libc's prctl, resolved once in the parent (the child must not dlopen after fork)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        import ctypes
+
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+_PRCTL = _load_prctl()
+PR_SET_PDEATHSIG = 1
+
+
+def _child_preexec() -> None:  # pragma: no cover - runs in the child, between fork and exec
+    # the child gets SIGTERM if the supervisor dies (even by SIGKILL): no orphans
+    if _PRCTL is not None:
+        _PRCTL(PR_SET_PDEATHSIG, int(signal.SIGTERM))
+
+
+@dataclass
+class Child:
+    """One supervised child process in its own process group."""
+
+    name: str
+    argv: list[str]
+    env: dict
+    log: Path | None = None
+    cwd: Path | None = None  # default: the caller's working directory
+    proc: subprocess.Popen | None = field(default=None, repr=False)
+
+    def start(self) -> Child:
+        out = open(self.log, "ab") if self.log else None
+        self.proc = subprocess.Popen(
+            self.argv, env=self.env, cwd=str(self.cwd or os.getcwd()), stdin=subprocess.DEVNULL,
+            stdout=out, stderr=subprocess.STDOUT if out else None,
+            start_new_session=True,
+            preexec_fn=_child_preexec if _PRCTL is not None else None,  # noqa: PLW1509
+        )
+        if out:
+            out.close()
+        return self
+
+    @property
+    def pid(self) -> int | None:
+        return self.proc.pid if self.proc else None
+
+    def poll(self) -> int | None:
+        return self.proc.poll() if self.proc else 0
+
+    def signal(self, sig: int, group: bool = False) -> None:
+        if self.proc is None or self.proc.poll() is not None:
+            return
+        try:
+            if group:
+                os.killpg(self.proc.pid, sig)
+            else:
+                self.proc.send_signal(sig)
+        except ProcessLookupError:
+            pass
+
+    def stop(self, grace: float = 10.0) -> int | None:
+        """SIGTERM, wait ``grace`` s, then SIGKILL the whole group; reap."""
+        if self.proc is None:
+            return None
+        self.signal(signal.SIGTERM)
+        try:
+            self.proc.wait(grace)
+        except subprocess.TimeoutExpired:
+            pass
+        self.kill_group()
+        return self.proc.returncode
+
+    def kill_group(self) -> None:
+        """SIGKILL the child's process group (the prefork pool too) and reap."""
+        if self.proc is None:
+            return
+        try:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:  # pragma: no cover
+            pass
+
+
+def stop_all(children: list[Child], grace: float = 10.0) -> None:
+    """SIGTERM every child at once, wait up to ``grace`` s in total, SIGKILL the rest."""
+    for c in children:
+        c.signal(signal.SIGTERM)
+    deadline = time.monotonic() + grace
+    for c in children:
+        if c.proc is None:
+            continue
+        try:
+            c.proc.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            pass
+    for c in children:
+        c.kill_group()  # also sweeps leftover grandchildren of exited children
+
+
+# --------------------------------------------------------------------------- serve
+def serve(settings: Settings | None = None, *, workers: int = 1, concurrency: int = 1,
+          beat: bool = True, grace: float = 10.0) -> int:
+    """Run the stack in the foreground until Ctrl-C/SIGTERM or a child dies."""
+    settings = settings or get_settings()
+    prepare_dirs(settings)
+    print(f"svrobs: migrating {_redact(settings.DATABASE_URL)}", flush=True)
+    migrate(settings)
+    key = bootstrap_admin(settings)
+    if key:
+        print("svrobs: first start - created team 'admin'. Admin API key (shown once):",
+              flush=True)
+        print(f"\n    {key}\n", flush=True)
+
+    env = child_env(settings)
+    children = [Child(name, argv, env) for name, argv in
+                child_commands(settings, workers=workers, concurrency=concurrency, beat=beat)]
+
+    stopping: list[int] = []
+
+    def _on_signal(signum, _frame):
+        stopping.append(signum)
+        if len(stopping) > 1:  # second Ctrl-C: no more waiting
+            for c in children:
+                c.signal(signal.SIGKILL, group=True)
+
+    old = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    rc = 0
+    try:
+        for c in children:
+            c.start()
+            print(f"svrobs: started {c.name} (pid {c.pid})", flush=True)
+        print(f"svrobs: API on http://{settings.API_HOST}:{settings.API_PORT} "
+              f"(docs at /docs); Ctrl-C stops everything", flush=True)
+        while not stopping:
+            dead = [c for c in children if c.poll() is not None]
+            if dead:
+                for c in dead:
+                    print(f"svrobs: {c.name} exited with code {c.poll()}; stopping",
+                          file=sys.stderr, flush=True)
+                rc = 1
+                break
+            time.sleep(0.3)
+    finally:
+        print("svrobs: stopping", flush=True)
+        stop_all(children, grace=grace)
+        for s, h in old.items():
+            signal.signal(s, h)
+    return rc
+
+
+def _redact(url: str) -> str:
+    try:
+        from sqlalchemy.engine import make_url
+
+        return make_url(url).render_as_string(hide_password=True)
+    except Exception:  # noqa: BLE001
+        return url
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="svrobs serve", description=__doc__.splitlines()[0])
+    p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    p.add_argument("--concurrency", type=int, default=1, help="pool size per worker")
+    p.add_argument("--no-beat", action="store_true", help="do not start the scheduler")
+    args = p.parse_args(argv)
+    sys.exit(serve(get_settings(), workers=args.workers, concurrency=args.concurrency,
+                   beat=not args.no_beat))
+
+
+if __name__ == "__main__":
+    main()

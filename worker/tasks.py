@@ -1,0 +1,205 @@
+"""Thin Celery tasks: the DB says what to run, the core runs it, the DB stores it.
+
+``svrobs.run_unit(unit_id)``:
+
+1. ``crud.start_unit`` claims the unit (status, lease, attempt counter) in one
+   transaction and returns ``(spec, unit payload)``, or ``None`` when there is
+   nothing to do (already done, cancelled, or leased by another delivery);
+2. ``svrobs_core.run_unit`` computes the records (pure, no I/O);
+3. ``crud.complete_unit`` upserts them on the cell key and updates progress;
+   the job finishes when the DB says every unit is done.
+
+A redelivered or duplicated message is therefore harmless. Transient DB or
+broker errors retry the task with exponential backoff (acks_late: the message
+is acknowledged only after the task returned, and rejected - so redelivered -
+if the worker process is lost). Any other error is recorded with
+``crud.fail_unit``; it is final once the unit was attempted
+``MAX_UNIT_ATTEMPTS`` times, otherwise the task is retried.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+import traceback
+
+from celery.exceptions import Retry
+from celery.signals import worker_process_init
+
+from service.db import crud
+from service.db.models import WorkUnit
+from service.db.session import dispose_all, session_scope
+from svrobs_core import parse_spec
+from svrobs_core import run_unit as core_run_unit
+from worker.celery_app import celery_app, settings
+
+# (imported here, in the worker's main process, so that every pool child forks
+# with numpy, scipy and the core already loaded)
+
+log = logging.getLogger("svrobs.worker")
+
+
+def _transient_errors() -> tuple[type[BaseException], ...]:
+    import kombu.exceptions
+    import sqlalchemy.exc
+
+    errs: list[type[BaseException]] = [
+        sqlalchemy.exc.OperationalError,      # connection lost, DB restarting, SQLITE_BUSY
+        sqlalchemy.exc.InterfaceError,
+        sqlalchemy.exc.DisconnectionError,
+        kombu.exceptions.OperationalError,    # broker unreachable
+        ConnectionError,
+        TimeoutError,
+    ]
+    try:
+        import redis.exceptions
+
+        errs += [redis.exceptions.ConnectionError, redis.exceptions.TimeoutError]
+    except ImportError:  # pragma: no cover
+        pass
+    return tuple(errs)
+
+
+TRANSIENT = _transient_errors()
+MAX_RETRIES = 8
+
+
+def max_attempts() -> int:
+    return int(getattr(settings, "MAX_UNIT_ATTEMPTS", 3) or 3)
+
+
+def lease_seconds() -> int:
+    default = int(getattr(settings, "TASK_TIME_LIMIT", 3600)) + 300
+    return int(getattr(settings, "UNIT_LEASE_SECONDS", default) or default)
+
+
+@worker_process_init.connect
+def _fresh_connections_after_fork(**_kw):
+    """Pool children must not share the parent's DB sockets."""
+    dispose_all()
+
+
+def _attempts(unit_id: int) -> int:
+    with session_scope(write=False) as s:
+        unit = s.get(WorkUnit, unit_id)
+        return int(unit.attempts) if unit is not None else 0
+
+
+def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
+    """Claim, compute and store one work unit (the task body, callable without Celery).
+
+    Raises :class:`UnitFailed` (not final) for a failure that should be retried.
+    """
+    worker_name = worker_name or f"{socket.gethostname()}:{os.getpid()}"
+    t0 = time.perf_counter()
+    with session_scope() as s:
+        claimed = crud.start_unit(s, unit_id, worker_name, lease_seconds())
+    if claimed is None:
+        return {"unit": unit_id, "status": "skipped"}
+    spec_dict, payload = claimed
+    t1 = time.perf_counter()
+    try:
+        with _Heartbeat(unit_id, lease_seconds()):
+            records = core_run_unit(parse_spec(spec_dict), payload)
+    except Exception as exc:
+        attempts = _attempts(unit_id)
+        final = attempts >= max_attempts()
+        error = f"{type(exc).__name__}: {exc}"
+        log.error("unit %s failed (attempt %d/%d, final=%s): %s\n%s", unit_id, attempts,
+                  max_attempts(), final, error, traceback.format_exc())
+        with session_scope() as s:
+            crud.fail_unit(s, unit_id, error, final)
+        if final:
+            return {"unit": unit_id, "status": "failed", "error": error}
+        raise UnitFailed(error) from exc
+    t2 = time.perf_counter()
+    with session_scope() as s:
+        crud.complete_unit(s, unit_id, records)
+    t3 = time.perf_counter()
+    # logged by Celery ("succeeded in ...: {...}"): where a unit's time goes
+    return {"unit": unit_id, "status": "done", "records": len(records),
+            "claim_s": round(t1 - t0, 4), "compute_s": round(t2 - t1, 4),
+            "store_s": round(t3 - t2, 4)}
+
+
+class _Heartbeat:
+    """Extend the unit's lease every lease/3 seconds while it runs (a daemon thread).
+
+    The lease is what lets the relay re-queue a unit whose worker vanished
+    without the broker redelivering it; the heartbeat keeps a long unit that
+    is still alive from being re-queued. A stuck computation is bounded by
+    the Celery time limit, which kills the process (and so the heartbeat).
+    """
+
+    def __init__(self, unit_id: int, lease: int):
+        self.unit_id = unit_id
+        self.lease = lease
+        self.interval = max(1.0, min(300.0, lease / 3))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True,
+                                        name=f"svrobs-heartbeat-{unit_id}")
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join(timeout=5)
+        return False
+
+    def _run(self):
+        while not self._stop.wait(self.interval):
+            try:
+                with session_scope() as s:
+                    if not crud.heartbeat_unit(s, self.unit_id, self.lease):
+                        return  # no longer running (cancelled job, failed, re-claimed)
+            except Exception as exc:  # noqa: BLE001 - the DB may be restarting
+                log.warning("unit %s: heartbeat failed: %s", self.unit_id, exc)
+
+
+class UnitFailed(Exception):
+    """A unit's computation failed and may succeed on another attempt."""
+
+
+@celery_app.task(
+    name="svrobs.run_unit", bind=True, acks_late=True, reject_on_worker_lost=True,
+    ignore_result=True, max_retries=MAX_RETRIES,
+)
+def run_unit(self, unit_id: int):
+    try:
+        return execute_unit(int(unit_id), worker_name=self.request.hostname)
+    except Retry:
+        raise
+    except UnitFailed as exc:
+        raise self.retry(exc=exc, countdown=_backoff(self.request.retries), max_retries=None)
+    except TRANSIENT as exc:
+        log.warning("unit %s: transient error, retry %d: %s", unit_id, self.request.retries + 1, exc)
+        _release(unit_id, f"transient: {type(exc).__name__}: {exc}")
+        raise self.retry(exc=exc, countdown=_backoff(self.request.retries))
+
+
+def _release(unit_id: int, error: str) -> None:
+    """Best effort: hand the unit back (non-final failure) so the retry can claim it."""
+    try:
+        with session_scope() as s:
+            crud.fail_unit(s, unit_id, error, False)
+    except Exception:  # noqa: BLE001 - the DB may still be down; the lease expires anyway
+        pass
+
+
+def _backoff(retries: int, base: float = 1.0, cap: float = 120.0) -> float:
+    import random
+
+    return min(cap, base * 2 ** retries) * (0.5 + random.random() / 2)
+
+
+@celery_app.task(name="svrobs.tick", ignore_result=True)
+def tick():
+    """Normally run inside beat (worker.beat.TickScheduler); a worker can run it too."""
+    from worker.tick import run_tick
+
+    return run_tick(celery=celery_app)
