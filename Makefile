@@ -21,7 +21,13 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider
 
 test-core: $(STAMP)
-	$(BIN)/python -m pytest -q tests/core
+	$(BIN)/python -m pytest -q -p no:cacheprovider tests/core
+
+test-service: $(STAMP)
+	$(BIN)/python -m pytest -q -p no:cacheprovider tests/service tests/fuzz
+
+test-integration: $(STAMP)
+	$(BIN)/python -m pytest -q -p no:cacheprovider tests/integration
 
 bench: $(STAMP)
 	$(BIN)/python bench/estimators.py

@@ -60,10 +60,17 @@ def reproduce(
 
 
 @app.command()
-def serve() -> None:
+def serve(
+    workers: int = typer.Option(1, "--workers", help="worker processes"),
+    concurrency: int = typer.Option(1, "--concurrency", help="pool size per worker"),
+    no_beat: bool = typer.Option(False, "--no-beat", help="do not start the scheduler"),
+) -> None:
     """Migrate, then run API + worker + scheduler (embedded default: SQLite + filesystem broker)."""
     from .serve import main
 
-    raise typer.Exit(main())
+    argv = ["--workers", str(workers), "--concurrency", str(concurrency)]
+    main(argv + (["--no-beat"] if no_beat else []))
+
+
 if __name__ == "__main__":
     app()

@@ -11,6 +11,8 @@ job row.
 
 from __future__ import annotations
 
+import functools
+
 import importlib.metadata
 import math
 import os
@@ -413,15 +415,22 @@ def _upsert_results(session: Session, rows: list[dict]) -> None:
             session.execute(delete(table).where(and_(*[table.c[k] == r[k] for k in _KEY_COLS])))
         session.execute(insert(table), rows)
         return
+    stmt = _upsert_statement(dialect, dialect_insert)
     for i in range(0, len(rows), UPSERT_CHUNK):
-        chunk = rows[i:i + UPSERT_CHUNK]
-        stmt = dialect_insert(table).values(chunk)
-        update_cols = {
-            c.name: stmt.excluded[c.name]
-            for c in table.columns if c.name not in _KEY_COLS and c.name != "id"
-        }
-        stmt = stmt.on_conflict_do_update(index_elements=list(_KEY_COLS), set_=update_cols)
-        session.execute(stmt)
+        session.execute(stmt, rows[i:i + UPSERT_CHUNK])
+
+
+@functools.lru_cache(maxsize=4)
+def _upsert_statement(dialect: str, dialect_insert):
+    """One INSERT .. ON CONFLICT DO UPDATE per dialect, compiled once and executed with
+    many parameter sets (SQLAlchemy batches them as multi-row VALUES)."""
+    table = Result.__table__
+    stmt = dialect_insert(table)
+    update_cols = {
+        c.name: stmt.excluded[c.name]
+        for c in table.columns if c.name not in _KEY_COLS and c.name != "id"
+    }
+    return stmt.on_conflict_do_update(index_elements=list(_KEY_COLS), set_=update_cols)
 
 
 def complete_unit(session: Session, unit_id: int, records: list[dict]) -> None:

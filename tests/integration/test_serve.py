@@ -37,7 +37,7 @@ def _start_serve(tmp_path, port):
         SVROBS_API_PORT=str(port), PYTHONUNBUFFERED="1",
     )
     log = open(tmp_path / "serve.log", "wb")
-    proc = subprocess.Popen([sys.executable, "-m", "service.serve"], cwd=str(ROOT), env=env,
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli_main", "serve"], cwd=str(ROOT), env=env,
                             stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     return proc, tmp_path / "serve.log"
 
