@@ -77,6 +77,19 @@ def get_caller(request: Request, session: Annotated[Session, Depends(get_db)]) -
     return caller
 
 
+def clean_query_text(request: Request) -> None:
+    """422 for a query parameter or an Idempotency-Key holding a NUL character (which a
+    PostgreSQL text column cannot hold: it would be a 500 there and a silent miss on
+    SQLite). Registered on every /api/v1 router."""
+    items = list(request.query_params.multi_items())
+    key = request.headers.get("idempotency-key")
+    for name, value in items + ([("Idempotency-Key", key)] if key is not None else []):
+        if "\x00" in name or "\x00" in value:
+            exc = HTTPException(422, "must not contain NUL (\\u0000) characters")
+            exc.field = name.replace("\x00", "")  # type: ignore[attr-defined]
+            raise exc
+
+
 DB = Annotated[Session, Depends(get_db)]
 CurrentCaller = Annotated[Caller, Depends(get_caller)]
 SettingsDep = Annotated[Settings, Depends(get_settings_dep)]

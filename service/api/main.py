@@ -7,15 +7,17 @@ body (naming the field), 413 for a body over SVROBS_MAX_BODY_BYTES, 401/404/
 
 from __future__ import annotations
 
+import json
 import logging
 from typing import Any
 
-from fastapi import FastAPI, Request
+from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import DBAPIError, OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service.api.deps import clean_query_text
 from service.api.ratelimit import RateLimiter
 from service.config import Settings, get_settings
 from svrobs_core.errors import SpecError
@@ -23,12 +25,22 @@ from svrobs_core.errors import SpecError
 log = logging.getLogger("svrobs.api")
 
 API_PREFIX = "/api/v1"
+BODY_PARSE_ERROR = "There was an error parsing the body"  # fastapi.routing's 400 detail
+
+
+class _ErrorJSONResponse(JSONResponse):
+    """An error body always renders: text echoed from the request (a field name, an
+    unknown key) may hold a lone surrogate, which is replaced rather than raising."""
+
+    def render(self, content: Any) -> bytes:
+        return json.dumps(content, ensure_ascii=False, allow_nan=False, indent=None,
+                          separators=(",", ":"), default=str).encode("utf-8", "replace")
 
 
 def error_response(status: int, detail: Any, field: str | None = None,
                    headers: dict | None = None, **extra) -> JSONResponse:
-    return JSONResponse({"detail": detail, "field": field, **extra}, status_code=status,
-                        headers=headers)
+    return _ErrorJSONResponse({"detail": detail, "field": field, **extra}, status_code=status,
+                              headers=headers)
 
 
 def _loc_to_field(loc) -> str | None:
@@ -162,6 +174,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, exc: StarletteHTTPException):
         field = getattr(exc, "field", None)
+        if exc.status_code == 400 and exc.detail == BODY_PARSE_ERROR:
+            # FastAPI's 400 for a body it cannot decode (not UTF-8, nested too deep):
+            # a bad body is a 422 naming the body, like malformed JSON.
+            return error_response(422, "the request body is not valid JSON (UTF-8)", "body")
         return error_response(exc.status_code, exc.detail, field, headers=exc.headers)
 
     @app.exception_handler(OperationalError)
@@ -187,7 +203,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.include_router(health.router)
     for module in (jobs, results, presets, reports, schedules):
-        app.include_router(module.router, prefix=API_PREFIX)
+        app.include_router(module.router, prefix=API_PREFIX,
+                           dependencies=[Depends(clean_query_text)])
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.MAX_BODY_BYTES)
     return app
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, create_model
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, create_model, model_validator
+from pydantic_core import InitErrorDetails, PydanticCustomError, ValidationError
 
 from svrobs_core.spec import SPEC_KEYS
 
@@ -22,8 +23,51 @@ _SPEC_HINTS: dict[str, Any] = {
 }
 
 
+def _text_error(s: str) -> str | None:
+    if "\x00" in s:
+        return "must not contain NUL (\\u0000) characters"
+    try:
+        s.encode("utf-8")
+    except UnicodeEncodeError:
+        return "must be valid Unicode (no lone surrogates)"
+    return None
+
+
+def bad_text(value: Any) -> tuple[tuple, str] | None:
+    """``(location, message)`` of a string (value or key) in ``value`` that no database
+    can store and no JSON response can carry: a NUL character (PostgreSQL text rejects
+    it) or a lone surrogate (not UTF-8 encodable). None if every string is clean.
+    Iterative, so a deeply nested body cannot exhaust the stack."""
+    stack: list[tuple[tuple, Any]] = [((), value)]
+    while stack:
+        loc, v = stack.pop()
+        if isinstance(v, str):
+            err = _text_error(v)
+            if err is not None:
+                return loc, err
+        elif isinstance(v, dict):
+            for k, item in reversed(list(v.items())):
+                err = _text_error(k) if isinstance(k, str) else None
+                if err is not None:
+                    return loc, f"keys {err}"
+                stack.append(((*loc, k), item))
+        elif isinstance(v, (list, tuple)):
+            stack.extend(((*loc, i), item) for i, item in reversed(list(enumerate(v))))
+    return None
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _clean_text(cls, data: Any) -> Any:
+        found = bad_text(data)
+        if found is not None:
+            loc, message = found
+            raise ValidationError.from_exception_data(cls.__name__, [InitErrorDetails(
+                type=PydanticCustomError("bad_text", message), loc=loc, input=None)])
+        return data
 
 
 def _spec_fields() -> dict[str, Any]:

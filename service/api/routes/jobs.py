@@ -20,6 +20,7 @@ log = logging.getLogger("svrobs.api")
 router = APIRouter(tags=["jobs"])
 
 ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 422, 429, 503)}
+BODY_ERRORS = {**ERRORS, 413: {"model": ErrorOut}}  # routes with a body: SVROBS_MAX_BODY_BYTES
 
 
 def publish_after_commit(publisher, session_factory, unit_ids: list[int]) -> None:
@@ -43,7 +44,8 @@ def publish_after_commit(publisher, session_factory, unit_ids: list[int]) -> Non
         log.warning("marking %d units published failed: %s", len(sent), exc)
 
 
-@router.post("/jobs", status_code=202, response_model=JobOut, responses=ERRORS)
+@router.post("/jobs", status_code=202, response_model=JobOut,
+             responses={**BODY_ERRORS, 409: {"model": ErrorOut}})
 def submit_job(
     body: JobSubmit,  # type: ignore[valid-type]
     session: DB,

@@ -11,9 +11,9 @@ from sqlalchemy import select
 
 from service.api.deps import DB, CurrentCaller, PublisherDep, SessionFactoryDep, SettingsDep
 from service.api.routes.common import FieldHTTPException, JobId, job_out, team_job
-from service.api.routes.jobs import ERRORS, publish_after_commit
+from service.api.routes.jobs import BODY_ERRORS, ERRORS, publish_after_commit
 from service.api.routes.results import ORDER, RESULT_COLUMNS
-from service.api.schemas import JobOut
+from service.api.schemas import ErrorOut, JobOut
 from service.db import crud
 from service.db.crud import row_to_record
 from service.db.models import Result
@@ -23,7 +23,16 @@ from svrobs_core.report import job_report_html
 router = APIRouter(tags=["reports"])
 
 
-@router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses=ERRORS)
+# The page is HTML but its errors are JSON (ERRORS with a model would document them as
+# text/html, the route's media type).
+JSON_ERRORS = {
+    s: {"description": "error", "content": {"application/json": {
+        "schema": {"$ref": "#/components/schemas/ErrorOut"}}}}
+    for s in ERRORS
+}
+
+
+@router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses=JSON_ERRORS)
 def job_report(job_id: JobId, session: DB, caller: CurrentCaller) -> HTMLResponse:
     """The job's report as one HTML page: tables, figures (embedded PNG), the spec,
     provenance and the data-generated findings. Built from the stored records."""
@@ -45,7 +54,7 @@ class PresetRun(BaseModel):
 
 
 @router.post(f"/presets/{PRESET_NAME}/run", status_code=202, response_model=list[JobOut],
-             responses=ERRORS)
+             responses={**BODY_ERRORS, 409: {"model": ErrorOut}})
 def run_paper_preset(
     session: DB,
     caller: CurrentCaller,
@@ -77,6 +86,9 @@ def run_paper_preset(
     except crud.QuotaExceeded as exc:
         session.rollback()
         raise FieldHTTPException(429, str(exc)) from exc
+    except crud.IdempotencyConflict as exc:  # the key was used with another scale
+        session.rollback()
+        raise FieldHTTPException(409, str(exc), "Idempotency-Key") from exc
     session.commit()
     out = [job_out(team_job(session, caller.team_id, j)) for j in jobs]
     session.close()

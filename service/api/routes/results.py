@@ -12,6 +12,7 @@ from typing import Annotated, Literal
 import numpy as np
 from fastapi import APIRouter, Query
 from fastapi.responses import StreamingResponse
+from pydantic import Field
 from sqlalchemy import Select, select
 
 from service.api.deps import DB, CurrentCaller, SessionFactoryDep
@@ -30,7 +31,9 @@ COMPARE_BY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep")
 STREAM_CHUNK = 1000
 
 FloatList = Annotated[list[float] | None, Query()]
-IntList = Annotated[list[int] | None, Query()]
+# N and rep are 32-bit integer columns: a larger filter value would overflow the driver.
+Int32 = Annotated[int, Field(ge=-MAX_ID - 1, le=MAX_ID)]
+IntList = Annotated[list[Int32] | None, Query()]
 
 
 def _results_query(job_id, system, sigma_w, N, estimator, gamma, rep) -> Select:

@@ -31,6 +31,7 @@ from svrobs_core.spec import parse_spec
 
 router = APIRouter(tags=["schedules"])
 ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 409, 422, 429, 503)}
+BODY_ERRORS = {**ERRORS, 413: {"model": ErrorOut}}  # routes with a body: SVROBS_MAX_BODY_BYTES
 ScheduleId = Annotated[int, Path(ge=1, le=MAX_ID)]
 CRON_ALIASES = ("@yearly", "@annually", "@monthly", "@weekly", "@daily", "@midnight", "@hourly")
 
@@ -114,7 +115,7 @@ def _commit_or_409(session, name: str) -> None:
                                  "name") from None
 
 
-@router.post("/schedules", status_code=201, response_model=ScheduleOut, responses=ERRORS)
+@router.post("/schedules", status_code=201, response_model=ScheduleOut, responses=BODY_ERRORS)
 def create_schedule(body: ScheduleCreate, session: DB, caller: CurrentCaller,
                     settings: SettingsDep):
     """Create a schedule; the cron expression, time zone and spec template are validated."""
@@ -144,7 +145,7 @@ def get_schedule(schedule_id: ScheduleId, session: DB, caller: CurrentCaller):
     return schedule_out(_team_schedule(session, caller.team_id, schedule_id))
 
 
-@router.patch("/schedules/{schedule_id}", response_model=ScheduleOut, responses=ERRORS)
+@router.patch("/schedules/{schedule_id}", response_model=ScheduleOut, responses=BODY_ERRORS)
 def update_schedule(schedule_id: ScheduleId, body: ScheduleUpdate, session: DB,
                     caller: CurrentCaller, settings: SettingsDep):
     """Change any of name, cron, timezone, spec_template, tags, enabled."""
