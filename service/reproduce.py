@@ -24,21 +24,26 @@ without that stage, the report says so, and the figures needing it show
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
+import functools
 import json
 import os
 import platform
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
 from svrobs_core import __version__, parse_spec, plan_units, run_spec
 from svrobs_core import report as rpt
-from svrobs_core.paper import EXPERIMENTS, PRESET_NAME, paper_specs
+from svrobs_core.experiments import UnitResult, open_pool
+from svrobs_core.paper import EXPERIMENTS, MC_DECISION, PRESET_NAME, paper_specs
 
 # Above this many cells an experiment keeps no A_hat/B_hat in memory for the
 # report (only E1/E2-sized grids draw the figures that need them).
@@ -48,11 +53,14 @@ _ENCODER = json.JSONEncoder(allow_nan=False)
 
 
 def _derivable(child: dict, parent: dict) -> bool:
-    """True when every record of ``child`` is a record of ``parent`` (same keys)."""
+    """True when every record of ``child`` is a record of ``parent`` (same keys),
+    up to ``mc_reps``: the parent's run then computes the Monte Carlo J as far
+    as the child needs it and writes each spec's own records
+    (``UnitResult.with_mc_reps``)."""
     c, p = parse_spec(child), parse_spec(parent)
     cd, pd = c.to_dict(), p.to_dict()
     for k in cd:
-        if k in ("systems", "gamma", "estimators"):
+        if k in ("systems", "gamma", "estimators", "mc_reps"):
             continue
         if cd[k] != pd[k]:
             return False
@@ -104,16 +112,44 @@ class _Selector:
         g = r["gamma"]
         return g is None or any(abs(g - x) <= 1e-12 * max(1.0, abs(x)) for x in self.gammas)
 
+    def mask(self, cols: rpt.Columns) -> np.ndarray:
+        """The same selection on report columns (vectorised)."""
+        m = np.isin(cols["system"], list(self.systems)) & \
+            np.isin(cols["estimator"], list(self.estimators))
+        g = cols["gamma"]
+        ok = np.isnan(g)
+        for x in self.gammas:
+            ok |= np.abs(g - x) <= 1e-12 * max(1.0, abs(x))
+        return m & ok
+
+
+def _encode(result: UnitResult, variants: tuple):
+    """Worker side: a unit's records as JSON lines and report columns, for each
+    ``(name, mc_reps, systems, matrices)`` variant whose systems hold the unit."""
+    out = {}
+    for name, mc_reps, systems, matrices in variants:
+        if result.system in systems:
+            r = result.with_mc_reps(mc_reps)
+            lines = r.json_lines()
+            # one string per unit: much cheaper to send between processes than a list
+            out[name] = ("".join(line + "\n" for line in lines), len(lines),
+                         r.columns(matrices=matrices))
+    return out
+
+
+def _mc_limit(spec) -> float:
+    return spec.reps if spec.mc_reps is None else spec.mc_reps
+
 
 def _run_group(parent: str, children: list[str], specs: dict[str, dict], out: Path,
-               bar: Progress | None) -> dict[str, dict]:
+               bar: Progress | None, pool=None, n_jobs: int = 1) -> dict[str, dict]:
     """Run ``parent`` once (streaming records to files), fill the children too."""
     names = [parent] + children
     spec_objs = {n: json.loads(json.dumps(specs[n])) for n in names}
     unavailable: dict[str, str] = {}
     while True:
         try:
-            return _stream(parent, children, spec_objs, out, bar, unavailable)
+            return _stream(parent, children, spec_objs, out, bar, unavailable, pool, n_jobs)
         except (NotImplementedError, ImportError) as exc:
             stages = spec_objs[parent].get("stages", ["estimate", "bounds"])
             if len(stages) <= 1:
@@ -127,11 +163,25 @@ def _run_group(parent: str, children: list[str], specs: dict[str, dict], out: Pa
                                   f"this build ({unavailable[dropped]}); rerunning without it")
 
 
-def _stream(parent, children, spec_objs, out: Path, bar, unavailable) -> dict[str, dict]:
+def _stream(parent, children, spec_objs, out: Path, bar, unavailable, pool=None,
+            n_jobs: int = 1) -> dict[str, dict]:
     spec = parse_spec(spec_objs[parent])
-    units = plan_units(spec)
+    specs = {n: parse_spec(spec_objs[n]) for n in [parent] + children}
     keep_matrices = spec.n_cells <= MATRIX_CELLS_LIMIT
     select = {c: _Selector(spec_objs[c]) for c in children}
+    # records are written from the parent's records, or from a variant of them
+    # with another Monte Carlo limit (a child that differs only there)
+    source = {c: parent if specs[c].mc_reps == spec.mc_reps else c for c in children}
+    variants = [(parent, spec.mc_reps, tuple(x.name for x in spec.systems), keep_matrices)]
+    variants += [(c, specs[c].mc_reps, tuple(x.name for x in specs[c].systems), keep_matrices)
+                 for c in children if source[c] == c]
+    units = plan_units(spec)
+    for u in units:  # compute the Monte Carlo J as far as any spec using the unit needs
+        name = spec.systems[u["system"]].name
+        need = [specs[v[0]] for v in variants if name in v[2]]
+        top = max(need, key=_mc_limit)
+        if top.mc_reps != spec.mc_reps:
+            u["mc_reps"] = top.mc_reps
     files, parts, counts = {}, {n: [] for n in [parent] + children}, {}
     task = None
     label = parent + (f" (+{', '.join(children)})" if children else "")
@@ -149,17 +199,33 @@ def _stream(parent, children, spec_objs, out: Path, bar, unavailable) -> dict[st
             if bar is not None:
                 bar.update(task, completed=done, total=total)
 
-        for batch in run_spec(spec, progress=progress, units=units):
-            lines = [_ENCODER.encode(r) + "\n" for r in batch]
-            files[parent].writelines(lines)
-            counts[parent] += len(batch)
-            cols = rpt.Columns.from_records(batch, matrices=keep_matrices)
-            parts[parent].append(cols)
+        def emit(n, text, n_lines, cols, mask=None):
+            if mask is not None and not mask.all():
+                lines = text.split("\n")
+                text = "".join(lines[i] + "\n" for i in np.flatnonzero(mask).tolist())
+                cols = cols.subset(mask)
+                n_lines = len(cols)
+            files[n].write(text)
+            counts[n] += n_lines
+            parts[n].append(cols)
+
+        post = functools.partial(_encode, variants=tuple(variants))
+        for item in run_spec(spec, progress=progress, units=units, n_jobs=n_jobs, post=post,
+                             pool=pool):
+            if isinstance(item, list):  # plain records (a run_spec without post)
+                if any(source[c] != parent for c in children):
+                    raise RuntimeError("records of another mc_reps need UnitResult batches")
+                cols = rpt.Columns.from_records(item, matrices=keep_matrices)
+                item = {parent: ("".join(_ENCODER.encode(r) + "\n" for r in item), len(item),
+                                 cols)}
+            else:
+                item = {n: (text, k, rpt.Columns(data, k))
+                        for n, (text, k, data) in item.items()}
+            emit(parent, *item[parent])
             for c in children:
-                mask = [select[c](r) for r in batch]
-                files[c].writelines(line for line, keep in zip(lines, mask) if keep)
-                counts[c] += sum(mask)
-                parts[c].append(cols.subset(mask))
+                if source[c] in item:
+                    text, k, cols = item[source[c]]
+                    emit(c, text, k, cols, select[c].mask(cols))
     except BaseException:
         if bar is not None and task is not None:
             bar.remove_task(task)  # a retry without the failing stage gets a fresh bar
@@ -207,9 +273,12 @@ def _versions() -> dict:
             "scipy": scipy.__version__, "matplotlib": matplotlib.__version__}
 
 
-def reproduce(out_dir, scale: str = "full", quiet: bool = False, *, derive: bool = True) -> dict:
+def reproduce(out_dir, scale: str = "full", quiet: bool = False, *, derive: bool = True,
+              n_jobs: int | None = None) -> dict:
     """Run the preset ``paper-section-6`` in process and write tables, figures, report.
 
+    ``n_jobs``: worker processes for the pipeline (default: the machine's CPU
+    count); the records are the same to the bit for any value.
     Returns ``{"out", "records": {exp: n}, "files": [...], "seconds"}``.
     """
     out = Path(out_dir)
@@ -220,13 +289,43 @@ def reproduce(out_dir, scale: str = "full", quiet: bool = False, *, derive: bool
     started = _dt.datetime.now(_dt.UTC)
     t_start = time.perf_counter()
     results: dict[str, dict] = {}
-    with Progress("[progress.description]{task.description}", BarColumn(),
-                  MofNCompleteColumn(), TimeElapsedColumn(), console=console,
-                  disable=quiet, transient=False) as bar:
-        for parent, children in plan:
-            results.update(_run_group(parent, children, specs, out, None if quiet else bar))
-    t_run = time.perf_counter() - t_start
+    n_jobs = max(1, os.cpu_count() or 1) if n_jobs is None else max(1, int(n_jobs))
+    with contextlib.ExitStack() as stack:
+        # the worker processes start before the progress bar's thread does
+        pool = stack.enter_context(open_pool(n_jobs))
+        # The report is made as the groups finish: the findings and figures of a
+        # group are computed in a background thread while the next group runs,
+        # and the figures are rendered in the worker processes.
+        builder = rpt.ReportBuilder(
+            list(specs), {"preset": PRESET_NAME},
+            render=None if pool is None else functools.partial(pool.submit, rpt.render_figure))
+        background = stack.enter_context(ThreadPoolExecutor(max_workers=1))
+        report_parts = []
+        with Progress("[progress.description]{task.description}", BarColumn(),
+                      MofNCompleteColumn(), TimeElapsedColumn(), console=console,
+                      disable=quiet, transient=False) as bar:
+            for parent, children in plan:
+                group = _run_group(parent, children, specs, out, None if quiet else bar,
+                                   pool=pool, n_jobs=n_jobs)
+                results.update(group)
+                for n in group:
+                    report_parts.append(background.submit(builder.add, n, _report_input(
+                        n, results[n])))
+        t_run = time.perf_counter() - t_start
+        for f in report_parts:
+            f.result()
+        return _write_report(out, out_dir, scale, specs, results, started, t_start, t_run,
+                             n_jobs, builder, console, quiet)
 
+
+def _report_input(name: str, result: dict) -> dict:
+    return {"spec": result["spec"], "records": result["records"],
+            "title": EXPERIMENTS[name]["title"], "notes": result["notes"]}
+
+
+def _write_report(out, out_dir, scale, specs, results, started, t_start, t_run, n_jobs,
+                  builder, console, quiet) -> dict:
+    """Provenance, tables, figures, report (``builder`` holds every experiment)."""
     provenance = {
         "preset": PRESET_NAME,
         "scale": scale,
@@ -243,15 +342,16 @@ def reproduce(out_dir, scale: str = "full", quiet: bool = False, *, derive: bool
                          if results[n]["derived_from"]},
         "run_seconds": {n: round(results[n]["seconds"], 3) for n in specs
                         if not results[n]["derived_from"]},
+        "n_jobs": n_jobs,
+        "monte_carlo": {n: {"mc_reps": parse_spec(results[n]["spec"]).mc_reps,
+                            "mc_runs": parse_spec(results[n]["spec"]).mc_runs}
+                        for n in specs if "cost" in results[n]["spec"].get("stages", [])},
+        "monte_carlo_decision": MC_DECISION,
         "stages_unavailable": {n: results[n]["stages_unavailable"] for n in specs
                                if results[n]["stages_unavailable"]},
     }
     t_rep = time.perf_counter()
-    report = rpt.build_report(
-        {n: {"spec": results[n]["spec"], "records": results[n]["records"],
-             "title": EXPERIMENTS[n]["title"], "notes": results[n]["notes"]} for n in specs},
-        provenance,
-    )
+    report = builder.finish()
     files = []
 
     def write(name: str, data):
@@ -267,6 +367,7 @@ def reproduce(out_dir, scale: str = "full", quiet: bool = False, *, derive: bool
     for fg in report.figures:
         write(f"{fg.name}.png", fg.png())
         write(f"{fg.name}.svg", fg.svg())
+    # the part of the report made after the last run (the rest overlaps the runs)
     provenance["report_seconds"] = round(time.perf_counter() - t_rep, 3)
     provenance["run_total_seconds"] = round(t_run, 3)
     report.provenance = provenance

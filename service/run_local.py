@@ -13,7 +13,8 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
-from svrobs_core import parse_spec, plan_units, run_unit, summarize
+from svrobs_core import parse_spec, plan_units, summarize
+from svrobs_core.experiments import run_unit_result
 
 
 def load_spec_file(path: Path) -> dict:
@@ -41,10 +42,11 @@ def run_local(spec_obj: dict, out: Path, *, quiet: bool = False) -> dict:
         task = bar.add_task("work units", total=len(units))
         with open(out / "records.jsonl", "w") as fh:
             for unit in units:
-                batch = run_unit(spec, unit)
-                for rec in batch:
-                    fh.write(json.dumps(rec, allow_nan=False) + "\n")
-                records += batch
+                result = run_unit_result(spec, unit)
+                lines = result.json_lines()  # = json.dumps(record) per record, built per field
+                if lines:
+                    fh.write("\n".join(lines) + "\n")
+                records += result.records()
                 bar.advance(task)
     summary = {"spec": spec.to_dict(), "groups": summarize(records)}
     (out / "summary.json").write_text(json.dumps(summary, indent=1, allow_nan=False))

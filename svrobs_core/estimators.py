@@ -113,11 +113,23 @@ def fit_svr(Z: np.ndarray, F: np.ndarray, gammas, loss_scale: str = "sum") -> np
     -> (..., G, n, d)
     """
     Z, F = _check(Z, F)
-    g = ridge_parameters(gammas, Z.shape[-1], loss_scale)
     Zt = np.swapaxes(Z, -1, -2)
-    lam, V = np.linalg.eigh(np.matmul(Z, Zt))  # (..., d), (..., d, d)
+    return svr_from_gram(np.matmul(Z, Zt), np.matmul(F, Zt), Z.shape[-1], gammas, loss_scale)
+
+
+def svr_from_gram(G: np.ndarray, FZt: np.ndarray, N0: int, gammas,
+                  loss_scale: str = "sum") -> np.ndarray:
+    """:func:`fit_svr` from the sufficient statistics ``G = Z Z^T`` (..., d, d)
+    and ``FZt = F Z^T`` (..., n, d) of datasets with ``N0`` samples each.
+
+    The same arithmetic as :func:`fit_svr` (which calls it). -> (..., G, n, d)
+    """
+    G = np.asarray(G, dtype=float)
+    FZt = np.asarray(FZt, dtype=float)
+    g = ridge_parameters(gammas, N0, loss_scale)
+    lam, V = np.linalg.eigh(G)  # (..., d), (..., d, d)
     lam = np.maximum(lam, 0.0)
-    P = np.matmul(np.matmul(F, Zt), V)  # (..., n, d)
+    P = np.matmul(FZt, V)  # (..., n, d)
     denom = lam[..., None, None, :] + g[:, None, None]  # (..., G, 1, d)
     return np.matmul(P[..., None, :, :] / denom, np.swapaxes(V, -1, -2)[..., None, :, :])
 

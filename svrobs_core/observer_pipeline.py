@@ -15,9 +15,8 @@ import numpy as np
 from . import cost as _cost
 from . import cost_bound as _cb
 from . import gains as _gains
-from . import sls as _sls
 from .norms import spectral_radius
-from .rollouts import MC_STREAM, rng_for
+from .rollouts import MC_STREAM, generators
 
 
 @lru_cache(maxsize=64)
@@ -40,17 +39,8 @@ def truth(system, sigma_w: float, horizon: int):
 
 
 def _reason_notes(notes, reasons, prefix: str):
-    reasons = np.broadcast_to(np.asarray(reasons, dtype=object), notes.items.shape)
-    for idx in np.ndindex(reasons.shape):
-        if reasons[idx]:
-            text = reasons[idx] if prefix is None else f"{prefix}: {reasons[idx]}"
-            notes.add(_mask_at(notes.items.shape, idx), text)
-
-
-def _mask_at(shape, idx):
-    m = np.zeros(shape, dtype=bool)
-    m[idx] = True
-    return m
+    """Notes for the cells whose reason (object array or scalar) is non-empty."""
+    notes.add_reasons(reasons, prefix)
 
 
 def design(spec, system, sigma_w, A_hat, gamma, rad):
@@ -87,7 +77,7 @@ def run_observer_stages(spec, system, sigma_w, keys, A_hat, B_hat, gamma, rad, b
         A, B, A_hat, B_hat, L, C, su, sigma_w, sv, rho_F=rho_F, return_reason=True)
     _reason_notes(notes, stat_reason, "J_stationary")
     out["J_exact"], out["J_stationary"] = J, J_stat
-    out["J_star"] = np.full((R, E), J_star)
+    out["J_star"] = np.broadcast_to(J_star, (R, E))
     _monte_carlo(spec, system, sigma_w, keys, A_hat, B_hat, L, out, notes)
     _cost_ratio(spec, axis, J, out, notes)
     if spec.has("cost_bound"):
@@ -99,22 +89,30 @@ def run_observer_stages(spec, system, sigma_w, keys, A_hat, B_hat, gamma, rad, b
         run_sls(spec, system, b, norms, K, A_hat, out, notes)
 
 
+def mc_note(limit: int) -> str:
+    """The note of the cells without a Monte Carlo J (tagged "mc" in the notes)."""
+    if limit == 0:
+        return "J_mc: not requested (mc_reps = 0)"
+    return f"J_mc: only computed for rep < mc_reps = {limit}"
+
+
 def _monte_carlo(spec, system, sigma_w, keys, A_hat, B_hat, L, out, notes):
     """J_mc for reps < mc_reps; one generator per (key, MC stream), so every
-    estimator and gamma of a repetition sees the same noise."""
+    estimator and gamma of a repetition sees the same noise: it is drawn once
+    per repetition and drives all the repetition's cells (common random
+    numbers, :func:`svrobs_core.cost.mc_cost_shared`)."""
     R, E = A_hat.shape[:2]
     J_mc = np.full((R, E), np.nan)
     J_se = np.full((R, E), np.nan)
     limit = spec.reps if spec.mc_reps is None else spec.mc_reps
-    for ri, key in enumerate(keys):
-        if key[3] >= limit:
-            notes.add(_row((R, E), ri), f"J_mc: only computed for rep < mc_reps = {limit}")
-            continue
-        for ei in range(E):
-            rng = rng_for(spec.seed, key, MC_STREAM)
-            J_mc[ri, ei], J_se[ri, ei] = _cost.mc_cost(
-                system.A, system.B, A_hat[ri, ei], B_hat[ri, ei], L[ri, ei], system.C,
-                system.sigma_u, sigma_w, system.sigma_v, spec.horizon, rng, spec.mc_runs)
+    rows = np.array([key[3] < limit for key in keys], dtype=bool)
+    notes.add(~rows[:, None], mc_note(limit), tag="mc")
+    idx = np.flatnonzero(rows)
+    if idx.size:
+        gens = generators(spec.seed, [keys[i] for i in idx], MC_STREAM, fresh=True)
+        J_mc[idx], J_se[idx] = _cost.mc_cost_shared(
+            system.A, system.B, A_hat[idx], B_hat[idx], L[idx], system.C,
+            system.sigma_u, sigma_w, system.sigma_v, spec.horizon, list(gens), spec.mc_runs)
     out["J_mc"], out["J_mc_se"] = J_mc, J_se
 
 
@@ -130,24 +128,16 @@ def _cost_ratio(spec, axis, J, out, notes):
         if ref:
             ratio[:, ei] = np.abs(J[:, ei] - J[:, ref[0]]) / J[:, ref[0]]
         else:
-            notes.add(_column(J.shape, ei), "cost_ratio: gamma_ref not in the gamma grid")
+            missing = np.zeros(J.shape, dtype=bool)
+            missing[:, ei] = True
+            notes.add(missing, "cost_ratio: gamma_ref not in the gamma grid")
     out["cost_ratio"] = ratio
-
-
-def _row(shape, ri):
-    m = np.zeros(shape, dtype=bool)
-    m[ri] = True
-    return m
-
-
-def _column(shape, ei):
-    m = np.zeros(shape, dtype=bool)
-    m[:, ei] = True
-    return m
 
 
 def run_sls(spec, system, b, norms, K, A_hat, out, notes):
     """J_opt by SLS per cell (cvxpy + Clarabel) and the paper's bound on it (SPEC 8)."""
+    from . import sls as _sls  # cvxpy: imported only when the sls stage runs
+
     R, E = A_hat.shape[:2]
     su, sv = system.sigma_u, system.sigma_v
     eps1 = np.fmax(b.eps_A, b.eps_B)
@@ -157,11 +147,11 @@ def run_sls(spec, system, b, norms, K, A_hat, out, notes):
         C_bound = float(_sls.default_C_bound(K, norms.h2_closed))
     J_opt = np.full((R, E), np.nan)
     status = np.empty((R, E), dtype=object)
+    undefined = ~np.isfinite(np.broadcast_to(F, (R, E)))
+    notes.add(undefined, "J_opt: F undefined (true system unstable: H-infinity norms infinite)")
     for ri, ei in np.ndindex(R, E):
-        if not np.isfinite(F[ri, ei]):
+        if undefined[ri, ei]:
             status[ri, ei] = "not_run"
-            notes.add(_mask_at((R, E), (ri, ei)),
-                      "J_opt: F undefined (true system unstable: H-infinity norms infinite)")
             continue
         res = _sls.sls_observer(A_hat[ri, ei], system.C, K, F[ri, ei], C_bound, spec.sls_T_fir)
         J_opt[ri, ei], status[ri, ei] = res.J_opt, res.status

@@ -34,6 +34,7 @@ import math
 import sys
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -99,6 +100,28 @@ class Columns:
     def __init__(self, data: dict[str, np.ndarray], n: int):
         self.data = data
         self.n = n
+        self._cache: dict = {}  # derived arrays (factorised text columns, ...)
+
+    def codes(self, f: str) -> tuple[np.ndarray, list]:
+        """Field ``f`` factorised: integer codes and the value of each code
+        (cached; floats as float, NaN as None)."""
+        cache = self.cache
+        key = ("codes", f)
+        if key not in cache:
+            cache[key] = _codes(self.data[f])
+        return cache[key]
+
+    @property
+    def cache(self) -> dict:
+        return self.__dict__.setdefault("_cache", {})
+
+    def equals(self, f: str, value) -> np.ndarray:
+        """Boolean mask ``self[f] == value`` for a text field (via the cached codes)."""
+        codes, values = self.codes(f)
+        hit = [i for i, v in enumerate(values) if v == value]
+        if not hit:
+            return np.zeros(self.n, dtype=bool)
+        return codes == hit[0]
 
     @classmethod
     def from_records(cls, records: Iterable[dict], matrices: bool = True) -> Columns:
@@ -202,9 +225,9 @@ def _meta(spec) -> _Meta:
 def _mask(cols: Columns, *, system=None, estimator=None, gamma="any", sigma_w=None) -> np.ndarray:
     m = np.ones(cols.n, dtype=bool)
     if system is not None:
-        m &= cols["system"] == system
+        m &= cols.equals("system", system)
     if estimator is not None:
-        m &= cols["estimator"] == estimator
+        m &= cols.equals("estimator", estimator)
     if gamma is None:
         m &= np.isnan(cols["gamma"])
     elif gamma != "any":
@@ -244,15 +267,44 @@ def _key(v):
     return v
 
 
+def _codes(col: np.ndarray) -> tuple[np.ndarray, list]:
+    """Factorise a column: integer codes and the key value of each code
+    (floats as float, NaN as None; objects as themselves)."""
+    if col.dtype == object:
+        lut: dict = {}
+        setdefault = lut.setdefault
+        codes = np.array([setdefault(v, len(lut)) for v in col.tolist()], dtype=np.int64)
+        return codes, list(lut)
+    u, inv = np.unique(col.astype(float), return_inverse=True)  # NaNs: one value, last
+    return inv.reshape(-1).astype(np.int64), [_key(v) for v in u.tolist()]
+
+
 def _groupby(cols: Columns, keys: tuple[str, ...], mask=None) -> dict[tuple, np.ndarray]:
-    """key tuple -> indices; NaN keys (gamma of ols) become None."""
+    """key tuple -> indices (ascending); NaN keys (gamma of ols) become None.
+    Groups are ordered by their keys (None last)."""
     idx = np.arange(cols.n) if mask is None else np.nonzero(mask)[0]
-    out: dict[tuple, list[int]] = {}
-    keycols = [[_key(v) for v in cols[k][idx]] for k in keys]
-    for j, key in enumerate(zip(*keycols)):
-        out.setdefault(key, []).append(int(idx[j]))
-    order = sorted(out, key=lambda k: tuple((v is None, v if v is not None else 0) for v in k))
-    return {k: np.array(out[k], dtype=int) for k in order}
+    if idx.size == 0:
+        return {}
+    combined = np.zeros(idx.size, dtype=np.int64)
+    values = []
+    for k in keys:
+        c, u = cols.codes(k)
+        combined = combined * len(u) + c[idx]
+        values.append(u)
+    uc, inv = np.unique(combined, return_inverse=True)
+    inv = inv.reshape(-1)
+    order = np.argsort(inv, kind="stable")
+    bounds = np.flatnonzero(np.diff(inv[order])) + 1
+    groups = np.split(idx[order], bounds)
+    out: dict[tuple, np.ndarray] = {}
+    for code, members in zip(uc.tolist(), groups):
+        key = []
+        for u in reversed(values):
+            code, j = divmod(code, len(u))
+            key.append(u[j])
+        out[tuple(reversed(key))] = members
+    order_k = sorted(out, key=lambda k: tuple((v is None, v if v is not None else 0) for v in k))
+    return {k: out[k] for k in order_k}
 
 
 def _by_N(cols: Columns, mask, values: np.ndarray, fn: Callable[[np.ndarray], float]):
@@ -266,16 +318,26 @@ def _by_N(cols: Columns, mask, values: np.ndarray, fn: Callable[[np.ndarray], fl
         return e, e, e, e
     Ns = cols["N"][idx]
     uN, inv = np.unique(Ns, return_inverse=True)
-    x0, ys, cnt = [], [], []
-    for k in range(uN.size):
-        sel = idx[inv == k]
-        v = values[sel]
-        v = v[np.isfinite(v)]
-        x0.append(float(np.nanmean(cols["N0"][sel])) if np.isfinite(cols["N0"][sel]).any()
-                  else float(uN[k]))
-        ys.append(fn(v) if v.size else np.nan)
-        cnt.append(v.size)
-    return np.array(x0), uN.astype(float), np.array(ys, dtype=float), np.array(cnt)
+    inv = inv.reshape(-1)
+    k = uN.size
+    n0 = cols["N0"][idx]
+    f0 = np.isfinite(n0)
+    c0 = np.bincount(inv[f0], minlength=k)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x0 = np.where(c0 > 0, np.bincount(inv[f0], weights=n0[f0], minlength=k) / c0,
+                      uN.astype(float))
+    v = values[idx]
+    fv = np.isfinite(v)
+    cnt = np.bincount(inv[fv], minlength=k)
+    if fn is _mean:  # the common case, vectorised
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ys = np.where(cnt > 0, np.bincount(inv[fv], weights=v[fv], minlength=k) / cnt,
+                          np.nan)
+    else:
+        order = np.argsort(inv[fv], kind="stable")
+        groups = np.split(v[fv][order], np.cumsum(cnt)[:-1])
+        ys = np.array([fn(g) if g.size else np.nan for g in groups], dtype=float)
+    return x0.astype(float), uN.astype(float), ys.astype(float), cnt
 
 
 def _mean(v: np.ndarray) -> float:
@@ -455,6 +517,12 @@ def _entry_quantities(cols: Columns, meta: _Meta, mat: str):
 def _svr_ols_diff(cols: Columns) -> np.ndarray:
     """Per SVR record: max_ij |Ã_svr − Ã_ols| against the OLS estimate of the
     same (system, sigma_w, N, rep), i.e. the same data. NaN elsewhere."""
+    if "svr_ols_diff" not in cols.cache:
+        cols.cache["svr_ols_diff"] = _svr_ols_diff_calc(cols)
+    return cols.cache["svr_ols_diff"].copy()
+
+
+def _svr_ols_diff_calc(cols: Columns) -> np.ndarray:
     out = np.full(cols.n, np.nan)
     X = cols.data.get("A_hat")
     if X is None or X.ndim != 3 or X.shape[1] == 0:
@@ -1269,13 +1337,18 @@ def _f_svr_ols_diff(cols: Columns) -> list[str]:
 
 
 def _f_notes(cols: Columns) -> list[str]:
-    notes = [v for v in cols["notes"] if v]
-    if not notes:
+    codes, values = cols.codes("notes")
+    per_value = np.bincount(codes, minlength=len(values)).tolist()
+    n_notes = sum(c for v, c in zip(values, per_value) if v)
+    if not n_notes:
         return []
     counts: dict[str, int] = {}
-    for v in notes:
+    for v, c in zip(values, per_value):
+        if not v:
+            continue
         for part in str(v).split("; "):
-            counts[part] = counts.get(part, 0) + 1
+            counts[part] = counts.get(part, 0) + c
+    notes = range(n_notes)
     top = sorted(counts.items(), key=lambda kv: -kv[1])[:4]
     return [f"[info] {_pct(len(notes), cols.n)} records carry notes (null fields and why): "
             + "; ".join(f"\"{k[:100]}\" ×{v}" for k, v in top) + "."]
@@ -1313,6 +1386,7 @@ class ReportFigure:
     experiment: str
     figure: object  # matplotlib.figure.Figure
     _png: bytes | None = None
+    _svg: bytes | None = None
 
     def png(self) -> bytes:
         if self._png is None:
@@ -1323,8 +1397,21 @@ class ReportFigure:
         return self._png
 
     def svg(self) -> bytes:
-        self.png()
-        return figure_bytes(self.figure, "svg")
+        if self._svg is None:
+            self.png()
+            self._svg = figure_bytes(self.figure, "svg")
+        return self._svg
+
+    def set_rendered(self, png: bytes, svg: bytes):
+        """Bytes rendered elsewhere (e.g. :func:`render_figure` in another process)."""
+        self._png, self._svg = png, svg
+
+
+def render_figure(fig) -> tuple[bytes, bytes]:
+    """(PNG, SVG) of a Figure, as ``ReportFigure.png()``/``svg()`` give them
+    (picklable: figures can be rendered in worker processes)."""
+    rf = ReportFigure("", "", "", "", fig)
+    return rf.png(), rf.svg()
 
 
 @dataclass
@@ -1382,35 +1469,91 @@ def _choose_source(experiments: dict[str, dict], cols: dict[str, Columns], prefe
 
 
 def build_report(experiments: dict[str, dict], provenance: dict | None = None,
-                 title: str | None = None) -> Report:
+                 title: str | None = None, *,
+                 render: Callable[[object], Any] | None = None) -> Report:
     """``experiments``: name -> {"spec": dict, "records": list|Columns, optional
-    "title", "notes" (list[str], e.g. stages that could not run)}."""
-    cols = {name: _records_of(e) for name, e in experiments.items()}
-    exps = {}
+    "title", "notes" (list[str], e.g. stages that could not run)}.
+
+    ``render``: optional ``fig -> future`` (e.g. ``pool.submit(render_figure, fig)``);
+    each figure is handed to it as soon as it is built, so that rendering runs
+    elsewhere while the rest is computed; the futures' ``(png, svg)`` are
+    collected at the end."""
+    builder = ReportBuilder(list(experiments), provenance, title, render=render)
     for name, e in experiments.items():
-        exps[name] = {
+        builder.add(name, e)
+    return builder.finish()
+
+
+class ReportBuilder:
+    """:func:`build_report` in steps, for experiments whose records arrive one
+    group at a time: ``add(name, experiment)`` computes that experiment's
+    findings and the figures drawn from it (their source is decided from the
+    experiment names given up front, as :func:`build_report` decides it);
+    ``finish()`` returns the :class:`Report`, the same as :func:`build_report`
+    on all experiments."""
+
+    def __init__(self, names, provenance: dict | None = None, title: str | None = None, *,
+                 render: Callable[[object], Any] | None = None):
+        self.names = list(names)
+        self.provenance = provenance
+        self.title = title
+        self.render = render
+        self.experiments: dict[str, dict] = {}
+        self.cols: dict[str, Columns] = {}
+        self.exps: dict[str, dict] = {}
+        self.figs: dict[int, tuple[ReportFigure, Any]] = {}
+
+    def _source(self, prefer, needs, final: bool):
+        for name in prefer:
+            if name in self.names:
+                return name
+        if not final:
+            return None  # decided on the data, once every experiment is there
+        ordered = {n: self.experiments[n] for n in self.names if n in self.experiments}
+        return _choose_source(ordered, self.cols, prefer, needs)
+
+    def _figures(self, final: bool):
+        for i, (name, fn, prefer, needs, ftitle, caption) in enumerate(FIGURE_PLAN):
+            if i in self.figs:
+                continue
+            src = self._source(prefer, needs, final)
+            if src is None or src not in self.experiments:
+                continue
+            fig = fn(self.cols[src], self.experiments[src].get("spec"),
+                     experiment=_exp_label(src, self.provenance))
+            fut = self.render(fig) if self.render is not None else None
+            self.figs[i] = (ReportFigure(name, ftitle, caption, src, fig), fut)
+
+    def add(self, name: str, e: dict):
+        self.experiments[name] = e
+        self.cols[name] = _records_of(e)
+        self._figures(final=False)
+        self.exps[name] = {
             "title": e.get("title") or EXPERIMENTS.get(name, {}).get("title", name),
             "paper": EXPERIMENTS.get(name, {}).get("paper"),
             "spec": e.get("spec"),
-            "n_records": len(cols[name]),
+            "n_records": len(self.cols[name]),
             "notes": list(e.get("notes") or []),
             "findings": [f"[no data] {n}" for n in (e.get("notes") or [])]
-            + findings(cols[name], e.get("spec")),
+            + findings(self.cols[name], e.get("spec")),
         }
-    t_src = _choose_source(experiments, cols, ("E1",), ("rmse_A",))
-    rows = table2(cols[t_src]) if t_src else []
-    figs = []
-    for name, fn, prefer, needs, ftitle, caption in FIGURE_PLAN:
-        src = _choose_source(experiments, cols, prefer, needs)
-        if src is None:
-            continue
-        fig = fn(cols[src], experiments[src].get("spec"), experiment=_exp_label(src, provenance))
-        figs.append(ReportFigure(name, ftitle, caption, src, fig))
-    return Report(
-        title=title or f"Reproduction of the paper's Section 6 ({PRESET_NAME})",
-        experiments=exps, table2=rows, table2_source=t_src, figures=figs,
-        provenance=dict(provenance or {}),
-    )
+
+    def finish(self) -> Report:
+        self._figures(final=True)
+        experiments = {n: self.experiments[n] for n in self.names if n in self.experiments}
+        t_src = _choose_source(experiments, self.cols, ("E1",), ("rmse_A",))
+        rows = table2(self.cols[t_src]) if t_src else []
+        figs = []
+        for i in sorted(self.figs):
+            fg, fut = self.figs[i]
+            if fut is not None:
+                fg.set_rendered(*fut.result())
+            figs.append(fg)
+        return Report(
+            title=self.title or f"Reproduction of the paper's Section 6 ({PRESET_NAME})",
+            experiments={n: self.exps[n] for n in experiments}, table2=rows,
+            table2_source=t_src, figures=figs, provenance=dict(self.provenance or {}),
+        )
 
 
 def _exp_label(name: str, provenance: dict | None) -> str:

@@ -4,9 +4,21 @@ Every random draw comes from ``Generator(PCG64(SeedSequence(seed,
 spawn_key=key)))`` with ``key = (system index, sigma_w index, N, rep)``:
 estimators and gammas never enter the key, so they all see the same data,
 and a repetition's numbers do not depend on how the grid is batched.
+
+Speed. Building one such generator through numpy's Python-level
+``SeedSequence`` costs ~45 us, which is a noticeable share of the paper
+preset (~100,000 keys). :func:`generators` computes the same PCG64 states for
+many keys at once (numpy's SeedSequence hash, vectorised over the keys, and
+PCG64's seeding step in exact integer arithmetic) and hands out one
+generator per key by setting the state of a reused bit generator. The
+result is checked against numpy's own construction at first use (and in the
+tests); on any mismatch, e.g. a future numpy with a different seeding, the
+slow path is used.
 """
 
 from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
@@ -23,6 +35,160 @@ def rng_for(seed: int, key: tuple, stream: tuple = DATA_STREAM) -> np.random.Gen
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=key + stream)))
 
 
+# ---------------------------------------------------------------------------
+# vectorised SeedSequence -> PCG64 state (numpy's algorithm, numpy >= 1.19)
+# ---------------------------------------------------------------------------
+_M32 = 0xFFFFFFFF
+_INIT_A, _MULT_A = 0x43B0D7E5, 0x931E8875
+_INIT_B, _MULT_B = 0x8B51F9DD, 0x58F38DED
+_MIX_L, _MIX_R = 0xCA01F9DD, 0x4973F715
+_POOL = 4
+_PCG_MULT = 0x2360ED051FC65DA44385DF649FCCF645
+_M128 = (1 << 128) - 1
+
+
+def _words(x: int) -> list[int]:
+    """numpy's _int_to_uint32_array: little-endian 32-bit words, [0] for 0."""
+    x = int(x)
+    if x < 0:
+        raise ValueError("seed and key entries must be >= 0")
+    if x == 0:
+        return [0]
+    out = []
+    while x > 0:
+        out.append(x & _M32)
+        x >>= 32
+    return out
+
+
+class _Hash:
+    """The running hash constant of SeedSequence.mix_entropy (same for every key)."""
+
+    def __init__(self):
+        self.c = _INIT_A
+
+    def mix(self, value: np.ndarray) -> np.ndarray:
+        value = value ^ np.uint32(self.c)
+        self.c = (self.c * _MULT_A) & _M32
+        value = value * np.uint32(self.c)
+        return value ^ (value >> np.uint32(16))
+
+
+def _mix(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    r = np.uint32(_MIX_L) * x - np.uint32(_MIX_R) * y
+    return r ^ (r >> np.uint32(16))
+
+
+def _pools(entropy: np.ndarray) -> np.ndarray:
+    """SeedSequence pools for entropy arrays (K, L) uint32 -> (K, 4) uint32."""
+    K, L = entropy.shape
+    h = _Hash()
+    zero = np.zeros(K, dtype=np.uint32)
+    mixer = [h.mix(entropy[:, i] if i < L else zero) for i in range(_POOL)]
+    for i_src in range(_POOL):
+        for i_dst in range(_POOL):
+            if i_src != i_dst:
+                mixer[i_dst] = _mix(mixer[i_dst], h.mix(mixer[i_src]))
+    for i_src in range(_POOL, L):
+        for i_dst in range(_POOL):
+            mixer[i_dst] = _mix(mixer[i_dst], h.mix(entropy[:, i_src]))
+    return np.stack(mixer, axis=1)
+
+
+def _pcg64_states(pools: np.ndarray) -> list[tuple[int, int]]:
+    """generate_state(4, uint64) of each pool, then PCG64's srandom -> [(state, inc)]."""
+    c = _INIT_B
+    words = []
+    for i in range(8):
+        v = pools[:, i % _POOL] ^ np.uint32(c)
+        c = (c * _MULT_B) & _M32
+        v = v * np.uint32(c)
+        words.append(v ^ (v >> np.uint32(16)))
+    w = np.stack(words, axis=1).astype("<u4").view("<u8").astype(np.uint64)  # (K, 4)
+    out = []
+    for s_hi, s_lo, i_hi, i_lo in w.tolist():
+        initstate = (s_hi << 64) | s_lo
+        inc = ((((i_hi << 64) | i_lo) << 1) | 1) & _M128
+        state = inc                                      # step from 0: 0 * mult + inc
+        state = (state + initstate) & _M128
+        state = (state * _PCG_MULT + inc) & _M128
+        out.append((state, inc))
+    return out
+
+
+def _fast_states(seed: int, keys: Sequence[tuple]) -> list[tuple[int, int]]:
+    run = _words(seed)
+    if len(run) < _POOL:
+        run = run + [0] * (_POOL - len(run))
+    arr = np.asarray(keys, dtype=object)
+    if arr.ndim == 2 and all(0 <= int(v) <= 0xFFFFFFFF for v in (arr.min(), arr.max())):
+        # every key entry is one 32-bit word: the entropy arrays are the keys themselves
+        ent_arr = np.empty((len(keys), len(run) + arr.shape[1]), dtype=np.uint32)
+        ent_arr[:, :len(run)] = run
+        ent_arr[:, len(run):] = np.asarray(keys, dtype=np.int64)
+        with np.errstate(over="ignore"):
+            return _pcg64_states(_pools(ent_arr))
+    ent = [run + [w for k in key for w in _words(k)] for key in keys]
+    out: list = [None] * len(ent)
+    by_len: dict[int, list[int]] = {}
+    for i, e in enumerate(ent):
+        by_len.setdefault(len(e), []).append(i)
+    for idx in by_len.values():
+        arr = np.array([ent[i] for i in idx], dtype=np.uint32)
+        with np.errstate(over="ignore"):
+            for i, st in zip(idx, _pcg64_states(_pools(arr))):
+                out[i] = st
+    return out
+
+
+_FAST_OK: bool | None = None
+
+
+def _fast_ok() -> bool:
+    """True when the vectorised seeding reproduces numpy's SeedSequence here."""
+    global _FAST_OK
+    if _FAST_OK is None:
+        try:
+            probe = [(0, 1, 450, 3), (1, 0, 10, 999, 1), (2**40, 7)]
+            for seed in (0, 12345, 2**63 - 1):
+                for key, (st, inc) in zip(probe, _fast_states(seed, probe)):
+                    ref = np.random.PCG64(np.random.SeedSequence(seed, spawn_key=key)).state
+                    if ref["state"] != {"state": st, "inc": inc}:
+                        raise ValueError("mismatch")
+            _FAST_OK = True
+        except Exception:  # noqa: BLE001  # pragma: no cover - a numpy with another seeding
+            _FAST_OK = False
+    return _FAST_OK
+
+
+def generators(seed: int, keys: Sequence[tuple], stream: tuple = DATA_STREAM, *,
+               fresh: bool = False) -> Iterator[np.random.Generator]:
+    """Yield the generator of each key (the same streams as :func:`rng_for`), fast.
+
+    By default one bit generator is reused and re-seeded per key, so a
+    yielded generator is only valid until the next one is requested (draw
+    from it, then move on); ``fresh=True`` gives independent generators.
+    """
+    keys = [tuple(int(v) for v in k) + tuple(stream) for k in keys]
+    if not keys:
+        return
+    if not _fast_ok():
+        for k in keys:
+            yield np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=k)))
+        return
+    bg = gen = None
+    for st, inc in _fast_states(seed, keys):
+        if fresh or bg is None:
+            bg = np.random.PCG64(0)
+            gen = np.random.Generator(bg)
+        bg.state = {"bit_generator": "PCG64", "state": {"state": st, "inc": inc},
+                    "has_uint32": 0, "uinteger": 0}
+        yield gen
+
+
+# ---------------------------------------------------------------------------
+# draws, simulation, regression data
+# ---------------------------------------------------------------------------
 def draw_noise(seed, keys, *, N, T0, n, m, sigma_u, sigma_w, x0_std=0.0):
     """Draw (x0, u, w) for every key, in the layout the simulation uses.
 
@@ -37,8 +203,7 @@ def draw_noise(seed, keys, *, N, T0, n, m, sigma_u, sigma_w, x0_std=0.0):
     x0 = np.zeros((R, n, N))
     u = np.empty((R, m, T0, N))
     w = np.empty((R, n, T0, N))
-    for i, key in enumerate(keys):
-        g = rng_for(seed, key)
+    for i, g in enumerate(generators(seed, keys)):
         if x0_std > 0:
             g.standard_normal(out=x0[i])
         g.standard_normal(out=u[i])
@@ -53,8 +218,8 @@ def draw_noise(seed, keys, *, N, T0, n, m, sigma_u, sigma_w, x0_std=0.0):
 def simulate(A, B, x0, u, w) -> np.ndarray:
     """x_{k+1} = A x_k + B u_k + w_k for all rollouts at once -> x (R, n, T0+1, N).
 
-    Written as elementwise multiply-adds (no BLAS), so every rollout's
-    numbers are the same to the bit whatever the batch size.
+    A plain reference (elementwise multiply-adds); the runner simulates in
+    :func:`gram_data` (same draws, BLAS products, equal to ~1e-15).
     """
     R, m, T0, N = u.shape
     n = A.shape[0]
@@ -87,10 +252,74 @@ def regression_data(x, u, data: str = "all"):
 
 
 def collect(system, sigma_w, N, T0, seed, keys, data="all", x0_std=0.0):
-    """Simulate the rollouts of every key and return (Z, F); SPEC section 1."""
-    x0, u, w = draw_noise(
-        seed, keys, N=N, T0=T0, n=system.n, m=system.m,
-        sigma_u=system.sigma_u, sigma_w=sigma_w, x0_std=x0_std,
-    )
-    x = simulate(system.A, system.B, x0, u, w)
-    return regression_data(x, u, data)
+    """Simulate the rollouts of every key and return (Z, F); SPEC section 1.
+
+    The same numbers as the experiment runner uses (it calls :func:`gram_data`)."""
+    _, _, Z, F = gram_data(system, sigma_w, N, T0, seed, keys, data, x0_std, keep_data=True)
+    return Z, F
+
+
+# Working-set size of one chunk of repetitions in :func:`gram_data` (cache-sized).
+CHUNK_BYTES = 2 * 2**20
+
+
+def gram_data(system, sigma_w, N, T0, seed, keys, data="all", x0_std=0.0, *,
+              keep_data=False):
+    """Sufficient statistics of every key's regression data, without forming Z.
+
+    Draws in the documented order (:func:`draw_noise`; u and w of a key come
+    from one ``standard_normal`` call of shape (m+n, T0, N), which is the same
+    stream as the two calls), then simulates in cache-sized chunks of
+    repetitions. Layout of one repetition: a block
+    ``Y (2n+m, T0+1, N)`` with rows ``[x_k; u_k; w_k]`` (u, w use the slots
+    k < T0), so ``[x_k; u_k; w_k]`` for one k is a matrix with a row stride
+    and a step is one small matrix product per repetition,
+    ``x_{k+1} = [A B I] [x_k; u_k; w_k]`` (stacked matmul: every repetition
+    is its own BLAS call of the same shape, so its bits do not depend on the
+    batch). Returns ``(G, P, Z, F)``: ``G = Z Z^T`` (R, d, d) and
+    ``P = F Z^T`` (R, n, d), computed by BLAS directly on strided views
+    (``Z`` = rows x, u of the time slices k0..T0-1, ``F`` = rows x of
+    k0+1..T0: no copy); ``Z, F`` as :func:`regression_data` lays them out
+    when ``keep_data`` (else None).
+    """
+    n, m = system.n, system.m
+    d = n + m
+    q = d + n
+    M = np.concatenate([system.A, system.B, np.eye(n)], axis=1)          # (n, 2n+m)
+    R = len(keys)
+    k0 = 1 if data == "all" else T0 - 1
+    K = T0 - k0
+    G = np.empty((R, d, d))
+    P = np.empty((R, n, d))
+    Z = np.empty((R, d, K * N)) if keep_data else None
+    F = np.empty((R, n, K * N)) if keep_data else None
+    per_rep = 8 * N * (q * (T0 + 1) + d * T0)
+    c = int(max(1, min(R, CHUNK_BYTES // per_rep)))
+    Y = np.zeros((c, q, T0 + 1, N))
+    draw = np.empty((m + n, T0, N))      # u then w of one key: one contiguous stream block
+    x0b = np.empty((n, N))
+    gens = generators(seed, keys)
+    for s in range(0, R, c):
+        e = min(R, s + c)
+        h = e - s
+        for i in range(h):
+            g = next(gens)
+            if x0_std > 0:
+                g.standard_normal(out=x0b)
+                np.multiply(x0b, x0_std, out=Y[i, :n, 0])
+            g.standard_normal(out=draw)
+            Y[i, n:, :T0] = draw
+        Yh = Y[:h]
+        Yh[:, n:d, :T0] *= system.sigma_u
+        Yh[:, d:, :T0] *= sigma_w
+        for k in range(T0):
+            np.matmul(M, Yh[:, :, k], out=Yh[:, :n, k + 1])
+        Zv = Yh[:, :d, k0:T0].reshape(h, d, K * N)              # views, row stride (T0+1) N
+        Fv = Yh[:, :n, k0 + 1:T0 + 1].reshape(h, n, K * N)
+        Zt = np.swapaxes(Zv, -1, -2)
+        np.matmul(Zv, Zt, out=G[s:e])
+        np.matmul(Fv, Zt, out=P[s:e])
+        if keep_data:
+            Z[s:e] = Zv
+            F[s:e] = Fv
+    return G, P, Z, F

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from svrobs_core.cost import exact_cost, mc_cost, optimal_cost, stationary_cost
+from svrobs_core.cost import exact_cost, mc_cost, mc_cost_shared, optimal_cost, stationary_cost
 from svrobs_core.norms import REASON_UNSTABLE
 
 A_S = np.array([[0.9, 0.01, 0.0], [0.01, 0.9, 0.01], [0.0, 0.01, 0.9]])
@@ -234,6 +234,58 @@ def test_monte_carlo_documented_draw_order():
     per_run = acc / T
     assert float(mean) == pytest.approx(per_run.mean(), rel=1e-12)
     assert float(se) == pytest.approx(per_run.std(ddof=1) / np.sqrt(runs), rel=1e-10)
+
+
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_shared_noise_monte_carlo_equals_one_cell_at_a_time(name):
+    """mc_cost_shared on an (R, E) grid = mc_cost per cell with row r's generator
+    (same documented draws; the cells of a row share them)."""
+    A, B, C = SYSTEMS[name][:3]
+    K, _ = kalman(A, C, SW, SV)
+    R, E, T, runs = 3, 4, 37, 50
+    At, Bt, L = perturbed_cells(np.random.default_rng(12), A, B, C, K, R * E)
+    n, m, p = A.shape[0], B.shape[1], C.shape[0]
+    At, Bt, L = At.reshape(R, E, n, n), Bt.reshape(R, E, n, m), L.reshape(R, E, n, p)
+    mean, se = mc_cost_shared(A, B, At, Bt, L, C, SU, 0.7, SV, T,
+                              [np.random.default_rng(40 + r) for r in range(R)], runs)
+    assert mean.shape == se.shape == (R, E)
+    for r in range(R):
+        for e in range(E):
+            m1, s1 = mc_cost(A, B, At[r, e], Bt[r, e], L[r, e], C, SU, 0.7, SV, T,
+                             np.random.default_rng(40 + r), runs)
+            assert mean[r, e] == pytest.approx(float(m1), rel=1e-10)
+            assert se[r, e] == pytest.approx(float(s1), rel=1e-8)
+
+
+def test_shared_noise_monte_carlo_does_not_depend_on_the_other_cells():
+    """A cell's numbers are the same to the bit whichever other cells (estimators,
+    gammas, repetitions) are computed with it."""
+    K, _ = kalman(A_S, np.eye(3), SW, SV)
+    At, Bt, L = perturbed_cells(np.random.default_rng(16), A_S, B_P, np.eye(3), K, 12)
+    At, Bt, L = At.reshape(3, 4, 3, 3), Bt.reshape(3, 4, 3, 1), L.reshape(3, 4, 3, 3)
+    T, runs = 45, 64
+
+    def rngs(rows):
+        return [np.random.default_rng(50 + r) for r in rows]
+
+    full = mc_cost_shared(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, T, rngs(range(3)), runs)
+    part = mc_cost_shared(A_S, B_P, At[1:, 2:3], Bt[1:, 2:3], L[1:, 2:3], np.eye(3), SU, SW,
+                          SV, T, rngs([1, 2]), runs)
+    for a, b in zip(full, part):
+        assert np.array_equal(a[1:, 2:3], b)
+
+
+def test_shared_noise_monte_carlo_agrees_with_exact():
+    K, _ = kalman(A_S, np.eye(3), SW, SV)
+    At, Bt, L = perturbed_cells(np.random.default_rng(13), A_S, B_P, np.eye(3), K, 4)
+    At, Bt, L = At.reshape(2, 2, 3, 3), Bt.reshape(2, 2, 3, 1), L.reshape(2, 2, 3, 3)
+    J = exact_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, horizon=60)
+    mean, se = mc_cost_shared(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, 60,
+                              [np.random.default_rng(14), np.random.default_rng(15)], 1500)
+    assert (np.abs(mean - J) < 4 * se).all()
+    with pytest.raises(ValueError):
+        mc_cost_shared(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, 60,
+                       [np.random.default_rng(14)], 100)
 
 
 def test_bad_arguments():

@@ -22,6 +22,7 @@ from svrobs_core.estimators import (
     fit_svr,
     ridge_parameters,
     shrunk_ols,
+    svr_from_gram,
 )
 
 RTOL = 1e-8  # the agreement SPEC section 2 asks for
@@ -92,10 +93,13 @@ def test_svr_matches_constrained_primal_qp(loss_scale):
     N0 = Z.shape[1]
     got = fit_svr(Z, F, GAMMAS, loss_scale)
     ols = fit_ols(Z, F)
+    # from the sufficient statistics only (what the runner uses for svr)
+    from_gram = svr_from_gram(Z @ Z.T, F @ Z.T, N0, GAMMAS, loss_scale)
     for k, gamma in enumerate(GAMMAS):
         weight = 1 / (2 * gamma) if loss_scale == "sum" else 1 / (2 * gamma * N0)
         ref = qp_svr(Z, F, gamma, weight)
         assert rel(got[k], ref) < RTOL
+        assert rel(from_gram[k], ref) < RTOL
         assert rel(ols, ref) > 1e3 * RTOL  # the comparison can tell SVR from OLS
 
 

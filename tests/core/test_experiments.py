@@ -156,3 +156,78 @@ def test_run_local_cli_bad_spec_is_one_line_exit_2(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == ["error: invalid spec: reps: must be >= 1"]
     assert "Traceback" not in proc.stderr + proc.stdout
+
+
+# ---------------------------------------------------------------------------
+# column results: JSON text, report columns, notes, worker processes
+# ---------------------------------------------------------------------------
+def test_json_lines_and_columns_equal_the_records():
+    """UnitResult.json_lines() is json.dumps(record) to the byte, and
+    UnitResult.columns() is what report.Columns builds from the records."""
+    from svrobs_core.experiments import run_unit_result
+    from svrobs_core.report import Columns
+
+    for spec_obj in (SMALL, {**SMALL, "stages": ["estimate"]}, {**SMALL, "reuse_gain": True},
+                     {**SMALL, "mc_reps": 0, "gamma": [0.05]}):
+        spec = parse_spec(spec_obj)
+        for unit in plan_units(spec):
+            res = run_unit_result(spec, unit)
+            recs = res.records()
+            assert len(res) == len(recs)
+            assert res.json_lines() == [json.dumps(r, allow_nan=False) for r in recs]
+            want = Columns.from_records(recs).data
+            got = res.columns()
+            assert set(want) == set(got)
+            for f, a in want.items():
+                if a.dtype == object:
+                    assert got[f].tolist() == a.tolist(), f
+                else:
+                    assert np.array_equal(got[f], a, equal_nan=True), f
+
+
+def test_notes_match_a_per_cell_list():
+    """The vectorised notes equal the obvious per-cell implementation."""
+    from svrobs_core.experiments import _Notes
+
+    rng = np.random.default_rng(3)
+    shape = (7, 5)
+    notes = _Notes(shape)
+    naive = [[[] for _ in range(shape[1])] for _ in range(shape[0])]
+    texts = ["a", "b; c", "a", "d", "e", "b; c"] + [f"t{i}" for i in range(70)]
+    for t in texts:
+        mask = rng.random(shape) < 0.3
+        notes.add(mask, t)
+        for i, j in zip(*np.nonzero(mask)):
+            if t not in naive[i][j]:
+                naive[i][j].append(t)
+    reasons = np.array([[None, "x", "", "y", "x"]] * 7, dtype=object)
+    notes.add_reasons(reasons, "P")
+    for i in range(7):
+        for j in range(5):
+            if reasons[i, j]:
+                t = f"P: {reasons[i, j]}"
+                if t not in naive[i][j]:
+                    naive[i][j].append(t)
+    got = notes.strings()
+    for i in range(7):
+        for j in range(5):
+            assert got[i, j] == ("; ".join(naive[i][j]) if naive[i][j] else None)
+
+
+def test_worker_processes_give_the_same_records(small):
+    spec, recs = small
+    par = [r for batch in run_spec(spec, n_jobs=2) for r in batch]
+    assert json.dumps(par) == json.dumps(recs)
+
+
+def test_records_for_a_smaller_mc_reps_equal_a_direct_run():
+    from svrobs_core.experiments import run_unit_result
+
+    spec = parse_spec({**SMALL, "mc_reps": 2, "mc_runs": 50})
+    for mc in (0, 1, 2):
+        other = parse_spec({**SMALL, "mc_reps": mc, "mc_runs": 50})
+        for unit in plan_units(spec):
+            got = run_unit_result(spec, unit).with_mc_reps(mc).json_lines()
+            assert got == [json.dumps(r) for r in run_unit(other, unit)]
+    with pytest.raises(ValueError):
+        run_unit_result(spec, plan_units(spec)[0]).with_mc_reps(3)

@@ -202,7 +202,8 @@ def test_findings_estimate_and_bounds_hand_counts():
 
 
 def test_findings_cost_hand_counts():
-    spec = dict(paper_specs("reduced")["E4"])
+    # E4's structure (S and U), with a Monte Carlo J on the first repetitions as in E3
+    spec = dict(paper_specs("reduced")["E4"], mc_reps=paper_specs("reduced")["E3"]["mc_reps"])
     recs = make_records(spec, seed=2)
     for r in recs:  # make every delta_J positive, then exactly 4 negative on S, 1 on U
         r["delta_J"] = abs(r["delta_J"]) + 0.1
@@ -351,7 +352,7 @@ def test_missing_stage_is_dropped_and_reported(tmp_path, monkeypatch):
                                                                "cost"]}}
     calls = []
 
-    def fake_run_spec(spec, progress=None, units=None):
+    def fake_run_spec(spec, progress=None, units=None, **kwargs):
         calls.append(spec.stages)
         if spec.has("gain"):
             raise NotImplementedError("observer pipeline not yet written")
@@ -444,6 +445,17 @@ def test_derived_e1_equals_a_direct_run(reproduced):
         for f in ("rmse_A", "rmse_B", "eps_A", "r_A", "rho_upper_bound"):
             assert a[f] == pytest.approx(b[f], rel=1e-12)
         assert a["coverage_A"] == b["coverage_A"] and a["stable_certified"] == b["stable_certified"]
+
+
+def test_derived_e3_and_parallel_run_equal_a_direct_run(reproduced):
+    """E3's records (taken from E4's, computed in worker processes) are, as JSON
+    text, the records of E3 run on its own in this process."""
+    out, _ = reproduced
+    for exp in ("E3", "E4"):  # E4 has no Monte Carlo J: its S records are E3's without it
+        derived = (out / exp / "records.jsonl").read_text().splitlines()
+        direct = [json.dumps(r, allow_nan=False)
+                  for batch in run_spec(parse_spec(paper_specs("reduced")[exp])) for r in batch]
+        assert derived == direct, exp
 
 
 def test_report_contents(reproduced):

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from svrobs_core.rollouts import collect, rng_for, seed_key
+from svrobs_core.rollouts import MC_STREAM, collect, generators, gram_data, rng_for, seed_key
 from svrobs_core.systems import resolve_system
 
 S = resolve_system("paper-stable")
@@ -59,3 +59,50 @@ def test_keys_and_seeds_give_distinct_streams():
     assert not np.array_equal(a, rng_for(0, seed_key(0, 0, 10, 1)).standard_normal(4))
     assert not np.array_equal(a, rng_for(0, seed_key(0, 0, 10, 0), (1,)).standard_normal(4))
     assert np.array_equal(a, rng_for(0, seed_key(0, 0, 10, 0)).standard_normal(4))
+
+
+def test_fast_generators_are_numpys_seedsequence_streams():
+    """The vectorised SeedSequence -> PCG64 seeding gives numpy's own streams."""
+    keys = [seed_key(s, w, N, r) for s in (0, 1) for w in (0, 2) for N in (10, 450)
+            for r in (0, 1, 999, 2**32 + 5)]
+    for seed in (0, 7, 2**32 + 1, 2**63 - 1):
+        for stream in ((), MC_STREAM):
+            for fresh in (False, True):
+                got = [g.standard_normal(3) for g in generators(seed, keys, stream, fresh=fresh)]
+                for k, a in zip(keys, got):
+                    ref = np.random.Generator(np.random.PCG64(
+                        np.random.SeedSequence(seed, spawn_key=k + stream))).standard_normal(3)
+                    assert np.array_equal(a, ref), (seed, k, stream)
+    # fresh generators stay usable side by side
+    gs = list(generators(3, keys[:3], fresh=True))
+    firsts = [g.standard_normal() for g in gs]
+    assert len(set(firsts)) == 3
+    assert firsts[0] == rng_for(3, keys[0]).standard_normal()
+
+
+def test_gram_data_is_z_zt_and_f_zt_of_the_rollouts():
+    for data, x0_std in (("all", 0.0), ("final", 1.5)):
+        keys = [seed_key(1, 0, 13, r) for r in range(5)]
+        G, P, Z, F = gram_data(S, 0.5, 13, 11, 9, keys, data, x0_std, keep_data=True)
+        Zn, Fn = zip(*(naive(S, 0.5, 13, 11, 9, k, data, x0_std) for k in keys))
+        np.testing.assert_allclose(Z, np.array(Zn), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(F, np.array(Fn), rtol=1e-12, atol=1e-12)
+        for r in range(5):
+            np.testing.assert_allclose(G[r], Zn[r] @ Zn[r].T, rtol=1e-12)
+            np.testing.assert_allclose(P[r], Fn[r] @ Zn[r].T, rtol=1e-12, atol=1e-12)
+        # without the data: the same statistics, bit for bit; any batch gives the same bits
+        G2, P2, Z2, F2 = gram_data(S, 0.5, 13, 11, 9, keys, data, x0_std)
+        assert Z2 is None and F2 is None
+        assert np.array_equal(G, G2) and np.array_equal(P, P2)
+        G3, P3, _, _ = gram_data(S, 0.5, 13, 11, 9, keys[3:4], data, x0_std)
+        assert np.array_equal(G3[0], G[3]) and np.array_equal(P3[0], P[3])
+
+
+def test_gram_data_chunks_do_not_change_bits(monkeypatch):
+    import svrobs_core.rollouts as ro
+
+    keys = [seed_key(0, 1, 40, r) for r in range(9)]
+    G, P, _, _ = gram_data(S, 1.0, 40, 11, 2, keys)
+    monkeypatch.setattr(ro, "CHUNK_BYTES", 1)  # one repetition per chunk
+    G1, P1, _, _ = gram_data(S, 1.0, 40, 11, 2, keys)
+    assert np.array_equal(G, G1) and np.array_equal(P, P1)
