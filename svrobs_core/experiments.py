@@ -33,11 +33,29 @@ from .rollouts import gram_data, seed_key
 from .spec import STAGES, ExperimentSpec
 
 MAX_CELLS_PER_UNIT = 20_000
+TARGET_CELLS_PER_UNIT = 2_000  # ~0.1-1 s of work: amortises a worker's per-unit cost
 
 
-def plan_units(spec: ExperimentSpec, max_cells: int = MAX_CELLS_PER_UNIT) -> list[dict]:
-    """Work units ``{"system", "sigma_w", "N": [...], "reps": [start, stop]}``."""
-    n_groups = [list(spec.N)] if spec.reuse_gain else [[N] for N in spec.N]
+def plan_units(spec: ExperimentSpec, max_cells: int = MAX_CELLS_PER_UNIT,
+               target_cells: int = TARGET_CELLS_PER_UNIT) -> list[dict]:
+    """Work units ``{"system", "sigma_w", "N": [...], "reps": [start, stop]}``.
+
+    Consecutive N values of one (system, sigma_w) are packed into a unit
+    while it stays within ``target_cells`` (all N at once when ``reuse_gain``
+    couples them); a single N over ``max_cells`` is split by repetitions.
+    The records do not depend on the split.
+    """
+    per_N = spec.cells_per_rep * spec.reps
+    if spec.reuse_gain:
+        n_groups = [list(spec.N)]
+    else:
+        n_groups, group = [], []
+        for N in sorted(spec.N):
+            if group and per_N * (len(group) + 1) > target_cells:
+                n_groups.append(group)
+                group = []
+            group.append(N)
+        n_groups.append(group)
     units = []
     for si in range(len(spec.systems)):
         for wi in range(len(spec.sigma_w)):
@@ -46,7 +64,7 @@ def plan_units(spec: ExperimentSpec, max_cells: int = MAX_CELLS_PER_UNIT) -> lis
                 chunk = max(1, min(spec.reps, max_cells // per_rep))
                 for r0 in range(0, spec.reps, chunk):
                     units.append(
-                        {"system": si, "sigma_w": wi, "N": sorted(Ns),
+                        {"system": si, "sigma_w": wi, "N": list(Ns),
                          "reps": [r0, min(spec.reps, r0 + chunk)]}
                     )
     return units

@@ -44,8 +44,9 @@ def test_fields_are_exactly_the_contract_and_json_has_no_nan(small):
 
 def test_cells_one_by_one_equal_all_at_once_bit_for_bit(small):
     spec, recs = small
-    one_by_one = records(spec, units=plan_units(spec, max_cells=1))
-    assert len(plan_units(spec, max_cells=1)) == 2 * 2 * 2 * 3
+    one_by_one = records(spec, units=plan_units(spec, max_cells=1, target_cells=1))
+    assert len(plan_units(spec, max_cells=1, target_cells=1)) == 2 * 2 * 2 * 3
+    assert [u["N"] for u in plan_units(spec)][:1] == [[10, 30]]  # the default packs N values
     a = {key(r): r for r in recs}
     b = {key(r): r for r in one_by_one}
     assert a.keys() == b.keys()
