@@ -360,23 +360,52 @@ _KEY_COLS = ("job_id", "system", "sigma_w", "N", "estimator", "gamma_key", "rep"
 _INT_FIELDS = ("N", "N0", "rep")
 
 
+def _clean_scalar(f: str, v):
+    if v is None:
+        return None
+    t = type(v)
+    if t is float:  # the common case: the core's records are plain Python already
+        return v if math.isfinite(v) else None
+    v = json_value(v)
+    if v is None:
+        return None
+    if f in BOOL_FIELDS:
+        return bool(v)
+    if f in _INT_FIELDS:
+        return int(v)
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _clean_matrix(v):
+    """Nested lists of finite floats pass as they are; anything else is sanitised."""
+    if type(v) is list:
+        for row in v:
+            if type(row) is not list:
+                break
+            for x in row:
+                if type(x) is not float or not math.isfinite(x):
+                    if x is not None:
+                        break
+            else:
+                continue
+            break
+        else:
+            return v
+    return json_value(v)
+
+
 def record_to_row(job_id: int, record: dict) -> dict:
     """A section 10 record -> a ``results`` row (NaN/inf -> NULL, numpy -> Python)."""
     row = {"job_id": job_id}
+    get = record.get
     for f in RESULT_SCALAR_FIELDS:
-        v = json_value(record.get(f))
-        if v is not None:
-            if f in BOOL_FIELDS:
-                v = bool(v)
-            elif f in _INT_FIELDS:
-                v = int(v)
-            else:
-                v = float(v)
-                if not math.isfinite(v):
-                    v = None
-        row[f] = v
+        v = get(f)
+        t = type(v)
+        plain = v is None or (t is bool and f in BOOL_FIELDS) or (t is int and f in _INT_FIELDS)
+        row[f] = v if plain else _clean_scalar(f, v)
     for f in RESULT_MATRIX_FIELDS:
-        row[f] = json_value(record.get(f))
+        row[f] = _clean_matrix(get(f))
     row["system"] = str(record["system"])
     row["estimator"] = str(record["estimator"])
     row["gamma_key"] = gamma_key(row["estimator"], row["gamma"])
@@ -552,14 +581,19 @@ def fail_unit(session: Session, unit_id: int, error: str, final: bool) -> None:
 
 def units_to_publish(
     session: Session, limit: int = 500, *, now: datetime | None = None,
-    retry_seconds: int | None = None,
+    retry_seconds: int | None = None, lost_before: datetime | None = None,
 ) -> list[int]:
     """Units of active jobs that need (re)publishing: pending and never published, or
     published more than ``retry_seconds`` (SVROBS_PUBLISH_RETRY_SECONDS) ago without
-    starting, or running with an expired lease (the worker died)."""
+    starting, or published before ``lost_before`` (when the broker's current data
+    began: a Redis restarted without persistence has lost those messages; see
+    :func:`service.broker.broker_epoch`), or running with an expired lease (the
+    worker died)."""
     now = _now(now)
     retry = _settings().PUBLISH_RETRY_SECONDS if retry_seconds is None else retry_seconds
     stale = now - timedelta(seconds=retry)
+    if lost_before is not None:
+        stale = max(stale, min(_now(lost_before), now))
     q = (
         select(WorkUnit.id)
         .join(Job, Job.id == WorkUnit.job_id)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from svrobs_core.experiments import plan_units
+from svrobs_core.spec import parse_spec
+
 from service.config import Settings
 
 
@@ -46,3 +49,5 @@ SMALL_SPEC = {
     "estimators": ["ols", "svr"],
     "seed": 7,
 }
+# units of SMALL_SPEC as the core plans them (consecutive N values packed per unit)
+SMALL_UNITS = len(plan_units(parse_spec(SMALL_SPEC)))

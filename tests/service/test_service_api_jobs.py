@@ -6,7 +6,7 @@ import json
 
 from sqlalchemy import func, select
 from svc_fakes import run_job_units
-from svc_helpers import SMALL_SPEC
+from svc_helpers import SMALL_SPEC, SMALL_UNITS
 
 from service.db import crud
 from service.db.models import ApiKey, Job, WorkUnit
@@ -30,7 +30,7 @@ def test_submit_publishes_after_commit(client, publisher, session, make_account)
     job = r.json()
     assert job["status"] == "queued" and job["name"] == "first"
     assert job["tags"] == ["nightly", "x"] and job["owner"] == acc.user.email
-    assert job["progress"] == {"done": 0, "total": 8, "fraction": 0.0}
+    assert job["progress"] == {"done": 0, "total": SMALL_UNITS, "fraction": 0.0}
     assert job["spec"]["seed"] == 7 and job["n_cells"] == 72
     units = crud.unit_ids_of_job(session, job["id"], pending_only=False)
     assert sorted(publisher.published) == sorted(units)
@@ -57,7 +57,7 @@ def test_idempotency_key_same_job_one_set_of_units(client, publisher, session, m
     assert a.json()["id"] == b.json()["id"]
     assert _jobs(session, acc.team.id) == 1
     assert session.scalar(select(func.count(WorkUnit.id)).where(
-        WorkUnit.job_id == a.json()["id"])) == 8
+        WorkUnit.job_id == a.json()["id"])) == SMALL_UNITS
     assert len(publisher.calls) == 1
     c = submit(client, acc, {**SMALL_SPEC, "seed": 99}, headers=h)
     assert c.status_code == 409 and c.json()["field"] == "Idempotency-Key"

@@ -9,7 +9,7 @@ import json
 
 import pytest
 from svc_fakes import run_job_units
-from svc_helpers import SMALL_SPEC
+from svc_helpers import SMALL_SPEC, SMALL_UNITS
 
 from service import cli
 from service.config import get_settings
@@ -100,10 +100,10 @@ def test_submit_status_results_compare(rest, run, session, tmp_path, monkeypatch
     monkeypatch.setattr(cli.time, "sleep", sleep)
     code, out, err = run("submit", str(spec_file), "--wait")
     assert code == 0, err
-    assert "succeeded 8/8" in out
+    assert f"succeeded {SMALL_UNITS}/{SMALL_UNITS}" in out
 
     code, out, _ = run("status", str(jid))
-    assert code == 0 and "succeeded 8/8" in out
+    assert code == 0 and f"succeeded {SMALL_UNITS}/{SMALL_UNITS}" in out
     code, out, _ = run("status")
     assert code == 0 and "cli" in out
     dest = tmp_path / "r.csv"

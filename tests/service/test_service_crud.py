@@ -7,7 +7,7 @@ from datetime import UTC, datetime, timedelta
 import pytest
 from sqlalchemy import func, select
 from svc_fakes import fake_records, run_job_units
-from svc_helpers import SMALL_SPEC
+from svc_helpers import SMALL_SPEC, SMALL_UNITS
 
 from service.db import crud
 from service.db.models import Job, Result, Schedule, ScheduleRun, Summary, WorkUnit
@@ -33,7 +33,7 @@ def test_create_job_writes_job_and_units(session, make_account):
     assert job.tags == ["a", "b"]
     assert job.provenance["seed"] == 7 and job.provenance["version"]
     assert {"python", "numpy", "git_commit"} <= set(job.provenance)
-    assert _count(session, WorkUnit, job_id=job.id) == job.progress_total == 8
+    assert _count(session, WorkUnit, job_id=job.id) == job.progress_total == SMALL_UNITS
 
 
 def test_idempotency_key_returns_same_job(session, make_account):
@@ -45,7 +45,7 @@ def test_idempotency_key_returns_same_job(session, make_account):
     session.commit()
     assert a.id == b.id and not b.was_created
     assert _count(session, Job, team_id=acc.team.id) == 1
-    assert _count(session, WorkUnit, job_id=a.id) == 8
+    assert _count(session, WorkUnit, job_id=a.id) == SMALL_UNITS
     with pytest.raises(crud.IdempotencyConflict):
         crud.create_job(session, **{**kw, "spec": {**SMALL_SPEC, "seed": 8}})
     # the key is per team
@@ -96,7 +96,7 @@ def test_unit_lifecycle_and_double_completion(session, make_account):
     assert crud.start_unit(session, ids[0], "w2", 60) is None  # done units are skipped
     run_job_units(session, job.id)
     session.refresh(job)
-    assert job.status == "succeeded" and job.progress_done == job.progress_total == 8
+    assert job.status == "succeeded" and job.progress_done == job.progress_total == SMALL_UNITS
     assert job.finished_at and "run_seconds" in job.timings
     assert _count(session, Result, job_id=job.id) == job.n_cells
     # one row per cell even after a full second pass
@@ -146,7 +146,7 @@ def test_fail_unit_final_names_cells(session, make_account):
     session.commit()
     session.refresh(job)
     assert job.status == "failed"
-    assert "boom" in job.error and "system=paper-stable" in job.error and "N=[40]" in job.error
+    assert "boom" in job.error and "system=paper-stable" in job.error and "N=[20, 40]" in job.error
     assert session.get(WorkUnit, ids[2]).status == "cancelled"
     assert crud.start_unit(session, ids[0], "w", 60) is None
 
