@@ -68,7 +68,7 @@ def run_observer_stages(spec, system, sigma_w, keys, A_hat, B_hat, gamma, rad, b
     out["rho_true"] = spectral_radius(A - L @ C)
     if designed.feasible is not None:
         notes.add(~designed.feasible & np.isfinite(designed.g_L),
-                  "gain: margin not reachable; L minimises g(L)")
+                  "gain: margin not reachable, L minimises g(L)")
     if not spec.has("cost"):
         return
     su, sv = system.sigma_u, system.sigma_v
