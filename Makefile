@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test test-core test-service test-integration bench clean
+.PHONY: install run test test-core test-service test-integration test-faults bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -18,7 +18,7 @@ run: $(STAMP)
 	$(BIN)/svrobs serve
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -p no:cacheprovider
+	$(BIN)/python -m pytest -q -p no:cacheprovider --ignore=tests/faults
 
 test-core: $(STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider tests/core
@@ -28,6 +28,12 @@ test-service: $(STAMP)
 
 test-integration: $(STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider tests/integration
+
+# worker kills, Redis/PostgreSQL restarts, API kill, two beats, a poison unit: real
+# processes on private servers (initdb + redis-server on spare loopback ports)
+test-faults: $(STAMP)
+	SVROBS_FAULTS_REPORT=var/faults-report.json $(BIN)/python -m pytest -q -p no:cacheprovider \
+		-m faults --durations=0 tests/faults
 
 bench: $(STAMP)
 	$(BIN)/python bench/estimators.py

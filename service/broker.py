@@ -63,6 +63,10 @@ def make_celery(settings: Settings, name: str = "svrobs") -> Celery:
         result_backend=None,
         task_default_queue="svrobs",
         broker_connection_retry_on_startup=True,
+        # a lost broker connection must not cancel running units (Celery 6's default):
+        # they finish and store their results in the DB; a message the broker still
+        # has is redelivered and skipped, one it lost is re-published by the relay
+        worker_cancel_long_running_tasks_on_connection_loss=False,
         broker_connection_timeout=settings.BROKER_TIMEOUT,
         task_publish_retry_policy=PUBLISH_RETRY_POLICY,
         worker_hijack_root_logger=False,
@@ -98,6 +102,7 @@ def publish_units(celery: Celery, unit_ids: Iterable[int], *, raise_errors: bool
         return sent
     try:
         with celery.producer_or_acquire() as producer:
+            _ensure_epoch_marker(celery, producer)
             for uid in ids:
                 celery.send_task(
                     RUN_UNIT_TASK, args=[uid], producer=producer, retry=True,
@@ -125,6 +130,50 @@ def check_broker(celery: Celery, timeout: float = 2.0) -> None:
         conn.ensure_connection(max_retries=1, timeout=timeout)
         if url.startswith(("redis:", "rediss:")):
             conn.default_channel.client.ping()
+
+
+# A key kept in the broker's own Redis database, holding the time it was created.
+# Queued messages and this key live and die together: when a Redis restarted without
+# persistence (or flushed, or failed over to an empty replica) has lost the queue, the
+# key is gone too. The relay then re-creates it and re-publishes every pending unit
+# published before that time at once, instead of waiting PUBLISH_RETRY_SECONDS.
+BROKER_EPOCH_KEY = "svrobs:broker-epoch"
+
+
+def _epoch_now() -> str:
+    import time
+
+    return repr(time.time())
+
+
+def _ensure_epoch_marker(celery: Celery, producer) -> None:
+    """Create the marker (if missing) before publishing: messages sent from now on
+    belong to the broker's current data, so the relay does not take them for lost."""
+    if not (celery.conf.broker_url or "").startswith(("redis:", "rediss:")):
+        return
+    try:
+        producer.channel.client.set(BROKER_EPOCH_KEY, _epoch_now(), nx=True)
+    except Exception as exc:  # noqa: BLE001 - the sends below report a dead broker
+        log.debug("broker epoch marker not set: %s", exc)
+
+
+def broker_epoch(celery: Celery, timeout: float = 2.0):
+    """When the broker's current data began (a UTC datetime), creating the marker
+    now if it is missing; None for a broker without one (the filesystem broker keeps
+    its queue on disk). Raises if the broker cannot be reached."""
+    from datetime import UTC, datetime
+
+    url = celery.conf.broker_url or ""
+    if not url.startswith(("redis:", "rediss:")):
+        return None
+    with celery.connection_for_write() as conn:
+        conn.ensure_connection(max_retries=1, timeout=timeout)
+        client = conn.default_channel.client
+        client.set(BROKER_EPOCH_KEY, _epoch_now(), nx=True)
+        value = client.get(BROKER_EPOCH_KEY)
+    if isinstance(value, bytes):
+        value = value.decode()
+    return datetime.fromtimestamp(float(value), UTC)
 
 
 def relay_once(celery: Celery, session, limit: int = 500) -> int:

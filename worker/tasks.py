@@ -4,7 +4,9 @@
 
 1. ``crud.start_unit`` claims the unit (status, lease, attempt counter) in one
    transaction and returns ``(spec, unit payload)``, or ``None`` when there is
-   nothing to do (already done, cancelled, or leased by another delivery);
+   nothing to do (already done or cancelled; a duplicate delivery of a unit that
+   is still running claims it again, which only costs an attempt: the results
+   are upserted on the cell key);
 2. ``svrobs_core.run_unit`` computes the records (pure, no I/O);
 3. ``crud.complete_unit`` upserts them on the cell key and updates progress;
    the job finishes when the DB says every unit is done.
@@ -26,8 +28,10 @@ import threading
 import time
 import traceback
 
+from billiard.exceptions import TimeLimitExceeded, WorkerLostError
 from celery.exceptions import Retry
 from celery.signals import worker_process_init
+from celery.worker.request import Request
 
 from service.db import crud
 from service.db.models import WorkUnit
@@ -88,6 +92,16 @@ def _attempts(unit_id: int) -> int:
         return int(unit.attempts) if unit is not None else 0
 
 
+def _test_crash_hook(unit_id: int) -> None:
+    """TEST-ONLY fault injection, off by default: with ``SVROBS_TEST_CRASH_UNIT=<unit id>``
+    in the worker's environment, running that unit kills the worker process (as a
+    segfaulting extension would). ``tests/faults`` uses it to check that a unit which
+    keeps killing its worker is failed after MAX_UNIT_ATTEMPTS attempts."""
+    crash = os.environ.get("SVROBS_TEST_CRASH_UNIT")
+    if crash and crash.strip() == str(unit_id):
+        os._exit(1)
+
+
 def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
     """Claim, compute and store one work unit (the task body, callable without Celery).
 
@@ -103,6 +117,7 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
     t1 = time.perf_counter()
     try:
         with _Heartbeat(unit_id, lease_seconds()):
+            _test_crash_hook(unit_id)
             records = core_run_unit(parse_spec(spec_dict), payload)
     except Exception as exc:
         attempts = _attempts(unit_id)
@@ -165,9 +180,44 @@ class UnitFailed(Exception):
     """A unit's computation failed and may succeed on another attempt."""
 
 
+class UnitRequest(Request):
+    """A ``run_unit`` message as the worker's main process sees it. When the pool
+    process running the unit is lost (killed, crashed, hard time limit), the main
+    process records why on the unit before the message is requeued, so that a
+    unit failed after MAX_UNIT_ATTEMPTS says what killed its worker each time."""
+
+    def on_failure(self, exc_info, send_failed_event=True, return_ok=False):
+        try:
+            exc = getattr(exc_info, "exception", None)
+            exc = getattr(exc, "exc", exc)  # billiard's ExceptionWithTraceback
+            if isinstance(exc, (WorkerLostError, TimeLimitExceeded)):
+                why = str(exc).split(" Job:")[0]  # billiard appends its own job counter
+                _note_lost(int(self.args[0]), f"{type(exc).__name__}: {why}")
+        except Exception as err:  # noqa: BLE001 - best effort: never break the requeue
+            log.warning("could not record a lost worker on the unit: %s", err)
+        return super().on_failure(exc_info, send_failed_event=send_failed_event,
+                                  return_ok=return_ok)
+
+
+def _note_lost(unit_id: int, why: str) -> None:
+    """In the main process: a throw-away engine, so that no pooled connection is
+    inherited by the pool processes forked later (their after-fork dispose would
+    close it under the main process)."""
+    from sqlalchemy.orm import Session
+
+    from service.db.session import create_db_engine
+
+    engine = create_db_engine(settings.DATABASE_URL)
+    try:
+        with Session(engine) as s, s.begin():
+            crud.note_unit_error(s, unit_id, why)
+    finally:
+        engine.dispose()
+
+
 @celery_app.task(
     name="svrobs.run_unit", bind=True, acks_late=True, reject_on_worker_lost=True,
-    ignore_result=True, max_retries=MAX_RETRIES,
+    ignore_result=True, max_retries=MAX_RETRIES, Request=UnitRequest,
 )
 def run_unit(self, unit_id: int):
     try:

@@ -38,17 +38,24 @@ def create_due_jobs(now: datetime | None = None) -> list[int]:
 
 
 def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
-    """Publish units that need it; returns how many were published."""
-    from service.broker import publish_units
+    """Publish units that need it; returns how many were published.
+
+    Units published before the broker's current data began (``broker_epoch``: a
+    Redis restarted without persistence lost them) are re-published at once.
+    """
+    from service.broker import broker_epoch, publish_units
     from service.db import crud
     from service.db.session import session_scope
 
     if celery is None:
         from worker.celery_app import celery_app as celery
+    start = datetime.now(UTC)
+    epoch = broker_epoch(celery)  # raises if the broker is unreachable: retried next tick
     sent = 0
     while sent < limit:
         with session_scope() as s:
-            ids = list(crud.units_to_publish(s, min(RELAY_BATCH, limit - sent)))
+            ids = list(crud.units_to_publish(s, min(RELAY_BATCH, limit - sent), now=start,
+                                             lost_before=epoch))
         if not ids:
             break
         out = publish_units(celery, ids)  # raises if the broker is unreachable

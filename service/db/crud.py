@@ -61,6 +61,7 @@ __all__ = [
     "heartbeat_unit",
     "latest_due",
     "mark_published",
+    "note_unit_error",
     "record_to_row",
     "row_to_record",
     "start_unit",
@@ -558,6 +559,15 @@ def _fail(session: Session, unit: WorkUnit, job: Job, error: str) -> None:
                 .values(status="cancelled", finished_at=now)
             )
     session.flush()
+
+
+def note_unit_error(session: Session, unit_id: int, error: str) -> None:
+    """Record why a running unit's attempt ended without a result (its worker process
+    was lost); the unit stays claimable, and a later "gave up" failure quotes it."""
+    session.execute(
+        update(WorkUnit).where(WorkUnit.id == unit_id, WorkUnit.status == "running")
+        .values(error=error)
+    )
 
 
 def fail_unit(session: Session, unit_id: int, error: str, final: bool) -> None:

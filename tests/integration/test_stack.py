@@ -7,7 +7,6 @@ filesystem broker, and PostgreSQL + Redis when the SVROBS_TEST_* URLs are set.
 from __future__ import annotations
 
 import json
-import math
 import subprocess
 import sys
 import time
@@ -15,9 +14,10 @@ from datetime import UTC, datetime, timedelta
 
 import pytest
 
-from svrobs_core import RECORD_FIELDS, parse_spec, plan_units, run_spec
+from svrobs_core import RECORD_FIELDS, parse_spec, plan_units
 
 from .conftest import ROOT, free_port
+from .stack import cell_key, fetch_jsonl, in_process_records, same, submit
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 
@@ -35,45 +35,6 @@ TINY_SPEC = {
     "systems": ["paper-stable"], "sigma_w": [1.0], "N": [10], "gamma": [0.05],
     "estimators": ["ols", "svr"], "reps": 2, "stages": ["estimate", "bounds"], "seed": 1,
 }
-
-
-def cell_key(r: dict) -> tuple:
-    return (r["system"], r["sigma_w"], r["N"], r["estimator"],
-            -1.0 if r["gamma"] is None else r["gamma"], r["rep"])
-
-
-def in_process_records(spec: dict) -> dict[tuple, dict]:
-    """The core run in this process, through a JSON round trip (what the API serves)."""
-    recs = [r for batch in run_spec(parse_spec(spec)) for r in batch]
-    return {cell_key(r): json.loads(json.dumps(r, allow_nan=False)) for r in recs}
-
-
-def same(a, b, path="") -> list[str]:
-    """Exact, type-aware equality: floats bit for bit (after the JSON round trip),
-    bool never equal to a number; int vs float only when the values are equal."""
-    if isinstance(a, list) and isinstance(b, list):
-        if len(a) != len(b):
-            return [f"{path}: length {len(a)} != {len(b)}"]
-        return [m for i, (x, y) in enumerate(zip(a, b)) for m in same(x, y, f"{path}[{i}]")]
-    if isinstance(a, bool) or isinstance(b, bool):
-        return [] if type(a) is type(b) and a == b else [f"{path}: {a!r} != {b!r}"]
-    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
-        if float(a) == float(b) and math.copysign(1, float(a)) == math.copysign(1, float(b)):
-            return []
-        return [f"{path}: {a!r} != {b!r}"]
-    return [] if a == b else [f"{path}: {a!r} != {b!r}"]
-
-
-def fetch_jsonl(client, job_id) -> list[dict]:
-    r = client.get(f"/jobs/{job_id}/results", params={"format": "jsonl"})
-    assert r.status_code == 200, r.text
-    return [json.loads(line) for line in r.text.splitlines() if line.strip()]
-
-
-def submit(client, spec: dict, **extra) -> dict:
-    r = client.post("/jobs", json={**spec, **extra})
-    assert r.status_code == 202, r.text
-    return r.json()
 
 
 # --------------------------------------------------------------------------- records

@@ -1,0 +1,289 @@
+"""Real-process stacks shared by the integration and the fault tests.
+
+:class:`Stack` migrates a database, creates a team and key, and starts uvicorn,
+celery workers and beat with the exact commands ``service.serve`` uses
+(``service.serve.child_commands``); teardown terminates every child, then kills
+its process group: no orphans. Logs are under the stack's folder and their
+tails are printed when a wait times out.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import secrets
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from urllib.parse import urlsplit, urlunsplit
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from service.serve import (
+    Child,
+    api_command,
+    beat_command,
+    child_env,
+    stop_all,
+    worker_command,
+)
+from svrobs_core import parse_spec, run_spec
+
+PG_URL = os.environ.get("SVROBS_TEST_DATABASE_URL")
+REDIS_URL = os.environ.get("SVROBS_TEST_BROKER_URL")
+API = "/api/v1"
+READY_TIMEOUT = 90.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _with_search_path(url: str, schema: str) -> str:
+    parts = urlsplit(url)
+    q = parts.query + ("&" if parts.query else "") + f"options=-csearch_path%3D{schema}"
+    return urlunsplit(parts._replace(query=q))
+
+
+def _tail(path: Path, n: int = 60) -> str:
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    return "\n".join(lines[-n:])
+
+
+class Stack:
+    """A stack's processes and settings. ``kind`` is ``embedded`` or ``pg`` (PostgreSQL +
+    Redis at ``pg_url`` / ``redis_url``, default the SVROBS_TEST_* URLs; the fault
+    tests pass their private servers' URLs). ``extra_env`` is added to every child's
+    environment."""
+
+    def __init__(self, kind: str, root: Path, *, pg_url: str | None = None,
+                 redis_url: str | None = None, extra_env: dict | None = None):
+        self.kind = kind
+        self.root = root
+        self.pg_url = pg_url or PG_URL
+        self.redis_url = redis_url or REDIS_URL
+        self.logs = root / "logs"
+        self.logs.mkdir(parents=True, exist_ok=True)
+        self.children: dict[str, Child] = {}
+        self.schema: str | None = None
+        self.key: str = ""
+        self.base_url = ""
+        env = {k: v for k, v in os.environ.items() if not k.startswith("SVROBS_")}
+        if kind == "embedded":
+            env.update(
+                SVROBS_DATABASE_URL=f"sqlite:///{root / 'svrobs.db'}",
+                SVROBS_BROKER_URL="filesystem://",
+                SVROBS_BROKER_DIR=str(root / "broker"),
+            )
+        else:
+            self.schema = f"it_{os.getpid()}_{secrets.token_hex(3)}"
+            env.update(
+                SVROBS_DATABASE_URL=_with_search_path(self.pg_url, self.schema),
+                SVROBS_BROKER_URL=self.redis_url,
+                SVROBS_BROKER_DIR=str(root / "broker"),
+            )
+        env.update(SVROBS_TASK_TIME_LIMIT="300", SVROBS_UNIT_LEASE_SECONDS="360")
+        env.update(extra_env or {})
+        self.env = child_env(None, env)
+        # child_env starts from os.environ: drop any SVROBS_* the developer has set
+        for k in [k for k in self.env if k.startswith("SVROBS_") and k not in env]:
+            del self.env[k]
+
+    # ----------------------------------------------------------------- setup
+    def setup(self) -> None:
+        if self.kind == "pg":
+            import sqlalchemy as sa
+
+            engine = sa.create_engine(self.pg_url)
+            with engine.begin() as c:
+                c.exec_driver_sql(f'CREATE SCHEMA "{self.schema}"')
+            engine.dispose()
+            self.flush_redis()
+        out = self.python(
+            "import json\n"
+            "from service.config import get_settings\n"
+            "from service.serve import prepare_dirs, migrate\n"
+            "from service.db.session import session_scope\n"
+            "from service import admin\n"
+            "s = get_settings(); prepare_dirs(s); migrate(s)\n"
+            "with session_scope() as db:\n"
+            "    admin.create_team(db, 'lab')\n"
+            "    admin.create_user(db, 'lab', 'it@lab.example')\n"
+            "    _, key = admin.create_key(db, 'it@lab.example')\n"
+            "print(json.dumps({'key': key}))\n",
+            timeout=120,
+        )
+        self.key = json.loads(out.strip().splitlines()[-1])["key"]
+
+    def teardown(self) -> None:
+        stop_all(list(self.children.values()), grace=10)
+        self.children.clear()
+        if self.kind == "pg":
+            import sqlalchemy as sa
+
+            engine = sa.create_engine(self.pg_url)
+            with engine.begin() as c:
+                c.exec_driver_sql(f'DROP SCHEMA IF EXISTS "{self.schema}" CASCADE')
+            engine.dispose()
+            self.flush_redis()
+
+    def flush_redis(self) -> None:
+        import redis
+
+        r = redis.Redis.from_url(self.redis_url)
+        r.flushdb()
+        r.close()
+
+    def python(self, code: str, *, env: dict | None = None, timeout: float = 60) -> str:
+        """Run ``code`` in a fresh interpreter with the stack's environment."""
+        proc = subprocess.run(
+            [sys.executable, "-c", code], cwd=str(ROOT), env={**self.env, **(env or {})},
+            capture_output=True, text=True, timeout=timeout, check=False,
+        )
+        if proc.returncode != 0:
+            raise AssertionError(f"subprocess failed ({proc.returncode}):\n{proc.stderr[-4000:]}")
+        return proc.stdout
+
+    # ----------------------------------------------------------------- processes
+    def start(self, name: str, argv: list[str], env: dict | None = None) -> Child:
+        assert name not in self.children or self.children[name].poll() is not None, name
+        log = self.logs / f"{name}.log"
+        if log.exists():  # a restart: keep the old log aside, wait_log reads the new one
+            n = len(list(self.logs.glob(f"{name}.*.log"))) + 1
+            log.rename(self.logs / f"{name}.{n}.log")
+        child = Child(name, argv, {**self.env, **(env or {})}, log=log)
+        self.children[name] = child.start()
+        return child
+
+    def stop(self, name: str, grace: float = 10) -> None:
+        child = self.children.pop(name, None)
+        if child is not None:
+            child.stop(grace)
+
+    def start_api(self, name: str = "api", env: dict | None = None, wait: str = "/readyz") -> str:
+        port = free_port()
+        self.start(name, api_command("127.0.0.1", port), env)
+        url = f"http://127.0.0.1:{port}"
+        self.wait_http(url + wait, name)
+        if name == "api":
+            self.base_url = url
+        return url
+
+    def start_worker(self, name: str = "worker1", concurrency: int = 1,
+                     env: dict | None = None) -> Child:
+        child = self.start(name, worker_command(name, concurrency), env)
+        self.wait_log(name, "ready.")
+        return child
+
+    def start_beat(self, name: str = "beat", tick_seconds: float = 1.0,
+                   env: dict | None = None) -> Child:
+        env = {"SVROBS_TICK_SECONDS": str(tick_seconds), **(env or {})}
+        return self.start(name, beat_command(self.root / f"{name}-schedule"), env)
+
+    def wait_http(self, url: str, name: str, timeout: float = READY_TIMEOUT) -> None:
+        deadline = time.monotonic() + timeout
+        last = None
+        while time.monotonic() < deadline:
+            child = self.children[name]
+            if child.poll() is not None:
+                raise AssertionError(f"{name} exited ({child.poll()}):\n{self.log_tail(name)}")
+            try:
+                r = httpx.get(url, timeout=2)
+                if r.status_code == 200:
+                    return
+                last = f"{r.status_code} {r.text[:300]}"
+            except httpx.HTTPError as exc:
+                last = repr(exc)
+            time.sleep(0.2)
+        raise AssertionError(f"{url} not ready in {timeout}s: {last}\n{self.log_tail(name)}")
+
+    def wait_log(self, name: str, text: str, timeout: float = READY_TIMEOUT,
+                 count: int = 1) -> None:
+        deadline = time.monotonic() + timeout
+        path = self.logs / f"{name}.log"
+        while time.monotonic() < deadline:
+            child = self.children[name]
+            if child.poll() is not None:
+                raise AssertionError(f"{name} exited ({child.poll()}):\n{self.log_tail(name)}")
+            if path.exists() and path.read_text(errors="replace").count(text) >= count:
+                return
+            time.sleep(0.2)
+        raise AssertionError(
+            f"{name}: {text!r} not logged {count}x in {timeout}s:\n{self.log_tail(name)}")
+
+    def log_tail(self, *names: str, n: int = 60) -> str:
+        names = names or tuple(p.stem for p in sorted(self.logs.glob("*.log")))
+        return "\n".join(f"--- {nm}.log ---\n{_tail(self.logs / f'{nm}.log', n)}" for nm in names)
+
+    # ----------------------------------------------------------------- REST
+    def client(self, base_url: str | None = None) -> httpx.Client:
+        return httpx.Client(
+            base_url=(base_url or self.base_url) + API, timeout=30,
+            headers={"Authorization": f"Bearer {self.key}"},
+        )
+
+    def wait_job(self, client: httpx.Client, job_id, *, statuses=("succeeded", "failed",
+                 "cancelled"), timeout: float = 120.0) -> dict:
+        deadline = time.monotonic() + timeout
+        job = None
+        while time.monotonic() < deadline:
+            r = client.get(f"/jobs/{job_id}")
+            assert r.status_code == 200, r.text
+            job = r.json()
+            if job["status"] in statuses:
+                return job
+            time.sleep(0.25)
+        raise AssertionError(f"job {job_id} not {statuses} in {timeout}s: {job}\n{self.log_tail()}")
+
+
+# --------------------------------------------------------------------------- records
+
+
+def cell_key(r: dict) -> tuple:
+    return (r["system"], r["sigma_w"], r["N"], r["estimator"],
+            -1.0 if r["gamma"] is None else r["gamma"], r["rep"])
+
+
+def in_process_records(spec: dict) -> dict[tuple, dict]:
+    """The core run in this process, through a JSON round trip (what the API serves)."""
+    recs = [r for batch in run_spec(parse_spec(spec)) for r in batch]
+    return {cell_key(r): json.loads(json.dumps(r, allow_nan=False)) for r in recs}
+
+
+def same(a, b, path="") -> list[str]:
+    """Exact, type-aware equality: floats bit for bit (after the JSON round trip),
+    bool never equal to a number; int vs float only when the values are equal."""
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return [f"{path}: length {len(a)} != {len(b)}"]
+        return [m for i, (x, y) in enumerate(zip(a, b)) for m in same(x, y, f"{path}[{i}]")]
+    if isinstance(a, bool) or isinstance(b, bool):
+        return [] if type(a) is type(b) and a == b else [f"{path}: {a!r} != {b!r}"]
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        if float(a) == float(b) and math.copysign(1, float(a)) == math.copysign(1, float(b)):
+            return []
+        return [f"{path}: {a!r} != {b!r}"]
+    return [] if a == b else [f"{path}: {a!r} != {b!r}"]
+
+
+def fetch_jsonl(client, job_id) -> list[dict]:
+    r = client.get(f"/jobs/{job_id}/results", params={"format": "jsonl"})
+    assert r.status_code == 200, r.text
+    return [json.loads(line) for line in r.text.splitlines() if line.strip()]
+
+
+def submit(client, spec: dict, **extra) -> dict:
+    r = client.post("/jobs", json={**spec, **extra})
+    assert r.status_code == 202, r.text
+    return r.json()
