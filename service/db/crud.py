@@ -359,13 +359,13 @@ def gamma_key(estimator: str, gamma) -> float:
 
 _KEY_COLS = ("job_id", "system", "sigma_w", "N", "estimator", "gamma_key", "rep")
 _INT_FIELDS = ("N", "N0", "rep")
+_NOT_FLOAT = frozenset(BOOL_FIELDS + _INT_FIELDS)
 
 
 def _clean_scalar(f: str, v):
     if v is None:
         return None
-    t = type(v)
-    if t is float:  # the common case: the core's records are plain Python already
+    if type(v) is float and f not in _NOT_FLOAT:  # the common case: plain Python already
         return v if math.isfinite(v) else None
     v = json_value(v)
     if v is None:

@@ -261,3 +261,23 @@ def test_latest_due_in_time_zone():
         2024, 1, 15, 1, 0, tzinfo=UTC)
     exact = datetime(2024, 1, 15, 1, 0, tzinfo=UTC)
     assert crud.latest_due("0 2 * * *", "Europe/Paris", exact) == exact
+
+
+def test_record_to_row_coerces_every_field_to_its_column_type():
+    import math as _m
+
+    from service.db.crud import record_to_row
+    from svrobs_core.records import BOOL_FIELDS, empty_record
+
+    rec = empty_record()
+    rec.update(system="s", estimator="svr", gamma=0.1, N=10.0, N0=90, rep=1, sigma_w=1,
+               rmse_A=float("nan"), rmse_B=float("inf"), eps_A=0.5,
+               thm1_holds_A=0.25, thm1_holds_B=0.0, certified=True,
+               A_hat=[[1.0, float("nan")]], B_hat=[[1.0], [2.0]])
+    row = record_to_row(7, rec)
+    assert row["thm1_holds_A"] is True and row["thm1_holds_B"] is False
+    assert row["certified"] is True and all(type(row[f]) in (bool, type(None)) for f in BOOL_FIELDS)
+    assert row["N"] == 10 and type(row["N"]) is int and row["sigma_w"] == 1.0
+    assert row["rmse_A"] is None and row["rmse_B"] is None and row["eps_A"] == 0.5
+    assert row["A_hat"] == [[1.0, None]] and row["B_hat"] == [[1.0], [2.0]]
+    assert not any(isinstance(v, float) and not _m.isfinite(v) for v in row.values())
