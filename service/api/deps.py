@@ -18,11 +18,11 @@ SessionFactory = Callable[..., Session]  # factory(write: bool) -> Session
 Publisher = Callable[[Sequence[int]], list[int]]
 
 
-def get_settings_dep(request: Request) -> Settings:
+async def get_settings_dep(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def get_session_factory(request: Request) -> SessionFactory:
+async def get_session_factory(request: Request) -> SessionFactory:
     return request.app.state.session_factory
 
 
@@ -40,7 +40,7 @@ def get_db(request: Request) -> Iterator[Session]:
         session.close()
 
 
-def get_publisher(request: Request) -> Publisher:
+async def get_publisher(request: Request) -> Publisher:
     return request.app.state.publisher
 
 
@@ -77,7 +77,7 @@ def get_caller(request: Request, session: Annotated[Session, Depends(get_db)]) -
     return caller
 
 
-def clean_query_text(request: Request) -> None:
+async def clean_query_text(request: Request) -> None:
     """422 for a query parameter or an Idempotency-Key holding a NUL character (which a
     PostgreSQL text column cannot hold: it would be a 500 there and a silent miss on
     SQLite). Registered on every /api/v1 router."""
