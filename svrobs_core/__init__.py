@@ -14,6 +14,16 @@ from .systems import PRESETS, SystemSpec, resolve_system
 __version__ = "0.1.0"
 
 __all__ = [
-    "ExperimentSpec", "PRESETS", "RECORD_FIELDS", "SpecError", "SystemSpec", "parse_spec",
-    "plan_units", "resolve_system", "run_spec", "run_unit", "summarize", "__version__",
+    "PRESETS",
+    "RECORD_FIELDS",
+    "ExperimentSpec",
+    "SpecError",
+    "SystemSpec",
+    "__version__",
+    "parse_spec",
+    "plan_units",
+    "resolve_system",
+    "run_spec",
+    "run_unit",
+    "summarize",
 ]

@@ -225,11 +225,11 @@ def run_unit(self, unit_id: int):
     except Retry:
         raise
     except UnitFailed as exc:
-        raise self.retry(exc=exc, countdown=_backoff(self.request.retries), max_retries=None)
+        raise self.retry(exc=exc, countdown=_backoff(self.request.retries), max_retries=None) from exc
     except TRANSIENT as exc:
         log.warning("unit %s: transient error, retry %d: %s", unit_id, self.request.retries + 1, exc)
         _release(unit_id, f"transient: {type(exc).__name__}: {exc}")
-        raise self.retry(exc=exc, countdown=_backoff(self.request.retries))
+        raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from exc
 
 
 def _release(unit_id: int, error: str) -> None:

@@ -12,7 +12,6 @@ job row.
 from __future__ import annotations
 
 import functools
-
 import importlib.metadata
 import math
 import os

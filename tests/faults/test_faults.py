@@ -496,7 +496,7 @@ def test_api_killed_during_submission_burst(stack_up):
             outcomes[key] = {"status": 202, "job": r.json()["id"], "retried": True}
         jobs = {k: v["job"] for k, v in outcomes.items()}
         assert all(v["status"] == 202 for v in outcomes.values())
-        for key, job_id in jobs.items():
+        for job_id in jobs.values():
             assert st.wait_job(c, job_id, timeout=90)["status"] == "succeeded"
 
     # the DB holds exactly these jobs: none lost, none doubled by a retry
