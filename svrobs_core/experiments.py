@@ -412,19 +412,46 @@ class UnitResult:
                          for r in self.reps for _ in range(E)],
         }
 
-    def records(self) -> list[dict]:
+    def value_columns(self, as_json: frozenset[str] | set[str] = frozenset()) -> dict[str, list]:
+        """{field: one value per record, in record order} for every section 10 field:
+        plain Python values (NaN/inf -> None), and for the fields in ``as_json``
+        their JSON text (as ``json.dumps`` writes it) instead. The columnar form
+        the DB layer stores without building a dict per record."""
         R, E = len(self.reps), len(self.axis.names)
         RE = R * E
-        recs: list[dict] = []
-        for ds in self.datasets:
+        out: dict[str, list] = {f: [] for f in RECORD_FIELDS}
+        for di, ds in enumerate(self.datasets):
             cols = self._key_columns(ds)
+            if "seed_key" in as_json:
+                cols["seed_key"] = self._seed_key_strings(ds)
             for f in _CELL_FIELDS:
                 v = ds.fields.get(f)
-                cols[f] = repeat(None, RE) if v is None else _values(v, RE)
+                if v is None:
+                    cols[f] = repeat("null" if f in as_json else None, RE)
+                elif f in as_json:
+                    cols[f] = self._json_strings(di, f, v, RE)
+                else:
+                    cols[f] = _values(v, RE)
             cols["notes"] = ds.notes.reshape(RE).tolist()
-            recs += [dict(zip(RECORD_FIELDS, vals))
-                     for vals in zip(*(cols[f] for f in RECORD_FIELDS))]
-        return recs
+            for f in RECORD_FIELDS:
+                out[f].extend(cols[f])
+        return out
+
+    def records(self) -> list[dict]:
+        cols = self.value_columns()
+        return [dict(zip(RECORD_FIELDS, vals)) for vals in zip(*(cols[f] for f in RECORD_FIELDS))]
+
+    def _seed_key_strings(self, ds: _Dataset) -> list[str]:
+        E = len(self.axis.names)
+        return [f"[{self.system_idx}, {self.sigma_w_idx}, {ds.N}, {r}]"
+                for r in self.reps for _ in range(E)]
+
+    def _json_strings(self, di: int, f: str, v, RE: int) -> list[str]:
+        """``_json_strings`` of a field, cached (J_mc and J_mc_se per Monte Carlo limit)."""
+        key = (di, f, self.mc_reps) if f in ("J_mc", "J_mc_se") else (di, f)
+        if key not in self._strings:
+            self._strings[key] = _json_strings(v, RE)
+        return self._strings[key]
 
     def json_lines(self) -> list[str]:
         """Each record as ``json.dumps(record, allow_nan=False)`` would write it."""
@@ -440,18 +467,14 @@ class UnitResult:
                 "estimator": [json.dumps(x) for x in self.axis.names] * R,
                 "gamma": ["null" if g is None else repr(float(g)) for g in self.axis.gammas] * R,
                 "rep": [str(r) for r in self.reps for _ in range(E)],
-                "seed_key": [f"[{self.system_idx}, {self.sigma_w_idx}, {ds.N}, {r}]"
-                             for r in self.reps for _ in range(E)],
+                "seed_key": self._seed_key_strings(ds),
             }
             for f in _CELL_FIELDS:
                 v = ds.fields.get(f)
                 if v is None:
                     const[f] = "null"
                 else:
-                    key = (di, f, self.mc_reps) if f in ("J_mc", "J_mc_se") else (di, f)
-                    if key not in self._strings:
-                        self._strings[key] = _json_strings(v, RE)
-                    var[f] = self._strings[key]
+                    var[f] = self._json_strings(di, f, v, RE)
             cache: dict[Any, str] = {}
             note_col = []
             for t in ds.notes.reshape(RE).tolist():

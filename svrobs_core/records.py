@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections import defaultdict
 
 import numpy as np
 
@@ -56,30 +55,56 @@ def empty_record() -> dict:
     return {f: None for f in RECORD_FIELDS}
 
 
+SUMMARY_FIELDS = tuple(f for f in NUMERIC_FIELDS if f not in ("N", "N0", "rep", "sigma_w", "gamma"))
+
+
 def summarize(records) -> list[dict]:
     """Mean, std (ddof=0) and count of every numeric field per group (GROUP_FIELDS).
 
     Booleans count as 0/1, nulls are skipped. Returns one dict per group:
     ``{system, sigma_w, N, estimator, gamma, count, stats: {field: {mean, std, count}}}``.
     """
-    groups: dict[tuple, list[dict]] = defaultdict(list)
-    for r in records:
-        groups[tuple(r[g] for g in GROUP_FIELDS)].append(r)
+    records = list(records)
+    cols = {f: [r.get(f) for r in records] for f in GROUP_FIELDS + SUMMARY_FIELDS}
+    return summarize_columns(cols)
+
+
+def summarize_columns(columns: dict) -> list[dict]:
+    """:func:`summarize` of records given as columns ({field: sequence}, one value per
+    record, None = null), vectorised over groups: one sort, then per field one
+    ``np.add.reduceat`` for the sums and one for the squared deviations."""
+    keys = list(zip(*(columns[g] for g in GROUP_FIELDS)))
+    if not keys:
+        return []
+    index: dict[tuple, int] = {}
+    gid = np.fromiter((index.setdefault(k, len(index)) for k in keys), dtype=np.intp,
+                      count=len(keys))
+    order = np.argsort(gid, kind="stable")
+    sizes = np.bincount(gid, minlength=len(index))
+    starts = np.concatenate(([0], np.cumsum(sizes)[:-1]))
+    stats: dict[str, tuple] = {}
+    for f in SUMMARY_FIELDS:
+        col = columns.get(f)
+        if col is None:
+            continue
+        x = np.asarray(col, dtype=float)[order]  # None -> nan, booleans -> 0/1
+        ok = ~np.isnan(x)
+        n = np.add.reduceat(ok.astype(np.int64), starts)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.add.reduceat(np.where(ok, x, 0.0), starts) / n
+            dev = np.where(ok, x - np.repeat(mean, sizes), 0.0)
+            std = np.sqrt(np.add.reduceat(dev * dev, starts) / n)
+        stats[f] = (mean.tolist(), std.tolist(), n.tolist())
     out = []
-    for key in sorted(groups, key=lambda k: tuple((v is None, v) for v in k)):
-        rows = groups[key]
-        stats = {}
-        for f in NUMERIC_FIELDS:
-            if f in ("N", "N0", "rep", "sigma_w", "gamma"):
-                continue
-            vals = np.array([float(r[f]) for r in rows if r.get(f) is not None], dtype=float)
-            if vals.size:
-                stats[f] = {
-                    "mean": float(vals.mean()),
-                    "std": float(vals.std()),
-                    "count": int(vals.size),
-                }
+    for key in sorted(index, key=lambda k: tuple((v is None, v) for v in k)):
+        g = index[key]
+        group_stats = {}
+        for f in SUMMARY_FIELDS:
+            if f not in stats or stats[f][2][g] == 0:
+                group_stats[f] = {"mean": None, "std": None, "count": 0}
             else:
-                stats[f] = {"mean": None, "std": None, "count": 0}
-        out.append({**dict(zip(GROUP_FIELDS, key)), "count": len(rows), "stats": stats})
+                mean, std, n = stats[f]
+                group_stats[f] = {"mean": mean[g], "std": std[g], "count": n[g]}
+        out.append({**dict(zip(GROUP_FIELDS, key)), "count": int(sizes[g]),
+                    "stats": group_stats})
     return out
