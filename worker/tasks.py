@@ -7,7 +7,7 @@
    nothing to do (already done or cancelled; a duplicate delivery of a unit that
    is still running claims it again, which only costs an attempt: the results
    are upserted on the cell key);
-2. ``svrobs_core.run_unit`` computes the records (pure, no I/O);
+2. ``svrobs_core.run_unit_result`` computes the records as columns (pure, no I/O);
 3. ``crud.complete_unit`` upserts them on the cell key and updates progress;
    the job finishes when the DB says every unit is done.
 
@@ -37,7 +37,7 @@ from service.db import crud
 from service.db.models import WorkUnit
 from service.db.session import dispose_all, session_scope
 from svrobs_core import parse_spec
-from svrobs_core import run_unit as core_run_unit
+from svrobs_core.experiments import run_unit_result
 from worker.celery_app import celery_app, settings
 
 # (imported here, in the worker's main process, so that every pool child forks
@@ -118,7 +118,7 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
     try:
         with _Heartbeat(unit_id, lease_seconds()):
             _test_crash_hook(unit_id)
-            records = core_run_unit(parse_spec(spec_dict), payload)
+            records = run_unit_result(parse_spec(spec_dict), payload)
     except Exception as exc:
         attempts = _attempts(unit_id)
         final = attempts >= max_attempts()

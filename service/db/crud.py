@@ -11,7 +11,6 @@ job row.
 
 from __future__ import annotations
 
-import functools
 import importlib.metadata
 import math
 import os
@@ -28,15 +27,12 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from svrobs_core.errors import SpecError
-from svrobs_core.experiments import plan_units
-from svrobs_core.records import BOOL_FIELDS, GROUP_FIELDS, json_value, summarize
+from svrobs_core.experiments import UnitResult, plan_units
+from svrobs_core.records import GROUP_FIELDS, SUMMARY_FIELDS, summarize_columns
 from svrobs_core.spec import parse_spec
 
 from .models import (
     JOB_ACTIVE,
-    OLS_GAMMA_KEY,
-    RESULT_MATRIX_FIELDS,
-    RESULT_SCALAR_FIELDS,
     Job,
     JobTag,
     Result,
@@ -46,6 +42,7 @@ from .models import (
     WorkUnit,
     utcnow,
 )
+from .results_store import gamma_key, record_to_row, upsert_results
 
 __all__ = [
     "IdempotencyConflict",
@@ -64,11 +61,11 @@ __all__ = [
     "record_to_row",
     "row_to_record",
     "start_unit",
+    "summarize_job",
     "unit_ids_of_job",
     "units_to_publish",
 ]
 
-UPSERT_CHUNK = 500  # rows per INSERT: ~45 columns each stays under every dialect's bind limit
 
 
 class JobTooLarge(SpecError):
@@ -352,70 +349,6 @@ def heartbeat_unit(session: Session, unit_id: int, lease_seconds: int) -> bool:
     return res.rowcount > 0
 
 
-def gamma_key(estimator: str, gamma) -> float:
-    return OLS_GAMMA_KEY if gamma is None else float(gamma)
-
-
-_KEY_COLS = ("job_id", "system", "sigma_w", "N", "estimator", "gamma_key", "rep")
-_INT_FIELDS = ("N", "N0", "rep")
-_NOT_FLOAT = frozenset(BOOL_FIELDS + _INT_FIELDS)
-
-
-def _clean_scalar(f: str, v):
-    if v is None:
-        return None
-    if type(v) is float and f not in _NOT_FLOAT:  # the common case: plain Python already
-        return v if math.isfinite(v) else None
-    v = json_value(v)
-    if v is None:
-        return None
-    if f in BOOL_FIELDS:
-        return bool(v)
-    if f in _INT_FIELDS:
-        return int(v)
-    v = float(v)
-    return v if math.isfinite(v) else None
-
-
-def _clean_matrix(v):
-    """Nested lists of finite floats pass as they are; anything else is sanitised."""
-    if type(v) is list:
-        for row in v:
-            if type(row) is not list:
-                break
-            for x in row:
-                if type(x) is not float or not math.isfinite(x):
-                    if x is not None:
-                        break
-            else:
-                continue
-            break
-        else:
-            return v
-    return json_value(v)
-
-
-def record_to_row(job_id: int, record: dict) -> dict:
-    """A section 10 record -> a ``results`` row (NaN/inf -> NULL, numpy -> Python)."""
-    row = {"job_id": job_id}
-    get = record.get
-    for f in RESULT_SCALAR_FIELDS:
-        v = get(f)
-        t = type(v)
-        plain = v is None or (t is bool and f in BOOL_FIELDS) or (t is int and f in _INT_FIELDS)
-        row[f] = v if plain else _clean_scalar(f, v)
-    for f in RESULT_MATRIX_FIELDS:
-        row[f] = _clean_matrix(get(f))
-    row["system"] = str(record["system"])
-    row["estimator"] = str(record["estimator"])
-    row["gamma_key"] = gamma_key(row["estimator"], row["gamma"])
-    row["seed_key"] = json_value(record.get("seed_key"))
-    row["sls_status"] = record.get("sls_status")
-    notes = record.get("notes")
-    row["notes"] = "; ".join(notes) if isinstance(notes, (list, tuple)) else notes
-    return row
-
-
 def row_to_record(row) -> dict:
     """A ``results`` row (ORM object or mapping) -> a section 10 record."""
     from svrobs_core.records import RECORD_FIELDS
@@ -430,46 +363,18 @@ def row_to_record(row) -> dict:
     return out
 
 
-def _upsert_results(session: Session, rows: list[dict]) -> None:
-    if not rows:
-        return
-    table = Result.__table__
-    dialect = session.get_bind().dialect.name
-    if dialect == "postgresql":
-        from sqlalchemy.dialects.postgresql import insert as dialect_insert
-    elif dialect == "sqlite":
-        from sqlalchemy.dialects.sqlite import insert as dialect_insert
-    else:  # pragma: no cover - portable fallback: delete the cells, then insert
-        for r in rows:
-            session.execute(delete(table).where(and_(*[table.c[k] == r[k] for k in _KEY_COLS])))
-        session.execute(insert(table), rows)
-        return
-    stmt = _upsert_statement(dialect, dialect_insert)
-    for i in range(0, len(rows), UPSERT_CHUNK):
-        session.execute(stmt, rows[i:i + UPSERT_CHUNK])
-
-
-@functools.lru_cache(maxsize=4)
-def _upsert_statement(dialect: str, dialect_insert):
-    """One INSERT .. ON CONFLICT DO UPDATE per dialect, compiled once and executed with
-    many parameter sets (SQLAlchemy batches them as multi-row VALUES)."""
-    table = Result.__table__
-    stmt = dialect_insert(table)
-    update_cols = {
-        c.name: stmt.excluded[c.name]
-        for c in table.columns if c.name not in _KEY_COLS and c.name != "id"
-    }
-    return stmt.on_conflict_do_update(index_elements=list(_KEY_COLS), set_=update_cols)
-
-
-def complete_unit(session: Session, unit_id: int, records: list[dict]) -> None:
-    """Upsert the unit's records, mark it done, update progress; finish the job when
-    the DB says every unit is done (summaries from the stored results)."""
+def complete_unit(session: Session, unit_id: int,
+                  records: Sequence[dict] | UnitResult) -> None:
+    """Upsert the unit's records (and its groups' summaries when it holds every
+    repetition of them), mark it done, update progress; finish the job when the DB
+    says every unit is done (summarising the stored results if a group has none)."""
     unit = _lock_unit(session, unit_id)
     if unit is None:
         return
-    rows = [record_to_row(unit.job_id, r) for r in records]
-    _upsert_results(session, rows)
+    stored = upsert_results(session, unit.job_id, records)
+    if stored["system"] and _whole_groups(session, unit):  # every repetition of its groups
+        scope = (stored["system"][0], stored["sigma_w"][0], sorted(set(stored["N"])))
+        _write_summaries(session, unit.job_id, summarize_columns(stored), scope)
     now = utcnow()
     if unit.status != "done":
         unit.status = "done"
@@ -489,7 +394,8 @@ def complete_unit(session: Session, unit_id: int, records: list[dict]) -> None:
     job.progress_done = int(done)
     job.progress_total = int(total)
     if done == total and job.status in JOB_ACTIVE:
-        _write_summaries(session, job.id)
+        if _stored_summaries(session, job.id) != _expected_groups(job):  # some unit wrote none
+            _write_summaries(session, job.id, summarize_job(session, job.id))
         job.status = "succeeded"
         job.finished_at = now
         if job.started_at is None:
@@ -498,11 +404,40 @@ def complete_unit(session: Session, unit_id: int, records: list[dict]) -> None:
     session.flush()
 
 
-def _write_summaries(session: Session, job_id: int) -> None:
-    cols = [Result.__table__.c[f] for f in ("system", "estimator") + RESULT_SCALAR_FIELDS]
-    rows = session.execute(select(*cols).where(Result.job_id == job_id)).mappings().all()
-    groups = summarize([dict(r) for r in rows])
-    session.execute(delete(Summary).where(Summary.job_id == job_id))
+def summarize_job(session: Session, job_id: int) -> list[dict]:
+    """``summarize`` of the job's stored results (read as columns, vectorised)."""
+    names = GROUP_FIELDS + SUMMARY_FIELDS
+    rows = session.execute(
+        select(*[Result.__table__.c[f] for f in names]).where(Result.job_id == job_id)).all()
+    return summarize_columns(dict(zip(names, zip(*rows))) if rows else {f: () for f in names})
+
+
+def _whole_groups(session: Session, unit: WorkUnit) -> bool:
+    reps = session.scalar(select(Job.spec).where(Job.id == unit.job_id))["reps"]
+    return list((unit.payload or {}).get("reps", ())) == [0, reps]
+
+
+def _stored_summaries(session: Session, job_id: int) -> int:
+    return session.scalar(select(func.count(Summary.id)).where(Summary.job_id == job_id))
+
+
+def _expected_groups(job: Job) -> int:
+    spec = parse_spec(job.spec)
+    return len(spec.systems) * len(spec.sigma_w) * len(spec.N) * spec.cells_per_rep
+
+
+def _write_summaries(session: Session, job_id: int, groups: list[dict],
+                     scope: tuple[str, float, list[int]] | None = None) -> None:
+    """Replace the stored summaries of a job, or of one unit's groups (``scope`` =
+    its system, sigma_w and N values), by ``groups``. A unit that holds every
+    repetition of its groups writes them when it completes, so that finishing a job
+    reads nothing back; a job with units split by repetitions is summarised from
+    its stored results at the end."""
+    q = delete(Summary).where(Summary.job_id == job_id)
+    if scope is not None:
+        system, sigma_w, Ns = scope
+        q = q.where(Summary.system == system, Summary.sigma_w == sigma_w, Summary.N.in_(Ns))
+    session.execute(q)
     if groups:
         session.execute(
             insert(Summary),

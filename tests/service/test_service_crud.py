@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import UTC, datetime, timedelta
 
 import pytest
-from sqlalchemy import func, select
+from sqlalchemy import delete, func, select
 from svc_fakes import fake_records, run_job_units
 from svc_helpers import SMALL_SPEC, SMALL_UNITS
 
@@ -281,3 +281,91 @@ def test_record_to_row_coerces_every_field_to_its_column_type():
     assert row["rmse_A"] is None and row["rmse_B"] is None and row["eps_A"] == 0.5
     assert row["A_hat"] == [[1.0, None]] and row["B_hat"] == [[1.0], [2.0]]
     assert not any(isinstance(v, float) and not _m.isfinite(v) for v in row.values())
+
+
+def test_unit_columns_store_the_same_rows_as_records(session, make_account):
+    """The columnar write (a worker's UnitResult) = the record-dict write, cell by cell,
+    = the core's records with NaN as null; every stage, so every field is exercised."""
+    from svrobs_core.experiments import run_unit_result
+    from svrobs_core.records import json_value
+
+    spec = {**SMALL_SPEC, "systems": ["paper-unstable"], "sigma_w": [1.0], "N": [40],
+            "reps": 2, "stages": ["estimate", "bounds", "gain", "cost", "sls"], "mc_reps": 1,
+            "mc_runs": 20}
+    acc = make_account()
+    got = []
+    for as_columns in (True, False):
+        job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=spec)
+        session.commit()
+        for uid in crud.unit_ids_of_job(session, job.id):
+            spec_dict, payload = crud.start_unit(session, uid, "w", 60)
+            result = run_unit_result(parse_spec(spec_dict), payload)
+            crud.complete_unit(session, uid, result if as_columns else result.records())
+        session.commit()
+        rows = session.scalars(select(Result).where(Result.job_id == job.id)).all()
+        got.append({(r.N, r.estimator, r.gamma, r.rep): crud.row_to_record(r) for r in rows})
+    columns, records = got
+    assert len(columns) == 2 * 3 and columns == records
+    want = run_unit_result(parse_spec(spec), crud.plan_units(parse_spec(spec))[0]).records()
+    for rec in want:
+        stored = columns[(rec["N"], rec["estimator"], rec["gamma"], rec["rep"])]
+        assert stored == {k: json_value(v) for k, v in rec.items()}
+    assert any(v is not None for r in columns.values() for v in (r["L"], r["J_exact"]))
+
+
+def test_clean_column_matches_the_per_value_cleaning():
+    import numpy as np
+
+    from service.db.results_store import _clean_column, _clean_scalar
+
+    cases = {
+        "rmse_A": [[0.5, None, 1.0], [0.5, float("nan")], [np.float64(2.0), 1.0],
+                   [float("inf"), None], [None, None]],
+        "certified": [[True, None, False], [np.bool_(True), False], [1.0, 0.0]],
+        "N": [[10, 20], [10.0, 20], [np.int64(3)]],
+    }
+    for f, cols in cases.items():
+        for col in cols:
+            out = _clean_column(f, list(col))
+            want = [_clean_scalar(f, v) for v in col]
+            assert out == want and [type(x) for x in out] == [type(x) for x in want], (f, col)
+
+
+@pytest.mark.parametrize("split_reps", [False, True, "lost"])
+def test_stored_summaries_equal_a_summary_of_all_results(session, make_account, monkeypatch,
+                                                         split_reps):
+    """Units holding every repetition of their groups store those groups' summaries
+    as they finish (twice for a redelivered unit); units split by repetitions leave it
+    to the end, and so does a job where a unit stored none ("lost": e.g. completed by
+    an older worker). Either way the stored summaries = summarize() of the records."""
+    import functools
+
+    from svrobs_core.records import summarize
+
+    if split_reps is True:  # 1 repetition per unit: every group spans three units
+        monkeypatch.setattr(crud, "plan_units", functools.partial(crud.plan_units, max_cells=6))
+    acc = make_account()
+    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    session.commit()
+    units = session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id)).all()
+    assert any(u.payload["reps"] != [0, 3] for u in units) == (split_reps is True)
+    first = units[0]
+    spec, payload = crud.start_unit(session, first.id, "w", 60)
+    crud.complete_unit(session, first.id, fake_records(spec, payload))
+    crud.complete_unit(session, first.id, fake_records(spec, payload))  # redelivered
+    if split_reps == "lost":
+        session.execute(delete(Summary).where(Summary.job_id == job.id))
+    run_job_units(session, job.id)
+    session.commit()
+    rows = session.scalars(select(Result).where(Result.job_id == job.id)).all()
+    want = summarize([crud.row_to_record(r) for r in rows])
+    stored = session.scalars(select(Summary).where(Summary.job_id == job.id)).all()
+    got = {(s.system, s.sigma_w, s.N, s.estimator, s.gamma): (s.count, s.stats) for s in stored}
+    assert len(got) == len(stored) == len(want) == 24
+    for g in want:
+        count, stats = got[tuple(g[k] for k in ("system", "sigma_w", "N", "estimator", "gamma"))]
+        assert count == g["count"] == 3
+        for f, st in g["stats"].items():
+            assert stats[f]["count"] == st["count"]
+            for k in ("mean", "std"):
+                assert stats[f][k] == (None if st[k] is None else pytest.approx(st[k], rel=1e-12))
