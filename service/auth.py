@@ -13,7 +13,7 @@ import string
 from datetime import datetime
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, joinedload
 
 from service.db.models import ApiKey, utcnow
 
@@ -49,7 +49,8 @@ def authenticate(session: Session, key: str, now: datetime | None = None) -> Api
     prefix = split_key(key or "")
     row = None
     if prefix is not None:
-        row = session.scalar(select(ApiKey).where(ApiKey.prefix == prefix))
+        row = session.scalar(
+            select(ApiKey).where(ApiKey.prefix == prefix).options(joinedload(ApiKey.user)))
     ok = hmac.compare_digest(row.key_hash if row is not None else _DUMMY_HASH, hash_key(key or ""))
     if row is None or not ok:
         return None

@@ -4,10 +4,11 @@ the unit publisher. Tests replace ``app.state.session_factory`` and
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass
 from typing import Annotated
 
+import anyio
 from fastapi import Depends, HTTPException, Request
 from sqlalchemy.orm import Session
 
@@ -26,18 +27,24 @@ async def get_session_factory(request: Request) -> SessionFactory:
     return request.app.state.session_factory
 
 
-def get_db(request: Request) -> Iterator[Session]:
+def is_write(request: Request) -> bool:
+    return request.method not in ("GET", "HEAD", "OPTIONS")
+
+
+async def get_db(request: Request) -> AsyncIterator[Session]:
     """One session per request: a writing session for POST/PUT/PATCH/DELETE, a reading
-    one (deferred BEGIN on SQLite) otherwise. Routes commit explicitly."""
-    write = request.method not in ("GET", "HEAD", "OPTIONS")
-    session = request.app.state.session_factory(write)
+    one (deferred BEGIN on SQLite) otherwise. Routes commit explicitly. Making a
+    session does no I/O (it connects lazily, in the route's thread), so only the
+    close (a ROLLBACK) is sent to the threadpool: one hop per request, not two."""
+    session = request.app.state.session_factory(is_write(request))
     try:
         yield session
-    except BaseException:
-        session.rollback()
-        raise
     finally:
-        session.close()
+        # close() rolls back what is uncommitted. Outside the shared threadpool limit
+        # (a new limiter per call, as FastAPI runs a dependency's exit): requests
+        # waiting in the threadpool for a pooled connection must never keep a
+        # finished request from giving its own back.
+        await anyio.to_thread.run_sync(session.close, limiter=anyio.CapacityLimiter(1))
 
 
 async def get_publisher(request: Request) -> Publisher:
@@ -56,19 +63,33 @@ def _unauthorized(detail: str) -> HTTPException:
     return HTTPException(401, detail, headers={"WWW-Authenticate": "Bearer"})
 
 
+def _authenticate(request: Request, session: Session, token: str) -> Caller | None:
+    """The key's caller. A writing request looks the key up in a short reading session
+    of its own, so that its own session takes the SQLite write lock (BEGIN IMMEDIATE)
+    only when the route starts writing, not for the key lookup."""
+    own = None
+    if is_write(request):
+        session = own = request.app.state.session_factory(False)
+    try:
+        key = authenticate(session, token)
+        if key is None:
+            return None
+        return Caller(key_id=key.id, team_id=key.team_id, user_id=key.user_id,
+                      is_admin=bool(key.user is not None and key.user.is_admin))
+    finally:
+        if own is not None:
+            own.close()
+
+
 def get_caller(request: Request, session: Annotated[Session, Depends(get_db)]) -> Caller:
     header = request.headers.get("authorization", "")
     scheme, _, token = header.partition(" ")
     if scheme.lower() != "bearer" or not token.strip():
         raise _unauthorized("missing API key: send 'Authorization: Bearer <key>'")
-    key = authenticate(session, token.strip())
-    if key is None:
+    caller = _authenticate(request, session, token.strip())
+    if caller is None:
         raise _unauthorized("invalid, revoked or expired API key")
-    caller = Caller(
-        key_id=key.id, team_id=key.team_id, user_id=key.user_id,
-        is_admin=bool(key.user is not None and key.user.is_admin),
-    )
-    allowed, retry = request.app.state.rate_limiter.allow(key.id)
+    allowed, retry = request.app.state.rate_limiter.allow(caller.key_id)
     if not allowed:
         raise HTTPException(
             429, "rate limit exceeded for this API key",

@@ -15,6 +15,7 @@ from fastapi import Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import DBAPIError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.api.deps import clean_query_text
@@ -102,11 +103,12 @@ class BodyLimitMiddleware:
 def _default_session_factory(settings: Settings):
     from service.db.session import get_sessionmaker
 
-    makers = {}
+    # made now, not on the first request: creating an engine imports its dialect, and
+    # sessions are opened on the event loop (see deps.get_db)
+    makers = {write: get_sessionmaker(settings.DATABASE_URL, write=write)
+              for write in (True, False)}
 
     def factory(write: bool = True):
-        if write not in makers:
-            makers[write] = get_sessionmaker(settings.DATABASE_URL, write=write)
         return makers[write]()
 
     return factory
@@ -185,6 +187,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         log.warning("database unavailable: %s", exc.orig if hasattr(exc, "orig") else exc)
         return error_response(503, "database unavailable; retry later",
                               headers={"Retry-After": "5"})
+
+    @app.exception_handler(PoolTimeout)
+    async def _db_busy(request: Request, exc: PoolTimeout):
+        log.warning("no database connection free: %s", exc)
+        return error_response(503, "database busy; retry later", headers={"Retry-After": "1"})
 
     @app.exception_handler(DBAPIError)
     async def _db_error(request: Request, exc: DBAPIError):

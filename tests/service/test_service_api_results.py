@@ -41,6 +41,8 @@ def test_results_page_and_filters(client, done_job):
     assert isinstance(item["A_hat"], list) and isinstance(item["A_hat"][0], list)
     assert item["rmse_B"] is None  # NaN -> null
     assert [_key(x) for x in r["items"]] == sorted(_key(x) for x in stored)
+    by_key = {_key(x): x for x in stored}  # the page equals the ORM-decoded rows
+    assert all(x == by_key[_key(x)] for x in r["items"])
 
     def get(**params):
         return client.get(f"{API}/jobs/{jid}/results", params=params, headers=acc.headers)
@@ -156,3 +158,44 @@ def test_presets(client, make_account):
     names = [p["name"] for p in r]
     assert "paper-stable" in names and "paper-unstable" in names
     assert r[0]["A"] and r[0]["B"]
+
+
+def test_record_json_edge_values():
+    """The page/line encoder = json.loads of the stored text: non-finite -> null,
+    quotes and non-ASCII intact, SQL NULL and JSON null matrices both null, floats
+    exact (repr round trip), field order of the record."""
+    from service.api.record_json import encode_lines, encode_page
+
+    def row(x):
+        out = []
+        for f in RECORD_FIELDS:
+            if f in MATRIX_FIELDS:
+                out.append({"A_hat": json.dumps([[x, -2e-300], [1 / 3, 1e300]]), "B_hat": None,
+                            "L": "null"}.get(f, "[[0.1]]"))
+            elif f == "seed_key":
+                out.append("[0, 1, 20, 3]")
+            elif f == "system":
+                out.append('sys "q" \u00e9\u2603\n\x00')
+            elif f in ("rmse_A", "J_mc"):
+                out.append(float("nan") if f == "rmse_A" else float("-inf"))
+            elif f in ("N", "N0", "rep"):
+                out.append(7)
+            elif f == "certified":
+                out.append(True)
+            else:
+                out.append(x * len(f))
+        want = dict(zip(RECORD_FIELDS, out))
+        want.update(A_hat=[[x, -2e-300], [1 / 3, 1e300]], B_hat=None, L=None, K=[[0.1]],
+                    seed_key=[0, 1, 20, 3], rmse_A=None, J_mc=None)
+        return tuple(out), want
+
+    import random
+    rng = random.Random(5)
+    pairs = [row(rng.uniform(-1e6, 1e6) * 10 ** rng.randint(-30, 30)) for _ in range(50)]
+    rows, wants = [p[0] for p in pairs], [p[1] for p in pairs]
+    page = encode_page(rows, total=90, limit=50, offset=4)
+    assert b"NaN" not in page and b"Infinity" not in page
+    parsed = json.loads(page)
+    assert parsed == {"items": wants, "total": 90, "limit": 50, "offset": 4}
+    assert all(list(x) == list(RECORD_FIELDS) for x in parsed["items"])
+    assert [json.loads(x) for x in encode_lines(rows).decode().splitlines()] == wants

@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import HTTPException, Path
 from sqlalchemy import select
-from sqlalchemy.orm import Session, selectinload
+from sqlalchemy.orm import Session, joinedload
 
 from service.db.models import Job
 
@@ -22,10 +22,8 @@ class FieldHTTPException(HTTPException):
 
 def team_job(session: Session, team_id: int, job_id: int, *, for_update: bool = False) -> Job:
     """The caller's job, or 404 (another team's job is indistinguishable from none)."""
-    q = select(Job).where(Job.id == job_id, Job.team_id == team_id).options(
-        selectinload(Job.user)
-    )
-    job = session.scalar(q)
+    q = select(Job).where(Job.id == job_id, Job.team_id == team_id)
+    job = session.scalar(q.options(joinedload(Job.user)))  # one query with the owner
     if job is None:
         raise HTTPException(404, f"job {job_id} not found")
     return job

@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, BackgroundTasks, Header, HTTPException, Query
 from sqlalchemy import func, select
-from sqlalchemy.orm import selectinload
+from sqlalchemy.orm import joinedload
 
 from service.api.deps import DB, CurrentCaller, PublisherDep, SessionFactoryDep, SettingsDep
 from service.api.routes.common import FieldHTTPException, JobId, job_out, team_job
@@ -83,10 +83,8 @@ def submit_job(
         session.rollback()
         raise FieldHTTPException(409, str(exc), "Idempotency-Key") from exc
     unit_ids = crud.unit_ids_of_job(session, job.id) if job.was_created else []
+    out = job_out(job)  # flushed: ids and defaults are set; no read-back after COMMIT
     session.commit()
-    out = job_out(session.scalar(
-        select(Job).where(Job.id == job.id).options(selectinload(Job.user))
-    ))
     session.close()  # end this request's transaction before publishing
     if unit_ids:
         background.add_task(publish_after_commit, publisher, session_factory, unit_ids)
@@ -119,7 +117,7 @@ def list_jobs(
             ))
     total = session.scalar(select(func.count()).select_from(q.subquery()))
     rows = session.scalars(
-        q.options(selectinload(Job.user)).order_by(Job.id.desc()).limit(limit).offset(offset)
+        q.options(joinedload(Job.user)).order_by(Job.id.desc()).limit(limit).offset(offset)
     ).all()
     return {"items": [job_out(j) for j in rows], "total": total, "limit": limit,
             "offset": offset}

@@ -11,21 +11,26 @@ from typing import Annotated, Literal
 
 import numpy as np
 from fastapi import APIRouter, Query
-from fastapi.responses import StreamingResponse
+from fastapi.responses import Response, StreamingResponse
 from pydantic import Field
-from sqlalchemy import Select, select
+from sqlalchemy import Select, func, select
 
 from service.api.deps import DB, CurrentCaller, SessionFactoryDep
+from service.api.record_json import encode_lines, encode_page, record_columns
 from service.api.routes.common import MAX_ID, FieldHTTPException, JobId, team_job
 from service.api.schemas import CompareOut, ErrorOut, ResultPage, SummaryOut
-from service.db.crud import row_to_record
+from service.db.crud import row_to_record, summarize_job
 from service.db.models import Result, Summary
-from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS, summarize
+from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
 
 router = APIRouter(tags=["results"])
 ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 422, 429, 503)}
 
 RESULT_COLUMNS = [Result.__table__.c[f] for f in RECORD_FIELDS]
+# built once (a select of 41 columns costs ~1 ms to construct); routes add WHERE/ORDER
+RESULT_ROWS = select(*RESULT_COLUMNS)  # JSON columns decoded by SQLAlchemy (CSV)
+RECORDS = select(*record_columns())  # JSON columns as text (record_json)
+COUNT = select(func.count()).select_from(Result.__table__)
 ORDER = [Result.__table__.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
 COMPARE_BY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep")
 STREAM_CHUNK = 1000
@@ -36,19 +41,20 @@ Int32 = Annotated[int, Field(ge=-MAX_ID - 1, le=MAX_ID)]
 IntList = Annotated[list[Int32] | None, Query()]
 
 
-def _results_query(job_id, system, sigma_w, N, estimator, gamma, rep) -> Select:
+def _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep) -> list:
+    """The WHERE conditions of a results selection (422 naming a bad filter value)."""
     t = Result.__table__
-    q = select(*RESULT_COLUMNS).where(t.c.job_id == job_id)
+    conds = [t.c.job_id == job_id]
     if system:
-        q = q.where(t.c.system.in_(system))
+        conds.append(t.c.system.in_(system))
     if sigma_w:
         if not all(math.isfinite(v) for v in sigma_w):
             raise FieldHTTPException(422, "must be finite", "sigma_w")
-        q = q.where(t.c.sigma_w.in_(sigma_w))
+        conds.append(t.c.sigma_w.in_(sigma_w))
     if N:
-        q = q.where(t.c.N.in_(N))
+        conds.append(t.c.N.in_(N))
     if estimator:
-        q = q.where(t.c.estimator.in_(estimator))
+        conds.append(t.c.estimator.in_(estimator))
     if gamma:
         keys = []
         for g in gamma:
@@ -62,10 +68,10 @@ def _results_query(job_id, system, sigma_w, N, estimator, gamma, rep) -> Select:
             if not math.isfinite(v):
                 raise FieldHTTPException(422, "must be finite", "gamma")
             keys.append(v)
-        q = q.where(t.c.gamma_key.in_(keys))
+        conds.append(t.c.gamma_key.in_(keys))
     if rep:
-        q = q.where(t.c.rep.in_(rep))
-    return q
+        conds.append(t.c.rep.in_(rep))
+    return conds
 
 
 def _csv_value(v):
@@ -99,10 +105,7 @@ def _stream(session_factory, query: Select, fmt: str):
                         writer.writerow([_csv_value(rec[f]) for f in RECORD_FIELDS])
                     yield buf.getvalue()
                 else:
-                    yield "".join(
-                        json.dumps(row_to_record(r._mapping), allow_nan=False) + "\n"
-                        for r in chunk
-                    )
+                    yield encode_lines(chunk)
         finally:
             session.close()
 
@@ -137,16 +140,16 @@ def get_results(
     values). JSON is paginated (default limit 100); CSV and JSONL stream the whole
     selection (or `limit`/`offset` if given)."""
     team_job(session, caller.team_id, job_id)
-    query = _results_query(job_id, system, sigma_w, N, estimator, gamma, rep)
+    conds = _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep)
     if format == "json":
         lim = limit or 100
-        from sqlalchemy import func
-
-        total = session.scalar(select(func.count()).select_from(query.subquery()))
-        rows = session.execute(query.order_by(*ORDER).limit(lim).offset(offset)).all()
-        return {"items": [row_to_record(r._mapping) for r in rows], "total": total,
-                "limit": lim, "offset": offset}
-    query = query.order_by(*ORDER)
+        t = Result.__table__
+        total = session.scalar(COUNT.where(*conds))
+        # the page's ids first (sorting the narrow key columns only), then their records
+        page = select(t.c.id).where(*conds).order_by(*ORDER).limit(lim).offset(offset).subquery()
+        rows = session.execute(RECORDS.join(page, t.c.id == page.c.id).order_by(*ORDER)).all()
+        return Response(encode_page(rows, total, lim, offset), media_type="application/json")
+    query = (RESULT_ROWS if format == "csv" else RECORDS).where(*conds).order_by(*ORDER)
     if limit is not None:
         query = query.limit(limit)
     if offset:
@@ -170,22 +173,19 @@ def get_summary(job_id: JobId, session: DB, caller: CurrentCaller):
     gamma). Stored when the job succeeds; computed from the results so far otherwise
     (`partial: true`)."""
     job = team_job(session, caller.team_id, job_id)
+    if job.status != "succeeded":  # units store their groups' summaries as they finish
+        return {"job_id": job_id, "partial": True,
+                "groups": [_group_out(g) for g in summarize_job(session, job_id)]}
     rows = session.scalars(
         select(Summary).where(Summary.job_id == job_id).order_by(
             Summary.system, Summary.sigma_w, Summary.N, Summary.estimator, Summary.gamma_key)
     ).all()
-    if rows:
-        groups = [
-            {"system": s.system, "sigma_w": s.sigma_w, "N": s.N, "estimator": s.estimator,
-             "gamma": s.gamma, "count": s.count, "stats": s.stats}
-            for s in rows
-        ]
-        return {"job_id": job_id, "partial": False, "groups": groups}
-    cols = [Result.__table__.c[f] for f in ("system", "estimator") + tuple(NUMERIC_FIELDS)]
-    recs = [dict(r._mapping) for r in session.execute(
-        select(*cols).where(Result.job_id == job_id))]
-    return {"job_id": job_id, "partial": job.status != "succeeded",
-            "groups": [_group_out(g) for g in summarize(recs)]}
+    groups = [
+        {"system": s.system, "sigma_w": s.sigma_w, "N": s.N, "estimator": s.estimator,
+         "gamma": s.gamma, "count": s.count, "stats": s.stats}
+        for s in rows
+    ]
+    return {"job_id": job_id, "partial": False, "groups": groups}
 
 
 def _csv_list(value: str, name: str) -> list[str]:
