@@ -6,6 +6,12 @@ STAMP := $(VENV)/.installed
 
 .PHONY: install run test test-core test-service test-integration test-faults bench clean
 
+# The integration and PostgreSQL tests use the machine's PostgreSQL and Redis (as
+# .ci/run does); `make test SVROBS_TEST_DATABASE_URL= SVROBS_TEST_BROKER_URL=` skips them.
+SVROBS_TEST_DATABASE_URL ?= postgresql+psycopg://postgres@127.0.0.1:5432/test
+SVROBS_TEST_BROKER_URL ?= redis://127.0.0.1:6379/5
+export SVROBS_TEST_DATABASE_URL SVROBS_TEST_BROKER_URL
+
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip

@@ -62,13 +62,16 @@ def reproduce(
 @app.command()
 def serve(
     workers: int = typer.Option(1, "--workers", help="worker processes"),
-    concurrency: int = typer.Option(1, "--concurrency", help="pool size per worker"),
+    concurrency: int | None = typer.Option(
+        None, "--concurrency", help="pool processes per worker (default: one per CPU, at most 4)"),
     no_beat: bool = typer.Option(False, "--no-beat", help="do not start the scheduler"),
 ) -> None:
     """Migrate, then run API + worker + scheduler (embedded default: SQLite + filesystem broker)."""
     from .serve import main
 
-    argv = ["--workers", str(workers), "--concurrency", str(concurrency)]
+    argv = ["--workers", str(workers)]
+    if concurrency is not None:
+        argv += ["--concurrency", str(concurrency)]
     main(argv + (["--no-beat"] if no_beat else []))
 
 

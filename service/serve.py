@@ -4,7 +4,8 @@ One command starts the whole embedded stack (or any stack the environment
 points at)::
 
     uvicorn service.api.main:app            the REST API on API_HOST:API_PORT
-    celery -A worker.celery_app worker      one worker (prefork, concurrency 1)
+    celery -A worker.celery_app worker      one worker (prefork, one pool process per
+                                            CPU, at most 4: DEFAULT_CONCURRENCY)
     celery -A worker.celery_app beat        the scheduler (runs the tick)
 
 Each child gets its own process group (so a terminal Ctrl-C reaches only this
@@ -177,6 +178,11 @@ def api_command(host: str, port: int) -> list[str]:
             "--port", str(port), "--workers", "1", "--no-access-log"]
 
 
+# Celery's own default is one pool process per CPU; capped so that a big shared machine
+# does not get dozens of ~200 MB numpy/cvxpy processes by surprise.
+DEFAULT_CONCURRENCY = max(1, min(os.cpu_count() or 1, 4))
+
+
 def worker_command(name: str = "worker1", concurrency: int = 1, loglevel: str = "info") -> list[str]:
     return [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker",
             "--concurrency", str(concurrency), "--pool", "prefork", "-l", loglevel,
@@ -304,7 +310,7 @@ def stop_all(children: list[Child], grace: float = 10.0) -> None:
 
 
 # --------------------------------------------------------------------------- serve
-def serve(settings: Settings | None = None, *, workers: int = 1, concurrency: int = 1,
+def serve(settings: Settings | None = None, *, workers: int = 1, concurrency: int = DEFAULT_CONCURRENCY,
           beat: bool = True, grace: float = 10.0) -> int:
     """Run the stack in the foreground until Ctrl-C/SIGTERM or a child dies."""
     settings = settings or get_settings()
@@ -366,7 +372,9 @@ def _redact(url: str) -> str:
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="svrobs serve", description=__doc__.splitlines()[0])
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
-    p.add_argument("--concurrency", type=int, default=1, help="pool size per worker")
+    p.add_argument("--concurrency", type=int, default=DEFAULT_CONCURRENCY,
+                   help=f"pool processes per worker (default {DEFAULT_CONCURRENCY}: "
+                        "one per CPU, at most 4)")
     p.add_argument("--no-beat", action="store_true", help="do not start the scheduler")
     args = p.parse_args(argv)
     sys.exit(serve(get_settings(), workers=args.workers, concurrency=args.concurrency,
