@@ -200,13 +200,23 @@ def cpu_seconds(root_pid: int) -> float | None:
 
 
 class Stats:
-    def __init__(self):
+    """Latencies per kind; requests sent before ``warmup`` seconds only go to ``cold``
+    (the first requests of a fresh process compile SQL, fill the connection pools)."""
+
+    def __init__(self, start: float = 0.0, warmup: float = 0.0):
+        self.start, self.warmup = start, warmup
         self.lat: dict[str, list[float]] = {k: [] for k, _ in MIX}
+        self.cold: list[float] = []
         self.errors: dict[str, int] = {k: 0 for k, _ in MIX}
         self.error_samples: list[str] = []
         self.requests = 0
 
-    def add(self, kind: str, seconds: float, ok: bool, why: str = "") -> None:
+    def add(self, kind: str, seconds: float, ok: bool, why: str = "",
+            sent: float | None = None) -> None:
+        if sent is not None and sent - self.start < self.warmup:
+            self.cold.append(seconds)
+            if ok:
+                return
         self.requests += 1
         self.lat[kind].append(seconds)
         if not ok:
@@ -217,10 +227,10 @@ class Stats:
 
 async def client_loop(i: int, base: str, key: str, big_id: int, deadline: float,
                       budget: list[int], stats: Stats, submitted: list[int],
-                      think: float) -> None:
+                      think: float, mix=MIX) -> None:
     rng = random.Random(i)
     headers = {"Authorization": f"Bearer {key}"}
-    kinds, weights = zip(*MIX)
+    kinds, weights = zip(*mix)
     spec = BIG_SPEC
     async with httpx.AsyncClient(base_url=base, headers=headers, timeout=10.0,
                                  limits=httpx.Limits(max_connections=1)) as client:
@@ -241,28 +251,30 @@ async def client_loop(i: int, base: str, key: str, big_id: int, deadline: float,
                 ])
                 params = {**params, "limit": 100, "offset": rng.choice([0, 0, 100, 500])}
                 method, url, body, want = "GET", f"{API}/jobs/{big_id}/results", None, 200
-            t0 = time.perf_counter()
+            t0, sent = time.perf_counter(), time.monotonic()
             try:
                 r = await client.request(method, url, params=params, json=body)
                 dt = time.perf_counter() - t0
                 ok = r.status_code == want
-                stats.add(kind, dt, ok, f"HTTP {r.status_code} {r.text[:200]}")
+                stats.add(kind, dt, ok, f"HTTP {r.status_code} {r.text[:200]}", sent)
                 if ok and kind == "submit":
                     submitted.append(r.json()["id"])
             except httpx.HTTPError as exc:
-                stats.add(kind, time.perf_counter() - t0, False, f"{type(exc).__name__}: {exc}")
+                stats.add(kind, time.perf_counter() - t0, False, f"{type(exc).__name__}: {exc}",
+                          sent)
             if think:
                 await asyncio.sleep(rng.uniform(0.5, 1.5) * think)
 
 
 async def run_load(base: str, key: str, big_id: int, clients: int, seconds: float,
-                   max_requests: int, think: float = 0.0) -> tuple[Stats, float]:
-    stats, submitted, budget = Stats(), [], [max_requests]
+                   max_requests: int, think: float = 0.0, mix=MIX,
+                   warmup: float = 0.0) -> tuple[Stats, float]:
     start = time.monotonic()
-    deadline = start + seconds
+    stats, submitted, budget = Stats(start, warmup), [], [max_requests]
+    deadline = start + warmup + seconds
     await asyncio.gather(*(client_loop(i, base, key, big_id, deadline, budget, stats, submitted,
-                                       think) for i in range(clients)))
-    return stats, time.monotonic() - start
+                                       think, mix) for i in range(clients)))
+    return stats, time.monotonic() - start - warmup
 
 
 def report(stats: Stats, elapsed: float, clients: int, rows: int) -> bool:
@@ -273,6 +285,9 @@ def report(stats: Stats, elapsed: float, clients: int, rows: int) -> bool:
           f"{stats.requests / elapsed:.1f} requests/s; results job: {rows} rows")
     print(f"(rate limit raised to {RATE_LIMIT}/min and the queued-jobs cap to {QUEUED_CAP} "
           "for this run: it measures latency, not throttling)")
+    if stats.warmup:
+        print(f"warm-up: the first {stats.warmup:g} s ({len(stats.cold)} requests, p99 "
+              f"{pct(stats.cold, 99):.1f} ms, max {pct(stats.cold, 100):.1f} ms) not counted below")
     print(f"{'kind':<10}{'count':>8}{'p50 ms':>10}{'p99 ms':>10}{'max ms':>10}{'errors':>8}")
     everything = []
     for kind, _ in MIX:
@@ -308,10 +323,22 @@ def main(argv=None) -> int:
     ap.add_argument("--think-ms", type=float, default=0.0,
                     help="mean pause between a client's requests (default 0: closed loop, "
                          "each client sends its next request as soon as it has an answer)")
+    ap.add_argument("--mix", default=",".join(f"{k}={w:g}" for k, w in MIX),
+                    help="request weights, e.g. status=1 or submit=0.1,status=0.45,results=0.45")
+    ap.add_argument("--warmup-s", type=float, default=5.0,
+                    help="seconds of load before measuring (reported apart: a fresh API "
+                         "process compiles SQL and opens its pools on the first requests)")
     ap.add_argument("--keep", action="store_true", help="keep the temporary folder")
     args = ap.parse_args(argv)
+    try:
+        mix = tuple((k, float(w)) for k, w in (item.split("=") for item in args.mix.split(",")))
+    except ValueError:
+        ap.error("--mix: comma-separated kind=weight pairs")
+    if not mix or any(k not in dict(MIX) or w < 0 for k, w in mix) or not sum(w for _, w in mix):
+        ap.error(f"--mix: kinds among {[k for k, _ in MIX]}, weights >= 0, not all 0")
     if not (0 < args.seconds <= 3600 and 0 < args.clients <= 200
-            and 0 < args.api_workers <= 16 and 0 <= args.think_ms <= 60_000):
+            and 0 < args.api_workers <= 16 and 0 <= args.think_ms <= 60_000
+            and 0 <= args.warmup_s <= 600):
         ap.error("--seconds in (0, 3600], --clients in (0, 200], --api-workers in (0, 16], "
                  "--think-ms in [0, 60000]")
 
@@ -333,7 +360,8 @@ def main(argv=None) -> int:
               f"{os.cpu_count()} CPUs, load average {load1:.2f} before the run ...", flush=True)
         cpu0, own0 = cpu_seconds(proc.pid), time.process_time()
         stats, elapsed = asyncio.run(run_load(base, key, big_id, args.clients, args.seconds,
-                                              args.max_requests, args.think_ms / 1000.0))
+                                              args.max_requests, args.think_ms / 1000.0, mix,
+                                              args.warmup_s))
         cpu1, own1 = cpu_seconds(proc.pid), time.process_time()
         if proc.poll() is not None:
             print(f"the API process died (code {proc.returncode}); see {tmp / 'api.log'}")
@@ -341,8 +369,10 @@ def main(argv=None) -> int:
         ok = report(stats, elapsed, args.clients, rows)
         if cpu0 is not None and cpu1 is not None and stats.requests:
             api = cpu1 - cpu0
-            print(f"CPU: API {api:.1f} s ({api / elapsed:.0%} of one core, "
-                  f"{api / stats.requests * 1000:.1f} ms per request); load clients "
+            n_all = stats.requests + len(stats.cold)
+            seconds_all = elapsed + args.warmup_s
+            print(f"CPU: API {api:.1f} s ({api / seconds_all:.0%} of one core, "
+                  f"{api / n_all * 1000:.1f} ms per request); load clients "
                   f"{own1 - own0:.1f} s; load average after {os.getloadavg()[0]:.2f}")
         return 0 if ok else 1
     finally:

@@ -15,7 +15,10 @@ bounds = 60,750 cells in 270 work units) is
    ``SVROBS_BENCH_BROKER_URL``, else the ``SVROBS_TEST_*`` ones; a fresh
    schema, dropped afterwards, and the Redis DB of the URL flushed).
 
-It prints each wall time and the ratio service / in-process (target <= 1.5).
+It prints each wall time and the ratio service / in-process (target <= 1.5), against
+the core in one process and against the core with ``n_jobs=2`` (the same two
+cores the service's worker pool uses with ``--concurrency 2``, ``svrobs
+serve``'s default on this machine).
 Then, per stack, it stores a synthetic job of 100,000 cells (bulk-inserted rows,
 units completed through ``crud.complete_unit``) and times a filtered results page
 ``GET /jobs/{id}/results?N=..&estimator=svr&gamma=..&limit=100`` (target
@@ -281,11 +284,11 @@ def unit_breakdown(logs: Path) -> dict:
     return {k: sum(v) / len(v) for k, v in sums.items() if v}
 
 
-def in_process(spec: dict) -> tuple[float, int]:
+def in_process(spec: dict, n_jobs: int = 1) -> tuple[float, int]:
     from svrobs_core import parse_spec, run_spec
 
     t0 = time.perf_counter()
-    n = sum(len(batch) for batch in run_spec(parse_spec(spec)))
+    n = sum(len(batch) for batch in run_spec(parse_spec(spec), n_jobs=n_jobs))
     return time.perf_counter() - t0, n
 
 
@@ -295,6 +298,8 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="a 7-N grid instead of 45 (smoke run)")
     p.add_argument("--embedded-workers", type=int, default=1)
     p.add_argument("--pg-workers", type=int, default=2)
+    p.add_argument("--concurrency", type=int, default=1,
+                   help="pool processes per worker (svrobs serve's --concurrency)")
     p.add_argument("--no-page", action="store_true", help="skip the 100k-cell results page")
     p.add_argument("--keep", action="store_true", help="keep the stacks' folders (logs)")
     args = p.parse_args()
@@ -309,7 +314,10 @@ def main() -> None:
     print(f"grid: {spec.n_cells} cells in {len(plan_units(spec))} work units; "
           f"{os.cpu_count()} CPUs")
     base, n = in_process(grid)
-    print(f"in process (run_spec):                {base:8.1f} s  ({n} records)", flush=True)
+    print(f"{'in process (run_spec, 1 process):':54s}{base:8.1f} s  ({n} records)", flush=True)
+    base2, _ = in_process(grid, n_jobs=2)
+    print(f"{'in process (run_spec, n_jobs=2):':54s}{base2:8.1f} s  (ratios below: "
+          "against 1 process, against n_jobs=2)", flush=True)
 
     rows = []
     for kind in stacks:
@@ -319,16 +327,19 @@ def main() -> None:
         workers = args.embedded_workers if kind == "embedded" else args.pg_workers
         root = Path(tempfile.mkdtemp(prefix=f"svrobs-bench-{kind}-"))
         try:
-            with BenchStack(kind, root, workers, 1, pg_url, redis_url) as st:
+            with BenchStack(kind, root, workers, args.concurrency, pg_url, redis_url) as st:
                 elapsed, job = st.run_job(grid)
                 label = ("embedded (SQLite + filesystem)" if kind == "embedded"
                          else "PostgreSQL + Redis")
-                print(f"{label + f', {workers} worker(s):':38s}{elapsed:8.1f} s  "
-                      f"ratio {elapsed / base:5.2f}x  (units {job['progress']['total']}, "
+                procs = f"{workers}x{args.concurrency} worker process(es)"
+                print(f"{label + ', ' + procs + ':':54s}{elapsed:8.1f} s  "
+                      f"ratio {elapsed / base:5.2f}x, {elapsed / base2:5.2f}x  "
+                      f"(units {job['progress']['total']}, "
                       f"job run {job['timings'].get('run_seconds', float('nan')):.1f} s)",
                       flush=True)
-                row = {"stack": kind, "workers": workers, "seconds": elapsed,
-                       "ratio": elapsed / base}
+                row = {"stack": kind, "workers": workers, "concurrency": args.concurrency,
+                       "seconds": elapsed, "ratio": elapsed / base,
+                       "ratio_2_processes": elapsed / base2}
                 if not args.no_page:
                     synth = st.py(SYNTH, json.dumps(BIG))
                     page = st.time_results_page(synth["job_id"])
@@ -348,7 +359,8 @@ def main() -> None:
                 print(f"  logs kept in {root}/logs")
             else:
                 shutil.rmtree(root, ignore_errors=True)
-    print(json.dumps({"in_process_seconds": base, "cells": n, "stacks": rows}, indent=1))
+    print(json.dumps({"in_process_seconds": base, "in_process_2_seconds": base2, "cells": n,
+                      "stacks": rows}, indent=1))
 
 
 if __name__ == "__main__":
