@@ -24,9 +24,6 @@ PUBLISH_RETRY_POLICY = {"max_retries": 1, "interval_start": 0, "interval_step": 
                         "interval_max": 0.2}
 
 
-FILESYSTEM_POLL_SECONDS = 0.1
-
-
 def is_filesystem(url: str) -> bool:
     return url.startswith("filesystem:")
 
@@ -82,7 +79,7 @@ def make_celery(settings: Settings, name: str = "svrobs") -> Celery:
             # kombu polls the folder when it has nothing to deliver (default every 1 s,
             # also while a prefetch-1 worker finishes a unit): 0.1 s keeps the gap
             # between units short for the cost of a directory listing
-            "polling_interval": FILESYSTEM_POLL_SECONDS,
+            "polling_interval": settings.BROKER_POLL_SECONDS,
         }
         # broadcast (remote control, mingle, gossip) is not reliable across processes on files
         conf["worker_enable_remote_control"] = False

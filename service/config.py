@@ -17,6 +17,12 @@ class Settings(BaseSettings):
     DATABASE_URL: str = "sqlite:///./var/svrobs.db"
     BROKER_URL: str = "filesystem://"
     BROKER_DIR: str = "./var/broker"
+    # How often the filesystem broker lists its folder when it has nothing to deliver.
+    BROKER_POLL_SECONDS: float = 0.1
+    # A worker whose consumer takes nothing while the broker's queue holds messages
+    # and its pool has a free process reconnects after 3 checks this far apart
+    # (worker.watchdog; Redis only; 0 turns it off).
+    WORKER_WATCHDOG_SECONDS: float = 20.0
 
     MAX_JOB_CELLS: int = 2_000_000
     MAX_BODY_BYTES: int = 1_048_576

@@ -22,14 +22,10 @@ def tick_seconds() -> float:
 
 
 celery_app = make_celery(settings)
-if settings.BROKER_URL.startswith("filesystem"):
-    # kombu's virtual transports sleep polling_interval (default 1 s) whenever a
-    # poll finds nothing - with prefetch 1 that is up to a second lost per unit.
-    # Listing one folder ten times a second costs nothing.
-    celery_app.conf.broker_transport_options = {
-        **(celery_app.conf.broker_transport_options or {}),
-        "polling_interval": float(os.environ.get("SVROBS_BROKER_POLL_SECONDS", "0.1")),
-    }
+if settings.WORKER_WATCHDOG_SECONDS > 0:
+    from worker.watchdog import ConsumerWatchdog
+
+    celery_app.steps["consumer"].add(ConsumerWatchdog)
 celery_app.conf.include = list(celery_app.conf.include or ()) + ["worker.tasks"]
 celery_app.conf.beat_schedule = {
     "svrobs-tick": {

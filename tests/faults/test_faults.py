@@ -4,7 +4,8 @@
    the job completes, one stored result per cell, records equal to an
    undisturbed in-process run of the same spec and seed (exact, after JSON).
 2. Restart Redis (no persistence: the queue is lost) mid-sweep: the sweep
-   completes, nothing lost or duplicated, same records.
+   completes, nothing lost or duplicated, same records. A worker whose consumer
+   stalls while connected (emulated) is reconnected by its watchdog.
 3. Restart PostgreSQL (``pg_ctl stop -m fast``) mid-sweep: while it is down the
    API answers 503 with a JSON error (never a 500, never a traceback), and
    everything recovers by itself; one result per cell, same records.
@@ -154,7 +155,8 @@ def wait_progress(st, job_id: int, done: int, timeout: float) -> None:
         if d >= done or status not in ("queued", "running"):
             return
         time.sleep(0.1)
-    raise AssertionError(f"job {job_id}: {done} units not done in {timeout}s\n{st.log_tail()}")
+    raise AssertionError(f"job {job_id}: {done} units not done in {timeout}s\n"
+                         f"{diagnose(st, job_id)}")
 
 
 def wait_job_db(st, job_id: int, timeout: float) -> str:
@@ -166,7 +168,31 @@ def wait_job_db(st, job_id: int, timeout: float) -> str:
         if status in ("succeeded", "failed", "cancelled"):
             return status
         time.sleep(0.2)
-    raise AssertionError(f"job {job_id} still {status} after {timeout}s\n{st.log_tail()}")
+    raise AssertionError(f"job {job_id} still {status} after {timeout}s\n{diagnose(st, job_id)}")
+
+
+def diagnose(st, job_id: int) -> str:
+    """What a stuck job looks like: its units by state (from the DB), the broker's
+    queue (Redis), then the logs of the processes this test started, worker first."""
+    lines = []
+    try:
+        rows = st.sql(
+            "SELECT status, attempts, count(*), min(published_at), max(published_at), "
+            "max(lease_expires_at), max(worker) FROM work_units WHERE job_id = :j "
+            "GROUP BY status, attempts ORDER BY status, attempts", j=job_id)
+        lines += [f"units: {tuple(r)}" for r in rows]
+    except Exception as exc:  # noqa: BLE001 - the DB may be the thing that is down
+        lines.append(f"units: unreadable ({exc!r})")
+    try:
+        import redis
+
+        r = redis.Redis.from_url(st.servers.redis.url, socket_timeout=2)
+        lines.append(f"redis: queue svrobs={r.llen('svrobs')} unacked={r.hlen('unacked')} "
+                     f"epoch={r.get('svrobs:broker-epoch')!r}")
+    except Exception as exc:  # noqa: BLE001
+        lines.append(f"redis: unreadable ({exc!r})")
+    names = sorted((n for n in st.children if n != "api"), key=lambda n: n == "beat")
+    return "\n".join(lines) + "\n" + st.log_tail(*names, "api", n=80)
 
 
 def assert_one_result_per_cell(st, job_id: int, n_cells: int) -> None:
@@ -346,6 +372,32 @@ def test_redis_restart_mid_sweep(stack_up, reference):
         "units_republished_by_relay": sum(relayed),
         "completion_after_restart_s": round(t_done - t_back, 1), "records_identical": n,
         "seconds": round(time.monotonic() - t0, 1),
+    }
+
+
+def test_stalled_consumer_reconnects(stack_up, reference):
+    """A worker connected to Redis but no longer consuming (the failure of
+    celery#8091/kombu#2007 after a broker restart; emulated by the test-only hook
+    SVROBS_TEST_STALL_CONSUMER, a basic_cancel after the first message) is noticed by
+    its watchdog, which reconnects; the sweep completes, once per cell."""
+    st = stack_up
+    t0 = time.monotonic()
+    st.start_worker("stallw", concurrency=2, env={
+        "SVROBS_TEST_STALL_CONSUMER": "1", "SVROBS_WORKER_WATCHDOG_SECONDS": "0.5"})
+    job_id = submit_sweep(st, "stalled-consumer")["id"]
+    status = wait_job_db(st, job_id, timeout=120)
+    assert status == "succeeded", st.log_tail("stallw")
+    log = (st.logs / "stallw.log").read_text(errors="replace")
+    assert "TEST: consumer cancelled" in log, st.log_tail("stallw")
+    # the watchdog saw messages waiting, a free process and nothing received, 3 times
+    stalls = [x for x in log.splitlines() if "watchdog:" in x and "reconnecting" in x]
+    assert len(stalls) == 1, st.log_tail("stallw")
+    assert_one_result_per_cell(st, job_id, parse_spec(SWEEP).n_cells)
+    n = assert_records_equal_reference(st, job_id, reference)
+    assert st.children["stallw"].poll() is None
+    RESULTS["2b_stalled_consumer"] = {
+        "stalls_detected": len(stalls), "detail": stalls[0].split("watchdog: ")[1],
+        "records_identical": n, "seconds": round(time.monotonic() - t0, 1),
     }
 
 
