@@ -21,7 +21,7 @@ class Settings(BaseSettings):
     BROKER_POLL_SECONDS: float = 0.1
     # A worker whose consumer takes nothing while the broker's queue holds messages
     # and its pool has a free process reconnects after 3 checks this far apart
-    # (worker.watchdog; Redis only; 0 turns it off).
+    # (worker.watchdog; Redis brokers only; 0 turns it off).
     WORKER_WATCHDOG_SECONDS: float = 20.0
 
     MAX_JOB_CELLS: int = 2_000_000

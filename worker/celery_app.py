@@ -12,6 +12,7 @@ import os
 import worker
 from service.broker import make_celery
 from service.config import get_settings
+from worker import watchdog
 
 settings = get_settings()
 
@@ -22,10 +23,8 @@ def tick_seconds() -> float:
 
 
 celery_app = make_celery(settings)
-if settings.WORKER_WATCHDOG_SECONDS > 0:
-    from worker.watchdog import ConsumerWatchdog
-
-    celery_app.steps["consumer"].add(ConsumerWatchdog)
+if watchdog.enabled(settings):
+    celery_app.steps["consumer"].add(watchdog.ConsumerWatchdog)
 celery_app.conf.include = list(celery_app.conf.include or ()) + ["worker.tasks"]
 celery_app.conf.beat_schedule = {
     "svrobs-tick": {

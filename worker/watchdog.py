@@ -9,6 +9,9 @@ messages received since the last look. Messages waiting, a free process and
 nothing received, :data:`STALLED_CHECKS` times in a row, is a stalled consumer:
 the watchdog raises a connection error inside the event loop, and the worker
 reconnects exactly as after a lost connection (running units keep running).
+"Free" also needs room in the channel's prefetch window, and the broker is asked
+for its queue length only when everything else already looks stuck. Redis only:
+the filesystem transport has no event loop (its worker polls) and no such failure.
 """
 
 from __future__ import annotations
@@ -27,8 +30,18 @@ _received = [0]  # task messages this process received (the consumer runs in one
 
 
 @signals.task_received.connect
+@signals.task_rejected.connect
+@signals.task_unknown.connect
+@signals.task_revoked.connect
 def _count_received(**_kwargs) -> None:
+    """Every message the consumer took: tasks, and those it dropped (unknown,
+    undecodable, revoked or expired)."""
     _received[0] += 1
+
+
+def enabled(settings) -> bool:
+    return settings.WORKER_WATCHDOG_SECONDS > 0 and settings.BROKER_URL.startswith(
+        ("redis:", "rediss:"))
 
 
 class ConsumerStalled(ConnectionError):
@@ -55,7 +68,7 @@ class StallDetector:
 def ready_messages(consumer) -> int:
     """Messages waiting in the queues this worker consumes from (a passive declare)."""
     conn = consumer.connection
-    names = list(consumer.app.amqp.queues.consume_from or consumer.app.amqp.queues)
+    names = [q.name for q in getattr(consumer.task_consumer, "queues", None) or ()]
     total = 0
     for name in names:
         try:
@@ -73,6 +86,18 @@ def free_processes(consumer) -> int:
     return max(0, int(size) - len(busy))
 
 
+def window_open(consumer) -> bool:
+    """Room in the task channel's prefetch window (acks_late: unacked messages count)."""
+    qos = getattr(getattr(consumer.task_consumer, "channel", None), "qos", None)
+    can_consume = getattr(qos, "can_consume", None)
+    return bool(can_consume()) if can_consume is not None else True
+
+
+def capacity(consumer) -> int:
+    """Messages this consumer could take now: free processes, if the window has room."""
+    return free_processes(consumer) if window_open(consumer) else 0
+
+
 class ConsumerWatchdog(bootsteps.StartStopStep):
     """Consumer bootstep: a repeating check on the event loop's timer, registered
     again on each (re)connection."""
@@ -86,6 +111,8 @@ class ConsumerWatchdog(bootsteps.StartStopStep):
         self.detector = StallDetector()
 
     def start(self, consumer) -> None:
+        if getattr(consumer, "hub", None) is None:  # no event loop to raise into
+            return
         self.detector = StallDetector(received=_received[0])
         self.entry = consumer.timer.call_repeatedly(self.interval, self.check, (consumer,))
 
@@ -97,13 +124,16 @@ class ConsumerWatchdog(bootsteps.StartStopStep):
     shutdown = stop
 
     def check(self, consumer) -> None:
-        _test_stall_hook(consumer)
-        try:
-            ready, free = ready_messages(consumer), free_processes(consumer)
-        except Exception as exc:  # noqa: BLE001 - the event loop reports a dead connection
-            log.debug("watchdog: no sample (%s)", exc)
-            return
-        if self.detector.observe(ready, free, _received[0]):
+        if _TEST_STALL:
+            _test_stall_hook(consumer)
+        received, free, ready = _received[0], capacity(consumer), 0
+        if free and received == self.detector.received:  # only then ask the broker
+            try:
+                ready = ready_messages(consumer)
+            except Exception as exc:  # noqa: BLE001 - the event loop reports a dead connection
+                log.info("watchdog: no queue length (%s: %s)", type(exc).__name__, exc)
+                return
+        if self.detector.observe(ready, free, received):
             log.warning("watchdog: %d messages waiting and %d free pool processes, nothing "
                         "received for %d checks %g s apart: reconnecting", ready, free,
                         self.detector.checks, self.interval)
@@ -118,13 +148,14 @@ def _interval() -> float:
 
 
 _stalled_once = [False]
+_TEST_STALL = os.environ.get("SVROBS_TEST_STALL_CONSUMER") == "1"
 
 
 def _test_stall_hook(consumer) -> None:
     """TEST-ONLY fault injection, off by default: with ``SVROBS_TEST_STALL_CONSUMER=1``
     the consumer stops consuming (``basic_cancel``, connection kept) once, after its
     first task message: the stalled-but-connected state the watchdog must undo."""
-    if _stalled_once[0] or os.environ.get("SVROBS_TEST_STALL_CONSUMER") != "1":
+    if _stalled_once[0]:
         return
     if _received[0] >= 1 and consumer.task_consumer is not None:
         _stalled_once[0] = True

@@ -57,7 +57,9 @@ def test_stall_detector_matches_oracle_on_random_samples(seed):
 
 
 def _consumer(app):
-    return SimpleNamespace(connection=app.connection_for_read(), app=app)
+    queues = list(app.amqp.queues.values())
+    return SimpleNamespace(connection=app.connection_for_read(), app=app,
+                           task_consumer=SimpleNamespace(queues=queues))
 
 
 def test_ready_messages_filesystem(tmp_path):
@@ -81,3 +83,23 @@ def test_ready_messages_redis(tmp_path):
         c.connection.release()
     finally:
         redis.stop()
+
+
+def test_enabled_only_for_redis_brokers():
+    from worker.watchdog import enabled
+
+    assert enabled(Settings(BROKER_URL="redis://127.0.0.1:6379/0"))
+    assert not enabled(Settings(BROKER_URL="redis://127.0.0.1:6379/0", WORKER_WATCHDOG_SECONDS=0))
+    assert not enabled(Settings(BROKER_URL="filesystem://"))
+
+
+def test_capacity_needs_a_free_process_and_room_in_the_window():
+    from worker.watchdog import capacity
+
+    def consumer(size, room):
+        qos = SimpleNamespace(can_consume=lambda: room)
+        return SimpleNamespace(pool=SimpleNamespace(num_processes=size),
+                               task_consumer=SimpleNamespace(channel=SimpleNamespace(qos=qos)))
+
+    assert capacity(consumer(2, True)) == 2  # nothing reserved in this test process
+    assert capacity(consumer(2, False)) == 0
