@@ -105,12 +105,15 @@ class ConsumerWatchdog(bootsteps.StartStopStep):
     requires = ("celery.worker.consumer.tasks:Tasks",)
 
     def __init__(self, consumer, **kwargs):
+        from service.config import get_settings
+
         super().__init__(consumer, **kwargs)
-        self.interval = float(kwargs.get("interval") or _interval())
+        self.interval = float(get_settings().WORKER_WATCHDOG_SECONDS)
         self.entry = None
         self.detector = StallDetector()
 
     def start(self, consumer) -> None:
+        """On each (re)connection: a fresh count and a fresh timer entry."""
         if getattr(consumer, "hub", None) is None:  # no event loop to raise into
             return
         self.detector = StallDetector(received=_received[0])
@@ -137,14 +140,7 @@ class ConsumerWatchdog(bootsteps.StartStopStep):
             log.warning("watchdog: %d messages waiting and %d free pool processes, nothing "
                         "received for %d checks %g s apart: reconnecting", ready, free,
                         self.detector.checks, self.interval)
-            self.detector = StallDetector(received=_received[0])
             raise ConsumerStalled("consumer stalled: reconnecting")
-
-
-def _interval() -> float:
-    from service.config import get_settings
-
-    return float(get_settings().WORKER_WATCHDOG_SECONDS)
 
 
 _stalled_once = [False]

@@ -127,7 +127,7 @@ def _unit_tuples(job_id: int, result: UnitResult) -> list[tuple]:
         out[f] = [None if v is None else str(v) for v in cols[f]]
     for f in JSON_COLUMNS:
         out[f] = cols[f]
-    out["gamma_key"] = [OLS_GAMMA_KEY if g is None else g for g in out["gamma"]]
+    out["gamma_key"] = [gamma_key(e, g) for e, g in zip(out["estimator"], out["gamma"])]
     return list(zip(*(out[c] for c in COLUMNS)))
 
 

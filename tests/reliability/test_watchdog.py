@@ -50,7 +50,7 @@ def test_stall_detector_matches_oracle_on_random_samples(seed):
     for s in samples:
         fired = d.observe(*s)
         got.append(fired)
-        if fired:  # what the watchdog does when it fires
+        if fired:  # the worker reconnects; ConsumerWatchdog.start begins a new count
             d = StallDetector(received=s[2])
     assert got == _oracle(samples, 0, 3)
     assert any(got) and not all(got)
