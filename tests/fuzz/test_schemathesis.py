@@ -18,7 +18,6 @@ import collections
 import contextlib
 import os
 import re
-import sys
 import uuid
 from types import SimpleNamespace
 
@@ -36,10 +35,6 @@ from schemathesis.specs.openapi.checks import (
     status_code_conformance,
 )
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "service"))
-from svc_fakes import run_job_units
-from svc_helpers import SMALL_SPEC
-
 from service import admin
 from service.api.main import create_app
 from service.api.routes.common import MAX_ID
@@ -49,6 +44,8 @@ from service.db.migrate import upgrade
 from service.db.models import Job, Result, Schedule, utcnow
 from service.db.session import dispose_all, get_sessionmaker
 from svrobs_core.records import NUMERIC_FIELDS
+from tests.service.svc_fakes import run_job_units
+from tests.service.svc_helpers import SMALL_SPEC
 
 # Budget: ~1230 generated requests on SQLite, 30-45 s on 2 cores.
 MAX_EXAMPLES_FUZZ = 40  # per operation and generation mode (positive, negative)

@@ -12,11 +12,11 @@ from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session
-from svc_helpers import Account, RecordingPublisher, make_settings
 
 from service import admin
 from service.db.migrate import upgrade
 from service.db.session import create_db_engine
+from tests.service.svc_helpers import Account, RecordingPublisher, make_settings
 
 PG_ENV = "SVROBS_TEST_DATABASE_URL"
 

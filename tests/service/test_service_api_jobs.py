@@ -5,11 +5,11 @@ from __future__ import annotations
 import json
 
 from sqlalchemy import func, select
-from svc_fakes import run_job_units
-from svc_helpers import SMALL_SPEC, SMALL_UNITS
 
 from service.db import crud
 from service.db.models import ApiKey, Job, WorkUnit
+from tests.service.svc_fakes import run_job_units
+from tests.service.svc_helpers import SMALL_SPEC, SMALL_UNITS
 
 API = "/api/v1"
 

@@ -8,12 +8,12 @@ import json
 
 import pytest
 from sqlalchemy import select
-from svc_fakes import run_job_units
-from svc_helpers import SMALL_SPEC
 
 from service.db.crud import row_to_record
 from service.db.models import Result
 from svrobs_core.records import MATRIX_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
+from tests.service.svc_fakes import run_job_units
+from tests.service.svc_helpers import SMALL_SPEC
 
 API = "/api/v1"
 

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from sqlalchemy import func, select
-from svc_helpers import SMALL_SPEC
 
 from service.db.models import Schedule
+from tests.service.svc_helpers import SMALL_SPEC
 
 API = "/api/v1"
 

@@ -8,11 +8,11 @@ import io
 import json
 
 import pytest
-from svc_fakes import run_job_units
-from svc_helpers import SMALL_SPEC, SMALL_UNITS
 
 from service import cli
 from service.config import get_settings
+from tests.service.svc_fakes import run_job_units
+from tests.service.svc_helpers import SMALL_SPEC, SMALL_UNITS
 
 
 @pytest.fixture

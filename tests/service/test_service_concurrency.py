@@ -9,12 +9,12 @@ from datetime import UTC, datetime
 import pytest
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import sessionmaker
-from svc_fakes import fake_records
-from svc_helpers import SMALL_SPEC
 
 from service import admin
 from service.db import crud
 from service.db.models import Job, Schedule, Team
+from tests.service.svc_fakes import fake_records
+from tests.service.svc_helpers import SMALL_SPEC
 
 
 @pytest.fixture

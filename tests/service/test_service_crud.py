@@ -6,13 +6,13 @@ from datetime import UTC, datetime, timedelta
 
 import pytest
 from sqlalchemy import delete, func, select
-from svc_fakes import fake_records, run_job_units
-from svc_helpers import SMALL_SPEC, SMALL_UNITS
 
 from service.db import crud
 from service.db.models import Job, Result, Schedule, ScheduleRun, Summary, WorkUnit
 from svrobs_core.errors import SpecError
 from svrobs_core.spec import parse_spec
+from tests.service.svc_fakes import fake_records, run_job_units
+from tests.service.svc_helpers import SMALL_SPEC, SMALL_UNITS
 
 
 def _count(session, model, **where):

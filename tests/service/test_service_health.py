@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from fastapi.testclient import TestClient
-from svc_helpers import make_settings
 
 from service.api.main import create_app
+from tests.service.svc_helpers import make_settings
 
 BAD_DB = "postgresql+psycopg://postgres@127.0.0.1:1/nowhere"
 

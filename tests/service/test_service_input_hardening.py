@@ -15,10 +15,10 @@ import json
 
 import pytest
 from sqlalchemy import func, select
-from svc_fakes import run_job_units
-from svc_helpers import SMALL_SPEC
 
 from service.db.models import Job, Schedule
+from tests.service.svc_fakes import run_job_units
+from tests.service.svc_helpers import SMALL_SPEC
 
 API = "/api/v1"
 SURROGATE = "\ud800"

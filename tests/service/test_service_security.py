@@ -12,11 +12,11 @@ from datetime import timedelta
 
 import pytest
 from sqlalchemy import func, select
-from svc_helpers import SMALL_SPEC
 
 from service import auth
 from service.auth import authenticate, hash_key
 from service.db.models import Job, Schedule, utcnow
+from tests.service.svc_helpers import SMALL_SPEC
 
 API = "/api/v1"
 
