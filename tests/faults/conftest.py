@@ -23,8 +23,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from integration.servers import PG_BINDIR, REDIS_SERVER, PrivatePostgres, PrivateRedis
-from integration.stack import Stack
+from tests.integration.servers import PG_BINDIR, REDIS_SERVER, PrivatePostgres, PrivateRedis
+from tests.integration.stack import Stack
 
 FAULT_ENV = {
     # the fault tests measure recovery, not the abuse limits: keep those out of the way

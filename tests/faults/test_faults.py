@@ -38,8 +38,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from integration.servers import deathsig
-from integration.stack import ROOT, cell_key, fetch_jsonl, same, submit
+from tests.integration.servers import deathsig
+from tests.integration.stack import ROOT, cell_key, fetch_jsonl, same, submit
 
 from service.serve import worker_command
 from svrobs_core import RECORD_FIELDS, parse_spec, plan_units

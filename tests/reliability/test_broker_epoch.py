@@ -17,7 +17,6 @@ from __future__ import annotations
 from datetime import UTC, datetime, timedelta
 
 import pytest
-from integration.servers import REDIS_SERVER, PrivateRedis
 from sqlalchemy import select
 
 from service import admin
@@ -27,6 +26,7 @@ from service.db import crud
 from service.db.migrate import upgrade
 from service.db.models import Team
 from service.db.session import dispose_all, session_scope
+from tests.integration.servers import REDIS_SERVER, PrivateRedis
 
 SPEC = {"systems": ["paper-stable"], "sigma_w": [1.0], "N": [10, 20, 30], "reps": 2,
         "estimators": ["ols"], "seed": 1}

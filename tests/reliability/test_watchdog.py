@@ -9,10 +9,10 @@ import random
 from types import SimpleNamespace
 
 import pytest
-from integration.servers import REDIS_SERVER, PrivateRedis
 
 from service.broker import make_celery, publish_units
 from service.config import Settings
+from tests.integration.servers import REDIS_SERVER, PrivateRedis
 from worker.watchdog import StallDetector, ready_messages
 
 
