@@ -71,10 +71,10 @@ def stepwise_batched(At, Bt, L):
     Acal[:, n:, n:] = At - L @ C
     Bcal = np.zeros((N, 2 * n, 1 + n + 3))
     Bcal[:, :n, :1] = SU * B
-    Bcal[:, :n, 1:1 + n] = SW * np.eye(n)
+    Bcal[:, :n, 1 : 1 + n] = SW * np.eye(n)
     Bcal[:, n:, :1] = -SU * (B - Bt)
-    Bcal[:, n:, 1:1 + n] = -SW * np.eye(n)
-    Bcal[:, n:, 1 + n:] = SV * L
+    Bcal[:, n:, 1 : 1 + n] = -SW * np.eye(n)
+    Bcal[:, n:, 1 + n :] = SV * L
     Q = Bcal @ np.swapaxes(Bcal, 1, 2)
     AT = np.swapaxes(Acal, 1, 2)
     S = np.zeros_like(Q)
@@ -121,8 +121,10 @@ def main():
     Bt = B + 0.05 * rng.standard_normal((N, 3, 1))
     L = K + 0.05 * rng.standard_normal((N, 3, 3))
     eps = np.full(N, 0.1)
-    print(f"paper stable system, n=3, m=1, C=I, horizon {T}; {N} cells; "
-          f"{os.cpu_count()} cpus, load avg {os.getloadavg()[0]:.2f}")
+    print(
+        f"paper stable system, n=3, m=1, C=I, horizon {T}; {N} cells; "
+        f"{os.cpu_count()} cpus, load avg {os.getloadavg()[0]:.2f}"
+    )
 
     t_exact, J = best_of(lambda: exact_cost(A, B, At, Bt, L, C, SU, SW, SV, T), args.repeat)
     c_exact = CPU["last"]
@@ -130,23 +132,33 @@ def main():
     err = np.abs(J / Js - 1).max()
     t_stat, _ = best_of(lambda: stationary_cost(A, B, At, Bt, L, C, SU, SW, SV), args.repeat)
     rho_F = spectral_radius(At - L @ C)
-    t_stat2, _ = best_of(lambda: stationary_cost(A, B, At, Bt, L, C, SU, SW, SV, rho_F=rho_F),
-                         args.repeat)
+    t_stat2, _ = best_of(
+        lambda: stationary_cost(A, B, At, Bt, L, C, SU, SW, SV, rho_F=rho_F), args.repeat
+    )
     t_norms, tn = best_of(lambda: true_system_norms(A, B, C, K), 1)
     t_thm3, _ = best_of(lambda: theorem3_bound(At, L, C, K, eps, eps, SU, SV, tn), args.repeat)
-    t_thm3b, _ = best_of(lambda: theorem3_bound(At, L, C, K, eps, eps, SU, SV, tn, rho_F=rho_F),
-                         args.repeat)
+    t_thm3b, _ = best_of(
+        lambda: theorem3_bound(At, L, C, K, eps, eps, SU, SV, tn, rho_F=rho_F), args.repeat
+    )
     t_rho, _ = best_of(lambda: spectral_radius(At - L @ C), args.repeat)
 
     us = 1e6 / N
     print("\nbatched, per cell:")
-    print(f"  exact_cost (doubling)            {t_exact * us:9.2f} us   (cpu {c_exact * us:.2f} us)")
-    print(f"  stepwise 2n recursion (matmul)   {t_step * us:9.2f} us   "
-          f"(x{t_step / t_exact:.1f} slower; max rel diff {err:.1e})")
-    print(f"  stationary_cost                  {t_stat * us:9.2f} us   "
-          f"({t_stat2 * us:.2f} us with rho_F given)")
-    print(f"  theorem3_bound                   {t_thm3 * us:9.2f} us   "
-          f"({t_thm3b * us:.2f} us with rho_F given)")
+    print(
+        f"  exact_cost (doubling)            {t_exact * us:9.2f} us   (cpu {c_exact * us:.2f} us)"
+    )
+    print(
+        f"  stepwise 2n recursion (matmul)   {t_step * us:9.2f} us   "
+        f"(x{t_step / t_exact:.1f} slower; max rel diff {err:.1e})"
+    )
+    print(
+        f"  stationary_cost                  {t_stat * us:9.2f} us   "
+        f"({t_stat2 * us:.2f} us with rho_F given)"
+    )
+    print(
+        f"  theorem3_bound                   {t_thm3 * us:9.2f} us   "
+        f"({t_thm3b * us:.2f} us with rho_F given)"
+    )
     print(f"  spectral_radius(A~ - L C)        {t_rho * us:9.2f} us")
     print(f"  true_system_norms (once/system)  {t_norms * 1e3:9.2f} ms")
 
@@ -154,12 +166,15 @@ def main():
     M = args.mc_cells
     mc_cost(A, B, At[0], Bt[0], L[0], C, SU, SW, SV, T, np.random.default_rng(0), 10)  # warm-up
     t0, c0 = time.perf_counter(), time.process_time()
-    mc = [mc_cost(A, B, At[i], Bt[i], L[i], C, SU, SW, SV, T, np.random.default_rng(i), args.runs)
-          for i in range(M)]
+    mc = [
+        mc_cost(A, B, At[i], Bt[i], L[i], C, SU, SW, SV, T, np.random.default_rng(i), args.runs)
+        for i in range(M)
+    ]
     t_mc = (time.perf_counter() - t0) / M
     c_mc = (time.process_time() - c0) / M
-    t_draw, _ = best_of(lambda: np.random.default_rng(0).standard_normal((T, args.runs, 7)),
-                        args.repeat)
+    t_draw, _ = best_of(
+        lambda: np.random.default_rng(0).standard_normal((T, args.runs, 7)), args.repeat
+    )
     z = max(abs(mc[i][0] - J[i]) / mc[i][1] for i in range(M))
     R = args.loop_runs
     t0 = time.perf_counter()
@@ -167,11 +182,15 @@ def main():
     t_loop_meas = time.perf_counter() - t0
     t_loop = t_loop_meas * args.runs / R
     print(f"\nMonte Carlo, {args.runs} runs x {T} steps, per cell:")
-    print(f"  mc_cost (runs vectorised)        {t_mc * 1e3:9.2f} ms   "
-          f"(cpu {c_mc * 1e3:.2f} ms; max |mean - exact| = {z:.2f} se over {M} cells)")
+    print(
+        f"  mc_cost (runs vectorised)        {t_mc * 1e3:9.2f} ms   "
+        f"(cpu {c_mc * 1e3:.2f} ms; max |mean - exact| = {z:.2f} se over {M} cells)"
+    )
     print(f"    of which drawing the normals   {t_draw * 1e3:9.2f} ms")
-    print(f"  per-run Python loop              {t_loop * 1e3:9.2f} ms   "
-          f"(EXTRAPOLATED from {R} runs measured in {t_loop_meas * 1e3:.1f} ms)")
+    print(
+        f"  per-run Python loop              {t_loop * 1e3:9.2f} ms   "
+        f"(EXTRAPOLATED from {R} runs measured in {t_loop_meas * 1e3:.1f} ms)"
+    )
     print("\nratios per cell:")
     print(f"  mc_cost / exact_cost             {t_mc / (t_exact / N):9.0f} x")
     print(f"  python loop / mc_cost            {t_loop / t_mc:9.0f} x")

@@ -87,9 +87,16 @@ def liblinear(Z, F, gamma, *, dual, tol, max_iter):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         models = [
-            LinearSVR(loss="squared_epsilon_insensitive", epsilon=0.0, C=1 / (2 * gamma),
-                      fit_intercept=False, dual=dual, tol=tol, max_iter=max_iter,
-                      random_state=0).fit(Z.T, f)
+            LinearSVR(
+                loss="squared_epsilon_insensitive",
+                epsilon=0.0,
+                C=1 / (2 * gamma),
+                fit_intercept=False,
+                dual=dual,
+                tol=tol,
+                max_iter=max_iter,
+                random_state=0,
+            ).fit(Z.T, f)
             for f in F
         ]
     dt = time.perf_counter() - t
@@ -113,23 +120,33 @@ def main():
     per_size = {}
     for N, (Z, F) in data.items():
         fit_svr(Z, F, GAMMAS)  # warm-up
-        per_size[N] = (best_time(lambda Z=Z, F=F: fit_svr(Z, F, GAMMAS)),
-                       best_time(lambda Z=Z, F=F: fit_ols(Z, F)),
-                       best_time(lambda Z=Z, F=F: fit_svr(Z[0], F[0], GAMMAS[:1]), repeat=20))
+        per_size[N] = (
+            best_time(lambda Z=Z, F=F: fit_svr(Z, F, GAMMAS)),
+            best_time(lambda Z=Z, F=F: fit_ols(Z, F)),
+            best_time(lambda Z=Z, F=F: fit_svr(Z[0], F[0], GAMMAS[:1]), repeat=20),
+        )
     n_fits = len(N_GRID) * REPS * len(GAMMAS)
     t_svr = sum(v[0] for v in per_size.values())
     t_ols = sum(v[1] for v in per_size.values())
-    print(f"numpy {np.__version__}, scikit-learn {sklearn.__version__}, {os.cpu_count()} CPUs,"
-          f" OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}")
+    print(
+        f"numpy {np.__version__}, scikit-learn {sklearn.__version__}, {os.cpu_count()} CPUs,"
+        f" OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}"
+    )
     print("Batched closed form, paper grid: N = 10..450 (45 sizes), 45 reps, 4 gammas")
-    print(f"  SVR: {n_fits} estimates (45 sizes x 45 reps x 4 gammas) in {t_svr * 1e3:.1f} ms"
-          f" = {t_svr / n_fits * 1e6:.2f} us per (dataset, gamma)")
-    print(f"  OLS: {len(N_GRID) * REPS} estimates in {t_ols * 1e3:.1f} ms"
-          f" = {t_ols / (len(N_GRID) * REPS) * 1e6:.2f} us per dataset")
+    print(
+        f"  SVR: {n_fits} estimates (45 sizes x 45 reps x 4 gammas) in {t_svr * 1e3:.1f} ms"
+        f" = {t_svr / n_fits * 1e6:.2f} us per (dataset, gamma)"
+    )
+    print(
+        f"  OLS: {len(N_GRID) * REPS} estimates in {t_ols * 1e3:.1f} ms"
+        f" = {t_ols / (len(N_GRID) * REPS) * 1e6:.2f} us per dataset"
+    )
     print()
-    print(f"{'N0':>5} {'batched/fit':>12} {'single/fit':>11} | {'gamma':>6}"
-          f" {'liblinear solver':>24} {'time/fit':>10} {'rel.err':>9} {'1e-8?':>6}"
-          f" {'speed-up':>9} {'(single)':>9}")
+    print(
+        f"{'N0':>5} {'batched/fit':>12} {'single/fit':>11} | {'gamma':>6}"
+        f" {'liblinear solver':>24} {'time/fit':>10} {'rel.err':>9} {'1e-8?':>6}"
+        f" {'speed-up':>9} {'(single)':>9}"
+    )
     rows = []
     for N in BASELINE_N:
         Z, F = data[N]
@@ -140,19 +157,27 @@ def main():
         for gamma in BASELINE_GAMMAS:
             ref = cf[int(np.flatnonzero(GAMMAS == gamma)[0])]
             max_iter = cd_max_iter(Z[0], F[0], gamma)
-            runs = [("dual CD, tol=1e-10", liblinear(Z[0], F[0], gamma, dual=True, tol=1e-10,
-                                                     max_iter=max_iter)),
-                    ("primal TRON, tol=1e-10", liblinear(Z[0], F[0], gamma, dual=False,
-                                                         tol=1e-10, max_iter=10_000))]
+            runs = [
+                (
+                    "dual CD, tol=1e-10",
+                    liblinear(Z[0], F[0], gamma, dual=True, tol=1e-10, max_iter=max_iter),
+                ),
+                (
+                    "primal TRON, tol=1e-10",
+                    liblinear(Z[0], F[0], gamma, dual=False, tol=1e-10, max_iter=10_000),
+                ),
+            ]
             for name, (theta, dt, converged) in runs:
                 err = rel(theta, ref)
                 capped = "" if converged else f" (capped {max_iter} it)"
                 ok = "yes" if err <= TARGET else "NO"
                 more = ">" if (err > TARGET and not converged) else " "
                 rows.append((N0, gamma, name, dt, err, ok))
-                print(f"{N0:>5} {t_batched * 1e6:>10.2f}us {t_single * 1e6:>9.1f}us | {gamma:>6g}"
-                      f" {name:>24} {dt * 1e3:>8.1f}ms {err:>9.1e} {ok:>6}"
-                      f" {more}{dt / t_batched:>8.0f}x {dt / t_single:>8.0f}x{capped}")
+                print(
+                    f"{N0:>5} {t_batched * 1e6:>10.2f}us {t_single * 1e6:>9.1f}us | {gamma:>6g}"
+                    f" {name:>24} {dt * 1e3:>8.1f}ms {err:>9.1e} {ok:>6}"
+                    f" {more}{dt / t_batched:>8.0f}x {dt / t_single:>8.0f}x{capped}"
+                )
     print()
     print("time/fit: one dataset, one gamma, all 3 rows of [A B]. batched/fit: fit_svr on")
     print("(45 reps, 4 gammas) divided by 180; single/fit: fit_svr on one dataset, one gamma.")
@@ -166,8 +191,10 @@ def main():
     est = sum(np.interp(10 * N, n0s, [per_n0[k] for k in n0s]) for N in N_GRID) * REPS * len(GAMMAS)
     print("Primal TRON's accuracy is not controlled by tol: it stalls at ~1e-9..5e-8 depending on")
     print("the data (1e-8 is not guaranteed).")
-    print(f"Extrapolated full grid with primal TRON: ~{est:.0f} s"
-          f" vs {t_svr:.3f} s batched ({est / t_svr:.0f}x).")
+    print(
+        f"Extrapolated full grid with primal TRON: ~{est:.0f} s"
+        f" vs {t_svr:.3f} s batched ({est / t_svr:.0f}x)."
+    )
     print(f"bench wall time {time.perf_counter() - t_start:.1f} s")
 
 

@@ -66,8 +66,14 @@ BIG_SPEC = {
     "seed": 1,
 }
 SUBMIT_SPEC = {
-    "systems": ["paper-stable"], "sigma_w": [1.0], "N": [20, 40], "reps": 2,
-    "gamma": [0.05], "estimators": ["ols", "svr"], "seed": 3, "tags": ["load"],
+    "systems": ["paper-stable"],
+    "sigma_w": [1.0],
+    "N": [20, 40],
+    "reps": 2,
+    "gamma": [0.05],
+    "estimators": ["ols", "svr"],
+    "seed": 3,
+    "tags": ["load"],
 }
 
 
@@ -87,18 +93,30 @@ def synthetic_records(spec, unit: dict, rng: random.Random) -> list[dict]:
     for N in unit["N"]:
         for rep in range(*unit["reps"]):
             for est in spec.estimators:
-                for g in ([None] if est == "ols" else list(spec.gamma)):
+                for g in [None] if est == "ols" else list(spec.gamma):
                     r = empty_record()
-                    r.update({f: rng.random() for f in NUMERIC_FIELDS
-                              if f not in ("sigma_w", "N", "N0", "rep", "gamma")})
                     r.update(
-                        system=system.name, sigma_w=spec.sigma_w[unit["sigma_w"]], N=N,
-                        N0=N - spec.T0 + 1, estimator=est, gamma=g, rep=rep,
+                        {
+                            f: rng.random()
+                            for f in NUMERIC_FIELDS
+                            if f not in ("sigma_w", "N", "N0", "rep", "gamma")
+                        }
+                    )
+                    r.update(
+                        system=system.name,
+                        sigma_w=spec.sigma_w[unit["sigma_w"]],
+                        N=N,
+                        N0=N - spec.T0 + 1,
+                        estimator=est,
+                        gamma=g,
+                        rep=rep,
                         seed_key=[unit["system"], unit["sigma_w"], N, rep],
                         A_hat=[[rng.random() for _ in range(n)] for _ in range(n)],
                         B_hat=[[rng.random() for _ in range(m)] for _ in range(n)],
-                        thm1_holds_A=rng.random() > 0.3, thm1_holds_B=rng.random() > 0.3,
-                        stable_certified=rng.random() > 0.5, notes=None,
+                        thm1_holds_A=rng.random() > 0.3,
+                        thm1_holds_B=rng.random() > 0.3,
+                        stable_certified=rng.random() > 0.5,
+                        notes=None,
                     )
                     out.append(r)
     return out
@@ -121,8 +139,15 @@ def prepare(db_url: str) -> tuple[str, int, int]:
         team = admin.create_team(s, "load")
         user = admin.create_user(s, team.id, "load@lab.org")
         _, key = admin.create_key(s, user.id, name="bench")
-        job = crud.create_job(s, team_id=team.id, user_id=user.id, spec=BIG_SPEC,
-                              name="load-big", tags=("load",), max_active_jobs=0)
+        job = crud.create_job(
+            s,
+            team_id=team.id,
+            user_id=user.id,
+            spec=BIG_SPEC,
+            name="load-big",
+            tags=("load",),
+            max_active_jobs=0,
+        )
         job_id = job.id
     spec = parse_spec(BIG_SPEC)
     with session_scope(db_url) as s:
@@ -147,11 +172,30 @@ def start_server(tmp: Path, db_url: str, port: int, workers: int = 1) -> subproc
         "SVROBS_MAX_QUEUED_JOBS_PER_TEAM": str(QUEUED_CAP),
         "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
     }
-    cmd = [sys.executable, "-m", "uvicorn", "service.api.main:app", "--host", HOST,
-           "--port", str(port), "--workers", str(workers), "--no-access-log", "--log-level", "warning"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "uvicorn",
+        "service.api.main:app",
+        "--host",
+        HOST,
+        "--port",
+        str(port),
+        "--workers",
+        str(workers),
+        "--no-access-log",
+        "--log-level",
+        "warning",
+    ]
     with open(tmp / "api.log", "wb") as log:  # the child keeps its own descriptor
-        return subprocess.Popen(cmd, env=env, cwd=str(ROOT), stdout=log,
-                                stderr=subprocess.STDOUT, start_new_session=True)
+        return subprocess.Popen(
+            cmd,
+            env=env,
+            cwd=str(ROOT),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
 
 
 def stop_server(proc: subprocess.Popen) -> None:
@@ -211,8 +255,9 @@ class Stats:
         self.error_samples: list[str] = []
         self.requests = 0
 
-    def add(self, kind: str, seconds: float, ok: bool, why: str = "",
-            sent: float | None = None) -> None:
+    def add(
+        self, kind: str, seconds: float, ok: bool, why: str = "", sent: float | None = None
+    ) -> None:
         if sent is not None and sent - self.start < self.warmup:
             self.cold.append(seconds)
             if ok:
@@ -225,15 +270,25 @@ class Stats:
                 self.error_samples.append(f"{kind}: {why}")
 
 
-async def client_loop(i: int, base: str, key: str, big_id: int, deadline: float,
-                      budget: list[int], stats: Stats, submitted: list[int],
-                      think: float, mix=MIX) -> None:
+async def client_loop(
+    i: int,
+    base: str,
+    key: str,
+    big_id: int,
+    deadline: float,
+    budget: list[int],
+    stats: Stats,
+    submitted: list[int],
+    think: float,
+    mix=MIX,
+) -> None:
     rng = random.Random(i)
     headers = {"Authorization": f"Bearer {key}"}
     kinds, weights = zip(*mix)
     spec = BIG_SPEC
-    async with httpx.AsyncClient(base_url=base, headers=headers, timeout=10.0,
-                                 limits=httpx.Limits(max_connections=1)) as client:
+    async with httpx.AsyncClient(
+        base_url=base, headers=headers, timeout=10.0, limits=httpx.Limits(max_connections=1)
+    ) as client:
         while time.monotonic() < deadline and budget[0] > 0:
             budget[0] -= 1
             kind = rng.choices(kinds, weights)[0]
@@ -243,12 +298,14 @@ async def client_loop(i: int, base: str, key: str, big_id: int, deadline: float,
                 jid = rng.choice(submitted) if submitted and rng.random() < 0.5 else big_id
                 method, url, params, body, want = "GET", f"{API}/jobs/{jid}", None, None, 200
             else:
-                params = rng.choice([
-                    {"estimator": "svr", "gamma": rng.choice(spec["gamma"])},
-                    {"N": rng.choice(spec["N"]), "system": rng.choice(spec["systems"])},
-                    {"sigma_w": rng.choice(spec["sigma_w"]), "estimator": "ols"},
-                    {"rep": rng.randrange(spec["reps"])},
-                ])
+                params = rng.choice(
+                    [
+                        {"estimator": "svr", "gamma": rng.choice(spec["gamma"])},
+                        {"N": rng.choice(spec["N"]), "system": rng.choice(spec["systems"])},
+                        {"sigma_w": rng.choice(spec["sigma_w"]), "estimator": "ols"},
+                        {"rep": rng.randrange(spec["reps"])},
+                    ]
+                )
                 params = {**params, "limit": 100, "offset": rng.choice([0, 0, 100, 500])}
                 method, url, body, want = "GET", f"{API}/jobs/{big_id}/results", None, 200
             t0, sent = time.perf_counter(), time.monotonic()
@@ -260,20 +317,33 @@ async def client_loop(i: int, base: str, key: str, big_id: int, deadline: float,
                 if ok and kind == "submit":
                     submitted.append(r.json()["id"])
             except httpx.HTTPError as exc:
-                stats.add(kind, time.perf_counter() - t0, False, f"{type(exc).__name__}: {exc}",
-                          sent)
+                stats.add(
+                    kind, time.perf_counter() - t0, False, f"{type(exc).__name__}: {exc}", sent
+                )
             if think:
                 await asyncio.sleep(rng.uniform(0.5, 1.5) * think)
 
 
-async def run_load(base: str, key: str, big_id: int, clients: int, seconds: float,
-                   max_requests: int, think: float = 0.0, mix=MIX,
-                   warmup: float = 0.0) -> tuple[Stats, float]:
+async def run_load(
+    base: str,
+    key: str,
+    big_id: int,
+    clients: int,
+    seconds: float,
+    max_requests: int,
+    think: float = 0.0,
+    mix=MIX,
+    warmup: float = 0.0,
+) -> tuple[Stats, float]:
     start = time.monotonic()
     stats, submitted, budget = Stats(start, warmup), [], [max_requests]
     deadline = start + warmup + seconds
-    await asyncio.gather(*(client_loop(i, base, key, big_id, deadline, budget, stats, submitted,
-                                       think, mix) for i in range(clients)))
+    await asyncio.gather(
+        *(
+            client_loop(i, base, key, big_id, deadline, budget, stats, submitted, think, mix)
+            for i in range(clients)
+        )
+    )
     return stats, time.monotonic() - start - warmup
 
 
@@ -281,28 +351,40 @@ def report(stats: Stats, elapsed: float, clients: int, rows: int) -> bool:
     def pct(xs, q):
         return float(np.percentile(np.asarray(xs) * 1000.0, q)) if xs else float("nan")
 
-    print(f"\n{clients} clients, {elapsed:.1f} s, {stats.requests} requests, "
-          f"{stats.requests / elapsed:.1f} requests/s; results job: {rows} rows")
-    print(f"(rate limit raised to {RATE_LIMIT}/min and the queued-jobs cap to {QUEUED_CAP} "
-          "for this run: it measures latency, not throttling)")
+    print(
+        f"\n{clients} clients, {elapsed:.1f} s, {stats.requests} requests, "
+        f"{stats.requests / elapsed:.1f} requests/s; results job: {rows} rows"
+    )
+    print(
+        f"(rate limit raised to {RATE_LIMIT}/min and the queued-jobs cap to {QUEUED_CAP} "
+        "for this run: it measures latency, not throttling)"
+    )
     if stats.warmup:
-        print(f"warm-up: the first {stats.warmup:g} s ({len(stats.cold)} requests, p99 "
-              f"{pct(stats.cold, 99):.1f} ms, max {pct(stats.cold, 100):.1f} ms) not counted below")
+        print(
+            f"warm-up: the first {stats.warmup:g} s ({len(stats.cold)} requests, p99 "
+            f"{pct(stats.cold, 99):.1f} ms, max {pct(stats.cold, 100):.1f} ms) not counted below"
+        )
     print(f"{'kind':<10}{'count':>8}{'p50 ms':>10}{'p99 ms':>10}{'max ms':>10}{'errors':>8}")
     everything = []
     for kind, _ in MIX:
         xs = stats.lat[kind]
         everything += xs
-        print(f"{kind:<10}{len(xs):>8}{pct(xs, 50):>10.1f}{pct(xs, 99):>10.1f}"
-              f"{(max(xs) * 1000 if xs else float('nan')):>10.1f}{stats.errors[kind]:>8}")
+        print(
+            f"{kind:<10}{len(xs):>8}{pct(xs, 50):>10.1f}{pct(xs, 99):>10.1f}"
+            f"{(max(xs) * 1000 if xs else float('nan')):>10.1f}{stats.errors[kind]:>8}"
+        )
     reads = [x for k in READS for x in stats.lat[k]]
     n_err = sum(stats.errors.values())
-    print(f"{'reads':<10}{len(reads):>8}{pct(reads, 50):>10.1f}{pct(reads, 99):>10.1f}"
-          f"{(max(reads) * 1000 if reads else float('nan')):>10.1f}"
-          f"{sum(stats.errors[k] for k in READS):>8}")
-    print(f"{'overall':<10}{len(everything):>8}{pct(everything, 50):>10.1f}"
-          f"{pct(everything, 99):>10.1f}"
-          f"{(max(everything) * 1000 if everything else float('nan')):>10.1f}{n_err:>8}")
+    print(
+        f"{'reads':<10}{len(reads):>8}{pct(reads, 50):>10.1f}{pct(reads, 99):>10.1f}"
+        f"{(max(reads) * 1000 if reads else float('nan')):>10.1f}"
+        f"{sum(stats.errors[k] for k in READS):>8}"
+    )
+    print(
+        f"{'overall':<10}{len(everything):>8}{pct(everything, 50):>10.1f}"
+        f"{pct(everything, 99):>10.1f}"
+        f"{(max(everything) * 1000 if everything else float('nan')):>10.1f}{n_err:>8}"
+    )
     rate = n_err / stats.requests if stats.requests else 0.0
     print(f"error rate: {rate:.4%}")
     for s in stats.error_samples:
@@ -316,18 +398,37 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--clients", type=int, default=20)
-    ap.add_argument("--max-requests", type=int, default=500_000,
-                    help="stop after this many requests even before --seconds")
-    ap.add_argument("--api-workers", type=int, default=1,
-                    help="uvicorn worker processes (default 1, as `svrobs serve`)")
-    ap.add_argument("--think-ms", type=float, default=0.0,
-                    help="mean pause between a client's requests (default 0: closed loop, "
-                         "each client sends its next request as soon as it has an answer)")
-    ap.add_argument("--mix", default=",".join(f"{k}={w:g}" for k, w in MIX),
-                    help="request weights, e.g. status=1 or submit=0.1,status=0.45,results=0.45")
-    ap.add_argument("--warmup-s", type=float, default=5.0,
-                    help="seconds of load before measuring (reported apart: a fresh API "
-                         "process compiles SQL and opens its pools on the first requests)")
+    ap.add_argument(
+        "--max-requests",
+        type=int,
+        default=500_000,
+        help="stop after this many requests even before --seconds",
+    )
+    ap.add_argument(
+        "--api-workers",
+        type=int,
+        default=1,
+        help="uvicorn worker processes (default 1, as `svrobs serve`)",
+    )
+    ap.add_argument(
+        "--think-ms",
+        type=float,
+        default=0.0,
+        help="mean pause between a client's requests (default 0: closed loop, "
+        "each client sends its next request as soon as it has an answer)",
+    )
+    ap.add_argument(
+        "--mix",
+        default=",".join(f"{k}={w:g}" for k, w in MIX),
+        help="request weights, e.g. status=1 or submit=0.1,status=0.45,results=0.45",
+    )
+    ap.add_argument(
+        "--warmup-s",
+        type=float,
+        default=5.0,
+        help="seconds of load before measuring (reported apart: a fresh API "
+        "process compiles SQL and opens its pools on the first requests)",
+    )
     ap.add_argument("--keep", action="store_true", help="keep the temporary folder")
     args = ap.parse_args(argv)
     try:
@@ -336,11 +437,17 @@ def main(argv=None) -> int:
         ap.error("--mix: comma-separated kind=weight pairs")
     if not mix or any(k not in dict(MIX) or w < 0 for k, w in mix) or not sum(w for _, w in mix):
         ap.error(f"--mix: kinds among {[k for k, _ in MIX]}, weights >= 0, not all 0")
-    if not (0 < args.seconds <= 3600 and 0 < args.clients <= 200
-            and 0 < args.api_workers <= 16 and 0 <= args.think_ms <= 60_000
-            and 0 <= args.warmup_s <= 600):
-        ap.error("--seconds in (0, 3600], --clients in (0, 200], --api-workers in (0, 16], "
-                 "--think-ms in [0, 60000]")
+    if not (
+        0 < args.seconds <= 3600
+        and 0 < args.clients <= 200
+        and 0 < args.api_workers <= 16
+        and 0 <= args.think_ms <= 60_000
+        and 0 <= args.warmup_s <= 600
+    ):
+        ap.error(
+            "--seconds in (0, 3600], --clients in (0, 200], --api-workers in (0, 16], "
+            "--think-ms in [0, 60000]"
+        )
 
     tmp = Path(tempfile.mkdtemp(prefix="svrobs-load-"))
     db_url = f"sqlite:///{tmp / 'svrobs.db'}"
@@ -348,20 +455,35 @@ def main(argv=None) -> int:
     try:
         t0 = time.monotonic()
         key, big_id, rows = prepare(db_url)
-        print(f"prepared job {big_id} with {rows} result rows in {time.monotonic() - t0:.1f} s "
-              f"({db_url})")
+        print(
+            f"prepared job {big_id} with {rows} result rows in {time.monotonic() - t0:.1f} s "
+            f"({db_url})"
+        )
         port = free_port()
         base = f"http://{HOST}:{port}"
         proc = start_server(tmp, db_url, port, args.api_workers)
         wait_ready(base, proc)
         load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-        print(f"API (uvicorn, {args.api_workers} process(es)) on {base}; {args.clients} clients "
-              f"for {args.seconds:g} s, think time {args.think_ms:g} ms; machine: "
-              f"{os.cpu_count()} CPUs, load average {load1:.2f} before the run ...", flush=True)
+        print(
+            f"API (uvicorn, {args.api_workers} process(es)) on {base}; {args.clients} clients "
+            f"for {args.seconds:g} s, think time {args.think_ms:g} ms; machine: "
+            f"{os.cpu_count()} CPUs, load average {load1:.2f} before the run ...",
+            flush=True,
+        )
         cpu0, own0 = cpu_seconds(proc.pid), time.process_time()
-        stats, elapsed = asyncio.run(run_load(base, key, big_id, args.clients, args.seconds,
-                                              args.max_requests, args.think_ms / 1000.0, mix,
-                                              args.warmup_s))
+        stats, elapsed = asyncio.run(
+            run_load(
+                base,
+                key,
+                big_id,
+                args.clients,
+                args.seconds,
+                args.max_requests,
+                args.think_ms / 1000.0,
+                mix,
+                args.warmup_s,
+            )
+        )
         cpu1, own1 = cpu_seconds(proc.pid), time.process_time()
         if proc.poll() is not None:
             print(f"the API process died (code {proc.returncode}); see {tmp / 'api.log'}")
@@ -371,9 +493,11 @@ def main(argv=None) -> int:
             api = cpu1 - cpu0
             n_all = stats.requests + len(stats.cold)
             seconds_all = elapsed + args.warmup_s
-            print(f"CPU: API {api:.1f} s ({api / seconds_all:.0%} of one core, "
-                  f"{api / n_all * 1000:.1f} ms per request); load clients "
-                  f"{own1 - own0:.1f} s; load average after {os.getloadavg()[0]:.2f}")
+            print(
+                f"CPU: API {api:.1f} s ({api / seconds_all:.0%} of one core, "
+                f"{api / n_all * 1000:.1f} ms per request); load clients "
+                f"{own1 - own0:.1f} s; load average after {os.getloadavg()[0]:.2f}"
+            )
         return 0 if ok else 1
     finally:
         if proc is not None:

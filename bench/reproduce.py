@@ -76,8 +76,12 @@ def _project_row(v, radius):
 def _exact_cost_loop(A, B, At, Bt, L, C, su, sw, sv, T):
     n = A.shape[0]
     Acal = np.block([[A, np.zeros((n, n))], [-(A - At), At - L @ C]])
-    Bcal = np.block([[su * B, sw * np.eye(n), np.zeros((n, C.shape[0]))],
-                     [-su * (B - Bt), -sw * np.eye(n), sv * L]])
+    Bcal = np.block(
+        [
+            [su * B, sw * np.eye(n), np.zeros((n, C.shape[0]))],
+            [-su * (B - Bt), -sw * np.eye(n), sv * L],
+        ]
+    )
     Q = Bcal @ Bcal.T
     S = np.zeros_like(Q)
     tot = 0.0
@@ -133,31 +137,73 @@ def naive_rep(spec, si, N, rep, truth, mc_runs=0):
         J_stat = None
         if max(np.max(np.abs(np.linalg.eigvals(A))), np.max(np.abs(np.linalg.eigvals(Fm)))) < 1:
             Acal = np.block([[A, np.zeros((n, n))], [-(A - Ah), Fm]])
-            Bcal = np.block([[su * B, sw * np.eye(n), np.zeros((n, n))],
-                             [-su * (B - Bh), -sw * np.eye(n), sv * Lg]])
+            Bcal = np.block(
+                [
+                    [su * B, sw * np.eye(n), np.zeros((n, n))],
+                    [-su * (B - Bh), -sw * np.eye(n), sv * Lg],
+                ]
+            )
             J_stat = float(np.trace(sla.solve_discrete_lyapunov(Acal, Bcal @ Bcal.T)[n:, n:]))
         hw, hdk = _h2(Fm, np.eye(n)), _h2(Fm, K - Lg)
         epsL = np.linalg.norm(K - Lg, 2)
-        Jb = (hdk * sv + np.sqrt(2) * max(eps_A, eps_B) * hw * norms.hinf_PhiA_B * su
-              + np.sqrt(2) * max(eps_A, epsL) * hw * norms.hinf_PhiA_K * sv)
+        Jb = (
+            hdk * sv
+            + np.sqrt(2) * max(eps_A, eps_B) * hw * norms.hinf_PhiA_B * su
+            + np.sqrt(2) * max(eps_A, epsL) * hw * norms.hinf_PhiA_K * sv
+        )
         J_mc = J_se = None
         if mc_runs:
-            J_mc, J_se = naive_mc(A, B, Ah, Bh, Lg, C, su, sw, sv, T,
-                                  rng_for(spec.seed, seed_key(si, 0, N, rep), MC_STREAM), mc_runs)
+            J_mc, J_se = naive_mc(
+                A,
+                B,
+                Ah,
+                Bh,
+                Lg,
+                C,
+                su,
+                sw,
+                sv,
+                T,
+                rng_for(spec.seed, seed_key(si, 0, N, rep), MC_STREAM),
+                mc_runs,
+            )
         J_of[gamma] = J
-        rec = {"system": system.name, "sigma_w": sw, "N": N, "N0": N0, "estimator": "svr",
-               "gamma": gamma, "rep": rep, "seed_key": [si, 0, N, rep], "A_hat": Ah.tolist(),
-               "B_hat": Bh.tolist(), "rmse_A": float(np.sqrt(np.mean((Ah - A) ** 2))),
-               "rmse_B": float(np.sqrt(np.mean((Bh - B) ** 2))), "H_A": H_A, "H_B": H_B,
-               "r_A": rA, "r_B": rB, "eps_A": eps_A, "eps_B": eps_B,
-               "coverage_A": float(np.mean(np.abs(A - c) <= rA)),
-               "coverage_B": float(np.mean(np.abs(B - (1 + gamma) * Bh) <= rB)),
-               "rho_upper_bound": float(rho_ub), "stable_certified": bool(rho_ub < 1),
-               "L": Lg.tolist(), "g_L": float(g_L), "certified": bool(g_L < 1),
-               "rho_true": float(rho_true), "K": K.tolist(), "J_exact": J,
-               "J_stationary": J_stat, "J_mc": J_mc, "J_mc_se": J_se, "J_star": J_star,
-               "J_bound": None if np.isnan(Jb) else float(Jb),
-               "delta_J": None if np.isnan(Jb) else float(Jb - J)}
+        rec = {
+            "system": system.name,
+            "sigma_w": sw,
+            "N": N,
+            "N0": N0,
+            "estimator": "svr",
+            "gamma": gamma,
+            "rep": rep,
+            "seed_key": [si, 0, N, rep],
+            "A_hat": Ah.tolist(),
+            "B_hat": Bh.tolist(),
+            "rmse_A": float(np.sqrt(np.mean((Ah - A) ** 2))),
+            "rmse_B": float(np.sqrt(np.mean((Bh - B) ** 2))),
+            "H_A": H_A,
+            "H_B": H_B,
+            "r_A": rA,
+            "r_B": rB,
+            "eps_A": eps_A,
+            "eps_B": eps_B,
+            "coverage_A": float(np.mean(np.abs(A - c) <= rA)),
+            "coverage_B": float(np.mean(np.abs(B - (1 + gamma) * Bh) <= rB)),
+            "rho_upper_bound": float(rho_ub),
+            "stable_certified": bool(rho_ub < 1),
+            "L": Lg.tolist(),
+            "g_L": float(g_L),
+            "certified": bool(g_L < 1),
+            "rho_true": float(rho_true),
+            "K": K.tolist(),
+            "J_exact": J,
+            "J_stationary": J_stat,
+            "J_mc": J_mc,
+            "J_mc_se": J_se,
+            "J_star": J_star,
+            "J_bound": None if np.isnan(Jb) else float(Jb),
+            "delta_J": None if np.isnan(Jb) else float(Jb - J),
+        }
         lines.append(rec)
     for rec in lines:
         ref = J_of.get(spec.gamma_ref)
@@ -173,7 +219,7 @@ def naive_mc(A, B, At, Bt, L, C, su, sw, sv, T, rng, runs):
         x, xt, acc = np.zeros(n), np.zeros(n), 0.0
         for _ in range(T):
             z = rng.standard_normal(m + n + p)
-            uu, ww, vv = su * z[:m], sw * z[m:m + n], sv * z[m + n:]
+            uu, ww, vv = su * z[:m], sw * z[m : m + n], sv * z[m + n :]
             xt = At @ xt + Bt @ uu + L @ (C @ x + vv - C @ xt)
             x = A @ x + B @ uu + ww
             e = xt - x
@@ -207,9 +253,18 @@ def naive_estimate_rep(spec, si, wi, N, rep):
         rA = np.sqrt((1 + gamma) * H_A)
         c = (1 + gamma) * Ah
         rho = np.max(np.abs(np.linalg.eigvals(np.abs(c) + rA)))
-        out.append(json.dumps({"A_hat": Ah.tolist(), "B_hat": Bh.tolist(), "H_A": H_A,
-                               "H_B": H_B, "rho_upper_bound": float(rho),
-                               "coverage_A": float(np.mean(np.abs(A - c) <= rA))}))
+        out.append(
+            json.dumps(
+                {
+                    "A_hat": Ah.tolist(),
+                    "B_hat": Bh.tolist(),
+                    "H_A": H_A,
+                    "H_B": H_B,
+                    "rho_upper_bound": float(rho),
+                    "coverage_A": float(np.mean(np.abs(A - c) <= rA)),
+                }
+            )
+        )
     return out
 
 
@@ -238,11 +293,30 @@ def time_naive(scale: str, reps: int, runs: int):
     s = e4.systems[0]
     K, _, _, _ = truth(s, 1.0, e4.horizon)
     t0 = time.perf_counter()
-    naive_mc(s.A, s.B, s.A, s.B, K, s.C, s.sigma_u, 1.0, s.sigma_v, e4.horizon,
-             np.random.default_rng(0), runs)
+    naive_mc(
+        s.A,
+        s.B,
+        s.A,
+        s.B,
+        K,
+        s.C,
+        s.sigma_u,
+        1.0,
+        s.sigma_v,
+        e4.horizon,
+        np.random.default_rng(0),
+        runs,
+    )
     t_run = (time.perf_counter() - t0) / runs
-    return {"Ns": Ns, "e4_cell": t_e4, "e4_cells_measured": cells, "e2_cell": t_e2,
-            "e2_cells_measured": cells2, "mc_run": t_run, "mc_runs_measured": runs}
+    return {
+        "Ns": Ns,
+        "e4_cell": t_e4,
+        "e4_cells_measured": cells,
+        "e2_cell": t_e2,
+        "e2_cells_measured": cells2,
+        "mc_run": t_run,
+        "mc_runs_measured": runs,
+    }
 
 
 # ---------------------------------------------------------------------------
@@ -257,8 +331,10 @@ def main():
     args = ap.parse_args()
 
     specs = {k: parse_spec(v) for k, v in paper_specs(args.scale).items()}
-    print(f"svrobs reproduce, preset paper-section-6, scale {args.scale}; "
-          f"{os.cpu_count()} cpus, load average {os.getloadavg()[0]:.2f} (before)")
+    print(
+        f"svrobs reproduce, preset paper-section-6, scale {args.scale}; "
+        f"{os.cpu_count()} cpus, load average {os.getloadavg()[0]:.2f} (before)"
+    )
     tmp = None
     out = args.out
     if out is None:
@@ -286,48 +362,71 @@ def main():
             for x in s.systems:
                 mc_per_system[x.name] = max(mc_per_system.get(x.name, 0), k)
     mc_cells = sum(mc_per_system.values())
-    print(f"\nreproduce(scale={args.scale!r}): {wall:.1f} s wall "
-          f"(CPU {cpu_parent:.1f} s in this process + {cpu_children:.1f} s in "
-          f"{prov['n_jobs']} worker processes), load average {os.getloadavg()[0]:.2f} (after)")
+    print(
+        f"\nreproduce(scale={args.scale!r}): {wall:.1f} s wall "
+        f"(CPU {cpu_parent:.1f} s in this process + {cpu_children:.1f} s in "
+        f"{prov['n_jobs']} worker processes), load average {os.getloadavg()[0]:.2f} (after)"
+    )
     for name, sec in prov["run_seconds"].items():
         kids = [c for c, p in prov["derived_from"].items() if p == name]
         extra = f" (+ {', '.join(kids)} from its records)" if kids else ""
-        print(f"  {name}{extra}: {specs[name].n_cells:,} cells in {sec:.1f} s "
-              f"= {sec / specs[name].n_cells * 1e6:.0f} us/cell wall")
-    print(f"  report (tables, {len(paper_specs(args.scale))} experiments, figures, "
-          f"markdown, html): {prov['report_seconds']:.1f} s")
-    print(f"  {computed:,} pipeline cells computed, {written:,} records written "
-          f"({size / 1e6:.0f} MB); Monte Carlo J on {mc_cells:,} cells "
-          f"({specs['E3'].mc_runs} runs, horizon {specs['E3'].horizon})")
+        print(
+            f"  {name}{extra}: {specs[name].n_cells:,} cells in {sec:.1f} s "
+            f"= {sec / specs[name].n_cells * 1e6:.0f} us/cell wall"
+        )
+    print(
+        f"  report (tables, {len(paper_specs(args.scale))} experiments, figures, "
+        f"markdown, html): {prov['report_seconds']:.1f} s"
+    )
+    print(
+        f"  {computed:,} pipeline cells computed, {written:,} records written "
+        f"({size / 1e6:.0f} MB); Monte Carlo J on {mc_cells:,} cells "
+        f"({specs['E3'].mc_runs} runs, horizon {specs['E3'].horizon})"
+    )
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"  peak memory (max RSS): {rss:.0f} MB in this process, "
-          f"{ch.ru_maxrss / 1024:.0f} MB in the largest worker")
-    print(f"  per computed cell: {wall / computed * 1e6:.0f} us wall, "
-          f"{(cpu_parent + cpu_children) / computed * 1e6:.0f} us CPU "
-          f"(everything included: data, pipeline, Monte Carlo, JSON, report)")
+    print(
+        f"  peak memory (max RSS): {rss:.0f} MB in this process, "
+        f"{ch.ru_maxrss / 1024:.0f} MB in the largest worker"
+    )
+    print(
+        f"  per computed cell: {wall / computed * 1e6:.0f} us wall, "
+        f"{(cpu_parent + cpu_children) / computed * 1e6:.0f} us CPU "
+        f"(everything included: data, pipeline, Monte Carlo, JSON, report)"
+    )
 
     if args.skip_naive:
         return
-    print("\nnaive baseline (Python loops over cells, repetitions and Monte Carlo runs), "
-          "MEASURED on a sub-grid:")
+    print(
+        "\nnaive baseline (Python loops over cells, repetitions and Monte Carlo runs), "
+        "MEASURED on a sub-grid:"
+    )
     nv = time_naive(args.scale, args.naive_reps, args.naive_runs)
-    print(f"  E4-type cell (estimate .. cost bound, JSON): {nv['e4_cell'] * 1e3:.2f} ms "
-          f"({nv['e4_cells_measured']} cells, N in {nv['Ns']})")
-    print(f"  E2-type cell (estimate + bounds, JSON):      {nv['e2_cell'] * 1e3:.3f} ms "
-          f"({nv['e2_cells_measured']} cells)")
-    print(f"  Monte Carlo, one run of {specs['E3'].horizon} steps: {nv['mc_run'] * 1e3:.2f} ms "
-          f"({nv['mc_runs_measured']} runs)")
+    print(
+        f"  E4-type cell (estimate .. cost bound, JSON): {nv['e4_cell'] * 1e3:.2f} ms "
+        f"({nv['e4_cells_measured']} cells, N in {nv['Ns']})"
+    )
+    print(
+        f"  E2-type cell (estimate + bounds, JSON):      {nv['e2_cell'] * 1e3:.3f} ms "
+        f"({nv['e2_cells_measured']} cells)"
+    )
+    print(
+        f"  Monte Carlo, one run of {specs['E3'].horizon} steps: {nv['mc_run'] * 1e3:.2f} ms "
+        f"({nv['mc_runs_measured']} runs)"
+    )
     n4 = sum(specs[n].n_cells for n in prov["run_seconds"] if specs[n].has("cost"))
     n2 = computed - n4
-    naive = (nv["e4_cell"] * n4 + nv["e2_cell"] * n2
-             + nv["mc_run"] * mc_cells * specs["E3"].mc_runs)
-    print(f"EXTRAPOLATED naive time for the same grid: {n4:,} x {nv['e4_cell'] * 1e3:.2f} ms "
-          f"+ {n2:,} x {nv['e2_cell'] * 1e3:.3f} ms + {mc_cells:,} MC cells x "
-          f"{specs['E3'].mc_runs} runs x {nv['mc_run'] * 1e3:.2f} ms = {naive:,.0f} s "
-          f"({naive / 3600:.1f} h, one core, report not included)")
+    naive = nv["e4_cell"] * n4 + nv["e2_cell"] * n2 + nv["mc_run"] * mc_cells * specs["E3"].mc_runs
+    print(
+        f"EXTRAPOLATED naive time for the same grid: {n4:,} x {nv['e4_cell'] * 1e3:.2f} ms "
+        f"+ {n2:,} x {nv['e2_cell'] * 1e3:.3f} ms + {mc_cells:,} MC cells x "
+        f"{specs['E3'].mc_runs} runs x {nv['mc_run'] * 1e3:.2f} ms = {naive:,.0f} s "
+        f"({naive / 3600:.1f} h, one core, report not included)"
+    )
     run_wall = sum(prov["run_seconds"].values())
-    print(f"ratio naive / ours: {naive / run_wall:,.0f}x on the runs ({run_wall:.1f} s), "
-          f"{naive / wall:,.0f}x on the whole reproduce ({wall:.1f} s)")
+    print(
+        f"ratio naive / ours: {naive / run_wall:,.0f}x on the runs ({run_wall:.1f} s), "
+        f"{naive / wall:,.0f}x on the whole reproduce ({wall:.1f} s)"
+    )
 
 
 if __name__ == "__main__":

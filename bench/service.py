@@ -144,30 +144,54 @@ def free_port() -> int:
 
 
 class BenchStack:
-    def __init__(self, kind: str, root: Path, workers: int, concurrency: int,
-                 pg_url: str | None = None, redis_url: str | None = None):
+    def __init__(
+        self,
+        kind: str,
+        root: Path,
+        workers: int,
+        concurrency: int,
+        pg_url: str | None = None,
+        redis_url: str | None = None,
+    ):
         self.kind, self.root, self.workers, self.concurrency = kind, root, workers, concurrency
         self.pg_url, self.redis_url = pg_url, redis_url
         self.schema = None
         self.children: list[Child] = []
         env = {k: v for k, v in os.environ.items() if not k.startswith("SVROBS_")}
         if kind == "embedded":
-            env.update(SVROBS_DATABASE_URL=f"sqlite:///{root / 'svrobs.db'}",
-                       SVROBS_BROKER_URL="filesystem://", SVROBS_BROKER_DIR=str(root / "broker"))
+            env.update(
+                SVROBS_DATABASE_URL=f"sqlite:///{root / 'svrobs.db'}",
+                SVROBS_BROKER_URL="filesystem://",
+                SVROBS_BROKER_DIR=str(root / "broker"),
+            )
         else:
             self.schema = f"bench_{secrets.token_hex(4)}"
             parts = urlsplit(pg_url)
-            q = parts.query + ("&" if parts.query else "") + f"options=-csearch_path%3D{self.schema}"
-            env.update(SVROBS_DATABASE_URL=urlunsplit(parts._replace(query=q)),
-                       SVROBS_BROKER_URL=redis_url, SVROBS_BROKER_DIR=str(root / "broker"))
+            q = (
+                parts.query
+                + ("&" if parts.query else "")
+                + f"options=-csearch_path%3D{self.schema}"
+            )
+            env.update(
+                SVROBS_DATABASE_URL=urlunsplit(parts._replace(query=q)),
+                SVROBS_BROKER_URL=redis_url,
+                SVROBS_BROKER_DIR=str(root / "broker"),
+            )
         env.update(SVROBS_RATE_LIMIT_PER_MINUTE="100000", SVROBS_MAX_JOB_CELLS="10000000")
         self.env = child_env(None, env)
         self.url = ""
         self.key = ""
 
     def py(self, code: str, *args: str, timeout: float = 900) -> dict:
-        out = subprocess.run([sys.executable, "-c", code, *args], cwd=str(ROOT), env=self.env,
-                             capture_output=True, text=True, timeout=timeout, check=False)
+        out = subprocess.run(
+            [sys.executable, "-c", code, *args],
+            cwd=str(ROOT),
+            env=self.env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            check=False,
+        )
         if out.returncode:
             raise RuntimeError(out.stderr[-3000:])
         return json.loads(out.stdout.strip().splitlines()[-1])
@@ -186,12 +210,16 @@ class BenchStack:
         port = free_port()
         logs = self.root / "logs"
         logs.mkdir(parents=True, exist_ok=True)
-        self.children.append(Child("api", api_command("127.0.0.1", port), self.env,
-                                   log=logs / "api.log").start())
+        self.children.append(
+            Child("api", api_command("127.0.0.1", port), self.env, log=logs / "api.log").start()
+        )
         for i in range(self.workers):
             name = f"worker{i + 1}"
-            self.children.append(Child(name, worker_command(name, self.concurrency), self.env,
-                                       log=logs / f"{name}.log").start())
+            self.children.append(
+                Child(
+                    name, worker_command(name, self.concurrency), self.env, log=logs / f"{name}.log"
+                ).start()
+            )
         self.url = f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
@@ -224,8 +252,11 @@ class BenchStack:
             redis.Redis.from_url(self.redis_url).flushdb()
 
     def client(self) -> httpx.Client:
-        return httpx.Client(base_url=self.url + "/api/v1", timeout=60,
-                            headers={"Authorization": f"Bearer {self.key}"})
+        return httpx.Client(
+            base_url=self.url + "/api/v1",
+            timeout=60,
+            headers={"Authorization": f"Bearer {self.key}"},
+        )
 
     def run_job(self, spec: dict) -> tuple[float, dict]:
         with self.client() as c:
@@ -260,10 +291,13 @@ class BenchStack:
             c.get(f"/jobs/{job_id}/results", params={"limit": 100}).raise_for_status()
             unfiltered = time.perf_counter() - t0
         times.sort()
-        return {"median_ms": 1000 * statistics.median(times),
-                "p95_ms": 1000 * times[int(0.95 * (len(times) - 1))],
-                "matched": body["total"], "items": len(body["items"]),
-                "unfiltered_ms": 1000 * unfiltered}
+        return {
+            "median_ms": 1000 * statistics.median(times),
+            "p95_ms": 1000 * times[int(0.95 * (len(times) - 1))],
+            "matched": body["total"],
+            "items": len(body["items"]),
+            "unfiltered_ms": 1000 * unfiltered,
+        }
 
 
 def unit_breakdown(logs: Path) -> dict:
@@ -298,26 +332,38 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="a 7-N grid instead of 45 (smoke run)")
     p.add_argument("--embedded-workers", type=int, default=1)
     p.add_argument("--pg-workers", type=int, default=2)
-    p.add_argument("--concurrency", type=int, default=1,
-                   help="pool processes per worker (svrobs serve's --concurrency)")
+    p.add_argument(
+        "--concurrency",
+        type=int,
+        default=1,
+        help="pool processes per worker (svrobs serve's --concurrency)",
+    )
     p.add_argument("--no-page", action="store_true", help="skip the 100k-cell results page")
     p.add_argument("--keep", action="store_true", help="keep the stacks' folders (logs)")
     args = p.parse_args()
     grid = QUICK_GRID if args.quick else GRID
-    pg_url = os.environ.get("SVROBS_BENCH_DATABASE_URL") or os.environ.get("SVROBS_TEST_DATABASE_URL")
-    redis_url = os.environ.get("SVROBS_BENCH_BROKER_URL") or os.environ.get("SVROBS_TEST_BROKER_URL")
+    pg_url = os.environ.get("SVROBS_BENCH_DATABASE_URL") or os.environ.get(
+        "SVROBS_TEST_DATABASE_URL"
+    )
+    redis_url = os.environ.get("SVROBS_BENCH_BROKER_URL") or os.environ.get(
+        "SVROBS_TEST_BROKER_URL"
+    )
     stacks = [s for s in args.stacks.split(",") if s]
 
     from svrobs_core import parse_spec, plan_units
 
     spec = parse_spec(grid)
-    print(f"grid: {spec.n_cells} cells in {len(plan_units(spec))} work units; "
-          f"{os.cpu_count()} CPUs")
+    print(
+        f"grid: {spec.n_cells} cells in {len(plan_units(spec))} work units; {os.cpu_count()} CPUs"
+    )
     base, n = in_process(grid)
     print(f"{'in process (run_spec, 1 process):':54s}{base:8.1f} s  ({n} records)", flush=True)
     base2, _ = in_process(grid, n_jobs=2)
-    print(f"{'in process (run_spec, n_jobs=2):':54s}{base2:8.1f} s  (ratios below: "
-          "against 1 process, against n_jobs=2)", flush=True)
+    print(
+        f"{'in process (run_spec, n_jobs=2):':54s}{base2:8.1f} s  (ratios below: "
+        "against 1 process, against n_jobs=2)",
+        flush=True,
+    )
 
     rows = []
     for kind in stacks:
@@ -329,38 +375,55 @@ def main() -> None:
         try:
             with BenchStack(kind, root, workers, args.concurrency, pg_url, redis_url) as st:
                 elapsed, job = st.run_job(grid)
-                label = ("embedded (SQLite + filesystem)" if kind == "embedded"
-                         else "PostgreSQL + Redis")
+                label = (
+                    "embedded (SQLite + filesystem)" if kind == "embedded" else "PostgreSQL + Redis"
+                )
                 procs = f"{workers}x{args.concurrency} worker process(es)"
-                print(f"{label + ', ' + procs + ':':54s}{elapsed:8.1f} s  "
-                      f"ratio {elapsed / base:5.2f}x, {elapsed / base2:5.2f}x  "
-                      f"(units {job['progress']['total']}, "
-                      f"job run {job['timings'].get('run_seconds', float('nan')):.1f} s)",
-                      flush=True)
-                row = {"stack": kind, "workers": workers, "concurrency": args.concurrency,
-                       "seconds": elapsed, "ratio": elapsed / base,
-                       "ratio_2_processes": elapsed / base2}
+                print(
+                    f"{label + ', ' + procs + ':':54s}{elapsed:8.1f} s  "
+                    f"ratio {elapsed / base:5.2f}x, {elapsed / base2:5.2f}x  "
+                    f"(units {job['progress']['total']}, "
+                    f"job run {job['timings'].get('run_seconds', float('nan')):.1f} s)",
+                    flush=True,
+                )
+                row = {
+                    "stack": kind,
+                    "workers": workers,
+                    "concurrency": args.concurrency,
+                    "seconds": elapsed,
+                    "ratio": elapsed / base,
+                    "ratio_2_processes": elapsed / base2,
+                }
                 if not args.no_page:
                     synth = st.py(SYNTH, json.dumps(BIG))
                     page = st.time_results_page(synth["job_id"])
-                    print(f"  {synth['cells']:,} stored cells (stored in {synth['store_seconds']:.1f} s): "
-                          f"filtered page median {page['median_ms']:.1f} ms, "
-                          f"p95 {page['p95_ms']:.1f} ms ({page['items']} of {page['matched']} "
-                          f"matches); unfiltered first page {page['unfiltered_ms']:.1f} ms",
-                          flush=True)
+                    print(
+                        f"  {synth['cells']:,} stored cells (stored in {synth['store_seconds']:.1f} s): "
+                        f"filtered page median {page['median_ms']:.1f} ms, "
+                        f"p95 {page['p95_ms']:.1f} ms ({page['items']} of {page['matched']} "
+                        f"matches); unfiltered first page {page['unfiltered_ms']:.1f} ms",
+                        flush=True,
+                    )
                     row["page"] = page
                 rows.append(row)
                 breakdown = unit_breakdown(root / "logs")
                 if breakdown:
-                    print("  per unit (worker log): " + ", ".join(
-                        f"{k} {v * 1000:.0f} ms" for k, v in breakdown.items()), flush=True)
+                    print(
+                        "  per unit (worker log): "
+                        + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in breakdown.items()),
+                        flush=True,
+                    )
         finally:
             if args.keep:
                 print(f"  logs kept in {root}/logs")
             else:
                 shutil.rmtree(root, ignore_errors=True)
-    print(json.dumps({"in_process_seconds": base, "in_process_2_seconds": base2, "cells": n,
-                      "stacks": rows}, indent=1))
+    print(
+        json.dumps(
+            {"in_process_seconds": base, "in_process_2_seconds": base2, "cells": n, "stacks": rows},
+            indent=1,
+        )
+    )
 
 
 if __name__ == "__main__":

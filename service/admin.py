@@ -31,8 +31,10 @@ def create_team(session: Session, name: str) -> Team:
 
 
 def get_team(session: Session, team: int | str) -> Team:
-    row = session.get(Team, team) if isinstance(team, int) else session.scalar(
-        select(Team).where(Team.name == team)
+    row = (
+        session.get(Team, team)
+        if isinstance(team, int)
+        else session.scalar(select(Team).where(Team.name == team))
     )
     if row is None:
         raise AdminError(f"no team {team!r}")
@@ -53,8 +55,10 @@ def create_user(session: Session, team: int | str, email: str, *, is_admin: bool
 
 
 def get_user(session: Session, user: int | str) -> User:
-    row = session.get(User, user) if isinstance(user, int) else session.scalar(
-        select(User).where(User.email == user.strip().lower())
+    row = (
+        session.get(User, user)
+        if isinstance(user, int)
+        else session.scalar(select(User).where(User.email == user.strip().lower()))
     )
     if row is None:
         raise AdminError(f"no user {user!r}")
@@ -76,8 +80,13 @@ def create_key(
         expires_at = utcnow() + timedelta(days=expires_in_days)
     plaintext, prefix = generate_key()
     row = ApiKey(
-        prefix=prefix, key_hash=hash_key(plaintext), team_id=u.team_id, user_id=u.id, name=name,
-        created_at=utcnow(), expires_at=expires_at,
+        prefix=prefix,
+        key_hash=hash_key(plaintext),
+        team_id=u.team_id,
+        user_id=u.id,
+        name=name,
+        created_at=utcnow(),
+        expires_at=expires_at,
     )
     session.add(row)
     session.flush()

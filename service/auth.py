@@ -50,7 +50,8 @@ def authenticate(session: Session, key: str, now: datetime | None = None) -> Api
     row = None
     if prefix is not None:
         row = session.scalar(
-            select(ApiKey).where(ApiKey.prefix == prefix).options(joinedload(ApiKey.user)))
+            select(ApiKey).where(ApiKey.prefix == prefix).options(joinedload(ApiKey.user))
+        )
     ok = hmac.compare_digest(row.key_hash if row is not None else _DUMMY_HASH, hash_key(key or ""))
     if row is None or not ok:
         return None

@@ -20,8 +20,12 @@ log = logging.getLogger(__name__)
 RUN_UNIT_TASK = "svrobs.run_unit"
 # Publishing from a request must not hang while the broker is down: one quick
 # retry, then the relay re-publishes from the DB later.
-PUBLISH_RETRY_POLICY = {"max_retries": 1, "interval_start": 0, "interval_step": 0.2,
-                        "interval_max": 0.2}
+PUBLISH_RETRY_POLICY = {
+    "max_retries": 1,
+    "interval_start": 0,
+    "interval_step": 0.2,
+    "interval_max": 0.2,
+}
 
 
 def is_filesystem(url: str) -> bool:
@@ -75,7 +79,8 @@ def make_celery(settings: Settings, name: str = "svrobs") -> Celery:
     )
     if is_filesystem(settings.BROKER_URL):
         conf["broker_transport_options"] = {
-            **_ensure_folders(settings), "store_processed": False,
+            **_ensure_folders(settings),
+            "store_processed": False,
             # kombu polls the folder when it has nothing to deliver (default every 1 s,
             # also while a prefetch-1 worker finishes a unit): 0.1 s keeps the gap
             # between units short for the cost of a directory listing
@@ -95,8 +100,9 @@ def make_celery(settings: Settings, name: str = "svrobs") -> Celery:
     return app
 
 
-def publish_units(celery: Celery, unit_ids: Iterable[int], *, raise_errors: bool = False
-                  ) -> list[int]:
+def publish_units(
+    celery: Celery, unit_ids: Iterable[int], *, raise_errors: bool = False
+) -> list[int]:
     """Send one ``svrobs.run_unit(unit_id)`` task per unit; returns the ids sent.
 
     On a broker error the ids sent so far are returned (the caller marks those
@@ -111,7 +117,10 @@ def publish_units(celery: Celery, unit_ids: Iterable[int], *, raise_errors: bool
             _ensure_epoch_marker(celery, producer)
             for uid in ids:
                 celery.send_task(
-                    RUN_UNIT_TASK, args=[uid], producer=producer, retry=True,
+                    RUN_UNIT_TASK,
+                    args=[uid],
+                    producer=producer,
+                    retry=True,
                     retry_policy=PUBLISH_RETRY_POLICY,
                 )
                 sent.append(uid)

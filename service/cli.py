@@ -57,11 +57,17 @@ def _one_line(exc: BaseException) -> str:
 
 
 app = SvrobsTyper(
-    name="svrobs", help="SVR-based observer design experiments as a service.",
-    no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False,
+    name="svrobs",
+    help="SVR-based observer design experiments as a service.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
 )
-admin_app = SvrobsTyper(help="Teams, users and API keys (direct database access).",
-                        no_args_is_help=True, pretty_exceptions_enable=False)
+admin_app = SvrobsTyper(
+    help="Teams, users and API keys (direct database access).",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+)
 app.add_typer(admin_app, name="admin")
 
 
@@ -156,8 +162,18 @@ def admin_list_keys(team: str | None = typer.Argument(None)) -> None:
     t: Any = int(team) if team and team.isdigit() else team
 
     def rows(session):
-        return [(k.id, k.prefix, k.team_id, k.user.email if k.user else "", k.created_at,
-                 k.expires_at, k.revoked_at) for k in admin.list_keys(session, t)]
+        return [
+            (
+                k.id,
+                k.prefix,
+                k.team_id,
+                k.user.email if k.user else "",
+                k.created_at,
+                k.expires_at,
+                k.revoked_at,
+            )
+            for k in admin.list_keys(session, t)
+        ]
 
     for r in _admin_call(rows):
         typer.echo("\t".join("" if v is None else str(v) for v in r))
@@ -182,8 +198,9 @@ def client_config() -> tuple[str, str]:
 
 
 class Api:
-    def __init__(self, url: str | None = None, key: str | None = None, timeout: float = 30.0,
-                 http=None):
+    def __init__(
+        self, url: str | None = None, key: str | None = None, timeout: float = 30.0, http=None
+    ):
         import httpx
 
         if http is not None:  # an injected client (tests)
@@ -193,8 +210,11 @@ class Api:
             u, k = client_config()
             url, key = url or u, key or k
         self.base = url.rstrip("/")
-        self.http = httpx.Client(base_url=f"{self.base}/api/v1", timeout=timeout,
-                                 headers={"Authorization": f"Bearer {key}"})
+        self.http = httpx.Client(
+            base_url=f"{self.base}/api/v1",
+            timeout=timeout,
+            headers={"Authorization": f"Bearer {key}"},
+        )
 
     def request(self, method: str, path: str, **kw):
         import httpx
@@ -253,27 +273,39 @@ def _progress_line(job: dict) -> str:
 def wait_for(api: Api, job: dict, interval: float = 1.0) -> dict:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    with Progress(TextColumn("job {task.fields[job]} {task.fields[status]}"), BarColumn(),
-                  TextColumn("{task.completed}/{task.total} units"), TimeElapsedColumn(),
-                  transient=False) as bar:
-        task = bar.add_task("run", total=job["progress"]["total"] or 1, job=job["id"],
-                            status=job["status"])
+    with Progress(
+        TextColumn("job {task.fields[job]} {task.fields[status]}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total} units"),
+        TimeElapsedColumn(),
+        transient=False,
+    ) as bar:
+        task = bar.add_task(
+            "run", total=job["progress"]["total"] or 1, job=job["id"], status=job["status"]
+        )
         while job["status"] not in TERMINAL:
             time.sleep(interval)
             job = api.request("GET", f"/jobs/{job['id']}").json()
-            bar.update(task, completed=job["progress"]["done"],
-                       total=job["progress"]["total"] or 1, status=job["status"])
+            bar.update(
+                task,
+                completed=job["progress"]["done"],
+                total=job["progress"]["total"] or 1,
+                status=job["status"],
+            )
     return job
 
 
 @app.command()
 def submit(
-    spec_file: Path = typer.Argument(..., help="a SPEC section 10 JSON (or YAML) file; - for stdin"),
+    spec_file: Path = typer.Argument(
+        ..., help="a SPEC section 10 JSON (or YAML) file; - for stdin"
+    ),
     wait: bool = typer.Option(False, "--wait", help="show progress until the job finishes"),
     name: str | None = typer.Option(None, help="job name"),
     tag: list[str] = typer.Option([], "--tag", help="a tag (repeatable)"),
     idempotency_key: str | None = typer.Option(
-        None, help="retrying with the same key returns the same job"),
+        None, help="retrying with the same key returns the same job"
+    ),
 ) -> None:
     """Submit an experiment spec as a job."""
     spec = _load_spec(spec_file)
@@ -284,8 +316,10 @@ def submit(
     api = Api()
     headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
     job = api.request("POST", "/jobs", json=spec, headers=headers).json()
-    typer.echo(f"job {job['id']} {job['status']} ({job['n_cells']} cells, "
-               f"{job['progress']['total']} units)")
+    typer.echo(
+        f"job {job['id']} {job['status']} ({job['n_cells']} cells, "
+        f"{job['progress']['total']} units)"
+    )
     if wait:
         job = wait_for(api, job)
         typer.echo(_progress_line(job))
@@ -309,8 +343,16 @@ def status(
             typer.echo(json.dumps(data, indent=2))
             return
         typer.echo(_progress_line(data))
-        for key in ("name", "tags", "owner", "n_cells", "created_at", "started_at",
-                    "finished_at", "error"):
+        for key in (
+            "name",
+            "tags",
+            "owner",
+            "n_cells",
+            "created_at",
+            "started_at",
+            "finished_at",
+            "error",
+        ):
             if data.get(key) not in (None, [], ""):
                 typer.echo(f"  {key}: {data[key]}")
         if data.get("timings"):
@@ -331,8 +373,15 @@ def status(
     table = Table("id", "name", "status", "progress", "cells", "tags", "created")
     for j in page["items"]:
         p = j["progress"]
-        table.add_row(str(j["id"]), j["name"] or "", j["status"], f"{p['done']}/{p['total']}",
-                      str(j["n_cells"]), ",".join(j["tags"]), str(j["created_at"])[:19])
+        table.add_row(
+            str(j["id"]),
+            j["name"] or "",
+            j["status"],
+            f"{p['done']}/{p['total']}",
+            str(j["n_cells"]),
+            ",".join(j["tags"]),
+            str(j["created_at"])[:19],
+        )
     Console().print(table)
     typer.echo(f"{len(page['items'])} of {page['total']} jobs")
 
@@ -352,8 +401,14 @@ def results(
     """Download a job's records (CSV and JSONL stream everything; JSON is every page)."""
     if fmt not in ("csv", "jsonl", "json"):
         raise CliError("--format must be csv, jsonl or json")
-    params: dict = {"system": system, "sigma_w": sigma_w, "N": n, "estimator": estimator,
-                    "gamma": gamma, "rep": rep}
+    params: dict = {
+        "system": system,
+        "sigma_w": sigma_w,
+        "N": n,
+        "estimator": estimator,
+        "gamma": gamma,
+        "rep": rep,
+    }
     params = {k: v for k, v in params.items() if v}
     api = Api(timeout=300)
     sink = open(out, "w", encoding="utf-8", newline="") if out else sys.stdout
@@ -361,8 +416,11 @@ def results(
         if fmt == "json":
             items, offset = [], 0
             while True:
-                page = api.request("GET", f"/jobs/{job}/results",
-                                   params={**params, "limit": 10_000, "offset": offset}).json()
+                page = api.request(
+                    "GET",
+                    f"/jobs/{job}/results",
+                    params={**params, "limit": 10_000, "offset": offset},
+                ).json()
                 items += page["items"]
                 offset += len(page["items"])
                 if not page["items"] or offset >= page["total"]:
@@ -396,8 +454,9 @@ def compare(
     as_json: bool = typer.Option(False, "--json", help="print JSON"),
 ) -> None:
     """One metric across several jobs, grouped by grid coordinates."""
-    data = Api().request("GET", "/compare",
-                         params={"jobs": jobs, "metric": metric, "by": by}).json()
+    data = (
+        Api().request("GET", "/compare", params={"jobs": jobs, "metric": metric, "by": by}).json()
+    )
     if as_json:
         typer.echo(json.dumps(data, indent=2))
         return
@@ -407,8 +466,14 @@ def compare(
     cols = ["job_id", *data["by"], "mean", "std", "count"]
     table = Table(*cols, title=f"{data['metric']} by {', '.join(data['by'])}")
     for row in data["rows"]:
-        table.add_row(*("" if row[c] is None else (f"{row[c]:.6g}" if isinstance(row[c], float)
-                                                    else str(row[c])) for c in cols))
+        table.add_row(
+            *(
+                ""
+                if row[c] is None
+                else (f"{row[c]:.6g}" if isinstance(row[c], float) else str(row[c]))
+                for c in cols
+            )
+        )
     Console().print(table)
 
 

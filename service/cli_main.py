@@ -63,7 +63,8 @@ def reproduce(
 def serve(
     workers: int = typer.Option(1, "--workers", help="worker processes"),
     concurrency: int | None = typer.Option(
-        None, "--concurrency", help="pool processes per worker (default: one per CPU, at most 4)"),
+        None, "--concurrency", help="pool processes per worker (default: one per CPU, at most 4)"
+    ),
     no_beat: bool = typer.Option(False, "--no-beat", help="do not start the scheduler"),
 ) -> None:
     """Migrate, then run API + worker + scheduler (embedded default: SQLite + filesystem broker)."""

@@ -82,8 +82,11 @@ def _plan(specs: dict[str, dict], derive: bool) -> list[tuple[str, list[str]]]:
     size = {n: parse_spec(s).n_cells for n, s in specs.items()}
     parent_of: dict[str, str] = {}
     for child in specs:
-        cands = [p for p in specs if p != child and size[p] >= size[child]
-                 and _derivable(specs[child], specs[p])]
+        cands = [
+            p
+            for p in specs
+            if p != child and size[p] >= size[child] and _derivable(specs[child], specs[p])
+        ]
         cands = [p for p in cands if p not in parent_of]
         if cands:
             parent_of[child] = max(cands, key=lambda p: size[p])
@@ -114,8 +117,9 @@ class _Selector:
 
     def mask(self, cols: rpt.Columns) -> np.ndarray:
         """The same selection on report columns (vectorised)."""
-        m = np.isin(cols["system"], list(self.systems)) & \
-            np.isin(cols["estimator"], list(self.estimators))
+        m = np.isin(cols["system"], list(self.systems)) & np.isin(
+            cols["estimator"], list(self.estimators)
+        )
         g = cols["gamma"]
         ok = np.isnan(g)
         for x in self.gammas:
@@ -132,8 +136,11 @@ def _encode(result: UnitResult, variants: tuple):
             r = result.with_mc_reps(mc_reps)
             lines = r.json_lines()
             # one string per unit: much cheaper to send between processes than a list
-            out[name] = ("".join(line + "\n" for line in lines), len(lines),
-                         r.columns(matrices=matrices))
+            out[name] = (
+                "".join(line + "\n" for line in lines),
+                len(lines),
+                r.columns(matrices=matrices),
+            )
     return out
 
 
@@ -141,8 +148,15 @@ def _mc_limit(spec) -> float:
     return spec.reps if spec.mc_reps is None else spec.mc_reps
 
 
-def _run_group(parent: str, children: list[str], specs: dict[str, dict], out: Path,
-               bar: Progress | None, pool=None, n_jobs: int = 1) -> dict[str, dict]:
+def _run_group(
+    parent: str,
+    children: list[str],
+    specs: dict[str, dict],
+    out: Path,
+    bar: Progress | None,
+    pool=None,
+    n_jobs: int = 1,
+) -> dict[str, dict]:
     """Run ``parent`` once (streaming records to files), fill the children too."""
     names = [parent] + children
     spec_objs = {n: json.loads(json.dumps(specs[n])) for n in names}
@@ -159,12 +173,15 @@ def _run_group(parent: str, children: list[str], specs: dict[str, dict], out: Pa
             for n in names:
                 spec_objs[n]["stages"] = [s for s in spec_objs[n]["stages"] if s != dropped]
             if bar is not None:
-                bar.console.print(f"[yellow]{parent}: stage '{dropped}' is not available in "
-                                  f"this build ({unavailable[dropped]}); rerunning without it")
+                bar.console.print(
+                    f"[yellow]{parent}: stage '{dropped}' is not available in "
+                    f"this build ({unavailable[dropped]}); rerunning without it"
+                )
 
 
-def _stream(parent, children, spec_objs, out: Path, bar, unavailable, pool=None,
-            n_jobs: int = 1) -> dict[str, dict]:
+def _stream(
+    parent, children, spec_objs, out: Path, bar, unavailable, pool=None, n_jobs: int = 1
+) -> dict[str, dict]:
     spec = parse_spec(spec_objs[parent])
     specs = {n: parse_spec(spec_objs[n]) for n in [parent] + children}
     keep_matrices = spec.n_cells <= MATRIX_CELLS_LIMIT
@@ -173,8 +190,11 @@ def _stream(parent, children, spec_objs, out: Path, bar, unavailable, pool=None,
     # with another Monte Carlo limit (a child that differs only there)
     source = {c: parent if specs[c].mc_reps == spec.mc_reps else c for c in children}
     variants = [(parent, spec.mc_reps, tuple(x.name for x in spec.systems), keep_matrices)]
-    variants += [(c, specs[c].mc_reps, tuple(x.name for x in specs[c].systems), keep_matrices)
-                 for c in children if source[c] == c]
+    variants += [
+        (c, specs[c].mc_reps, tuple(x.name for x in specs[c].systems), keep_matrices)
+        for c in children
+        if source[c] == c
+    ]
     units = plan_units(spec)
     for u in units:  # compute the Monte Carlo J as far as any spec using the unit needs
         name = spec.systems[u["system"]].name
@@ -210,17 +230,16 @@ def _stream(parent, children, spec_objs, out: Path, bar, unavailable, pool=None,
             parts[n].append(cols)
 
         post = functools.partial(_encode, variants=tuple(variants))
-        for item in run_spec(spec, progress=progress, units=units, n_jobs=n_jobs, post=post,
-                             pool=pool):
+        for item in run_spec(
+            spec, progress=progress, units=units, n_jobs=n_jobs, post=post, pool=pool
+        ):
             if isinstance(item, list):  # plain records (a run_spec without post)
                 if any(source[c] != parent for c in children):
                     raise RuntimeError("records of another mc_reps need UnitResult batches")
                 cols = rpt.Columns.from_records(item, matrices=keep_matrices)
-                item = {parent: ("".join(_ENCODER.encode(r) + "\n" for r in item), len(item),
-                                 cols)}
+                item = {parent: ("".join(_ENCODER.encode(r) + "\n" for r in item), len(item), cols)}
             else:
-                item = {n: (text, k, rpt.Columns(data, k))
-                        for n, (text, k, data) in item.items()}
+                item = {n: (text, k, rpt.Columns(data, k)) for n, (text, k, data) in item.items()}
             emit(parent, *item[parent])
             for c in children:
                 if source[c] in item:
@@ -238,10 +257,17 @@ def _stream(parent, children, spec_objs, out: Path, bar, unavailable, pool=None,
     for n in [parent] + children:
         run_spec_dict = parse_spec(spec_objs[n]).to_dict()
         notes = [f"stage '{s}' did not run: {why}" for s, why in unavailable.items()]
-        (out / n / "spec.json").write_text(json.dumps(
-            {"spec": spec_objs[n], "normalised": run_spec_dict,
-             "derived_from": parent if n != parent else None,
-             "stages_unavailable": unavailable}, indent=1))
+        (out / n / "spec.json").write_text(
+            json.dumps(
+                {
+                    "spec": spec_objs[n],
+                    "normalised": run_spec_dict,
+                    "derived_from": parent if n != parent else None,
+                    "stages_unavailable": unavailable,
+                },
+                indent=1,
+            )
+        )
         results[n] = {
             "spec": spec_objs[n],
             "records": rpt.Columns.concat(parts[n]),
@@ -257,8 +283,14 @@ def _stream(parent, children, spec_objs, out: Path, bar, unavailable, pool=None,
 def _git_commit() -> str | None:
     try:
         root = Path(__file__).resolve().parent.parent
-        res = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
-                             text=True, timeout=5, env={**os.environ, "GIT_OPTIONAL_LOCKS": "0"})
+        res = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            timeout=5,
+            env={**os.environ, "GIT_OPTIONAL_LOCKS": "0"},
+        )
         return res.stdout.strip() or None if res.returncode == 0 else None
     except (OSError, subprocess.SubprocessError):
         return None
@@ -269,12 +301,22 @@ def _versions() -> dict:
     import numpy
     import scipy
 
-    return {"python": platform.python_version(), "numpy": numpy.__version__,
-            "scipy": scipy.__version__, "matplotlib": matplotlib.__version__}
+    return {
+        "python": platform.python_version(),
+        "numpy": numpy.__version__,
+        "scipy": scipy.__version__,
+        "matplotlib": matplotlib.__version__,
+    }
 
 
-def reproduce(out_dir, scale: str = "full", quiet: bool = False, *, derive: bool = True,
-              n_jobs: int | None = None) -> dict:
+def reproduce(
+    out_dir,
+    scale: str = "full",
+    quiet: bool = False,
+    *,
+    derive: bool = True,
+    n_jobs: int | None = None,
+) -> dict:
     """Run the preset ``paper-section-6`` in process and write tables, figures, report.
 
     ``n_jobs``: worker processes for the pipeline (default: the machine's CPU
@@ -297,40 +339,67 @@ def reproduce(out_dir, scale: str = "full", quiet: bool = False, *, derive: bool
         # group are computed in a background thread while the next group runs,
         # and the figures are rendered in the worker processes.
         builder = rpt.ReportBuilder(
-            list(specs), {"preset": PRESET_NAME},
-            render=None if pool is None else functools.partial(pool.submit, rpt.render_figure))
+            list(specs),
+            {"preset": PRESET_NAME},
+            render=None if pool is None else functools.partial(pool.submit, rpt.render_figure),
+        )
         background = stack.enter_context(ThreadPoolExecutor(max_workers=1))
         report_parts = []
-        with Progress("[progress.description]{task.description}", BarColumn(),
-                      MofNCompleteColumn(), TimeElapsedColumn(), console=console,
-                      disable=quiet, transient=False) as bar:
+        with Progress(
+            "[progress.description]{task.description}",
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            console=console,
+            disable=quiet,
+            transient=False,
+        ) as bar:
             for parent, children in plan:
-                group = _run_group(parent, children, specs, out, None if quiet else bar,
-                                   pool=pool, n_jobs=n_jobs)
+                group = _run_group(
+                    parent, children, specs, out, None if quiet else bar, pool=pool, n_jobs=n_jobs
+                )
                 results.update(group)
                 for n in group:
-                    report_parts.append(background.submit(builder.add, n, _report_input(
-                        n, results[n])))
+                    report_parts.append(
+                        background.submit(builder.add, n, _report_input(n, results[n]))
+                    )
         t_run = time.perf_counter() - t_start
         for f in report_parts:
             f.result()
-        return _write_report(out, out_dir, scale, specs, results, started, t_start, t_run,
-                             n_jobs, builder, console, quiet)
+        return _write_report(
+            out,
+            out_dir,
+            scale,
+            specs,
+            results,
+            started,
+            t_start,
+            t_run,
+            n_jobs,
+            builder,
+            console,
+            quiet,
+        )
 
 
 def _report_input(name: str, result: dict) -> dict:
-    return {"spec": result["spec"], "records": result["records"],
-            "title": EXPERIMENTS[name]["title"], "notes": result["notes"]}
+    return {
+        "spec": result["spec"],
+        "records": result["records"],
+        "title": EXPERIMENTS[name]["title"],
+        "notes": result["notes"],
+    }
 
 
-def _write_report(out, out_dir, scale, specs, results, started, t_start, t_run, n_jobs,
-                  builder, console, quiet) -> dict:
+def _write_report(
+    out, out_dir, scale, specs, results, started, t_start, t_run, n_jobs, builder, console, quiet
+) -> dict:
     """Provenance, tables, figures, report (``builder`` holds every experiment)."""
     provenance = {
         "preset": PRESET_NAME,
         "scale": scale,
-        "command": f"svrobs reproduce --out {out_dir}" + ("" if scale == "full"
-                                                          else f" --scale {scale}"),
+        "command": f"svrobs reproduce --out {out_dir}"
+        + ("" if scale == "full" else f" --scale {scale}"),
         "svrobs_version": __version__,
         "git_commit": _git_commit(),
         **_versions(),
@@ -338,17 +407,25 @@ def _write_report(out, out_dir, scale, specs, results, started, t_start, t_run, 
         "cpus": os.cpu_count(),
         "started_utc": started.isoformat(timespec="seconds"),
         "records": {n: results[n]["n_records"] for n in specs},
-        "derived_from": {n: results[n]["derived_from"] for n in specs
-                         if results[n]["derived_from"]},
-        "run_seconds": {n: round(results[n]["seconds"], 3) for n in specs
-                        if not results[n]["derived_from"]},
+        "derived_from": {
+            n: results[n]["derived_from"] for n in specs if results[n]["derived_from"]
+        },
+        "run_seconds": {
+            n: round(results[n]["seconds"], 3) for n in specs if not results[n]["derived_from"]
+        },
         "n_jobs": n_jobs,
-        "monte_carlo": {n: {"mc_reps": parse_spec(results[n]["spec"]).mc_reps,
-                            "mc_runs": parse_spec(results[n]["spec"]).mc_runs}
-                        for n in specs if "cost" in results[n]["spec"].get("stages", [])},
+        "monte_carlo": {
+            n: {
+                "mc_reps": parse_spec(results[n]["spec"]).mc_reps,
+                "mc_runs": parse_spec(results[n]["spec"]).mc_runs,
+            }
+            for n in specs
+            if "cost" in results[n]["spec"].get("stages", [])
+        },
         "monte_carlo_decision": MC_DECISION,
-        "stages_unavailable": {n: results[n]["stages_unavailable"] for n in specs
-                               if results[n]["stages_unavailable"]},
+        "stages_unavailable": {
+            n: results[n]["stages_unavailable"] for n in specs if results[n]["stages_unavailable"]
+        },
     }
     t_rep = time.perf_counter()
     report = builder.finish()
@@ -375,12 +452,20 @@ def _write_report(out, out_dir, scale, specs, results, started, t_start, t_run, 
     write("report.html", rpt.render_html(report))
     write("provenance.json", json.dumps(provenance, indent=1))
     if not quiet:
-        console.print(f"[green]wrote {len(files)} files to {out}[/] "
-                      f"(runs {t_run:.1f} s, report {provenance['report_seconds']:.1f} s)")
-    return {"out": str(out), "records": provenance["records"], "files": files,
-            "seconds": round(time.perf_counter() - t_start, 3)}
+        console.print(
+            f"[green]wrote {len(files)} files to {out}[/] "
+            f"(runs {t_run:.1f} s, report {provenance['report_seconds']:.1f} s)"
+        )
+    return {
+        "out": str(out),
+        "records": provenance["records"],
+        "files": files,
+        "seconds": round(time.perf_counter() - t_start, 3),
+    }
 
 
 if __name__ == "__main__":  # python -m service.reproduce DIR [full|reduced]
-    reproduce(sys.argv[1] if len(sys.argv) > 1 else "reproduce-out",
-              sys.argv[2] if len(sys.argv) > 2 else "full")
+    reproduce(
+        sys.argv[1] if len(sys.argv) > 1 else "reproduce-out",
+        sys.argv[2] if len(sys.argv) > 2 else "full",
+    )

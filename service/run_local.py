@@ -36,8 +36,13 @@ def run_local(spec_obj: dict, out: Path, *, quiet: bool = False) -> dict:
     records: list[dict] = []
     console = Console(stderr=True)
     with Progress(
-        "[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
-        TimeElapsedColumn(), console=console, disable=quiet, transient=False,
+        "[progress.description]{task.description}",
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        disable=quiet,
+        transient=False,
     ) as bar:
         task = bar.add_task("work units", total=len(units))
         with open(out / "records.jsonl", "w") as fh:

@@ -36,8 +36,11 @@ from service.config import Settings, get_settings
 
 ROOT = Path(__file__).resolve().parent.parent
 THREAD_ENV = {
-    "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
-    "NUMEXPR_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+    "VECLIB_MAXIMUM_THREADS": "1",
 }
 
 
@@ -60,7 +63,9 @@ def broker_folders(settings: Settings) -> list[Path]:
 
     opts = make_celery(settings).conf.broker_transport_options or {}
     folders = {Path(settings.BROKER_DIR)}
-    folders |= {Path(v) for k, v in opts.items() if k.endswith("folder") or k.startswith("data_folder")}
+    folders |= {
+        Path(v) for k, v in opts.items() if k.endswith("folder") or k.startswith("data_folder")
+    }
     return sorted(folders)
 
 
@@ -96,8 +101,14 @@ def migrate(settings: Settings | None = None, revision: str = "head") -> None:
         db_migrate = None
     fn = None
     if db_migrate is not None:
-        fn = next((getattr(db_migrate, n) for n in ("upgrade", "upgrade_head", "migrate")
-                   if callable(getattr(db_migrate, n, None))), None)
+        fn = next(
+            (
+                getattr(db_migrate, n)
+                for n in ("upgrade", "upgrade_head", "migrate")
+                if callable(getattr(db_migrate, n, None))
+            ),
+            None,
+        )
     if fn is not None and revision == "head":
         import inspect
 
@@ -174,8 +185,19 @@ def _absolute_sqlite(url: str) -> str:
 
 
 def api_command(host: str, port: int) -> list[str]:
-    return [sys.executable, "-m", "uvicorn", "service.api.main:app", "--host", host,
-            "--port", str(port), "--workers", "1", "--no-access-log"]
+    return [
+        sys.executable,
+        "-m",
+        "uvicorn",
+        "service.api.main:app",
+        "--host",
+        host,
+        "--port",
+        str(port),
+        "--workers",
+        "1",
+        "--no-access-log",
+    ]
 
 
 # Celery's own default is one pool process per CPU; capped so that a big shared machine
@@ -183,22 +205,53 @@ def api_command(host: str, port: int) -> list[str]:
 DEFAULT_CONCURRENCY = max(1, min(os.cpu_count() or 1, 4))
 
 
-def worker_command(name: str = "worker1", concurrency: int = 1, loglevel: str = "info") -> list[str]:
-    return [sys.executable, "-m", "celery", "-A", "worker.celery_app", "worker",
-            "--concurrency", str(concurrency), "--pool", "prefork", "-l", loglevel,
-            "-n", f"{name}@%h", "--without-gossip", "--without-mingle"]
+def worker_command(
+    name: str = "worker1", concurrency: int = 1, loglevel: str = "info"
+) -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "celery",
+        "-A",
+        "worker.celery_app",
+        "worker",
+        "--concurrency",
+        str(concurrency),
+        "--pool",
+        "prefork",
+        "-l",
+        loglevel,
+        "-n",
+        f"{name}@%h",
+        "--without-gossip",
+        "--without-mingle",
+    ]
 
 
 def beat_command(schedule_file: Path, loglevel: str = "info") -> list[str]:
-    return [sys.executable, "-m", "celery", "-A", "worker.celery_app", "beat", "-l", loglevel,
-            "-s", str(schedule_file), "-S", "worker.beat:TickScheduler"]
+    return [
+        sys.executable,
+        "-m",
+        "celery",
+        "-A",
+        "worker.celery_app",
+        "beat",
+        "-l",
+        loglevel,
+        "-s",
+        str(schedule_file),
+        "-S",
+        "worker.beat:TickScheduler",
+    ]
 
 
-def child_commands(settings: Settings, *, workers: int = 1, concurrency: int = 1,
-                   beat: bool = True) -> list[tuple[str, list[str]]]:
+def child_commands(
+    settings: Settings, *, workers: int = 1, concurrency: int = 1, beat: bool = True
+) -> list[tuple[str, list[str]]]:
     cmds = [("api", api_command(settings.API_HOST, settings.API_PORT))]
-    cmds += [(f"worker{i + 1}", worker_command(f"worker{i + 1}", concurrency))
-             for i in range(workers)]
+    cmds += [
+        (f"worker{i + 1}", worker_command(f"worker{i + 1}", concurrency)) for i in range(workers)
+    ]
     if beat:
         cmds.append(("beat", beat_command(beat_schedule_file(settings))))
     return cmds
@@ -240,8 +293,12 @@ class Child:
     def start(self) -> Child:
         out = open(self.log, "ab") if self.log else None
         self.proc = subprocess.Popen(
-            self.argv, env=self.env, cwd=str(self.cwd or os.getcwd()), stdin=subprocess.DEVNULL,
-            stdout=out, stderr=subprocess.STDOUT if out else None,
+            self.argv,
+            env=self.env,
+            cwd=str(self.cwd or os.getcwd()),
+            stdin=subprocess.DEVNULL,
+            stdout=out,
+            stderr=subprocess.STDOUT if out else None,
             start_new_session=True,
             preexec_fn=_child_preexec if _PRCTL is not None else None,  # noqa: PLW1509
         )
@@ -310,8 +367,14 @@ def stop_all(children: list[Child], grace: float = 10.0) -> None:
 
 
 # --------------------------------------------------------------------------- serve
-def serve(settings: Settings | None = None, *, workers: int = 1, concurrency: int = DEFAULT_CONCURRENCY,
-          beat: bool = True, grace: float = 10.0) -> int:
+def serve(
+    settings: Settings | None = None,
+    *,
+    workers: int = 1,
+    concurrency: int = DEFAULT_CONCURRENCY,
+    beat: bool = True,
+    grace: float = 10.0,
+) -> int:
     """Run the stack in the foreground until Ctrl-C/SIGTERM or a child dies."""
     settings = settings or get_settings()
     prepare_dirs(settings)
@@ -319,13 +382,16 @@ def serve(settings: Settings | None = None, *, workers: int = 1, concurrency: in
     migrate(settings)
     key = bootstrap_admin(settings)
     if key:
-        print("svrobs: first start - created team 'admin'. Admin API key (shown once):",
-              flush=True)
+        print("svrobs: first start - created team 'admin'. Admin API key (shown once):", flush=True)
         print(f"\n    {key}\n", flush=True)
 
     env = child_env(settings)
-    children = [Child(name, argv, env) for name, argv in
-                child_commands(settings, workers=workers, concurrency=concurrency, beat=beat)]
+    children = [
+        Child(name, argv, env)
+        for name, argv in child_commands(
+            settings, workers=workers, concurrency=concurrency, beat=beat
+        )
+    ]
 
     stopping: list[int] = []
 
@@ -341,14 +407,20 @@ def serve(settings: Settings | None = None, *, workers: int = 1, concurrency: in
         for c in children:
             c.start()
             print(f"svrobs: started {c.name} (pid {c.pid})", flush=True)
-        print(f"svrobs: API on http://{settings.API_HOST}:{settings.API_PORT} "
-              f"(docs at /docs); Ctrl-C stops everything", flush=True)
+        print(
+            f"svrobs: API on http://{settings.API_HOST}:{settings.API_PORT} "
+            f"(docs at /docs); Ctrl-C stops everything",
+            flush=True,
+        )
         while not stopping:
             dead = [c for c in children if c.poll() is not None]
             if dead:
                 for c in dead:
-                    print(f"svrobs: {c.name} exited with code {c.poll()}; stopping",
-                          file=sys.stderr, flush=True)
+                    print(
+                        f"svrobs: {c.name} exited with code {c.poll()}; stopping",
+                        file=sys.stderr,
+                        flush=True,
+                    )
                 rc = 1
                 break
             time.sleep(0.3)
@@ -372,13 +444,22 @@ def _redact(url: str) -> str:
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="svrobs serve", description=__doc__.splitlines()[0])
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
-    p.add_argument("--concurrency", type=int, default=DEFAULT_CONCURRENCY,
-                   help=f"pool processes per worker (default {DEFAULT_CONCURRENCY}: "
-                        "one per CPU, at most 4)")
+    p.add_argument(
+        "--concurrency",
+        type=int,
+        default=DEFAULT_CONCURRENCY,
+        help=f"pool processes per worker (default {DEFAULT_CONCURRENCY}: one per CPU, at most 4)",
+    )
     p.add_argument("--no-beat", action="store_true", help="do not start the scheduler")
     args = p.parse_args(argv)
-    sys.exit(serve(get_settings(), workers=args.workers, concurrency=args.concurrency,
-                   beat=not args.no_beat))
+    sys.exit(
+        serve(
+            get_settings(),
+            workers=args.workers,
+            concurrency=args.concurrency,
+            beat=not args.no_beat,
+        )
+    )
 
 
 if __name__ == "__main__":

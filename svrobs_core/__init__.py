@@ -1,8 +1,8 @@
 """svrobs_core: the science of SPEC.md as pure, vectorised functions (no I/O).
 
-    from svrobs_core import parse_spec, run_spec
-    spec = parse_spec({"systems": ["paper-stable"], "sigma_w": [1.0], "N": [50]})
-    records = [r for batch in run_spec(spec) for r in batch]
+from svrobs_core import parse_spec, run_spec
+spec = parse_spec({"systems": ["paper-stable"], "sigma_w": [1.0], "N": [50]})
+records = [r for batch in run_spec(spec) for r in batch]
 """
 
 from .errors import SpecError

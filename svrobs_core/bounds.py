@@ -44,8 +44,16 @@ def radii(*, n, m, N, N0, T0, sigma_u, sigma_w, gamma, M, delta) -> Radii:
     N is the rollout count, N0 the sample count (N0 = (T0-1) N for all-data,
     N for final-data). All arguments broadcast; outputs have the broadcast shape.
     """
-    args = {"N": N, "N0": N0, "T0": T0, "sigma_u": sigma_u, "sigma_w": sigma_w, "gamma": gamma,
-            "M": M, "delta": delta}
+    args = {
+        "N": N,
+        "N0": N0,
+        "T0": T0,
+        "sigma_u": sigma_u,
+        "sigma_w": sigma_w,
+        "gamma": gamma,
+        "M": M,
+        "delta": delta,
+    }
     a = {k: np.asarray(v, dtype=float) for k, v in args.items()}
     if np.any(a["N"] <= 0) or np.any(a["N0"] <= 0):
         raise ValueError("N and N0 must be > 0")
@@ -57,15 +65,15 @@ def radii(*, n, m, N, N0, T0, sigma_u, sigma_w, gamma, M, delta) -> Radii:
         raise ValueError("delta must be in (0, 1)")
     if int(n) < 1 or int(m) < 1:
         raise ValueError("n and m must be >= 1")
-    theta_A, theta_B = thetas(n=n, m=m, N=a["N"], T0=a["T0"], sigma_u=a["sigma_u"],
-                              sigma_w=a["sigma_w"], M=a["M"])
+    theta_A, theta_B = thetas(
+        n=n, m=m, N=a["N"], T0=a["T0"], sigma_u=a["sigma_u"], sigma_w=a["sigma_w"], M=a["M"]
+    )
     kw = {"gamma": a["gamma"], "N0": a["N0"], "M": a["M"], "delta": a["delta"]}
     H_A = H(theta_A, n, **kw)
     H_B = H(theta_B, m, **kw)
     H_A, H_B = np.broadcast_arrays(H_A, H_B)
     one_g = 1 + a["gamma"]
-    return Radii(H_A=H_A.copy(), H_B=H_B.copy(),
-                 r_A=np.sqrt(one_g * H_A), r_B=np.sqrt(one_g * H_B))
+    return Radii(H_A=H_A.copy(), H_B=H_B.copy(), r_A=np.sqrt(one_g * H_A), r_B=np.sqrt(one_g * H_B))
 
 
 @dataclass

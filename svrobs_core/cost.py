@@ -81,9 +81,13 @@ class _Cells:
         if C.ndim == 1:
             C = C[None, :]
         m, p = B.shape[-1], C.shape[-2]
-        for name, arr, shape in (("B", B, (n, m)), ("A_tilde", At, (n, n)),
-                                 ("B_tilde", Bt, (n, m)), ("L", L, (n, p)),
-                                 ("C", C, (p, n))):
+        for name, arr, shape in (
+            ("B", B, (n, m)),
+            ("A_tilde", At, (n, n)),
+            ("B_tilde", Bt, (n, m)),
+            ("L", L, (n, p)),
+            ("C", C, (p, n)),
+        ):
             if arr.ndim < 2 or arr.shape[-2:] != shape:
                 raise ValueError(f"{name} must be (..., {shape[0]}, {shape[1]}), got {arr.shape}")
         su = np.asarray(sigma_u, dtype=float)
@@ -94,8 +98,9 @@ class _Cells:
         self.su, self.sw, self.sv = su, sw, sv
         # batch shape of the true-system part (x block) and of the whole call
         self.xbatch = np.broadcast_shapes(A.shape[:-2], B.shape[:-2], su.shape, sw.shape)
-        self.batch = np.broadcast_shapes(self.xbatch, At.shape[:-2], Bt.shape[:-2],
-                                         L.shape[:-2], C.shape[:-2], sv.shape)
+        self.batch = np.broadcast_shapes(
+            self.xbatch, At.shape[:-2], Bt.shape[:-2], L.shape[:-2], C.shape[:-2], sv.shape
+        )
 
     # derived per-cell matrices (numpy broadcasting, AoS layout)
     def F(self):
@@ -110,9 +115,9 @@ class _Cells:
     def Q_blocks(self):
         """Noise covariance of s = [x; e] per step, blocks (xx, xe, ee)."""
         B, dB, L, n = self.B, self.dB(), self.L, self.n
-        su2 = (self.su ** 2)[..., None, None]
-        sw2 = (self.sw ** 2)[..., None, None]
-        sv2 = (self.sv ** 2)[..., None, None]
+        su2 = (self.su**2)[..., None, None]
+        sw2 = (self.sw**2)[..., None, None]
+        sv2 = (self.sv**2)[..., None, None]
         I = np.eye(n)
         T = np.swapaxes
         Qxx = su2 * (B @ T(B, -1, -2)) + sw2 * I
@@ -155,7 +160,7 @@ class _SoA:
 
     @staticmethod
     def part(x, i):
-        return x[:, :, i:i + 1]
+        return x[:, :, i : i + 1]
 
     @staticmethod
     def addto_w(new, t, Ma):
@@ -199,7 +204,7 @@ class _AoS:
 
     @staticmethod
     def part(x, i):
-        return x[i:i + 1]
+        return x[i : i + 1]
 
     @staticmethod
     def addto_w(new, t, Ma):
@@ -241,8 +246,8 @@ def _join(ops, P_a, M_a, M_b, t_b, need_xe=True):
         if Cb is None:
             out.append(None)
             continue
-        new = Ma + Cb                       # fresh array (Sigma_a + .., W_a + ..)
-        ops.addto_w(new, t_b, Ma)           # W_{a+b} gets the extra t_b * Sigma_a
+        new = Ma + Cb  # fresh array (Sigma_a + .., W_a + ..)
+        ops.addto_w(new, t_b, Ma)  # W_{a+b} gets the extra t_b * Sigma_a
         out.append(new)
     return tuple(out)
 
@@ -316,8 +321,9 @@ j_star = optimal_cost
 # --------------------------------------------------------------------------
 # stationary cost
 # --------------------------------------------------------------------------
-def stationary_cost(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, *,
-                    rho_F=None, return_reason=False):
+def stationary_cost(
+    A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, *, rho_F=None, return_reason=False
+):
     """Stationary E||e||^2 by discrete Lyapunov; NaN where the augmented system
     is not Schur stable. -> (...)
 
@@ -336,7 +342,7 @@ def stationary_cost(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, *,
     batch = c.batch
     tp = lambda M: np.swapaxes(M, -1, -2)
     F = c.F()
-    rho_A = spectral_radius(c.A)                      # A's own batch (usually one system)
+    rho_A = spectral_radius(c.A)  # A's own batch (usually one system)
     if rho_F is None:
         rho_F = spectral_radius(F)
     rho_F = np.asarray(rho_F, dtype=float)
@@ -348,15 +354,18 @@ def stationary_cost(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, *,
     A_s = np.where(okA[..., None, None], c.A, 0.0)
     F_s = np.where(okF[..., None, None], F, 0.0)
     Qxx, Qxe, Qee = c.Q_blocks()
-    X = stein_solve(A_s, Qxx)                         # x block, x batch only
+    X = stein_solve(A_s, Qxx)  # x block, x batch only
     dA = c.dA()
     S = stein_solve(A_s, -c.A @ X @ tp(dA) + Qxe, Fr=F_s)
     Qe = dA @ X @ tp(dA) - F @ tp(S) @ tp(dA) - dA @ S @ tp(F) + Qee
     E = stein_solve(F_s, Qe)
     J = np.broadcast_to(np.trace(E, axis1=-2, axis2=-1), batch)
     rho = np.broadcast_to(np.fmax(rho_A, rho_F), batch)
-    rho = np.where(np.isnan(np.broadcast_to(rho_A, batch)) | np.isnan(np.broadcast_to(rho_F, batch)),
-                   np.nan, rho)
+    rho = np.where(
+        np.isnan(np.broadcast_to(rho_A, batch)) | np.isnan(np.broadcast_to(rho_F, batch)),
+        np.nan,
+        rho,
+    )
     with np.errstate(invalid="ignore"):
         J = np.where(rho < 1.0, J, np.nan)
     if return_reason:
@@ -400,19 +409,30 @@ def mc_cost(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, horizon, rn
     zero = np.zeros(batch + (n, n))
     # augmented transition and input matrices, batch + (2n, 2n) / (q, 2n)
     top = np.concatenate([np.broadcast_to(c.A, batch + (n, n)), zero], axis=-1)
-    bot = np.concatenate([np.broadcast_to(LC, batch + (n, n)),
-                          np.broadcast_to(c.At - LC, batch + (n, n))], axis=-1)
-    Acal_T = tp(np.concatenate([top, bot], axis=-2))                        # batch+(2n,2n)
+    bot = np.concatenate(
+        [np.broadcast_to(LC, batch + (n, n)), np.broadcast_to(c.At - LC, batch + (n, n))], axis=-1
+    )
+    Acal_T = tp(np.concatenate([top, bot], axis=-2))  # batch+(2n,2n)
     su = np.broadcast_to(c.su, batch)[..., None, None]
     sw = np.broadcast_to(c.sw, batch)[..., None, None]
     sv = np.broadcast_to(c.sv, batch)[..., None, None]
-    Bx = np.concatenate([su * np.broadcast_to(c.B, batch + (n, m)),
-                         sw * np.broadcast_to(np.eye(n), batch + (n, n)),
-                         np.zeros(batch + (n, p))], axis=-1)
-    Be = np.concatenate([su * np.broadcast_to(c.Bt, batch + (n, m)),
-                         np.zeros(batch + (n, n)),
-                         sv * np.broadcast_to(c.L, batch + (n, p))], axis=-1)
-    Bcal_T = tp(np.concatenate([Bx, Be], axis=-2))                          # batch+(q,2n)
+    Bx = np.concatenate(
+        [
+            su * np.broadcast_to(c.B, batch + (n, m)),
+            sw * np.broadcast_to(np.eye(n), batch + (n, n)),
+            np.zeros(batch + (n, p)),
+        ],
+        axis=-1,
+    )
+    Be = np.concatenate(
+        [
+            su * np.broadcast_to(c.Bt, batch + (n, m)),
+            np.zeros(batch + (n, n)),
+            sv * np.broadcast_to(c.L, batch + (n, p)),
+        ],
+        axis=-1,
+    )
+    Bcal_T = tp(np.concatenate([Bx, Be], axis=-2))  # batch+(q,2n)
     cells = int(np.prod(batch, dtype=np.int64))
     chunk = max(1, min(T, (4 * 2**20) // max(1, cells * runs * max(q, 2 * n))))  # ~32 MB
     s = np.zeros(batch + (runs, 2 * n))
@@ -423,7 +443,7 @@ def mc_cost(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, horizon, rn
         Z = rng.standard_normal((h,) + batch + (runs, q))
         # noise input for h steps at once, then turned in place into the states
         # s_{k+1..k+h}: S[i] = S[i-1] Acal^T + N[i]
-        S = Z @ Bcal_T                                   # (h, *batch, runs, 2n)
+        S = Z @ Bcal_T  # (h, *batch, runs, 2n)
         del Z
         S[0] += s @ Acal_T
         for i in range(1, h):
@@ -438,8 +458,7 @@ def mc_cost(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, horizon, rn
     return mean, se
 
 
-def mc_cost_shared(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, horizon, rngs,
-                   runs):
+def mc_cost_shared(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, horizon, rngs, runs):
     """:func:`mc_cost` for a grid of cells (R, E) where the E cells of row r share
     the noise of ``rngs[r]`` (common random numbers). -> (mean, se), each (R, E)
 
@@ -493,11 +512,11 @@ def mc_cost_shared(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, hori
     Lc = np.broadcast_to(c.L, shape + (n, p))
     LC = Lc @ c.C
     F = np.ascontiguousarray(At - LC)
-    W = n + q                                   # [x; z], z = [u; w; v]
+    W = n + q  # [x; z], z = [u; w; v]
     xs, us, ws, vs = slice(0, n), slice(n, n + m), slice(n + m, n + m + n), slice(n + m + n, W)
-    Mx = np.zeros((n, W))                       # plant: x <- A x + su B u + sw w
+    Mx = np.zeros((n, W))  # plant: x <- A x + su B u + sw w
     Mx[:, xs], Mx[:, us], Mx[:, ws] = c.A, su * c.B, sw * np.eye(n)
-    G = np.zeros(shape + (n, W))                # observer error input
+    G = np.zeros(shape + (n, W))  # observer error input
     G[..., xs] = (F + LC) - c.A
     G[..., us] = su * Bt - su * c.B
     G[..., ws] = -sw * np.eye(n)
@@ -505,8 +524,8 @@ def mc_cost_shared(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, hori
     # steps per block: fixed by runs and sizes only (never by R or E), so the
     # grouping of the sums over k is the same for every grid
     h_max = max(1, min(T, (2**17) // (runs * W)))
-    Xz = np.zeros((R, W, h_max + 1, runs))      # [x_k; z_k] for the block's steps
-    Ev = np.zeros((R, E, h_max + 1, n, runs))   # e_k
+    Xz = np.zeros((R, W, h_max + 1, runs))  # [x_k; z_k] for the block's steps
+    Ev = np.zeros((R, E, h_max + 1, n, runs))  # e_k
     acc = np.zeros((R, E, n, runs))
     k = 0
     while k < T:
@@ -515,21 +534,28 @@ def mc_cost_shared(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, hori
             Xz[r, n:, :h, :] = g.standard_normal((h, runs, q)).transpose(2, 0, 1)
         for i in range(h):
             np.matmul(Mx, Xz[:, :, i, :], out=Xz[:, :n, i + 1, :])
-        D = G @ Xz[:, None, :, :h, :].reshape(R, 1, W, h * runs)   # (R, E, n, h runs)
+        D = G @ Xz[:, None, :, :h, :].reshape(R, 1, W, h * runs)  # (R, E, n, h runs)
         D = D.reshape(R, E, n, h, runs)
         for i in range(h):
             np.matmul(F, Ev[:, :, i], out=Ev[:, :, i + 1])
             Ev[:, :, i + 1] += D[:, :, :, i]
-        err = Ev[:, :, 1:h + 1]
+        err = Ev[:, :, 1 : h + 1]
         acc += np.einsum("rehks,rehks->reks", err, err)
         Ev[:, :, 0] = Ev[:, :, h]
         Xz[:, :n, 0] = Xz[:, :n, h]
         k += h
-    per_run = acc.sum(axis=2) / T                                     # (R, E, runs)
+    per_run = acc.sum(axis=2) / T  # (R, E, runs)
     mean = per_run.mean(axis=-1)
     se = per_run.std(axis=-1, ddof=1) / np.sqrt(runs)
     return mean, se
 
 
-__all__ = ["REASON_UNSTABLE", "exact_cost", "j_star", "mc_cost", "mc_cost_shared",
-           "optimal_cost", "stationary_cost"]
+__all__ = [
+    "REASON_UNSTABLE",
+    "exact_cost",
+    "j_star",
+    "mc_cost",
+    "mc_cost_shared",
+    "optimal_cost",
+    "stationary_cost",
+]

@@ -52,14 +52,14 @@ class TrueSystemNorms:
     ``*_reason`` field (None when defined).
     """
 
-    hinf_PhiA_B: float      # ||[(zI - A)^-1 B; I_m]||_Hinf
-    hinf_PhiA_K: float      # ||[(zI - A)^-1 K; I_p]||_Hinf
-    h2_closed: float        # ||(zI - A + K C)^-1||_H2   (SLS, section 8)
-    hinf_closed: float      # ||(zI - A + K C)^-1||_Hinf (SLS, section 8)
+    hinf_PhiA_B: float  # ||[(zI - A)^-1 B; I_m]||_Hinf
+    hinf_PhiA_K: float  # ||[(zI - A)^-1 K; I_p]||_Hinf
+    h2_closed: float  # ||(zI - A + K C)^-1||_H2   (SLS, section 8)
+    hinf_closed: float  # ||(zI - A + K C)^-1||_Hinf (SLS, section 8)
     rho_A: float
-    rho_closed: float       # rho(A - K C)
-    open_reason: str | None     # reason for the two [Phi_A .; I] norms
-    closed_reason: str | None   # reason for the two closed-loop norms
+    rho_closed: float  # rho(A - K C)
+    open_reason: str | None  # reason for the two [Phi_A .; I] norms
+    closed_reason: str | None  # reason for the two closed-loop norms
 
 
 def _scalar(x):
@@ -107,9 +107,12 @@ def true_system_norms(A, B, C, K, *, grid=1024) -> TrueSystemNorms:
         return out.item() if out.ndim == 0 else out
 
     return TrueSystemNorms(
-        hinf_PhiA_B=_scalar(hB), hinf_PhiA_K=_scalar(hK),
-        h2_closed=_scalar(h2c), hinf_closed=_scalar(hic),
-        rho_A=_scalar(rho_A), rho_closed=_scalar(rho_k),
+        hinf_PhiA_B=_scalar(hB),
+        hinf_PhiA_K=_scalar(hK),
+        h2_closed=_scalar(h2c),
+        hinf_closed=_scalar(hic),
+        rho_A=_scalar(rho_A),
+        rho_closed=_scalar(rho_k),
         open_reason=reason(rho_A, REASON_A_UNSTABLE),
         closed_reason=reason(rho_k, REASON_CLOSED_UNSTABLE),
     )
@@ -119,13 +122,13 @@ def true_system_norms(A, B, C, K, *, grid=1024) -> TrueSystemNorms:
 class Theorem3Result:
     """Per-cell Theorem 3 quantities, arrays of the batch shape."""
 
-    J_b: np.ndarray            # the bound (NaN where undefined)
-    reason: object             # object array of None / str (plain object for one cell)
-    term_v: np.ndarray         # ||Phi~_w K - Phi~_v||_H2 sigma_v
-    term_u: np.ndarray         # sqrt2 eps1 ||Phi~_w||_H2 ||[Phi_A B; I]||_Hinf sigma_u
-    term_K: np.ndarray         # sqrt2 eps2 ||Phi~_w||_H2 ||[Phi_A K; I]||_Hinf sigma_v
-    h2_Phi_w: np.ndarray       # ||Phi~_w||_H2
-    h2_Phi_dK: np.ndarray      # ||Phi~_w K - Phi~_v||_H2 = ||(zI - F)^-1 (K - L)||_H2
+    J_b: np.ndarray  # the bound (NaN where undefined)
+    reason: object  # object array of None / str (plain object for one cell)
+    term_v: np.ndarray  # ||Phi~_w K - Phi~_v||_H2 sigma_v
+    term_u: np.ndarray  # sqrt2 eps1 ||Phi~_w||_H2 ||[Phi_A B; I]||_Hinf sigma_u
+    term_K: np.ndarray  # sqrt2 eps2 ||Phi~_w||_H2 ||[Phi_A K; I]||_Hinf sigma_v
+    h2_Phi_w: np.ndarray  # ||Phi~_w||_H2
+    h2_Phi_dK: np.ndarray  # ||Phi~_w K - Phi~_v||_H2 = ||(zI - F)^-1 (K - L)||_H2
     eps_L: np.ndarray
     eps1: np.ndarray
     eps2: np.ndarray
@@ -150,10 +153,14 @@ def phi_w_h2_norms(A_tilde, L, C, K, *, rho_F=None):
         ok = rho_F < 1.0
     Fs = np.where(ok[..., None, None], F, 0.0)
     dK = np.where(np.isfinite(K - L), K - L, 0.0)
-    rhs = np.stack(np.broadcast_arrays(np.broadcast_to(np.eye(n), dK.shape[:-2] + (n, n)),
-                                       dK @ np.swapaxes(dK, -1, -2)), axis=-1)
-    W = stein_solve(Fs, rhs, multi_rhs=True)                  # (..., n, n, 2)
-    tr = np.trace(W, axis1=-3, axis2=-2)                      # (..., 2)
+    rhs = np.stack(
+        np.broadcast_arrays(
+            np.broadcast_to(np.eye(n), dK.shape[:-2] + (n, n)), dK @ np.swapaxes(dK, -1, -2)
+        ),
+        axis=-1,
+    )
+    W = stein_solve(Fs, rhs, multi_rhs=True)  # (..., n, n, 2)
+    tr = np.trace(W, axis1=-3, axis2=-2)  # (..., 2)
     h = np.sqrt(np.maximum(tr, 0.0))
     h_w = np.broadcast_to(h[..., 0], batch)
     h_dk = np.broadcast_to(h[..., 1], batch)
@@ -161,8 +168,9 @@ def phi_w_h2_norms(A_tilde, L, C, K, *, rho_F=None):
     return np.where(bad, np.nan, h_w), np.where(bad, np.nan, h_dk), np.broadcast_to(rho_F, batch)
 
 
-def theorem3_bound(A_tilde, L, C, K, eps_A, eps_B, sigma_u, sigma_v,
-                   norms: TrueSystemNorms, *, rho_F=None) -> Theorem3Result:
+def theorem3_bound(
+    A_tilde, L, C, K, eps_A, eps_B, sigma_u, sigma_v, norms: TrueSystemNorms, *, rho_F=None
+) -> Theorem3Result:
     """J_b of Theorem 3 per cell. -> Theorem3Result (arrays of the batch shape)
 
     A_tilde (..., n, n), L (..., n, p), C (p, n), K (n, p) (the true
@@ -174,8 +182,9 @@ def theorem3_bound(A_tilde, L, C, K, eps_A, eps_B, sigma_u, sigma_v,
     L = np.asarray(L, dtype=float)
     K = np.asarray(K, dtype=float)
     h_w, h_dk, rho_F = phi_w_h2_norms(A_tilde, L, C, K, rho_F=rho_F)
-    batch = np.broadcast_shapes(h_w.shape, np.shape(eps_A), np.shape(eps_B),
-                                np.shape(sigma_u), np.shape(sigma_v))
+    batch = np.broadcast_shapes(
+        h_w.shape, np.shape(eps_A), np.shape(eps_B), np.shape(sigma_u), np.shape(sigma_v)
+    )
     dK = K - L
     finite = np.isfinite(dK).all(axis=(-2, -1))
     eps_L = np.linalg.norm(np.where(finite[..., None, None], dK, 0.0), ord=2, axis=(-2, -1))
@@ -209,6 +218,16 @@ def theorem3_bound(A_tilde, L, C, K, eps_A, eps_B, sigma_u, sigma_v,
     J_b = np.where(reason == None, J_b, np.nan)
     rb = reason.item() if reason.ndim == 0 else reason
     bc = lambda x: np.broadcast_to(x, batch)
-    return Theorem3Result(J_b=J_b, reason=rb, term_v=bc(term_v), term_u=bc(term_u),
-                          term_K=bc(term_K), h2_Phi_w=bc(h_w), h2_Phi_dK=bc(h_dk),
-                          eps_L=bc(eps_L), eps1=bc(eps1), eps2=bc(eps2), rho_F=bc(rho_F))
+    return Theorem3Result(
+        J_b=J_b,
+        reason=rb,
+        term_v=bc(term_v),
+        term_u=bc(term_u),
+        term_K=bc(term_K),
+        h2_Phi_w=bc(h_w),
+        h2_Phi_dK=bc(h_dk),
+        eps_L=bc(eps_L),
+        eps1=bc(eps1),
+        eps2=bc(eps2),
+        rho_F=bc(rho_F),
+    )

@@ -117,8 +117,9 @@ def fit_svr(Z: np.ndarray, F: np.ndarray, gammas, loss_scale: str = "sum") -> np
     return svr_from_gram(np.matmul(Z, Zt), np.matmul(F, Zt), Z.shape[-1], gammas, loss_scale)
 
 
-def svr_from_gram(G: np.ndarray, FZt: np.ndarray, N0: int, gammas,
-                  loss_scale: str = "sum") -> np.ndarray:
+def svr_from_gram(
+    G: np.ndarray, FZt: np.ndarray, N0: int, gammas, loss_scale: str = "sum"
+) -> np.ndarray:
     """:func:`fit_svr` from the sufficient statistics ``G = Z Z^T`` (..., d, d)
     and ``FZt = F Z^T`` (..., n, d) of datasets with ``N0`` samples each.
 

@@ -36,8 +36,11 @@ MAX_CELLS_PER_UNIT = 20_000
 TARGET_CELLS_PER_UNIT = 2_000  # ~0.1-1 s of work: amortises a worker's per-unit cost
 
 
-def plan_units(spec: ExperimentSpec, max_cells: int = MAX_CELLS_PER_UNIT,
-               target_cells: int = TARGET_CELLS_PER_UNIT) -> list[dict]:
+def plan_units(
+    spec: ExperimentSpec,
+    max_cells: int = MAX_CELLS_PER_UNIT,
+    target_cells: int = TARGET_CELLS_PER_UNIT,
+) -> list[dict]:
     """Work units ``{"system", "sigma_w", "N": [...], "reps": [start, stop]}``.
 
     Consecutive N values of one (system, sigma_w) are packed into a unit
@@ -64,8 +67,12 @@ def plan_units(spec: ExperimentSpec, max_cells: int = MAX_CELLS_PER_UNIT,
                 chunk = max(1, min(spec.reps, max_cells // per_rep))
                 for r0 in range(0, spec.reps, chunk):
                     units.append(
-                        {"system": si, "sigma_w": wi, "N": list(Ns),
-                         "reps": [r0, min(spec.reps, r0 + chunk)]}
+                        {
+                            "system": si,
+                            "sigma_w": wi,
+                            "N": list(Ns),
+                            "reps": [r0, min(spec.reps, r0 + chunk)],
+                        }
                     )
     return units
 
@@ -146,8 +153,10 @@ class _Notes:
         new = _Notes(self.shape)
         new._entries = list(self._entries)
         new.tags = dict(self.tags)
-        new._entries[self.tags[tag]] = (text, np.broadcast_to(np.asarray(mask, dtype=bool),
-                                                              self.shape))
+        new._entries[self.tags[tag]] = (
+            text,
+            np.broadcast_to(np.asarray(mask, dtype=bool), self.shape),
+        )
         return new
 
     def add_reasons(self, reasons, prefix: str | None):
@@ -166,7 +175,7 @@ class _Notes:
         words = []
         for w0 in range(0, len(self._entries), 62):
             code = np.zeros(self.shape, dtype=np.int64)
-            for i, (_, m) in enumerate(self._entries[w0:w0 + 62]):
+            for i, (_, m) in enumerate(self._entries[w0 : w0 + 62]):
                 code |= m.astype(np.int64) << i
             words.append(code.reshape(-1))
         codes = np.stack(words, axis=1)
@@ -190,45 +199,66 @@ def _run_dataset(spec, si, wi, N, reps, axis, prev_gain=None):
     n = system.n
     keys = [seed_key(si, wi, N, r) for r in reps]
     need_data = any(e in ("ols", "shrunk-ols") for e in spec.estimators)
-    G, P, Z, F = gram_data(system, sigma_w, N, spec.T0, spec.seed, keys, spec.data,
-                           spec.x0_std, keep_data=need_data)
+    G, P, Z, F = gram_data(
+        system, sigma_w, N, spec.T0, spec.seed, keys, spec.data, spec.x0_std, keep_data=need_data
+    )
     N0 = (spec.T0 - 1) * N if spec.data == "all" else N
     theta = _estimate(spec, G, P, Z, F, N0, axis)
     A_hat, B_hat = theta[..., :n], theta[..., n:]
     R, E = theta.shape[:2]
     out: dict[str, np.ndarray] = {
-        "A_hat": A_hat, "B_hat": B_hat,
-        "rmse_A": _rmse(A_hat, system.A), "rmse_B": _rmse(B_hat, system.B),
+        "A_hat": A_hat,
+        "B_hat": B_hat,
+        "rmse_A": _rmse(A_hat, system.A),
+        "rmse_B": _rmse(B_hat, system.B),
     }
     notes = _Notes((R, E))
     skipped = [st for st in STAGES if not spec.has(st)]
     if skipped:
         notes.add(True, "stages not run: " + ", ".join(skipped))
     gamma = axis.gamma_array
-    stages = _run_stages(spec, system, sigma_w, N, N0, keys, A_hat, B_hat, gamma, axis,
-                         out, notes, prev_gain)
+    stages = _run_stages(
+        spec, system, sigma_w, N, N0, keys, A_hat, B_hat, gamma, axis, out, notes, prev_gain
+    )
     return out, notes, N0, stages
 
 
-def _run_stages(spec, system, sigma_w, N, N0, keys, A_hat, B_hat, gamma, axis, out, notes,
-                prev_gain):
+def _run_stages(
+    spec, system, sigma_w, N, N0, keys, A_hat, B_hat, gamma, axis, out, notes, prev_gain
+):
     if not spec.has("bounds"):
         return None
     rad = _bounds.radii(
-        n=system.n, m=system.m, N=N, N0=N0, T0=spec.T0, sigma_u=system.sigma_u,
-        sigma_w=sigma_w, gamma=gamma, M=spec.M, delta=spec.delta,
+        n=system.n,
+        m=system.m,
+        N=N,
+        N0=N0,
+        T0=spec.T0,
+        sigma_u=system.sigma_u,
+        sigma_w=sigma_w,
+        gamma=gamma,
+        M=spec.M,
+        delta=spec.delta,
     )
     b = _bounds.evaluate_bounds(A_hat, B_hat, gamma, rad, system.A, system.B)
     R, E = A_hat.shape[:2]
     shape = (R, E)
-    out.update({
-        "H_A": np.broadcast_to(rad.H_A, shape), "H_B": np.broadcast_to(rad.H_B, shape),
-        "r_A": np.broadcast_to(rad.r_A, shape), "r_B": np.broadcast_to(rad.r_B, shape),
-        "eps_A": b.eps_A, "eps_B": b.eps_B,
-        "coverage_A": b.coverage_A, "coverage_B": b.coverage_B,
-        "thm1_holds_A": b.thm1_holds_A, "thm1_holds_B": b.thm1_holds_B,
-        "rho_upper_bound": b.rho_upper_bound, "stable_certified": b.stable_certified,
-    })
+    out.update(
+        {
+            "H_A": np.broadcast_to(rad.H_A, shape),
+            "H_B": np.broadcast_to(rad.H_B, shape),
+            "r_A": np.broadcast_to(rad.r_A, shape),
+            "r_B": np.broadcast_to(rad.r_B, shape),
+            "eps_A": b.eps_A,
+            "eps_B": b.eps_B,
+            "coverage_A": b.coverage_A,
+            "coverage_B": b.coverage_B,
+            "thm1_holds_A": b.thm1_holds_A,
+            "thm1_holds_B": b.thm1_holds_B,
+            "rho_upper_bound": b.rho_upper_bound,
+            "stable_certified": b.stable_certified,
+        }
+    )
     if not spec.has("gain"):
         return None
     from . import gains as _gains
@@ -241,22 +271,55 @@ def _run_stages(spec, system, sigma_w, N, N0, keys, A_hat, B_hat, gamma, axis, o
     if prev_gain is not None:  # reuse_gain: keep the previous L while certified (SPEC 4)
         L_prev, A_prev, r_prev = prev_gain
         reuse = _gains.reuse_gains(
-            np.stack([L_prev, designed.L]), np.stack([A_prev, A_hat]), gamma,
-            np.stack([r_prev, state[2]]), system.C)
-        designed = _gains.GainResult(L=reuse.L[1], g_L=reuse.g_L[1],
-                                     certified=reuse.certified[1], feasible=None)
+            np.stack([L_prev, designed.L]),
+            np.stack([A_prev, A_hat]),
+            gamma,
+            np.stack([r_prev, state[2]]),
+            system.C,
+        )
+        designed = _gains.GainResult(
+            L=reuse.L[1], g_L=reuse.g_L[1], certified=reuse.certified[1], feasible=None
+        )
         notes.add(reuse.reused[1], "gain: reused from the previous N")
         state = (reuse.L[1], A_hat, state[2])
-    run_observer_stages(spec, system, sigma_w, keys, A_hat, B_hat, gamma, rad, b, axis,
-                        out, notes, designed)
+    run_observer_stages(
+        spec, system, sigma_w, keys, A_hat, B_hat, gamma, rad, b, axis, out, notes, designed
+    )
     return state
 
 
 _CELL_FIELDS = (
-    "A_hat", "B_hat", "rmse_A", "rmse_B", "H_A", "H_B", "r_A", "r_B", "eps_A", "eps_B",
-    "coverage_A", "coverage_B", "thm1_holds_A", "thm1_holds_B", "rho_upper_bound",
-    "stable_certified", "L", "g_L", "certified", "rho_true", "K", "J_exact", "J_stationary",
-    "J_mc", "J_mc_se", "J_star", "cost_ratio", "J_bound", "delta_J", "J_opt", "J_opt_bound",
+    "A_hat",
+    "B_hat",
+    "rmse_A",
+    "rmse_B",
+    "H_A",
+    "H_B",
+    "r_A",
+    "r_B",
+    "eps_A",
+    "eps_B",
+    "coverage_A",
+    "coverage_B",
+    "thm1_holds_A",
+    "thm1_holds_B",
+    "rho_upper_bound",
+    "stable_certified",
+    "L",
+    "g_L",
+    "certified",
+    "rho_true",
+    "K",
+    "J_exact",
+    "J_stationary",
+    "J_mc",
+    "J_mc_se",
+    "J_star",
+    "cost_ratio",
+    "J_bound",
+    "delta_J",
+    "J_opt",
+    "J_opt_bound",
     "sls_status",
 )
 
@@ -348,9 +411,18 @@ class UnitResult:
     Record order: N ascending, then repetition, then estimator/gamma.
     """
 
-    def __init__(self, system: str, system_idx: int, sigma_w: float, sigma_w_idx: int,
-                 reps: list[int], axis: _Axis, datasets: list[_Dataset],
-                 mc_reps: int | None = None, n_reps: int | None = None):
+    def __init__(
+        self,
+        system: str,
+        system_idx: int,
+        sigma_w: float,
+        sigma_w_idx: int,
+        reps: list[int],
+        axis: _Axis,
+        datasets: list[_Dataset],
+        mc_reps: int | None = None,
+        n_reps: int | None = None,
+    ):
         self.system = system
         self.system_idx = system_idx
         self.sigma_w = sigma_w
@@ -358,8 +430,8 @@ class UnitResult:
         self.reps = list(reps)
         self.axis = axis
         self.datasets = datasets
-        self.mc_reps = mc_reps      # the Monte Carlo limit these records were computed with
-        self.n_reps = n_reps        # the spec's repetition count (mc_reps = None means all)
+        self.mc_reps = mc_reps  # the Monte Carlo limit these records were computed with
+        self.n_reps = n_reps  # the spec's repetition count (mc_reps = None means all)
         self._strings: dict[tuple, list[str]] = {}  # JSON text per (dataset, field[, limit])
 
     def with_mc_reps(self, mc_reps: int | None) -> UnitResult:
@@ -369,6 +441,7 @@ class UnitResult:
         they are null, so they are recomputed from this result when the new
         limit is not above the one it was computed with.
         """
+
         def lim(x):
             return self.n_reps if x is None else x
 
@@ -388,8 +461,17 @@ class UnitResult:
 
                 notes = notes.replace("mc", ~rows[:, None], mc_note(lim(mc_reps)))
             datasets.append(_Dataset(N=ds.N, N0=ds.N0, fields=fields, note_entries=notes))
-        new = UnitResult(self.system, self.system_idx, self.sigma_w, self.sigma_w_idx,
-                         self.reps, self.axis, datasets, mc_reps, self.n_reps)
+        new = UnitResult(
+            self.system,
+            self.system_idx,
+            self.sigma_w,
+            self.sigma_w_idx,
+            self.reps,
+            self.axis,
+            datasets,
+            mc_reps,
+            self.n_reps,
+        )
         new._strings = self._strings  # shared: the keys of J_mc, J_mc_se hold the limit
         return new
 
@@ -408,8 +490,9 @@ class UnitResult:
             "estimator": self.axis.names * R,
             "gamma": self.axis.gammas * R,
             "rep": [r for r in self.reps for _ in range(E)],
-            "seed_key": [[self.system_idx, self.sigma_w_idx, ds.N, r]
-                         for r in self.reps for _ in range(E)],
+            "seed_key": [
+                [self.system_idx, self.sigma_w_idx, ds.N, r] for r in self.reps for _ in range(E)
+            ],
         }
 
     def value_columns(self, as_json: frozenset[str] | set[str] = frozenset()) -> dict[str, list]:
@@ -443,8 +526,11 @@ class UnitResult:
 
     def _seed_key_strings(self, ds: _Dataset) -> list[str]:
         E = len(self.axis.names)
-        return [f"[{self.system_idx}, {self.sigma_w_idx}, {ds.N}, {r}]"
-                for r in self.reps for _ in range(E)]
+        return [
+            f"[{self.system_idx}, {self.sigma_w_idx}, {ds.N}, {r}]"
+            for r in self.reps
+            for _ in range(E)
+        ]
 
     def _json_strings(self, di: int, f: str, v, RE: int) -> list[str]:
         """``_json_strings`` of a field, cached (J_mc and J_mc_se per Monte Carlo limit)."""
@@ -460,8 +546,10 @@ class UnitResult:
         lines: list[str] = []
         for di, ds in enumerate(self.datasets):
             const: dict[str, str] = {
-                "system": json.dumps(self.system), "sigma_w": repr(float(self.sigma_w)),
-                "N": str(int(ds.N)), "N0": str(int(ds.N0)),
+                "system": json.dumps(self.system),
+                "sigma_w": repr(float(self.sigma_w)),
+                "N": str(int(ds.N)),
+                "N0": str(int(ds.N0)),
             }
             var: dict[str, list[str]] = {
                 "estimator": [json.dumps(x) for x in self.axis.names] * R,
@@ -511,8 +599,10 @@ class UnitResult:
         gam = np.array([np.nan if g is None else g for g in self.axis.gammas], dtype=float)
         for ds in self.datasets:
             keys = {
-                "sigma_w": np.full(RE, float(self.sigma_w)), "N": np.full(RE, float(ds.N)),
-                "N0": np.full(RE, float(ds.N0)), "gamma": np.tile(gam, R),
+                "sigma_w": np.full(RE, float(self.sigma_w)),
+                "N": np.full(RE, float(ds.N)),
+                "N0": np.full(RE, float(ds.N0)),
+                "gamma": np.tile(gam, R),
                 "rep": np.repeat(np.asarray(self.reps, dtype=float), E),
             }
             for f in SCALAR_FIELDS:
@@ -536,16 +626,18 @@ class UnitResult:
                     col = ds.notes.reshape(RE)
                 else:
                     v = ds.fields.get(f)
-                    col = np.full(RE, None, dtype=object) if v is None else \
-                        np.asarray(_flat(v, RE), dtype=object)
+                    col = (
+                        np.full(RE, None, dtype=object)
+                        if v is None
+                        else np.asarray(_flat(v, RE), dtype=object)
+                    )
                 put(f, col)
             if matrices:
                 for f in RM:
                     v = ds.fields.get(f)
                     if v is not None:
                         a = _flat(v, RE).astype(float)
-                        put(f, np.where(np.isfinite(a).all(axis=(1, 2))[:, None, None], a,
-                                        np.nan))
+                        put(f, np.where(np.isfinite(a).all(axis=(1, 2))[:, None, None], a, np.nan))
         return {f: np.concatenate(v) for f, v in parts.items()}
 
 
@@ -568,8 +660,17 @@ def run_unit_result(spec: ExperimentSpec, unit: dict) -> UnitResult:
             if spec.reuse_gain:
                 prev_gain = gain
             datasets.append(_Dataset(N=int(N), N0=int(N0), fields=fields, note_entries=notes))
-    return UnitResult(spec.systems[si].name, si, spec.sigma_w[wi], wi, reps, axis, datasets,
-                      spec.mc_reps, spec.reps)
+    return UnitResult(
+        spec.systems[si].name,
+        si,
+        spec.sigma_w[wi],
+        wi,
+        reps,
+        axis,
+        datasets,
+        spec.mc_reps,
+        spec.reps,
+    )
 
 
 def run_unit(spec: ExperimentSpec, unit: dict) -> list[dict]:
@@ -639,8 +740,7 @@ def open_pool(n_jobs: int):
     from concurrent.futures import ProcessPoolExecutor
 
     ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else None
-    with ProcessPoolExecutor(max_workers=n_jobs, mp_context=ctx,
-                             initializer=_worker_init) as pool:
+    with ProcessPoolExecutor(max_workers=n_jobs, mp_context=ctx, initializer=_worker_init) as pool:
         for f in [pool.submit(_noop) for _ in range(n_jobs)]:
             f.result()
         yield pool

@@ -51,24 +51,28 @@ __all__ = [
 # ---------------------------------------------------------------------------
 
 KALMAN_OK = 0
-KALMAN_UNDETECTABLE = 1       # (A, C) not detectable: an unstable mode is unobservable
-KALMAN_UNIT_CIRCLE = 2        # sigma_w = 0 and A has an eigenvalue on the unit circle
-KALMAN_NOT_CONVERGED = 3      # no stabilising solution reached (numerically ill-posed)
-KALMAN_NONFINITE_INPUT = 4    # A, C, sigma_w or sigma_v not finite
+KALMAN_UNDETECTABLE = 1  # (A, C) not detectable: an unstable mode is unobservable
+KALMAN_UNIT_CIRCLE = 2  # sigma_w = 0 and A has an eigenvalue on the unit circle
+KALMAN_NOT_CONVERGED = 3  # no stabilising solution reached (numerically ill-posed)
+KALMAN_NONFINITE_INPUT = 4  # A, C, sigma_w or sigma_v not finite
 
 KALMAN_REASONS = {
     KALMAN_OK: "",
     KALMAN_UNDETECTABLE: "Kalman gain undefined: (A, C) is not detectable",
-    KALMAN_UNIT_CIRCLE: ("Kalman gain undefined: sigma_w = 0 and A has an eigenvalue on the "
-                         "unit circle, so the DARE has no stabilising solution"),
-    KALMAN_NOT_CONVERGED: ("Kalman gain undefined: the DARE iteration did not reach a "
-                           "stabilising solution (ill-conditioned problem)"),
+    KALMAN_UNIT_CIRCLE: (
+        "Kalman gain undefined: sigma_w = 0 and A has an eigenvalue on the "
+        "unit circle, so the DARE has no stabilising solution"
+    ),
+    KALMAN_NOT_CONVERGED: (
+        "Kalman gain undefined: the DARE iteration did not reach a "
+        "stabilising solution (ill-conditioned problem)"
+    ),
     KALMAN_NONFINITE_INPUT: "Kalman gain undefined: non-finite A, C, sigma_w or sigma_v",
 }
 
-_SDA_TOL = 1e-14        # relative step size at which doubling stops (quadratic convergence)
-_SDA_A_TOL = 1e-8      # and |A_k|_F below this: A_k ~ (A - K C)^(2^k) has vanished
-_SDA_MAX_ITER = 64      # 2^64 Riccati steps: ample even for rho(A - K C) = 1 - 1e-15
+_SDA_TOL = 1e-14  # relative step size at which doubling stops (quadratic convergence)
+_SDA_A_TOL = 1e-8  # and |A_k|_F below this: A_k ~ (A - K C)^(2^k) has vanished
+_SDA_MAX_ITER = 64  # 2^64 Riccati steps: ample even for rho(A - K C) = 1 - 1e-15
 _NEWTON_TOL = 1e-13
 _NEWTON_MAX_ITER = 60
 _UNIT_CIRCLE_TOL = 1e-10
@@ -168,8 +172,11 @@ def _sda(A, C, q):
             a_new = a @ S1
             step = _fro(h_new - h)
             scale = _fro(h_new)
-            finite = (np.isfinite(h_new).all(axis=(-1, -2)) & np.isfinite(g_new).all(axis=(-1, -2))
-                      & np.isfinite(a_new).all(axis=(-1, -2)))
+            finite = (
+                np.isfinite(h_new).all(axis=(-1, -2))
+                & np.isfinite(g_new).all(axis=(-1, -2))
+                & np.isfinite(a_new).all(axis=(-1, -2))
+            )
             Ak[sel], Gk[sel], Hk[sel] = a_new, g_new, h_new
             # A_k -> 0 exactly when H_k tends to the stabilising solution
             done = finite & (step <= _SDA_TOL * scale) & (_fro(a_new) <= _SDA_A_TOL)
@@ -214,8 +221,8 @@ def _newton(A, C, q, K0):
 def _undetectable(A, C):
     """PBH test: True where some eigenvalue |lambda| >= 1 has rank [A - lambda I; C] < n."""
     b, n, _ = A.shape
-    lam = np.linalg.eigvals(A)                                    # (b, n)
-    M = A[:, None, :, :] - lam[:, :, None, None] * np.eye(n)      # (b, n, n, n)
+    lam = np.linalg.eigvals(A)  # (b, n)
+    M = A[:, None, :, :] - lam[:, :, None, None] * np.eye(n)  # (b, n, n, n)
     Cc = np.broadcast_to(C[:, None].astype(complex), (b, n) + C.shape[1:])
     smin = np.linalg.svd(np.concatenate([M, Cc], axis=-2), compute_uv=False)[..., -1]
     scale = np.maximum(1.0, _fro(A) + _fro(C))[:, None]
@@ -261,8 +268,12 @@ def kalman_predictor(A, C, sigma_w, sigma_v) -> KalmanResult:
     P = np.full((b, n, n), np.nan)
     status = np.full(b, KALMAN_NOT_CONVERGED, dtype=np.int8)
 
-    finite = (np.isfinite(A).all(axis=(-1, -2)) & np.isfinite(C).all(axis=(-1, -2))
-              & np.isfinite(sw) & np.isfinite(sv))
+    finite = (
+        np.isfinite(A).all(axis=(-1, -2))
+        & np.isfinite(C).all(axis=(-1, -2))
+        & np.isfinite(sw)
+        & np.isfinite(sv)
+    )
     status[~finite] = KALMAN_NONFINITE_INPUT
 
     # sigma_v = 0: K = A C^-1 (validation error unless C is square and invertible)
@@ -306,7 +317,9 @@ def kalman_predictor(A, C, sigma_w, sigma_v) -> KalmanResult:
         if r_idx.size:
             with np.errstate(all="ignore"):
                 Kr = _gain_from_X(a[r_idx], c[r_idx], X[r_idx])
-                Xr = _stein(a[r_idx] - Kr @ c[r_idx], q[r_idx, None, None] * np.eye(n) + Kr @ _mT(Kr))
+                Xr = _stein(
+                    a[r_idx] - Kr @ c[r_idx], q[r_idx, None, None] * np.eye(n) + Kr @ _mT(Kr)
+                )
             fin = np.isfinite(Xr).all(axis=(-1, -2))
             X[r_idx[fin]] = Xr[fin]
         with np.errstate(all="ignore"):
@@ -325,7 +338,8 @@ def kalman_predictor(A, C, sigma_w, sigma_v) -> KalmanResult:
         status[idx] = st
 
     return KalmanResult(
-        K=K.reshape(batch + (n, p)), P=P.reshape(batch + (n, n)),
+        K=K.reshape(batch + (n, p)),
+        P=P.reshape(batch + (n, n)),
         status=status.reshape(batch),
     )
 
@@ -443,14 +457,19 @@ def design_gain(A_tilde, gamma, r_A, C, K_hat, margin=0.01, method="auto") -> Ga
     if K_hat.shape[-2:] != (n, p):
         raise SpecError("K_hat", f"must be (..., {n}, {p}), got shape {K_hat.shape}")
     r_A = np.asarray(r_A, dtype=float)
-    batch = np.broadcast_shapes(Ct.shape[:-2], K_hat.shape[:-2], C.shape[:-2], r_A.shape,
-                                np.shape(margin))
+    batch = np.broadcast_shapes(
+        Ct.shape[:-2], K_hat.shape[:-2], C.shape[:-2], r_A.shape, np.shape(margin)
+    )
     Ct = np.broadcast_to(Ct, batch + (n, n))
     K_hat = np.broadcast_to(K_hat, batch + (n, p))
     Cb = np.broadcast_to(C, batch + (p, n))
     rho = np.broadcast_to(1.0 - np.asarray(margin, dtype=float) - n * r_A, batch)
-    good = (np.isfinite(Ct).all(axis=(-1, -2)) & np.isfinite(K_hat).all(axis=(-1, -2))
-            & np.isfinite(Cb).all(axis=(-1, -2)) & np.isfinite(rho))
+    good = (
+        np.isfinite(Ct).all(axis=(-1, -2))
+        & np.isfinite(K_hat).all(axis=(-1, -2))
+        & np.isfinite(Cb).all(axis=(-1, -2))
+        & np.isfinite(rho)
+    )
 
     orth = _is_orthogonal(C)
     if method == "auto":
@@ -463,7 +482,7 @@ def design_gain(A_tilde, gamma, r_A, C, K_hat, margin=0.01, method="auto") -> Ga
             c0 = Ct - K_hat @ Cb
             # infeasible -> radius 0 -> c = 0, the unique minimiser of g(L)
             c = project_l1_ball(c0, np.where(feasible, rho, 0.0)[..., None])
-            L = (Ct - c) @ _mT(Cb)              # C orthogonal: L C = Ct - c
+            L = (Ct - c) @ _mT(Cb)  # C orthogonal: L C = Ct - c
     elif method == "cvxpy":
         L = np.full(batch + (n, p), np.nan)
         feasible = np.zeros(batch, dtype=bool)
@@ -507,7 +526,7 @@ class _CvxpyDesign:
             return self.L.value, True
         nan = np.full(self.L.shape, np.nan)
         if self.main.status not in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
-            return nan, False                     # solver failure: NaN gain, not certified
+            return nan, False  # solver failure: NaN gain, not certified
         # fallback: min g(L); then, among the minimisers, the L closest to K_hat
         self.min_g.solve(solver=cp.CLARABEL)
         if self.min_g.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):

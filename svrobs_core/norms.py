@@ -220,8 +220,7 @@ def _sigma_max(F, G, H, D, w):
     return np.linalg.svd(T, compute_uv=False)[..., 0]
 
 
-def hinf_norm(F, G, H, D=None, *, grid=1024, peaks=4, iters=48, rho=None,
-              return_reason=False):
+def hinf_norm(F, G, H, D=None, *, grid=1024, peaks=4, iters=48, rho=None, return_reason=False):
     """sup_w sigma_max(H (e^jw I - F)^-1 G + D) on a refined grid; NaN if unstable.
 
     F (..., n, n), G (..., n, m), H (..., p, n), D (..., p, m) or None (zero)
@@ -248,8 +247,12 @@ def hinf_norm(F, G, H, D=None, *, grid=1024, peaks=4, iters=48, rho=None,
     else:
         Df = np.broadcast_to(D, batch + (p, m)).reshape(Nb, p, m)
     with np.errstate(invalid="ignore"):
-        ok = (rho.reshape(Nb) < 1.0) & np.isfinite(Gf).all((1, 2)) & \
-            np.isfinite(Hf).all((1, 2)) & np.isfinite(Df).all((1, 2))
+        ok = (
+            (rho.reshape(Nb) < 1.0)
+            & np.isfinite(Gf).all((1, 2))
+            & np.isfinite(Hf).all((1, 2))
+            & np.isfinite(Df).all((1, 2))
+        )
     out = np.full(Nb, np.nan)
     idx = np.flatnonzero(ok)
     if idx.size:
@@ -257,7 +260,7 @@ def hinf_norm(F, G, H, D=None, *, grid=1024, peaks=4, iters=48, rho=None,
         per_cell = 16 * k * (n * n + n * m + p * m + n) * 2
         step = max(1, _CHUNK_BYTES // max(per_cell, 1))
         for s in range(0, idx.size, step):
-            sel = idx[s:s + step]
+            sel = idx[s : s + step]
             out[sel] = _hinf_chunk(Ff[sel], Gf[sel], Hf[sel], Df[sel], grid, peaks, iters)
     out = out.reshape(batch)
     return _finish(out, rho, return_reason)
@@ -275,7 +278,7 @@ def _hinf_chunk(F, G, H, D, grid, peaks, iters):
     right = np.concatenate([f[:, 1:], np.full((c, 1), -np.inf)], axis=1)
     score = np.where((f >= left) & (f >= right), f, -np.inf)
     kk = min(peaks, w.shape[1])
-    cand = np.argsort(-score, axis=1)[:, :kk]                       # (c, kk)
+    cand = np.argsort(-score, axis=1)[:, :kk]  # (c, kk)
     valid = np.take_along_axis(score, cand, axis=1) > -np.inf
     last = w.shape[1] - 1
     a = np.take_along_axis(w, np.maximum(cand - 1, 0), axis=1)
@@ -285,7 +288,7 @@ def _hinf_chunk(F, G, H, D, grid, peaks, iters):
     f1 = _sigma_max(F, G, H, D, x1)
     f2 = _sigma_max(F, G, H, D, x2)
     for _ in range(iters):
-        go_left = f1 >= f2           # max in [a, x2]
+        go_left = f1 >= f2  # max in [a, x2]
         a = np.where(go_left, a, x1)
         b = np.where(go_left, x2, b)
         keep_x = np.where(go_left, x1, x2)

@@ -34,8 +34,18 @@ def _truth_cached(A_b, B_b, C_b, shape_A, shape_B, shape_C, sigma_u, sigma_w, si
 def truth(system, sigma_w: float, horizon: int):
     """K, J*, TrueSystemNorms and Kalman failure reason of the true system (cached)."""
     A, B, C = system.A, system.B, system.C
-    return _truth_cached(A.tobytes(), B.tobytes(), C.tobytes(), A.shape, B.shape, C.shape,
-                         system.sigma_u, float(sigma_w), system.sigma_v, horizon)
+    return _truth_cached(
+        A.tobytes(),
+        B.tobytes(),
+        C.tobytes(),
+        A.shape,
+        B.shape,
+        C.shape,
+        system.sigma_u,
+        float(sigma_w),
+        system.sigma_v,
+        horizon,
+    )
 
 
 def _reason_notes(notes, reasons, prefix: str):
@@ -52,8 +62,9 @@ def design(spec, system, sigma_w, A_hat, gamma, rad):
     return res, (None if kal.ok.all() else kal.reasons())
 
 
-def run_observer_stages(spec, system, sigma_w, keys, A_hat, B_hat, gamma, rad, b, axis, out,
-                        notes, designed):
+def run_observer_stages(
+    spec, system, sigma_w, keys, A_hat, B_hat, gamma, rad, b, axis, out, notes, designed
+):
     """Fill gain/cost/bound/sls fields for one dataset; ``designed`` is the
     (possibly reused) GainResult the caller chose for this N."""
     A, B, C = system.A, system.B, system.C
@@ -67,14 +78,17 @@ def run_observer_stages(spec, system, sigma_w, keys, A_hat, B_hat, gamma, rad, b
     rho_F = spectral_radius(A_hat - L @ C)
     out["rho_true"] = spectral_radius(A - L @ C)
     if designed.feasible is not None:
-        notes.add(~designed.feasible & np.isfinite(designed.g_L),
-                  "gain: margin not reachable, L minimises g(L)")
+        notes.add(
+            ~designed.feasible & np.isfinite(designed.g_L),
+            "gain: margin not reachable, L minimises g(L)",
+        )
     if not spec.has("cost"):
         return
     su, sv = system.sigma_u, system.sigma_v
     J = _cost.exact_cost(A, B, A_hat, B_hat, L, C, su, sigma_w, sv, spec.horizon)
     J_stat, stat_reason = _cost.stationary_cost(
-        A, B, A_hat, B_hat, L, C, su, sigma_w, sv, rho_F=rho_F, return_reason=True)
+        A, B, A_hat, B_hat, L, C, su, sigma_w, sv, rho_F=rho_F, return_reason=True
+    )
     _reason_notes(notes, stat_reason, "J_stationary")
     out["J_exact"], out["J_stationary"] = J, J_stat
     out["J_star"] = np.broadcast_to(J_star, (R, E))
@@ -111,8 +125,19 @@ def _monte_carlo(spec, system, sigma_w, keys, A_hat, B_hat, L, out, notes):
     if idx.size:
         gens = generators(spec.seed, [keys[i] for i in idx], MC_STREAM, fresh=True)
         J_mc[idx], J_se[idx] = _cost.mc_cost_shared(
-            system.A, system.B, A_hat[idx], B_hat[idx], L[idx], system.C,
-            system.sigma_u, sigma_w, system.sigma_v, spec.horizon, list(gens), spec.mc_runs)
+            system.A,
+            system.B,
+            A_hat[idx],
+            B_hat[idx],
+            L[idx],
+            system.C,
+            system.sigma_u,
+            sigma_w,
+            system.sigma_v,
+            spec.horizon,
+            list(gens),
+            spec.mc_runs,
+        )
     out["J_mc"], out["J_mc_se"] = J_mc, J_se
 
 
@@ -123,8 +148,11 @@ def _cost_ratio(spec, axis, J, out, notes):
     for ei, (name, g) in enumerate(zip(axis.names, axis.gammas)):
         if g is None:
             continue
-        ref = [j for j, (nm, gg) in enumerate(zip(names, axis.gammas))
-               if nm == name and gg == spec.gamma_ref]
+        ref = [
+            j
+            for j, (nm, gg) in enumerate(zip(names, axis.gammas))
+            if nm == name and gg == spec.gamma_ref
+        ]
         if ref:
             ratio[:, ei] = np.abs(J[:, ei] - J[:, ref[0]]) / J[:, ref[0]]
         else:
@@ -156,7 +184,19 @@ def run_sls(spec, system, b, norms, K, A_hat, out, notes):
         res = _sls.sls_observer(A_hat[ri, ei], system.C, K, F[ri, ei], C_bound, spec.sls_T_fir)
         J_opt[ri, ei], status[ri, ei] = res.J_opt, res.status
     bound, reason = _sls.jopt_upper_bound(
-        b.eps_A, eps1, C_bound, norms.hinf_PhiA_B, norms.hinf_PhiA_K, su, sv,
-        norms.h2_closed, norms.hinf_closed)
+        b.eps_A,
+        eps1,
+        C_bound,
+        norms.hinf_PhiA_B,
+        norms.hinf_PhiA_K,
+        su,
+        sv,
+        norms.h2_closed,
+        norms.hinf_closed,
+    )
     _reason_notes(notes, reason, None)
-    out["J_opt"], out["sls_status"], out["J_opt_bound"] = J_opt, status, np.broadcast_to(bound, (R, E))
+    out["J_opt"], out["sls_status"], out["J_opt_bound"] = (
+        J_opt,
+        status,
+        np.broadcast_to(bound, (R, E)),
+    )

@@ -97,7 +97,7 @@ PUBLISHED_TABLE2: dict[tuple[str, float, str], dict[str, float]] = {
 PUBLISHED_CLAIMS: dict[str, dict] = {
     "svr_beats_ols_large_noise": {
         "quote": "RMSE of the estimation of the proposed method is smaller than that of OLS "
-                 "when the process noise becomes larger",
+        "when the process noise becomes larger",
         "where": "Section 6.1, Table 2",
     },
     "lemma2_intervals": {

@@ -9,24 +9,46 @@ import numpy as np
 KEY_FIELDS = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep", "seed_key")
 ESTIMATE_FIELDS = ("A_hat", "B_hat", "rmse_A", "rmse_B")
 BOUND_FIELDS = (
-    "H_A", "H_B", "r_A", "r_B", "eps_A", "eps_B", "coverage_A", "coverage_B",
-    "thm1_holds_A", "thm1_holds_B", "rho_upper_bound", "stable_certified",
+    "H_A",
+    "H_B",
+    "r_A",
+    "r_B",
+    "eps_A",
+    "eps_B",
+    "coverage_A",
+    "coverage_B",
+    "thm1_holds_A",
+    "thm1_holds_B",
+    "rho_upper_bound",
+    "stable_certified",
 )
 GAIN_FIELDS = ("L", "g_L", "certified", "rho_true", "K")
 COST_FIELDS = (
-    "J_exact", "J_stationary", "J_mc", "J_mc_se", "J_star", "cost_ratio", "J_bound", "delta_J",
+    "J_exact",
+    "J_stationary",
+    "J_mc",
+    "J_mc_se",
+    "J_star",
+    "cost_ratio",
+    "J_bound",
+    "delta_J",
 )
 SLS_FIELDS = ("J_opt", "J_opt_bound", "sls_status")
 RECORD_FIELDS = (
-    KEY_FIELDS + ESTIMATE_FIELDS + BOUND_FIELDS + GAIN_FIELDS + COST_FIELDS + SLS_FIELDS + ("notes",)
+    KEY_FIELDS
+    + ESTIMATE_FIELDS
+    + BOUND_FIELDS
+    + GAIN_FIELDS
+    + COST_FIELDS
+    + SLS_FIELDS
+    + ("notes",)
 )
 MATRIX_FIELDS = ("A_hat", "B_hat", "L", "K")
 BOOL_FIELDS = ("thm1_holds_A", "thm1_holds_B", "stable_certified", "certified")
 TEXT_FIELDS = ("system", "estimator", "sls_status", "notes")
 # Scalars a user filters, sorts and averages on: one numeric SQL column each.
 NUMERIC_FIELDS = tuple(
-    f for f in RECORD_FIELDS
-    if f not in MATRIX_FIELDS + TEXT_FIELDS + ("seed_key",)
+    f for f in RECORD_FIELDS if f not in MATRIX_FIELDS + TEXT_FIELDS + ("seed_key",)
 )
 GROUP_FIELDS = ("system", "sigma_w", "N", "estimator", "gamma")
 
@@ -77,8 +99,9 @@ def summarize_columns(columns: dict) -> list[dict]:
     if not keys:
         return []
     index: dict[tuple, int] = {}
-    gid = np.fromiter((index.setdefault(k, len(index)) for k in keys), dtype=np.intp,
-                      count=len(keys))
+    gid = np.fromiter(
+        (index.setdefault(k, len(index)) for k in keys), dtype=np.intp, count=len(keys)
+    )
     order = np.argsort(gid, kind="stable")
     sizes = np.bincount(gid, minlength=len(index))
     starts = np.concatenate(([0], np.cumsum(sizes)[:-1]))
@@ -105,6 +128,5 @@ def summarize_columns(columns: dict) -> list[dict]:
             else:
                 mean, std, n = stats[f]
                 group_stats[f] = {"mean": mean[g], "std": std[g], "count": n[g]}
-        out.append({**dict(zip(GROUP_FIELDS, key)), "count": int(sizes[g]),
-                    "stats": group_stats})
+        out.append({**dict(zip(GROUP_FIELDS, key)), "count": int(sizes[g]), "stats": group_stats})
     return out

@@ -57,8 +57,16 @@ SCALAR_FIELDS = tuple(f for f in REPORT_FIELDS if f not in MATRIX_FIELDS + TEXT_
 
 STAGE_FIELDS = {
     "estimate": ("rmse_A", "rmse_B"),
-    "bounds": ("r_A", "r_B", "eps_A", "eps_B", "coverage_A", "coverage_B",
-               "rho_upper_bound", "stable_certified"),
+    "bounds": (
+        "r_A",
+        "r_B",
+        "eps_A",
+        "eps_B",
+        "coverage_A",
+        "coverage_B",
+        "rho_upper_bound",
+        "stable_certified",
+    ),
     "gain": ("g_L", "certified", "rho_true"),
     "cost": ("J_exact", "J_star"),
     "cost_bound": ("J_bound", "delta_J"),
@@ -203,8 +211,10 @@ def _meta(spec) -> _Meta:
     from .systems import PRESETS, resolve_system
 
     if spec is None:
-        truth = {name: (np.asarray(p["A"], float), np.asarray(p["B"], float))
-                 for name, p in PRESETS.items()}
+        truth = {
+            name: (np.asarray(p["A"], float), np.asarray(p["B"], float))
+            for name, p in PRESETS.items()
+        }
         return _Meta(truth=truth)
     if not isinstance(spec, ExperimentSpec):
         spec = parse_spec(spec)
@@ -213,8 +223,14 @@ def _meta(spec) -> _Meta:
         if name not in truth:
             s = resolve_system(name)
             truth[name] = (np.asarray(s.A), np.asarray(s.B))
-    return _Meta(delta=spec.delta, seed=spec.seed, gamma_ref=spec.gamma_ref,
-                 stages=tuple(spec.stages), truth=truth, spec_dict=spec.to_dict())
+    return _Meta(
+        delta=spec.delta,
+        seed=spec.seed,
+        gamma_ref=spec.gamma_ref,
+        stages=tuple(spec.stages),
+        truth=truth,
+        spec_dict=spec.to_dict(),
+    )
 
 
 # ---------------------------------------------------------------------------
@@ -324,15 +340,15 @@ def _by_N(cols: Columns, mask, values: np.ndarray, fn: Callable[[np.ndarray], fl
     f0 = np.isfinite(n0)
     c0 = np.bincount(inv[f0], minlength=k)
     with np.errstate(invalid="ignore", divide="ignore"):
-        x0 = np.where(c0 > 0, np.bincount(inv[f0], weights=n0[f0], minlength=k) / c0,
-                      uN.astype(float))
+        x0 = np.where(
+            c0 > 0, np.bincount(inv[f0], weights=n0[f0], minlength=k) / c0, uN.astype(float)
+        )
     v = values[idx]
     fv = np.isfinite(v)
     cnt = np.bincount(inv[fv], minlength=k)
     if fn is _mean:  # the common case, vectorised
         with np.errstate(invalid="ignore", divide="ignore"):
-            ys = np.where(cnt > 0, np.bincount(inv[fv], weights=v[fv], minlength=k) / cnt,
-                          np.nan)
+            ys = np.where(cnt > 0, np.bincount(inv[fv], weights=v[fv], minlength=k) / cnt, np.nan)
     else:
         order = np.argsort(inv[fv], kind="stable")
         groups = np.split(v[fv][order], np.cumsum(cnt)[:-1])
@@ -425,30 +441,51 @@ def table2(records, gamma: float | None = None) -> list[dict]:
                     pub = published_table2(system, sigma_w, mat)
                 p_ols = pub["ols"] if pub else None
                 p_svr = pub["ours"] if pub else None
-                rows.append({
-                    "system": system, "sigma_w": sigma_w, "matrix": mat, "gamma": g,
-                    "ols": ols, "svr": svr,
-                    "paper_ols": p_ols, "paper_ours": p_svr,
-                    "ratio_ols": (ols / p_ols) if (ols is not None and p_ols) else None,
-                    "ratio_svr": (svr / p_svr) if (svr is not None and p_svr) else None,
-                    "svr_minus_ols": (svr - ols) if (svr is not None and ols is not None)
-                    else None,
-                    "n_N": max(nN_o, nN_s),
-                    "reps_per_N": min((x for x in (nr_o, nr_s) if x), default=0),
-                })
+                rows.append(
+                    {
+                        "system": system,
+                        "sigma_w": sigma_w,
+                        "matrix": mat,
+                        "gamma": g,
+                        "ols": ols,
+                        "svr": svr,
+                        "paper_ols": p_ols,
+                        "paper_ours": p_svr,
+                        "ratio_ols": (ols / p_ols) if (ols is not None and p_ols) else None,
+                        "ratio_svr": (svr / p_svr) if (svr is not None and p_svr) else None,
+                        "svr_minus_ols": (svr - ols)
+                        if (svr is not None and ols is not None)
+                        else None,
+                        "n_N": max(nN_o, nN_s),
+                        "reps_per_N": min((x for x in (nr_o, nr_s) if x), default=0),
+                    }
+                )
     return rows
 
 
 TABLE2_COLUMNS = (
-    "system", "sigma_w", "matrix", "gamma", "ols", "svr", "paper_ols", "paper_ours",
-    "ratio_ols", "ratio_svr", "svr_minus_ols", "n_N", "reps_per_N",
+    "system",
+    "sigma_w",
+    "matrix",
+    "gamma",
+    "ols",
+    "svr",
+    "paper_ols",
+    "paper_ours",
+    "ratio_ols",
+    "ratio_svr",
+    "svr_minus_ols",
+    "n_N",
+    "reps_per_N",
 )
 
 
 def table2_markdown(rows: list[dict]) -> str:
-    head = ("| System | σ_w | Matrix | OLS (ours) | SVR (ours) | OLS (paper, published) "
-            "| \"Ours\" SVR (paper, published) | OLS ours/paper | SVR ours/paper "
-            "| SVR − OLS (ours) |")
+    head = (
+        "| System | σ_w | Matrix | OLS (ours) | SVR (ours) | OLS (paper, published) "
+        '| "Ours" SVR (paper, published) | OLS ours/paper | SVR ours/paper '
+        "| SVR − OLS (ours) |"
+    )
     lines = [head, "|" + "---|" * 10]
     for r in rows:
         lines.append(
@@ -527,8 +564,9 @@ def _svr_ols_diff_calc(cols: Columns) -> np.ndarray:
     X = cols.data.get("A_hat")
     if X is None or X.ndim != 3 or X.shape[1] == 0:
         return out
-    keys = list(zip(cols["system"], cols["sigma_w"].tolist(), cols["N"].tolist(),
-                    cols["rep"].tolist()))
+    keys = list(
+        zip(cols["system"], cols["sigma_w"].tolist(), cols["N"].tolist(), cols["rep"].tolist())
+    )
     ols_at = {}
     for i in np.nonzero(cols["estimator"] == "ols")[0]:
         ols_at[keys[i]] = i
@@ -546,19 +584,32 @@ def first_stable_certified(records, share: float = 0.5) -> dict[tuple, dict | No
     cols = as_columns(records)
     out: dict[tuple, dict | None] = {}
     sc = cols["stable_certified"]
-    for key, idx in _groupby(cols, ("system", "sigma_w", "estimator", "gamma"),
-                             np.isfinite(sc)).items():
+    for key, idx in _groupby(
+        cols, ("system", "sigma_w", "estimator", "gamma"), np.isfinite(sc)
+    ).items():
         m = np.zeros(cols.n, bool)
         m[idx] = True
         x0, Ns, shares, _ = _by_N(cols, m, sc, _mean)
         hit = np.nonzero(shares >= share)[0]
-        out[key] = None if hit.size == 0 else {
-            "N": int(Ns[hit[0]]), "N0": int(round(x0[hit[0]])), "share": float(shares[hit[0]]),
-            "N_max": int(Ns.max()), "N0_max": int(round(x0.max())),
-        }
+        out[key] = (
+            None
+            if hit.size == 0
+            else {
+                "N": int(Ns[hit[0]]),
+                "N0": int(round(x0[hit[0]])),
+                "share": float(shares[hit[0]]),
+                "N_max": int(Ns.max()),
+                "N0_max": int(round(x0.max())),
+            }
+        )
         if out[key] is None:
-            out[key] = {"N": None, "N0": None, "share": None,
-                        "N_max": int(Ns.max()), "N0_max": int(round(x0.max()))}
+            out[key] = {
+                "N": None,
+                "N0": None,
+                "share": None,
+                "N_max": int(Ns.max()),
+                "N0_max": int(round(x0.max())),
+            }
     return out
 
 
@@ -591,9 +642,18 @@ def _title(fig, what: str, experiment: str | None, meta: _Meta):
 
 
 def _no_data(ax, msg: str):
-    ax.text(0.5, 0.5, "no data\n" + msg, ha="center", va="center", transform=ax.transAxes,
-            fontsize=9, color="0.35", wrap=True,
-            bbox=dict(boxstyle="round", fc="0.95", ec="0.7"))
+    ax.text(
+        0.5,
+        0.5,
+        "no data\n" + msg,
+        ha="center",
+        va="center",
+        transform=ax.transAxes,
+        fontsize=9,
+        color="0.35",
+        wrap=True,
+        bbox=dict(boxstyle="round", fc="0.95", ec="0.7"),
+    )
     # not set_xticks([]): that would clear the ticks of every axis shared with this one
     ax.tick_params(left=False, bottom=False, labelleft=False, labelbottom=False)
 
@@ -637,8 +697,9 @@ def figure_bytes(fig, fmt: str = "png", dpi: int = 110) -> bytes:
 
 def _legend(fig, handles, ncol=4):
     if handles:
-        fig.legend(handles=handles, loc="outside lower center", ncol=ncol, fontsize=8,
-                   frameon=False)
+        fig.legend(
+            handles=handles, loc="outside lower center", ncol=ncol, fontsize=8, frameon=False
+        )
 
 
 def _line(color="0.2", ls="-", label=""):
@@ -667,8 +728,13 @@ def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float 
             any_line = False
             for i, s in enumerate(sig):
                 for est, ls in (("ols", "-"), ("svr", "--")):
-                    m = _mask(cols, system=system, estimator=est, sigma_w=s,
-                              gamma=None if est == "ols" else g)
+                    m = _mask(
+                        cols,
+                        system=system,
+                        estimator=est,
+                        sigma_w=s,
+                        gamma=None if est == "ols" else g,
+                    )
                     x, _, y, _ = _by_N(cols, m, cols[f], _mean)
                     if np.isfinite(y).any():
                         ax.plot(x, y, color=f"C{i}", ls=ls, lw=1.3)
@@ -686,13 +752,13 @@ def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float 
     handles = [_line(f"C{i}", "-", f"σ_w={_fmt(s)}") for i, s in enumerate(sig)]
     handles += [_line("0.2", "-", "OLS"), _line("0.2", "--", f"SVR γ={_fmt(g)}")]
     _legend(fig, handles, ncol=len(handles))
-    _title(fig, f"RMSE per sample length behind Table 2 (OLS vs SVR γ={_fmt(g)})",
-           experiment, meta)
+    _title(fig, f"RMSE per sample length behind Table 2 (OLS vs SVR γ={_fmt(g)})", experiment, meta)
     return fig
 
 
-def _interval_panels(fig, axes, cols, meta, series, series_label, systems, ratio,
-                     certified_marks=None):
+def _interval_panels(
+    fig, axes, cols, meta, series, series_label, systems, ratio, certified_marks=None
+):
     """Shared body of fig2/fig3: rows A, B; columns systems; one color per series.
 
     series: list of (label, mask-builder(system) -> mask)."""
@@ -718,8 +784,15 @@ def _interval_panels(fig, axes, cols, meta, series, series_label, systems, ratio
                     if mark is not None:
                         ax.axvline(mark, color=col, ls=(0, (1, 2)), lw=2.2, alpha=0.8)
             if not any_line:
-                _no_data(ax, _reason(cols, _mask_any(series, system, cols.n),
-                                     (f"{mat}_hat", f"r_{mat}", f"eps_{mat}"), meta))
+                _no_data(
+                    ax,
+                    _reason(
+                        cols,
+                        _mask_any(series, system, cols.n),
+                        (f"{mat}_hat", f"r_{mat}", f"eps_{mat}"),
+                        meta,
+                    ),
+                )
                 continue
             ax.axhline(0.0, color="0.5", lw=0.6)
             ax.set_yscale("symlog", linthresh=1e-2)
@@ -747,8 +820,16 @@ def _style_handles(extra_vertical: bool = False):
     if extra_vertical:
         from matplotlib.lines import Line2D
 
-        h.append(Line2D([], [], color="0.2", ls=(0, (1, 2)), lw=2.2,
-                        label="first N0 with stable_certified in ≥ half the reps (A row)"))
+        h.append(
+            Line2D(
+                [],
+                [],
+                color="0.2",
+                ls=(0, (1, 2)),
+                lw=2.2,
+                label="first N0 with stable_certified in ≥ half the reps (A row)",
+            )
+        )
     return h
 
 
@@ -760,16 +841,31 @@ def fig2(records, spec=None, *, experiment: str | None = "E1", gamma: float | No
     systems = _systems(cols) or ["(none)"]
     sig = _sigmas(cols)
     fig, axes = _figure(2, len(systems), (5.6 * len(systems), 8), sharex=True)
-    series = [
-        (f"σ_w={_fmt(s)}",
-         (lambda system, s=s: _mask(cols, system=system, estimator="svr", gamma=g, sigma_w=s)))
-        for s in sig
-    ] if g is not None else []
+    series = (
+        [
+            (
+                f"σ_w={_fmt(s)}",
+                (
+                    lambda system, s=s: _mask(
+                        cols, system=system, estimator="svr", gamma=g, sigma_w=s
+                    )
+                ),
+            )
+            for s in sig
+        ]
+        if g is not None
+        else []
+    )
     _interval_panels(fig, axes, cols, meta, series, "σ_w", systems, _n0_ratio(cols))
     handles = [_line(f"C{i}", "-", lab) for i, (lab, _) in enumerate(series)] + _style_handles()
     _legend(fig, handles, ncol=3)
-    _title(fig, f"Fig. 2: SVR (γ={_fmt(g)}) estimation error and Lemma 2 interval ends vs "
-                f"sample length, for each σ_w", experiment, meta)
+    _title(
+        fig,
+        f"Fig. 2: SVR (γ={_fmt(g)}) estimation error and Lemma 2 interval ends vs "
+        f"sample length, for each σ_w",
+        experiment,
+        meta,
+    )
     return fig
 
 
@@ -784,8 +880,14 @@ def fig3(records, spec=None, *, experiment: str | None = "E2", sigma_w: float | 
     gs = _gammas(cols)
     fig, axes = _figure(2, len(systems), (5.6 * len(systems), 8.4), sharex=True)
     series = [
-        (g, (lambda system, g=g: _mask(cols, system=system, estimator="svr", gamma=g,
-                                       sigma_w=sigma_w)))
+        (
+            g,
+            (
+                lambda system, g=g: _mask(
+                    cols, system=system, estimator="svr", gamma=g, sigma_w=sigma_w
+                )
+            ),
+        )
         for g in gs
     ]
     first = first_stable_certified(cols) if sigma_w is not None else {}
@@ -794,8 +896,9 @@ def fig3(records, spec=None, *, experiment: str | None = "E2", sigma_w: float | 
         hit = first.get((system, sigma_w, "svr", gs[i]))
         return None if hit is None or hit["N0"] is None else hit["N0"]
 
-    _interval_panels(fig, axes, cols, meta, series, "γ", systems, _n0_ratio(cols),
-                     certified_marks=mark)
+    _interval_panels(
+        fig, axes, cols, meta, series, "γ", systems, _n0_ratio(cols), certified_marks=mark
+    )
     handles = []
     for i, g in enumerate(gs):
         parts = []
@@ -810,8 +913,12 @@ def fig3(records, spec=None, *, experiment: str | None = "E2", sigma_w: float | 
         handles.append(_line(f"C{i}", "-", f"γ={_fmt(g)} — certified stable " + "; ".join(parts)))
     handles += _style_handles(extra_vertical=True)
     _legend(fig, handles, ncol=2)
-    _title(fig, f"Fig. 3: SVR estimation error and Lemma 2 interval ends for each γ "
-                f"(σ_w={_fmt(sigma_w)})", experiment, meta)
+    _title(
+        fig,
+        f"Fig. 3: SVR estimation error and Lemma 2 interval ends for each γ (σ_w={_fmt(sigma_w)})",
+        experiment,
+        meta,
+    )
     return fig
 
 
@@ -866,8 +973,7 @@ def fig4(records, spec=None, *, experiment: str | None = "E3", system: str = STA
         ax.set_title(f"{system}: bound minus exact cost", fontsize=10)
         ax2.set_title(f"{system}: where Theorem 3's bound fails", fontsize=10)
     _legend(fig, handles, ncol=2)
-    _title(fig, f"Fig. 4: ΔJ = J_b − J vs sample length for each γ on {system}",
-           experiment, meta)
+    _title(fig, f"Fig. 4: ΔJ = J_b − J vs sample length for each γ on {system}", experiment, meta)
     return fig
 
 
@@ -879,8 +985,12 @@ def cost_ratio_of_means(cols: Columns, system: str, gamma: float, gamma_ref: flo
     x, Ns, mean, _ = _by_N(cols, m, J, _mean)
     _, Nr, mean_r, _ = _by_N(cols, mr, J, _mean)
     ref = dict(zip(Nr.tolist(), mean_r.tolist()))
-    r = np.array([abs(v - ref[n]) / ref[n] if ref.get(n) else np.nan
-                  for n, v in zip(Ns.tolist(), mean.tolist())])
+    r = np.array(
+        [
+            abs(v - ref[n]) / ref[n] if ref.get(n) else np.nan
+            for n, v in zip(Ns.tolist(), mean.tolist())
+        ]
+    )
     return x, Ns, r
 
 
@@ -892,8 +1002,11 @@ def fig5(records, spec=None, *, experiment: str | None = "E4"):
     g_ref = meta.gamma_ref
     fig, axes = _figure(1, len(systems), (5.8 * len(systems), 5), sharey=True)
     gs = _gammas(cols)
-    handles = [_line(f"C{i}", "-", f"γ={_fmt(g)}") for i, g in enumerate(gs)
-               if not math.isclose(g, g_ref, rel_tol=_GAMMA_RTOL)]
+    handles = [
+        _line(f"C{i}", "-", f"γ={_fmt(g)}")
+        for i, g in enumerate(gs)
+        if not math.isclose(g, g_ref, rel_tol=_GAMMA_RTOL)
+    ]
     for c, system in enumerate(systems):
         ax = axes[0, c]
         ms = _mask(cols, system=system)
@@ -918,11 +1031,17 @@ def fig5(records, spec=None, *, experiment: str | None = "E4"):
         ax.set_title(system, fontsize=10)
         _x_axis(ax, _n0_ratio(cols, ms))
         ax.grid(alpha=0.3, which="both")
-    handles += [_line("0.2", "-", "ratio of the mean exact costs (SPEC 9)"),
-                _line("0.2", "--", "mean of per-repetition cost_ratio")]
+    handles += [
+        _line("0.2", "-", "ratio of the mean exact costs (SPEC 9)"),
+        _line("0.2", "--", "mean of per-repetition cost_ratio"),
+    ]
     _legend(fig, handles, ncol=len(handles))
-    _title(fig, f"Fig. 5: observer cost ratio vs sample length (reference γ={_fmt(g_ref)})",
-           experiment, meta)
+    _title(
+        fig,
+        f"Fig. 5: observer cost ratio vs sample length (reference γ={_fmt(g_ref)})",
+        experiment,
+        meta,
+    )
     return fig
 
 
@@ -933,11 +1052,18 @@ def fig_coverage(records, spec=None, *, experiment: str | None = "E2"):
     systems = _systems(cols) or ["(none)"]
     sig = _sigmas(cols) or [None]
     rows_ = [(system, mat) for system in systems for mat in ("A", "B")]
-    fig, axes = _figure(len(rows_), len(sig), (3.9 * len(sig) + 0.8, 2.6 * len(rows_) + 1.2),
-                        sharex=True, sharey=True)
-    series = [(est, g) for est, g in
-              ([("ols", None)] if np.any(cols["estimator"] == "ols") else [])
-              + [("svr", g) for g in _gammas(cols)]]
+    fig, axes = _figure(
+        len(rows_),
+        len(sig),
+        (3.9 * len(sig) + 0.8, 2.6 * len(rows_) + 1.2),
+        sharex=True,
+        sharey=True,
+    )
+    series = [
+        (est, g)
+        for est, g in ([("ols", None)] if np.any(cols["estimator"] == "ols") else [])
+        + [("svr", g) for g in _gammas(cols)]
+    ]
     level = 1 - meta.delta
     lows = [level]
     for r, (system, mat) in enumerate(rows_):
@@ -965,8 +1091,13 @@ def fig_coverage(records, spec=None, *, experiment: str | None = "E2"):
     handles = [_line(f"C{i}", "-", _gamma_label(e, g)) for i, (e, g) in enumerate(series)]
     handles.append(_line("k", "--", f"1 − δ = {_fmt(level)}"))
     _legend(fig, handles, ncol=len(handles))
-    _title(fig, "Empirical coverage of the Lemma 2 entry intervals (mean share of entries "
-                "inside, over reps)", experiment, meta)
+    _title(
+        fig,
+        "Empirical coverage of the Lemma 2 entry intervals (mean share of entries "
+        "inside, over reps)",
+        experiment,
+        meta,
+    )
     return fig
 
 
@@ -998,8 +1129,10 @@ def fig_certified(records, spec=None, *, experiment: str | None = "E4"):
         _x_axis(ax, _n0_ratio(cols, ms))
         ax.grid(alpha=0.3)
     handles = [_line(f"C{i}", "-", f"γ={_fmt(g)}") for i, g in enumerate(gs)]
-    handles += [_line("0.2", "-", "certified: g(L) < 1 (Theorem 2 on the Lemma 2 box)"),
-                _line("0.2", "--", "ρ(A − LC) < 1 for the true A")]
+    handles += [
+        _line("0.2", "-", "certified: g(L) < 1 (Theorem 2 on the Lemma 2 box)"),
+        _line("0.2", "--", "ρ(A − LC) < 1 for the true A"),
+    ]
     _legend(fig, handles, ncol=3)
     _title(fig, "Share of certified observer gains vs sample length", experiment, meta)
     return fig
@@ -1019,8 +1152,11 @@ def fig_svr_ols_diff(records, spec=None, *, experiment: str | None = "E2"):
         ax = axes[0, c]
         ms = _mask(cols, system=system)
         if not np.isfinite(d[ms]).any():
-            why = ("needs OLS and SVR estimates (A_hat) of the same repetitions"
-                   if cols.has("rmse_A", ms) else _reason(cols, ms, ("A_hat",), meta))
+            why = (
+                "needs OLS and SVR estimates (A_hat) of the same repetitions"
+                if cols.has("rmse_A", ms)
+                else _reason(cols, ms, ("A_hat",), meta)
+            )
             _no_data(ax, why)
             continue
         for i, g in enumerate(gs):
@@ -1038,8 +1174,7 @@ def fig_svr_ols_diff(records, spec=None, *, experiment: str | None = "E2"):
     handles = [_line(f"C{i}", "-", f"γ={_fmt(g)}") for i, g in enumerate(gs)]
     handles += [_line("0.2", styles[j % 4], f"σ_w={_fmt(s)}") for j, s in enumerate(sig)]
     _legend(fig, handles, ncol=len(handles))
-    _title(fig, "SVR minus OLS: largest entry difference of Ã on the same data",
-           experiment, meta)
+    _title(fig, "SVR minus OLS: largest entry difference of Ã on the same data", experiment, meta)
     return fig
 
 
@@ -1058,16 +1193,21 @@ def _stage_findings(cols: Columns, meta: _Meta) -> list[str]:
         fs = STAGE_FIELDS.get(stage, ())
         if fs and not any(cols.has(f) for f in fs):
             notes = [v for v in cols["notes"] if v]
-            extra = f" Notes on the records: \"{notes[0][:120]}\"." if notes else ""
-            out.append(f"[no data] Stage '{stage}' is in the spec but its fields "
-                       f"({', '.join(fs)}) are null in all {cols.n} records.{extra}")
+            extra = f' Notes on the records: "{notes[0][:120]}".' if notes else ""
+            out.append(
+                f"[no data] Stage '{stage}' is in the spec but its fields "
+                f"({', '.join(fs)}) are null in all {cols.n} records.{extra}"
+            )
     return out
 
 
 def _f_svr_vs_ols(cols: Columns) -> list[str]:
     out = []
-    if not (cols.has("rmse_A") and np.any(cols["estimator"] == "ols")
-            and np.any(cols["estimator"] == "svr")):
+    if not (
+        cols.has("rmse_A")
+        and np.any(cols["estimator"] == "ols")
+        and np.any(cols["estimator"] == "svr")
+    ):
         return out
     claim = PUBLISHED_CLAIMS["svr_beats_ols_large_noise"]
     gs = _gammas(cols)
@@ -1080,13 +1220,15 @@ def _f_svr_vs_ols(cols: Columns) -> list[str]:
             for mat in ("A", "B"):
                 f = f"rmse_{mat}"
                 base, _, _ = _avg_over_reps_then_N(
-                    cols, _mask(cols, system=system, estimator="ols", sigma_w=s), f)
+                    cols, _mask(cols, system=system, estimator="ols", sigma_w=s), f
+                )
                 if base is None:
                     continue
                 better = []
                 for g in gs:
                     v, _, _ = _avg_over_reps_then_N(
-                        cols, _mask(cols, system=system, estimator="svr", gamma=g, sigma_w=s), f)
+                        cols, _mask(cols, system=system, estimator="svr", gamma=g, sigma_w=s), f
+                    )
                     if v is None:
                         continue
                     cells += 1
@@ -1094,10 +1236,15 @@ def _f_svr_vs_ols(cols: Columns) -> list[str]:
                     if v < base:
                         better.append(g)
                         wins += 1
-                parts.append(f"{mat}: {len(better)} of {len(gs)} γ"
-                             + (f" ({', '.join(_fmt(g) for g in better)})" if better else ""))
-            out.append(f"[info] SVR beats OLS in mean RMSE for {system}, σ_w={_fmt(s)}: "
-                       + "; ".join(parts) + ".")
+                parts.append(
+                    f"{mat}: {len(better)} of {len(gs)} γ"
+                    + (f" ({', '.join(_fmt(g) for g in better)})" if better else "")
+                )
+            out.append(
+                f"[info] SVR beats OLS in mean RMSE for {system}, σ_w={_fmt(s)}: "
+                + "; ".join(parts)
+                + "."
+            )
     # the paper's claim, at the largest noise level
     top = max(_sigmas(cols))
     k = n = 0
@@ -1105,20 +1252,25 @@ def _f_svr_vs_ols(cols: Columns) -> list[str]:
         for mat in ("A", "B"):
             f = f"rmse_{mat}"
             base, _, _ = _avg_over_reps_then_N(
-                cols, _mask(cols, system=system, estimator="ols", sigma_w=top), f)
+                cols, _mask(cols, system=system, estimator="ols", sigma_w=top), f
+            )
             for g in gs:
                 v, _, _ = _avg_over_reps_then_N(
-                    cols, _mask(cols, system=system, estimator="svr", gamma=g, sigma_w=top), f)
+                    cols, _mask(cols, system=system, estimator="svr", gamma=g, sigma_w=top), f
+                )
                 if base is not None and v is not None:
                     n += 1
                     k += v < base
     status = "holds" if n and k == n else ("does not hold" if k == 0 else "partly")
-    out.insert(0, (
-        f"[{status}] Paper ({claim['where']}): \"{claim['quote']}\". Here, at σ_w={_fmt(top)}, "
-        f"SVR has the lower mean RMSE in {_pct(k, n)} (system, matrix, γ) cells; over all "
-        f"{cells} cells SVR wins {wins}. The largest relative RMSE difference between SVR and "
-        f"OLS anywhere is {100 * max_rel:.3g} %."
-    ))
+    out.insert(
+        0,
+        (
+            f'[{status}] Paper ({claim["where"]}): "{claim["quote"]}". Here, at σ_w={_fmt(top)}, '
+            f"SVR has the lower mean RMSE in {_pct(k, n)} (system, matrix, γ) cells; over all "
+            f"{cells} cells SVR wins {wins}. The largest relative RMSE difference between SVR and "
+            f"OLS anywhere is {100 * max_rel:.3g} %."
+        ),
+    )
     return out
 
 
@@ -1139,16 +1291,19 @@ def _f_coverage(cols: Columns, meta: _Meta) -> list[str]:
         rec_miss = int(np.sum(cols[f][np.isfinite(cols[f])] < 1))
         n_rec = int(np.isfinite(cols[f]).sum())
         status = "holds" if not below else "does not hold"
-        text = (f"[{status}] Lemma 2 intervals for {mat} (paper, {claim['where']}: "
-                f"\"{claim['quote']}\"): mean empirical coverage is below 1 − δ = {_fmt(level)} "
-                f"in {_pct(len(below), len(groups))} groups (system, σ_w, N, estimator, γ); "
-                f"{_pct(rec_miss, n_rec)} records have at least one entry of {mat} outside "
-                f"its interval.")
+        text = (
+            f"[{status}] Lemma 2 intervals for {mat} (paper, {claim['where']}: "
+            f'"{claim["quote"]}"): mean empirical coverage is below 1 − δ = {_fmt(level)} '
+            f"in {_pct(len(below), len(groups))} groups (system, σ_w, N, estimator, γ); "
+            f"{_pct(rec_miss, n_rec)} records have at least one entry of {mat} outside "
+            f"its interval."
+        )
         if below:
             below.sort(key=lambda t: t[0])
             worst = ", ".join(
                 f"{k[0]} σ_w={_fmt(k[1])} N={_fmt(k[2])} {_gamma_label(k[3], k[4])}: {_fmt(c, 3)}"
-                for c, k in below[:3])
+                for c, k in below[:3]
+            )
             text += f" Lowest: {worst}."
         out.append(text)
     return out
@@ -1170,9 +1325,11 @@ def _f_theorem1(cols: Columns, meta: _Meta) -> list[str]:
         for (est, g), idx in _groupby(cols, ("estimator", "gamma"), ok).items():
             kk = int(np.sum(v[idx] == 0))
             per.append(f"{_gamma_label(est, g)}: {kk}/{idx.size}")
-        out.append(f"[{status}] Theorem 1 for {mat} (every row): violated in {_pct(k, n)} "
-                   f"records (the theorem allows probability δ = {_fmt(meta.delta)}). "
-                   f"By estimator: {'; '.join(per)}.")
+        out.append(
+            f"[{status}] Theorem 1 for {mat} (every row): violated in {_pct(k, n)} "
+            f"records (the theorem allows probability δ = {_fmt(meta.delta)}). "
+            f"By estimator: {'; '.join(per)}."
+        )
     return out
 
 
@@ -1199,14 +1356,18 @@ def _f_stable_certified(cols: Columns, meta: _Meta) -> list[str]:
     for system, parts in by_sys.items():
         nv = never.get(system, [])
         total = len(parts) + len(nv)
-        text = (f"[info] First N at which stable_certified (ρ upper bound < 1) holds in ≥ half "
-                f"the repetitions, {system}: ")
+        text = (
+            f"[info] First N at which stable_certified (ρ upper bound < 1) holds in ≥ half "
+            f"the repetitions, {system}: "
+        )
         if parts:
             text += "; ".join(parts) + ". "
         if nv:
             which = "all" if not parts else f"{len(nv)} of {total}"
-            text += (f"Never in the grid (N ≤ {n_max[system]}) for {which} (σ_w, estimator) "
-                     f"combinations" + (f": {', '.join(nv)}." if parts else "."))
+            text += (
+                f"Never in the grid (N ≤ {n_max[system]}) for {which} (σ_w, estimator) "
+                f"combinations" + (f": {', '.join(nv)}." if parts else ".")
+            )
         out.append(text.strip())
     if claim["system"] in by_sys:
         pub = claim["sample_length"]
@@ -1217,11 +1378,17 @@ def _f_stable_certified(cols: Columns, meta: _Meta) -> list[str]:
             status = "no data"  # the grid stops before the paper's sample length
         else:
             status = "does not hold"
-        got = (f"never in the grid (N0 ≤ {n0_max})" if earliest is None
-               else f"from N0={earliest} at the earliest")
-        out.insert(0, f"[{status}] Paper ({claim['where']}, published): \"{claim['quote']}\" "
-                      f"(sample length {pub}). Here, with the sound Perron-Frobenius certificate "
-                      f"of SPEC section 3, {claim['system']} is certified stable {got}.")
+        got = (
+            f"never in the grid (N0 ≤ {n0_max})"
+            if earliest is None
+            else f"from N0={earliest} at the earliest"
+        )
+        out.insert(
+            0,
+            f'[{status}] Paper ({claim["where"]}, published): "{claim["quote"]}" '
+            f"(sample length {pub}). Here, with the sound Perron-Frobenius certificate "
+            f"of SPEC section 3, {claim['system']} is certified stable {got}.",
+        )
     # soundness: a certificate of stability for a truly unstable A is a false positive
     sc = cols["stable_certified"]
     for system in _systems(cols):
@@ -1233,8 +1400,10 @@ def _f_stable_certified(cols: Columns, meta: _Meta) -> list[str]:
             m = _mask(cols, system=system) & np.isfinite(sc)
             k = int(np.sum(sc[m] == 1))
             status = "holds" if k == 0 else "does not hold"
-            out.append(f"[{status}] Soundness on {system} (true ρ(A) = {_fmt(rho)}): "
-                       f"stable_certified is true in {_pct(k, int(m.sum()))} records.")
+            out.append(
+                f"[{status}] Soundness on {system} (true ρ(A) = {_fmt(rho)}): "
+                f"stable_certified is true in {_pct(k, int(m.sum()))} records."
+            )
     return out
 
 
@@ -1258,10 +1427,12 @@ def _f_cost(cols: Columns, meta: _Meta) -> list[str]:
             for idx in groups.values():
                 neg_groups += float(np.mean(dJ[idx])) < 0
             status = "holds" if k == 0 else ("does not hold" if neg_groups else "partly")
-            out.append(f"[{status}] Paper ({claim['where']}): \"{claim['quote']}\". On {system}, "
-                       f"ΔJ = J_b − J < 0 in {_pct(k, n)} cells ({'; '.join(per)}); the mean ΔJ "
-                       f"over repetitions is negative in {_pct(neg_groups, len(groups))} "
-                       f"(γ, N) groups.")
+            out.append(
+                f'[{status}] Paper ({claim["where"]}): "{claim["quote"]}". On {system}, '
+                f"ΔJ = J_b − J < 0 in {_pct(k, n)} cells ({'; '.join(per)}); the mean ΔJ "
+                f"over repetitions is negative in {_pct(neg_groups, len(groups))} "
+                f"(γ, N) groups."
+            )
     J = cols["J_exact"]
     if cols.has("J_exact"):
         claim = PUBLISHED_CLAIMS["cost_variance_small_gamma"]
@@ -1285,19 +1456,23 @@ def _f_cost(cols: Columns, meta: _Meta) -> list[str]:
                 status = "partly"
             else:
                 status = "does not hold"
-            out.append(f"[{status}] Paper ({claim['where']}): \"{claim['quote']}\". On {system}, "
-                       f"the standard deviation of J over repetitions (mean over N) is "
-                       + ", ".join(f"γ={_fmt(g)}: {_fmt(v, 3)}" for g, v in zip(gs, stds))
-                       + f"; smallest-γ / largest-γ ratio {_fmt(ratio, 3)} (counted as holding "
-                       f"when decreasing in γ with a ratio of at least 2).")
+            out.append(
+                f'[{status}] Paper ({claim["where"]}): "{claim["quote"]}". On {system}, '
+                f"the standard deviation of J over repetitions (mean over N) is "
+                + ", ".join(f"γ={_fmt(g)}: {_fmt(v, 3)}" for g, v in zip(gs, stds))
+                + f"; smallest-γ / largest-γ ratio {_fmt(ratio, 3)} (counted as holding "
+                f"when decreasing in γ with a ratio of at least 2)."
+            )
     mc, se = cols["J_mc"], cols["J_mc_se"]
     ok = np.isfinite(mc) & np.isfinite(se) & np.isfinite(J)
     if ok.any():
         bad = int(np.sum(np.abs(mc[ok] - J[ok]) > 4 * se[ok]))
         status = "holds" if bad == 0 else "does not hold"
-        out.append(f"[{status}] Monte Carlo J agrees with the exact finite-horizon J within "
-                   f"4 standard errors in {_pct(int(ok.sum()) - bad, int(ok.sum()))} records "
-                   f"that have a Monte Carlo estimate.")
+        out.append(
+            f"[{status}] Monte Carlo J agrees with the exact finite-horizon J within "
+            f"4 standard errors in {_pct(int(ok.sum()) - bad, int(ok.sum()))} records "
+            f"that have a Monte Carlo estimate."
+        )
     if cols.has("certified"):
         cert = cols["certified"]
         for system in _systems(cols):
@@ -1315,10 +1490,16 @@ def _f_cost(cols: Columns, meta: _Meta) -> list[str]:
                 status, tail = "info", "No certified gain, so their soundness is not tested here."
             else:
                 status = "holds" if unsound == 0 else "does not hold"
-                tail = (f"Certified gains with ρ(A − LC) ≥ 1 for the true A: "
-                        f"{_pct(unsound, int(mm.sum()))}.")
-            out.append(f"[{status}] Certified gains (g(L) < 1) on {system}: " + "; ".join(per)
-                       + ". " + tail)
+                tail = (
+                    f"Certified gains with ρ(A − LC) ≥ 1 for the true A: "
+                    f"{_pct(unsound, int(mm.sum()))}."
+                )
+            out.append(
+                f"[{status}] Certified gains (g(L) < 1) on {system}: "
+                + "; ".join(per)
+                + ". "
+                + tail
+            )
     return out
 
 
@@ -1330,10 +1511,14 @@ def _f_svr_ols_diff(cols: Columns) -> list[str]:
     for g in _gammas(cols):
         m = _mask(cols, estimator="svr", gamma=g) & np.isfinite(d)
         if m.any():
-            parts.append(f"γ={_fmt(g)}: max {_fmt(float(d[m].max()), 3)}, "
-                         f"median {_fmt(float(np.median(d[m])), 3)}")
-    return ["[info] SVR and OLS estimates of A on the same data differ by at most (largest "
-            "entry difference over all records): " + "; ".join(parts) + "."]
+            parts.append(
+                f"γ={_fmt(g)}: max {_fmt(float(d[m].max()), 3)}, "
+                f"median {_fmt(float(np.median(d[m])), 3)}"
+            )
+    return [
+        "[info] SVR and OLS estimates of A on the same data differ by at most (largest "
+        "entry difference over all records): " + "; ".join(parts) + "."
+    ]
 
 
 def _f_notes(cols: Columns) -> list[str]:
@@ -1350,8 +1535,11 @@ def _f_notes(cols: Columns) -> list[str]:
             counts[part] = counts.get(part, 0) + c
     notes = range(n_notes)
     top = sorted(counts.items(), key=lambda kv: -kv[1])[:4]
-    return [f"[info] {_pct(len(notes), cols.n)} records carry notes (null fields and why): "
-            + "; ".join(f"\"{k[:100]}\" ×{v}" for k, v in top) + "."]
+    return [
+        f"[info] {_pct(len(notes), cols.n)} records carry notes (null fields and why): "
+        + "; ".join(f'"{k[:100]}" ×{v}' for k, v in top)
+        + "."
+    ]
 
 
 def findings(records, spec=None) -> list[str]:
@@ -1426,31 +1614,76 @@ class Report:
 
 # name, function, preferred experiments, fields it needs, title, caption
 FIGURE_PLAN = (
-    ("fig_rmse", fig_rmse, ("E1",), ("rmse_A",), "RMSE per sample length (Table 2 curves)",
-     "Mean RMSE of Ã and B̃ over repetitions at each N, OLS (solid) and SVR (dashed)."),
-    ("fig2", fig2, ("E1", "E2"), ("A_hat", "r_A"), "Fig. 2: estimation error and Lemma 2 "
-     "interval ends, γ = 0.05", "Solid: max_ij |ΔX_ij| with ΔX = X − X̃; dashed: the envelope "
-     "of the Lemma 2 intervals γX̃_ij ± r_X; dotted: ε_X of Corollary 1. Means over repetitions."),
-    ("fig3", fig3, ("E2",), ("A_hat", "r_A"), "Fig. 3: the same for the four γ",
-     "As Fig. 2, one color per γ, at σ_w = 1; the dotted vertical line marks the first N0 at "
-     "which stable_certified holds in at least half of the repetitions."),
-    ("fig4", fig4, ("E3", "E4"), ("delta_J",), "Fig. 4: ΔJ = J_b − J on S",
-     "Left: mean ΔJ over repetitions with the 5-95 % band; right: share of repetitions where "
-     "Theorem 3's bound is below the exact cost (ΔJ < 0)."),
-    ("fig5", fig5, ("E4", "E3"), ("J_exact",), "Fig. 5: cost ratio",
-     "r = |mean J_γ − mean J_ref| / mean J_ref with J the exact finite-horizon cost (solid) "
-     "and the mean of the per-repetition cost_ratio (dashed)."),
-    ("fig_coverage", fig_coverage, ("E2", "E1"), ("coverage_A",),
-     "Beyond the paper: empirical coverage of the Lemma 2 intervals",
-     "Mean share of the entries of A (B) inside their Lemma 2 interval, with the 1 − δ line."),
-    ("fig_certified", fig_certified, ("E4", "E3"), ("certified",),
-     "Beyond the paper: share of certified observer gains",
-     "Share of repetitions with g(L) < 1 (solid) and with ρ(A − LC) < 1 for the true A "
-     "(dashed)."),
-    ("fig_svr_ols_diff", fig_svr_ols_diff, ("E2", "E1"), ("A_hat",),
-     "Beyond the paper: SVR minus OLS on the same data",
-     "Mean over repetitions of max_ij |Ã_SVR − Ã_OLS|, per γ and σ_w: where SVR and OLS "
-     "really differ."),
+    (
+        "fig_rmse",
+        fig_rmse,
+        ("E1",),
+        ("rmse_A",),
+        "RMSE per sample length (Table 2 curves)",
+        "Mean RMSE of Ã and B̃ over repetitions at each N, OLS (solid) and SVR (dashed).",
+    ),
+    (
+        "fig2",
+        fig2,
+        ("E1", "E2"),
+        ("A_hat", "r_A"),
+        "Fig. 2: estimation error and Lemma 2 interval ends, γ = 0.05",
+        "Solid: max_ij |ΔX_ij| with ΔX = X − X̃; dashed: the envelope "
+        "of the Lemma 2 intervals γX̃_ij ± r_X; dotted: ε_X of Corollary 1. Means over repetitions.",
+    ),
+    (
+        "fig3",
+        fig3,
+        ("E2",),
+        ("A_hat", "r_A"),
+        "Fig. 3: the same for the four γ",
+        "As Fig. 2, one color per γ, at σ_w = 1; the dotted vertical line marks the first N0 at "
+        "which stable_certified holds in at least half of the repetitions.",
+    ),
+    (
+        "fig4",
+        fig4,
+        ("E3", "E4"),
+        ("delta_J",),
+        "Fig. 4: ΔJ = J_b − J on S",
+        "Left: mean ΔJ over repetitions with the 5-95 % band; right: share of repetitions where "
+        "Theorem 3's bound is below the exact cost (ΔJ < 0).",
+    ),
+    (
+        "fig5",
+        fig5,
+        ("E4", "E3"),
+        ("J_exact",),
+        "Fig. 5: cost ratio",
+        "r = |mean J_γ − mean J_ref| / mean J_ref with J the exact finite-horizon cost (solid) "
+        "and the mean of the per-repetition cost_ratio (dashed).",
+    ),
+    (
+        "fig_coverage",
+        fig_coverage,
+        ("E2", "E1"),
+        ("coverage_A",),
+        "Beyond the paper: empirical coverage of the Lemma 2 intervals",
+        "Mean share of the entries of A (B) inside their Lemma 2 interval, with the 1 − δ line.",
+    ),
+    (
+        "fig_certified",
+        fig_certified,
+        ("E4", "E3"),
+        ("certified",),
+        "Beyond the paper: share of certified observer gains",
+        "Share of repetitions with g(L) < 1 (solid) and with ρ(A − LC) < 1 for the true A "
+        "(dashed).",
+    ),
+    (
+        "fig_svr_ols_diff",
+        fig_svr_ols_diff,
+        ("E2", "E1"),
+        ("A_hat",),
+        "Beyond the paper: SVR minus OLS on the same data",
+        "Mean over repetitions of max_ij |Ã_SVR − Ã_OLS|, per γ and σ_w: where SVR and OLS "
+        "really differ.",
+    ),
 )
 
 
@@ -1468,9 +1701,13 @@ def _choose_source(experiments: dict[str, dict], cols: dict[str, Columns], prefe
     return next(iter(experiments), None)
 
 
-def build_report(experiments: dict[str, dict], provenance: dict | None = None,
-                 title: str | None = None, *,
-                 render: Callable[[object], Any] | None = None) -> Report:
+def build_report(
+    experiments: dict[str, dict],
+    provenance: dict | None = None,
+    title: str | None = None,
+    *,
+    render: Callable[[object], Any] | None = None,
+) -> Report:
     """``experiments``: name -> {"spec": dict, "records": list|Columns, optional
     "title", "notes" (list[str], e.g. stages that could not run)}.
 
@@ -1492,8 +1729,14 @@ class ReportBuilder:
     ``finish()`` returns the :class:`Report`, the same as :func:`build_report`
     on all experiments."""
 
-    def __init__(self, names, provenance: dict | None = None, title: str | None = None, *,
-                 render: Callable[[object], Any] | None = None):
+    def __init__(
+        self,
+        names,
+        provenance: dict | None = None,
+        title: str | None = None,
+        *,
+        render: Callable[[object], Any] | None = None,
+    ):
         self.names = list(names)
         self.provenance = provenance
         self.title = title
@@ -1519,8 +1762,11 @@ class ReportBuilder:
             src = self._source(prefer, needs, final)
             if src is None or src not in self.experiments:
                 continue
-            fig = fn(self.cols[src], self.experiments[src].get("spec"),
-                     experiment=_exp_label(src, self.provenance))
+            fig = fn(
+                self.cols[src],
+                self.experiments[src].get("spec"),
+                experiment=_exp_label(src, self.provenance),
+            )
             fut = self.render(fig) if self.render is not None else None
             self.figs[i] = (ReportFigure(name, ftitle, caption, src, fig), fut)
 
@@ -1551,8 +1797,11 @@ class ReportBuilder:
             figs.append(fg)
         return Report(
             title=self.title or f"Reproduction of the paper's Section 6 ({PRESET_NAME})",
-            experiments={n: self.exps[n] for n in experiments}, table2=rows,
-            table2_source=t_src, figures=figs, provenance=dict(self.provenance or {}),
+            experiments={n: self.exps[n] for n in experiments},
+            table2=rows,
+            table2_source=t_src,
+            figures=figs,
+            provenance=dict(self.provenance or {}),
         )
 
 
@@ -1577,9 +1826,11 @@ def render_markdown(report: Report, figure_files: dict[str, str] | None = None) 
     """The report as Markdown; figures referenced by file name (``<name>.png``,
     with a link to ``<name>.svg``) unless ``figure_files`` maps names to paths."""
     L = [f"# {report.title}", ""]
-    L.append("Every number below comes from the records of this run (and, for the true "
-             "system matrices, from its specs), except the columns marked *published*, which "
-             "are the paper's own Table 2 values.")
+    L.append(
+        "Every number below comes from the records of this run (and, for the true "
+        "system matrices, from its specs), except the columns marked *published*, which "
+        "are the paper's own Table 2 values."
+    )
     L.append("")
     L.append("| Experiment | What | Records |")
     L.append("|---|---|---|")
@@ -1608,8 +1859,9 @@ def render_markdown(report: Report, figure_files: dict[str, str] | None = None) 
         L.append("")
         L.append(f"![{fg.title}]({png})")
         L.append("")
-        L.append(f"{fg.caption} Data: experiment {fg.experiment}."
-                 + (f" [SVG]({svg})" if svg else ""))
+        L.append(
+            f"{fg.caption} Data: experiment {fg.experiment}." + (f" [SVG]({svg})" if svg else "")
+        )
         L.append("")
     L += ["## Specs", ""]
     for name, e in report.experiments.items():
@@ -1640,14 +1892,19 @@ li{margin:0.3em 0} .pub{background:#fff7e0}
 .partly{color:#a06a00;font-weight:600}.nodata{color:#666;font-weight:600}
 """
 
-_STATUS_CLASS = {"[holds]": "holds", "[does not hold]": "nothold", "[partly]": "partly",
-                 "[no data]": "nodata", "[info]": ""}
+_STATUS_CLASS = {
+    "[holds]": "holds",
+    "[does not hold]": "nothold",
+    "[partly]": "partly",
+    "[no data]": "nodata",
+    "[info]": "",
+}
 
 
 def _html_finding(f: str) -> str:
     for tag, cls in _STATUS_CLASS.items():
         if f.startswith(tag):
-            rest = html.escape(f[len(tag):])
+            rest = html.escape(f[len(tag) :])
             return f'<li><span class="{cls}">{html.escape(tag)}</span>{rest}</li>'
     return f"<li>{html.escape(f)}</li>"
 
@@ -1656,13 +1913,16 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
     """The report as one HTML page; figures embedded as base64 PNG unless
     ``figure_src`` maps figure names to URLs."""
     e = html.escape
-    H = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'>",
-         f"<title>{e(report.title)}</title><style>{_CSS}</style></head><body>",
-         f"<h1>{e(report.title)}</h1>",
-         "<p>Every number below comes from the records of this run (and, for the true system "
-         "matrices, from its specs), except the cells marked <span class='pub'>published</span>, "
-         "which are the paper's own Table 2 values.</p>",
-         "<table><tr><th>Experiment</th><th>What</th><th>Records</th></tr>"]
+    H = [
+        "<!DOCTYPE html>",
+        "<html><head><meta charset='utf-8'>",
+        f"<title>{e(report.title)}</title><style>{_CSS}</style></head><body>",
+        f"<h1>{e(report.title)}</h1>",
+        "<p>Every number below comes from the records of this run (and, for the true system "
+        "matrices, from its specs), except the cells marked <span class='pub'>published</span>, "
+        "which are the paper's own Table 2 values.</p>",
+        "<table><tr><th>Experiment</th><th>What</th><th>Records</th></tr>",
+    ]
     for name, x in report.experiments.items():
         H.append(f"<tr><td>{e(name)}</td><td>{e(x['title'])}</td><td>{x['n_records']}</td></tr>")
     H.append("</table>")
@@ -1674,10 +1934,12 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
     H.append("<h2>Table 2: RMSE, ours beside the paper's published values</h2>")
     if report.table2:
         H.append(f"<p>Source: experiment {e(str(report.table2_source))}.</p>")
-        H.append("<table><tr><th>System</th><th>σ_w</th><th>Matrix</th><th>OLS (ours)</th>"
-                 "<th>SVR (ours)</th><th class='pub'>OLS (paper, published)</th>"
-                 "<th class='pub'>\"Ours\" SVR (paper, published)</th><th>OLS ours/paper</th>"
-                 "<th>SVR ours/paper</th><th>SVR − OLS (ours)</th></tr>")
+        H.append(
+            "<table><tr><th>System</th><th>σ_w</th><th>Matrix</th><th>OLS (ours)</th>"
+            "<th>SVR (ours)</th><th class='pub'>OLS (paper, published)</th>"
+            "<th class='pub'>\"Ours\" SVR (paper, published)</th><th>OLS ours/paper</th>"
+            "<th>SVR ours/paper</th><th>SVR − OLS (ours)</th></tr>"
+        )
         for r in report.table2:
             H.append(
                 f"<tr><td>{e(r['system'])}</td><td>{_fmt(r['sigma_w'])}</td><td>{r['matrix']}</td>"
@@ -1685,7 +1947,8 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
                 f"<td class='pub'>{_fmt(r['paper_ols'])}</td>"
                 f"<td class='pub'>{_fmt(r['paper_ours'])}</td>"
                 f"<td>{_fmt(r['ratio_ols'], 3)}</td><td>{_fmt(r['ratio_svr'], 3)}</td>"
-                f"<td>{_fmt(r['svr_minus_ols'], 3)}</td></tr>")
+                f"<td>{_fmt(r['svr_minus_ols'], 3)}</td></tr>"
+            )
         H.append("</table>")
         note = table2_markdown(report.table2).strip().splitlines()[-1]
         H.append(f"<p>{e(note)}</p>")
@@ -1709,9 +1972,11 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
     return "\n".join(H)
 
 
-def job_report_html(spec: dict, records, provenance: dict | None = None,
-                    name: str = "job") -> str:
+def job_report_html(spec: dict, records, provenance: dict | None = None, name: str = "job") -> str:
     """One job's spec and records -> a self-contained HTML report (for the REST route)."""
-    rep = build_report({name: {"spec": spec, "records": records, "title": f"Job {name}"}},
-                       provenance, title=f"svrobs report: {name}")
+    rep = build_report(
+        {name: {"spec": spec, "records": records, "title": f"Job {name}"}},
+        provenance,
+        title=f"svrobs report: {name}",
+    )
     return render_html(rep)

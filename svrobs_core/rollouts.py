@@ -22,8 +22,8 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
-DATA_STREAM = ()      # the data generator uses the key itself
-MC_STREAM = (1,)      # Monte Carlo cost noise: key + (1,), shared by all estimators
+DATA_STREAM = ()  # the data generator uses the key itself
+MC_STREAM = (1,)  # Monte Carlo cost noise: key + (1,), shared by all estimators
 
 
 def seed_key(system_idx: int, sigma_w_idx: int, N: int, rep: int) -> tuple[int, int, int, int]:
@@ -32,7 +32,9 @@ def seed_key(system_idx: int, sigma_w_idx: int, N: int, rep: int) -> tuple[int, 
 
 def rng_for(seed: int, key: tuple, stream: tuple = DATA_STREAM) -> np.random.Generator:
     """The generator of one (key, stream); SPEC section 1 Decision (randomness)."""
-    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=key + stream)))
+    return np.random.Generator(
+        np.random.PCG64(np.random.SeedSequence(seed, spawn_key=key + stream))
+    )
 
 
 # ---------------------------------------------------------------------------
@@ -109,7 +111,7 @@ def _pcg64_states(pools: np.ndarray) -> list[tuple[int, int]]:
     for s_hi, s_lo, i_hi, i_lo in w.tolist():
         initstate = (s_hi << 64) | s_lo
         inc = ((((i_hi << 64) | i_lo) << 1) | 1) & _M128
-        state = inc                                      # step from 0: 0 * mult + inc
+        state = inc  # step from 0: 0 * mult + inc
         state = (state + initstate) & _M128
         state = (state * _PCG_MULT + inc) & _M128
         out.append((state, inc))
@@ -124,8 +126,8 @@ def _fast_states(seed: int, keys: Sequence[tuple]) -> list[tuple[int, int]]:
     if arr.ndim == 2 and all(0 <= int(v) <= 0xFFFFFFFF for v in (arr.min(), arr.max())):
         # every key entry is one 32-bit word: the entropy arrays are the keys themselves
         ent_arr = np.empty((len(keys), len(run) + arr.shape[1]), dtype=np.uint32)
-        ent_arr[:, :len(run)] = run
-        ent_arr[:, len(run):] = np.asarray(keys, dtype=np.int64)
+        ent_arr[:, : len(run)] = run
+        ent_arr[:, len(run) :] = np.asarray(keys, dtype=np.int64)
         with np.errstate(over="ignore"):
             return _pcg64_states(_pools(ent_arr))
     ent = [run + [w for k in key for w in _words(k)] for key in keys]
@@ -161,8 +163,9 @@ def _fast_ok() -> bool:
     return _FAST_OK
 
 
-def generators(seed: int, keys: Sequence[tuple], stream: tuple = DATA_STREAM, *,
-               fresh: bool = False) -> Iterator[np.random.Generator]:
+def generators(
+    seed: int, keys: Sequence[tuple], stream: tuple = DATA_STREAM, *, fresh: bool = False
+) -> Iterator[np.random.Generator]:
     """Yield the generator of each key (the same streams as :func:`rng_for`), fast.
 
     By default one bit generator is reused and re-seeded per key, so a
@@ -181,8 +184,12 @@ def generators(seed: int, keys: Sequence[tuple], stream: tuple = DATA_STREAM, *,
         if fresh or bg is None:
             bg = np.random.PCG64(0)
             gen = np.random.Generator(bg)
-        bg.state = {"bit_generator": "PCG64", "state": {"state": st, "inc": inc},
-                    "has_uint32": 0, "uinteger": 0}
+        bg.state = {
+            "bit_generator": "PCG64",
+            "state": {"state": st, "inc": inc},
+            "has_uint32": 0,
+            "uinteger": 0,
+        }
         yield gen
 
 
@@ -263,8 +270,7 @@ def collect(system, sigma_w, N, T0, seed, keys, data="all", x0_std=0.0):
 CHUNK_BYTES = 2 * 2**20
 
 
-def gram_data(system, sigma_w, N, T0, seed, keys, data="all", x0_std=0.0, *,
-              keep_data=False):
+def gram_data(system, sigma_w, N, T0, seed, keys, data="all", x0_std=0.0, *, keep_data=False):
     """Sufficient statistics of every key's regression data, without forming Z.
 
     Draws in the documented order (:func:`draw_noise`; u and w of a key come
@@ -285,7 +291,7 @@ def gram_data(system, sigma_w, N, T0, seed, keys, data="all", x0_std=0.0, *,
     n, m = system.n, system.m
     d = n + m
     q = d + n
-    M = np.concatenate([system.A, system.B, np.eye(n)], axis=1)          # (n, 2n+m)
+    M = np.concatenate([system.A, system.B, np.eye(n)], axis=1)  # (n, 2n+m)
     R = len(keys)
     k0 = 1 if data == "all" else T0 - 1
     K = T0 - k0
@@ -296,7 +302,7 @@ def gram_data(system, sigma_w, N, T0, seed, keys, data="all", x0_std=0.0, *,
     per_rep = 8 * N * (q * (T0 + 1) + d * T0)
     c = int(max(1, min(R, CHUNK_BYTES // per_rep)))
     Y = np.zeros((c, q, T0 + 1, N))
-    draw = np.empty((m + n, T0, N))      # u then w of one key: one contiguous stream block
+    draw = np.empty((m + n, T0, N))  # u then w of one key: one contiguous stream block
     x0b = np.empty((n, N))
     gens = generators(seed, keys)
     for s in range(0, R, c):
@@ -314,8 +320,8 @@ def gram_data(system, sigma_w, N, T0, seed, keys, data="all", x0_std=0.0, *,
         Yh[:, d:, :T0] *= sigma_w
         for k in range(T0):
             np.matmul(M, Yh[:, :, k], out=Yh[:, :n, k + 1])
-        Zv = Yh[:, :d, k0:T0].reshape(h, d, K * N)              # views, row stride (T0+1) N
-        Fv = Yh[:, :n, k0 + 1:T0 + 1].reshape(h, n, K * N)
+        Zv = Yh[:, :d, k0:T0].reshape(h, d, K * N)  # views, row stride (T0+1) N
+        Fv = Yh[:, :n, k0 + 1 : T0 + 1].reshape(h, n, K * N)
         Zt = np.swapaxes(Zv, -1, -2)
         np.matmul(Zv, Zt, out=G[s:e])
         np.matmul(Fv, Zt, out=P[s:e])

@@ -238,13 +238,15 @@ def sls_F(eps1, hinf_AB, hinf_AK, sigma_u, sigma_v):
 
     Broadcasts over arrays; NaN propagates; a scalar result is a float.
     """
-    eps1, hAB, hAK, su, sv = (np.asarray(v, dtype=float)
-                              for v in (eps1, hinf_AB, hinf_AK, sigma_u, sigma_v))
+    eps1, hAB, hAK, su, sv = (
+        np.asarray(v, dtype=float) for v in (eps1, hinf_AB, hinf_AK, sigma_u, sigma_v)
+    )
     return _out(SQRT2 * eps1 * (hAB * su + hAK * sv))
 
 
-def jopt_upper_bound(eps_A, eps1, C_bound, hinf_AB, hinf_AK, sigma_u, sigma_v,
-                     h2_cl_inv, hinf_cl_inv):
+def jopt_upper_bound(
+    eps_A, eps1, C_bound, hinf_AB, hinf_AK, sigma_u, sigma_v, h2_cl_inv, hinf_cl_inv
+):
     """The paper's bound on J_opt, where its condition holds.
 
     ``eps1 (sqrt(2) C_bound (||[Phi_A B; I]||_Hinf sigma_u + ||[Phi_A K; I]||_Hinf sigma_v)
@@ -259,8 +261,10 @@ def jopt_upper_bound(eps_A, eps1, C_bound, hinf_AB, hinf_AK, sigma_u, sigma_v,
     :data:`REASON_UNDEFINED`. Array inputs broadcast: ``value`` an ndarray and
     ``reason`` an object ndarray of the same shape holding None or the reason.
     """
-    args = [np.asarray(v, dtype=float) for v in
-            (eps_A, eps1, C_bound, hinf_AB, hinf_AK, sigma_u, sigma_v, h2_cl_inv, hinf_cl_inv)]
+    args = [
+        np.asarray(v, dtype=float)
+        for v in (eps_A, eps1, C_bound, hinf_AB, hinf_AK, sigma_u, sigma_v, h2_cl_inv, hinf_cl_inv)
+    ]
     args = np.broadcast_arrays(*args)
     eA, e1, Cb, hAB, hAK, su, sv, h2, hinf = args
     with np.errstate(invalid="ignore", over="ignore"):

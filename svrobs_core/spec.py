@@ -26,9 +26,27 @@ STAGE_NEEDS = {
 }
 
 SPEC_KEYS = {
-    "systems", "sigma_w", "N", "T0", "gamma", "estimators", "loss_scale", "data",
-    "reps", "M", "delta", "stages", "mc_runs", "horizon", "mc_reps", "margin",
-    "reuse_gain", "gamma_ref", "sls", "seed", "x0_std",
+    "systems",
+    "sigma_w",
+    "N",
+    "T0",
+    "gamma",
+    "estimators",
+    "loss_scale",
+    "data",
+    "reps",
+    "M",
+    "delta",
+    "stages",
+    "mc_runs",
+    "horizon",
+    "mc_reps",
+    "margin",
+    "reuse_gain",
+    "gamma_ref",
+    "sls",
+    "seed",
+    "x0_std",
 }
 MAX_GRID = 100_000  # any single list longer than this is surely a mistake
 
@@ -179,7 +197,8 @@ def parse_spec(obj) -> ExperimentSpec:
     systems = tuple(resolve_system(s, f"systems[{i}]") for i, s in enumerate(raw_systems))
     _unique(tuple(s.name for s in systems), "systems")
     sigma_w = tuple(
-        _float(v, f"sigma_w[{i}]", nonneg=True) for i, v in enumerate(_list(obj["sigma_w"], "sigma_w"))
+        _float(v, f"sigma_w[{i}]", nonneg=True)
+        for i, v in enumerate(_list(obj["sigma_w"], "sigma_w"))
     )
     _unique(sigma_w, "sigma_w")
     N = _n_grid(obj["N"])

@@ -51,10 +51,10 @@ def _transient_errors() -> tuple[type[BaseException], ...]:
     import sqlalchemy.exc
 
     errs: list[type[BaseException]] = [
-        sqlalchemy.exc.OperationalError,      # connection lost, DB restarting, SQLITE_BUSY
+        sqlalchemy.exc.OperationalError,  # connection lost, DB restarting, SQLITE_BUSY
         sqlalchemy.exc.InterfaceError,
         sqlalchemy.exc.DisconnectionError,
-        kombu.exceptions.OperationalError,    # broker unreachable
+        kombu.exceptions.OperationalError,  # broker unreachable
         ConnectionError,
         TimeoutError,
     ]
@@ -123,8 +123,15 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
         attempts = _attempts(unit_id)
         final = attempts >= max_attempts()
         error = f"{type(exc).__name__}: {exc}"
-        log.error("unit %s failed (attempt %d/%d, final=%s): %s\n%s", unit_id, attempts,
-                  max_attempts(), final, error, traceback.format_exc())
+        log.error(
+            "unit %s failed (attempt %d/%d, final=%s): %s\n%s",
+            unit_id,
+            attempts,
+            max_attempts(),
+            final,
+            error,
+            traceback.format_exc(),
+        )
         with session_scope() as s:
             crud.fail_unit(s, unit_id, error, final)
         if final:
@@ -135,9 +142,14 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
         crud.complete_unit(s, unit_id, records)
     t3 = time.perf_counter()
     # logged by Celery ("succeeded in ...: {...}"): where a unit's time goes
-    return {"unit": unit_id, "status": "done", "records": len(records),
-            "claim_s": round(t1 - t0, 4), "compute_s": round(t2 - t1, 4),
-            "store_s": round(t3 - t2, 4)}
+    return {
+        "unit": unit_id,
+        "status": "done",
+        "records": len(records),
+        "claim_s": round(t1 - t0, 4),
+        "compute_s": round(t2 - t1, 4),
+        "store_s": round(t3 - t2, 4),
+    }
 
 
 class _Heartbeat:
@@ -154,8 +166,9 @@ class _Heartbeat:
         self.lease = lease
         self.interval = max(1.0, min(300.0, lease / 3))
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True,
-                                        name=f"svrobs-heartbeat-{unit_id}")
+        self._thread = threading.Thread(
+            target=self._run, daemon=True, name=f"svrobs-heartbeat-{unit_id}"
+        )
 
     def __enter__(self):
         self._thread.start()
@@ -195,8 +208,9 @@ class UnitRequest(Request):
                 _note_lost(int(self.args[0]), f"{type(exc).__name__}: {why}")
         except Exception as err:  # noqa: BLE001 - best effort: never break the requeue
             log.warning("could not record a lost worker on the unit: %s", err)
-        return super().on_failure(exc_info, send_failed_event=send_failed_event,
-                                  return_ok=return_ok)
+        return super().on_failure(
+            exc_info, send_failed_event=send_failed_event, return_ok=return_ok
+        )
 
 
 def _note_lost(unit_id: int, why: str) -> None:
@@ -216,8 +230,13 @@ def _note_lost(unit_id: int, why: str) -> None:
 
 
 @celery_app.task(
-    name="svrobs.run_unit", bind=True, acks_late=True, reject_on_worker_lost=True,
-    ignore_result=True, max_retries=MAX_RETRIES, Request=UnitRequest,
+    name="svrobs.run_unit",
+    bind=True,
+    acks_late=True,
+    reject_on_worker_lost=True,
+    ignore_result=True,
+    max_retries=MAX_RETRIES,
+    Request=UnitRequest,
 )
 def run_unit(self, unit_id: int):
     try:
@@ -225,9 +244,13 @@ def run_unit(self, unit_id: int):
     except Retry:
         raise
     except UnitFailed as exc:
-        raise self.retry(exc=exc, countdown=_backoff(self.request.retries), max_retries=None) from exc
+        raise self.retry(
+            exc=exc, countdown=_backoff(self.request.retries), max_retries=None
+        ) from exc
     except TRANSIENT as exc:
-        log.warning("unit %s: transient error, retry %d: %s", unit_id, self.request.retries + 1, exc)
+        log.warning(
+            "unit %s: transient error, retry %d: %s", unit_id, self.request.retries + 1, exc
+        )
         _release(unit_id, f"transient: {type(exc).__name__}: {exc}")
         raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from exc
 
@@ -244,7 +267,7 @@ def _release(unit_id: int, error: str) -> None:
 def _backoff(retries: int, base: float = 1.0, cap: float = 120.0) -> float:
     import random
 
-    return min(cap, base * 2 ** retries) * (0.5 + random.random() / 2)
+    return min(cap, base * 2**retries) * (0.5 + random.random() / 2)
 
 
 @celery_app.task(name="svrobs.tick", ignore_result=True)

@@ -54,8 +54,11 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
     sent = 0
     while sent < limit:
         with session_scope() as s:
-            ids = list(crud.units_to_publish(s, min(RELAY_BATCH, limit - sent), now=start,
-                                             lost_before=epoch))
+            ids = list(
+                crud.units_to_publish(
+                    s, min(RELAY_BATCH, limit - sent), now=start, lost_before=epoch
+                )
+            )
         if not ids:
             break
         out = publish_units(celery, ids)  # raises if the broker is unreachable

@@ -41,7 +41,8 @@ def _count_received(**_kwargs) -> None:
 
 def enabled(settings) -> bool:
     return settings.WORKER_WATCHDOG_SECONDS > 0 and settings.BROKER_URL.startswith(
-        ("redis:", "rediss:"))
+        ("redis:", "rediss:")
+    )
 
 
 class ConsumerStalled(ConnectionError):
@@ -137,9 +138,14 @@ class ConsumerWatchdog(bootsteps.StartStopStep):
                 log.info("watchdog: no queue length (%s: %s)", type(exc).__name__, exc)
                 return
         if self.detector.observe(ready, free, received):
-            log.warning("watchdog: %d messages waiting and %d free pool processes, nothing "
-                        "received for %d checks %g s apart: reconnecting", ready, free,
-                        self.detector.checks, self.interval)
+            log.warning(
+                "watchdog: %d messages waiting and %d free pool processes, nothing "
+                "received for %d checks %g s apart: reconnecting",
+                ready,
+                free,
+                self.detector.checks,
+                self.interval,
+            )
             raise ConsumerStalled("consumer stalled: reconnecting")
 
 

@@ -74,8 +74,12 @@ def _authenticate(request: Request, session: Session, token: str) -> Caller | No
         key = authenticate(session, token)
         if key is None:
             return None
-        return Caller(key_id=key.id, team_id=key.team_id, user_id=key.user_id,
-                      is_admin=bool(key.user is not None and key.user.is_admin))
+        return Caller(
+            key_id=key.id,
+            team_id=key.team_id,
+            user_id=key.user_id,
+            is_admin=bool(key.user is not None and key.user.is_admin),
+        )
     finally:
         if own is not None:
             own.close()
@@ -92,7 +96,8 @@ def get_caller(request: Request, session: Annotated[Session, Depends(get_db)]) -
     allowed, retry = request.app.state.rate_limiter.allow(caller.key_id)
     if not allowed:
         raise HTTPException(
-            429, "rate limit exceeded for this API key",
+            429,
+            "rate limit exceeded for this API key",
             headers={"Retry-After": str(max(1, int(retry + 0.999)))},
         )
     return caller

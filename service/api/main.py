@@ -34,14 +34,22 @@ class _ErrorJSONResponse(JSONResponse):
     unknown key) may hold a lone surrogate, which is replaced rather than raising."""
 
     def render(self, content: Any) -> bytes:
-        return json.dumps(content, ensure_ascii=False, allow_nan=False, indent=None,
-                          separators=(",", ":"), default=str).encode("utf-8", "replace")
+        return json.dumps(
+            content,
+            ensure_ascii=False,
+            allow_nan=False,
+            indent=None,
+            separators=(",", ":"),
+            default=str,
+        ).encode("utf-8", "replace")
 
 
-def error_response(status: int, detail: Any, field: str | None = None,
-                   headers: dict | None = None, **extra) -> JSONResponse:
-    return _ErrorJSONResponse({"detail": detail, "field": field, **extra}, status_code=status,
-                              headers=headers)
+def error_response(
+    status: int, detail: Any, field: str | None = None, headers: dict | None = None, **extra
+) -> JSONResponse:
+    return _ErrorJSONResponse(
+        {"detail": detail, "field": field, **extra}, status_code=status, headers=headers
+    )
 
 
 def _loc_to_field(loc) -> str | None:
@@ -105,8 +113,9 @@ def _default_session_factory(settings: Settings):
 
     # made now, not on the first request: creating an engine imports its dialect, and
     # sessions are opened on the event loop (see deps.get_db)
-    makers = {write: get_sessionmaker(settings.DATABASE_URL, write=write)
-              for write in (True, False)}
+    makers = {
+        write: get_sessionmaker(settings.DATABASE_URL, write=write) for write in (True, False)
+    }
 
     def factory(write: bool = True):
         return makers[write]()
@@ -167,8 +176,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if first.get("type") == "extra_forbidden":
             msg = "unknown field"
         clean = [
-            {"field": _loc_to_field(e.get("loc", ())), "message": e.get("msg"),
-             "type": e.get("type")}
+            {
+                "field": _loc_to_field(e.get("loc", ())),
+                "message": e.get("msg"),
+                "type": e.get("type"),
+            }
             for e in errors
         ]
         return error_response(422, msg, field, errors=clean)
@@ -185,8 +197,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.exception_handler(OperationalError)
     async def _db_down(request: Request, exc: OperationalError):
         log.warning("database unavailable: %s", exc.orig if hasattr(exc, "orig") else exc)
-        return error_response(503, "database unavailable; retry later",
-                              headers={"Retry-After": "5"})
+        return error_response(
+            503, "database unavailable; retry later", headers={"Retry-After": "5"}
+        )
 
     @app.exception_handler(PoolTimeout)
     async def _db_busy(request: Request, exc: PoolTimeout):
@@ -196,8 +209,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.exception_handler(DBAPIError)
     async def _db_error(request: Request, exc: DBAPIError):
         if exc.connection_invalidated:
-            return error_response(503, "database connection lost; retry later",
-                                  headers={"Retry-After": "5"})
+            return error_response(
+                503, "database connection lost; retry later", headers={"Retry-After": "5"}
+            )
         log.exception("database error")
         return error_response(500, "internal database error")
 
@@ -210,8 +224,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.include_router(health.router)
     for module in (jobs, results, presets, reports, schedules):
-        app.include_router(module.router, prefix=API_PREFIX,
-                           dependencies=[Depends(clean_query_text)])
+        app.include_router(
+            module.router, prefix=API_PREFIX, dependencies=[Depends(clean_query_text)]
+        )
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.MAX_BODY_BYTES)
     return app
 

@@ -28,8 +28,7 @@ _RAW_NAMES = tuple(RECORD_FIELDS[i] for i in _RAW_IDX)
 def record_columns() -> list:
     """The select list of a record: JSON columns as text, the rest as stored."""
     t = Result.__table__
-    return [cast(t.c[f], Text).label(f) if f in RAW_JSON_FIELDS else t.c[f]
-            for f in RECORD_FIELDS]
+    return [cast(t.c[f], Text).label(f) if f in RAW_JSON_FIELDS else t.c[f] for f in RECORD_FIELDS]
 
 
 def decode_rows(rows: Sequence[Sequence]) -> list[dict]:

@@ -65,8 +65,14 @@ class _Strict(BaseModel):
         found = bad_text(data)
         if found is not None:
             loc, message = found
-            raise ValidationError.from_exception_data(cls.__name__, [InitErrorDetails(
-                type=PydanticCustomError("bad_text", message), loc=loc, input=None)])
+            raise ValidationError.from_exception_data(
+                cls.__name__,
+                [
+                    InitErrorDetails(
+                        type=PydanticCustomError("bad_text", message), loc=loc, input=None
+                    )
+                ],
+            )
         return data
 
 

@@ -67,7 +67,6 @@ __all__ = [
 ]
 
 
-
 class JobTooLarge(SpecError):
     """The spec is valid but has more cells than SVROBS_MAX_JOB_CELLS (HTTP 422)."""
 
@@ -168,7 +167,8 @@ def create_job(
     limit = _settings().MAX_JOB_CELLS if max_cells is None else max_cells
     if parsed.n_cells > limit:
         raise JobTooLarge(
-            "spec", f"the job has {parsed.n_cells} cells; the limit is {limit} (SVROBS_MAX_JOB_CELLS)"
+            "spec",
+            f"the job has {parsed.n_cells} cells; the limit is {limit} (SVROBS_MAX_JOB_CELLS)",
         )
     tags = list(dict.fromkeys(str(t) for t in tags))
 
@@ -190,10 +190,20 @@ def create_job(
 
     units = plan_units(parsed)
     job = Job(
-        team_id=team_id, user_id=user_id, schedule_id=schedule_id, name=name, tags=tags,
-        spec=normalised, status="queued", progress_done=0, progress_total=len(units),
-        n_cells=parsed.n_cells, provenance=provenance(parsed.seed),
-        idempotency_key=idempotency_key, timings={}, created_at=utcnow(),
+        team_id=team_id,
+        user_id=user_id,
+        schedule_id=schedule_id,
+        name=name,
+        tags=tags,
+        spec=normalised,
+        status="queued",
+        progress_done=0,
+        progress_total=len(units),
+        n_cells=parsed.n_cells,
+        provenance=provenance(parsed.seed),
+        idempotency_key=idempotency_key,
+        timings={},
+        created_at=utcnow(),
     )
     try:
         with session.begin_nested():
@@ -212,8 +222,15 @@ def create_job(
         session.execute(
             insert(WorkUnit),
             [
-                {"job_id": job.id, "index": i, "payload": u, "n_cells": _unit_cells(parsed, u),
-                 "status": "pending", "attempts": 0, "created_at": job.created_at}
+                {
+                    "job_id": job.id,
+                    "index": i,
+                    "payload": u,
+                    "n_cells": _unit_cells(parsed, u),
+                    "status": "pending",
+                    "attempts": 0,
+                    "created_at": job.created_at,
+                }
                 for i, u in enumerate(units)
             ],
         )
@@ -249,8 +266,10 @@ def cancel_job(session: Session, job: Job) -> Job:
         return job
     # units first, then the job (the lock order of this module)
     session.execute(
-        select(WorkUnit.id).where(WorkUnit.job_id == job.id, WorkUnit.status == "pending")
-        .order_by(WorkUnit.id).with_for_update()
+        select(WorkUnit.id)
+        .where(WorkUnit.job_id == job.id, WorkUnit.status == "pending")
+        .order_by(WorkUnit.id)
+        .with_for_update()
     ).all()
     session.execute(
         update(WorkUnit)
@@ -282,7 +301,9 @@ def _set_timing(job: Job) -> None:
 
 def _lock_unit(session: Session, unit_id: int) -> WorkUnit | None:
     return session.scalar(
-        select(WorkUnit).where(WorkUnit.id == unit_id).with_for_update()
+        select(WorkUnit)
+        .where(WorkUnit.id == unit_id)
+        .with_for_update()
         .execution_options(populate_existing=True)
     )
 
@@ -291,7 +312,9 @@ def _lock_job(session: Session, job_id: int) -> Job:
     # FOR NO KEY UPDATE: inserting results/units takes KEY SHARE locks on the job row
     # (their foreign key); a plain FOR UPDATE would deadlock two finishing units.
     return session.scalar(
-        select(Job).where(Job.id == job_id).with_for_update(key_share=True)
+        select(Job)
+        .where(Job.id == job_id)
+        .with_for_update(key_share=True)
         .execution_options(populate_existing=True)
     )
 
@@ -322,8 +345,13 @@ def start_unit(
         return None
     limit = _settings().MAX_UNIT_ATTEMPTS if max_attempts is None else max_attempts
     if limit and unit.attempts >= limit:
-        _fail(session, unit, job, f"gave up after {unit.attempts} attempts "
-              f"(the worker died or timed out each time); last error: {unit.error or 'none'}")
+        _fail(
+            session,
+            unit,
+            job,
+            f"gave up after {unit.attempts} attempts "
+            f"(the worker died or timed out each time); last error: {unit.error or 'none'}",
+        )
         return None
     now = utcnow()
     unit.status = "running"
@@ -363,8 +391,7 @@ def row_to_record(row) -> dict:
     return out
 
 
-def complete_unit(session: Session, unit_id: int,
-                  records: Sequence[dict] | UnitResult) -> None:
+def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | UnitResult) -> None:
     """Upsert the unit's records (and its groups' summaries when it holds every
     repetition of them), mark it done, update progress; finish the job when the DB
     says every unit is done (summarising the stored results if a group has none)."""
@@ -408,7 +435,8 @@ def summarize_job(session: Session, job_id: int) -> list[dict]:
     """``summarize`` of the job's stored results (read as columns, vectorised)."""
     names = GROUP_FIELDS + SUMMARY_FIELDS
     rows = session.execute(
-        select(*[Result.__table__.c[f] for f in names]).where(Result.job_id == job_id)).all()
+        select(*[Result.__table__.c[f] for f in names]).where(Result.job_id == job_id)
+    ).all()
     return summarize_columns(dict(zip(names, zip(*rows))) if rows else {f: () for f in names})
 
 
@@ -426,8 +454,12 @@ def _expected_groups(job: Job) -> int:
     return len(spec.systems) * len(spec.sigma_w) * len(spec.N) * spec.cells_per_rep
 
 
-def _write_summaries(session: Session, job_id: int, groups: list[dict],
-                     scope: tuple[str, float, list[int]] | None = None) -> None:
+def _write_summaries(
+    session: Session,
+    job_id: int,
+    groups: list[dict],
+    scope: tuple[str, float, list[int]] | None = None,
+) -> None:
     """Replace the stored summaries of a job, or of one unit's groups (``scope`` =
     its system, sigma_w and N values), by ``groups``. A unit that holds every
     repetition of its groups writes them when it completes, so that finishing a job
@@ -442,9 +474,13 @@ def _write_summaries(session: Session, job_id: int, groups: list[dict],
         session.execute(
             insert(Summary),
             [
-                {"job_id": job_id, **{g: s[g] for g in GROUP_FIELDS},
-                 "gamma_key": gamma_key(s["estimator"], s["gamma"]),
-                 "count": s["count"], "stats": s["stats"]}
+                {
+                    "job_id": job_id,
+                    **{g: s[g] for g in GROUP_FIELDS},
+                    "gamma_key": gamma_key(s["estimator"], s["gamma"]),
+                    "count": s["count"],
+                    "stats": s["stats"],
+                }
                 for s in groups
             ],
         )
@@ -464,8 +500,10 @@ def _cells_label(job: Job, unit: WorkUnit) -> str:
     except (IndexError, KeyError, TypeError):
         sigma = p.get("sigma_w")
     r0, r1 = (p.get("reps") or [None, None])[:2]
-    return (f"unit {unit.index} (system={system}, sigma_w={sigma}, N={p.get('N')}, "
-            f"reps {r0}..{None if r1 is None else r1 - 1})")
+    return (
+        f"unit {unit.index} (system={system}, sigma_w={sigma}, N={p.get('N')}, "
+        f"reps {r0}..{None if r1 is None else r1 - 1})"
+    )
 
 
 def _fail(session: Session, unit: WorkUnit, job: Job, error: str) -> None:
@@ -489,7 +527,8 @@ def _fail(session: Session, unit: WorkUnit, job: Job, error: str) -> None:
         ids = list(session.scalars(pending))
         if ids:
             session.execute(
-                update(WorkUnit).where(WorkUnit.id.in_(ids), WorkUnit.status == "pending")
+                update(WorkUnit)
+                .where(WorkUnit.id.in_(ids), WorkUnit.status == "pending")
                 .values(status="cancelled", finished_at=now)
             )
     session.flush()
@@ -499,7 +538,8 @@ def note_unit_error(session: Session, unit_id: int, error: str) -> None:
     """Record why a running unit's attempt ended without a result (its worker process
     was lost); the unit stays claimable, and a later "gave up" failure quotes it."""
     session.execute(
-        update(WorkUnit).where(WorkUnit.id == unit_id, WorkUnit.status == "running")
+        update(WorkUnit)
+        .where(WorkUnit.id == unit_id, WorkUnit.status == "running")
         .values(error=error)
     )
 
@@ -524,8 +564,12 @@ def fail_unit(session: Session, unit_id: int, error: str, final: bool) -> None:
 
 
 def units_to_publish(
-    session: Session, limit: int = 500, *, now: datetime | None = None,
-    retry_seconds: int | None = None, lost_before: datetime | None = None,
+    session: Session,
+    limit: int = 500,
+    *,
+    now: datetime | None = None,
+    retry_seconds: int | None = None,
+    lost_before: datetime | None = None,
 ) -> list[int]:
     """Units of active jobs that need (re)publishing: pending and never published, or
     published more than ``retry_seconds`` (SVROBS_PUBLISH_RETRY_SECONDS) ago without
@@ -544,8 +588,10 @@ def units_to_publish(
         .where(
             Job.status.in_(JOB_ACTIVE),
             or_(
-                and_(WorkUnit.status == "pending",
-                     or_(WorkUnit.published_at.is_(None), WorkUnit.published_at < stale)),
+                and_(
+                    WorkUnit.status == "pending",
+                    or_(WorkUnit.published_at.is_(None), WorkUnit.published_at < stale),
+                ),
                 and_(WorkUnit.status == "running", WorkUnit.lease_expires_at < now),
             ),
         )
@@ -555,8 +601,9 @@ def units_to_publish(
     return list(session.scalars(q))
 
 
-def mark_published(session: Session, unit_ids: Sequence[int], *,
-                   now: datetime | None = None) -> None:
+def mark_published(
+    session: Session, unit_ids: Sequence[int], *, now: datetime | None = None
+) -> None:
     """Record that the units were sent to the broker (running units whose lease
     expired go back to pending)."""
     if not unit_ids:
@@ -564,11 +611,14 @@ def mark_published(session: Session, unit_ids: Sequence[int], *,
     now = _now(now)
     ids = list(unit_ids)
     for i in range(0, len(ids), 1000):
-        chunk = ids[i:i + 1000]
+        chunk = ids[i : i + 1000]
         session.execute(
             update(WorkUnit)
-            .where(WorkUnit.id.in_(chunk), WorkUnit.status == "running",
-                   WorkUnit.lease_expires_at < now)
+            .where(
+                WorkUnit.id.in_(chunk),
+                WorkUnit.status == "running",
+                WorkUnit.lease_expires_at < now,
+            )
             .values(status="pending", lease_expires_at=None)
         )
         session.execute(
@@ -630,10 +680,14 @@ def create_due_schedule_jobs(session: Session, now: datetime) -> list[Job]:
         try:
             with session.begin_nested():
                 job = create_job(
-                    session, team_id=sched.team_id, user_id=sched.user_id,
-                    spec=sched.spec_template, name=f"{sched.name} @ {stamp}",
+                    session,
+                    team_id=sched.team_id,
+                    user_id=sched.user_id,
+                    spec=sched.spec_template,
+                    name=f"{sched.name} @ {stamp}",
                     tags=list(sched.tags or []) + [f"schedule:{sched.name}"],
-                    idempotency_key=f"schedule:{sched.id}:{stamp}", max_active_jobs=0,
+                    idempotency_key=f"schedule:{sched.id}:{stamp}",
+                    max_active_jobs=0,
                     schedule_id=sched.id,
                 )
         except (SpecError, IdempotencyConflict) as exc:

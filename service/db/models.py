@@ -184,7 +184,13 @@ class Result(Base):
     __tablename__ = "results"
     __table_args__ = (
         UniqueConstraint(
-            "job_id", "system", "sigma_w", "N", "estimator", "gamma_key", "rep",
+            "job_id",
+            "system",
+            "sigma_w",
+            "N",
+            "estimator",
+            "gamma_key",
+            "rep",
             name="uq_results_cell",
         ),
         Index("ix_results_job_N", "job_id", "N"),
@@ -209,8 +215,6 @@ class Result(Base):
     for _f in RESULT_MATRIX_FIELDS:
         _ns[_f] = mapped_column(_f, JSON, nullable=True)
     del _ns, _f
-
-
 
 
 class Summary(Base):

@@ -133,8 +133,9 @@ def _unit_tuples(job_id: int, result: UnitResult) -> list[tuple]:
 
 # -- the statement --------------------------------------------------------------------
 def _on_conflict(quote) -> str:
-    updates = ", ".join(f"{quote(c)} = excluded.{quote(c)}" for c in COLUMNS
-                        if c not in KEY_COLUMNS)
+    updates = ", ".join(
+        f"{quote(c)} = excluded.{quote(c)}" for c in COLUMNS if c not in KEY_COLUMNS
+    )
     return f"ON CONFLICT ({', '.join(quote(c) for c in KEY_COLUMNS)}) DO UPDATE SET {updates}"
 
 
@@ -152,12 +153,15 @@ def _upsert_sql(dialect: Dialect) -> str:
         marks = ["?"] * len(COLUMNS)
     else:  # pragma: no cover - the service runs on SQLite or PostgreSQL
         raise NotImplementedError(f"results upsert on {dialect.name}")
-    return (f"INSERT INTO {quote(Result.__tablename__)} ({', '.join(map(quote, COLUMNS))}) "
-            f"VALUES ({', '.join(marks)}) {_on_conflict(quote)}")
+    return (
+        f"INSERT INTO {quote(Result.__tablename__)} ({', '.join(map(quote, COLUMNS))}) "
+        f"VALUES ({', '.join(marks)}) {_on_conflict(quote)}"
+    )
 
 
-def upsert_results(session: Session, job_id: int,
-                   records: Sequence[dict] | UnitResult) -> dict[str, tuple]:
+def upsert_results(
+    session: Session, job_id: int, records: Sequence[dict] | UnitResult
+) -> dict[str, tuple]:
     """Store records (dicts, or a unit's :class:`UnitResult`) of one job; a cell
     already stored is overwritten. The records must hold each cell once (a unit's
     do; on PostgreSQL a repeated cell is an error). Returns the stored values as
@@ -185,8 +189,10 @@ def _stage_sql(dialect: Dialect) -> tuple[str, str, str]:
     quote = dialect.identifier_preparer.quote
     cols = ", ".join(quote(c) for c in COLUMNS)
     table = quote(Result.__tablename__)
-    create = (f"CREATE TEMP TABLE IF NOT EXISTS {STAGE} ON COMMIT DELETE ROWS AS "
-              f"SELECT {cols} FROM {table} WITH NO DATA")
+    create = (
+        f"CREATE TEMP TABLE IF NOT EXISTS {STAGE} ON COMMIT DELETE ROWS AS "
+        f"SELECT {cols} FROM {table} WITH NO DATA"
+    )
     copy = f"COPY {STAGE} ({cols}) FROM STDIN"
     upsert = f"INSERT INTO {table} ({cols}) SELECT {cols} FROM {STAGE} {_on_conflict(quote)}"
     return create, copy, upsert

@@ -23,8 +23,9 @@ fl = st.floats
 def ref_H(*, n, m, N, N0, T0, sigma_u, sigma_w, gamma, M, delta):
     """Theorem 1 / Lemma 2 as printed in the paper, scalar by scalar."""
     su2, sw2 = sigma_u * sigma_u, sigma_w * sigma_w
-    theta_A = (4 * n * (m * M * su2 + sw2)) / (N * (n * M ** (2 * T0 - 1) * su2
-                                                     + M ** (2 * T0 - 2) * sw2))
+    theta_A = (4 * n * (m * M * su2 + sw2)) / (
+        N * (n * M ** (2 * T0 - 1) * su2 + M ** (2 * T0 - 2) * sw2)
+    )
     theta_B = (4 * m * (n * M ** (2 * T0 - 1) * su2 + (M ** (2 * T0 - 2) + 1) * sw2)) / (N * su2)
 
     def H(theta, dim):
@@ -36,13 +37,32 @@ def ref_H(*, n, m, N, N0, T0, sigma_u, sigma_w, gamma, M, delta):
 
 
 @settings(max_examples=150, deadline=None)
-@given(n=st.integers(1, 6), m=st.integers(1, 4), N=st.integers(1, 3000), T0=st.integers(2, 20),
-       sigma_u=fl(0.01, 10), sigma_w=fl(0, 10), gamma=fl(0, 5), M=fl(0.5, 1.5),
-       delta=fl(1e-6, 0.99), final=st.booleans())
+@given(
+    n=st.integers(1, 6),
+    m=st.integers(1, 4),
+    N=st.integers(1, 3000),
+    T0=st.integers(2, 20),
+    sigma_u=fl(0.01, 10),
+    sigma_w=fl(0, 10),
+    gamma=fl(0, 5),
+    M=fl(0.5, 1.5),
+    delta=fl(1e-6, 0.99),
+    final=st.booleans(),
+)
 def test_radii_match_the_printed_formulas(n, m, N, T0, sigma_u, sigma_w, gamma, M, delta, final):
     N0 = N if final else (T0 - 1) * N
-    p = {"n": n, "m": m, "N": N, "N0": N0, "T0": T0, "sigma_u": sigma_u, "sigma_w": sigma_w,
-         "gamma": gamma, "M": M, "delta": delta}
+    p = {
+        "n": n,
+        "m": m,
+        "N": N,
+        "N0": N0,
+        "T0": T0,
+        "sigma_u": sigma_u,
+        "sigma_w": sigma_w,
+        "gamma": gamma,
+        "M": M,
+        "delta": delta,
+    }
     got = radii(**p)
     for g, e in zip((got.H_A, got.H_B, got.r_A, got.r_B), ref_H(**p), strict=True):
         assert np.shape(g) == ()
@@ -80,18 +100,26 @@ def _radii(H_A, H_B, r_A, r_B):
 
 
 @settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 5), m=st.integers(1, 3),
-       gamma=fl(0, 2), rA=fl(0, 1), rB=fl(0, 1))
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(1, 5),
+    m=st.integers(1, 3),
+    gamma=fl(0, 2),
+    rA=fl(0, 1),
+    rB=fl(0, 1),
+)
 def test_eps_and_rho_match_independent_computation(seed, n, m, gamma, rA, rB):
     rng = np.random.default_rng(seed)
     At = rng.uniform(-1, 1, (4, n, n))
     Bt = rng.uniform(-2, 2, (4, n, m))
     res = evaluate_bounds(At, Bt, gamma, _radii(0.1, 0.1, rA, rB))
     for b in range(4):
-        eA = math.sqrt(sum((abs(gamma * At[b, i, j]) + rA) ** 2
-                           for i in range(n) for j in range(n)))
-        eB = math.sqrt(sum((abs(gamma * Bt[b, i, j]) + rB) ** 2
-                           for i in range(n) for j in range(m)))  # Decision: j <= m
+        eA = math.sqrt(
+            sum((abs(gamma * At[b, i, j]) + rA) ** 2 for i in range(n) for j in range(n))
+        )
+        eB = math.sqrt(
+            sum((abs(gamma * Bt[b, i, j]) + rB) ** 2 for i in range(n) for j in range(m))
+        )  # Decision: j <= m
         assert math.isclose(res.eps_A[b], eA, rel_tol=1e-12)
         assert math.isclose(res.eps_B[b], eB, rel_tol=1e-12)
         box = np.abs((1 + gamma) * At[b]) + rA
@@ -129,8 +157,9 @@ def test_stable_certified_by_hand():
     # c = (1 + 0.25) * 0.2 I = 0.25 I; |c| + r 11^T = [[a, r], [r, a]] has rho = a + r
     for sign in (1.0, -1.0):
         At = sign * 0.2 * np.eye(2)
-        res = evaluate_bounds(np.stack([At, At]), np.zeros((2, 2, 1)), 0.25,
-                              _radii(0, 0, np.array([0.1, 0.4]), 0))
+        res = evaluate_bounds(
+            np.stack([At, At]), np.zeros((2, 2, 1)), 0.25, _radii(0, 0, np.array([0.1, 0.4]), 0)
+        )
         np.testing.assert_allclose(res.rho_upper_bound, [0.45, 1.05], rtol=1e-14)
         assert res.stable_certified.tolist() == [True, False]
 
@@ -140,16 +169,21 @@ def test_coverage_by_hand():
     At = np.full((2, 2), 0.5)
     Bt = np.array([[1.0], [-1.0]])  # centres 1.5, -1.5, radius 0.25
     r = _radii(1.0, 1.0, 0.25, 0.25)
-    res = evaluate_bounds(At, Bt, gamma, r, A_true=np.array([[1.0, 0.5], [1.25, 0.0]]),
-                          B_true=np.array([[1.5], [1.5]]))
+    res = evaluate_bounds(
+        At,
+        Bt,
+        gamma,
+        r,
+        A_true=np.array([[1.0, 0.5], [1.25, 0.0]]),
+        B_true=np.array([[1.5], [1.5]]),
+    )
     assert res.coverage_A == 0.5  # both ends are inside (closed interval), 1.25 and 0 are not
     assert res.coverage_B == 0.5
     # never clipped: all outside -> 0, all inside -> 1
     res = evaluate_bounds(At, Bt, gamma, r, A_true=np.full((2, 2), 2.0), B_true=Bt * 1.5)
     assert res.coverage_A == 0.0 and res.coverage_B == 1.0
     # ols (gamma = 0): the interval is centred at the estimate itself
-    res = evaluate_bounds(At, Bt, 0.0, r, A_true=np.array([[0.75, 0.25], [0.8, 0.2]]),
-                          B_true=Bt)
+    res = evaluate_bounds(At, Bt, 0.0, r, A_true=np.array([[0.75, 0.25], [0.8, 0.2]]), B_true=Bt)
     assert res.coverage_A == 0.5 and res.coverage_B == 1.0
 
 
@@ -165,13 +199,24 @@ def test_thm1_by_hand():
         res = evaluate_bounds(At, Bt, gamma, _radii(H, H, 1.0, 1.0), A_true=A_true, B_true=B_true)
         assert bool(res.thm1_holds_A) is expect and bool(res.thm1_holds_B) is expect
     # a violation in the first row alone also fails the check
-    res = evaluate_bounds(At, Bt, gamma, _radii(0.26, 0.26, 1, 1),
-                          A_true=A_true + np.array([[0.6, 0.0], [0.0, 0.0]]), B_true=B_true)
+    res = evaluate_bounds(
+        At,
+        Bt,
+        gamma,
+        _radii(0.26, 0.26, 1, 1),
+        A_true=A_true + np.array([[0.6, 0.0], [0.0, 0.0]]),
+        B_true=B_true,
+    )
     assert not res.thm1_holds_A
     # ols: ||Delta A_i|| <= H
-    res = evaluate_bounds(At, Bt, 0.0, _radii(0.5, 0.5, 1, 1),
-                          A_true=At + np.array([[0.3, 0.4], [0.0, 0.5]]),
-                          B_true=Bt + np.array([[0.5], [-0.5001]]))
+    res = evaluate_bounds(
+        At,
+        Bt,
+        0.0,
+        _radii(0.5, 0.5, 1, 1),
+        A_true=At + np.array([[0.3, 0.4], [0.0, 0.5]]),
+        B_true=Bt + np.array([[0.5], [-0.5001]]),
+    )
     assert res.thm1_holds_A and not res.thm1_holds_B
 
 
@@ -186,8 +231,16 @@ def test_batched_bounds_equal_slices_bit_for_bit():
     At = A_true / (1 + gam[:, None, None]) + noise * rng.standard_normal((5, 4, 3, 3))
     Bt = B_true / (1 + gam[:, None, None]) + noise * rng.standard_normal((5, 4, 3, 1))
     full = evaluate_bounds(At, Bt, gam, r, A_true, B_true)
-    fields = ("eps_A", "eps_B", "rho_upper_bound", "stable_certified", "coverage_A",
-              "coverage_B", "thm1_holds_A", "thm1_holds_B")
+    fields = (
+        "eps_A",
+        "eps_B",
+        "rho_upper_bound",
+        "stable_certified",
+        "coverage_A",
+        "coverage_B",
+        "thm1_holds_A",
+        "thm1_holds_B",
+    )
     for name in fields:
         assert getattr(full, name).shape == (5, 4), name
     for b in range(5):

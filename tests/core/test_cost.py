@@ -12,7 +12,7 @@ from svrobs_core.cost import exact_cost, mc_cost, mc_cost_shared, optimal_cost, 
 from svrobs_core.norms import REASON_UNSTABLE
 
 A_S = np.array([[0.9, 0.01, 0.0], [0.01, 0.9, 0.01], [0.0, 0.01, 0.9]])
-A_U = A_S + 0.11 * np.eye(3)                      # 1.01 on the diagonal
+A_U = A_S + 0.11 * np.eye(3)  # 1.01 on the diagonal
 B_P = np.array([[1.0], [1.5], [2.0]])
 SU, SW, SV = 1.0, 1.0, 0.1
 
@@ -27,8 +27,9 @@ def augmented(A, B, At, Bt, L, C, su, sw, sv):
     """s = [x; e]: transition and input matrix (independent of the code under test)."""
     n, p = A.shape[0], C.shape[0]
     Acal = np.block([[A, np.zeros((n, n))], [-(A - At), At - L @ C]])
-    Bcal = np.block([[su * B, sw * np.eye(n), np.zeros((n, p))],
-                     [-su * (B - Bt), -sw * np.eye(n), sv * L]])
+    Bcal = np.block(
+        [[su * B, sw * np.eye(n), np.zeros((n, p))], [-su * (B - Bt), -sw * np.eye(n), sv * L]]
+    )
     return Acal, Bcal
 
 
@@ -52,8 +53,14 @@ def perturbed_cells(rng, A, B, C, K, count, dA=0.02, dB=0.05, dL=0.05):
 
 
 def partial_system():
-    A = np.array([[0.8, 0.2, 0.0, 0.05], [-0.1, 0.85, 0.1, 0.0],
-                  [0.0, 0.1, 0.7, 0.2], [0.05, 0.0, -0.2, 0.75]])
+    A = np.array(
+        [
+            [0.8, 0.2, 0.0, 0.05],
+            [-0.1, 0.85, 0.1, 0.0],
+            [0.0, 0.1, 0.7, 0.2],
+            [0.05, 0.0, -0.2, 0.75],
+        ]
+    )
     B = np.array([[1.0, 0.0], [0.5, 0.2], [0.0, 1.0], [0.3, -0.4]])
     C = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.5]])
     return A, B, C
@@ -95,12 +102,14 @@ def test_exact_batch_broadcasting_and_per_cell_sigmas():
     K, _ = kalman(A_S, np.eye(3), SW, SV)
     At, Bt, L = perturbed_cells(rng, A_S, B_P, np.eye(3), K, 6)
     At, Bt, L = At.reshape(2, 3, 3, 3), Bt.reshape(2, 3, 3, 1), L.reshape(2, 3, 3, 3)
-    sw = np.array([[0.1], [1.0]])                         # (2, 1) broadcasts over cells
+    sw = np.array([[0.1], [1.0]])  # (2, 1) broadcasts over cells
     got = exact_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, sw, SV, horizon=37)
     assert got.shape == (2, 3)
     for i in range(2):
         for j in range(3):
-            ref = naive_exact(A_S, B_P, At[i, j], Bt[i, j], L[i, j], np.eye(3), SU, sw[i, 0], SV, 37)
+            ref = naive_exact(
+                A_S, B_P, At[i, j], Bt[i, j], L[i, j], np.eye(3), SU, sw[i, 0], SV, 37
+            )
             assert got[i, j] == pytest.approx(ref, rel=1e-10)
     one = exact_cost(A_S, B_P, At[1, 2], Bt[1, 2], L[1, 2], np.eye(3), SU, 1.0, SV, horizon=37)
     assert one.shape == () and float(one) == pytest.approx(got[1, 2], rel=1e-13)
@@ -116,8 +125,9 @@ def test_exact_large_state_uses_matmul_layout():
     At, Bt, L = perturbed_cells(rng, A, B, C, K, 3, dA=0.01, dB=0.01, dL=0.01)
     got = exact_cost(A, B, At, Bt, L, C, SU, SW, SV, horizon=45)
     for i in range(3):
-        assert got[i] == pytest.approx(naive_exact(A, B, At[i], Bt[i], L[i], C, SU, SW, SV, 45),
-                                       rel=1e-10)
+        assert got[i] == pytest.approx(
+            naive_exact(A, B, At[i], Bt[i], L[i], C, SU, SW, SV, 45), rel=1e-10
+        )
 
 
 def test_optimal_cost_is_kalman_predictor_error():
@@ -127,14 +137,16 @@ def test_optimal_cost_is_kalman_predictor_error():
         K, P = kalman(A, C, SW, SV)
         Jstar = optimal_cost(A, B, K, C, SU, SW, SV, horizon=200)
         assert float(Jstar) == pytest.approx(
-            naive_exact(A, B, A, B, K, C, SU, SW, SV, 200), rel=1e-10)
+            naive_exact(A, B, A, B, K, C, SU, SW, SV, 200), rel=1e-10
+        )
         if np.abs(np.linalg.eigvals(A)).max() < 1:
             st = stationary_cost(A, B, A, B, K, C, SU, SW, SV)
             assert float(st) == pytest.approx(np.trace(P), rel=1e-9)
         # long horizon -> trace P, also for the unstable A (the error is decoupled;
         # T stays moderate so that the x block, ~1.024^(2T), does not overflow)
         assert float(optimal_cost(A, B, K, C, SU, SW, SV, horizon=4096)) == pytest.approx(
-            np.trace(P), rel=1e-3)
+            np.trace(P), rel=1e-3
+        )
 
 
 # ------------------------------------------------------------- stationary
@@ -158,8 +170,10 @@ def test_stationary_is_long_horizon_limit():
     rng = np.random.default_rng(5)
     At, Bt, L = perturbed_cells(rng, A_S, B_P, np.eye(3), K, 4)
     st = stationary_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV)
-    gaps = [np.abs(exact_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, horizon=T) / st - 1).max()
-            for T in (10**3, 10**4, 10**6)]
+    gaps = [
+        np.abs(exact_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, horizon=T) / st - 1).max()
+        for T in (10**3, 10**4, 10**6)
+    ]
     assert gaps[0] > gaps[1] > gaps[2] and gaps[2] < 1e-5
     # the finite-horizon transient decays like 1/T
     assert gaps[1] == pytest.approx(gaps[0] / 10, rel=0.05)
@@ -173,7 +187,7 @@ def test_stationary_unstable_is_nan_with_reason():
     assert np.isnan(val).all() and list(why) == [REASON_UNSTABLE] * 3
     # stable A but unstable observer F = A~ - L C
     Ks, _ = kalman(A_S, np.eye(3), SW, SV)
-    L = np.stack([Ks, Ks - 1.2 * np.eye(3)])          # F = A~ - L ~ 1.2 I + ...
+    L = np.stack([Ks, Ks - 1.2 * np.eye(3)])  # F = A~ - L ~ 1.2 I + ...
     val, why = stationary_cost(A_S, B_P, A_S, B_P, L, np.eye(3), SU, SW, SV, return_reason=True)
     assert np.isfinite(val[0]) and np.isnan(val[1])
     assert list(why) == [None, REASON_UNSTABLE]
@@ -192,8 +206,9 @@ def test_exact_within_4_se_of_monte_carlo(name):
     At, Bt, L = perturbed_cells(rng, A, B, C, K, 2)
     J = exact_cost(A, B, At, Bt, L, C, SU, SW, SV, horizon=T)
     for i in range(2):
-        mean, se = mc_cost(A, B, At[i], Bt[i], L[i], C, SU, SW, SV, T,
-                           np.random.default_rng(100 + i), 1500)
+        mean, se = mc_cost(
+            A, B, At[i], Bt[i], L[i], C, SU, SW, SV, T, np.random.default_rng(100 + i), 1500
+        )
         assert mean.shape == () and se > 0
         assert abs(mean - J[i]) < 4 * se, (name, i, mean, se, J[i])
 
@@ -203,8 +218,9 @@ def test_monte_carlo_batch_of_cells():
     rng = np.random.default_rng(8)
     At, Bt, L = perturbed_cells(rng, A_S, B_P, np.eye(3), K, 3)
     J = exact_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, horizon=60)
-    mean, se = mc_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, 60,
-                       np.random.default_rng(9), 800)
+    mean, se = mc_cost(
+        A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, 60, np.random.default_rng(9), 800
+    )
     assert mean.shape == se.shape == (3,)
     assert (np.abs(mean - J) < 4 * se).all()
 
@@ -226,7 +242,7 @@ def test_monte_carlo_documented_draw_order():
     acc = np.zeros(runs)
     for _ in range(T):
         z = rng.standard_normal((runs, m + n + p))
-        u, w, v = SU * z[:, :m], 0.7 * z[:, m:m + n], SV * z[:, m + n:]
+        u, w, v = SU * z[:, :m], 0.7 * z[:, m : m + n], SV * z[:, m + n :]
         y = x @ C.T + v
         xt = xt @ At.T + u @ Bt.T + (y - xt @ C.T) @ L.T
         x = x @ A.T + u @ B.T + w
@@ -246,13 +262,26 @@ def test_shared_noise_monte_carlo_equals_one_cell_at_a_time(name):
     At, Bt, L = perturbed_cells(np.random.default_rng(12), A, B, C, K, R * E)
     n, m, p = A.shape[0], B.shape[1], C.shape[0]
     At, Bt, L = At.reshape(R, E, n, n), Bt.reshape(R, E, n, m), L.reshape(R, E, n, p)
-    mean, se = mc_cost_shared(A, B, At, Bt, L, C, SU, 0.7, SV, T,
-                              [np.random.default_rng(40 + r) for r in range(R)], runs)
+    mean, se = mc_cost_shared(
+        A, B, At, Bt, L, C, SU, 0.7, SV, T, [np.random.default_rng(40 + r) for r in range(R)], runs
+    )
     assert mean.shape == se.shape == (R, E)
     for r in range(R):
         for e in range(E):
-            m1, s1 = mc_cost(A, B, At[r, e], Bt[r, e], L[r, e], C, SU, 0.7, SV, T,
-                             np.random.default_rng(40 + r), runs)
+            m1, s1 = mc_cost(
+                A,
+                B,
+                At[r, e],
+                Bt[r, e],
+                L[r, e],
+                C,
+                SU,
+                0.7,
+                SV,
+                T,
+                np.random.default_rng(40 + r),
+                runs,
+            )
             assert mean[r, e] == pytest.approx(float(m1), rel=1e-10)
             assert se[r, e] == pytest.approx(float(s1), rel=1e-8)
 
@@ -269,8 +298,9 @@ def test_shared_noise_monte_carlo_does_not_depend_on_the_other_cells():
         return [np.random.default_rng(50 + r) for r in rows]
 
     full = mc_cost_shared(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, T, rngs(range(3)), runs)
-    part = mc_cost_shared(A_S, B_P, At[1:, 2:3], Bt[1:, 2:3], L[1:, 2:3], np.eye(3), SU, SW,
-                          SV, T, rngs([1, 2]), runs)
+    part = mc_cost_shared(
+        A_S, B_P, At[1:, 2:3], Bt[1:, 2:3], L[1:, 2:3], np.eye(3), SU, SW, SV, T, rngs([1, 2]), runs
+    )
     for a, b in zip(full, part):
         assert np.array_equal(a[1:, 2:3], b)
 
@@ -280,12 +310,25 @@ def test_shared_noise_monte_carlo_agrees_with_exact():
     At, Bt, L = perturbed_cells(np.random.default_rng(13), A_S, B_P, np.eye(3), K, 4)
     At, Bt, L = At.reshape(2, 2, 3, 3), Bt.reshape(2, 2, 3, 1), L.reshape(2, 2, 3, 3)
     J = exact_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, horizon=60)
-    mean, se = mc_cost_shared(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, 60,
-                              [np.random.default_rng(14), np.random.default_rng(15)], 1500)
+    mean, se = mc_cost_shared(
+        A_S,
+        B_P,
+        At,
+        Bt,
+        L,
+        np.eye(3),
+        SU,
+        SW,
+        SV,
+        60,
+        [np.random.default_rng(14), np.random.default_rng(15)],
+        1500,
+    )
     assert (np.abs(mean - J) < 4 * se).all()
     with pytest.raises(ValueError):
-        mc_cost_shared(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, 60,
-                       [np.random.default_rng(14)], 100)
+        mc_cost_shared(
+            A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, 60, [np.random.default_rng(14)], 100
+        )
 
 
 def test_bad_arguments():
@@ -294,5 +337,6 @@ def test_bad_arguments():
     with pytest.raises(ValueError):
         exact_cost(A_S, B_P, A_S, B_P, np.eye(3), np.eye(3), SU, SW, SV, horizon=0)
     with pytest.raises(ValueError):
-        mc_cost(A_S, B_P, A_S, B_P, np.eye(3), np.eye(3), SU, SW, SV, 10,
-                np.random.default_rng(0), 1)
+        mc_cost(
+            A_S, B_P, A_S, B_P, np.eye(3), np.eye(3), SU, SW, SV, 10, np.random.default_rng(0), 1
+        )

@@ -61,8 +61,14 @@ def stacked_hinf(A, G):
 
 
 def partial_system():
-    A = np.array([[0.8, 0.2, 0.0, 0.05], [-0.1, 0.85, 0.1, 0.0],
-                  [0.0, 0.1, 0.7, 0.2], [0.05, 0.0, -0.2, 0.75]])
+    A = np.array(
+        [
+            [0.8, 0.2, 0.0, 0.05],
+            [-0.1, 0.85, 0.1, 0.0],
+            [0.0, 0.1, 0.7, 0.2],
+            [0.05, 0.0, -0.2, 0.75],
+        ]
+    )
     B = np.array([[1.0, 0.0], [0.5, 0.2], [0.0, 1.0], [0.3, -0.4]])
     C = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.5]])
     return A, B, C
@@ -78,8 +84,9 @@ def test_true_system_norms_match_python_control(which):
     Fk = A - K @ C
     n = A.shape[0]
     assert tn.h2_closed == pytest.approx(ctl_h2(Fk, np.eye(n)), rel=1e-9)
-    assert tn.hinf_closed == pytest.approx(ctl_hinf(Fk, np.eye(n), np.eye(n), np.zeros((n, n))),
-                                           rel=1e-6)
+    assert tn.hinf_closed == pytest.approx(
+        ctl_hinf(Fk, np.eye(n), np.eye(n), np.zeros((n, n))), rel=1e-6
+    )
     assert tn.open_reason is None and tn.closed_reason is None
     assert isinstance(tn.hinf_PhiA_B, float)
 
@@ -106,8 +113,7 @@ def test_theorem3_recomputed_from_python_control(which):
         h_dk = ctl_h2(F, K - L[i])
         eps_L = np.linalg.svd(K - L[i], compute_uv=False)[0]
         e1, e2 = max(eps_A[i], eps_B[i]), max(eps_A[i], eps_L)
-        ref = (h_dk * SV + np.sqrt(2) * e1 * h_w * hB * SU
-               + np.sqrt(2) * e2 * h_w * hK * SV)
+        ref = h_dk * SV + np.sqrt(2) * e1 * h_w * hB * SU + np.sqrt(2) * e2 * h_w * hK * SV
         assert res.J_b[i] == pytest.approx(ref, rel=1e-6)
         assert res.eps_L[i] == pytest.approx(eps_L, rel=1e-12)
         assert res.h2_Phi_w[i] == pytest.approx(h_w, rel=1e-9)
@@ -132,11 +138,20 @@ def test_theorem3_null_for_unstable_system_U():
     tn = true_system_norms(A_U, B_P, np.eye(3), K)
     assert np.isnan(tn.hinf_PhiA_B) and np.isnan(tn.hinf_PhiA_K)
     assert tn.open_reason == REASON_A_UNSTABLE
-    assert tn.closed_reason is None and np.isfinite(tn.h2_closed)   # A - KC is stable
+    assert tn.closed_reason is None and np.isfinite(tn.h2_closed)  # A - KC is stable
     rng = np.random.default_rng(2)
     At = A_U + 0.02 * rng.standard_normal((3, 3, 3))
-    res = theorem3_bound(At, np.broadcast_to(K, (3, 3, 3)), np.eye(3), K,
-                         np.full(3, 0.1), np.full(3, 0.1), SU, SV, tn)
+    res = theorem3_bound(
+        At,
+        np.broadcast_to(K, (3, 3, 3)),
+        np.eye(3),
+        K,
+        np.full(3, 0.1),
+        np.full(3, 0.1),
+        SU,
+        SV,
+        tn,
+    )
     assert np.isnan(res.J_b).all()
     assert list(res.reason) == [REASON_A_UNSTABLE] * 3
     # the H2 factors themselves are fine: only the true-system H-inf is undefined
@@ -147,8 +162,17 @@ def test_theorem3_unstable_observer_and_missing_gain():
     K = kalman(A_S, np.eye(3), SW, SV)
     tn = true_system_norms(A_S, B_P, np.eye(3), K)
     L = np.stack([K, K - 1.3 * np.eye(3), np.full((3, 3), np.nan)])
-    res = theorem3_bound(np.broadcast_to(A_S, (3, 3, 3)), L, np.eye(3), K,
-                         np.full(3, 0.1), np.full(3, 0.1), SU, SV, tn)
+    res = theorem3_bound(
+        np.broadcast_to(A_S, (3, 3, 3)),
+        L,
+        np.eye(3),
+        K,
+        np.full(3, 0.1),
+        np.full(3, 0.1),
+        SU,
+        SV,
+        tn,
+    )
     assert np.isfinite(res.J_b[0]) and np.isnan(res.J_b[1:]).all()
     assert list(res.reason) == [None, REASON_F_UNSTABLE, REASON_NONFINITE]
 

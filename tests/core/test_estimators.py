@@ -53,8 +53,9 @@ def qp_svr(Z, F, gamma, loss_weight):
     obj = 0.5 * cp.sum_squares(th) + loss_weight * (cp.sum_squares(xp) + cp.sum_squares(xm))
     cons = [F - th @ Z <= xp, -F + th @ Z <= xm, xp >= 0, xm >= 0]
     prob = cp.Problem(cp.Minimize(obj), cons)
-    prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12,
-               tol_ktratio=1e-10)
+    prob.solve(
+        solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12, tol_ktratio=1e-10
+    )
     assert prob.status == cp.OPTIMAL
     return th.value
 
@@ -79,12 +80,23 @@ def sklearn_svr(Z, F, C):
     which reaches ~1e-10 on this data; a ConvergenceWarning fails the test."""
     with warnings.catch_warnings():
         warnings.simplefilter("error", ConvergenceWarning)
-        return np.array([
-            LinearSVR(loss="squared_epsilon_insensitive", epsilon=0.0, C=C, fit_intercept=False,
-                      dual=True, tol=1e-10, max_iter=1_000_000, random_state=0)
-            .fit(Z.T, f_i).coef_
-            for f_i in F
-        ])
+        return np.array(
+            [
+                LinearSVR(
+                    loss="squared_epsilon_insensitive",
+                    epsilon=0.0,
+                    C=C,
+                    fit_intercept=False,
+                    dual=True,
+                    tol=1e-10,
+                    max_iter=1_000_000,
+                    random_state=0,
+                )
+                .fit(Z.T, f_i)
+                .coef_
+                for f_i in F
+            ]
+        )
 
 
 @pytest.mark.parametrize("loss_scale", ["sum", "mean"])

@@ -12,9 +12,17 @@ from svrobs_core.rollouts import collect, seed_key
 
 ALL_STAGES = ["estimate", "bounds", "gain", "cost", "cost_bound"]
 SMALL = {
-    "systems": ["paper-stable", "paper-unstable"], "sigma_w": [0.1, 1.0], "N": [10, 30],
-    "gamma": [0.01, 0.1], "estimators": ["ols", "svr", "shrunk-ols"], "reps": 3,
-    "stages": ALL_STAGES, "mc_runs": 400, "mc_reps": 1, "horizon": 40, "seed": 11,
+    "systems": ["paper-stable", "paper-unstable"],
+    "sigma_w": [0.1, 1.0],
+    "N": [10, 30],
+    "gamma": [0.01, 0.1],
+    "estimators": ["ols", "svr", "shrunk-ols"],
+    "reps": 3,
+    "stages": ALL_STAGES,
+    "mc_runs": 400,
+    "mc_reps": 1,
+    "horizon": 40,
+    "seed": 11,
 }
 
 
@@ -56,8 +64,15 @@ def test_cells_one_by_one_equal_all_at_once_bit_for_bit(small):
 def test_estimators_and_gammas_see_the_same_data(small):
     spec, recs = small
     # OLS from an independent fit on the rollouts of one key equals the stored A_hat
-    r = next(x for x in recs if x["estimator"] == "ols" and x["system"] == "paper-unstable"
-             and x["N"] == 30 and x["rep"] == 2 and x["sigma_w"] == 1.0)
+    r = next(
+        x
+        for x in recs
+        if x["estimator"] == "ols"
+        and x["system"] == "paper-unstable"
+        and x["N"] == 30
+        and x["rep"] == 2
+        and x["sigma_w"] == 1.0
+    )
     Z, F = collect(spec.systems[1], 1.0, 30, 11, 11, [seed_key(1, 1, 30, 2)])
     theta = np.linalg.lstsq(Z[0].T, F[0].T, rcond=None)[0].T
     np.testing.assert_allclose(r["A_hat"], theta[:, :3], rtol=1e-10, atol=1e-12)
@@ -74,8 +89,9 @@ def test_same_seed_same_records_other_seed_other_data():
     spec = parse_spec({**SMALL, "systems": ["paper-stable"], "stages": ["estimate"]})
     again = records(spec)
     assert json.dumps(again) == json.dumps(records(spec))
-    other = records(parse_spec({**SMALL, "systems": ["paper-stable"], "stages": ["estimate"],
-                                "seed": 12}))
+    other = records(
+        parse_spec({**SMALL, "systems": ["paper-stable"], "stages": ["estimate"], "seed": 12})
+    )
     assert again[0]["A_hat"] != other[0]["A_hat"]
 
 
@@ -107,9 +123,15 @@ def test_cost_ratio_against_gamma_ref(small):
 
 
 def test_reuse_gain_keeps_a_certified_gain_along_N():
-    base = {"systems": ["paper-stable"], "sigma_w": [0.1], "N": [100, 200, 300],
-            "gamma": [0.005], "estimators": ["svr"], "reps": 2,
-            "stages": ["estimate", "bounds", "gain"]}
+    base = {
+        "systems": ["paper-stable"],
+        "sigma_w": [0.1],
+        "N": [100, 200, 300],
+        "gamma": [0.005],
+        "estimators": ["svr"],
+        "reps": 2,
+        "stages": ["estimate", "bounds", "gain"],
+    }
     fresh = {key(r): r for r in records(parse_spec(base))}
     reused = records(parse_spec({**base, "reuse_gain": True}))
     assert len(plan_units(parse_spec({**base, "reuse_gain": True}))) == 1
@@ -118,8 +140,13 @@ def test_reuse_gain_keeps_a_certified_gain_along_N():
         if r["N"] == 100:
             assert r["L"] == fresh[key(r)]["L"]
             continue
-        prev = next(x for x in reused if x["rep"] == r["rep"] and x["N"] < r["N"]
-                    and x["N"] == max(n for n in (100, 200, 300) if n < r["N"]))
+        prev = next(
+            x
+            for x in reused
+            if x["rep"] == r["rep"]
+            and x["N"] < r["N"]
+            and x["N"] == max(n for n in (100, 200, 300) if n < r["N"])
+        )
         if r["notes"] and "reused" in r["notes"]:
             kept += 1
             assert r["L"] == prev["L"] and prev["certified"] and r["certified"]
@@ -129,21 +156,41 @@ def test_reuse_gain_keeps_a_certified_gain_along_N():
 
 
 def test_run_local_cli_writes_records_and_summary(tmp_path):
-    spec = {**SMALL, "systems": ["paper-stable"], "sigma_w": [1.0], "stages": ["estimate", "bounds"]}
+    spec = {
+        **SMALL,
+        "systems": ["paper-stable"],
+        "sigma_w": [1.0],
+        "stages": ["estimate", "bounds"],
+    }
     (tmp_path / "spec.json").write_text(json.dumps(spec))
     out = tmp_path / "out"
     proc = subprocess.run(
-        [sys.executable, "-m", "service.cli_main", "run-local", str(tmp_path / "spec.json"),
-         "--out", str(out), "--quiet"], capture_output=True, text=True)
+        [
+            sys.executable,
+            "-m",
+            "service.cli_main",
+            "run-local",
+            str(tmp_path / "spec.json"),
+            "--out",
+            str(out),
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 0, proc.stderr
     lines = (out / "records.jsonl").read_text().splitlines()
     recs = [json.loads(x) for x in lines]
     assert len(recs) == parse_spec(spec).n_cells
     summary = json.loads((out / "summary.json").read_text())
-    g = next(x for x in summary["groups"] if x["estimator"] == "svr" and x["gamma"] == 0.01
-             and x["N"] == 30)
-    vals = [r["rmse_A"] for r in recs if r["estimator"] == "svr" and r["gamma"] == 0.01
-            and r["N"] == 30]
+    g = next(
+        x
+        for x in summary["groups"]
+        if x["estimator"] == "svr" and x["gamma"] == 0.01 and x["N"] == 30
+    )
+    vals = [
+        r["rmse_A"] for r in recs if r["estimator"] == "svr" and r["gamma"] == 0.01 and r["N"] == 30
+    ]
     assert g["stats"]["rmse_A"]["count"] == len(vals) == 3
     assert g["stats"]["rmse_A"]["mean"] == pytest.approx(sum(vals) / 3, rel=1e-12)
 
@@ -151,8 +198,18 @@ def test_run_local_cli_writes_records_and_summary(tmp_path):
 def test_run_local_cli_bad_spec_is_one_line_exit_2(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps({**SMALL, "reps": 0}))
     proc = subprocess.run(
-        [sys.executable, "-m", "service.cli_main", "run-local", str(tmp_path / "bad.json"),
-         "--out", str(tmp_path / "o")], capture_output=True, text=True)
+        [
+            sys.executable,
+            "-m",
+            "service.cli_main",
+            "run-local",
+            str(tmp_path / "bad.json"),
+            "--out",
+            str(tmp_path / "o"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == ["error: invalid spec: reps: must be >= 1"]
     assert "Traceback" not in proc.stderr + proc.stdout
@@ -167,8 +224,12 @@ def test_json_lines_and_columns_equal_the_records():
     from svrobs_core.experiments import run_unit_result
     from svrobs_core.report import Columns
 
-    for spec_obj in (SMALL, {**SMALL, "stages": ["estimate"]}, {**SMALL, "reuse_gain": True},
-                     {**SMALL, "mc_reps": 0, "gamma": [0.05]}):
+    for spec_obj in (
+        SMALL,
+        {**SMALL, "stages": ["estimate"]},
+        {**SMALL, "reuse_gain": True},
+        {**SMALL, "mc_reps": 0, "gamma": [0.05]},
+    ):
         spec = parse_spec(spec_obj)
         for unit in plan_units(spec):
             res = run_unit_result(spec, unit)

@@ -63,15 +63,16 @@ def test_kalman_gain_is_dlqe_predictor_form(A, sw):
     np.testing.assert_allclose(res.K, L_dlqe, rtol=0, atol=1e-12)
     np.testing.assert_allclose(res.P, P_dlqe, rtol=0, atol=1e-12 * np.abs(P_dlqe).max())
     filter_gain = res.P @ np.linalg.inv(res.P + SIGMA_V**2 * I3)
-    assert np.abs(filter_gain - L_dlqe).max() > 1e-3     # >> the 1e-10 tolerance above
-    np.testing.assert_allclose(np.sort(np.abs(np.linalg.eigvals(A - res.K))), np.sort(np.abs(E)),
-                               atol=1e-10)
+    assert np.abs(filter_gain - L_dlqe).max() > 1e-3  # >> the 1e-10 tolerance above
+    np.testing.assert_allclose(
+        np.sort(np.abs(np.linalg.eigvals(A - res.K))), np.sort(np.abs(E)), atol=1e-10
+    )
     assert dare_residual(A, I3, sw, SIGMA_V, res.P) < 1e-13
 
 
 def test_batched_sda_matches_scipy_on_paper_systems():
-    A = np.stack([A_S, A_U])                    # (2, 3, 3)
-    sw = np.array([0.1, 1.0, 10.0])[:, None]    # (3, 1) -> batch (3, 2)
+    A = np.stack([A_S, A_U])  # (2, 3, 3)
+    sw = np.array([0.1, 1.0, 10.0])[:, None]  # (3, 1) -> batch (3, 2)
     res = kalman_predictor(A, I3, sw, SIGMA_V)
     assert res.K.shape == (3, 2, 3, 3) and res.P.shape == (3, 2, 3, 3)
     assert (res.status == KALMAN_OK).all()
@@ -97,7 +98,7 @@ def test_batched_sda_matches_scipy_on_random_systems(n, p):
     b = 25
     pairs = [random_system(rng, n, p, r) for r in rng.uniform(0.3, 1.6, size=b)]
     A = np.stack([a for a, _ in pairs])
-    C = np.stack([c for _, c in pairs])                  # per-cell C (random -> observable)
+    C = np.stack([c for _, c in pairs])  # per-cell C (random -> observable)
     sw = rng.choice([0.1, 1.0, 10.0], size=b)
     sv = rng.choice([0.05, 0.1, 1.0], size=b)
     res = kalman_predictor(A, C, sw, sv)
@@ -106,7 +107,9 @@ def test_batched_sda_matches_scipy_on_random_systems(n, p):
         K_ref, P_ref = scipy_kalman(A[i], C[i], sw[i], sv[i])
         scale = np.abs(P_ref).max()
         np.testing.assert_allclose(res.P[i], P_ref, atol=1e-9 * scale, rtol=0)
-        np.testing.assert_allclose(res.K[i], K_ref, atol=1e-8 * max(1.0, np.abs(K_ref).max()), rtol=0)
+        np.testing.assert_allclose(
+            res.K[i], K_ref, atol=1e-8 * max(1.0, np.abs(K_ref).max()), rtol=0
+        )
     assert (dare_residual(A, C, sw, sv, res.P) < 1e-12).all()
     assert (spectral_radius(A - res.K @ C) < 1).all()
 
@@ -157,23 +160,30 @@ def test_sigma_w_zero_stable_and_unstable():
         K_ref, P_ref = scipy_kalman(A, C, 0.0, SIGMA_V)
         np.testing.assert_allclose(res.P, P_ref, atol=1e-9 * np.abs(P_ref).max(), rtol=0)
         np.testing.assert_allclose(res.K, K_ref, atol=1e-9 * np.abs(K_ref).max(), rtol=0)
-        assert np.abs(res.P).max() > 1e-4                      # not the non-stabilising P = 0
+        assert np.abs(res.P).max() > 1e-4  # not the non-stabilising P = 0
         assert spectral_radius(A - res.K @ C) < 1
         assert dare_residual(A, C, 0.0, SIGMA_V, res.P) < 1e-12
 
 
 def test_failures_are_nan_with_a_reason_and_do_not_contaminate_the_batch():
-    C = np.array([[0.0, 1.0]])                # observes the second coordinate only
-    A = np.stack([
-        np.diag([1.5, 0.5]),      # unstable mode unobserved -> undetectable
-        np.diag([0.5, 1.5]),      # unobserved mode is stable -> fine
-        np.diag([0.3, 1.0]),      # sigma_w = 0 (below), observed unit-circle mode -> no solution
-        np.diag([1.0, 0.3]),      # unit-circle mode unobserved -> undetectable
-        np.diag([0.3, 1.0]),      # as cell 2 but sigma_w > 0 -> fine
-    ])
+    C = np.array([[0.0, 1.0]])  # observes the second coordinate only
+    A = np.stack(
+        [
+            np.diag([1.5, 0.5]),  # unstable mode unobserved -> undetectable
+            np.diag([0.5, 1.5]),  # unobserved mode is stable -> fine
+            np.diag([0.3, 1.0]),  # sigma_w = 0 (below), observed unit-circle mode -> no solution
+            np.diag([1.0, 0.3]),  # unit-circle mode unobserved -> undetectable
+            np.diag([0.3, 1.0]),  # as cell 2 but sigma_w > 0 -> fine
+        ]
+    )
     res = kalman_predictor(A, C, np.array([1.0, 1.0, 0.0, 1.0, 1.0]), 0.1)
-    assert res.status.tolist() == [KALMAN_UNDETECTABLE, KALMAN_OK, KALMAN_UNIT_CIRCLE,
-                                   KALMAN_UNDETECTABLE, KALMAN_OK]
+    assert res.status.tolist() == [
+        KALMAN_UNDETECTABLE,
+        KALMAN_OK,
+        KALMAN_UNIT_CIRCLE,
+        KALMAN_UNDETECTABLE,
+        KALMAN_OK,
+    ]
     assert np.isnan(res.K[[0, 2, 3]]).all() and np.isnan(res.P[[0, 2, 3]]).all()
     K_ref, _ = scipy_kalman(A[4], C, 1.0, 0.1)
     np.testing.assert_allclose(res.K[4], K_ref, atol=1e-11)
@@ -212,7 +222,9 @@ def test_certificate_matches_a_loop():
         g = certificate(L, At, gamma, r_A, C)
         assert g.shape == (b,)
         for i in range(b):
-            assert g[i] == pytest.approx(certificate_loop(L[i], At[i], gamma[i], r_A[i], C), rel=1e-14)
+            assert g[i] == pytest.approx(
+                certificate_loop(L[i], At[i], gamma[i], r_A[i], C), rel=1e-14
+            )
 
 
 def random_design_cells(rng, b, n=3):
@@ -221,7 +233,7 @@ def random_design_cells(rng, b, n=3):
     # r_A spanning both sides of the feasibility edge (1 - margin) / n
     r_A = rng.uniform(0.0, 1.3 / n, size=b)
     K_hat = rng.normal(scale=0.8, size=(b, n, n))
-    K_hat[0] = (1 + gamma[0]) * At[0]            # a K_hat already certified: L = K_hat
+    K_hat[0] = (1 + gamma[0]) * At[0]  # a K_hat already certified: L = K_hat
     r_A[0] = 0.05
     return At, gamma, r_A, K_hat
 
@@ -231,7 +243,7 @@ def test_closed_form_design_equals_cvxpy_clarabel():
     At, gamma, r_A, K_hat = random_design_cells(rng, 16)
     fast = design_gain(At, gamma, r_A, I3, K_hat, margin=0.01)
     slow = design_gain(At, gamma, r_A, I3, K_hat, margin=0.01, method="cvxpy")
-    assert fast.feasible.any() and (~fast.feasible).any()       # both branches exercised
+    assert fast.feasible.any() and (~fast.feasible).any()  # both branches exercised
     np.testing.assert_array_equal(fast.feasible, slow.feasible)
     np.testing.assert_allclose(fast.L, slow.L, atol=1e-6)
     np.testing.assert_allclose(fast.g_L, slow.g_L, atol=1e-6)
@@ -239,7 +251,7 @@ def test_closed_form_design_equals_cvxpy_clarabel():
     # feasible: the margin constraint is met; infeasible: c = 0 so g = n r_A
     f = fast.feasible
     assert (fast.g_L[f] <= 0.99 + 1e-12).all() and fast.certified[f].all()
-    np.testing.assert_allclose(fast.L[~f], ((1 + gamma) [:, None, None] * At)[~f], atol=1e-14)
+    np.testing.assert_allclose(fast.L[~f], ((1 + gamma)[:, None, None] * At)[~f], atol=1e-14)
     np.testing.assert_allclose(fast.g_L[~f], 3 * r_A[~f], rtol=1e-14)
     np.testing.assert_array_equal(fast.certified, fast.g_L < 1)
 
@@ -277,7 +289,7 @@ def slsqp_design(Ct, C, K_hat, rho):
     n, p = K_hat.shape
 
     def unpack(z):
-        return z[: n * p].reshape(n, p), z[n * p:].reshape(n, n)
+        return z[: n * p].reshape(n, p), z[n * p :].reshape(n, n)
 
     cons = [
         {"type": "ineq", "fun": lambda z: (unpack(z)[1] - (Ct - unpack(z)[0] @ C)).ravel()},
@@ -285,9 +297,14 @@ def slsqp_design(Ct, C, K_hat, rho):
         {"type": "ineq", "fun": lambda z: rho - unpack(z)[1].sum(axis=1)},
     ]
     z0 = np.concatenate([K_hat.ravel(), np.abs(Ct - K_hat @ C).ravel()])
-    out = minimize(lambda z: np.sum((unpack(z)[0] - K_hat) ** 2), z0,
-                   jac=lambda z: np.concatenate([2 * (unpack(z)[0] - K_hat).ravel(), np.zeros(n * n)]),
-                   constraints=cons, method="SLSQP", options={"ftol": 1e-14, "maxiter": 2000})
+    out = minimize(
+        lambda z: np.sum((unpack(z)[0] - K_hat) ** 2),
+        z0,
+        jac=lambda z: np.concatenate([2 * (unpack(z)[0] - K_hat).ravel(), np.zeros(n * n)]),
+        constraints=cons,
+        method="SLSQP",
+        options={"ftol": 1e-14, "maxiter": 2000},
+    )
     assert out.success, out.message
     return unpack(out.x)[0]
 
@@ -298,7 +315,7 @@ def test_general_C_design_4_state_2_output():
     C = rng.standard_normal((p, n))
     At = 0.5 * np.eye(n) + rng.normal(scale=0.1, size=(3, n, n))
     gamma = np.array([0.05, 0.05, 0.05])
-    r_A = np.array([0.01, 0.02, 0.5])                       # the last is infeasible (n r_A > 1)
+    r_A = np.array([0.01, 0.02, 0.5])  # the last is infeasible (n r_A > 1)
     K_hat = kalman_gain((1 + gamma)[:, None, None] * At, C, 1.0, 0.1)
     res = design_gain(At, gamma, r_A, C, K_hat)
     assert res.feasible.tolist() == [True, True, False]
@@ -311,9 +328,16 @@ def test_general_C_design_4_state_2_output():
 
     def g_of(z):
         return np.abs(Ct - z.reshape(n, p) @ C).sum(axis=1).max()
-    best = min(minimize(g_of, z0, method="Nelder-Mead", options={"xatol": 1e-10, "fatol": 1e-12,
-                                                                 "maxiter": 20000}).fun
-               for z0 in (K_hat[2].ravel(), res.L[2].ravel(), np.zeros(n * p)))
+
+    best = min(
+        minimize(
+            g_of,
+            z0,
+            method="Nelder-Mead",
+            options={"xatol": 1e-10, "fatol": 1e-12, "maxiter": 20000},
+        ).fun
+        for z0 in (K_hat[2].ravel(), res.L[2].ravel(), np.zeros(n * p))
+    )
     assert res.g_L[2] <= best + n * r_A[2] + 1e-7
     # samples from the box of a certified cell are stable
     A = (1 + gamma[0]) * At[0] + rng.uniform(-r_A[0], r_A[0], size=(1000, n, n))
@@ -336,9 +360,16 @@ def test_single_cell_and_margin_band():
 
 
 @settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), n=st.sampled_from([2, 3, 4]),
-       gamma=st.floats(0.0, 0.2), budget=st.floats(0.0, 0.999), orthogonal=st.booleans())
-def test_certified_gain_stabilises_every_sampled_matrix_of_the_box(seed, n, gamma, budget, orthogonal):
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.sampled_from([2, 3, 4]),
+    gamma=st.floats(0.0, 0.2),
+    budget=st.floats(0.0, 0.999),
+    orthogonal=st.booleans(),
+)
+def test_certified_gain_stabilises_every_sampled_matrix_of_the_box(
+    seed, n, gamma, budget, orthogonal
+):
     rng = np.random.default_rng(seed)
     margin = 0.01
     r_A = budget * (1 - margin) / n
@@ -371,7 +402,7 @@ def test_reuse_policy_on_a_constructed_sequence():
     # N0 design; N1 keep L0 (g 0.4); N2 L0 fails (g 1.2) -> L2 (g 0.4); N3 keep L2 (g 0.3);
     # N4 L2 fails, L4 uncertified (g 1.2); N5 L4 would pass (g 0.2) but was not certified
     # at N4, so the new design L5 (g 0.3) is used.
-    At = np.stack([np.stack([x * I2, 0.5 * I2]) for x in a])          # (6, 2, 2, 2)
+    At = np.stack([np.stack([x * I2, 0.5 * I2]) for x in a])  # (6, 2, 2, 2)
     L = np.stack([np.stack([x * I2, (0.4 + 0.01 * k) * I2]) for k, x in enumerate(ell)])
     r_A = np.stack([[x, 0.1] for x in r])
     res = reuse_gains(L, At, 0.0, r_A, I2)
@@ -389,7 +420,11 @@ def test_reuse_policy_on_a_constructed_sequence():
 def test_reuse_with_designed_gains_never_loses_certification():
     rng = np.random.default_rng(41)
     nN, b = 8, 50
-    At = A_S + rng.normal(scale=0.05, size=(nN, b, 3, 3)) / np.sqrt(np.arange(1, nN + 1))[:, None, None, None]
+    At = (
+        A_S
+        + rng.normal(scale=0.05, size=(nN, b, 3, 3))
+        / np.sqrt(np.arange(1, nN + 1))[:, None, None, None]
+    )
     r_A = np.linspace(0.4, 0.05, nN)[:, None] * rng.uniform(0.5, 1.0, size=b)
     K_hat = kalman_gain(1.05 * At, I3, 1.0, 0.1)
     design = design_gain(At, 0.05, r_A, I3, K_hat)

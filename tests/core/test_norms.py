@@ -72,8 +72,8 @@ def test_h2_equals_impulse_response_sum(n, m, p):
 def test_h2_batched_matches_single_and_python_control():
     rng = np.random.default_rng(1)
     Fs = np.stack([random_stable(rng, 3, r) for r in np.linspace(0.2, 0.97, 6)]).reshape(2, 3, 3, 3)
-    G = rng.standard_normal((3, 2))                      # shared
-    H = rng.standard_normal((2, 3, 4, 3))                # batched, 4 outputs
+    G = rng.standard_normal((3, 2))  # shared
+    H = rng.standard_normal((2, 3, 4, 3))  # batched, 4 outputs
     got = h2_norm(Fs, G, H)
     assert got.shape == (2, 3)
     for i in range(2):
@@ -86,7 +86,7 @@ def test_h2_batched_matches_single_and_python_control():
 
 def test_h2_large_n_uses_smith_and_is_right():
     rng = np.random.default_rng(2)
-    n = 14                                   # n*n > 144: squared Smith iteration
+    n = 14  # n*n > 144: squared Smith iteration
     F = random_stable(rng, n, 0.95)
     G = rng.standard_normal((n, 2))
     H = rng.standard_normal((3, n))
@@ -110,8 +110,14 @@ def test_stein_sylvester_against_sum():
 
 def test_h2_unstable_is_nan_with_reason():
     rng = np.random.default_rng(4)
-    F = np.stack([random_stable(rng, 3, 0.5), random_stable(rng, 3, 1.2),
-                  np.diag([1.0, 0.2, 0.1]), np.full((3, 3), np.nan)])
+    F = np.stack(
+        [
+            random_stable(rng, 3, 0.5),
+            random_stable(rng, 3, 1.2),
+            np.diag([1.0, 0.2, 0.1]),
+            np.full((3, 3), np.nan),
+        ]
+    )
     G, H = np.eye(3), np.eye(3)
     val, why = h2_norm(F, G, H, return_reason=True)
     assert np.isfinite(val[0]) and np.isnan(val[1:]).all()
@@ -160,8 +166,9 @@ def test_hinf_stacked_identity_shapes():
 
 def test_hinf_batched_and_unstable():
     rng = np.random.default_rng(7)
-    F = np.stack([random_stable(rng, 3, 0.8), random_stable(rng, 3, 1.05),
-                  random_stable(rng, 3, 0.95)])
+    F = np.stack(
+        [random_stable(rng, 3, 0.8), random_stable(rng, 3, 1.05), random_stable(rng, 3, 0.95)]
+    )
     G = rng.standard_normal((3, 3, 2))
     H = rng.standard_normal((2, 3))
     val, why = hinf_norm(F, G, H, return_reason=True)

@@ -48,7 +48,8 @@ def test_common_grid_is_section_9(full):
             np.testing.assert_array_equal(system.B, [[1.0], [1.5], [2.0]])
             diag = 0.9 if system.name == S else 1.01
             np.testing.assert_array_equal(
-                system.A, [[diag, 0.01, 0], [0.01, diag, 0.01], [0, 0.01, diag]])
+                system.A, [[diag, 0.01, 0], [0.01, diag, 0.01], [0, 0.01, diag]]
+            )
 
 
 def test_e1_table2(full):
@@ -133,7 +134,7 @@ def test_published_table2_spot_checks():
 def test_published_table2_matches_the_paper_source():
     tex = PAPER_TEX.read_text()
     start = tex.index(r"\label{Tabel:2}")
-    table = tex[start:tex.index(r"\end{table*}", start)]
+    table = tex[start : tex.index(r"\end{table*}", start)]
     rows = [line for line in table.splitlines() if r"\tilde{\bm{" in line]
     assert len(rows) == 4  # S: A, B; U: A, B
     for line, (system, mat) in zip(rows, [(S, "A"), (S, "B"), (U, "A"), (U, "B")]):
@@ -141,4 +142,6 @@ def test_published_table2_matches_the_paper_source():
         assert len(nums) == 6
         for k, sigma_w in enumerate((0.1, 1.0, 10.0)):
             assert published_table2(system, sigma_w, mat) == {
-                "ols": nums[2 * k], "ours": nums[2 * k + 1]}
+                "ols": nums[2 * k],
+                "ours": nums[2 * k + 1],
+            }

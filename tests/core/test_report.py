@@ -22,8 +22,16 @@ from svrobs_core.paper import PUBLISHED_TABLE2, paper_specs
 from svrobs_core.records import empty_record
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-FIGURES = ("fig_rmse", "fig2", "fig3", "fig4", "fig5", "fig_coverage", "fig_certified",
-           "fig_svr_ols_diff")
+FIGURES = (
+    "fig_rmse",
+    "fig2",
+    "fig3",
+    "fig4",
+    "fig5",
+    "fig_coverage",
+    "fig_certified",
+    "fig_svr_ols_diff",
+)
 
 
 # ---------------------------------------------------------------------------
@@ -43,29 +51,49 @@ def make_records(spec_obj, seed=0, cost=True):
                     base = rng.normal(0, 0.02, system.A.shape)
                     baseB = rng.normal(0, 0.05, system.B.shape)
                     for est in spec.estimators:
-                        for g in ([None] if est == "ols" else list(spec.gamma)):
+                        for g in [None] if est == "ols" else list(spec.gamma):
                             shrink = 1.0 / (1.0 + (g or 0.0) / N)
                             A_hat = (system.A + base) * shrink
                             B_hat = (system.B + baseB) * shrink
                             r = empty_record()
                             r.update(
-                                system=system.name, sigma_w=sw, N=N, N0=(spec.T0 - 1) * N,
-                                estimator=est, gamma=g, rep=rep, seed_key=[si, wi, N, rep],
-                                A_hat=A_hat.tolist(), B_hat=B_hat.tolist(),
+                                system=system.name,
+                                sigma_w=sw,
+                                N=N,
+                                N0=(spec.T0 - 1) * N,
+                                estimator=est,
+                                gamma=g,
+                                rep=rep,
+                                seed_key=[si, wi, N, rep],
+                                A_hat=A_hat.tolist(),
+                                B_hat=B_hat.tolist(),
                                 rmse_A=float(np.sqrt(np.mean((A_hat - system.A) ** 2))),
                                 rmse_B=float(np.sqrt(np.mean((B_hat - system.B) ** 2))),
-                                H_A=0.1, H_B=0.2, r_A=0.3 / math.sqrt(N), r_B=0.6 / math.sqrt(N),
-                                eps_A=1.0 / math.sqrt(N), eps_B=2.0 / math.sqrt(N),
-                                coverage_A=1.0, coverage_B=1.0, thm1_holds_A=True,
-                                thm1_holds_B=True, rho_upper_bound=2.0 - N / 100.0,
+                                H_A=0.1,
+                                H_B=0.2,
+                                r_A=0.3 / math.sqrt(N),
+                                r_B=0.6 / math.sqrt(N),
+                                eps_A=1.0 / math.sqrt(N),
+                                eps_B=2.0 / math.sqrt(N),
+                                coverage_A=1.0,
+                                coverage_B=1.0,
+                                thm1_holds_A=True,
+                                thm1_holds_B=True,
+                                rho_upper_bound=2.0 - N / 100.0,
                                 stable_certified=(2.0 - N / 100.0) < 1,
                             )
                             if cost and spec.has("gain"):
                                 J = 3.0 + rng.exponential(1.0 / (1 + 100 * (g or 0)))
-                                r.update(g_L=0.9, certified=bool(rng.random() < 0.7),
-                                         rho_true=0.8, J_exact=J, J_star=3.0,
-                                         J_bound=J + rng.normal(0.5, 0.5), J_mc=None,
-                                         J_mc_se=None)
+                                r.update(
+                                    g_L=0.9,
+                                    certified=bool(rng.random() < 0.7),
+                                    rho_true=0.8,
+                                    J_exact=J,
+                                    J_star=3.0,
+                                    J_bound=J + rng.normal(0.5, 0.5),
+                                    J_mc=None,
+                                    J_mc_se=None,
+                                )
                                 r["delta_J"] = r["J_bound"] - J
                                 if spec.mc_reps is None or rep < spec.mc_reps:
                                     r["J_mc"], r["J_mc_se"] = J + 0.01, 0.05
@@ -83,8 +111,14 @@ def make_records(spec_obj, seed=0, cost=True):
 
 
 def tiny_spec(**kw):
-    s = {"systems": ["paper-stable", "paper-unstable"], "sigma_w": [0.1, 10.0],
-         "N": [10, 20, 30], "gamma": [0.01, 0.1], "reps": 4, "estimators": ["ols", "svr"]}
+    s = {
+        "systems": ["paper-stable", "paper-unstable"],
+        "sigma_w": [0.1, 10.0],
+        "N": [10, 20, 30],
+        "gamma": [0.01, 0.1],
+        "reps": 4,
+        "estimators": ["ols", "svr"],
+    }
     s.update(kw)
     return s
 
@@ -152,8 +186,15 @@ def test_findings_estimate_and_bounds_hand_counts():
     spec = tiny_spec()
     recs = make_records(spec, seed=1, cost=False)
     # coverage: two (system, sigma_w, N, estimator, gamma) groups pushed below 1 - delta
-    low = [r for r in recs if r["system"] == "paper-stable" and r["sigma_w"] == 0.1
-           and r["estimator"] == "svr" and r["gamma"] == 0.1 and r["N"] in (10, 20)]
+    low = [
+        r
+        for r in recs
+        if r["system"] == "paper-stable"
+        and r["sigma_w"] == 0.1
+        and r["estimator"] == "svr"
+        and r["gamma"] == 0.1
+        and r["N"] in (10, 20)
+    ]
     for r in low:
         r["coverage_A"] = 8 / 9
     # one record with one entry outside in another group, mean stays above 0.99? no: 1 of 4
@@ -162,8 +203,9 @@ def test_findings_estimate_and_bounds_hand_counts():
     for r in recs[5:8]:
         r["thm1_holds_A"] = False
     # SVR beats OLS on A for gamma 0.1 only, for every (system, sigma_w); never on B
-    ols = {(r["system"], r["sigma_w"], r["N"], r["rep"]): r for r in recs
-           if r["estimator"] == "ols"}
+    ols = {
+        (r["system"], r["sigma_w"], r["N"], r["rep"]): r for r in recs if r["estimator"] == "ols"
+    }
     for r in recs:
         if r["estimator"] == "svr":
             o = ols[(r["system"], r["sigma_w"], r["N"], r["rep"])]
@@ -172,8 +214,13 @@ def test_findings_estimate_and_bounds_hand_counts():
     # stable_certified: paper-stable, sigma_w 10, svr gamma 0.01: certified in 2 of 4
     # reps from N = 20 on (first N = 20), never elsewhere
     for r in recs:
-        r["stable_certified"] = (r["system"] == "paper-stable" and r["sigma_w"] == 10.0
-                                 and r["gamma"] == 0.01 and r["N"] >= 20 and r["rep"] < 2)
+        r["stable_certified"] = (
+            r["system"] == "paper-stable"
+            and r["sigma_w"] == 10.0
+            and r["gamma"] == 0.01
+            and r["N"] >= 20
+            and r["rep"] < 2
+        )
     lines = rpt.findings(recs, spec)
     n_groups = 2 * 2 * 3 * 3  # systems x sigma_w x N x (ols + 2 gammas)
     n_rec = len(recs)
@@ -251,8 +298,10 @@ def test_first_stable_certified():
     assert first[("paper-stable", 0.1, "svr", 0.01)]["N0"] == 300
     assert first[("paper-stable", 10.0, "ols", None)]["N"] == 30
     assert first[("paper-unstable", 0.1, "svr", 0.1)]["N"] is None
-    assert rpt.first_stable_certified(recs, share=0.75)[("paper-stable", 0.1, "svr", 0.01)]["N"] \
+    assert (
+        rpt.first_stable_certified(recs, share=0.75)[("paper-stable", 0.1, "svr", 0.01)]["N"]
         is None
+    )
 
 
 # ---------------------------------------------------------------------------
@@ -282,10 +331,16 @@ def test_cost_ratio_of_means_is_computed_from_the_records():
     cols = rpt.as_columns(recs)
     _, Ns, r = rpt.cost_ratio_of_means(cols, "paper-unstable", 0.01, 0.1)
     for N, value in zip(Ns, r):
-        J = [x["J_exact"] for x in recs if x["system"] == "paper-unstable" and x["N"] == N
-             and x["gamma"] == 0.01]
-        Jr = [x["J_exact"] for x in recs if x["system"] == "paper-unstable" and x["N"] == N
-              and x["gamma"] == 0.1]
+        J = [
+            x["J_exact"]
+            for x in recs
+            if x["system"] == "paper-unstable" and x["N"] == N and x["gamma"] == 0.01
+        ]
+        Jr = [
+            x["J_exact"]
+            for x in recs
+            if x["system"] == "paper-unstable" and x["N"] == N and x["gamma"] == 0.1
+        ]
         mj, mr = sum(J) / len(J), sum(Jr) / len(Jr)
         assert value == pytest.approx(abs(mj - mr) / mr, rel=1e-12)
 
@@ -319,8 +374,9 @@ def test_svr_ols_difference_uses_the_same_repetition():
     recs = make_records(tiny_spec(), cost=False)
     cols = rpt.as_columns(recs)
     d = rpt._svr_ols_diff(cols)
-    by_key = {(r["system"], r["sigma_w"], r["N"], r["rep"]): r for r in recs
-              if r["estimator"] == "ols"}
+    by_key = {
+        (r["system"], r["sigma_w"], r["N"], r["rep"]): r for r in recs if r["estimator"] == "ols"
+    }
     for i, r in enumerate(recs):
         if r["estimator"] != "svr":
             assert math.isnan(d[i])
@@ -348,8 +404,9 @@ def test_plan_takes_sub_grids_from_their_parents():
 
 
 def test_missing_stage_is_dropped_and_reported(tmp_path, monkeypatch):
-    specs = {"P": {**tiny_spec(reps=2, N=[10, 20]), "stages": ["estimate", "bounds", "gain",
-                                                               "cost"]}}
+    specs = {
+        "P": {**tiny_spec(reps=2, N=[10, 20]), "stages": ["estimate", "bounds", "gain", "cost"]}
+    }
     calls = []
 
     def fake_run_spec(spec, progress=None, units=None, **kwargs):
@@ -453,8 +510,11 @@ def test_derived_e3_and_parallel_run_equal_a_direct_run(reproduced):
     out, _ = reproduced
     for exp in ("E3", "E4"):  # E4 has no Monte Carlo J: its S records are E3's without it
         derived = (out / exp / "records.jsonl").read_text().splitlines()
-        direct = [json.dumps(r, allow_nan=False)
-                  for batch in run_spec(parse_spec(paper_specs("reduced")[exp])) for r in batch]
+        direct = [
+            json.dumps(r, allow_nan=False)
+            for batch in run_spec(parse_spec(paper_specs("reduced")[exp]))
+            for r in batch
+        ]
         assert derived == direct, exp
 
 

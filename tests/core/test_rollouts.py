@@ -63,15 +63,21 @@ def test_keys_and_seeds_give_distinct_streams():
 
 def test_fast_generators_are_numpys_seedsequence_streams():
     """The vectorised SeedSequence -> PCG64 seeding gives numpy's own streams."""
-    keys = [seed_key(s, w, N, r) for s in (0, 1) for w in (0, 2) for N in (10, 450)
-            for r in (0, 1, 999, 2**32 + 5)]
+    keys = [
+        seed_key(s, w, N, r)
+        for s in (0, 1)
+        for w in (0, 2)
+        for N in (10, 450)
+        for r in (0, 1, 999, 2**32 + 5)
+    ]
     for seed in (0, 7, 2**32 + 1, 2**63 - 1):
         for stream in ((), MC_STREAM):
             for fresh in (False, True):
                 got = [g.standard_normal(3) for g in generators(seed, keys, stream, fresh=fresh)]
                 for k, a in zip(keys, got):
-                    ref = np.random.Generator(np.random.PCG64(
-                        np.random.SeedSequence(seed, spawn_key=k + stream))).standard_normal(3)
+                    ref = np.random.Generator(
+                        np.random.PCG64(np.random.SeedSequence(seed, spawn_key=k + stream))
+                    ).standard_normal(3)
                     assert np.array_equal(a, ref), (seed, k, stream)
     # fresh generators stay usable side by side
     gs = list(generators(3, keys[:3], fresh=True))

@@ -37,7 +37,9 @@ C_G = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.0]])
 
 # ---------------------------------------------------------------- oracles
 def kalman(A, C, sigma_w, sigma_v):
-    P = solve_discrete_are(A.T, C.T, sigma_w**2 * np.eye(A.shape[0]), sigma_v**2 * np.eye(C.shape[0]))
+    P = solve_discrete_are(
+        A.T, C.T, sigma_w**2 * np.eye(A.shape[0]), sigma_v**2 * np.eye(C.shape[0])
+    )
     return A @ P @ C.T @ np.linalg.inv(C @ P @ C.T + sigma_v**2 * np.eye(C.shape[0]))
 
 
@@ -92,12 +94,12 @@ def constraint_matrices(A, C, T):
 
     def blk_w(t, mat):  # X -> X @ mat on block t, row-major vec: kron(I, mat^T)
         E = np.zeros((n * n, nw))
-        E[:, t * n * n:(t + 1) * n * n] = np.kron(np.eye(n), mat.T)
+        E[:, t * n * n : (t + 1) * n * n] = np.kron(np.eye(n), mat.T)
         return E
 
     def blk_v(t, mat):
         E = np.zeros((n * n, nv))
-        E[:, t * n * p:(t + 1) * n * p] = np.kron(np.eye(n), mat.T)
+        E[:, t * n * p : (t + 1) * n * p] = np.kron(np.eye(n), mat.T)
         return E
 
     rows_w.append(blk_w(0, np.eye(n)))
@@ -125,11 +127,14 @@ def min_h2_phi_w(A, C, T):
 
 
 # ---------------------------------------------------------------- sign convention
-@pytest.mark.parametrize("A,C,poles", [
-    (A_S, I3, [0.3, 0.4, 0.5]),
-    (A_U, I3, [0.2, -0.3, 0.5]),
-    (A_G, C_G, [0.3, 0.4, 0.5]),
-])
+@pytest.mark.parametrize(
+    "A,C,poles",
+    [
+        (A_S, I3, [0.3, 0.4, 0.5]),
+        (A_U, I3, [0.2, -0.3, 0.5]),
+        (A_G, C_G, [0.3, 0.4, 0.5]),
+    ],
+)
 def test_static_gain_impulse_response_is_feasible_in_implemented_convention(A, C, poles):
     L = observer_gain(A, C, poles)
     T = 60
@@ -147,11 +152,14 @@ def test_static_gain_impulse_response_is_feasible_in_implemented_convention(A, C
     assert residuals(A, C, Pw, -Pv, sign=+1.0)[1] < 1e-12
 
 
-@pytest.mark.parametrize("A,C,poles,F", [
-    (A_S, I3, [0.3, 0.4, 0.5], 0.7),
-    (A_U, I3, [0.2, -0.3, 0.5], 0.0),
-    (A_G, C_G, [0.3, 0.4, 0.5], 1.3),
-])
+@pytest.mark.parametrize(
+    "A,C,poles,F",
+    [
+        (A_S, I3, [0.3, 0.4, 0.5], 0.7),
+        (A_U, I3, [0.2, -0.3, 0.5], 0.0),
+        (A_G, C_G, [0.3, 0.4, 0.5], 1.3),
+    ],
+)
 def test_objective_of_static_gain_matches_gramians_and_bounds_jopt(A, C, poles, F):
     L = observer_gain(A, C, poles)
     K = kalman(A, C, 1.0, 0.1)
@@ -385,8 +393,9 @@ def test_jopt_upper_bound_vectorised():
     assert np.isnan(v[[1, 2]]).all()
     assert list(reason) == [None, REASON_CONDITION, REASON_UNDEFINED, None]
     # broadcasting a grid: (2, 1) x (3,)
-    v2, r2 = jopt_upper_bound(np.array([[0.1], [0.4]]), np.array([0.1, 0.2, 0.3]),
-                              4.0, 2.0, 3.0, 1.0, 0.1, 1.5, 2.0)
+    v2, r2 = jopt_upper_bound(
+        np.array([[0.1], [0.4]]), np.array([0.1, 0.2, 0.3]), 4.0, 2.0, 3.0, 1.0, 0.1, 1.5, 2.0
+    )
     assert v2.shape == (2, 3)
     np.testing.assert_allclose(v2[0], np.array([0.1, 0.2, 0.3]) * base)
     assert np.isnan(v2[1]).all() and all(r == REASON_CONDITION for r in r2[1])

@@ -39,10 +39,15 @@ def test_defaults_match_spec_section_10():
 def test_presets_are_the_papers_systems():
     S, U = PRESETS["paper-stable"], PRESETS["paper-unstable"]
     assert np.allclose(np.diag(S["A"]), 0.9) and np.allclose(np.diag(U["A"]), 1.01)
-    assert np.allclose(np.array(S["A"]) - np.diag(np.diag(S["A"])),
-                       np.array(U["A"]) - np.diag(np.diag(U["A"])))
+    assert np.allclose(
+        np.array(S["A"]) - np.diag(np.diag(S["A"])), np.array(U["A"]) - np.diag(np.diag(U["A"]))
+    )
     assert S["B"] == [[1.0], [1.5], [2.0]]
-    assert max(abs(np.linalg.eigvals(np.array(U["A"])))) > 1 > max(abs(np.linalg.eigvals(np.array(S["A"]))))
+    assert (
+        max(abs(np.linalg.eigvals(np.array(U["A"]))))
+        > 1
+        > max(abs(np.linalg.eigvals(np.array(S["A"]))))
+    )
 
 
 def test_N_range_is_stop_inclusive_and_cells_counted():

@@ -16,8 +16,12 @@ def _records(seed: int, n_groups: int = 40) -> list[dict]:
     rng = random.Random(seed)
     recs = []
     for _ in range(n_groups):
-        key = {"system": rng.choice(["S", "U"]), "sigma_w": rng.choice([0.1, 1.0]),
-               "N": rng.choice([10, 20, 30]), "estimator": rng.choice(["ols", "svr"])}
+        key = {
+            "system": rng.choice(["S", "U"]),
+            "sigma_w": rng.choice([0.1, 1.0]),
+            "N": rng.choice([10, 20, 30]),
+            "estimator": rng.choice(["ols", "svr"]),
+        }
         key["gamma"] = None if key["estimator"] == "ols" else rng.choice([0.01, 0.1])
         for _ in range(rng.randint(1, 9)):
             r = dict(key)
@@ -43,8 +47,7 @@ def _oracle(recs):
             vals = [float(r[f]) for r in rows if r[f] is not None]
             if vals:
                 m = math.fsum(vals) / len(vals)
-                st[f] = (m, math.sqrt(math.fsum((v - m) ** 2 for v in vals) / len(vals)),
-                         len(vals))
+                st[f] = (m, math.sqrt(math.fsum((v - m) ** 2 for v in vals) / len(vals)), len(vals))
             else:
                 st[f] = (None, None, 0)
         out[key] = (len(rows), st)

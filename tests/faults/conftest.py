@@ -23,6 +23,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+
 from tests.integration.servers import PG_BINDIR, REDIS_SERVER, PrivatePostgres, PrivateRedis
 from tests.integration.stack import Stack
 
@@ -51,8 +52,9 @@ class FaultStack(Stack):
     """The integration Stack on the private servers, plus DB access for the checks."""
 
     def __init__(self, root: Path, servers: Servers):
-        super().__init__("pg", root, pg_url=servers.pg.url, redis_url=servers.redis.url,
-                         extra_env=FAULT_ENV)
+        super().__init__(
+            "pg", root, pg_url=servers.pg.url, redis_url=servers.redis.url, extra_env=FAULT_ENV
+        )
         self.servers = servers
         self._engine = None
 
@@ -64,8 +66,9 @@ class FaultStack(Stack):
         if self._engine is None:
             import sqlalchemy as sa
 
-            self._engine = sa.create_engine(self.db_url, pool_pre_ping=True,
-                                            connect_args={"connect_timeout": 3})
+            self._engine = sa.create_engine(
+                self.db_url, pool_pre_ping=True, connect_args={"connect_timeout": 3}
+            )
         return self._engine
 
     def sql(self, query: str, **params) -> list:
@@ -175,5 +178,7 @@ def pytest_terminal_summary(terminalreporter):
 
 def pytest_configure(config):
     config.addinivalue_line(
-        "markers", "faults: kills and restarts real processes and private PostgreSQL/Redis "
-        "servers (make test-faults)")
+        "markers",
+        "faults: kills and restarts real processes and private PostgreSQL/Redis "
+        "servers (make test-faults)",
+    )

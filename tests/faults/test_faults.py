@@ -38,11 +38,11 @@ from pathlib import Path
 
 import httpx
 import pytest
-from tests.integration.servers import deathsig
-from tests.integration.stack import ROOT, cell_key, fetch_jsonl, same, submit
 
 from service.serve import worker_command
 from svrobs_core import RECORD_FIELDS, parse_spec, plan_units
+from tests.integration.servers import deathsig
+from tests.integration.stack import ROOT, cell_key, fetch_jsonl, same, submit
 
 from .conftest import RESULTS
 
@@ -63,8 +63,14 @@ SWEEP = {
     "seed": 11,
 }
 TINY = {
-    "systems": ["paper-stable"], "sigma_w": [1.0], "N": [10, 20], "gamma": [0.05],
-    "estimators": ["ols", "svr"], "reps": 2, "stages": ["estimate", "bounds"], "seed": 3,
+    "systems": ["paper-stable"],
+    "sigma_w": [1.0],
+    "N": [10, 20],
+    "gamma": [0.05],
+    "estimators": ["ols", "svr"],
+    "reps": 2,
+    "stages": ["estimate", "bounds"],
+    "seed": 3,
 }
 N_KILLS = 20  # fixed by the issue
 
@@ -96,8 +102,13 @@ class Reference:
         self.t0 = time.monotonic()
         self.proc = subprocess.Popen(
             [sys.executable, "-c", REFERENCE_SCRIPT, json.dumps(SWEEP), str(self.path)],
-            cwd=str(ROOT), env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-            text=True, start_new_session=True, preexec_fn=_niced_child,  # noqa: PLW1509
+            cwd=str(ROOT),
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+            preexec_fn=_niced_child,  # noqa: PLW1509
         )
         self._records: dict | None = None
 
@@ -143,8 +154,9 @@ def pool_children(pid: int) -> list[int]:
 
 
 def job_progress(st, job_id: int) -> tuple[str, int, int]:
-    row = st.sql("SELECT status, progress_done, progress_total FROM jobs WHERE id = :j",
-                 j=job_id)[0]
+    row = st.sql("SELECT status, progress_done, progress_total FROM jobs WHERE id = :j", j=job_id)[
+        0
+    ]
     return row[0], int(row[1]), int(row[2])
 
 
@@ -155,8 +167,9 @@ def wait_progress(st, job_id: int, done: int, timeout: float) -> None:
         if d >= done or status not in ("queued", "running"):
             return
         time.sleep(0.1)
-    raise AssertionError(f"job {job_id}: {done} units not done in {timeout}s\n"
-                         f"{diagnose(st, job_id)}")
+    raise AssertionError(
+        f"job {job_id}: {done} units not done in {timeout}s\n{diagnose(st, job_id)}"
+    )
 
 
 def wait_job_db(st, job_id: int, timeout: float) -> str:
@@ -179,7 +192,9 @@ def diagnose(st, job_id: int) -> str:
         rows = st.sql(
             "SELECT status, attempts, count(*), min(published_at), max(published_at), "
             "max(lease_expires_at), max(worker) FROM work_units WHERE job_id = :j "
-            "GROUP BY status, attempts ORDER BY status, attempts", j=job_id)
+            "GROUP BY status, attempts ORDER BY status, attempts",
+            j=job_id,
+        )
         lines += [f"units: {tuple(r)}" for r in rows]
     except Exception as exc:  # noqa: BLE001 - the DB may be the thing that is down
         lines.append(f"units: unreadable ({exc!r})")
@@ -187,8 +202,10 @@ def diagnose(st, job_id: int) -> str:
         import redis
 
         r = redis.Redis.from_url(st.servers.redis.url, socket_timeout=2)
-        lines.append(f"redis: queue svrobs={r.llen('svrobs')} unacked={r.hlen('unacked')} "
-                     f"epoch={r.get('svrobs:broker-epoch')!r}")
+        lines.append(
+            f"redis: queue svrobs={r.llen('svrobs')} unacked={r.hlen('unacked')} "
+            f"epoch={r.get('svrobs:broker-epoch')!r}"
+        )
     except Exception as exc:  # noqa: BLE001
         lines.append(f"redis: unreadable ({exc!r})")
     names = sorted((n for n in st.children if n != "api"), key=lambda n: n == "beat")
@@ -199,14 +216,19 @@ def assert_one_result_per_cell(st, job_id: int, n_cells: int) -> None:
     dup = st.sql(
         'SELECT system, sigma_w, "N", estimator, gamma_key, rep, count(*) FROM results '
         'WHERE job_id = :j GROUP BY system, sigma_w, "N", estimator, gamma_key, rep '
-        "HAVING count(*) > 1", j=job_id)
+        "HAVING count(*) > 1",
+        j=job_id,
+    )
     assert not dup, f"duplicated cells: {dup[:5]}"
-    (rows, cells), = st.sql(
+    ((rows, cells),) = st.sql(
         'SELECT count(*), count(DISTINCT (system, sigma_w, "N", estimator, gamma_key, rep)) '
-        "FROM results WHERE job_id = :j", j=job_id)
+        "FROM results WHERE job_id = :j",
+        j=job_id,
+    )
     assert rows == cells == n_cells, (rows, cells, n_cells)
-    units = st.sql("SELECT status, count(*) FROM work_units WHERE job_id = :j GROUP BY status",
-                   j=job_id)
+    units = st.sql(
+        "SELECT status, count(*) FROM work_units WHERE job_id = :j GROUP BY status", j=job_id
+    )
     assert dict(units) == {"done": len(plan_units(parse_spec(SWEEP)))}, units
 
 
@@ -231,8 +253,7 @@ def submit_sweep(st, name: str) -> dict:
 
 
 def log_count(st, name: str, text: str) -> int:
-    return sum(p.read_text(errors="replace").count(text)
-               for p in st.logs.glob(f"{name}*.log"))
+    return sum(p.read_text(errors="replace").count(text) for p in st.logs.glob(f"{name}*.log"))
 
 
 # --------------------------------------------------------------------------- 1. kills
@@ -267,7 +288,7 @@ def test_sigkill_worker_child_mid_unit_20_times(stack_up, reference):
 
     rng = random.Random(20)
     kills: list[dict] = []
-    seen: dict[str, object] = {}       # worker -> started_at of its last claim seen
+    seen: dict[str, object] = {}  # worker -> started_at of its last claim seen
     kill_next = dict.fromkeys(names, True)
     planned: list[tuple[float, str, int, int]] = []  # (when, worker, unit, attempts)
     deadline = time.monotonic() + 150
@@ -281,7 +302,9 @@ def test_sigkill_worker_child_mid_unit_20_times(stack_up, reference):
         latest = st.sql(
             "SELECT DISTINCT ON (worker) worker, id, attempts, status, started_at "
             "FROM work_units WHERE job_id = :j AND worker IS NOT NULL "
-            "ORDER BY worker, started_at DESC", j=job_id)
+            "ORDER BY worker, started_at DESC",
+            j=job_id,
+        )
         by_worker = {}
         for host, uid, att, ustatus, started in latest:
             name = hostnames.get(host)
@@ -309,8 +332,9 @@ def test_sigkill_worker_child_mid_unit_20_times(stack_up, reference):
                 kill_next[name] = True
                 continue
             os.kill(kids[0], signal.SIGKILL)
-            kills.append({"worker": name, "unit": uid, "attempt": att, "pid": kids[0],
-                          "units_done": done})
+            kills.append(
+                {"worker": name, "unit": uid, "attempt": att, "pid": kids[0], "units_done": done}
+            )
             if len(kills) == N_KILLS:
                 break
         time.sleep(0.01)
@@ -325,19 +349,25 @@ def test_sigkill_worker_child_mid_unit_20_times(stack_up, reference):
     assert_one_result_per_cell(st, job_id, n_cells)
     n = assert_records_equal_reference(st, job_id, reference)
 
-    attempts = st.sql("SELECT sum(attempts), max(attempts) FROM work_units WHERE job_id = :j",
-                      j=job_id)[0]
+    attempts = st.sql(
+        "SELECT sum(attempts), max(attempts) FROM work_units WHERE job_id = :j", j=job_id
+    )[0]
     lost = sum(log_count(st, w, "exited with 'signal 9 (SIGKILL)'") for w in names)
     assert lost == N_KILLS, f"the workers logged {lost} lost pool processes"
     assert all(w.poll() is None for w in workers.values()), "a worker's main process died"
     # every kill hit a claimed, unfinished unit: it cost exactly one extra claim
     assert int(attempts[0]) == n_units + N_KILLS, (attempts, kills)
     RESULTS["1_sigkill_worker_child"] = {
-        "kills_survived": len(kills), "distinct_units_killed": len({k["unit"] for k in kills}),
-        "workers": KILL_WORKERS, "units": n_units, "cells": n_cells,
-        "records_identical_to_in_process_run": n, "claims": int(attempts[0]),
+        "kills_survived": len(kills),
+        "distinct_units_killed": len({k["unit"] for k in kills}),
+        "workers": KILL_WORKERS,
+        "units": n_units,
+        "cells": n_cells,
+        "records_identical_to_in_process_run": n,
+        "claims": int(attempts[0]),
         "max_claims_of_a_unit": int(attempts[1]),
-        "kill_phase_s": round(t_kills, 1), "seconds": round(time.monotonic() - t0, 1),
+        "kill_phase_s": round(t_kills, 1),
+        "seconds": round(time.monotonic() - t0, 1),
     }
 
 
@@ -363,14 +393,20 @@ def test_redis_restart_mid_sweep(stack_up, reference):
     assert_one_result_per_cell(st, job_id, parse_spec(SWEEP).n_cells)
     n = assert_records_equal_reference(st, job_id, reference)
     assert st.children["redisw"].poll() is None and st.children["beat"].poll() is None
-    relayed = [int(x.split("relayed ")[1].split()[0]) for x in
-               (st.logs / "beat.log").read_text().splitlines() if "tick: relayed" in x]
+    relayed = [
+        int(x.split("relayed ")[1].split()[0])
+        for x in (st.logs / "beat.log").read_text().splitlines()
+        if "tick: relayed" in x
+    ]
     assert relayed, "the relay re-published nothing: the lost queue was not noticed"
     RESULTS["2_redis_restart"] = {
-        "restarts_survived": 1, "redis_down_s": round(down, 1),
-        "units_done_before_restart": done_before, "units": n_units,
+        "restarts_survived": 1,
+        "redis_down_s": round(down, 1),
+        "units_done_before_restart": done_before,
+        "units": n_units,
         "units_republished_by_relay": sum(relayed),
-        "completion_after_restart_s": round(t_done - t_back, 1), "records_identical": n,
+        "completion_after_restart_s": round(t_done - t_back, 1),
+        "records_identical": n,
         "seconds": round(time.monotonic() - t0, 1),
     }
 
@@ -382,8 +418,11 @@ def test_stalled_consumer_reconnects(stack_up, reference):
     its watchdog, which reconnects; the sweep completes, once per cell."""
     st = stack_up
     t0 = time.monotonic()
-    st.start_worker("stallw", concurrency=2, env={
-        "SVROBS_TEST_STALL_CONSUMER": "1", "SVROBS_WORKER_WATCHDOG_SECONDS": "0.5"})
+    st.start_worker(
+        "stallw",
+        concurrency=2,
+        env={"SVROBS_TEST_STALL_CONSUMER": "1", "SVROBS_WORKER_WATCHDOG_SECONDS": "0.5"},
+    )
     job_id = submit_sweep(st, "stalled-consumer")["id"]
     status = wait_job_db(st, job_id, timeout=120)
     assert status == "succeeded", st.log_tail("stallw")
@@ -396,8 +435,10 @@ def test_stalled_consumer_reconnects(stack_up, reference):
     n = assert_records_equal_reference(st, job_id, reference)
     assert st.children["stallw"].poll() is None
     RESULTS["2b_stalled_consumer"] = {
-        "stalls_detected": len(stalls), "detail": stalls[0].split("watchdog: ")[1],
-        "records_identical": n, "seconds": round(time.monotonic() - t0, 1),
+        "stalls_detected": len(stalls),
+        "detail": stalls[0].split("watchdog: ")[1],
+        "records_identical": n,
+        "seconds": round(time.monotonic() - t0, 1),
     }
 
 
@@ -459,8 +500,11 @@ def test_postgres_restart_mid_sweep(stack_up, reference):
     recovered = None
     while time.monotonic() < deadline:
         try:
-            if all(s == 200 for lbl, s, _ in _probe_api(st.base_url, st.key, job_id)
-                   if lbl != "POST /jobs"):
+            if all(
+                s == 200
+                for lbl, s, _ in _probe_api(st.base_url, st.key, job_id)
+                if lbl != "POST /jobs"
+            ):
                 recovered = time.monotonic() - t_up
                 break
         except httpx.HTTPError:
@@ -478,13 +522,16 @@ def test_postgres_restart_mid_sweep(stack_up, reference):
     # the POSTs answered 503 while the DB was down wrote nothing; their jobs (if the
     # database had committed them) would have to run too
     RESULTS["3_postgres_restart"] = {
-        "restarts_survived": 1, "pg_down_s": round(t_up - t_stop, 1),
+        "restarts_survived": 1,
+        "pg_down_s": round(t_up - t_stop, 1),
         "requests_while_down": len(probes),
         "statuses_while_down": sorted({s for _, s, _ in probes}),
         "api_recovered_after_s": round(recovered, 2),
-        "units_done_before_restart": done_before, "units": n_units,
+        "units_done_before_restart": done_before,
+        "units": n_units,
         "sweep_done_after_restart_s": round(time.monotonic() - t_up, 1),
-        "records_identical": n, "seconds": round(time.monotonic() - t0, 1),
+        "records_identical": n,
+        "seconds": round(time.monotonic() - t0, 1),
     }
 
 
@@ -503,17 +550,21 @@ def test_api_killed_during_submission_burst(stack_up):
     accepted = threading.Semaphore(0)
 
     def client(i: int) -> None:
-        with httpx.Client(base_url=base + "/api/v1", timeout=10,
-                          headers={"Authorization": f"Bearer {st.key}"}) as c:
+        with httpx.Client(
+            base_url=base + "/api/v1", timeout=10, headers={"Authorization": f"Bearer {st.key}"}
+        ) as c:
             for n in range(200):  # bounded
                 if stop.is_set():
                     return
                 key = f"burst-{i}-{n}-{uuid.uuid4().hex[:8]}"
                 try:
-                    r = c.post("/jobs", json={**TINY, "name": key},
-                               headers={"Idempotency-Key": key})
-                    res = {"status": r.status_code,
-                           "job": r.json().get("id") if r.status_code == 202 else None}
+                    r = c.post(
+                        "/jobs", json={**TINY, "name": key}, headers={"Idempotency-Key": key}
+                    )
+                    res = {
+                        "status": r.status_code,
+                        "job": r.json().get("id") if r.status_code == 202 else None,
+                    }
                 except httpx.HTTPError as exc:
                     res = {"status": None, "error": type(exc).__name__}
                 with lock:
@@ -556,24 +607,33 @@ def test_api_killed_during_submission_burst(stack_up):
     assert sorted(r[0] for r in rows) == sorted(set(jobs.values()))
     assert {r[1]: r[0] for r in rows} == jobs
     # no half-written job: every job row has all its work units
-    half = st.sql("SELECT j.id, j.progress_total, count(u.id) FROM jobs j LEFT JOIN work_units u "
-                  "ON u.job_id = j.id GROUP BY j.id, j.progress_total "
-                  "HAVING count(u.id) = 0 OR count(u.id) <> j.progress_total")
+    half = st.sql(
+        "SELECT j.id, j.progress_total, count(u.id) FROM jobs j LEFT JOIN work_units u "
+        "ON u.job_id = j.id GROUP BY j.id, j.progress_total "
+        "HAVING count(u.id) = 0 OR count(u.id) <> j.progress_total"
+    )
     assert not half, half
     per_job = len(plan_units(parse_spec(TINY)))
     # requests cut by the kill whose job had been committed: the retry returned that job
     committed_unanswered = st.sql(
         "SELECT count(*) FROM jobs WHERE idempotency_key = ANY(:keys) AND created_at < :t",
-        keys=lost or [""], t=restarted_at)[0][0]
-    unpublished = st.sql("SELECT count(*) FROM work_units WHERE job_id = ANY(:ids) "
-                         "AND status <> 'done'", ids=list(jobs.values()))[0][0]
+        keys=lost or [""],
+        t=restarted_at,
+    )[0][0]
+    unpublished = st.sql(
+        "SELECT count(*) FROM work_units WHERE job_id = ANY(:ids) AND status <> 'done'",
+        ids=list(jobs.values()),
+    )[0][0]
     assert unpublished == 0
     RESULTS["4_api_killed_during_burst"] = {
-        "api_kills_survived": 1, "jobs_accepted": len(jobs),
+        "api_kills_survived": 1,
+        "jobs_accepted": len(jobs),
         "accepted_before_kill": sum(1 for v in outcomes.values() if not v.get("retried")),
         "requests_cut_by_kill_then_retried": len(lost),
         "of_which_committed_before_the_kill": committed_unanswered,
-        "units": len(jobs) * per_job, "lost": 0, "duplicated": 0,
+        "units": len(jobs) * per_job,
+        "lost": 0,
+        "duplicated": 0,
         "seconds": round(time.monotonic() - t0, 1),
         "recovery_to_all_done_s": round(time.monotonic() - killed_at, 1),
     }
@@ -589,13 +649,17 @@ def test_two_beats_one_job_per_due_time(stack_up):
     with st.client() as c:
         ids = []
         for name in names:
-            r = c.post("/schedules", json={"name": name, "cron": "* * * * *",
-                                           "timezone": "UTC", "spec_template": TINY})
+            r = c.post(
+                "/schedules",
+                json={"name": name, "cron": "* * * * *", "timezone": "UTC", "spec_template": TINY},
+            )
             assert r.status_code in (200, 201), r.text
             ids.append(r.json()["id"])
     # created an hour ago: the current minute is due at once, every minute after it too
-    st.sql("UPDATE schedules SET created_at = created_at - interval '1 hour' "
-           "WHERE id = ANY(:ids)", ids=ids)
+    st.sql(
+        "UPDATE schedules SET created_at = created_at - interval '1 hour' WHERE id = ANY(:ids)",
+        ids=ids,
+    )
     st.start_worker("beatw", concurrency=2)
     for b in ("beat-a", "beat-b"):  # two schedulers at once, ticking twice a second
         st.start_beat(b, tick_seconds=0.5)
@@ -603,8 +667,11 @@ def test_two_beats_one_job_per_due_time(stack_up):
     deadline = time.monotonic() + 60
     first = []
     while time.monotonic() < deadline and len(first) < len(ids):
-        first = st.sql("SELECT schedule_id, min(due_at) FROM schedule_runs "
-                       "WHERE schedule_id = ANY(:ids) GROUP BY schedule_id", ids=ids)
+        first = st.sql(
+            "SELECT schedule_id, min(due_at) FROM schedule_runs "
+            "WHERE schedule_id = ANY(:ids) GROUP BY schedule_id",
+            ids=ids,
+        )
         time.sleep(0.2)
     assert len(first) == len(ids), f"the beats created no run\n{st.log_tail('beat-a')}"
     first_due = max(r[1] for r in first)
@@ -618,10 +685,12 @@ def test_two_beats_one_job_per_due_time(stack_up):
     st.stop("beat-a", grace=5)
     st.stop("beat-b", grace=5)
 
-    runs = st.sql("SELECT schedule_id, due_at, job_id FROM schedule_runs "
-                  "WHERE schedule_id = ANY(:ids) ORDER BY schedule_id, due_at", ids=ids)
-    jobs = st.sql("SELECT schedule_id, id, name FROM jobs WHERE schedule_id = ANY(:ids)",
-                  ids=ids)
+    runs = st.sql(
+        "SELECT schedule_id, due_at, job_id FROM schedule_runs "
+        "WHERE schedule_id = ANY(:ids) ORDER BY schedule_id, due_at",
+        ids=ids,
+    )
+    jobs = st.sql("SELECT schedule_id, id, name FROM jobs WHERE schedule_id = ANY(:ids)", ids=ids)
     per_sched = {i: [r for r in runs if r[0] == i] for i in ids}
     for i, rs in per_sched.items():
         dues = [r[1].timestamp() for r in rs]
@@ -638,8 +707,12 @@ def test_two_beats_one_job_per_due_time(stack_up):
     for b in ("beat-a", "beat-b"):
         assert log_count(st, b, "beat: Starting") == 1
     RESULTS["5_two_beats"] = {
-        "beats": 2, "schedules": len(ids), "due_times": len(runs) // len(ids),
-        "jobs": len(jobs), "runs": len(runs), "seconds": round(time.monotonic() - t0, 1),
+        "beats": 2,
+        "schedules": len(ids),
+        "due_times": len(runs) // len(ids),
+        "jobs": len(jobs),
+        "runs": len(runs),
+        "seconds": round(time.monotonic() - t0, 1),
     }
 
 
@@ -655,10 +728,12 @@ def test_unit_that_kills_its_worker_fails_after_k_attempts(stack_up):
     with st.client() as c:
         job = submit(c, spec, name="poison")  # no worker yet: nothing runs
     job_id = job["id"]
-    (unit_id,), = st.sql("SELECT id FROM work_units WHERE job_id = :j AND index = 2", j=job_id)
-    st.start_worker("poisonw", concurrency=1,
-                    env={"SVROBS_TEST_CRASH_UNIT": str(unit_id),
-                         "SVROBS_MAX_UNIT_ATTEMPTS": str(k)})
+    ((unit_id,),) = st.sql("SELECT id FROM work_units WHERE job_id = :j AND index = 2", j=job_id)
+    st.start_worker(
+        "poisonw",
+        concurrency=1,
+        env={"SVROBS_TEST_CRASH_UNIT": str(unit_id), "SVROBS_MAX_UNIT_ATTEMPTS": str(k)},
+    )
     assert wait_job_db(st, job_id, timeout=90) == "failed", st.log_tail("poisonw")
     with st.client() as c:
         final = c.get(f"/jobs/{job_id}").json()
@@ -672,17 +747,20 @@ def test_unit_that_kills_its_worker_fails_after_k_attempts(stack_up):
     units = dict(st.sql("SELECT index, status FROM work_units WHERE job_id = :j", j=job_id))
     assert units[2] == "failed", units
     assert set(units.values()) <= {"done", "failed", "cancelled"}, units
-    (attempts,), = st.sql("SELECT attempts FROM work_units WHERE id = :u", u=unit_id)
+    ((attempts,),) = st.sql("SELECT attempts FROM work_units WHERE id = :u", u=unit_id)
     assert attempts == k
     crashes = log_count(st, "poisonw", "exited with 'exitcode 1'")
     assert crashes == k, crashes
     assert st.children["poisonw"].poll() is None  # the worker itself lives on
     # the failed unit stored nothing; the others stored all their cells
     n_done = sum(1 for s in units.values() if s == "done")
-    (stored,), = st.sql("SELECT count(*) FROM results WHERE job_id = :j", j=job_id)
+    ((stored,),) = st.sql("SELECT count(*) FROM results WHERE job_id = :j", j=job_id)
     per_unit = parse_spec(spec).n_cells // len(units)
     assert stored == n_done * per_unit
     RESULTS["6_poison_unit"] = {
-        "k": k, "worker_deaths": crashes, "attempts_recorded": attempts,
-        "job_error": err, "seconds": round(time.monotonic() - t0, 1),
+        "k": k,
+        "worker_deaths": crashes,
+        "attempts_recorded": attempts,
+        "job_error": err,
+        "seconds": round(time.monotonic() - t0, 1),
     }

@@ -58,22 +58,31 @@ ID_QUERY_PARAMS = {"jobs": "job"}  # /compare?jobs=1,2
 # Valid values for parameters the schema leaves as free strings, so that requests reach
 # the id lookup rather than stopping at validation.
 QUERY_HINTS = {
-    "/api/v1/compare": {"metric": st.sampled_from(NUMERIC_FIELDS),
-                        "by": st.sampled_from(["N", "estimator,gamma", "system,sigma_w,rep"])},
+    "/api/v1/compare": {
+        "metric": st.sampled_from(NUMERIC_FIELDS),
+        "by": st.sampled_from(["N", "estimator,gamma", "system,sigma_w,rep"]),
+    },
 }
 
 
 def _settings(url: str) -> Settings:
-    return Settings(DATABASE_URL=url, BROKER_URL="memory://",
-                    RATE_LIMIT_PER_MINUTE=0,  # no throttling: every request reaches the routes
-                    BROKER_TIMEOUT=0.5)
+    return Settings(
+        DATABASE_URL=url,
+        BROKER_URL="memory://",
+        RATE_LIMIT_PER_MINUTE=0,  # no throttling: every request reaches the routes
+        BROKER_TIMEOUT=0.5,
+    )
 
 
 def _operations() -> list[tuple[str, str, dict]]:
     """(METHOD, path, operation) of every operation in the schema."""
     spec = create_app(_settings("sqlite://")).openapi()
-    return [(method.upper(), path, op) for path, item in spec["paths"].items()
-            for method, op in item.items() if method in ("get", "post", "put", "patch", "delete")]
+    return [
+        (method.upper(), path, op)
+        for path, item in spec["paths"].items()
+        for method, op in item.items()
+        if method in ("get", "post", "put", "patch", "delete")
+    ]
 
 
 OPERATIONS = _operations()
@@ -100,8 +109,12 @@ GENERATED: collections.Counter = collections.Counter()
 
 def _hypothesis(max_examples: int):
     return settings(
-        max_examples=max_examples, deadline=None, derandomize=True, database=None,
-        suppress_health_check=list(HealthCheck), print_blob=False,
+        max_examples=max_examples,
+        deadline=None,
+        derandomize=True,
+        database=None,
+        suppress_health_check=list(HealthCheck),
+        print_blob=False,
         phases=[Phase.explicit, Phase.generate, Phase.shrink],
     )
 
@@ -120,13 +133,21 @@ def _account(session, name: str):
     team = admin.create_team(session, name)
     user = admin.create_user(session, team.id, f"fuzz@{name}.org")
     _, key = admin.create_key(session, user.id)
-    return SimpleNamespace(team_id=team.id, user_id=user.id,
-                           headers={"Authorization": f"Bearer {key}"})
+    return SimpleNamespace(
+        team_id=team.id, user_id=user.id, headers={"Authorization": f"Bearer {key}"}
+    )
 
 
 def _make_job(session, acc, *, run: bool = False, cancel: bool = False) -> int:
-    job = crud.create_job(session, team_id=acc.team_id, user_id=acc.user_id, spec=SMALL_SPEC,
-                          name="fuzz", tags=("fuzz",), max_active_jobs=0)
+    job = crud.create_job(
+        session,
+        team_id=acc.team_id,
+        user_id=acc.user_id,
+        spec=SMALL_SPEC,
+        name="fuzz",
+        tags=("fuzz",),
+        max_active_jobs=0,
+    )
     session.commit()
     if run:
         run_job_units(session, job.id)
@@ -138,9 +159,18 @@ def _make_job(session, acc, *, run: bool = False, cancel: bool = False) -> int:
 
 def _make_schedule(session, acc) -> int:
     now = utcnow()
-    s = Schedule(team_id=acc.team_id, user_id=acc.user_id, name=f"nightly-{now.timestamp()}",
-                 cron="0 2 * * *", timezone="UTC", spec_template=SMALL_SPEC, tags=["fuzz"],
-                 enabled=True, created_at=now, updated_at=now)
+    s = Schedule(
+        team_id=acc.team_id,
+        user_id=acc.user_id,
+        name=f"nightly-{now.timestamp()}",
+        cron="0 2 * * *",
+        timezone="UTC",
+        spec_template=SMALL_SPEC,
+        tags=["fuzz"],
+        enabled=True,
+        created_at=now,
+        updated_at=now,
+    )
     session.add(s)
     session.commit()
     return s.id
@@ -155,8 +185,11 @@ def fuzz_env(url: str):
     try:
         a, b = _account(session, "fuzz-a"), _account(session, "fuzz-b")
         # A's data for the fuzzer to find (also reached through random small ids)
-        a_jobs = [_make_job(session, a, run=True), _make_job(session, a),
-                  _make_job(session, a, cancel=True)]
+        a_jobs = [
+            _make_job(session, a, run=True),
+            _make_job(session, a),
+            _make_job(session, a, cancel=True),
+        ]
         a_schedules = [_make_schedule(session, a)]
         _make_job(session, b, run=True)
         _make_schedule(session, b)
@@ -165,9 +198,16 @@ def fuzz_env(url: str):
         app.state.broker_check = lambda: None
         schema = schemathesis.openapi.from_asgi("/openapi.json", app)
         with asgi.get_client(app) as client:
-            yield SimpleNamespace(url=url, app=app, schema=schema, client=client,
-                                  session=session, a=a, b=b,
-                                  ids={"job": a_jobs, "schedule": a_schedules})
+            yield SimpleNamespace(
+                url=url,
+                app=app,
+                schema=schema,
+                client=client,
+                session=session,
+                a=a,
+                b=b,
+                ids={"job": a_jobs, "schedule": a_schedules},
+            )
     finally:
         session.close()
         dispose_all()
@@ -184,13 +224,19 @@ def _send(env, case, test_id: str):
     return case.call(session=env.client)
 
 
-FUZZ_CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance,
-               response_schema_conformance]
+FUZZ_CHECKS = [
+    not_a_server_error,
+    status_code_conformance,
+    content_type_conformance,
+    response_schema_conformance,
+]
 
 
-@pytest.mark.parametrize(("method", "path", "mode"), [
-    (m, p, mode) for m, p, _ in OPERATIONS for mode in ("positive", "negative")
-], ids=FUZZ_IDS)
+@pytest.mark.parametrize(
+    ("method", "path", "mode"),
+    [(m, p, mode) for m, p, _ in OPERATIONS for mode in ("positive", "negative")],
+    ids=FUZZ_IDS,
+)
 def test_fuzz_operation(env, method, path, mode):
     """No 5xx, documented status codes, content types and bodies; in negative mode
     invalid input is rejected (4xx)."""
@@ -202,9 +248,12 @@ def test_fuzz_operation(env, method, path, mode):
         target = RAW[(method, path)]
         if target and target[0] == "path":  # also A's real ids, so real rows are read
             _, param, kind = target
-            strategy = st.one_of(strategy, st.sampled_from(env.ids[kind]).flatmap(
-                lambda i: op.as_strategy(gen, headers=env.a.headers,
-                                         path_parameters={param: i})))
+            strategy = st.one_of(
+                strategy,
+                st.sampled_from(env.ids[kind]).flatmap(
+                    lambda i: op.as_strategy(gen, headers=env.a.headers, path_parameters={param: i})
+                ),
+            )
     checks = FUZZ_CHECKS + ([negative_data_rejection] if gen.is_negative else [])
 
     @_hypothesis(MAX_EXAMPLES_FUZZ)
@@ -227,19 +276,27 @@ def victims(env) -> dict[str, list[int]]:
     deleted the module's own): a finished job with results, a queued one, a cancelled
     one, and a schedule."""
     s, a = env.session, env.a
-    return {"job": [_make_job(s, a, run=True), _make_job(s, a), _make_job(s, a, cancel=True)],
-            "schedule": [_make_schedule(s, a)]}
+    return {
+        "job": [_make_job(s, a, run=True), _make_job(s, a), _make_job(s, a, cancel=True)],
+        "schedule": [_make_schedule(s, a)],
+    }
 
 
 def _snapshot(env, ids) -> dict:
     s = env.session
     s.expire_all()
-    jobs = {j: (job.status, job.progress_done, job.name, job.tags, job.team_id)
-            for j in ids["job"] for job in [s.get(Job, j)]}
+    jobs = {
+        j: (job.status, job.progress_done, job.name, job.tags, job.team_id)
+        for j in ids["job"]
+        for job in [s.get(Job, j)]
+    }
     results = {j: s.query(Result).filter(Result.job_id == j).count() for j in ids["job"]}
-    scheds = {i: None if (x := s.get(Schedule, i)) is None else
-              (x.name, x.cron, x.enabled, x.spec_template, x.tags, x.team_id)
-              for i in ids["schedule"]}
+    scheds = {
+        i: None
+        if (x := s.get(Schedule, i)) is None
+        else (x.name, x.cron, x.enabled, x.spec_template, x.tags, x.team_id)
+        for i in ids["schedule"]
+    }
     s.rollback()
     return {"jobs": jobs, "results": results, "schedules": scheds}
 
@@ -257,17 +314,23 @@ def test_other_team_cannot_reach_ids(env, victims, method, path, target):
     op = env.schema[path][method]
     before = _snapshot(env, victims)
     assert all(v is not None for v in before["schedules"].values())
-    assert before["jobs"][victims["job"][0]][0] == "succeeded" and before["results"][
-        victims["job"][0]] > 0
+    assert (
+        before["jobs"][victims["job"][0]][0] == "succeeded"
+        and before["results"][victims["job"][0]] > 0
+    )
     statuses: collections.Counter = collections.Counter()
 
     def strategy_for(real: int):
         if where == "path":
-            return op.as_strategy(GenerationMode.POSITIVE, headers=env.b.headers,
-                                  path_parameters={param: real})
+            return op.as_strategy(
+                GenerationMode.POSITIVE, headers=env.b.headers, path_parameters={param: real}
+            )
         hints = QUERY_HINTS.get(path, {})
-        return st.fixed_dictionaries(hints).flatmap(lambda q: op.as_strategy(
-            GenerationMode.POSITIVE, headers=env.b.headers, query={**q, param: str(real)}))
+        return st.fixed_dictionaries(hints).flatmap(
+            lambda q: op.as_strategy(
+                GenerationMode.POSITIVE, headers=env.b.headers, query={**q, param: str(real)}
+            )
+        )
 
     @_hypothesis(MAX_EXAMPLES_AUTHZ)
     @given(real=st.sampled_from(victims[kind]), data=st.data())
@@ -288,7 +351,8 @@ def test_other_team_cannot_reach_ids(env, victims, method, path, target):
         assert _without_id(response.text, real) == _without_id(baseline.text, MISSING_ID)
         # 404, unless the input itself was rejected before any lookup (422 either way)
         assert response.status_code == 404 or (
-            response.status_code == 422 and baseline.status_code == 422), response.text
+            response.status_code == 422 and baseline.status_code == 422
+        ), response.text
 
     run()
     assert _snapshot(env, victims) == before
@@ -354,7 +418,9 @@ def test_zz_generated_request_count():
         pytest.skip("only part of the fuzz module ran")
     total = sum(v for k, v in GENERATED.items() if not k.startswith("pg "))
     pg = sum(v for k, v in GENERATED.items() if k.startswith("pg "))
-    print(f"\nschemathesis: {total} generated requests over {len(OPERATIONS)} operations on "
-          f"SQLite ({sum(v for k, v in GENERATED.items() if k.startswith('authz'))} of them "
-          f"cross-team), {pg} more on PostgreSQL")
+    print(
+        f"\nschemathesis: {total} generated requests over {len(OPERATIONS)} operations on "
+        f"SQLite ({sum(v for k, v in GENERATED.items() if k.startswith('authz'))} of them "
+        f"cross-team), {pg} more on PostgreSQL"
+    )
     assert total >= MIN_GENERATED_REQUESTS, GENERATED

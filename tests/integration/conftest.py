@@ -26,8 +26,11 @@ from .stack import API, PG_URL, READY_TIMEOUT, REDIS_URL, ROOT, Stack, free_port
 
 
 def _stack_params():
-    marks_pg = [] if (PG_URL and REDIS_URL) else [pytest.mark.skip(
-        reason="SVROBS_TEST_DATABASE_URL / SVROBS_TEST_BROKER_URL not set")]
+    marks_pg = (
+        []
+        if (PG_URL and REDIS_URL)
+        else [pytest.mark.skip(reason="SVROBS_TEST_DATABASE_URL / SVROBS_TEST_BROKER_URL not set")]
+    )
     return [pytest.param("embedded", id="embedded"), pytest.param("pg", id="pg", marks=marks_pg)]
 
 

@@ -32,8 +32,9 @@ def _pg_bindir() -> Path | None:
     cands = [env] if env else sorted(glob("/usr/lib/postgresql/*/bin"), reverse=True)
     cands += [os.path.dirname(p) for p in [shutil.which("initdb")] if p]
     for c in cands:
-        if c and all(os.access(os.path.join(c, b), os.X_OK) for b in ("initdb", "pg_ctl",
-                                                                    "postgres")):
+        if c and all(
+            os.access(os.path.join(c, b), os.X_OK) for b in ("initdb", "pg_ctl", "postgres")
+        ):
             return Path(c)
     return None
 
@@ -49,9 +50,11 @@ except (OSError, AttributeError):  # pragma: no cover - not Linux
 
 def deathsig(sig: int):
     """preexec_fn: the child gets ``sig`` when this process dies (runs after setuid)."""
+
     def preexec():  # pragma: no cover - runs in the child
         if _prctl is not None:
             _prctl(1, int(sig))  # PR_SET_PDEATHSIG
+
     return preexec
 
 
@@ -90,8 +93,9 @@ class PrivateRedis:
     def ping(self) -> bool:
         import redis
 
-        r = redis.Redis(host="127.0.0.1", port=self.port, socket_timeout=1,
-                        socket_connect_timeout=1)
+        r = redis.Redis(
+            host="127.0.0.1", port=self.port, socket_timeout=1, socket_connect_timeout=1
+        )
         try:
             return bool(r.ping())
         finally:
@@ -100,11 +104,26 @@ class PrivateRedis:
     def start(self) -> None:
         assert not self.running()
         self.starts += 1
-        argv = [REDIS_SERVER, "--port", str(self.port), "--bind", "127.0.0.1",
-                "--save", "", "--appendonly", "no", "--daemonize", "no",
-                "--dir", str(self.dir), "--protected-mode", "yes"]
-        self.child = Child("redis", argv, dict(os.environ), log=self.dir / "redis.log",
-                           cwd=self.dir).start()
+        argv = [
+            REDIS_SERVER,
+            "--port",
+            str(self.port),
+            "--bind",
+            "127.0.0.1",
+            "--save",
+            "",
+            "--appendonly",
+            "no",
+            "--daemonize",
+            "no",
+            "--dir",
+            str(self.dir),
+            "--protected-mode",
+            "yes",
+        ]
+        self.child = Child(
+            "redis", argv, dict(os.environ), log=self.dir / "redis.log", cwd=self.dir
+        ).start()
         _wait(lambda: self.child.poll() is None and self.ping(), START_TIMEOUT, "redis ping")
 
     def stop(self) -> None:
@@ -174,8 +193,15 @@ class PrivatePostgres:
         return f"postgresql+psycopg://postgres@127.0.0.1:{self.port}/postgres"
 
     def _run(self, argv: list[str], timeout: float = 60) -> subprocess.CompletedProcess:
-        out = subprocess.run(argv, cwd=str(self.dir), capture_output=True, text=True,
-                             timeout=timeout, check=False, **self._as_user())
+        out = subprocess.run(
+            argv,
+            cwd=str(self.dir),
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            check=False,
+            **self._as_user(),
+        )
         if out.returncode != 0:
             raise AssertionError(f"{argv} failed ({out.returncode}):\n{out.stdout}\n{out.stderr}")
         return out
@@ -186,8 +212,21 @@ class PrivatePostgres:
         return {"user": self.user.pw_uid, "group": self.user.pw_gid, "extra_groups": []}
 
     def init(self) -> None:
-        self._run([str(self.bindir / "initdb"), "-D", str(self.data), "-A", "trust",
-                   "-U", "postgres", "-E", "UTF8", "--no-sync", "--no-instructions"])
+        self._run(
+            [
+                str(self.bindir / "initdb"),
+                "-D",
+                str(self.data),
+                "-A",
+                "trust",
+                "-U",
+                "postgres",
+                "-E",
+                "UTF8",
+                "--no-sync",
+                "--no-instructions",
+            ]
+        )
 
     def running(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
@@ -195,37 +234,73 @@ class PrivatePostgres:
     def ready(self) -> bool:
         import psycopg
 
-        with psycopg.connect(host="127.0.0.1", port=self.port, user="postgres",
-                             dbname="postgres", connect_timeout=2) as c:
+        with psycopg.connect(
+            host="127.0.0.1", port=self.port, user="postgres", dbname="postgres", connect_timeout=2
+        ) as c:
             return c.execute("SELECT 1").fetchone() == (1,)
 
     def start(self) -> None:
         assert not self.running()
         self.starts += 1
-        argv = [str(self.bindir / "postgres"), "-D", str(self.data), "-p", str(self.port),
-                "-k", str(self.dir), "-c", "listen_addresses=127.0.0.1",
-                # a test cluster: durability off (a fast shutdown still checkpoints)
-                "-c", "fsync=off", "-c", "synchronous_commit=off",
-                "-c", "full_page_writes=off", "-c", "max_connections=200"]
+        argv = [
+            str(self.bindir / "postgres"),
+            "-D",
+            str(self.data),
+            "-p",
+            str(self.port),
+            "-k",
+            str(self.dir),
+            "-c",
+            "listen_addresses=127.0.0.1",
+            # a test cluster: durability off (a fast shutdown still checkpoints)
+            "-c",
+            "fsync=off",
+            "-c",
+            "synchronous_commit=off",
+            "-c",
+            "full_page_writes=off",
+            "-c",
+            "max_connections=200",
+        ]
         log = open(self.dir / "postgres.log", "ab")  # noqa: SIM115 - handed to the child
         try:
             self.proc = subprocess.Popen(
-                argv, cwd=str(self.dir), stdin=subprocess.DEVNULL, stdout=log,
-                stderr=subprocess.STDOUT, start_new_session=True,
-                preexec_fn=deathsig(signal.SIGQUIT), **self._as_user(),  # noqa: PLW1509
+                argv,
+                cwd=str(self.dir),
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+                preexec_fn=deathsig(signal.SIGQUIT),
+                **self._as_user(),  # noqa: PLW1509
             )
         finally:
             log.close()
-        _wait(lambda: self.proc.poll() is None and self.ready(), START_TIMEOUT,
-              f"postgres ready on {self.port}")
+        _wait(
+            lambda: self.proc.poll() is None and self.ready(),
+            START_TIMEOUT,
+            f"postgres ready on {self.port}",
+        )
 
     def stop(self, mode: str = "fast") -> None:
         """``pg_ctl stop -m <mode>`` (waits), then make sure the process group is gone."""
         if not self.running():
             return
         try:
-            self._run([str(self.bindir / "pg_ctl"), "-D", str(self.data), "-m", mode,
-                       "-w", "-t", "30", "stop"], timeout=40)
+            self._run(
+                [
+                    str(self.bindir / "pg_ctl"),
+                    "-D",
+                    str(self.data),
+                    "-m",
+                    mode,
+                    "-w",
+                    "-t",
+                    "30",
+                    "stop",
+                ],
+                timeout=40,
+            )
         finally:
             self._kill_group()
 
@@ -261,7 +336,8 @@ class PrivatePostgres:
 
     def log_tail(self, n: int = 40) -> str:
         try:
-            return "\n".join((self.dir / "postgres.log").read_text(errors="replace")
-                             .splitlines()[-n:])
+            return "\n".join(
+                (self.dir / "postgres.log").read_text(errors="replace").splitlines()[-n:]
+            )
         except OSError:
             return ""

@@ -66,8 +66,15 @@ class Stack:
     tests pass their private servers' URLs). ``extra_env`` is added to every child's
     environment."""
 
-    def __init__(self, kind: str, root: Path, *, pg_url: str | None = None,
-                 redis_url: str | None = None, extra_env: dict | None = None):
+    def __init__(
+        self,
+        kind: str,
+        root: Path,
+        *,
+        pg_url: str | None = None,
+        redis_url: str | None = None,
+        extra_env: dict | None = None,
+    ):
         self.kind = kind
         self.root = root
         self.pg_url = pg_url or PG_URL
@@ -147,8 +154,13 @@ class Stack:
     def python(self, code: str, *, env: dict | None = None, timeout: float = 60) -> str:
         """Run ``code`` in a fresh interpreter with the stack's environment."""
         proc = subprocess.run(
-            [sys.executable, "-c", code], cwd=str(ROOT), env={**self.env, **(env or {})},
-            capture_output=True, text=True, timeout=timeout, check=False,
+            [sys.executable, "-c", code],
+            cwd=str(ROOT),
+            env={**self.env, **(env or {})},
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            check=False,
         )
         if proc.returncode != 0:
             raise AssertionError(f"subprocess failed ({proc.returncode}):\n{proc.stderr[-4000:]}")
@@ -179,14 +191,16 @@ class Stack:
             self.base_url = url
         return url
 
-    def start_worker(self, name: str = "worker1", concurrency: int = 1,
-                     env: dict | None = None) -> Child:
+    def start_worker(
+        self, name: str = "worker1", concurrency: int = 1, env: dict | None = None
+    ) -> Child:
         child = self.start(name, worker_command(name, concurrency), env)
         self.wait_log(name, "ready.")
         return child
 
-    def start_beat(self, name: str = "beat", tick_seconds: float = 1.0,
-                   env: dict | None = None) -> Child:
+    def start_beat(
+        self, name: str = "beat", tick_seconds: float = 1.0, env: dict | None = None
+    ) -> Child:
         env = {"SVROBS_TICK_SECONDS": str(tick_seconds), **(env or {})}
         return self.start(name, beat_command(self.root / f"{name}-schedule"), env)
 
@@ -207,8 +221,9 @@ class Stack:
             time.sleep(0.2)
         raise AssertionError(f"{url} not ready in {timeout}s: {last}\n{self.log_tail(name)}")
 
-    def wait_log(self, name: str, text: str, timeout: float = READY_TIMEOUT,
-                 count: int = 1) -> None:
+    def wait_log(
+        self, name: str, text: str, timeout: float = READY_TIMEOUT, count: int = 1
+    ) -> None:
         deadline = time.monotonic() + timeout
         path = self.logs / f"{name}.log"
         while time.monotonic() < deadline:
@@ -219,7 +234,8 @@ class Stack:
                 return
             time.sleep(0.2)
         raise AssertionError(
-            f"{name}: {text!r} not logged {count}x in {timeout}s:\n{self.log_tail(name)}")
+            f"{name}: {text!r} not logged {count}x in {timeout}s:\n{self.log_tail(name)}"
+        )
 
     def log_tail(self, *names: str, n: int = 60) -> str:
         names = names or tuple(p.stem for p in sorted(self.logs.glob("*.log")))
@@ -228,12 +244,19 @@ class Stack:
     # ----------------------------------------------------------------- REST
     def client(self, base_url: str | None = None) -> httpx.Client:
         return httpx.Client(
-            base_url=(base_url or self.base_url) + API, timeout=30,
+            base_url=(base_url or self.base_url) + API,
+            timeout=30,
             headers={"Authorization": f"Bearer {self.key}"},
         )
 
-    def wait_job(self, client: httpx.Client, job_id, *, statuses=("succeeded", "failed",
-                 "cancelled"), timeout: float = 120.0) -> dict:
+    def wait_job(
+        self,
+        client: httpx.Client,
+        job_id,
+        *,
+        statuses=("succeeded", "failed", "cancelled"),
+        timeout: float = 120.0,
+    ) -> dict:
         deadline = time.monotonic() + timeout
         job = None
         while time.monotonic() < deadline:
@@ -250,8 +273,14 @@ class Stack:
 
 
 def cell_key(r: dict) -> tuple:
-    return (r["system"], r["sigma_w"], r["N"], r["estimator"],
-            -1.0 if r["gamma"] is None else r["gamma"], r["rep"])
+    return (
+        r["system"],
+        r["sigma_w"],
+        r["N"],
+        r["estimator"],
+        -1.0 if r["gamma"] is None else r["gamma"],
+        r["rep"],
+    )
 
 
 def in_process_records(spec: dict) -> dict[tuple, dict]:

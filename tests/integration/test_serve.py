@@ -34,11 +34,18 @@ def _start_serve(tmp_path, port):
     env.update(
         SVROBS_DATABASE_URL=f"sqlite:///{tmp_path / 'var' / 'svrobs.db'}",
         SVROBS_BROKER_DIR=str(tmp_path / "var" / "broker"),
-        SVROBS_API_PORT=str(port), PYTHONUNBUFFERED="1",
+        SVROBS_API_PORT=str(port),
+        PYTHONUNBUFFERED="1",
     )
     log = open(tmp_path / "serve.log", "wb")
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli_main", "serve"], cwd=str(ROOT), env=env,
-                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "service.cli_main", "serve"],
+        cwd=str(ROOT),
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
     return proc, tmp_path / "serve.log"
 
 
@@ -67,8 +74,9 @@ def test_serve_first_start_prints_key_and_ctrl_c_stops_everything(tmp_path):
     try:
         text = _wait_ready(proc, log, port)
         key = re.search(r"(svr_[a-z0-9]{8}_\S+)", text).group(1)
-        r = httpx.get(f"http://127.0.0.1:{port}/api/v1/jobs",
-                      headers={"Authorization": f"Bearer {key}"})
+        r = httpx.get(
+            f"http://127.0.0.1:{port}/api/v1/jobs", headers={"Authorization": f"Bearer {key}"}
+        )
         assert r.status_code == 200, r.text
         pids = _child_pids(text)
         assert set(pids) == {"api", "worker1", "beat"}

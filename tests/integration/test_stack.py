@@ -32,8 +32,14 @@ SMALL_SPEC = {
     "seed": 7,
 }
 TINY_SPEC = {
-    "systems": ["paper-stable"], "sigma_w": [1.0], "N": [10], "gamma": [0.05],
-    "estimators": ["ols", "svr"], "reps": 2, "stages": ["estimate", "bounds"], "seed": 1,
+    "systems": ["paper-stable"],
+    "sigma_w": [1.0],
+    "N": [10],
+    "gamma": [0.05],
+    "estimators": ["ols", "svr"],
+    "reps": 2,
+    "stages": ["estimate", "bounds"],
+    "seed": 1,
 }
 
 
@@ -150,8 +156,14 @@ def concurrent_ticks(stack, nows: list[datetime], n: int = 2) -> list[list[dict]
     t0 = time.time() + 4.0  # after every interpreter has imported everything
     plan = json.dumps([(t0 + 1.5 * i, now.isoformat()) for i, now in enumerate(nows)])
     procs = [
-        subprocess.Popen([sys.executable, "-c", TICK, plan], cwd=str(ROOT), env=stack.env,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        subprocess.Popen(
+            [sys.executable, "-c", TICK, plan],
+            cwd=str(ROOT),
+            env=stack.env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         for _ in range(n)
     ]
     outs = []
@@ -166,10 +178,17 @@ def test_schedule_due_once_even_with_two_ticks(stack):
     """Two ticks at once (as with two beats) give exactly one job per due time; the
     tick also publishes the new jobs' units and the jobs run."""
     with stack.client() as c:
-        r = c.post("/schedules", json={
-            "name": f"nightly-{stack.kind}", "cron": "* * * * *", "timezone": "UTC",
-            "spec_template": TINY_SPEC, "tags": ["sweep"], "enabled": True,
-        })
+        r = c.post(
+            "/schedules",
+            json={
+                "name": f"nightly-{stack.kind}",
+                "cron": "* * * * *",
+                "timezone": "UTC",
+                "spec_template": TINY_SPEC,
+                "tags": ["sweep"],
+                "enabled": True,
+            },
+        )
         assert r.status_code in (200, 201), r.text
         sched = r.json()
         created = datetime.fromisoformat(sched["created_at"].replace("Z", "+00:00"))
@@ -177,11 +196,14 @@ def test_schedule_due_once_even_with_two_ticks(stack):
             created = created.replace(tzinfo=UTC)
         due1 = (created + timedelta(minutes=1)).replace(second=0, microsecond=0)
         due2 = due1 + timedelta(minutes=1)
-        rounds = concurrent_ticks(stack, [
-            due1 + timedelta(seconds=5),   # due1 falls due: one job
-            due2 + timedelta(seconds=1),   # due2 falls due: one job
-            due2 + timedelta(seconds=30),  # due2 again (a late or restarted beat): none
-        ])
+        rounds = concurrent_ticks(
+            stack,
+            [
+                due1 + timedelta(seconds=5),  # due1 falls due: one job
+                due2 + timedelta(seconds=1),  # due2 falls due: one job
+                due2 + timedelta(seconds=30),  # due2 again (a late or restarted beat): none
+            ],
+        )
         for outs in rounds:
             assert not any(o["errors"] for o in outs), outs
         made = [[j for o in outs for j in o["created"]] for outs in rounds]

@@ -28,8 +28,14 @@ from service.db.models import Team
 from service.db.session import dispose_all, session_scope
 from tests.integration.servers import REDIS_SERVER, PrivateRedis
 
-SPEC = {"systems": ["paper-stable"], "sigma_w": [1.0], "N": [10, 20, 30], "reps": 2,
-        "estimators": ["ols"], "seed": 1}
+SPEC = {
+    "systems": ["paper-stable"],
+    "sigma_w": [1.0],
+    "N": [10, 20, 30],
+    "reps": 2,
+    "estimators": ["ols"],
+    "seed": 1,
+}
 
 
 @pytest.fixture
@@ -65,8 +71,9 @@ def test_units_published_before_the_broker_epoch_are_republished_at_once(db):
         assert crud.units_to_publish(s, now=soon, lost_before=t_pub - timedelta(hours=1)) == []
         # once re-published after the epoch they are not selected again in the same tick
         crud.mark_published(s, ids[:2], now=t_pub + timedelta(seconds=3))
-        assert crud.units_to_publish(s, now=soon, lost_before=t_pub + timedelta(seconds=2)) \
-            == ids[2:]
+        assert (
+            crud.units_to_publish(s, now=soon, lost_before=t_pub + timedelta(seconds=2)) == ids[2:]
+        )
         # an epoch in the future (clock skew) never selects units published later than now
         crud.mark_published(s, ids, now=soon + timedelta(seconds=1))
         assert crud.units_to_publish(s, now=soon, lost_before=soon + timedelta(hours=1)) == []
@@ -133,8 +140,9 @@ def test_a_unit_given_up_quotes_what_killed_its_worker(db):
         with session_scope(db) as s:
             assert crud.start_unit(s, uid, "w@host", 60, max_attempts=2) is not None
         with session_scope(db) as s:  # what worker.tasks.UnitRequest does when it is lost
-            crud.note_unit_error(s, uid, "WorkerLostError: Worker exited prematurely: "
-                                          "signal 11 (SIGSEGV)")
+            crud.note_unit_error(
+                s, uid, "WorkerLostError: Worker exited prematurely: signal 11 (SIGSEGV)"
+            )
     with session_scope(db) as s:
         assert crud.start_unit(s, uid, "w@host", 60, max_attempts=2) is None
     with session_scope(db) as s:

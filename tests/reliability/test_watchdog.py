@@ -34,8 +34,19 @@ def test_stall_detector_fires_only_after_checks_stuck_samples():
     d = StallDetector(checks=3, received=5)
     assert [d.observe(4, 1, 5) for _ in range(3)] == [False, False, True]
     d = StallDetector(checks=3, received=5)
-    assert not any(d.observe(*s) for s in [(4, 1, 5), (4, 1, 5), (4, 1, 6), (4, 1, 6),
-                                           (0, 1, 6), (4, 0, 6), (4, 1, 6), (4, 1, 6)])
+    assert not any(
+        d.observe(*s)
+        for s in [
+            (4, 1, 5),
+            (4, 1, 5),
+            (4, 1, 6),
+            (4, 1, 6),
+            (0, 1, 6),
+            (4, 0, 6),
+            (4, 1, 6),
+            (4, 1, 6),
+        ]
+    )
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -58,8 +69,9 @@ def test_stall_detector_matches_oracle_on_random_samples(seed):
 
 def _consumer(app):
     queues = list(app.amqp.queues.values())
-    return SimpleNamespace(connection=app.connection_for_read(), app=app,
-                           task_consumer=SimpleNamespace(queues=queues))
+    return SimpleNamespace(
+        connection=app.connection_for_read(), app=app, task_consumer=SimpleNamespace(queues=queues)
+    )
 
 
 def test_ready_messages_filesystem(tmp_path):
@@ -98,8 +110,10 @@ def test_capacity_needs_a_free_process_and_room_in_the_window():
 
     def consumer(size, room):
         qos = SimpleNamespace(can_consume=lambda: room)
-        return SimpleNamespace(pool=SimpleNamespace(num_processes=size),
-                               task_consumer=SimpleNamespace(channel=SimpleNamespace(qos=qos)))
+        return SimpleNamespace(
+            pool=SimpleNamespace(num_processes=size),
+            task_consumer=SimpleNamespace(channel=SimpleNamespace(qos=qos)),
+        )
 
     assert capacity(consumer(2, True)) == 2  # nothing reserved in this test process
     assert capacity(consumer(2, False)) == 0

@@ -80,8 +80,9 @@ def connection(engine):
 @pytest.fixture
 def session_factory(connection):
     def factory(write: bool = True) -> Session:
-        return Session(bind=connection, join_transaction_mode="create_savepoint",
-                       expire_on_commit=False)
+        return Session(
+            bind=connection, join_transaction_mode="create_savepoint", expire_on_commit=False
+        )
 
     return factory
 
@@ -98,8 +99,9 @@ def make_account(session):
     def make(team_name: str | None = None, *, is_admin: bool = False, **key_kw) -> Account:
         name = team_name or f"team-{uuid.uuid4().hex[:8]}"
         team = admin.create_team(session, name)
-        user = admin.create_user(session, team.id, f"{uuid.uuid4().hex[:8]}@{name}.org",
-                                 is_admin=is_admin)
+        user = admin.create_user(
+            session, team.id, f"{uuid.uuid4().hex[:8]}@{name}.org", is_admin=is_admin
+        )
         key_row, key = admin.create_key(session, user.id, **key_kw)
         session.commit()
         return Account(team, user, key_row, key)
@@ -142,5 +144,3 @@ def client(client_pub):
 @pytest.fixture
 def publisher(client_pub):
     return client_pub[1]
-
-

@@ -15,19 +15,26 @@ def fake_records(spec_dict: dict, unit: dict) -> list[dict]:
     for N in unit["N"]:
         for rep in range(*unit["reps"]):
             for est in spec.estimators:
-                for g in ([None] if est == "ols" else list(spec.gamma)):
+                for g in [None] if est == "ols" else list(spec.gamma):
                     rnd = random.Random(str((unit["system"], unit["sigma_w"], N, rep, est, g)))
                     r = empty_record()
                     r.update(
                         system=spec.systems[unit["system"]].name,
-                        sigma_w=spec.sigma_w[unit["sigma_w"]], N=N, N0=N - spec.T0 + 1,
-                        estimator=est, gamma=g, rep=rep,
+                        sigma_w=spec.sigma_w[unit["sigma_w"]],
+                        N=N,
+                        N0=N - spec.T0 + 1,
+                        estimator=est,
+                        gamma=g,
+                        rep=rep,
                         seed_key=[unit["system"], unit["sigma_w"], N, rep],
                         A_hat=[[rnd.random() for _ in range(3)] for _ in range(3)],
                         B_hat=[[rnd.random()] for _ in range(3)],
-                        rmse_A=rnd.random() / N, rmse_B=float("nan"),
-                        H_A=1.0 + rnd.random(), thm1_holds_A=rnd.random() > 0.3,
-                        stable_certified=None, notes="fake" if est == "ols" else None,
+                        rmse_A=rnd.random() / N,
+                        rmse_B=float("nan"),
+                        H_A=1.0 + rnd.random(),
+                        thm1_holds_A=rnd.random() > 0.3,
+                        stable_certified=None,
+                        notes="fake" if est == "ols" else None,
                     )
                     out.append(r)
     return out

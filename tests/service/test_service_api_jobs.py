@@ -19,8 +19,12 @@ def _jobs(session, team_id):
 
 
 def submit(client, acc, body=None, **kw):
-    return client.post(f"{API}/jobs", json=body if body is not None else SMALL_SPEC,
-                       headers={**acc.headers, **kw.pop("headers", {})}, **kw)
+    return client.post(
+        f"{API}/jobs",
+        json=body if body is not None else SMALL_SPEC,
+        headers={**acc.headers, **kw.pop("headers", {})},
+        **kw,
+    )
 
 
 def test_submit_publishes_after_commit(client, publisher, session, make_account):
@@ -37,8 +41,7 @@ def test_submit_publishes_after_commit(client, publisher, session, make_account)
     assert crud.units_to_publish(session) == []  # marked published
 
 
-def test_submit_while_broker_down_still_202_and_relay_sends(build_client, session,
-                                                            make_account):
+def test_submit_while_broker_down_still_202_and_relay_sends(build_client, session, make_account):
     client, publisher = build_client()
     publisher.fail = True
     acc = make_account()
@@ -56,8 +59,10 @@ def test_idempotency_key_same_job_one_set_of_units(client, publisher, session, m
     assert a.status_code == b.status_code == 202
     assert a.json()["id"] == b.json()["id"]
     assert _jobs(session, acc.team.id) == 1
-    assert session.scalar(select(func.count(WorkUnit.id)).where(
-        WorkUnit.job_id == a.json()["id"])) == SMALL_UNITS
+    assert (
+        session.scalar(select(func.count(WorkUnit.id)).where(WorkUnit.job_id == a.json()["id"]))
+        == SMALL_UNITS
+    )
     assert len(publisher.calls) == 1
     c = submit(client, acc, {**SMALL_SPEC, "seed": 99}, headers=h)
     assert c.status_code == 409 and c.json()["field"] == "Idempotency-Key"
@@ -73,17 +78,26 @@ def _assert_422(r, field):
 def test_bad_input_422_names_field_and_writes_nothing(client, publisher, session, make_account):
     acc = make_account()
     _assert_422(submit(client, acc, {**SMALL_SPEC, "gamma": [0.1, -2]}), "gamma[1]")
-    _assert_422(submit(client, acc, {**SMALL_SPEC, "systems": ["paper-stable", {"name": "x",
-                "A": [[1, 2]], "B": [[1]]}]}), "systems[1].A")
+    _assert_422(
+        submit(
+            client,
+            acc,
+            {**SMALL_SPEC, "systems": ["paper-stable", {"name": "x", "A": [[1, 2]], "B": [[1]]}]},
+        ),
+        "systems[1].A",
+    )
     _assert_422(submit(client, acc, {**SMALL_SPEC, "team_id": 5}), "team_id")
-    _assert_422(submit(client, acc, {**SMALL_SPEC, "sls": {"T_fir": 5, "bogus": 1}}),
-                "sls.bogus")
+    _assert_422(submit(client, acc, {**SMALL_SPEC, "sls": {"T_fir": 5, "bogus": 1}}), "sls.bogus")
     _assert_422(submit(client, acc, {"sigma_w": [1], "N": [5]}), "systems")
     _assert_422(submit(client, acc, {**SMALL_SPEC, "tags": "notalist"}), "tags")
-    _assert_422(submit(client, acc, {**SMALL_SPEC, "reps": 10**6, "N": list(range(10, 60))}),
-                "spec")
-    r = client.post(f"{API}/jobs", content=b"{not json", headers={
-        **acc.headers, "Content-Type": "application/json"})
+    _assert_422(
+        submit(client, acc, {**SMALL_SPEC, "reps": 10**6, "N": list(range(10, 60))}), "spec"
+    )
+    r = client.post(
+        f"{API}/jobs",
+        content=b"{not json",
+        headers={**acc.headers, "Content-Type": "application/json"},
+    )
     assert r.status_code == 422
     r = client.post(f"{API}/jobs", json=[1, 2], headers=acc.headers)
     assert r.status_code == 422
@@ -110,10 +124,11 @@ def test_body_over_limit_413(build_client, make_account, session):
 
     def chunks():
         for i in range(0, len(data), 500):
-            yield data[i:i + 500]
+            yield data[i : i + 500]
 
-    r = client.post(f"{API}/jobs", content=chunks(), headers={
-        **acc.headers, "Content-Type": "application/json"})
+    r = client.post(
+        f"{API}/jobs", content=chunks(), headers={**acc.headers, "Content-Type": "application/json"}
+    )
     assert r.status_code == 413
     assert _jobs(session, acc.team.id) == 0
 
@@ -140,8 +155,10 @@ def test_rate_limit_429(build_client, make_account):
 
 def test_list_filters_and_pagination(client, session, make_account):
     acc = make_account()
-    ids = [submit(client, acc, {**SMALL_SPEC, "tags": ["even" if i % 2 == 0 else "odd"]}
-                  ).json()["id"] for i in range(5)]
+    ids = [
+        submit(client, acc, {**SMALL_SPEC, "tags": ["even" if i % 2 == 0 else "odd"]}).json()["id"]
+        for i in range(5)
+    ]
     second_user = make_account()  # another team never shows up
     submit(client, second_user)
     r = client.get(f"{API}/jobs", params={"limit": 2}, headers=acc.headers).json()
@@ -157,8 +174,10 @@ def test_list_filters_and_pagination(client, session, make_account):
     assert r["total"] == 5
     r = client.get(f"{API}/jobs", params={"owner": "nobody@x.org"}, headers=acc.headers).json()
     assert r["total"] == 0
-    assert client.get(f"{API}/jobs", params={"status": "weird"},
-                      headers=acc.headers).json()["field"] == "status"
+    assert (
+        client.get(f"{API}/jobs", params={"status": "weird"}, headers=acc.headers).json()["field"]
+        == "status"
+    )
 
 
 def test_get_and_cancel(client, session, make_account):
@@ -169,7 +188,8 @@ def test_get_and_cancel(client, session, make_account):
     r = client.post(f"{API}/jobs/{jid}/cancel", headers=acc.headers)
     assert r.status_code == 200 and r.json()["status"] == "cancelled"
     assert crud.units_to_publish(session) == [] or all(
-        session.get(WorkUnit, u).job_id != jid for u in crud.units_to_publish(session))
+        session.get(WorkUnit, u).job_id != jid for u in crud.units_to_publish(session)
+    )
     assert client.post(f"{API}/jobs/{jid}/cancel", headers=acc.headers).status_code == 200
     jid2 = submit(client, acc).json()["id"]
     run_job_units(session, jid2)
@@ -202,8 +222,11 @@ def test_other_team_gets_404_on_every_id_route(client, session, make_account):
     r = client.get(f"{API}/jobs/999999", headers=a.headers)
     assert r.status_code == 404
     # schedules too
-    sid = client.post(f"{API}/schedules", headers=a.headers, json={
-        "name": "n", "cron": "0 2 * * *", "spec_template": SMALL_SPEC}).json()["id"]
+    sid = client.post(
+        f"{API}/schedules",
+        headers=a.headers,
+        json={"name": "n", "cron": "0 2 * * *", "spec_template": SMALL_SPEC},
+    ).json()["id"]
     for method, url, kw in [
         ("get", f"{API}/schedules/{sid}", {}),
         ("patch", f"{API}/schedules/{sid}", {"json": {"enabled": False}}),
@@ -219,10 +242,13 @@ def test_auth_required_and_keys_hashed(client, session, make_account):
     acc = make_account()
     assert client.get(f"{API}/jobs").status_code == 401
     assert client.get(f"{API}/jobs", headers={"Authorization": "Bearer nope"}).status_code == 401
-    assert client.get(f"{API}/jobs", headers={
-        "Authorization": f"Bearer {acc.key}x"}).status_code == 401
-    assert client.get(f"{API}/jobs", headers={"Authorization": f"Basic {acc.key}"}
-                      ).status_code == 401
+    assert (
+        client.get(f"{API}/jobs", headers={"Authorization": f"Bearer {acc.key}x"}).status_code
+        == 401
+    )
+    assert (
+        client.get(f"{API}/jobs", headers={"Authorization": f"Basic {acc.key}"}).status_code == 401
+    )
     row = session.get(ApiKey, acc.key_row.id)
     assert acc.key not in (row.key_hash, row.prefix) and len(row.key_hash) == 64
     secret = acc.key.split("_", 2)[2]

@@ -27,8 +27,9 @@ def run_units_with_core(session, job_id):
 
 def test_preset_run_queues_one_job_per_experiment(client, publisher, session, make_account):
     acc = make_account()
-    r = client.post(f"{API}/presets/paper-section-6/run", json={"scale": "reduced"},
-                    headers=acc.headers)
+    r = client.post(
+        f"{API}/presets/paper-section-6/run", json={"scale": "reduced"}, headers=acc.headers
+    )
     assert r.status_code == 202, r.text
     jobs = r.json()
     specs = paper_specs("reduced")
@@ -45,8 +46,11 @@ def test_preset_run_queues_one_job_per_experiment(client, publisher, session, ma
 
 def test_preset_run_rejects_unknown_fields_and_experiments(client, make_account):
     acc = make_account()
-    for body, field in (({"scale": "huge"}, "scale"), ({"experiments": ["E9"]}, "experiments"),
-                        ({"team_id": 3}, "team_id")):
+    for body, field in (
+        ({"scale": "huge"}, "scale"),
+        ({"experiments": ["E9"]}, "experiments"),
+        ({"team_id": 3}, "team_id"),
+    ):
         r = client.post(f"{API}/presets/paper-section-6/run", json=body, headers=acc.headers)
         assert r.status_code == 422, r.text
         assert field in r.text

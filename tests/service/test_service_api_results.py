@@ -28,8 +28,14 @@ def done_job(client, session, make_account):
 
 
 def _key(r):
-    return (r["system"], r["sigma_w"], r["N"], r["estimator"],
-            -1 if r["gamma"] is None else r["gamma"], r["rep"])
+    return (
+        r["system"],
+        r["sigma_w"],
+        r["N"],
+        r["estimator"],
+        -1 if r["gamma"] is None else r["gamma"],
+        r["rep"],
+    )
 
 
 def test_results_page_and_filters(client, done_job):
@@ -49,8 +55,9 @@ def test_results_page_and_filters(client, done_job):
 
     f = get(system="paper-unstable", N=40, estimator="svr", gamma=0.1).json()
     assert f["total"] == 2 * 3  # sigma_w x rep
-    assert all(x["system"] == "paper-unstable" and x["N"] == 40 and x["gamma"] == 0.1
-               for x in f["items"])
+    assert all(
+        x["system"] == "paper-unstable" and x["N"] == 40 and x["gamma"] == 0.1 for x in f["items"]
+    )
     ols = get(gamma="null").json()
     assert ols["total"] == 24 and {x["estimator"] for x in ols["items"]} == {"ols"}
     two = get(N=[20, 40], rep=[0, 2], sigma_w=0.5).json()
@@ -59,8 +66,9 @@ def test_results_page_and_filters(client, done_job):
     page2 = get(limit=10, offset=10).json()
     assert len(page1["items"]) == 10 and page1["total"] == 72
     assert page1["items"][-1] != page2["items"][0]
-    assert [_key(x) for x in page1["items"] + page2["items"]] == sorted(
-        _key(x) for x in stored)[:20]
+    assert [_key(x) for x in page1["items"] + page2["items"]] == sorted(_key(x) for x in stored)[
+        :20
+    ]
     assert get(gamma="abc").json()["field"] == "gamma"
     assert get(sigma_w="nan").status_code == 422
     assert get(limit=0).status_code == 422
@@ -90,8 +98,9 @@ def test_csv_and_jsonl_round_trip(client, done_job):
     assert len(parsed) == 72
     for rec in parsed:
         assert rec == by_key[_key(rec)]
-    r = client.get(f"{API}/jobs/{jid}/results", params={"format": "jsonl", "N": 20},
-                   headers=acc.headers)
+    r = client.get(
+        f"{API}/jobs/{jid}/results", params={"format": "jsonl", "N": 20}, headers=acc.headers
+    )
     assert r.headers["content-type"].startswith("application/x-ndjson")
     lines = [json.loads(x) for x in r.text.splitlines()]
     assert len(lines) == 36 and all(x == by_key[_key(x)] for x in lines)
@@ -102,10 +111,22 @@ def test_summary(client, done_job):
     acc, jid, stored = done_job
     s = client.get(f"{API}/jobs/{jid}/summary", headers=acc.headers).json()
     assert s["partial"] is False and len(s["groups"]) == 24
-    g = next(x for x in s["groups"] if x["system"] == "paper-stable" and x["sigma_w"] == 0.5
-             and x["N"] == 20 and x["estimator"] == "ols")
-    vals = [r["rmse_A"] for r in stored if r["system"] == "paper-stable" and r["sigma_w"] == 0.5
-            and r["N"] == 20 and r["estimator"] == "ols"]
+    g = next(
+        x
+        for x in s["groups"]
+        if x["system"] == "paper-stable"
+        and x["sigma_w"] == 0.5
+        and x["N"] == 20
+        and x["estimator"] == "ols"
+    )
+    vals = [
+        r["rmse_A"]
+        for r in stored
+        if r["system"] == "paper-stable"
+        and r["sigma_w"] == 0.5
+        and r["N"] == 20
+        and r["estimator"] == "ols"
+    ]
     assert g["count"] == 3 and g["gamma"] is None
     assert g["stats"]["rmse_A"]["mean"] == pytest.approx(sum(vals) / 3)
     assert g["stats"]["rmse_B"] == {"mean": None, "std": None, "count": 0}
@@ -120,24 +141,35 @@ def test_summary_of_running_job_is_partial(client, session, make_account):
 
 def test_compare(client, session, done_job):
     acc, jid, stored = done_job
-    jid2 = client.post(f"{API}/jobs", json={**SMALL_SPEC, "N": [20]},
-                       headers=acc.headers).json()["id"]
+    jid2 = client.post(f"{API}/jobs", json={**SMALL_SPEC, "N": [20]}, headers=acc.headers).json()[
+        "id"
+    ]
     run_job_units(session, jid2)
-    r = client.get(f"{API}/compare", params={"jobs": f"{jid},{jid2}", "metric": "rmse_A",
-                                              "by": "N,estimator"}, headers=acc.headers)
+    r = client.get(
+        f"{API}/compare",
+        params={"jobs": f"{jid},{jid2}", "metric": "rmse_A", "by": "N,estimator"},
+        headers=acc.headers,
+    )
     assert r.status_code == 200, r.text
     body = r.json()
     assert body["metric"] == "rmse_A" and body["by"] == ["N", "estimator"]
     rows = {(x["job_id"], x["N"], x["estimator"]): x for x in body["rows"]}
-    assert set(rows) == {(j, n, e) for j in (jid, jid2) for n in ((20, 40) if j == jid else (20,))
-                         for e in ("ols", "svr")}
+    assert set(rows) == {
+        (j, n, e)
+        for j in (jid, jid2)
+        for n in ((20, 40) if j == jid else (20,))
+        for e in ("ols", "svr")
+    }
     vals = [x["rmse_A"] for x in stored if x["N"] == 40 and x["estimator"] == "svr"]
     assert rows[(jid, 40, "svr")]["count"] == len(vals) == 24
     assert rows[(jid, 40, "svr")]["mean"] == pytest.approx(sum(vals) / len(vals))
     # identical cells in both jobs give the same numbers
     assert rows[(jid, 20, "ols")]["mean"] == pytest.approx(rows[(jid2, 20, "ols")]["mean"])
-    b = client.get(f"{API}/compare", params={"jobs": jid, "metric": "thm1_holds_A", "by": "N"},
-                   headers=acc.headers).json()
+    b = client.get(
+        f"{API}/compare",
+        params={"jobs": jid, "metric": "thm1_holds_A", "by": "N"},
+        headers=acc.headers,
+    ).json()
     assert all(0 <= x["mean"] <= 1 for x in b["rows"])
 
     def bad(**params):
@@ -170,8 +202,13 @@ def test_record_json_edge_values():
         out = []
         for f in RECORD_FIELDS:
             if f in MATRIX_FIELDS:
-                out.append({"A_hat": json.dumps([[x, -2e-300], [1 / 3, 1e300]]), "B_hat": None,
-                            "L": "null"}.get(f, "[[0.1]]"))
+                out.append(
+                    {
+                        "A_hat": json.dumps([[x, -2e-300], [1 / 3, 1e300]]),
+                        "B_hat": None,
+                        "L": "null",
+                    }.get(f, "[[0.1]]")
+                )
             elif f == "seed_key":
                 out.append("[0, 1, 20, 3]")
             elif f == "system":
@@ -185,11 +222,19 @@ def test_record_json_edge_values():
             else:
                 out.append(x * len(f))
         want = dict(zip(RECORD_FIELDS, out))
-        want.update(A_hat=[[x, -2e-300], [1 / 3, 1e300]], B_hat=None, L=None, K=[[0.1]],
-                    seed_key=[0, 1, 20, 3], rmse_A=None, J_mc=None)
+        want.update(
+            A_hat=[[x, -2e-300], [1 / 3, 1e300]],
+            B_hat=None,
+            L=None,
+            K=[[0.1]],
+            seed_key=[0, 1, 20, 3],
+            rmse_A=None,
+            J_mc=None,
+        )
         return tuple(out), want
 
     import random
+
     rng = random.Random(5)
     pairs = [row(rng.uniform(-1e6, 1e6) * 10 ** rng.randint(-30, 30)) for _ in range(50)]
     rows, wants = [p[0] for p in pairs], [p[1] for p in pairs]

@@ -16,8 +16,13 @@ def _n(session, team_id):
 
 def test_schedule_crud(client, session, make_account):
     acc = make_account()
-    body = {"name": "nightly", "cron": "0 2 * * *", "timezone": "Europe/Paris",
-            "spec_template": SMALL_SPEC, "tags": ["sweep"]}
+    body = {
+        "name": "nightly",
+        "cron": "0 2 * * *",
+        "timezone": "Europe/Paris",
+        "spec_template": SMALL_SPEC,
+        "tags": ["sweep"],
+    }
     r = client.post(f"{API}/schedules", json=body, headers=acc.headers)
     assert r.status_code == 201, r.text
     s = r.json()
@@ -25,8 +30,11 @@ def test_schedule_crud(client, session, make_account):
     assert client.post(f"{API}/schedules", json=body, headers=acc.headers).status_code == 409
     lst = client.get(f"{API}/schedules", headers=acc.headers).json()
     assert [x["id"] for x in lst] == [s["id"]]
-    r = client.patch(f"{API}/schedules/{s['id']}", json={"enabled": False, "cron": "*/10 * * * *"},
-                     headers=acc.headers)
+    r = client.patch(
+        f"{API}/schedules/{s['id']}",
+        json={"enabled": False, "cron": "*/10 * * * *"},
+        headers=acc.headers,
+    )
     assert r.status_code == 200 and r.json()["enabled"] is False and r.json()["next_run_at"] is None
     assert client.get(f"{API}/schedules/{s['id']}/runs", headers=acc.headers).json() == []
     assert client.delete(f"{API}/schedules/{s['id']}", headers=acc.headers).status_code == 204

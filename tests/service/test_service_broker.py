@@ -10,8 +10,9 @@ from service.config import Settings
 
 
 def test_make_celery_settings(tmp_path):
-    app = make_celery(Settings(BROKER_URL="filesystem://", BROKER_DIR=str(tmp_path / "b"),
-                               TASK_TIME_LIMIT=100))
+    app = make_celery(
+        Settings(BROKER_URL="filesystem://", BROKER_DIR=str(tmp_path / "b"), TASK_TIME_LIMIT=100)
+    )
     c = app.conf
     assert c.task_serializer == "json" and c.result_serializer == "json"
     assert list(c.accept_content) == ["json"]

@@ -52,9 +52,17 @@ def test_two_ticks_at_once_make_one_job(real_sessions):
     with maker() as s:
         team = admin.create_team(s, "concurrent-beat")
         team_ids.append(team.id)
-        s.add(Schedule(team_id=team.id, name="n", cron="*/5 * * * *", timezone="UTC",
-                       spec_template=SMALL_SPEC, tags=[],
-                       created_at=datetime(2024, 1, 1, tzinfo=UTC)))
+        s.add(
+            Schedule(
+                team_id=team.id,
+                name="n",
+                cron="*/5 * * * *",
+                timezone="UTC",
+                spec_template=SMALL_SPEC,
+                tags=[],
+                created_at=datetime(2024, 1, 1, tzinfo=UTC),
+            )
+        )
         s.commit()
     now = datetime(2024, 6, 1, 12, 7, tzinfo=UTC)
 
@@ -88,6 +96,7 @@ def test_units_finishing_together_finish_the_job(real_sessions):
                 spec, payload = payloads[uid]
                 crud.complete_unit(s, uid, fake_records(spec, payload))
                 s.commit()
+
         return fn
 
     _parallel([finisher(u) for u in ids])

@@ -24,8 +24,14 @@ def _count(session, model, **where):
 
 def test_create_job_writes_job_and_units(session, make_account):
     acc = make_account()
-    job = crud.create_job(session, team_id=acc.team.id, user_id=acc.user.id, spec=SMALL_SPEC,
-                          name="small", tags=["a", "b", "a"])
+    job = crud.create_job(
+        session,
+        team_id=acc.team.id,
+        user_id=acc.user.id,
+        spec=SMALL_SPEC,
+        name="small",
+        tags=["a", "b", "a"],
+    )
     session.commit()
     assert job.was_created and job.status == "queued"
     assert job.n_cells == parse_spec(SMALL_SPEC).n_cells == 2 * 2 * 2 * 3 * 3
@@ -57,12 +63,12 @@ def test_idempotency_key_returns_same_job(session, make_account):
 def test_bad_and_too_large_specs_raise(session, make_account):
     acc = make_account()
     with pytest.raises(SpecError) as e:
-        crud.create_job(session, team_id=acc.team.id, user_id=None,
-                        spec={**SMALL_SPEC, "gamma": [0.1, -1]})
+        crud.create_job(
+            session, team_id=acc.team.id, user_id=None, spec={**SMALL_SPEC, "gamma": [0.1, -1]}
+        )
     assert e.value.field == "gamma[1]"
     with pytest.raises(crud.JobTooLarge) as e:
-        crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC,
-                        max_cells=10)
+        crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC, max_cells=10)
     assert e.value.field == "spec"
     assert _count(session, Job, team_id=acc.team.id) == 0
 
@@ -70,11 +76,13 @@ def test_bad_and_too_large_specs_raise(session, make_account):
 def test_queued_job_cap(session, make_account):
     acc = make_account()
     for _ in range(2):
-        crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC,
-                        max_active_jobs=2)
+        crud.create_job(
+            session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC, max_active_jobs=2
+        )
     with pytest.raises(crud.QuotaExceeded):
-        crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC,
-                        max_active_jobs=2)
+        crud.create_job(
+            session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC, max_active_jobs=2
+        )
 
 
 def test_unit_lifecycle_and_double_completion(session, make_account):
@@ -122,11 +130,13 @@ def test_stored_values_round_trip(session, make_account):
     crud.complete_unit(session, uid, recs)
     session.commit()
     rows = session.execute(select(Result).where(Result.job_id == job.id)).scalars().all()
-    got = {(r.system, r.sigma_w, r.N, r.estimator, r.gamma, r.rep): crud.row_to_record(r)
-           for r in rows}
+    got = {
+        (r.system, r.sigma_w, r.N, r.estimator, r.gamma, r.rep): crud.row_to_record(r) for r in rows
+    }
     for rec in recs:
-        back = got[(rec["system"], rec["sigma_w"], rec["N"], rec["estimator"], rec["gamma"],
-                    rec["rep"])]
+        back = got[
+            (rec["system"], rec["sigma_w"], rec["N"], rec["estimator"], rec["gamma"], rec["rep"])
+        ]
         assert back["A_hat"] == rec["A_hat"]  # bit-identical through JSON
         assert back["rmse_A"] == rec["rmse_A"]
         assert back["rmse_B"] is None  # NaN is stored as NULL
@@ -193,8 +203,9 @@ def test_cancel_job(session, make_account):
     job = crud.cancel_job(session, job)
     session.commit()
     assert job.status == "cancelled" and job.finished_at
-    statuses = {u.status for u in session.scalars(select(WorkUnit).where(
-        WorkUnit.job_id == job.id))}
+    statuses = {
+        u.status for u in session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id))
+    }
     assert statuses == {"running", "cancelled"}
     assert crud.start_unit(session, ids[1], "w", 60) is None
     # the running unit may still finish; the job stays cancelled
@@ -205,11 +216,17 @@ def test_cancel_job(session, make_account):
 
 
 def _schedule(session, acc, **kw):
-    s = Schedule(team_id=acc.team.id, user_id=acc.user.id, name=kw.pop("name", "nightly"),
-                 cron=kw.pop("cron", "0 2 * * *"), timezone=kw.pop("timezone", "Europe/Paris"),
-                 spec_template=kw.pop("spec_template", SMALL_SPEC), tags=["sweep"],
-                 created_at=kw.pop("created_at", datetime(2024, 1, 1, tzinfo=UTC)),
-                 **kw)
+    s = Schedule(
+        team_id=acc.team.id,
+        user_id=acc.user.id,
+        name=kw.pop("name", "nightly"),
+        cron=kw.pop("cron", "0 2 * * *"),
+        timezone=kw.pop("timezone", "Europe/Paris"),
+        spec_template=kw.pop("spec_template", SMALL_SPEC),
+        tags=["sweep"],
+        created_at=kw.pop("created_at", datetime(2024, 1, 1, tzinfo=UTC)),
+        **kw,
+    )
     session.add(s)
     session.flush()
     return s
@@ -258,7 +275,8 @@ def test_schedule_with_broken_template_records_error(session, make_account):
 def test_latest_due_in_time_zone():
     now = datetime(2024, 1, 15, 1, 30, tzinfo=UTC)  # 02:30 Paris (CET)
     assert crud.latest_due("0 2 * * *", "Europe/Paris", now) == datetime(
-        2024, 1, 15, 1, 0, tzinfo=UTC)
+        2024, 1, 15, 1, 0, tzinfo=UTC
+    )
     exact = datetime(2024, 1, 15, 1, 0, tzinfo=UTC)
     assert crud.latest_due("0 2 * * *", "Europe/Paris", exact) == exact
 
@@ -270,10 +288,23 @@ def test_record_to_row_coerces_every_field_to_its_column_type():
     from svrobs_core.records import BOOL_FIELDS, empty_record
 
     rec = empty_record()
-    rec.update(system="s", estimator="svr", gamma=0.1, N=10.0, N0=90, rep=1, sigma_w=1,
-               rmse_A=float("nan"), rmse_B=float("inf"), eps_A=0.5,
-               thm1_holds_A=0.25, thm1_holds_B=0.0, certified=True,
-               A_hat=[[1.0, float("nan")]], B_hat=[[1.0], [2.0]])
+    rec.update(
+        system="s",
+        estimator="svr",
+        gamma=0.1,
+        N=10.0,
+        N0=90,
+        rep=1,
+        sigma_w=1,
+        rmse_A=float("nan"),
+        rmse_B=float("inf"),
+        eps_A=0.5,
+        thm1_holds_A=0.25,
+        thm1_holds_B=0.0,
+        certified=True,
+        A_hat=[[1.0, float("nan")]],
+        B_hat=[[1.0], [2.0]],
+    )
     row = record_to_row(7, rec)
     assert row["thm1_holds_A"] is True and row["thm1_holds_B"] is False
     assert row["certified"] is True and all(type(row[f]) in (bool, type(None)) for f in BOOL_FIELDS)
@@ -289,9 +320,16 @@ def test_unit_columns_store_the_same_rows_as_records(session, make_account):
     from svrobs_core.experiments import run_unit_result
     from svrobs_core.records import json_value
 
-    spec = {**SMALL_SPEC, "systems": ["paper-unstable"], "sigma_w": [1.0], "N": [40],
-            "reps": 2, "stages": ["estimate", "bounds", "gain", "cost", "sls"], "mc_reps": 1,
-            "mc_runs": 20}
+    spec = {
+        **SMALL_SPEC,
+        "systems": ["paper-unstable"],
+        "sigma_w": [1.0],
+        "N": [40],
+        "reps": 2,
+        "stages": ["estimate", "bounds", "gain", "cost", "sls"],
+        "mc_reps": 1,
+        "mc_runs": 20,
+    }
     acc = make_account()
     got = []
     for as_columns in (True, False):
@@ -319,8 +357,13 @@ def test_clean_column_matches_the_per_value_cleaning():
     from service.db.results_store import _clean_column, _clean_scalar
 
     cases = {
-        "rmse_A": [[0.5, None, 1.0], [0.5, float("nan")], [np.float64(2.0), 1.0],
-                   [float("inf"), None], [None, None]],
+        "rmse_A": [
+            [0.5, None, 1.0],
+            [0.5, float("nan")],
+            [np.float64(2.0), 1.0],
+            [float("inf"), None],
+            [None, None],
+        ],
         "certified": [[True, None, False], [np.bool_(True), False], [1.0, 0.0]],
         "N": [[10, 20], [10.0, 20], [np.int64(3)]],
     }
@@ -332,8 +375,9 @@ def test_clean_column_matches_the_per_value_cleaning():
 
 
 @pytest.mark.parametrize("split_reps", [False, True, "lost"])
-def test_stored_summaries_equal_a_summary_of_all_results(session, make_account, monkeypatch,
-                                                         split_reps):
+def test_stored_summaries_equal_a_summary_of_all_results(
+    session, make_account, monkeypatch, split_reps
+):
     """Units holding every repetition of their groups store those groups' summaries
     as they finish (twice for a redelivered unit); units split by repetitions leave it
     to the end, and so does a job where a unit stored none ("lost": e.g. completed by

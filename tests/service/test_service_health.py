@@ -28,8 +28,7 @@ def test_readyz_503_when_db_unreachable():
 
 
 def test_readyz_503_when_broker_unreachable(db_url):
-    app = create_app(make_settings(db_url, BROKER_URL="redis://127.0.0.1:1/0",
-                                   BROKER_TIMEOUT=0.5))
+    app = create_app(make_settings(db_url, BROKER_URL="redis://127.0.0.1:1/0", BROKER_TIMEOUT=0.5))
     r = TestClient(app, raise_server_exceptions=False).get("/readyz")
     assert r.status_code == 503 and r.json()["checks"]["broker"] != "ok"
 
@@ -37,13 +36,19 @@ def test_readyz_503_when_broker_unreachable(db_url):
 def test_routes_answer_503_json_when_db_down():
     app = create_app(make_settings(BAD_DB))
     client = TestClient(app, raise_server_exceptions=False)
-    for method, url in [("get", "/api/v1/jobs"), ("get", "/api/v1/jobs/1"),
-                        ("post", "/api/v1/jobs/1/cancel")]:
+    for method, url in [
+        ("get", "/api/v1/jobs"),
+        ("get", "/api/v1/jobs/1"),
+        ("post", "/api/v1/jobs/1/cancel"),
+    ]:
         r = getattr(client, method)(url, headers={"Authorization": "Bearer svr_abcdefgh_x"})
         assert r.status_code == 503, (url, r.text)
         assert r.json()["detail"] and "Traceback" not in r.text
-    r = client.post("/api/v1/jobs", json={"systems": ["paper-stable"], "sigma_w": [1], "N": [20]},
-                    headers={"Authorization": "Bearer svr_abcdefgh_x"})
+    r = client.post(
+        "/api/v1/jobs",
+        json={"systems": ["paper-stable"], "sigma_w": [1], "N": [20]},
+        headers={"Authorization": "Bearer svr_abcdefgh_x"},
+    )
     assert r.status_code == 503
 
 

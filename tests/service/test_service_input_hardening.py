@@ -30,8 +30,9 @@ def _count(session, model, team_id):
 
 def _post_raw(client, url, body, acc):
     """A JSON body as text, so lone surrogates travel as \\ud800 escapes."""
-    return client.post(url, content=json.dumps(body), headers={
-        **acc.headers, "Content-Type": "application/json"})
+    return client.post(
+        url, content=json.dumps(body), headers={**acc.headers, "Content-Type": "application/json"}
+    )
 
 
 def _assert_422(r, field):
@@ -46,8 +47,9 @@ def test_integer_filters_out_of_range_are_422(client, session, make_account, par
     acc = make_account()
     jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
     for fmt in ("json", "csv"):
-        r = client.get(f"{API}/jobs/{jid}/results",
-                       params={param: value, "format": fmt}, headers=acc.headers)
+        r = client.get(
+            f"{API}/jobs/{jid}/results", params={param: value, "format": fmt}, headers=acc.headers
+        )
         _assert_422(r, f"{param}[0]")
     ok = client.get(f"{API}/jobs/{jid}/results", params={param: 2**31 - 1}, headers=acc.headers)
     assert ok.status_code == 200 and ok.json()["total"] == 0
@@ -65,13 +67,15 @@ def test_nul_in_query_parameters_is_422(client, session, make_account):
         (f"{API}/compare", {"jobs": str(jid), "metric": "rmse_A\x00"}, "metric"),
     ]:
         _assert_422(client.get(url, params=params, headers=acc.headers), field)
-    r = client.get(f"{API}/jobs/{jid}/results", params={"system": "paper-stable"},
-                   headers=acc.headers)
+    r = client.get(
+        f"{API}/jobs/{jid}/results", params={"system": "paper-stable"}, headers=acc.headers
+    )
     assert r.status_code == 200 and r.json()["total"] > 0
 
 
-def test_nul_and_surrogates_in_job_bodies_are_422_and_nothing_written(client, session,
-                                                                      make_account, publisher):
+def test_nul_and_surrogates_in_job_bodies_are_422_and_nothing_written(
+    client, session, make_account, publisher
+):
     acc = make_account()
     custom = {"name": "x", "A": [[0.5]], "B": [[1.0]]}
     for body, field in [
@@ -83,8 +87,9 @@ def test_nul_and_surrogates_in_job_bodies_are_422_and_nothing_written(client, se
         ({**SMALL_SPEC, "sls": {"T_fir": 5, SURROGATE: 1}}, "sls"),
     ]:
         _assert_422(_post_raw(client, f"{API}/jobs", body, acc), field)
-    r = client.post(f"{API}/jobs", json=SMALL_SPEC,
-                    headers={**acc.headers, "Idempotency-Key": "k\x00"})
+    r = client.post(
+        f"{API}/jobs", json=SMALL_SPEC, headers={**acc.headers, "Idempotency-Key": "k\x00"}
+    )
     _assert_422(r, "Idempotency-Key")
     assert _count(session, Job, acc.team.id) == 0 and publisher.calls == []
     assert client.get(f"{API}/jobs", headers=acc.headers).status_code == 200
@@ -98,16 +103,20 @@ def test_nul_and_surrogates_in_schedule_bodies_are_422(client, session, make_acc
         ({**good, "name": "n\x00"}, "name"),
         ({**good, "tags": ["\x00"]}, "tags[0]"),
         ({**good, "timezone": "UTC\x00"}, "timezone"),
-        ({**good, "spec_template": {**SMALL_SPEC, "systems": [custom]}},
-         "spec_template.systems[0].name"),
+        (
+            {**good, "spec_template": {**SMALL_SPEC, "systems": [custom]}},
+            "spec_template.systems[0].name",
+        ),
         ({**good, "spec_template": {**SMALL_SPEC, "k\x00": 1}}, "spec_template"),
     ]:
         _assert_422(_post_raw(client, f"{API}/schedules", body, acc), field)
     assert _count(session, Schedule, acc.team.id) == 0
     sid = client.post(f"{API}/schedules", json=good, headers=acc.headers).json()["id"]
-    r = client.patch(f"{API}/schedules/{sid}", content=json.dumps(
-        {"spec_template": {**SMALL_SPEC, "systems": [custom]}}),
-        headers={**acc.headers, "Content-Type": "application/json"})
+    r = client.patch(
+        f"{API}/schedules/{sid}",
+        content=json.dumps({"spec_template": {**SMALL_SPEC, "systems": [custom]}}),
+        headers={**acc.headers, "Content-Type": "application/json"},
+    )
     _assert_422(r, "spec_template.systems[0].name")
     assert client.get(f"{API}/schedules", headers=acc.headers).status_code == 200
 
@@ -115,8 +124,11 @@ def test_nul_and_surrogates_in_schedule_bodies_are_422(client, session, make_acc
 def test_body_that_is_not_utf8_is_422(client, make_account):
     acc = make_account()
     for url in (f"{API}/jobs", f"{API}/schedules", f"{API}/presets/paper-section-6/run"):
-        r = client.post(url, content=b'{"name": "\xff\xfe"}', headers={
-            **acc.headers, "Content-Type": "application/json"})
+        r = client.post(
+            url,
+            content=b'{"name": "\xff\xfe"}',
+            headers={**acc.headers, "Content-Type": "application/json"},
+        )
         _assert_422(r, "body")
 
 
@@ -133,15 +145,17 @@ def test_openapi_documents_error_media_types_and_413(client):
     assert list(report["200"]["content"]) == ["text/html"]
     for code in ("401", "404", "422"):
         assert list(report[code]["content"]) == ["application/json"]
-    for path, method in [("/api/v1/jobs", "post"), ("/api/v1/schedules", "post"),
-                         ("/api/v1/schedules/{schedule_id}", "patch"),
-                         ("/api/v1/presets/paper-section-6/run", "post")]:
+    for path, method in [
+        ("/api/v1/jobs", "post"),
+        ("/api/v1/schedules", "post"),
+        ("/api/v1/schedules/{schedule_id}", "patch"),
+        ("/api/v1/presets/paper-section-6/run", "post"),
+    ]:
         assert "413" in spec["paths"][path][method]["responses"], (path, method)
     assert "409" in spec["paths"]["/api/v1/jobs"]["post"]["responses"]
 
 
-def test_preset_run_idempotency_key_reused_with_another_scale_is_409(client, session,
-                                                                     make_account):
+def test_preset_run_idempotency_key_reused_with_another_scale_is_409(client, session, make_account):
     # found by the PostgreSQL fuzz pass: crud.IdempotencyConflict escaped as a 500
     acc = make_account()
     h = {**acc.headers, "Idempotency-Key": "paper"}

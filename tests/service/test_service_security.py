@@ -40,7 +40,8 @@ def _wrong_secret(key: str) -> str:
 
 
 def test_right_prefix_wrong_secret_is_rejected_by_constant_time_compare(
-        session, make_account, compare_spy):
+    session, make_account, compare_spy
+):
     acc = make_account()
     bad = _wrong_secret(acc.key)
     assert auth.split_key(bad) == acc.key_row.prefix  # the lookup finds the row
@@ -83,25 +84,38 @@ def _n(session, model, team_id):
 
 
 SERVER_FIELDS = {
-    "id": 1, "team_id": 1, "user_id": 1, "owner": "boss@x.org", "status": "succeeded",
-    "progress": {"done": 8, "total": 8}, "progress_done": 8, "progress_total": 8,
-    "n_cells": 1, "provenance": {}, "error": None, "created_at": "2020-01-01T00:00:00Z",
-    "finished_at": "2020-01-01T00:00:00Z", "schedule_id": 1, "idempotency_key": "k",
+    "id": 1,
+    "team_id": 1,
+    "user_id": 1,
+    "owner": "boss@x.org",
+    "status": "succeeded",
+    "progress": {"done": 8, "total": 8},
+    "progress_done": 8,
+    "progress_total": 8,
+    "n_cells": 1,
+    "provenance": {},
+    "error": None,
+    "created_at": "2020-01-01T00:00:00Z",
+    "finished_at": "2020-01-01T00:00:00Z",
+    "schedule_id": 1,
+    "idempotency_key": "k",
 }
 
 
 @pytest.mark.parametrize("field", sorted(SERVER_FIELDS))
 def test_mass_assignment_on_job_submit_is_422(client, session, make_account, publisher, field):
     acc = make_account()
-    r = client.post(f"{API}/jobs", json={**SMALL_SPEC, field: SERVER_FIELDS[field]},
-                    headers=acc.headers)
+    r = client.post(
+        f"{API}/jobs", json={**SMALL_SPEC, field: SERVER_FIELDS[field]}, headers=acc.headers
+    )
     assert r.status_code == 422, r.text
     assert r.json()["field"] == field and r.json()["detail"] == "unknown field"
     assert _n(session, Job, acc.team.id) == 0 and publisher.calls == []
 
 
-@pytest.mark.parametrize("field", ["id", "team_id", "user_id", "owner", "created_at",
-                                   "updated_at", "next_run_at"])
+@pytest.mark.parametrize(
+    "field", ["id", "team_id", "user_id", "owner", "created_at", "updated_at", "next_run_at"]
+)
 def test_mass_assignment_on_schedules_is_422(client, session, make_account, field):
     acc, other = make_account(), make_account()
     good = {"name": "n", "cron": "0 2 * * *", "spec_template": SMALL_SPEC}
@@ -111,8 +125,9 @@ def test_mass_assignment_on_schedules_is_422(client, session, make_account, fiel
     assert _n(session, Schedule, acc.team.id) == 0
     sid = client.post(f"{API}/schedules", json=good, headers=acc.headers).json()["id"]
     before = client.get(f"{API}/schedules/{sid}", headers=acc.headers).json()
-    r = client.patch(f"{API}/schedules/{sid}", json={"enabled": False, field: value},
-                     headers=acc.headers)
+    r = client.patch(
+        f"{API}/schedules/{sid}", json={"enabled": False, field: value}, headers=acc.headers
+    )
     assert r.status_code == 422 and r.json()["field"] == field, r.text
     assert client.get(f"{API}/schedules/{sid}", headers=acc.headers).json() == before
     assert _n(session, Schedule, other.team.id) == 0
@@ -123,20 +138,26 @@ def test_team_and_owner_always_come_from_the_key(client, session, make_account):
     jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
     job = session.get(Job, jid)
     assert (job.team_id, job.user_id) == (acc.team.id, acc.user.id)
-    sid = client.post(f"{API}/schedules", headers=acc.headers, json={
-        "name": "n", "cron": "0 2 * * *", "spec_template": SMALL_SPEC}).json()["id"]
+    sid = client.post(
+        f"{API}/schedules",
+        headers=acc.headers,
+        json={"name": "n", "cron": "0 2 * * *", "spec_template": SMALL_SPEC},
+    ).json()["id"]
     s = session.get(Schedule, sid)
     assert (s.team_id, s.user_id) == (acc.team.id, acc.user.id)
 
 
-def test_preset_run_respects_the_queued_jobs_cap_atomically(build_client, session,
-                                                            make_account):
+def test_preset_run_respects_the_queued_jobs_cap_atomically(build_client, session, make_account):
     client, publisher = build_client(MAX_QUEUED_JOBS_PER_TEAM=2)
     acc = make_account()
-    r = client.post(f"{API}/presets/paper-section-6/run", json={"scale": "reduced"},
-                    headers=acc.headers)  # four jobs, over a cap of two
+    r = client.post(
+        f"{API}/presets/paper-section-6/run", json={"scale": "reduced"}, headers=acc.headers
+    )  # four jobs, over a cap of two
     assert r.status_code == 429 and "SVROBS_MAX_QUEUED_JOBS_PER_TEAM" in r.json()["detail"]
     assert _n(session, Job, acc.team.id) == 0 and publisher.calls == []
-    r = client.post(f"{API}/presets/paper-section-6/run",
-                    json={"scale": "reduced", "experiments": ["E1", "E2"]}, headers=acc.headers)
+    r = client.post(
+        f"{API}/presets/paper-section-6/run",
+        json={"scale": "reduced", "experiments": ["E1", "E2"]},
+        headers=acc.headers,
+    )
     assert r.status_code == 202 and len(r.json()) == 2

@@ -37,9 +37,11 @@ def job_out(job: Job) -> dict:
         "name": job.name,
         "tags": list(job.tags or []),
         "status": job.status,
-        "progress": {"done": done, "total": total,
-                     "fraction": (done / total) if total else (1.0 if job.status == "succeeded"
-                                                               else 0.0)},
+        "progress": {
+            "done": done,
+            "total": total,
+            "fraction": (done / total) if total else (1.0 if job.status == "succeeded" else 0.0),
+        },
         "n_cells": job.n_cells,
         "owner": job.user.email if job.user is not None else None,
         "schedule_id": job.schedule_id,

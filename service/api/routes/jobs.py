@@ -44,8 +44,12 @@ def publish_after_commit(publisher, session_factory, unit_ids: list[int]) -> Non
         log.warning("marking %d units published failed: %s", len(sent), exc)
 
 
-@router.post("/jobs", status_code=202, response_model=JobOut,
-             responses={**BODY_ERRORS, 409: {"model": ErrorOut}})
+@router.post(
+    "/jobs",
+    status_code=202,
+    response_model=JobOut,
+    responses={**BODY_ERRORS, 409: {"model": ErrorOut}},
+)
 def submit_job(
     body: JobSubmit,  # type: ignore[valid-type]
     session: DB,
@@ -65,9 +69,14 @@ def submit_job(
     spec = {k: data[k] for k in SPEC_FIELD_NAMES if k in data}
     try:
         job = crud.create_job(
-            session, team_id=caller.team_id, user_id=caller.user_id, spec=spec,
-            name=data.get("name"), tags=data.get("tags") or (),
-            idempotency_key=idempotency_key or None, max_cells=settings.MAX_JOB_CELLS,
+            session,
+            team_id=caller.team_id,
+            user_id=caller.user_id,
+            spec=spec,
+            name=data.get("name"),
+            tags=data.get("tags") or (),
+            idempotency_key=idempotency_key or None,
+            max_cells=settings.MAX_JOB_CELLS,
             max_active_jobs=settings.MAX_QUEUED_JOBS_PER_TEAM,
         )
     except SpecError:
@@ -111,16 +120,18 @@ def list_jobs(
         if owner == "me":
             q = q.where(Job.user_id == caller.user_id)
         else:
-            q = q.where(Job.user_id.in_(
-                select(User.id).where(User.email == owner.strip().lower(),
-                                      User.team_id == caller.team_id)
-            ))
+            q = q.where(
+                Job.user_id.in_(
+                    select(User.id).where(
+                        User.email == owner.strip().lower(), User.team_id == caller.team_id
+                    )
+                )
+            )
     total = session.scalar(select(func.count()).select_from(q.subquery()))
     rows = session.scalars(
         q.options(joinedload(Job.user)).order_by(Job.id.desc()).limit(limit).offset(offset)
     ).all()
-    return {"items": [job_out(j) for j in rows], "total": total, "limit": limit,
-            "offset": offset}
+    return {"items": [job_out(j) for j in rows], "total": total, "limit": limit, "offset": offset}
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut, responses=ERRORS)
@@ -129,8 +140,9 @@ def get_job(job_id: JobId, session: DB, caller: CurrentCaller):
     return job_out(team_job(session, caller.team_id, job_id))
 
 
-@router.post("/jobs/{job_id}/cancel", response_model=JobOut,
-             responses={**ERRORS, 409: {"model": ErrorOut}})
+@router.post(
+    "/jobs/{job_id}/cancel", response_model=JobOut, responses={**ERRORS, 409: {"model": ErrorOut}}
+)
 def cancel(job_id: JobId, session: DB, caller: CurrentCaller):
     """Cancel a queued or running job: units not yet started never run."""
     job = team_job(session, caller.team_id, job_id)

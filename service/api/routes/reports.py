@@ -26,8 +26,10 @@ router = APIRouter(tags=["reports"])
 # The page is HTML but its errors are JSON (ERRORS with a model would document them as
 # text/html, the route's media type).
 JSON_ERRORS = {
-    s: {"description": "error", "content": {"application/json": {
-        "schema": {"$ref": "#/components/schemas/ErrorOut"}}}}
+    s: {
+        "description": "error",
+        "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorOut"}}},
+    }
     for s in ERRORS
 }
 
@@ -41,8 +43,12 @@ def job_report(job_id: JobId, session: DB, caller: CurrentCaller) -> HTMLRespons
         select(*RESULT_COLUMNS).where(Result.__table__.c.job_id == job.id).order_by(*ORDER)
     ).all()
     records = [row_to_record(r._mapping) for r in rows]
-    provenance = {**(job.provenance or {}), "job_id": job.id, "status": job.status,
-                  "progress": f"{job.progress_done}/{job.progress_total} units"}
+    provenance = {
+        **(job.provenance or {}),
+        "job_id": job.id,
+        "status": job.status,
+        "progress": f"{job.progress_done}/{job.progress_total} units",
+    }
     html = job_report_html(job.spec, records, provenance, name=job.name or f"job-{job.id}")
     return HTMLResponse(html)
 
@@ -53,8 +59,12 @@ class PresetRun(BaseModel):
     experiments: list[Literal["E1", "E2", "E3", "E4"]] | None = None
 
 
-@router.post(f"/presets/{PRESET_NAME}/run", status_code=202, response_model=list[JobOut],
-             responses={**BODY_ERRORS, 409: {"model": ErrorOut}})
+@router.post(
+    f"/presets/{PRESET_NAME}/run",
+    status_code=202,
+    response_model=list[JobOut],
+    responses={**BODY_ERRORS, 409: {"model": ErrorOut}},
+)
 def run_paper_preset(
     session: DB,
     caller: CurrentCaller,
@@ -74,8 +84,12 @@ def run_paper_preset(
     try:
         for name in names:
             job = crud.create_job(
-                session, team_id=caller.team_id, user_id=caller.user_id, spec=specs[name],
-                name=f"{PRESET_NAME} {name} ({body.scale})", tags=(PRESET_NAME, name),
+                session,
+                team_id=caller.team_id,
+                user_id=caller.user_id,
+                spec=specs[name],
+                name=f"{PRESET_NAME} {name} ({body.scale})",
+                tags=(PRESET_NAME, name),
                 idempotency_key=f"{idempotency_key}:{name}" if idempotency_key else None,
                 max_cells=settings.MAX_JOB_CELLS,
                 max_active_jobs=settings.MAX_QUEUED_JOBS_PER_TEAM,

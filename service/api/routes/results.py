@@ -114,10 +114,14 @@ def _stream(session_factory, query: Select, fmt: str):
 
 
 @router.get(
-    "/jobs/{job_id}/results", response_model=ResultPage, responses={
+    "/jobs/{job_id}/results",
+    response_model=ResultPage,
+    responses={
         **ERRORS,
-        200: {"content": {"text/csv": {}, "application/x-ndjson": {}},
-              "description": "a JSON page, or the whole selection as CSV / JSON lines"},
+        200: {
+            "content": {"text/csv": {}, "application/x-ndjson": {}},
+            "description": "a JSON page, or the whole selection as CSV / JSON lines",
+        },
     },
 )
 def get_results(
@@ -158,7 +162,8 @@ def get_results(
     body, media = _stream(session_factory, query, format)
     ext = "csv" if format == "csv" else "jsonl"
     return StreamingResponse(
-        body, media_type=media,
+        body,
+        media_type=media,
         headers={"Content-Disposition": f'attachment; filename="job-{job_id}-results.{ext}"'},
     )
 
@@ -174,15 +179,26 @@ def get_summary(job_id: JobId, session: DB, caller: CurrentCaller):
     (`partial: true`)."""
     job = team_job(session, caller.team_id, job_id)
     if job.status != "succeeded":  # units store their groups' summaries as they finish
-        return {"job_id": job_id, "partial": True,
-                "groups": [_group_out(g) for g in summarize_job(session, job_id)]}
+        return {
+            "job_id": job_id,
+            "partial": True,
+            "groups": [_group_out(g) for g in summarize_job(session, job_id)],
+        }
     rows = session.scalars(
-        select(Summary).where(Summary.job_id == job_id).order_by(
-            Summary.system, Summary.sigma_w, Summary.N, Summary.estimator, Summary.gamma_key)
+        select(Summary)
+        .where(Summary.job_id == job_id)
+        .order_by(Summary.system, Summary.sigma_w, Summary.N, Summary.estimator, Summary.gamma_key)
     ).all()
     groups = [
-        {"system": s.system, "sigma_w": s.sigma_w, "N": s.N, "estimator": s.estimator,
-         "gamma": s.gamma, "count": s.count, "stats": s.stats}
+        {
+            "system": s.system,
+            "sigma_w": s.sigma_w,
+            "N": s.N,
+            "estimator": s.estimator,
+            "gamma": s.gamma,
+            "count": s.count,
+            "stats": s.stats,
+        }
         for s in rows
     ]
     return {"job_id": job_id, "partial": False, "groups": groups}
@@ -199,12 +215,13 @@ def _csv_list(value: str, name: str) -> list[str]:
 def compare(
     session: DB,
     caller: CurrentCaller,
-    jobs: Annotated[str, Query(description="comma-separated job ids, e.g. 1,2",
-                               max_length=1000)],
-    metric: Annotated[str, Query(description="a numeric record field, e.g. rmse_A",
-                                 max_length=100)],
-    by: Annotated[str, Query(description="comma-separated grid fields",
-                             max_length=200)] = "N,estimator,gamma",
+    jobs: Annotated[str, Query(description="comma-separated job ids, e.g. 1,2", max_length=1000)],
+    metric: Annotated[
+        str, Query(description="a numeric record field, e.g. rmse_A", max_length=100)
+    ],
+    by: Annotated[
+        str, Query(description="comma-separated grid fields", max_length=200)
+    ] = "N,estimator,gamma",
 ):
     """One metric across several jobs: mean, std (ddof 0) and count of the non-null
     values per job and per combination of the `by` fields."""
@@ -217,7 +234,8 @@ def compare(
     ids = list(dict.fromkeys(ids))
     if metric not in NUMERIC_FIELDS:
         raise FieldHTTPException(
-            422, f"must be a numeric record field, one of {list(NUMERIC_FIELDS)}", "metric")
+            422, f"must be a numeric record field, one of {list(NUMERIC_FIELDS)}", "metric"
+        )
     by_fields = list(dict.fromkeys(_csv_list(by, "by")))
     for b in by_fields:
         if b not in COMPARE_BY:

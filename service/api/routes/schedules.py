@@ -59,8 +59,10 @@ def validate_timezone(tz: str) -> str:
     try:
         ZoneInfo(tz)
     except Exception:  # noqa: BLE001 - ZoneInfoNotFoundError, ValueError for odd paths
-        raise SpecError("timezone", f"unknown time zone {tz!r} (use an IANA name such as "
-                                    "'Europe/Paris' or 'UTC')") from None
+        raise SpecError(
+            "timezone",
+            f"unknown time zone {tz!r} (use an IANA name such as 'Europe/Paris' or 'UTC')",
+        ) from None
     return tz
 
 
@@ -72,8 +74,10 @@ def validate_template(spec: dict, max_cells: int) -> dict:
     except (TypeError, ValueError, KeyError, IndexError) as exc:
         raise SpecError("spec_template", f"invalid spec: {exc}") from None
     if parsed.n_cells > max_cells:
-        raise JobTooLarge("spec_template", f"the job has {parsed.n_cells} cells; the limit is "
-                                           f"{max_cells} (SVROBS_MAX_JOB_CELLS)")
+        raise JobTooLarge(
+            "spec_template",
+            f"the job has {parsed.n_cells} cells; the limit is {max_cells} (SVROBS_MAX_JOB_CELLS)",
+        )
     return spec
 
 
@@ -88,10 +92,16 @@ def next_run(cron: str, tz: str) -> datetime | None:
 
 def schedule_out(s: Schedule) -> dict:
     return {
-        "id": s.id, "name": s.name, "cron": s.cron, "timezone": s.timezone,
-        "spec_template": s.spec_template, "tags": list(s.tags or []), "enabled": s.enabled,
+        "id": s.id,
+        "name": s.name,
+        "cron": s.cron,
+        "timezone": s.timezone,
+        "spec_template": s.spec_template,
+        "tags": list(s.tags or []),
+        "enabled": s.enabled,
         "next_run_at": next_run(s.cron, s.timezone) if s.enabled else None,
-        "created_at": s.created_at, "updated_at": s.updated_at,
+        "created_at": s.created_at,
+        "updated_at": s.updated_at,
     }
 
 
@@ -111,20 +121,27 @@ def _commit_or_409(session, name: str) -> None:
         session.rollback()
         from service.api.routes.common import FieldHTTPException
 
-        raise FieldHTTPException(409, f"the team already has a schedule named {name!r}",
-                                 "name") from None
+        raise FieldHTTPException(
+            409, f"the team already has a schedule named {name!r}", "name"
+        ) from None
 
 
 @router.post("/schedules", status_code=201, response_model=ScheduleOut, responses=BODY_ERRORS)
-def create_schedule(body: ScheduleCreate, session: DB, caller: CurrentCaller,
-                    settings: SettingsDep):
+def create_schedule(
+    body: ScheduleCreate, session: DB, caller: CurrentCaller, settings: SettingsDep
+):
     """Create a schedule; the cron expression, time zone and spec template are validated."""
     now = utcnow()
     s = Schedule(
-        team_id=caller.team_id, user_id=caller.user_id, name=body.name.strip(),
-        cron=validate_cron(body.cron), timezone=validate_timezone(body.timezone),
+        team_id=caller.team_id,
+        user_id=caller.user_id,
+        name=body.name.strip(),
+        cron=validate_cron(body.cron),
+        timezone=validate_timezone(body.timezone),
         spec_template=validate_template(body.spec_template, settings.MAX_JOB_CELLS),
-        tags=list(dict.fromkeys(body.tags)), enabled=body.enabled, created_at=now,
+        tags=list(dict.fromkeys(body.tags)),
+        enabled=body.enabled,
+        created_at=now,
         updated_at=now,
     )
     session.add(s)
@@ -146,8 +163,13 @@ def get_schedule(schedule_id: ScheduleId, session: DB, caller: CurrentCaller):
 
 
 @router.patch("/schedules/{schedule_id}", response_model=ScheduleOut, responses=BODY_ERRORS)
-def update_schedule(schedule_id: ScheduleId, body: ScheduleUpdate, session: DB,
-                    caller: CurrentCaller, settings: SettingsDep):
+def update_schedule(
+    schedule_id: ScheduleId,
+    body: ScheduleUpdate,
+    session: DB,
+    caller: CurrentCaller,
+    settings: SettingsDep,
+):
     """Change any of name, cron, timezone, spec_template, tags, enabled."""
     s = _team_schedule(session, caller.team_id, schedule_id)
     data = body.model_dump(exclude_unset=True)
@@ -180,14 +202,23 @@ def delete_schedule(schedule_id: ScheduleId, session: DB, caller: CurrentCaller)
     return Response(status_code=204)
 
 
-@router.get("/schedules/{schedule_id}/runs", response_model=list[ScheduleRunOut],
-            responses=ERRORS)
+@router.get("/schedules/{schedule_id}/runs", response_model=list[ScheduleRunOut], responses=ERRORS)
 def schedule_runs(schedule_id: ScheduleId, session: DB, caller: CurrentCaller):
     """The due times already turned into jobs, newest first (last 100)."""
     _team_schedule(session, caller.team_id, schedule_id)
     rows = session.scalars(
-        select(ScheduleRun).where(ScheduleRun.schedule_id == schedule_id)
-        .order_by(ScheduleRun.due_at.desc()).limit(100)
+        select(ScheduleRun)
+        .where(ScheduleRun.schedule_id == schedule_id)
+        .order_by(ScheduleRun.due_at.desc())
+        .limit(100)
     ).all()
-    return [{"id": r.id, "due_at": r.due_at, "job_id": r.job_id, "error": r.error,
-             "created_at": r.created_at} for r in rows]
+    return [
+        {
+            "id": r.id,
+            "due_at": r.due_at,
+            "job_id": r.job_id,
+            "error": r.error,
+            "created_at": r.created_at,
+        }
+        for r in rows
+    ]
