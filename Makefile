@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test test-core test-service test-integration test-faults bench clean
+.PHONY: install lint run test test-core test-service test-integration test-faults bench clean
 
 # The integration and PostgreSQL tests use the machine's PostgreSQL and Redis (as
 # .ci/run does); `make test SVROBS_TEST_DATABASE_URL= SVROBS_TEST_BROKER_URL=` skips them.
@@ -19,6 +19,10 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 install: $(STAMP)
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 
 run: $(STAMP)
 	$(BIN)/svrobs serve
