@@ -44,6 +44,13 @@ class Settings(BaseSettings):
     # Seconds the API waits for the broker when publishing / in /readyz.
     BROKER_TIMEOUT: float = 2.0
 
+    # Web UI sessions (service.web.session): the key that signs the session cookie
+    # (unset: one is generated once and kept in ``secret_key`` beside the SQLite
+    # database / broker folder, so restarts keep sessions; set it when several API
+    # hosts serve the same users) and how long a sign-in lasts.
+    SECRET_KEY: str | None = None
+    SESSION_HOURS: float = 12.0
+
 
 @lru_cache
 def get_settings() -> Settings:

@@ -21,6 +21,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from service.api.deps import clean_query_text
 from service.api.ratelimit import RateLimiter
 from service.config import Settings, get_settings
+from service.web import mount_web
 from svrobs_core.errors import SpecError
 
 log = logging.getLogger("svrobs.api")
@@ -228,6 +229,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             module.router, prefix=API_PREFIX, dependencies=[Depends(clean_query_text)]
         )
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.MAX_BODY_BYTES)
+    mount_web(app)  # the web UI's pages under /
     return app
 
 
