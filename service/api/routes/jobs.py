@@ -1,11 +1,11 @@
-"""POST/GET /jobs, GET /jobs/{id}, POST /jobs/{id}/cancel."""
+"""POST/GET /jobs, GET/DELETE /jobs/{id}, POST /jobs/{id}/cancel."""
 
 from __future__ import annotations
 
 import logging
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, BackgroundTasks, Header, HTTPException, Query
+from fastapi import APIRouter, BackgroundTasks, Header, HTTPException, Query, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import joinedload
 
@@ -13,6 +13,7 @@ from service.api.deps import DB, CurrentCaller, PublisherDep, SessionFactoryDep,
 from service.api.routes.common import FieldHTTPException, JobId, job_out, team_job
 from service.api.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
 from service.db import crud
+from service.db.job_delete import JobActive, delete_job
 from service.db.models import Job, JobTag, User
 from svrobs_core.errors import SpecError
 
@@ -151,3 +152,16 @@ def cancel(job_id: JobId, session: DB, caller: CurrentCaller):
     job = crud.cancel_job(session, job)
     session.commit()
     return job_out(team_job(session, caller.team_id, job_id))
+
+
+@router.delete("/jobs/{job_id}", status_code=204, responses={**ERRORS, 409: {"model": ErrorOut}})
+def delete(job_id: JobId, session: DB, caller: CurrentCaller):
+    """Delete a finished or cancelled job with its units, results and summaries (one
+    transaction); 409 while it is queued or running (cancel it first)."""
+    job = team_job(session, caller.team_id, job_id)
+    try:
+        delete_job(session, job)
+    except JobActive as exc:
+        raise HTTPException(409, str(exc)) from exc
+    session.commit()
+    return Response(status_code=204)
