@@ -64,6 +64,7 @@ def jobs_page(
     owner: Text = "",
     q: Text = "",
     page: PageNo = 1,
+    deleted: Annotated[int | None, Query(ge=1)] = None,
 ):
     filt = _filter(status, tag, owner, q)
     return render(
@@ -74,6 +75,7 @@ def jobs_page(
         statuses=JOB_STATUSES,
         tags=queries.team_tags(db, viewer.team_id),
         owners=queries.team_owners(db, viewer.team_id),
+        deleted=deleted,
         **_table_context(db, viewer, filt, page),
     )
 
