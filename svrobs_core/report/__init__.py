@@ -36,16 +36,7 @@ from .columns import (
     as_columns,
 )
 from .derived import cost_ratio_of_means, first_stable_certified, svr_ols_diff
-from .figures import (
-    fig2,
-    fig3,
-    fig4,
-    fig5,
-    fig_certified,
-    fig_coverage,
-    fig_rmse,
-    fig_svr_ols_diff,
-)
+from .figures import fig2, fig3, fig4, fig5, fig_certified, fig_coverage, fig_rmse, fig_svr_ols_diff
 from .findings import findings
 from .markdown import render_markdown, spec_json
 from .plotting import figure_bytes

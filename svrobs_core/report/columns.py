@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..paper import STABLE, UNSTABLE
-from ..records import MATRIX_FIELDS, RECORD_FIELDS, TEXT_FIELDS
+from ..records import BOUND_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, TEXT_FIELDS
 
 # Fields the report reads: L, K (matrices) and seed_key are never needed.
 REPORT_FIELDS = tuple(f for f in RECORD_FIELDS if f not in ("L", "K", "seed_key"))
@@ -27,16 +27,7 @@ SCALAR_FIELDS = tuple(f for f in REPORT_FIELDS if f not in COLUMN_MATRIX_FIELDS 
 # (named in the "no data" messages of the figures and findings).
 STAGE_FIELDS = {
     "estimate": ("rmse_A", "rmse_B"),
-    "bounds": (
-        "r_A",
-        "r_B",
-        "eps_A",
-        "eps_B",
-        "coverage_A",
-        "coverage_B",
-        "rho_upper_bound",
-        "stable_certified",
-    ),
+    "bounds": tuple(f for f in BOUND_FIELDS if not f.startswith(("H_", "thm1_holds_"))),
     "gain": ("g_L", "certified", "rho_true"),
     "cost": ("J_exact", "J_star"),
     "cost_bound": ("J_bound", "delta_J"),

@@ -30,6 +30,7 @@ from .derived import cost_ratio_of_means, entry_quantities, first_stable_certifi
 from .plotting import (
     figure_legend,
     figure_title,
+    label_panel,
     legend_line,
     n0_axis,
     new_figure,
@@ -70,11 +71,9 @@ def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float 
                 continue
             ax.set_yscale("log")
             ax.minorticks_off()
-            ax.set_ylabel(f"RMSE of {mat}̃ (mean over reps)")
-            ax.set_title(f"{system}: {mat}", fontsize=10)
-            if r == 1:
-                n0_axis(ax, ratio)
-            ax.grid(alpha=0.3)
+            label_panel(
+                ax, f"RMSE of {mat}̃ (mean over reps)", f"{system}: {mat}", ratio, xlabel=r == 1
+            )
     handles = [legend_line(f"C{i}", "-", f"σ_w={fmt_num(s)}") for i, s in enumerate(sig)]
     handles += [legend_line("0.2", "-", "OLS"), legend_line("0.2", "--", f"SVR γ={fmt_num(g)}")]
     figure_legend(fig, handles, ncol=len(handles))
@@ -125,11 +124,13 @@ def _interval_panels(
             ax.axhline(0.0, color="0.5", lw=0.6)
             ax.set_yscale("symlog", linthresh=1e-2)
             ax.minorticks_off()
-            ax.set_ylabel(f"{mat}: error / interval ends / ε_{mat}")
-            ax.set_title(f"{system}: {mat}", fontsize=10)
-            if r == 1:
-                n0_axis(ax, ratio)
-            ax.grid(alpha=0.3)
+            label_panel(
+                ax,
+                f"{mat}: error / interval ends / ε_{mat}",
+                f"{system}: {mat}",
+                ratio,
+                xlabel=r == 1,
+            )
 
 
 def _mask_any(series, system, n):
@@ -346,10 +347,8 @@ def fig5(records, spec=None, *, experiment: str | None = "E4"):
                 ax.plot(x2, y2, color=f"C{i}", lw=0.9, ls="--", alpha=0.7)
         ax.set_yscale("log")
         ax.minorticks_off()
-        ax.set_ylabel(f"r = |J_γ − J_ref| / J_ref  (γ_ref = {fmt_num(g_ref)})")
-        ax.set_title(system, fontsize=10)
-        n0_axis(ax, n0_ratio(cols, ms))
-        ax.grid(alpha=0.3, which="both")
+        ylabel = f"r = |J_γ − J_ref| / J_ref  (γ_ref = {fmt_num(g_ref)})"
+        label_panel(ax, ylabel, system, n0_ratio(cols, ms), grid="both")
     handles += [
         legend_line("0.2", "-", "ratio of the mean exact costs (SPEC 9)"),
         legend_line("0.2", "--", "mean of per-repetition cost_ratio"),
@@ -443,10 +442,7 @@ def fig_certified(records, spec=None, *, experiment: str | None = "E4"):
                 x2, _, y2, _ = by_N(cols, m, stable, mean_of)
                 ax.plot(x2, y2, color=f"C{i}", lw=0.9, ls="--", alpha=0.7)
         ax.set_ylim(-0.02, 1.02)
-        ax.set_ylabel("share of repetitions")
-        ax.set_title(system, fontsize=10)
-        n0_axis(ax, n0_ratio(cols, ms))
-        ax.grid(alpha=0.3)
+        label_panel(ax, "share of repetitions", system, n0_ratio(cols, ms))
     handles = [legend_line(f"C{i}", "-", f"γ={fmt_num(g)}") for i, g in enumerate(gs)]
     handles += [
         legend_line("0.2", "-", "certified: g(L) < 1 (Theorem 2 on the Lemma 2 box)"),
@@ -486,10 +482,8 @@ def fig_svr_ols_diff(records, spec=None, *, experiment: str | None = "E2"):
                     ax.plot(x, y, color=f"C{i}", ls=styles[j % 4], lw=1.3)
         ax.set_yscale("log")
         ax.minorticks_off()
-        ax.set_ylabel("max_ij |Ã_SVR − Ã_OLS| (mean over reps)")
-        ax.set_title(system, fontsize=10)
-        n0_axis(ax, n0_ratio(cols, ms))
-        ax.grid(alpha=0.3, which="both")
+        ylabel = "max_ij |Ã_SVR − Ã_OLS| (mean over reps)"
+        label_panel(ax, ylabel, system, n0_ratio(cols, ms), grid="both")
     handles = [legend_line(f"C{i}", "-", f"γ={fmt_num(g)}") for i, g in enumerate(gs)]
     handles += [legend_line("0.2", styles[j % 4], f"σ_w={fmt_num(s)}") for j, s in enumerate(sig)]
     figure_legend(fig, handles, ncol=len(handles))

@@ -58,6 +58,15 @@ def n0_axis(ax, ratio: float | None):
         ax.set_xlabel("sample length N0")
 
 
+def label_panel(ax, ylabel: str, title: str, ratio: float | None, *, xlabel=True, grid="major"):
+    """A panel's y label, title, N0 axis (if ``xlabel``) and grid (``grid`` ticks)."""
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=10)
+    if xlabel:
+        n0_axis(ax, ratio)
+    ax.grid(alpha=0.3, which=grid)
+
+
 def no_data_reason(cols: Columns, mask, fields: tuple[str, ...], meta: Meta) -> str:
     """Why a panel has no data: the stage did not run, or its fields are null."""
     need = [s for s, fs in STAGE_FIELDS.items() if any(f in fs for f in fields)]
