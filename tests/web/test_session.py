@@ -4,7 +4,6 @@ state-changing form without this session's token is a 403; the key never shows."
 
 from __future__ import annotations
 
-import re
 import time
 from datetime import timedelta
 
@@ -15,22 +14,13 @@ from service.db.models import utcnow
 from service.web.session import COOKIE, Signer, load_secret
 from tests.service.svc_helpers import make_settings
 
-CSRF_RE = re.compile(r'name="csrf_token" value="([^"]+)"')
+from .helpers import csrf_of, sign_in
 
 
 @pytest.fixture
 def web(build_client):
     client, _ = build_client(SECRET_KEY="test-secret-0123456789", SESSION_HOURS=1.0)
     return client
-
-
-def sign_in(client, key: str):
-    page = client.get("/login")
-    assert page.status_code == 200
-    token = CSRF_RE.search(page.text).group(1)
-    return client.post(
-        "/login", data={"key": key, "csrf_token": token, "next": "/jobs"}, follow_redirects=False
-    )
 
 
 def test_sign_in_sets_a_signed_httponly_strict_cookie_without_the_key(web, make_account):
@@ -129,7 +119,7 @@ def test_state_changing_posts_need_this_sessions_csrf_token(web, make_account):
     assert web.post("/logout", data={}, follow_redirects=False).status_code == 403
     r = web.post("/logout", data={"csrf_token": "x" * 43}, follow_redirects=False)
     assert r.status_code == 403 and "security token" in r.text
-    token = CSRF_RE.search(web.get("/jobs").text).group(1)
+    token = csrf_of(web.get("/jobs").text)
     r = web.post("/logout", headers={"X-CSRF-Token": token}, follow_redirects=False)
     assert r.status_code == 303 and r.headers["location"] == "/login"
     assert web.get("/jobs", follow_redirects=False).status_code == 303
@@ -144,9 +134,9 @@ def test_sign_in_itself_needs_the_login_forms_token(web, make_account):
 
 def test_a_new_sign_in_gets_a_new_csrf_token(web, make_account):
     acc = make_account()
-    before = CSRF_RE.search(web.get("/login").text).group(1)
+    before = csrf_of(web.get("/login").text)
     sign_in(web, acc.key)
-    after = CSRF_RE.search(web.get("/jobs").text).group(1)
+    after = csrf_of(web.get("/jobs").text)
     assert before != after
     r = web.post("/logout", data={"csrf_token": before}, follow_redirects=False)
     assert r.status_code == 403
