@@ -76,7 +76,7 @@ class Settings(BaseSettings):
     def _database_url(cls, value: str) -> str:
         try:
             make_url(value)
-        except ArgumentError:
+        except (ArgumentError, ValueError):  # ValueError: a port that is not a number
             raise ValueError(
                 f"SVROBS_DATABASE_URL is not a database URL: {value!r} "
                 "(e.g. sqlite:///./var/svrobs.db or postgresql+psycopg://user@host/db)"

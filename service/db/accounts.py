@@ -78,15 +78,20 @@ def create_team(session: Session, name: str) -> Team:
     return team
 
 
-def get_team(session: Session, team: int | str) -> Team:
+def _by_id_or(session: Session, model, key: int | str, column, value, what: str):
+    """The ``model`` row with id ``key`` (an int) or ``column == value``; AdminError if none."""
     row = (
-        session.get(Team, team)
-        if isinstance(team, int)
-        else session.scalar(select(Team).where(Team.name == team))
+        session.get(model, key)
+        if isinstance(key, int)
+        else session.scalar(select(model).where(column == value))
     )
     if row is None:
-        raise AdminError(f"no team {team!r}")
+        raise AdminError(f"no {what} {key!r}")
     return row
+
+
+def get_team(session: Session, team: int | str) -> Team:
+    return _by_id_or(session, Team, team, Team.name, team, "team")
 
 
 def create_user(session: Session, team: int | str, email: str, *, is_admin: bool = False) -> User:
@@ -103,14 +108,8 @@ def create_user(session: Session, team: int | str, email: str, *, is_admin: bool
 
 
 def get_user(session: Session, user: int | str) -> User:
-    row = (
-        session.get(User, user)
-        if isinstance(user, int)
-        else session.scalar(select(User).where(User.email == user.strip().lower()))
-    )
-    if row is None:
-        raise AdminError(f"no user {user!r}")
-    return row
+    email = user if isinstance(user, int) else user.strip().lower()
+    return _by_id_or(session, User, user, User.email, email, "user")
 
 
 def create_key(
