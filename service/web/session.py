@@ -36,8 +36,8 @@ CSRF_HEADER = "x-csrf-token"  # htmx requests (hx-headers on <body>)
 
 
 def secret_folder(settings: Settings) -> Path:
-    """Where a generated secret is kept: the state folder of the embedded stack."""
-    return Path(settings.BROKER_DIR).resolve().parent
+    """Where a generated secret is kept: the state folder (SVROBS_VAR_DIR)."""
+    return Path(settings.VAR_DIR)
 
 
 def load_secret(settings: Settings) -> bytes:

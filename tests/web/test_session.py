@@ -9,7 +9,7 @@ from datetime import timedelta
 
 import pytest
 
-from service import admin
+from service.db import accounts
 from service.db.models import utcnow
 from service.web.session import COOKIE, Signer, load_secret
 from tests.service.svc_helpers import make_settings
@@ -98,7 +98,7 @@ def test_revoking_or_expiring_the_key_ends_its_sessions(web, make_account, sessi
     assert web.get("/jobs", follow_redirects=False).status_code == 200
     assert web.get(f"/api/v1/jobs/{999}").status_code == 404  # the cookie reads the API
     if how == "revoke":
-        admin.revoke_key(session, acc.key_row.prefix)
+        accounts.revoke_key(session, acc.key_row.prefix)
     else:
         acc.key_row.expires_at = utcnow() - timedelta(seconds=1)
     session.commit()
@@ -143,7 +143,7 @@ def test_a_new_sign_in_gets_a_new_csrf_token(web, make_account):
 
 
 def test_generated_secret_is_kept_across_restarts(tmp_path):
-    settings = make_settings("sqlite://", BROKER_DIR=str(tmp_path / "var" / "broker"))
+    settings = make_settings("sqlite://", VAR_DIR=str(tmp_path / "var"))
     first = load_secret(settings)
     assert len(first) >= 32 and load_secret(settings) == first
     assert (tmp_path / "var" / "secret_key").stat().st_mode & 0o077 == 0

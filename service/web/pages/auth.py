@@ -1,5 +1,5 @@
 """``/``, ``/login`` and ``/logout``: signing in with an API key (checked by the same
-``service.auth.authenticate`` as the API) into a signed session cookie."""
+``service.db.accounts.authenticate`` as the API) into a signed session cookie."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from fastapi.responses import RedirectResponse
 from sqlalchemy.orm import Session
 
 from service.api.deps import caller_of, get_db
-from service.auth import authenticate
+from service.db.accounts import authenticate
 from service.web.deps import CSRF, get_viewer
 from service.web.render import SignInRequired, render, safe_next
 from service.web.session import clear_cookie, request_session, set_cookie, signer_of

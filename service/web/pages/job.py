@@ -11,8 +11,8 @@ from fastapi.responses import JSONResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
 from service.api.deps import get_db
-from service.db import crud
 from service.db.job_delete import JobActive, delete_job
+from service.db.jobs import cancel_job
 from service.db.models import JOB_ACTIVE, Job
 from service.web import charts, queries
 from service.web.deps import CSRF, CurrentViewer
@@ -88,7 +88,7 @@ def cancel(db: DB, viewer: CurrentViewer, job_id: int):
     job = _job(db, viewer, job_id)
     if job.status not in JOB_ACTIVE:
         raise WebError(409, f"Job {job_id} is already {job.status}; there is nothing to cancel.")
-    crud.cancel_job(db, job)
+    cancel_job(db, job)
     db.commit()
     return RedirectResponse(f"/jobs/{job_id}", status_code=303)
 
