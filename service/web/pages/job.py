@@ -74,12 +74,18 @@ def chart_data(
 ):
     """The plotted numbers as JSON, from the stored summaries (service.web.charts)."""
     job = _job(db, viewer, job_id)
-    groups = charts.stored_groups(db, job.id)
     try:
-        data = charts.chart_data(groups, metric=metric, x=x)
+        charts.check(metric, x)
     except charts.ChartError as exc:
         return JSONResponse({"detail": str(exc), "field": exc.field}, status_code=422)
-    data.update(job_id=job.id, status=job.status, groups=len(groups))
+    groups = charts.stored_groups(db, job.id, metric)
+    data = charts.chart_data(groups, metric=metric, x=x)
+    data.update(
+        job_id=job.id,
+        status=job.status,
+        groups=len(groups),
+        metrics=charts.stored_metrics(db, job.id),
+    )
     return JSONResponse(data, headers=PAGE_HEADERS)
 
 
