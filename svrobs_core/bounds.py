@@ -107,7 +107,7 @@ def _thm1(true, est, g, H_):
     return np.all(lhs <= H_[..., None], axis=-1)
 
 
-def evaluate_bounds(A_tilde, B_tilde, gamma, r: Radii, A_true=None, B_true=None) -> BoundsResult:
+def evaluate_bounds(A_tilde, B_tilde, gamma, r: Radii, *, A_true=None, B_true=None) -> BoundsResult:
     """Corollary 1 eps, the Perron-Frobenius certificate, and (with truth) coverage.
 
     A_tilde (..., n, n), B_tilde (..., n, m); gamma and the radii broadcast

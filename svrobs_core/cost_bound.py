@@ -169,7 +169,7 @@ def phi_w_h2_norms(A_tilde, L, C, K, *, rho_F=None):
 
 
 def theorem3_bound(
-    A_tilde, L, C, K, eps_A, eps_B, sigma_u, sigma_v, norms: TrueSystemNorms, *, rho_F=None
+    A_tilde, L, C, K, *, eps_A, eps_B, sigma_u, sigma_v, norms: TrueSystemNorms, rho_F=None
 ) -> Theorem3Result:
     """J_b of Theorem 3 per cell. -> Theorem3Result (arrays of the batch shape)
 

@@ -27,7 +27,8 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from svrobs_core.errors import SpecError
-from svrobs_core.experiments import UnitResult, plan_units
+from svrobs_core.planning import plan_units
+from svrobs_core.unit_result import UnitResult
 from svrobs_core.records import GROUP_FIELDS, SUMMARY_FIELDS, summarize_columns
 from svrobs_core.spec import parse_spec
 

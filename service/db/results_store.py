@@ -21,7 +21,7 @@ import numpy as np
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import Session
 
-from svrobs_core.experiments import UnitResult
+from svrobs_core.unit_result import UnitResult
 from svrobs_core.records import BOOL_FIELDS, json_value
 
 from .models import OLS_GAMMA_KEY, RESULT_MATRIX_FIELDS, RESULT_SCALAR_FIELDS, Result
