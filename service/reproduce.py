@@ -42,9 +42,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedCo
 
 from svrobs_core import __version__, parse_spec, plan_units, run_spec
 from svrobs_core import report as rpt
+from svrobs_core.paper import EXPERIMENTS, MC_DECISION, PRESET_NAME, paper_specs
 from svrobs_core.parallel import open_pool
 from svrobs_core.unit_result import UnitResult
-from svrobs_core.paper import EXPERIMENTS, MC_DECISION, PRESET_NAME, paper_specs
 
 # Above this many cells an experiment keeps no A_hat/B_hat in memory for the
 # report (only E1/E2-sized grids draw the figures that need them).

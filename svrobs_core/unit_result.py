@@ -20,7 +20,7 @@ import numpy as np
 from .notes import Notes
 from .pipeline import mc_note
 from .planning import EstimatorAxis
-from .records import CELL_FIELDS, RECORD_FIELDS, json_value
+from .records import CELL_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, json_value
 
 
 def _flat(arr, RE: int) -> np.ndarray:
@@ -281,8 +281,9 @@ class UnitResult:
         """{field: array over the unit's records} as :mod:`svrobs_core.report` reads them:
         numbers as float (NaN = null, booleans 0/1), text as object arrays,
         A_hat/B_hat as (k, n, .) floats if ``matrices``."""
-        from .report import MATRIX_FIELDS as RM
-        from .report import SCALAR_FIELDS, TEXT_FIELDS
+        from .report import REPORT_FIELDS, SCALAR_FIELDS, TEXT_FIELDS
+
+        report_matrices = [f for f in MATRIX_FIELDS if f in REPORT_FIELDS]
 
         R, E = len(self.reps), len(self.axis.names)
         RE = R * E
@@ -328,7 +329,7 @@ class UnitResult:
                     )
                 put(f, col)
             if matrices:
-                for f in RM:
+                for f in report_matrices:
                     v = ds.fields.get(f)
                     if v is not None:
                         a = _flat(v, RE).astype(float)

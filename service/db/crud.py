@@ -28,9 +28,9 @@ from sqlalchemy.orm import Session
 
 from svrobs_core.errors import SpecError
 from svrobs_core.planning import plan_units
-from svrobs_core.unit_result import UnitResult
 from svrobs_core.records import GROUP_FIELDS, SUMMARY_FIELDS, summarize_columns
 from svrobs_core.spec import parse_spec
+from svrobs_core.unit_result import UnitResult
 
 from .models import (
     JOB_ACTIVE,
@@ -478,7 +478,7 @@ def _write_summaries(
                 {
                     "job_id": job_id,
                     **{g: s[g] for g in GROUP_FIELDS},
-                    "gamma_key": gamma_key(s["estimator"], s["gamma"]),
+                    "gamma_key": gamma_key(s["gamma"]),
                     "count": s["count"],
                     "stats": s["stats"],
                 }
