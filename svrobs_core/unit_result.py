@@ -20,7 +20,7 @@ import numpy as np
 from .notes import Notes
 from .pipeline import mc_note
 from .planning import EstimatorAxis
-from .records import CELL_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, json_value
+from .records import CELL_FIELDS, RECORD_FIELDS, json_value
 
 
 def _flat(arr, RE: int) -> np.ndarray:
@@ -281,9 +281,7 @@ class UnitResult:
         """{field: array over the unit's records} as :mod:`svrobs_core.report` reads them:
         numbers as float (NaN = null, booleans 0/1), text as object arrays,
         A_hat/B_hat as (k, n, .) floats if ``matrices``."""
-        from .report import REPORT_FIELDS, SCALAR_FIELDS, TEXT_FIELDS
-
-        report_matrices = [f for f in MATRIX_FIELDS if f in REPORT_FIELDS]
+        from .report import COLUMN_MATRIX_FIELDS, SCALAR_FIELDS, TEXT_FIELDS
 
         R, E = len(self.reps), len(self.axis.names)
         RE = R * E
@@ -329,7 +327,7 @@ class UnitResult:
                     )
                 put(f, col)
             if matrices:
-                for f in report_matrices:
+                for f in COLUMN_MATRIX_FIELDS:
                     v = ds.fields.get(f)
                     if v is not None:
                         a = _flat(v, RE).astype(float)
