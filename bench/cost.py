@@ -41,6 +41,7 @@ A = np.array([[0.9, 0.01, 0.0], [0.01, 0.9, 0.01], [0.0, 0.01, 0.9]])
 B = np.array([[1.0], [1.5], [2.0]])
 C = np.eye(3)
 SU, SW, SV, T = 1.0, 1.0, 0.1, 200
+NOISE = dict(sigma_u=SU, sigma_w=SW, sigma_v=SV)
 
 
 def kalman():
@@ -128,21 +129,19 @@ def main():
     )
 
     t_exact, J = best_of(
-        lambda: exact_cost(A, B, At, Bt, L=L, C=C, sigma_u=SU, sigma_w=SW, sigma_v=SV, horizon=T),
+        lambda: exact_cost(A, B, At, Bt, L=L, C=C, **NOISE, horizon=T),
         args.repeat,
     )
     c_exact = CPU["last"]
     t_step, Js = best_of(lambda: stepwise_batched(At, Bt, L), max(1, args.repeat - 1))
     err = np.abs(J / Js - 1).max()
     t_stat, _ = best_of(
-        lambda: stationary_cost(A, B, At, Bt, L=L, C=C, sigma_u=SU, sigma_w=SW, sigma_v=SV),
+        lambda: stationary_cost(A, B, At, Bt, L=L, C=C, **NOISE),
         args.repeat,
     )
     rho_F = spectral_radius(At - L @ C)
     t_stat2, _ = best_of(
-        lambda: stationary_cost(
-            A, B, At, Bt, L=L, C=C, sigma_u=SU, sigma_w=SW, sigma_v=SV, rho_F=rho_F
-        ),
+        lambda: stationary_cost(A, B, At, Bt, L=L, C=C, **NOISE, rho_F=rho_F),
         args.repeat,
     )
     t_norms, tn = best_of(lambda: true_system_norms(A, B, C, K), 1)
@@ -181,18 +180,7 @@ def main():
     # Monte Carlo, one cell per call
     M = args.mc_cells
     mc_cost(
-        A,
-        B,
-        At[0],
-        Bt[0],
-        L=L[0],
-        C=C,
-        sigma_u=SU,
-        sigma_w=SW,
-        sigma_v=SV,
-        horizon=T,
-        rng=np.random.default_rng(0),
-        runs=10,
+        A, B, At[0], Bt[0], L=L[0], C=C, **NOISE, horizon=T, rng=np.random.default_rng(0), runs=10
     )  # warm-up
     t0, c0 = time.perf_counter(), time.process_time()
     mc = [
@@ -203,9 +191,7 @@ def main():
             Bt[i],
             L=L[i],
             C=C,
-            sigma_u=SU,
-            sigma_w=SW,
-            sigma_v=SV,
+            **NOISE,
             horizon=T,
             rng=np.random.default_rng(i),
             runs=args.runs,

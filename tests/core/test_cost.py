@@ -16,6 +16,8 @@ A_S = np.array([[0.9, 0.01, 0.0], [0.01, 0.9, 0.01], [0.0, 0.01, 0.9]])
 A_U = A_S + 0.11 * np.eye(3)  # 1.01 on the diagonal
 B_P = np.array([[1.0], [1.5], [2.0]])
 SU, SW, SV = 1.0, 1.0, 0.1
+NOISE = dict(sigma_u=SU, sigma_w=SW, sigma_v=SV)
+NOISE_W07 = dict(NOISE, sigma_w=0.7)
 
 
 def kalman(A, C, sw, sv):
@@ -81,7 +83,7 @@ def test_exact_equals_naive_propagation(name):
     K, _ = kalman(A, C, SW, SV)
     rng = np.random.default_rng(1)
     At, Bt, L = perturbed_cells(rng, A, B, C, K, 6)
-    got = exact_cost(A, B, At, Bt, L=L, C=C, sigma_u=SU, sigma_w=SW, sigma_v=SV, horizon=T)
+    got = exact_cost(A, B, At, Bt, L=L, C=C, **NOISE, horizon=T)
     assert got.shape == (6,)
     for i in range(6):
         ref = naive_exact(A, B, At[i], Bt[i], L[i], C, SU, SW, SV, T)
@@ -93,9 +95,7 @@ def test_exact_every_horizon(T):
     rng = np.random.default_rng(T)
     K, _ = kalman(A_S, np.eye(3), SW, SV)
     At, Bt, L = perturbed_cells(rng, A_S, B_P, np.eye(3), K, 2)
-    got = exact_cost(
-        A_S, B_P, At, Bt, L=L, C=np.eye(3), sigma_u=SU, sigma_w=SW, sigma_v=SV, horizon=T
-    )
+    got = exact_cost(A_S, B_P, At, Bt, L=L, C=np.eye(3), **NOISE, horizon=T)
     ref = [naive_exact(A_S, B_P, At[i], Bt[i], L[i], np.eye(3), SU, SW, SV, T) for i in range(2)]
     np.testing.assert_allclose(got, ref, rtol=1e-10)
 
@@ -139,7 +139,7 @@ def test_exact_large_state_uses_matmul_layout():
     B, C = rng.standard_normal((n, m)), rng.standard_normal((p, n))
     K, _ = kalman(A, C, SW, SV)
     At, Bt, L = perturbed_cells(rng, A, B, C, K, 3, dA=0.01, dB=0.01, dL=0.01)
-    got = exact_cost(A, B, At, Bt, L=L, C=C, sigma_u=SU, sigma_w=SW, sigma_v=SV, horizon=45)
+    got = exact_cost(A, B, At, Bt, L=L, C=C, **NOISE, horizon=45)
     for i in range(3):
         assert got[i] == pytest.approx(
             naive_exact(A, B, At[i], Bt[i], L[i], C, SU, SW, SV, 45), rel=1e-10
@@ -151,18 +151,18 @@ def test_optimal_cost_is_kalman_predictor_error():
     covariance is the DARE solution P (an oracle independent of the code)."""
     for A, B, C, _ in (SYSTEMS["stable"], SYSTEMS["partial"], SYSTEMS["unstable"]):
         K, P = kalman(A, C, SW, SV)
-        Jstar = optimal_cost(A, B, K, C, sigma_u=SU, sigma_w=SW, sigma_v=SV, horizon=200)
+        Jstar = optimal_cost(A, B, K, C, **NOISE, horizon=200)
         assert float(Jstar) == pytest.approx(
             naive_exact(A, B, A, B, K, C, SU, SW, SV, 200), rel=1e-10
         )
         if np.abs(np.linalg.eigvals(A)).max() < 1:
-            st = stationary_cost(A, B, A, B, L=K, C=C, sigma_u=SU, sigma_w=SW, sigma_v=SV)
+            st = stationary_cost(A, B, A, B, L=K, C=C, **NOISE)
             assert float(st) == pytest.approx(np.trace(P), rel=1e-9)
         # long horizon -> trace P, also for the unstable A (the error is decoupled;
         # T stays moderate so that the x block, ~1.024^(2T), does not overflow)
-        assert float(
-            optimal_cost(A, B, K, C, sigma_u=SU, sigma_w=SW, sigma_v=SV, horizon=4096)
-        ) == pytest.approx(np.trace(P), rel=1e-3)
+        assert float(optimal_cost(A, B, K, C, **NOISE, horizon=4096)) == pytest.approx(
+            np.trace(P), rel=1e-3
+        )
 
 
 # ------------------------------------------------------------- stationary
@@ -173,9 +173,7 @@ def test_stationary_equals_scipy_augmented_lyapunov(name):
     K, _ = kalman(A, C, SW, SV)
     rng = np.random.default_rng(4)
     At, Bt, L = perturbed_cells(rng, A, B, C, K, 5)
-    got, why = stationary_cost(
-        A, B, At, Bt, L=L, C=C, sigma_u=SU, sigma_w=SW, sigma_v=SV, return_reason=True
-    )
+    got, why = stationary_cost(A, B, At, Bt, L=L, C=C, **NOISE, return_reason=True)
     assert list(why) == [None] * 5
     for i in range(5):
         Acal, Bcal = augmented(A, B, At[i], Bt[i], L[i], C, SU, SW, SV)
@@ -187,15 +185,9 @@ def test_stationary_is_long_horizon_limit():
     K, _ = kalman(A_S, np.eye(3), SW, SV)
     rng = np.random.default_rng(5)
     At, Bt, L = perturbed_cells(rng, A_S, B_P, np.eye(3), K, 4)
-    st = stationary_cost(A_S, B_P, At, Bt, L=L, C=np.eye(3), sigma_u=SU, sigma_w=SW, sigma_v=SV)
+    st = stationary_cost(A_S, B_P, At, Bt, L=L, C=np.eye(3), **NOISE)
     gaps = [
-        np.abs(
-            exact_cost(
-                A_S, B_P, At, Bt, L=L, C=np.eye(3), sigma_u=SU, sigma_w=SW, sigma_v=SV, horizon=T
-            )
-            / st
-            - 1
-        ).max()
+        np.abs(exact_cost(A_S, B_P, At, Bt, L=L, C=np.eye(3), **NOISE, horizon=T) / st - 1).max()
         for T in (10**3, 10**4, 10**6)
     ]
     assert gaps[0] > gaps[1] > gaps[2] and gaps[2] < 1e-5
@@ -207,36 +199,19 @@ def test_stationary_unstable_is_nan_with_reason():
     K, _ = kalman(A_U, np.eye(3), SW, SV)
     rng = np.random.default_rng(6)
     At, Bt, L = perturbed_cells(rng, A_U, B_P, np.eye(3), K, 3)
-    val, why = stationary_cost(
-        A_U, B_P, At, Bt, L=L, C=np.eye(3), sigma_u=SU, sigma_w=SW, sigma_v=SV, return_reason=True
-    )
+    val, why = stationary_cost(A_U, B_P, At, Bt, L=L, C=np.eye(3), **NOISE, return_reason=True)
     assert np.isnan(val).all() and list(why) == [REASON_UNSTABLE] * 3
     # stable A but unstable observer F = A~ - L C
     Ks, _ = kalman(A_S, np.eye(3), SW, SV)
     L = np.stack([Ks, Ks - 1.2 * np.eye(3)])  # F = A~ - L ~ 1.2 I + ...
-    val, why = stationary_cost(
-        A_S, B_P, A_S, B_P, L=L, C=np.eye(3), sigma_u=SU, sigma_w=SW, sigma_v=SV, return_reason=True
-    )
+    val, why = stationary_cost(A_S, B_P, A_S, B_P, L=L, C=np.eye(3), **NOISE, return_reason=True)
     assert np.isfinite(val[0]) and np.isnan(val[1])
     assert list(why) == [None, REASON_UNSTABLE]
-    one, w1 = stationary_cost(
-        A_S,
-        B_P,
-        A_S,
-        B_P,
-        L=L[1],
-        C=np.eye(3),
-        sigma_u=SU,
-        sigma_w=SW,
-        sigma_v=SV,
-        return_reason=True,
-    )
+    one, w1 = stationary_cost(A_S, B_P, A_S, B_P, L=L[1], C=np.eye(3), **NOISE, return_reason=True)
     assert np.isnan(one) and w1 == REASON_UNSTABLE
     # the exact finite-horizon cost stays defined
     assert np.isfinite(
-        exact_cost(
-            A_U, B_P, At, Bt, L=L[:1], C=np.eye(3), sigma_u=SU, sigma_w=SW, sigma_v=SV, horizon=50
-        )
+        exact_cost(A_U, B_P, At, Bt, L=L[:1], C=np.eye(3), **NOISE, horizon=50)
     ).all()
 
 
@@ -247,7 +222,7 @@ def test_exact_within_4_se_of_monte_carlo(name):
     K, _ = kalman(A, C, SW, SV)
     rng = np.random.default_rng(7)
     At, Bt, L = perturbed_cells(rng, A, B, C, K, 2)
-    J = exact_cost(A, B, At, Bt, L=L, C=C, sigma_u=SU, sigma_w=SW, sigma_v=SV, horizon=T)
+    J = exact_cost(A, B, At, Bt, L=L, C=C, **NOISE, horizon=T)
     for i in range(2):
         mean, se = mc_cost(
             A,
@@ -256,9 +231,7 @@ def test_exact_within_4_se_of_monte_carlo(name):
             Bt[i],
             L=L[i],
             C=C,
-            sigma_u=SU,
-            sigma_w=SW,
-            sigma_v=SV,
+            **NOISE,
             horizon=T,
             rng=np.random.default_rng(100 + i),
             runs=1500,
@@ -271,23 +244,9 @@ def test_monte_carlo_batch_of_cells():
     K, _ = kalman(A_S, np.eye(3), SW, SV)
     rng = np.random.default_rng(8)
     At, Bt, L = perturbed_cells(rng, A_S, B_P, np.eye(3), K, 3)
-    J = exact_cost(
-        A_S, B_P, At, Bt, L=L, C=np.eye(3), sigma_u=SU, sigma_w=SW, sigma_v=SV, horizon=60
-    )
-    mean, se = mc_cost(
-        A_S,
-        B_P,
-        At,
-        Bt,
-        L=L,
-        C=np.eye(3),
-        sigma_u=SU,
-        sigma_w=SW,
-        sigma_v=SV,
-        horizon=60,
-        rng=np.random.default_rng(9),
-        runs=800,
-    )
+    kw = dict(L=L, C=np.eye(3), **NOISE, horizon=60)
+    J = exact_cost(A_S, B_P, At, Bt, **kw)
+    mean, se = mc_cost(A_S, B_P, At, Bt, **kw, rng=np.random.default_rng(9), runs=800)
     assert mean.shape == se.shape == (3,)
     assert (np.abs(mean - J) < 4 * se).all()
 
@@ -303,18 +262,7 @@ def test_monte_carlo_documented_draw_order():
     At, Bt, L = At[0], Bt[0], L[0]
     T, runs = 23, 7
     mean, se = mc_cost(
-        A,
-        B,
-        At,
-        Bt,
-        L=L,
-        C=C,
-        sigma_u=SU,
-        sigma_w=0.7,
-        sigma_v=SV,
-        horizon=T,
-        rng=np.random.default_rng(11),
-        runs=runs,
+        A, B, At, Bt, L=L, C=C, **NOISE_W07, horizon=T, rng=np.random.default_rng(11), runs=runs
     )
     rng = np.random.default_rng(11)
     x = np.zeros((runs, n))
@@ -349,9 +297,7 @@ def test_shared_noise_monte_carlo_equals_one_cell_at_a_time(name):
         Bt,
         L=L,
         C=C,
-        sigma_u=SU,
-        sigma_w=0.7,
-        sigma_v=SV,
+        **NOISE_W07,
         horizon=T,
         rngs=[np.random.default_rng(40 + r) for r in range(R)],
         runs=runs,
@@ -366,9 +312,7 @@ def test_shared_noise_monte_carlo_equals_one_cell_at_a_time(name):
                 Bt[r, e],
                 L=L[r, e],
                 C=C,
-                sigma_u=SU,
-                sigma_w=0.7,
-                sigma_v=SV,
+                **NOISE_W07,
                 horizon=T,
                 rng=np.random.default_rng(40 + r),
                 runs=runs,
@@ -389,18 +333,7 @@ def test_shared_noise_monte_carlo_does_not_depend_on_the_other_cells():
         return [np.random.default_rng(50 + r) for r in rows]
 
     full = mc_cost_shared(
-        A_S,
-        B_P,
-        At,
-        Bt,
-        L=L,
-        C=np.eye(3),
-        sigma_u=SU,
-        sigma_w=SW,
-        sigma_v=SV,
-        horizon=T,
-        rngs=rngs(range(3)),
-        runs=runs,
+        A_S, B_P, At, Bt, L=L, C=np.eye(3), **NOISE, horizon=T, rngs=rngs(range(3)), runs=runs
     )
     part = mc_cost_shared(
         A_S,
@@ -409,9 +342,7 @@ def test_shared_noise_monte_carlo_does_not_depend_on_the_other_cells():
         Bt[1:, 2:3],
         L=L[1:, 2:3],
         C=np.eye(3),
-        sigma_u=SU,
-        sigma_w=SW,
-        sigma_v=SV,
+        **NOISE,
         horizon=T,
         rngs=rngs([1, 2]),
         runs=runs,
@@ -424,23 +355,10 @@ def test_shared_noise_monte_carlo_agrees_with_exact():
     K, _ = kalman(A_S, np.eye(3), SW, SV)
     At, Bt, L = perturbed_cells(np.random.default_rng(13), A_S, B_P, np.eye(3), K, 4)
     At, Bt, L = At.reshape(2, 2, 3, 3), Bt.reshape(2, 2, 3, 1), L.reshape(2, 2, 3, 3)
-    J = exact_cost(
-        A_S, B_P, At, Bt, L=L, C=np.eye(3), sigma_u=SU, sigma_w=SW, sigma_v=SV, horizon=60
-    )
-    mean, se = mc_cost_shared(
-        A_S,
-        B_P,
-        At,
-        Bt,
-        L=L,
-        C=np.eye(3),
-        sigma_u=SU,
-        sigma_w=SW,
-        sigma_v=SV,
-        horizon=60,
-        rngs=[np.random.default_rng(14), np.random.default_rng(15)],
-        runs=1500,
-    )
+    kw = dict(L=L, C=np.eye(3), **NOISE, horizon=60)
+    J = exact_cost(A_S, B_P, At, Bt, **kw)
+    rngs = [np.random.default_rng(14), np.random.default_rng(15)]
+    mean, se = mc_cost_shared(A_S, B_P, At, Bt, **kw, rngs=rngs, runs=1500)
     assert (np.abs(mean - J) < 4 * se).all()
     with pytest.raises(ValueError):
         mc_cost_shared(
@@ -450,9 +368,7 @@ def test_shared_noise_monte_carlo_agrees_with_exact():
             Bt,
             L=L,
             C=np.eye(3),
-            sigma_u=SU,
-            sigma_w=SW,
-            sigma_v=SV,
+            **NOISE,
             horizon=60,
             rngs=[np.random.default_rng(14)],
             runs=100,
@@ -461,20 +377,9 @@ def test_shared_noise_monte_carlo_agrees_with_exact():
 
 def test_bad_arguments():
     with pytest.raises(ValueError):
-        exact_cost(A_S, B_P, A_S, B_P, L=np.eye(2), C=np.eye(3), sigma_u=SU, sigma_w=SW, sigma_v=SV)
+        exact_cost(A_S, B_P, A_S, B_P, L=np.eye(2), C=np.eye(3), **NOISE)
     with pytest.raises(ValueError):
-        exact_cost(
-            A_S,
-            B_P,
-            A_S,
-            B_P,
-            L=np.eye(3),
-            C=np.eye(3),
-            sigma_u=SU,
-            sigma_w=SW,
-            sigma_v=SV,
-            horizon=0,
-        )
+        exact_cost(A_S, B_P, A_S, B_P, L=np.eye(3), C=np.eye(3), **NOISE, horizon=0)
     with pytest.raises(ValueError):
         mc_cost(
             A_S,
@@ -483,9 +388,7 @@ def test_bad_arguments():
             B_P,
             L=np.eye(3),
             C=np.eye(3),
-            sigma_u=SU,
-            sigma_w=SW,
-            sigma_v=SV,
+            **NOISE,
             horizon=10,
             rng=np.random.default_rng(0),
             runs=1,

@@ -24,6 +24,7 @@ A_S = np.array([[0.9, 0.01, 0.0], [0.01, 0.9, 0.01], [0.0, 0.01, 0.9]])
 A_U = A_S + 0.11 * np.eye(3)
 B_P = np.array([[1.0], [1.5], [2.0]])
 SU, SW, SV = 1.0, 1.0, 0.1
+NOISE = dict(sigma_u=SU, sigma_w=SW, sigma_v=SV)
 
 
 def kalman(A, C, sw, sv):
@@ -134,10 +135,7 @@ def test_theorem3_with_true_model_and_gain_is_zero():
         A_S, K, np.eye(3), K, eps_A=0.0, eps_B=0.0, sigma_u=SU, sigma_v=SV, norms=tn
     )
     assert float(res.J_b) == 0.0
-    assert (
-        float(exact_cost(A_S, B_P, A_S, B_P, L=K, C=np.eye(3), sigma_u=SU, sigma_w=SW, sigma_v=SV))
-        > 0
-    )
+    assert float(exact_cost(A_S, B_P, A_S, B_P, L=K, C=np.eye(3), **NOISE)) > 0
 
 
 def test_theorem3_null_for_unstable_system_U():
@@ -199,6 +197,6 @@ def test_theorem3_paper_cell_sanity():
     res = theorem3_bound(
         At, L, np.eye(3), K, eps_A=eps_A, eps_B=eps_B, sigma_u=SU, sigma_v=SV, norms=tn
     )
-    J = exact_cost(A_S, B_P, At, Bt, L=L, C=np.eye(3), sigma_u=SU, sigma_w=SW, sigma_v=SV)
+    J = exact_cost(A_S, B_P, At, Bt, L=L, C=np.eye(3), **NOISE)
     dJ = res.J_b - J
     assert np.isfinite(dJ).all() and (res.J_b > 0).all()

@@ -368,59 +368,23 @@ def test_sls_F_by_hand():
 
 def test_jopt_upper_bound_both_branches_by_hand():
     eps1, Cb, hAB, hAK, su, sv, h2, hinf = 0.05, 4.0, 2.0, 3.0, 1.0, 0.1, 1.5, 2.0
+    kw = dict(hinf_AB=hAB, hinf_AK=hAK, sigma_u=su, sigma_v=sv, h2_cl_inv=h2)
     expected = 0.05 * (math.sqrt(2) * 4.0 * (2.0 * 1.0 + 3.0 * 0.1) + 2 * 1.5 * 0.1)
     # condition holds: 0.2 * 2 = 0.4 <= 0.5
-    v, reason = jopt_upper_bound(
-        0.2,
-        eps1,
-        Cb,
-        hinf_AB=hAB,
-        hinf_AK=hAK,
-        sigma_u=su,
-        sigma_v=sv,
-        h2_cl_inv=h2,
-        hinf_cl_inv=hinf,
-    )
+    v, reason = jopt_upper_bound(0.2, eps1, Cb, **kw, hinf_cl_inv=hinf)
     assert reason is None and v == pytest.approx(expected)
     # boundary: 0.25 * 2 = 0.5 holds
-    v, reason = jopt_upper_bound(
-        0.25,
-        eps1,
-        Cb,
-        hinf_AB=hAB,
-        hinf_AK=hAK,
-        sigma_u=su,
-        sigma_v=sv,
-        h2_cl_inv=h2,
-        hinf_cl_inv=hinf,
-    )
+    v, reason = jopt_upper_bound(0.25, eps1, Cb, **kw, hinf_cl_inv=hinf)
     assert reason is None and v == pytest.approx(expected)
     # fails: 0.3 * 2 = 0.6 > 0.5
-    v, reason = jopt_upper_bound(
-        0.3,
-        eps1,
-        Cb,
-        hinf_AB=hAB,
-        hinf_AK=hAK,
-        sigma_u=su,
-        sigma_v=sv,
-        h2_cl_inv=h2,
-        hinf_cl_inv=hinf,
-    )
+    v, reason = jopt_upper_bound(0.3, eps1, Cb, **kw, hinf_cl_inv=hinf)
     assert math.isnan(v) and reason == REASON_CONDITION
     # undefined input (e.g. an unstable transfer matrix gave NaN)
-    v, reason = jopt_upper_bound(
-        0.2,
-        eps1,
-        Cb,
-        hinf_AB=hAB,
-        hinf_AK=hAK,
-        sigma_u=su,
-        sigma_v=sv,
-        h2_cl_inv=h2,
-        hinf_cl_inv=math.nan,
-    )
+    v, reason = jopt_upper_bound(0.2, eps1, Cb, **kw, hinf_cl_inv=math.nan)
     assert math.isnan(v) and reason == REASON_UNDEFINED
+
+
+NORMS = dict(hinf_AB=2.0, hinf_AK=3.0, sigma_u=1.0, sigma_v=0.1, h2_cl_inv=1.5, hinf_cl_inv=2.0)
 
 
 def test_jopt_upper_bound_vectorised():
@@ -430,12 +394,7 @@ def test_jopt_upper_bound_vectorised():
         eps_A,
         eps1,
         4.0,
-        hinf_AB=2.0,
-        hinf_AK=3.0,
-        sigma_u=1.0,
-        sigma_v=0.1,
-        h2_cl_inv=1.5,
-        hinf_cl_inv=2.0,
+        **NORMS,
     )
     assert v.shape == reason.shape == (4,)
     base = math.sqrt(2) * 4.0 * 2.3 + 0.3
@@ -447,12 +406,7 @@ def test_jopt_upper_bound_vectorised():
         np.array([[0.1], [0.4]]),
         np.array([0.1, 0.2, 0.3]),
         4.0,
-        hinf_AB=2.0,
-        hinf_AK=3.0,
-        sigma_u=1.0,
-        sigma_v=0.1,
-        h2_cl_inv=1.5,
-        hinf_cl_inv=2.0,
+        **NORMS,
     )
     assert v2.shape == (2, 3)
     np.testing.assert_allclose(v2[0], np.array([0.1, 0.2, 0.3]) * base)
