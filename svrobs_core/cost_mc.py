@@ -137,7 +137,7 @@ def mc_cost_shared(A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v, h
         A, B, A_tilde, B_tilde, L=L, C=C, sigma_u=sigma_u, sigma_w=sigma_w, sigma_v=sigma_v
     )
     if c.xbatch != () or c.C.ndim != 2 or c.su.ndim or c.sw.ndim or c.sv.ndim:
-        raise ValueError("mc_cost_shared needs one true system (A, B, C) and scalar sigmas")
+        raise DimensionError("A", "B, C must be one true system and the sigmas scalars")
     n, m, p = c.n, c.m, c.p
     q = m + n + p
     shape = c.batch

@@ -27,7 +27,7 @@ def _check(Z, F):
 def _gammas(gammas, *, allow_zero: bool) -> np.ndarray:
     g = np.asarray(gammas, dtype=float)
     if g.ndim > 1:
-        raise ValueError(f"gammas must be a scalar or a 1-D array, got shape {g.shape}")
+        raise DimensionError("gammas", f"must be a scalar or a 1-D array, got shape {g.shape}")
     g = np.atleast_1d(g)
     low_ok = g >= 0 if allow_zero else g > 0
     if g.size == 0 or not np.all(np.isfinite(g)) or not np.all(low_ok):
