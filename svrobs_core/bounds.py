@@ -76,7 +76,7 @@ def radii(*, n, m, N, N0, T0, sigma_u, sigma_w, gamma, M, delta) -> Radii:
     return Radii(H_A=H_A.copy(), H_B=H_B.copy(), r_A=np.sqrt(one_g * H_A), r_B=np.sqrt(one_g * H_B))
 
 
-@dataclass
+@dataclass(kw_only=True)
 class BoundsResult:
     """Per-estimate bound quantities; every array has the batch shape (...)."""
 

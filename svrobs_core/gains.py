@@ -212,7 +212,7 @@ class _CvxpyDesign:
 # ---------------------------------------------------------------------------
 
 
-@dataclass
+@dataclass(kw_only=True)
 class ReuseResult:
     """The reuse_gain choice along the N axis (axis 0).
 

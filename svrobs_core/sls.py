@@ -70,7 +70,7 @@ REASON_CONDITION = "J_opt bound: condition eps_A*||(zI-A+KC)^-1||_Hinf <= 1/2 fa
 REASON_UNDEFINED = "J_opt bound: undefined input (NaN/inf, e.g. unstable transfer matrix)"
 
 
-@dataclass
+@dataclass(kw_only=True)
 class SLSResult:
     """Outcome of one SLS program.
 
@@ -96,7 +96,7 @@ class SLSResult:
     L: np.ndarray | None = None
 
 
-@dataclass
+@dataclass(kw_only=True)
 class _Compiled:
     problem: cp.Problem
     A: cp.Parameter
@@ -136,7 +136,7 @@ def _build(n: int, p: int, T: int, bounded: bool) -> _Compiled:
     prob = cp.Problem(cp.Minimize(obj), cons)
     if not prob.is_dpp():  # pragma: no cover - guards the parameterised fast path
         raise RuntimeError("SLS program is not DPP; re-solves would recompile")
-    return _Compiled(prob, A, C, K, F, Cb, Pw, Pv)
+    return _Compiled(problem=prob, A=A, C=C, K=K, F=F, C_bound=Cb, Phi_w=Pw, Phi_v=Pv)
 
 
 def _compiled(n: int, p: int, T: int, bounded: bool) -> _Compiled:
@@ -183,7 +183,9 @@ def sls_observer(A_tilde, C, K, F, *, C_bound, T_fir: int = 30) -> SLSResult:
 
     finite = all(np.all(np.isfinite(x)) for x in (A_tilde, C, K)) and math.isfinite(F)
     if not finite or (bound is not None and math.isnan(bound)):
-        return SLSResult(math.nan, "invalid_input", time.perf_counter() - t0)
+        return SLSResult(
+            J_opt=math.nan, status="invalid_input", solve_time=time.perf_counter() - t0
+        )
 
     pr = _compiled(n, p, T, bound is not None)
     pr.A.value = A_tilde
@@ -200,13 +202,15 @@ def sls_observer(A_tilde, C, K, F, *, C_bound, T_fir: int = 30) -> SLSResult:
     dt = time.perf_counter() - t0
 
     if status not in SOLVED_STATUSES or pr.Phi_w.value is None or pr.Phi_v.value is None:
-        return SLSResult(math.nan, status, dt)
+        return SLSResult(J_opt=math.nan, status=status, solve_time=dt)
     value = float(pr.problem.value)
     if not math.isfinite(value):
-        return SLSResult(math.nan, status, dt)
+        return SLSResult(J_opt=math.nan, status=status, solve_time=dt)
     Phi_w = np.array(pr.Phi_w.value).reshape(T, n, n)
     Phi_v = np.array(pr.Phi_v.value).reshape(T, n, p)
-    return SLSResult(value, status, dt, Phi_w, Phi_v, Phi_v[0].copy())
+    return SLSResult(
+        J_opt=value, status=status, solve_time=dt, Phi_w=Phi_w, Phi_v=Phi_v, L=Phi_v[0].copy()
+    )
 
 
 def _out(x):
