@@ -58,6 +58,12 @@ def plan_units(
     return units
 
 
+def unit_cells(spec: ExperimentSpec, unit: dict) -> int:
+    """The number of records (cells) a work unit of :func:`plan_units` gives."""
+    r0, r1 = unit["reps"]
+    return len(unit["N"]) * (r1 - r0) * spec.cells_per_rep
+
+
 @dataclass
 class EstimatorAxis:
     """The estimator axis E of one dataset: (estimator name, gamma or None)."""

@@ -27,7 +27,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from svrobs_core.errors import SpecError
-from svrobs_core.planning import plan_units
+from svrobs_core.planning import plan_units, unit_cells
 from svrobs_core.records import GROUP_FIELDS, SUMMARY_FIELDS, summarize_columns
 from svrobs_core.spec import parse_spec
 from svrobs_core.unit_result import UnitResult
@@ -135,11 +135,6 @@ def provenance(seed: int) -> dict:
 # --------------------------------------------------------------------------- jobs
 
 
-def _unit_cells(spec, payload: dict) -> int:
-    r0, r1 = payload["reps"]
-    return len(payload["N"]) * (r1 - r0) * spec.cells_per_rep
-
-
 def create_job(
     session: Session,
     *,
@@ -227,7 +222,7 @@ def create_job(
                     "job_id": job.id,
                     "index": i,
                     "payload": u,
-                    "n_cells": _unit_cells(parsed, u),
+                    "n_cells": unit_cells(parsed, u),
                     "status": "pending",
                     "attempts": 0,
                     "created_at": job.created_at,

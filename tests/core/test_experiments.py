@@ -292,3 +292,13 @@ def test_records_for_a_smaller_mc_reps_equal_a_direct_run():
             assert got == [json.dumps(r) for r in run_unit(other, unit)]
     with pytest.raises(ValueError):
         run_unit_result(spec, plan_units(spec)[0]).with_mc_reps(3)
+
+
+def test_unit_cells_counts_the_records_of_each_unit():
+    from svrobs_core.planning import unit_cells
+
+    spec = parse_spec({**SMALL, "stages": ["estimate"]})
+    for units in (plan_units(spec), plan_units(spec, max_cells=7, target_cells=7)):
+        assert sum(unit_cells(spec, u) for u in units) == spec.n_cells
+        for u in units[:3]:
+            assert unit_cells(spec, u) == len(run_unit(spec, u))
