@@ -33,15 +33,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from service.config import Settings, get_settings
+from svrobs_core.threads import THREAD_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
-THREAD_ENV = {
-    "OPENBLAS_NUM_THREADS": "1",
-    "OMP_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "NUMEXPR_NUM_THREADS": "1",
-    "VECLIB_MAXIMUM_THREADS": "1",
-}
 
 
 # --------------------------------------------------------------------------- setup

@@ -42,8 +42,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedCo
 from service.db.provenance import git_commit
 from svrobs_core import __version__, parse_spec, plan_units, run_spec
 from svrobs_core import report as rpt
-from svrobs_core.experiments import UnitResult, open_pool
 from svrobs_core.paper import EXPERIMENTS, MC_DECISION, PRESET_NAME, paper_specs
+from svrobs_core.parallel import open_pool
+from svrobs_core.unit_result import UnitResult
 
 from .html import render_html
 
