@@ -126,19 +126,19 @@ def prepare(db_url: str) -> tuple[str, int, int]:
     """Migrate, create a team and key, store the big job -> (key, job id, rows)."""
     from sqlalchemy import func, select
 
-    from service import admin
     from service.db import crud
     from service.db.migrate import upgrade
     from service.db.models import Result
     from service.db.session import dispose_all, session_scope
+    from svrobs_cli import accounts
     from svrobs_core.spec import parse_spec
 
     upgrade(db_url)
     rng = random.Random(0)
     with session_scope(db_url) as s:
-        team = admin.create_team(s, "load")
-        user = admin.create_user(s, team.id, "load@lab.org")
-        _, key = admin.create_key(s, user.id, name="bench")
+        team = accounts.create_team(s, "load")
+        user = accounts.create_user(s, team.id, "load@lab.org")
+        _, key = accounts.create_key(s, user.id, name="bench")
         job = crud.create_job(
             s,
             team_id=team.id,

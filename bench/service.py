@@ -46,7 +46,8 @@ sys.path.insert(0, str(ROOT))
 
 import httpx
 
-from service.serve import Child, api_command, child_env, stop_all, worker_command
+from svrobs_cli.processes import Child, stop_all
+from svrobs_cli.serve import api_command, child_env, worker_command
 
 GRID = {
     "systems": ["paper-stable", "paper-unstable"],
@@ -73,14 +74,14 @@ BIG = {
 SETUP = """
 import json
 from service.config import get_settings
-from service.serve import prepare_dirs, migrate
+from svrobs_cli.serve import prepare_dirs, migrate
 from service.db.session import session_scope
-from service import admin
+from svrobs_cli import accounts
 s = get_settings(); prepare_dirs(s); migrate(s)
 with session_scope() as db:
-    admin.create_team(db, 'bench')
-    admin.create_user(db, 'bench', 'bench@lab.example')
-    _, key = admin.create_key(db, 'bench@lab.example')
+    accounts.create_team(db, 'bench')
+    accounts.create_user(db, 'bench', 'bench@lab.example')
+    _, key = accounts.create_key(db, 'bench@lab.example')
 print(json.dumps({'key': key}))
 """
 

@@ -35,7 +35,6 @@ from schemathesis.specs.openapi.checks import (
     status_code_conformance,
 )
 
-from service import admin
 from service.api.main import create_app
 from service.api.routes.common import MAX_ID
 from service.config import Settings
@@ -43,6 +42,7 @@ from service.db import crud
 from service.db.migrate import upgrade
 from service.db.models import Job, Result, Schedule, utcnow
 from service.db.session import dispose_all, get_sessionmaker
+from svrobs_cli import accounts
 from svrobs_core.records import NUMERIC_FIELDS
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC
@@ -130,9 +130,9 @@ class FakePublisher:
 
 
 def _account(session, name: str):
-    team = admin.create_team(session, name)
-    user = admin.create_user(session, team.id, f"fuzz@{name}.org")
-    _, key = admin.create_key(session, user.id)
+    team = accounts.create_team(session, name)
+    user = accounts.create_user(session, team.id, f"fuzz@{name}.org")
+    _, key = accounts.create_key(session, user.id)
     return SimpleNamespace(
         team_id=team.id, user_id=user.id, headers={"Authorization": f"Bearer {key}"}
     )

@@ -19,13 +19,13 @@ from datetime import UTC, datetime, timedelta
 import pytest
 from sqlalchemy import select
 
-from service import admin
 from service.broker import broker_epoch, make_celery, publish_units
 from service.config import Settings
 from service.db import crud
 from service.db.migrate import upgrade
 from service.db.models import Team
 from service.db.session import dispose_all, session_scope
+from svrobs_cli import accounts
 from tests.integration.servers import REDIS_SERVER, PrivateRedis
 
 SPEC = {
@@ -43,7 +43,7 @@ def db(tmp_path):
     url = f"sqlite:///{tmp_path / 'relay.db'}"
     upgrade(url)
     with session_scope(url) as s:
-        admin.create_team(s, "lab")
+        accounts.create_team(s, "lab")
     yield url
     dispose_all()
 

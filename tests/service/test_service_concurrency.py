@@ -10,9 +10,9 @@ import pytest
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import sessionmaker
 
-from service import admin
 from service.db import crud
 from service.db.models import Job, Schedule, Team
+from svrobs_cli import accounts
 from tests.service.svc_fakes import fake_records
 from tests.service.svc_helpers import SMALL_SPEC
 
@@ -50,7 +50,7 @@ def _parallel(fns):
 def test_two_ticks_at_once_make_one_job(real_sessions):
     maker, team_ids = real_sessions
     with maker() as s:
-        team = admin.create_team(s, "concurrent-beat")
+        team = accounts.create_team(s, "concurrent-beat")
         team_ids.append(team.id)
         s.add(
             Schedule(
@@ -79,7 +79,7 @@ def test_two_ticks_at_once_make_one_job(real_sessions):
 def test_units_finishing_together_finish_the_job(real_sessions):
     maker, team_ids = real_sessions
     with maker() as s:
-        team = admin.create_team(s, "concurrent-units")
+        team = accounts.create_team(s, "concurrent-units")
         team_ids.append(team.id)
         job = crud.create_job(s, team_id=team.id, user_id=None, spec=SMALL_SPEC)
         s.commit()

@@ -1,4 +1,5 @@
-"""Admin operations on teams, users and API keys (used by ``svrobs admin`` and tests).
+"""Teams, users and API keys: what ``svrobs admin``, ``svrobs serve``'s first start and
+the tests do to them.
 
 None of these commit: the caller owns the transaction.
 """
@@ -10,7 +11,7 @@ from datetime import datetime, timedelta
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from service.auth import generate_key, hash_key
+from service.auth import generate_key, hash_key, split_key
 from service.db.models import ApiKey, Team, User, utcnow
 
 
@@ -98,8 +99,6 @@ def revoke_key(session: Session, key_or_prefix: str | int) -> ApiKey:
     if isinstance(key_or_prefix, int):
         row = session.get(ApiKey, key_or_prefix)
     else:
-        from service.auth import split_key
-
         prefix = split_key(key_or_prefix) or key_or_prefix
         row = session.scalar(select(ApiKey).where(ApiKey.prefix == prefix))
     if row is None:
