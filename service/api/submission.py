@@ -1,0 +1,93 @@
+"""Submit and publish: the one path by which a route creates jobs (``POST /jobs``, the
+paper preset).
+
+The jobs and their work units are inserted and committed in the request's
+transaction; only then, after the response, are the new units sent to the broker
+(:func:`publish_after_commit`). Nothing is lost if publishing fails: the relay
+(beat) re-publishes units never marked published. Bad specs, the team's quota and a
+reused Idempotency-Key raise the DB package's errors, which
+:mod:`service.api.errors` maps to 422 / 429 / 409.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+from fastapi import BackgroundTasks
+from sqlalchemy.orm import Session
+
+from service.api.deps import Caller, Publisher, SessionFactory
+from service.api.views import job_out
+from service.config import Settings
+from service.db import crud
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class JobRequest:
+    """One job to create: a SPEC section 10 spec and its labels."""
+
+    spec: dict
+    name: str | None = None
+    tags: Iterable[str] = ()
+    idempotency_key: str | None = None
+
+
+def submit_jobs(
+    session: Session,
+    caller: Caller,
+    settings: Settings,
+    requests: Sequence[JobRequest],
+    *,
+    publisher: Publisher,
+    session_factory: SessionFactory,
+    background: BackgroundTasks,
+) -> list[dict]:
+    """Create the jobs (or find them by Idempotency-Key), commit, and schedule the
+    publishing of the units of the new ones; returns the jobs' JSON bodies."""
+    bodies, unit_ids = [], []
+    for r in requests:
+        job = crud.create_job(
+            session,
+            team_id=caller.team_id,
+            user_id=caller.user_id,
+            spec=r.spec,
+            name=r.name,
+            tags=r.tags,
+            idempotency_key=r.idempotency_key,
+            max_cells=settings.MAX_JOB_CELLS,
+            max_active_jobs=settings.MAX_QUEUED_JOBS_PER_TEAM,
+        )
+        if job.was_created:
+            unit_ids += crud.unit_ids_of_job(session, job.id)
+        bodies.append(job_out(job))  # flushed: ids and defaults are set; no read-back
+    session.commit()
+    session.close()  # end this request's transaction before publishing
+    if unit_ids:
+        background.add_task(publish_after_commit, publisher, session_factory, unit_ids)
+    return bodies
+
+
+def publish_after_commit(
+    publisher: Publisher, session_factory: SessionFactory, unit_ids: list[int]
+) -> None:
+    """Send the committed units to the broker and mark them published."""
+    try:
+        sent = publisher(unit_ids)
+    except Exception as exc:  # pragma: no cover - publishers catch their own errors
+        log.warning("publishing failed: %s", exc)
+        return
+    if not sent:
+        return
+    try:
+        session = session_factory(True)
+        try:
+            crud.mark_published(session, sent)
+            session.commit()
+        finally:
+            session.close()
+    except Exception as exc:
+        log.warning("marking %d units published failed: %s", len(sent), exc)
