@@ -2,8 +2,8 @@
 
 ``svrobs run-local SPEC.json --out DIR`` runs the core in process and writes
 ``DIR/records.jsonl`` (one section 10 record per line, null never NaN) and
-``DIR/summary.json`` (mean/std/count per group), with a progress bar on stderr. ``svrobs reproduce`` runs the paper's Section 6
-(:mod:`service.reproduce`).
+``DIR/summary.json`` (mean/std/count per group), with a progress bar on stderr.
+``svrobs reproduce`` runs the paper's Section 6 (:mod:`service.reports.reproduce`).
 """
 
 from __future__ import annotations
@@ -90,7 +90,7 @@ def reproduce_command(
     quiet: bool = typer.Option(False, "--quiet"),
 ) -> None:
     """The paper's Section 6 (E1-E4) in process: tables, figures, report.md."""
-    from service.reproduce import reproduce
+    from service.reports.reproduce import reproduce
 
     if scale not in ("full", "reduced"):
         raise CliError("--scale must be 'full' or 'reduced'")
