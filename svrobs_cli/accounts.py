@@ -31,15 +31,16 @@ def create_team(session: Session, name: str) -> Team:
     return team
 
 
-def get_team(session: Session, team: int | str) -> Team:
-    row = (
-        session.get(Team, team)
-        if isinstance(team, int)
-        else session.scalar(select(Team).where(Team.name == team))
-    )
+def _one(session: Session, model, ident: int | str, where, what: str):
+    """The row with id ``ident`` (an int) or matching ``where`` (a name), else AdminError."""
+    row = session.get(model, ident) if isinstance(ident, int) else session.scalar(where)
     if row is None:
-        raise AdminError(f"no team {team!r}")
+        raise AdminError(f"no {what} {ident!r}")
     return row
+
+
+def get_team(session: Session, team: int | str) -> Team:
+    return _one(session, Team, team, select(Team).where(Team.name == team), "team")
 
 
 def create_user(session: Session, team: int | str, email: str, *, is_admin: bool = False) -> User:
@@ -56,14 +57,8 @@ def create_user(session: Session, team: int | str, email: str, *, is_admin: bool
 
 
 def get_user(session: Session, user: int | str) -> User:
-    row = (
-        session.get(User, user)
-        if isinstance(user, int)
-        else session.scalar(select(User).where(User.email == user.strip().lower()))
-    )
-    if row is None:
-        raise AdminError(f"no user {user!r}")
-    return row
+    email = user if isinstance(user, int) else user.strip().lower()
+    return _one(session, User, user, select(User).where(User.email == email), "user")
 
 
 def create_key(

@@ -31,21 +31,23 @@ admin_app = SvrobsTyper(
 )
 app.add_typer(admin_app, name="admin")
 
-app.command("migrate")(admin.migrate)
-admin_app.command("create-team")(admin.admin_create_team)
-admin_app.command("create-user")(admin.admin_create_user)
-admin_app.command("create-key")(admin.admin_create_key)
-admin_app.command("revoke-key")(admin.admin_revoke_key)
-admin_app.command("list-keys")(admin.admin_list_keys)
-
-app.command("submit")(rest.submit)
-app.command("status")(rest.status)
-app.command("results")(rest.results)
-app.command("compare")(rest.compare)
-
-app.command("run-local")(local.run_local_command)
-app.command("reproduce")(local.reproduce_command)
-app.command("serve")(serve.serve_command)
+COMMANDS = (
+    (app, "migrate", admin.migrate),
+    (admin_app, "create-team", admin.admin_create_team),
+    (admin_app, "create-user", admin.admin_create_user),
+    (admin_app, "create-key", admin.admin_create_key),
+    (admin_app, "revoke-key", admin.admin_revoke_key),
+    (admin_app, "list-keys", admin.admin_list_keys),
+    (app, "submit", rest.submit),
+    (app, "status", rest.status),
+    (app, "results", rest.results),
+    (app, "compare", rest.compare),
+    (app, "run-local", local.run_local_command),
+    (app, "reproduce", local.reproduce_command),
+    (app, "serve", serve.serve_command),
+)
+for group, name, command in COMMANDS:
+    group.command(name)(command)
 
 if __name__ == "__main__":
     app()

@@ -170,15 +170,14 @@ def api_command(host: str, port: int) -> list[str]:
 DEFAULT_CONCURRENCY = max(1, min(os.cpu_count() or 1, 4))
 
 
+def _celery(*argv: str) -> list[str]:
+    return [sys.executable, "-m", "celery", "-A", "worker.celery_app", *argv]
+
+
 def worker_command(
     name: str = "worker1", concurrency: int = 1, loglevel: str = "info"
 ) -> list[str]:
-    return [
-        sys.executable,
-        "-m",
-        "celery",
-        "-A",
-        "worker.celery_app",
+    return _celery(
         "worker",
         "--concurrency",
         str(concurrency),
@@ -190,16 +189,11 @@ def worker_command(
         f"{name}@%h",
         "--without-gossip",
         "--without-mingle",
-    ]
+    )
 
 
 def beat_command(schedule_file: Path, loglevel: str = "info") -> list[str]:
-    return [
-        sys.executable,
-        "-m",
-        "celery",
-        "-A",
-        "worker.celery_app",
+    return _celery(
         "beat",
         "-l",
         loglevel,
@@ -207,7 +201,7 @@ def beat_command(schedule_file: Path, loglevel: str = "info") -> list[str]:
         str(schedule_file),
         "-S",
         "worker.beat:TickScheduler",
-    ]
+    )
 
 
 def child_commands(

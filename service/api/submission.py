@@ -14,13 +14,20 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Annotated
 
-from fastapi import BackgroundTasks
-from sqlalchemy.orm import Session
+from fastapi import BackgroundTasks, Depends
 
-from service.api.deps import Caller, Publisher, SessionFactory
+from service.api.deps import (
+    DB,
+    CurrentCaller,
+    Publisher,
+    PublisherDep,
+    SessionFactory,
+    SessionFactoryDep,
+    SettingsDep,
+)
 from service.api.views import job_out
-from service.config import Settings
 from service.db import crud
 
 log = logging.getLogger(__name__)
@@ -36,39 +43,54 @@ class JobRequest:
     idempotency_key: str | None = None
 
 
-def submit_jobs(
-    session: Session,
-    caller: Caller,
-    settings: Settings,
-    requests: Sequence[JobRequest],
-    *,
-    publisher: Publisher,
-    session_factory: SessionFactory,
-    background: BackgroundTasks,
-) -> list[dict]:
-    """Create the jobs (or find them by Idempotency-Key), commit, and schedule the
-    publishing of the units of the new ones; returns the jobs' JSON bodies."""
-    bodies, unit_ids = [], []
-    for r in requests:
-        job = crud.create_job(
-            session,
-            team_id=caller.team_id,
-            user_id=caller.user_id,
-            spec=r.spec,
-            name=r.name,
-            tags=r.tags,
-            idempotency_key=r.idempotency_key,
-            max_cells=settings.MAX_JOB_CELLS,
-            max_active_jobs=settings.MAX_QUEUED_JOBS_PER_TEAM,
-        )
-        if job.was_created:
-            unit_ids += crud.unit_ids_of_job(session, job.id)
-        bodies.append(job_out(job))  # flushed: ids and defaults are set; no read-back
-    session.commit()
-    session.close()  # end this request's transaction before publishing
-    if unit_ids:
-        background.add_task(publish_after_commit, publisher, session_factory, unit_ids)
-    return bodies
+class Submission:
+    """The submit-and-publish step of one request, a FastAPI dependency
+    (:data:`SubmissionDep`) built from the request's session, caller and settings."""
+
+    def __init__(
+        self,
+        *,
+        session: DB,
+        caller: CurrentCaller,
+        settings: SettingsDep,
+        publisher: PublisherDep,
+        session_factory: SessionFactoryDep,
+        background: BackgroundTasks,
+    ):
+        self.session, self.caller, self.settings = session, caller, settings
+        self.publisher, self.session_factory = publisher, session_factory
+        self.background = background
+
+    def submit(self, requests: Sequence[JobRequest]) -> list[dict]:
+        """Create the jobs (or find them by Idempotency-Key), commit, and schedule the
+        publishing of the new ones' units after the response; returns the jobs' bodies."""
+        session, caller, settings = self.session, self.caller, self.settings
+        bodies, unit_ids = [], []
+        for r in requests:
+            job = crud.create_job(
+                session,
+                team_id=caller.team_id,
+                user_id=caller.user_id,
+                spec=r.spec,
+                name=r.name,
+                tags=r.tags,
+                idempotency_key=r.idempotency_key,
+                max_cells=settings.MAX_JOB_CELLS,
+                max_active_jobs=settings.MAX_QUEUED_JOBS_PER_TEAM,
+            )
+            if job.was_created:
+                unit_ids += crud.unit_ids_of_job(session, job.id)
+            bodies.append(job_out(job))  # flushed: ids and defaults are set; no read-back
+        session.commit()
+        session.close()  # end this request's transaction before publishing
+        if unit_ids:
+            self.background.add_task(
+                publish_after_commit, self.publisher, self.session_factory, unit_ids
+            )
+        return bodies
+
+
+SubmissionDep = Annotated[Submission, Depends(Submission)]
 
 
 def publish_after_commit(

@@ -4,22 +4,14 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, BackgroundTasks, Header, HTTPException, Query
+from fastapi import APIRouter, Header, HTTPException, Query
 from sqlalchemy import func, select
 from sqlalchemy.orm import joinedload
 
-from service.api.deps import (
-    DB,
-    CurrentCaller,
-    JobId,
-    PublisherDep,
-    SessionFactoryDep,
-    SettingsDep,
-    team_job,
-)
+from service.api.deps import DB, CurrentCaller, JobId, team_job
 from service.api.errors import BODY_ERRORS, ERRORS
 from service.api.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
-from service.api.submission import JobRequest, submit_jobs
+from service.api.submission import JobRequest, SubmissionDep
 from service.api.views import job_out
 from service.db import crud
 from service.db.models import Job, JobTag, User
@@ -35,12 +27,7 @@ router = APIRouter(tags=["jobs"])
 )
 def submit_job(
     body: JobSubmit,  # type: ignore[valid-type]
-    session: DB,
-    caller: CurrentCaller,
-    settings: SettingsDep,
-    publisher: PublisherDep,
-    session_factory: SessionFactoryDep,
-    background: BackgroundTasks,
+    submission: SubmissionDep,
     idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
 ):
     """Validate and queue a job (SPEC section 10 spec plus `name` and `tags`).
@@ -55,15 +42,7 @@ def submit_job(
         tags=data.get("tags") or (),
         idempotency_key=idempotency_key or None,
     )
-    (out,) = submit_jobs(
-        session,
-        caller,
-        settings,
-        [request],
-        publisher=publisher,
-        session_factory=session_factory,
-        background=background,
-    )
+    (out,) = submission.submit([request])
     return out
 
 

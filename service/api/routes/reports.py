@@ -4,24 +4,16 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, BackgroundTasks, Header
+from fastapi import APIRouter, Header
 from fastapi.responses import HTMLResponse
 from pydantic import BaseModel, ConfigDict
 from sqlalchemy import select
 
-from service.api.deps import (
-    DB,
-    CurrentCaller,
-    JobId,
-    PublisherDep,
-    SessionFactoryDep,
-    SettingsDep,
-    team_job,
-)
+from service.api.deps import DB, CurrentCaller, JobId, team_job
 from service.api.errors import BODY_ERRORS, ERRORS
 from service.api.record_json import ORDER, RESULT_COLUMNS
 from service.api.schemas import ErrorOut, JobOut
-from service.api.submission import JobRequest, submit_jobs
+from service.api.submission import JobRequest, SubmissionDep
 from service.db.crud import row_to_record
 from service.db.models import Result
 from service.reports.html import job_report_html
@@ -73,12 +65,7 @@ class PresetRun(BaseModel):
     responses={**BODY_ERRORS, 409: {"model": ErrorOut}},
 )
 def run_paper_preset(
-    session: DB,
-    caller: CurrentCaller,
-    settings: SettingsDep,
-    publisher: PublisherDep,
-    session_factory: SessionFactoryDep,
-    background: BackgroundTasks,
+    submission: SubmissionDep,
     body: PresetRun | None = None,
     idempotency_key: Annotated[str | None, Header(max_length=180)] = None,
 ):
@@ -96,12 +83,4 @@ def run_paper_preset(
         )
         for name in names
     ]
-    return submit_jobs(
-        session,
-        caller,
-        settings,
-        requests,
-        publisher=publisher,
-        session_factory=session_factory,
-        background=background,
-    )
+    return submission.submit(requests)
