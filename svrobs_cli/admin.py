@@ -1,6 +1,6 @@
 """``svrobs migrate`` and ``svrobs admin ...``: the database directly, no API.
 
-The operations are :mod:`svrobs_cli.accounts`; each command runs in one committed
+The operations are :mod:`service.db.accounts`; each command runs in one committed
 transaction.
 """
 
@@ -26,13 +26,14 @@ def migrate(
 
 def _admin_call(fn):
     """``fn(session, accounts)`` in one committed transaction; an AdminError is one line."""
+    from service.db import accounts
+    from service.db.errors import AdminError
     from service.db.session import session_scope
-    from svrobs_cli import accounts
 
     try:
         with session_scope() as session:
             return fn(session, accounts)
-    except accounts.AdminError as exc:
+    except AdminError as exc:
         raise CliError(str(exc)) from None
 
 

@@ -32,7 +32,7 @@ def run_local(spec_obj: dict, out: Path, *, quiet: bool = False) -> dict:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
     from svrobs_core import parse_spec, plan_units, summarize
-    from svrobs_core.experiments import run_unit_result
+    from svrobs_core.runner import run_unit_result
 
     spec = parse_spec(spec_obj)
     units = plan_units(spec)

@@ -33,21 +33,15 @@ import typer
 
 from service.config import Settings, get_settings
 from svrobs_cli.processes import Child, stop_all
+from svrobs_core.threads import THREAD_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
-THREAD_ENV = {
-    "OPENBLAS_NUM_THREADS": "1",
-    "OMP_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "NUMEXPR_NUM_THREADS": "1",
-    "VECLIB_MAXIMUM_THREADS": "1",
-}
 
 
 # --------------------------------------------------------------------------- setup
 def var_dir(settings: Settings) -> Path:
-    """The state folder: ``./var`` by default (the parent of BROKER_DIR)."""
-    return Path(settings.BROKER_DIR).resolve().parent
+    """The state folder, SVROBS_VAR_DIR (``./var`` by default)."""
+    return Path(settings.VAR_DIR)
 
 
 def beat_schedule_file(settings: Settings) -> Path:
@@ -101,9 +95,10 @@ def bootstrap_admin(settings: Settings | None = None) -> str | None:
     from sqlalchemy import func, select
     from sqlalchemy.exc import IntegrityError
 
+    from service.db import accounts
+    from service.db.errors import AdminError
     from service.db.models import Team
     from service.db.session import session_scope
-    from svrobs_cli import accounts
 
     url = (settings or get_settings()).DATABASE_URL
     try:
@@ -114,7 +109,7 @@ def bootstrap_admin(settings: Settings | None = None) -> str | None:
             accounts.create_user(s, ADMIN_TEAM, ADMIN_EMAIL, is_admin=True)
             _row, key = accounts.create_key(s, ADMIN_EMAIL, name="bootstrap")
         return key
-    except (IntegrityError, accounts.AdminError):
+    except (IntegrityError, AdminError):
         return None
 
 
@@ -133,6 +128,7 @@ def child_env(settings: Settings | None = None, extra: dict | None = None) -> di
         for key in ("DATABASE_URL", "BROKER_URL", "BROKER_DIR", "API_HOST", "API_PORT"):
             env[f"SVROBS_{key}"] = str(getattr(settings, key))
         env["SVROBS_BROKER_DIR"] = str(Path(settings.BROKER_DIR).resolve())
+        env["SVROBS_VAR_DIR"] = str(Path(settings.VAR_DIR).resolve())
         env["SVROBS_DATABASE_URL"] = _absolute_sqlite(settings.DATABASE_URL)
     env.update(extra or {})
     return env

@@ -15,8 +15,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, joinedload
 
 from service.api.errors import FieldHTTPException
-from service.auth import authenticate
 from service.config import Settings
+from service.db.accounts import authenticate
 from service.db.models import Job
 
 SessionFactory = Callable[..., Session]  # factory(write: bool) -> Session
@@ -60,7 +60,11 @@ async def get_publisher(request: Request) -> Publisher:
 
 
 async def get_broker_check(request: Request) -> BrokerCheck:
-    return request.app.state.broker.check
+    """Raises unless the broker of the app's Celery app answers (``/readyz``)."""
+    from service.broker import check_broker
+
+    broker, timeout = request.app.state.broker, request.app.state.settings.BROKER_TIMEOUT
+    return lambda: check_broker(broker.get_celery(), timeout=timeout)
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.api.schemas import ErrorOut
-from service.db.crud import IdempotencyConflict, QuotaExceeded
+from service.db.errors import IdempotencyConflict, QuotaExceeded
 from svrobs_core.errors import SpecError
 
 log = logging.getLogger(__name__)

@@ -6,13 +6,12 @@ traceback).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 from fastapi import Depends, FastAPI
 
 from service.api.deps import clean_query_text
 from service.api.errors import error_response, install_error_handlers
 from service.api.ratelimit import RateLimiter
+from service.broker import BrokerPublisher
 from service.config import Settings, get_settings
 from service.logging_config import configure_logging
 
@@ -79,31 +78,6 @@ def _default_session_factory(settings: Settings):
     return factory
 
 
-class BrokerLink:
-    """The app's Celery app, made on first use: publishing units and the /readyz check."""
-
-    def __init__(self, settings: Settings):
-        self._settings = settings
-        self._celery = None
-
-    def celery(self):
-        from service.broker import make_celery
-
-        if self._celery is None:
-            self._celery = make_celery(self._settings)
-        return self._celery
-
-    def publish(self, unit_ids: Sequence[int]) -> list[int]:
-        from service.broker import publish_units
-
-        return publish_units(self.celery(), unit_ids)
-
-    def check(self) -> None:
-        from service.broker import check_broker
-
-        check_broker(self.celery(), timeout=self._settings.BROKER_TIMEOUT)
-
-
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or get_settings()
     configure_logging(settings)
@@ -121,8 +95,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.session_factory = _default_session_factory(settings)
-    app.state.broker = BrokerLink(settings)
-    app.state.publisher = app.state.broker.publish
+    # the app's Celery app, made on first use; tests replace the publisher
+    app.state.broker = BrokerPublisher(lambda: app.state.settings)
+    app.state.publisher = app.state.broker
     app.state.rate_limiter = RateLimiter(settings.RATE_LIMIT_PER_MINUTE)
 
     install_error_handlers(app)

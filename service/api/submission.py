@@ -28,7 +28,8 @@ from service.api.deps import (
     SettingsDep,
 )
 from service.api.views import job_out
-from service.db import crud
+from service.db.jobs import create_job, unit_ids_of_job
+from service.db.outbox import mark_published
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +68,7 @@ class Submission:
         session, caller, settings = self.session, self.caller, self.settings
         bodies, unit_ids = [], []
         for r in requests:
-            job = crud.create_job(
+            job, created = create_job(
                 session,
                 team_id=caller.team_id,
                 user_id=caller.user_id,
@@ -78,8 +79,8 @@ class Submission:
                 max_cells=settings.MAX_JOB_CELLS,
                 max_active_jobs=settings.MAX_QUEUED_JOBS_PER_TEAM,
             )
-            if job.was_created:
-                unit_ids += crud.unit_ids_of_job(session, job.id)
+            if created:
+                unit_ids += unit_ids_of_job(session, job.id)
             bodies.append(job_out(job))  # flushed: ids and defaults are set; no read-back
         session.commit()
         session.close()  # end this request's transaction before publishing
@@ -107,7 +108,7 @@ def publish_after_commit(
     try:
         session = session_factory(True)
         try:
-            crud.mark_published(session, sent)
+            mark_published(session, sent)
             session.commit()
         finally:
             session.close()

@@ -38,11 +38,10 @@ from schemathesis.specs.openapi.checks import (
 from service.api.deps import MAX_ID, get_broker_check
 from service.api.main import create_app
 from service.config import Settings
-from service.db import crud
+from service.db import accounts, jobs
 from service.db.migrate import upgrade
 from service.db.models import Job, Result, Schedule, utcnow
 from service.db.session import dispose_all, get_sessionmaker
-from svrobs_cli import accounts
 from svrobs_core.records import NUMERIC_FIELDS
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC, no_broker_check
@@ -139,7 +138,7 @@ def _account(session, name: str):
 
 
 def _make_job(session, acc, *, run: bool = False, cancel: bool = False) -> int:
-    job = crud.create_job(
+    job, _ = jobs.create_job(
         session,
         team_id=acc.team_id,
         user_id=acc.user_id,
@@ -152,7 +151,7 @@ def _make_job(session, acc, *, run: bool = False, cancel: bool = False) -> int:
     if run:
         run_job_units(session, job.id)
     if cancel:
-        crud.cancel_job(session, job)
+        jobs.cancel_job(session, job)
         session.commit()
     return job.id
 

@@ -94,6 +94,7 @@ class Stack:
                 SVROBS_BROKER_DIR=str(root / "broker"),
             )
         env.update(SVROBS_TASK_TIME_LIMIT="300", SVROBS_UNIT_LEASE_SECONDS="360")
+        env.update(SVROBS_VAR_DIR=str(root))
         env.update(extra_env or {})
         self.env = child_env(None, env)
         # child_env starts from os.environ: drop any SVROBS_* the developer has set
@@ -115,7 +116,7 @@ class Stack:
             "from service.config import get_settings\n"
             "from svrobs_cli.serve import prepare_dirs, migrate\n"
             "from service.db.session import session_scope\n"
-            "from svrobs_cli import accounts\n"
+            "from service.db import accounts\n"
             "s = get_settings(); prepare_dirs(s); migrate(s)\n"
             "with session_scope() as db:\n"
             "    accounts.create_team(db, 'lab')\n"

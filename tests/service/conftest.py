@@ -14,9 +14,9 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session
 
 from service.api.deps import get_broker_check
+from service.db import accounts
 from service.db.migrate import upgrade
 from service.db.session import create_db_engine
-from svrobs_cli import accounts
 from tests.service.svc_helpers import Account, RecordingPublisher, make_settings, no_broker_check
 
 PG_ENV = "SVROBS_TEST_DATABASE_URL"

@@ -6,9 +6,10 @@ from datetime import timedelta
 
 import pytest
 
-from service.auth import authenticate, hash_key, split_key
+from service.db import accounts
+from service.db.accounts import authenticate, hash_key, split_key
+from service.db.errors import AdminError
 from service.db.models import utcnow
-from svrobs_cli import accounts
 
 API = "/api/v1"
 
@@ -43,16 +44,16 @@ def test_expired_key_401(client, session, make_account):
 
 def test_admin_errors(session):
     t = accounts.create_team(session, "lab")
-    with pytest.raises(accounts.AdminError):
+    with pytest.raises(AdminError):
         accounts.create_team(session, "lab")
     accounts.create_user(session, "lab", "A@Lab.org")
-    with pytest.raises(accounts.AdminError):
+    with pytest.raises(AdminError):
         accounts.create_user(session, t.id, "a@lab.org")
-    with pytest.raises(accounts.AdminError):
+    with pytest.raises(AdminError):
         accounts.create_user(session, "nolab", "b@lab.org")
     row, key = accounts.create_key(session, "a@lab.org", name="ci")
     assert row.team_id == t.id and key not in (row.key_hash, row.prefix)
     accounts.revoke_key(session, key)  # by full key too
     assert row.revoked_at is not None
-    with pytest.raises(accounts.AdminError):
+    with pytest.raises(AdminError):
         accounts.revoke_key(session, "nope")

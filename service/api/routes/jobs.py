@@ -13,7 +13,7 @@ from service.api.errors import BODY_ERRORS, ERRORS
 from service.api.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
 from service.api.submission import JobRequest, SubmissionDep
 from service.api.views import job_out
-from service.db import crud
+from service.db.jobs import cancel_job
 from service.db.models import Job, JobTag, User
 
 router = APIRouter(tags=["jobs"])
@@ -94,6 +94,6 @@ def cancel(job_id: JobId, session: DB, caller: CurrentCaller):
     job = team_job(session, caller.team_id, job_id)
     if job.status in ("succeeded", "failed"):
         raise HTTPException(409, f"job {job_id} already {job.status}")
-    job = crud.cancel_job(session, job)
+    job = cancel_job(session, job)
     session.commit()
     return job_out(team_job(session, caller.team_id, job_id))

@@ -14,8 +14,8 @@ from service.api.errors import BODY_ERRORS, ERRORS
 from service.api.record_json import ORDER, RESULT_COLUMNS
 from service.api.schemas import ErrorOut, JobOut
 from service.api.submission import JobRequest, SubmissionDep
-from service.db.crud import row_to_record
 from service.db.models import Result
+from service.db.results_store import row_to_record
 from service.reports.html import job_report_html
 from svrobs_core.paper import PRESET_NAME, paper_specs
 

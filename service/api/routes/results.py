@@ -19,8 +19,9 @@ from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep
 from service.api.errors import ERRORS, FieldHTTPException
 from service.api.record_json import ORDER, RESULT_COLUMNS, encode_lines, encode_page, record_columns
 from service.api.schemas import CompareOut, ResultPage, SummaryOut
-from service.db.crud import row_to_record, summarize_job
 from service.db.models import Result, Summary
+from service.db.results_store import row_to_record
+from service.db.units import summarize_job
 from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
 
 router = APIRouter(tags=["results"])

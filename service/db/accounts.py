@@ -1,22 +1,69 @@
-"""Teams, users and API keys: what ``svrobs admin``, ``svrobs serve``'s first start and
-the tests do to them.
+"""Accounts: teams, users and API keys (``svrobs admin``, the API's key lookup).
 
-None of these commit: the caller owns the transaction.
+Keys are ``svr_<prefix8>_<secret>``, stored as a sha256 hash with the prefix
+indexed. Lookup is by prefix, then a constant-time compare of the hashes; a
+revoked or expired key is rejected exactly like an unknown one. None of these
+functions commit: the caller owns the transaction.
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
+import secrets
+import string
 from datetime import datetime, timedelta
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, joinedload
 
-from service.auth import generate_key, hash_key, split_key
-from service.db.models import ApiKey, Team, User, utcnow
+from .errors import AdminError
+from .models import ApiKey, Team, User, utcnow
+
+KEY_SCHEME = "svr"
+PREFIX_LEN = 8
+_PREFIX_ALPHABET = string.ascii_lowercase + string.digits
+_DUMMY_HASH = hashlib.sha256(b"svrobs-no-such-key").hexdigest()
 
 
-class AdminError(ValueError):
-    """A bad admin request (unknown team, duplicate name...)."""
+def hash_key(key: str) -> str:
+    return hashlib.sha256(key.encode("utf-8")).hexdigest()
+
+
+def generate_key() -> tuple[str, str]:
+    """A new random key -> ``(plaintext, prefix)``."""
+    prefix = "".join(secrets.choice(_PREFIX_ALPHABET) for _ in range(PREFIX_LEN))
+    secret = secrets.token_urlsafe(32)
+    return f"{KEY_SCHEME}_{prefix}_{secret}", prefix
+
+
+def split_key(key: str) -> str | None:
+    """The prefix of a well-formed key, else None."""
+    parts = key.split("_", 2)
+    if len(parts) != 3 or parts[0] != KEY_SCHEME or len(parts[1]) != PREFIX_LEN or not parts[2]:
+        return None
+    if any(c not in _PREFIX_ALPHABET for c in parts[1]):
+        return None
+    return parts[1]
+
+
+def authenticate(session: Session, key: str, now: datetime | None = None) -> ApiKey | None:
+    """The active ApiKey for ``key`` or None (unknown, wrong secret, revoked, expired)."""
+    prefix = split_key(key or "")
+    row = None
+    if prefix is not None:
+        row = session.scalar(
+            select(ApiKey).where(ApiKey.prefix == prefix).options(joinedload(ApiKey.user))
+        )
+    ok = hmac.compare_digest(row.key_hash if row is not None else _DUMMY_HASH, hash_key(key or ""))
+    if row is None or not ok:
+        return None
+    now = now or utcnow()
+    if row.revoked_at is not None and row.revoked_at <= now:
+        return None
+    if row.expires_at is not None and row.expires_at <= now:
+        return None
+    return row
 
 
 def create_team(session: Session, name: str) -> Team:
@@ -31,16 +78,20 @@ def create_team(session: Session, name: str) -> Team:
     return team
 
 
-def _one(session: Session, model, ident: int | str, where, what: str):
-    """The row with id ``ident`` (an int) or matching ``where`` (a name), else AdminError."""
-    row = session.get(model, ident) if isinstance(ident, int) else session.scalar(where)
+def _by_id_or(session: Session, model, key: int | str, column, value, what: str):
+    """The ``model`` row with id ``key`` (an int) or ``column == value``; AdminError if none."""
+    row = (
+        session.get(model, key)
+        if isinstance(key, int)
+        else session.scalar(select(model).where(column == value))
+    )
     if row is None:
-        raise AdminError(f"no {what} {ident!r}")
+        raise AdminError(f"no {what} {key!r}")
     return row
 
 
 def get_team(session: Session, team: int | str) -> Team:
-    return _one(session, Team, team, select(Team).where(Team.name == team), "team")
+    return _by_id_or(session, Team, team, Team.name, team, "team")
 
 
 def create_user(session: Session, team: int | str, email: str, *, is_admin: bool = False) -> User:
@@ -58,7 +109,7 @@ def create_user(session: Session, team: int | str, email: str, *, is_admin: bool
 
 def get_user(session: Session, user: int | str) -> User:
     email = user if isinstance(user, int) else user.strip().lower()
-    return _one(session, User, user, select(User).where(User.email == email), "user")
+    return _by_id_or(session, User, user, User.email, email, "user")
 
 
 def create_key(
