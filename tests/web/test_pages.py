@@ -4,6 +4,8 @@ cancel/delete need CSRF, and chart data are the stored summaries."""
 
 from __future__ import annotations
 
+import html
+import json
 import re
 
 import pytest
@@ -19,9 +21,19 @@ ROW = re.compile(r'<tr id="job-(\d+)" data-status="(\w+)">')
 
 
 @pytest.fixture
-def web(build_client):
-    client, _ = build_client(SECRET_KEY="pages-secret-0123456789")
-    return client
+def web_pub(build_client):
+    return build_client(SECRET_KEY="pages-secret-0123456789")
+
+
+@pytest.fixture
+def web(web_pub):
+    return web_pub[0]
+
+
+@pytest.fixture
+def sent(web_pub):
+    """The unit ids the app published."""
+    return web_pub[1]
 
 
 def _submit(client, acc, **extra) -> int:
@@ -148,3 +160,75 @@ def test_chart_gaps_flat_ols_and_non_positive_means():
     ols, svr = first["series"]
     assert ols["label"] == "ols (no γ)" and ols["flat"] and ols["mean"] == [2.0, 2.0]
     assert svr["label"] == "svr" and svr["mean"] == [1.0, -1.0]
+
+
+def _post_spec(web, token: str, spec_text: str, **fields):
+    data = {"csrf_token": token, "spec": spec_text, **fields}
+    return web.post("/jobs/new", data=data, follow_redirects=False)
+
+
+@pytest.mark.parametrize(
+    ("spec", "fields", "where", "shown"),
+    [
+        (
+            {"systems": [{"name": "x", "A": [[1, 2]], "B": [[1]]}], "sigma_w": [1], "N": [10]},
+            {},
+            "spec-error",
+            "<code>systems[0].A</code>: must be square, got 1x2",
+        ),
+        ({**SMALL_SPEC, "N": "100"}, {}, "spec-error", "<code>N</code>: must be a non-empty list"),
+        ({**SMALL_SPEC, "bogus": 1}, {}, "spec-error", "<code>bogus</code>: unknown field"),
+        (SMALL_SPEC, {"name": "n" * 201}, "name-error", "<code>name</code>:"),
+        (SMALL_SPEC, {"tags": "ok, " + "t" * 101}, "tags-error", "<code>tags[1]</code>:"),
+        ("{not json", {}, "spec-error", "<code>spec</code>: not valid JSON"),
+        ("[1, 2]", {}, "spec-error", "<code>spec</code>: must be a JSON object"),
+        ("", {}, "spec-error", "<code>spec</code>: paste a spec"),
+    ],
+)
+def test_submit_errors_are_shown_beside_their_field(
+    web, sent, make_account, spec, fields, where, shown
+):
+    acc = make_account()
+    sign_in(web, acc.key)
+    token = csrf_of(web.get("/jobs/new").text)
+    text = spec if isinstance(spec, str) else json.dumps(spec)
+    r = _post_spec(web, token, text, **fields)
+    assert r.status_code == 422
+    error = re.search(rf'<p id="{where}" class="field-error" role="alert">(.*?)</p>', r.text, re.S)
+    assert error is not None and shown in error.group(1), r.text[-3000:]
+    kept = re.search(r"<textarea[^>]*>(.*?)</textarea>", r.text, re.S).group(1)
+    assert html.unescape(kept) == text  # kept for correcting it
+    assert sent.published == []
+    assert web.get(f"{API}/jobs", headers=acc.headers).json()["total"] == 0
+
+
+def test_submit_text_upload_and_preset_create_jobs_once(web, sent, make_account):
+    acc = make_account()
+    sign_in(web, acc.key)
+    form = web.get("/jobs/new").text
+    token = csrf_of(form)
+    key = re.search(r'name="idempotency_key" value="([^"]+)"', form).group(1)
+    fields = {"name": "pasted", "tags": "a, b", "idempotency_key": key}
+    r = _post_spec(web, token, json.dumps(SMALL_SPEC), **fields)
+    assert r.status_code == 303
+    jid = int(r.headers["location"].rsplit("/", 1)[1])
+    again = _post_spec(web, token, json.dumps(SMALL_SPEC), **fields)  # a double submit
+    assert again.headers["location"] == f"/jobs/{jid}"
+    job = web.get(f"{API}/jobs/{jid}", headers=acc.headers).json()
+    assert (job["name"], job["tags"], job["owner"]) == ("pasted", ["a", "b"], acc.user.email)
+    assert len(sent.published) == job["progress"]["total"]  # published once
+
+    upload = {"spec_file": ("s.json", json.dumps({**SMALL_SPEC, "seed": 9}), "application/json")}
+    r = web.post("/jobs/new", data={"csrf_token": token, "spec": "ignored"}, files=upload)
+    assert r.status_code == 200 and r.url.path.startswith("/jobs/")
+    uploaded = web.get(f"{API}{r.url.path}", headers=acc.headers).json()
+    assert uploaded["spec"]["seed"] == 9
+
+    preset = web.get("/jobs/new/preset?preset=paper-section-6:E1:reduced").text
+    text = html.unescape(re.search(r"<textarea[^>]*>(.*?)</textarea>", preset, re.S).group(1))
+    r = _post_spec(web, token, text)
+    job = web.get(f"{API}{r.headers['location']}", headers=acc.headers).json()
+    from svrobs_core.paper import paper_specs
+
+    assert job["spec"]["sigma_w"] == paper_specs("reduced")["E1"]["sigma_w"]
+    assert web.post("/jobs/new", data={"spec": text}).status_code == 403  # no token

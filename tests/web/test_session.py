@@ -148,3 +148,11 @@ def test_generated_secret_is_kept_across_restarts(tmp_path):
     assert len(first) >= 32 and load_secret(settings) == first
     assert (tmp_path / "var" / "secret_key").stat().st_mode & 0o077 == 0
     assert load_secret(make_settings("sqlite://", SECRET_KEY="abc")) == b"abc"
+
+
+def test_cookie_is_secure_over_https(build_client, make_account):
+    client, _ = build_client(SECRET_KEY="s" * 20)
+    client.base_url = "https://testserver"
+    acc = make_account()
+    r = sign_in(client, acc.key)
+    assert r.status_code == 303 and "; secure" in r.headers["set-cookie"].lower()
