@@ -180,6 +180,11 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
     )
     assert {vis for s, vis in hidden if s == 0} == {False}  # the line and its band
     assert {vis for s, vis in hidden if s != 0} == {True}
+    page.uncheck("#chart-bands")
+    roles = page.evaluate(
+        "() => window.svrobsCharts.charts[0].chart.data.datasets.map(d => d.svrobs.role)"
+    )
+    assert roles and set(roles) == {"mean"}
 
     with stack.client() as api:  # downloads: the API's own streams, under the cookie
         for fmt in ("csv", "jsonl"):
@@ -268,6 +273,7 @@ def test_dashboard_screenshot_of_jobs_in_every_state(browser, stack):
         submit(api, TINY, name="queued sweep", tags=["nightly"])
     page = browser.page(stack.base_url)
     sign_in(page, stack.key)
+    page.set_viewport_size({"width": 1280, "height": 440})  # full_page: as high as the page
     page.screenshot(path=str(Path(SCREENSHOTS) / "dashboard-jobs.png"), full_page=True)
     with stack.client() as api:
         api.post(f"/jobs/{big['id']}/cancel")

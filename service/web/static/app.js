@@ -25,7 +25,7 @@
     return xs.map((x, i) => ({ x: x, y: ys[i] }));
   }
 
-  function datasets(panel, logY) {
+  function datasets(panel, logY, bands) {
     const out = [];
     panel.series.forEach((s, i) => {
       const color = PALETTE[i % PALETTE.length];
@@ -41,13 +41,14 @@
         backgroundColor: color, borderWidth: 2, pointRadius: 3, borderDash: s.flat ? [6, 4] : [],
         svrobs: Object.assign({ role: "mean" }, meta), spanGaps: false,
       });
+      if (!bands) return;
       out.push({
         label: s.label + " + std", data: points(panel.x, hi), borderWidth: 0, pointRadius: 0,
         pointHitRadius: 0, fill: false, borderColor: "transparent", svrobs: { role: "band", series: i },
       });
       out.push({
         label: s.label + " − std", data: points(panel.x, lo), borderWidth: 0, pointRadius: 0,
-        pointHitRadius: 0, fill: "-1", backgroundColor: alpha(color, 0.12),
+        pointHitRadius: 0, fill: "-1", backgroundColor: alpha(color, 0.1),
         borderColor: "transparent", svrobs: { role: "band", series: i },
       });
     });
@@ -67,7 +68,7 @@
   function makeChart(canvas, panel, data, opts) {
     return new Chart(canvas, {
       type: "line",
-      data: { datasets: datasets(panel, opts.logY) },
+      data: { datasets: datasets(panel, opts.logY, opts.bands) },
       options: {
         animation: false, responsive: true, maintainAspectRatio: false, parsing: true,
         interaction: { mode: "nearest", axis: "x", intersect: false },
@@ -118,6 +119,7 @@
     setOptions(panelSel, [""].concat(keys), want || (keys.length > 6 ? keys[0] : ""),
       (k) => (k === "" ? `all (${keys.length})` : titles[k]));
     const opts = {
+      bands: card.querySelector("#chart-bands").checked,
       logY: card.querySelector("#chart-logy").checked && data.positive,
       logX: card.querySelector("#chart-logx").checked && data.panels.every((p) => p.x.every((v) => v > 0)),
     };
@@ -180,7 +182,7 @@
       card.querySelector("#chart-panel").value = "";
       load(card, true);
     });
-    ["#chart-panel", "#chart-logy", "#chart-logx"].forEach((sel) =>
+    ["#chart-panel", "#chart-logy", "#chart-logx", "#chart-bands"].forEach((sel) =>
       card.querySelector(sel).addEventListener("change", () => draw(card, registry.data)));
     document.body.addEventListener("svrobs:job-finished", () => load(card, false));
     load(card, true);
