@@ -20,14 +20,6 @@ PAGE_SIZE = 25
 DB = Annotated[Session, Depends(get_db)]
 
 
-def _filter(status: str, tag: str, owner: str, q: str) -> queries.JobFilter:
-    if status and status not in JOB_STATUSES:
-        raise WebError(422, f"status: must be one of {', '.join(JOB_STATUSES)}")
-    return queries.JobFilter(
-        status=status or None, tag=tag or None, owner=owner or None, q=q.strip() or None
-    )
-
-
 def _table_context(db: Session, viewer, filt: queries.JobFilter, page: int) -> dict:
     jobs, total = queries.job_page(
         db,
@@ -51,6 +43,18 @@ def _table_context(db: Session, viewer, filt: queries.JobFilter, page: int) -> d
 
 
 Text = Annotated[str, Query(max_length=200)]
+
+
+def job_filter(status: Text = "", tag: Text = "", owner: Text = "", q: Text = ""):
+    """The filters of the query string (a 422 page for an unknown status)."""
+    if status and status not in JOB_STATUSES:
+        raise WebError(422, f"status: must be one of {', '.join(JOB_STATUSES)}")
+    return queries.JobFilter(
+        status=status or None, tag=tag or None, owner=owner or None, q=q.strip() or None
+    )
+
+
+Filter = Annotated[queries.JobFilter, Depends(job_filter)]
 PageNo = Annotated[int, Query(ge=1, le=10**6)]
 
 
@@ -59,14 +63,10 @@ def jobs_page(
     request: Request,
     db: DB,
     viewer: CurrentViewer,
-    status: Text = "",
-    tag: Text = "",
-    owner: Text = "",
-    q: Text = "",
+    filt: Filter,
     page: PageNo = 1,
     deleted: Annotated[int | None, Query(ge=1)] = None,
 ):
-    filt = _filter(status, tag, owner, q)
     return render(
         request,
         "jobs.html",
@@ -81,16 +81,6 @@ def jobs_page(
 
 
 @router.get("/jobs/rows")
-def jobs_rows(
-    request: Request,
-    db: DB,
-    viewer: CurrentViewer,
-    status: Text = "",
-    tag: Text = "",
-    owner: Text = "",
-    q: Text = "",
-    page: PageNo = 1,
-):
+def jobs_rows(request: Request, db: DB, viewer: CurrentViewer, filt: Filter, page: PageNo = 1):
     """The table alone, polled by htmx every 2 s while a job on the page is active."""
-    filt = _filter(status, tag, owner, q)
     return render(request, "_jobs_table.html", **_table_context(db, viewer, filt, page))
