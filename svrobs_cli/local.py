@@ -29,8 +29,8 @@ def load_spec_file(path: Path) -> dict:
 def run_local(spec_obj: dict, out: Path, *, quiet: bool = False) -> dict:
     """Run a spec in process; returns ``{"records": n, "out": str}``."""
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
+    from service.progress import progress_bar
     from svrobs_core import parse_spec, plan_units, summarize
     from svrobs_core.runner import run_unit_result
 
@@ -40,15 +40,7 @@ def run_local(spec_obj: dict, out: Path, *, quiet: bool = False) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     records: list[dict] = []
     console = Console(stderr=True)
-    with Progress(
-        "[progress.description]{task.description}",
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=console,
-        disable=quiet,
-        transient=False,
-    ) as bar:
+    with progress_bar(console, quiet=quiet) as bar:
         task = bar.add_task("work units", total=len(units))
         with open(out / "records.jsonl", "w") as fh:
             for unit in units:
