@@ -28,6 +28,7 @@ from .plotting import (
     no_data_panel,
     no_data_reason,
     note,
+    overlap_text,
     plot_line,
     ref_line,
     series_handle,
@@ -132,7 +133,7 @@ def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float 
                 plot_line(
                     axd, x, dy, panel=panel, series=name, quantity=f"{s.field} SVR − OLS", **st
                 )
-                gaps.append((big[0], f"{system} {mat}, {name}, N0={big[2]:g}"))
+                gaps.append((big[0], f"{system} {mat}, {name}, N0={big[2]:g}", big[3]))
             ref_line(axd, 0.0)
             value_axis(axd)
             label_panel(axd, "SVR − OLS", None, ratio, xlabel=r == 1)
@@ -149,8 +150,10 @@ def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float 
         g = max(gaps, key=lambda t: t[0])
         note(
             fig,
-            f"OLS and SVR γ={fmt_num(ctx['table'])} RMSE curves lie on top of each other at "
-            f"this scale; the difference panels show SVR − OLS; the largest |SVR − OLS| is "
+            overlap_text(
+                f"The OLS and SVR γ={fmt_num(ctx['table'])} RMSE curves", max(t[2] for t in gaps)
+            )
+            + f"; the difference panels show SVR − OLS; the largest |SVR − OLS| is "
             f"{fmt_gap(g[0])} ({g[1]}).",
         )
     figure_title(
@@ -237,7 +240,7 @@ def _entry_figure(fig_name, records, spec, experiment, ctx_over, title, height_c
                     f"entry_error_{mat} minus {ref_name}",
                 )
                 label_panel(axd, f"minus {ref_name}", None, ratio, xlabel=r == 1)
-                gaps.append((big[0], f"{panel}, {big[1]}, N0={big[2]:g}", ref_name))
+                gaps.append((big[0], f"{panel}, {big[1]}, N0={big[2]:g}", ref_name, big[3]))
     q = [legend_line(ls=QUANTITY_LS[k], label=lab) for k, lab in QUANTITY_LEGEND]
     grid_legend(fig, [[series_handle(n, st) for n, st in styles.items()], q])
     figure_title(fig, title, experiment, meta)
@@ -284,8 +287,8 @@ def fig3(records, spec=None, *, experiment: str | None = "E2", sigma_w: float | 
         g = max(gaps, key=lambda t: t[0])
         note(
             fig,
-            f"The error curves of the {len(styles)} γ coincide at this scale (the interval "
-            f"ends differ); the difference rows show each γ's error minus that of {g[2]}; the "
+            overlap_text(f"The error curves of the {len(styles)} γ", max(t[3] for t in gaps))
+            + f"; the difference rows show each γ's error minus that of {g[2]}; the "
             f"largest gap is {fmt_gap(g[0])} ({g[1]}).",
         )
     _certified_marks(fig, cols, meta, ctx, styles, axes)

@@ -331,9 +331,10 @@ def joined(names: list[str]) -> str:
 
 def differences(lines: list[tuple], ref: tuple):
     """``lines``: (name, x, y); ``ref``: (name, x, y). -> [(name, x, y − y_ref)] on the
-    x values both have, and the largest |y − y_ref| with where it is."""
+    x values both have, and (largest |y − y_ref|, its line, its x, largest
+    |y − y_ref| / |y_ref| of any point)."""
     at = dict(zip(np.asarray(ref[1]).tolist(), np.asarray(ref[2]).tolist()))
-    out, big = [], (0.0, None, None)
+    out, big, rel = [], (0.0, None, None), 0.0
     for name, x, y in lines:
         xs = [xv for xv in np.asarray(x).tolist() if xv in at]
         yv = dict(zip(np.asarray(x).tolist(), np.asarray(y).tolist()))
@@ -343,7 +344,18 @@ def differences(lines: list[tuple], ref: tuple):
             i = int(np.nanargmax(np.abs(d)))
             if abs(d[i]) > big[0]:
                 big = (float(abs(d[i])), name, xs[i])
-    return out, big
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r = np.abs(d) / np.abs(np.array([at[xv] for xv in xs], float))
+            if np.isfinite(r).any():
+                rel = max(rel, float(np.nanmax(np.where(np.isfinite(r), r, np.nan))))
+    return out, (*big, rel)
+
+
+def overlap_text(what: str, rel: float) -> str:
+    """ "… lie on top of each other" when no point differs by 3 % or more, else how much."""
+    if rel < 0.03:
+        return f"{what} lie on top of each other at this scale (no point differs by 3 %)"
+    return f"{what} differ by up to {100 * rel:.2g} % of the reference"
 
 
 def fmt_gap(v: float) -> str:
