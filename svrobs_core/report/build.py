@@ -159,7 +159,7 @@ FIGURE_PLAN = (
         ("certified",),
         "Beyond the paper: share of certified observer gains",
         "Share of repetitions with g(L) < 1 (solid) and with ρ(A − LC) < 1 for the true A "
-        "(dashed); identical curves drawn once.",
+        "(dashed).",
     ),
     (
         "fig_svr_ols_diff",

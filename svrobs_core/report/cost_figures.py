@@ -7,21 +7,21 @@ import numpy as np
 
 from ..paper import STABLE
 from .columns import Columns, as_columns, fmt_num, n0_ratio, select, spec_meta, systems_of
-from .figures import _diff_panel, _legend_from_artists, _panels, series_name
+from .figures import _diff_panel, _panels, draw, series_name
 from .plotting import (
+    MERGED_NOTE,
     figure_legend,
     figure_title,
     fmt_gap,
-    joined,
+    grid_legend,
     label_panel,
     legend_line,
-    merge_identical,
     new_figure,
     no_data_panel,
     no_data_reason,
     note,
     plot_band,
-    plot_line,
+    plot_merged,
     series_handle,
     value_axis,
 )
@@ -81,10 +81,9 @@ def fig4(records, spec=None, *, experiment: str | None = "E3", system: str = STA
     for i, ln in enumerate(lines):
         name = series_name(ln.key)
         st = styles.setdefault(name, series_style(i))
-        plot_band(
-            ax, ln.x, ln.lo, ln.hi, panel="delta_J", series=name, band=s.band, color=st["color"]
-        )
-        plot_line(ax, ln.x, ln.y, panel="delta_J", series=name, quantity="mean", **st)
+        band = dict(band=s.band, color=st["color"], ls=st["ls"])
+        plot_band(ax, ln.x, ln.lo, ln.hi, panel="delta_J", series=name, **band)
+        draw(ax, ln, "delta_J", name, "mean", **st)
         drawn[name] = ln
     value_axis(ax)
     _band_note(fig, lines, s.band)
@@ -113,19 +112,9 @@ def fig4(records, spec=None, *, experiment: str | None = "E3", system: str = STA
         axd.set_visible(False)
     if share:
         ax3 = axes[2, 0]
-        for names, (name, x, y) in merge_identical(
-            [(series_name(ln.key), ln.x, ln.y) for ln in series_lines(cols, meta, sn, pm, ctx)]
-        ):
-            label = joined(names) + (" (identical)" if len(names) > 1 else "")
-            plot_line(
-                ax3,
-                x,
-                y,
-                panel="share_negative",
-                series=label,
-                quantity="share",
-                **styles.get(name, series_style(0)),
-            )
+        items = [(series_name(ln.key), ln.x, ln.y) for ln in series_lines(cols, meta, sn, pm, ctx)]
+        if plot_merged(ax3, items, styles, panel="share_negative", quantity="share"):
+            note(fig, MERGED_NOTE)
         ax3.set_ylim(-0.02, 1.02)
         label_panel(ax3, "share with ΔJ < 0", f"{system}: where Theorem 3's bound fails", ratio)
     note(
@@ -186,25 +175,13 @@ def fig5(records, spec=None, *, experiment: str | None = "E4"):
         for ln in lines:
             name = series_name(ln.key)
             st = styles.setdefault(name, series_style(len(styles), line=False))
-            plot_line(
-                ax, ln.x, ln.y, panel=system, series=name, quantity="ratio_of_means", ls="-", **st
-            )
+            draw(ax, ln, system, name, "ratio_of_means", ls="-", **st)
             drawn[name] = ln
         for ln in series_lines(cols, meta, rows["ratio_rep"], pm, ctx):
             name = series_name(ln.key)
             if name in styles:
-                plot_line(
-                    ax,
-                    ln.x,
-                    ln.y,
-                    panel=system,
-                    series=name,
-                    quantity="cost_ratio mean",
-                    ls="--",
-                    lw=0.8,
-                    color=styles[name]["color"],
-                    alpha=0.8,
-                )
+                st = dict(ls="--", lw=0.8, color=styles[name]["color"], alpha=0.8)
+                draw(ax, ln, system, name, "cost_ratio mean", **st)
         value_axis(ax)
         ylabel = f"r  (γ_ref = {fmt_num(ctx['gamma_ref'])})"
         label_panel(ax, ylabel, system, n0_ratio(cols, pm), xlabel=False)
@@ -272,20 +249,10 @@ def fig_certified(records, spec=None, *, experiment: str | None = "E4"):
                 (series_name(ln.key), ln.x, ln.y)
                 for ln in series_lines(cols, meta, rows[key], pm, ctx)
             ]
-            for names, (_name, x, y) in merge_identical(items):
-                st = styles.setdefault(joined(names), series_style(len(styles), line=False))
-                label = joined(names) + (" (identical)" if len(names) > 1 else "")
-                plot_line(
-                    ax,
-                    x,
-                    y,
-                    panel=system,
-                    series=label,
-                    quantity=rows[key].field,
-                    label=f"{label}: {rows[key].label}",
-                    ls=ls,
-                    **dict(st, lw=lw),
-                )
+            for name, *_ in items:
+                styles.setdefault(name, series_style(len(styles), line=False))
+            if plot_merged(ax, items, styles, panel=system, quantity=rows[key].field, ls=ls, lw=lw):
+                note(fig, MERGED_NOTE)
         ax.set_ylim(-0.03, 1.03)
         label_panel(ax, "share of repetitions", system, n0_ratio(cols, pm))
     if all_ones["stable_true"]:
@@ -295,6 +262,9 @@ def fig_certified(records, spec=None, *, experiment: str | None = "E4"):
             f"ρ(A − LC) < 1 for the true A in every repetition with a gain ({_count(n)} "
             "of them), for every γ: not drawn.",
         )
-    _legend_from_artists(fig, ncol=2)
+    kinds = [legend_line(ls="-", label="certified: g(L) < 1")]
+    if not all_ones["stable_true"]:
+        kinds.append(legend_line(ls="--", lw=0.9, label="ρ(A − LC) < 1 for the true A"))
+    grid_legend(fig, [[series_handle(n, st) for n, st in styles.items()], kinds])
     figure_title(fig, "Share of certified observer gains vs sample length", experiment, meta)
     return fig

@@ -15,6 +15,7 @@ import numpy as np
 from .columns import Columns, as_columns, fmt_num, n0_ratio, select, spec_meta, systems_of
 from .derived import first_stable_certified
 from .plotting import (
+    MERGED_NOTE,
     differences,
     figure_legend,
     figure_title,
@@ -23,13 +24,13 @@ from .plotting import (
     joined,
     label_panel,
     legend_line,
-    merge_identical,
     new_figure,
     no_data_panel,
     no_data_reason,
     note,
     overlap_text,
     plot_line,
+    plot_merged,
     ref_line,
     series_handle,
     value_axis,
@@ -48,6 +49,11 @@ def series_name(key: dict) -> str:
     if "gamma" in key and key["gamma"] is not None:
         parts.append(f"γ={fmt_num(key['gamma'])}")
     return " ".join(parts) if parts else "all"
+
+
+def draw(ax, ln, panel: str, series: str, quantity: str, **style):
+    """Plot a :class:`~.series.Line` (recorded for the CSV)."""
+    return plot_line(ax, ln.x, ln.y, panel=panel, series=series, quantity=quantity, **style)
 
 
 def _panels(cols: Columns):
@@ -102,21 +108,15 @@ def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float 
                 st = series_style(j, line=False)
                 ols = ln.key["estimator"] == "ols"
                 # OLS: small filled marker on top; SVR: larger open marker around it
+                # the same marker positions for both estimators of a σ_w
+                step = max(2, len(ln.x) // 8)
+                st["markevery"] = (j % step, step) if len(ln.x) > 10 else None
                 if ols:
                     st.update(markerfacecolor=st["color"], zorder=3)
                 else:
                     st.update(markerfacecolor="none", markersize=6.5, zorder=2)
                 name = series_name(ln.key) + ("" if ols else f" γ={fmt_num(ctx['table'])}")
-                plot_line(
-                    ax,
-                    ln.x,
-                    ln.y,
-                    panel=panel,
-                    series=name,
-                    quantity=s.field,
-                    ls="-" if ols else "--",
-                    **st,
-                )
+                draw(ax, ln, panel, name, s.field, ls="-" if ols else "--", **st)
                 by_sig.setdefault(sw, {})["ols" if ols else "svr"] = ln
             value_axis(ax)
             label_panel(ax, f"{s.label} (mean)", panel, ratio, xlabel=False)
@@ -151,7 +151,9 @@ def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float 
         note(
             fig,
             overlap_text(
-                f"The OLS and SVR γ={fmt_num(ctx['table'])} RMSE curves", max(t[2] for t in gaps)
+                f"The OLS and SVR γ={fmt_num(ctx['table'])} RMSE curves",
+                max(t[2] for t in gaps),
+                "OLS",
             )
             + f"; the difference panels show SVR − OLS; the largest |SVR − OLS| is "
             f"{fmt_gap(g[0])} ({g[1]}).",
@@ -201,16 +203,7 @@ def _entry_figure(fig_name, records, spec, experiment, ctx_over, title, height_c
                 for ln in series_lines(cols, meta, s, pm, ctx):
                     name = series_name(ln.key)
                     st = styles.setdefault(name, series_style(len(styles), line=False))
-                    plot_line(
-                        ax,
-                        ln.x,
-                        ln.y,
-                        panel=panel,
-                        series=name,
-                        quantity=s.field,
-                        ls=QUANTITY_LS[q],
-                        **st,
-                    )
+                    draw(ax, ln, panel, name, s.field, ls=QUANTITY_LS[q], **st)
                     if q == "err":
                         drawn[name] = ln
             if not drawn and not ax.lines:
@@ -287,7 +280,9 @@ def fig3(records, spec=None, *, experiment: str | None = "E2", sigma_w: float | 
         g = max(gaps, key=lambda t: t[0])
         note(
             fig,
-            overlap_text(f"The error curves of the {len(styles)} γ", max(t[3] for t in gaps))
+            overlap_text(
+                f"The error curves of the {len(styles)} γ", max(t[3] for t in gaps), gaps[0][2]
+            )
             + f"; the difference rows show each γ's error minus that of {g[2]}; the "
             f"largest gap is {fmt_gap(g[0])} ({g[1]}).",
         )
@@ -338,13 +333,16 @@ def _certified_marks(fig, cols, meta, ctx, styles, axes):
         figure_legend(fig, handles, ncol=max(1, min(4, len(styles))))
     if not first:
         return
-    text = "stable_certified holds in at least half of the repetitions from " + (
-        "; ".join(hits) if hits else "no N0 of the grid"
-    )
-    if never:
-        text += f"; never (N0 ≤ {n0_max}) for " + (
-            "every γ on every system" if not hits else joined(never)
+    if not hits:
+        text = (
+            "stable_certified holds in at least half of the repetitions at no N0 of the grid "
+            f"(N0 ≤ {n0_max}), for no γ on any system, so no vertical line is drawn"
         )
+    else:
+        text = "The dotted vertical lines mark the first N0 at which stable_certified holds in "
+        text += "at least half of the repetitions: " + "; ".join(hits)
+        if never:
+            text += f"; never (N0 ≤ {n0_max}) for {joined(never)}"
     note(fig, text + ".")
 
 
@@ -400,20 +398,11 @@ def fig_coverage(records, spec=None, *, experiment: str | None = "E2"):
                 pm = select(cols, system=system, sigma_w=s)
                 no_data_panel(ax, no_data_reason(cols, pm, (f"coverage_{mat}",), meta))
                 continue
-            for names, (name, x, y) in merge_identical(items):
-                st = styles.setdefault(name, series_style(len(styles)))
-                label = joined(names) + (" (identical)" if len(names) > 1 else "")
-                plot_line(
-                    ax,
-                    x,
-                    y,
-                    panel=panel,
-                    series=label,
-                    quantity=f"coverage_{mat}",
-                    label=label,
-                    **st,
-                )
-            ref_line(ax, level, ls="--", color="k", label=f"1 − δ = {fmt_num(level)}")
+            for name, *_ in items:
+                styles.setdefault(name, series_style(len(styles)))
+            if plot_merged(ax, items, styles, panel=panel, quantity=f"coverage_{mat}"):
+                note(fig, MERGED_NOTE)
+            ref_line(ax, level, ls="--", color="k")
             ax.set_title(panel)
             if c == 0:
                 ax.set_ylabel(f"coverage of {mat}_ij intervals")
@@ -424,7 +413,9 @@ def fig_coverage(records, spec=None, *, experiment: str | None = "E2"):
             ax.grid(True)
     lo = float(ys.min()) if ys.size else level
     axes[0, 0].set_ylim(min(lo, level) - 0.02, 1.005)
-    _legend_from_artists(fig)
+    handles = [series_handle(n, st) for n, st in styles.items()]
+    level_h = legend_line("k", "--", f"1 − δ = {fmt_num(level)}")
+    grid_legend(fig, [handles[i : i + 3] for i in range(0, len(handles), 3)] + [[level_h]])
     figure_title(fig, title, experiment, meta)
     return fig
 
@@ -441,15 +432,6 @@ def _empty_figure(text: str, title: str, experiment, meta):
     fig.svrobs_empty = True
     figure_title(fig, title, experiment, meta)
     return fig
-
-
-def _legend_from_artists(fig, ncol=3):
-    """A figure legend of the labelled artists of every panel (each label once)."""
-    seen = {}
-    for ax in fig.axes:
-        for h, lab in zip(*ax.get_legend_handles_labels()):
-            seen.setdefault(lab, h)
-    figure_legend(fig, list(seen.values()), ncol=ncol)
 
 
 @styled
@@ -477,16 +459,7 @@ def fig_svr_ols_diff(records, spec=None, *, experiment: str | None = "E2"):
             gname, sname = f"γ={fmt_num(ln.key['gamma'])}", f"σ_w={fmt_num(ln.key['sigma_w'])}"
             st = g_styles.setdefault(gname, series_style(len(g_styles), line=False))
             ls = s_styles.setdefault(sname, LINESTYLES[len(s_styles) % len(LINESTYLES)])
-            plot_line(
-                ax,
-                ln.x,
-                ln.y,
-                panel=system,
-                series=f"{gname} {sname}",
-                quantity=s.field,
-                ls=ls,
-                **st,
-            )
+            draw(ax, ln, system, f"{gname} {sname}", s.field, ls=ls, **st)
         value_axis(ax)
         label_panel(ax, f"{s.label} (mean)", system, n0_ratio(cols, pm))
     handles = [series_handle(n, st) for n, st in g_styles.items()]

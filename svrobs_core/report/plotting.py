@@ -124,21 +124,27 @@ def plot_line(ax, x, y, *, panel: str, series: str, quantity: str, label=None, *
     x = np.asarray(x, float)
     y = np.asarray(y, float)
     if "marker" in style and "markevery" not in style and len(x) > 10:
-        style["markevery"] = max(1, len(x) // 8)
+        # about 8 markers per line, each series of the panel shifted by one point
+        # so that coinciding series still show every series' markers
+        order = ax.__dict__.setdefault("_svrobs_series", {})
+        k = order.setdefault(series, len(order))
+        step = max(2, len(x) // 8)
+        style["markevery"] = (k % step, step)
     (ln,) = ax.plot(x, y, label=label if label else "_nolegend_", **style)
     ln.svrobs_key = (panel, series, quantity)
     ax.figure.svrobs_rows.append((panel, series, quantity, x, y))
     return ln
 
 
-def plot_band(ax, x, lo, hi, *, panel: str, series: str, band: str, color):
-    """A band drawn as a fill with both edges as thin lines (both recorded)."""
+def plot_band(ax, x, lo, hi, *, panel: str, series: str, band: str, color, ls="-"):
+    """A band drawn as a fill with both edges as thin lines in the series' line
+    style (both recorded)."""
     qlo, qhi = (f"q{round(100 * b):02d}" for b in band)
     ok = np.isfinite(lo) & np.isfinite(hi)
     ax.fill_between(np.asarray(x)[ok], lo[ok], hi[ok], color=color, alpha=0.18, lw=0)
     for q, v in ((qlo, lo), (qhi, hi)):
         plot_line(
-            ax, x, v, panel=panel, series=series, quantity=q, color=color, lw=0.5, ls="-", alpha=0.7
+            ax, x, v, panel=panel, series=series, quantity=q, color=color, lw=0.5, ls=ls, alpha=0.7
         )
 
 
@@ -325,6 +331,33 @@ def merge_identical(items: list[tuple]) -> list[tuple[list, tuple]]:
     return groups
 
 
+def plot_merged(ax, items: list[tuple], styles: dict, *, panel: str, quantity: str, **over):
+    """Draw ``(name, x, y)`` items in their ``styles``; identical ones share one line
+    (the first one's colour and line style) on which each shows its own markers in
+    turn. Returns True if any were identical."""
+    merged = False
+    for names, (_, x, y) in merge_identical(items):
+        if len(names) == 1:
+            st = {**styles[names[0]], **over}
+            plot_line(ax, x, y, panel=panel, series=names[0], quantity=quantity, **st)
+            continue
+        merged = True
+        base = {k: v for k, v in {**styles[names[0]], **over}.items() if "marker" not in k}
+        label = joined(names) + " (identical)"
+        plot_line(ax, x, y, panel=panel, series=label, quantity=quantity, **base)
+        for j, n in enumerate(names):
+            st = {k: v for k, v in styles[n].items() if k != "ls"}
+            st["markevery"] = (j, len(names))
+            plot_line(ax, x, y, panel=panel, series=n, quantity=quantity, ls="none", **st)
+    return merged
+
+
+MERGED_NOTE = (
+    "Identical curves (within 1e-12) share one line, drawn in the style of the first, "
+    "on which each one's markers appear in turn."
+)
+
+
 def joined(names: list[str]) -> str:
     return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
 
@@ -351,11 +384,12 @@ def differences(lines: list[tuple], ref: tuple):
     return out, (*big, rel)
 
 
-def overlap_text(what: str, rel: float) -> str:
-    """ "… lie on top of each other" when no point differs by 3 % or more, else how much."""
+def overlap_text(what: str, rel: float, ref: str) -> str:
+    """Say that curves lie on top of each other when no point differs by 3 % or
+    more from the reference curve ``ref``, else by how much they differ."""
     if rel < 0.03:
-        return f"{what} lie on top of each other at this scale (no point differs by 3 %)"
-    return f"{what} differ by up to {100 * rel:.2g} % of the reference"
+        return f"{what} lie on top of each other at this scale (no point differs by 3 % from {ref})"
+    return f"{what} differ by up to {100 * rel:.2g} % of {ref}"
 
 
 def fmt_gap(v: float) -> str:

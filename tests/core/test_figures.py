@@ -136,7 +136,7 @@ def same(a, b):
 
 def test_no_two_series_of_a_panel_are_identical_unless_said(figures):
     for name, fig in figures:
-        said = " ".join(fig.svrobs_notes)
+        said = " ".join(fig.svrobs_notes).lower()
         for ax in panels(fig):
             lines = data_lines(ax)
             for i, a in enumerate(lines):
