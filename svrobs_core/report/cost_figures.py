@@ -200,12 +200,11 @@ def fig5(records, spec=None, *, experiment: str | None = "E4"):
         )
         label_panel(axd, f"r − r({names[0]})", None, n0_ratio(cols, pm))
         gaps.append((big[0], f"{system}, {big[1]}, N0={big[2]:g}", names[0]))
-    handles = [series_handle(n, st) for n, st in styles.items()]
-    handles += [
+    kinds = [
         legend_line(ls="-", label="ratio of the mean exact costs (SPEC 9)"),
         legend_line(ls="--", lw=0.8, label="mean of the per-repetition cost_ratio"),
     ]
-    figure_legend(fig, handles, ncol=min(len(handles), 3))
+    grid_legend(fig, [[series_handle(n, st) for n, st in styles.items()], kinds])
     if gaps:
         g = max(gaps, key=lambda t: t[0])
         note(

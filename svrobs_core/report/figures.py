@@ -371,23 +371,39 @@ def fig_coverage(records, spec=None, *, experiment: str | None = "E2"):
         for s in sig:
             pm = select(cols, system=system, sigma_w=s) if s is not None else np.zeros(cols.n, bool)
             lines[(system, mat, s)] = series_lines(cols, meta, rows[f"coverage_{mat}"], pm, ctx)
-    ys = [ln.y[np.isfinite(ln.y)] for v in lines.values() for ln in v]
-    ys = np.concatenate(ys) if ys else np.array([])
+
+    def values(mats):
+        ys = [ln.y[np.isfinite(ln.y)] for (_, m, _), v in lines.items() if m in mats for ln in v]
+        return np.concatenate(ys) if ys else np.array([])
+
+    def n_records(mats):
+        ok = np.zeros(cols.n, bool)
+        for m in mats:
+            ok |= np.isfinite(cols[f"coverage_{m}"])
+        return f"{int(ok.sum()):,}"
+
+    ones = [m for m in ("A", "B") if values([m]).size and (values([m]) == 1.0).all()]
     title = "Empirical coverage of the Lemma 2 entry intervals (mean share of entries inside)"
-    if ys.size and (ys == 1.0).all():
+    if len(ones) == 2:
         return _empty_figure(
             "Every Lemma 2 interval contains its entry: the coverage of A and B is 1 in all "
-            f"{int((np.isfinite(cols['coverage_A']) | np.isfinite(cols['coverage_B'])).sum()):,} "
-            "records "
-            f"(every system, σ_w, N, estimator and γ), above 1 − δ = {fmt_num(level)}; "
-            "no figure is drawn.",
+            f"{n_records(ones)} records (every system, σ_w, N, estimator and γ), above "
+            f"1 − δ = {fmt_num(level)}; no figure is drawn.",
             title,
             experiment,
             meta,
         )
+    cells = [(system, mat) for system, mat in cells if mat not in ones]
+    ys = values([m for m in ("A", "B") if m not in ones])
     fig, axes = new_figure(
         len(cells), len(sig), size("two", 4.2 * len(cells) + 2.5), sharex=True, sharey=True
     )
+    for m in ones:
+        note(
+            fig,
+            f"The coverage of {m} is 1 in all {n_records([m])} records (every system, σ_w, N, "
+            f"estimator and γ), above 1 − δ = {fmt_num(level)}: its rows are left out.",
+        )
     styles: dict = {}
     for r, (system, mat) in enumerate(cells):
         for c, s in enumerate(sig):

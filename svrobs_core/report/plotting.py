@@ -253,11 +253,14 @@ def log_axis(ax, lo: float, hi: float):
     inside = []
     if hi / lo > 3:
         e0, e1 = math.floor(math.log10(lo)) - 1, math.ceil(math.log10(hi)) + 1
+        found = []
         for subs in ((1.0,), (1.0, 3.0), (1.0, 2.0, 5.0), (1.0, 2.0, 3.0, 5.0, 7.0)):
             ticks = [m * 10.0**e for e in range(e0, e1 + 1) for m in subs]
-            inside = [t for t in ticks if lo <= t <= hi]
-            if len(inside) >= 3:
-                break
+            found.append([t for t in ticks if lo <= t <= hi])
+        # the coarsest set with 4 to 8 ticks, else the coarsest with at least 3
+        inside = next((t for t in found if 4 <= len(t) <= 8), None) or next(
+            (t for t in found if len(t) >= 3), found[-1]
+        )
         if len(inside) > 7:  # many decades: every other one
             inside = inside[:: math.ceil(len(inside) / 6)]
     if len(inside) < 3:
@@ -345,9 +348,11 @@ def plot_merged(ax, items: list[tuple], styles: dict, *, panel: str, quantity: s
         base = {k: v for k, v in {**styles[names[0]], **over}.items() if "marker" not in k}
         label = joined(names) + " (identical)"
         plot_line(ax, x, y, panel=panel, series=label, quantity=quantity, **base)
+        k = len(names)
+        step = max(k, len(x) // 8)
         for j, n in enumerate(names):
-            st = {k: v for k, v in styles[n].items() if k != "ls"}
-            st["markevery"] = (j, len(names))
+            st = {kk: v for kk, v in styles[n].items() if kk != "ls"}
+            st["markevery"] = (j * max(1, step // k), step)
             plot_line(ax, x, y, panel=panel, series=n, quantity=quantity, ls="none", **st)
     return merged
 

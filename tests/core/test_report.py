@@ -379,6 +379,12 @@ def test_coverage_of_one_everywhere_is_a_note_not_a_figure():
     fig = rpt.fig_coverage(recs, spec)
     assert fig.svrobs_empty and not fig.axes
     assert f"is 1 in all {len(recs):,} records" in fig.svrobs_notes[0]
+    for r in recs:  # B below 1 somewhere: only the A rows are left out
+        r["coverage_B"] = 0.5 if r["rep"] == 0 else 1.0
+    fig = rpt.fig_coverage(recs, spec)
+    assert len(fig.axes) == 2 * 2 and all(ax.get_title().endswith(": B") for ax in fig.axes)
+    assert f"The coverage of A is 1 in all {len(recs):,} records" in fig.svrobs_notes[0]
+    recs = make_records(spec, cost=False)
     rep = rpt.build_report({"X": {"spec": spec, "records": recs}})
     md = rpt.render_markdown(rep)
     assert "fig_coverage.png" not in md and f"is 1 in all {len(recs):,} records" in md
