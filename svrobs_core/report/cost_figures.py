@@ -16,6 +16,7 @@ from .plotting import (
     grid_legend,
     label_panel,
     legend_line,
+    log_axis,
     new_figure,
     no_data_panel,
     no_data_reason,
@@ -253,6 +254,9 @@ def fig_certified(records, spec=None, *, experiment: str | None = "E4"):
             if plot_merged(ax, items, styles, panel=system, quantity=rows[key].field, ls=ls, lw=lw):
                 note(fig, MERGED_NOTE)
         ax.set_ylim(-0.03, 1.03)
+        x = cols["N0"][pm]
+        if np.isfinite(x).any() and np.nanmin(x) > 0 and np.nanmax(x) / np.nanmin(x) > 10:
+            log_axis(ax, float(np.nanmin(x)), float(np.nanmax(x)), "x")  # the jump is early
         label_panel(ax, "share of repetitions", system, n0_ratio(cols, pm))
     if all_ones["stable_true"]:
         n = int(np.isfinite(cols["rho_true"]).sum())

@@ -230,16 +230,17 @@ def tick_labels(ticks) -> list[str]:
     return out
 
 
-def _fixed_ticks(ax, ticks):
+def _fixed_ticks(ax, ticks, which="y"):
     from matplotlib.ticker import FixedFormatter, FixedLocator, NullLocator
 
-    ax.yaxis.set_major_locator(FixedLocator(ticks))
-    ax.yaxis.set_major_formatter(FixedFormatter(tick_labels(ticks)))
-    ax.yaxis.set_minor_locator(NullLocator())
+    axis = ax.yaxis if which == "y" else ax.xaxis
+    axis.set_major_locator(FixedLocator(ticks))
+    axis.set_major_formatter(FixedFormatter(tick_labels(ticks)))
+    axis.set_minor_locator(NullLocator())
 
 
-def log_axis(ax, lo: float, hi: float):
-    """Log y axis over [lo, hi] (padded) with at least three labelled ticks:
+def log_axis(ax, lo: float, hi: float, which: str = "y"):
+    """Log y (or x) axis over [lo, hi] (padded) with at least three labelled ticks:
     decades (or 1-2-5 steps) over a wide range, evenly stepped values over a
     range of less than about one decade."""
     from matplotlib.ticker import MaxNLocator
@@ -248,8 +249,8 @@ def log_axis(ax, lo: float, hi: float):
         lo, hi = lo / 1.5, hi * 1.5
     pad = (hi / lo) ** 0.06
     lo, hi = lo / pad, hi * pad
-    ax.set_yscale("log")
-    ax.set_ylim(lo, hi)
+    (ax.set_yscale if which == "y" else ax.set_xscale)("log")
+    (ax.set_ylim if which == "y" else ax.set_xlim)(lo, hi)
     inside = []
     if hi / lo > 3:
         e0, e1 = math.floor(math.log10(lo)) - 1, math.ceil(math.log10(hi)) + 1
@@ -269,7 +270,7 @@ def log_axis(ax, lo: float, hi: float):
             inside = [float(t) for t in vals if lo <= t <= hi and t > 0]
             if len(inside) >= 3:
                 break
-    _fixed_ticks(ax, inside)
+    _fixed_ticks(ax, inside, which)
 
 
 def symlog_axis(ax, v: np.ndarray):

@@ -345,3 +345,91 @@ def _ratio_lines(cols: Columns, s: FigureSeries, m, ctx) -> list[Line]:
             x, N, r, cnt = ratio_to_reference(cols, gm, rm, vals)
             out.append(Line({"gamma": key[0]}, x, N, r, count=cnt))
     return out
+
+
+# ---------------------------------------------------------------------------
+# the same rows on stored summaries (for the dashboard)
+# ---------------------------------------------------------------------------
+
+
+def _matches(g: dict, f: str, v) -> bool:
+    if f == "gamma":  # selects among the SVR groups; OLS has no γ
+        return g["gamma"] is None or (
+            v is not None and math.isclose(g["gamma"], v, rel_tol=GAMMA_RTOL)
+        )
+    if v is None:
+        return False
+    if isinstance(v, float) and g[f] is not None and not isinstance(g[f], str):
+        return math.isclose(g[f], v, rel_tol=GAMMA_RTOL)
+    return g[f] == v
+
+
+def summary_lines(groups: list[dict], s: FigureSeries, ctx: dict) -> list[dict]:
+    """Row ``s`` on summary groups (``svrobs_core.summarize`` / the stored
+    summaries: one dict per (system, σ_w, N, estimator, γ) with ``stats[field]``
+    mean/std/count): ``[{"panel": {...}, "line": {...}, "N": [...], "y": [...]}]``
+    with the row's statistic per N; the same curves as :func:`series_lines` for
+    ``stat`` "mean" and "ratio_of_means" (x is N here; N0 = (T0 − 1)·N). Rows the
+    summaries cannot give (``derived``, ``share_negative``) -> ValueError."""
+    if s.derived or s.stat not in ("mean", "ratio_of_means"):
+        raise ValueError(f"{s.figure}/{s.key}: needs the records, not the summaries")
+    where = [(f, resolve(v, ctx)) for f, v in s.where]
+    sel = [g for g in groups if all(_matches(g, f, v) for f, v in where)]
+    mean = {}
+    for g in sel:
+        st = (g.get("stats") or {}).get(s.field) or {}
+        if st.get("mean") is not None:
+            mean[tuple(g[k] for k in GROUP_KEYS)] = st["mean"]
+    if s.stat == "ratio_of_means":
+        g_ref = ctx["gamma_ref"]
+        ref = {
+            (k[0], k[1], k[2]): v
+            for k, v in mean.items()
+            if k[4] is not None and math.isclose(k[4], g_ref, rel_tol=GAMMA_RTOL)
+        }
+        mean = {
+            k: abs(v - ref[k[:3]]) / ref[k[:3]]
+            for k, v in mean.items()
+            if k[:3] in ref
+            and ref[k[:3]]
+            and not math.isclose(k[4] or 0.0, g_ref, rel_tol=GAMMA_RTOL)
+        }
+    out: dict = {}
+    for k, v in mean.items():
+        d = dict(zip(GROUP_KEYS, k))
+        pk = tuple(d[f] for f in s.panels)
+        lk = tuple(d[f] for f in s.lines)
+        out.setdefault((pk, lk), {})[d["N"]] = v
+    lines = []
+
+    def order(t):
+        return tuple((v is None, v if v is not None else 0) for part in t for v in part)
+
+    for pk, lk in sorted(out, key=order):
+        pts = sorted(out[(pk, lk)].items())
+        lines.append(
+            {
+                "panel": dict(zip(s.panels, pk)),
+                "line": dict(zip(s.lines, lk)),
+                "N": [n for n, _ in pts],
+                "y": [y for _, y in pts],
+            }
+        )
+    return lines
+
+
+GROUP_KEYS = ("system", "sigma_w", "N", "estimator", "gamma")
+
+
+def summary_context(groups: list[dict], spec: dict | None = None) -> dict:
+    """The symbols of ``where`` (as :func:`context`) from summary groups and the spec."""
+    svr = sorted({g["gamma"] for g in groups if g["estimator"] == "svr" and g["gamma"] is not None})
+    sig = sorted({g["sigma_w"] for g in groups if g["sigma_w"] is not None})
+    systems = {g["system"] for g in groups}
+    table = next((g for g in svr if math.isclose(g, TABLE2_GAMMA, rel_tol=GAMMA_RTOL)), None)
+    return {
+        "table": table if table is not None else (svr[0] if svr else TABLE2_GAMMA),
+        "sigma_ref": 1.0 if any(math.isclose(x, 1.0) for x in sig) else (sig[0] if sig else None),
+        "gamma_ref": float((spec or {}).get("gamma_ref", 0.1)),
+        "system_S": STABLE if STABLE in systems or not systems else sorted(systems)[0],
+    }

@@ -323,3 +323,41 @@ def test_figure_series_is_shared_data():
             assert r["field"] in SUMMARY_FIELDS, r
     keys = [(r["figure"], r["key"]) for r in rows]
     assert len(keys) == len(set(keys))
+
+
+def test_summary_lines_give_the_figures_curves(real):
+    """The dashboard's reading of FIGURE_SERIES (summaries) against the figures'
+    own (records): the same curves for every row the summaries can give."""
+    from svrobs_core import summarize
+    from svrobs_core.report.columns import as_columns, select, spec_meta
+    from svrobs_core.report.series import (
+        context,
+        series_lines,
+        summary_context,
+        summary_lines,
+    )
+
+    checked = 0
+    for exp in ("E2", "E4"):
+        spec, recs = real[exp]
+        groups = summarize(recs)
+        cols, meta = as_columns(recs), spec_meta(spec)
+        ctx, sctx = context(cols, meta), summary_context(groups, spec)
+        assert {k: ctx[k] for k in sctx} == sctx
+        for s in rpt.FIGURE_SERIES:
+            if s.derived or s.stat not in ("mean", "ratio_of_means"):
+                with pytest.raises(ValueError):
+                    summary_lines(groups, s, sctx)
+                continue
+            for line in summary_lines(groups, s, sctx):
+                pm = select(cols, **line["panel"]) if s.panels == ("system",) else None
+                if pm is None:
+                    pm = select(
+                        cols, system=line["panel"]["system"], sigma_w=line["panel"]["sigma_w"]
+                    )
+                mine = [ln for ln in series_lines(cols, meta, s, pm, ctx) if ln.key == line["line"]]
+                assert len(mine) == 1, (s.figure, s.key, line["line"])
+                np.testing.assert_array_equal(mine[0].N, line["N"])
+                np.testing.assert_allclose(mine[0].y, line["y"], rtol=1e-12)
+                checked += 1
+    assert checked > 20
