@@ -7,7 +7,7 @@ one by one), decoded for a whole batch in one ``pydantic_core.from_json``
 call, and the records are encoded by ``pydantic_core.to_json`` (Rust; the
 library FastAPI already serialises with). Field order is the record's
 (``RECORD_FIELDS``); non-finite floats become ``null``. The parsed value equals
-``crud.row_to_record`` of the same row (tested).
+``results_store.row_to_record`` of the same row (tested).
 """
 
 from __future__ import annotations
@@ -19,6 +19,10 @@ from sqlalchemy import Text, cast
 
 from service.db.models import Result
 from svrobs_core.records import MATRIX_FIELDS, RECORD_FIELDS
+
+# a record's stored columns as SQLAlchemy decodes them, and the order results are listed in
+RESULT_COLUMNS = [Result.__table__.c[f] for f in RECORD_FIELDS]
+ORDER = [Result.__table__.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
 
 RAW_JSON_FIELDS = frozenset(MATRIX_FIELDS) | {"seed_key"}
 _RAW_IDX = tuple(i for i, f in enumerate(RECORD_FIELDS) if f in RAW_JSON_FIELDS)

@@ -35,17 +35,16 @@ from schemathesis.specs.openapi.checks import (
     status_code_conformance,
 )
 
-from service import admin
+from service.api.deps import MAX_ID, get_broker_check
 from service.api.main import create_app
-from service.api.routes.common import MAX_ID
 from service.config import Settings
-from service.db import crud
+from service.db import accounts, jobs
 from service.db.migrate import upgrade
 from service.db.models import Job, Result, Schedule, utcnow
 from service.db.session import dispose_all, get_sessionmaker
 from svrobs_core.records import NUMERIC_FIELDS
 from tests.service.svc_fakes import run_job_units
-from tests.service.svc_helpers import SMALL_SPEC
+from tests.service.svc_helpers import SMALL_SPEC, no_broker_check
 
 # Budget: ~1230 generated requests on SQLite, 30-45 s on 2 cores.
 MAX_EXAMPLES_FUZZ = 40  # per operation and generation mode (positive, negative)
@@ -130,16 +129,16 @@ class FakePublisher:
 
 
 def _account(session, name: str):
-    team = admin.create_team(session, name)
-    user = admin.create_user(session, team.id, f"fuzz@{name}.org")
-    _, key = admin.create_key(session, user.id)
+    team = accounts.create_team(session, name)
+    user = accounts.create_user(session, team.id, f"fuzz@{name}.org")
+    _, key = accounts.create_key(session, user.id)
     return SimpleNamespace(
         team_id=team.id, user_id=user.id, headers={"Authorization": f"Bearer {key}"}
     )
 
 
 def _make_job(session, acc, *, run: bool = False, cancel: bool = False) -> int:
-    job = crud.create_job(
+    job, _ = jobs.create_job(
         session,
         team_id=acc.team_id,
         user_id=acc.user_id,
@@ -152,7 +151,7 @@ def _make_job(session, acc, *, run: bool = False, cancel: bool = False) -> int:
     if run:
         run_job_units(session, job.id)
     if cancel:
-        crud.cancel_job(session, job)
+        jobs.cancel_job(session, job)
         session.commit()
     return job.id
 
@@ -195,7 +194,7 @@ def fuzz_env(url: str):
         _make_schedule(session, b)
         app = create_app(_settings(url))
         app.state.publisher = FakePublisher()
-        app.state.broker_check = lambda: None
+        app.dependency_overrides[get_broker_check] = lambda: no_broker_check
         schema = schemathesis.openapi.from_asgi("/openapi.json", app)
         with asgi.get_client(app) as client:
             yield SimpleNamespace(

@@ -1,4 +1,4 @@
-"""`svrobs serve` (service.serve.main) as a user runs it: one command, Ctrl-C stops all."""
+"""`svrobs serve` (svrobs_cli.serve) as a user runs it: one command, Ctrl-C stops all."""
 
 from __future__ import annotations
 
@@ -34,12 +34,13 @@ def _start_serve(tmp_path, port):
     env.update(
         SVROBS_DATABASE_URL=f"sqlite:///{tmp_path / 'var' / 'svrobs.db'}",
         SVROBS_BROKER_DIR=str(tmp_path / "var" / "broker"),
+        SVROBS_VAR_DIR=str(tmp_path / "var"),
         SVROBS_API_PORT=str(port),
         PYTHONUNBUFFERED="1",
     )
     log = open(tmp_path / "serve.log", "wb")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "service.cli_main", "serve"],
+        [sys.executable, "-m", "svrobs_cli", "serve"],
         cwd=str(ROOT),
         env=env,
         stdout=log,
