@@ -19,7 +19,9 @@ Modules, in the order a report is made:
 * ``style``: the one figure style (print sizes, fonts ≥ 8 pt, Okabe-Ito palette,
   line styles and markers), ``figure_style()``.
 * ``series``: ``FIGURE_SERIES``, what each figure plots (field, statistic,
-  grouping, band, difference reference), shared with the dashboard's charts.
+  grouping, band, difference reference), shared with the dashboard's charts:
+  ``summary_lines(groups, row, summary_context(groups, spec))`` gives a row's
+  curves from stored summaries, the same as the figures draw from the records.
 * ``plotting``: figure plumbing, ``figure_bytes(fig, fmt="png" | "svg" | "pdf")``,
   ``figure_csv(fig)`` (the plotted data).
 * ``figures``: ``fig_rmse``, ``fig2``, ``fig3``, ``fig_coverage``,
@@ -46,7 +48,14 @@ from .figures import fig2, fig3, fig_coverage, fig_rmse, fig_svr_ols_diff
 from .findings import findings
 from .markdown import render_markdown, spec_json
 from .plotting import figure_bytes, figure_csv
-from .series import FIGURE_SERIES, FigureSeries, figure_series, figure_series_json
+from .series import (
+    FIGURE_SERIES,
+    FigureSeries,
+    figure_series,
+    figure_series_json,
+    summary_context,
+    summary_lines,
+)
 from .style import figure_style
 from .tables import TABLE2_COLUMNS, table2, table2_csv, table2_markdown
 
@@ -85,6 +94,8 @@ __all__ = [
     "render_figure",
     "render_markdown",
     "spec_json",
+    "summary_context",
+    "summary_lines",
     "svr_ols_diff",
     "table2",
     "table2_csv",
