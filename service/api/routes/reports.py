@@ -17,8 +17,8 @@ from service.api.schemas import ErrorOut, JobOut
 from service.db import crud
 from service.db.crud import row_to_record
 from service.db.models import Result
+from service.reports.html import job_report_html
 from svrobs_core.paper import PRESET_NAME, paper_specs
-from svrobs_core.report import job_report_html
 
 router = APIRouter(tags=["reports"])
 

@@ -45,6 +45,8 @@ from svrobs_core import report as rpt
 from svrobs_core.experiments import UnitResult, open_pool
 from svrobs_core.paper import EXPERIMENTS, MC_DECISION, PRESET_NAME, paper_specs
 
+from .html import render_html
+
 # Above this many cells an experiment keeps no A_hat/B_hat in memory for the
 # report (only E1/E2-sized grids draw the figures that need them).
 MATRIX_CELLS_LIMIT = 200_000
@@ -449,7 +451,7 @@ def _write_report(
     provenance["run_total_seconds"] = round(t_run, 3)
     report.provenance = provenance
     write("report.md", rpt.render_markdown(report))
-    write("report.html", rpt.render_html(report))
+    write("report.html", render_html(report))
     write("provenance.json", json.dumps(provenance, indent=1))
     if not quiet:
         console.print(
@@ -464,7 +466,7 @@ def _write_report(
     }
 
 
-if __name__ == "__main__":  # python -m service.reproduce DIR [full|reduced]
+if __name__ == "__main__":  # python -m service.reports.reproduce DIR [full|reduced]
     reproduce(
         sys.argv[1] if len(sys.argv) > 1 else "reproduce-out",
         sys.argv[2] if len(sys.argv) > 2 else "full",
