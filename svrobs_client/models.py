@@ -64,10 +64,10 @@ class Job(_FromJSON):
     progress: Progress
     n_cells: int
     owner: str | None
-    spec: dict[str, Any]
-    provenance: dict[str, Any]
+    spec: dict[str, Any] = field(repr=False)
+    provenance: dict[str, Any] = field(repr=False)
     error: str | None
-    timings: dict[str, Any]
+    timings: dict[str, Any] = field(repr=False)
     created_at: datetime | None
     started_at: datetime | None
     finished_at: datetime | None
@@ -119,7 +119,7 @@ class Schedule(_FromJSON):
     name: str
     cron: str
     timezone: str
-    spec_template: dict[str, Any]
+    spec_template: dict[str, Any] = field(repr=False)
     tags: list[str]
     enabled: bool
     next_run_at: datetime | None
