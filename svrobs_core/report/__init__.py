@@ -42,15 +42,9 @@ from .markdown import render_markdown, spec_json
 from .plotting import figure_bytes
 from .tables import TABLE2_COLUMNS, table2, table2_csv, table2_markdown
 
-# Transitional: ``experiments.UnitResult.columns`` imports this name for the
-# report's matrices; point it at COLUMN_MATRIX_FIELDS, then drop this alias
-# (``records.MATRIX_FIELDS`` is the record's full list).
-MATRIX_FIELDS = COLUMN_MATRIX_FIELDS
-
 __all__ = [
     "COLUMN_MATRIX_FIELDS",
     "FIGURE_PLAN",
-    "MATRIX_FIELDS",
     "REPORT_FIELDS",
     "SCALAR_FIELDS",
     "STAGE_FIELDS",
