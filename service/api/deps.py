@@ -1,6 +1,7 @@
 """FastAPI dependencies: settings, DB sessions, the caller's key/team, rate limit,
-the unit publisher. Tests replace ``app.state.session_factory`` and
-``app.state.publisher`` (or use ``app.dependency_overrides``)."""
+the unit publisher, the broker check, the caller's job. Tests replace
+``app.state.session_factory`` and ``app.state.publisher``, and override
+:func:`get_broker_check` with ``app.dependency_overrides``."""
 
 from __future__ import annotations
 
@@ -9,14 +10,21 @@ from dataclasses import dataclass
 from typing import Annotated
 
 import anyio
-from fastapi import Depends, HTTPException, Request
-from sqlalchemy.orm import Session
+from fastapi import Depends, HTTPException, Path, Request
+from sqlalchemy import select
+from sqlalchemy.orm import Session, joinedload
 
+from service.api.errors import FieldHTTPException
 from service.config import Settings
 from service.db.accounts import authenticate
+from service.db.models import Job
 
 SessionFactory = Callable[..., Session]  # factory(write: bool) -> Session
 Publisher = Callable[[Sequence[int]], list[int]]
+BrokerCheck = Callable[[], None]  # raises when the broker does not answer
+
+MAX_ID = 2_147_483_647  # ids are 32-bit integers on every dialect
+JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="a job id of the caller's team")]
 
 
 async def get_settings_dep(request: Request) -> Settings:
@@ -49,6 +57,14 @@ async def get_db(request: Request) -> AsyncIterator[Session]:
 
 async def get_publisher(request: Request) -> Publisher:
     return request.app.state.publisher
+
+
+async def get_broker_check(request: Request) -> BrokerCheck:
+    """Raises unless the broker of the app's Celery app answers (``/readyz``)."""
+    from service.broker import check_broker
+
+    broker, timeout = request.app.state.broker, request.app.state.settings.BROKER_TIMEOUT
+    return lambda: check_broker(broker.get_celery(), timeout=timeout)
 
 
 @dataclass(frozen=True)
@@ -111,13 +127,23 @@ async def clean_query_text(request: Request) -> None:
     key = request.headers.get("idempotency-key")
     for name, value in items + ([("Idempotency-Key", key)] if key is not None else []):
         if "\x00" in name or "\x00" in value:
-            exc = HTTPException(422, "must not contain NUL (\\u0000) characters")
-            exc.field = name.replace("\x00", "")  # type: ignore[attr-defined]
-            raise exc
+            raise FieldHTTPException(
+                422, "must not contain NUL (\\u0000) characters", name.replace("\x00", "")
+            )
+
+
+def team_job(session: Session, team_id: int, job_id: int) -> Job:
+    """The caller's job, or 404 (another team's job is indistinguishable from none)."""
+    q = select(Job).where(Job.id == job_id, Job.team_id == team_id)
+    job = session.scalar(q.options(joinedload(Job.user)))  # one query with the owner
+    if job is None:
+        raise HTTPException(404, f"job {job_id} not found")
+    return job
 
 
 DB = Annotated[Session, Depends(get_db)]
 CurrentCaller = Annotated[Caller, Depends(get_caller)]
 SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
 PublisherDep = Annotated[Publisher, Depends(get_publisher)]
+BrokerCheckDep = Annotated[BrokerCheck, Depends(get_broker_check)]
 SessionFactoryDep = Annotated[SessionFactory, Depends(get_session_factory)]
