@@ -6,24 +6,16 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 
 import pytest
 
-from svrobs_cli.app import app
 from svrobs_cli.errors import plain_field
 from svrobs_cli.rest import fmt
+from tests.client.cli_helpers import run_cli, run_process
 from tests.client.test_client import QUICK, SPEC
-from tests.integration.stack import ROOT, fetch_jsonl, free_port
+from tests.integration.stack import fetch_jsonl, free_port
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
-
-
-@pytest.fixture
-def http(stack):
-    with stack.client() as c:
-        yield c
 
 
 @pytest.fixture
@@ -33,16 +25,7 @@ def run(stack, capsys, monkeypatch):
     monkeypatch.setenv("SVROBS_API_KEY", stack.key)
     monkeypatch.setenv("SVROBS_CONFIG", os.devnull)
 
-    def run(*args) -> tuple[int, str, str]:
-        try:
-            app([str(a) for a in args])
-            code = 0
-        except SystemExit as e:
-            code = e.code or 0
-        out, err = capsys.readouterr()
-        return code, out, err
-
-    return run
+    return lambda *args: run_cli(capsys, *args)
 
 
 def _table(out: str) -> list[list[str]]:
@@ -68,26 +51,7 @@ def spec_file(tmp_path_factory):
 @pytest.fixture(scope="module")
 def job_id(stack, spec_file):
     """A job submitted with ``svrobs submit --wait`` (as a real process)."""
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "svrobs_cli",
-            "submit",
-            str(spec_file),
-            "--name",
-            "cli",
-            "--tag",
-            "cli",
-            "--wait",
-        ],
-        cwd=ROOT,
-        env={**os.environ, "SVROBS_URL": stack.base_url, "SVROBS_API_KEY": stack.key},
-        capture_output=True,
-        text=True,
-        timeout=200,
-        check=False,
-    )
+    proc = run_process(stack, "submit", spec_file, "--name", "cli", "--tag", "cli", "--wait")
     assert proc.returncode == 0, proc.stderr
     first, last = proc.stdout.splitlines()[0], proc.stdout.splitlines()[-1]
     jid = int(first.split()[1])
@@ -276,15 +240,7 @@ def test_errors_are_one_line(stack, run, spec_file, tmp_path, http, monkeypatch)
     _fails(run("status"), "error: cannot reach")
     monkeypatch.delenv("SVROBS_API_KEY")
     _fails(run("status"), "error: no API key")
-    proc = subprocess.run(
-        [sys.executable, "-m", "svrobs_cli", "status", "999999"],
-        cwd=ROOT,
-        env={**os.environ, "SVROBS_URL": stack.base_url, "SVROBS_API_KEY": stack.key},
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    proc = run_process(stack, "status", 999_999, timeout=60)
     assert proc.returncode == 2 and proc.stderr == "error: job 999999 not found\n"
 
 

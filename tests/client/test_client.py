@@ -53,12 +53,6 @@ def job(client):
     return job
 
 
-@pytest.fixture
-def http(stack):
-    with stack.client() as c:
-        yield c
-
-
 def _py(value):
     """A DataFrame cell as the plain Python value JSON would give."""
     return value.item() if isinstance(value, np.generic) else value

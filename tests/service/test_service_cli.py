@@ -7,21 +7,12 @@ from __future__ import annotations
 import pytest
 
 from service.config import get_settings
-from svrobs_cli.app import app
+from tests.client.cli_helpers import run_cli
 
 
 @pytest.fixture
 def run(capsys):
-    def run(*args) -> tuple[int, str, str]:
-        try:
-            app(list(args))
-            code = 0
-        except SystemExit as e:
-            code = e.code or 0
-        out, err = capsys.readouterr()
-        return code, out, err
-
-    return run
+    return lambda *args: run_cli(capsys, *args)
 
 
 @pytest.fixture
