@@ -2,7 +2,7 @@
 
     svrobs migrate                         alembic upgrade head on SVROBS_DATABASE_URL
     svrobs admin create-team|create-user|create-key|revoke-key|list-keys
-    svrobs submit|status|results|summary|compare|report|cancel
+    svrobs submit|status|results|summary|compare|report|cancel|delete
                                            REST commands (svrobs_cli.rest)
     svrobs schedules list|show|create|enable|disable|delete|runs
     svrobs presets list|run                REST commands (svrobs_cli.schedules)
@@ -60,6 +60,7 @@ COMMANDS = (
     (app, "compare", rest.compare),
     (app, "report", rest.report),
     (app, "cancel", rest.cancel),
+    (app, "delete", rest.delete),
     (schedules_app, "list", schedules.list_schedules),
     (schedules_app, "show", schedules.show),
     (schedules_app, "create", schedules.create),

@@ -7,6 +7,7 @@
     svrobs compare --jobs 1,2 --metric rmse_A --by N,estimator [--json]
     svrobs report JOB [--out FOLDER]
     svrobs cancel JOB
+    svrobs delete JOB [--yes]
 
 The base URL and key come from ``SVROBS_URL`` / ``SVROBS_API_KEY`` or
 ``~/.config/svrobs/config.json`` (``{"url", "api_key"}``), as for
@@ -269,3 +270,19 @@ def cancel(job: int = typer.Argument(...)) -> None:
     """Cancel a queued or running job (units not yet started never run)."""
     with client() as c:
         typer.echo(progress_line(c.cancel(job)))
+
+
+def delete(
+    job: int = typer.Argument(...),
+    yes: bool = typer.Option(False, "--yes", "-y", help="delete without asking"),
+) -> None:
+    """Delete a job with its results and summaries (a queued or running job: cancel it
+    first)."""
+    if not yes:
+        if not sys.stdin.isatty():
+            raise CliError("not deleted: give --yes to delete without a prompt")
+        if not typer.confirm(f"delete job {job} with all its results?"):
+            raise CliError("not deleted")
+    with client() as c:
+        c.delete(job)
+    typer.echo(f"job {job} deleted")

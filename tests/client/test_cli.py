@@ -225,6 +225,30 @@ def test_schedules(run, job_id, http, spec_file):
     _fails(run("schedules", "show", sid), f"error: schedule {sid} not found")
 
 
+def test_delete(stack, run, tmp_path, http):
+    quick = tmp_path / "quick.json"
+    quick.write_text(json.dumps(QUICK))
+    code, out, err = run("submit", quick, "--wait")
+    assert code == 0, err
+    jid = int(out.split()[1])
+    _fails(run("delete", jid), "error: not deleted: give --yes")  # stdin is no terminal
+    assert http.get(f"/jobs/{jid}").status_code == 200
+    code, out, err = run("delete", jid, "--yes")
+    assert code == 0 and out == f"job {jid} deleted\n", err
+    assert http.get(f"/jobs/{jid}").status_code == 404
+    _fails(run("delete", jid, "--yes"), f"error: job {jid} not found")
+    stack.stop("worker1", grace=3)
+    try:
+        code, out, err = run("submit", quick)
+        queued = int(out.split()[1])
+        detail = http.delete(f"/jobs/{queued}").json()["detail"]
+        _fails(run("delete", queued, "-y"), f"error: {detail}\n")
+        assert run("cancel", queued)[0] == 0
+        assert run("delete", queued, "-y")[0] == 0
+    finally:
+        stack.start_worker()
+
+
 def test_errors_are_one_line(stack, run, spec_file, tmp_path, http, monkeypatch):
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({**SPEC, "reps": 0}))

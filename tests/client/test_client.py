@@ -24,7 +24,6 @@ from svrobs_client import (
     ConfigError,
     Conflict,
     ConnectionFailed,
-    MethodNotAllowed,
     NotFound,
     ValidationError,
 )
@@ -238,13 +237,7 @@ def test_cancel_and_paper_preset(stack, client, job):
 
 def test_delete(stack, client):
     done = client.submit(QUICK, name="to-delete", timeout=150)
-    try:
-        client.delete(done)
-    except MethodNotAllowed:
-        pytest.skip(
-            "DELETE /api/v1/jobs/{id} does not exist on this server yet (405; issue 11 "
-            "item 4, added by the lead): the client's call is untested"
-        )
+    client.delete(done)
     with pytest.raises(NotFound):
         client.job(done)
     with pytest.raises(NotFound):
