@@ -6,7 +6,7 @@
 It starts ``uvicorn service.api.main:app`` on a free loopback port (SQLite and
 the filesystem broker in a temporary folder, no worker: submitted jobs stay
 queued), stores one finished job of 10,000 result rows (synthetic records with
-every record field, written through ``crud.complete_unit`` as a worker would),
+every record field, written through ``units.complete_unit`` as a worker would),
 then runs the clients (httpx.AsyncClient, one connection each) in a closed loop
 for ``--seconds``, mixing
 
@@ -126,20 +126,21 @@ def prepare(db_url: str) -> tuple[str, int, int]:
     """Migrate, create a team and key, store the big job -> (key, job id, rows)."""
     from sqlalchemy import func, select
 
-    from service import admin
-    from service.db import crud
+    from service.db import accounts
+    from service.db.jobs import create_job, unit_ids_of_job
     from service.db.migrate import upgrade
     from service.db.models import Result
     from service.db.session import dispose_all, session_scope
+    from service.db.units import complete_unit, start_unit
     from svrobs_core.spec import parse_spec
 
     upgrade(db_url)
     rng = random.Random(0)
     with session_scope(db_url) as s:
-        team = admin.create_team(s, "load")
-        user = admin.create_user(s, team.id, "load@lab.org")
-        _, key = admin.create_key(s, user.id, name="bench")
-        job = crud.create_job(
+        team = accounts.create_team(s, "load")
+        user = accounts.create_user(s, team.id, "load@lab.org")
+        _, key = accounts.create_key(s, user.id, name="bench")
+        job, _ = create_job(
             s,
             team_id=team.id,
             user_id=user.id,
@@ -151,11 +152,11 @@ def prepare(db_url: str) -> tuple[str, int, int]:
         job_id = job.id
     spec = parse_spec(BIG_SPEC)
     with session_scope(db_url) as s:
-        unit_ids = crud.unit_ids_of_job(s, job_id, pending_only=False)
+        unit_ids = unit_ids_of_job(s, job_id, pending_only=False)
     for uid in unit_ids:
         with session_scope(db_url) as s:
-            claimed = crud.start_unit(s, uid, "bench", 600)
-            crud.complete_unit(s, uid, synthetic_records(spec, claimed[1], rng))
+            claimed = start_unit(s, uid, "bench", 600)
+            complete_unit(s, uid, synthetic_records(spec, claimed[1], rng))
     with session_scope(db_url) as s:
         rows = s.scalar(select(func.count(Result.id)).where(Result.job_id == job_id))
     dispose_all()
@@ -168,6 +169,7 @@ def start_server(tmp: Path, db_url: str, port: int, workers: int = 1) -> subproc
         "SVROBS_DATABASE_URL": db_url,
         "SVROBS_BROKER_URL": "filesystem://",
         "SVROBS_BROKER_DIR": str(tmp / "broker"),
+        "SVROBS_VAR_DIR": str(tmp),
         "SVROBS_RATE_LIMIT_PER_MINUTE": str(RATE_LIMIT),
         "SVROBS_MAX_QUEUED_JOBS_PER_TEAM": str(QUEUED_CAP),
         "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),

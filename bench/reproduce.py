@@ -3,7 +3,7 @@
     .venv/bin/python bench/reproduce.py [--scale full|reduced] [--jobs N] [--out DIR]
                                         [--naive-reps 2] [--naive-runs 10]
 
-1. Runs ``service.reproduce.reproduce(DIR, scale)`` exactly as ``svrobs
+1. Runs ``service.reports.reproduce.reproduce(DIR, scale)`` exactly as ``svrobs
    reproduce`` does (all records written, tables, figures, report) and prints
    the wall time, the CPU time of this process and of its worker processes,
    the time per experiment group (E2 with E1 taken from its records, E4 with
@@ -39,10 +39,10 @@ import scipy.linalg as sla
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from service.reproduce import reproduce
+from service.reports.reproduce import reproduce
 from svrobs_core import parse_spec
-from svrobs_core.observer_pipeline import truth
 from svrobs_core.paper import paper_specs
+from svrobs_core.pipeline import truth
 from svrobs_core.rollouts import MC_STREAM, rng_for, seed_key
 
 

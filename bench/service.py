@@ -20,7 +20,7 @@ the core in one process and against the core with ``n_jobs=2`` (the same two
 cores the service's worker pool uses with ``--concurrency 2``, ``svrobs
 serve``'s default on this machine).
 Then, per stack, it stores a synthetic job of 100,000 cells (bulk-inserted rows,
-units completed through ``crud.complete_unit``) and times a filtered results page
+units completed through ``units.complete_unit``) and times a filtered results page
 ``GET /jobs/{id}/results?N=..&estimator=svr&gamma=..&limit=100`` (target
 < 200 ms; median and p95 over 30 requests after warm-up).
 """
@@ -75,22 +75,24 @@ import json
 from service.config import get_settings
 from service.serve import prepare_dirs, migrate
 from service.db.session import session_scope
-from service import admin
+from service.db import accounts
 s = get_settings(); prepare_dirs(s); migrate(s)
 with session_scope() as db:
-    admin.create_team(db, 'bench')
-    admin.create_user(db, 'bench', 'bench@lab.example')
-    _, key = admin.create_key(db, 'bench@lab.example')
+    accounts.create_team(db, 'bench')
+    accounts.create_user(db, 'bench', 'bench@lab.example')
+    _, key = accounts.create_key(db, 'bench@lab.example')
 print(json.dumps({'key': key}))
 """
 
-# A synthetic 100k-cell job: rows built by crud.record_to_row and bulk-inserted
-# (executemany), then every unit completed through crud.complete_unit (which marks
+# A synthetic 100k-cell job: rows built by record_to_row and bulk-inserted
+# (executemany), then every unit completed through complete_unit (which marks
 # the job succeeded and writes its summaries), so the API sees a normal job.
 SYNTH = """
 import json, sys, time
 import numpy as np
-from service.db import crud
+from service.db.jobs import create_job
+from service.db.results_store import record_to_row
+from service.db.units import complete_unit
 from service.db.models import Result, Team, WorkUnit
 from service.db.session import session_scope
 from sqlalchemy import select
@@ -102,7 +104,7 @@ spec = parse_spec(spec_obj)
 rng = np.random.default_rng(0)
 with session_scope() as s:
     team = s.scalar(select(Team).where(Team.name == 'bench'))
-    job = crud.create_job(s, team_id=team.id, user_id=None, spec=spec_obj, name='synthetic-100k',
+    job, _ = create_job(s, team_id=team.id, user_id=None, spec=spec_obj, name='synthetic-100k',
                           max_cells=10**7, max_active_jobs=0)
     job_id = job.id
     units = s.execute(select(WorkUnit.id, WorkUnit.payload).where(WorkUnit.job_id == job_id)
@@ -126,13 +128,13 @@ for uid, p in units:
                 r['coverage_A'] = r['coverage_B'] = 1.0
                 r['thm1_holds_A'] = r['thm1_holds_B'] = True
                 r['stable_certified'] = bool(rng.random() < 0.5)
-                rows.append(crud.record_to_row(job_id, r))
+                rows.append(record_to_row(job_id, r))
 for i in range(0, len(rows), 5000):
     with session_scope() as s:
         s.execute(Result.__table__.insert(), rows[i:i + 5000])
 for uid, _ in units:
     with session_scope() as s:
-        crud.complete_unit(s, uid, [])
+        complete_unit(s, uid, [])
 print(json.dumps({'job_id': job_id, 'cells': len(rows), 'store_seconds': time.perf_counter() - t0}))
 """
 
@@ -178,6 +180,7 @@ class BenchStack:
                 SVROBS_BROKER_DIR=str(root / "broker"),
             )
         env.update(SVROBS_RATE_LIMIT_PER_MINUTE="100000", SVROBS_MAX_JOB_CELLS="10000000")
+        env.update(SVROBS_VAR_DIR=str(root))
         self.env = child_env(None, env)
         self.url = ""
         self.key = ""

@@ -2,14 +2,15 @@
 
 The worker does ``celery_app = make_celery(get_settings())`` and registers
 its task under :data:`RUN_UNIT_TASK`; the API and the relay publish with
-:func:`publish_units` after the job is committed.
+:func:`publish_units` after the job is committed (the one relay is
+``worker.tick.relay``).
 """
 
 from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 from celery import Celery
 
@@ -131,6 +132,24 @@ def publish_units(
     return sent
 
 
+class BrokerPublisher:
+    """``publisher(unit_ids) -> ids sent`` through one Celery app, made on first use
+    for the settings ``settings_of()`` returns then; :meth:`get_celery` is that app
+    (``/readyz`` checks its broker)."""
+
+    def __init__(self, settings_of: Callable[[], Settings]):
+        self._settings_of = settings_of
+        self._celery: Celery | None = None
+
+    def get_celery(self) -> Celery:
+        if self._celery is None:
+            self._celery = make_celery(self._settings_of())
+        return self._celery
+
+    def __call__(self, unit_ids: Iterable[int]) -> list[int]:
+        return publish_units(self.get_celery(), unit_ids)
+
+
 def check_broker(celery: Celery, timeout: float = 2.0) -> None:
     """Raise if the broker cannot be reached (used by /readyz)."""
     url = celery.conf.broker_url or ""
@@ -189,14 +208,3 @@ def broker_epoch(celery: Celery, timeout: float = 2.0):
     if isinstance(value, bytes):
         value = value.decode()
     return datetime.fromtimestamp(float(value), UTC)
-
-
-def relay_once(celery: Celery, session, limit: int = 500) -> int:
-    """Publish the units that :func:`~service.db.crud.units_to_publish` returns and
-    mark them; returns how many were sent. The caller commits ``session``."""
-    from service.db import crud
-
-    ids = crud.units_to_publish(session, limit=limit)
-    sent = publish_units(celery, ids)
-    crud.mark_published(session, sent)
-    return len(sent)

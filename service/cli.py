@@ -92,7 +92,7 @@ def _admin_session():
 
 
 def _admin_call(fn, *args, **kwargs):
-    from service.admin import AdminError
+    from service.db.errors import AdminError
 
     try:
         with _admin_session() as session:
@@ -104,9 +104,9 @@ def _admin_call(fn, *args, **kwargs):
 @admin_app.command("create-team")
 def admin_create_team(name: str) -> None:
     """Create a team."""
-    from service import admin
+    from service.db import accounts
 
-    team_id = _admin_call(lambda s: admin.create_team(s, name).id)
+    team_id = _admin_call(lambda s: accounts.create_team(s, name).id)
     typer.echo(f"team {name!r} created (id {team_id})")
 
 
@@ -117,10 +117,10 @@ def admin_create_user(
     is_admin: bool = typer.Option(False, "--admin", help="team administrator"),
 ) -> None:
     """Create a user in a team."""
-    from service import admin
+    from service.db import accounts
 
     t: Any = int(team) if team.isdigit() else team
-    user_id = _admin_call(lambda s: admin.create_user(s, t, email, is_admin=is_admin).id)
+    user_id = _admin_call(lambda s: accounts.create_user(s, t, email, is_admin=is_admin).id)
     typer.echo(f"user {email} created (id {user_id})")
 
 
@@ -131,12 +131,12 @@ def admin_create_key(
     expires_days: float | None = typer.Option(None, help="expire after this many days"),
 ) -> None:
     """Create an API key; the key is printed once and never stored."""
-    from service import admin
+    from service.db import accounts
 
     u: Any = int(user) if user.isdigit() else user
 
     def make(session):
-        row, key = admin.create_key(session, u, name=name, expires_in_days=expires_days)
+        row, key = accounts.create_key(session, u, name=name, expires_in_days=expires_days)
         return row.prefix, key
 
     prefix, key = _admin_call(make)
@@ -147,17 +147,17 @@ def admin_create_key(
 @admin_app.command("revoke-key")
 def admin_revoke_key(key: str = typer.Argument(..., help="key prefix, key id or full key")) -> None:
     """Revoke an API key (it gets 401 from now on)."""
-    from service import admin
+    from service.db import accounts
 
     k: Any = int(key) if key.isdigit() else key
-    prefix = _admin_call(lambda s: admin.revoke_key(s, k).prefix)
+    prefix = _admin_call(lambda s: accounts.revoke_key(s, k).prefix)
     typer.echo(f"key {prefix} revoked")
 
 
 @admin_app.command("list-keys")
 def admin_list_keys(team: str | None = typer.Argument(None)) -> None:
     """List API keys (prefix, team, user, created, expires, revoked)."""
-    from service import admin
+    from service.db import accounts
 
     t: Any = int(team) if team and team.isdigit() else team
 
@@ -172,7 +172,7 @@ def admin_list_keys(team: str | None = typer.Argument(None)) -> None:
                 k.expires_at,
                 k.revoked_at,
             )
-            for k in admin.list_keys(session, t)
+            for k in accounts.list_keys(session, t)
         ]
 
     for r in _admin_call(rows):

@@ -51,7 +51,7 @@ def reproduce(
     quiet: bool = typer.Option(False, "--quiet"),
 ) -> None:
     """The paper's Section 6 (E1-E4) in process: tables, figures, report.md."""
-    from .reproduce import reproduce as _reproduce
+    from .reports.reproduce import reproduce as _reproduce
 
     if scale not in ("full", "reduced"):
         _fail("--scale must be 'full' or 'reduced'")

@@ -1,14 +1,22 @@
 """Settings read from the environment (prefix ``SVROBS_``) by pydantic-settings.
 
 Every process (API, worker, beat, CLI) reads the same settings; nothing else
-configures the service.
+reads the environment for them. The URLs are checked when the settings are
+made: a malformed one fails at start-up with an error naming its variable.
 """
 
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import Literal
 
+from pydantic import field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+from sqlalchemy.engine import make_url
+from sqlalchemy.exc import ArgumentError
+
+# The Celery transports the service is run with (filesystem: the embedded default).
+BROKER_SCHEMES = ("filesystem", "redis", "rediss", "memory", "amqp")
 
 
 class Settings(BaseSettings):
@@ -16,6 +24,8 @@ class Settings(BaseSettings):
 
     DATABASE_URL: str = "sqlite:///./var/svrobs.db"
     BROKER_URL: str = "filesystem://"
+    # The state folder (SQLite file, broker folders, beat's schedule file by default).
+    VAR_DIR: str = "./var"
     BROKER_DIR: str = "./var/broker"
     # How often the filesystem broker lists its folder when it has nothing to deliver.
     BROKER_POLL_SECONDS: float = 0.1
@@ -23,6 +33,8 @@ class Settings(BaseSettings):
     # and its pool has a free process reconnects after 3 checks this far apart
     # (worker.watchdog; Redis brokers only; 0 turns it off).
     WORKER_WATCHDOG_SECONDS: float = 20.0
+    # Beat's tick (due schedules, then the relay) runs this often.
+    TICK_SECONDS: float = 60.0
 
     MAX_JOB_CELLS: int = 2_000_000
     MAX_BODY_BYTES: int = 1_048_576
@@ -38,11 +50,49 @@ class Settings(BaseSettings):
     UNIT_LEASE_SECONDS: int = 3900
     # A unit published but never started is re-published after this long.
     PUBLISH_RETRY_SECONDS: int = 600
-    # A unit that was started this many times without finishing is failed.
+    # A unit that was started this many times without finishing is failed (0: never).
     MAX_UNIT_ATTEMPTS: int = 5
 
     # Seconds the API waits for the broker when publishing / in /readyz.
     BROKER_TIMEOUT: float = 2.0
+
+    # The level of every svrobs process's log (service.logging_config).
+    LOG_LEVEL: Literal["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"] = "INFO"
+    # The commit stored in job provenance; unset: ``git rev-parse HEAD`` of the checkout.
+    GIT_COMMIT: str | None = None
+
+    # TEST-ONLY fault injection, off by default (tests/faults): running this unit
+    # kills its worker process; the consumer stops consuming after its first message.
+    TEST_CRASH_UNIT: int | None = None
+    TEST_STALL_CONSUMER: bool = False
+
+    @field_validator("LOG_LEVEL", mode="before")
+    @classmethod
+    def _upper_level(cls, value):
+        return value.strip().upper() if isinstance(value, str) else value
+
+    @field_validator("DATABASE_URL")
+    @classmethod
+    def _database_url(cls, value: str) -> str:
+        try:
+            make_url(value)
+        except (ArgumentError, ValueError):  # ValueError: a port that is not a number
+            raise ValueError(
+                f"SVROBS_DATABASE_URL is not a database URL: {value!r} "
+                "(e.g. sqlite:///./var/svrobs.db or postgresql+psycopg://user@host/db)"
+            ) from None
+        return value
+
+    @field_validator("BROKER_URL")
+    @classmethod
+    def _broker_url(cls, value: str) -> str:
+        scheme, sep, _rest = value.partition("://")
+        if not sep or scheme not in BROKER_SCHEMES:
+            raise ValueError(
+                f"SVROBS_BROKER_URL is not a broker URL: {value!r} "
+                f"(the scheme must be one of {', '.join(BROKER_SCHEMES)}, e.g. redis://host:6379/0)"
+            )
+        return value
 
 
 @lru_cache

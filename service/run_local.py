@@ -14,7 +14,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
 from svrobs_core import parse_spec, plan_units, summarize
-from svrobs_core.experiments import run_unit_result
+from svrobs_core.runner import run_unit_result
 
 
 def load_spec_file(path: Path) -> dict:

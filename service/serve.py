@@ -33,22 +33,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from service.config import Settings, get_settings
+from svrobs_core.threads import THREAD_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
-THREAD_ENV = {
-    "OPENBLAS_NUM_THREADS": "1",
-    "OMP_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "NUMEXPR_NUM_THREADS": "1",
-    "VECLIB_MAXIMUM_THREADS": "1",
-}
 
 
 # --------------------------------------------------------------------------- setup
 def var_dir(settings: Settings) -> Path:
-    """The state folder: ``./var`` by default (the parent of BROKER_DIR)."""
-    explicit = getattr(settings, "VAR_DIR", None)
-    return Path(explicit) if explicit else Path(settings.BROKER_DIR).resolve().parent
+    """The state folder, SVROBS_VAR_DIR (``./var`` by default)."""
+    return Path(settings.VAR_DIR)
 
 
 def beat_schedule_file(settings: Settings) -> Path:
@@ -136,7 +129,8 @@ def bootstrap_admin(settings: Settings | None = None) -> str | None:
     from sqlalchemy import func, select
     from sqlalchemy.exc import IntegrityError
 
-    from service import admin
+    from service.db import accounts
+    from service.db.errors import AdminError
     from service.db.models import Team
     from service.db.session import session_scope
 
@@ -145,11 +139,11 @@ def bootstrap_admin(settings: Settings | None = None) -> str | None:
         with session_scope(url) as s:
             if s.scalar(select(func.count(Team.id))):
                 return None
-            admin.create_team(s, ADMIN_TEAM)
-            admin.create_user(s, ADMIN_TEAM, ADMIN_EMAIL, is_admin=True)
-            _row, key = admin.create_key(s, ADMIN_EMAIL, name="bootstrap")
+            accounts.create_team(s, ADMIN_TEAM)
+            accounts.create_user(s, ADMIN_TEAM, ADMIN_EMAIL, is_admin=True)
+            _row, key = accounts.create_key(s, ADMIN_EMAIL, name="bootstrap")
         return key
-    except (IntegrityError, admin.AdminError):
+    except (IntegrityError, AdminError):
         return None
 
 
@@ -168,6 +162,7 @@ def child_env(settings: Settings | None = None, extra: dict | None = None) -> di
         for key in ("DATABASE_URL", "BROKER_URL", "BROKER_DIR", "API_HOST", "API_PORT"):
             env[f"SVROBS_{key}"] = str(getattr(settings, key))
         env["SVROBS_BROKER_DIR"] = str(Path(settings.BROKER_DIR).resolve())
+        env["SVROBS_VAR_DIR"] = str(Path(settings.VAR_DIR).resolve())
         env["SVROBS_DATABASE_URL"] = _absolute_sqlite(settings.DATABASE_URL)
     env.update(extra or {})
     return env

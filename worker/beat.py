@@ -15,7 +15,7 @@ import logging
 
 from celery.beat import PersistentScheduler
 
-log = logging.getLogger("svrobs.beat")
+log = logging.getLogger(__name__)
 LOCAL_TASKS = {"svrobs.tick"}
 
 

@@ -2,20 +2,20 @@
 
 ``svrobs.run_unit(unit_id)``:
 
-1. ``crud.start_unit`` claims the unit (status, lease, attempt counter) in one
+1. ``units.start_unit`` claims the unit (status, lease, attempt counter) in one
    transaction and returns ``(spec, unit payload)``, or ``None`` when there is
    nothing to do (already done or cancelled; a duplicate delivery of a unit that
    is still running claims it again, which only costs an attempt: the results
    are upserted on the cell key);
 2. ``svrobs_core.run_unit_result`` computes the records as columns (pure, no I/O);
-3. ``crud.complete_unit`` upserts them on the cell key and updates progress;
+3. ``units.complete_unit`` upserts them on the cell key and updates progress;
    the job finishes when the DB says every unit is done.
 
 A redelivered or duplicated message is therefore harmless. Transient DB or
 broker errors retry the task with exponential backoff (acks_late: the message
 is acknowledged only after the task returned, and rejected - so redelivered -
 if the worker process is lost). Any other error is recorded with
-``crud.fail_unit``; it is final once the unit was attempted
+``units.fail_unit``; it is final once the unit was attempted
 ``MAX_UNIT_ATTEMPTS`` times, otherwise the task is retried.
 """
 
@@ -33,17 +33,17 @@ from celery.exceptions import Retry
 from celery.signals import worker_process_init
 from celery.worker.request import Request
 
-from service.db import crud
+from service.db import units
 from service.db.models import WorkUnit
 from service.db.session import dispose_all, session_scope
 from svrobs_core import parse_spec
-from svrobs_core.experiments import run_unit_result
+from svrobs_core.runner import run_unit_result
 from worker.celery_app import celery_app, settings
 
 # (imported here, in the worker's main process, so that every pool child forks
 # with numpy, scipy and the core already loaded)
 
-log = logging.getLogger("svrobs.worker")
+log = logging.getLogger(__name__)
 
 
 def _transient_errors() -> tuple[type[BaseException], ...]:
@@ -72,12 +72,11 @@ MAX_RETRIES = 8
 
 
 def max_attempts() -> int:
-    return int(getattr(settings, "MAX_UNIT_ATTEMPTS", 3) or 3)
+    return settings.MAX_UNIT_ATTEMPTS
 
 
 def lease_seconds() -> int:
-    default = int(getattr(settings, "TASK_TIME_LIMIT", 3600)) + 300
-    return int(getattr(settings, "UNIT_LEASE_SECONDS", default) or default)
+    return settings.UNIT_LEASE_SECONDS
 
 
 @worker_process_init.connect
@@ -97,8 +96,7 @@ def _test_crash_hook(unit_id: int) -> None:
     in the worker's environment, running that unit kills the worker process (as a
     segfaulting extension would). ``tests/faults`` uses it to check that a unit which
     keeps killing its worker is failed after MAX_UNIT_ATTEMPTS attempts."""
-    crash = os.environ.get("SVROBS_TEST_CRASH_UNIT")
-    if crash and crash.strip() == str(unit_id):
+    if settings.TEST_CRASH_UNIT == unit_id:
         os._exit(1)
 
 
@@ -110,7 +108,7 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
     worker_name = worker_name or f"{socket.gethostname()}:{os.getpid()}"
     t0 = time.perf_counter()
     with session_scope() as s:
-        claimed = crud.start_unit(s, unit_id, worker_name, lease_seconds())
+        claimed = units.start_unit(s, unit_id, worker_name, lease_seconds())
     if claimed is None:
         return {"unit": unit_id, "status": "skipped"}
     spec_dict, payload = claimed
@@ -121,7 +119,7 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
             records = run_unit_result(parse_spec(spec_dict), payload)
     except Exception as exc:
         attempts = _attempts(unit_id)
-        final = attempts >= max_attempts()
+        final = bool(max_attempts()) and attempts >= max_attempts()
         error = f"{type(exc).__name__}: {exc}"
         log.error(
             "unit %s failed (attempt %d/%d, final=%s): %s\n%s",
@@ -133,13 +131,13 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
             traceback.format_exc(),
         )
         with session_scope() as s:
-            crud.fail_unit(s, unit_id, error, final)
+            units.fail_unit(s, unit_id, error, final)
         if final:
             return {"unit": unit_id, "status": "failed", "error": error}
         raise UnitFailed(error) from exc
     t2 = time.perf_counter()
     with session_scope() as s:
-        crud.complete_unit(s, unit_id, records)
+        units.complete_unit(s, unit_id, records)
     t3 = time.perf_counter()
     # logged by Celery ("succeeded in ...: {...}"): where a unit's time goes
     return {
@@ -183,7 +181,7 @@ class _Heartbeat:
         while not self._stop.wait(self.interval):
             try:
                 with session_scope() as s:
-                    if not crud.heartbeat_unit(s, self.unit_id, self.lease):
+                    if not units.heartbeat_unit(s, self.unit_id, self.lease):
                         return  # no longer running (cancelled job, failed, re-claimed)
             except Exception as exc:  # noqa: BLE001 - the DB may be restarting
                 log.warning("unit %s: heartbeat failed: %s", self.unit_id, exc)
@@ -224,7 +222,7 @@ def _note_lost(unit_id: int, why: str) -> None:
     engine = create_db_engine(settings.DATABASE_URL)
     try:
         with Session(engine) as s, s.begin():
-            crud.note_unit_error(s, unit_id, why)
+            units.note_unit_error(s, unit_id, why)
     finally:
         engine.dispose()
 
@@ -259,7 +257,7 @@ def _release(unit_id: int, error: str) -> None:
     """Best effort: hand the unit back (non-final failure) so the retry can claim it."""
     try:
         with session_scope() as s:
-            crud.fail_unit(s, unit_id, error, False)
+            units.fail_unit(s, unit_id, error, False)
     except Exception:  # noqa: BLE001 - the DB may still be down; the lease expires anyway
         pass
 

@@ -4,12 +4,12 @@
 see :mod:`worker.beat`); it is safe to run from any number of processes at
 once:
 
-* ``crud.create_due_schedule_jobs`` is keyed on (schedule, due time), so a
+* ``schedules.create_due_schedule_jobs`` is keyed on (schedule, due time), so a
   doubled or restarted beat never creates a sweep twice;
 * the relay publishes work units that were committed but never published
   (the API's publish failed, e.g. the broker was down) or whose lease ran
   out (the worker died and the broker did not redeliver), then marks them.
-  Publishing twice is harmless: ``crud.start_unit`` lets one delivery run a
+  Publishing twice is harmless: ``units.start_unit`` lets one delivery run a
   unit and the other skip it, and results are upserted on the cell key.
 """
 
@@ -18,19 +18,19 @@ from __future__ import annotations
 import logging
 from datetime import UTC, datetime
 
-log = logging.getLogger("svrobs.tick")
+log = logging.getLogger(__name__)
 
 RELAY_BATCH = 500
 RELAY_MAX_PER_TICK = 20_000
 
 
 def create_due_jobs(now: datetime | None = None) -> list[int]:
-    from service.db import crud
+    from service.db import schedules
     from service.db.session import session_scope
 
     now = now or datetime.now(UTC)
     with session_scope() as s:
-        jobs = crud.create_due_schedule_jobs(s, now)
+        jobs = schedules.create_due_schedule_jobs(s, now)
         ids = [getattr(j, "id", j) for j in jobs or ()]
     if ids:
         log.info("tick: created jobs %s for due schedules", ids)
@@ -44,7 +44,7 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
     Redis restarted without persistence lost them) are re-published at once.
     """
     from service.broker import broker_epoch, publish_units
-    from service.db import crud
+    from service.db import outbox
     from service.db.session import session_scope
 
     if celery is None:
@@ -55,7 +55,7 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
     while sent < limit:
         with session_scope() as s:
             ids = list(
-                crud.units_to_publish(
+                outbox.units_to_publish(
                     s, min(RELAY_BATCH, limit - sent), now=start, lost_before=epoch
                 )
             )
@@ -65,7 +65,7 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
         published = list(out) if isinstance(out, (list, tuple, set)) else ids
         if published:
             with session_scope() as s:
-                crud.mark_published(s, published)
+                outbox.mark_published(s, published)
         sent += len(published)
         if len(published) < len(ids):  # partial failure: try again next tick
             break

@@ -17,7 +17,6 @@ the filesystem transport has no event loop (its worker polls) and no such failur
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass
 
 from celery import bootsteps, signals
@@ -109,7 +108,9 @@ class ConsumerWatchdog(bootsteps.StartStopStep):
         from service.config import get_settings
 
         super().__init__(consumer, **kwargs)
-        self.interval = float(get_settings().WORKER_WATCHDOG_SECONDS)
+        settings = get_settings()
+        self.interval = float(settings.WORKER_WATCHDOG_SECONDS)
+        self.test_stall = settings.TEST_STALL_CONSUMER
         self.entry = None
         self.detector = StallDetector()
 
@@ -128,7 +129,7 @@ class ConsumerWatchdog(bootsteps.StartStopStep):
     shutdown = stop
 
     def check(self, consumer) -> None:
-        if _TEST_STALL:
+        if self.test_stall:
             _test_stall_hook(consumer)
         received, free, ready = _received[0], capacity(consumer), 0
         if free and received == self.detector.received:  # only then ask the broker
@@ -150,7 +151,6 @@ class ConsumerWatchdog(bootsteps.StartStopStep):
 
 
 _stalled_once = [False]
-_TEST_STALL = os.environ.get("SVROBS_TEST_STALL_CONSUMER") == "1"
 
 
 def _test_stall_hook(consumer) -> None:

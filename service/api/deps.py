@@ -12,8 +12,8 @@ import anyio
 from fastapi import Depends, HTTPException, Request
 from sqlalchemy.orm import Session
 
-from service.auth import authenticate
 from service.config import Settings
+from service.db.accounts import authenticate
 
 SessionFactory = Callable[..., Session]  # factory(write: bool) -> Session
 Publisher = Callable[[Sequence[int]], list[int]]

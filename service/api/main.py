@@ -23,7 +23,7 @@ from service.api.ratelimit import RateLimiter
 from service.config import Settings, get_settings
 from svrobs_core.errors import SpecError
 
-log = logging.getLogger("svrobs.api")
+log = logging.getLogger(__name__)
 
 API_PREFIX = "/api/v1"
 BODY_PARSE_ERROR = "There was an error parsing the body"  # fastapi.routing's 400 detail
@@ -124,24 +124,9 @@ def _default_session_factory(settings: Settings):
 
 
 def _default_publisher(app: FastAPI):
-    celery_holder: dict = {}
+    from service.broker import BrokerPublisher
 
-    def publish(unit_ids):
-        from service.broker import make_celery, publish_units
-
-        if "app" not in celery_holder:
-            celery_holder["app"] = make_celery(app.state.settings)
-        return publish_units(celery_holder["app"], unit_ids)
-
-    def get_celery():
-        from service.broker import make_celery
-
-        if "app" not in celery_holder:
-            celery_holder["app"] = make_celery(app.state.settings)
-        return celery_holder["app"]
-
-    publish.get_celery = get_celery
-    return publish
+    return BrokerPublisher(lambda: app.state.settings)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

@@ -7,7 +7,7 @@ one by one), decoded for a whole batch in one ``pydantic_core.from_json``
 call, and the records are encoded by ``pydantic_core.to_json`` (Rust; the
 library FastAPI already serialises with). Field order is the record's
 (``RECORD_FIELDS``); non-finite floats become ``null``. The parsed value equals
-``crud.row_to_record`` of the same row (tested).
+``results_store.row_to_record`` of the same row (tested).
 """
 
 from __future__ import annotations

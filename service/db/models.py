@@ -39,6 +39,12 @@ def utcnow() -> datetime:
     return datetime.now(UTC)
 
 
+def as_utc(now: datetime | None = None) -> datetime:
+    """``now`` (default: the current time) with a time zone; a naive time is taken as UTC."""
+    now = now or utcnow()
+    return now if now.tzinfo else now.replace(tzinfo=UTC)
+
+
 class UTCDateTime(TypeDecorator):
     """Timezone-aware UTC datetimes on every dialect (SQLite stores them naive)."""
 

@@ -1,5 +1,6 @@
 """Writing section 10 records into ``results`` (SPEC section 10): one upsert on the
-cell key, from record dicts or straight from a unit's column arrays.
+cell key, from record dicts or straight from a unit's column arrays; and a
+stored row back to a record (:func:`row_to_record`).
 
 The hot write path of the worker. Rows are tuples in table-column order,
 matrices and ``seed_key`` as their JSON text, with no per-row SQLAlchemy
@@ -21,8 +22,8 @@ import numpy as np
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import Session
 
-from svrobs_core.experiments import UnitResult
-from svrobs_core.records import BOOL_FIELDS, json_value
+from svrobs_core.records import BOOL_FIELDS, RECORD_FIELDS, json_value
+from svrobs_core.unit_result import UnitResult
 
 from .models import OLS_GAMMA_KEY, RESULT_MATRIX_FIELDS, RESULT_SCALAR_FIELDS, Result
 
@@ -35,9 +36,21 @@ _NOT_FLOAT = frozenset(BOOL_FIELDS + INT_FIELDS)
 COLUMNS = tuple(c.name for c in Result.__table__.columns if c.name != "id")
 
 
-def gamma_key(estimator: str, gamma) -> float:
+def gamma_key(gamma) -> float:
     """The gamma part of the cell key: the value, or -1 for OLS (no gamma)."""
     return OLS_GAMMA_KEY if gamma is None else float(gamma)
+
+
+def row_to_record(row) -> dict:
+    """A ``results`` row (ORM object or mapping) -> a section 10 record."""
+    get = row.__getitem__ if hasattr(row, "keys") else (lambda k: getattr(row, k))
+    out = {}
+    for f in RECORD_FIELDS:
+        v = get(f)
+        if isinstance(v, float) and not math.isfinite(v):
+            v = None
+        out[f] = v
+    return out
 
 
 # -- one record at a time --------------------------------------------------------------
@@ -88,7 +101,7 @@ def record_to_row(job_id: int, record: dict) -> dict:
         row[f] = _clean_matrix(get(f))
     row["system"] = str(record["system"])
     row["estimator"] = str(record["estimator"])
-    row["gamma_key"] = gamma_key(row["estimator"], row["gamma"])
+    row["gamma_key"] = gamma_key(row["gamma"])
     row["seed_key"] = json_value(record.get("seed_key"))
     row["sls_status"] = record.get("sls_status")
     notes = record.get("notes")
@@ -127,7 +140,7 @@ def _unit_tuples(job_id: int, result: UnitResult) -> list[tuple]:
         out[f] = [None if v is None else str(v) for v in cols[f]]
     for f in JSON_COLUMNS:
         out[f] = cols[f]
-    out["gamma_key"] = [gamma_key(e, g) for e, g in zip(out["estimator"], out["gamma"])]
+    out["gamma_key"] = [gamma_key(g) for g in out["gamma"]]
     return list(zip(*(out[c] for c in COLUMNS)))
 
 

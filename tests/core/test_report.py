@@ -15,7 +15,7 @@ import re
 import numpy as np
 import pytest
 
-from service import reproduce as rep_mod
+from service.reports import reproduce as rep_mod
 from svrobs_core import RECORD_FIELDS, parse_spec, run_spec
 from svrobs_core import report as rpt
 from svrobs_core.paper import PUBLISHED_TABLE2, paper_specs
@@ -373,7 +373,7 @@ def test_figure_titles_name_experiment_and_seed():
 def test_svr_ols_difference_uses_the_same_repetition():
     recs = make_records(tiny_spec(), cost=False)
     cols = rpt.as_columns(recs)
-    d = rpt._svr_ols_diff(cols)
+    d = rpt.svr_ols_diff(cols)
     by_key = {
         (r["system"], r["sigma_w"], r["N"], r["rep"]): r for r in recs if r["estimator"] == "ols"
     }

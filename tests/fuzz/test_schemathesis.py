@@ -35,11 +35,10 @@ from schemathesis.specs.openapi.checks import (
     status_code_conformance,
 )
 
-from service import admin
 from service.api.main import create_app
 from service.api.routes.common import MAX_ID
 from service.config import Settings
-from service.db import crud
+from service.db import accounts, jobs
 from service.db.migrate import upgrade
 from service.db.models import Job, Result, Schedule, utcnow
 from service.db.session import dispose_all, get_sessionmaker
@@ -130,16 +129,16 @@ class FakePublisher:
 
 
 def _account(session, name: str):
-    team = admin.create_team(session, name)
-    user = admin.create_user(session, team.id, f"fuzz@{name}.org")
-    _, key = admin.create_key(session, user.id)
+    team = accounts.create_team(session, name)
+    user = accounts.create_user(session, team.id, f"fuzz@{name}.org")
+    _, key = accounts.create_key(session, user.id)
     return SimpleNamespace(
         team_id=team.id, user_id=user.id, headers={"Authorization": f"Bearer {key}"}
     )
 
 
 def _make_job(session, acc, *, run: bool = False, cancel: bool = False) -> int:
-    job = crud.create_job(
+    job, _ = jobs.create_job(
         session,
         team_id=acc.team_id,
         user_id=acc.user_id,
@@ -152,7 +151,7 @@ def _make_job(session, acc, *, run: bool = False, cancel: bool = False) -> int:
     if run:
         run_job_units(session, job.id)
     if cancel:
-        crud.cancel_job(session, job)
+        jobs.cancel_job(session, job)
         session.commit()
     return job.id
 

@@ -100,6 +100,7 @@ class Stack:
                 SVROBS_BROKER_DIR=str(root / "broker"),
             )
         env.update(SVROBS_TASK_TIME_LIMIT="300", SVROBS_UNIT_LEASE_SECONDS="360")
+        env.update(SVROBS_VAR_DIR=str(root))
         env.update(extra_env or {})
         self.env = child_env(None, env)
         # child_env starts from os.environ: drop any SVROBS_* the developer has set
@@ -121,12 +122,12 @@ class Stack:
             "from service.config import get_settings\n"
             "from service.serve import prepare_dirs, migrate\n"
             "from service.db.session import session_scope\n"
-            "from service import admin\n"
+            "from service.db import accounts\n"
             "s = get_settings(); prepare_dirs(s); migrate(s)\n"
             "with session_scope() as db:\n"
-            "    admin.create_team(db, 'lab')\n"
-            "    admin.create_user(db, 'lab', 'it@lab.example')\n"
-            "    _, key = admin.create_key(db, 'it@lab.example')\n"
+            "    accounts.create_team(db, 'lab')\n"
+            "    accounts.create_user(db, 'lab', 'it@lab.example')\n"
+            "    _, key = accounts.create_key(db, 'it@lab.example')\n"
             "print(json.dumps({'key': key}))\n",
             timeout=120,
         )

@@ -34,6 +34,7 @@ def _start_serve(tmp_path, port):
     env.update(
         SVROBS_DATABASE_URL=f"sqlite:///{tmp_path / 'var' / 'svrobs.db'}",
         SVROBS_BROKER_DIR=str(tmp_path / "var" / "broker"),
+        SVROBS_VAR_DIR=str(tmp_path / "var"),
         SVROBS_API_PORT=str(port),
         PYTHONUNBUFFERED="1",
     )

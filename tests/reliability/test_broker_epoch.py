@@ -2,7 +2,7 @@
 
 A unit that keeps killing its worker was failed after K attempts with "last
 error: none": the job did not say what killed the worker. The worker's main
-process now records it on the unit (``crud.note_unit_error``).
+process now records it on the unit (``units.note_unit_error``).
 
 A Redis restarted without persistence has lost its queue. The relay used to
 re-publish the lost work units only PUBLISH_RETRY_SECONDS (10 min by default)
@@ -19,10 +19,9 @@ from datetime import UTC, datetime, timedelta
 import pytest
 from sqlalchemy import select
 
-from service import admin
 from service.broker import broker_epoch, make_celery, publish_units
 from service.config import Settings
-from service.db import crud
+from service.db import accounts, jobs, outbox, units
 from service.db.migrate import upgrade
 from service.db.models import Team
 from service.db.session import dispose_all, session_scope
@@ -43,7 +42,7 @@ def db(tmp_path):
     url = f"sqlite:///{tmp_path / 'relay.db'}"
     upgrade(url)
     with session_scope(url) as s:
-        admin.create_team(s, "lab")
+        accounts.create_team(s, "lab")
     yield url
     dispose_all()
 
@@ -51,32 +50,33 @@ def db(tmp_path):
 def _job(url) -> list[int]:
     with session_scope(url) as s:
         team = s.scalar(select(Team).where(Team.name == "lab"))
-        job = crud.create_job(s, team_id=team.id, user_id=None, spec=SPEC)
+        job, _ = jobs.create_job(s, team_id=team.id, user_id=None, spec=SPEC)
         s.flush()
-        return crud.unit_ids_of_job(s, job.id)
+        return jobs.unit_ids_of_job(s, job.id)
 
 
 def test_units_published_before_the_broker_epoch_are_republished_at_once(db):
     ids = _job(db)
     t_pub = datetime.now(UTC)
     with session_scope(db) as s:
-        crud.mark_published(s, ids, now=t_pub)
+        outbox.mark_published(s, ids, now=t_pub)
     soon = t_pub + timedelta(seconds=5)
     with session_scope(db) as s:
         # published 5 s ago: nothing to do (the retry time is 600 s) ...
-        assert crud.units_to_publish(s, now=soon) == []
+        assert outbox.units_to_publish(s, now=soon) == []
         # ... unless the broker's data is younger than the publication: lost, re-publish
-        assert crud.units_to_publish(s, now=soon, lost_before=t_pub + timedelta(seconds=2)) == ids
+        assert outbox.units_to_publish(s, now=soon, lost_before=t_pub + timedelta(seconds=2)) == ids
         # an epoch older than the publication (the broker kept its data): nothing
-        assert crud.units_to_publish(s, now=soon, lost_before=t_pub - timedelta(hours=1)) == []
+        assert outbox.units_to_publish(s, now=soon, lost_before=t_pub - timedelta(hours=1)) == []
         # once re-published after the epoch they are not selected again in the same tick
-        crud.mark_published(s, ids[:2], now=t_pub + timedelta(seconds=3))
+        outbox.mark_published(s, ids[:2], now=t_pub + timedelta(seconds=3))
         assert (
-            crud.units_to_publish(s, now=soon, lost_before=t_pub + timedelta(seconds=2)) == ids[2:]
+            outbox.units_to_publish(s, now=soon, lost_before=t_pub + timedelta(seconds=2))
+            == ids[2:]
         )
         # an epoch in the future (clock skew) never selects units published later than now
-        crud.mark_published(s, ids, now=soon + timedelta(seconds=1))
-        assert crud.units_to_publish(s, now=soon, lost_before=soon + timedelta(hours=1)) == []
+        outbox.mark_published(s, ids, now=soon + timedelta(seconds=1))
+        assert outbox.units_to_publish(s, now=soon, lost_before=soon + timedelta(hours=1)) == []
 
 
 def test_broker_epoch_is_none_for_the_filesystem_broker(tmp_path):
@@ -138,13 +138,13 @@ def test_a_unit_given_up_quotes_what_killed_its_worker(db):
     uid = _job(db)[0]
     for _ in range(2):
         with session_scope(db) as s:
-            assert crud.start_unit(s, uid, "w@host", 60, max_attempts=2) is not None
+            assert units.start_unit(s, uid, "w@host", 60, max_attempts=2) is not None
         with session_scope(db) as s:  # what worker.tasks.UnitRequest does when it is lost
-            crud.note_unit_error(
+            units.note_unit_error(
                 s, uid, "WorkerLostError: Worker exited prematurely: signal 11 (SIGSEGV)"
             )
     with session_scope(db) as s:
-        assert crud.start_unit(s, uid, "w@host", 60, max_attempts=2) is None
+        assert units.start_unit(s, uid, "w@host", 60, max_attempts=2) is None
     with session_scope(db) as s:
         unit = s.get(WorkUnit, uid)
         job = s.get(Job, unit.job_id)
@@ -152,6 +152,6 @@ def test_a_unit_given_up_quotes_what_killed_its_worker(db):
         assert "gave up after 2 attempts" in job.error
         assert "signal 11 (SIGSEGV)" in job.error and "unit 0 (system=paper-stable" in job.error
         # only a running unit is annotated
-        crud.note_unit_error(s, uid, "late")
+        units.note_unit_error(s, uid, "late")
     with session_scope(db) as s:
         assert "late" not in s.get(WorkUnit, uid).error

@@ -13,7 +13,7 @@ from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session
 
-from service import admin
+from service.db import accounts
 from service.db.migrate import upgrade
 from service.db.session import create_db_engine
 from tests.service.svc_helpers import Account, RecordingPublisher, make_settings
@@ -98,11 +98,11 @@ def session(session_factory):
 def make_account(session):
     def make(team_name: str | None = None, *, is_admin: bool = False, **key_kw) -> Account:
         name = team_name or f"team-{uuid.uuid4().hex[:8]}"
-        team = admin.create_team(session, name)
-        user = admin.create_user(
+        team = accounts.create_team(session, name)
+        user = accounts.create_user(
             session, team.id, f"{uuid.uuid4().hex[:8]}@{name}.org", is_admin=is_admin
         )
-        key_row, key = admin.create_key(session, user.id, **key_kw)
+        key_row, key = accounts.create_key(session, user.id, **key_kw)
         session.commit()
         return Account(team, user, key_row, key)
 

@@ -42,16 +42,16 @@ def fake_records(spec_dict: dict, unit: dict) -> list[dict]:
 
 def run_job_units(session, job_id: int, worker: str = "w1") -> int:
     """Start and complete every unit of a job with fake records; returns records written."""
-    from service.db import crud
+    from service.db import jobs, units
 
     n = 0
-    for uid in crud.unit_ids_of_job(session, job_id, pending_only=False):
-        claimed = crud.start_unit(session, uid, worker, 60)
+    for uid in jobs.unit_ids_of_job(session, job_id, pending_only=False):
+        claimed = units.start_unit(session, uid, worker, 60)
         if claimed is None:
             continue
         spec, payload = claimed
         recs = fake_records(spec, payload)
-        crud.complete_unit(session, uid, recs)
+        units.complete_unit(session, uid, recs)
         session.commit()
         n += len(recs)
     return n

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from service.config import Settings
-from svrobs_core.experiments import plan_units
+from svrobs_core.planning import plan_units
 from svrobs_core.spec import parse_spec
 
 

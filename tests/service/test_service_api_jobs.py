@@ -6,7 +6,7 @@ import json
 
 from sqlalchemy import func, select
 
-from service.db import crud
+from service.db import jobs, outbox
 from service.db.models import ApiKey, Job, WorkUnit
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC, SMALL_UNITS
@@ -36,9 +36,9 @@ def test_submit_publishes_after_commit(client, publisher, session, make_account)
     assert job["tags"] == ["nightly", "x"] and job["owner"] == acc.user.email
     assert job["progress"] == {"done": 0, "total": SMALL_UNITS, "fraction": 0.0}
     assert job["spec"]["seed"] == 7 and job["n_cells"] == 72
-    units = crud.unit_ids_of_job(session, job["id"], pending_only=False)
+    units = jobs.unit_ids_of_job(session, job["id"], pending_only=False)
     assert sorted(publisher.published) == sorted(units)
-    assert crud.units_to_publish(session) == []  # marked published
+    assert outbox.units_to_publish(session) == []  # marked published
 
 
 def test_submit_while_broker_down_still_202_and_relay_sends(build_client, session, make_account):
@@ -47,8 +47,8 @@ def test_submit_while_broker_down_still_202_and_relay_sends(build_client, sessio
     acc = make_account()
     r = submit(client, acc)
     assert r.status_code == 202
-    units = crud.unit_ids_of_job(session, r.json()["id"])
-    assert set(units) <= set(crud.units_to_publish(session))
+    units = jobs.unit_ids_of_job(session, r.json()["id"])
+    assert set(units) <= set(outbox.units_to_publish(session))
 
 
 def test_idempotency_key_same_job_one_set_of_units(client, publisher, session, make_account):
@@ -187,8 +187,8 @@ def test_get_and_cancel(client, session, make_account):
     assert r.status_code == 200 and r.json()["id"] == jid
     r = client.post(f"{API}/jobs/{jid}/cancel", headers=acc.headers)
     assert r.status_code == 200 and r.json()["status"] == "cancelled"
-    assert crud.units_to_publish(session) == [] or all(
-        session.get(WorkUnit, u).job_id != jid for u in crud.units_to_publish(session)
+    assert outbox.units_to_publish(session) == [] or all(
+        session.get(WorkUnit, u).job_id != jid for u in outbox.units_to_publish(session)
     )
     assert client.post(f"{API}/jobs/{jid}/cancel", headers=acc.headers).status_code == 200
     jid2 = submit(client, acc).json()["id"]

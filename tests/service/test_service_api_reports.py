@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import re
 
-from service.db import crud
-from svrobs_core.experiments import run_unit
+from service.db import jobs, units
 from svrobs_core.paper import paper_specs
 from svrobs_core.report import table2
+from svrobs_core.runner import run_unit
 from svrobs_core.spec import parse_spec
 
 API = "/api/v1"
@@ -16,10 +16,10 @@ API = "/api/v1"
 def run_units_with_core(session, job_id):
     """Run every unit of the job through the real core, as a worker would."""
     records = []
-    for uid in crud.unit_ids_of_job(session, job_id, pending_only=False):
-        spec_dict, payload = crud.start_unit(session, uid, "test", 60)
+    for uid in jobs.unit_ids_of_job(session, job_id, pending_only=False):
+        spec_dict, payload = units.start_unit(session, uid, "test", 60)
         recs = run_unit(parse_spec(spec_dict), payload)
-        crud.complete_unit(session, uid, recs)
+        units.complete_unit(session, uid, recs)
         session.commit()
         records += recs
     return records

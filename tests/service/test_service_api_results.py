@@ -9,8 +9,8 @@ import json
 import pytest
 from sqlalchemy import select
 
-from service.db.crud import row_to_record
 from service.db.models import Result
+from service.db.results_store import row_to_record
 from svrobs_core.records import MATRIX_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC

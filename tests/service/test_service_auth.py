@@ -6,8 +6,9 @@ from datetime import timedelta
 
 import pytest
 
-from service import admin
-from service.auth import authenticate, hash_key, split_key
+from service.db import accounts
+from service.db.accounts import authenticate, hash_key, split_key
+from service.db.errors import AdminError
 from service.db.models import utcnow
 
 API = "/api/v1"
@@ -27,7 +28,7 @@ def test_key_format_and_hash(session, make_account):
 def test_revoked_key_401(client, session, make_account):
     acc = make_account()
     assert client.get(f"{API}/jobs", headers=acc.headers).status_code == 200
-    admin.revoke_key(session, acc.key_row.prefix)
+    accounts.revoke_key(session, acc.key_row.prefix)
     session.commit()
     r = client.get(f"{API}/jobs", headers=acc.headers)
     assert r.status_code == 401 and r.headers["WWW-Authenticate"] == "Bearer"
@@ -42,17 +43,17 @@ def test_expired_key_401(client, session, make_account):
 
 
 def test_admin_errors(session):
-    t = admin.create_team(session, "lab")
-    with pytest.raises(admin.AdminError):
-        admin.create_team(session, "lab")
-    admin.create_user(session, "lab", "A@Lab.org")
-    with pytest.raises(admin.AdminError):
-        admin.create_user(session, t.id, "a@lab.org")
-    with pytest.raises(admin.AdminError):
-        admin.create_user(session, "nolab", "b@lab.org")
-    row, key = admin.create_key(session, "a@lab.org", name="ci")
+    t = accounts.create_team(session, "lab")
+    with pytest.raises(AdminError):
+        accounts.create_team(session, "lab")
+    accounts.create_user(session, "lab", "A@Lab.org")
+    with pytest.raises(AdminError):
+        accounts.create_user(session, t.id, "a@lab.org")
+    with pytest.raises(AdminError):
+        accounts.create_user(session, "nolab", "b@lab.org")
+    row, key = accounts.create_key(session, "a@lab.org", name="ci")
     assert row.team_id == t.id and key not in (row.key_hash, row.prefix)
-    admin.revoke_key(session, key)  # by full key too
+    accounts.revoke_key(session, key)  # by full key too
     assert row.revoked_at is not None
-    with pytest.raises(admin.AdminError):
-        admin.revoke_key(session, "nope")
+    with pytest.raises(AdminError):
+        accounts.revoke_key(session, "nope")

@@ -5,7 +5,13 @@ from __future__ import annotations
 import os
 import time
 
-from service.broker import RUN_UNIT_TASK, check_broker, make_celery, publish_units
+from service.broker import (
+    RUN_UNIT_TASK,
+    BrokerPublisher,
+    check_broker,
+    make_celery,
+    publish_units,
+)
 from service.config import Settings
 
 
@@ -38,6 +44,21 @@ def test_publish_to_filesystem_broker(tmp_path):
     msg = json.loads(open(os.path.join(folder, files[0])).read())
     assert msg["headers"]["task"] == RUN_UNIT_TASK
     assert msg["content-type"] == "application/json"
+
+
+def test_broker_publisher_makes_one_app_on_first_use(tmp_path):
+    asked = []
+
+    def settings_of():
+        asked.append(1)
+        return Settings(BROKER_URL="filesystem://", BROKER_DIR=str(tmp_path / "b"))
+
+    publisher = BrokerPublisher(settings_of)
+    assert asked == []  # nothing made before the first publish
+    assert publisher([7, 8]) == [7, 8]
+    app = publisher.get_celery()
+    assert publisher.get_celery() is app and len(asked) == 1
+    assert len(os.listdir(app.conf.broker_transport_options["data_folder_in"])) == 2
 
 
 def test_publish_with_broker_down_returns_quickly():

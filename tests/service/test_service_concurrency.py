@@ -10,8 +10,7 @@ import pytest
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import sessionmaker
 
-from service import admin
-from service.db import crud
+from service.db import accounts, jobs, schedules, units
 from service.db.models import Job, Schedule, Team
 from tests.service.svc_fakes import fake_records
 from tests.service.svc_helpers import SMALL_SPEC
@@ -50,7 +49,7 @@ def _parallel(fns):
 def test_two_ticks_at_once_make_one_job(real_sessions):
     maker, team_ids = real_sessions
     with maker() as s:
-        team = admin.create_team(s, "concurrent-beat")
+        team = accounts.create_team(s, "concurrent-beat")
         team_ids.append(team.id)
         s.add(
             Schedule(
@@ -68,7 +67,7 @@ def test_two_ticks_at_once_make_one_job(real_sessions):
 
     def tick():
         with maker() as s:
-            crud.create_due_schedule_jobs(s, now)
+            schedules.create_due_schedule_jobs(s, now)
             s.commit()
 
     _parallel([tick, tick, tick])
@@ -79,22 +78,22 @@ def test_two_ticks_at_once_make_one_job(real_sessions):
 def test_units_finishing_together_finish_the_job(real_sessions):
     maker, team_ids = real_sessions
     with maker() as s:
-        team = admin.create_team(s, "concurrent-units")
+        team = accounts.create_team(s, "concurrent-units")
         team_ids.append(team.id)
-        job = crud.create_job(s, team_id=team.id, user_id=None, spec=SMALL_SPEC)
+        job, _ = jobs.create_job(s, team_id=team.id, user_id=None, spec=SMALL_SPEC)
         s.commit()
-        ids = crud.unit_ids_of_job(s, job.id)
+        ids = jobs.unit_ids_of_job(s, job.id)
         for uid in ids:
-            crud.start_unit(s, uid, "w", 60)
+            units.start_unit(s, uid, "w", 60)
         s.commit()
-        payloads = {uid: crud.start_unit(s, uid, "w", 60) for uid in ids}
+        payloads = {uid: units.start_unit(s, uid, "w", 60) for uid in ids}
         s.commit()
 
     def finisher(uid):
         def fn():
             with maker() as s:
                 spec, payload = payloads[uid]
-                crud.complete_unit(s, uid, fake_records(spec, payload))
+                units.complete_unit(s, uid, fake_records(spec, payload))
                 s.commit()
 
         return fn

@@ -1,4 +1,4 @@
-"""crud: jobs, units, idempotent completion, relay, schedules, cancel."""
+"""service.db: jobs, units, idempotent completion, the outbox, schedules, cancel."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from datetime import UTC, datetime, timedelta
 import pytest
 from sqlalchemy import delete, func, select
 
-from service.db import crud
+from service.db import errors, jobs, outbox, results_store, schedules, units
 from service.db.models import Job, Result, Schedule, ScheduleRun, Summary, WorkUnit
 from svrobs_core.errors import SpecError
 from svrobs_core.spec import parse_spec
@@ -24,7 +24,7 @@ def _count(session, model, **where):
 
 def test_create_job_writes_job_and_units(session, make_account):
     acc = make_account()
-    job = crud.create_job(
+    job, created = jobs.create_job(
         session,
         team_id=acc.team.id,
         user_id=acc.user.id,
@@ -33,7 +33,7 @@ def test_create_job_writes_job_and_units(session, make_account):
         tags=["a", "b", "a"],
     )
     session.commit()
-    assert job.was_created and job.status == "queued"
+    assert created and job.status == "queued"
     assert job.n_cells == parse_spec(SMALL_SPEC).n_cells == 2 * 2 * 2 * 3 * 3
     assert job.spec == parse_spec(SMALL_SPEC).to_dict()
     assert job.tags == ["a", "b"]
@@ -45,30 +45,30 @@ def test_create_job_writes_job_and_units(session, make_account):
 def test_idempotency_key_returns_same_job(session, make_account):
     acc = make_account()
     kw = dict(team_id=acc.team.id, user_id=acc.user.id, spec=SMALL_SPEC, idempotency_key="k1")
-    a = crud.create_job(session, **kw)
+    a, _ = jobs.create_job(session, **kw)
     session.commit()
-    b = crud.create_job(session, **kw)
+    b, created = jobs.create_job(session, **kw)
     session.commit()
-    assert a.id == b.id and not b.was_created
+    assert a.id == b.id and not created
     assert _count(session, Job, team_id=acc.team.id) == 1
     assert _count(session, WorkUnit, job_id=a.id) == SMALL_UNITS
-    with pytest.raises(crud.IdempotencyConflict):
-        crud.create_job(session, **{**kw, "spec": {**SMALL_SPEC, "seed": 8}})
+    with pytest.raises(errors.IdempotencyConflict):
+        jobs.create_job(session, **{**kw, "spec": {**SMALL_SPEC, "seed": 8}})
     # the key is per team
     other = make_account()
-    c = crud.create_job(session, **{**kw, "team_id": other.team.id, "user_id": other.user.id})
+    c, _ = jobs.create_job(session, **{**kw, "team_id": other.team.id, "user_id": other.user.id})
     assert c.id != a.id
 
 
 def test_bad_and_too_large_specs_raise(session, make_account):
     acc = make_account()
     with pytest.raises(SpecError) as e:
-        crud.create_job(
+        jobs.create_job(
             session, team_id=acc.team.id, user_id=None, spec={**SMALL_SPEC, "gamma": [0.1, -1]}
         )
     assert e.value.field == "gamma[1]"
-    with pytest.raises(crud.JobTooLarge) as e:
-        crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC, max_cells=10)
+    with pytest.raises(errors.JobTooLarge) as e:
+        jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC, max_cells=10)
     assert e.value.field == "spec"
     assert _count(session, Job, team_id=acc.team.id) == 0
 
@@ -76,32 +76,32 @@ def test_bad_and_too_large_specs_raise(session, make_account):
 def test_queued_job_cap(session, make_account):
     acc = make_account()
     for _ in range(2):
-        crud.create_job(
+        jobs.create_job(
             session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC, max_active_jobs=2
         )
-    with pytest.raises(crud.QuotaExceeded):
-        crud.create_job(
+    with pytest.raises(errors.QuotaExceeded):
+        jobs.create_job(
             session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC, max_active_jobs=2
         )
 
 
 def test_unit_lifecycle_and_double_completion(session, make_account):
     acc = make_account()
-    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     session.commit()
-    ids = crud.unit_ids_of_job(session, job.id)
-    spec, payload = crud.start_unit(session, ids[0], "w1", 60)
+    ids = jobs.unit_ids_of_job(session, job.id)
+    spec, payload = units.start_unit(session, ids[0], "w1", 60)
     session.commit()
     session.refresh(job)
     assert job.status == "running" and job.started_at is not None
     recs = fake_records(spec, payload)
-    crud.complete_unit(session, ids[0], recs)
-    crud.complete_unit(session, ids[0], recs)  # a redelivered task
+    units.complete_unit(session, ids[0], recs)
+    units.complete_unit(session, ids[0], recs)  # a redelivered task
     session.commit()
     assert _count(session, Result, job_id=job.id) == len(recs)
     session.refresh(job)
     assert job.progress_done == 1 and job.status == "running"
-    assert crud.start_unit(session, ids[0], "w2", 60) is None  # done units are skipped
+    assert units.start_unit(session, ids[0], "w2", 60) is None  # done units are skipped
     run_job_units(session, job.id)
     session.refresh(job)
     assert job.status == "succeeded" and job.progress_done == job.progress_total == SMALL_UNITS
@@ -110,7 +110,7 @@ def test_unit_lifecycle_and_double_completion(session, make_account):
     # one row per cell even after a full second pass
     for uid in ids:
         unit = session.get(WorkUnit, uid)
-        crud.complete_unit(session, uid, fake_records(job.spec, unit.payload))
+        units.complete_unit(session, uid, fake_records(job.spec, unit.payload))
     session.commit()
     assert _count(session, Result, job_id=job.id) == job.n_cells
     groups = session.scalars(select(Summary).where(Summary.job_id == job.id)).all()
@@ -122,16 +122,17 @@ def test_unit_lifecycle_and_double_completion(session, make_account):
 
 def test_stored_values_round_trip(session, make_account):
     acc = make_account()
-    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     session.commit()
-    uid = crud.unit_ids_of_job(session, job.id)[0]
-    spec, payload = crud.start_unit(session, uid, "w", 60)
+    uid = jobs.unit_ids_of_job(session, job.id)[0]
+    spec, payload = units.start_unit(session, uid, "w", 60)
     recs = fake_records(spec, payload)
-    crud.complete_unit(session, uid, recs)
+    units.complete_unit(session, uid, recs)
     session.commit()
     rows = session.execute(select(Result).where(Result.job_id == job.id)).scalars().all()
     got = {
-        (r.system, r.sigma_w, r.N, r.estimator, r.gamma, r.rep): crud.row_to_record(r) for r in rows
+        (r.system, r.sigma_w, r.N, r.estimator, r.gamma, r.rep): results_store.row_to_record(r)
+        for r in rows
     }
     for rec in recs:
         back = got[
@@ -146,71 +147,71 @@ def test_stored_values_round_trip(session, make_account):
 
 def test_fail_unit_final_names_cells(session, make_account):
     acc = make_account()
-    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     session.commit()
-    ids = crud.unit_ids_of_job(session, job.id)
-    crud.start_unit(session, ids[1], "w", 60)
-    crud.fail_unit(session, ids[1], "boom", final=False)
+    ids = jobs.unit_ids_of_job(session, job.id)
+    units.start_unit(session, ids[1], "w", 60)
+    units.fail_unit(session, ids[1], "boom", final=False)
     assert session.get(WorkUnit, ids[1]).status == "pending"
-    crud.fail_unit(session, ids[1], "boom", final=True)
+    units.fail_unit(session, ids[1], "boom", final=True)
     session.commit()
     session.refresh(job)
     assert job.status == "failed"
     assert "boom" in job.error and "system=paper-stable" in job.error and "N=[20, 40]" in job.error
     assert session.get(WorkUnit, ids[2]).status == "cancelled"
-    assert crud.start_unit(session, ids[0], "w", 60) is None
+    assert units.start_unit(session, ids[0], "w", 60) is None
 
 
 def test_max_attempts_fails_the_unit(session, make_account):
     acc = make_account()
-    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
-    uid = crud.unit_ids_of_job(session, job.id)[0]
+    job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    uid = jobs.unit_ids_of_job(session, job.id)[0]
     for _ in range(3):
-        assert crud.start_unit(session, uid, "w", 60, max_attempts=3) is not None
-    assert crud.start_unit(session, uid, "w", 60, max_attempts=3) is None
+        assert units.start_unit(session, uid, "w", 60, max_attempts=3) is not None
+    assert units.start_unit(session, uid, "w", 60, max_attempts=3) is None
     session.refresh(job)
     assert job.status == "failed" and "3 attempts" in job.error
 
 
 def test_relay_publishes_unpublished_and_expired(session, make_account):
     acc = make_account()
-    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     session.commit()
-    ids = crud.unit_ids_of_job(session, job.id)
-    assert crud.units_to_publish(session) == ids
-    crud.mark_published(session, ids[:5])
-    assert crud.units_to_publish(session) == ids[5:]
-    crud.mark_published(session, ids[5:])
-    assert crud.units_to_publish(session) == []
+    ids = jobs.unit_ids_of_job(session, job.id)
+    assert outbox.units_to_publish(session) == ids
+    outbox.mark_published(session, ids[:5])
+    assert outbox.units_to_publish(session) == ids[5:]
+    outbox.mark_published(session, ids[5:])
+    assert outbox.units_to_publish(session) == []
     later = datetime.now(UTC) + timedelta(hours=2)
     # published but never started -> re-published after the retry time
-    assert crud.units_to_publish(session, now=later, retry_seconds=600) == ids
-    crud.start_unit(session, ids[0], "w", lease_seconds=60)
-    assert ids[0] not in crud.units_to_publish(session)
-    assert ids[0] in crud.units_to_publish(session, now=later)  # the lease ran out
-    crud.mark_published(session, [ids[0]], now=later)
+    assert outbox.units_to_publish(session, now=later, retry_seconds=600) == ids
+    units.start_unit(session, ids[0], "w", lease_seconds=60)
+    assert ids[0] not in outbox.units_to_publish(session)
+    assert ids[0] in outbox.units_to_publish(session, now=later)  # the lease ran out
+    outbox.mark_published(session, [ids[0]], now=later)
     assert session.get(WorkUnit, ids[0]).status == "pending"
-    crud.cancel_job(session, job)
-    assert crud.units_to_publish(session, now=later) == []
+    jobs.cancel_job(session, job)
+    assert outbox.units_to_publish(session, now=later) == []
 
 
 def test_cancel_job(session, make_account):
     acc = make_account()
-    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     session.commit()
-    ids = crud.unit_ids_of_job(session, job.id)
-    crud.start_unit(session, ids[0], "w", 60)
-    job = crud.cancel_job(session, job)
+    ids = jobs.unit_ids_of_job(session, job.id)
+    units.start_unit(session, ids[0], "w", 60)
+    job = jobs.cancel_job(session, job)
     session.commit()
     assert job.status == "cancelled" and job.finished_at
     statuses = {
         u.status for u in session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id))
     }
     assert statuses == {"running", "cancelled"}
-    assert crud.start_unit(session, ids[1], "w", 60) is None
+    assert units.start_unit(session, ids[1], "w", 60) is None
     # the running unit may still finish; the job stays cancelled
     spec = job.spec
-    crud.complete_unit(session, ids[0], fake_records(spec, session.get(WorkUnit, ids[0]).payload))
+    units.complete_unit(session, ids[0], fake_records(spec, session.get(WorkUnit, ids[0]).payload))
     session.refresh(job)
     assert job.status == "cancelled"
 
@@ -237,9 +238,9 @@ def test_due_schedule_ticked_twice_gives_one_job(session, make_account):
     s = _schedule(session, acc)
     session.commit()
     now = datetime(2024, 6, 1, 0, 30, tzinfo=UTC)  # 02:30 in Paris (CEST)
-    first = crud.create_due_schedule_jobs(session, now)
+    first = schedules.create_due_schedule_jobs(session, now)
     session.commit()
-    second = crud.create_due_schedule_jobs(session, now + timedelta(minutes=1))
+    second = schedules.create_due_schedule_jobs(session, now + timedelta(minutes=1))
     session.commit()
     mine = [j for j in first if j.team_id == acc.team.id]
     assert len(mine) == 1 and not [j for j in second if j.team_id == acc.team.id]
@@ -250,7 +251,7 @@ def test_due_schedule_ticked_twice_gives_one_job(session, make_account):
     assert runs[0].due_at == datetime(2024, 6, 1, 0, 0, tzinfo=UTC)
     assert _count(session, Job, schedule_id=s.id) == 1
     # the next day is a new run
-    nxt = crud.create_due_schedule_jobs(session, now + timedelta(days=1))
+    nxt = schedules.create_due_schedule_jobs(session, now + timedelta(days=1))
     assert len([j for j in nxt if j.team_id == acc.team.id]) == 1
 
 
@@ -259,32 +260,32 @@ def test_schedule_not_due_before_creation_or_disabled(session, make_account):
     created = datetime(2024, 6, 1, 0, 10, tzinfo=UTC)
     _schedule(session, acc, created_at=created)
     _schedule(session, acc, name="off", enabled=False)
-    jobs = crud.create_due_schedule_jobs(session, created + timedelta(minutes=5))
-    assert not [j for j in jobs if j.team_id == acc.team.id]
+    made = schedules.create_due_schedule_jobs(session, created + timedelta(minutes=5))
+    assert not [j for j in made if j.team_id == acc.team.id]
 
 
 def test_schedule_with_broken_template_records_error(session, make_account):
     acc = make_account()
     s = _schedule(session, acc, spec_template={"systems": ["nope"], "sigma_w": [1], "N": [5]})
-    jobs = crud.create_due_schedule_jobs(session, datetime(2024, 6, 1, 3, tzinfo=UTC))
-    assert not [j for j in jobs if j.team_id == acc.team.id]
+    made = schedules.create_due_schedule_jobs(session, datetime(2024, 6, 1, 3, tzinfo=UTC))
+    assert not [j for j in made if j.team_id == acc.team.id]
     run = session.scalar(select(ScheduleRun).where(ScheduleRun.schedule_id == s.id))
     assert run.job_id is None and "systems[0]" in run.error
 
 
 def test_latest_due_in_time_zone():
     now = datetime(2024, 1, 15, 1, 30, tzinfo=UTC)  # 02:30 Paris (CET)
-    assert crud.latest_due("0 2 * * *", "Europe/Paris", now) == datetime(
+    assert schedules.latest_due("0 2 * * *", "Europe/Paris", now) == datetime(
         2024, 1, 15, 1, 0, tzinfo=UTC
     )
     exact = datetime(2024, 1, 15, 1, 0, tzinfo=UTC)
-    assert crud.latest_due("0 2 * * *", "Europe/Paris", exact) == exact
+    assert schedules.latest_due("0 2 * * *", "Europe/Paris", exact) == exact
 
 
 def test_record_to_row_coerces_every_field_to_its_column_type():
     import math as _m
 
-    from service.db.crud import record_to_row
+    from service.db.results_store import record_to_row
     from svrobs_core.records import BOOL_FIELDS, empty_record
 
     rec = empty_record()
@@ -317,8 +318,8 @@ def test_record_to_row_coerces_every_field_to_its_column_type():
 def test_unit_columns_store_the_same_rows_as_records(session, make_account):
     """The columnar write (a worker's UnitResult) = the record-dict write, cell by cell,
     = the core's records with NaN as null; every stage, so every field is exercised."""
-    from svrobs_core.experiments import run_unit_result
     from svrobs_core.records import json_value
+    from svrobs_core.runner import run_unit_result
 
     spec = {
         **SMALL_SPEC,
@@ -333,18 +334,20 @@ def test_unit_columns_store_the_same_rows_as_records(session, make_account):
     acc = make_account()
     got = []
     for as_columns in (True, False):
-        job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=spec)
+        job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=spec)
         session.commit()
-        for uid in crud.unit_ids_of_job(session, job.id):
-            spec_dict, payload = crud.start_unit(session, uid, "w", 60)
+        for uid in jobs.unit_ids_of_job(session, job.id):
+            spec_dict, payload = units.start_unit(session, uid, "w", 60)
             result = run_unit_result(parse_spec(spec_dict), payload)
-            crud.complete_unit(session, uid, result if as_columns else result.records())
+            units.complete_unit(session, uid, result if as_columns else result.records())
         session.commit()
         rows = session.scalars(select(Result).where(Result.job_id == job.id)).all()
-        got.append({(r.N, r.estimator, r.gamma, r.rep): crud.row_to_record(r) for r in rows})
+        got.append(
+            {(r.N, r.estimator, r.gamma, r.rep): results_store.row_to_record(r) for r in rows}
+        )
     columns, records = got
     assert len(columns) == 2 * 3 and columns == records
-    want = run_unit_result(parse_spec(spec), crud.plan_units(parse_spec(spec))[0]).records()
+    want = run_unit_result(parse_spec(spec), jobs.plan_units(parse_spec(spec))[0]).records()
     for rec in want:
         stored = columns[(rec["N"], rec["estimator"], rec["gamma"], rec["rep"])]
         assert stored == {k: json_value(v) for k, v in rec.items()}
@@ -387,22 +390,22 @@ def test_stored_summaries_equal_a_summary_of_all_results(
     from svrobs_core.records import summarize
 
     if split_reps is True:  # 1 repetition per unit: every group spans three units
-        monkeypatch.setattr(crud, "plan_units", functools.partial(crud.plan_units, max_cells=6))
+        monkeypatch.setattr(jobs, "plan_units", functools.partial(jobs.plan_units, max_cells=6))
     acc = make_account()
-    job = crud.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     session.commit()
-    units = session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id)).all()
-    assert any(u.payload["reps"] != [0, 3] for u in units) == (split_reps is True)
-    first = units[0]
-    spec, payload = crud.start_unit(session, first.id, "w", 60)
-    crud.complete_unit(session, first.id, fake_records(spec, payload))
-    crud.complete_unit(session, first.id, fake_records(spec, payload))  # redelivered
+    rows = session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id)).all()
+    assert any(u.payload["reps"] != [0, 3] for u in rows) == (split_reps is True)
+    first = rows[0]
+    spec, payload = units.start_unit(session, first.id, "w", 60)
+    units.complete_unit(session, first.id, fake_records(spec, payload))
+    units.complete_unit(session, first.id, fake_records(spec, payload))  # redelivered
     if split_reps == "lost":
         session.execute(delete(Summary).where(Summary.job_id == job.id))
     run_job_units(session, job.id)
     session.commit()
     rows = session.scalars(select(Result).where(Result.job_id == job.id)).all()
-    want = summarize([crud.row_to_record(r) for r in rows])
+    want = summarize([results_store.row_to_record(r) for r in rows])
     stored = session.scalars(select(Summary).where(Summary.job_id == job.id)).all()
     got = {(s.system, s.sigma_w, s.N, s.estimator, s.gamma): (s.count, s.stats) for s in stored}
     assert len(got) == len(stored) == len(want) == 24

@@ -156,7 +156,7 @@ def test_openapi_documents_error_media_types_and_413(client):
 
 
 def test_preset_run_idempotency_key_reused_with_another_scale_is_409(client, session, make_account):
-    # found by the PostgreSQL fuzz pass: crud.IdempotencyConflict escaped as a 500
+    # found by the PostgreSQL fuzz pass: errors.IdempotencyConflict escaped as a 500
     acc = make_account()
     h = {**acc.headers, "Idempotency-Key": "paper"}
     url = f"{API}/presets/paper-section-6/run"

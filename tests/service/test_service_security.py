@@ -13,8 +13,8 @@ from datetime import timedelta
 import pytest
 from sqlalchemy import func, select
 
-from service import auth
-from service.auth import authenticate, hash_key
+from service.db import accounts
+from service.db.accounts import authenticate, hash_key
 from service.db.models import Job, Schedule, utcnow
 from tests.service.svc_helpers import SMALL_SPEC
 
@@ -30,7 +30,7 @@ def compare_spy(monkeypatch):
         calls.append((a, b))
         return real(a, b)
 
-    monkeypatch.setattr(auth.hmac, "compare_digest", spy)
+    monkeypatch.setattr(accounts.hmac, "compare_digest", spy)
     return calls
 
 
@@ -44,7 +44,7 @@ def test_right_prefix_wrong_secret_is_rejected_by_constant_time_compare(
 ):
     acc = make_account()
     bad = _wrong_secret(acc.key)
-    assert auth.split_key(bad) == acc.key_row.prefix  # the lookup finds the row
+    assert accounts.split_key(bad) == acc.key_row.prefix  # the lookup finds the row
     assert authenticate(session, bad) is None
     assert compare_spy == [(acc.key_row.key_hash, hash_key(bad))]
     compare_spy.clear()
@@ -57,7 +57,7 @@ def test_unknown_or_malformed_keys_do_the_same_compare(session, compare_spy):
     for key in ("svr_zzzzzzzz_secret", "not-a-key", ""):
         compare_spy.clear()
         assert authenticate(session, key) is None
-        assert len(compare_spy) == 1 and compare_spy[0][0] == auth._DUMMY_HASH
+        assert len(compare_spy) == 1 and compare_spy[0][0] == accounts._DUMMY_HASH
 
 
 def test_key_of_one_user_with_secret_of_another_is_401(client, make_account):

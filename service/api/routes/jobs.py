@@ -12,11 +12,13 @@ from sqlalchemy.orm import joinedload
 from service.api.deps import DB, CurrentCaller, PublisherDep, SessionFactoryDep, SettingsDep
 from service.api.routes.common import FieldHTTPException, JobId, job_out, team_job
 from service.api.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
-from service.db import crud
+from service.db.errors import IdempotencyConflict, QuotaExceeded
+from service.db.jobs import cancel_job, create_job, unit_ids_of_job
 from service.db.models import Job, JobTag, User
+from service.db.outbox import mark_published
 from svrobs_core.errors import SpecError
 
-log = logging.getLogger("svrobs.api")
+log = logging.getLogger(__name__)
 router = APIRouter(tags=["jobs"])
 
 ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 422, 429, 503)}
@@ -36,7 +38,7 @@ def publish_after_commit(publisher, session_factory, unit_ids: list[int]) -> Non
     try:
         session = session_factory(True)
         try:
-            crud.mark_published(session, sent)
+            mark_published(session, sent)
             session.commit()
         finally:
             session.close()
@@ -68,7 +70,7 @@ def submit_job(
     data = body.model_dump(exclude_unset=True)
     spec = {k: data[k] for k in SPEC_FIELD_NAMES if k in data}
     try:
-        job = crud.create_job(
+        job, created = create_job(
             session,
             team_id=caller.team_id,
             user_id=caller.user_id,
@@ -85,13 +87,13 @@ def submit_job(
     except (TypeError, ValueError, KeyError, IndexError) as exc:  # a spec the core choked on
         session.rollback()
         raise FieldHTTPException(422, f"invalid spec: {exc}", "spec") from exc
-    except crud.QuotaExceeded as exc:
+    except QuotaExceeded as exc:
         session.rollback()
         raise HTTPException(429, str(exc)) from exc
-    except crud.IdempotencyConflict as exc:
+    except IdempotencyConflict as exc:
         session.rollback()
         raise FieldHTTPException(409, str(exc), "Idempotency-Key") from exc
-    unit_ids = crud.unit_ids_of_job(session, job.id) if job.was_created else []
+    unit_ids = unit_ids_of_job(session, job.id) if created else []
     out = job_out(job)  # flushed: ids and defaults are set; no read-back after COMMIT
     session.commit()
     session.close()  # end this request's transaction before publishing
@@ -148,6 +150,6 @@ def cancel(job_id: JobId, session: DB, caller: CurrentCaller):
     job = team_job(session, caller.team_id, job_id)
     if job.status in ("succeeded", "failed"):
         raise HTTPException(409, f"job {job_id} already {job.status}")
-    job = crud.cancel_job(session, job)
+    job = cancel_job(session, job)
     session.commit()
     return job_out(team_job(session, caller.team_id, job_id))

@@ -14,11 +14,12 @@ from service.api.routes.common import FieldHTTPException, JobId, job_out, team_j
 from service.api.routes.jobs import BODY_ERRORS, ERRORS, publish_after_commit
 from service.api.routes.results import ORDER, RESULT_COLUMNS
 from service.api.schemas import ErrorOut, JobOut
-from service.db import crud
-from service.db.crud import row_to_record
+from service.db.errors import IdempotencyConflict, QuotaExceeded
+from service.db.jobs import create_job, unit_ids_of_job
 from service.db.models import Result
+from service.db.results_store import row_to_record
+from service.reports.html import job_report_html
 from svrobs_core.paper import PRESET_NAME, paper_specs
-from svrobs_core.report import job_report_html
 
 router = APIRouter(tags=["reports"])
 
@@ -83,7 +84,7 @@ def run_paper_preset(
     jobs, unit_ids = [], []
     try:
         for name in names:
-            job = crud.create_job(
+            job, created = create_job(
                 session,
                 team_id=caller.team_id,
                 user_id=caller.user_id,
@@ -95,12 +96,12 @@ def run_paper_preset(
                 max_active_jobs=settings.MAX_QUEUED_JOBS_PER_TEAM,
             )
             jobs.append(job.id)
-            if job.was_created:
-                unit_ids += crud.unit_ids_of_job(session, job.id)
-    except crud.QuotaExceeded as exc:
+            if created:
+                unit_ids += unit_ids_of_job(session, job.id)
+    except QuotaExceeded as exc:
         session.rollback()
         raise FieldHTTPException(429, str(exc)) from exc
-    except crud.IdempotencyConflict as exc:  # the key was used with another scale
+    except IdempotencyConflict as exc:  # the key was used with another scale
         session.rollback()
         raise FieldHTTPException(409, str(exc), "Idempotency-Key") from exc
     session.commit()

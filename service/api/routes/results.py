@@ -19,8 +19,9 @@ from service.api.deps import DB, CurrentCaller, SessionFactoryDep
 from service.api.record_json import encode_lines, encode_page, record_columns
 from service.api.routes.common import MAX_ID, FieldHTTPException, JobId, team_job
 from service.api.schemas import CompareOut, ErrorOut, ResultPage, SummaryOut
-from service.db.crud import row_to_record, summarize_job
 from service.db.models import Result, Summary
+from service.db.results_store import row_to_record
+from service.db.units import summarize_job
 from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
 
 router = APIRouter(tags=["results"])

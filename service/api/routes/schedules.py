@@ -1,6 +1,6 @@
 """Schedules CRUD: a cron expression in a time zone, a spec template, enabled.
 
-Beat's tick (``crud.create_due_schedule_jobs``) turns each due time into
+Beat's tick (``service.db.schedules.create_due_schedule_jobs``) turns each due time into
 exactly one job.
 """
 
@@ -24,8 +24,9 @@ from service.api.schemas import (
     ScheduleRunOut,
     ScheduleUpdate,
 )
-from service.db.crud import JobTooLarge
+from service.db.errors import JobTooLarge
 from service.db.models import Schedule, ScheduleRun, utcnow
+from service.db.schedules import validate_cron, validate_timezone
 from svrobs_core.errors import SpecError
 from svrobs_core.spec import parse_spec
 
@@ -33,37 +34,6 @@ router = APIRouter(tags=["schedules"])
 ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 409, 422, 429, 503)}
 BODY_ERRORS = {**ERRORS, 413: {"model": ErrorOut}}  # routes with a body: SVROBS_MAX_BODY_BYTES
 ScheduleId = Annotated[int, Path(ge=1, le=MAX_ID)]
-CRON_ALIASES = ("@yearly", "@annually", "@monthly", "@weekly", "@daily", "@midnight", "@hourly")
-
-
-def validate_cron(expr: str) -> str:
-    expr = " ".join(expr.split())
-    if expr.startswith("@"):
-        if expr.lower() not in CRON_ALIASES:
-            raise SpecError("cron", f"unknown alias {expr!r}; known: {list(CRON_ALIASES)}")
-        return expr.lower()
-    if len(expr.split(" ")) != 5:
-        raise SpecError("cron", "must have 5 fields: minute hour day-of-month month day-of-week")
-    try:
-        ok = croniter.is_valid(expr)
-        if ok:
-            croniter(expr, datetime.now(UTC)).get_next(datetime)
-    except Exception:  # noqa: BLE001 - croniter raises several types
-        ok = False
-    if not ok:
-        raise SpecError("cron", f"invalid cron expression {expr!r}")
-    return expr
-
-
-def validate_timezone(tz: str) -> str:
-    try:
-        ZoneInfo(tz)
-    except Exception:  # noqa: BLE001 - ZoneInfoNotFoundError, ValueError for odd paths
-        raise SpecError(
-            "timezone",
-            f"unknown time zone {tz!r} (use an IANA name such as 'Europe/Paris' or 'UTC')",
-        ) from None
-    return tz
 
 
 def validate_template(spec: dict, max_cells: int) -> dict:

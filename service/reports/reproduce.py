@@ -30,7 +30,6 @@ import functools
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -40,10 +39,14 @@ import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
+from service.db.provenance import git_commit
 from svrobs_core import __version__, parse_spec, plan_units, run_spec
 from svrobs_core import report as rpt
-from svrobs_core.experiments import UnitResult, open_pool
 from svrobs_core.paper import EXPERIMENTS, MC_DECISION, PRESET_NAME, paper_specs
+from svrobs_core.parallel import open_pool
+from svrobs_core.unit_result import UnitResult
+
+from .html import render_html
 
 # Above this many cells an experiment keeps no A_hat/B_hat in memory for the
 # report (only E1/E2-sized grids draw the figures that need them).
@@ -280,22 +283,6 @@ def _stream(
     return results
 
 
-def _git_commit() -> str | None:
-    try:
-        root = Path(__file__).resolve().parent.parent
-        res = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            cwd=root,
-            capture_output=True,
-            text=True,
-            timeout=5,
-            env={**os.environ, "GIT_OPTIONAL_LOCKS": "0"},
-        )
-        return res.stdout.strip() or None if res.returncode == 0 else None
-    except (OSError, subprocess.SubprocessError):
-        return None
-
-
 def _versions() -> dict:
     import matplotlib
     import numpy
@@ -401,7 +388,7 @@ def _write_report(
         "command": f"svrobs reproduce --out {out_dir}"
         + ("" if scale == "full" else f" --scale {scale}"),
         "svrobs_version": __version__,
-        "git_commit": _git_commit(),
+        "git_commit": git_commit(),
         **_versions(),
         "platform": platform.platform(),
         "cpus": os.cpu_count(),
@@ -449,7 +436,7 @@ def _write_report(
     provenance["run_total_seconds"] = round(t_run, 3)
     report.provenance = provenance
     write("report.md", rpt.render_markdown(report))
-    write("report.html", rpt.render_html(report))
+    write("report.html", render_html(report))
     write("provenance.json", json.dumps(provenance, indent=1))
     if not quiet:
         console.print(
@@ -464,7 +451,7 @@ def _write_report(
     }
 
 
-if __name__ == "__main__":  # python -m service.reproduce DIR [full|reduced]
+if __name__ == "__main__":  # python -m service.reports.reproduce DIR [full|reduced]
     reproduce(
         sys.argv[1] if len(sys.argv) > 1 else "reproduce-out",
         sys.argv[2] if len(sys.argv) > 2 else "full",

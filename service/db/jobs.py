@@ -1,0 +1,191 @@
+"""Jobs: create (validate, check the quota and the Idempotency-Key, plan the units),
+cancel, look up their units.
+
+Every function takes an open :class:`~sqlalchemy.orm.Session` and never commits:
+the caller owns the transaction (``with session_scope() as s:``). Lock order, to
+stay deadlock-free on PostgreSQL: work unit rows, then the job row.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from sqlalchemy import func, insert, select, update
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from service.config import get_settings
+from svrobs_core.planning import plan_units, unit_cells
+from svrobs_core.spec import parse_spec
+
+from .errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
+from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
+from .provenance import provenance
+
+
+def create_job(
+    session: Session,
+    *,
+    team_id: int,
+    user_id: int | None,
+    spec: dict,
+    name: str | None = None,
+    tags: Iterable[str] = (),
+    idempotency_key: str | None = None,
+    max_cells: int | None = None,
+    max_active_jobs: int | None = None,
+    schedule_id: int | None = None,
+) -> tuple[Job, bool]:
+    """Validate ``spec`` and insert the job and its work units (not committed).
+
+    Raises :class:`SpecError` (naming the field) for a bad spec,
+    :class:`JobTooLarge` over ``max_cells`` (default SVROBS_MAX_JOB_CELLS),
+    :class:`QuotaExceeded` when the team has ``max_active_jobs`` queued or
+    running jobs (default SVROBS_MAX_QUEUED_JOBS_PER_TEAM; pass 0 to skip),
+    :class:`IdempotencyConflict` when the key was used with another spec.
+    With an ``idempotency_key`` already used by the team for the same spec,
+    returns that job. Returns ``(job, created)``; ``created`` is False for that job.
+    """
+    parsed = parse_spec(spec)
+    normalised = parsed.to_dict()
+    limit = get_settings().MAX_JOB_CELLS if max_cells is None else max_cells
+    if parsed.n_cells > limit:
+        raise JobTooLarge(
+            "spec",
+            f"the job has {parsed.n_cells} cells; the limit is {limit} (SVROBS_MAX_JOB_CELLS)",
+        )
+    tags = list(dict.fromkeys(str(t) for t in tags))
+
+    if idempotency_key is not None:
+        existing = _job_by_key(session, team_id, idempotency_key)
+        if existing is not None:
+            return _same_or_conflict(existing, normalised)
+
+    cap = get_settings().MAX_QUEUED_JOBS_PER_TEAM if max_active_jobs is None else max_active_jobs
+    if cap:
+        active = session.scalar(
+            select(func.count(Job.id)).where(Job.team_id == team_id, Job.status.in_(JOB_ACTIVE))
+        )
+        if active >= cap:
+            raise QuotaExceeded(
+                f"the team has {active} queued or running jobs; the limit is {cap} "
+                "(SVROBS_MAX_QUEUED_JOBS_PER_TEAM)"
+            )
+
+    units = plan_units(parsed)
+    job = Job(
+        team_id=team_id,
+        user_id=user_id,
+        schedule_id=schedule_id,
+        name=name,
+        tags=tags,
+        spec=normalised,
+        status="queued",
+        progress_done=0,
+        progress_total=len(units),
+        n_cells=parsed.n_cells,
+        provenance=provenance(parsed.seed),
+        idempotency_key=idempotency_key,
+        timings={},
+        created_at=utcnow(),
+    )
+    try:
+        with session.begin_nested():
+            session.add(job)
+            session.flush()
+    except IntegrityError:
+        # A concurrent request with the same Idempotency-Key won the insert.
+        existing = _job_by_key(session, team_id, idempotency_key) if idempotency_key else None
+        if existing is None:
+            raise
+        return _same_or_conflict(existing, normalised)
+
+    for t in tags:
+        session.add(JobTag(job_id=job.id, tag=t))
+    if units:
+        session.execute(
+            insert(WorkUnit),
+            [
+                {
+                    "job_id": job.id,
+                    "index": i,
+                    "payload": u,
+                    "n_cells": unit_cells(parsed, u),
+                    "status": "pending",
+                    "attempts": 0,
+                    "created_at": job.created_at,
+                }
+                for i, u in enumerate(units)
+            ],
+        )
+    session.flush()
+    return job, True
+
+
+def _job_by_key(session: Session, team_id: int, key: str) -> Job | None:
+    return session.scalar(select(Job).where(Job.team_id == team_id, Job.idempotency_key == key))
+
+
+def _same_or_conflict(job: Job, normalised: dict) -> tuple[Job, bool]:
+    if job.spec != normalised:
+        raise IdempotencyConflict(job)
+    return job, False
+
+
+def unit_ids_of_job(session: Session, job_id: int, *, pending_only: bool = True) -> list[int]:
+    q = select(WorkUnit.id).where(WorkUnit.job_id == job_id).order_by(WorkUnit.index)
+    if pending_only:
+        q = q.where(WorkUnit.status == "pending")
+    return list(session.scalars(q))
+
+
+def cancel_job(session: Session, job: Job) -> Job:
+    """Pending units -> cancelled and the job -> cancelled (a finished job is left as is).
+
+    Units already running finish and store their results; no new unit starts.
+    """
+    if job.status not in JOB_ACTIVE:
+        return job
+    # units first, then the job (the lock order of this module)
+    session.execute(
+        select(WorkUnit.id)
+        .where(WorkUnit.job_id == job.id, WorkUnit.status == "pending")
+        .order_by(WorkUnit.id)
+        .with_for_update()
+    ).all()
+    session.execute(
+        update(WorkUnit)
+        .where(WorkUnit.job_id == job.id, WorkUnit.status == "pending")
+        .values(status="cancelled", finished_at=utcnow())
+    )
+    locked = lock_job(session, job.id)
+    if locked.status in JOB_ACTIVE:
+        locked.status = "cancelled"
+        locked.finished_at = utcnow()
+        set_timing(locked)
+    session.flush()
+    return locked
+
+
+def set_timing(job: Job) -> None:
+    """Queue, run and total seconds from the job's timestamps."""
+    t = dict(job.timings or {})
+    if job.started_at and job.created_at:
+        t["queue_seconds"] = (job.started_at - job.created_at).total_seconds()
+    if job.finished_at and job.started_at:
+        t["run_seconds"] = (job.finished_at - job.started_at).total_seconds()
+    if job.finished_at and job.created_at:
+        t["total_seconds"] = (job.finished_at - job.created_at).total_seconds()
+    job.timings = t
+
+
+def lock_job(session: Session, job_id: int) -> Job:
+    """The job row, locked FOR NO KEY UPDATE and re-read."""
+    # FOR NO KEY UPDATE: inserting results/units takes KEY SHARE locks on the job row
+    # (their foreign key); a plain FOR UPDATE would deadlock two finishing units.
+    return session.scalar(
+        select(Job)
+        .where(Job.id == job_id)
+        .with_for_update(key_share=True)
+        .execution_options(populate_existing=True)
+    )

@@ -1,0 +1,59 @@
+"""What produced a job's records: package version, git commit, Python and numpy.
+
+Stored on every job (``jobs.provenance``) with the spec's seed.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import platform
+import subprocess
+from functools import lru_cache
+from pathlib import Path
+
+from service.config import get_settings
+
+ROOT = Path(__file__).resolve().parent.parent.parent
+
+
+def git_commit() -> str | None:
+    """SVROBS_GIT_COMMIT, else ``git rev-parse HEAD`` of the checkout, else None."""
+    commit = get_settings().GIT_COMMIT
+    if commit:
+        return commit
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=2,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return (out.stdout.strip() or None) if out.returncode == 0 else None
+
+
+@lru_cache
+def _static_provenance() -> dict:
+    try:
+        version = importlib.metadata.version("svrobs")
+    except importlib.metadata.PackageNotFoundError:  # pragma: no cover
+        import svrobs_core
+
+        version = getattr(svrobs_core, "__version__", None)
+    import numpy
+
+    return {
+        "package": "svrobs",
+        "version": version,
+        "git_commit": git_commit(),
+        "python": platform.python_version(),
+        "numpy": numpy.__version__,
+        "platform": platform.platform(),
+    }
+
+
+def provenance(seed: int) -> dict:
+    """The provenance of a job run with ``seed``."""
+    return {**_static_provenance(), "seed": seed}

@@ -1,0 +1,78 @@
+"""Tables, figures, findings and the Markdown report, from section 10 records.
+
+Pure: records (or :class:`Columns` built from them) in; rows, strings,
+matplotlib ``Figure`` objects and bytes out. Nothing here writes files or
+touches the network. Figures are rendered headless with the Agg canvas. The
+HTML page is rendered by the service (``service.reports.html``).
+
+Every number shown comes from the records (and the spec that produced them).
+The only typed-in numbers are the paper's *published* values of
+``svrobs_core.paper`` (``PUBLISHED_TABLE2``, ``PUBLISHED_CLAIMS``), shown
+beside ours and labelled as published.
+
+Modules, in the order a report is made:
+
+* ``columns``: :class:`Columns` (the records as arrays), spec metadata,
+  selection, grouping and formatting helpers.
+* ``tables``: ``table2(records, gamma=None)``, ``table2_markdown``, ``table2_csv``.
+* ``derived``: per-record quantities, ``first_stable_certified``, ``cost_ratio_of_means``.
+* ``plotting``: figure plumbing, ``figure_bytes(fig, fmt="png" | "svg")``.
+* ``figures``: ``fig_rmse``, ``fig2``, ``fig3``, ``fig4``, ``fig5``,
+  ``fig_coverage``, ``fig_certified``, ``fig_svr_ols_diff``; each
+  ``f(records, spec=None, *, experiment=...) -> matplotlib.figure.Figure``.
+* ``findings``: ``findings(records, spec) -> list[str]``.
+* ``build``: ``build_report(experiments, provenance)``, ``ReportBuilder``, ``Report``.
+* ``markdown``: ``render_markdown(report)``, ``spec_json(spec)``.
+"""
+
+from .build import FIGURE_PLAN, Report, ReportBuilder, ReportFigure, build_report, render_figure
+from .columns import (
+    COLUMN_MATRIX_FIELDS,
+    REPORT_FIELDS,
+    SCALAR_FIELDS,
+    STAGE_FIELDS,
+    TEXT_FIELDS,
+    Columns,
+    as_columns,
+)
+from .derived import cost_ratio_of_means, first_stable_certified, svr_ols_diff
+from .figures import fig2, fig3, fig4, fig5, fig_certified, fig_coverage, fig_rmse, fig_svr_ols_diff
+from .findings import findings
+from .markdown import render_markdown, spec_json
+from .plotting import figure_bytes
+from .tables import TABLE2_COLUMNS, table2, table2_csv, table2_markdown
+
+__all__ = [
+    "COLUMN_MATRIX_FIELDS",
+    "FIGURE_PLAN",
+    "REPORT_FIELDS",
+    "SCALAR_FIELDS",
+    "STAGE_FIELDS",
+    "TABLE2_COLUMNS",
+    "TEXT_FIELDS",
+    "Columns",
+    "Report",
+    "ReportBuilder",
+    "ReportFigure",
+    "as_columns",
+    "build_report",
+    "cost_ratio_of_means",
+    "fig2",
+    "fig3",
+    "fig4",
+    "fig5",
+    "fig_certified",
+    "fig_coverage",
+    "fig_rmse",
+    "fig_svr_ols_diff",
+    "figure_bytes",
+    "findings",
+    "first_stable_certified",
+    "render_figure",
+    "render_markdown",
+    "spec_json",
+    "svr_ols_diff",
+    "table2",
+    "table2_csv",
+    "table2_markdown",
+]

@@ -1,0 +1,269 @@
+"""The whole report: which figure is drawn from which experiment, findings per
+experiment and Table 2, assembled into a :class:`Report` (all at once with
+:func:`build_report`, or as experiments arrive with :class:`ReportBuilder`)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from ..paper import EXPERIMENTS, PRESET_NAME
+from .columns import Columns, as_columns
+from .figures import (
+    fig2,
+    fig3,
+    fig4,
+    fig5,
+    fig_certified,
+    fig_coverage,
+    fig_rmse,
+    fig_svr_ols_diff,
+)
+from .findings import findings
+from .plotting import figure_bytes
+from .tables import table2
+
+
+@dataclass
+class ReportFigure:
+    name: str
+    title: str
+    caption: str
+    experiment: str
+    figure: object  # matplotlib.figure.Figure
+    _png: bytes | None = None
+    _svg: bytes | None = None
+
+    def png(self) -> bytes:
+        if self._png is None:
+            self._png = figure_bytes(self.figure, "png")
+            # the constrained layout is computed by that first draw; keep it fixed
+            # so the SVG (and any later render) skips the second layout pass
+            self.figure.set_layout_engine("none")
+        return self._png
+
+    def svg(self) -> bytes:
+        if self._svg is None:
+            self.png()
+            self._svg = figure_bytes(self.figure, "svg")
+        return self._svg
+
+    def set_rendered(self, png: bytes, svg: bytes):
+        """Bytes rendered elsewhere (e.g. :func:`render_figure` in another process)."""
+        self._png, self._svg = png, svg
+
+
+def render_figure(fig) -> tuple[bytes, bytes]:
+    """(PNG, SVG) of a Figure, as ``ReportFigure.png()``/``svg()`` give them
+    (picklable: figures can be rendered in worker processes)."""
+    rf = ReportFigure("", "", "", "", fig)
+    return rf.png(), rf.svg()
+
+
+@dataclass
+class Report:
+    title: str
+    experiments: dict[str, dict]  # name -> {title, spec, n_records, findings, notes}
+    table2: list[dict]
+    table2_source: str | None
+    figures: list[ReportFigure]
+    provenance: dict
+
+
+# name, function, preferred experiments, fields it needs, title, caption
+FIGURE_PLAN = (
+    (
+        "fig_rmse",
+        fig_rmse,
+        ("E1",),
+        ("rmse_A",),
+        "RMSE per sample length (Table 2 curves)",
+        "Mean RMSE of Ã and B̃ over repetitions at each N, OLS (solid) and SVR (dashed).",
+    ),
+    (
+        "fig2",
+        fig2,
+        ("E1", "E2"),
+        ("A_hat", "r_A"),
+        "Fig. 2: estimation error and Lemma 2 interval ends, γ = 0.05",
+        "Solid: max_ij |ΔX_ij| with ΔX = X − X̃; dashed: the envelope "
+        "of the Lemma 2 intervals γX̃_ij ± r_X; dotted: ε_X of Corollary 1. Means over repetitions.",
+    ),
+    (
+        "fig3",
+        fig3,
+        ("E2",),
+        ("A_hat", "r_A"),
+        "Fig. 3: the same for the four γ",
+        "As Fig. 2, one color per γ, at σ_w = 1; the dotted vertical line marks the first N0 at "
+        "which stable_certified holds in at least half of the repetitions.",
+    ),
+    (
+        "fig4",
+        fig4,
+        ("E3", "E4"),
+        ("delta_J",),
+        "Fig. 4: ΔJ = J_b − J on S",
+        "Left: mean ΔJ over repetitions with the 5-95 % band; right: share of repetitions where "
+        "Theorem 3's bound is below the exact cost (ΔJ < 0).",
+    ),
+    (
+        "fig5",
+        fig5,
+        ("E4", "E3"),
+        ("J_exact",),
+        "Fig. 5: cost ratio",
+        "r = |mean J_γ − mean J_ref| / mean J_ref with J the exact finite-horizon cost (solid) "
+        "and the mean of the per-repetition cost_ratio (dashed).",
+    ),
+    (
+        "fig_coverage",
+        fig_coverage,
+        ("E2", "E1"),
+        ("coverage_A",),
+        "Beyond the paper: empirical coverage of the Lemma 2 intervals",
+        "Mean share of the entries of A (B) inside their Lemma 2 interval, with the 1 − δ line.",
+    ),
+    (
+        "fig_certified",
+        fig_certified,
+        ("E4", "E3"),
+        ("certified",),
+        "Beyond the paper: share of certified observer gains",
+        "Share of repetitions with g(L) < 1 (solid) and with ρ(A − LC) < 1 for the true A "
+        "(dashed).",
+    ),
+    (
+        "fig_svr_ols_diff",
+        fig_svr_ols_diff,
+        ("E2", "E1"),
+        ("A_hat",),
+        "Beyond the paper: SVR minus OLS on the same data",
+        "Mean over repetitions of max_ij |Ã_SVR − Ã_OLS|, per γ and σ_w: where SVR and OLS "
+        "really differ.",
+    ),
+)
+
+
+def _records_of(exp: dict) -> Columns:
+    return as_columns(exp["records"])
+
+
+def _choose_source(experiments: dict[str, dict], cols: dict[str, Columns], prefer, needs):
+    for name in prefer:
+        if name in experiments:
+            return name
+    for name in experiments:
+        if all(cols[name].has(f) for f in needs):
+            return name
+    return next(iter(experiments), None)
+
+
+def build_report(
+    experiments: dict[str, dict],
+    provenance: dict | None = None,
+    title: str | None = None,
+    *,
+    render: Callable[[object], Any] | None = None,
+) -> Report:
+    """``experiments``: name -> {"spec": dict, "records": list|Columns, optional
+    "title", "notes" (list[str], e.g. stages that could not run)}.
+
+    ``render``: optional ``fig -> future`` (e.g. ``pool.submit(render_figure, fig)``);
+    each figure is handed to it as soon as it is built, so that rendering runs
+    elsewhere while the rest is computed; the futures' ``(png, svg)`` are
+    collected at the end."""
+    builder = ReportBuilder(list(experiments), provenance, title, render=render)
+    for name, e in experiments.items():
+        builder.add(name, e)
+    return builder.finish()
+
+
+class ReportBuilder:
+    """:func:`build_report` in steps, for experiments whose records arrive one
+    group at a time: ``add(name, experiment)`` computes that experiment's
+    findings and the figures drawn from it (their source is decided from the
+    experiment names given up front, as :func:`build_report` decides it);
+    ``finish()`` returns the :class:`Report`, the same as :func:`build_report`
+    on all experiments."""
+
+    def __init__(
+        self,
+        names,
+        provenance: dict | None = None,
+        title: str | None = None,
+        *,
+        render: Callable[[object], Any] | None = None,
+    ):
+        self.names = list(names)
+        self.provenance = provenance
+        self.title = title
+        self.render = render
+        self.experiments: dict[str, dict] = {}
+        self.cols: dict[str, Columns] = {}
+        self.exps: dict[str, dict] = {}
+        self.figs: dict[int, tuple[ReportFigure, Any]] = {}
+
+    def _source(self, prefer, needs, final: bool):
+        for name in prefer:
+            if name in self.names:
+                return name
+        if not final:
+            return None  # decided on the data, once every experiment is there
+        ordered = {n: self.experiments[n] for n in self.names if n in self.experiments}
+        return _choose_source(ordered, self.cols, prefer, needs)
+
+    def _figures(self, final: bool):
+        for i, (name, fn, prefer, needs, ftitle, caption) in enumerate(FIGURE_PLAN):
+            if i in self.figs:
+                continue
+            src = self._source(prefer, needs, final)
+            if src is None or src not in self.experiments:
+                continue
+            fig = fn(
+                self.cols[src],
+                self.experiments[src].get("spec"),
+                experiment=_exp_label(src, self.provenance),
+            )
+            fut = self.render(fig) if self.render is not None else None
+            self.figs[i] = (ReportFigure(name, ftitle, caption, src, fig), fut)
+
+    def add(self, name: str, e: dict):
+        self.experiments[name] = e
+        self.cols[name] = _records_of(e)
+        self._figures(final=False)
+        self.exps[name] = {
+            "title": e.get("title") or EXPERIMENTS.get(name, {}).get("title", name),
+            "paper": EXPERIMENTS.get(name, {}).get("paper"),
+            "spec": e.get("spec"),
+            "n_records": len(self.cols[name]),
+            "notes": list(e.get("notes") or []),
+            "findings": [f"[no data] {n}" for n in (e.get("notes") or [])]
+            + findings(self.cols[name], e.get("spec")),
+        }
+
+    def finish(self) -> Report:
+        self._figures(final=True)
+        experiments = {n: self.experiments[n] for n in self.names if n in self.experiments}
+        t_src = _choose_source(experiments, self.cols, ("E1",), ("rmse_A",))
+        rows = table2(self.cols[t_src]) if t_src else []
+        figs = []
+        for i in sorted(self.figs):
+            fg, fut = self.figs[i]
+            if fut is not None:
+                fg.set_rendered(*fut.result())
+            figs.append(fg)
+        return Report(
+            title=self.title or f"Reproduction of the paper's Section 6 ({PRESET_NAME})",
+            experiments={n: self.exps[n] for n in experiments},
+            table2=rows,
+            table2_source=t_src,
+            figures=figs,
+            provenance=dict(self.provenance or {}),
+        )
+
+
+def _exp_label(name: str, provenance: dict | None) -> str:
+    preset = (provenance or {}).get("preset")
+    return f"{preset} / {name}" if preset else name

@@ -1,0 +1,350 @@
+"""The records as column arrays, and the helpers every table, figure and finding uses.
+
+:class:`Columns` holds the section 10 record fields the report reads as numpy
+arrays; :func:`spec_meta` the parts of the spec it needs (δ, seed, γ_ref,
+stages, the true system matrices). Then selection (:func:`select`), grouping
+(:func:`group_indices`, :func:`by_N`) and number formatting (:func:`fmt_num`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..paper import STABLE, UNSTABLE
+from ..records import BOUND_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, TEXT_FIELDS
+
+# Fields the report reads: L, K (matrices) and seed_key are never needed.
+REPORT_FIELDS = tuple(f for f in RECORD_FIELDS if f not in ("L", "K", "seed_key"))
+# The matrices among them (records' MATRIX_FIELDS without the gains): A_hat, B_hat.
+COLUMN_MATRIX_FIELDS = tuple(f for f in MATRIX_FIELDS if f in REPORT_FIELDS)
+SCALAR_FIELDS = tuple(f for f in REPORT_FIELDS if f not in COLUMN_MATRIX_FIELDS + TEXT_FIELDS)
+
+# Per stage, the fields that are null in every record when the stage did not run
+# (named in the "no data" messages of the figures and findings).
+STAGE_FIELDS = {
+    "estimate": ("rmse_A", "rmse_B"),
+    "bounds": tuple(f for f in BOUND_FIELDS if not f.startswith(("H_", "thm1_holds_"))),
+    "gain": ("g_L", "certified", "rho_true"),
+    "cost": ("J_exact", "J_star"),
+    "cost_bound": ("J_bound", "delta_J"),
+    "sls": ("J_opt",),
+}
+
+GAMMA_RTOL = 1e-9
+
+
+# ---------------------------------------------------------------------------
+# Columns: the records as arrays
+# ---------------------------------------------------------------------------
+
+
+def _float_array(values) -> np.ndarray:
+    return np.array([np.nan if v is None else float(v) for v in values], dtype=float)
+
+
+def _matrix_array(values) -> np.ndarray:
+    """A list of matrices (lists) or None -> float (k, a, b) with NaN where missing."""
+    shape = None
+    for v in values:
+        if v is not None:
+            shape = np.shape(v)
+            break
+    if shape is None or len(shape) != 2:
+        return np.full((len(values), 0, 0), np.nan)
+    out = np.full((len(values),) + shape, np.nan)
+    for i, v in enumerate(values):
+        if v is not None and np.shape(v) == shape:
+            out[i] = np.asarray(v, dtype=float)
+    return out
+
+
+class Columns:
+    """Record fields as arrays: floats (NaN = null; booleans as 0/1), text as
+    object arrays, ``A_hat``/``B_hat`` as (k, n, .) float arrays if kept."""
+
+    def __init__(self, data: dict[str, np.ndarray], n: int):
+        self.data = data
+        self.n = n
+        self._cache: dict = {}  # derived arrays (factorised text columns, ...)
+
+    def codes(self, f: str) -> tuple[np.ndarray, list]:
+        """Field ``f`` factorised: integer codes and the value of each code
+        (cached; floats as float, NaN as None)."""
+        cache = self.cache
+        key = ("codes", f)
+        if key not in cache:
+            cache[key] = _codes(self.data[f])
+        return cache[key]
+
+    @property
+    def cache(self) -> dict:
+        return self.__dict__.setdefault("_cache", {})
+
+    def equals(self, f: str, value) -> np.ndarray:
+        """Boolean mask ``self[f] == value`` for a text field (via the cached codes)."""
+        codes, values = self.codes(f)
+        hit = [i for i, v in enumerate(values) if v == value]
+        if not hit:
+            return np.zeros(self.n, dtype=bool)
+        return codes == hit[0]
+
+    @classmethod
+    def from_records(cls, records: Iterable[dict], matrices: bool = True) -> Columns:
+        records = list(records)
+        data: dict[str, np.ndarray] = {}
+        for f in SCALAR_FIELDS:
+            data[f] = _float_array([r.get(f) for r in records])
+        for f in TEXT_FIELDS:
+            data[f] = np.array([r.get(f) for r in records] + [None], dtype=object)[:-1]
+        if matrices:
+            for f in COLUMN_MATRIX_FIELDS:
+                data[f] = _matrix_array([r.get(f) for r in records])
+        return cls(data, len(records))
+
+    @classmethod
+    def concat(cls, parts: list[Columns]) -> Columns:
+        parts = [p for p in parts if p.n]
+        if not parts:
+            return cls.from_records([])
+        keys = set(parts[0].data)
+        for p in parts[1:]:
+            keys &= set(p.data)
+        data = {}
+        for k in keys:
+            arrs = [p.data[k] for p in parts]
+            if arrs[0].ndim == 3 and len({a.shape[1:] for a in arrs}) > 1:
+                continue  # inconsistent matrix shapes: drop the field
+            data[k] = np.concatenate(arrs)
+        return cls(data, sum(p.n for p in parts))
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, f: str) -> np.ndarray:
+        return self.data[f]
+
+    def has(self, f: str, mask=None) -> bool:
+        """True when field ``f`` has at least one non-null value (under ``mask``)."""
+        a = self.data.get(f)
+        if a is None or self.n == 0:
+            return False
+        if mask is not None:
+            a = a[mask]
+        if a.dtype == object:
+            return any(v is not None for v in a)
+        if a.ndim == 3:
+            return a.shape[1] > 0 and bool(np.isfinite(a).all(axis=(1, 2)).any())
+        return bool(np.isfinite(a).any())
+
+    def subset(self, mask) -> Columns:
+        idx = np.nonzero(mask)[0]
+        return Columns({k: v[idx] for k, v in self.data.items()}, int(idx.size))
+
+
+def as_columns(records) -> Columns:
+    """Records (an iterable of dicts) or Columns -> Columns."""
+    if isinstance(records, Columns):
+        return records
+    return Columns.from_records(records)
+
+
+# ---------------------------------------------------------------------------
+# spec metadata
+# ---------------------------------------------------------------------------
+
+
+@dataclass
+class Meta:
+    """The parts of a spec the report reads (these defaults when there is no spec)."""
+
+    delta: float = 0.01
+    seed: object = "?"
+    gamma_ref: float = 0.1
+    stages: tuple = ()
+    truth: dict = field(default_factory=dict)  # system name -> (A, B)
+    spec_dict: dict | None = None
+
+
+def spec_meta(spec) -> Meta:
+    from ..spec import ExperimentSpec, parse_spec
+    from ..systems import PRESETS, resolve_system
+
+    if spec is None:
+        truth = {
+            name: (np.asarray(p["A"], float), np.asarray(p["B"], float))
+            for name, p in PRESETS.items()
+        }
+        return Meta(truth=truth)
+    if not isinstance(spec, ExperimentSpec):
+        spec = parse_spec(spec)
+    truth = {s.name: (np.asarray(s.A), np.asarray(s.B)) for s in spec.systems}
+    for name in PRESETS:  # names not in the spec but still presets
+        if name not in truth:
+            s = resolve_system(name)
+            truth[name] = (np.asarray(s.A), np.asarray(s.B))
+    return Meta(
+        delta=spec.delta,
+        seed=spec.seed,
+        gamma_ref=spec.gamma_ref,
+        stages=tuple(spec.stages),
+        truth=truth,
+        spec_dict=spec.to_dict(),
+    )
+
+
+# ---------------------------------------------------------------------------
+# selection, grouping and formatting
+# ---------------------------------------------------------------------------
+
+
+def select(cols: Columns, *, system=None, estimator=None, gamma="any", sigma_w=None) -> np.ndarray:
+    m = np.ones(cols.n, dtype=bool)
+    if system is not None:
+        m &= cols.equals("system", system)
+    if estimator is not None:
+        m &= cols.equals("estimator", estimator)
+    if gamma is None:
+        m &= np.isnan(cols["gamma"])
+    elif gamma != "any":
+        m &= np.isclose(cols["gamma"], float(gamma), rtol=GAMMA_RTOL, atol=0)
+    if sigma_w is not None:
+        m &= np.isclose(cols["sigma_w"], float(sigma_w), rtol=GAMMA_RTOL, atol=0)
+    return m
+
+
+def systems_of(cols: Columns, mask=None) -> list[str]:
+    vals = cols["system"] if mask is None else cols["system"][mask]
+    names = {v for v in vals if v is not None}
+    known = [s for s in (STABLE, UNSTABLE) if s in names]
+    return known + sorted(names - set(known))
+
+
+def _uniq_float(a: np.ndarray) -> list[float]:
+    a = a[np.isfinite(a)]
+    return [float(v) for v in np.unique(a)]
+
+
+def gammas_of(cols: Columns, mask=None, estimator="svr") -> list[float]:
+    m = select(cols, estimator=estimator)
+    if mask is not None:
+        m &= mask
+    return _uniq_float(cols["gamma"][m])
+
+
+def sigmas_of(cols: Columns, mask=None) -> list[float]:
+    a = cols["sigma_w"] if mask is None else cols["sigma_w"][mask]
+    return _uniq_float(a)
+
+
+def _key(v):
+    if isinstance(v, (float, np.floating)):
+        return None if math.isnan(v) else float(v)
+    return v
+
+
+def _codes(col: np.ndarray) -> tuple[np.ndarray, list]:
+    """Factorise a column: integer codes and the key value of each code
+    (floats as float, NaN as None; objects as themselves)."""
+    if col.dtype == object:
+        lut: dict = {}
+        setdefault = lut.setdefault
+        codes = np.array([setdefault(v, len(lut)) for v in col.tolist()], dtype=np.int64)
+        return codes, list(lut)
+    u, inv = np.unique(col.astype(float), return_inverse=True)  # NaNs: one value, last
+    return inv.reshape(-1).astype(np.int64), [_key(v) for v in u.tolist()]
+
+
+def group_indices(cols: Columns, keys: tuple[str, ...], mask=None) -> dict[tuple, np.ndarray]:
+    """key tuple -> indices (ascending); NaN keys (gamma of ols) become None.
+    Groups are ordered by their keys (None last)."""
+    idx = np.arange(cols.n) if mask is None else np.nonzero(mask)[0]
+    if idx.size == 0:
+        return {}
+    combined = np.zeros(idx.size, dtype=np.int64)
+    values = []
+    for k in keys:
+        c, u = cols.codes(k)
+        combined = combined * len(u) + c[idx]
+        values.append(u)
+    uc, inv = np.unique(combined, return_inverse=True)
+    inv = inv.reshape(-1)
+    order = np.argsort(inv, kind="stable")
+    bounds = np.flatnonzero(np.diff(inv[order])) + 1
+    groups = np.split(idx[order], bounds)
+    out: dict[tuple, np.ndarray] = {}
+    for code, members in zip(uc.tolist(), groups):
+        key = []
+        for u in reversed(values):
+            code, j = divmod(code, len(u))
+            key.append(u[j])
+        out[tuple(reversed(key))] = members
+    order_k = sorted(out, key=lambda k: tuple((v is None, v if v is not None else 0) for v in k))
+    return {k: out[k] for k in order_k}
+
+
+def by_N(cols: Columns, mask, values: np.ndarray, fn: Callable[[np.ndarray], float]):
+    """Group ``values`` (full-length array) by N under ``mask``; NaNs dropped.
+
+    -> (N0 array, N array, stat array, count array)
+    """
+    idx = np.nonzero(mask)[0]
+    if idx.size == 0:
+        e = np.array([])
+        return e, e, e, e
+    Ns = cols["N"][idx]
+    uN, inv = np.unique(Ns, return_inverse=True)
+    inv = inv.reshape(-1)
+    k = uN.size
+    n0 = cols["N0"][idx]
+    f0 = np.isfinite(n0)
+    c0 = np.bincount(inv[f0], minlength=k)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        x0 = np.where(
+            c0 > 0, np.bincount(inv[f0], weights=n0[f0], minlength=k) / c0, uN.astype(float)
+        )
+    v = values[idx]
+    fv = np.isfinite(v)
+    cnt = np.bincount(inv[fv], minlength=k)
+    if fn is mean_of:  # the common case, vectorised
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ys = np.where(cnt > 0, np.bincount(inv[fv], weights=v[fv], minlength=k) / cnt, np.nan)
+    else:
+        order = np.argsort(inv[fv], kind="stable")
+        groups = np.split(v[fv][order], np.cumsum(cnt)[:-1])
+        ys = np.array([fn(g) if g.size else np.nan for g in groups], dtype=float)
+    return x0.astype(float), uN.astype(float), ys.astype(float), cnt
+
+
+def mean_of(v: np.ndarray) -> float:
+    return float(np.mean(v))
+
+
+def n0_ratio(cols: Columns, mask=None) -> float | None:
+    m = np.ones(cols.n, bool) if mask is None else mask
+    N, N0 = cols["N"][m], cols["N0"][m]
+    ok = np.isfinite(N) & np.isfinite(N0) & (N > 0)
+    if not ok.any():
+        return None
+    r = N0[ok] / N[ok]
+    return float(r[0]) if np.allclose(r, r[0]) else None
+
+
+def fmt_num(v, digits: int = 4) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    if isinstance(v, (bool, np.bool_)):
+        return str(bool(v))
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    return f"{float(v):.{digits}g}"
+
+
+def gamma_label(estimator: str, gamma) -> str:
+    if estimator == "ols" or gamma is None:
+        return "OLS"
+    name = "SVR" if estimator == "svr" else estimator
+    return f"{name} γ={fmt_num(gamma)}"
