@@ -7,7 +7,8 @@
 * :func:`bootstrap_box`: the parametric bootstrap of Dean, Mania, Matni,
   Recht, Tu (2020, Algorithm 2), re-simulating with the rollout code of
   :mod:`svrobs_core.rollouts` and re-estimating with :mod:`svrobs_core.estimators`.
-* :func:`rho_upper_bound`, :func:`gershgorin_bound`: the certificates on a box.
+* :func:`rho_upper_bound`: the stability certificate on a box (the observer
+  gain's, g(L) with a radius matrix, is :func:`svrobs_core.gains.certificate`).
 
 Everything is batched over leading dims (...), e.g. (rep, estimator/gamma).
 Undefined results are NaN with a reason (python-control style), never an
@@ -30,7 +31,6 @@ __all__ = [
     "BoxResult",
     "GramFactor",
     "bootstrap_box",
-    "gershgorin_bound",
     "gram_factor",
     "noise_level",
     "rho_upper_bound",
@@ -188,16 +188,6 @@ def rho_upper_bound(A_hat, R_A) -> np.ndarray:
     return np.where(fin, rho, np.inf)
 
 
-def gershgorin_bound(L, A_hat, R_A, C) -> np.ndarray:
-    """g(L) = max_i sum_j (|(A_hat - L C)_ij| + (R_A)_ij) >= rho(A - L C) on the box.
-
-    Batched; inf where any input is non-finite (a certificate needs finite numbers).
-    """
-    c = np.asarray(A_hat, dtype=float) - np.asarray(L, dtype=float) @ np.asarray(C, dtype=float)
-    g = (np.abs(c) + np.asarray(R_A, dtype=float)).sum(axis=-1).max(axis=-1)
-    return np.where(np.isfinite(g), g, np.inf)
-
-
 # ---------------------------------------------------------------------------
 # parametric bootstrap (Dean et al. 2020, Algorithm 2)
 # ---------------------------------------------------------------------------
@@ -223,7 +213,7 @@ def _refit(name: str, gamma, Z, F, loss_scale: str) -> np.ndarray:
     if name == "ols":
         return _est.fit_ols(Z, F)
     if name == "svr":
-        return _est.fit_svr(Z, F, [gamma], loss_scale)[..., 0, :, :]
+        return _est.fit_svr(Z, F, [gamma], loss_scale=loss_scale)[..., 0, :, :]
     if name == "shrunk-ols":
         return _est.shrunk_ols(_est.fit_ols(Z, F), [gamma])[..., 0, :, :]
     raise ValueError(f"unknown estimator {name!r}")

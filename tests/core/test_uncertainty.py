@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from svrobs_core import estimators as est
-from svrobs_core import gains
+from svrobs_core import gains, kalman
 from svrobs_core import uncertainty as unc
 from svrobs_core.rollouts import gram_data, rng_for, seed_key
 from svrobs_core.systems import resolve_system
@@ -154,7 +154,7 @@ def test_norm_above_S_is_noted():
 
 def _toy_data(R, N, T0, sigma_w, seed=5):
     keys = [seed_key(0, 0, N, r) for r in range(R)]
-    G, P, Z, F = gram_data(TOY, sigma_w, N, T0, seed, keys, keep_data=True)
+    G, P, Z, F = gram_data(TOY, sigma_w, N, T0, seed=seed, keys=keys, keep_data=True)
     return keys, G, P, Z, F
 
 
@@ -174,8 +174,8 @@ def test_simultaneous_coverage_of_the_self_normalized_box():
     theta = np.concatenate(
         [
             est.fit_ols(Z, F)[:, None],
-            est.svr_from_gram(G, P, N0, gammas, "sum"),
-            est.svr_from_gram(G, P, N0, gammas[:1], "mean"),
+            est.svr_from_gram(G, P, N0, gammas, loss_scale="sum"),
+            est.svr_from_gram(G, P, N0, gammas[:1], loss_scale="mean"),
         ],
         axis=1,
     )
@@ -341,11 +341,11 @@ def test_certified_box_holds_for_sampled_matrices():
     A_hat, R_A = theta[:, :2], box.R_A
     assert 0 < unc.rho_upper_bound(A_hat, R_A) < 1
     C = TOY.C
-    K_hat = gains.kalman_gain(A_hat, C, sw, TOY.sigma_v)
-    r = R_A.sum(axis=-1).max() / 2  # scalar radius with n r >= every row sum of R_A
-    L = gains.design_gain(A_hat, 0.0, r, C, K_hat, 0.01).L
-    g = unc.gershgorin_bound(L, A_hat, R_A, C)
-    assert g < 1
+    K_hat = kalman.kalman_gain(A_hat, C, sw, TOY.sigma_v)
+    design = gains.design_gain(A_hat, 0.0, None, C, K_hat=K_hat, margin=0.01, R_A=R_A)
+    L, g = design.L, design.g_L
+    assert design.certified and g <= 0.99 + 1e-12
+    assert g == pytest.approx(gains.certificate(L, A_hat, 0.0, None, C=C, R_A=R_A), abs=0)
     samples = _box_samples(A_hat, R_A, 1000, np.random.default_rng(0))
     assert samples.shape == (1000, 2, 2)
     rho_A = np.max(np.abs(np.linalg.eigvals(samples)), axis=-1)
@@ -358,29 +358,5 @@ def test_certified_box_holds_for_sampled_matrices():
 def test_certificates_are_false_on_nonfinite_boxes():
     A = np.eye(2) * 0.1
     assert unc.rho_upper_bound(A, np.full((2, 2), np.nan)) == np.inf
-    assert unc.gershgorin_bound(np.zeros((2, 2)), A, np.full((2, 2), np.nan), np.eye(2)) == np.inf
-
-
-def test_bootstrap_joint_box_reaches_simultaneous_coverage_marginal_does_not():
-    """docs/uncertainty.md (e): per-entry quantiles cover all entries at once far
-    less often than 1 - delta; the studentised max-statistic box does not."""
-    R, N, T0, sw, delta = 300, 15, 6, 0.5, 0.1
-    keys, G, P, Z, F = _toy_data(R, N, T0, sw, seed=8)
-    theta = est.fit_ols(Z, F)[:, None]
-    kw = {
-        "estimators": [("ols", None)],
-        "sigma_u": 1.0,
-        "N": N,
-        "T0": T0,
-        "seed": 4,
-        "keys": keys,
-        "delta": delta,
-        "boot_reps": 100,
-    }
-    s_hat, _ = unc.noise_level(Z[:, None], F[:, None], theta)
-    joint = unc.bootstrap_box(theta, sigma_w=s_hat, joint=True, **kw)
-    marginal = unc.bootstrap_box(theta, sigma_w=s_hat, joint=False, **kw)
-    se = math.sqrt(delta * (1 - delta) / R)
-    # the bootstrap is approximate (no finite-sample guarantee): near 1 - delta, not above it
-    assert abs(_inside(theta, joint).mean() - (1 - delta)) <= 5 * se
-    assert _inside(theta, marginal).mean() < 1 - delta - 5 * se
+    g = gains.certificate(np.zeros((2, 2)), A, 0.0, None, C=np.eye(2), R_A=np.full((2, 2), np.nan))
+    assert not g < 1
