@@ -67,7 +67,9 @@ def main(quick: bool = False) -> None:
         base, cells = run_seconds(one, 1)
         boot, _ = run_seconds({**one, "bounds_method": "bootstrap", "boot_reps": 100}, 1)
         per_cell = (boot - base) / cells
-        print(f"  N = {N:3d}: {cells} cells, {boot:7.2f} s, bootstrap {1e3 * per_cell:7.2f} ms/cell")
+        print(
+            f"  N = {N:3d}: {cells} cells, {boot:7.2f} s, bootstrap {1e3 * per_cell:7.2f} ms/cell"
+        )
 
 
 if __name__ == "__main__":

@@ -170,6 +170,7 @@ class Meta:
     stages: tuple = ()
     truth: dict = field(default_factory=dict)  # system name -> (A, B)
     spec_dict: dict | None = None
+    bounds_method: str = "paper"
 
 
 def spec_meta(spec) -> Meta:
@@ -196,6 +197,7 @@ def spec_meta(spec) -> Meta:
         stages=tuple(spec.stages),
         truth=truth,
         spec_dict=spec.to_dict(),
+        bounds_method=spec.bounds_method,
     )
 
 
