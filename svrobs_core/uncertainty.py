@@ -223,15 +223,26 @@ def _simulate(A, B, x0, u, w, sigma_w) -> np.ndarray:
     """x_{k+1} = A x_k + B u_k + sigma_w w_k with a system per (dataset, cell).
 
     A (D, E, n, n), B (D, E, n, m), x0 (D, n, N), u (D, m, T0, N), w (D, n, T0, N)
-    (standard normal), sigma_w (D, E). -> x (D, E, n, T0+1, N)
+    (standard normal), sigma_w (D, E). -> x (D, E, n, T0+1, N). Elementwise
+    multiply-adds over the n + m columns (n, m are small; a stacked matmul on
+    these strided slices would not use BLAS).
     """
     D, E, n = A.shape[:3]
+    m = B.shape[-1]
     T0, N = u.shape[-2:]
     x = np.empty((D, E, n, T0 + 1, N))
     x[:, :, :, 0] = x0[:, None]
     s = sigma_w[..., None, None]
+    Ac = A[..., None]  # (D, E, n, n, 1): column j is Ac[..., j, :]
+    Bc = B[..., None]
+    xn = np.empty((D, E, n, N))
     for k in range(T0):
-        x[:, :, :, k + 1] = A @ x[:, :, :, k] + B @ u[:, None, :, k] + s * w[:, None, :, k]
+        np.multiply(s, w[:, None, :, k], out=xn)
+        for j in range(n):
+            xn += Ac[:, :, :, j] * x[:, :, j, None, k]
+        for j in range(m):
+            xn += Bc[:, :, :, j] * u[:, None, j, None, k]
+        x[:, :, :, k + 1] = xn
     return x
 
 
