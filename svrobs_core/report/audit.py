@@ -167,6 +167,7 @@ def fig_bounds_audit(
     systems = systems or ["(none)"]
     fig, axes = new_figure(2, len(systems), (4.2 * len(systems) + 0.8, 6.2), sharex=True)
     level = 1 - delta
+    lows = [level]
     for col, system in enumerate(systems):
         for row, what in enumerate(("simultaneous", "r_A")):
             ax = axes[row, col]
@@ -183,18 +184,21 @@ def fig_bounds_audit(
                         )
                         drawn = True
                         ratio = ratio or n0_ratio(cols, m)
+                        if what == "simultaneous":
+                            lows.append(float(np.nanmin(y)))
             if not drawn:
                 no_data_panel(ax, "no records at σ_w = 1")
                 continue
             if what == "simultaneous":
                 ax.axhline(level, color="k", ls=":", lw=1)
-                ax.set_ylim(-0.02, 1.02)
                 label_panel(
                     ax, "share with all entries inside", f"{system}, σ_w=1", None, xlabel=False
                 )
             else:
                 ax.set_yscale("log")
                 label_panel(ax, "mean r_A (largest radius)", f"{system}, σ_w=1", ratio)
+    for col in range(len(systems)):
+        axes[0, col].set_ylim(min(lows) - 0.03, 1.01)
     handles = [legend_line(f"C{i}", "-", m) for i, m in enumerate(srcs)]
     handles += [
         legend_line("0.4", "-", gamma_label(*AUDIT_SERIES[0])),
