@@ -37,9 +37,10 @@ from pathlib import Path
 
 import numpy as np
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+from rich.progress import Progress
 
 from service.db.provenance import git_commit
+from service.progress import progress_bar
 from svrobs_core import __version__, parse_spec, plan_units, run_spec
 from svrobs_core import report as rpt
 from svrobs_core.paper import EXPERIMENTS, MC_DECISION, PRESET_NAME, paper_specs
@@ -332,15 +333,7 @@ def reproduce(
         )
         background = stack.enter_context(ThreadPoolExecutor(max_workers=1))
         report_parts = []
-        with Progress(
-            "[progress.description]{task.description}",
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeElapsedColumn(),
-            console=console,
-            disable=quiet,
-            transient=False,
-        ) as bar:
+        with progress_bar(console, quiet=quiet) as bar:
             for parent, children in plan:
                 group = _run_group(
                     parent, children, specs, out, None if quiet else bar, pool=pool, n_jobs=n_jobs
