@@ -200,6 +200,7 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
     page.goto(f"/jobs/{job_id}")
     assert "/login?next=" in page.url
     assert stack.key not in log_text(stack)  # uvicorn's access log never saw the key
+    assert not [u for u in browser.requests if stack.key in u]  # nor did any URL
 
 
 def test_cancel_then_delete_with_confirmation(browser, stack):
