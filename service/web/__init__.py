@@ -17,6 +17,7 @@ from fastapi.staticfiles import StaticFiles
 from service.web.render import STATIC, SignInRequired, WebError, sign_in_redirect, web_error_page
 from service.web.session import Signer, load_secret
 
+
 def mount_web(app: FastAPI) -> None:
     """Serve the pages, ``/static`` and the error pages on ``app`` (its settings set)."""
     from service.web.pages import auth, job, jobs, submit  # a new page module: add it here
