@@ -6,7 +6,8 @@ writes::
     DIR/<experiment>/records.jsonl   one section 10 record per line (null, never NaN)
     DIR/<experiment>/spec.json       the spec that ran
     DIR/table2.md, DIR/table2.csv    Table 2, ours beside the published values
-    DIR/<figure>.png, .svg           Figs. 2-5 and the figures beyond the paper
+    DIR/<figure>.png, .svg, .pdf     Figs. 2-5 and the figures beyond the paper
+    DIR/<figure>.csv                 each figure's plotted data
     DIR/report.md, DIR/report.html   the whole report (HTML self-contained)
     DIR/provenance.json
 
@@ -422,8 +423,12 @@ def _write_report(
     write("table2.md", rpt.table2_markdown(report.table2))
     write("table2.csv", rpt.table2_csv(report.table2))
     for fg in report.figures:
+        if fg.empty:  # nothing to plot: the report carries the note instead
+            continue
         write(f"{fg.name}.png", fg.png())
         write(f"{fg.name}.svg", fg.svg())
+        write(f"{fg.name}.pdf", fg.pdf())
+        write(f"{fg.name}.csv", fg.csv())
     # the part of the report made after the last run (the rest overlaps the runs)
     provenance["report_seconds"] = round(time.perf_counter() - t_rep, 3)
     provenance["run_total_seconds"] = round(t_run, 3)
