@@ -363,9 +363,10 @@ def _audit_notes(fig, srcs, lines, systems, ones, merged, counts, level, title_s
         )
         note(
             fig,
-            f"{joined(methods)}: every entry of A and of B is inside the box in all {n:,} "
-            f"records at {title_sw} on {joined(list(where))} (every N0, SVR "
-            f"γ={fmt_num(TABLE2_GAMMA)} and OLS), above 1 − δ = {fmt_num(level)}; not drawn.",
+            f"The {joined(methods)} box{'es contain' if len(methods) > 1 else ' contains'} "
+            f"every entry of A and of B in all {n:,} records at {title_sw} on "
+            f"{joined(list(where))} (every N0, SVR γ={fmt_num(TABLE2_GAMMA)} and OLS), above "
+            f"1 − δ = {fmt_num(level)}: a share of 1 everywhere, not drawn.",
         )
     if merged:
         what = {"all_inside": "all-inside shares", "r_A": "r_A curves"}

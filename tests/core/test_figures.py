@@ -443,7 +443,7 @@ def test_fig_bounds_audit_plots_the_shares_and_radii(real):
         if r["sigma_w"] == 1.0 and r["gamma"] in (None, 0.05)
     )  # on the reduced grid (what the note below rests on)
     assert (
-        f"paper and self-normalized: every entry of A and of B is inside the box in all {n:,}"
+        f"The paper and self-normalized boxes contain every entry of A and of B in all {n:,}"
         in text
     )
 
@@ -478,4 +478,6 @@ def test_fig_bounds_audit_axes_and_reference_line(real):
     assert not any(ax.get_ylabel().startswith("share") for ax in fig1.axes)
     assert not any(getattr(ln, "svrobs_ref", False) for ax in fig1.axes for ln in ax.lines)
     assert not any("δ" in lab for lab in _legend_labels(fig1))
-    assert "paper, self-normalized and bootstrap: every entry" in " ".join(fig1.svrobs_notes)
+    assert "The paper, self-normalized and bootstrap boxes contain every entry" in " ".join(
+        fig1.svrobs_notes
+    )
