@@ -109,11 +109,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     install_error_handlers(app)
 
-    from service.api.routes import health, jobs, presets, reports, results, schedules
+    from service.api.routes import health, jobs, presets, reports, results, schedules, shares
 
     query_rules = [Depends(clean_query_text), Depends(reject_unknown_query)]
     app.include_router(health.router, dependencies=query_rules[1:])
-    for module in (jobs, results, presets, reports, schedules):
+    for module in (jobs, results, presets, reports, schedules, shares):
         app.include_router(module.router, prefix=API_PREFIX, dependencies=query_rules)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.MAX_BODY_BYTES)
     mount_web(app)  # the web UI's pages under /

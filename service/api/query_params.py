@@ -99,8 +99,13 @@ def sort_order(sort: str | None, table) -> list:
 
 def range_conditions(request: Request, table) -> list:
     """WHERE conditions of the range parameters in the query string (finite numbers)."""
+    return range_terms(request.query_params.multi_items(), table)
+
+
+def range_terms(items, table) -> list:
+    """WHERE conditions of the ``(name, value)`` pairs that are range parameters."""
     conds = []
-    for name, value in request.query_params.multi_items():
+    for name, value in items:
         m = RANGE_RE.match(name)
         if m is None or m.group("field") not in RANGE_FIELDS:
             continue
