@@ -10,6 +10,7 @@ from fastapi import Depends, FastAPI
 from fastapi_offline import FastAPIOffline
 
 from service.api.deps import clean_query_text
+from service.api.docs import install_redoc
 from service.api.errors import error_response, install_error_handlers
 from service.api.query_params import reject_unknown_query
 from service.api.ratelimit import RateLimiter
@@ -96,10 +97,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         ),
         openapi_url="/openapi.json",
         docs_url="/docs",
-        redoc_url="/redoc",
+        redoc_url=None,  # service.api.docs: ReDoc's script without its CDN logo
         favicon_url="data:,",
         swagger_ui_parameters={"validatorUrl": None, "persistAuthorization": True},
     )
+    install_redoc(app)
     app.state.settings = settings
     app.state.session_factory = _default_session_factory(settings)
     # the app's Celery app, made on first use; tests replace the publisher

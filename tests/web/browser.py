@@ -55,9 +55,11 @@ class Browser:
         return page
 
     def foreign_requests(self, base_url: str) -> list[str]:
-        """Requests to any host but the server (data: URLs never leave the page)."""
+        """Requests to any host but the server (data: URLs never leave the page, and a
+        blob: URL is the page's own memory, e.g. ReDoc's web worker)."""
         own = urlsplit(base_url).netloc
-        return [u for u in self.requests if not u.startswith("data:") and urlsplit(u).netloc != own]
+        inline = ("data:", f"blob:{urlsplit(base_url).scheme}://{own}/")
+        return [u for u in self.requests if not u.startswith(inline) and urlsplit(u).netloc != own]
 
     def close(self) -> None:
         self.chromium.close()
