@@ -12,14 +12,13 @@ import pytest
 
 from tests.integration.stack import submit
 
+from . import test_browser as base
 from .browser import needs_chromium
-from .test_browser import (  # noqa: F401 - fixtures
-    assert_charts_equal_summary,
-    browser,
-    only_the_server,
-    sign_in,
-    wait_charts,
-)
+from .test_browser import assert_charts_equal_summary, sign_in, wait_charts
+
+# the module's chromium and the after-each-test check (no foreign request, no error)
+browser = base.browser
+only_the_server = base.only_the_server
 
 pytestmark = [
     pytest.mark.integration,
