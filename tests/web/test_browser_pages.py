@@ -13,19 +13,13 @@ import pytest
 from tests.integration.stack import submit
 
 from . import test_browser as base
-from .browser import needs_chromium
 from .test_browser import assert_charts_equal_summary, sign_in, wait_charts
 
 # the module's chromium and the after-each-test check (no foreign request, no error)
 browser = base.browser
 only_the_server = base.only_the_server
 
-pytestmark = [
-    pytest.mark.integration,
-    pytest.mark.timeout(600),
-    needs_chromium,
-    pytest.mark.parametrize("stack", ["embedded"], indirect=True),
-]
+pytestmark = base.pytestmark  # integration, chromium, the embedded stack
 
 SPEC = {
     "systems": ["paper-stable", "paper-unstable"],
@@ -82,6 +76,7 @@ def test_results_filter_and_sort(browser, stack, two_jobs):
     got = [float(v) for v in grid_values(page, "rmse_A")]
     assert got == [r["rmse_A"] for r in want["items"]]
     assert got == sorted(got, reverse=True)
+    assert page.input_value("#results-sort") == "-rmse_A"  # the filters keep the sort
     # a range of a numeric field, as the API's rmse_A_lt
     cut = got[len(got) // 2]
     page.select_option(".range-field", "rmse_A")
@@ -89,7 +84,8 @@ def test_results_filter_and_sort(browser, stack, two_jobs):
     page.click("#results-filters button[type=submit]")
     n_below = sum(v < cut for v in got)
     page.wait_for_selector(f"#results-grid[data-total='{n_below}']")
-    assert all(float(v) < cut for v in grid_values(page, "rmse_A"))
+    below = [float(v) for v in grid_values(page, "rmse_A")]
+    assert below == sorted((v for v in got if v < cut), reverse=True)
     assert page.evaluate("window.notReloaded") is True
 
 

@@ -8,13 +8,14 @@ from __future__ import annotations
 import html
 import json
 import re
-from datetime import timedelta
+from datetime import UTC, datetime, timedelta
 
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from service.db.models import ShareLink, utcnow
+from service.db import schedules
+from service.db.models import Schedule, ShareLink, utcnow
 from service.db.shares import token_hash
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC
@@ -102,6 +103,14 @@ def test_schedule_from_a_job(web, done, session):
     assert s["spec_template"] == job["spec"] and s["seed_policy"] == "due-time"
     page = web.get(made.headers["location"])
     assert "due-time" in page.text and "No runs yet" in page.text
+    row = session.get(Schedule, s["id"])
+    row.created_at = datetime(2024, 1, 1, tzinfo=UTC)
+    session.commit()
+    (run_job,) = schedules.create_due_schedule_jobs(session, datetime(2024, 6, 1, 4, tzinfo=UTC))
+    session.commit()
+    page = web.get(made.headers["location"])
+    assert f'<a href="/jobs/{run_job.id}">job {run_job.id}</a>' in page.text
+    assert run_job.spec["seed"] != job["spec"]["seed"]  # due-time: a fresh seed
     web.post(f"/schedules/{s['id']}/enabled", data={"csrf_token": token, "enabled": "no"})
     assert web.get(f"{API}/schedules/{s['id']}", headers=acc.headers).json()["enabled"] is False
 
