@@ -11,7 +11,7 @@ from typing import Annotated
 from urllib.parse import urlencode
 
 from fastapi import APIRouter, Depends, Query, Request
-from sqlalchemy import distinct, func, select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from service.api.deps import get_db
@@ -36,17 +36,11 @@ Texts = Annotated[list[str], Query()]
 def _choices(db: Session, job_id: int) -> dict[str, list]:
     """The values of each grid coordinate, from the job's stored summaries."""
     out = {}
-    for f in ("system", "sigma_w", "N", "estimator"):
+    for f in ("system", "sigma_w", "N", "estimator", "gamma_key"):
         col = getattr(Summary, f)
-        out[f] = list(
-            db.scalars(select(distinct(col)).where(Summary.job_id == job_id).order_by(col))
-        )
-    gammas = db.scalars(
-        select(distinct(Summary.gamma_key))
-        .where(Summary.job_id == job_id)
-        .order_by(Summary.gamma_key)
-    )
-    out["gamma"] = ["null" if g < 0 else repr(g) for g in gammas]
+        q = select(col).where(Summary.job_id == job_id).distinct().order_by(col)
+        out[f] = list(db.scalars(q))
+    out["gamma"] = ["null" if g < 0 else repr(g) for g in out.pop("gamma_key")]
     return out
 
 
