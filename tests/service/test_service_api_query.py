@@ -13,20 +13,21 @@ from sqlalchemy import select
 
 from service.db import schedules
 from service.db.models import Schedule
-from tests.service.svc_fakes import run_job_units
+from tests.service import test_service_api_results as results_tests
 from tests.service.svc_helpers import SMALL_SPEC
 
 API = "/api/v1"
 
 
-@pytest.fixture
-def done_job(client, session, make_account):
-    acc = make_account()
-    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
-    run_job_units(session, jid)
+# a finished job of SMALL_SPEC: (account, job id, its records as stored)
+done_job = results_tests.done_job
+
+
+def _export(client, acc, jid) -> list[dict]:
+    """The job's JSONL export: the oracle the sorted and filtered pages are checked on."""
     export = client.get(f"{API}/jobs/{jid}/results?format=jsonl", headers=acc.headers)
     assert export.status_code == 200
-    return acc, jid, [json.loads(line) for line in export.text.splitlines()]
+    return [json.loads(line) for line in export.text.splitlines()]
 
 
 def _all(client, acc, jid, params):
@@ -71,7 +72,8 @@ def test_unknown_query_parameters_are_422_naming_them(client, done_job):
 @pytest.mark.parametrize("field", ["rmse_A", "H_B", "N"])
 @pytest.mark.parametrize("desc", [False, True])
 def test_sort_matches_an_independent_sort_of_the_export(client, done_job, field, desc):
-    acc, jid, export = done_job
+    acc, jid, _ = done_job
+    export = _export(client, acc, jid)
     got, total = _all(client, acc, jid, {"sort": ("-" if desc else "") + field})
     assert total == len(export) == len(got)
     values = [r[field] for r in got]
@@ -82,7 +84,8 @@ def test_sort_matches_an_independent_sort_of_the_export(client, done_job, field,
 
 
 def test_range_filters_match_a_filter_of_the_export(client, done_job):
-    acc, jid, export = done_job
+    acc, jid, _ = done_job
+    export = _export(client, acc, jid)
     vals = sorted(r["rmse_A"] for r in export if r["rmse_A"] is not None)
     lo, hi = vals[len(vals) // 4], vals[3 * len(vals) // 4]
     got, total = _all(
