@@ -146,7 +146,14 @@ def test_share_link_lifecycle(web, done, session, make_account):
         stranger.post(f"/shares/{rows[0].id}/revoke", data={"csrf_token": stoken}).status_code
         == 404
     )
-    assert stranger.get(f"/jobs/{jid}/share").status_code == 404
+    for page_path in (
+        f"/jobs/{jid}/share",
+        f"/results?job={jid}",
+        f"/results/rows?job={jid}",
+        f"/compare?jobs={jid}&metric=rmse_A",
+        f"/schedules/new?job={jid}",
+    ):
+        assert stranger.get(page_path).status_code == 404, page_path  # not this team's
     assert web.post(f"/shares/{rows[0].id}/revoke", data={}).status_code == 403  # no CSRF
     assert anon.get(path).status_code == 200
     web.post(f"/shares/{rows[0].id}/revoke", data={"csrf_token": token})
