@@ -38,10 +38,11 @@ def check(metric: str, x: str) -> None:
         raise ChartError("metric", "must be a numeric record field of the summaries")
 
 
-def stored_groups(session: Session, job_id: int, metric: str) -> list[dict]:
-    """The job's summary groups with the stats of ``metric`` only: the database takes
-    the one field out of each row's stats (the rest is never decoded)."""
-    check(metric, "N")
+def stored_groups(session: Session, job_id: int, *fields: str) -> list[dict]:
+    """The job's summary groups with the stats of ``fields`` only: the database takes
+    those fields out of each row's stats (the rest is never decoded)."""
+    for f in fields:
+        check(f, "N")
     rows = session.execute(
         select(
             Summary.system,
@@ -49,11 +50,18 @@ def stored_groups(session: Session, job_id: int, metric: str) -> list[dict]:
             Summary.N,
             Summary.estimator,
             Summary.gamma,
-            Summary.stats[metric],
+            *(Summary.stats[f] for f in fields),
         ).where(Summary.job_id == job_id)
     ).all()
     return [
-        dict(system=r[0], sigma_w=r[1], N=r[2], estimator=r[3], gamma=r[4], stats={metric: r[5]})
+        dict(
+            system=r[0],
+            sigma_w=r[1],
+            N=r[2],
+            estimator=r[3],
+            gamma=r[4],
+            stats=dict(zip(fields, r[5:])),
+        )
         for r in rows
     ]
 
