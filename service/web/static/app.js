@@ -77,7 +77,7 @@
         const v = m - s.std[j];
         return logY && v <= 0 ? null : v; // a log axis has no room for mean - std <= 0
       });
-      const meta = { series: i, estimator: s.estimator, gamma: s.gamma, mean: s.mean, std: s.std, count: s.count };
+      const meta = { series: i, estimator: s.estimator, gamma: s.gamma, line: s.line, mean: s.mean, std: s.std, count: s.count };
       out.push({
         label: s.label, data: points(panel.x, s.mean), borderColor: color,
         backgroundColor: color, borderWidth: 2, pointRadius: 3, borderDash: s.flat ? [6, 4] : [],
