@@ -82,18 +82,18 @@ def stored_metrics(session: Session, job_id: int) -> list[str]:
     return [f for f in SUMMARY_FIELDS if f in seen]
 
 
-def _number(v) -> float | None:
+def finite(v) -> float | None:
     return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
 
 
-def _fmt(v) -> str:
+def fmt(v) -> str:
     return f"{v:g}" if isinstance(v, float) else str(v)
 
 
 def _series_label(estimator: str, gamma, x: str) -> str:
     if x == "gamma":
         return f"{estimator} (no γ)" if estimator == "ols" else estimator
-    return estimator if gamma is None else f"{estimator} γ={_fmt(gamma)}"
+    return estimator if gamma is None else f"{estimator} γ={fmt(gamma)}"
 
 
 def chart_data(groups: list[dict], *, metric: str, x: str) -> dict:
@@ -121,7 +121,7 @@ def chart_data(groups: list[dict], *, metric: str, x: str) -> dict:
             by_x = panels[pkey][skey]
             flat = x == "gamma" and set(by_x) == {None}  # OLS against γ
             cells = [by_x[None] if flat else by_x.get(v, {}) for v in xvals]
-            mean = [_number(c.get("mean")) for c in cells]
+            mean = [finite(c.get("mean")) for c in cells]
             positive &= all(m is None or m > 0 for m in mean)
             series.append(
                 {
@@ -129,13 +129,13 @@ def chart_data(groups: list[dict], *, metric: str, x: str) -> dict:
                     "estimator": skey[1],
                     "gamma": None if skey[2] == -1.0 else skey[2],
                     "mean": mean,
-                    "std": [_number(c.get("std")) for c in cells],
+                    "std": [finite(c.get("std")) for c in cells],
                     "count": [c.get("count", 0) for c in cells],
                     "flat": flat,
                 }
             )
         coords = dict(zip(panel_fields, pkey))
-        title = " · ".join(f"{LABELS[f]} = {_fmt(v)}" for f, v in coords.items())
+        title = " · ".join(f"{LABELS[f]} = {fmt(v)}" for f, v in coords.items())
         key = "|".join(map(str, pkey))
         out.append({"key": key, "title": title, "coords": coords, "x": xvals, "series": series})
     return {

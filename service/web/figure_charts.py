@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from service.web.charts import LABELS, ChartError, _fmt, _number
+from service.web.charts import LABELS, ChartError, finite, fmt
 from svrobs_core.report import FIGURE_SERIES, FigureSeries, summary_context, summary_lines
 from svrobs_core.report.series import _matches, resolve
 
@@ -45,7 +45,7 @@ def preset_of(preset_id: str) -> FigureSeries:
 
 
 def _title(coords: dict) -> str:
-    return " · ".join(f"{LABELS.get(f, f)} = {_fmt(v)}" for f, v in coords.items())
+    return " · ".join(f"{LABELS.get(f, f)} = {fmt(v)}" for f, v in coords.items())
 
 
 def _line_label(line: dict) -> str:
@@ -56,7 +56,7 @@ def _line_label(line: dict) -> str:
         elif f == "estimator":
             parts.append(str(v))
         else:
-            parts.append(f"{LABELS.get(f, f)}={_fmt(v)}")
+            parts.append(f"{LABELS.get(f, f)}={fmt(v)}")
     return " ".join(parts) or "all"
 
 
@@ -70,7 +70,7 @@ def _pooled_std(members: list[dict], field: str) -> tuple[float | None, int]:
     m = np.array([s["mean"] for s in st], float)
     sd = np.array([s["std"] for s in st], float)
     mu = float(n @ m / n.sum())
-    return _number(math.sqrt(float(n @ (sd**2 + (m - mu) ** 2) / n.sum()))), int(n.sum())
+    return finite(math.sqrt(float(n @ (sd**2 + (m - mu) ** 2) / n.sum()))), int(n.sum())
 
 
 def y_scale(s: FigureSeries, values: list[float]) -> dict:
@@ -83,7 +83,10 @@ def y_scale(s: FigureSeries, values: list[float]) -> dict:
         return {"scale": "log"}
     if (v < 0).any() and (v > 0).any():
         nz = np.abs(v[v != 0])
-        return {"scale": "symlog", "linthresh": 10.0 ** math.floor(math.log10(np.quantile(nz, 0.1)))}
+        return {
+            "scale": "symlog",
+            "linthresh": 10.0 ** math.floor(math.log10(np.quantile(nz, 0.1))),
+        }
     return {"scale": "linear"}
 
 
@@ -93,7 +96,11 @@ def preset_chart(groups: list[dict], spec: dict | None, s: FigureSeries) -> dict
     ctx = summary_context(groups, spec)
     lines = summary_lines(groups, s, ctx)
     where = [(f, resolve(v, ctx)) for f, v in s.where]
-    selected = [g for g in groups if all(_matches(g, f, v) for f, v in where)]
+    by_point: dict[tuple, list[dict]] = {}  # the groups of one plotted point
+    for g in groups:
+        if all(_matches(g, f, v) for f, v in where):
+            key = (*(g[f] for f in s.panels), *(g[f] for f in s.lines), g["N"])
+            by_point.setdefault(key, []).append(g)
     band = s.band is not None and s.stat == "mean"
     panels: dict[tuple, dict] = {}
     for ln in lines:
@@ -105,15 +112,10 @@ def preset_chart(groups: list[dict], spec: dict | None, s: FigureSeries) -> dict
         series = []
         for ln in p["lines"]:
             y = dict(zip(ln["N"], ln["y"]))
-            mean = [_number(y.get(n)) for n in xs]
+            mean = [finite(y.get(n)) for n in xs]
             std, count = [], []
             for n in xs:
-                members = [
-                    g
-                    for g in selected
-                    if g["N"] == n
-                    and all(g[f] == v for f, v in {**ln["panel"], **ln["line"]}.items())
-                ]
+                members = by_point.get((*ln["panel"].values(), *ln["line"].values(), n), [])
                 sd, cnt = _pooled_std(members, s.field)
                 std.append(sd if band and n in y else None)
                 count.append(cnt)
@@ -131,7 +133,15 @@ def preset_chart(groups: list[dict], spec: dict | None, s: FigureSeries) -> dict
                 }
             )
         key = "|".join(map(str, pkey))
-        out.append({"key": key, "title": _title(p["coords"]), "coords": p["coords"], "x": xs, "series": series})
+        out.append(
+            {
+                "key": key,
+                "title": _title(p["coords"]),
+                "coords": p["coords"],
+                "x": xs,
+                "series": series,
+            }
+        )
     return {
         "metric": s.label,
         "x": "N",

@@ -12,8 +12,10 @@ rows (quantiles, shares, matrices): the full report has it.
 
 from __future__ import annotations
 
+import math
+
 from svrobs_core.report import TABLE2_COLUMNS, table2
-from svrobs_core.report.columns import GAMMA_RTOL, as_columns
+from svrobs_core.report.columns import GAMMA_RTOL, Columns
 from svrobs_core.report.findings import _f_svr_vs_ols
 
 TABLE_FIELDS = ("rmse_A", "rmse_B")
@@ -22,44 +24,52 @@ TABLE_FIELDS = ("rmse_A", "rmse_B")
 PAGE_COLUMNS = tuple(c for c in TABLE2_COLUMNS if not c.startswith(("paper_", "ratio_")))
 
 
-def group_records(groups: list[dict]) -> list[dict]:
-    """One record per summary group, its fields set to the group's means."""
-    return [
+def group_columns(groups: list[dict]) -> Columns:
+    """One record per summary group, its fields set to the group's means (no matrices)."""
+    records = [
         {
             **{k: g[k] for k in ("system", "sigma_w", "N", "estimator", "gamma")},
             **{f: (s or {}).get("mean") for f, s in (g.get("stats") or {}).items()},
         }
         for g in groups
     ]
+    return Columns.from_records(records, matrices=False)
 
 
-def _reps(groups: list[dict], row: dict) -> int:
-    """Table 2's reps_per_N: the fewest repetitions with a value at any N, over the
-    OLS and the SVR (row γ) groups of the row."""
-    f = f"rmse_{row['matrix']}"
-    least = {}
+def _least_counts(groups: list[dict]) -> dict[tuple, int]:
+    """(system, σ_w, matrix, estimator, γ) -> the fewest repetitions with an RMSE at
+    any N."""
+    least: dict[tuple, int] = {}
     for g in groups:
-        st = (g.get("stats") or {}).get(f) or {}
-        if g["system"] != row["system"] or g["sigma_w"] != row["sigma_w"] or not st.get("count"):
-            continue
-        if g["estimator"] == "svr" and not (
-            row["gamma"] is not None
-            and g["gamma"] is not None
-            and abs(g["gamma"] - row["gamma"]) <= GAMMA_RTOL * abs(row["gamma"])
-        ):
-            continue
-        least[g["estimator"]] = min(least.get(g["estimator"], st["count"]), st["count"])
-    return min(least.values(), default=0)
+        for mat in ("A", "B"):
+            n = ((g.get("stats") or {}).get(f"rmse_{mat}") or {}).get("count")
+            if n:
+                k = (g["system"], g["sigma_w"], mat, g["estimator"], g["gamma"])
+                least[k] = min(least.get(k, n), n)
+    return least
 
 
-def summary_table2(groups: list[dict]) -> list[dict]:
-    """:func:`svrobs_core.report.table2` from summary groups (with ``rmse_A``/``rmse_B``
-    stats), restricted to PAGE_COLUMNS."""
-    rows = table2(group_records(groups))
-    return [{**{c: r[c] for c in PAGE_COLUMNS}, "reps_per_N": _reps(groups, r)} for r in rows]
+def _reps(least: dict[tuple, int], row: dict) -> int:
+    """Table 2's reps_per_N: the fewest over the row's OLS and SVR (row γ) groups."""
+    g = row["gamma"]
+    n = [
+        c
+        for (system, sigma_w, mat, est, gamma), c in least.items()
+        if (system, sigma_w, mat) == (row["system"], row["sigma_w"], row["matrix"])
+        if est == "ols"
+        or (g is not None and gamma is not None and math.isclose(gamma, g, rel_tol=GAMMA_RTOL))
+    ]
+    return min(n, default=0)
 
 
-def summary_findings(groups: list[dict]) -> list[str]:
-    """The report's findings that rest on mean RMSE only (SVR against OLS, and the
-    paper's claim at the largest σ_w), from summary groups."""
-    return _f_svr_vs_ols(as_columns(group_records(groups)))
+def summary_tables(groups: list[dict]) -> tuple[list[dict], list[str]]:
+    """:func:`svrobs_core.report.table2` (restricted to PAGE_COLUMNS) and the report's
+    findings that rest on mean RMSE only (SVR against OLS, and the paper's claim at
+    the largest σ_w), from summary groups with ``rmse_A``/``rmse_B`` stats."""
+    if not groups:
+        return [], []
+    cols, least = group_columns(groups), _least_counts(groups)
+    rows = [
+        {**{c: r[c] for c in PAGE_COLUMNS}, "reps_per_N": _reps(least, r)} for r in table2(cols)
+    ]
+    return rows, _f_svr_vs_ols(cols)

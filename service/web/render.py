@@ -99,7 +99,9 @@ def login_url(request: Request) -> str:
 
 def error_page(request: Request, status: int, message: str) -> HTMLResponse:
     """The error page of ``status`` with ``message``."""
-    return render(request, "error.html", status=status, error=WebError(status, message), viewer=None)
+    return render(
+        request, "error.html", status=status, error=WebError(status, message), viewer=None
+    )
 
 
 async def web_error_page(request: Request, exc: WebError) -> Response:

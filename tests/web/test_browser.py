@@ -260,6 +260,8 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
 
     page.check("#chart-bands")
     check_presets(page, summary)
+    expect(page.locator("#table2 tbody tr")).to_have_count(2 * 2 * 2)  # system, σ_w, matrix
+    assert page.locator("#findings li").count() >= 1
 
     with stack.client() as api:  # downloads: the API's own streams, under the cookie
         for fmt in ("csv", "jsonl"):

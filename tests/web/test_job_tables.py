@@ -36,7 +36,7 @@ def recs():
 
 def test_table2_from_summaries_is_the_reports_table2(recs):
     groups = summarize(recs)
-    mine = job_tables.summary_table2(groups)
+    mine = job_tables.summary_tables(groups)[0]
     theirs = rpt.table2(recs)
     assert len(mine) == len(theirs) == 2 * 2 * 2
     for m, t in zip(mine, theirs):
@@ -57,7 +57,7 @@ def test_table2_from_summaries_is_the_reports_table2(recs):
 
 
 def test_rmse_findings_from_summaries_are_the_reports(recs):
-    mine = job_tables.summary_findings(summarize(recs))
+    mine = job_tables.summary_tables(summarize(recs))[1]
     assert mine and mine[0].startswith(("[holds]", "[partly]", "[does not hold]"))
     assert all(f in findings(recs, tiny_spec()) for f in mine)
 
@@ -86,7 +86,9 @@ def test_every_preset_is_summary_lines_with_std_bands():
                         v = cols[s.field][m & (cols["N"] == n)]
                         assert sd == pytest.approx(float(np.std(v[np.isfinite(v)])), rel=1e-9)
                 drawn += 1
-        values = [y for p in data["panels"] for ser in p["series"] for y in ser["mean"] if y is not None]
+        values = [
+            y for p in data["panels"] for ser in p["series"] for y in ser["mean"] if y is not None
+        ]
         if s.scale == "linear" or not values:
             assert data["scale"] == "linear"
         elif min(values) > 0:

@@ -84,7 +84,7 @@ def test_another_teams_job_is_a_404_page_everywhere(web, session, make_account):
     jid = _submit(web, a)
     sign_in(web, b.key)
     token = csrf_of(web.get("/jobs").text)
-    for path in ("", "/progress", "/chart-data", "/delete"):
+    for path in ("", "/progress", "/chart-data", "/tables", "/delete"):
         assert web.get(f"/jobs/{jid}{path}").status_code == 404, path
     for path in ("/cancel", "/delete"):
         r = web.post(f"/jobs/{jid}{path}", data={"csrf_token": token}, follow_redirects=False)
@@ -155,12 +155,14 @@ def test_table2_findings_and_figure_presets_on_the_job_page(web, session, make_a
     run_job_units(session, jid)
     sign_in(web, acc.key)
     page = web.get(f"/jobs/{jid}").text
+    assert f'hx-get="/jobs/{jid}/tables"' in page
+    tables = web.get(f"/jobs/{jid}/tables").text
     records = _jsonl(web, acc, jid)
     rows = re.findall(
         r'<tr data-system="([^"]+)" data-sigma-w="([^"]+)" data-matrix="(\w)">\s*'
         r"<td>[^<]*</td><td>[^<]*</td><td>\w</td>\s*"
         r'<td class="num" data-value="([^"]*)">[^<]*</td>\s*<td class="num" data-value="([^"]*)">',
-        page,
+        tables,
     )
     want = rpt.table2(records)
     assert len(rows) == len(want) == 2 * 2 * 2
@@ -168,12 +170,12 @@ def test_table2_findings_and_figure_presets_on_the_job_page(web, session, make_a
         assert (system, float(sigma_w), mat) == (t["system"], t["sigma_w"], t["matrix"])
         for got, exp in ((ols, t["ols"]), (svr, t["svr"])):
             assert (got == "None") if exp is None else float(got) == pytest.approx(exp, rel=1e-12)
-    found = re.findall(r"<li>(\[[^<]*)</li>", page)
+    found = re.findall(r"<li>(\[[^<]*)</li>", tables)
     assert found and all(html.unescape(f) in rpt.findings(records, SMALL_SPEC) for f in found)
 
     summary = web.get(f"{API}/jobs/{jid}/summary", headers=acc.headers).json()["groups"]
     row = figure_charts.PRESETS["fig_rmse/rmse_A"]
-    assert f'value="fig_rmse/rmse_A" data-field="rmse_A"' in page
+    assert 'value="fig_rmse/rmse_A" data-field="rmse_A"' in page
     data = web.get(f"/jobs/{jid}/chart-data?preset=fig_rmse/rmse_A").json()
     lines = rpt.summary_lines(summary, row, rpt.summary_context(summary, SMALL_SPEC))
     got = {

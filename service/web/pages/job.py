@@ -39,13 +39,10 @@ def _progress_context(job: Job) -> dict:
 @router.get("/jobs/{job_id:int}")
 def job_page(request: Request, db: DB, viewer: CurrentViewer, job_id: int):
     job = _job(db, viewer, job_id)
-    groups = charts.stored_groups(db, job.id, *job_tables.TABLE_FIELDS)
     return render(
         request,
         "job.html",
         presets=figure_charts.preset_options(),
-        table2=job_tables.summary_table2(groups),
-        findings=job_tables.summary_findings(groups),
         viewer=viewer,
         nav="jobs",
         spec_json=json.dumps(job.spec, indent=2),
@@ -66,6 +63,24 @@ def job_progress(request: Request, db: DB, viewer: CurrentViewer, job_id: int):
     if not ctx["active"]:
         response.headers["HX-Trigger"] = FINISHED_EVENT
     return response
+
+
+@router.get("/jobs/{job_id:int}/tables")
+def job_tables_card(request: Request, db: DB, viewer: CurrentViewer, job_id: int):
+    """Table 2 and the RMSE findings from the stored summaries (service.web.job_tables),
+    loaded by htmx after the page and again when the job finishes."""
+    job = _job(db, viewer, job_id)
+    groups = charts.stored_groups(db, job.id, *job_tables.TABLE_FIELDS)
+    table2, findings = job_tables.summary_tables(groups)
+    return render(
+        request,
+        "_job_tables.html",
+        viewer=viewer,
+        job=job,
+        active=job.status in JOB_ACTIVE,
+        table2=table2,
+        findings=findings,
+    )
 
 
 @router.get("/jobs/{job_id:int}/chart-data")
