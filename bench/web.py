@@ -45,6 +45,7 @@ PAGES = [
     "/jobs",
     "/jobs/{id}",
     "/jobs/{id}/progress",
+    "/jobs/{id}/tables",  # Table 2 and findings, loaded by the page
     "/jobs/{id}/chart-data?metric=rmse_A&x=N&metrics=1",  # the page's first load
     "/jobs/{id}/chart-data?metric=rmse_A&x=N",
     "/jobs/{id}/chart-data?metric=H_A&x=sigma_w",

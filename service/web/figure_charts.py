@@ -109,8 +109,12 @@ def preset_chart(groups: list[dict], spec: dict | None, s: FigureSeries) -> dict
     out, values = [], []
     for pkey, p in panels.items():
         xs = sorted({n for ln in p["lines"] for n in ln["N"]})
-        series = []
+        series, colours = [], {}
         for ln in p["lines"]:
+            # estimator lines of one other key share a colour, SVR dashed (as the figures)
+            rest = tuple(v for f, v in ln["line"].items() if f != "estimator")
+            colour = colours.setdefault(rest, len(colours))
+            dashed = "estimator" in s.lines and ln["line"]["estimator"] == "svr" and bool(rest)
             y = dict(zip(ln["N"], ln["y"]))
             mean = [finite(y.get(n)) for n in xs]
             std, count = [], []
@@ -130,6 +134,8 @@ def preset_chart(groups: list[dict], spec: dict | None, s: FigureSeries) -> dict
                     "std": std,
                     "count": count,
                     "flat": False,
+                    "colour": colour if "estimator" in s.lines else None,
+                    "dash": dashed,
                 }
             )
         key = "|".join(map(str, pkey))

@@ -173,6 +173,9 @@ def check_presets(page, summary: dict) -> None:
             np.testing.assert_allclose(np.array(got[k]), np.array(want[k]), rtol=1e-12)
         note = page.locator("#chart-band-note").inner_text()
         assert note.startswith(f"(the report's {figure}")
+        if SCREENSHOTS and n == 1:
+            path = Path(SCREENSHOTS) / "dashboard-preset.png"
+            page.locator("#charts-card").screenshot(path=str(path))
     page.select_option("#chart-preset", "")
     wait_charts(page, loads + 3)
     assert not page.is_disabled("#chart-metric")

@@ -70,7 +70,7 @@
   function datasets(panel, logY, bands) {
     const out = [];
     panel.series.forEach((s, i) => {
-      const color = PALETTE[i % PALETTE.length];
+      const color = PALETTE[(s.colour ?? i) % PALETTE.length];
       const hi = s.mean.map((m, j) => (m === null || s.std[j] === null ? null : m + s.std[j]));
       const lo = s.mean.map((m, j) => {
         if (m === null || s.std[j] === null) return null;
@@ -80,7 +80,7 @@
       const meta = { series: i, estimator: s.estimator, gamma: s.gamma, line: s.line, mean: s.mean, std: s.std, count: s.count };
       out.push({
         label: s.label, data: points(panel.x, s.mean), borderColor: color,
-        backgroundColor: color, borderWidth: 2, pointRadius: 3, borderDash: s.flat ? [6, 4] : [],
+        backgroundColor: color, borderWidth: 2, pointRadius: 3, borderDash: s.flat ? [6, 4] : (s.dash ? [3, 3] : []),
         svrobs: Object.assign({ role: "mean" }, meta), spanGaps: false,
       });
       if (!bands || s.std.every((v) => v === null)) return;
@@ -229,6 +229,7 @@
         o.hidden = !data.metrics.includes(o.dataset.field);
       });
     }
+    if (resetLog && data.preset) card.querySelector("#chart-logx").checked = false;
     if (resetLog && !data.preset) {
       card.querySelector("#chart-logy").checked = data.positive;
       card.querySelector("#chart-logx").checked = data.x !== "N";
