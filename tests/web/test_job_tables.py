@@ -62,9 +62,22 @@ def test_rmse_findings_from_summaries_are_the_reports(recs):
     assert all(f in findings(recs, tiny_spec()) for f in mine)
 
 
-def test_every_preset_is_summary_lines_with_std_bands():
-    spec = paper_specs("reduced")["E4"]
-    recs = [r for b in run_spec(parse_spec(spec)) for r in b]
+E4 = paper_specs("reduced")["E4"]
+
+
+@pytest.mark.parametrize(
+    "spec, recs",
+    [
+        pytest.param(E4, None, id="E4 reduced, run"),
+        # two σ_w: Fig. 4 and 5 rows pool them (neither selected nor a line)
+        pytest.param({**E4, "sigma_w": [0.1, 1.0]}, 3, id="E4 two sigma_w, constructed"),
+    ],
+)
+def test_every_preset_is_the_figures_curve_with_std_bands(spec, recs):
+    if recs is None:
+        recs = [r for b in run_spec(parse_spec(spec)) for r in b]
+    else:
+        recs = make_records(spec, seed=recs)
     groups = summarize(recs)
     cols, meta = as_columns(recs), spec_meta(spec)
     ctx = context(cols, meta)
@@ -83,6 +96,7 @@ def test_every_preset_is_summary_lines_with_std_bands():
                 if s.band:  # mean ± std of the same repetitions, from the records
                     for n, sd in zip(p["x"], ser["std"]):
                         m = pm & select(cols, estimator="svr", gamma=ser["gamma"])
+                        m &= select(cols, system=ctx["system_S"])
                         v = cols[s.field][m & (cols["N"] == n)]
                         assert sd == pytest.approx(float(np.std(v[np.isfinite(v)])), rel=1e-9)
                 drawn += 1
