@@ -10,7 +10,7 @@ from typing import Any
 
 # SPEC section 10: the record fields holding matrices (svrobs_core.records.MATRIX_FIELDS;
 # a test keeps the two equal, without making the client import the core).
-MATRIX_FIELDS = ("A_hat", "B_hat", "L", "K")
+MATRIX_FIELDS = ("A_hat", "B_hat", "radii_A", "radii_B", "L", "K")
 GROUP_FIELDS = ("system", "sigma_w", "N", "estimator", "gamma")
 
 

@@ -18,25 +18,35 @@ from .columns import (
     Columns,
     Meta,
     as_columns,
-    by_N,
     fmt_num,
     gamma_label,
-    mean_of,
     n0_ratio,
     select,
     sigmas_of,
     spec_meta,
     systems_of,
 )
-from .derived import first_stable_certified
+from .derived import all_inside, first_stable_certified
 from .plotting import (
-    figure_legend,
+    MERGED_NOTE,
+    differences,
     figure_title,
+    grid_legend,
+    joined,
     label_panel,
     legend_line,
+    merge_identical,
     new_figure,
     no_data_panel,
+    note,
+    overlap_text,
+    plot_merged,
+    ref_line,
+    series_handle,
+    value_axis,
 )
+from .series import context, figure_series, series_lines
+from .style import REFERENCE, series_style, size, styled
 
 AUDIT_SERIES = (("svr", TABLE2_GAMMA), ("ols", None))
 
@@ -55,13 +65,6 @@ def audit_sources(experiments: dict[str, dict], cols: dict[str, Columns]) -> dic
     return {m: out[m] for m in BOUNDS_METHODS if m in out}
 
 
-def _simultaneous(cols: Columns) -> np.ndarray:
-    """1 where every entry of A and of B is inside, 0 where not, NaN where undefined."""
-    a, b = cols["coverage_A"], cols["coverage_B"]
-    ok = np.isfinite(a) & np.isfinite(b)
-    return np.where(ok, ((a == 1) & (b == 1)).astype(float), np.nan)
-
-
 def _mean(v: np.ndarray) -> float | None:
     v = v[np.isfinite(v)]
     return float(np.mean(v)) if v.size else None
@@ -75,7 +78,7 @@ def audit_rows(sources: dict[str, Columns], delta: float) -> list[dict]:
     rows = []
     for method, records in sources.items():
         cols = as_columns(records)
-        simul = _simultaneous(cols)
+        simul = all_inside(cols)
         first = first_stable_certified(cols)
         for system in systems_of(cols):
             for s in sigmas_of(cols, select(cols, system=system)):
@@ -155,61 +158,248 @@ def audit_findings(rows: list[dict], delta: float) -> list[str]:
     return out
 
 
+ESTIMATOR_LOOK = {"svr": ("-", True), "ols": ("--", False)}  # line style, filled markers
+
+
+def _style(i: int, estimator: str) -> dict:
+    """Method ``i``'s colour and marker; the estimator's line style and marker:
+    SVR small and filled, on top of OLS's larger open one (both stay visible
+    where the curves coincide)."""
+    ls, filled = ESTIMATOR_LOOK.get(estimator, ("-.", True))
+    st = series_style(i, line=False)
+    if filled:
+        st.update(ls=ls, markerfacecolor=st["color"], zorder=3)
+    else:
+        st.update(ls=ls, markerfacecolor="white", markersize=5.5, zorder=2)
+    return st
+
+
+def _text_panel(ax, title: str, text: str):
+    """A panel with nothing to plot: its title and one statement, no axes."""
+    ax.set_title(title)
+    ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes)
+    ax.set_axis_off()
+
+
+def _bottom_note(ax, text: str):
+    """``text`` in the lower left corner, on a white box (the axis leaves room
+    below the data for it)."""
+    ax.text(
+        0.03,
+        0.04,
+        text,
+        ha="left",
+        va="bottom",
+        transform=ax.transAxes,
+        zorder=5,
+        bbox=dict(boxstyle="round,pad=0.25", fc="white", ec="0.75", lw=0.5),
+    )
+
+
+def _audit_lines(srcs: dict[str, Columns], meta: Meta):
+    """(quantity, method, system) -> the FIGURE_SERIES lines of that source; the
+    systems; the σ_w shown (1 if any source has it)."""
+    rows = figure_series("fig_bounds_audit")
+    systems: list[str] = []
+    sig: set[float] = set()
+    for c in srcs.values():
+        systems += [s for s in systems_of(c) if s not in systems]
+        sig |= set(sigmas_of(c))
+    sw = 1.0 if 1.0 in sig else (min(sig) if sig else None)
+    lines = {}
+    for m, c in srcs.items():
+        ctx = context(c, meta, table=TABLE2_GAMMA, sigma_ref=sw)
+        for system in systems:
+            pm = select(c, system=system)
+            for key in rows:
+                lines[(key, m, system)] = series_lines(c, meta, rows[key], pm, ctx)
+    return lines, systems or ["(none)"], sw
+
+
+def _pairs(lines, key, methods, system):
+    """(method, series name, Line) of ``methods`` in one panel, SVR before OLS."""
+    return [
+        (m, f"{m} {gamma_label(ln.key['estimator'], TABLE2_GAMMA)}", ln)
+        for m in methods
+        for ln in sorted(lines[(key, m, system)], key=lambda ln: ln.key["estimator"] != "svr")
+    ]
+
+
+def _merged_items(ax, items, styles, *, panel, quantity, merged: dict, system):
+    """Draw items with identical ones merged; remember which merged (for the note)."""
+    for names, _ in merge_identical(items):
+        if len(names) > 1:
+            merged.setdefault((quantity, tuple(names)), []).append(system)
+    return plot_merged(ax, items, styles, panel=panel, quantity=quantity)
+
+
+@styled
 def fig_bounds_audit(
     sources: dict[str, Columns], delta: float, *, experiment: str | None = None, seed="?"
 ):
-    """Simultaneous coverage and mean r_A against N0, one line per method (SVR at
-    the table's gamma, solid; OLS, dashed): columns are the systems at sigma_w = 1."""
+    """Share of records with every entry of A and of B inside the box (linear, with
+    the 1 − δ line) and mean r_A (log) against N0, columns the systems at σ_w = 1.
+    One colour and marker per bounds_method; SVR at the table's γ solid with filled
+    markers, OLS dashed with open markers. A method whose share is 1 at every N0
+    of a system is a caption note there, not a flat line; identical curves are
+    drawn once (SPEC section 3.1, issue 12)."""
     srcs = {m: as_columns(c) for m, c in sources.items()}
-    systems = []
-    for c in srcs.values():
-        systems += [s for s in systems_of(c) if s not in systems]
-    systems = systems or ["(none)"]
-    fig, axes = new_figure(2, len(systems), (4.2 * len(systems) + 0.8, 6.2), sharex=True)
+    meta = Meta(delta=delta, seed=seed)
     level = 1 - delta
-    lows = [level]
-    for col, system in enumerate(systems):
-        for row, what in enumerate(("simultaneous", "r_A")):
-            ax = axes[row, col]
-            drawn = False
-            ratio = None
-            for i, cols in enumerate(srcs.values()):
-                values = _simultaneous(cols) if what == "simultaneous" else cols["r_A"]
-                for (est, g), ls in zip(AUDIT_SERIES, ("-", "--")):
-                    m = select(cols, system=system, sigma_w=1.0, estimator=est, gamma=g)
-                    x, _, y, _ = by_N(cols, m, values, mean_of)
-                    if x.size and np.isfinite(y).any():
-                        ax.plot(
-                            x, y, color=f"C{i}", ls=ls, lw=1.3, marker="." if x.size < 8 else None
-                        )
-                        drawn = True
-                        ratio = ratio or n0_ratio(cols, m)
-                        if what == "simultaneous":
-                            lows.append(float(np.nanmin(y)))
-            if not drawn:
-                no_data_panel(ax, "no records at σ_w = 1")
-                continue
-            if what == "simultaneous":
-                ax.axhline(level, color="k", ls=":", lw=1)
-                label_panel(
-                    ax, "share with all entries inside", f"{system}, σ_w=1", None, xlabel=False
+    lines, systems, sw = _audit_lines(srcs, meta)
+    order = {m: i for i, m in enumerate(srcs)}
+    ones: dict[str, list[str]] = {}  # method -> systems where every record is inside
+    for (key, m, system), ls in lines.items():
+        if key == "all_inside" and ls and all(np.all(ln.y[np.isfinite(ln.y)] == 1) for ln in ls):
+            ones.setdefault(m, []).append(system)
+
+    def cover_pairs(system):
+        drawn = [m for m in srcs if system not in ones.get(m, [])]
+        return _pairs(lines, "all_inside", drawn, system)
+
+    with_cover = any(cover_pairs(s) for s in systems)
+    nr = 2 if with_cover else 1
+    fig, axes = new_figure(nr, len(systems), size("two", 12.5 if with_cover else 7.5), sharex=True)
+    styles: dict[str, dict] = {}
+
+    def items_of(pairs):
+        for m, name, ln in pairs:
+            styles.setdefault(name, _style(order[m], ln.key["estimator"]))
+        return [(name, ln.x, ln.y) for _, name, ln in pairs]
+
+    ratio = next((n0_ratio(c) for c in srcs.values() if c.n), None)
+    merged: dict = {}
+    title_sw = f"σ_w={fmt_num(sw)}"
+    lows, counts, corner = [level], [], []
+    for c, system in enumerate(systems):
+        top = f"{system}, {title_sw}"
+        if with_cover:
+            ax = axes[0, c]
+            pairs = cover_pairs(system)
+            if not pairs:
+                _text_panel(
+                    ax, top, "every entry of A and of B inside\nin every record, every method"
                 )
             else:
-                ax.set_yscale("log")
-                label_panel(ax, "mean r_A (largest radius)", f"{system}, σ_w=1", ratio)
-    for col in range(len(systems)):
-        axes[0, col].set_ylim(min(lows) - 0.03, 1.01)
-    handles = [legend_line(f"C{i}", "-", m) for i, m in enumerate(srcs)]
-    handles += [
-        legend_line("0.4", "-", gamma_label(*AUDIT_SERIES[0])),
-        legend_line("0.4", "--", gamma_label(*AUDIT_SERIES[1])),
-        legend_line("k", ":", f"1 − δ = {fmt_num(level)}"),
+                items = items_of(pairs)
+                _merged_items(
+                    ax,
+                    items,
+                    styles,
+                    panel=f"{system}: all inside",
+                    quantity="all_inside",
+                    merged=merged,
+                    system=system,
+                )
+                ref_line(ax, level, ls=":", lw=1.0)
+                lows += [float(np.nanmin(ln.y)) for *_, ln in pairs]
+                counts += [int(k) for *_, ln in pairs for k in ln.count]
+                label_panel(ax, "share with all entries inside", top, None, xlabel=False)
+                full = [m for m in srcs if system in ones.get(m, [])]
+                if full:
+                    corner.append((ax, f"{joined(full)}: all inside\nat every N0 (not drawn)"))
+        ax = axes[nr - 1, c]
+        pairs = _pairs(lines, "r_A", list(srcs), system)
+        if not pairs:
+            no_data_panel(ax, f"no r_A at {title_sw}")
+            continue
+        _merged_items(
+            ax,
+            items_of(pairs),
+            styles,
+            panel=f"{system}: r_A",
+            quantity="r_A",
+            merged=merged,
+            system=system,
+        )
+        value_axis(ax)
+        label_panel(ax, "mean r_A (largest radius)", None if with_cover else top, ratio)
+    if with_cover:
+        lo = min(lows)
+        pad = 0.06 * (1 - lo) + 0.003
+        below = 0.4 * (1 - lo) + 0.004 if corner else pad  # room for the notes under the data
+        for c in range(len(systems)):
+            axes[0, c].set_ylim(lo - below, 1 + pad)
+        for ax, text in corner:
+            _bottom_note(ax, text)
+    _audit_notes(fig, srcs, lines, systems, ones, merged, counts, level, title_sw)
+    method_handles = [
+        series_handle(m, _style(order[m], "svr"))
+        for m in srcs
+        if any(n.startswith(m + " ") for n in styles)
     ]
-    figure_legend(fig, handles, ncol=len(handles))
+    kinds = [
+        legend_line(ls=ESTIMATOR_LOOK[e][0], label=lab)
+        for e, lab in (
+            ("svr", f"{gamma_label('svr', TABLE2_GAMMA)} (solid, filled markers)"),
+            ("ols", "OLS (dashed, large open markers)"),
+        )
+        if any(st["ls"] == ESTIMATOR_LOOK[e][0] for st in styles.values())
+    ]
+    if with_cover:
+        kinds.append(legend_line(REFERENCE, ":", f"1 − δ = {fmt_num(level)}", lw=1.0))
+    grid_legend(fig, [method_handles, kinds])
     figure_title(
         fig,
-        "Uncertainty sets: simultaneous coverage and radius per bounds_method",
+        "Uncertainty sets: share of records with every entry inside, and radius, per bounds_method",
         experiment,
-        Meta(delta=delta, seed=seed),
+        meta,
     )
     return fig
+
+
+def _audit_notes(fig, srcs, lines, systems, ones, merged, counts, level, title_sw):
+    """Caption notes: shares of 1 not drawn, identical curves, SVR ≈ OLS radii,
+    how many records each share counts."""
+    by_where: dict[tuple, list[str]] = {}
+    for m, where in ones.items():
+        by_where.setdefault(tuple(where), []).append(m)
+    for where, methods in by_where.items():
+        n = sum(
+            int(ln.count.sum())
+            for m in methods
+            for s in where
+            for ln in lines[("all_inside", m, s)]
+        )
+        note(
+            fig,
+            f"The {joined(methods)} box{'es contain' if len(methods) > 1 else ' contains'} "
+            f"every entry of A and of B in all {n:,} records at {title_sw} on "
+            f"{joined(list(where))} (every N0, SVR γ={fmt_num(TABLE2_GAMMA)} and OLS), above "
+            f"1 − δ = {fmt_num(level)}: a share of 1 everywhere, not drawn.",
+        )
+    if merged:
+        what = {"all_inside": "all-inside shares", "r_A": "r_A curves"}
+        parts = [
+            f"the {what[q]} of {joined(list(names))} on {joined(sorted(set(where)))}"
+            for (q, names), where in merged.items()
+        ]
+        note(fig, f"Identical (within 1e-12): {'; '.join(parts)}. " + MERGED_NOTE)
+    for m in srcs:
+        rels = []
+        for s in systems:
+            by = {ln.key["estimator"]: ln for ln in lines[("r_A", m, s)]}
+            if "svr" in by and "ols" in by:
+                _, big = differences(
+                    [("svr", by["svr"].x, by["svr"].y)], ("ols", by["ols"].x, by["ols"].y)
+                )
+                rels.append(big[3])
+        if rels and 0 < max(rels) < 0.03:
+            note(
+                fig,
+                overlap_text(
+                    f"The {m} r_A curves of {gamma_label('svr', TABLE2_GAMMA)} and OLS",
+                    max(rels),
+                    "OLS",
+                )
+                + ".",
+            )
+    if counts:
+        k = min(counts)
+        note(
+            fig,
+            f"Each share counts {k if k == max(counts) else f'{k} to {max(counts)}'} records "
+            f"(one record outside lowers it by {fmt_num(1 / k, 2)}); a box that covers with "
+            f"probability exactly 1 − δ has at least one of {k} outside with probability "
+            f"{100 * (1 - level**k):.0f} %.",
+        )

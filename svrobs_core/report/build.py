@@ -318,10 +318,11 @@ class ReportBuilder:
         )
         rendered = None if self.render is None else self.render(fig).result()
         caption = (
-            "Top: share of records with every entry of A and of B inside the method's box, "
-            "with the 1 − δ line; bottom: mean largest radius r_A. σ_w = 1; SVR at the "
-            "table's γ (solid) and OLS (dashed). The paper's box is centred at (1+γ)Ã, the "
-            "others at the estimate."
+            "Top: share of records with every entry of A and of B inside the method's box "
+            "(linear axis), with the 1 − δ line; bottom: mean largest radius r_A (log axis). "
+            "σ_w = 1; one colour and marker per bounds_method; SVR at the table's γ solid "
+            "with small filled markers, OLS dashed with large open markers. The paper's box "
+            "is centred at (1+γ)Ã, the others at the estimate."
         )
         fg = ReportFigure(
             "fig_bounds_audit",
