@@ -45,10 +45,13 @@ PAGES = [
     "/jobs",
     "/jobs/{id}",
     "/jobs/{id}/progress",
+    "/jobs/{id}/tables",  # Table 2 and findings, loaded by the page
     "/jobs/{id}/chart-data?metric=rmse_A&x=N&metrics=1",  # the page's first load
     "/jobs/{id}/chart-data?metric=rmse_A&x=N",
     "/jobs/{id}/chart-data?metric=H_A&x=sigma_w",
     "/jobs/{id}/chart-data?metric=eps_A&x=gamma",
+    "/jobs/{id}/chart-data?preset=fig_rmse/rmse_A",  # the report's figure series
+    "/jobs/{id}/chart-data?preset=fig_coverage/coverage_A",
 ]
 METRICS = ("rmse_A", "rmse_B", "H_A", "H_B", "eps_A", "eps_B", "r_A", "r_B")
 

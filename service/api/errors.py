@@ -1,7 +1,9 @@
 """Every error the API answers, mapped to a response once (``install_error_handlers``).
 
 The body is always JSON ``{"detail": ..., "field": ...}``: 422 for a bad spec or
-body (naming the field), 409 for an Idempotency-Key reused with another spec, 429
+body (naming the field), 409 for an Idempotency-Key reused with another spec or for
+deleting a job that is queued or running (``JobActive``; on a web page, the web
+UI's error page: ``app.state.error_page``), 429
 over the team's job quota, 413 for a body over SVROBS_MAX_BODY_BYTES, 503 when
 the database is unreachable. Anything else is a bug: it is logged with its
 traceback and answered 500 ``{"detail": "internal error"}``, with no internals.
@@ -22,6 +24,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.api.schemas import ErrorOut
 from service.db.errors import IdempotencyConflict, QuotaExceeded
+from service.db.job_delete import JobActive
 from svrobs_core.errors import SpecError
 
 log = logging.getLogger(__name__)
@@ -128,6 +131,13 @@ def plain_errors(errors: list[dict]) -> list[dict]:
     return out
 
 
+async def _job_active(request: Request, exc: JobActive):
+    page = getattr(request.app.state, "error_page", None)
+    if page is not None and not request.url.path.startswith("/api/"):
+        return page(request, 409, f"{str(exc).capitalize()}.")
+    return error_response(409, str(exc), "job")
+
+
 async def _validation_error(request: Request, exc: RequestValidationError):
     errors = plain_errors(exc.errors())
     first = errors[0] if errors else {}
@@ -183,6 +193,7 @@ HANDLERS = (
     (SpecError, _spec_error),
     (QuotaExceeded, _quota_exceeded),
     (IdempotencyConflict, _idempotency_conflict),
+    (JobActive, _job_active),
     (RequestValidationError, _validation_error),
     (StarletteHTTPException, _http_error),
     (OperationalError, _db_down),

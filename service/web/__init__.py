@@ -14,7 +14,14 @@ from __future__ import annotations
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 
-from service.web.render import STATIC, SignInRequired, WebError, sign_in_redirect, web_error_page
+from service.web.render import (
+    STATIC,
+    SignInRequired,
+    WebError,
+    error_page,
+    sign_in_redirect,
+    web_error_page,
+)
 from service.web.session import Signer, load_secret
 
 
@@ -39,4 +46,5 @@ def mount_web(app: FastAPI) -> None:
     for module in (results, compare, schedules, share):  # issue 11's other pages
         app.include_router(module.router)
     app.add_exception_handler(WebError, web_error_page)
+    app.state.error_page = error_page  # errors mapped in service.api.errors, on a page
     app.add_exception_handler(SignInRequired, sign_in_redirect)

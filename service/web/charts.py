@@ -38,10 +38,11 @@ def check(metric: str, x: str) -> None:
         raise ChartError("metric", "must be a numeric record field of the summaries")
 
 
-def stored_groups(session: Session, job_id: int, metric: str) -> list[dict]:
-    """The job's summary groups with the stats of ``metric`` only: the database takes
-    the one field out of each row's stats (the rest is never decoded)."""
-    check(metric, "N")
+def stored_groups(session: Session, job_id: int, *fields: str) -> list[dict]:
+    """The job's summary groups with the stats of ``fields`` only: the database takes
+    those fields out of each row's stats (the rest is never decoded)."""
+    for f in fields:
+        check(f, "N")
     rows = session.execute(
         select(
             Summary.system,
@@ -49,11 +50,18 @@ def stored_groups(session: Session, job_id: int, metric: str) -> list[dict]:
             Summary.N,
             Summary.estimator,
             Summary.gamma,
-            Summary.stats[metric],
+            *(Summary.stats[f] for f in fields),
         ).where(Summary.job_id == job_id)
     ).all()
     return [
-        dict(system=r[0], sigma_w=r[1], N=r[2], estimator=r[3], gamma=r[4], stats={metric: r[5]})
+        dict(
+            system=r[0],
+            sigma_w=r[1],
+            N=r[2],
+            estimator=r[3],
+            gamma=r[4],
+            stats=dict(zip(fields, r[5:])),
+        )
         for r in rows
     ]
 
@@ -74,18 +82,18 @@ def stored_metrics(session: Session, job_id: int) -> list[str]:
     return [f for f in SUMMARY_FIELDS if f in seen]
 
 
-def _number(v) -> float | None:
+def finite(v) -> float | None:
     return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
 
 
-def _fmt(v) -> str:
+def fmt(v) -> str:
     return f"{v:g}" if isinstance(v, float) else str(v)
 
 
 def _series_label(estimator: str, gamma, x: str) -> str:
     if x == "gamma":
         return f"{estimator} (no γ)" if estimator == "ols" else estimator
-    return estimator if gamma is None else f"{estimator} γ={_fmt(gamma)}"
+    return estimator if gamma is None else f"{estimator} γ={fmt(gamma)}"
 
 
 def chart_data(groups: list[dict], *, metric: str, x: str) -> dict:
@@ -113,7 +121,7 @@ def chart_data(groups: list[dict], *, metric: str, x: str) -> dict:
             by_x = panels[pkey][skey]
             flat = x == "gamma" and set(by_x) == {None}  # OLS against γ
             cells = [by_x[None] if flat else by_x.get(v, {}) for v in xvals]
-            mean = [_number(c.get("mean")) for c in cells]
+            mean = [finite(c.get("mean")) for c in cells]
             positive &= all(m is None or m > 0 for m in mean)
             series.append(
                 {
@@ -121,13 +129,13 @@ def chart_data(groups: list[dict], *, metric: str, x: str) -> dict:
                     "estimator": skey[1],
                     "gamma": None if skey[2] == -1.0 else skey[2],
                     "mean": mean,
-                    "std": [_number(c.get("std")) for c in cells],
+                    "std": [finite(c.get("std")) for c in cells],
                     "count": [c.get("count", 0) for c in cells],
                     "flat": flat,
                 }
             )
         coords = dict(zip(panel_fields, pkey))
-        title = " · ".join(f"{LABELS[f]} = {_fmt(v)}" for f, v in coords.items())
+        title = " · ".join(f"{LABELS[f]} = {fmt(v)}" for f, v in coords.items())
         key = "|".join(map(str, pkey))
         out.append({"key": key, "title": title, "coords": coords, "x": xvals, "series": series})
     return {

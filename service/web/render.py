@@ -16,6 +16,8 @@ from fastapi import Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from jinja2 import Environment, FileSystemLoader, select_autoescape
 
+from svrobs_core.report.columns import fmt_num
+
 HERE = Path(__file__).resolve().parent
 TEMPLATES = HERE / "templates"
 STATIC = HERE / "static"
@@ -51,6 +53,7 @@ env = Environment(
     lstrip_blocks=True,
 )
 env.filters["when"] = _when
+env.filters["num"] = lambda v, digits=4: fmt_num(v, digits)
 env.filters["seconds"] = _seconds
 env.filters["pretty"] = lambda v: json.dumps(v, indent=2, sort_keys=False, allow_nan=False)
 env.filters["tojson_attr"] = lambda v: json.dumps(v, separators=(",", ":"))
@@ -92,6 +95,13 @@ def login_url(request: Request) -> str:
     else:
         path = request.url.path + (f"?{request.url.query}" if request.url.query else "")
     return "/login" if path in ("/", "/login") else f"/login?next={quote(path, safe='')}"
+
+
+def error_page(request: Request, status: int, message: str) -> HTMLResponse:
+    """The error page of ``status`` with ``message``."""
+    return render(
+        request, "error.html", status=status, error=WebError(status, message), viewer=None
+    )
 
 
 async def web_error_page(request: Request, exc: WebError) -> Response:

@@ -401,32 +401,38 @@ def summary_lines(groups: list[dict], s: FigureSeries, ctx: dict) -> list[dict]:
     if s.derived or s.stat not in ("mean", "ratio_of_means"):
         raise ValueError(f"{s.figure}/{s.key}: needs the records, not the summaries")
     where = [(f, resolve(v, ctx)) for f, v in s.where]
-    sel = [g for g in groups if all(_matches(g, f, v) for f, v in where)]
-    mean = {}
-    for g in sel:
+    # (panel, line, N) -> [sum, count]: groups that differ only in a coordinate the row
+    # neither selects nor splits by (σ_w of Fig. 4) are pooled, as the records are
+    acc: dict[tuple, list] = {}
+    for g in groups:
         st = (g.get("stats") or {}).get(s.field) or {}
-        if st.get("mean") is not None:
-            mean[tuple(g[k] for k in GROUP_KEYS)] = st["mean"]
-    if s.stat == "ratio_of_means":
-        g_ref = ctx["gamma_ref"]
-        ref = {
-            (k[0], k[1], k[2]): v
-            for k, v in mean.items()
-            if k[4] is not None and math.isclose(k[4], g_ref, rel_tol=GAMMA_RTOL)
-        }
+        if (
+            st.get("mean") is None
+            or not st.get("count")
+            or not all(_matches(g, f, v) for f, v in where)
+        ):
+            continue
+        a = acc.setdefault(
+            (tuple(g[f] for f in s.panels), tuple(g[f] for f in s.lines), g["N"]), [0.0, 0]
+        )
+        a[0] += st["mean"] * st["count"]
+        a[1] += st["count"]
+    mean = {k: total / n for k, (total, n) in acc.items()}
+    if s.stat == "ratio_of_means":  # each γ against γ_ref, per panel and N
+        g_ref, gi = ctx["gamma_ref"], s.lines.index("gamma")
+
+        def is_ref(k):
+            return k[1][gi] is not None and math.isclose(k[1][gi], g_ref, rel_tol=GAMMA_RTOL)
+
+        ref = {(k[0], k[2]): v for k, v in mean.items() if is_ref(k)}
         mean = {
-            k: abs(v - ref[k[:3]]) / ref[k[:3]]
+            k: abs(v - ref[k[0], k[2]]) / ref[k[0], k[2]]
             for k, v in mean.items()
-            if k[:3] in ref
-            and ref[k[:3]]
-            and not math.isclose(k[4] or 0.0, g_ref, rel_tol=GAMMA_RTOL)
+            if ref.get((k[0], k[2])) and not is_ref(k)
         }
     out: dict = {}
-    for k, v in mean.items():
-        d = dict(zip(GROUP_KEYS, k))
-        pk = tuple(d[f] for f in s.panels)
-        lk = tuple(d[f] for f in s.lines)
-        out.setdefault((pk, lk), {})[d["N"]] = v
+    for (pk, lk, n), v in mean.items():
+        out.setdefault((pk, lk), {})[n] = v
     lines = []
 
     def order(t):

@@ -9,6 +9,7 @@ import json
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 from playwright.sync_api import expect
 
@@ -40,7 +41,7 @@ PLOTTED = """() => window.svrobsCharts.charts.map(c => ({
   panel: c.panel,
   y: c.chart.options.scales.y.type,
   lines: c.chart.data.datasets.filter(d => d.svrobs.role === "mean").map(d => ({
-    estimator: d.svrobs.estimator, gamma: d.svrobs.gamma,
+    estimator: d.svrobs.estimator, gamma: d.svrobs.gamma, line: d.svrobs.line || {},
     points: d.data.map(p => [p.x, p.y]), std: d.svrobs.std,
   })),
 }))"""
@@ -124,6 +125,66 @@ def assert_charts_equal_summary(plotted: list[dict], summary: dict, x: str, metr
     assert got == want
 
 
+SYMLOG = """() => { const c = document.createElement("canvas");
+  document.body.appendChild(c);
+  const ch = new Chart(c, {type: "line", data: {datasets: [{data: [{x: 1, y: -3}, {x: 2, y: 0.004},
+    {x: 3, y: 40}]}]}, options: {animation: false, scales: {x: {type: "linear"},
+    y: {type: "symlog", linthresh: 0.01}}}});
+  const y = ch.scales.y, vs = [-3, -0.01, 0, 0.004, 0.01, 40];
+  const out = {ticks: y.ticks.map(t => t.value), px: vs.map(v => y.getPixelForValue(v)),
+    back: vs.map(v => y.getValueForPixel(y.getPixelForValue(v)))};
+  ch.destroy(); c.remove(); return out; }"""
+
+
+def check_presets(page, summary: dict) -> None:
+    """A figure-series preset draws summary_lines of the API's summary JSON (the
+    report's figure curves), with the figure's grouping and scale; presets of fields
+    without data are hidden; the symlog axis is monotone and round-trips."""
+    from svrobs_core.report import summary_context, summary_lines
+    from svrobs_core.report.series import figure_series
+
+    groups = summary["groups"]
+    hidden = page.evaluate(
+        """() => [...document.querySelectorAll("#chart-preset option[data-field]")]
+        .filter(o => o.hidden).map(o => o.value)"""
+    )
+    assert "fig5/ratio" in hidden and "fig_rmse/rmse_A" not in hidden  # no cost stage
+    loads = int(page.get_attribute("#charts-card", "data-loads"))
+    for n, (preset, scale) in enumerate(
+        (("fig_rmse/rmse_A", "logarithmic"), ("fig_coverage/coverage_A", "linear")), 1
+    ):
+        page.select_option("#chart-preset", preset)
+        plotted = wait_charts(page, loads + n)
+        assert page.is_disabled("#chart-metric") and page.is_disabled("#chart-x")
+        figure, key = preset.split("/")
+        row = figure_series(figure)[key]
+        want = {}
+        for ln in summary_lines(groups, row, summary_context(groups, SPEC)):
+            panel = "|".join(str(v) for v in ln["panel"].values())
+            want[(panel, *ln["line"].values())] = [[x, y] for x, y in zip(ln["N"], ln["y"])]
+        got = {}
+        for chart in plotted:
+            assert chart["y"] == scale
+            for line in chart["lines"]:
+                pts = [p for p in line["points"] if p[1] is not None]
+                got[(chart["panel"], *line["line"].values())] = pts
+        assert got.keys() == want.keys() and len(got) > 1
+        for k in want:
+            np.testing.assert_allclose(np.array(got[k]), np.array(want[k]), rtol=1e-12)
+        note = page.locator("#chart-band-note").inner_text()
+        assert note.startswith(f"(the report's {figure}")
+        if SCREENSHOTS and n == 1:
+            path = Path(SCREENSHOTS) / "dashboard-preset.png"
+            page.locator("#charts-card").screenshot(path=str(path))
+    page.select_option("#chart-preset", "")
+    wait_charts(page, loads + 3)
+    assert not page.is_disabled("#chart-metric")
+    sym = page.evaluate(SYMLOG)
+    assert sym["px"] == sorted(sym["px"], reverse=True)  # y pixels grow downwards
+    np.testing.assert_allclose(sym["back"], [-3, -0.01, 0, 0.004, 0.01, 40], atol=1e-9)
+    assert {0, 0.01, -0.01, 0.1, -1, 10} <= set(sym["ticks"])
+
+
 def log_text(stack) -> str:
     return "".join(p.read_text(errors="replace") for p in stack.logs.glob("*.log"))
 
@@ -199,6 +260,11 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
         "() => window.svrobsCharts.charts[0].chart.data.datasets.map(d => d.svrobs.role)"
     )
     assert roles and set(roles) == {"mean"}
+
+    page.check("#chart-bands")
+    check_presets(page, summary)
+    expect(page.locator("#table2 tbody tr")).to_have_count(2 * 2 * 2)  # system, σ_w, matrix
+    assert page.locator("#findings li").count() >= 1
 
     with stack.client() as api:  # downloads: the API's own streams, under the cookie
         for fmt in ("csv", "jsonl"):

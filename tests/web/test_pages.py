@@ -10,7 +10,8 @@ import re
 
 import pytest
 
-from service.web import charts
+from service.web import charts, figure_charts
+from svrobs_core import report as rpt
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC
 
@@ -83,7 +84,7 @@ def test_another_teams_job_is_a_404_page_everywhere(web, session, make_account):
     jid = _submit(web, a)
     sign_in(web, b.key)
     token = csrf_of(web.get("/jobs").text)
-    for path in ("", "/progress", "/chart-data", "/delete"):
+    for path in ("", "/progress", "/chart-data", "/tables", "/delete"):
         assert web.get(f"/jobs/{jid}{path}").status_code == 404, path
     for path in ("/cancel", "/delete"):
         r = web.post(f"/jobs/{jid}{path}", data={"csrf_token": token}, follow_redirects=False)
@@ -139,6 +140,59 @@ def test_chart_data_are_the_stored_summaries(web, session, make_account):
     r = web.get(f"/jobs/{jid}/chart-data?metric=A_hat")
     assert r.status_code == 422 and r.json()["field"] == "metric"
     assert web.get(f"/jobs/{jid}/chart-data?x=rep").json()["field"] == "x"
+
+
+def _jsonl(client, acc, jid) -> list[dict]:
+    r = client.get(f"{API}/jobs/{jid}/results?format=jsonl", headers=acc.headers)
+    return [json.loads(line) for line in r.text.splitlines() if line.strip()]
+
+
+def test_table2_findings_and_figure_presets_on_the_job_page(web, session, make_account):
+    """Table 2 on the page is the report's table2 of the stored records (JSONL export);
+    a preset's chart data are summary_lines of the API's summary JSON."""
+    acc = make_account()
+    jid = _submit(web, acc)
+    run_job_units(session, jid)
+    sign_in(web, acc.key)
+    page = web.get(f"/jobs/{jid}").text
+    assert f'hx-get="/jobs/{jid}/tables"' in page
+    tables = web.get(f"/jobs/{jid}/tables").text
+    records = _jsonl(web, acc, jid)
+    rows = re.findall(
+        r'<tr data-system="([^"]+)" data-sigma-w="([^"]+)" data-matrix="(\w)">\s*'
+        r"<td>[^<]*</td><td>[^<]*</td><td>\w</td>\s*"
+        r'<td class="num" data-value="([^"]*)">[^<]*</td>\s*<td class="num" data-value="([^"]*)">',
+        tables,
+    )
+    want = rpt.table2(records)
+    assert len(rows) == len(want) == 2 * 2 * 2
+    for (system, sigma_w, mat, ols, svr), t in zip(rows, want):
+        assert (system, float(sigma_w), mat) == (t["system"], t["sigma_w"], t["matrix"])
+        for got, exp in ((ols, t["ols"]), (svr, t["svr"])):
+            assert (got == "None") if exp is None else float(got) == pytest.approx(exp, rel=1e-12)
+    found = re.findall(r"<li>(\[[^<]*)</li>", tables)
+    assert found and all(html.unescape(f) in rpt.findings(records, SMALL_SPEC) for f in found)
+
+    summary = web.get(f"{API}/jobs/{jid}/summary", headers=acc.headers).json()["groups"]
+    row = figure_charts.PRESETS["fig_rmse/rmse_A"]
+    assert 'value="fig_rmse/rmse_A" data-field="rmse_A"' in page
+    data = web.get(f"/jobs/{jid}/chart-data?preset=fig_rmse/rmse_A").json()
+    lines = rpt.summary_lines(summary, row, rpt.summary_context(summary, SMALL_SPEC))
+    got = {
+        (p["coords"]["system"], tuple(s["line"].items()), n): m
+        for p in data["panels"]
+        for s in p["series"]
+        for n, m in zip(p["x"], s["mean"])
+        if m is not None
+    }
+    assert got == {
+        (ln["panel"]["system"], tuple(ln["line"].items()), n): y
+        for ln in lines
+        for n, y in zip(ln["N"], ln["y"])
+    }
+    assert data["scale"] == "log" and data["preset"]["band"] is None
+    r = web.get(f"/jobs/{jid}/chart-data?preset=fig2/err_A")  # derived: needs records
+    assert r.status_code == 422 and r.json()["field"] == "preset"
 
 
 def test_chart_gaps_flat_ols_and_non_positive_means():

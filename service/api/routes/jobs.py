@@ -13,7 +13,7 @@ from service.api.errors import BODY_ERRORS, ERRORS
 from service.api.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
 from service.api.submission import JobRequest, SubmissionDep
 from service.api.views import job_out
-from service.db.job_delete import JobActive, delete_job
+from service.db.job_delete import delete_job
 from service.db.jobs import cancel_job
 from service.db.models import Job, JobTag, User
 
@@ -105,9 +105,6 @@ def delete(job_id: JobId, session: DB, caller: CurrentCaller):
     """Delete a finished or cancelled job with its units, results and summaries (one
     transaction); 409 while it is queued or running (cancel it first)."""
     job = team_job(session, caller.team_id, job_id)
-    try:
-        delete_job(session, job)
-    except JobActive as exc:
-        raise HTTPException(409, str(exc)) from exc
+    delete_job(session, job)  # JobActive: 409 (service.api.errors)
     session.commit()
     return Response(status_code=204)

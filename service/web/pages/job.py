@@ -11,10 +11,10 @@ from fastapi.responses import JSONResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
 from service.api.deps import get_db
-from service.db.job_delete import JobActive, delete_job
+from service.db.job_delete import delete_job
 from service.db.jobs import cancel_job
 from service.db.models import JOB_ACTIVE, Job
-from service.web import charts, queries
+from service.web import charts, figure_charts, job_tables, queries
 from service.web.deps import CSRF, CurrentViewer
 from service.web.render import PAGE_HEADERS, WebError, render
 
@@ -42,6 +42,7 @@ def job_page(request: Request, db: DB, viewer: CurrentViewer, job_id: int):
     return render(
         request,
         "job.html",
+        presets=figure_charts.preset_options(),
         viewer=viewer,
         nav="jobs",
         spec_json=json.dumps(job.spec, indent=2),
@@ -64,6 +65,24 @@ def job_progress(request: Request, db: DB, viewer: CurrentViewer, job_id: int):
     return response
 
 
+@router.get("/jobs/{job_id:int}/tables")
+def job_tables_card(request: Request, db: DB, viewer: CurrentViewer, job_id: int):
+    """Table 2 and the RMSE findings from the stored summaries (service.web.job_tables),
+    loaded by htmx after the page and again when the job finishes."""
+    job = _job(db, viewer, job_id)
+    groups = charts.stored_groups(db, job.id, *job_tables.TABLE_FIELDS)
+    table2, findings = job_tables.summary_tables(groups)
+    return render(
+        request,
+        "_job_tables.html",
+        viewer=viewer,
+        job=job,
+        active=job.status in JOB_ACTIVE,
+        table2=table2,
+        findings=findings,
+    )
+
+
 @router.get("/jobs/{job_id:int}/chart-data")
 def chart_data(
     db: DB,
@@ -71,17 +90,25 @@ def chart_data(
     job_id: int,
     metric: Annotated[str, Query(max_length=100)] = "rmse_A",
     x: Annotated[str, Query(max_length=20)] = "N",
+    preset: Annotated[str | None, Query(max_length=100)] = None,
     metrics: bool = False,
 ):
     """The plotted numbers as JSON, from the stored summaries (service.web.charts);
-    with ``metrics=1`` also the fields that have data (the field list, asked once)."""
+    ``preset=figure/key``: one of the report's figure series instead of ``metric``
+    and ``x`` (service.web.figure_charts); with ``metrics=1`` also the fields that
+    have data (the field list, asked once)."""
     job = _job(db, viewer, job_id)
     try:
-        charts.check(metric, x)
+        row = figure_charts.preset_of(preset) if preset else None
+        charts.check(row.field if row else metric, x)
     except charts.ChartError as exc:
         return JSONResponse({"detail": str(exc), "field": exc.field}, status_code=422)
-    groups = charts.stored_groups(db, job.id, metric)
-    data = charts.chart_data(groups, metric=metric, x=x)
+    if row is not None:
+        groups = charts.stored_groups(db, job.id, row.field)
+        data = figure_charts.preset_chart(groups, job.spec, row)
+    else:
+        groups = charts.stored_groups(db, job.id, metric)
+        data = charts.chart_data(groups, metric=metric, x=x)
     data.update(job_id=job.id, status=job.status, groups=len(groups))
     if metrics:
         data["metrics"] = charts.stored_metrics(db, job.id)
@@ -106,9 +133,6 @@ def confirm_delete(request: Request, db: DB, viewer: CurrentViewer, job_id: int)
 
 @router.post("/jobs/{job_id:int}/delete", dependencies=[CSRF])
 def delete(db: DB, viewer: CurrentViewer, job_id: int):
-    try:
-        delete_job(db, _job(db, viewer, job_id))
-    except JobActive as exc:
-        raise WebError(409, f"{exc}.") from exc
+    delete_job(db, _job(db, viewer, job_id))  # JobActive: a 409 page (service.api.errors)
     db.commit()
     return RedirectResponse(f"/jobs?deleted={job_id}", status_code=303)

@@ -17,7 +17,7 @@ from service.api.deps import MAX_ID, Caller, get_db
 from service.api.routes import reports
 from service.db import shares
 from service.db.models import Job
-from service.web import charts
+from service.web import charts, figure_charts
 from service.web.deps import CSRF, CurrentViewer
 from service.web.pages import job as job_pages
 from service.web.render import PAGE_HEADERS, WebError, render
@@ -99,6 +99,7 @@ def shared_job(request: Request, db: DB, token: str):
         token=token,
         x_fields=charts.X_FIELDS,
         x_labels=charts.LABELS,
+        presets=figure_charts.preset_options(),
     )
     response.headers["X-Robots-Tag"] = "noindex"
     return response
@@ -110,9 +111,14 @@ def shared_chart_data(
     token: str,
     metric: Annotated[str, Query(max_length=100)] = "rmse_A",
     x: Annotated[str, Query(max_length=20)] = "N",
+    preset: Annotated[str | None, Query(max_length=100)] = None,
+    metrics: bool = False,
 ):
+    """The job page's chart data (service.web.pages.job.chart_data) for a shared job."""
     link, job = _shared(db, token)
-    return job_pages.chart_data(db, _reader(link), job.id, metric, x)
+    return job_pages.chart_data(
+        db, _reader(link), job.id, metric=metric, x=x, preset=preset, metrics=metrics
+    )
 
 
 @router.get("/s/{token}/report")

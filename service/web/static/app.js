@@ -1,7 +1,9 @@
 /* svrobs job page charts: Chart.js line charts of a summary field against N, σ_w or γ,
  * one panel per remaining grid coordinate, one line per estimator/γ with a mean ± std
- * band. The data come from /jobs/{id}/chart-data (the stored summaries). Every plotted
- * chart is kept in window.svrobsCharts so that tests can read what is drawn. */
+ * band; or one of the report's figure series (a preset: its panels, lines, band and
+ * log/symlog/linear scale, as the figure). The data come from /jobs/{id}/chart-data
+ * (the stored summaries). Every plotted chart is kept in window.svrobsCharts so that
+ * tests can read what is drawn. */
 (function () {
   "use strict";
 
@@ -21,6 +23,46 @@
     return a !== 0 && (a < 1e-3 || a >= 1e5) ? v.toExponential(3) : Number(v.toPrecision(4)).toString();
   }
 
+  /* A symmetric log axis (as matplotlib's symlog): linear within ± linthresh, logarithmic
+   * beyond; ticks at 0 and at the decades linthresh·10^k each side reaches. */
+  class SymlogScale extends Chart.Scale {
+    static id = "symlog";
+    static defaults = { ticks: { callback: (v) => fmt(v) } };
+    parse(raw, index) { return Chart.LinearScale.prototype.parse.call(this, raw, index); }
+    c() { return this.options.linthresh || 1; }
+    fwd(v) { return Math.sign(v) * Math.log10(1 + Math.abs(v) / this.c()); }
+    inv(u) { return Math.sign(u) * this.c() * (Math.pow(10, Math.abs(u)) - 1); }
+    determineDataLimits() {
+      const { min, max } = this.getMinMax(true);
+      const c = this.c();
+      this.min = -Math.max(Number.isFinite(min) ? -min : 0, c) * 1.6;
+      this.max = Math.max(Number.isFinite(max) ? max : 0, c) * 1.6;
+    }
+    buildTicks() {
+      const c = this.c(), out = [{ value: 0 }];
+      for (let k = 0; k < 30; k++) {
+        const d = c * Math.pow(10, k);
+        if (d <= this.max) out.push({ value: d });
+        if (-d >= this.min) out.unshift({ value: -d });
+      }
+      this.start = this.min;
+      this.end = this.max;
+      return out;
+    }
+    getLabelForValue(v) { return fmt(v); }
+    configure() {
+      super.configure();
+      this._s = this.fwd(this.min);
+      this._r = this.fwd(this.max) - this._s || 1;
+    }
+    getPixelForValue(v) {
+      return v === null || v === undefined || isNaN(v) ? NaN : this.getPixelForDecimal((this.fwd(v) - this._s) / this._r);
+    }
+    getValueForPixel(p) { return this.inv(this._s + this.getDecimalForPixel(p) * this._r); }
+  }
+  if (typeof Chart !== "undefined") Chart.register(SymlogScale);
+  const AXIS = { log: "logarithmic", symlog: "symlog", linear: "linear" };
+
   function points(xs, ys) {
     return xs.map((x, i) => ({ x: x, y: ys[i] }));
   }
@@ -28,20 +70,20 @@
   function datasets(panel, logY, bands) {
     const out = [];
     panel.series.forEach((s, i) => {
-      const color = PALETTE[i % PALETTE.length];
+      const color = PALETTE[(s.colour ?? i) % PALETTE.length];
       const hi = s.mean.map((m, j) => (m === null || s.std[j] === null ? null : m + s.std[j]));
       const lo = s.mean.map((m, j) => {
         if (m === null || s.std[j] === null) return null;
         const v = m - s.std[j];
         return logY && v <= 0 ? null : v; // a log axis has no room for mean - std <= 0
       });
-      const meta = { series: i, estimator: s.estimator, gamma: s.gamma, mean: s.mean, std: s.std, count: s.count };
+      const meta = { series: i, estimator: s.estimator, gamma: s.gamma, line: s.line, mean: s.mean, std: s.std, count: s.count };
       out.push({
         label: s.label, data: points(panel.x, s.mean), borderColor: color,
-        backgroundColor: color, borderWidth: 2, pointRadius: 3, borderDash: s.flat ? [6, 4] : [],
+        backgroundColor: color, borderWidth: 2, pointRadius: 3, borderDash: s.flat ? [6, 4] : (s.dash ? [3, 3] : []),
         svrobs: Object.assign({ role: "mean" }, meta), spanGaps: false,
       });
-      if (!bands) return;
+      if (!bands || s.std.every((v) => v === null)) return;
       out.push({
         label: s.label + " + std", data: points(panel.x, hi), borderWidth: 0, pointRadius: 0,
         pointHitRadius: 0, fill: false, borderColor: "transparent", svrobs: { role: "band", series: i },
@@ -74,7 +116,7 @@
         interaction: { mode: "nearest", axis: "x", intersect: false },
         scales: {
           x: { type: opts.logX ? "logarithmic" : "linear", title: { display: true, text: data.x_label } },
-          y: { type: opts.logY ? "logarithmic" : "linear", title: { display: true, text: data.metric } },
+          y: { type: opts.yType, linthresh: data.linthresh, title: { display: true, text: data.metric } },
         },
         plugins: {
           legend: {
@@ -118,9 +160,12 @@
     const titles = Object.fromEntries(data.panels.map((p) => [p.key, p.title]));
     setOptions(panelSel, [""].concat(keys), want || (keys.length > 6 ? keys[0] : ""),
       (k) => (k === "" ? `all (${keys.length})` : titles[k]));
+    const logY = card.querySelector("#chart-logy").checked && data.positive;
+    const yType = data.preset ? AXIS[data.scale] : (logY ? "logarithmic" : "linear");
     const opts = {
       bands: card.querySelector("#chart-bands").checked,
-      logY: card.querySelector("#chart-logy").checked && data.positive,
+      yType: yType,
+      logY: yType === "logarithmic",
       logX: card.querySelector("#chart-logx").checked && data.panels.every((p) => p.x.every((v) => v > 0)),
     };
     data.panels.filter((p) => !panelSel.value || p.key === panelSel.value).forEach((panel) => {
@@ -141,12 +186,36 @@
     });
   }
 
+  function presetMode(card) {
+    const preset = card.querySelector("#chart-preset").value;
+    ["#chart-metric", "#chart-x", "#chart-logy"].forEach((sel) => {
+      const el = card.querySelector(sel);
+      el.disabled = Boolean(preset);
+      el.closest("label").classList.toggle("disabled", Boolean(preset));
+    });
+    return preset;
+  }
+
+  function describe(data) {
+    const p = data.preset;
+    const note = document.getElementById("chart-band-note");
+    if (!p) {
+      note.textContent = "(mean ± std over the repetitions, from the stored summaries)";
+      return "";
+    }
+    note.textContent = `(the report's ${p.figure}: ${data.metric}, from the stored summaries)`;
+    const band = p.band ? ` Band: ${p.band}; the figure's band is the 5–95 % of the records.` : "";
+    return ` ${data.scale} y axis, as the figure.${band}`;
+  }
+
   async function load(card, resetLog, withMetrics) {
     const metric = card.querySelector("#chart-metric");
     const x = card.querySelector("#chart-x");
     const status = card.querySelector("#chart-status");
-    const url = `${card.dataset.chartUrl}?metric=${encodeURIComponent(metric.value)}` +
-      `&x=${encodeURIComponent(x.value)}` + (withMetrics ? "&metrics=1" : "");
+    const preset = presetMode(card);
+    const query = preset ? `preset=${encodeURIComponent(preset)}` :
+      `metric=${encodeURIComponent(metric.value)}&x=${encodeURIComponent(x.value)}`;
+    const url = `${card.dataset.chartUrl}?${query}` + (withMetrics ? "&metrics=1" : "");
     const r = await fetch(url, { credentials: "same-origin", headers: { Accept: "application/json" } });
     if (!r.ok) {
       status.textContent = `Could not load the chart data (HTTP ${r.status}).`;
@@ -154,19 +223,26 @@
       return;
     }
     const data = await r.json();
-    if (data.metrics && data.metrics.length) setOptions(metric, data.metrics, data.metric);
-    if (resetLog) {
+    if (data.metrics && data.metrics.length && !data.preset) setOptions(metric, data.metrics, data.metric);
+    if (data.metrics) {  // presets of fields without data are hidden
+      card.querySelectorAll("#chart-preset option[data-field]").forEach((o) => {
+        o.hidden = !data.metrics.includes(o.dataset.field);
+      });
+    }
+    if (resetLog && data.preset) card.querySelector("#chart-logx").checked = false;
+    if (resetLog && !data.preset) {
       card.querySelector("#chart-logy").checked = data.positive;
       card.querySelector("#chart-logx").checked = data.x !== "N";
     }
     registry.data = data;
     if (!data.panels.length) {
-      status.textContent = data.status === "succeeded" ? "No summaries stored." :
+      describe(data);
+      status.textContent = data.preset ? "This figure series has no data in the job's summaries." : data.status === "succeeded" ? "No summaries stored." :
         "No summaries yet: they appear as work units finish.";
     } else {
       const partial = data.status === "succeeded" ? "" : ` (job ${data.status}: the groups stored so far)`;
       status.textContent = `${data.groups} summary groups, ${data.panels.length} panel(s)${partial}.` +
-        (data.positive ? "" : " Some means are ≤ 0: linear y axis.");
+        (describe(data) || (data.positive ? "" : " Some means are ≤ 0: linear y axis."));
     }
     draw(card, data);
     registry.loads += 1;
@@ -179,6 +255,10 @@
     const form = card.querySelector("#chart-controls");
     form.addEventListener("submit", (e) => e.preventDefault());
     card.querySelector("#chart-metric").addEventListener("change", () => load(card, true));
+    card.querySelector("#chart-preset").addEventListener("change", () => {
+      card.querySelector("#chart-panel").value = "";
+      load(card, true);
+    });
     card.querySelector("#chart-x").addEventListener("change", () => {
       card.querySelector("#chart-panel").value = "";
       load(card, true);
