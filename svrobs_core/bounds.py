@@ -63,7 +63,7 @@ def thetas(*, n, m, N, T0, sigma_u, sigma_w, M):
     The formula as written where its powers stay in range (so the numbers do
     not change), else the exp of :func:`log_thetas` (inf / 0 where the value
     itself is out of the double range)."""
-    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+    with np.errstate(over="ignore", invalid="ignore", under="ignore", divide="ignore"):
         Mu = M ** (2 * T0 - 1) * sigma_u**2  # M^(2T0-1) sigma_u^2
         Mw = M ** (2 * T0 - 2)  # M^(2T0-2)
         theta_A = 4 * n * (m * M * sigma_u**2 + sigma_w**2) / (N * (n * Mu + Mw * sigma_w**2))
@@ -75,20 +75,22 @@ def thetas(*, n, m, N, T0, sigma_u, sigma_w, M):
         return np.where(direct, theta_A, np.exp(la)), np.where(direct, theta_B, np.exp(lb))
 
 
-def _range_reason(theta, H, r, log_theta, name: str) -> np.ndarray:
+def _range_reason(theta, H, r, log_theta, name: str, *, M, T0) -> np.ndarray:
     """None where theta is a normal positive double and H, r are finite, else why not."""
     tiny = np.finfo(float).tiny
     ok = np.isfinite(theta) & (theta >= tiny) & np.isfinite(H) & np.isfinite(r)
     out = np.full(np.shape(ok), None, dtype=object)
     ten = np.broadcast_to(log_theta / np.log(10.0), np.shape(ok))
+    power = np.broadcast_to(
+        (2 * np.asarray(T0, dtype=float) - 1) * _log(M) / np.log(10.0), ok.shape
+    )
     for idx in np.argwhere(~ok):
         idx = tuple(idx)
-        out[idx] = (
-            f"bounds: H_{name}, r_{name} undefined (theta_{name} = 1e{ten[idx]:.0f}"
-            " is out of the double range: M^(2T0-1) too large)"
-            if not np.isfinite(theta[idx]) or theta[idx] < tiny
-            else f"bounds: H_{name}, r_{name} undefined (not finite: M^2 too large)"
-        )
+        if not np.isfinite(theta[idx]) or theta[idx] < tiny:
+            why = f"theta_{name} = 1e{ten[idx]:.0f} with M^(2T0-1) = 1e{power[idx]:.0f}"
+        else:
+            why = f"H_{name} not finite (M^2 = 1e{2 * power[idx] / (2 * T0 - 1):.0f})"
+        out[idx] = f"bounds: H_{name}, r_{name} undefined ({why}: out of the double range)"
     return out
 
 
@@ -136,8 +138,9 @@ def radii(*, n, m, N, N0, T0, sigma_u, sigma_w, gamma, M, delta) -> Radii:
         H_A, H_B, la, lb = np.broadcast_arrays(H_A, H_B, la, lb)
         one_g = 1 + a["gamma"]
         r_A, r_B = np.sqrt(one_g * H_A), np.sqrt(one_g * H_B)
-    why_A = _range_reason(np.broadcast_to(theta_A, H_A.shape), H_A, r_A, la, "A")
-    why_B = _range_reason(np.broadcast_to(theta_B, H_B.shape), H_B, r_B, lb, "B")
+    mt = {"M": a["M"], "T0": a["T0"]}
+    why_A = _range_reason(np.broadcast_to(theta_A, H_A.shape), H_A, r_A, la, "A", **mt)
+    why_B = _range_reason(np.broadcast_to(theta_B, H_B.shape), H_B, r_B, lb, "B", **mt)
     bad_A, bad_B = why_A != None, why_B != None  # noqa: E711  (object arrays)
     nan = np.nan
     return Radii(

@@ -68,7 +68,8 @@ def fit_ols(Z: np.ndarray, F: np.ndarray) -> np.ndarray:
     Z = np.broadcast_to(Z, (*batch, *Z.shape[-2:]))
     F = np.broadcast_to(F, (*batch, *F.shape[-2:]))
     Zt = np.swapaxes(Z, -1, -2)
-    G = np.matmul(Z, Zt)
+    with np.errstate(over="ignore", invalid="ignore"):  # non-finite data: NaN, below
+        G = np.matmul(Z, Zt)
     eye = np.eye(G.shape[-1])
     finite = np.isfinite(G).all(axis=(-1, -2)) & np.isfinite(F).all(axis=(-1, -2))
     lam = np.linalg.eigvalsh(np.where(finite[..., None, None], G, eye))
@@ -154,7 +155,7 @@ def fit_svr(Z: np.ndarray, F: np.ndarray, gammas, loss_scale: str = "sum") -> np
 
 
 SVR_COND_LIMIT = 1e6  # above this cond(Z Z^T + g I) the eigh solution loses > ~1e-10: QR path
-FALLBACK_CHUNK_BYTES = 16 * 2**20  # data of the QR path held at once (at least one dataset)
+FALLBACK_CHUNK_BYTES = 4 * 2**20  # data of the QR path held at once (at least one dataset)
 
 
 def ridge_condition(G: np.ndarray, g) -> np.ndarray:

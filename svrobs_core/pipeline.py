@@ -186,8 +186,15 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain):
             "stable_certified": b.stable_certified,
         }
     )
-    if not spec.has("gain"):
-        return None
+    state = _gain_stages(c, b, gamma, rad, prev_gain) if spec.has("gain") else None
+    if spec.has("sls"):
+        _sls_stage(c, b)
+    return state
+
+
+def _gain_stages(c: _Cells, b, gamma, rad, prev_gain):
+    """gain (with the reuse policy), cost, cost_bound; -> the gain state for ``reuse_gain``."""
+    notes, system, shape = c.notes, c.system, c.shape
     designed, k_hat_reasons = design(c, gamma, rad)
     if k_hat_reasons is not None:
         notes.add_reasons(k_hat_reasons, "K_hat")
@@ -302,8 +309,6 @@ def _observer_stages(c: _Cells, b, designed):
         notes.add_reasons(t3.reason, "J_bound")
         out["J_bound"] = t3.J_b
         out["delta_J"] = t3.J_b - J
-    if spec.has("sls"):
-        _sls_stage(c, b, norms, K)
 
 
 def mc_note(limit: int) -> str:
@@ -367,11 +372,17 @@ def _cost_ratio(c: _Cells, J):
     c.out["cost_ratio"] = ratio
 
 
-def _sls_stage(c: _Cells, b, norms, K):
-    """J_opt by SLS per cell (cvxpy + Clarabel) and the paper's bound on it (SPEC 8)."""
+def _sls_stage(c: _Cells, b):
+    """J_opt by SLS per cell (cvxpy + Clarabel) and the paper's bound on it (SPEC 8).
+
+    Needs the estimate, the bounds' eps and the true system's K and norms
+    (:func:`truth`, computed here when the gain stage did not): not the gain."""
     from . import sls as _sls  # cvxpy: imported only when the sls stage runs
 
     spec, system, notes = c.spec, c.system, c.notes
+    K, _, norms, k_reason = truth(system, c.sigma_w, spec.horizon)
+    if k_reason is not None:
+        notes.add(True, f"true system: {k_reason}")
     R, E = c.shape
     su, sv = system.sigma_u, system.sigma_v
     eps1 = np.fmax(b.eps_A, b.eps_B)
