@@ -20,6 +20,10 @@ from sqlalchemy import Text, cast
 from service.db.models import Result
 from svrobs_core.records import MATRIX_FIELDS, RECORD_FIELDS
 
+# a record's stored columns as SQLAlchemy decodes them, and the order results are listed in
+RESULT_COLUMNS = [Result.__table__.c[f] for f in RECORD_FIELDS]
+ORDER = [Result.__table__.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
+
 RAW_JSON_FIELDS = frozenset(MATRIX_FIELDS) | {"seed_key"}
 _RAW_IDX = tuple(i for i, f in enumerate(RECORD_FIELDS) if f in RAW_JSON_FIELDS)
 _RAW_NAMES = tuple(RECORD_FIELDS[i] for i in _RAW_IDX)

@@ -168,7 +168,7 @@ def test_run_local_cli_writes_records_and_summary(tmp_path):
         [
             sys.executable,
             "-m",
-            "service.cli_main",
+            "svrobs_cli",
             "run-local",
             str(tmp_path / "spec.json"),
             "--out",
@@ -201,7 +201,7 @@ def test_run_local_cli_bad_spec_is_one_line_exit_2(tmp_path):
         [
             sys.executable,
             "-m",
-            "service.cli_main",
+            "svrobs_cli",
             "run-local",
             str(tmp_path / "bad.json"),
             "--out",

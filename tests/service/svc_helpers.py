@@ -50,3 +50,7 @@ SMALL_SPEC = {
 }
 # units of SMALL_SPEC as the core plans them (consecutive N values packed per unit)
 SMALL_UNITS = len(plan_units(parse_spec(SMALL_SPEC)))
+
+
+def no_broker_check() -> None:
+    """A broker that always answers (for ``app.dependency_overrides[get_broker_check]``)."""
