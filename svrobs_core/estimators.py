@@ -194,9 +194,10 @@ def svr_from_gram(
     ok = np.isfinite(G).all(axis=(-1, -2)) & np.isfinite(FZt).all(axis=(-1, -2))
     lam, V = np.linalg.eigh(np.where(ok[..., None, None], G, 0.0))  # (..., d), (..., d, d)
     lam = np.maximum(lam, 0.0)
-    P = np.matmul(FZt, V)  # (..., n, d)
-    denom = lam[..., None, None, :] + g[:, None, None]  # (..., G, 1, d)
-    theta = np.matmul(P[..., None, :, :] / denom, np.swapaxes(V, -1, -2)[..., None, :, :])
+    with np.errstate(over="ignore", invalid="ignore"):  # huge data: inf/NaN, noted downstream
+        P = np.matmul(FZt, V)  # (..., n, d)
+        denom = lam[..., None, None, :] + g[:, None, None]  # (..., G, 1, d)
+        theta = np.matmul(P[..., None, :, :] / denom, np.swapaxes(V, -1, -2)[..., None, :, :])
     theta = np.where(ok[..., None, None, None], theta, np.nan)
     with np.errstate(divide="ignore", invalid="ignore"):
         kappa = (lam[..., -1:] + g) / (lam[..., :1] + g)  # (..., G)

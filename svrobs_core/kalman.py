@@ -18,6 +18,7 @@ import numpy as np
 from .errors import SpecError, check_matrix
 from .linalg import solve as _solve
 from .norms import spectral_radius
+from .systems import SIGMA_V0_COND_LIMIT
 
 __all__ = [
     "KALMAN_NONFINITE_INPUT",
@@ -262,7 +263,7 @@ def kalman_predictor(A, C, sigma_w, sigma_v) -> KalmanResult:
     zero_v = finite & (sv == 0)
     if zero_v.any():
         idx = np.flatnonzero(zero_v)
-        if p != n or np.any(np.linalg.cond(C[idx]) > 1e12):
+        if p != n or not np.all(np.linalg.cond(C[idx]) <= SIGMA_V0_COND_LIMIT):
             raise SpecError("sigma_v", "sigma_v = 0 requires a square invertible C")
         K[idx] = _mT(_solve(_mT(C[idx]), _mT(A[idx])))
         P[idx] = (sw[idx] ** 2)[:, None, None] * np.eye(n)
