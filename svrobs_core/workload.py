@@ -19,8 +19,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import numpy as np
+
 from .errors import SpecError
-from .estimators import FALLBACK_CHUNK_BYTES
+from .estimators import FALLBACK_CHUNK_BYTES, SVR_COND_LIMIT
 from .gains import is_orthogonal
 from .spec import ExperimentSpec
 
@@ -42,6 +44,8 @@ TRUTH = (0.015, 1.9e-5)  # per unit with gain: K, J*, norms of the true system (
 MC_DRAW = 1.2e-8  # Monte Carlo: per (row, step, run) and noise entry (draw + plant)
 MC_CELL = 2.5e-10  # Monte Carlo: per (cell, step, run) and n (W + n) multiply-add
 MC_STEP = 5.0e-6  # Monte Carlo: per step, the Python loop's calls
+QR_REP = 1.0e-3  # SVR's QR path: per repetition (the calls of estimators.ridge_qr)
+LONG_DOUBLE = 3.0e-8  # SVR's QR path: per long-double multiply-add of the refinement
 CVX_SOLVE = 3.0e-3  # one small cvxpy + Clarabel solve (general-C gain design)
 SLS_SOLVE = 1.5e-3  # one SLS solve: fixed part
 SLS_VAR = 8.0e-6  # one SLS solve: per scalar variable T_fir n (n + p)
@@ -90,8 +94,19 @@ def _cell(stage: str, n: int) -> float:
     return c0 + c3 * n**3 + c6 * n**6
 
 
-def _dataset(spec: ExperimentSpec, *, n, m, p, orth, N, R, mc_rows) -> tuple[float, float, float]:
-    """(cpu seconds, transient bytes, kept bytes) of one N of a unit with R reps."""
+def _ill_conditioned(spec: ExperimentSpec, si: int) -> bool:
+    """Whether SVR's data are likely worse conditioned than estimators.SVR_COND_LIMIT:
+    the states of an unstable system grow like rho(A)^T0, so cond(Z Z^T) like
+    rho(A)^(2 T0) (a heuristic for the cost, not for the numbers)."""
+    rho = float(np.max(np.abs(np.linalg.eigvals(spec.systems[si].A))))
+    return rho > 1 and 2 * (spec.T0 - 1) * np.log10(rho) > np.log10(SVR_COND_LIMIT)
+
+
+def _dataset(
+    spec: ExperimentSpec, *, n, m, p, orth, N, R, mc_rows, ill=False
+) -> tuple[float, float, float]:
+    """(cpu seconds, transient bytes, kept bytes) of one N of a unit with R reps;
+    ``ill``: SVR's cells take the QR path (:func:`_ill_conditioned`)."""
     T0, E = spec.T0, spec.cells_per_rep
     d, q = n + m, 2 * n + m
     K = T0 - 1 if spec.data == "all" else 1
@@ -101,7 +116,8 @@ def _dataset(spec: ExperimentSpec, *, n, m, p, orth, N, R, mc_rows) -> tuple[flo
     per_rep = 8.0 * N * (q * (T0 + 1) + d * T0)
     chunk = max(1, min(R, int(GRAM_CHUNK_BYTES // per_rep)))
     cpu = DATASET + KEY * R + CALL * T0 * -(-R // chunk)
-    cpu += NORMAL * R * (m + n) * T0 * N + FLOP * R * N * (2 * n * q * T0 + 2 * (d + n) * d * K)
+    data_cpu = NORMAL * R * (m + n) * T0 * N + FLOP * R * N * (2 * n * q * T0 + 2 * (d + n) * d * K)
+    cpu += data_cpu
     mem = chunk * per_rep
     rep_data = 8.0 * (d + n) * N0  # one repetition's Z and F
     kept_data = 0.0
@@ -113,6 +129,11 @@ def _dataset(spec: ExperimentSpec, *, n, m, p, orth, N, R, mc_rows) -> tuple[flo
     if "svr" in spec.estimators:  # the QR path of ill-conditioned cells, one chunk at a time
         chunk_data = max(rep_data, min(R * rep_data, FALLBACK_CHUNK_BYTES))
         mem = max(mem, kept_data + 5 * chunk_data)
+        if ill:  # the data again (unless OLS kept them), QR, the long-double residual
+            G = len(spec.gamma)
+            cpu += (0.0 if kept_data else data_cpu) + R * (
+                QR_REP + LONG_DOUBLE * N0 * (d + n) * (2 + G)
+            )
     # per-cell work of the stages (small matrices, vectorised over the cells)
     h = max(n, p)
     cpu += cells * sum(_cell(st, h) for st in CELL_COST if spec.has(st))
@@ -168,8 +189,11 @@ def estimate_unit(spec: ExperimentSpec, unit: dict) -> UnitCost:
     limit = spec.reps if spec.mc_reps is None else spec.mc_reps
     mc_rows = max(0, min(r1, limit) - r0)
     cpu, peak, kept = 0.0, 0.0, 0.0
+    ill = "svr" in spec.estimators and _ill_conditioned(spec, si)
     for N in unit["N"]:
-        c, transient, k = _dataset(spec, n=n, m=m, p=p, orth=orth, N=N, R=R, mc_rows=mc_rows)
+        c, transient, k = _dataset(
+            spec, n=n, m=m, p=p, orth=orth, N=N, R=R, mc_rows=mc_rows, ill=ill
+        )
         cpu += c
         peak = max(peak, kept + transient)
         kept += k
