@@ -53,7 +53,7 @@ REFINE_STEPS = 1
 REFINE_COND_LIMIT = 1e8  # above this cond(Z Z^T) one refinement step is not enough: use QR
 
 
-def fit_ols(Z: np.ndarray, F: np.ndarray) -> np.ndarray:
+def fit_ols(Z: np.ndarray, F: np.ndarray, *, return_cond: bool = False):
     """OLS Theta = F Z^T (Z Z^T)^-1 (SPEC section 2), batched. -> (..., n, d)
 
     Normal equations by Cholesky of Z Z^T plus ``REFINE_STEPS`` steps of
@@ -61,7 +61,9 @@ def fit_ols(Z: np.ndarray, F: np.ndarray) -> np.ndarray:
     lstsq accuracy while cond(Z Z^T) * eps << 1. Datasets whose Gram matrix
     is singular or worse conditioned than ``REFINE_COND_LIMIT`` (e.g.
     N0 < d) take the least-squares path of :func:`_fit_ols_qr` instead.
-    Datasets with non-finite values give NaN.
+    Datasets with non-finite values give NaN. With ``return_cond`` also
+    cond(Z Z^T) per dataset (...), from the QR factor for the QR datasets
+    (inf when Z is numerically rank deficient, NaN when not finite).
     """
     Z, F = _check(Z, F)
     batch = np.broadcast_shapes(Z.shape[:-2], F.shape[:-2])
@@ -85,11 +87,13 @@ def fit_ols(Z: np.ndarray, F: np.ndarray) -> np.ndarray:
         theta = solve(np.matmul(F, Zt))
         for _ in range(REFINE_STEPS):
             theta = theta + solve(np.matmul(F - np.matmul(theta, Z), Zt))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cond = np.where(finite, lam[..., -1] / lam[..., 0], np.nan)
     if not ok.all():
         bad = finite & ~ok
-        theta[bad] = _fit_ols_qr(Z[bad], F[bad])
+        theta[bad], cond[bad] = _fit_ols_qr(Z[bad], F[bad])
         theta[~finite] = np.nan
-    return theta
+    return (theta, cond) if return_cond else theta
 
 
 def _normal_residual(Z, F, theta, g) -> np.ndarray:
@@ -106,7 +110,7 @@ def _normal_residual(Z, F, theta, g) -> np.ndarray:
     return S.astype(float)
 
 
-def _fit_ols_qr(Z: np.ndarray, F: np.ndarray) -> np.ndarray:
+def _fit_ols_qr(Z: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Least squares as numpy.linalg.lstsq does, batched, for ill-conditioned Z.
 
     R-only QR of the augmented [Z^T F^T] = Q [[R11, R12], [0, R22]] reduces it
@@ -114,7 +118,7 @@ def _fit_ols_qr(Z: np.ndarray, F: np.ndarray) -> np.ndarray:
     Z gives lstsq's minimum-norm solution with rcond = eps * max(d, N0). Then
     one refinement step with the extended-precision normal residual of
     :func:`_normal_residual` through the same pseudo-inverse (Z Z^T)^+ =
-    V diag(1/s^2) V^T.
+    V diag(1/s^2) V^T. -> (Theta, cond(Z Z^T) = (s_max / s_min)^2, inf if rank deficient)
     """
     d, N0 = Z.shape[-2:]
     R = np.linalg.qr(np.swapaxes(np.concatenate([Z, F], axis=-2), -1, -2), mode="r")
@@ -126,7 +130,10 @@ def _fit_ols_qr(Z: np.ndarray, F: np.ndarray) -> np.ndarray:
     theta = np.swapaxes(np.matmul(V, s_inv[..., :, None] * UtR12), -1, -2)
     S = _normal_residual(Z[:, None], F[:, None], theta[:, None], [0.0])[:, 0]  # (b, n, d)
     dT = np.matmul(np.matmul(S, V) * (s_inv**2)[..., None, :], Vh)
-    return theta + dT
+    full = s.shape[-1] == d  # N0 >= d: R11 is square
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cond = np.where(full & (s[..., -1] > cutoff[..., 0]), (s[..., 0] / s[..., -1]) ** 2, np.inf)
+    return theta + dT, cond
 
 
 def fit_svr(Z: np.ndarray, F: np.ndarray, gammas, loss_scale: str = "sum") -> np.ndarray:
@@ -175,8 +182,15 @@ def ridge_condition(G: np.ndarray, g) -> np.ndarray:
 
 
 def svr_from_gram(
-    G: np.ndarray, FZt: np.ndarray, N0: int, gammas, *, loss_scale: str = "sum", data=None
-) -> np.ndarray:
+    G: np.ndarray,
+    FZt: np.ndarray,
+    N0: int,
+    gammas,
+    *,
+    loss_scale: str = "sum",
+    data=None,
+    return_cond: bool = False,
+):
     """:func:`fit_svr` from the sufficient statistics ``G = Z Z^T`` (..., d, d)
     and ``FZt = F Z^T`` (..., n, d) of datasets with ``N0`` samples each.
 
@@ -186,7 +200,9 @@ def svr_from_gram(
     data: ``data(rows) -> (Z, F)`` of those rows of the flattened batch
     (``(b, d, N0)``, ``(b, n, N0)``), and get the backward-stable solve of
     :func:`ridge_qr`. Without ``data`` they keep the eigh solution (whose
-    error grows like cond(G + g I) * eps). -> (..., G, n, d)
+    error grows like cond(G + g I) * eps). -> (..., G, n, d); with
+    ``return_cond`` also cond(Z Z^T + g I) (..., G), from the QR factor for
+    the QR cells (the eigenvalues of G cannot resolve it above ~1/eps).
     """
     G = np.asarray(G, dtype=float)
     FZt = np.asarray(FZt, dtype=float)
@@ -201,22 +217,27 @@ def svr_from_gram(
     theta = np.where(ok[..., None, None, None], theta, np.nan)
     with np.errstate(divide="ignore", invalid="ignore"):
         kappa = (lam[..., -1:] + g) / (lam[..., :1] + g)  # (..., G)
+    kappa = np.where(ok[..., None], kappa, np.nan)
     bad = ok[..., None] & ~(kappa <= SVR_COND_LIMIT)
     if data is None or not bad.any():
-        return theta
+        return (theta, kappa) if return_cond else theta
     d, n = G.shape[-1], FZt.shape[-2]
     flat = theta.reshape(-1, *theta.shape[-3:])
+    kflat = kappa.reshape(-1, g.size).copy()
     bad = bad.reshape(-1, g.size)
     rows = np.flatnonzero(bad.any(axis=1))
     step = max(1, FALLBACK_CHUNK_BYTES // (8 * (d + n) * max(1, int(N0))))
     for s in range(0, rows.size, step):  # chunks of datasets bound the memory, not a hot loop
         r = rows[s : s + step]
         Z, F = data(r)
-        flat[r] = np.where(bad[r][..., None, None], ridge_qr(Z, F, g), flat[r])
-    return flat.reshape(theta.shape)
+        th, kq = ridge_qr(Z, F, g, return_cond=True)
+        flat[r] = np.where(bad[r][..., None, None], th, flat[r])
+        kflat[r] = np.where(bad[r], kq, kflat[r])
+    theta = flat.reshape(theta.shape)
+    return (theta, kflat.reshape(kappa.shape)) if return_cond else theta
 
 
-def ridge_qr(Z: np.ndarray, F: np.ndarray, g) -> np.ndarray:
+def ridge_qr(Z: np.ndarray, F: np.ndarray, g, *, return_cond: bool = False):
     """Ridge Theta = F Z^T (Z Z^T + g I)^-1 by a backward-stable solve, batched.
 
     SPEC section 2. The ridge problem is the least-squares problem
@@ -226,7 +247,8 @@ def ridge_qr(Z: np.ndarray, F: np.ndarray, g) -> np.ndarray:
     g I) and Theta. One step of iterative refinement with the normal-equation
     residual ``(F - Theta Z) Z^T - g Theta`` accumulated in extended precision
     (``np.longdouble``) and corrected through R_g brings the error to
-    ~cond(R_g) * eps. Z (b, d, N0), F (b, n, N0), g (G,) > 0 -> (b, G, n, d).
+    ~cond(R_g) * eps. Z (b, d, N0), F (b, n, N0), g (G,) > 0 -> (b, G, n, d);
+    with ``return_cond`` also cond(Z Z^T + g I) = cond(R_g)^2, (b, G).
     """
     Z = np.asarray(Z, dtype=float)
     F = np.asarray(F, dtype=float)
@@ -248,7 +270,12 @@ def ridge_qr(Z: np.ndarray, F: np.ndarray, g) -> np.ndarray:
     # refinement: R_g^T R_g dX = S^T with the extended-precision residual S
     S = _normal_residual(Z[:, None], F[:, None], np.swapaxes(Xt, -1, -2), g)
     dX = np.linalg.solve(Rg, np.linalg.solve(np.swapaxes(Rg, -1, -2), np.swapaxes(S, -1, -2)))
-    return np.swapaxes(Xt + dX, -1, -2)
+    theta = np.swapaxes(Xt + dX, -1, -2)
+    if not return_cond:
+        return theta
+    s = np.linalg.svd(Rg, compute_uv=False)
+    with np.errstate(divide="ignore"):
+        return theta, (s[..., 0] / s[..., -1]) ** 2
 
 
 def shrunk_ols(theta_ols: np.ndarray, gammas) -> np.ndarray:

@@ -184,24 +184,30 @@ class _CvxpyDesign:
         self.t = cp.Variable()
         self.min_g = cp.Problem(cp.Minimize(self.t), [rows <= self.t])
 
+    def _solve(self, problem) -> str:
+        """The problem's status, or "solver_error" when Clarabel fails outright."""
+        try:
+            problem.solve(solver=self.cp.CLARABEL)
+        except (self.cp.error.SolverError, ValueError, ArithmeticError):
+            return "solver_error"
+        return problem.status
+
     def solve(self, Ct, C, K_hat, rho):
         cp = self.cp
         self.Ct.value, self.C.value, self.K.value = Ct, C, K_hat
         self.rho.value = float(rho)
-        self.main.solve(solver=cp.CLARABEL)
-        if self.main.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        status = self._solve(self.main)
+        if status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
             return self.L.value, True
         nan = np.full(self.L.shape, np.nan)
-        if self.main.status not in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
+        if status not in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
             return nan, False  # solver failure: NaN gain, not certified
         # fallback: min g(L); then, among the minimisers, the L closest to K_hat
-        self.min_g.solve(solver=cp.CLARABEL)
-        if self.min_g.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        if self._solve(self.min_g) not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
             return nan, False
         L1 = self.L.value
         self.rho.value = float(np.abs(Ct - L1 @ C).sum(axis=-1).max())
-        self.main.solve(solver=cp.CLARABEL)
-        if self.main.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        if self._solve(self.main) in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
             L2 = self.L.value
             if np.abs(Ct - L2 @ C).sum(axis=-1).max() <= self.rho.value + 1e-9:
                 return L2, False

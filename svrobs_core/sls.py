@@ -53,6 +53,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+import warnings
 from dataclasses import dataclass
 
 import cvxpy as cp
@@ -217,7 +218,9 @@ def sls_observer(A_tilde, C, K, F, *, C_bound, T_fir: int = 30) -> SLSResult:
     if bound is not None:
         pr.C_bound.value = bound
     try:
-        pr.problem.solve(solver=cp.CLARABEL)
+        with warnings.catch_warnings():  # "Solution may be inaccurate": it is the status
+            warnings.filterwarnings("ignore", message="Solution may be inaccurate")
+            pr.problem.solve(solver=cp.CLARABEL)
         status = str(pr.problem.status)
     except (cp.error.SolverError, ValueError, ArithmeticError):
         status = "solver_error"

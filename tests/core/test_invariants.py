@@ -56,7 +56,9 @@ def systems(draw):
     else:  # square, nearly singular: two almost equal rows
         C = rng.standard_normal((n, n))
         if n > 1:
-            C[-1] = C[0] + draw(st.sampled_from([1e-15, 1e-13, 1e-10, 1e-6])) * rng.standard_normal(n)
+            C[-1] = C[0] + draw(st.sampled_from([1e-15, 1e-13, 1e-10, 1e-6])) * rng.standard_normal(
+                n
+            )
         else:
             C *= 1e-12
     sigma_v = draw(st.sampled_from([0.0, 1e-8, 0.1, 1.0, 10.0]))
@@ -219,4 +221,25 @@ def test_overflowing_bounds_give_null_radii_with_a_note(extra):
         for f in ("stable_certified", "certified", "thm1_holds_A", "thm1_holds_B"):
             assert r[f] is None, (f, r[f])
         assert "out of the double range" in r["notes"]
+        check_record(r, spec.stages)
+
+
+def test_no_certificate_from_an_untrustworthy_solve():
+    """paper-unstable over 3000 steps: cond(Z Z^T) ~ 1e60. The bounds are finite
+    (M = 1.0001), but OLS had certified: true with rho(A - L C) = 1.01."""
+    obj = {
+        "systems": ["paper-unstable"],
+        "sigma_w": [1.0],
+        "N": [3],
+        "reps": 2,
+        "T0": 3000,
+        "M": 1.0001,
+        "stages": ["estimate", "bounds", "gain"],
+    }
+    spec = parse_spec(obj)
+    records = [r for batch in run_spec(spec) for r in batch]
+    for r in records:
+        assert r["r_A"] is not None and r["A_hat"] is not None  # estimate and radii kept
+        assert r["certified"] is None and r["stable_certified"] is None
+        assert "certificates withheld" in r["notes"]
         check_record(r, spec.stages)
