@@ -210,6 +210,7 @@ class Result(Base):
     estimator: Mapped[str] = mapped_column(String(32))
     gamma_key: Mapped[float] = mapped_column(Float)
     seed_key: Mapped[Any | None] = mapped_column(JSON)
+    bounds_method: Mapped[str | None] = mapped_column(String(32))
     sls_status: Mapped[str | None] = mapped_column(String(64))
     notes: Mapped[str | None] = mapped_column(Text)
 

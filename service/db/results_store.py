@@ -29,7 +29,7 @@ from .models import OLS_GAMMA_KEY, RESULT_MATRIX_FIELDS, RESULT_SCALAR_FIELDS, R
 
 KEY_COLUMNS = ("job_id", "system", "sigma_w", "N", "estimator", "gamma_key", "rep")
 JSON_COLUMNS = frozenset(RESULT_MATRIX_FIELDS) | {"seed_key"}
-TEXT_COLUMNS = ("system", "estimator", "sls_status", "notes")
+TEXT_COLUMNS = ("system", "estimator", "bounds_method", "sls_status", "notes")
 INT_FIELDS = ("N", "N0", "rep")
 _NOT_FLOAT = frozenset(BOOL_FIELDS + INT_FIELDS)
 # every column but the surrogate id, in table order
@@ -103,6 +103,7 @@ def record_to_row(job_id: int, record: dict) -> dict:
     row["estimator"] = str(record["estimator"])
     row["gamma_key"] = gamma_key(row["gamma"])
     row["seed_key"] = json_value(record.get("seed_key"))
+    row["bounds_method"] = record.get("bounds_method")
     row["sls_status"] = record.get("sls_status")
     notes = record.get("notes")
     row["notes"] = "; ".join(notes) if isinstance(notes, (list, tuple)) else notes

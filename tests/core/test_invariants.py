@@ -114,6 +114,18 @@ def specs(draw):
         "sls": {"T_fir": draw(st.integers(2, 4))},
         "x0_std": draw(st.sampled_from([0.0, 1.0, 1e3])),
         "seed": draw(st.integers(0, 2**32)),
+        **draw(
+            st.sampled_from(
+                [
+                    {},
+                    {},
+                    {"bounds_method": "self-normalized"},
+                    {"bounds_method": "self-normalized", "S": 1e-3, "lambda0": 1e6},
+                    {"bounds_method": "bootstrap", "boot_reps": 3},
+                    {"bounds_method": "bootstrap", "boot_reps": 2, "boot_sigma_w": "spec"},
+                ]
+            )
+        ),
     }
 
 
@@ -129,10 +141,10 @@ def _finite(x) -> bool:
 
 # certificate field -> (stage, the fields it rests on)
 RESTS_ON = {
-    "stable_certified": ("bounds", ("A_hat", "r_A", "eps_A", "rho_upper_bound")),
+    "stable_certified": ("bounds", ("A_hat", "r_A", "radii_A", "eps_A", "rho_upper_bound")),
     "thm1_holds_A": ("bounds", ("A_hat", "H_A")),
     "thm1_holds_B": ("bounds", ("B_hat", "H_B")),
-    "certified": ("gain", ("A_hat", "r_A", "L", "g_L")),
+    "certified": ("gain", ("A_hat", "r_A", "radii_A", "L", "g_L")),
 }
 
 

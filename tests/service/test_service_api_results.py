@@ -222,11 +222,11 @@ def test_record_json_edge_values():
             else:
                 out.append(x * len(f))
         want = dict(zip(RECORD_FIELDS, out))
+        want.update({f: [[0.1]] for f in MATRIX_FIELDS})  # the "[[0.1]]" of the others
         want.update(
             A_hat=[[x, -2e-300], [1 / 3, 1e300]],
             B_hat=None,
             L=None,
-            K=[[0.1]],
             seed_key=[0, 1, 20, 3],
             rmse_A=None,
             J_mc=None,
