@@ -63,6 +63,26 @@ CASES = {
         "reps": 20,
         "estimators": ["svr"],
     },
+    "bootstrap B=20 reps=10 N=50": {
+        "N": [50],
+        "reps": 10,
+        "bounds_method": "bootstrap",
+        "boot_reps": 20,
+        "stages": ["estimate", "bounds"],
+    },
+    "bootstrap B=100 reps=10 N=300": {
+        "N": [300],
+        "reps": 10,
+        "bounds_method": "bootstrap",
+        "boot_reps": 100,
+        "stages": ["estimate", "bounds"],
+    },
+    "self-normalized reps=1000": {
+        "N": [20],
+        "reps": 1000,
+        "bounds_method": "self-normalized",
+        "stages": ["estimate", "bounds", "gain"],
+    },
     "gain reps=2000 gammas=5": {
         "N": [20],
         "reps": 2000,

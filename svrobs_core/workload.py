@@ -25,6 +25,7 @@ from .errors import SpecError
 from .estimators import FALLBACK_CHUNK_BYTES, SVR_COND_LIMIT
 from .gains import is_orthogonal
 from .spec import ExperimentSpec
+from .uncertainty import BOOT_CHUNK_BYTES
 
 # -- per-operation constants (seconds), calibrated with bench/workload.py ----
 NORMAL = 1.2e-8  # one standard normal draw
@@ -46,6 +47,9 @@ MC_CELL = 2.5e-10  # Monte Carlo: per (cell, step, run) and n (W + n) multiply-a
 MC_STEP = 5.0e-6  # Monte Carlo: per step, the Python loop's calls
 QR_REP = 1.0e-3  # SVR's QR path: per repetition (the calls of estimators.ridge_qr)
 LONG_DOUBLE = 3.0e-8  # SVR's QR path: per long-double multiply-add of the refinement
+BOOT_ELEM = 1.0e-9  # bootstrap: one elementwise multiply-add of its simulation
+BOOT_SET = 1.0e-4  # bootstrap: per resampled dataset (its generator, draws, quantiles)
+BOOT_REFIT = 1.0e-3  # bootstrap: per chunk of datasets and estimator column (the refit call)
 CVX_SOLVE = 3.0e-3  # one small cvxpy + Clarabel solve (general-C gain design)
 SLS_SOLVE = 1.5e-3  # one SLS solve: fixed part
 SLS_VAR = 8.0e-6  # one SLS solve: per scalar variable T_fir n (n + p)
@@ -134,6 +138,10 @@ def _dataset(
             cpu += (0.0 if kept_data else data_cpu) + R * (
                 QR_REP + LONG_DOUBLE * N0 * (d + n) * (2 + G)
             )
+    if spec.has("bounds") and spec.bounds_method == "bootstrap":
+        c_boot, m_boot = _bootstrap(spec, n=n, m=m, N=N, R=R, E=E, N0=N0)
+        cpu += c_boot
+        mem = max(mem, kept_data + m_boot)
     # per-cell work of the stages (small matrices, vectorised over the cells)
     h = max(n, p)
     cpu += cells * sum(_cell(st, h) for st in CELL_COST if spec.has(st))
@@ -150,6 +158,24 @@ def _dataset(
         cpu += cells * (SLS_SOLVE + SLS_VAR * spec.sls_T_fir * n * (n + p))
     kept = cells * (RECORD_BYTES + RECORD_ENTRY_BYTES * (2 * n * n + n * m + 2 * n * p))
     return cpu, mem, kept
+
+
+def _bootstrap(spec, *, n, m, N, R, E, N0) -> tuple[float, float]:
+    """(cpu, bytes) of uncertainty.bootstrap_box: boot_reps datasets per repetition,
+    each simulated for every cell's estimate and refitted by its estimator."""
+    T0, d = spec.T0, n + m
+    K = N0 // N
+    sets = R * spec.boot_reps
+    per_set = 8.0 * N * (E * (n * (T0 + 1) + (d + n) * K + m * T0) + (n + m) * T0 + n)
+    chunks = -(-sets // max(1, int(BOOT_CHUNK_BYTES // per_set)))
+    ols = sum(1 for e in spec.estimators if e != "svr")
+    cpu = sets * (
+        NORMAL * (m + n) * T0 * N
+        + BOOT_ELEM * E * n * (n + m + 1) * T0 * N
+        + FLOP * N0 * (E * 2 * d * (d + n) + ols * 6 * n * d)
+    )
+    cpu += CALL * chunks * T0 * (n + m + 2) + BOOT_SET * sets + BOOT_REFIT * chunks * E
+    return cpu, max(per_set, min(sets * per_set, BOOT_CHUNK_BYTES)) * 1.5
 
 
 def _mc_sizes(spec, *, n, m, p):
@@ -267,6 +293,8 @@ def _reductions(spec: ExperimentSpec, kind: str) -> dict[str, ExperimentSpec]:
         "sls.T_fir": replace(spec, sls_T_fir=2),
         "estimators": replace(spec, estimators=spec.estimators[:1]),
     }
+    if spec.bounds_method == "bootstrap":
+        out["boot_reps"] = replace(spec, boot_reps=2)
     if kind == "cpu":
         out["reps"] = replace(spec, reps=1, mc_reps=None if spec.mc_reps is None else 1)
         out["sigma_w"] = replace(spec, sigma_w=spec.sigma_w[:1])

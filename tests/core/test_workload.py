@@ -57,6 +57,7 @@ SWEEPS = {
     "mc_reps": [{"mc_reps": r} for r in (0, 1, 2, 4)],
     "horizon": [{"horizon": h} for h in (1, 10, 200, 10_000)],
     "T_fir": [{"sls": {"T_fir": t}} for t in (2, 10, 100, 1000)],
+    "boot_reps": [{"bounds_method": "bootstrap", "boot_reps": b} for b in (2, 10, 100, 1000)],
 }
 
 
