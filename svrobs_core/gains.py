@@ -21,6 +21,7 @@ Each takes either the paper's scalar radius ``r_A`` (every entry of A within
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -221,7 +222,9 @@ class _CvxpyDesign:
     def _solve(self, problem) -> str:
         """The problem's status, or "solver_error" when Clarabel fails outright."""
         try:
-            problem.solve(solver=self.cp.CLARABEL)
+            with warnings.catch_warnings():  # "Solution may be inaccurate": see the status
+                warnings.filterwarnings("ignore", message="Solution may be inaccurate")
+                problem.solve(solver=self.cp.CLARABEL)
         except (self.cp.error.SolverError, ValueError, ArithmeticError):
             return "solver_error"
         return problem.status
