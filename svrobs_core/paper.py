@@ -145,6 +145,38 @@ def published_table2(system: str, sigma_w: float, matrix: str) -> dict[str, floa
     return PUBLISHED_TABLE2.get((system, float(sigma_w), matrix))
 
 
+def _span(values) -> str:
+    values = list(values)
+    return f"{len(values)} values {values[0]}..{values[-1]}" if len(values) > 1 else str(values)
+
+
+def table2_grid_note(spec) -> str | None:
+    """None when ``spec`` (a section 10 spec, raw or parsed) has the grid behind the
+    published Table 2 (E1: N = 10..450 step 10, T0 = 11, all data, loss scale sum;
+    each row is then matched on system, sigma_w and gamma = 0.05), else one line
+    saying why the published values are not shown beside its numbers."""
+    from .spec import ExperimentSpec, parse_spec
+
+    try:
+        parsed = spec if isinstance(spec, ExperimentSpec) else parse_spec(spec)
+    except Exception:  # noqa: BLE001 - an unparsable spec is no paper grid
+        return "the published Table 2 values are not shown: the job's spec cannot be read"
+    paper_N = list(range(N_GRID["start"], N_GRID["stop"] + 1, N_GRID["step"]))
+    diffs = []
+    if list(parsed.N) != paper_N:
+        diffs.append(f"N has {_span(parsed.N)} (the paper's: {_span(paper_N)})")
+    for name, paper in (("T0", T0), ("data", "all"), ("loss_scale", "sum"), ("x0_std", 0.0)):
+        if getattr(parsed, name) != paper:
+            diffs.append(f"{name} is {getattr(parsed, name)!r} (the paper's: {paper!r})")
+    if not diffs:
+        return None
+    return (
+        "The paper's published Table 2 values are not shown: this grid is not the paper's ("
+        + "; ".join(diffs)
+        + "), so ratios to them would compare different experiments."
+    )
+
+
 def _full_specs() -> dict[str, dict]:
     common = {
         "N": dict(N_GRID),

@@ -11,6 +11,7 @@ from typing import Annotated
 
 import anyio
 from fastapi import Depends, HTTPException, Path, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy import select
 from sqlalchemy.orm import Session, joinedload
 
@@ -113,7 +114,16 @@ def rate_limit(request: Request, caller: Caller) -> None:
         )
 
 
-def get_caller(request: Request, session: Annotated[Session, Depends(get_db)]) -> Caller:
+# declares the scheme in OpenAPI (the Authorize button of /docs); the header is read
+# below, so a missing or malformed one keeps this module's 401 bodies
+BEARER = HTTPBearer(auto_error=False, description="an API key: `Authorization: Bearer <key>`")
+
+
+def get_caller(
+    request: Request,
+    session: Annotated[Session, Depends(get_db)],
+    _bearer: Annotated[HTTPAuthorizationCredentials | None, Depends(BEARER)] = None,
+) -> Caller:
     """The bearer key's caller. A reading request (GET) without an Authorization
     header may instead carry the web UI's session cookie (service.web.session), so
     that a signed-in browser opens reports and downloads; writes need the key."""

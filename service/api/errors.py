@@ -92,8 +92,44 @@ async def _idempotency_conflict(request: Request, exc: IdempotencyConflict):
     return error_response(409, str(exc), "Idempotency-Key")
 
 
+# pydantic names the member of a union in the location ("N.list[any]"): the kinds
+# a value may be, in plain words
+_KINDS = {"list": "a list", "dict": "an object", "int": "an integer", "float": "a number"}
+_KINDS.update(str="a string", bool="true or false", none="null", tuple="a list")
+
+
+def _kind(part) -> str | None:
+    """The plain name of a union member tag in a location, else None."""
+    if not isinstance(part, str):
+        return None
+    head = part.split("[", 1)[0]
+    return _KINDS.get(head) if ("[" in part or part in _KINDS) else None
+
+
+def plain_errors(errors: list[dict]) -> list[dict]:
+    """The errors with union member tags folded: ``N`` given a string where a list
+    or an object is expected is one error, "must be a list or an object"."""
+    out, unions = [], {}
+    for e in errors:
+        loc = tuple(e.get("loc", ()))
+        tags = [i for i, p in enumerate(loc) if _kind(p)]
+        if not tags:
+            out.append(e)
+            continue
+        base = loc[: tags[0]]
+        if base not in unions:
+            unions[base] = {**e, "loc": base, "kinds": []}
+            out.append(unions[base])
+        kind = _kind(loc[tags[0]])
+        if kind not in unions[base]["kinds"]:
+            unions[base]["kinds"].append(kind)
+    for u in unions.values():
+        u["msg"], u["type"] = "must be " + " or ".join(u.pop("kinds")), "type_error"
+    return out
+
+
 async def _validation_error(request: Request, exc: RequestValidationError):
-    errors = exc.errors()
+    errors = plain_errors(exc.errors())
     first = errors[0] if errors else {}
     field = _loc_to_field(first.get("loc", ()))
     msg = first.get("msg", "invalid request")

@@ -7,9 +7,12 @@ traceback).
 from __future__ import annotations
 
 from fastapi import Depends, FastAPI
+from fastapi_offline import FastAPIOffline
 
 from service.api.deps import clean_query_text
+from service.api.docs import install_redoc
 from service.api.errors import error_response, install_error_handlers
+from service.api.query_params import reject_unknown_query
 from service.api.ratelimit import RateLimiter
 from service.broker import BrokerPublisher
 from service.config import Settings, get_settings
@@ -82,7 +85,9 @@ def _default_session_factory(settings: Settings):
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or get_settings()
     configure_logging(settings)
-    app = FastAPI(
+    # /docs and /redoc with Swagger UI's and ReDoc's files served from the
+    # fastapi-offline package under /static-offline-docs (closed lab networks)
+    app: FastAPI = FastAPIOffline(
         title="svrobs",
         version="0.1.0",
         description=(
@@ -92,8 +97,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         ),
         openapi_url="/openapi.json",
         docs_url="/docs",
-        redoc_url="/redoc",
+        redoc_url=None,  # service.api.docs: ReDoc's script without its CDN logo
+        favicon_url="data:,",
+        swagger_ui_parameters={"validatorUrl": None, "persistAuthorization": True},
     )
+    install_redoc(app)
     app.state.settings = settings
     app.state.session_factory = _default_session_factory(settings)
     # the app's Celery app, made on first use; tests replace the publisher
@@ -103,13 +111,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     install_error_handlers(app)
 
-    from service.api.routes import health, jobs, presets, reports, results, schedules
+    from service.api.routes import health, jobs, presets, reports, results, schedules, shares
 
-    app.include_router(health.router)
-    for module in (jobs, results, presets, reports, schedules):
-        app.include_router(
-            module.router, prefix=API_PREFIX, dependencies=[Depends(clean_query_text)]
-        )
+    query_rules = [Depends(clean_query_text), Depends(reject_unknown_query)]
+    app.include_router(health.router, dependencies=query_rules[1:])
+    for module in (jobs, results, presets, reports, schedules, shares):
+        app.include_router(module.router, prefix=API_PREFIX, dependencies=query_rules)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.MAX_BODY_BYTES)
     mount_web(app)  # the web UI's pages under /
     return app

@@ -4,7 +4,7 @@ the team and owner always come from the API key, never from a body."""
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Annotated, Any, Optional
+from typing import Annotated, Any, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, create_model, model_validator
 from pydantic_core import InitErrorDetails, PydanticCustomError, ValidationError
@@ -147,6 +147,15 @@ class CompareOut(BaseModel):
     rows: list[dict[str, Any]]
 
 
+SeedPolicy = Annotated[
+    Literal["fixed", "due-time"],
+    Field(
+        description="fixed: every run uses the template's seed; due-time: (template seed + "
+        "the due time in Unix seconds) mod 2^31, so each run adds fresh repetitions"
+    ),
+]
+
+
 class ScheduleCreate(_Strict):
     name: str = Field(min_length=1, max_length=200)
     cron: str = Field(min_length=1, max_length=200)
@@ -154,6 +163,7 @@ class ScheduleCreate(_Strict):
     spec_template: dict[str, Any]
     tags: list[TagStr] = Tag
     enabled: bool = True
+    seed_policy: SeedPolicy = "fixed"
 
 
 class ScheduleUpdate(_Strict):
@@ -163,6 +173,7 @@ class ScheduleUpdate(_Strict):
     spec_template: dict[str, Any] | None = None
     tags: list[TagStr] | None = Field(None, max_length=50)
     enabled: bool | None = None
+    seed_policy: SeedPolicy | None = None
 
 
 class ScheduleOut(BaseModel):
@@ -173,6 +184,7 @@ class ScheduleOut(BaseModel):
     spec_template: dict[str, Any]
     tags: list[str]
     enabled: bool
+    seed_policy: SeedPolicy
     next_run_at: datetime | None
     created_at: datetime
     updated_at: datetime

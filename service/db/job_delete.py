@@ -17,6 +17,7 @@ from service.db.models import (
     JobTag,
     Result,
     ScheduleRun,
+    ShareLink,
     Summary,
     WorkUnit,
 )
@@ -50,7 +51,7 @@ def delete_job(session: Session, job: Job) -> dict[str, int]:
     if locked.status in JOB_ACTIVE:
         raise JobActive(job_id, locked.status)
     counts = {}
-    for model in (Result, Summary, WorkUnit, JobTag):
+    for model in (Result, Summary, WorkUnit, JobTag, ShareLink):
         counts[model.__tablename__] = session.execute(
             delete(model).where(model.job_id == job_id)
         ).rowcount

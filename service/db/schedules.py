@@ -17,6 +17,21 @@ from .errors import IdempotencyConflict
 from .jobs import create_job
 from .models import Job, Schedule, ScheduleRun, as_utc, utcnow
 
+SEED_POLICIES = ("fixed", "due-time")
+SEED_MODULUS = 2**31  # a derived seed stays a 32-bit integer
+
+
+def run_spec(template: dict, policy: str, due: datetime) -> dict:
+    """The spec of the run due at ``due``. ``fixed``: the template as is (every run
+    repeats the same experiment). ``due-time``: its seed replaced by (template seed +
+    the due time in Unix seconds) mod 2^31, so each due time draws fresh repetitions
+    and the same due time always the same ones."""
+    if policy != "due-time":
+        return template
+    base = int(template.get("seed", 0) or 0)
+    return {**template, "seed": (base + int(as_utc(due).timestamp())) % SEED_MODULUS}
+
+
 CRON_ALIASES = ("@yearly", "@annually", "@monthly", "@weekly", "@daily", "@midnight", "@hourly")
 
 
@@ -104,7 +119,7 @@ def create_due_schedule_jobs(session: Session, now: datetime) -> list[Job]:
                     session,
                     team_id=sched.team_id,
                     user_id=sched.user_id,
-                    spec=sched.spec_template,
+                    spec=run_spec(sched.spec_template, sched.seed_policy, due),
                     name=f"{sched.name} @ {stamp}",
                     tags=list(sched.tags or []) + [f"schedule:{sched.name}"],
                     idempotency_key=f"schedule:{sched.id}:{stamp}",

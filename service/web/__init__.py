@@ -20,12 +20,23 @@ from service.web.session import Signer, load_secret
 
 def mount_web(app: FastAPI) -> None:
     """Serve the pages, ``/static`` and the error pages on ``app`` (its settings set)."""
-    from service.web.pages import auth, job, jobs, submit  # a new page module: add it here
+    from service.web.pages import (  # a new page module: add it here
+        auth,
+        compare,
+        job,
+        jobs,
+        results,
+        schedules,
+        share,
+        submit,
+    )
 
     settings = app.state.settings
     app.state.web_signer = Signer(load_secret(settings), session_hours=settings.SESSION_HOURS)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     for module in (auth, jobs, submit, job):
+        app.include_router(module.router)
+    for module in (results, compare, schedules, share):  # issue 11's other pages
         app.include_router(module.router)
     app.add_exception_handler(WebError, web_error_page)
     app.add_exception_handler(SignInRequired, sign_in_redirect)

@@ -284,7 +284,7 @@ class ReportBuilder:
         self._figures(final=True)
         experiments = {n: self.experiments[n] for n in self.names if n in self.experiments}
         t_src = _choose_source(experiments, self.cols, ("E1",), ("rmse_A",))
-        rows = table2(self.cols[t_src]) if t_src else []
+        rows = table2(self.cols[t_src], spec=experiments[t_src].get("spec")) if t_src else []
         figs = []
         for i in sorted(self.figs):
             fg, fut = self.figs[i]

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from ..paper import TABLE2_GAMMA, published_table2
+from ..paper import TABLE2_GAMMA, published_table2, table2_grid_note
 from .columns import (
     GAMMA_RTOL,
     Columns,
@@ -47,16 +47,19 @@ def mean_over_reps_then_N(cols: Columns, mask, f: str) -> tuple[float | None, in
     return float(means[ok].mean()), int(ok.sum()), int(counts[ok].min())
 
 
-def table2(records, gamma: float | None = None) -> list[dict]:
+def table2(records, gamma: float | None = None, *, spec=None) -> list[dict]:
     """Table 2 rows: our OLS and SVR RMSE (mean over reps, then over the N grid)
     beside the paper's published values, with the ratio ours / paper.
 
     ``gamma``: the SVR gamma to tabulate (default 0.05 if present, else the
     first). Published values are attached only for gamma = 0.05 and the
-    paper's systems.
+    paper's systems, and, when the records' ``spec`` is given, only if its grid
+    is the paper's (``paper.table2_grid_note``); otherwise every row's
+    ``paper_note`` says why not.
     """
     cols = as_columns(records)
     g = table_gamma(cols, gamma)
+    note = table2_grid_note(spec) if spec is not None else None
     rows = []
     for system in systems_of(cols):
         ms = select(cols, system=system)
@@ -71,7 +74,11 @@ def table2(records, gamma: float | None = None) -> list[dict]:
                 ols, nN_o, nr_o = mean_over_reps_then_N(cols, m_ols, f)
                 svr, nN_s, nr_s = mean_over_reps_then_N(cols, m_svr, f)
                 pub = None
-                if g is not None and math.isclose(g, TABLE2_GAMMA, rel_tol=GAMMA_RTOL):
+                if (
+                    note is None
+                    and g is not None
+                    and math.isclose(g, TABLE2_GAMMA, rel_tol=GAMMA_RTOL)
+                ):
                     pub = published_table2(system, sigma_w, mat)
                 p_ols = pub["ols"] if pub else None
                 p_svr = pub["ours"] if pub else None
@@ -92,6 +99,7 @@ def table2(records, gamma: float | None = None) -> list[dict]:
                         else None,
                         "n_N": max(nN_o, nN_s),
                         "reps_per_N": min((x for x in (nr_o, nr_s) if x), default=0),
+                        "paper_note": note,
                     }
                 )
     return rows
@@ -138,6 +146,7 @@ def table2_markdown(rows: list[dict]) -> str:
             f"{reps} repetitions at each N and then over the {n_N} values of N "
             f"(SPEC section 9); SVR with γ = {fmt_num(g)}. The paper columns are the paper's "
             f"published Table 2 values, not results of this run."
+            + (f" {rows[0]['paper_note']}" if rows[0].get("paper_note") else "")
         )
     return "\n".join(lines) + "\n"
 

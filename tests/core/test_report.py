@@ -20,6 +20,7 @@ from svrobs_core import RECORD_FIELDS, parse_spec, run_spec
 from svrobs_core import report as rpt
 from svrobs_core.paper import PUBLISHED_TABLE2, paper_specs
 from svrobs_core.records import empty_record
+from svrobs_core.report import table2
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 FIGURES = (
@@ -519,11 +520,29 @@ def test_reproduce_table2_against_independent_computation(reproduced):
         key = (row["system"], float(row["sigma_w"]), row["matrix"])
         assert float(row["ols"]) == pytest.approx(ind[key + ("ols",)], rel=1e-12)
         assert float(row["svr"]) == pytest.approx(ind[key + ("svr",)], rel=1e-12)
-        pub = PUBLISHED_TABLE2[key]
-        assert float(row["paper_ols"]) == pub["ols"] and float(row["paper_ours"]) == pub["ours"]
-        assert float(row["ratio_ols"]) == pytest.approx(float(row["ols"]) / pub["ols"])
+        # the reduced grid (N in 10..50) is not the paper's: no published values beside it
+        assert row["paper_ols"] == row["paper_ours"] == row["ratio_ols"] == ""
     md = (out / "table2.md").read_text()
     assert f"{float(rows[0]['ols']):.4g}" in md
+    assert "published Table 2 values are not shown" in md and "45 values 10..450" in md
+    assert "published Table 2 values are not shown" in (out / "report.html").read_text()
+
+
+def test_table2_published_only_beside_the_paper_grid(reproduced):
+    """The same records tabulated under the paper's E1 spec get the published values
+    and ratios; under the reduced spec, none and the reason."""
+    out, _ = reproduced
+    recs = read_jsonl(out / "E1" / "records.jsonl")
+    paper = table2(recs, spec=paper_specs("full")["E1"])
+    assert all(r["paper_note"] is None for r in paper)
+    for row in paper:
+        pub = PUBLISHED_TABLE2[(row["system"], row["sigma_w"], row["matrix"])]
+        assert (row["paper_ols"], row["paper_ours"]) == (pub["ols"], pub["ours"])
+        assert row["ratio_ols"] == pytest.approx(row["ols"] / pub["ols"], rel=1e-12)
+    other = table2(recs, spec=paper_specs("reduced")["E1"])
+    assert [r["ols"] for r in other] == [r["ols"] for r in paper]
+    assert all(r["paper_ols"] is None and r["ratio_svr"] is None for r in other)
+    assert "N has 3 values 10..50" in other[0]["paper_note"]
 
 
 def test_derived_e1_equals_a_direct_run(reproduced):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 
 from service.db import jobs, units
+from service.reports.html import job_report_html
 from svrobs_core.paper import paper_specs
 from svrobs_core.report import table2
 from svrobs_core.runner import run_unit
@@ -74,6 +75,10 @@ def test_job_report_is_html_from_stored_records_and_team_scoped(client, session,
             v = row.get(key)
             if isinstance(v, float):
                 assert f"{v:.4g}" in html  # the report prints 4 significant digits
-    assert re.search(r"0\.0261", html)  # the paper's published value, labelled as such
+    # the reduced grid is not the paper's: the published values are left out, saying why
+    assert not re.search(r"0\.0261", html)
+    assert "published Table 2 values are not shown" in html and "N has 3 values 10..50" in html
+    # the same records under the paper's E1 spec: the published value, labelled as such
+    assert re.search(r"0\.0261", job_report_html(paper_specs("full")["E1"], records))
     assert client.get(f"{API}/jobs/{jid}/report", headers=other.headers).status_code == 404
     assert client.get(f"{API}/jobs/999999/report", headers=acc.headers).status_code == 404

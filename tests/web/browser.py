@@ -58,11 +58,13 @@ class Browser:
 
     def foreign_requests(self) -> list[str]:
         """Requests to any host but the servers pages were opened on (data: URLs never
-        leave the page)."""
+        leave the page, and a blob: URL of a server is the page's own memory, e.g.
+        ReDoc's web worker)."""
+        inline = ("data:", *(f"blob:http://{s}/" for s in self.servers))
         return [
             u
             for u in self.requests
-            if not u.startswith("data:") and urlsplit(u).netloc not in self.servers
+            if not u.startswith(inline) and urlsplit(u).netloc not in self.servers
         ]
 
     def close(self) -> None:

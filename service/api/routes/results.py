@@ -10,13 +10,14 @@ from collections import defaultdict
 from typing import Annotated, Literal
 
 import numpy as np
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 from pydantic import Field
 from sqlalchemy import Select, func, select
 
 from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep, team_job
 from service.api.errors import ERRORS, FieldHTTPException
+from service.api.query_params import accepts_query, is_range_param, range_conditions, sort_order
 from service.api.record_json import ORDER, RESULT_COLUMNS, encode_lines, encode_page, record_columns
 from service.api.schemas import CompareOut, ResultPage, SummaryOut
 from service.db.models import Result, Summary
@@ -122,7 +123,9 @@ def _stream(session_factory, query: Select, fmt: str):
         },
     },
 )
+@accepts_query(is_range_param)
 def get_results(
+    request: Request,
     job_id: JobId,
     session: DB,
     caller: CurrentCaller,
@@ -133,6 +136,9 @@ def get_results(
     estimator: Annotated[list[str] | None, Query()] = None,
     gamma: Annotated[list[str] | None, Query(description="a value, or 'null' for ols")] = None,
     rep: IntList = None,
+    sort: Annotated[
+        str | None, Query(max_length=300, description="e.g. -rmse_A (descending), N")
+    ] = None,
     format: Literal["json", "csv", "jsonl"] = "json",
     limit: Annotated[int | None, Query(ge=1, le=10_000)] = None,
     offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
@@ -140,18 +146,24 @@ def get_results(
     """The job's records (SPEC section 10 field names; matrices as nested lists; null,
     never NaN), filtered by any grid coordinate (repeat a parameter for several
     values). JSON is paginated (default limit 100); CSV and JSONL stream the whole
-    selection (or `limit`/`offset` if given)."""
+    selection (or `limit`/`offset` if given).
+
+    `sort`: comma-separated numeric record fields, `-` for descending
+    (`sort=-rmse_A,N`); nulls last; ties in grid order. Range filters on any numeric
+    field: `<field>_lt`, `_lte`, `_gt`, `_gte` (`rmse_A_lt=0.01&N_gte=100`)."""
     team_job(session, caller.team_id, job_id)
+    t = Result.__table__
     conds = _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep)
+    conds += range_conditions(request, t)
+    order = sort_order(sort, t) + ORDER
     if format == "json":
         lim = limit or 100
-        t = Result.__table__
         total = session.scalar(COUNT.where(*conds))
         # the page's ids first (sorting the narrow key columns only), then their records
-        page = select(t.c.id).where(*conds).order_by(*ORDER).limit(lim).offset(offset).subquery()
-        rows = session.execute(RECORDS.join(page, t.c.id == page.c.id).order_by(*ORDER)).all()
+        page = select(t.c.id).where(*conds).order_by(*order).limit(lim).offset(offset).subquery()
+        rows = session.execute(RECORDS.join(page, t.c.id == page.c.id).order_by(*order)).all()
         return Response(encode_page(rows, total, lim, offset), media_type="application/json")
-    query = (RESULT_ROWS if format == "csv" else RECORDS).where(*conds).order_by(*ORDER)
+    query = (RESULT_ROWS if format == "csv" else RECORDS).where(*conds).order_by(*order)
     if limit is not None:
         query = query.limit(limit)
     if offset:

@@ -68,6 +68,7 @@ def schedule_out(s: Schedule) -> dict:
         "spec_template": s.spec_template,
         "tags": list(s.tags or []),
         "enabled": s.enabled,
+        "seed_policy": s.seed_policy,
         "next_run_at": next_run(s.cron, s.timezone) if s.enabled else None,
         "created_at": s.created_at,
         "updated_at": s.updated_at,
@@ -108,6 +109,7 @@ def create_schedule(
         spec_template=validate_template(body.spec_template, settings.MAX_JOB_CELLS),
         tags=list(dict.fromkeys(body.tags)),
         enabled=body.enabled,
+        seed_policy=body.seed_policy,
         created_at=now,
         updated_at=now,
     )
@@ -137,10 +139,10 @@ def update_schedule(
     caller: CurrentCaller,
     settings: SettingsDep,
 ):
-    """Change any of name, cron, timezone, spec_template, tags, enabled."""
+    """Change any of name, cron, timezone, spec_template, tags, enabled, seed_policy."""
     s = _team_schedule(session, caller.team_id, schedule_id)
     data = body.model_dump(exclude_unset=True)
-    for key in ("name", "cron", "timezone", "spec_template", "enabled"):
+    for key in ("name", "cron", "timezone", "spec_template", "enabled", "seed_policy"):
         if key in data and data[key] is None:
             raise SpecError(key, "must not be null")
     if "cron" in data:

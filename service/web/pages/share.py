@@ -1,0 +1,126 @@
+"""Share links (issue 11): ``/jobs/{id}/share`` makes and revokes them (signed in,
+CSRF); ``/s/{token}`` is the read-only view of the job's report and charts, opened
+without a key. An unknown, expired or revoked token is a 404 page, like a job of
+another team. The token is shown once, when the link is made (only its hash is
+stored: service.db.shares)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Form, Query, Request
+from fastapi.responses import RedirectResponse
+from sqlalchemy.orm import Session
+
+from service.api.deps import MAX_ID, Caller, get_db
+from service.api.routes import reports
+from service.db import shares
+from service.db.models import Job
+from service.web import charts
+from service.web.deps import CSRF, CurrentViewer
+from service.web.pages import job as job_pages
+from service.web.render import PAGE_HEADERS, WebError, render
+
+router = APIRouter(include_in_schema=False)
+DB = Annotated[Session, Depends(get_db)]
+Token = Annotated[str, Query(max_length=200)]
+
+
+def _links_page(request, db, viewer, job: Job, *, new_url: str | None = None, status=200):
+    return render(
+        request,
+        "share.html",
+        status=status,
+        viewer=viewer,
+        nav="jobs",
+        job=job,
+        links=shares.job_shares(db, viewer.team_id, job.id),
+        live=shares.is_live,
+        new_url=new_url,
+        default_days=shares.DEFAULT_DAYS,
+        max_days=shares.MAX_DAYS,
+    )
+
+
+@router.get("/jobs/{job_id:int}/share")
+def share_page(request: Request, db: DB, viewer: CurrentViewer, job_id: int):
+    return _links_page(request, db, viewer, job_pages._job(db, viewer, job_id))
+
+
+@router.post("/jobs/{job_id:int}/share", dependencies=[CSRF])
+def make_link(
+    request: Request,
+    db: DB,
+    viewer: CurrentViewer,
+    job_id: int,
+    days: Annotated[float, Form(gt=0, le=shares.MAX_DAYS)] = shares.DEFAULT_DAYS,
+):
+    job = job_pages._job(db, viewer, job_id)
+    _, token = shares.create_share(db, job, user_id=viewer.caller.user_id, days=days)
+    db.commit()
+    url = str(request.base_url).rstrip("/") + f"/s/{token}"
+    return _links_page(request, db, viewer, job, new_url=url, status=201)
+
+
+@router.post("/shares/{share_id:int}/revoke", dependencies=[CSRF])
+def revoke_link(db: DB, viewer: CurrentViewer, share_id: int):
+    link = shares.team_share(db, viewer.team_id, share_id) if share_id <= MAX_ID else None
+    if link is None:
+        raise WebError(404, f"Share link {share_id} not found.")
+    shares.revoke_share(link)
+    db.commit()
+    return RedirectResponse(f"/jobs/{link.job_id}/share", status_code=303)
+
+
+def _shared(db: Session, token: str):
+    """(the link, its job) of a live token, else a 404 page."""
+    link = shares.open_share(db, token)
+    job = db.get(Job, link.job_id) if link is not None else None
+    if job is None or job.team_id != link.team_id:
+        raise WebError(404, "This link does not exist, has expired or was revoked.")
+    return link, job
+
+
+def _reader(link) -> SimpleNamespace:
+    """Who reads through a link: the job's team, for the team-scoped lookups only."""
+    return SimpleNamespace(team_id=link.team_id)
+
+
+@router.get("/s/{token}")
+def shared_job(request: Request, db: DB, token: str):
+    link, job = _shared(db, token)
+    response = render(
+        request,
+        "shared.html",
+        viewer=None,
+        job=job,
+        link=link,
+        token=token,
+        x_fields=charts.X_FIELDS,
+        x_labels=charts.LABELS,
+    )
+    response.headers["X-Robots-Tag"] = "noindex"
+    return response
+
+
+@router.get("/s/{token}/chart-data")
+def shared_chart_data(
+    db: DB,
+    token: str,
+    metric: Annotated[str, Query(max_length=100)] = "rmse_A",
+    x: Annotated[str, Query(max_length=20)] = "N",
+):
+    link, job = _shared(db, token)
+    return job_pages.chart_data(db, _reader(link), job.id, metric, x)
+
+
+@router.get("/s/{token}/report")
+def shared_report(db: DB, token: str):
+    link, job = _shared(db, token)
+    reader = Caller(key_id=0, team_id=link.team_id, user_id=None, is_admin=False)
+    response = reports.job_report(job.id, db, reader)
+    response.headers.update(
+        {k: v for k, v in PAGE_HEADERS.items() if k != "Content-Security-Policy"}
+    )
+    return response

@@ -1,0 +1,187 @@
+"""The results, compare, schedules and share pages and the API docs in a real chromium
+against a real server (the stack and browser of test_browser): the grid filters and
+sorts like the API, the compare chart plots the API's compare, a schedule is made from
+a job, a share link opens without cookies and is a 404 once revoked, and /docs and
+/redoc load nothing from another host (checked after every test, as in test_browser)."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from tests.integration.stack import submit
+
+from . import test_browser as base
+from .test_browser import assert_charts_equal_summary, sign_in, wait_charts
+
+# the module's chromium and the after-each-test check (no foreign request, no error)
+browser = base.browser
+only_the_server = base.only_the_server
+
+pytestmark = base.pytestmark  # integration, chromium, the embedded stack
+
+SPEC = {
+    "systems": ["paper-stable", "paper-unstable"],
+    "sigma_w": [0.1, 1.0],
+    "N": [10, 20],
+    "gamma": [0.01, 0.1],
+    "estimators": ["ols", "svr"],
+    "reps": 2,
+    "seed": 5,
+}
+
+
+@pytest.fixture(scope="module")
+def two_jobs(stack) -> list[int]:
+    with stack.client() as api:
+        ids = [submit(api, {**SPEC, "seed": s}, name=f"sweep seed {s}")["id"] for s in (5, 6)]
+        for i in ids:
+            stack.wait_job(api, i)
+    return ids
+
+
+def grid_values(page, field: str) -> list[str]:
+    return page.eval_on_selector_all(
+        f"#results-grid td[data-field='{field}']", "tds => tds.map(td => td.dataset.value)"
+    )
+
+
+def test_results_filter_and_sort(browser, stack, two_jobs):
+    job_id = two_jobs[0]
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.click("nav a[href='/results']")
+    page.select_option("#results-job", str(job_id))
+    page.click("#results-job-form button[type=submit]")
+    page.wait_for_url(re.compile(rf"/results\?job={job_id}$"))
+    with stack.client() as api:
+        everything = api.get(f"/jobs/{job_id}/results", params={"limit": 1}).json()["total"]
+        want = api.get(
+            f"/jobs/{job_id}/results",
+            params={"system": "paper-unstable", "N": 20, "sort": "-rmse_A", "limit": 50},
+        ).json()
+    assert page.get_attribute("#results-grid", "data-total") == str(everything)
+    page.evaluate("window.notReloaded = true")
+    page.select_option("select[name=system]", "paper-unstable")  # htmx replaces the grid
+    page.wait_for_selector(f"#results-grid[data-total='{everything // 2}']")
+    page.select_option("select[name=N]", "20")
+    page.wait_for_selector(f"#results-grid[data-total='{want['total']}']")
+    assert set(grid_values(page, "system")) == {"paper-unstable"}
+    assert set(grid_values(page, "N")) == {"20"}
+    page.click("th a[data-sort-field='rmse_A']")  # ascending, then descending
+    page.wait_for_selector("#results-grid[data-sort='rmse_A']")
+    page.click("th a[data-sort-field='rmse_A']")
+    page.wait_for_selector("#results-grid[data-sort='-rmse_A']")
+    got = [float(v) for v in grid_values(page, "rmse_A")]
+    assert got == [r["rmse_A"] for r in want["items"]]
+    assert got == sorted(got, reverse=True)
+    assert page.input_value("#results-sort") == "-rmse_A"  # the filters keep the sort
+    # a range of a numeric field, as the API's rmse_A_lt
+    cut = got[len(got) // 2]
+    page.select_option(".range-field", "rmse_A")
+    page.fill(".range-max", repr(cut))
+    page.click("#results-filters button[type=submit]")
+    n_below = sum(v < cut for v in got)
+    page.wait_for_selector(f"#results-grid[data-total='{n_below}']")
+    below = [float(v) for v in grid_values(page, "rmse_A")]
+    assert below == sorted((v for v in got if v < cut), reverse=True)
+    assert page.evaluate("window.notReloaded") is True
+
+
+def test_compare_two_jobs_plots_the_api_compare(browser, stack, two_jobs):
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.click("nav a[href='/compare']")
+    page.select_option("#compare-jobs", [str(i) for i in two_jobs])
+    page.select_option("#compare-metric", "rmse_B")
+    page.click("#compare-form button[type=submit]")
+    page.wait_for_selector("#compare-card[data-ready=yes]")
+    plotted = page.evaluate(
+        """() => window.svrobsCompare.chart.data.datasets.map(d => ({
+          label: d.label, points: d.data.map(p => [p.x, p.y])}))"""
+    )
+    with stack.client() as api:
+        cmp = api.get(
+            "/compare",
+            params={
+                "jobs": ",".join(map(str, two_jobs)),
+                "metric": "rmse_B",
+                "by": "N,estimator,gamma",
+            },
+        ).json()
+    want: dict[str, list] = {}
+    for r in cmp["rows"]:
+        label = f"job {r['job_id']} · estimator={r['estimator']} · gamma={r['gamma'] or '–'}"
+        want.setdefault(label, []).append([r["N"], r["mean"]])
+    assert {p["label"]: sorted(p["points"]) for p in plotted} == {
+        k: sorted(v) for k, v in want.items()
+    }
+    assert len(plotted) == 2 * 3  # two jobs x (ols, svr 0.01, svr 0.1)
+    assert page.locator("#compare-table tbody tr").count() == len(cmp["rows"])
+
+
+def test_create_a_schedule_from_a_job(browser, stack, two_jobs):
+    job_id = two_jobs[1]
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.goto(f"/jobs/{job_id}")
+    page.click("#schedule-link")
+    page.fill("input[name=name]", "nightly from the browser")
+    page.fill("input[name=cron]", "30 1 * * *")
+    page.check("input[name=seed_policy][value=due-time]")
+    page.click("#schedule-form button[type=submit]")
+    page.wait_for_url(re.compile(r"/schedules/\d+$"))
+    sid = int(page.url.rsplit("/", 1)[1])
+    assert page.inner_text("#schedule-seed-policy").startswith("due-time")
+    assert page.inner_text("#schedule-enabled") == "yes"
+    page.click("#schedule-toggle")
+    page.wait_for_selector("#schedule-enabled:text('no')")
+    with stack.client() as api:
+        s = api.get(f"/schedules/{sid}").json()
+        job = api.get(f"/jobs/{job_id}").json()
+    assert s["spec_template"] == job["spec"] and s["seed_policy"] == "due-time"
+    assert s["cron"] == "30 1 * * *" and s["enabled"] is False
+    page.click("nav a[href='/schedules']")
+    assert page.locator(f"tr[data-schedule='{sid}']").count() == 1
+
+
+def test_share_link_opens_without_cookies_and_404s_once_revoked(browser, stack, two_jobs):
+    job_id = two_jobs[0]
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.goto(f"/jobs/{job_id}")
+    page.click("#share-link")
+    page.click("#share-form button[type=submit]")
+    url = page.input_value("#new-share-url")
+    assert url.startswith(stack.base_url + "/s/") and stack.key not in url
+
+    guest = browser.page(stack.base_url)  # a fresh context: no cookie, no key
+    assert guest.context.cookies() == []
+    response = guest.goto(url)
+    assert response.status == 200 and f"Job {job_id}" in guest.inner_text("h1")
+    with stack.client() as api:
+        summary = api.get(f"/jobs/{job_id}/summary").json()
+    assert_charts_equal_summary(wait_charts(guest, 1), summary, "N", "rmse_A")
+    report = guest.request.get(guest.get_attribute("#shared-report", "href"))
+    assert report.status == 200 and "Table 2" in report.text()
+    assert guest.goto(f"/jobs/{job_id}").url.startswith(stack.base_url + "/login")
+
+    page.goto(f"/jobs/{job_id}/share")  # (not a reload: that would post the form again)
+    assert page.locator("#share-links button.danger").count() == 1
+    page.click("#share-links button.danger")
+    page.wait_for_selector("#share-links td:text('revoked')")
+    assert guest.goto(url).status == 404
+    assert guest.request.get(url + "/chart-data").status == 404
+
+
+def test_api_docs_load_nothing_from_another_host(browser, stack):
+    page = browser.page(stack.base_url)
+    page.goto("/docs")
+    page.wait_for_selector(".swagger-ui .info .title")
+    assert page.locator("button.authorize").count() == 1  # the declared bearer scheme
+    page.click("button.authorize")
+    page.wait_for_selector("input[aria-label='auth-bearer-value'], .auth-container input")
+    page.goto("/redoc")
+    page.wait_for_selector("redoc .api-info, [role=navigation], h1")
+    assert "svrobs" in page.inner_text("body")

@@ -1,0 +1,173 @@
+"""The results, compare, schedules and share pages through the app (TestClient): the
+grid's filters and sort equal the API's, compare's table is the API's compare, a
+schedule made from a job's spec, and share links (no key needed; expired, revoked or
+another team's is a 404; token stored hashed)."""
+
+from __future__ import annotations
+
+import html
+import json
+import re
+from datetime import UTC, datetime, timedelta
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import select
+
+from service.db import schedules
+from service.db.models import Schedule, ShareLink, utcnow
+from service.db.shares import token_hash
+from tests.service.svc_fakes import run_job_units
+from tests.service.svc_helpers import SMALL_SPEC
+
+from .helpers import csrf_of, sign_in
+
+API = "/api/v1"
+CELL = re.compile(r'<td class="num" data-field="rmse_A" data-value="([^"]*)">')
+ID_CELL = re.compile(r'data-field="(\w+)" data-value="([^"]*)"')
+
+
+@pytest.fixture
+def web(build_client):
+    return build_client(SECRET_KEY="pages-secret-0123456789")[0]
+
+
+@pytest.fixture
+def done(web, session, make_account):
+    acc = make_account()
+    ids = []
+    for seed in (7, 8):
+        r = web.post(f"{API}/jobs", json={**SMALL_SPEC, "seed": seed}, headers=acc.headers)
+        ids.append(r.json()["id"])
+        run_job_units(session, ids[-1])
+    sign_in(web, acc.key)
+    return acc, ids
+
+
+def _grid_rows(text: str) -> list[dict]:
+    rows = []
+    for tr in re.findall(r"<tr>(<td.*?)</tr>", text, re.S):
+        rows.append(dict(ID_CELL.findall(tr)))
+    return rows
+
+
+def test_results_grid_filters_and_sorts_like_the_api(web, done):
+    acc, (jid, _) = done
+    q = "system=paper-stable&N=40&rf=rmse_A&rmin=0&rmax=1e9&sort=-rmse_A"
+    page = web.get(f"/results?job={jid}&{q}")
+    assert page.status_code == 200, page.text
+    api = web.get(
+        f"{API}/jobs/{jid}/results?system=paper-stable&N=40&rmse_A_gte=0&rmse_A_lt=1e9"
+        "&sort=-rmse_A&limit=50",
+        headers=acc.headers,
+    ).json()
+    got = _grid_rows(page.text)
+    assert len(got) == min(50, api["total"]) > 0
+    assert [float(r["rmse_A"]) for r in got] == [r["rmse_A"] for r in api["items"][: len(got)]]
+    assert {r["system"] for r in got} == {"paper-stable"} and {r["N"] for r in got} == {"40"}
+    partial = web.get(f"/results/rows?job={jid}&{q}")  # the htmx partial: same grid
+    assert _grid_rows(partial.text) == got and "<html" not in partial.text
+    bad = web.get(f"/results/rows?job={jid}&rf=rmse_A&rmax=abc")
+    assert "rmse_A_lt: must be a number" in bad.text
+
+
+def test_compare_page_table_is_the_api_compare(web, done):
+    acc, ids = done
+    page = web.get(f"/compare?jobs={ids[0]}&jobs={ids[1]}&metric=rmse_A&x=N")
+    assert page.status_code == 200, page.text
+    api = web.get(
+        f"{API}/compare?jobs={ids[0]},{ids[1]}&metric=rmse_A&by=N,estimator,gamma",
+        headers=acc.headers,
+    ).json()
+    embedded = json.loads(html.unescape(re.search(r'data-compare="([^"]+)"', page.text).group(1)))
+    assert embedded["rows"] == api["rows"] and embedded["x"] == "N"
+    assert page.text.count('<tr><td><a href="/jobs/') == len(api["rows"])
+
+
+def test_schedule_from_a_job(web, done, session):
+    acc, (jid, _) = done
+    form = web.get(f"/schedules/new?job={jid}")
+    token = csrf_of(form.text)
+    data = {"csrf_token": token, "job": jid, "name": "nightly", "cron": "0 3 * * *"}
+    bad = web.post("/schedules/new", data={**data, "cron": "every night"})
+    assert bad.status_code == 422 and "cron:" in bad.text
+    no_csrf = {k: v for k, v in data.items() if k != "csrf_token"}
+    assert web.post("/schedules/new", data=no_csrf).status_code == 403
+    assert web.get(f"{API}/schedules", headers=acc.headers).json() == []
+    made = web.post(
+        "/schedules/new", data={**data, "seed_policy": "due-time"}, follow_redirects=False
+    )
+    assert made.status_code == 303, made.text
+    (s,) = web.get(f"{API}/schedules", headers=acc.headers).json()
+    job = web.get(f"{API}/jobs/{jid}", headers=acc.headers).json()
+    assert s["spec_template"] == job["spec"] and s["seed_policy"] == "due-time"
+    page = web.get(made.headers["location"])
+    assert "due-time" in page.text and "No runs yet" in page.text
+    row = session.get(Schedule, s["id"])
+    row.created_at = datetime(2024, 1, 1, tzinfo=UTC)
+    session.commit()
+    (run_job,) = schedules.create_due_schedule_jobs(session, datetime(2024, 6, 1, 4, tzinfo=UTC))
+    session.commit()
+    page = web.get(made.headers["location"])
+    assert f'<a href="/jobs/{run_job.id}">job {run_job.id}</a>' in page.text
+    assert run_job.spec["seed"] != job["spec"]["seed"]  # due-time: a fresh seed
+    web.post(f"/schedules/{s['id']}/enabled", data={"csrf_token": token, "enabled": "no"})
+    assert web.get(f"{API}/schedules/{s['id']}", headers=acc.headers).json()["enabled"] is False
+
+
+def test_share_link_lifecycle(web, done, session, make_account):
+    acc, (jid, other_job) = done
+    page = web.get(f"/jobs/{jid}/share")
+    token = csrf_of(page.text)
+    made = web.post(f"/jobs/{jid}/share", data={"csrf_token": token, "days": "7"})
+    assert made.status_code == 201
+    url = re.search(r'id="new-share-url" value="([^"]+)"', made.text).group(1)
+    path = url.split("testserver", 1)[1]
+    secret = path.rsplit("/", 1)[1]
+    rows = session.scalars(select(ShareLink).where(ShareLink.job_id == jid)).all()
+    assert [r.token_hash for r in rows] == [token_hash(secret)]  # stored hashed only
+    assert secret not in json.dumps([r.token_hash for r in rows])
+    anon = TestClient(web.app)  # no cookie, no key
+    opened = anon.get(path)
+    assert opened.status_code == 200 and f"Job {jid}" in opened.text
+    chart = anon.get(f"{path}/chart-data?metric=rmse_A&x=N").json()
+    mine = web.get(f"/jobs/{jid}/chart-data?metric=rmse_A&x=N").json()
+    assert chart == mine
+    assert anon.get(f"{path}/report").status_code == 200
+    signed_out = anon.get(f"/jobs/{jid}", follow_redirects=False)  # the link opens nothing else
+    assert signed_out.status_code == 303 and signed_out.headers["location"].startswith("/login")
+    assert anon.get("/s/" + "x" * 43).status_code == 404
+    # another team cannot revoke it; the owner can, and then it is a 404
+    other = make_account()
+    stranger = TestClient(web.app)
+    sign_in(stranger, other.key)
+    stoken = csrf_of(stranger.get("/jobs").text)
+    assert (
+        stranger.post(f"/shares/{rows[0].id}/revoke", data={"csrf_token": stoken}).status_code
+        == 404
+    )
+    for page_path in (
+        f"/jobs/{jid}/share",
+        f"/results?job={jid}",
+        f"/results/rows?job={jid}",
+        f"/compare?jobs={jid}&metric=rmse_A",
+        f"/schedules/new?job={jid}",
+    ):
+        assert stranger.get(page_path).status_code == 404, page_path  # not this team's
+    assert web.post(f"/shares/{rows[0].id}/revoke", data={}).status_code == 403  # no CSRF
+    assert anon.get(path).status_code == 200
+    web.post(f"/shares/{rows[0].id}/revoke", data={"csrf_token": token})
+    for p in (path, f"{path}/chart-data", f"{path}/report"):
+        assert anon.get(p).status_code == 404, p
+    # an expired link is a 404 too
+    r = web.post(f"{API}/jobs/{jid}/shares", json={"days": 1}, headers=acc.headers)
+    assert r.status_code == 201, r.text
+    late = r.json()["url"].split("testserver", 1)[1]
+    assert anon.get(late).status_code == 200
+    link = session.get(ShareLink, r.json()["id"])
+    link.expires_at = utcnow() - timedelta(seconds=1)
+    session.commit()
+    assert anon.get(late).status_code == 404
+    listed = web.get(f"{API}/jobs/{jid}/shares", headers=acc.headers).json()
+    assert [s["live"] for s in listed] == [False, False] and all(s["url"] is None for s in listed)
+    assert web.delete(f"{API}/shares/{listed[0]['id']}", headers=other.headers).status_code == 404
