@@ -3,6 +3,10 @@
 ``svrobs run-local SPEC.json --out DIR`` runs the core in process and writes
 ``DIR/records.jsonl`` (one section 10 record per line, null never NaN) and
 ``DIR/summary.json`` (mean/std/count per group), with a progress bar on stderr.
+Before anything runs, the cost model (:func:`svrobs_core.workload.admit`)
+refuses a spec over ``--max-cpu-seconds`` or whose smallest work unit is over
+``--max-memory-mb``, and plans the units under that memory cap; the records
+file appears only once every unit has run.
 ``svrobs reproduce`` runs the paper's Section 6 (:mod:`service.reports.reproduce`).
 """
 
@@ -26,30 +30,50 @@ def load_spec_file(path: Path) -> dict:
     return json.loads(text)
 
 
-def run_local(spec_obj: dict, out: Path, *, quiet: bool = False) -> dict:
-    """Run a spec in process; returns ``{"records": n, "out": str}``."""
+DEFAULT_MAX_CPU_SECONDS = 24 * 3600.0
+DEFAULT_MAX_MEMORY_MB = 4096
+
+
+def run_local(
+    spec_obj: dict,
+    out: Path,
+    *,
+    quiet: bool = False,
+    max_cpu_seconds: float | None = DEFAULT_MAX_CPU_SECONDS,
+    max_memory_mb: float | None = DEFAULT_MAX_MEMORY_MB,
+) -> dict:
+    """Run a spec in process; returns ``{"records": n, "out": str}``.
+
+    Raises SpecError (a WorkloadError for the limits) before writing anything."""
     from rich.console import Console
 
     from service.progress import progress_bar
-    from svrobs_core import parse_spec, plan_units, summarize
+    from svrobs_core import parse_spec, summarize
     from svrobs_core.runner import run_unit_result
+    from svrobs_core.workload import admit
 
     spec = parse_spec(spec_obj)
-    units = plan_units(spec)
+    cap = None if max_memory_mb is None else int(max_memory_mb * 2**20)
+    units, _ = admit(spec, max_cpu_seconds=max_cpu_seconds, max_unit_bytes=cap)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     records: list[dict] = []
     console = Console(stderr=True)
-    with progress_bar(console, quiet=quiet) as bar:
-        task = bar.add_task("work units", total=len(units))
-        with open(out / "records.jsonl", "w") as fh:
-            for unit in units:
-                result = run_unit_result(spec, unit)
-                lines = result.json_lines()  # = json.dumps(record) per record, built per field
-                if lines:
-                    fh.write("\n".join(lines) + "\n")
-                records += result.records()
-                bar.advance(task)
+    partial = out / "records.jsonl.partial"
+    try:
+        with progress_bar(console, quiet=quiet) as bar:
+            task = bar.add_task("work units", total=len(units))
+            with open(partial, "w") as fh:
+                for unit in units:
+                    result = run_unit_result(spec, unit)
+                    lines = result.json_lines()  # = json.dumps(record) per record, per field
+                    if lines:
+                        fh.write("\n".join(lines) + "\n")
+                    records += result.records()
+                    bar.advance(task)
+        partial.replace(out / "records.jsonl")
+    finally:
+        partial.unlink(missing_ok=True)  # a failed or interrupted run leaves no records file
     summary = {"spec": spec.to_dict(), "groups": summarize(records)}
     (out / "summary.json").write_text(json.dumps(summary, indent=1, allow_nan=False))
     return {"records": len(records), "out": str(out)}
@@ -59,6 +83,12 @@ def run_local_command(
     spec_path: Path = typer.Argument(..., help="section 10 spec (JSON)"),
     out: Path = typer.Option(Path("out"), "--out", help="output folder"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+    max_cpu_seconds: float = typer.Option(
+        DEFAULT_MAX_CPU_SECONDS, "--max-cpu-seconds", help="refuse a spec estimated above this"
+    ),
+    max_memory_mb: float = typer.Option(
+        DEFAULT_MAX_MEMORY_MB, "--max-memory-mb", help="peak memory of one work unit"
+    ),
 ) -> None:
     """Run a spec in process: DIR/records.jsonl and DIR/summary.json."""
     from svrobs_core import SpecError
@@ -70,7 +100,13 @@ def run_local_command(
     except ValueError as exc:
         raise CliError(f"{spec_path}: not valid JSON ({exc})") from None
     try:
-        res = run_local(spec_obj, out, quiet=quiet)
+        res = run_local(
+            spec_obj,
+            out,
+            quiet=quiet,
+            max_cpu_seconds=max_cpu_seconds,
+            max_memory_mb=max_memory_mb,
+        )
     except SpecError as exc:
         raise CliError(f"invalid spec: {exc.field}: {exc.message}") from None
     typer.echo(f"{res['records']} records -> {res['out']}/records.jsonl, summary.json")

@@ -21,6 +21,7 @@ Each takes either the paper's scalar radius ``r_A`` (every entry of A within
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -108,7 +109,8 @@ def project_l1_ball(V, radius) -> np.ndarray:
     return np.where(inside[..., None], V, W)
 
 
-def _is_orthogonal(C) -> bool:
+def is_orthogonal(C) -> bool:
+    """True when C is square with C^T C = I (to 1e-12): the closed-form design applies."""
     C = np.asarray(C, dtype=float)
     if C.shape[-1] != C.shape[-2]:
         return False
@@ -162,7 +164,7 @@ def design_gain(
         & np.isfinite(rows).all(axis=-1)
     )
 
-    orth = _is_orthogonal(C)
+    orth = is_orthogonal(C)
     if method == "auto":
         method = "closed_form" if orth else "cvxpy"
     if method == "closed_form":
@@ -217,26 +219,34 @@ class _CvxpyDesign:
         else:
             self.min_g = cp.Problem(cp.Minimize(self.t), [rows <= self.t])
 
+    def _solve(self, problem) -> str:
+        """The problem's status, or "solver_error" when Clarabel fails outright."""
+        try:
+            with warnings.catch_warnings():  # "Solution may be inaccurate": see the status
+                warnings.filterwarnings("ignore", message="Solution may be inaccurate")
+                problem.solve(solver=self.cp.CLARABEL)
+        except (self.cp.error.SolverError, ValueError, ArithmeticError):
+            return "solver_error"
+        return problem.status
+
     def solve(self, Ct, C, K_hat, rho):
         if self.per_row:
             return self._solve_rows(Ct, C, K_hat, np.asarray(rho, dtype=float))
         cp = self.cp
         self.Ct.value, self.C.value, self.K.value = Ct, C, K_hat
         self.rho.value = float(rho)
-        self.main.solve(solver=cp.CLARABEL)
-        if self.main.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        status = self._solve(self.main)
+        if status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
             return self.L.value, True
         nan = np.full(self.L.shape, np.nan)
-        if self.main.status not in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
+        if status not in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
             return nan, False  # solver failure: NaN gain, not certified
         # fallback: min g(L); then, among the minimisers, the L closest to K_hat
-        self.min_g.solve(solver=cp.CLARABEL)
-        if self.min_g.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        if self._solve(self.min_g) not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
             return nan, False
         L1 = self.L.value
         self.rho.value = float(np.abs(Ct - L1 @ C).sum(axis=-1).max())
-        self.main.solve(solver=cp.CLARABEL)
-        if self.main.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        if self._solve(self.main) in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
             L2 = self.L.value
             if np.abs(Ct - L2 @ C).sum(axis=-1).max() <= self.rho.value + 1e-9:
                 return L2, False

@@ -29,6 +29,13 @@ from .spec import STAGES, ExperimentSpec
 from .systems import SystemSpec
 from .uncertainty_stage import sound_bounds
 
+# Above this cond(Z Z^T + g I) the solve is not trusted to ~1e-9 relative
+# (tests/core/test_accuracy.py: 6e-12 at 1e18): the cell keeps its estimate
+# but its certificates are null, with a note (issue 10: a certificate rests on
+# a successful computation).
+ESTIMATE_COND_LIMIT = 1e20
+CERTIFICATES = ("stable_certified", "thm1_holds_A", "thm1_holds_B", "certified")
+
 
 @dataclass(kw_only=True)
 class _Cells:
@@ -75,7 +82,24 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
         keep_data=need_data,
     )
     N0 = (spec.T0 - 1) * N if spec.data == "all" else N
-    theta = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0)
+
+    def rows_data(rows):  # the regression data of these reps, for the ill-conditioned SVR cells
+        if Z is not None:
+            return Z[rows], F[rows]
+        _, _, Zr, Fr = gram_data(
+            system,
+            sigma_w,
+            N,
+            spec.T0,
+            seed=spec.seed,
+            keys=[keys[i] for i in rows],
+            data=spec.data,
+            x0_std=spec.x0_std,
+            keep_data=True,
+        )
+        return Zr, Fr
+
+    theta, cond = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0, data=rows_data)
     A_hat, B_hat = theta[..., :n], theta[..., n:]
     R, E = theta.shape[:2]
     out: dict[str, np.ndarray] = {
@@ -85,6 +109,14 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
         "rmse_B": _rmse(B_hat, system.B),
     }
     notes = Notes((R, E))
+    finite = np.isfinite(theta).all(axis=(-2, -1))
+    notes.add(~finite, "estimate: not finite (the simulated data leave the double range)")
+    unreliable = finite & ~(cond <= ESTIMATE_COND_LIMIT)
+    notes.add(
+        unreliable,
+        f"estimate: data too ill-conditioned (cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g}):"
+        " certificates withheld",
+    )
     skipped = [st for st in STAGES if not spec.has(st)]
     if skipped:
         notes.add(True, "stages not run: " + ", ".join(skipped))
@@ -100,27 +132,42 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
         notes=notes,
     )
     state = _run_stages(cells, N=N, N0=N0, prev_gain=prev_gain, data=(G, Z, F))
+    if unreliable.any():
+        for f in CERTIFICATES:
+            if f in out:
+                withheld = np.array(out[f], dtype=object)
+                withheld[unreliable] = None
+                out[f] = withheld
     return out, notes, N0, state
 
 
-def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0) -> np.ndarray:
-    """Theta for every (rep, estimator/gamma): (R, E, n, d); SPEC section 2.
+def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data):
+    """Theta for every (rep, estimator/gamma): (R, E, n, d), and cond(Z Z^T + g I)
+    of each cell (R, E); SPEC section 2.
 
-    SVR needs only the sufficient statistics G = Z Z^T, P = F Z^T; OLS (and
-    shrunk OLS) use the data themselves (iterative refinement, QR fallback).
+    SVR needs only the sufficient statistics G = Z Z^T, P = F Z^T, and the
+    data of its ill-conditioned cells (``data(rows)``); OLS (and shrunk OLS)
+    use the data themselves (iterative refinement, QR fallback).
     """
-    parts = []
-    theta_ols = None
+    parts, conds = [], []
+    ols = None
+    G_n = len(spec.gamma)
     for e in spec.estimators:
+        if e in ("ols", "shrunk-ols") and ols is None:
+            ols = _est.fit_ols(Z, F, return_cond=True)
         if e == "ols":
-            theta_ols = _est.fit_ols(Z, F) if theta_ols is None else theta_ols
-            parts.append(theta_ols[:, None])
+            parts.append(ols[0][:, None])
+            conds.append(ols[1][:, None])
         elif e == "svr":
-            parts.append(_est.svr_from_gram(G, P, N0, spec.gamma, loss_scale=spec.loss_scale))
+            theta, cond = _est.svr_from_gram(
+                G, P, N0, spec.gamma, loss_scale=spec.loss_scale, data=data, return_cond=True
+            )
+            parts.append(theta)
+            conds.append(cond)
         else:  # shrunk-ols
-            theta_ols = _est.fit_ols(Z, F) if theta_ols is None else theta_ols
-            parts.append(_est.shrunk_ols(theta_ols, spec.gamma))
-    return np.concatenate(parts, axis=1)
+            parts.append(_est.shrunk_ols(ols[0], spec.gamma))
+            conds.append(np.repeat(ols[1][:, None], G_n, axis=1))
+    return np.concatenate(parts, axis=1), np.concatenate(conds, axis=1)
 
 
 def _rmse(X, X_true) -> np.ndarray:
@@ -133,7 +180,7 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain, data):
     The gain is designed on the chosen method's box: the paper's (centre
     (1+gamma) A_tilde, scalar radius r_A) or, for the sound methods of SPEC
     section 3.1, centre A_hat and the radius matrix R_A."""
-    spec, system, out, notes = c.spec, c.system, c.out, c.notes
+    spec, out = c.spec, c.out
     if not spec.has("bounds"):
         return None
     if spec.bounds_method == "paper":
@@ -143,8 +190,15 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain, data):
         sound = sound_bounds(c, G=G, Z=Z, F=F, N=N, N0=N0)
         out.update(sound.fields)
         b, gamma, radius = sound.result, np.zeros(len(c.axis.names)), sound.box.R_A
-    if not spec.has("gain"):
-        return None
+    state = _gain_stages(c, b, gamma, radius, prev_gain) if spec.has("gain") else None
+    if spec.has("sls"):
+        _sls_stage(c, b)
+    return state
+
+
+def _gain_stages(c: _Cells, b, gamma, radius, prev_gain):
+    """gain (with the reuse policy), cost, cost_bound; -> the gain state for ``reuse_gain``."""
+    spec, system, notes = c.spec, c.system, c.notes
     matrix = spec.bounds_method != "paper"
     designed, k_hat_reasons = design(c, gamma, radius, matrix=matrix)
     if k_hat_reasons is not None:
@@ -174,7 +228,7 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain, data):
 
 def _paper_bounds(c: _Cells, *, N, N0):
     """SPEC section 3's bounds -> (BoundsResult, gamma of the centre, r_A per estimator)."""
-    spec, system, out = c.spec, c.system, c.out
+    spec, system, out, notes = c.spec, c.system, c.out, c.notes
     gamma = c.axis.gamma_array
     rad = _bounds.radii(
         n=system.n,
@@ -189,6 +243,8 @@ def _paper_bounds(c: _Cells, *, N, N0):
         delta=spec.delta,
     )
     b = _bounds.evaluate_bounds(c.A_hat, c.B_hat, gamma, rad, A_true=system.A, B_true=system.B)
+    notes.add_reasons(rad.reason_A, None)
+    notes.add_reasons(rad.reason_B, None)
     shape = c.shape
     n, m = system.n, system.m
     out.update(
@@ -274,7 +330,10 @@ def _observer_stages(c: _Cells, b, designed):
     if k_reason is not None:
         notes.add(True, f"true system: {k_reason}")
     L = designed.L
-    out["L"], out["g_L"], out["certified"] = L, designed.g_L, designed.certified
+    defined = np.isfinite(designed.g_L)
+    notes.add(~defined, "certified: undefined (no finite gain L or radius r_A)")
+    out["L"], out["g_L"] = L, designed.g_L
+    out["certified"] = _bounds.nullable(designed.certified, defined)
     out["K"] = np.broadcast_to(K, (R, E) + K.shape)
     rho_F = spectral_radius(A_hat - L @ C)
     out["rho_true"] = spectral_radius(A - L @ C)
@@ -311,8 +370,6 @@ def _observer_stages(c: _Cells, b, designed):
         notes.add_reasons(t3.reason, "J_bound")
         out["J_bound"] = t3.J_b
         out["delta_J"] = t3.J_b - J
-    if spec.has("sls"):
-        _sls_stage(c, b, norms, K)
 
 
 def mc_note(limit: int) -> str:
@@ -376,11 +433,17 @@ def _cost_ratio(c: _Cells, J):
     c.out["cost_ratio"] = ratio
 
 
-def _sls_stage(c: _Cells, b, norms, K):
-    """J_opt by SLS per cell (cvxpy + Clarabel) and the paper's bound on it (SPEC 8)."""
+def _sls_stage(c: _Cells, b):
+    """J_opt by SLS per cell (cvxpy + Clarabel) and the paper's bound on it (SPEC 8).
+
+    Needs the estimate, the bounds' eps and the true system's K and norms
+    (:func:`truth`, computed here when the gain stage did not): not the gain."""
     from . import sls as _sls  # cvxpy: imported only when the sls stage runs
 
     spec, system, notes = c.spec, c.system, c.notes
+    K, _, norms, k_reason = truth(system, c.sigma_w, spec.horizon)
+    if k_reason is not None:
+        notes.add(True, f"true system: {k_reason}")
     R, E = c.shape
     su, sv = system.sigma_u, system.sigma_v
     eps1 = np.fmax(b.eps_A, b.eps_B)

@@ -87,9 +87,20 @@ class GramFactor:
 
 
 def gram_factor(G) -> GramFactor:
-    """Eigendecomposition of the Gram matrices G = Z Z^T (..., d, d), once per dataset."""
-    lam, U = np.linalg.eigh(np.asarray(G, dtype=float))
-    return GramFactor(lam=np.maximum(lam, 0.0), U=U)
+    """Eigendecomposition of the Gram matrices G = Z Z^T (..., d, d), once per dataset
+    (NaN for a non-finite G, e.g. data that left the double range)."""
+    G = np.asarray(G, dtype=float)
+    ok = np.isfinite(G).all(axis=(-2, -1))
+    lam, U = np.linalg.eigh(np.where(ok[..., None, None], G, np.eye(G.shape[-1])))
+    lam = np.where(ok[..., None], np.maximum(lam, 0.0), np.nan)
+    return GramFactor(lam=lam, U=np.where(ok[..., None, None], U, np.nan))
+
+
+def _spectral_norm(X) -> np.ndarray:
+    """||X||_2 over the last two axes; NaN where X has a non-finite entry."""
+    ok = np.isfinite(X).all(axis=(-2, -1))
+    norm = np.linalg.norm(np.where(ok[..., None, None], X, 0.0), ord=2, axis=(-2, -1))
+    return np.where(ok, norm, np.nan)
 
 
 def _objects(shape, mask, text) -> np.ndarray:
@@ -308,8 +319,8 @@ def bootstrap_box(
             theta_b[q, ei] = _refit(name, gamma, Z[:, ei], F[:, ei], loss_scale)
     dev = theta_b.reshape(R, Bn, E, n, d).transpose(0, 2, 1, 3, 4) - th[:, :, None]
     level = 1.0 - float(delta)
-    eps_A = np.quantile(np.linalg.norm(dev[..., :n], ord=2, axis=(-2, -1)), level, axis=-1)
-    eps_B = np.quantile(np.linalg.norm(dev[..., n:], ord=2, axis=(-2, -1)), level, axis=-1)
+    eps_A = np.quantile(_spectral_norm(dev[..., :n]), level, axis=-1)
+    eps_B = np.quantile(_spectral_norm(dev[..., n:]), level, axis=-1)
     a = np.abs(dev)
     if joint:
         scale = np.sqrt(np.mean(dev**2, axis=2))  # (R, E, n, d)

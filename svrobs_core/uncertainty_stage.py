@@ -14,7 +14,7 @@ import numpy as np
 
 from . import estimators as _est
 from . import uncertainty as _unc
-from .bounds import BoundsResult
+from .bounds import BoundsResult, nullable
 
 PAPER_ONLY_NOTE = "bounds: H_A, H_B, thm1_holds_A/B belong to the paper's method (null here)"
 
@@ -96,8 +96,8 @@ def sound_bounds(c, *, G, Z, F, N: int, N0: int) -> SoundBounds:
     c.notes.add_reasons(box.notes, "bounds")
     c.notes.add(True, PAPER_ONLY_NOTE)
     rho = _unc.rho_upper_bound(c.A_hat, box.R_A)
-    with np.errstate(invalid="ignore"):
-        certified = rho < 1.0
+    with np.errstate(invalid="ignore"):  # null, not false, where rho or eps is undefined
+        certified = nullable(rho < 1.0, np.isfinite(rho) & np.isfinite(box.eps_A))
     cov_A = _coverage(system.A, c.A_hat, box.R_A)
     cov_B = _coverage(system.B, c.B_hat, box.R_B)
     fields = {
