@@ -6,10 +6,8 @@ import csv
 import io
 import json
 import math
-from collections import defaultdict
 from typing import Annotated, Literal
 
-import numpy as np
 from fastapi import APIRouter, Query
 from fastapi.responses import Response, StreamingResponse
 from pydantic import Field
@@ -19,6 +17,7 @@ from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep
 from service.api.errors import ERRORS, FieldHTTPException
 from service.api.record_json import ORDER, RESULT_COLUMNS, encode_lines, encode_page, record_columns
 from service.api.schemas import CompareOut, ResultPage, SummaryOut
+from service.db.compare import COMPARE_BY, NeedsCellRows, compare_page
 from service.db.models import Result, Summary
 from service.db.results_store import row_to_record
 from service.db.units import summarize_job
@@ -30,7 +29,7 @@ router = APIRouter(tags=["results"])
 RESULT_ROWS = select(*RESULT_COLUMNS)  # JSON columns decoded by SQLAlchemy (CSV)
 RECORDS = select(*record_columns())  # JSON columns as text (record_json)
 COUNT = select(func.count()).select_from(Result.__table__)
-COMPARE_BY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep")
+COMPARE_MAX_ROWS = 10_000
 STREAM_CHUNK = 1000
 
 FloatList = Annotated[list[float] | None, Query()]
@@ -220,9 +219,14 @@ def compare(
     by: Annotated[
         str, Query(description="comma-separated grid fields", max_length=200)
     ] = "N,estimator,gamma",
+    limit: Annotated[int, Query(ge=1, le=COMPARE_MAX_ROWS)] = 1000,
+    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
 ):
     """One metric across several jobs: mean, std (ddof 0) and count of the non-null
-    values per job and per combination of the `by` fields."""
+    values per job and per combination of the `by` fields, aggregated in the
+    database; one page of at most `limit` groups (at most 10,000; `total` counts
+    them all). Finished jobs are read from their stored summaries when `by` is
+    within system, sigma_w, N, estimator and gamma."""
     try:
         ids = [int(j) for j in _csv_list(jobs, "jobs")]
     except ValueError:
@@ -238,26 +242,17 @@ def compare(
     for b in by_fields:
         if b not in COMPARE_BY:
             raise FieldHTTPException(422, f"{b!r} is not one of {list(COMPARE_BY)}", "by")
-    for j in ids:
-        team_job(session, caller.team_id, j)
-    t = Result.__table__
-    cols = [t.c.job_id] + [t.c[b] for b in by_fields] + [t.c[metric].label("__metric")]
-    values: dict[tuple, list[float]] = defaultdict(list)
-    seen: set[tuple] = set()
-    for r in session.execute(select(*cols).where(t.c.job_id.in_(ids))):
-        key = tuple(r[:-1])
-        seen.add(key)
-        v = r[-1]
-        if v is not None and (not isinstance(v, float) or math.isfinite(v)):
-            values[key].append(float(v))
-    out = []
-    for key in sorted(seen, key=lambda k: tuple((v is None, v) for v in k[1:]) + (k[0],)):
-        vals = np.array(values.get(key, []), dtype=float)
-        row = {"job_id": key[0], **dict(zip(by_fields, key[1:]))}
-        row.update(
-            mean=float(vals.mean()) if vals.size else None,
-            std=float(vals.std()) if vals.size else None,
-            count=int(vals.size),
-        )
-        out.append(row)
-    return {"metric": metric, "by": by_fields, "jobs": ids, "rows": out}
+    found = [team_job(session, caller.team_id, j) for j in ids]
+    try:
+        page = compare_page(session, found, metric, by_fields, limit=limit, offset=offset)
+    except NeedsCellRows as exc:
+        raise FieldHTTPException(410, str(exc), "by") from None
+    return {
+        "metric": metric,
+        "by": by_fields,
+        "jobs": ids,
+        "rows": page.rows,
+        "total": page.total,
+        "limit": limit,
+        "offset": offset,
+    }
