@@ -1,4 +1,4 @@
-"""The tick: due schedules -> jobs, then the outbox relay.
+"""The tick: due schedules -> jobs, then the outbox relay, then retention.
 
 ``run_tick`` is what beat runs every TICK_SECONDS (in the beat process itself:
 see :mod:`worker.beat`); it is safe to run from any number of processes at
@@ -22,6 +22,7 @@ log = logging.getLogger(__name__)
 
 RELAY_BATCH = 500
 RELAY_MAX_PER_TICK = 20_000
+PRUNE_MAX_PER_TICK = 5
 
 
 def create_due_jobs(now: datetime | None = None) -> list[int]:
@@ -76,9 +77,33 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
     return sent
 
 
+def prune_expired(limit: int = PRUNE_MAX_PER_TICK, scope=None) -> list[int]:
+    """Retention: drop the cell rows of scheduled jobs past their team's retention
+    period (``service.db.retention``), after storing the report if it is not yet;
+    returns the pruned jobs. Read, then write: the report is built outside the
+    write transaction (on SQLite a writer blocks every other writer). ``scope``:
+    ``scope(write=...)`` -> a committing session context (default ``session_scope``)."""
+    from service.db import retention
+    from service.db.session import session_scope
+    from service.reports.stored import store_if_missing
+
+    scope = scope or session_scope
+    with scope(write=False) as s:
+        ids = retention.due_for_pruning(s, limit)
+    done = []
+    for job_id in ids:
+        with scope(write=False) as r, scope(write=True) as w:
+            store_if_missing(r, w, job_id)
+            n = retention.prune_job(w, job_id)
+        log.info("tick: retention dropped the %d cell rows of job %s", n, job_id)
+        done.append(job_id)
+    return done
+
+
 def run_tick(now: datetime | None = None, celery=None) -> dict:
-    """One tick. Each half is independent: a failing relay never stops schedules."""
-    out: dict = {"created": [], "relayed": 0, "errors": []}
+    """One tick. Each part is independent: a failing relay never stops schedules,
+    nor does retention."""
+    out: dict = {"created": [], "relayed": 0, "pruned": [], "errors": []}
     try:
         out["created"] = create_due_jobs(now)
     except Exception as exc:
@@ -89,4 +114,9 @@ def run_tick(now: datetime | None = None, celery=None) -> dict:
     except Exception as exc:  # noqa: BLE001
         log.warning("tick: relay failed (%s: %s); will retry next tick", type(exc).__name__, exc)
         out["errors"].append(f"relay: {type(exc).__name__}: {exc}")
+    try:
+        out["pruned"] = prune_expired()
+    except Exception as exc:  # noqa: BLE001
+        log.exception("tick: retention failed; will retry next tick")
+        out["errors"].append(f"retention: {type(exc).__name__}: {exc}")
     return out

@@ -117,6 +117,7 @@ class _JobBase(BaseModel):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    pruned_at: datetime | None  # retention dropped its cell rows (results: 410)
 
 
 class JobOut(_JobBase):

@@ -37,4 +37,5 @@ def job_out(job: Job, *, spec: bool = True) -> dict:
         "created_at": job.created_at,
         "started_at": job.started_at,
         "finished_at": job.finished_at,
+        "pruned_at": job.pruned_at,
     }

@@ -2,7 +2,7 @@
 
 A running job's report is built on each request (it changes); a finished job's
 is built at its first request (or beforehand, by the retention tick before it
-prunes the job's rows) and stored in ``job_reports``. Concurrent requests for
+prunes the job's rows: :func:`store_if_missing`) and stored in ``job_reports``. Concurrent requests for
 the same job wait for one build; at most ``BUILD_SLOTS`` builds run at once in
 a process, so memory stays bounded however many reports are asked for.
 """
@@ -76,8 +76,15 @@ def job_report(session: Session, job: Job, write_session: Callable[[], Session])
         return html
 
 
-def ensure_report(session: Session, job: Job) -> None:
-    """Build and store a finished job's report unless it is stored (retention, the tick)."""
-    if is_final(job) and stored_report(session, job.id) is None:
-        html, n = build_job_report(session, job)
-        store_report(session, job.id, html, n)
+def store_if_missing(read_session: Session, write_session: Session, job_id: int) -> bool:
+    """Build a finished job's report (reading with ``read_session``) and add it to
+    ``write_session`` unless one is stored; True when it built one."""
+    job = read_session.get(Job, job_id)
+    if job is None or not is_final(job) or stored_report(read_session, job_id) is not None:
+        return False
+    with BUILD_SLOTS:
+        html, n = build_job_report(read_session, job)
+    read_session.rollback()
+    if stored_report(write_session, job_id) is None:
+        store_report(write_session, job_id, html, n)
+    return True

@@ -14,11 +14,11 @@ from pydantic import Field
 from sqlalchemy import Select, func, select
 
 from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep, team_job
-from service.api.errors import ERRORS, FieldHTTPException
+from service.api.errors import ERRORS, FieldHTTPException, error_docs
 from service.api.record_json import ORDER, RESULT_COLUMNS, encode_lines, encode_page, record_columns
 from service.api.schemas import CompareOut, ResultPage, SummaryOut
 from service.db.compare import COMPARE_BY, NeedsCellRows, compare_page
-from service.db.models import Result, Summary
+from service.db.models import Job, Result, Summary
 from service.db.results_store import row_to_record
 from service.db.units import summarize_job
 from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
@@ -30,6 +30,7 @@ RESULT_ROWS = select(*RESULT_COLUMNS)  # JSON columns decoded by SQLAlchemy (CSV
 RECORDS = select(*record_columns())  # JSON columns as text (record_json)
 COUNT = select(func.count()).select_from(Result.__table__)
 COMPARE_MAX_ROWS = 10_000
+GONE = error_docs(410)  # a job pruned by retention
 STREAM_CHUNK = 1000
 
 FloatList = Annotated[list[float] | None, Query()]
@@ -69,6 +70,17 @@ def _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep) -> list:
     if rep:
         conds.append(t.c.rep.in_(rep))
     return conds
+
+
+def _not_pruned(job: Job) -> None:
+    """410 for a job whose cell rows retention dropped (what is left, and where)."""
+    if job.pruned_at is not None:
+        raise FieldHTTPException(
+            410,
+            f"job {job.id}'s cell rows were dropped on {job.pruned_at:%Y-%m-%d %H:%M} UTC by "
+            "the team's retention policy; its summary (GET /jobs/{id}/summary), compare by "
+            "system, sigma_w, N, estimator and gamma, and its report remain",
+        )
 
 
 def _csv_value(v):
@@ -115,6 +127,7 @@ def _stream(session_factory, query: Select, fmt: str):
     response_model=ResultPage,
     responses={
         **ERRORS,
+        **GONE,
         200: {
             "content": {"text/csv": {}, "application/x-ndjson": {}},
             "description": "a JSON page, or the whole selection as CSV / JSON lines",
@@ -140,7 +153,7 @@ def get_results(
     never NaN), filtered by any grid coordinate (repeat a parameter for several
     values). JSON is paginated (default limit 100); CSV and JSONL stream the whole
     selection (or `limit`/`offset` if given)."""
-    team_job(session, caller.team_id, job_id)
+    _not_pruned(team_job(session, caller.team_id, job_id))
     conds = _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep)
     if format == "json":
         lim = limit or 100
@@ -208,7 +221,7 @@ def _csv_list(value: str, name: str) -> list[str]:
     return items
 
 
-@router.get("/compare", response_model=CompareOut, responses=ERRORS)
+@router.get("/compare", response_model=CompareOut, responses={**ERRORS, **GONE})
 def compare(
     session: DB,
     caller: CurrentCaller,
