@@ -59,7 +59,7 @@ def bench_spec(cells: int) -> dict:
     return {
         "systems": ["paper-stable", "paper-unstable"],
         "sigma_w": [0.1, 1.0, 10.0],
-        "N": {"start": 10, "stop": 460, "step": 10},
+        "N": {"start": 10, "stop": 450, "step": 10},
         "reps": reps,
         "gamma": [0.005, 0.01, 0.05, 0.1],
         "estimators": ["ols", "svr"],

@@ -1,15 +1,17 @@
 """``GET /compare`` aggregated inside the database (issue 13, bounded reads).
 
 One metric of several jobs: count, mean and std (ddof 0) of its non-null values
-per job and per combination of the ``by`` fields, one page of groups at a time.
-Each source row carries ``(n, m, s)``: a result row is ``(1, x, 0)`` (``(0, NULL,
-0)`` when x is null), a stored summary row is its group's (count, mean, std).
-Pooling them is exact: ``mean = Σ n·m / Σ n`` and ``var = Σ n·(s² + (m −
-mean)²) / Σ n`` (a window function gives each row its group's mean: two passes,
-as numpy's ``std``). Aliases are prefixed ``w_``: SQLite names are case-blind,
-and ``n`` would be the column ``N``. Succeeded jobs are read from their summaries when ``by``
-is within the summary's group fields (a small fraction of the rows, and all
-that is left of a pruned job); otherwise from the results.
+per job and per combination of the ``by`` fields, one page of groups at a time
+(with the number of groups). Each source row carries ``(n, m, s)``: a result row
+is ``(1, x, 0)`` (``(0, NULL, 0)`` when x is null), a stored summary row its
+group's (count, mean, std). One pass pools them, shifted by a per-job constant
+``c`` (a value of the metric in that job) against cancellation: with
+``S1 = Σ n·(m − c)`` and ``S2 = Σ n·(s² + (m − c)²)`` (= Σ (x − c)² over the
+values), ``mean = c + S1/Σn`` and ``var = S2/Σn − (S1/Σn)²``. Succeeded jobs
+are read from their summaries when ``by`` is within the summary's group fields
+(a small fraction of the rows, and all that is left of a pruned job);
+otherwise from the results. Aliases are prefixed ``w_``: SQLite names are
+case-blind, and ``n`` would be the column ``N``.
 """
 
 from __future__ import annotations
@@ -17,14 +19,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from sqlalchemy import Float, case, cast, func, literal, select, union_all
+from sqlalchemy import Float, Integer, case, cast, func, literal, select, union_all
 from sqlalchemy.orm import Session
 
-from svrobs_core.records import GROUP_FIELDS, SUMMARY_FIELDS
+from svrobs_core.records import BOOL_FIELDS, GROUP_FIELDS, SUMMARY_FIELDS
 
 from .models import Job, Result, Summary
 
 COMPARE_BY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep")
+CELL_KEY = frozenset(GROUP_FIELDS + ("rep",))  # one group is one cell: no aggregation
+NULLABLE = frozenset({"gamma", "N0"})
 
 
 class NeedsCellRows(Exception):
@@ -45,31 +49,51 @@ class ComparePage:
     total: int
 
 
-def _from_results(job_ids: list[int], metric: str, by: list[str]):
+def _as_float(metric: str):
+    """A results column as a float (PostgreSQL casts a boolean only to an integer)."""
+    col = Result.__table__.c[metric]
+    return cast(cast(col, Integer) if metric in BOOL_FIELDS else col, Float)
+
+
+def _from_results(job_id: int, metric: str, by: list[str], shift: float):
     t = Result.__table__
-    x = cast(t.c[metric], Float)
+    x = _as_float(metric)
     return select(
         t.c.job_id.label("job_id"),
         *[t.c[b].label(b) for b in by],
         case((x.is_(None), 0), else_=1).label("w_n"),
-        x.label("w_m"),
+        (x - shift).label("w_d"),
         literal(0.0, Float).label("w_s"),
-    ).where(t.c.job_id.in_(job_ids))
+    ).where(t.c.job_id == job_id)
 
 
-def _from_summaries(job_ids: list[int], metric: str, by: list[str]):
+def _summary_stat(metric: str, name: str):
+    return Summary.__table__.c.stats[(metric, name)].as_float()
+
+
+def _from_summaries(job_id: int, metric: str, by: list[str], shift: float):
     t = Summary.__table__
-
-    def stat(name: str):
-        return t.c.stats[(metric, name)].as_float()
-
     return select(
         t.c.job_id.label("job_id"),
         *[t.c[b].label(b) for b in by],
-        func.coalesce(stat("count"), 0.0).label("w_n"),
-        stat("mean").label("w_m"),
-        func.coalesce(stat("std"), 0.0).label("w_s"),
-    ).where(t.c.job_id.in_(job_ids))
+        func.coalesce(_summary_stat(metric, "count"), 0.0).label("w_n"),
+        (_summary_stat(metric, "mean") - shift).label("w_d"),
+        func.coalesce(_summary_stat(metric, "std"), 0.0).label("w_s"),
+    ).where(t.c.job_id == job_id)
+
+
+def _shift(session: Session, job_id: int, metric: str) -> float:
+    """A value of the metric in the job (a stored group mean, else a cell's), or 0."""
+    v = None
+    if metric in SUMMARY_FIELDS:
+        mean = _summary_stat(metric, "mean")
+        v = session.scalar(select(mean).where(Summary.job_id == job_id, mean.is_not(None)).limit(1))
+    if v is None:
+        col = _as_float(metric)
+        v = session.scalar(
+            select(col).where(Result.__table__.c.job_id == job_id, col.is_not(None)).limit(1)
+        )
+    return float(v) if v is not None and math.isfinite(v) else 0.0
 
 
 def compare_page(
@@ -82,43 +106,75 @@ def compare_page(
     pruned = [j.id for j in jobs if j.pruned_at is not None]
     if pruned and not from_summaries:
         raise NeedsCellRows(pruned, by)
-    use_summary = [j.id for j in jobs if from_summaries and j.status == "succeeded"]
-    use_rows = [j.id for j in jobs if j.id not in use_summary]
+    order_of = lambda c: (c.is_(None), c) if c.name in NULLABLE else (c,)  # noqa: E731
+    if set(by) >= CELL_KEY:
+        return _cell_page(session, jobs, metric, by, order_of, limit=limit, offset=offset)
+    shift = {j.id: _shift(session, j.id, metric) for j in jobs}
     parts = []
-    if use_summary:
-        parts.append(_from_summaries(use_summary, metric, by))
-    if use_rows:
-        parts.append(_from_results(use_rows, metric, by))
+    for j in jobs:
+        source = _from_summaries if from_summaries and j.status == "succeeded" else _from_results
+        parts.append(source(j.id, metric, by, shift[j.id]))
     src = (parts[0] if len(parts) == 1 else union_all(*parts)).subquery("src")
     keys = [src.c.job_id] + [src.c[b] for b in by]
-    sum_n = func.sum(src.c.w_n).over(partition_by=keys)
-    group_mean = func.sum(src.c.w_n * src.c.w_m).over(partition_by=keys) / func.nullif(sum_n, 0)
-    rows = select(*keys, src.c.w_n, src.c.w_m, src.c.w_s, group_mean.label("w_gm")).subquery("rows")
-    gkeys = [rows.c.job_id] + [rows.c[b] for b in by]
-    dev = rows.c.w_m - rows.c.w_gm
-    total_n = func.sum(rows.c.w_n)
     grouped = select(
-        *gkeys,
-        total_n.label("w_count"),
-        func.max(rows.c.w_gm).label("w_mean"),
-        (func.sum(rows.c.w_n * (rows.c.w_s * rows.c.w_s + func.coalesce(dev * dev, 0.0)))).label(
-            "w_ss"
-        ),
-    ).group_by(*gkeys)
-    order = [c for b in by for c in (rows.c[b].is_(None), rows.c[b])] + [rows.c.job_id]
+        *keys,
+        func.sum(src.c.w_n).label("w_count"),
+        func.sum(src.c.w_n * src.c.w_d).label("w_s1"),
+        func.sum(src.c.w_n * (src.c.w_s * src.c.w_s + src.c.w_d * src.c.w_d)).label("w_s2"),
+        func.count().over().label("w_total"),
+    ).group_by(*keys)
+    order = [c for b in by for c in order_of(src.c[b])] + [src.c.job_id]
     page = session.execute(grouped.order_by(*order).limit(limit).offset(offset)).all()
-    total = session.scalar(select(func.count()).select_from(grouped.subquery()))
+    if page:
+        total = page[0]._mapping["w_total"]
+    else:  # past the end: count the groups
+        total = session.scalar(select(func.count()).select_from(grouped.subquery()))
     out = []
     for row in page:
         r = row._mapping
         count = int(r["w_count"] or 0)
+        mean = std = None
+        if count:
+            d = float(r["w_s1"]) / count
+            mean = shift[r["job_id"]] + d
+            std = math.sqrt(max(float(r["w_s2"]) / count - d * d, 0.0))
         out.append(
             {
                 "job_id": r["job_id"],
                 **{b: r[b] for b in by},
-                "mean": float(r["w_mean"]) if count else None,
-                "std": math.sqrt(max(float(r["w_ss"]), 0.0) / count) if count else None,
+                "mean": mean,
+                "std": std,
                 "count": count,
             }
         )
+    return ComparePage(out, int(total or 0))
+
+
+def _cell_page(session, jobs, metric, by, order_of, *, limit, offset) -> ComparePage:
+    """``by`` holds the whole cell key: each group is one row, read in index order."""
+    t = Result.__table__
+    ids = [j.id for j in jobs]
+    x = _as_float(metric)
+    q = (
+        select(t.c.job_id, *[t.c[b] for b in by], x.label("w_x"))
+        .where(t.c.job_id.in_(ids))
+        .order_by(*[c for b in by for c in order_of(t.c[b])], t.c.job_id)
+        .limit(limit)
+        .offset(offset)
+    )
+    out = []
+    for row in session.execute(q):
+        r = row._mapping
+        v = r["w_x"]
+        ok = v is not None and math.isfinite(v)
+        out.append(
+            {
+                "job_id": r["job_id"],
+                **{b: r[b] for b in by},
+                "mean": float(v) if ok else None,
+                "std": 0.0 if ok else None,
+                "count": int(ok),
+            }
+        )
+    total = session.scalar(select(func.count()).select_from(t).where(t.c.job_id.in_(ids)))
     return ComparePage(out, int(total or 0))

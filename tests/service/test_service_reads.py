@@ -135,6 +135,8 @@ def _numpy_compare(records, jid, metric, by):
         ("thm1_holds_A", "system,sigma_w,N,estimator,gamma"),  # booleans, summaries
         ("rmse_B", "estimator"),  # all null
         ("H_A", "N,rep"),  # rep: from the rows
+        ("rmse_A", "rep,gamma,N,system,estimator,sigma_w"),  # the cell key: one row a group
+        ("thm1_holds_A", "system,sigma_w,N,N0,estimator,gamma,rep"),
         ("N0", "gamma"),  # not a summary field: from the rows
     ],
 )
