@@ -16,7 +16,7 @@ once:
 from __future__ import annotations
 
 import logging
-from datetime import UTC, datetime
+from datetime import datetime
 
 log = logging.getLogger(__name__)
 
@@ -27,11 +27,11 @@ PRUNE_MAX_PER_TICK = 5
 
 def create_due_jobs(now: datetime | None = None) -> list[int]:
     from service.db import schedules
+    from service.db.clock import db_now
     from service.db.session import session_scope
 
-    now = now or datetime.now(UTC)
     with session_scope() as s:
-        jobs = schedules.create_due_schedule_jobs(s, now)
+        jobs = schedules.create_due_schedule_jobs(s, now or db_now(s))
         ids = [getattr(j, "id", j) for j in jobs or ()]
     if ids:
         log.info("tick: created jobs %s for due schedules", ids)
@@ -42,16 +42,21 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
     """Publish units that need it; returns how many were published.
 
     Units published before the broker's current data began (``broker_epoch``: a
-    Redis restarted without persistence lost them) are re-published at once.
+    Redis restarted without persistence lost them) are re-published at once. Every
+    time compared is the database's (leases, publication times; the broker's epoch
+    translated into it), never this host's clock.
     """
     from service.broker import broker_epoch, publish_units
     from service.db import outbox
+    from service.db.clock import db_now
     from service.db.session import session_scope
 
     if celery is None:
         from worker.celery_app import celery_app as celery
-    start = datetime.now(UTC)
-    epoch = broker_epoch(celery)  # raises if the broker is unreachable: retried next tick
+    with session_scope(write=False) as s:
+        start = db_now(s)
+    # raises if the broker is unreachable: retried next tick
+    epoch = broker_epoch(celery, now=start)
     sent = 0
     while sent < limit:
         with session_scope() as s:

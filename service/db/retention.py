@@ -9,24 +9,17 @@ pruned job records when (``jobs.pruned_at``). Times are the database's
 
 from __future__ import annotations
 
-from datetime import UTC, datetime, timedelta
+from datetime import datetime, timedelta
 
-from sqlalchemy import delete, func, select
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from .accounts import get_team
+from .clock import db_now
 from .errors import AdminError
 from .models import Job, Result, Team, as_utc
 
 MAX_RETENTION_DAYS = 36_500
-
-
-def db_now(session: Session) -> datetime:
-    """The database server's current time (UTC), the one clock every host shares."""
-    if session.get_bind().dialect.name == "sqlite":
-        value = session.scalar(select(func.strftime("%Y-%m-%d %H:%M:%f", "now")))
-        return datetime.fromisoformat(value).replace(tzinfo=UTC)
-    return as_utc(session.scalar(select(func.now())))
 
 
 def set_retention(session: Session, team: int | str, days: int | None) -> Team:

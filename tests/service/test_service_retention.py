@@ -10,9 +10,10 @@ from datetime import timedelta
 
 from sqlalchemy import func, select
 
+from service.db.clock import db_now
 from service.db.models import Job, JobReport, Result, Schedule
 from service.db.results_store import row_to_record
-from service.db.retention import db_now, set_retention
+from service.db.retention import set_retention
 from service.reports.html import job_report_html
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC
