@@ -5,8 +5,8 @@
 
 For each database it stores one synthetic job of ``--cells`` result rows (the
 paper's full preset has 625,050) through the real write path
-(``units.start_unit`` + ``units.complete_unit``, as a worker does; records with
-every field, random values), starts ``uvicorn service.api.main:app`` (one
+(``bench/load.py``'s ``prepare``: ``units.start_unit`` + ``units.complete_unit``,
+as a worker does; records with every field, random values), starts ``uvicorn service.api.main:app`` (one
 process, loopback), then measures
 
 * the first ``GET /jobs/{id}/report`` (it builds the report from the rows read
@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import random
 import sys
 import tempfile
 import time
@@ -41,9 +40,9 @@ from bench.load import (  # noqa: E402
     API,
     HOST,
     free_port,
+    prepare,
     start_server,
     stop_server,
-    synthetic_records,
     wait_ready,
 )
 
@@ -70,45 +69,9 @@ def bench_spec(cells: int) -> dict:
 
 def load_job(db_url: str, spec_dict: dict) -> tuple[str, int, int, float]:
     """Migrate, make a team and key, store the job -> (key, job id, rows, seconds)."""
-    from sqlalchemy import func, select
-
-    from service.db import accounts
-    from service.db.jobs import create_job, unit_ids_of_job
-    from service.db.migrate import upgrade
-    from service.db.models import Result
-    from service.db.session import dispose_all, session_scope
-    from service.db.units import complete_unit, start_unit
-    from svrobs_core.spec import parse_spec
-
-    upgrade(db_url)
-    with session_scope(db_url) as s:
-        team = accounts.create_team(s, "reads")
-        user = accounts.create_user(s, team.id, "reads@lab.org")
-        _, key = accounts.create_key(s, user.id, name="bench")
-        job, _ = create_job(
-            s,
-            team_id=team.id,
-            user_id=user.id,
-            spec=spec_dict,
-            name="reads-big",
-            max_active_jobs=0,
-            max_cells=10**8,
-        )
-        job_id = job.id
-    spec = parse_spec(spec_dict)
-    rng = random.Random(0)
     t0 = time.perf_counter()
-    with session_scope(db_url) as s:
-        unit_ids = unit_ids_of_job(s, job_id, pending_only=False)
-    for uid in unit_ids:
-        with session_scope(db_url) as s:
-            claimed = start_unit(s, uid, "bench", 600)
-            complete_unit(s, uid, synthetic_records(spec, claimed[1], rng))
-    seconds = time.perf_counter() - t0
-    with session_scope(db_url) as s:
-        rows = s.scalar(select(func.count(Result.id)).where(Result.job_id == job_id))
-    dispose_all()
-    return key, job_id, rows, seconds
+    key, job_id, rows = prepare(db_url, spec_dict, team_name="reads", max_cells=10**8)
+    return key, job_id, rows, time.perf_counter() - t0
 
 
 def rss_mb(pid: int) -> tuple[float, float]:

@@ -20,7 +20,7 @@ from svrobs_core.report.columns import COLUMN_MATRIX_FIELDS, SCALAR_FIELDS, TEXT
 
 from .models import JOB_ACTIVE, Job, JobReport, Result, utcnow
 
-CHUNK = 20_000
+CHUNK = 5_000
 MATRIX_CELLS_LIMIT = 200_000
 
 
@@ -89,6 +89,7 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
     # at most the rows counted (a running job may be writing more meanwhile)
     q = select(*cols).where(t.c.job_id == job_id).order_by(*order).limit(n)
     ns, nt = len(SCALAR_FIELDS), len(TEXT_FIELDS)
+    interned: dict[str, dict] = {f: {} for f in TEXT_FIELDS}
     at = 0
     for part in session.execute(q.execution_options(yield_per=CHUNK)).partitions(CHUNK):
         k = len(part)
@@ -98,8 +99,9 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
             if f in BOOL_FIELDS:
                 col = [None if v is None else float(v) for v in col]
             data[f][at : at + k] = np.array(col, dtype=float)  # None -> nan
-        for i, f in enumerate(TEXT_FIELDS):
-            text[f][at : at + k] = columns[ns + i]
+        for i, f in enumerate(TEXT_FIELDS):  # one str object per distinct value, not per row
+            uniq = interned[f]
+            text[f][at : at + k] = [uniq.setdefault(v, v) for v in columns[ns + i]]
         for i, f in enumerate(mats):
             block, shapes[f] = _matrix_block(list(columns[ns + nt + i]), shapes[f])
             blocks[f].append(block)
