@@ -155,10 +155,16 @@ def _cell_page(session, jobs, metric, by, order_of, *, limit, offset) -> Compare
     t = Result.__table__
     ids = [j.id for j in jobs]
     x = _as_float(metric)
+    order = [c for b in by for c in order_of(t.c[b])]
+    if by.index("estimator") < by.index("gamma"):
+        # gamma is null exactly for ols: within one estimator, gamma_key (-1 for ols)
+        # orders as gamma with nulls last, and lets the cell-key index give the order
+        i = next(k for k, c in enumerate(order) if c is t.c.gamma)
+        order[i - 1 : i + 1] = [t.c.gamma_key]
     q = (
         select(t.c.job_id, *[t.c[b] for b in by], x.label("w_x"))
         .where(t.c.job_id.in_(ids))
-        .order_by(*[c for b in by for c in order_of(t.c[b])], t.c.job_id)
+        .order_by(*order, t.c.job_id)
         .limit(limit)
         .offset(offset)
     )
