@@ -204,3 +204,35 @@ def test_job_list_has_a_spec_summary_and_the_job_the_spec(client, session, make_
         "n_cells": full["n_cells"],
     }
     assert full["n_cells"] == parse_spec(big).n_cells
+
+
+def test_partial_summary_in_the_database_equals_numpy_over_the_rows(client, session, make_account):
+    from service.db import jobs, units
+    from service.db.aggregates import summarize_in_db
+    from svrobs_core.records import GROUP_FIELDS, SUMMARY_FIELDS, summarize_columns
+    from tests.service.svc_fakes import fake_records
+
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    for uid in jobs.unit_ids_of_job(session, jid, pending_only=False)[:3]:
+        spec, payload = units.start_unit(session, uid, "w", 60)
+        units.complete_unit(session, uid, fake_records(spec, payload))
+    session.commit()
+    recs = _records(session, jid)
+    want = summarize_columns({f: [r[f] for r in recs] for f in GROUP_FIELDS + SUMMARY_FIELDS})
+    body = client.get(f"{API}/jobs/{jid}/summary", headers=acc.headers).json()
+    assert body["partial"] is True and body["groups"] == summarize_in_db(session, jid)
+    got = body["groups"]
+    assert [tuple(g[k] for k in GROUP_FIELDS) for g in got] == [
+        tuple(g[k] for k in GROUP_FIELDS) for g in want
+    ]
+    for g, w in zip(got, want):
+        assert g["count"] == w["count"]
+        for f in SUMMARY_FIELDS:
+            a, b = g["stats"][f], w["stats"][f]
+            assert a["count"] == b["count"], f
+            for k in ("mean", "std"):
+                if b[k] is None:
+                    assert a[k] is None, f
+                else:
+                    assert a[k] == pytest.approx(b[k], rel=1e-12, abs=1e-15), (f, k)

@@ -17,10 +17,10 @@ from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep
 from service.api.errors import ERRORS, FieldHTTPException, error_docs
 from service.api.record_json import ORDER, RESULT_COLUMNS, encode_lines, encode_page, record_columns
 from service.api.schemas import CompareOut, ResultPage, SummaryOut
+from service.db.aggregates import summarize_in_db
 from service.db.compare import COMPARE_BY, NeedsCellRows, compare_page
 from service.db.models import Job, Result, Summary
 from service.db.results_store import row_to_record
-from service.db.units import summarize_job
 from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
 
 router = APIRouter(tags=["results"])
@@ -185,14 +185,14 @@ def _group_out(g: dict) -> dict:
 @router.get("/jobs/{job_id}/summary", response_model=SummaryOut, responses=ERRORS)
 def get_summary(job_id: JobId, session: DB, caller: CurrentCaller):
     """Mean, std and count of every numeric field per (system, sigma_w, N, estimator,
-    gamma). Stored when the job succeeds; computed from the results so far otherwise
-    (`partial: true`)."""
+    gamma). Stored when the job succeeds; aggregated in the database from the results
+    so far otherwise (`partial: true`)."""
     job = team_job(session, caller.team_id, job_id)
     if job.status != "succeeded":  # units store their groups' summaries as they finish
         return {
             "job_id": job_id,
             "partial": True,
-            "groups": [_group_out(g) for g in summarize_job(session, job_id)],
+            "groups": [_group_out(g) for g in summarize_in_db(session, job_id)],
         }
     rows = session.scalars(
         select(Summary)
