@@ -96,6 +96,11 @@ def _shift(session: Session, job_id: int, metric: str) -> float:
     return float(v) if v is not None and math.isfinite(v) else 0.0
 
 
+def _order_of(col) -> tuple:
+    """ORDER BY terms of a ``by`` column: nulls last (only gamma and N0 have any)."""
+    return (col.is_(None), col) if col.name in NULLABLE else (col,)
+
+
 def compare_page(
     session: Session, jobs: list[Job], metric: str, by: list[str], *, limit: int, offset: int
 ) -> ComparePage:
@@ -106,9 +111,8 @@ def compare_page(
     pruned = [j.id for j in jobs if j.pruned_at is not None]
     if pruned and not from_summaries:
         raise NeedsCellRows(pruned, by)
-    order_of = lambda c: (c.is_(None), c) if c.name in NULLABLE else (c,)  # noqa: E731
     if set(by) >= CELL_KEY:
-        return _cell_page(session, jobs, metric, by, order_of, limit=limit, offset=offset)
+        return _cell_page(session, jobs, metric, by, limit=limit, offset=offset)
     shift = {j.id: _shift(session, j.id, metric) for j in jobs}
     parts = []
     for j in jobs:
@@ -123,7 +127,7 @@ def compare_page(
         func.sum(src.c.w_n * (src.c.w_s * src.c.w_s + src.c.w_d * src.c.w_d)).label("w_s2"),
         func.count().over().label("w_total"),
     ).group_by(*keys)
-    order = [c for b in by for c in order_of(src.c[b])] + [src.c.job_id]
+    order = [c for b in by for c in _order_of(src.c[b])] + [src.c.job_id]
     page = session.execute(grouped.order_by(*order).limit(limit).offset(offset)).all()
     if page:
         total = page[0]._mapping["w_total"]
@@ -150,12 +154,12 @@ def compare_page(
     return ComparePage(out, int(total or 0))
 
 
-def _cell_page(session, jobs, metric, by, order_of, *, limit, offset) -> ComparePage:
+def _cell_page(session, jobs, metric, by, *, limit, offset) -> ComparePage:
     """``by`` holds the whole cell key: each group is one row, read in index order."""
     t = Result.__table__
     ids = [j.id for j in jobs]
     x = _as_float(metric)
-    order = [c for b in by for c in order_of(t.c[b])]
+    order = [c for b in by for c in _order_of(t.c[b])]
     if by.index("estimator") < by.index("gamma"):
         # gamma is null exactly for ols: within one estimator, gamma_key (-1 for ols)
         # orders as gamma with nulls last, and lets the cell-key index give the order
