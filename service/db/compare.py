@@ -186,5 +186,9 @@ def _cell_page(session, jobs, metric, by, *, limit, offset) -> ComparePage:
                 "count": int(ok),
             }
         )
-    total = session.scalar(select(func.count()).select_from(t).where(t.c.job_id.in_(ids)))
-    return ComparePage(out, int(total or 0))
+    # a succeeded job holds each of its n_cells cells once: count only the others' rows
+    total = sum(j.n_cells for j in jobs if j.status == "succeeded")
+    running = [j.id for j in jobs if j.status != "succeeded"]
+    if running:
+        total += session.scalar(select(func.count()).select_from(t).where(t.c.job_id.in_(running)))
+    return ComparePage(out, int(total))
