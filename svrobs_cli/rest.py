@@ -296,13 +296,12 @@ def compare(
     jobs: str = typer.Option(..., help="comma-separated job ids"),
     metric: str = typer.Option("rmse_A", help="a numeric record field"),
     by: str = typer.Option("N,estimator,gamma", help="comma-separated grid fields"),
-    limit: int = typer.Option(1000, help="groups per page (at most 10,000)"),
-    offset: int = typer.Option(0, help="groups to skip"),
     as_json: bool = typer.Option(False, "--json", help="print JSON"),
 ) -> None:
-    """One metric across several jobs, grouped by grid coordinates (one page of groups)."""
-    params = {"jobs": jobs, "metric": metric, "by": by, "limit": limit, "offset": offset}
-    data = Api().request("GET", "/compare", params=params).json()
+    """One metric across several jobs, grouped by grid coordinates."""
+    data = (
+        Api().request("GET", "/compare", params={"jobs": jobs, "metric": metric, "by": by}).json()
+    )
     if as_json:
         typer.echo(json.dumps(data, indent=2))
         return
@@ -321,5 +320,3 @@ def compare(
             )
         )
     Console().print(table)
-    if data.get("total", len(data["rows"])) > len(data["rows"]):
-        typer.echo(f"groups {offset + 1}-{offset + len(data['rows'])} of {data['total']}")
