@@ -2,9 +2,10 @@
 
 A running job's report is built on each request (it changes); a finished job's
 is built at its first request (or beforehand, by the retention tick before it
-prunes the job's rows: :func:`store_if_missing`) and stored in ``job_reports``. Concurrent requests for
-the same job wait for one build; at most ``BUILD_SLOTS`` builds run at once in
-a process, so memory stays bounded however many reports are asked for.
+prunes the job's rows: :func:`store_if_missing`) and stored in ``job_reports``.
+Concurrent requests for the same job wait for one build; at most ``BUILD_SLOTS``
+builds run at once in a process, so memory stays bounded however many reports
+are asked for. The build reads the rows as columns (``service.db.reports``).
 """
 
 from __future__ import annotations
@@ -92,7 +93,9 @@ def job_report(session: Session, job: Job, write_session: Callable[[], Session])
                 log.info("stored the report of job %s (%d records)", job_id, n)
             except IntegrityError:  # another process stored it first: the same page
                 w.rollback()
-        return html
+    with _locks_guard:  # stored: later requests never wait on this lock
+        _job_locks.pop(job_id, None)
+    return html
 
 
 def store_if_missing(read_session: Session, write_session: Session, job_id: int) -> bool:
