@@ -45,8 +45,9 @@ def store_report(session: Session, job_id: int, html: str, n_records: int) -> Jo
     return row
 
 
-def jobs_without_report(session: Session, limit: int) -> list[int]:
-    """Finished jobs that have cell rows and no stored report, newest first."""
+def jobs_without_report(session: Session, limit: int, finished_after=None) -> list[int]:
+    """Finished jobs that have cell rows and no stored report (finished after
+    ``finished_after`` if given), newest first."""
     q = (
         select(Job.id)
         .where(Job.status.not_in(JOB_ACTIVE), Job.pruned_at.is_(None), Job.n_cells > 0)
@@ -54,6 +55,8 @@ def jobs_without_report(session: Session, limit: int) -> list[int]:
         .order_by(Job.finished_at.desc())
         .limit(limit)
     )
+    if finished_after is not None:
+        q = q.where(Job.finished_at >= finished_after)
     return list(session.scalars(q))
 
 

@@ -4,7 +4,8 @@ PostgreSQL and a Redis this test starts on this machine's ends of the veth pairs
 Nothing is shared but the two servers: no filesystem (each host's folders are
 its own), no local clock (leases, publication times and the broker epoch are
 the servers'). A sweep completes with records identical to the core run in
-this process (what ``svrobs run-local`` writes), and both workers ran units.
+this process (what ``svrobs run-local`` writes), both workers ran units, and
+the report beat stored in the database is what the API serves.
 
 Skipped, saying why, without root or ``ip netns``, PostgreSQL's binaries or
 redis-server."""
@@ -147,6 +148,20 @@ def test_api_and_two_workers_on_separate_hosts(tmp_path):
             workers = set(s.scalars(select(WorkUnit.worker).where(WorkUnit.job_id == jid)))
         dispose_all()
         assert workers == {f"worker1@{w1.name}", f"worker2@{w2.name}"}, workers
+
+        # beat stores the finished job's report in the database; the API serves it
+        from service.db.models import JobReport
+
+        def stored():
+            with session_scope(pg.url) as s:
+                return s.get(JobReport, jid) is not None
+
+        _wait(stored, WAIT, "the report stored by beat", logs)
+        with session_scope(pg.url) as s:
+            html = s.get(JobReport, jid).html
+        dispose_all()
+        r = httpx.get(f"{base}/api/v1/jobs/{jid}/report", headers=headers, timeout=30)
+        assert r.status_code == 200 and r.text == html
     finally:
         stop_all(children, grace=5)
         hosts.close()

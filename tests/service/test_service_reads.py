@@ -22,7 +22,7 @@ from svrobs_core.report import Columns
 from svrobs_core.runner import run_unit
 from svrobs_core.spec import parse_spec
 from tests.service.svc_fakes import run_job_units
-from tests.service.svc_helpers import SMALL_SPEC
+from tests.service.svc_helpers import SMALL_SPEC, scope_of
 
 API = "/api/v1"
 REAL_SPEC = {
@@ -236,3 +236,31 @@ def test_partial_summary_in_the_database_equals_numpy_over_the_rows(client, sess
                     assert a[k] is None, f
                 else:
                     assert a[k] == pytest.approx(b[k], rel=1e-12, abs=1e-15), (f, k)
+
+
+def test_tick_stores_the_reports_of_recently_finished_jobs(
+    client, session, session_factory, make_account
+):
+    from datetime import timedelta
+
+    from service.db.clock import db_now
+    from service.db.models import Job
+    from worker.tick import build_reports
+
+    acc = make_account()
+    new, old, running = (
+        client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+        for _ in range(3)
+    )
+    run_job_units(session, new)
+    run_job_units(session, old)
+    session.get(Job, old).finished_at = db_now(session) - timedelta(days=30)
+    session.commit()
+    assert build_reports(limit=10, scope=scope_of(session_factory)) == [new]
+    session.expire_all()
+    stored = session.get(JobReport, new)
+    assert stored is not None and stored.n_records == len(_records(session, new))
+    assert session.get(JobReport, old) is None and session.get(JobReport, running) is None
+    page = client.get(f"{API}/jobs/{new}/report", headers=acc.headers)
+    assert page.status_code == 200 and page.text == stored.html
+    assert build_reports(limit=10, scope=scope_of(session_factory)) == []

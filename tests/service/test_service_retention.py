@@ -5,7 +5,6 @@ same job before pruning (the report from its records decoded row by row)."""
 
 from __future__ import annotations
 
-from contextlib import contextmanager
 from datetime import timedelta
 
 from sqlalchemy import func, select
@@ -16,23 +15,10 @@ from service.db.results_store import row_to_record
 from service.db.retention import set_retention
 from service.reports.html import job_report_html
 from tests.service.svc_fakes import run_job_units
-from tests.service.svc_helpers import SMALL_SPEC
+from tests.service.svc_helpers import SMALL_SPEC, scope_of
 from worker.tick import prune_expired
 
 API = "/api/v1"
-
-
-def _scope(session_factory):
-    @contextmanager
-    def scope(write: bool = True):
-        s = session_factory(write)
-        try:
-            yield s
-            s.commit()
-        finally:
-            s.close()
-
-    return scope
 
 
 def _finished_job(client, session, acc, *, scheduled: bool, days_ago: float) -> int:
@@ -77,7 +63,7 @@ def test_retention_prunes_due_scheduled_jobs_only_and_reads_keep_working(
     ]
     job = get(f"/jobs/{due}").json()
 
-    assert prune_expired(scope=_scope(session_factory)) == [due]
+    assert prune_expired(scope=scope_of(session_factory)) == [due]
     session.expire_all()
     assert _rows(session, due) == 0
     assert all(_rows(session, j) > 0 for j in (young, manual, off))
@@ -115,9 +101,9 @@ def test_retention_prunes_due_scheduled_jobs_only_and_reads_keep_working(
         )
     )
     assert page.text == job_report_html(job["spec"], records, provenance, name=f"job-{due}")
-    assert prune_expired(scope=_scope(session_factory)) == []  # nothing left to do
+    assert prune_expired(scope=scope_of(session_factory)) == []  # nothing left to do
 
     set_retention(session, acc.team.id, None)  # off again: nothing more is pruned
     session.get(Job, young).finished_at = db_now(session) - timedelta(days=10)
     session.commit()
-    assert prune_expired(scope=_scope(session_factory)) == []
+    assert prune_expired(scope=scope_of(session_factory)) == []
