@@ -122,8 +122,15 @@ def synthetic_records(spec, unit: dict, rng: random.Random) -> list[dict]:
     return out
 
 
-def prepare(db_url: str) -> tuple[str, int, int]:
-    """Migrate, create a team and key, store the big job -> (key, job id, rows)."""
+def prepare(
+    db_url: str,
+    spec_dict: dict | None = None,
+    *,
+    team_name: str = "load",
+    max_cells: int | None = None,
+) -> tuple[str, int, int]:
+    """Migrate, create a team and key, store the big job (default ``BIG_SPEC``)
+    through ``complete_unit`` -> (key, job id, rows)."""
     from sqlalchemy import func, select
 
     from service.db import accounts
@@ -136,21 +143,23 @@ def prepare(db_url: str) -> tuple[str, int, int]:
 
     upgrade(db_url)
     rng = random.Random(0)
+    spec_dict = spec_dict or BIG_SPEC
     with session_scope(db_url) as s:
-        team = accounts.create_team(s, "load")
-        user = accounts.create_user(s, team.id, "load@lab.org")
+        team = accounts.create_team(s, team_name)
+        user = accounts.create_user(s, team.id, f"{team_name}@lab.org")
         _, key = accounts.create_key(s, user.id, name="bench")
         job, _ = create_job(
             s,
             team_id=team.id,
             user_id=user.id,
-            spec=BIG_SPEC,
-            name="load-big",
-            tags=("load",),
+            spec=spec_dict,
+            name=f"{team_name}-big",
+            tags=(team_name,),
             max_active_jobs=0,
+            max_cells=max_cells,
         )
         job_id = job.id
-    spec = parse_spec(BIG_SPEC)
+    spec = parse_spec(spec_dict)
     with session_scope(db_url) as s:
         unit_ids = unit_ids_of_job(s, job_id, pending_only=False)
     for uid in unit_ids:

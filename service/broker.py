@@ -174,10 +174,15 @@ def check_broker(celery: Celery, timeout: float = 2.0) -> None:
 BROKER_EPOCH_KEY = "svrobs:broker-epoch"
 
 
-def _epoch_now() -> str:
-    import time
+def _redis_time(client) -> float:
+    """The Redis server's clock (TIME), in seconds: the marker is written by the API
+    and the relay on different hosts, so it never takes a host's local clock."""
+    secs, usecs = client.time()
+    return int(secs) + int(usecs) / 1e6
 
-    return repr(time.time())
+
+def _epoch_now(client) -> str:
+    return repr(_redis_time(client))
 
 
 def _ensure_epoch_marker(celery: Celery, producer) -> None:
@@ -186,16 +191,20 @@ def _ensure_epoch_marker(celery: Celery, producer) -> None:
     if not (celery.conf.broker_url or "").startswith(("redis:", "rediss:")):
         return
     try:
-        producer.channel.client.set(BROKER_EPOCH_KEY, _epoch_now(), nx=True)
+        client = producer.channel.client
+        client.set(BROKER_EPOCH_KEY, _epoch_now(client), nx=True)
     except Exception as exc:  # noqa: BLE001 - the sends below report a dead broker
         log.debug("broker epoch marker not set: %s", exc)
 
 
-def broker_epoch(celery: Celery, timeout: float = 2.0):
+def broker_epoch(celery: Celery, timeout: float = 2.0, *, now=None):
     """When the broker's current data began (a UTC datetime), creating the marker
     now if it is missing; None for a broker without one (the filesystem broker keeps
-    its queue on disk). Raises if the broker cannot be reached."""
-    from datetime import UTC, datetime
+    its queue on disk). Raises if the broker cannot be reached.
+
+    The marker is in the Redis server's clock; with ``now`` (the caller's clock, e.g.
+    the database's) it is returned in that clock: ``now - (redis now - marker)``."""
+    from datetime import UTC, datetime, timedelta
 
     url = celery.conf.broker_url or ""
     if not url.startswith(("redis:", "rediss:")):
@@ -203,8 +212,11 @@ def broker_epoch(celery: Celery, timeout: float = 2.0):
     with celery.connection_for_write() as conn:
         conn.ensure_connection(max_retries=1, timeout=timeout)
         client = conn.default_channel.client
-        client.set(BROKER_EPOCH_KEY, _epoch_now(), nx=True)
+        client.set(BROKER_EPOCH_KEY, _epoch_now(client), nx=True)
         value = client.get(BROKER_EPOCH_KEY)
+        redis_now = _redis_time(client) if now is not None else None
     if isinstance(value, bytes):
         value = value.decode()
-    return datetime.fromtimestamp(float(value), UTC)
+    if now is None:
+        return datetime.fromtimestamp(float(value), UTC)
+    return now - timedelta(seconds=max(redis_now - float(value), 0.0))

@@ -98,3 +98,25 @@ def admin_list_keys(team: str | None = typer.Argument(None)) -> None:
 
     for r in _admin_call(rows):
         typer.echo("\t".join("" if v is None else str(v) for v in r))
+
+
+def admin_set_retention(
+    team: str = typer.Argument(..., help="team name or id"),
+    days: int | None = typer.Option(None, "--days", help="drop cell rows this many days on"),
+    off: bool = typer.Option(False, "--off", help="keep every row (the default)"),
+) -> None:
+    """Retention of the team's scheduled jobs: keep summaries and the report, drop the
+    cell rows K days after a job finished (applied by the beat tick)."""
+    from service.db.retention import set_retention
+
+    if off == (days is not None):
+        raise CliError("give exactly one of --days K and --off")
+    t: Any = int(team) if team.isdigit() else team
+    name = _admin_call(lambda s, a: set_retention(s, t, None if off else days).name)
+    if off:
+        typer.echo(f"team {name!r}: retention off (every cell row is kept)")
+    else:
+        typer.echo(
+            f"team {name!r}: the cell rows of scheduled jobs are dropped {days} days after "
+            "they finish (summaries and reports are kept)"
+        )

@@ -1,7 +1,7 @@
 """The ``svrobs`` console script: every command is registered here, in one place.
 
     svrobs migrate                         alembic upgrade head on SVROBS_DATABASE_URL
-    svrobs admin create-team|create-user|create-key|revoke-key|list-keys
+    svrobs admin create-team|create-user|create-key|revoke-key|list-keys|set-retention
     svrobs submit|status|results|summary|compare|report|cancel|delete
                                            REST commands (svrobs_cli.rest)
     svrobs schedules list|show|create|enable|disable|delete|runs
@@ -53,6 +53,7 @@ COMMANDS = (
     (admin_app, "create-key", admin.admin_create_key),
     (admin_app, "revoke-key", admin.admin_revoke_key),
     (admin_app, "list-keys", admin.admin_list_keys),
+    (admin_app, "set-retention", admin.admin_set_retention),
     (app, "submit", rest.submit),
     (app, "status", rest.status),
     (app, "results", rest.results),

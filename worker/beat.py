@@ -30,6 +30,6 @@ class TickScheduler(PersistentScheduler):
         except Exception:
             log.exception("tick failed")
             return None
-        if out.get("created") or out.get("relayed") or out.get("errors"):
+        if any(out.get(k) for k in ("created", "relayed", "pruned", "errors")):
             log.info("tick: %s", out)
         return None

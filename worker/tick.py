@@ -1,4 +1,5 @@
-"""The tick: due schedules -> jobs, then the outbox relay.
+"""The tick: due schedules -> jobs, the outbox relay, retention, and (in a background
+thread) the stored reports of newly finished jobs.
 
 ``run_tick`` is what beat runs every TICK_SECONDS (in the beat process itself:
 see :mod:`worker.beat`); it is safe to run from any number of processes at
@@ -16,21 +17,26 @@ once:
 from __future__ import annotations
 
 import logging
-from datetime import UTC, datetime
+import threading
+from datetime import datetime, timedelta
 
 log = logging.getLogger(__name__)
 
 RELAY_BATCH = 500
 RELAY_MAX_PER_TICK = 20_000
+PRUNE_MAX_PER_TICK = 5
+REPORTS_PER_TICK = 2
+REPORT_RECENT_DAYS = 2  # reports are built ahead for jobs finished this recently
+_report_thread: threading.Thread | None = None
 
 
 def create_due_jobs(now: datetime | None = None) -> list[int]:
     from service.db import schedules
+    from service.db.clock import db_now
     from service.db.session import session_scope
 
-    now = now or datetime.now(UTC)
     with session_scope() as s:
-        jobs = schedules.create_due_schedule_jobs(s, now)
+        jobs = schedules.create_due_schedule_jobs(s, now or db_now(s))
         ids = [getattr(j, "id", j) for j in jobs or ()]
     if ids:
         log.info("tick: created jobs %s for due schedules", ids)
@@ -41,16 +47,21 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
     """Publish units that need it; returns how many were published.
 
     Units published before the broker's current data began (``broker_epoch``: a
-    Redis restarted without persistence lost them) are re-published at once.
+    Redis restarted without persistence lost them) are re-published at once. Every
+    time compared is the database's (leases, publication times; the broker's epoch
+    translated into it), never this host's clock.
     """
     from service.broker import broker_epoch, publish_units
     from service.db import outbox
+    from service.db.clock import db_now
     from service.db.session import session_scope
 
     if celery is None:
         from worker.celery_app import celery_app as celery
-    start = datetime.now(UTC)
-    epoch = broker_epoch(celery)  # raises if the broker is unreachable: retried next tick
+    with session_scope(write=False) as s:
+        start = db_now(s)
+    # raises if the broker is unreachable: retried next tick
+    epoch = broker_epoch(celery, now=start)
     sent = 0
     while sent < limit:
         with session_scope() as s:
@@ -76,9 +87,78 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
     return sent
 
 
-def run_tick(now: datetime | None = None, celery=None) -> dict:
-    """One tick. Each half is independent: a failing relay never stops schedules."""
-    out: dict = {"created": [], "relayed": 0, "errors": []}
+def prune_expired(limit: int = PRUNE_MAX_PER_TICK, scope=None) -> list[int]:
+    """Retention: drop the cell rows of scheduled jobs past their team's retention
+    period (``service.db.retention``), after storing the report if it is not yet;
+    returns the pruned jobs. Read, then write: the report is built outside the
+    write transaction (on SQLite a writer blocks every other writer). ``scope``:
+    ``scope(write=...)`` -> a committing session context (default ``session_scope``)."""
+    from service.db import retention
+    from service.db.session import session_scope
+    from service.reports.stored import store_if_missing
+
+    scope = scope or session_scope
+    with scope(write=False) as s:
+        ids = retention.due_for_pruning(s, limit)
+    done = []
+    for job_id in ids:
+        with scope(write=False) as r, scope(write=True) as w:
+            store_if_missing(r, w, job_id)
+            n = retention.prune_job(w, job_id)
+        log.info("tick: retention dropped the %d cell rows of job %s", n, job_id)
+        done.append(job_id)
+    return done
+
+
+def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
+    """Store the reports of recently finished jobs that have none, so that the API
+    serves them as stored from the first request; returns the jobs done."""
+    from sqlalchemy.exc import IntegrityError
+
+    from service.db.clock import db_now
+    from service.db.reports import jobs_without_report
+    from service.db.session import session_scope
+    from service.reports.stored import store_if_missing
+
+    scope = scope or session_scope
+    with scope(write=False) as s:
+        since = db_now(s) - timedelta(days=REPORT_RECENT_DAYS)
+        ids = jobs_without_report(s, limit, finished_after=since)
+    done = []
+    for job_id in ids:
+        try:
+            with scope(write=False) as r, scope(write=True) as w:
+                if store_if_missing(r, w, job_id):
+                    done.append(job_id)
+        except IntegrityError:  # an API request stored it meanwhile: the same page
+            continue
+    if done:
+        log.info("tick: stored the reports of jobs %s", done)
+    return done
+
+
+def start_report_builds() -> bool:
+    """:func:`build_reports` in a background thread of this (beat) process, one at a
+    time: a report of a large job takes a minute, the tick must not wait for it."""
+    global _report_thread
+    if _report_thread is not None and _report_thread.is_alive():
+        return False
+
+    def run():
+        try:
+            build_reports()
+        except Exception:  # noqa: BLE001 - retried next tick
+            log.exception("tick: building reports failed; will retry next tick")
+
+    _report_thread = threading.Thread(target=run, name="svrobs-reports", daemon=True)
+    _report_thread.start()
+    return True
+
+
+def run_tick(now: datetime | None = None, celery=None, *, reports: bool = True) -> dict:
+    """One tick. Each part is independent: a failing relay never stops schedules,
+    nor does retention; reports of finished jobs are built in the background."""
+    out: dict = {"created": [], "relayed": 0, "pruned": [], "errors": []}
     try:
         out["created"] = create_due_jobs(now)
     except Exception as exc:
@@ -89,4 +169,11 @@ def run_tick(now: datetime | None = None, celery=None) -> dict:
     except Exception as exc:  # noqa: BLE001
         log.warning("tick: relay failed (%s: %s); will retry next tick", type(exc).__name__, exc)
         out["errors"].append(f"relay: {type(exc).__name__}: {exc}")
+    try:
+        out["pruned"] = prune_expired()
+    except Exception as exc:  # noqa: BLE001
+        log.exception("tick: retention failed; will retry next tick")
+        out["errors"].append(f"retention: {type(exc).__name__}: {exc}")
+    if reports:
+        start_report_builds()
     return out

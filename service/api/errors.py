@@ -135,7 +135,7 @@ async def _job_active(request: Request, exc: JobActive):
     page = getattr(request.app.state, "error_page", None)
     if page is not None and not request.url.path.startswith("/api/"):
         return page(request, 409, f"{str(exc).capitalize()}.")
-    return error_response(409, str(exc), "job")
+    return error_response(409, str(exc))
 
 
 async def _validation_error(request: Request, exc: RequestValidationError):

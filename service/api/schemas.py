@@ -101,7 +101,7 @@ class Progress(BaseModel):
     fraction: float
 
 
-class JobOut(BaseModel):
+class _JobBase(BaseModel):
     id: int
     name: str | None
     tags: list[str]
@@ -111,13 +111,24 @@ class JobOut(BaseModel):
     owner: str | None
     schedule_id: int | None
     idempotency_key: str | None
-    spec: dict[str, Any]
     provenance: dict[str, Any]
     error: str | None
     timings: dict[str, Any]
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    pruned_at: datetime | None  # retention dropped its cell rows (results: 410)
+
+
+class JobOut(_JobBase):
+    spec: dict[str, Any]
+
+
+class JobItem(_JobBase):
+    """A listed job: the spec's summary (system names, grid sizes, stages, cells);
+    the full spec is at ``GET /jobs/{id}``."""
+
+    spec_summary: dict[str, Any]
 
 
 class Page(BaseModel):
@@ -127,7 +138,7 @@ class Page(BaseModel):
 
 
 class JobPage(Page):
-    items: list[JobOut]
+    items: list[JobItem]
 
 
 class ResultPage(Page):
@@ -140,7 +151,7 @@ class SummaryOut(BaseModel):
     groups: list[dict[str, Any]]
 
 
-class CompareOut(BaseModel):
+class CompareOut(Page):
     metric: str
     by: list[str]
     jobs: list[int]

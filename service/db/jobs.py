@@ -80,6 +80,7 @@ def create_job(
         name=name,
         tags=tags,
         spec=normalised,
+        spec_summary=spec_summary(normalised, parsed.n_cells),
         status="queued",
         progress_done=0,
         progress_total=len(units),
@@ -189,3 +190,18 @@ def lock_job(session: Session, job_id: int) -> Job:
         .with_for_update(key_share=True)
         .execution_options(populate_existing=True)
     )
+
+
+def spec_summary(spec: dict, n_cells: int) -> dict:
+    """A normalised spec in a few hundred bytes, whatever its grid sizes: system
+    names, the size of each grid axis (and the N range), estimators, stages, cells."""
+    Ns = spec.get("N") or []
+    return {
+        "systems": [s if isinstance(s, str) else s.get("name", "custom") for s in spec["systems"]],
+        "grid": {k: len(spec.get(k) or []) for k in ("sigma_w", "N", "gamma")}
+        | {"reps": spec.get("reps")},
+        "N_range": [min(Ns), max(Ns)] if Ns else None,
+        "estimators": list(spec.get("estimators") or []),
+        "stages": list(spec.get("stages") or []),
+        "n_cells": n_cells,
+    }

@@ -78,6 +78,9 @@ class Team(Base):
     id: Mapped[int] = mapped_column(primary_key=True)
     name: Mapped[str] = mapped_column(String(200), unique=True)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    # retention of the team's scheduled jobs: cell rows dropped after this many days
+    # (summaries and the stored report stay); None = keep everything (the default)
+    retention_days: Mapped[int | None]
 
 
 class User(Base):
@@ -121,6 +124,8 @@ class Job(Base):
     name: Mapped[str | None] = mapped_column(String(200))
     tags: Mapped[list[Any]] = mapped_column(default=list)
     spec: Mapped[dict[str, Any]]
+    # what GET /jobs lists instead of the spec (jobs.spec_summary); None before issue 13
+    spec_summary: Mapped[dict[str, Any] | None]
     status: Mapped[str] = mapped_column(String(16), default="queued")
     progress_done: Mapped[int] = mapped_column(default=0)
     progress_total: Mapped[int] = mapped_column(default=0)
@@ -132,6 +137,7 @@ class Job(Base):
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     started_at: Mapped[datetime | None]
     finished_at: Mapped[datetime | None]
+    pruned_at: Mapped[datetime | None]  # when retention dropped its cell rows
 
     user: Mapped[User | None] = relationship()
     tag_rows: Mapped[list[JobTag]] = relationship(
@@ -241,6 +247,16 @@ class Summary(Base):
     gamma_key: Mapped[float] = mapped_column(Float)
     count: Mapped[int]
     stats: Mapped[dict[str, Any]]
+
+
+class JobReport(Base):
+    """A finished job's HTML report, built once (finished jobs do not change)."""
+
+    __tablename__ = "job_reports"
+    job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
+    html: Mapped[str] = mapped_column(Text)
+    n_records: Mapped[int]
+    built_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
 class Schedule(Base):

@@ -16,6 +16,7 @@ from sqlalchemy.orm import Session
 
 from service.config import get_settings
 
+from .clock import db_now
 from .models import JOB_ACTIVE, Job, WorkUnit, as_utc
 
 
@@ -32,8 +33,8 @@ def units_to_publish(
     starting, or published before ``lost_before`` (when the broker's current data
     began: a Redis restarted without persistence has lost those messages; see
     :func:`service.broker.broker_epoch`), or running with an expired lease (the
-    worker died)."""
-    now = as_utc(now)
+    worker died). ``now``: default the database's clock (leases are the DB's too)."""
+    now = as_utc(now or db_now(session))
     retry = get_settings().PUBLISH_RETRY_SECONDS if retry_seconds is None else retry_seconds
     stale = now - timedelta(seconds=retry)
     if lost_before is not None:
@@ -61,10 +62,10 @@ def mark_published(
     session: Session, unit_ids: Sequence[int], *, now: datetime | None = None
 ) -> None:
     """Record that the units were sent to the broker (running units whose lease
-    expired go back to pending)."""
+    expired go back to pending); ``now`` defaults to the database's clock."""
     if not unit_ids:
         return
-    now = as_utc(now)
+    now = as_utc(now or db_now(session))
     ids = list(unit_ids)
     for i in range(0, len(ids), 1000):
         chunk = ids[i : i + 1000]

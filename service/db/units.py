@@ -20,6 +20,7 @@ from svrobs_core.records import GROUP_FIELDS, SUMMARY_FIELDS, summarize_columns
 from svrobs_core.spec import parse_spec
 from svrobs_core.unit_result import UnitResult
 
+from .clock import db_now
 from .jobs import lock_job, set_timing
 from .models import JOB_ACTIVE, Job, Result, Summary, WorkUnit, utcnow
 from .results_store import gamma_key, upsert_results
@@ -68,7 +69,7 @@ def start_unit(
             f"(the worker died or timed out each time); last error: {unit.error or 'none'}",
         )
         return None
-    now = utcnow()
+    now = db_now(session)  # leases are compared by other hosts: the DB's clock
     unit.status = "running"
     unit.attempts += 1
     unit.worker = worker_name
@@ -87,7 +88,7 @@ def heartbeat_unit(session: Session, unit_id: int, lease_seconds: int) -> bool:
     res = session.execute(
         update(WorkUnit)
         .where(WorkUnit.id == unit_id, WorkUnit.status == "running")
-        .values(lease_expires_at=utcnow() + timedelta(seconds=lease_seconds))
+        .values(lease_expires_at=db_now(session) + timedelta(seconds=lease_seconds))
     )
     return res.rowcount > 0
 

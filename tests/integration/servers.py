@@ -60,16 +60,17 @@ class PrivateRedis:
     """``redis-server`` on a spare 127.0.0.1 port, no RDB, no AOF (a restart loses the
     queue: the worst case for the relay)."""
 
-    def __init__(self, root: Path):
+    def __init__(self, root: Path, *, bind: tuple[str, ...] = ("127.0.0.1",)):
         self.dir = root
         self.dir.mkdir(parents=True, exist_ok=True)
+        self.bind = bind  # the first is the one ``url`` and ``ping`` use
         self.port = free_port()
         self.child: Child | None = None
         self.starts = 0
 
     @property
     def url(self) -> str:
-        return f"redis://127.0.0.1:{self.port}/0"
+        return f"redis://{self.bind[0]}:{self.port}/0"
 
     def running(self) -> bool:
         return self.child is not None and self.child.poll() is None
@@ -78,7 +79,7 @@ class PrivateRedis:
         import redis
 
         r = redis.Redis(
-            host="127.0.0.1", port=self.port, socket_timeout=1, socket_connect_timeout=1
+            host=self.bind[0], port=self.port, socket_timeout=1, socket_connect_timeout=1
         )
         try:
             return bool(r.ping())
@@ -93,7 +94,7 @@ class PrivateRedis:
             "--port",
             str(self.port),
             "--bind",
-            "127.0.0.1",
+            *self.bind,
             "--save",
             "",
             "--appendonly",
@@ -102,8 +103,8 @@ class PrivateRedis:
             "no",
             "--dir",
             str(self.dir),
-            "--protected-mode",
-            "yes",
+            "--protected-mode",  # off for the test's own veth addresses (no password)
+            "yes" if self.bind == ("127.0.0.1",) else "no",
         ]
         self.child = Child(
             "redis", argv, dict(os.environ), log=self.dir / "redis.log", cwd=self.dir
@@ -153,8 +154,9 @@ class PrivatePostgres:
     foreground (own process group, parent-death signal) on a spare 127.0.0.1 port,
     socket in the same folder. ``stop`` is ``pg_ctl stop -m fast``."""
 
-    def __init__(self):
+    def __init__(self, *, listen: tuple[str, ...] = ("127.0.0.1",)):
         assert PG_BINDIR is not None
+        self.listen = listen  # the first is the one ``url`` and ``ready`` use
         self.bindir = PG_BINDIR
         self.user = None
         if os.geteuid() == 0:
@@ -174,7 +176,7 @@ class PrivatePostgres:
 
     @property
     def url(self) -> str:
-        return f"postgresql+psycopg://postgres@127.0.0.1:{self.port}/postgres"
+        return f"postgresql+psycopg://postgres@{self.listen[0]}:{self.port}/postgres"
 
     def _run(self, argv: list[str], timeout: float = 60) -> subprocess.CompletedProcess:
         out = subprocess.run(
@@ -219,7 +221,11 @@ class PrivatePostgres:
         import psycopg
 
         with psycopg.connect(
-            host="127.0.0.1", port=self.port, user="postgres", dbname="postgres", connect_timeout=2
+            host=self.listen[0],
+            port=self.port,
+            user="postgres",
+            dbname="postgres",
+            connect_timeout=2,
         ) as c:
             return c.execute("SELECT 1").fetchone() == (1,)
 
@@ -235,7 +241,7 @@ class PrivatePostgres:
             "-k",
             str(self.dir),
             "-c",
-            "listen_addresses=127.0.0.1",
+            f"listen_addresses={','.join(self.listen)}",
             # a test cluster: durability off (a fast shutdown still checkpoints)
             "-c",
             "fsync=off",

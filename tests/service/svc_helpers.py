@@ -54,3 +54,20 @@ SMALL_UNITS = len(plan_units(parse_spec(SMALL_SPEC)))
 
 def no_broker_check() -> None:
     """A broker that always answers (for ``app.dependency_overrides[get_broker_check]``)."""
+
+
+def scope_of(session_factory):
+    """``scope(write=...)``: a committing session context on the test's connection (what
+    ``worker.tick`` takes instead of ``session_scope``)."""
+    from contextlib import contextmanager
+
+    @contextmanager
+    def scope(write: bool = True):
+        s = session_factory(write)
+        try:
+            yield s
+            s.commit()
+        finally:
+            s.close()
+
+    return scope

@@ -6,13 +6,13 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Header, HTTPException, Query, Response
 from sqlalchemy import func, select
-from sqlalchemy.orm import joinedload
+from sqlalchemy.orm import defer, joinedload
 
 from service.api.deps import DB, CurrentCaller, JobId, team_job
 from service.api.errors import BODY_ERRORS, ERRORS
 from service.api.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
 from service.api.submission import JobRequest, SubmissionDep
-from service.api.views import job_out
+from service.api.views import job_item, job_out
 from service.db.job_delete import delete_job
 from service.db.jobs import cancel_job
 from service.db.models import Job, JobTag, User
@@ -57,7 +57,8 @@ def list_jobs(
     limit: Annotated[int, Query(ge=1, le=500)] = 50,
     offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
 ):
-    """The team's jobs, newest first, filtered by status, tag and owner."""
+    """The team's jobs, newest first, filtered by status, tag and owner; each with a
+    compact `spec_summary` (the full spec is at `GET /jobs/{id}`)."""
     q = select(Job).where(Job.team_id == caller.team_id)
     if status:
         q = q.where(Job.status == status)
@@ -76,9 +77,12 @@ def list_jobs(
             )
     total = session.scalar(select(func.count()).select_from(q.subquery()))
     rows = session.scalars(
-        q.options(joinedload(Job.user)).order_by(Job.id.desc()).limit(limit).offset(offset)
+        q.options(joinedload(Job.user), defer(Job.spec))
+        .order_by(Job.id.desc())
+        .limit(limit)
+        .offset(offset)
     ).all()
-    return {"items": [job_out(j) for j in rows], "total": total, "limit": limit, "offset": offset}
+    return {"items": [job_item(j) for j in rows], "total": total, "limit": limit, "offset": offset}
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut, responses=ERRORS)

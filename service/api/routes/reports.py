@@ -7,16 +7,12 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Header
 from fastapi.responses import HTMLResponse
 from pydantic import BaseModel, ConfigDict
-from sqlalchemy import select
 
-from service.api.deps import DB, CurrentCaller, JobId, team_job
+from service.api.deps import DB, CurrentCaller, JobId, SessionFactoryDep, team_job
 from service.api.errors import BODY_ERRORS, ERRORS
-from service.api.record_json import ORDER, RESULT_COLUMNS
 from service.api.schemas import ErrorOut, JobOut
 from service.api.submission import JobRequest, SubmissionDep
-from service.db.models import Result
-from service.db.results_store import row_to_record
-from service.reports.html import job_report_html
+from service.reports.stored import job_report as stored_job_report
 from svrobs_core.paper import PRESET_NAME, paper_specs
 
 router = APIRouter(tags=["reports"])
@@ -34,22 +30,14 @@ JSON_ERRORS = {
 
 
 @router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses=JSON_ERRORS)
-def job_report(job_id: JobId, session: DB, caller: CurrentCaller) -> HTMLResponse:
+def job_report(
+    job_id: JobId, session: DB, caller: CurrentCaller, session_factory: SessionFactoryDep
+) -> HTMLResponse:
     """The job's report as one HTML page: tables, figures (embedded PNG), the spec,
-    provenance and the data-generated findings. Built from the stored records."""
+    provenance and the data-generated findings. Built from the stored records, once
+    for a finished job (then served as stored)."""
     job = team_job(session, caller.team_id, job_id)
-    rows = session.execute(
-        select(*RESULT_COLUMNS).where(Result.__table__.c.job_id == job.id).order_by(*ORDER)
-    ).all()
-    records = [row_to_record(r._mapping) for r in rows]
-    provenance = {
-        **(job.provenance or {}),
-        "job_id": job.id,
-        "status": job.status,
-        "progress": f"{job.progress_done}/{job.progress_total} units",
-    }
-    html = job_report_html(job.spec, records, provenance, name=job.name or f"job-{job.id}")
-    return HTMLResponse(html)
+    return HTMLResponse(stored_job_report(session, job, lambda: session_factory(True)))
 
 
 class PresetRun(BaseModel):

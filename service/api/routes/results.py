@@ -6,23 +6,22 @@ import csv
 import io
 import json
 import math
-from collections import defaultdict
 from typing import Annotated, Literal
 
-import numpy as np
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 from pydantic import Field
 from sqlalchemy import Select, func, select
 
 from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep, team_job
-from service.api.errors import ERRORS, FieldHTTPException
+from service.api.errors import ERRORS, FieldHTTPException, error_docs
 from service.api.query_params import accepts_query, is_range_param, range_conditions, sort_order
 from service.api.record_json import ORDER, RESULT_COLUMNS, encode_lines, encode_page, record_columns
 from service.api.schemas import CompareOut, ResultPage, SummaryOut
-from service.db.models import Result, Summary
+from service.db.aggregates import summarize_in_db
+from service.db.compare import COMPARE_BY, NeedsCellRows, compare_page
+from service.db.models import Job, Result, Summary
 from service.db.results_store import row_to_record
-from service.db.units import summarize_job
 from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
 
 router = APIRouter(tags=["results"])
@@ -31,7 +30,8 @@ router = APIRouter(tags=["results"])
 RESULT_ROWS = select(*RESULT_COLUMNS)  # JSON columns decoded by SQLAlchemy (CSV)
 RECORDS = select(*record_columns())  # JSON columns as text (record_json)
 COUNT = select(func.count()).select_from(Result.__table__)
-COMPARE_BY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep")
+COMPARE_MAX_ROWS = 10_000
+GONE = error_docs(410)  # a job pruned by retention
 STREAM_CHUNK = 1000
 
 FloatList = Annotated[list[float] | None, Query()]
@@ -71,6 +71,17 @@ def _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep) -> list:
     if rep:
         conds.append(t.c.rep.in_(rep))
     return conds
+
+
+def _not_pruned(job: Job) -> None:
+    """410 for a job whose cell rows retention dropped (what is left, and where)."""
+    if job.pruned_at is not None:
+        raise FieldHTTPException(
+            410,
+            f"job {job.id}'s cell rows were dropped on {job.pruned_at:%Y-%m-%d %H:%M} UTC by "
+            "the team's retention policy; its summary (GET /jobs/{id}/summary), compare by "
+            "system, sigma_w, N, estimator and gamma, and its report remain",
+        )
 
 
 def _csv_value(v):
@@ -117,6 +128,7 @@ def _stream(session_factory, query: Select, fmt: str):
     response_model=ResultPage,
     responses={
         **ERRORS,
+        **GONE,
         200: {
             "content": {"text/csv": {}, "application/x-ndjson": {}},
             "description": "a JSON page, or the whole selection as CSV / JSON lines",
@@ -151,7 +163,7 @@ def get_results(
     `sort`: comma-separated numeric record fields, `-` for descending
     (`sort=-rmse_A,N`); nulls last; ties in grid order. Range filters on any numeric
     field: `<field>_lt`, `_lte`, `_gt`, `_gte` (`rmse_A_lt=0.01&N_gte=100`)."""
-    team_job(session, caller.team_id, job_id)
+    _not_pruned(team_job(session, caller.team_id, job_id))
     t = Result.__table__
     conds = _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep)
     conds += range_conditions(request, t)
@@ -185,14 +197,14 @@ def _group_out(g: dict) -> dict:
 @router.get("/jobs/{job_id}/summary", response_model=SummaryOut, responses=ERRORS)
 def get_summary(job_id: JobId, session: DB, caller: CurrentCaller):
     """Mean, std and count of every numeric field per (system, sigma_w, N, estimator,
-    gamma). Stored when the job succeeds; computed from the results so far otherwise
-    (`partial: true`)."""
+    gamma). Stored when the job succeeds; aggregated in the database from the results
+    so far otherwise (`partial: true`)."""
     job = team_job(session, caller.team_id, job_id)
     if job.status != "succeeded":  # units store their groups' summaries as they finish
         return {
             "job_id": job_id,
             "partial": True,
-            "groups": [_group_out(g) for g in summarize_job(session, job_id)],
+            "groups": [_group_out(g) for g in summarize_in_db(session, job_id)],
         }
     rows = session.scalars(
         select(Summary)
@@ -221,7 +233,7 @@ def _csv_list(value: str, name: str) -> list[str]:
     return items
 
 
-@router.get("/compare", response_model=CompareOut, responses=ERRORS)
+@router.get("/compare", response_model=CompareOut, responses={**ERRORS, **GONE})
 def compare(
     session: DB,
     caller: CurrentCaller,
@@ -232,9 +244,14 @@ def compare(
     by: Annotated[
         str, Query(description="comma-separated grid fields", max_length=200)
     ] = "N,estimator,gamma",
+    limit: Annotated[int, Query(ge=1, le=COMPARE_MAX_ROWS)] = 1000,
+    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
 ):
     """One metric across several jobs: mean, std (ddof 0) and count of the non-null
-    values per job and per combination of the `by` fields."""
+    values per job and per combination of the `by` fields, aggregated in the
+    database; one page of at most `limit` groups (at most 10,000; `total` counts
+    them all). Finished jobs are read from their stored summaries when `by` is
+    within system, sigma_w, N, estimator and gamma."""
     try:
         ids = [int(j) for j in _csv_list(jobs, "jobs")]
     except ValueError:
@@ -250,26 +267,17 @@ def compare(
     for b in by_fields:
         if b not in COMPARE_BY:
             raise FieldHTTPException(422, f"{b!r} is not one of {list(COMPARE_BY)}", "by")
-    for j in ids:
-        team_job(session, caller.team_id, j)
-    t = Result.__table__
-    cols = [t.c.job_id] + [t.c[b] for b in by_fields] + [t.c[metric].label("__metric")]
-    values: dict[tuple, list[float]] = defaultdict(list)
-    seen: set[tuple] = set()
-    for r in session.execute(select(*cols).where(t.c.job_id.in_(ids))):
-        key = tuple(r[:-1])
-        seen.add(key)
-        v = r[-1]
-        if v is not None and (not isinstance(v, float) or math.isfinite(v)):
-            values[key].append(float(v))
-    out = []
-    for key in sorted(seen, key=lambda k: tuple((v is None, v) for v in k[1:]) + (k[0],)):
-        vals = np.array(values.get(key, []), dtype=float)
-        row = {"job_id": key[0], **dict(zip(by_fields, key[1:]))}
-        row.update(
-            mean=float(vals.mean()) if vals.size else None,
-            std=float(vals.std()) if vals.size else None,
-            count=int(vals.size),
-        )
-        out.append(row)
-    return {"metric": metric, "by": by_fields, "jobs": ids, "rows": out}
+    found = [team_job(session, caller.team_id, j) for j in ids]
+    try:
+        page = compare_page(session, found, metric, by_fields, limit=limit, offset=offset)
+    except NeedsCellRows as exc:
+        raise FieldHTTPException(410, str(exc), "by") from None
+    return {
+        "metric": metric,
+        "by": by_fields,
+        "jobs": ids,
+        "rows": page.rows,
+        "total": page.total,
+        "limit": limit,
+        "offset": offset,
+    }

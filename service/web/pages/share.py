@@ -13,7 +13,7 @@ from fastapi import APIRouter, Depends, Form, Query, Request
 from fastapi.responses import RedirectResponse
 from sqlalchemy.orm import Session
 
-from service.api.deps import MAX_ID, Caller, get_db
+from service.api.deps import MAX_ID, Caller, SessionFactoryDep, get_db
 from service.api.routes import reports
 from service.db import shares
 from service.db.models import Job
@@ -122,10 +122,10 @@ def shared_chart_data(
 
 
 @router.get("/s/{token}/report")
-def shared_report(db: DB, token: str):
+def shared_report(db: DB, token: str, session_factory: SessionFactoryDep):
     link, job = _shared(db, token)
     reader = Caller(key_id=0, team_id=link.team_id, user_id=None, is_admin=False)
-    response = reports.job_report(job.id, db, reader)
+    response = reports.job_report(job.id, db, reader, session_factory)
     response.headers.update(
         {k: v for k, v in PAGE_HEADERS.items() if k != "Content-Security-Policy"}
     )

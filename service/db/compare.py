@@ -1,0 +1,194 @@
+"""``GET /compare`` aggregated inside the database (issue 13, bounded reads).
+
+One metric of several jobs: count, mean and std (ddof 0) of its non-null values
+per job and per combination of the ``by`` fields, one page of groups at a time
+(with the number of groups). Each source row carries ``(n, m, s)``: a result row
+is ``(1, x, 0)`` (``(0, NULL, 0)`` when x is null), a stored summary row its
+group's (count, mean, std). One pass pools them, shifted by a per-job constant
+``c`` (a value of the metric in that job) against cancellation: with
+``S1 = Σ n·(m − c)`` and ``S2 = Σ n·(s² + (m − c)²)`` (= Σ (x − c)² over the
+values), ``mean = c + S1/Σn`` and ``var = S2/Σn − (S1/Σn)²``. Succeeded jobs
+are read from their summaries when ``by`` is within the summary's group fields
+(a small fraction of the rows, and all that is left of a pruned job);
+otherwise from the results. Aliases are prefixed ``w_``: SQLite names are
+case-blind, and ``n`` would be the column ``N``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from sqlalchemy import Float, Integer, case, cast, func, literal, select, union_all
+from sqlalchemy.orm import Session
+
+from svrobs_core.records import BOOL_FIELDS, GROUP_FIELDS, SUMMARY_FIELDS
+
+from .models import Job, Result, Summary
+
+COMPARE_BY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep")
+CELL_KEY = frozenset(GROUP_FIELDS + ("rep",))  # one group is one cell: no aggregation
+NULLABLE = frozenset({"gamma", "N0"})
+
+
+class NeedsCellRows(Exception):
+    """The grouping needs cell rows that retention dropped (``job_ids``)."""
+
+    def __init__(self, job_ids: list[int], by: list[str]):
+        self.job_ids = job_ids
+        super().__init__(
+            f"job(s) {', '.join(map(str, job_ids))} were pruned by the team's retention "
+            f"policy: grouping by {', '.join(b for b in by if b not in GROUP_FIELDS)} needs "
+            f"their cell rows; group by {', '.join(GROUP_FIELDS)} (from the stored summaries)"
+        )
+
+
+@dataclass
+class ComparePage:
+    rows: list[dict]
+    total: int
+
+
+def _as_float(metric: str):
+    """A results column as a float (PostgreSQL casts a boolean only to an integer)."""
+    col = Result.__table__.c[metric]
+    return cast(cast(col, Integer) if metric in BOOL_FIELDS else col, Float)
+
+
+def _from_results(job_id: int, metric: str, by: list[str], shift: float):
+    t = Result.__table__
+    x = _as_float(metric)
+    return select(
+        t.c.job_id.label("job_id"),
+        *[t.c[b].label(b) for b in by],
+        case((x.is_(None), 0), else_=1).label("w_n"),
+        (x - shift).label("w_d"),
+        literal(0.0, Float).label("w_s"),
+    ).where(t.c.job_id == job_id)
+
+
+def _summary_stat(metric: str, name: str):
+    return Summary.__table__.c.stats[(metric, name)].as_float()
+
+
+def _from_summaries(job_id: int, metric: str, by: list[str], shift: float):
+    t = Summary.__table__
+    return select(
+        t.c.job_id.label("job_id"),
+        *[t.c[b].label(b) for b in by],
+        func.coalesce(_summary_stat(metric, "count"), 0.0).label("w_n"),
+        (_summary_stat(metric, "mean") - shift).label("w_d"),
+        func.coalesce(_summary_stat(metric, "std"), 0.0).label("w_s"),
+    ).where(t.c.job_id == job_id)
+
+
+def _shift(session: Session, job_id: int, metric: str) -> float:
+    """A value of the metric in the job (a stored group mean, else a cell's), or 0."""
+    v = None
+    if metric in SUMMARY_FIELDS:
+        mean = _summary_stat(metric, "mean")
+        v = session.scalar(select(mean).where(Summary.job_id == job_id, mean.is_not(None)).limit(1))
+    if v is None:
+        col = _as_float(metric)
+        v = session.scalar(
+            select(col).where(Result.__table__.c.job_id == job_id, col.is_not(None)).limit(1)
+        )
+    return float(v) if v is not None and math.isfinite(v) else 0.0
+
+
+def _order_of(col) -> tuple:
+    """ORDER BY terms of a ``by`` column: nulls last (only gamma and N0 have any)."""
+    return (col.is_(None), col) if col.name in NULLABLE else (col,)
+
+
+def compare_page(
+    session: Session, jobs: list[Job], metric: str, by: list[str], *, limit: int, offset: int
+) -> ComparePage:
+    """One page of the comparison (groups ordered by the ``by`` fields, nulls last,
+    then by job id) and the number of groups. Raises :class:`NeedsCellRows` when
+    ``by`` needs the cell rows of a pruned job."""
+    from_summaries = set(by) <= set(GROUP_FIELDS) and metric in SUMMARY_FIELDS
+    pruned = [j.id for j in jobs if j.pruned_at is not None]
+    if pruned and not from_summaries:
+        raise NeedsCellRows(pruned, by)
+    if set(by) >= CELL_KEY:
+        return _cell_page(session, jobs, metric, by, limit=limit, offset=offset)
+    shift = {j.id: _shift(session, j.id, metric) for j in jobs}
+    parts = []
+    for j in jobs:
+        source = _from_summaries if from_summaries and j.status == "succeeded" else _from_results
+        parts.append(source(j.id, metric, by, shift[j.id]))
+    src = (parts[0] if len(parts) == 1 else union_all(*parts)).subquery("src")
+    keys = [src.c.job_id] + [src.c[b] for b in by]
+    grouped = select(
+        *keys,
+        func.sum(src.c.w_n).label("w_count"),
+        func.sum(src.c.w_n * src.c.w_d).label("w_s1"),
+        func.sum(src.c.w_n * (src.c.w_s * src.c.w_s + src.c.w_d * src.c.w_d)).label("w_s2"),
+        func.count().over().label("w_total"),
+    ).group_by(*keys)
+    order = [c for b in by for c in _order_of(src.c[b])] + [src.c.job_id]
+    page = session.execute(grouped.order_by(*order).limit(limit).offset(offset)).all()
+    if page:
+        total = page[0]._mapping["w_total"]
+    else:  # past the end: count the groups
+        total = session.scalar(select(func.count()).select_from(grouped.subquery()))
+    out = []
+    for row in page:
+        r = row._mapping
+        count = int(r["w_count"] or 0)
+        mean = std = None
+        if count:
+            d = float(r["w_s1"]) / count
+            mean = shift[r["job_id"]] + d
+            std = math.sqrt(max(float(r["w_s2"]) / count - d * d, 0.0))
+        out.append(
+            {
+                "job_id": r["job_id"],
+                **{b: r[b] for b in by},
+                "mean": mean,
+                "std": std,
+                "count": count,
+            }
+        )
+    return ComparePage(out, int(total or 0))
+
+
+def _cell_page(session, jobs, metric, by, *, limit, offset) -> ComparePage:
+    """``by`` holds the whole cell key: each group is one row, read in index order."""
+    t = Result.__table__
+    ids = [j.id for j in jobs]
+    x = _as_float(metric)
+    order = [c for b in by for c in _order_of(t.c[b])]
+    if by.index("estimator") < by.index("gamma"):
+        # gamma is null exactly for ols: within one estimator, gamma_key (-1 for ols)
+        # orders as gamma with nulls last, and lets the cell-key index give the order
+        i = next(k for k, c in enumerate(order) if c is t.c.gamma)
+        order[i - 1 : i + 1] = [t.c.gamma_key]
+    q = (
+        select(t.c.job_id, *[t.c[b] for b in by], x.label("w_x"))
+        .where(t.c.job_id.in_(ids))
+        .order_by(*order, t.c.job_id)
+        .limit(limit)
+        .offset(offset)
+    )
+    out = []
+    for row in session.execute(q):
+        r = row._mapping
+        v = r["w_x"]
+        ok = v is not None and math.isfinite(v)
+        out.append(
+            {
+                "job_id": r["job_id"],
+                **{b: r[b] for b in by},
+                "mean": float(v) if ok else None,
+                "std": 0.0 if ok else None,
+                "count": int(ok),
+            }
+        )
+    # a succeeded job holds each of its n_cells cells once: count only the others' rows
+    total = sum(j.n_cells for j in jobs if j.status == "succeeded")
+    running = [j.id for j in jobs if j.status != "succeeded"]
+    if running:
+        total += session.scalar(select(func.count()).select_from(t).where(t.c.job_id.in_(running)))
+    return ComparePage(out, int(total))

@@ -1,0 +1,126 @@
+"""Stored reports (``job_reports``) and the bounded read the report is built from.
+
+A finished job never changes, so its report is built once (by a worker when the
+tick sees the job finished, or at the first request) and then served as stored.
+The build reads only the fields the report uses (``REPORT_FIELDS``), straight
+from the cursor into preallocated numpy arrays in chunks of ``CHUNK`` rows: no
+record dicts, and no ``A_hat``/``B_hat`` above ``MATRIX_CELLS_LIMIT`` cells
+(as ``svrobs reproduce`` does; the figures that need them say "no data").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic_core import from_json
+from sqlalchemy import Text, cast, func, select
+from sqlalchemy.orm import Session
+
+from svrobs_core.records import BOOL_FIELDS
+from svrobs_core.report.columns import COLUMN_MATRIX_FIELDS, SCALAR_FIELDS, TEXT_FIELDS, Columns
+
+from .models import JOB_ACTIVE, Job, JobReport, Result, utcnow
+
+CHUNK = 5_000
+MATRIX_CELLS_LIMIT = 200_000
+
+
+def stored_report(session: Session, job_id: int) -> JobReport | None:
+    return session.get(JobReport, job_id)
+
+
+def is_final(job: Job) -> bool:
+    """A finished job (succeeded, failed or cancelled): its report can be stored."""
+    return job.status not in JOB_ACTIVE
+
+
+def store_report(session: Session, job_id: int, html: str, n_records: int) -> JobReport:
+    """Store (or replace) a job's report."""
+    row = session.get(JobReport, job_id)
+    if row is None:
+        row = JobReport(job_id=job_id, html=html, n_records=n_records)
+        session.add(row)
+    else:
+        row.html, row.n_records, row.built_at = html, n_records, utcnow()
+    session.flush()
+    return row
+
+
+def jobs_without_report(session: Session, limit: int, finished_after=None) -> list[int]:
+    """Finished jobs that have cell rows and no stored report (finished after
+    ``finished_after`` if given), newest first."""
+    q = (
+        select(Job.id)
+        .where(Job.status.not_in(JOB_ACTIVE), Job.pruned_at.is_(None), Job.n_cells > 0)
+        .where(~select(JobReport.job_id).where(JobReport.job_id == Job.id).exists())
+        .order_by(Job.finished_at.desc())
+        .limit(limit)
+    )
+    if finished_after is not None:
+        q = q.where(Job.finished_at >= finished_after)
+    return list(session.scalars(q))
+
+
+def _matrix_block(texts: list, shape: tuple[int, int] | None) -> tuple[np.ndarray, tuple | None]:
+    """JSON matrices (text, None for null) -> (k, a, b) floats, NaN where missing."""
+    values = from_json("[" + ",".join(t or "null" for t in texts) + "]")
+    if shape is None:
+        shape = next((np.shape(v) for v in values if v is not None), None)
+    if shape is None or len(shape) != 2:
+        return np.full((len(values), 0, 0), np.nan), None
+    out = np.full((len(values), *shape), np.nan)
+    for i, v in enumerate(values):
+        if v is not None and np.shape(v) == shape:
+            out[i] = np.asarray(v, dtype=float)
+    return out, shape
+
+
+def load_columns(session: Session, job_id: int, *, matrices: bool | None = None) -> Columns:
+    """The job's stored records as report :class:`Columns` (the same values as
+    ``Columns.from_records`` of its records), read in chunks. ``matrices``: load
+    ``A_hat``/``B_hat`` (default: when the job has at most MATRIX_CELLS_LIMIT rows)."""
+    t = Result.__table__
+    n = session.scalar(select(func.count()).select_from(t).where(t.c.job_id == job_id)) or 0
+    if matrices is None:
+        matrices = n <= MATRIX_CELLS_LIMIT
+    mats = COLUMN_MATRIX_FIELDS if matrices else ()
+    cols = [t.c[f] for f in SCALAR_FIELDS + TEXT_FIELDS] + [cast(t.c[f], Text) for f in mats]
+    data: dict[str, np.ndarray] = {f: np.full(n, np.nan) for f in SCALAR_FIELDS}
+    text = {f: np.empty(n, dtype=object) for f in TEXT_FIELDS}
+    blocks: dict[str, list] = {f: [] for f in mats}
+    shapes: dict[str, tuple | None] = dict.fromkeys(mats)
+    order = [t.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
+    # at most the rows counted (a running job may be writing more meanwhile)
+    q = select(*cols).where(t.c.job_id == job_id).order_by(*order).limit(n)
+    ns, nt = len(SCALAR_FIELDS), len(TEXT_FIELDS)
+    interned: dict[str, dict] = {f: {} for f in TEXT_FIELDS}
+    at = 0
+    for part in session.execute(q.execution_options(yield_per=CHUNK)).partitions(CHUNK):
+        k = len(part)
+        columns = list(zip(*part))
+        for i, f in enumerate(SCALAR_FIELDS):
+            col = columns[i]
+            if f in BOOL_FIELDS:
+                col = [None if v is None else float(v) for v in col]
+            data[f][at : at + k] = np.array(col, dtype=float)  # None -> nan
+        for i, f in enumerate(TEXT_FIELDS):  # one str object per distinct value, not per row
+            uniq = interned[f]
+            text[f][at : at + k] = [uniq.setdefault(v, v) for v in columns[ns + i]]
+        for i, f in enumerate(mats):
+            block, shapes[f] = _matrix_block(list(columns[ns + nt + i]), shapes[f])
+            blocks[f].append(block)
+        at += k
+    data = {f: a[:at] for f, a in data.items()}
+    data.update({f: a[:at] for f, a in text.items()})
+    for f in mats:
+        shape = shapes[f]
+        data[f] = (
+            np.concatenate(
+                [
+                    b if b.shape[1:] == shape else np.full((len(b), *shape), np.nan)
+                    for b in blocks[f]
+                ]
+            )
+            if shape is not None
+            else np.full((at, 0, 0), np.nan)
+        )
+    return Columns(data, at)

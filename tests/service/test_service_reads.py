@@ -1,0 +1,266 @@
+"""Bounded reads (issue 13, item 3): the report read as columns and stored once,
+compare aggregated in the database and paginated, GET /jobs with a spec summary.
+
+Oracles: the report built from the records decoded row by row
+(``row_to_record``, the pre-issue-13 path); compare numbers from numpy over
+those records; the spec summary from the spec itself."""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+
+import numpy as np
+import pytest
+from sqlalchemy import delete, select
+
+from service.db.models import JobReport, Result
+from service.db.reports import load_columns
+from service.db.results_store import row_to_record
+from service.reports.html import job_report_html
+from svrobs_core.report import Columns
+from svrobs_core.runner import run_unit
+from svrobs_core.spec import parse_spec
+from tests.service.svc_fakes import run_job_units
+from tests.service.svc_helpers import SMALL_SPEC, scope_of
+
+API = "/api/v1"
+REAL_SPEC = {
+    "systems": ["paper-stable", "paper-unstable"],
+    "sigma_w": [0.1, 1.0],
+    "N": [20, 40],
+    "reps": 3,
+    "gamma": [0.05, 0.1],
+    "estimators": ["ols", "svr"],
+    "stages": ["estimate", "bounds", "gain"],
+    "seed": 5,
+}
+
+
+def _records(session, job_id) -> list[dict]:
+    t = Result.__table__
+    order = [t.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
+    return [
+        row_to_record(r)
+        for r in session.scalars(select(Result).where(t.c.job_id == job_id).order_by(*order))
+    ]
+
+
+def _run_core(session, job_id):
+    from service.db import jobs, units
+
+    for uid in jobs.unit_ids_of_job(session, job_id, pending_only=False):
+        spec, payload = units.start_unit(session, uid, "test", 60)
+        units.complete_unit(session, uid, run_unit(parse_spec(spec), payload))
+        session.commit()
+
+
+def _same_columns(a: Columns, b: Columns):
+    assert a.n == b.n and set(a.data) == set(b.data)
+    for f in a.data:
+        x, y = a.data[f], b.data[f]
+        if x.dtype == object:
+            assert list(x) == list(y), f
+        else:
+            np.testing.assert_array_equal(x, y, err_msg=f)  # NaN == NaN here
+
+
+def test_report_from_columns_equals_report_from_rows_and_is_stored(client, session, make_account):
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json={**REAL_SPEC, "name": "r"}, headers=acc.headers).json()[
+        "id"
+    ]
+    _run_core(session, jid)
+    records = _records(session, jid)
+    _same_columns(load_columns(session, jid), Columns.from_records(records))
+    r = client.get(f"{API}/jobs/{jid}/report", headers=acc.headers)
+    assert r.status_code == 200, r.text
+    job = client.get(f"{API}/jobs/{jid}", headers=acc.headers).json()
+    provenance = {
+        **job["provenance"],
+        "job_id": jid,
+        "status": "succeeded",
+        "progress": f"{job['progress']['done']}/{job['progress']['total']} units",
+    }
+    assert r.text == job_report_html(job["spec"], records, provenance, name="r")
+    stored = session.get(JobReport, jid)
+    assert stored is not None and stored.n_records == len(records) and stored.html == r.text
+    # a finished job's report is served as stored: it no longer reads the rows
+    session.execute(delete(Result).where(Result.job_id == jid))
+    session.commit()
+    again = client.get(f"{API}/jobs/{jid}/report", headers=acc.headers)
+    assert again.status_code == 200 and again.text == r.text
+
+
+def test_load_columns_without_matrices_and_running_job_report_not_stored(
+    client, session, make_account
+):
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    from service.db import jobs, units
+    from tests.service.svc_fakes import fake_records
+
+    uid = jobs.unit_ids_of_job(session, jid, pending_only=False)[0]
+    spec, payload = units.start_unit(session, uid, "w", 60)
+    units.complete_unit(session, uid, fake_records(spec, payload))
+    session.commit()
+    cols = load_columns(session, jid, matrices=False)
+    assert "A_hat" not in cols.data and cols.n == len(_records(session, jid)) > 0
+    full = Columns.from_records(_records(session, jid), matrices=False)
+    _same_columns(cols, full)
+    r = client.get(f"{API}/jobs/{jid}/report", headers=acc.headers)
+    assert r.status_code == 200 and "<html>" in r.text
+    assert session.get(JobReport, jid) is None  # a running job changes: never stored
+
+
+def _numpy_compare(records, jid, metric, by):
+    values, seen = defaultdict(list), set()
+    for rec in records:
+        key = (jid, *(rec[b] for b in by))
+        seen.add(key)
+        v = rec[metric]
+        if v is not None and math.isfinite(float(v)):
+            values[key].append(float(v))
+    out = {}
+    for key in seen:
+        v = np.array(values.get(key, []))
+        out[key] = (v.mean() if v.size else None, v.std() if v.size else None, v.size)
+    return out
+
+
+@pytest.mark.parametrize(
+    "metric,by",
+    [
+        ("rmse_A", "N,estimator,gamma"),  # from the summaries
+        ("thm1_holds_A", "system,sigma_w,N,estimator,gamma"),  # booleans, summaries
+        ("rmse_B", "estimator"),  # all null
+        ("H_A", "N,rep"),  # rep: from the rows
+        ("rmse_A", "rep,gamma,N,system,estimator,sigma_w"),  # the cell key: one row a group
+        ("thm1_holds_A", "system,sigma_w,N,N0,estimator,gamma,rep"),
+        ("N0", "gamma"),  # not a summary field: from the rows
+    ],
+)
+def test_compare_in_the_database_equals_numpy_over_the_rows(
+    client, session, make_account, metric, by
+):
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    run_job_units(session, jid)
+    expected = _numpy_compare(_records(session, jid), jid, metric, by.split(","))
+    rows, offset = [], 0
+    while True:  # pages of 5
+        r = client.get(
+            f"{API}/compare",
+            params={"jobs": jid, "metric": metric, "by": by, "limit": 5, "offset": offset},
+            headers=acc.headers,
+        )
+        assert r.status_code == 200, r.text
+        body = r.json()
+        assert body["total"] == len(expected) and body["limit"] == 5
+        rows += body["rows"]
+        offset += 5
+        if offset >= body["total"]:
+            break
+    keys = [(x["job_id"], *(x[b] for b in by.split(","))) for x in rows]
+    assert len(keys) == len(set(keys)) == len(expected)
+    # ordered by the by fields (nulls last), then job id
+    assert keys == sorted(keys, key=lambda k: tuple((v is None, v or 0) for v in k[1:]) + (k[0],))
+    for k, x in zip(keys, rows):
+        mean, std, count = expected[k]
+        assert x["count"] == count
+        if count:
+            assert x["mean"] == pytest.approx(mean, rel=1e-12, abs=1e-15)
+            assert x["std"] == pytest.approx(std, rel=1e-9, abs=1e-12)
+        else:
+            assert x["mean"] is None and x["std"] is None
+
+
+def test_compare_limit_above_cap_is_422(client, session, make_account):
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    r = client.get(
+        f"{API}/compare",
+        params={"jobs": jid, "metric": "rmse_A", "limit": 10_001},
+        headers=acc.headers,
+    )
+    assert r.status_code == 422 and r.json()["field"] == "limit", r.text
+
+
+def test_job_list_has_a_spec_summary_and_the_job_the_spec(client, session, make_account):
+    acc = make_account()
+    big = {**SMALL_SPEC, "N": {"start": 10, "stop": 5000, "step": 1}, "reps": 1}
+    jid = client.post(f"{API}/jobs", json=big, headers=acc.headers).json()["id"]
+    listed = client.get(f"{API}/jobs", headers=acc.headers)
+    (item,) = listed.json()["items"]
+    assert "spec" not in item and len(listed.content) < 2000
+    full = client.get(f"{API}/jobs/{jid}", headers=acc.headers).json()
+    spec = full["spec"]
+    assert item["spec_summary"] == {
+        "systems": spec["systems"],
+        "grid": {"sigma_w": 2, "N": len(spec["N"]), "gamma": 2, "reps": 1},
+        "N_range": [min(spec["N"]), max(spec["N"])],
+        "estimators": ["ols", "svr"],
+        "stages": spec["stages"],
+        "n_cells": full["n_cells"],
+    }
+    assert full["n_cells"] == parse_spec(big).n_cells
+
+
+def test_partial_summary_in_the_database_equals_numpy_over_the_rows(client, session, make_account):
+    from service.db import jobs, units
+    from service.db.aggregates import summarize_in_db
+    from svrobs_core.records import GROUP_FIELDS, SUMMARY_FIELDS, summarize_columns
+    from tests.service.svc_fakes import fake_records
+
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    for uid in jobs.unit_ids_of_job(session, jid, pending_only=False)[:3]:
+        spec, payload = units.start_unit(session, uid, "w", 60)
+        units.complete_unit(session, uid, fake_records(spec, payload))
+    session.commit()
+    recs = _records(session, jid)
+    want = summarize_columns({f: [r[f] for r in recs] for f in GROUP_FIELDS + SUMMARY_FIELDS})
+    body = client.get(f"{API}/jobs/{jid}/summary", headers=acc.headers).json()
+    assert body["partial"] is True and body["groups"] == summarize_in_db(session, jid)
+    got = body["groups"]
+    assert [tuple(g[k] for k in GROUP_FIELDS) for g in got] == [
+        tuple(g[k] for k in GROUP_FIELDS) for g in want
+    ]
+    for g, w in zip(got, want):
+        assert g["count"] == w["count"]
+        for f in SUMMARY_FIELDS:
+            a, b = g["stats"][f], w["stats"][f]
+            assert a["count"] == b["count"], f
+            for k in ("mean", "std"):
+                if b[k] is None:
+                    assert a[k] is None, f
+                else:
+                    assert a[k] == pytest.approx(b[k], rel=1e-12, abs=1e-15), (f, k)
+
+
+def test_tick_stores_the_reports_of_recently_finished_jobs(
+    client, session, session_factory, make_account
+):
+    from datetime import timedelta
+
+    from service.db.clock import db_now
+    from service.db.models import Job
+    from worker.tick import build_reports
+
+    acc = make_account()
+    new, old, running = (
+        client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+        for _ in range(3)
+    )
+    run_job_units(session, new)
+    run_job_units(session, old)
+    session.get(Job, old).finished_at = db_now(session) - timedelta(days=30)
+    session.commit()
+    assert build_reports(limit=10, scope=scope_of(session_factory)) == [new]
+    session.expire_all()
+    stored = session.get(JobReport, new)
+    assert stored is not None and stored.n_records == len(_records(session, new))
+    assert session.get(JobReport, old) is None and session.get(JobReport, running) is None
+    page = client.get(f"{API}/jobs/{new}/report", headers=acc.headers)
+    assert page.status_code == 200 and page.text == stored.html
+    assert build_reports(limit=10, scope=scope_of(session_factory)) == []
