@@ -99,7 +99,8 @@ def project_l1_ball(V, radius) -> np.ndarray:
     return np.where(inside[..., None], V, W)
 
 
-def _is_orthogonal(C) -> bool:
+def is_orthogonal(C) -> bool:
+    """True when C is square with C^T C = I (to 1e-12): the closed-form design applies."""
     C = np.asarray(C, dtype=float)
     if C.shape[-1] != C.shape[-2]:
         return False
@@ -137,7 +138,7 @@ def design_gain(A_tilde, gamma, r_A, C, *, K_hat, margin=0.01, method="auto") ->
         & np.isfinite(rho)
     )
 
-    orth = _is_orthogonal(C)
+    orth = is_orthogonal(C)
     if method == "auto":
         method = "closed_form" if orth else "cvxpy"
     if method == "closed_form":

@@ -1,0 +1,203 @@
+"""Cost model of a work unit: CPU seconds and peak memory before running it.
+
+``estimate_unit(spec, unit)`` -> :class:`UnitCost`, ``estimate_job(spec)`` ->
+:class:`JobCost`: operation counts of the pipeline's stages (SPEC sections
+1-8, in the order of :mod:`svrobs_core.pipeline`) times per-operation
+constants calibrated on the development machine (``bench/workload.py``
+prints the estimate against the measured CPU time and peak RSS), and the
+bytes of the arrays the pipeline allocates. The model is meant for admission
+(refuse work over a limit before it runs) and for planning units under a
+memory cap (:func:`svrobs_core.planning.plan_units`): the target accuracy is
+a factor of 3, and it is monotone in every size parameter.
+
+``peak_bytes`` is the resident size of a worker process running the unit:
+the interpreter with the core imported (cvxpy too when the unit needs it)
+plus the unit's largest working set and the records it keeps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .gains import is_orthogonal
+from .spec import ExperimentSpec
+
+# -- per-operation constants (seconds), calibrated with bench/workload.py ----
+NORMAL = 1.2e-8  # one standard normal draw
+FLOP = 5.5e-10  # one flop of the data path (simulation, Gram products, OLS residuals)
+KEY = 1.5e-5  # per repetition: seeding its generator, its small solves
+CALL = 1.5e-6  # one numpy call in a Python-level loop over time steps
+DATASET = 1.5e-3  # per (unit, N): the fixed cost of the stage chain
+# per cell of a stage, as c0 + c3 n^3 (+ c6 n^6): the vectorised small-matrix work
+CELL_COST = {
+    "estimate": (8.0e-6, 0.0, 0.0),  # records' JSON text, rmse
+    "bounds": (3.0e-6, 6.5e-9, 0.0),
+    "gain": (3.5e-5, 1.5e-7, 1.1e-10),  # Kalman SDA, Newton step (Kronecker LU: n^6)
+    "cost": (1.0e-5, 3.0e-7, 0.0),  # exact (doubling) and stationary cost
+    "cost_bound": (5.0e-6, 2.5e-8, 0.0),
+}
+TRUTH = (0.015, 1.9e-5)  # per unit with gain: K, J*, norms of the true system (c0 + c n^3)
+MC_DRAW = 1.2e-8  # Monte Carlo: per (row, step, run) and noise entry (draw + plant)
+MC_CELL = 2.5e-10  # Monte Carlo: per (cell, step, run) and n (W + n) multiply-add
+MC_STEP = 5.0e-6  # Monte Carlo: per step, the Python loop's calls
+CVX_SOLVE = 3.0e-3  # one small cvxpy + Clarabel solve (general-C gain design)
+SLS_SOLVE = 1.5e-3  # one SLS solve: fixed part
+SLS_VAR = 8.0e-6  # one SLS solve: per scalar variable T_fir n (n + p)
+SLS_COMPILE = 1.0e-2  # compiling the SLS program (once per unit): fixed part
+SLS_COMPILE_VAR = 6.0e-6  # compiling: per scalar variable
+
+# -- memory (bytes) ------------------------------------------------------------
+BASE_BYTES = 50 * 2**20  # interpreter + numpy + scipy + svrobs_core
+CVXPY_BYTES = 70 * 2**20  # importing cvxpy + Clarabel
+SLS_VAR_BYTES = 3_200  # the compiled SLS program per scalar variable
+RECORD_BYTES = 1_000  # per record kept: its JSON text and column values
+RECORD_ENTRY_BYTES = 40  # per matrix entry of a record
+GRAM_CHUNK_BYTES = 2 * 2**20  # svrobs_core.rollouts.CHUNK_BYTES
+MC_BLOCK = 2**17  # svrobs_core.cost_mc: floats per Monte Carlo block
+KRON_CHUNK_BYTES = 64 * 2**20  # svrobs_core.norms._CHUNK_BYTES
+
+
+@dataclass(frozen=True)
+class UnitCost:
+    """Estimated CPU seconds and peak resident bytes of one work unit."""
+
+    cpu_seconds: float
+    peak_bytes: int
+
+
+@dataclass(frozen=True)
+class JobCost:
+    """Estimated total CPU seconds, the largest unit's peak bytes, the unit count."""
+
+    cpu_seconds: float
+    peak_unit_bytes: int
+    n_units: int
+
+
+def _dims(spec: ExperimentSpec, si: int) -> tuple[int, int, int, bool]:
+    s = spec.systems[si]
+    return s.n, s.m, s.p, bool(is_orthogonal(s.C))
+
+
+def _needs_cvxpy(spec: ExperimentSpec, orth: bool) -> bool:
+    return spec.has("sls") or (spec.has("gain") and not orth)
+
+
+def _cell(stage: str, n: int) -> float:
+    c0, c3, c6 = CELL_COST[stage]
+    return c0 + c3 * n**3 + c6 * n**6
+
+
+def _dataset(spec: ExperimentSpec, *, n, m, p, orth, N, R, mc_rows) -> tuple[float, float, float]:
+    """(cpu seconds, transient bytes, kept bytes) of one N of a unit with R reps."""
+    T0, E = spec.T0, spec.cells_per_rep
+    d, q = n + m, 2 * n + m
+    K = T0 - 1 if spec.data == "all" else 1
+    N0 = K * N
+    cells = R * E
+    # data (rollouts.gram_data): draws, simulation and Gram products per sample
+    per_rep = 8.0 * N * (q * (T0 + 1) + d * T0)
+    chunk = max(1, min(R, int(GRAM_CHUNK_BYTES // per_rep)))
+    cpu = DATASET + KEY * R + CALL * T0 * -(-R // chunk)
+    cpu += NORMAL * R * (m + n) * T0 * N + FLOP * R * N * (2 * n * q * T0 + 2 * (d + n) * d * K)
+    mem = chunk * per_rep
+    if any(e in ("ols", "shrunk-ols") for e in spec.estimators):
+        # estimators.fit_ols keeps Z, F and forms the residual F - Theta Z
+        cpu += FLOP * R * N0 * (2 * d * d + 6 * n * d)
+        mem = max(mem, 2 * 8.0 * R * (d + n) * N0)
+    # per-cell work of the stages (small matrices, vectorised over the cells)
+    h = max(n, p)
+    cpu += cells * sum(_cell(st, h) for st in CELL_COST if spec.has(st))
+    if spec.has("gain"):
+        # kalman._stein: all cells' (n^2 x n^2) Kronecker systems at once
+        mem = max(mem, 3 * 8.0 * cells * n**4)
+        if not orth:
+            cpu += CVX_SOLVE * cells * (1 + n * p / 50.0)
+    if spec.has("cost"):
+        cpu += _monte_carlo_cpu(spec, n=n, m=m, p=p, rows=mc_rows, E=E)
+        mem = max(mem, _monte_carlo_bytes(spec, n=n, m=m, p=p, rows=mc_rows, E=E))
+        mem = max(mem, 3.0 * min(8.0 * cells * n**4, KRON_CHUNK_BYTES))  # stationary Stein
+    if spec.has("sls"):
+        cpu += cells * (SLS_SOLVE + SLS_VAR * spec.sls_T_fir * n * (n + p))
+    kept = cells * (RECORD_BYTES + RECORD_ENTRY_BYTES * (2 * n * n + n * m + 2 * n * p))
+    return cpu, mem, kept
+
+
+def _mc_sizes(spec, *, n, m, p):
+    T, runs = spec.horizon, spec.mc_runs
+    q = m + n + p
+    W = n + q
+    return T, runs, q, W, max(1, min(T, MC_BLOCK // (runs * W)))
+
+
+def _monte_carlo_cpu(spec, *, n, m, p, rows, E) -> float:
+    """cost_mc.mc_cost_shared over ``rows`` repetitions of E cells each."""
+    if rows == 0:
+        return 0.0
+    T, runs, q, W, _ = _mc_sizes(spec, n=n, m=m, p=p)
+    steps = rows * T * runs
+    return steps * (MC_DRAW * q + MC_CELL * E * n * (W + n)) + MC_STEP * T
+
+
+def _monte_carlo_bytes(spec, *, n, m, p, rows, E) -> float:
+    if rows == 0:
+        return 0.0
+    T, runs, q, W, h = _mc_sizes(spec, n=n, m=m, p=p)
+    Xz = rows * W * (h + 1) * runs
+    Ev = rows * E * (h + 1) * n * runs
+    D = 2 * rows * E * n * h * runs  # the block's inputs and the einsum's product
+    acc = 2 * rows * E * n * runs
+    draw = 2 * h * runs * q
+    return 8.0 * (Xz + Ev + D + acc + draw)
+
+
+def estimate_unit(spec: ExperimentSpec, unit: dict) -> UnitCost:
+    """CPU seconds and peak resident bytes of one unit of ``plan_units(spec)``."""
+    si = unit["system"]
+    n, m, p, orth = _dims(spec, si)
+    r0, r1 = unit["reps"]
+    R = r1 - r0
+    limit = spec.reps if spec.mc_reps is None else spec.mc_reps
+    mc_rows = max(0, min(r1, limit) - r0)
+    cpu, peak, kept = 0.0, 0.0, 0.0
+    for N in unit["N"]:
+        c, transient, k = _dataset(spec, n=n, m=m, p=p, orth=orth, N=N, R=R, mc_rows=mc_rows)
+        cpu += c
+        peak = max(peak, kept + transient)
+        kept += k
+    base = BASE_BYTES
+    if spec.has("gain"):
+        cpu += TRUTH[0] + TRUTH[1] * n**3
+    if _needs_cvxpy(spec, orth):
+        base += CVXPY_BYTES
+    if spec.has("sls"):
+        vars_ = spec.sls_T_fir * n * (n + p)
+        cpu += SLS_COMPILE + SLS_COMPILE_VAR * vars_
+        base += SLS_VAR_BYTES * vars_
+    return UnitCost(cpu_seconds=float(cpu), peak_bytes=int(base + peak))
+
+
+def estimate_job(spec: ExperimentSpec, units: list[dict] | None = None) -> JobCost:
+    """Total CPU seconds of ``units`` (default: ``plan_units(spec)``), the largest
+    unit's peak bytes and the unit count."""
+    if units is None:
+        from .planning import plan_units
+
+        units = plan_units(spec)
+    seen: dict[tuple, UnitCost] = {}  # units differing only in sigma_w cost the same
+    costs = []
+    limit = spec.reps if spec.mc_reps is None else spec.mc_reps
+    for u in units:
+        r0, r1 = u["reps"]
+        key = (u["system"], tuple(u["N"]), r1 - r0, max(0, min(r1, limit) - r0))
+        if key not in seen:
+            seen[key] = estimate_unit(spec, u)
+        costs.append(seen[key])
+    return JobCost(
+        cpu_seconds=float(sum(c.cpu_seconds for c in costs)),
+        peak_unit_bytes=max((c.peak_bytes for c in costs), default=0),
+        n_units=len(units),
+    )
+
+
+__all__ = ["JobCost", "UnitCost", "estimate_job", "estimate_unit"]
