@@ -27,15 +27,19 @@ def load_spec_file(path: Path) -> dict:
 
 
 def run_local(spec_obj: dict, out: Path, *, quiet: bool = False) -> dict:
-    """Run a spec in process; returns ``{"records": n, "out": str}``."""
+    """Run a spec in process; returns ``{"records": n, "out": str}``.
+
+    The job limits of the service apply (:func:`service.db.jobs.admit`: cells,
+    estimated CPU seconds, memory per unit): a spec over one raises its SpecError."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
-    from svrobs_core import parse_spec, plan_units, summarize
+    from service.db.jobs import admit
+    from svrobs_core import parse_spec, summarize
     from svrobs_core.runner import run_unit_result
 
     spec = parse_spec(spec_obj)
-    units = plan_units(spec)
+    units = admit(spec)  # the service's limits (SVROBS_MAX_JOB_*), units under the memory cap
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     records: list[dict] = []

@@ -15,6 +15,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, joinedload
 
 from service.api.errors import FieldHTTPException
+from service.api.params import IntText
 from service.config import Settings
 from service.db.accounts import authenticate
 from service.db.models import Job
@@ -24,7 +25,7 @@ Publisher = Callable[[Sequence[int]], list[int]]
 BrokerCheck = Callable[[], None]  # raises when the broker does not answer
 
 MAX_ID = 2_147_483_647  # ids are 32-bit integers on every dialect
-JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="a job id of the caller's team")]
+JobId = Annotated[int, IntText, Path(ge=1, le=MAX_ID, description="a job id of the caller's team")]
 
 
 async def get_settings_dep(request: Request) -> Settings:

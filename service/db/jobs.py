@@ -16,7 +16,8 @@ from sqlalchemy.orm import Session
 
 from service.config import get_settings
 from svrobs_core.planning import plan_units, unit_cells
-from svrobs_core.spec import parse_spec
+from svrobs_core.spec import ExperimentSpec, parse_spec
+from svrobs_core.workload import estimate_job
 
 from .errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
 from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
@@ -33,13 +34,16 @@ def create_job(
     tags: Iterable[str] = (),
     idempotency_key: str | None = None,
     max_cells: int | None = None,
+    max_cpu_seconds: float | None = None,
+    max_unit_mb: int | None = None,
     max_active_jobs: int | None = None,
     schedule_id: int | None = None,
 ) -> tuple[Job, bool]:
     """Validate ``spec`` and insert the job and its work units (not committed).
 
     Raises :class:`SpecError` (naming the field) for a bad spec,
-    :class:`JobTooLarge` over ``max_cells`` (default SVROBS_MAX_JOB_CELLS),
+    :class:`JobTooLarge` over ``max_cells`` (default SVROBS_MAX_JOB_CELLS) or over the
+    work limits of :func:`admit`,
     :class:`QuotaExceeded` when the team has ``max_active_jobs`` queued or
     running jobs (default SVROBS_MAX_QUEUED_JOBS_PER_TEAM; pass 0 to skip),
     :class:`IdempotencyConflict` when the key was used with another spec.
@@ -48,12 +52,9 @@ def create_job(
     """
     parsed = parse_spec(spec)
     normalised = parsed.to_dict()
-    limit = get_settings().MAX_JOB_CELLS if max_cells is None else max_cells
-    if parsed.n_cells > limit:
-        raise JobTooLarge(
-            "spec",
-            f"the job has {parsed.n_cells} cells; the limit is {limit} (SVROBS_MAX_JOB_CELLS)",
-        )
+    units = admit(
+        parsed, max_cells=max_cells, max_cpu_seconds=max_cpu_seconds, max_unit_mb=max_unit_mb
+    )
     tags = list(dict.fromkeys(str(t) for t in tags))
 
     if idempotency_key is not None:
@@ -72,7 +73,6 @@ def create_job(
                 "(SVROBS_MAX_QUEUED_JOBS_PER_TEAM)"
             )
 
-    units = plan_units(parsed)
     job = Job(
         team_id=team_id,
         user_id=user_id,
@@ -122,6 +122,50 @@ def create_job(
     return job, True
 
 
+def admit(
+    spec: ExperimentSpec,
+    *,
+    field: str = "spec",
+    max_cells: int | None = None,
+    max_cpu_seconds: float | None = None,
+    max_unit_mb: int | None = None,
+) -> list[dict]:
+    """The spec's work units, planned to stay under SVROBS_MAX_UNIT_MEMORY_MB
+    (:func:`svrobs_core.planning.plan_units`), if the job is admissible.
+
+    Raises :class:`JobTooLarge` (naming ``field``, the estimate and the limit) when the
+    job has more than SVROBS_MAX_JOB_CELLS cells, when its estimated CPU time
+    (:func:`svrobs_core.workload.estimate_job`) is over SVROBS_MAX_JOB_CPU_SECONDS, or
+    when a unit needs more memory than the cap even split down to one repetition.
+    Each limit defaults to its setting.
+    """
+    settings = get_settings()
+    cells = settings.MAX_JOB_CELLS if max_cells is None else max_cells
+    if spec.n_cells > cells:
+        raise JobTooLarge(
+            field,
+            f"the job has {spec.n_cells:,} cells; the limit is {cells:,} (SVROBS_MAX_JOB_CELLS)",
+        )
+    cpu_limit = settings.MAX_JOB_CPU_SECONDS if max_cpu_seconds is None else max_cpu_seconds
+    mb_limit = settings.MAX_UNIT_MEMORY_MB if max_unit_mb is None else max_unit_mb
+    units = plan_units(spec, max_unit_bytes=int(mb_limit * 2**20))
+    cost = estimate_job(spec, units)
+    if cost.peak_unit_bytes > mb_limit * 2**20:
+        raise JobTooLarge(
+            field,
+            f"a work unit of this job needs an estimated {cost.peak_unit_bytes / 2**20:,.0f} MB "
+            f"even with one repetition; the limit is {mb_limit:,} MB (SVROBS_MAX_UNIT_MEMORY_MB)",
+        )
+    if cost.cpu_seconds > cpu_limit:
+        raise JobTooLarge(
+            field,
+            f"the job needs an estimated {cost.cpu_seconds:,.0f} CPU seconds "
+            f"({cost.cpu_seconds / 3600:,.1f} h); the limit is {cpu_limit:,.0f} "
+            "(SVROBS_MAX_JOB_CPU_SECONDS)",
+        )
+    return units
+
+
 def _job_by_key(session: Session, team_id: int, key: str) -> Job | None:
     return session.scalar(select(Job).where(Job.team_id == team_id, Job.idempotency_key == key))
 
@@ -140,23 +184,24 @@ def unit_ids_of_job(session: Session, job_id: int, *, pending_only: bool = True)
 
 
 def cancel_job(session: Session, job: Job) -> Job:
-    """Pending units -> cancelled and the job -> cancelled (a finished job is left as is).
-
-    Units already running finish and store their results; no new unit starts.
-    """
+    """Pending and running units -> cancelled, and the job -> cancelled (a finished job
+    is left as is). No new unit starts; a running unit sees its status and stops
+    within SVROBS_CANCEL_CHECK_SECONDS (``worker.tasks``), storing nothing. The job
+    keeps the cells of the units done before (``cells_done``)."""
     if job.status not in JOB_ACTIVE:
         return job
     # units first, then the job (the lock order of this module)
+    live = WorkUnit.status.in_(("pending", "running"))
     session.execute(
         select(WorkUnit.id)
-        .where(WorkUnit.job_id == job.id, WorkUnit.status == "pending")
+        .where(WorkUnit.job_id == job.id, live)
         .order_by(WorkUnit.id)
         .with_for_update()
     ).all()
     session.execute(
         update(WorkUnit)
-        .where(WorkUnit.job_id == job.id, WorkUnit.status == "pending")
-        .values(status="cancelled", finished_at=utcnow())
+        .where(WorkUnit.job_id == job.id, live)
+        .values(status="cancelled", finished_at=utcnow(), lease_expires_at=None)
     )
     locked = lock_job(session, job.id)
     if locked.status in JOB_ACTIVE:

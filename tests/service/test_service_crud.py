@@ -207,13 +207,14 @@ def test_cancel_job(session, make_account):
     statuses = {
         u.status for u in session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id))
     }
-    assert statuses == {"running", "cancelled"}
+    assert statuses == {"cancelled"}  # the running one too: its worker stops it
     assert units.start_unit(session, ids[1], "w", 60) is None
-    # the running unit may still finish; the job stays cancelled
+    # a running unit that finishes anyway stores nothing; the job stays cancelled
     spec = job.spec
     units.complete_unit(session, ids[0], fake_records(spec, session.get(WorkUnit, ids[0]).payload))
     session.refresh(job)
-    assert job.status == "cancelled"
+    assert job.status == "cancelled" and job.cells_done == 0
+    assert session.scalar(select(func.count(Result.id)).where(Result.job_id == job.id)) == 0
 
 
 def _schedule(session, acc, **kw):

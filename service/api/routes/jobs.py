@@ -4,14 +4,23 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Header, HTTPException, Query
+from fastapi import APIRouter, BackgroundTasks, Header, HTTPException, Query
 from sqlalchemy import func, select
 from sqlalchemy.orm import joinedload
 
-from service.api.deps import DB, CurrentCaller, JobId, team_job
+from service.api.deps import (
+    DB,
+    CurrentCaller,
+    JobId,
+    PublisherDep,
+    SessionFactoryDep,
+    SettingsDep,
+    team_job,
+)
 from service.api.errors import BODY_ERRORS, ERRORS
+from service.api.params import StrictInt
 from service.api.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
-from service.api.submission import JobRequest, SubmissionDep
+from service.api.submission import JobRequest, SubmissionDep, dispatch_after_commit
 from service.api.views import job_out
 from service.db.jobs import cancel_job
 from service.db.models import Job, JobTag, User
@@ -53,8 +62,8 @@ def list_jobs(
     status: Literal["queued", "running", "succeeded", "failed", "cancelled"] | None = None,
     tag: str | None = None,
     owner: Annotated[str | None, Query(description="an email, or 'me'")] = None,
-    limit: Annotated[int, Query(ge=1, le=500)] = 50,
-    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+    limit: Annotated[StrictInt, Query(ge=1, le=500)] = 50,
+    offset: Annotated[StrictInt, Query(ge=0, le=10**9)] = 0,
 ):
     """The team's jobs, newest first, filtered by status, tag and owner."""
     q = select(Job).where(Job.team_id == caller.team_id)
@@ -89,11 +98,28 @@ def get_job(job_id: JobId, session: DB, caller: CurrentCaller):
 @router.post(
     "/jobs/{job_id}/cancel", response_model=JobOut, responses={**ERRORS, 409: {"model": ErrorOut}}
 )
-def cancel(job_id: JobId, session: DB, caller: CurrentCaller):
-    """Cancel a queued or running job: units not yet started never run."""
+def cancel(
+    job_id: JobId,
+    session: DB,
+    caller: CurrentCaller,
+    settings: SettingsDep,
+    publisher: PublisherDep,
+    session_factory: SessionFactoryDep,
+    background: BackgroundTasks,
+):
+    """Cancel a queued or running job: units not yet started never run, running
+    units stop within seconds and store nothing; `cells_done` says what was done."""
     job = team_job(session, caller.team_id, job_id)
     if job.status in ("succeeded", "failed"):
         raise HTTPException(409, f"job {job_id} already {job.status}")
     job = cancel_job(session, job)
     session.commit()
-    return job_out(team_job(session, caller.team_id, job_id))
+    out = job_out(team_job(session, caller.team_id, job_id))
+    background.add_task(  # the team's freed slots go to its other jobs
+        dispatch_after_commit,
+        publisher,
+        session_factory,
+        caller.team_id,
+        settings.MAX_UNITS_IN_FLIGHT_PER_TEAM,
+    )
+    return out

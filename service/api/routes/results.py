@@ -17,6 +17,7 @@ from sqlalchemy import Select, func, select
 
 from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep, team_job
 from service.api.errors import ERRORS, FieldHTTPException
+from service.api.params import StrictFloat, StrictInt, is_float_text, is_int_text
 from service.api.record_json import ORDER, RESULT_COLUMNS, encode_lines, encode_page, record_columns
 from service.api.schemas import CompareOut, ResultPage, SummaryOut
 from service.db.models import Result, Summary
@@ -33,9 +34,9 @@ COUNT = select(func.count()).select_from(Result.__table__)
 COMPARE_BY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep")
 STREAM_CHUNK = 1000
 
-FloatList = Annotated[list[float] | None, Query()]
+FloatList = Annotated[list[StrictFloat] | None, Query()]
 # N and rep are 32-bit integer columns: a larger filter value would overflow the driver.
-Int32 = Annotated[int, Field(ge=-MAX_ID - 1, le=MAX_ID)]
+Int32 = Annotated[StrictInt, Field(ge=-MAX_ID - 1, le=MAX_ID)]
 IntList = Annotated[list[Int32] | None, Query()]
 
 
@@ -59,20 +60,23 @@ def _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep) -> list:
             if g.lower() in ("null", "none", "ols"):
                 keys.append(-1.0)
                 continue
-            try:
-                v = float(g)
-            except ValueError:
-                raise FieldHTTPException(422, "must be a number or 'null'", "gamma") from None
-            if not math.isfinite(v):
-                raise FieldHTTPException(422, "must be finite", "gamma")
-            keys.append(v)
+            if not is_float_text(g) or not math.isfinite(float(g)):
+                raise FieldHTTPException(422, "must be a finite decimal number or 'null'", "gamma")
+            keys.append(float(g))
         conds.append(t.c.gamma_key.in_(keys))
     if rep:
         conds.append(t.c.rep.in_(rep))
     return conds
 
 
+# a text cell starting with one of these is a formula to a spreadsheet (OWASP, "CSV
+# injection"): it is written with a leading single quote
+FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
 def _csv_value(v):
+    if isinstance(v, str):
+        return "'" + v if v.startswith(FORMULA_START) else v
     if v is None:
         return ""
     if isinstance(v, bool):
@@ -81,7 +85,7 @@ def _csv_value(v):
         return repr(v) if math.isfinite(v) else ""
     if isinstance(v, (list, dict)):
         return json.dumps(v, allow_nan=False, separators=(",", ":"))
-    return v
+    return v  # an int
 
 
 def _stream(session_factory, query: Select, fmt: str):
@@ -134,8 +138,8 @@ def get_results(
     gamma: Annotated[list[str] | None, Query(description="a value, or 'null' for ols")] = None,
     rep: IntList = None,
     format: Literal["json", "csv", "jsonl"] = "json",
-    limit: Annotated[int | None, Query(ge=1, le=10_000)] = None,
-    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+    limit: Annotated[StrictInt | None, Query(ge=1, le=10_000)] = None,
+    offset: Annotated[StrictInt, Query(ge=0, le=10**9)] = 0,
 ):
     """The job's records (SPEC section 10 field names; matrices as nested lists; null,
     never NaN), filtered by any grid coordinate (repeat a parameter for several
@@ -223,10 +227,12 @@ def compare(
 ):
     """One metric across several jobs: mean, std (ddof 0) and count of the non-null
     values per job and per combination of the `by` fields."""
-    try:
-        ids = [int(j) for j in _csv_list(jobs, "jobs")]
-    except ValueError:
-        raise FieldHTTPException(422, "must be comma-separated job ids", "jobs") from None
+    items = _csv_list(jobs, "jobs")
+    if not all(is_int_text(j) for j in items):
+        raise FieldHTTPException(
+            422, "must be comma-separated job ids (digits 0-9), e.g. 1,2", "jobs"
+        )
+    ids = [int(j) for j in items]
     if len(ids) > 50 or any(i < 1 or i > MAX_ID for i in ids):
         raise FieldHTTPException(422, "at most 50 valid job ids", "jobs")
     ids = list(dict.fromkeys(ids))
