@@ -118,11 +118,8 @@ class ExperimentSpec:
 
 
 def _int(value, name: str, *, lo: int, hi: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        if isinstance(value, float) and value.is_integer():
-            value = int(value)
-        else:
-            raise SpecError(name, "must be an integer")
+    if isinstance(value, bool) or not isinstance(value, int):  # 3.0 and "3" are not integers
+        raise SpecError(name, "must be an integer")
     if value < lo:
         raise SpecError(name, f"must be >= {lo}")
     if hi is not None and value > hi:

@@ -24,7 +24,7 @@ from contextlib import AbstractContextManager
 from datetime import datetime, timedelta
 from itertools import chain, zip_longest
 
-from sqlalchemy import and_, distinct, func, or_, select, update
+from sqlalchemy import and_, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from service.config import get_settings
@@ -114,7 +114,8 @@ def _new_units(session: Session, limit: int, *, cap: int | None, team_id: int | 
 def waiting_teams(session: Session) -> list[int]:
     """Teams with units of active jobs never published, by id."""
     q = (
-        select(distinct(Job.team_id))
+        select(Job.team_id)
+        .distinct()
         .join(WorkUnit, WorkUnit.job_id == Job.id)
         .where(Job.status.in_(JOB_ACTIVE), _NEW)
         .order_by(Job.team_id)

@@ -115,6 +115,7 @@ def cancel(
     job = cancel_job(session, job)
     session.commit()
     out = job_out(team_job(session, caller.team_id, job_id))
+    session.close()  # end the transaction (SQLite's write lock) before publishing
     background.add_task(  # the team's freed slots go to its other jobs
         dispatch_after_commit,
         publisher,

@@ -89,19 +89,22 @@ def _csv_value(v):
 
 
 def _stream(session_factory, query: Select, fmt: str):
+    """The selection as CSV (RFC 4180: CRLF line ends, so a cell holding a CR or LF is
+    quoted) or JSON lines, read in chunks by a session of its own."""
+
     def gen():
         session = session_factory(False)
         try:
             if fmt == "csv":
                 buf = io.StringIO()
-                writer = csv.writer(buf, lineterminator="\n")
+                writer = csv.writer(buf, lineterminator="\r\n")
                 writer.writerow(RECORD_FIELDS)
                 yield buf.getvalue()
             rows = session.execute(query.execution_options(yield_per=STREAM_CHUNK))
             for chunk in rows.partitions(STREAM_CHUNK):
                 if fmt == "csv":
                     buf = io.StringIO()
-                    writer = csv.writer(buf, lineterminator="\n")
+                    writer = csv.writer(buf, lineterminator="\r\n")
                     for r in chunk:
                         rec = row_to_record(r._mapping)
                         writer.writerow([_csv_value(rec[f]) for f in RECORD_FIELDS])
