@@ -88,14 +88,20 @@ class Submission:
         session.commit()
         session.close()  # end this request's transaction before publishing
         if created_any:
-            self.background.add_task(
-                dispatch_after_commit,
-                self.publisher,
-                self.session_factory,
-                caller.team_id,
-                settings.MAX_UNITS_IN_FLIGHT_PER_TEAM,
-            )
+            self.dispatch_after_response()
         return bodies
+
+    def dispatch_after_response(self) -> None:
+        """Publish the team's next units (its fair share) once the response is sent
+        (after a submission, or a cancel that freed the team's slots). The request's
+        session must be closed first (SQLite: its write lock)."""
+        self.background.add_task(
+            dispatch_after_commit,
+            self.publisher,
+            self.session_factory,
+            self.caller.team_id,
+            self.settings.MAX_UNITS_IN_FLIGHT_PER_TEAM,
+        )
 
 
 SubmissionDep = Annotated[Submission, Depends(Submission)]

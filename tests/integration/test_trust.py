@@ -18,12 +18,14 @@ import pytest
 import sqlalchemy as sa
 
 from svrobs_core import parse_spec
+from tests.service.svc_helpers import ITEM6_SPEC as ITEM6
+from tests.service.svc_helpers import TINY_SPEC as SMALL
 
 from .stack import fetch_jsonl, submit
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(420)]
 
-# units of ~0.5-1 s each (Monte Carlo cost), one per sigma_w
+# units of ~0.5-1 s each on an idle machine (Monte Carlo cost), one per sigma_w
 LONG_UNIT = {
     "systems": ["paper-stable"],
     "N": [10],
@@ -34,26 +36,6 @@ LONG_UNIT = {
     "mc_runs": 2000,
     "horizon": 2000,
     "seed": 3,
-}
-SMALL = {
-    "systems": ["paper-stable"],
-    "sigma_w": [1.0],
-    "N": [10],
-    "reps": 2,
-    "estimators": ["ols"],
-    "stages": ["estimate", "bounds"],
-    "seed": 5,
-}
-ITEM6 = {  # issue 10, item 6: one cell of about 11 h of CPU
-    "systems": ["paper-stable"],
-    "sigma_w": [0.1],
-    "N": [10],
-    "reps": 1,
-    "estimators": ["ols"],
-    "stages": ["estimate", "bounds", "gain", "cost"],
-    "mc_reps": 1,
-    "mc_runs": 1000000,
-    "horizon": 100000,
 }
 
 
@@ -219,11 +201,11 @@ def test_cancel_stops_running_units(stack, pool, db):
             60,
             "a unit running",
         )
+        log = stack.logs / f"{pool}.log"
+        before = log.read_text(errors="replace").count("'status': 'cancelled'")
         t0 = time.monotonic()
         r = c.post(f"/jobs/{job['id']}/cancel")
         assert r.status_code == 200 and r.json()["status"] == "cancelled"
-        log = stack.logs / f"{pool}.log"
-        before = log.read_text(errors="replace").count("'status': 'cancelled'")
         wait_for(
             lambda: (
                 log.read_text(errors="replace").count("'status': 'cancelled'")

@@ -54,3 +54,27 @@ SMALL_UNITS = len(plan_units(parse_spec(SMALL_SPEC)))
 
 def no_broker_check() -> None:
     """A broker that always answers (for ``app.dependency_overrides[get_broker_check]``)."""
+
+
+# issue 10, item 6: one cell of about 11 h of CPU (refused by its estimated work)
+ITEM6_SPEC = {
+    "systems": ["paper-stable"],
+    "sigma_w": [0.1],
+    "N": [10],
+    "reps": 1,
+    "estimators": ["ols"],
+    "stages": ["estimate", "bounds", "gain", "cost"],
+    "mc_reps": 1,
+    "mc_runs": 1000000,
+    "horizon": 100000,
+}
+# one small unit
+TINY_SPEC = {
+    "systems": ["paper-stable"],
+    "sigma_w": [1.0],
+    "N": [10],
+    "reps": 2,
+    "estimators": ["ols"],
+    "stages": ["estimate", "bounds"],
+    "seed": 5,
+}

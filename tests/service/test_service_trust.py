@@ -21,20 +21,10 @@ from svrobs_cli.app import app
 from svrobs_core.spec import parse_spec
 from svrobs_core.workload import estimate_unit
 from tests.service.svc_fakes import fake_records
+from tests.service.svc_helpers import ITEM6_SPEC as ITEM6
 from tests.service.svc_helpers import SMALL_SPEC, RecordingPublisher
 
 API = "/api/v1"
-ITEM6 = {  # issue 10, item 6
-    "systems": ["paper-stable"],
-    "sigma_w": [0.1],
-    "N": [10],
-    "reps": 1,
-    "estimators": ["ols"],
-    "stages": ["estimate", "bounds", "gain", "cost"],
-    "mc_reps": 1,
-    "mc_runs": 1000000,
-    "horizon": 100000,
-}
 MANY_UNITS = {**SMALL_SPEC, "systems": ["paper-stable"], "sigma_w": [0.1 * i for i in range(1, 11)]}
 
 

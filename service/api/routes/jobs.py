@@ -4,23 +4,15 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, BackgroundTasks, Header, HTTPException, Query
+from fastapi import APIRouter, Header, HTTPException, Query
 from sqlalchemy import func, select
 from sqlalchemy.orm import joinedload
 
-from service.api.deps import (
-    DB,
-    CurrentCaller,
-    JobId,
-    PublisherDep,
-    SessionFactoryDep,
-    SettingsDep,
-    team_job,
-)
+from service.api.deps import DB, CurrentCaller, JobId, team_job
 from service.api.errors import BODY_ERRORS, ERRORS
 from service.api.params import StrictInt
 from service.api.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
-from service.api.submission import JobRequest, SubmissionDep, dispatch_after_commit
+from service.api.submission import JobRequest, SubmissionDep
 from service.api.views import job_out
 from service.db.jobs import cancel_job
 from service.db.models import Job, JobTag, User
@@ -98,15 +90,7 @@ def get_job(job_id: JobId, session: DB, caller: CurrentCaller):
 @router.post(
     "/jobs/{job_id}/cancel", response_model=JobOut, responses={**ERRORS, 409: {"model": ErrorOut}}
 )
-def cancel(
-    job_id: JobId,
-    session: DB,
-    caller: CurrentCaller,
-    settings: SettingsDep,
-    publisher: PublisherDep,
-    session_factory: SessionFactoryDep,
-    background: BackgroundTasks,
-):
+def cancel(job_id: JobId, session: DB, caller: CurrentCaller, submission: SubmissionDep):
     """Cancel a queued or running job: units not yet started never run, running
     units stop within seconds and store nothing; `cells_done` says what was done."""
     job = team_job(session, caller.team_id, job_id)
@@ -116,11 +100,5 @@ def cancel(
     session.commit()
     out = job_out(team_job(session, caller.team_id, job_id))
     session.close()  # end the transaction (SQLite's write lock) before publishing
-    background.add_task(  # the team's freed slots go to its other jobs
-        dispatch_after_commit,
-        publisher,
-        session_factory,
-        caller.team_id,
-        settings.MAX_UNITS_IN_FLIGHT_PER_TEAM,
-    )
+    submission.dispatch_after_response()  # the team's freed slots go to its other jobs
     return out
