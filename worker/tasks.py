@@ -117,7 +117,8 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
     t0 = time.perf_counter()
     with session_scope() as s:
         claimed = units.start_unit(s, unit_id, worker_name, lease_seconds())
-    if claimed is None:
+    if claimed is None:  # done, cancelled, or just failed after MAX_UNIT_ATTEMPTS
+        _dispatch_team(unit_id)
         return {"unit": unit_id, "status": "skipped"}
     spec_dict, payload = claimed
     t1 = time.perf_counter()
@@ -127,7 +128,7 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
             records = run_unit_result(parse_spec(spec_dict), payload)
         t2 = time.perf_counter()
         with session_scope() as s:
-            units.complete_unit(s, unit_id, records)
+            stored = units.complete_unit(s, unit_id, records)
     except UnitCancelled:
         log.info("unit %s: cancelled while running; stopped after %.2f s", unit_id, _since(t1))
         _dispatch_team(unit_id)
@@ -146,7 +147,7 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
     # logged by Celery ("succeeded in ...: {...}"): where a unit's time goes
     return {
         "unit": unit_id,
-        "status": "done",
+        "status": "done" if stored else "cancelled",
         "records": len(records),
         "claim_s": round(t1 - t0, 4),
         "compute_s": round(t2 - t1, 4),

@@ -98,13 +98,14 @@ def heartbeat_unit(session: Session, unit_id: int, lease_seconds: int) -> bool:
     return res.rowcount > 0
 
 
-def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | UnitResult) -> None:
+def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | UnitResult) -> bool:
     """Upsert the unit's records (and its groups' summaries when it holds every
     repetition of them), mark it done, update progress; finish the job when the DB
-    says every unit is done (summarising the stored results if a group has none)."""
+    says every unit is done (summarising the stored results if a group has none).
+    False (nothing stored) when the unit was cancelled or failed meanwhile."""
     unit = _lock_unit(session, unit_id)
     if unit is None or unit.status in ("cancelled", "failed"):
-        return  # cancelled while it ran (its job cancelled or failed): nothing is stored
+        return False  # cancelled while it ran (its job cancelled or failed)
     stored = upsert_results(session, unit.job_id, records)
     if stored["system"] and _whole_groups(session, unit):  # every repetition of its groups
         scope = (stored["system"][0], stored["sigma_w"][0], sorted(set(stored["N"])))
@@ -138,6 +139,7 @@ def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | Unit
             job.started_at = unit.started_at or now
         set_timing(job)
     session.flush()
+    return True
 
 
 def summarize_job(session: Session, job_id: int) -> list[dict]:
