@@ -49,6 +49,20 @@ CASES = {
         "stages": ["estimate", "bounds"],
     },
     "T0=1000 N=200 reps=20": {"N": [200], "T0": 1000, "reps": 20},
+    "svr only reps=500 gammas=4": {
+        "N": [50],
+        "reps": 500,
+        "estimators": ["svr"],
+        "gamma": [0.01, 0.05, 0.1, 0.5],
+    },
+    "svr QR path (cond 1e17) reps=20": {
+        "systems": ["paper-unstable"],
+        "sigma_w": [1.0],
+        "N": [3],
+        "T0": 1000,
+        "reps": 20,
+        "estimators": ["svr"],
+    },
     "gain reps=2000 gammas=5": {
         "N": [20],
         "reps": 2000,
@@ -85,6 +99,12 @@ CASES = {
         "estimators": ["ols"],
         "stages": ["estimate", "bounds", "gain", "cost", "sls"],
         "mc_reps": 0,
+    },
+    "sls without cost reps=20": {
+        "N": [20],
+        "reps": 20,
+        "estimators": ["ols"],
+        "stages": ["estimate", "bounds", "sls"],
     },
     "sls T_fir=200 reps=5": {
         "N": [20],

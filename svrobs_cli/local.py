@@ -3,6 +3,12 @@
 ``svrobs run-local SPEC.json --out DIR`` runs the core in process and writes
 ``DIR/records.jsonl`` (one section 10 record per line, null never NaN) and
 ``DIR/summary.json`` (mean/std/count per group), with a progress bar on stderr.
+Before anything runs, the service's admission (:func:`service.db.jobs.admit`, the
+cost model :func:`svrobs_core.workload.admit`) refuses a spec over
+``--max-cpu-seconds`` (default SVROBS_MAX_JOB_CPU_SECONDS) or whose smallest work
+unit is over ``--max-memory-mb`` (SVROBS_MAX_UNIT_MEMORY_MB), and plans the units
+under that memory cap; the records
+file appears only once every unit has run.
 ``svrobs reproduce`` runs the paper's Section 6 (:mod:`service.reports.reproduce`).
 """
 
@@ -26,42 +32,47 @@ def load_spec_file(path: Path) -> dict:
     return json.loads(text)
 
 
-def run_local(spec_obj: dict, out: Path, *, quiet: bool = False) -> dict:
+def run_local(
+    spec_obj: dict,
+    out: Path,
+    *,
+    quiet: bool = False,
+    max_cpu_seconds: float | None = None,
+    max_memory_mb: float | None = None,
+) -> dict:
     """Run a spec in process; returns ``{"records": n, "out": str}``.
 
-    The job limits of the service apply (:func:`service.db.jobs.admit`: cells,
-    estimated CPU seconds, memory per unit): a spec over one raises its SpecError."""
+    The service's job limits apply (:func:`service.db.jobs.admit`; None:
+    SVROBS_MAX_JOB_CPU_SECONDS, SVROBS_MAX_UNIT_MEMORY_MB): a spec over one raises
+    its SpecError before anything is written."""
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
     from service.db.jobs import admit
+    from service.progress import progress_bar
     from svrobs_core import parse_spec, summarize
     from svrobs_core.runner import run_unit_result
 
     spec = parse_spec(spec_obj)
-    units = admit(spec)  # the service's limits (SVROBS_MAX_JOB_*), units under the memory cap
+    units = admit(spec, max_cpu_seconds=max_cpu_seconds, max_unit_mb=max_memory_mb)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     records: list[dict] = []
     console = Console(stderr=True)
-    with Progress(
-        "[progress.description]{task.description}",
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=console,
-        disable=quiet,
-        transient=False,
-    ) as bar:
-        task = bar.add_task("work units", total=len(units))
-        with open(out / "records.jsonl", "w") as fh:
-            for unit in units:
-                result = run_unit_result(spec, unit)
-                lines = result.json_lines()  # = json.dumps(record) per record, built per field
-                if lines:
-                    fh.write("\n".join(lines) + "\n")
-                records += result.records()
-                bar.advance(task)
+    partial = out / "records.jsonl.partial"
+    try:
+        with progress_bar(console, quiet=quiet) as bar:
+            task = bar.add_task("work units", total=len(units))
+            with open(partial, "w") as fh:
+                for unit in units:
+                    result = run_unit_result(spec, unit)
+                    lines = result.json_lines()  # = json.dumps(record) per record, per field
+                    if lines:
+                        fh.write("\n".join(lines) + "\n")
+                    records += result.records()
+                    bar.advance(task)
+        partial.replace(out / "records.jsonl")
+    finally:
+        partial.unlink(missing_ok=True)  # a failed or interrupted run leaves no records file
     summary = {"spec": spec.to_dict(), "groups": summarize(records)}
     (out / "summary.json").write_text(json.dumps(summary, indent=1, allow_nan=False))
     return {"records": len(records), "out": str(out)}
@@ -71,6 +82,16 @@ def run_local_command(
     spec_path: Path = typer.Argument(..., help="section 10 spec (JSON)"),
     out: Path = typer.Option(Path("out"), "--out", help="output folder"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+    max_cpu_seconds: float | None = typer.Option(
+        None,
+        "--max-cpu-seconds",
+        help="refuse a spec estimated above this [SVROBS_MAX_JOB_CPU_SECONDS, 3600]",
+    ),
+    max_memory_mb: float | None = typer.Option(
+        None,
+        "--max-memory-mb",
+        help="peak memory of one work unit [SVROBS_MAX_UNIT_MEMORY_MB, 2048]",
+    ),
 ) -> None:
     """Run a spec in process: DIR/records.jsonl and DIR/summary.json."""
     from svrobs_core import SpecError
@@ -82,7 +103,13 @@ def run_local_command(
     except ValueError as exc:
         raise CliError(f"{spec_path}: not valid JSON ({exc})") from None
     try:
-        res = run_local(spec_obj, out, quiet=quiet)
+        res = run_local(
+            spec_obj,
+            out,
+            quiet=quiet,
+            max_cpu_seconds=max_cpu_seconds,
+            max_memory_mb=max_memory_mb,
+        )
     except SpecError as exc:
         raise CliError(f"invalid spec: {exc.field}: {exc.message}") from None
     typer.echo(f"{res['records']} records -> {res['out']}/records.jsonl, summary.json")

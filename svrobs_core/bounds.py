@@ -3,6 +3,14 @@
 Everything is elementwise / batched: parameters broadcast like numpy arrays,
 estimates carry leading batch dims (...). Nothing is clipped: a violated bound
 shows up as coverage < 1 or thm1_holds = False.
+
+theta_A and theta_B hold M^(2T0-1), which leaves the double range long
+before the bound becomes meaningless to ask for (M = 1.1, T0 = 3800; M = 1e20,
+T0 = 9), so they are computed from logarithms; a theta that over- or
+underflows all the same, and any H or r that is not finite, gives NaN radii
+with a reason (``Radii.reason_A``/``reason_B``) instead of 0 or inf, and every
+quantity computed from a NaN radius is undefined (NaN, or None for the
+booleans), never a certificate.
 """
 
 from __future__ import annotations
@@ -11,24 +19,79 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .norms import spectral_radius
+
 
 @dataclass
 class Radii:
-    """H_A, H_B, r_A, r_B broadcast over the gamma array given."""
+    """H_A, H_B, r_A, r_B broadcast over the gamma array given (NaN where
+    undefined); reason_A/reason_B: object arrays of None / why it is undefined."""
 
     H_A: np.ndarray
     H_B: np.ndarray
     r_A: np.ndarray
     r_B: np.ndarray
+    reason_A: np.ndarray | None = None
+    reason_B: np.ndarray | None = None
+
+
+def _log(x):
+    with np.errstate(divide="ignore"):
+        return np.log(np.asarray(x, dtype=float))
+
+
+def log_thetas(*, n, m, N, T0, sigma_u, sigma_w, M):
+    """log theta_A, log theta_B of Theorem 1 (SPEC section 3), without overflow.
+
+    theta_A = 4n (m M su^2 + sw^2) / (N (n M^(2T0-1) su^2 + M^(2T0-2) sw^2)),
+    theta_B = 4m (n M^(2T0-1) su^2 + (M^(2T0-2) + 1) sw^2) / (N su^2); sums
+    of powers by logaddexp (sigma_w = 0 gives log 0 = -inf terms, handled).
+    """
+    lM, lsu2, lsw2 = _log(M), 2 * _log(sigma_u), 2 * _log(sigma_w)
+    lMu = (2 * np.asarray(T0, dtype=float) - 1) * lM + lsu2  # log M^(2T0-1) su^2
+    lMw = (2 * np.asarray(T0, dtype=float) - 2) * lM  # log M^(2T0-2)
+    ln, lN = np.log(n), _log(N)
+    l_num_A = np.log(4 * n) + np.logaddexp(np.log(m) + lM + lsu2, lsw2)
+    l_den_A = lN + np.logaddexp(ln + lMu, lMw + lsw2)
+    l_num_B = np.log(4 * m) + np.logaddexp(ln + lMu, np.logaddexp(lMw, 0.0) + lsw2)
+    return l_num_A - l_den_A, l_num_B - lN - lsu2
 
 
 def thetas(*, n, m, N, T0, sigma_u, sigma_w, M):
-    """theta_A, theta_B of Theorem 1 (SPEC section 3)."""
-    Mu = M ** (2 * T0 - 1) * sigma_u**2  # M^(2T0-1) sigma_u^2
-    Mw = M ** (2 * T0 - 2)  # M^(2T0-2)
-    theta_A = 4 * n * (m * M * sigma_u**2 + sigma_w**2) / (N * (n * Mu + Mw * sigma_w**2))
-    theta_B = 4 * m * (n * Mu + (Mw + 1) * sigma_w**2) / (N * sigma_u**2)
-    return theta_A, theta_B
+    """theta_A, theta_B of Theorem 1 (SPEC section 3).
+
+    The formula as written where its powers stay in range (so the numbers do
+    not change), else the exp of :func:`log_thetas` (inf / 0 where the value
+    itself is out of the double range)."""
+    with np.errstate(over="ignore", invalid="ignore", under="ignore", divide="ignore"):
+        Mu = M ** (2 * T0 - 1) * sigma_u**2  # M^(2T0-1) sigma_u^2
+        Mw = M ** (2 * T0 - 2)  # M^(2T0-2)
+        theta_A = 4 * n * (m * M * sigma_u**2 + sigma_w**2) / (N * (n * Mu + Mw * sigma_w**2))
+        theta_B = 4 * m * (n * Mu + (Mw + 1) * sigma_w**2) / (N * sigma_u**2)
+        direct = np.isfinite(Mu) & np.isfinite(Mw) & (Mu > 0)
+        if np.all(direct):
+            return theta_A, theta_B
+        la, lb = log_thetas(n=n, m=m, N=N, T0=T0, sigma_u=sigma_u, sigma_w=sigma_w, M=M)
+        return np.where(direct, theta_A, np.exp(la)), np.where(direct, theta_B, np.exp(lb))
+
+
+def _range_reason(theta, H, r, log_theta, name: str, *, M, T0) -> np.ndarray:
+    """None where theta is a normal positive double and H, r are finite, else why not."""
+    tiny = np.finfo(float).tiny
+    ok = np.isfinite(theta) & (theta >= tiny) & np.isfinite(H) & np.isfinite(r)
+    out = np.full(np.shape(ok), None, dtype=object)
+    ten = np.broadcast_to(log_theta / np.log(10.0), np.shape(ok))
+    power = np.broadcast_to(
+        (2 * np.asarray(T0, dtype=float) - 1) * _log(M) / np.log(10.0), ok.shape
+    )
+    for idx in np.argwhere(~ok):
+        idx = tuple(idx)
+        if not np.isfinite(theta[idx]) or theta[idx] < tiny:
+            why = f"theta_{name} = 1e{ten[idx]:.0f} with M^(2T0-1) = 1e{power[idx]:.0f}"
+        else:
+            why = f"H_{name} not finite (M^2 = 1e{2 * power[idx] / (2 * T0 - 1):.0f})"
+        out[idx] = f"bounds: H_{name}, r_{name} undefined ({why}: out of the double range)"
+    return out
 
 
 def H(theta, dim, *, gamma, N0, M, delta):
@@ -65,15 +128,29 @@ def radii(*, n, m, N, N0, T0, sigma_u, sigma_w, gamma, M, delta) -> Radii:
         raise ValueError("delta must be in (0, 1)")
     if int(n) < 1 or int(m) < 1:
         raise ValueError("n and m must be >= 1")
-    theta_A, theta_B = thetas(
-        n=n, m=m, N=a["N"], T0=a["T0"], sigma_u=a["sigma_u"], sigma_w=a["sigma_w"], M=a["M"]
-    )
+    sizes = {"N": a["N"], "T0": a["T0"], "sigma_u": a["sigma_u"], "sigma_w": a["sigma_w"]}
+    la, lb = log_thetas(n=n, m=m, M=a["M"], **sizes)
+    theta_A, theta_B = thetas(n=n, m=m, M=a["M"], **sizes)
     kw = {"gamma": a["gamma"], "N0": a["N0"], "M": a["M"], "delta": a["delta"]}
-    H_A = H(theta_A, n, **kw)
-    H_B = H(theta_B, m, **kw)
-    H_A, H_B = np.broadcast_arrays(H_A, H_B)
-    one_g = 1 + a["gamma"]
-    return Radii(H_A=H_A.copy(), H_B=H_B.copy(), r_A=np.sqrt(one_g * H_A), r_B=np.sqrt(one_g * H_B))
+    with np.errstate(over="ignore", invalid="ignore"):
+        H_A = H(theta_A, n, **kw)
+        H_B = H(theta_B, m, **kw)
+        H_A, H_B, la, lb = np.broadcast_arrays(H_A, H_B, la, lb)
+        one_g = 1 + a["gamma"]
+        r_A, r_B = np.sqrt(one_g * H_A), np.sqrt(one_g * H_B)
+    mt = {"M": a["M"], "T0": a["T0"]}
+    why_A = _range_reason(np.broadcast_to(theta_A, H_A.shape), H_A, r_A, la, "A", **mt)
+    why_B = _range_reason(np.broadcast_to(theta_B, H_B.shape), H_B, r_B, lb, "B", **mt)
+    bad_A, bad_B = why_A != None, why_B != None  # noqa: E711  (object arrays)
+    nan = np.nan
+    return Radii(
+        H_A=np.where(bad_A, nan, H_A),
+        H_B=np.where(bad_B, nan, H_B),
+        r_A=np.where(bad_A, nan, r_A),
+        r_B=np.where(bad_B, nan, r_B),
+        reason_A=why_A,
+        reason_B=why_B,
+    )
 
 
 @dataclass(kw_only=True)
@@ -83,28 +160,42 @@ class BoundsResult:
     eps_A: np.ndarray
     eps_B: np.ndarray
     rho_upper_bound: np.ndarray
-    stable_certified: np.ndarray  # bool
+    stable_certified: np.ndarray  # bool; None (object array) where rho_upper_bound is NaN
     coverage_A: np.ndarray | None = None  # fraction of entries of A inside the interval
     coverage_B: np.ndarray | None = None
-    thm1_holds_A: np.ndarray | None = None  # bool: Theorem 1 held for every row
+    thm1_holds_A: np.ndarray | None = None  # bool: Theorem 1 held for every row (None: undefined)
     thm1_holds_B: np.ndarray | None = None
 
 
-def spectral_radius(X) -> np.ndarray:
-    """max |eigenvalue| of each matrix of a stack (..., k, k) -> (...)."""
-    return np.max(np.abs(np.linalg.eigvals(np.asarray(X, dtype=float))), axis=-1)
+def nullable(values, defined) -> np.ndarray:
+    """A boolean array, or an object array with None where not ``defined``."""
+    values = np.asarray(values, dtype=bool)
+    defined = np.broadcast_to(np.asarray(defined, dtype=bool), values.shape)
+    if defined.all():
+        return values
+    out = values.astype(object)
+    out[~defined] = None
+    return out
+
+
+def _finite(X) -> np.ndarray:
+    return np.isfinite(X).all(axis=(-2, -1))
 
 
 def _coverage(true, est, g, r):
     c = (1 + g) * est  # Lemma 2 centre of the interval of the true entry
-    inside = np.abs(true - c) <= r
-    return np.mean(inside, axis=(-2, -1))
+    with np.errstate(invalid="ignore"):
+        inside = np.abs(true - c) <= r
+    cov = np.mean(inside, axis=(-2, -1))
+    return np.where(_finite(c) & np.isfinite(r[..., 0, 0]), cov, np.nan)
 
 
 def _thm1(true, est, g, H_):
     delta = true - est
     lhs = np.linalg.norm(g * est - delta, axis=-1) / (1 + g[..., 0])  # (..., n)
-    return np.all(lhs <= H_[..., None], axis=-1)
+    with np.errstate(invalid="ignore"):
+        holds = np.all(lhs <= H_[..., None], axis=-1)
+    return nullable(holds, np.isfinite(lhs).all(axis=-1) & np.isfinite(H_))
 
 
 def evaluate_bounds(A_tilde, B_tilde, gamma, r: Radii, *, A_true=None, B_true=None) -> BoundsResult:
@@ -122,10 +213,14 @@ def evaluate_bounds(A_tilde, B_tilde, gamma, r: Radii, *, A_true=None, B_true=No
     g = np.asarray(gamma, dtype=float)[..., None, None]
     rA = np.asarray(r.r_A, dtype=float)[..., None, None]
     rB = np.asarray(r.r_B, dtype=float)[..., None, None]
-    eps_A = np.sqrt(np.sum((np.abs(g * A) + rA) ** 2, axis=(-2, -1)))
-    eps_B = np.sqrt(np.sum((np.abs(g * B) + rB) ** 2, axis=(-2, -1)))
-    rho = spectral_radius(np.abs((1 + g) * A) + rA)
-    out = BoundsResult(eps_A=eps_A, eps_B=eps_B, rho_upper_bound=rho, stable_certified=rho < 1)
+    with np.errstate(over="ignore", invalid="ignore"):
+        eps_A = np.sqrt(np.sum((np.abs(g * A) + rA) ** 2, axis=(-2, -1)))
+        eps_B = np.sqrt(np.sum((np.abs(g * B) + rB) ** 2, axis=(-2, -1)))
+        rho = spectral_radius(np.abs((1 + g) * A) + rA)
+    eps_A, eps_B = (np.where(np.isfinite(e), e, np.nan) for e in (eps_A, eps_B))
+    with np.errstate(invalid="ignore"):
+        stable = nullable(rho < 1, np.isfinite(rho) & np.isfinite(eps_A))
+    out = BoundsResult(eps_A=eps_A, eps_B=eps_B, rho_upper_bound=rho, stable_certified=stable)
     if A_true is not None:
         A_true = np.asarray(A_true, dtype=float)
         out.coverage_A = _coverage(A_true, A, g, rA)

@@ -61,29 +61,49 @@ def fit_ols(Z: np.ndarray, F: np.ndarray) -> np.ndarray:
     lstsq accuracy while cond(Z Z^T) * eps << 1. Datasets whose Gram matrix
     is singular or worse conditioned than ``REFINE_COND_LIMIT`` (e.g.
     N0 < d) take the least-squares path of :func:`_fit_ols_qr` instead.
+    Datasets with non-finite values give NaN.
     """
     Z, F = _check(Z, F)
     batch = np.broadcast_shapes(Z.shape[:-2], F.shape[:-2])
     Z = np.broadcast_to(Z, (*batch, *Z.shape[-2:]))
     F = np.broadcast_to(F, (*batch, *F.shape[-2:]))
     Zt = np.swapaxes(Z, -1, -2)
-    G = np.matmul(Z, Zt)
-    lam = np.linalg.eigvalsh(G)
-    ok = lam[..., 0] > lam[..., -1] / REFINE_COND_LIMIT
-    Gs = np.where(ok[..., None, None], G, np.eye(G.shape[-1]))
+    with np.errstate(over="ignore", invalid="ignore"):  # non-finite data: NaN, below
+        G = np.matmul(Z, Zt)
+    eye = np.eye(G.shape[-1])
+    finite = np.isfinite(G).all(axis=(-1, -2)) & np.isfinite(F).all(axis=(-1, -2))
+    lam = np.linalg.eigvalsh(np.where(finite[..., None, None], G, eye))
+    ok = finite & (lam[..., 0] > lam[..., -1] / REFINE_COND_LIMIT)
+    Gs = np.where(ok[..., None, None], G, eye)
     Lc = np.linalg.cholesky(Gs)
 
     def solve(rhs):  # (Z Z^T)^-1 rhs^T, transposed back: rows of Theta
         y = np.linalg.solve(Lc, np.swapaxes(rhs, -1, -2))
         return np.swapaxes(np.linalg.solve(np.swapaxes(Lc, -1, -2), y), -1, -2)
 
-    theta = solve(np.matmul(F, Zt))
-    for _ in range(REFINE_STEPS):
-        theta = theta + solve(np.matmul(F - np.matmul(theta, Z), Zt))
+    with np.errstate(all="ignore"):  # the other cells are overwritten below
+        theta = solve(np.matmul(F, Zt))
+        for _ in range(REFINE_STEPS):
+            theta = theta + solve(np.matmul(F - np.matmul(theta, Z), Zt))
     if not ok.all():
-        bad = ~ok
+        bad = finite & ~ok
         theta[bad] = _fit_ols_qr(Z[bad], F[bad])
+        theta[~finite] = np.nan
     return theta
+
+
+def _normal_residual(Z, F, theta, g) -> np.ndarray:
+    """(F - Theta Z) Z^T - g Theta accumulated in extended precision (np.longdouble).
+
+    The residual of the (ridge) normal equations for one refinement step:
+    computed in working precision it would carry an error ~eps ||Z||^2
+    ||Theta||, which is what limits the solve to cond(Z Z^T) * eps.
+    Z (b, 1, d, N0), F (b, 1, n, N0), theta (b, G, n, d), g (G,) -> (b, G, n, d)."""
+    Zl = Z.astype(np.longdouble)
+    Tl = theta.astype(np.longdouble)
+    r = F.astype(np.longdouble) - np.matmul(Tl, Zl)
+    S = np.matmul(r, np.swapaxes(Zl, -1, -2)) - np.asarray(g, dtype=float)[:, None, None] * Tl
+    return S.astype(float)
 
 
 def _fit_ols_qr(Z: np.ndarray, F: np.ndarray) -> np.ndarray:
@@ -91,7 +111,10 @@ def _fit_ols_qr(Z: np.ndarray, F: np.ndarray) -> np.ndarray:
 
     R-only QR of the augmented [Z^T F^T] = Q [[R11, R12], [0, R22]] reduces it
     to min ||R11 X - R12||, solved with the SVD of the small R11. Rank-deficient
-    Z gives lstsq's minimum-norm solution with rcond = eps * max(d, N0).
+    Z gives lstsq's minimum-norm solution with rcond = eps * max(d, N0). Then
+    one refinement step with the extended-precision normal residual of
+    :func:`_normal_residual` through the same pseudo-inverse (Z Z^T)^+ =
+    V diag(1/s^2) V^T.
     """
     d, N0 = Z.shape[-2:]
     R = np.linalg.qr(np.swapaxes(np.concatenate([Z, F], axis=-2), -1, -2), mode="r")
@@ -99,42 +122,133 @@ def _fit_ols_qr(Z: np.ndarray, F: np.ndarray) -> np.ndarray:
     cutoff = np.finfo(float).eps * max(d, N0) * s[..., :1]
     s_inv = np.divide(1.0, s, out=np.zeros_like(s), where=s > cutoff)
     UtR12 = np.matmul(np.swapaxes(U, -1, -2), R[..., :d, d:])  # (..., r, n)
-    return np.swapaxes(np.matmul(np.swapaxes(Vh, -1, -2), s_inv[..., :, None] * UtR12), -1, -2)
+    V = np.swapaxes(Vh, -1, -2)
+    theta = np.swapaxes(np.matmul(V, s_inv[..., :, None] * UtR12), -1, -2)
+    S = _normal_residual(Z[:, None], F[:, None], theta[:, None], [0.0])[:, 0]  # (b, n, d)
+    dT = np.matmul(np.matmul(S, V) * (s_inv**2)[..., None, :], Vh)
+    return theta + dT
 
 
 def fit_svr(Z: np.ndarray, F: np.ndarray, gammas, loss_scale: str = "sum") -> np.ndarray:
     """SVR closed form Theta = F Z^T (Z Z^T + g I)^-1 for every gamma at once.
 
     SPEC section 2 (eq:SVR_all): ``g = gamma`` for loss_scale "sum",
-    ``g = gamma * N0`` for "mean". Z Z^T = V diag(lam) V^T is decomposed once
-    per dataset (eigh) and reused for all gammas:
-    Theta_g = (F Z^T V) diag(1/(lam + g)) V^T. Eigenvalues of the PSD Z Z^T
-    are floored at 0 (rounding only). ``gammas`` scalar or 1-D (G,), all > 0.
-    -> (..., G, n, d)
+    ``g = gamma * N0`` for "mean". Solved as :func:`svr_from_gram` does, with
+    the data at hand for the ill-conditioned cells. ``gammas`` scalar or 1-D
+    (G,), all > 0. -> (..., G, n, d)
     """
     Z, F = _check(Z, F)
+    batch = np.broadcast_shapes(Z.shape[:-2], F.shape[:-2])
+    Z = np.broadcast_to(Z, (*batch, *Z.shape[-2:]))
+    F = np.broadcast_to(F, (*batch, *F.shape[-2:]))
     Zt = np.swapaxes(Z, -1, -2)
+    Zf = Z.reshape(-1, *Z.shape[-2:])
+    Ff = F.reshape(-1, *F.shape[-2:])
     return svr_from_gram(
-        np.matmul(Z, Zt), np.matmul(F, Zt), Z.shape[-1], gammas, loss_scale=loss_scale
+        np.matmul(Z, Zt),
+        np.matmul(F, Zt),
+        Z.shape[-1],
+        gammas,
+        loss_scale=loss_scale,
+        data=lambda rows: (Zf[rows], Ff[rows]),
     )
 
 
+SVR_COND_LIMIT = 1e6  # above this cond(Z Z^T + g I) the eigh solution loses > ~1e-10: QR path
+FALLBACK_CHUNK_BYTES = 4 * 2**20  # data of the QR path held at once (at least one dataset)
+
+
+def ridge_condition(G: np.ndarray, g) -> np.ndarray:
+    """cond(Z Z^T + g I) = (lam_max + g) / (lam_min + g) from ``G = Z Z^T``. -> (..., len(g))
+
+    Eigenvalues of the PSD G are floored at 0 (rounding only); inf where
+    singular (g = 0), NaN for non-finite G.
+    """
+    G = np.asarray(G, dtype=float)
+    g = np.atleast_1d(np.asarray(g, dtype=float))
+    ok = np.isfinite(G).all(axis=(-1, -2))
+    lam = np.linalg.eigvalsh(np.where(ok[..., None, None], G, 0.0))
+    lam = np.maximum(lam, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kappa = (lam[..., -1:] + g) / (lam[..., :1] + g)
+    return np.where(ok[..., None], kappa, np.nan)
+
+
 def svr_from_gram(
-    G: np.ndarray, FZt: np.ndarray, N0: int, gammas, *, loss_scale: str = "sum"
+    G: np.ndarray, FZt: np.ndarray, N0: int, gammas, *, loss_scale: str = "sum", data=None
 ) -> np.ndarray:
     """:func:`fit_svr` from the sufficient statistics ``G = Z Z^T`` (..., d, d)
     and ``FZt = F Z^T`` (..., n, d) of datasets with ``N0`` samples each.
 
-    The same arithmetic as :func:`fit_svr` (which calls it). -> (..., G, n, d)
+    Well-conditioned cells (cond(G + g I) <= ``SVR_COND_LIMIT``): ``G = V
+    diag(lam) V^T`` once per dataset (eigh), reused for every gamma,
+    ``Theta_g = (F Z^T V) diag(1/(lam + g)) V^T``. The other cells need the
+    data: ``data(rows) -> (Z, F)`` of those rows of the flattened batch
+    (``(b, d, N0)``, ``(b, n, N0)``), and get the backward-stable solve of
+    :func:`ridge_qr`. Without ``data`` they keep the eigh solution (whose
+    error grows like cond(G + g I) * eps). -> (..., G, n, d)
     """
     G = np.asarray(G, dtype=float)
     FZt = np.asarray(FZt, dtype=float)
     g = ridge_parameters(gammas, N0, loss_scale)
-    lam, V = np.linalg.eigh(G)  # (..., d), (..., d, d)
+    ok = np.isfinite(G).all(axis=(-1, -2)) & np.isfinite(FZt).all(axis=(-1, -2))
+    lam, V = np.linalg.eigh(np.where(ok[..., None, None], G, 0.0))  # (..., d), (..., d, d)
     lam = np.maximum(lam, 0.0)
-    P = np.matmul(FZt, V)  # (..., n, d)
-    denom = lam[..., None, None, :] + g[:, None, None]  # (..., G, 1, d)
-    return np.matmul(P[..., None, :, :] / denom, np.swapaxes(V, -1, -2)[..., None, :, :])
+    with np.errstate(over="ignore", invalid="ignore"):  # huge data: inf/NaN, noted downstream
+        P = np.matmul(FZt, V)  # (..., n, d)
+        denom = lam[..., None, None, :] + g[:, None, None]  # (..., G, 1, d)
+        theta = np.matmul(P[..., None, :, :] / denom, np.swapaxes(V, -1, -2)[..., None, :, :])
+    theta = np.where(ok[..., None, None, None], theta, np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kappa = (lam[..., -1:] + g) / (lam[..., :1] + g)  # (..., G)
+    bad = ok[..., None] & ~(kappa <= SVR_COND_LIMIT)
+    if data is None or not bad.any():
+        return theta
+    d, n = G.shape[-1], FZt.shape[-2]
+    flat = theta.reshape(-1, *theta.shape[-3:])
+    bad = bad.reshape(-1, g.size)
+    rows = np.flatnonzero(bad.any(axis=1))
+    step = max(1, FALLBACK_CHUNK_BYTES // (8 * (d + n) * max(1, int(N0))))
+    for s in range(0, rows.size, step):  # chunks of datasets bound the memory, not a hot loop
+        r = rows[s : s + step]
+        Z, F = data(r)
+        flat[r] = np.where(bad[r][..., None, None], ridge_qr(Z, F, g), flat[r])
+    return flat.reshape(theta.shape)
+
+
+def ridge_qr(Z: np.ndarray, F: np.ndarray, g) -> np.ndarray:
+    """Ridge Theta = F Z^T (Z Z^T + g I)^-1 by a backward-stable solve, batched.
+
+    SPEC section 2. The ridge problem is the least-squares problem
+    ``[Z^T; sqrt(g) I] Theta^T ~ [F^T; 0]``: an R-only QR of ``[Z^T F^T]``
+    reduces the data to ``[[R11, R12], [0, R22]]`` (d + n columns), then per
+    g a QR of the small ``[R11; sqrt(g) I]`` gives R_g (R_g^T R_g = Z Z^T +
+    g I) and Theta. One step of iterative refinement with the normal-equation
+    residual ``(F - Theta Z) Z^T - g Theta`` accumulated in extended precision
+    (``np.longdouble``) and corrected through R_g brings the error to
+    ~cond(R_g) * eps. Z (b, d, N0), F (b, n, N0), g (G,) > 0 -> (b, G, n, d).
+    """
+    Z = np.asarray(Z, dtype=float)
+    F = np.asarray(F, dtype=float)
+    g = np.atleast_1d(np.asarray(g, dtype=float))
+    b, d, N0 = Z.shape
+    n = F.shape[-2]
+    k = d + n
+    R = np.linalg.qr(np.swapaxes(np.concatenate([Z, F], axis=-2), -1, -2), mode="r")
+    if R.shape[-2] < k:  # N0 < d + n: pad the triangle with zero rows
+        R = np.concatenate([R, np.zeros((b, k - R.shape[-2], k))], axis=-2)
+    R11, R12 = R[:, None, :d, :d], R[:, None, :d, d:]
+    eye = np.sqrt(g)[:, None, None] * np.eye(d)  # (G, d, d)
+    aug = np.concatenate(
+        [np.broadcast_to(R11, (b, g.size, d, d)), np.broadcast_to(eye, (b, *eye.shape))], axis=-2
+    )
+    Q, Rg = np.linalg.qr(aug)  # (b, G, 2d, d), (b, G, d, d)
+    rhs = np.matmul(np.swapaxes(Q[..., :d, :], -1, -2), R12)  # Q^T [R12; 0]
+    Xt = np.linalg.solve(Rg, rhs)  # Theta^T: (b, G, d, n)
+    # refinement: R_g^T R_g dX = S^T with the extended-precision residual S
+    S = _normal_residual(Z[:, None], F[:, None], np.swapaxes(Xt, -1, -2), g)
+    dX = np.linalg.solve(Rg, np.linalg.solve(np.swapaxes(Rg, -1, -2), np.swapaxes(S, -1, -2)))
+    return np.swapaxes(Xt + dX, -1, -2)
 
 
 def shrunk_ols(theta_ols: np.ndarray, gammas) -> np.ndarray:

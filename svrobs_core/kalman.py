@@ -16,6 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import SpecError, check_matrix
+from .linalg import solve as _solve
+from .norms import spectral_radius
+from .systems import SIGMA_V0_COND_LIMIT
 
 __all__ = [
     "KALMAN_NONFINITE_INPUT",
@@ -107,7 +110,7 @@ def _fro(X):
 
 
 def _spectral_radius(F):
-    return np.abs(np.linalg.eigvals(F)).max(axis=-1)
+    return spectral_radius(F)  # NaN for a non-finite F
 
 
 def _stein(F, W):
@@ -115,7 +118,7 @@ def _stein(F, W):
     b, n, _ = F.shape
     kron = np.einsum("bij,bkl->bikjl", F, F).reshape(b, n * n, n * n)
     M = np.eye(n * n) - kron
-    x = np.linalg.solve(M, W.reshape(b, n * n, 1))
+    x = _solve(M, W.reshape(b, n * n, 1))
     return _sym(x.reshape(b, n, n))
 
 
@@ -123,7 +126,7 @@ def _gain_from_X(A, C, X):
     """K = A X C^T (C X C^T + I)^-1 (scaled form, X = P / sigma_v^2)."""
     p = C.shape[-2]
     S = C @ X @ _mT(C) + np.eye(p)
-    return _mT(np.linalg.solve(S, C @ X @ _mT(A)))
+    return _mT(_solve(S, C @ X @ _mT(A)))
 
 
 def _sda(A, C, q):
@@ -149,7 +152,7 @@ def _sda(A, C, q):
             sel = slice(None) if active.size == b else active
             a, g, h = Ak[sel], Gk[sel], Hk[sel]
             W = I + g @ h
-            S = np.linalg.solve(W, np.concatenate([a, g], axis=-1))
+            S = _solve(W, np.concatenate([a, g], axis=-1))
             S1, S2 = S[..., :n], S[..., n:]
             h_new = _sym(h + _mT(a) @ h @ S1)
             g_new = _sym(g + a @ S2 @ _mT(a))
@@ -260,9 +263,9 @@ def kalman_predictor(A, C, sigma_w, sigma_v) -> KalmanResult:
     zero_v = finite & (sv == 0)
     if zero_v.any():
         idx = np.flatnonzero(zero_v)
-        if p != n or np.any(np.linalg.cond(C[idx]) > 1e12):
+        if p != n or not np.all(np.linalg.cond(C[idx]) <= SIGMA_V0_COND_LIMIT):
             raise SpecError("sigma_v", "sigma_v = 0 requires a square invertible C")
-        K[idx] = _mT(np.linalg.solve(_mT(C[idx]), _mT(A[idx])))
+        K[idx] = _mT(_solve(_mT(C[idx]), _mT(A[idx])))
         P[idx] = (sw[idx] ** 2)[:, None, None] * np.eye(n)
         status[idx] = KALMAN_OK
 
@@ -344,5 +347,5 @@ def dare_residual(A, C, sigma_w, sigma_v, *, P) -> np.ndarray:
     Q = (np.asarray(sigma_w, float) ** 2)[..., None, None] * np.eye(n)
     R = (np.asarray(sigma_v, float) ** 2)[..., None, None] * np.eye(p)
     S = C @ P @ _mT(C) + R
-    rhs = A @ P @ _mT(A) - A @ P @ _mT(C) @ np.linalg.solve(S, C @ P @ _mT(A)) + Q
+    rhs = A @ P @ _mT(A) - A @ P @ _mT(C) @ _solve(S, C @ P @ _mT(A)) + Q
     return _fro(rhs - P) / (_fro(P) + _fro(Q) + _fro(R))

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import check_matrix
+from .linalg import solve as _solve
 
 REASON_UNSTABLE = "unstable"
 REASON_NONFINITE = "non-finite input"
@@ -112,7 +113,7 @@ def _stein_kron(F, Fr, Q, batch, *, n, r, k):
     if Ff.shape[0] == 1 and Frf.shape[0] == 1:
         # one operator for the whole batch: factor once, all cells as RHS columns
         M = np.eye(nr) - np.kron(Ff[0], Frf[0])
-        X = np.linalg.solve(M, np.moveaxis(Qf, 0, 1).reshape(nr, Nb * k))
+        X = _solve(M, np.moveaxis(Qf, 0, 1).reshape(nr, Nb * k))
         return np.moveaxis(X.reshape(nr, Nb, k), 1, 0).reshape(batch + (n, r, k))
     Ff = np.broadcast_to(F, batch + (n, n)).reshape(Nb, n, n)
     Frf = np.broadcast_to(Fr, batch + (r, r)).reshape(Nb, r, r)
@@ -125,7 +126,7 @@ def _stein_kron(F, Fr, Q, batch, *, n, r, k):
         M = np.einsum("bik,bjl->bijkl", Ff[s:e], Frf[s:e]).reshape(e - s, nr, nr)
         np.negative(M, out=M)
         M[:, diag, diag] += 1.0
-        out[s:e] = np.linalg.solve(M, Qf[s:e])
+        out[s:e] = _solve(M, Qf[s:e])
     return out.reshape(batch + (n, r, k))
 
 
@@ -209,7 +210,7 @@ def _sigma_max(F, G, H, D, *, w):
     n = F.shape[-1]
     z = np.exp(1j * w)[..., None, None]
     M = z * np.eye(n) - F[:, None]
-    R = np.linalg.solve(M, np.broadcast_to(G[:, None], M.shape[:-1] + G.shape[-1:]))
+    R = _solve(M, np.broadcast_to(G[:, None], M.shape[:-1] + G.shape[-1:]))
     T = H[:, None] @ R + D[:, None]
     return np.linalg.svd(T, compute_uv=False)[..., 0]
 

@@ -72,7 +72,24 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
         keep_data=need_data,
     )
     N0 = (spec.T0 - 1) * N if spec.data == "all" else N
-    theta = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0)
+
+    def data(rows):  # the regression data of these reps, for the ill-conditioned SVR cells
+        if Z is not None:
+            return Z[rows], F[rows]
+        _, _, Zr, Fr = gram_data(
+            system,
+            sigma_w,
+            N,
+            spec.T0,
+            seed=spec.seed,
+            keys=[keys[i] for i in rows],
+            data=spec.data,
+            x0_std=spec.x0_std,
+            keep_data=True,
+        )
+        return Zr, Fr
+
+    theta = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0, data=data)
     A_hat, B_hat = theta[..., :n], theta[..., n:]
     R, E = theta.shape[:2]
     out: dict[str, np.ndarray] = {
@@ -82,6 +99,10 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
         "rmse_B": _rmse(B_hat, system.B),
     }
     notes = Notes((R, E))
+    notes.add(
+        ~np.isfinite(theta).all(axis=(-2, -1)),
+        "estimate: not finite (the simulated data leave the double range)",
+    )
     skipped = [st for st in STAGES if not spec.has(st)]
     if skipped:
         notes.add(True, "stages not run: " + ", ".join(skipped))
@@ -100,11 +121,12 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
     return out, notes, N0, state
 
 
-def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0) -> np.ndarray:
+def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data) -> np.ndarray:
     """Theta for every (rep, estimator/gamma): (R, E, n, d); SPEC section 2.
 
-    SVR needs only the sufficient statistics G = Z Z^T, P = F Z^T; OLS (and
-    shrunk OLS) use the data themselves (iterative refinement, QR fallback).
+    SVR needs only the sufficient statistics G = Z Z^T, P = F Z^T, and the
+    data of its ill-conditioned cells (``data(rows)``); OLS (and shrunk OLS)
+    use the data themselves (iterative refinement, QR fallback).
     """
     parts = []
     theta_ols = None
@@ -113,7 +135,9 @@ def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0) -> np.ndarray:
             theta_ols = _est.fit_ols(Z, F) if theta_ols is None else theta_ols
             parts.append(theta_ols[:, None])
         elif e == "svr":
-            parts.append(_est.svr_from_gram(G, P, N0, spec.gamma, loss_scale=spec.loss_scale))
+            parts.append(
+                _est.svr_from_gram(G, P, N0, spec.gamma, loss_scale=spec.loss_scale, data=data)
+            )
         else:  # shrunk-ols
             theta_ols = _est.fit_ols(Z, F) if theta_ols is None else theta_ols
             parts.append(_est.shrunk_ols(theta_ols, spec.gamma))
@@ -143,6 +167,8 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain):
         delta=spec.delta,
     )
     b = _bounds.evaluate_bounds(c.A_hat, c.B_hat, gamma, rad, A_true=system.A, B_true=system.B)
+    notes.add_reasons(rad.reason_A, None)
+    notes.add_reasons(rad.reason_B, None)
     shape = c.shape
     out.update(
         {
@@ -160,8 +186,15 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain):
             "stable_certified": b.stable_certified,
         }
     )
-    if not spec.has("gain"):
-        return None
+    state = _gain_stages(c, b, gamma, rad, prev_gain) if spec.has("gain") else None
+    if spec.has("sls"):
+        _sls_stage(c, b)
+    return state
+
+
+def _gain_stages(c: _Cells, b, gamma, rad, prev_gain):
+    """gain (with the reuse policy), cost, cost_bound; -> the gain state for ``reuse_gain``."""
+    notes, system, shape = c.notes, c.system, c.shape
     designed, k_hat_reasons = design(c, gamma, rad)
     if k_hat_reasons is not None:
         notes.add_reasons(k_hat_reasons, "K_hat")
@@ -236,7 +269,10 @@ def _observer_stages(c: _Cells, b, designed):
     if k_reason is not None:
         notes.add(True, f"true system: {k_reason}")
     L = designed.L
-    out["L"], out["g_L"], out["certified"] = L, designed.g_L, designed.certified
+    defined = np.isfinite(designed.g_L)
+    notes.add(~defined, "certified: undefined (no finite gain L or radius r_A)")
+    out["L"], out["g_L"] = L, designed.g_L
+    out["certified"] = _bounds.nullable(designed.certified, defined)
     out["K"] = np.broadcast_to(K, (R, E) + K.shape)
     rho_F = spectral_radius(A_hat - L @ C)
     out["rho_true"] = spectral_radius(A - L @ C)
@@ -273,8 +309,6 @@ def _observer_stages(c: _Cells, b, designed):
         notes.add_reasons(t3.reason, "J_bound")
         out["J_bound"] = t3.J_b
         out["delta_J"] = t3.J_b - J
-    if spec.has("sls"):
-        _sls_stage(c, b, norms, K)
 
 
 def mc_note(limit: int) -> str:
@@ -338,11 +372,17 @@ def _cost_ratio(c: _Cells, J):
     c.out["cost_ratio"] = ratio
 
 
-def _sls_stage(c: _Cells, b, norms, K):
-    """J_opt by SLS per cell (cvxpy + Clarabel) and the paper's bound on it (SPEC 8)."""
+def _sls_stage(c: _Cells, b):
+    """J_opt by SLS per cell (cvxpy + Clarabel) and the paper's bound on it (SPEC 8).
+
+    Needs the estimate, the bounds' eps and the true system's K and norms
+    (:func:`truth`, computed here when the gain stage did not): not the gain."""
     from . import sls as _sls  # cvxpy: imported only when the sls stage runs
 
     spec, system, notes = c.spec, c.system, c.notes
+    K, _, norms, k_reason = truth(system, c.sigma_w, spec.horizon)
+    if k_reason is not None:
+        notes.add(True, f"true system: {k_reason}")
     R, E = c.shape
     su, sv = system.sigma_u, system.sigma_v
     eps1 = np.fmax(b.eps_A, b.eps_B)

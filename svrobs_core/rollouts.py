@@ -320,13 +320,15 @@ def gram_data(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0, kee
         Yh = Y[:h]
         Yh[:, n:d, :T0] *= system.sigma_u
         Yh[:, d:, :T0] *= sigma_w
-        for k in range(T0):
-            np.matmul(M, Yh[:, :, k], out=Yh[:, :n, k + 1])
         Zv = Yh[:, :d, k0:T0].reshape(h, d, K * N)  # views, row stride (T0+1) N
         Fv = Yh[:, :n, k0 + 1 : T0 + 1].reshape(h, n, K * N)
         Zt = np.swapaxes(Zv, -1, -2)
-        np.matmul(Zv, Zt, out=G[s:e])
-        np.matmul(Fv, Zt, out=P[s:e])
+        # an unstable system may leave the double range: inf / NaN data, noted downstream
+        with np.errstate(over="ignore", invalid="ignore"):
+            for k in range(T0):
+                np.matmul(M, Yh[:, :, k], out=Yh[:, :n, k + 1])
+            np.matmul(Zv, Zt, out=G[s:e])
+            np.matmul(Fv, Zt, out=P[s:e])
         if keep_data:
             Z[s:e] = Zv
             F[s:e] = Fv

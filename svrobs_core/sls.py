@@ -145,8 +145,30 @@ def _compiled(n: int, p: int, T: int, bounded: bool) -> _Compiled:
         cache = _local.cache = {}
     key = (n, p, T, bounded)
     if key not in cache:
-        cache[key] = _build(n, p, T, bounded)
+        cache[key] = _warm(_build(n, p, T, bounded), n, p)
     return cache[key]
+
+
+def _warm(pr: _Compiled, n: int, p: int) -> _Compiled:
+    """Solve a freshly compiled program once with fixed values, result discarded.
+
+    cvxpy's first solve of a DPP program canonicalises it with the parameter
+    values in place; later solves map the parameters through the cached
+    reduction. The two give problem data that differ in the last bits, so
+    without this the J_opt of a cell would depend on whether it was the first
+    solve of its process (issue 10, item 4): after it every cell takes the
+    cached path, and its J_opt is the same however the grid is split."""
+    pr.A.value = 0.5 * np.eye(n)
+    pr.C.value = np.eye(p, n)
+    pr.K.value = np.zeros((n, p))
+    pr.F.value = 1.0
+    if pr.C_bound is not None:
+        pr.C_bound.value = 1e3
+    try:
+        pr.problem.solve(solver=cp.CLARABEL)
+    except (cp.error.SolverError, ValueError, ArithmeticError):  # pragma: no cover
+        pass
+    return pr
 
 
 def clear_cache() -> None:
@@ -227,7 +249,9 @@ def default_C_bound(K, h2_closed_loop_inv):
     Broadcasts; a scalar result is a float.
     """
     K = check_matrix("K", K, ("n", "p"))
-    k_norm = np.linalg.norm(K, ord=2, axis=(-2, -1))
+    finite = np.isfinite(K).all(axis=(-2, -1))
+    k_norm = np.linalg.norm(np.where(finite[..., None, None], K, 0.0), ord=2, axis=(-2, -1))
+    k_norm = np.where(finite, k_norm, np.nan)
     return _out(2.0 * (1.0 + k_norm) * np.asarray(h2_closed_loop_inv, dtype=float))
 
 

@@ -7,11 +7,12 @@ naming the field.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, field
 
 from .errors import SpecError
-from .systems import SystemSpec, resolve_system
+from .systems import MAX_DIM, SystemSpec, resolve_system
 
 ESTIMATORS = ("ols", "svr", "shrunk-ols")
 STAGES = ("estimate", "bounds", "gain", "cost", "cost_bound", "sls")
@@ -49,6 +50,16 @@ SPEC_KEYS = {
     "x0_std",
 }
 MAX_GRID = 100_000  # any single list longer than this is surely a mistake
+# Hard caps on the sizes one cell may ask for (issue 10): beyond them a single
+# cell needs more memory or time than any worker has; the cost model
+# (svrobs_core.workload) limits the whole job below them.
+MAX_STATE_DIM = MAX_DIM  # n, m, p: the Kalman step solves an (n^2 x n^2) system per cell
+MAX_ROLLOUTS = 1_000_000  # N
+MAX_SAMPLES = 10_000_000  # T0 * N: the samples of one repetition's data
+MAX_MC_STEPS = 100_000_000  # horizon * mc_runs: the Monte Carlo steps of one cell
+MAX_T_FIR = 1000  # sls.T_fir
+MAX_T0 = 10_000
+MAX_REPS = 1_000_000
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -118,8 +129,9 @@ class ExperimentSpec:
 
 
 def _int(value, name: str, *, lo: int, hi: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):  # 3.0 and "3" are not integers
-        raise SpecError(name, "must be an integer")
+    """A JSON integer: booleans, floats (3.0 too) and strings are refused."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise SpecError(name, f"must be an integer, got {json.dumps(value, default=str)}")
     if value < lo:
         raise SpecError(name, f"must be >= {lo}")
     if hi is not None and value > hi:
@@ -128,8 +140,9 @@ def _int(value, name: str, *, lo: int, hi: int | None = None) -> int:
 
 
 def _float(value, name: str, *, positive: bool = False, nonneg: bool = False) -> float:
+    """A JSON number: booleans and numeric strings ("0.5") are refused."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SpecError(name, "must be a number")
+        raise SpecError(name, f"must be a number, got {json.dumps(value, default=str)}")
     v = float(value)
     if not math.isfinite(v):
         raise SpecError(name, "must be finite (no NaN or inf)")
@@ -162,14 +175,14 @@ def _n_grid(value) -> tuple[int, ...]:
         for key in ("start", "stop"):
             if key not in value:
                 raise SpecError(f"N.{key}", "is required")
-        start = _int(value["start"], "N.start", lo=1)
-        stop = _int(value["stop"], "N.stop", lo=start)
+        start = _int(value["start"], "N.start", lo=1, hi=MAX_ROLLOUTS)
+        stop = _int(value["stop"], "N.stop", lo=start, hi=MAX_ROLLOUTS)
         step = _int(value.get("step", 1), "N.step", lo=1)
         if (stop - start) // step + 1 > MAX_GRID:
             raise SpecError("N", f"has more than {MAX_GRID} entries")
         return tuple(range(start, stop + 1, step))
     items = _list(value, "N")
-    out = tuple(_int(v, f"N[{i}]", lo=1) for i, v in enumerate(items))
+    out = tuple(_int(v, f"N[{i}]", lo=1, hi=MAX_ROLLOUTS) for i, v in enumerate(items))
     return _unique(out, "N")
 
 
@@ -199,7 +212,10 @@ def parse_spec(obj) -> ExperimentSpec:
     )
     _unique(sigma_w, "sigma_w")
     N = _n_grid(obj["N"])
-    T0 = _int(obj.get("T0", 11), "T0", lo=2, hi=10_000)
+    T0 = _int(obj.get("T0", 11), "T0", lo=2, hi=MAX_T0)
+    if T0 * max(N) > MAX_SAMPLES:
+        i = "N" if isinstance(obj["N"], dict) else f"N[{list(obj['N']).index(max(N))}]"
+        raise SpecError(i, f"T0 * N = {T0 * max(N)} samples per repetition is over {MAX_SAMPLES}")
 
     estimators = tuple(
         _choice(e, f"estimators[{i}]", ESTIMATORS)
@@ -242,6 +258,12 @@ def parse_spec(obj) -> ExperimentSpec:
     if margin >= 1:
         raise SpecError("margin", "must be < 1")
     seed = _int(obj.get("seed", 0), "seed", lo=0, hi=2**63 - 1)
+    mc_runs = _int(obj.get("mc_runs", 1000), "mc_runs", lo=2, hi=1_000_000)
+    horizon = _int(obj.get("horizon", 200), "horizon", lo=1, hi=100_000)
+    if "cost" in stages and mc_runs * horizon > MAX_MC_STEPS:
+        raise SpecError(
+            "mc_runs", f"mc_runs * horizon = {mc_runs * horizon} is over {MAX_MC_STEPS} per cell"
+        )
 
     return ExperimentSpec(
         systems=systems,
@@ -252,17 +274,17 @@ def parse_spec(obj) -> ExperimentSpec:
         estimators=estimators,
         loss_scale=_choice(obj.get("loss_scale", "sum"), "loss_scale", ("sum", "mean")),
         data=_choice(obj.get("data", "all"), "data", ("all", "final")),
-        reps=_int(obj.get("reps", 45), "reps", lo=1, hi=1_000_000),
+        reps=_int(obj.get("reps", 45), "reps", lo=1, hi=MAX_REPS),
         M=_float(obj.get("M", 1.1), "M", positive=True),
         delta=delta,
         stages=stages,
-        mc_runs=_int(obj.get("mc_runs", 1000), "mc_runs", lo=2, hi=1_000_000),
-        horizon=_int(obj.get("horizon", 200), "horizon", lo=1, hi=100_000),
+        mc_runs=mc_runs,
+        horizon=horizon,
         mc_reps=None if mc_reps is None else _int(mc_reps, "mc_reps", lo=0),
         margin=margin,
         reuse_gain=reuse,
         gamma_ref=_float(obj.get("gamma_ref", 0.1), "gamma_ref", positive=True),
-        sls_T_fir=_int(sls.get("T_fir", 30), "sls.T_fir", lo=2, hi=1000),
+        sls_T_fir=_int(sls.get("T_fir", 30), "sls.T_fir", lo=2, hi=MAX_T_FIR),
         sls_C_bound=None if c_bound is None else _float(c_bound, "sls.C_bound", positive=True),
         seed=seed,
         x0_std=_float(obj.get("x0_std", 0.0), "x0_std", nonneg=True),

@@ -55,10 +55,24 @@ class SystemSpec:
         }
 
 
+MAX_ENTRY = 1e100  # |entries| of A, B, C and the noise levels: squares and products stay finite
+MAX_DIM = 50  # n, m, p (svrobs_core.spec.MAX_STATE_DIM)
+SIGMA_V0_COND_LIMIT = 1e12  # sigma_v = 0 needs cond(C) below this (K = A C^-1, SPEC section 5)
+
+
+def _numbers(value) -> bool:
+    """True for a (nested) list of JSON numbers: no booleans, no strings like "0.5"."""
+    if isinstance(value, list):
+        return all(_numbers(v) for v in value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _matrix(value, field: str) -> np.ndarray:
+    if not isinstance(value, list) or not _numbers(value):
+        raise SpecError(field, "must be a matrix of numbers (a list of rows of numbers)")
     try:
         arr = np.array(value, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise SpecError(field, "must be a matrix of numbers (a list of rows)") from None
     if arr.ndim == 1 and arr.size > 0 and field.endswith(".B"):
         arr = arr[:, None]  # a column vector written as a flat list
@@ -66,6 +80,10 @@ def _matrix(value, field: str) -> np.ndarray:
         raise SpecError(field, "must be a non-empty matrix (a list of equal-length rows)")
     if not np.all(np.isfinite(arr)):
         raise SpecError(field, "contains NaN or inf")
+    if np.any(np.abs(arr) > MAX_ENTRY):
+        raise SpecError(field, f"has an entry larger than {MAX_ENTRY:g} in magnitude")
+    if max(arr.shape) > MAX_DIM:
+        raise SpecError(field, f"is {arr.shape[0]}x{arr.shape[1]}: at most {MAX_DIM} per side")
     return arr
 
 
@@ -77,6 +95,8 @@ def _positive_number(value, field: str, *, allow_zero: bool) -> float:
         raise SpecError(field, "must be finite")
     if v < 0 or (v == 0 and not allow_zero):
         raise SpecError(field, "must be > 0" if not allow_zero else "must be >= 0")
+    if v > MAX_ENTRY:
+        raise SpecError(field, f"must be at most {MAX_ENTRY:g}")
     return v
 
 
@@ -114,10 +134,11 @@ def resolve_system(obj, field: str = "systems[0]") -> SystemSpec:
     sigma_v = _positive_number(obj.get("sigma_v", 0.1), f"{field}.sigma_v", allow_zero=True)
     if sigma_v == 0.0:
         square = C.shape[0] == C.shape[1]
-        if not square or np.linalg.matrix_rank(C) < n:
+        if not square or not np.linalg.cond(C) <= SIGMA_V0_COND_LIMIT:
             raise SpecError(
                 f"{field}.sigma_v",
-                "sigma_v = 0 needs a square invertible C (SPEC section 5)",
+                "sigma_v = 0 needs a square invertible C with cond(C) <= "
+                f"{SIGMA_V0_COND_LIMIT:g} (SPEC section 5)",
             )
     for arr in (A, B, C):
         arr.setflags(write=False)

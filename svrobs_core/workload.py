@@ -17,8 +17,12 @@ plus the unit's largest working set and the records it keeps.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+import numpy as np
+
+from .errors import SpecError
+from .estimators import FALLBACK_CHUNK_BYTES, SVR_COND_LIMIT
 from .gains import is_orthogonal
 from .spec import ExperimentSpec
 
@@ -40,6 +44,8 @@ TRUTH = (0.015, 1.9e-5)  # per unit with gain: K, J*, norms of the true system (
 MC_DRAW = 1.2e-8  # Monte Carlo: per (row, step, run) and noise entry (draw + plant)
 MC_CELL = 2.5e-10  # Monte Carlo: per (cell, step, run) and n (W + n) multiply-add
 MC_STEP = 5.0e-6  # Monte Carlo: per step, the Python loop's calls
+QR_REP = 1.0e-3  # SVR's QR path: per repetition (the calls of estimators.ridge_qr)
+LONG_DOUBLE = 3.0e-8  # SVR's QR path: per long-double multiply-add of the refinement
 CVX_SOLVE = 3.0e-3  # one small cvxpy + Clarabel solve (general-C gain design)
 SLS_SOLVE = 1.5e-3  # one SLS solve: fixed part
 SLS_VAR = 8.0e-6  # one SLS solve: per scalar variable T_fir n (n + p)
@@ -88,8 +94,19 @@ def _cell(stage: str, n: int) -> float:
     return c0 + c3 * n**3 + c6 * n**6
 
 
-def _dataset(spec: ExperimentSpec, *, n, m, p, orth, N, R, mc_rows) -> tuple[float, float, float]:
-    """(cpu seconds, transient bytes, kept bytes) of one N of a unit with R reps."""
+def _ill_conditioned(spec: ExperimentSpec, si: int) -> bool:
+    """Whether SVR's data are likely worse conditioned than estimators.SVR_COND_LIMIT:
+    the states of an unstable system grow like rho(A)^T0, so cond(Z Z^T) like
+    rho(A)^(2 T0) (a heuristic for the cost, not for the numbers)."""
+    rho = float(np.max(np.abs(np.linalg.eigvals(spec.systems[si].A))))
+    return rho > 1 and 2 * (spec.T0 - 1) * np.log10(rho) > np.log10(SVR_COND_LIMIT)
+
+
+def _dataset(
+    spec: ExperimentSpec, *, n, m, p, orth, N, R, mc_rows, ill=False
+) -> tuple[float, float, float]:
+    """(cpu seconds, transient bytes, kept bytes) of one N of a unit with R reps;
+    ``ill``: SVR's cells take the QR path (:func:`_ill_conditioned`)."""
     T0, E = spec.T0, spec.cells_per_rep
     d, q = n + m, 2 * n + m
     K = T0 - 1 if spec.data == "all" else 1
@@ -99,12 +116,24 @@ def _dataset(spec: ExperimentSpec, *, n, m, p, orth, N, R, mc_rows) -> tuple[flo
     per_rep = 8.0 * N * (q * (T0 + 1) + d * T0)
     chunk = max(1, min(R, int(GRAM_CHUNK_BYTES // per_rep)))
     cpu = DATASET + KEY * R + CALL * T0 * -(-R // chunk)
-    cpu += NORMAL * R * (m + n) * T0 * N + FLOP * R * N * (2 * n * q * T0 + 2 * (d + n) * d * K)
+    data_cpu = NORMAL * R * (m + n) * T0 * N + FLOP * R * N * (2 * n * q * T0 + 2 * (d + n) * d * K)
+    cpu += data_cpu
     mem = chunk * per_rep
+    rep_data = 8.0 * (d + n) * N0  # one repetition's Z and F
+    kept_data = 0.0
     if any(e in ("ols", "shrunk-ols") for e in spec.estimators):
         # estimators.fit_ols keeps Z, F and forms the residual F - Theta Z
         cpu += FLOP * R * N0 * (2 * d * d + 6 * n * d)
-        mem = max(mem, 2 * 8.0 * R * (d + n) * N0)
+        kept_data = R * rep_data
+        mem = max(mem, 2 * kept_data)
+    if "svr" in spec.estimators:  # the QR path of ill-conditioned cells, one chunk at a time
+        chunk_data = max(rep_data, min(R * rep_data, FALLBACK_CHUNK_BYTES))
+        mem = max(mem, kept_data + 5 * chunk_data)
+        if ill:  # the data again (unless OLS kept them), QR, the long-double residual
+            G = len(spec.gamma)
+            cpu += (0.0 if kept_data else data_cpu) + R * (
+                QR_REP + LONG_DOUBLE * N0 * (d + n) * (2 + G)
+            )
     # per-cell work of the stages (small matrices, vectorised over the cells)
     h = max(n, p)
     cpu += cells * sum(_cell(st, h) for st in CELL_COST if spec.has(st))
@@ -160,13 +189,16 @@ def estimate_unit(spec: ExperimentSpec, unit: dict) -> UnitCost:
     limit = spec.reps if spec.mc_reps is None else spec.mc_reps
     mc_rows = max(0, min(r1, limit) - r0)
     cpu, peak, kept = 0.0, 0.0, 0.0
+    ill = "svr" in spec.estimators and _ill_conditioned(spec, si)
     for N in unit["N"]:
-        c, transient, k = _dataset(spec, n=n, m=m, p=p, orth=orth, N=N, R=R, mc_rows=mc_rows)
+        c, transient, k = _dataset(
+            spec, n=n, m=m, p=p, orth=orth, N=N, R=R, mc_rows=mc_rows, ill=ill
+        )
         cpu += c
         peak = max(peak, kept + transient)
         kept += k
     base = BASE_BYTES
-    if spec.has("gain"):
+    if spec.has("gain") or spec.has("sls"):
         cpu += TRUTH[0] + TRUTH[1] * n**3
     if _needs_cvxpy(spec, orth):
         base += CVXPY_BYTES
@@ -200,4 +232,109 @@ def estimate_job(spec: ExperimentSpec, units: list[dict] | None = None) -> JobCo
     )
 
 
-__all__ = ["JobCost", "UnitCost", "estimate_job", "estimate_unit"]
+class WorkloadError(SpecError):
+    """A spec over a work or memory limit (the service answers 422, the CLI one line).
+
+    ``field`` names the spec field whose reduction lowers the estimate most;
+    ``estimate`` and ``limit`` are CPU seconds (``kind == "cpu"``) or bytes
+    (``kind == "memory"``)."""
+
+    def __init__(self, field: str, message: str, *, kind: str, estimate: float, limit: float):
+        super().__init__(field, message)
+        self.kind = kind
+        self.estimate = estimate
+        self.limit = limit
+
+
+def smallest_unit_bytes(spec: ExperimentSpec) -> int:
+    """Peak bytes of the smallest unit the plan can make: one repetition of the
+    largest N (all N together under ``reuse_gain``), for the largest system."""
+    Ns = list(spec.N) if spec.reuse_gain else [max(spec.N)]
+    return max(
+        estimate_unit(spec, {"system": si, "sigma_w": 0, "N": Ns, "reps": [0, 1]}).peak_bytes
+        for si in range(len(spec.systems))
+    )
+
+
+def _reductions(spec: ExperimentSpec, kind: str) -> dict[str, ExperimentSpec]:
+    """The spec with one size field at its smallest, per field (for naming the culprit)."""
+    out = {
+        "N": replace(spec, N=(1,)),
+        "T0": replace(spec, T0=2),
+        "gamma": replace(spec, gamma=spec.gamma[:1]),
+        "mc_runs": replace(spec, mc_runs=2),
+        "horizon": replace(spec, horizon=1),
+        "sls.T_fir": replace(spec, sls_T_fir=2),
+        "estimators": replace(spec, estimators=spec.estimators[:1]),
+    }
+    if kind == "cpu":
+        out["reps"] = replace(spec, reps=1, mc_reps=None if spec.mc_reps is None else 1)
+        out["sigma_w"] = replace(spec, sigma_w=spec.sigma_w[:1])
+        out["systems"] = replace(spec, systems=spec.systems[:1])
+    return out
+
+
+def _culprit(spec: ExperimentSpec, kind: str) -> str:
+    def size(s):
+        return estimate_job(s).cpu_seconds if kind == "cpu" else smallest_unit_bytes(s)
+
+    sizes = {f: size(s) for f, s in _reductions(spec, kind).items()}
+    return min(sizes, key=sizes.get)
+
+
+def admit(
+    spec: ExperimentSpec,
+    *,
+    max_cpu_seconds: float | None = None,
+    max_unit_bytes: int | None = None,
+) -> tuple[list[dict], JobCost]:
+    """The work units of ``spec`` planned under the memory cap, and their cost,
+    or :class:`WorkloadError` if the smallest unit is over ``max_unit_bytes``
+    or the job over ``max_cpu_seconds`` (None: no limit). The message gives the
+    estimate and the limit; ``field`` the spec field that weighs most."""
+    from .planning import plan_units
+
+    if max_unit_bytes is not None:
+        need = smallest_unit_bytes(spec)
+        if need > max_unit_bytes:
+            raise WorkloadError(
+                _culprit(spec, "memory"),
+                f"one work unit (a single repetition) needs an estimated {need / 2**20:.0f} MB,"
+                f" over the limit of {max_unit_bytes / 2**20:.0f} MB",
+                kind="memory",
+                estimate=need,
+                limit=max_unit_bytes,
+            )
+    floor = spec.n_cells * CELL_COST["estimate"][0]  # every cell builds its record at least
+    if max_cpu_seconds is not None and floor > max_cpu_seconds:
+        raise WorkloadError(
+            "reps" if spec.reps > len(spec.N) else "N",
+            f"the job ({spec.n_cells} records) needs an estimated {floor:.0f} CPU seconds or"
+            f" more, over the limit of {max_cpu_seconds:.0f} s",
+            kind="cpu",
+            estimate=floor,
+            limit=max_cpu_seconds,
+        )
+    units = plan_units(spec, max_unit_bytes=max_unit_bytes)
+    job = estimate_job(spec, units)
+    if max_cpu_seconds is not None and job.cpu_seconds > max_cpu_seconds:
+        raise WorkloadError(
+            _culprit(spec, "cpu"),
+            f"the job needs an estimated {job.cpu_seconds:.0f} CPU seconds,"
+            f" over the limit of {max_cpu_seconds:.0f} s",
+            kind="cpu",
+            estimate=job.cpu_seconds,
+            limit=max_cpu_seconds,
+        )
+    return units, job
+
+
+__all__ = [
+    "JobCost",
+    "UnitCost",
+    "WorkloadError",
+    "admit",
+    "estimate_job",
+    "estimate_unit",
+    "smallest_unit_bytes",
+]

@@ -18,7 +18,8 @@ from service.api.errors import FieldHTTPException
 from service.api.params import IntText
 from service.config import Settings
 from service.db.accounts import authenticate
-from service.db.models import Job
+from service.db.models import ApiKey, Job
+from service.web.session import session_key
 
 SessionFactory = Callable[..., Session]  # factory(write: bool) -> Session
 Publisher = Callable[[Sequence[int]], list[int]]
@@ -80,15 +81,16 @@ def _unauthorized(detail: str) -> HTTPException:
     return HTTPException(401, detail, headers={"WWW-Authenticate": "Bearer"})
 
 
-def _authenticate(request: Request, session: Session, token: str) -> Caller | None:
-    """The key's caller. A writing request looks the key up in a short reading session
-    of its own, so that its own session takes the SQLite write lock (BEGIN IMMEDIATE)
-    only when the route starts writing, not for the key lookup."""
+def caller_of(request: Request, session: Session, find: Callable[[Session], ApiKey | None]):
+    """The caller of the key ``find(session)`` returns (None: not signed in). A writing
+    request looks the key up in a short reading session of its own, so that its own
+    session takes the SQLite write lock (BEGIN IMMEDIATE) only when the route starts
+    writing, not for the key lookup."""
     own = None
     if is_write(request):
         session = own = request.app.state.session_factory(False)
     try:
-        key = authenticate(session, token)
+        key = find(session)
         if key is None:
             return None
         return Caller(
@@ -102,14 +104,7 @@ def _authenticate(request: Request, session: Session, token: str) -> Caller | No
             own.close()
 
 
-def get_caller(request: Request, session: Annotated[Session, Depends(get_db)]) -> Caller:
-    header = request.headers.get("authorization", "")
-    scheme, _, token = header.partition(" ")
-    if scheme.lower() != "bearer" or not token.strip():
-        raise _unauthorized("missing API key: send 'Authorization: Bearer <key>'")
-    caller = _authenticate(request, session, token.strip())
-    if caller is None:
-        raise _unauthorized("invalid, revoked or expired API key")
+def rate_limit(request: Request, caller: Caller) -> None:
     allowed, retry = request.app.state.rate_limiter.allow(caller.key_id)
     if not allowed:
         raise HTTPException(
@@ -117,6 +112,25 @@ def get_caller(request: Request, session: Annotated[Session, Depends(get_db)]) -
             "rate limit exceeded for this API key",
             headers={"Retry-After": str(max(1, int(retry + 0.999)))},
         )
+
+
+def get_caller(request: Request, session: Annotated[Session, Depends(get_db)]) -> Caller:
+    """The bearer key's caller. A reading request (GET) without an Authorization
+    header may instead carry the web UI's session cookie (service.web.session), so
+    that a signed-in browser opens reports and downloads; writes need the key."""
+    header = request.headers.get("authorization", "")
+    scheme, _, token = header.partition(" ")
+    if not header and not is_write(request):
+        caller = caller_of(request, session, lambda s: session_key(request, s))
+        if caller is None:
+            raise _unauthorized("missing API key: send 'Authorization: Bearer <key>'")
+    elif scheme.lower() != "bearer" or not token.strip():
+        raise _unauthorized("missing API key: send 'Authorization: Bearer <key>'")
+    else:
+        caller = caller_of(request, session, lambda s: authenticate(s, token.strip()))
+        if caller is None:
+            raise _unauthorized("invalid, revoked or expired API key")
+    rate_limit(request, caller)
     return caller
 
 

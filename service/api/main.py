@@ -14,6 +14,7 @@ from service.api.ratelimit import RateLimiter
 from service.broker import BrokerPublisher
 from service.config import Settings, get_settings
 from service.logging_config import configure_logging
+from service.web import mount_web
 
 API_PREFIX = "/api/v1"
 
@@ -110,6 +111,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             module.router, prefix=API_PREFIX, dependencies=[Depends(clean_query_text)]
         )
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.MAX_BODY_BYTES)
+    mount_web(app)  # the web UI's pages under /
     return app
 
 

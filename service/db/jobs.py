@@ -15,9 +15,9 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from service.config import get_settings
-from svrobs_core.planning import plan_units, unit_cells
+from svrobs_core import workload
+from svrobs_core.planning import unit_cells
 from svrobs_core.spec import ExperimentSpec, parse_spec
-from svrobs_core.workload import estimate_job
 
 from .errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
 from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
@@ -125,43 +125,36 @@ def create_job(
 def admit(
     spec: ExperimentSpec,
     *,
-    field: str = "spec",
+    field: str | None = None,
     max_cells: int | None = None,
     max_cpu_seconds: float | None = None,
-    max_unit_mb: int | None = None,
+    max_unit_mb: float | None = None,
 ) -> list[dict]:
-    """The spec's work units, planned to stay under SVROBS_MAX_UNIT_MEMORY_MB
-    (:func:`svrobs_core.planning.plan_units`), if the job is admissible.
+    """The spec's work units, planned to stay under SVROBS_MAX_UNIT_MEMORY_MB, if the
+    job is admissible (:func:`svrobs_core.workload.admit`).
 
-    Raises :class:`JobTooLarge` (naming ``field``, the estimate and the limit) when the
-    job has more than SVROBS_MAX_JOB_CELLS cells, when its estimated CPU time
-    (:func:`svrobs_core.workload.estimate_job`) is over SVROBS_MAX_JOB_CPU_SECONDS, or
-    when a unit needs more memory than the cap even split down to one repetition.
-    Each limit defaults to its setting.
+    Raises :class:`JobTooLarge` when the job's estimated CPU time is over
+    SVROBS_MAX_JOB_CPU_SECONDS or a unit needs more memory than the cap even split
+    down to one repetition (naming the spec field that weighs most, under ``field``
+    if given: ``spec_template.mc_runs``; the message gives the estimate, the limit
+    and the setting), or when the job has more than SVROBS_MAX_JOB_CELLS cells
+    (naming ``field``, default ``spec``). Each limit defaults to its setting.
     """
     settings = get_settings()
+    cpu = settings.MAX_JOB_CPU_SECONDS if max_cpu_seconds is None else max_cpu_seconds
+    mb = settings.MAX_UNIT_MEMORY_MB if max_unit_mb is None else max_unit_mb
+    try:  # (a job too big to plan is refused by the estimate's floor first)
+        units, _cost = workload.admit(spec, max_cpu_seconds=cpu, max_unit_bytes=int(mb * 2**20))
+    except workload.WorkloadError as exc:
+        setting = "SVROBS_MAX_JOB_CPU_SECONDS" if exc.kind == "cpu" else "SVROBS_MAX_UNIT_MEMORY_MB"
+        raise JobTooLarge(
+            f"{field}.{exc.field}" if field else exc.field, f"{exc.message} ({setting})"
+        ) from None
     cells = settings.MAX_JOB_CELLS if max_cells is None else max_cells
     if spec.n_cells > cells:
         raise JobTooLarge(
-            field,
+            field or "spec",
             f"the job has {spec.n_cells:,} cells; the limit is {cells:,} (SVROBS_MAX_JOB_CELLS)",
-        )
-    cpu_limit = settings.MAX_JOB_CPU_SECONDS if max_cpu_seconds is None else max_cpu_seconds
-    mb_limit = settings.MAX_UNIT_MEMORY_MB if max_unit_mb is None else max_unit_mb
-    units = plan_units(spec, max_unit_bytes=int(mb_limit * 2**20))
-    cost = estimate_job(spec, units)
-    if cost.peak_unit_bytes > mb_limit * 2**20:
-        raise JobTooLarge(
-            field,
-            f"a work unit of this job needs an estimated {cost.peak_unit_bytes / 2**20:,.0f} MB "
-            f"even with one repetition; the limit is {mb_limit:,} MB (SVROBS_MAX_UNIT_MEMORY_MB)",
-        )
-    if cost.cpu_seconds > cpu_limit:
-        raise JobTooLarge(
-            field,
-            f"the job needs an estimated {cost.cpu_seconds:,.0f} CPU seconds "
-            f"({cost.cpu_seconds / 3600:,.1f} h); the limit is {cpu_limit:,.0f} "
-            "(SVROBS_MAX_JOB_CPU_SECONDS)",
         )
     return units
 

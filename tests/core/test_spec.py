@@ -96,6 +96,34 @@ def test_custom_system_and_flat_B_column():
         ({"sls": {"T_fir": 1}}, "sls.T_fir"),
         ({"sls": {"horizon": 3}}, "sls.horizon"),
         ({"colour": "red"}, "colour"),
+        # issue 10, item 5: strict types, hard caps, field paths
+        ({"reps": 3.0}, "reps"),
+        ({"reps": True}, "reps"),
+        ({"T0": "11"}, "T0"),
+        ({"sigma_w": ["0.5"]}, "sigma_w[0]"),
+        ({"sigma_w": [True]}, "sigma_w[0]"),
+        ({"M": "1.1"}, "M"),
+        ({"N": [10.0]}, "N[0]"),
+        ({"systems": [custom(A=[["0.5", 0.0], [0.0, 0.5]])]}, "systems[0].A"),
+        ({"systems": [custom(B=[[True], [0.0]])]}, "systems[0].B"),
+        ({"systems": [custom(A=[[1e308, 0.0], [0.0, 0.5]])]}, "systems[0].A"),
+        ({"systems": [custom(sigma_u="1")]}, "systems[0].sigma_u"),
+        ({"systems": [custom(sigma_u=1e200)]}, "systems[0].sigma_u"),
+        (
+            {"systems": [custom(sigma_v=0.0, C=[[1.0, 0.0], [1.0, 1e-13]])]},
+            "systems[0].sigma_v",
+        ),  # nearly singular C: refused here, not mid-run
+        ({"systems": [custom(A=np.eye(51).tolist(), B=np.ones((51, 1)).tolist())]}, "systems[0].A"),
+        ({"N": [100_000_000]}, "N[0]"),
+        ({"N": {"start": 1, "stop": 10**8}}, "N.stop"),
+        ({"N": [10, 2000], "T0": 10_000}, "N[1]"),
+        ({"T0": 10_001}, "T0"),
+        ({"reps": 10**7}, "reps"),
+        (
+            {"stages": ["estimate", "bounds", "gain", "cost"], "mc_runs": 10**6, "horizon": 10**5},
+            "mc_runs",
+        ),
+        ({"sls": {"T_fir": 1001}}, "sls.T_fir"),
     ],
 )
 def test_bad_input_names_the_field(changes, field):
@@ -111,6 +139,22 @@ def test_required_fields(missing):
     with pytest.raises(SpecError) as exc:
         parse_spec(d)
     assert exc.value.field == missing
+
+
+def test_nearly_singular_C_with_noise_is_accepted_and_runs():
+    """sigma_v > 0 with a nearly singular C is valid: it runs (nulls with notes where needed)."""
+    from svrobs_core import run_spec
+
+    obj = spec_with(
+        systems=[custom(sigma_v=0.1, C=[[1.0, 0.0], [1.0, 1e-13]])],
+        N=[5],
+        reps=1,
+        stages=["estimate", "bounds", "gain", "cost"],
+        mc_runs=5,
+        horizon=5,
+    )
+    records = [r for b in run_spec(parse_spec(obj)) for r in b]
+    assert len(records) == 2
 
 
 def test_not_an_object():

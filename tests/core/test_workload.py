@@ -10,7 +10,7 @@ import pytest
 
 from svrobs_core import parse_spec, plan_units, run_spec
 from svrobs_core.planning import unit_cells
-from svrobs_core.workload import estimate_job, estimate_unit
+from svrobs_core.workload import WorkloadError, admit, estimate_job, estimate_unit
 
 ALL = ["estimate", "bounds", "gain", "cost", "cost_bound", "sls"]
 
@@ -131,3 +131,45 @@ def test_records_do_not_depend_on_the_memory_split():
     a = sorted((r for b in run_spec(spec, units=units) for r in b), key=key)
     b = sorted((r for b in run_spec(spec, units=split) for r in b), key=key)
     assert a == b
+
+
+# -- admission (issue 10, items 5 and 6) -----------------------------------------
+ISSUE_MC = {
+    "systems": ["paper-stable"],
+    "sigma_w": [0.1],
+    "N": [10],
+    "reps": 1,
+    "estimators": ["ols"],
+    "stages": ["estimate", "bounds", "gain", "cost"],
+    "mc_reps": 1,
+    "mc_runs": 10_000,
+    "horizon": 10_000,
+}
+
+
+def test_admit_refuses_a_job_over_the_cpu_limit_naming_the_field():
+    spec = parse_spec(ISSUE_MC)
+    with pytest.raises(WorkloadError) as exc:
+        admit(spec, max_cpu_seconds=2)
+    err = exc.value
+    assert err.kind == "cpu" and err.limit == 2 and err.estimate > 2
+    assert err.field in ("mc_runs", "horizon")
+    assert "CPU seconds" in str(err) and "limit of 2 s" in str(err)
+    units, job = admit(spec, max_cpu_seconds=10 * err.estimate)  # under a higher limit: planned
+    assert job.cpu_seconds == pytest.approx(err.estimate) and units
+
+
+def test_admit_refuses_a_unit_over_the_memory_limit_naming_the_field():
+    spec = parse_spec({**ISSUE_MC, "N": [900_000], "stages": ["estimate"]})
+    with pytest.raises(WorkloadError) as exc:
+        admit(spec, max_unit_bytes=512 * 2**20)
+    err = exc.value
+    assert err.kind == "memory" and err.field == "N" and err.estimate > err.limit
+    assert "512 MB" in str(err)
+
+
+def test_admit_plans_under_the_memory_cap():
+    spec = parse_spec({**ISSUE_MC, "N": [2000], "reps": 400, "stages": ["estimate", "bounds"]})
+    cap = 300 * 2**20
+    units, job = admit(spec, max_unit_bytes=cap, max_cpu_seconds=1e6)
+    assert len(units) > 1 and job.peak_unit_bytes <= cap

@@ -19,6 +19,8 @@ import pytest
 import sqlalchemy as sa
 
 from svrobs_core import parse_spec
+from tests.service.svc_helpers import BIG_MEMORY_SPEC as BIG_MEMORY
+from tests.service.svc_helpers import HEAVY_SPEC as HEAVY
 from tests.service.svc_helpers import ITEM6_SPEC as ITEM6
 from tests.service.svc_helpers import TINY_SPEC as SMALL
 
@@ -285,7 +287,7 @@ def test_lease_ends_the_units_of_a_killed_worker(stack, db):
 
 
 def test_permanent_failure_fails_at_once(stack, db):
-    """A unit that runs out of memory (a worker under a 3 GB address-space limit, a
+    """A unit that runs out of memory (a worker under a 2 GB address-space limit, a
     spec admitted by an API with no work limits) fails on its first attempt with the
     reason; it is never retried."""
     url = stack.start_api(
@@ -295,9 +297,9 @@ def test_permanent_failure_fails_at_once(stack, db):
     stack.stop("pool", grace=5)
     from svrobs_cli.serve import worker_command
 
-    stack.start("oom", ["prlimit", "--as=3000000000", "--", *worker_command("oom", 1)])
+    stack.start("oom", ["prlimit", "--as=2000000000", "--", *worker_command("oom", 1)])
     stack.wait_log("oom", "ready.")
-    spec = {**SMALL, "N": [100_000_000], "reps": 1}
+    spec = BIG_MEMORY  # ~2.9 GB for one repetition
     try:
         with stack.client(url) as c:
             job = submit(c, spec, name="oom")
@@ -318,21 +320,24 @@ def test_permanent_failure_fails_at_once(stack, db):
         stack.start_worker("pool", concurrency=2)
 
 
-def test_item6_spec_is_refused_by_its_estimated_work(stack):
-    """Issue 10 item 6: one cell of ~11 h CPU is a 422 naming `spec`, the estimate and
-    the limit, on POST /jobs and as a schedule's template; nothing is queued."""
+def test_heavy_spec_is_refused_by_its_estimated_work(stack):
+    """A spec within the core's hard caps but ~2.6 h of CPU is a 422 naming the field
+    that weighs most, the estimate and the limit, on POST /jobs and as a schedule's
+    template; issue 10 item 6's spec is over a hard cap (`mc_runs`); nothing is queued."""
     with stack.client() as c:
         before = c.get("/jobs").json()["total"]
-        r = c.post("/jobs", json=ITEM6)
+        r = c.post("/jobs", json=HEAVY)
         assert r.status_code == 422, r.text
         body = r.json()
-        assert body["field"] == "spec"
-        assert re.search(r"estimated [0-9,]+ CPU seconds", body["detail"])
-        assert "SVROBS_MAX_JOB_CPU_SECONDS" in body["detail"] and "3,600" in body["detail"]
+        assert body["field"] in ("horizon", "mc_runs", "reps", "mc_reps")
+        assert re.search(r"estimated [0-9]+ CPU seconds", body["detail"])
+        assert "SVROBS_MAX_JOB_CPU_SECONDS" in body["detail"] and "3600" in body["detail"]
         r = c.post(
             "/schedules",
-            json={"name": "too big", "cron": "0 3 * * *", "spec_template": ITEM6},
+            json={"name": "too big", "cron": "0 3 * * *", "spec_template": HEAVY},
         )
-        assert r.status_code == 422 and r.json()["field"] == "spec_template"
+        assert r.status_code == 422 and r.json()["field"].startswith("spec_template.")
+        r = c.post("/jobs", json=ITEM6)
+        assert r.status_code == 422 and r.json()["field"] == "mc_runs"
         assert c.get("/jobs").json()["total"] == before
-    print(f"\n[{stack.kind}] item 6: {body['detail']}")
+    print(f"\n[{stack.kind}] heavy spec: {body['field']}: {body['detail']}")

@@ -19,8 +19,10 @@ from service.db import accounts, jobs, outbox, schedules, units
 from service.db.models import ApiKey, Job, Schedule, ScheduleRun, WorkUnit
 from svrobs_cli.app import app
 from svrobs_core.spec import parse_spec
-from svrobs_core.workload import estimate_unit
+from svrobs_core.workload import estimate_job, estimate_unit, smallest_unit_bytes
 from tests.service.svc_fakes import fake_records
+from tests.service.svc_helpers import BIG_MEMORY_SPEC as BIG_MEMORY
+from tests.service.svc_helpers import HEAVY_SPEC as HEAVY
 from tests.service.svc_helpers import ITEM6_SPEC as ITEM6
 from tests.service.svc_helpers import SMALL_SPEC, RecordingPublisher
 
@@ -44,26 +46,35 @@ def settings_env(monkeypatch):
 # --------------------------------------------------------------------------- admission
 
 
-def test_item6_spec_gets_422_naming_the_estimate(client, make_account):
+def test_item6_spec_is_refused(client, make_account):
+    """Issue 10 item 6 (about 11 h of CPU in one cell): over the core's hard cap."""
     acc = make_account()
     r = client.post(f"{API}/jobs", json=ITEM6, headers=acc.headers)
-    assert r.status_code == 422, r.text
-    assert r.json()["field"] == "spec"
-    detail = r.json()["detail"]
-    assert "CPU seconds" in detail and "3,600" in detail and "SVROBS_MAX_JOB_CPU_SECONDS" in detail
-    # the estimate is the cost model's, quoted (an oracle independent of the message text)
-    from svrobs_core.workload import estimate_job
+    assert r.status_code == 422 and r.json()["field"] == "mc_runs", r.text
 
-    assert f"{estimate_job(parse_spec(ITEM6)).cpu_seconds:,.0f}" in detail
+
+def test_heavy_spec_gets_422_naming_the_estimate_and_the_limit(client, make_account):
+    """Within every hard cap but ~2.6 h of CPU: refused by the estimate."""
+    acc = make_account()
+    before = client.get(f"{API}/jobs", headers=acc.headers).json()["total"]
+    r = client.post(f"{API}/jobs", json=HEAVY, headers=acc.headers)
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert r.json()["field"] in ("horizon", "mc_runs", "reps", "mc_reps")
+    assert "CPU seconds" in detail and "3600" in detail and "SVROBS_MAX_JOB_CPU_SECONDS" in detail
+    # the estimate quoted is the cost model's (an oracle independent of the message text)
+    assert f"{estimate_job(parse_spec(HEAVY)).cpu_seconds:.0f}" in detail
+    assert client.get(f"{API}/jobs", headers=acc.headers).json()["total"] == before
 
 
 def test_memory_cap_refuses_a_unit_that_cannot_be_split(client, make_account):
     acc = make_account()
-    spec = {**SMALL_SPEC, "systems": ["paper-stable"], "sigma_w": [1.0], "N": [3_000_000]}
-    spec.update(reps=1, estimators=["ols"], gamma=[0.05])
-    r = client.post(f"{API}/jobs", json=spec, headers=acc.headers)
-    assert r.status_code == 422 and r.json()["field"] == "spec"
-    assert "MB" in r.json()["detail"] and "SVROBS_MAX_UNIT_MEMORY_MB" in r.json()["detail"]
+    r = client.post(f"{API}/jobs", json=BIG_MEMORY, headers=acc.headers)
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert "MB" in detail and "2048 MB" in detail and "SVROBS_MAX_UNIT_MEMORY_MB" in detail
+    need = smallest_unit_bytes(parse_spec(BIG_MEMORY)) / 2**20
+    assert f"{need:.0f} MB" in detail
 
 
 def test_units_are_planned_under_the_memory_cap(build_client, make_account, session):
@@ -83,14 +94,18 @@ def test_units_are_planned_under_the_memory_cap(build_client, make_account, sess
     assert sum(u.n_cells for u in stored) == parsed.n_cells
 
 
-def test_run_local_refuses_the_item6_spec(tmp_path, capsys):
+def test_run_local_refuses_a_spec_over_the_service_limit(tmp_path, capsys, settings_env):
+    """run-local applies the service's SVROBS_MAX_JOB_CPU_SECONDS (here lowered)."""
+    settings_env(MAX_JOB_CPU_SECONDS=1)
+    spec = {**SMALL_SPEC, "stages": ["estimate", "bounds", "gain", "cost"], "mc_runs": 5000}
     path = tmp_path / "spec.json"
-    path.write_text(json.dumps(ITEM6))
+    path.write_text(json.dumps(spec))
     with pytest.raises(SystemExit) as exc:
         app(["run-local", str(path), "--out", str(tmp_path / "out"), "--quiet"])
     err = capsys.readouterr().err
     assert exc.value.code == 2
-    assert err.startswith("error: invalid spec: spec: the job needs an estimated")
+    assert err.startswith("error: invalid spec: ") and "the job needs an estimated" in err
+    assert "over the limit of 1 s (SVROBS_MAX_JOB_CPU_SECONDS)" in err
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
 
 
@@ -270,7 +285,7 @@ def test_tick_skips_runs_closer_than_the_minimum_interval(session, make_account,
 
 def test_tick_refuses_a_template_over_the_work_limit(session, make_account):
     acc = make_account()
-    sched = _schedule(session, acc, spec_template=ITEM6)
+    sched = _schedule(session, acc, spec_template=HEAVY)
     schedules.create_due_schedule_jobs(session, datetime(2024, 6, 1, 12, 1, tzinfo=UTC))
     session.commit()
     (run,) = _runs(session, sched)

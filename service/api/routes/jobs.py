@@ -1,10 +1,10 @@
-"""POST/GET /jobs, GET /jobs/{id}, POST /jobs/{id}/cancel."""
+"""POST/GET /jobs, GET/DELETE /jobs/{id}, POST /jobs/{id}/cancel."""
 
 from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Header, HTTPException, Query
+from fastapi import APIRouter, Header, HTTPException, Query, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import joinedload
 
@@ -14,6 +14,7 @@ from service.api.params import StrictInt
 from service.api.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
 from service.api.submission import JobRequest, SubmissionDep
 from service.api.views import job_out
+from service.db.job_delete import JobActive, delete_job
 from service.db.jobs import cancel_job
 from service.db.models import Job, JobTag, User
 
@@ -102,3 +103,16 @@ def cancel(job_id: JobId, session: DB, caller: CurrentCaller, submission: Submis
     session.close()  # end the transaction (SQLite's write lock) before publishing
     submission.dispatch_after_response()  # the team's freed slots go to its other jobs
     return out
+
+
+@router.delete("/jobs/{job_id}", status_code=204, responses={**ERRORS, 409: {"model": ErrorOut}})
+def delete(job_id: JobId, session: DB, caller: CurrentCaller):
+    """Delete a finished or cancelled job with its units, results and summaries (one
+    transaction); 409 while it is queued or running (cancel it first)."""
+    job = team_job(session, caller.team_id, job_id)
+    try:
+        delete_job(session, job)
+    except JobActive as exc:
+        raise HTTPException(409, str(exc)) from exc
+    session.commit()
+    return Response(status_code=204)
