@@ -5,6 +5,7 @@ from __future__ import annotations
 from service.config import Settings
 from svrobs_core.planning import plan_units
 from svrobs_core.spec import parse_spec
+from tests.core.test_workload import ISSUE_MC
 
 
 class Account:
@@ -57,18 +58,8 @@ def no_broker_check() -> None:
 
 
 # issue 10, item 6: one cell of about 11 h of CPU (now over the core's hard cap on
-# mc_runs * horizon)
-ITEM6_SPEC = {
-    "systems": ["paper-stable"],
-    "sigma_w": [0.1],
-    "N": [10],
-    "reps": 1,
-    "estimators": ["ols"],
-    "stages": ["estimate", "bounds", "gain", "cost"],
-    "mc_reps": 1,
-    "mc_runs": 1000000,
-    "horizon": 100000,
-}
+# mc_runs * horizon); the core's admission tests use the same cell at 10^4 x 10^4
+ITEM6_SPEC = {**ISSUE_MC, "mc_runs": 1_000_000, "horizon": 100_000}
 # one small unit
 TINY_SPEC = {
     "systems": ["paper-stable"],
@@ -80,7 +71,7 @@ TINY_SPEC = {
     "seed": 5,
 }
 # within every hard cap, but about 2.6 h of CPU by the cost model: refused by its work
-HEAVY_SPEC = {**ITEM6_SPEC, "mc_runs": 10_000, "horizon": 10_000, "reps": 1000, "mc_reps": 1000}
+HEAVY_SPEC = {**ISSUE_MC, "reps": 1000, "mc_reps": 1000}
 # one repetition needs about 2.9 GB (a 10-state system, T0 * N = 10^7 samples)
 BIG_MEMORY_SPEC = {
     "systems": [
