@@ -1,32 +1,24 @@
-"""Strict query and path parameters: numbers written in ASCII decimal only.
+"""Strict numeric query and path parameters: numbers written in ASCII decimal only.
 
 Pydantic's lax mode (what FastAPI applies to query strings) reads ``+30``, ``3_0``
 and ``3.0`` as the integer 30 or 3, and Python's ``int``/``float`` read non-ASCII
 digits such as ``٣٠``. A request naming a number must write it plainly; anything
-else is a 422 naming the parameter.
+else is a 422 naming the parameter. The raw text is checked (:func:`check_numbers`,
+from :func:`service.api.deps.clean_query_text` on every route) before FastAPI
+parses it, so the declared types, and their OpenAPI bounds, stay plain ``int`` and
+``float``.
 """
 
 from __future__ import annotations
 
 import re
-from typing import Annotated
-
-from pydantic import BeforeValidator
 
 INT_TEXT = re.compile(r"-?[0-9]+", re.ASCII)
 FLOAT_TEXT = re.compile(r"-?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]+)?", re.ASCII)
 
-
-def _int_text(value):
-    if isinstance(value, str) and not INT_TEXT.fullmatch(value):
-        raise ValueError("must be an integer written with the digits 0-9")
-    return value
-
-
-def _float_text(value):
-    if isinstance(value, str) and not FLOAT_TEXT.fullmatch(value):
-        raise ValueError("must be a finite decimal number (digits 0-9, '.', an exponent)")
-    return value
+# the integer and number parameters of the API's routes, by name
+INT_PARAMS = frozenset({"limit", "offset", "N", "rep", "job_id", "schedule_id"})
+FLOAT_PARAMS = frozenset({"sigma_w"})
 
 
 def is_int_text(text: str) -> bool:
@@ -37,7 +29,12 @@ def is_float_text(text: str) -> bool:
     return FLOAT_TEXT.fullmatch(text) is not None
 
 
-IntText = BeforeValidator(_int_text)
-FloatText = BeforeValidator(_float_text)
-StrictInt = Annotated[int, IntText]
-StrictFloat = Annotated[float, FloatText]
+def check_numbers(items) -> tuple[str, str] | None:
+    """``(name, message)`` of the first (name, raw text) pair of a numeric parameter
+    that is not plain ASCII decimal, or None."""
+    for name, value in items:
+        if name in INT_PARAMS and not is_int_text(value):
+            return name, "must be an integer written with the digits 0-9"
+        if name in FLOAT_PARAMS and not is_float_text(value):
+            return name, "must be a decimal number (digits 0-9, '.', an exponent)"
+    return None

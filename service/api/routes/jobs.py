@@ -10,7 +10,6 @@ from sqlalchemy.orm import joinedload
 
 from service.api.deps import DB, CurrentCaller, JobId, team_job
 from service.api.errors import BODY_ERRORS, ERRORS
-from service.api.params import StrictInt
 from service.api.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
 from service.api.submission import JobRequest, SubmissionDep
 from service.api.views import job_out
@@ -55,8 +54,8 @@ def list_jobs(
     status: Literal["queued", "running", "succeeded", "failed", "cancelled"] | None = None,
     tag: str | None = None,
     owner: Annotated[str | None, Query(description="an email, or 'me'")] = None,
-    limit: Annotated[StrictInt, Query(ge=1, le=500)] = 50,
-    offset: Annotated[StrictInt, Query(ge=0, le=10**9)] = 0,
+    limit: Annotated[int, Query(ge=1, le=500)] = 50,
+    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
 ):
     """The team's jobs, newest first, filtered by status, tag and owner."""
     q = select(Job).where(Job.team_id == caller.team_id)

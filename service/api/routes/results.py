@@ -17,7 +17,7 @@ from sqlalchemy import Select, func, select
 
 from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep, team_job
 from service.api.errors import ERRORS, FieldHTTPException
-from service.api.params import StrictFloat, StrictInt, is_float_text, is_int_text
+from service.api.params import is_float_text, is_int_text
 from service.api.record_json import ORDER, RESULT_COLUMNS, encode_lines, encode_page, record_columns
 from service.api.schemas import CompareOut, ResultPage, SummaryOut
 from service.db.models import Result, Summary
@@ -34,9 +34,9 @@ COUNT = select(func.count()).select_from(Result.__table__)
 COMPARE_BY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep")
 STREAM_CHUNK = 1000
 
-FloatList = Annotated[list[StrictFloat] | None, Query()]
+FloatList = Annotated[list[float] | None, Query()]
 # N and rep are 32-bit integer columns: a larger filter value would overflow the driver.
-Int32 = Annotated[StrictInt, Field(ge=-MAX_ID - 1, le=MAX_ID)]
+Int32 = Annotated[int, Field(ge=-MAX_ID - 1, le=MAX_ID)]
 IntList = Annotated[list[Int32] | None, Query()]
 
 
@@ -141,8 +141,8 @@ def get_results(
     gamma: Annotated[list[str] | None, Query(description="a value, or 'null' for ols")] = None,
     rep: IntList = None,
     format: Literal["json", "csv", "jsonl"] = "json",
-    limit: Annotated[StrictInt | None, Query(ge=1, le=10_000)] = None,
-    offset: Annotated[StrictInt, Query(ge=0, le=10**9)] = 0,
+    limit: Annotated[int | None, Query(ge=1, le=10_000)] = None,
+    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
 ):
     """The job's records (SPEC section 10 field names; matrices as nested lists; null,
     never NaN), filtered by any grid coordinate (repeat a parameter for several

@@ -17,7 +17,6 @@ from sqlalchemy.exc import IntegrityError
 
 from service.api.deps import DB, MAX_ID, CurrentCaller, SettingsDep
 from service.api.errors import FieldHTTPException, error_docs
-from service.api.params import IntText
 from service.api.schemas import (
     ScheduleCreate,
     ScheduleOut,
@@ -34,7 +33,7 @@ from svrobs_core.spec import parse_spec
 router = APIRouter(tags=["schedules"])
 ERRORS = error_docs(401, 404, 409, 422, 429, 503)
 BODY_ERRORS = {**ERRORS, **error_docs(413)}  # routes with a body: SVROBS_MAX_BODY_BYTES
-ScheduleId = Annotated[int, IntText, Path(ge=1, le=MAX_ID)]
+ScheduleId = Annotated[int, Path(ge=1, le=MAX_ID)]
 
 
 def validate_template(spec: dict, settings: Settings) -> dict:
