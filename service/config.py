@@ -37,6 +37,17 @@ class Settings(BaseSettings):
     TICK_SECONDS: float = 60.0
 
     MAX_JOB_CELLS: int = 2_000_000
+    # Admission by work (svrobs_core.workload): a job whose estimated CPU time is over
+    # this, or one of whose units would need more memory than MAX_UNIT_MEMORY_MB even
+    # split down to one repetition, gets 422; units are planned to stay under the cap.
+    MAX_JOB_CPU_SECONDS: float = 3_600.0
+    MAX_UNIT_MEMORY_MB: int = 2048
+    # Fair share: at most this many units of one team are published and not finished
+    # at once; the rest are published as they finish, round-robin over teams (0: no cap).
+    MAX_UNITS_IN_FLIGHT_PER_TEAM: int = 4
+    MAX_SCHEDULES_PER_TEAM: int = 20
+    # A schedule's cron must not fire more often than this (seconds between runs).
+    MIN_SCHEDULE_INTERVAL_SECONDS: int = 300
     MAX_BODY_BYTES: int = 1_048_576
     MAX_QUEUED_JOBS_PER_TEAM: int = 100
     RATE_LIMIT_PER_MINUTE: int = 600
@@ -52,6 +63,10 @@ class Settings(BaseSettings):
     PUBLISH_RETRY_SECONDS: int = 600
     # A unit that was started this many times without finishing is failed (0: never).
     MAX_UNIT_ATTEMPTS: int = 5
+
+    # How often a running unit checks whether it was cancelled (its job cancelled or
+    # failed); a cancelled unit stops within about this long.
+    CANCEL_CHECK_SECONDS: float = 1.0
 
     # Seconds the API waits for the broker when publishing / in /readyz.
     BROKER_TIMEOUT: float = 2.0

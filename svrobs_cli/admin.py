@@ -71,10 +71,17 @@ def admin_create_key(
     print(f"(key prefix {prefix}; store it now, it is shown only once)", file=sys.stderr)
 
 
-def admin_revoke_key(key: str = typer.Argument(..., help="key prefix, key id or full key")) -> None:
-    """Revoke an API key (it gets 401 from now on)."""
-    k: Any = int(key) if key.isdigit() else key
-    prefix = _admin_call(lambda s, a: a.revoke_key(s, k).prefix)
+def admin_revoke_key(
+    key: str | None = typer.Argument(None, help="key prefix or full key (digits too)"),
+    key_id: int | None = typer.Option(None, "--id", help="the key's id (see list-keys)"),
+) -> None:
+    """Revoke an API key (it gets 401 from now on): by prefix or full key, or by --id N.
+
+    A key argument is always a prefix (or the whole key), whatever it looks like:
+    an id is given only with --id."""
+    if (key is None) == (key_id is None):
+        raise CliError("give a key prefix or --id N (exactly one)")
+    prefix = _admin_call(lambda s, a: a.revoke_key(s, key if key_id is None else key_id).prefix)
     typer.echo(f"key {prefix} revoked")
 
 

@@ -3,9 +3,11 @@
 ``svrobs run-local SPEC.json --out DIR`` runs the core in process and writes
 ``DIR/records.jsonl`` (one section 10 record per line, null never NaN) and
 ``DIR/summary.json`` (mean/std/count per group), with a progress bar on stderr.
-Before anything runs, the cost model (:func:`svrobs_core.workload.admit`)
-refuses a spec over ``--max-cpu-seconds`` or whose smallest work unit is over
-``--max-memory-mb``, and plans the units under that memory cap; the records
+Before anything runs, the service's admission (:func:`service.db.jobs.admit`, the
+cost model :func:`svrobs_core.workload.admit`) refuses a spec over
+``--max-cpu-seconds`` (default SVROBS_MAX_JOB_CPU_SECONDS) or whose smallest work
+unit is over ``--max-memory-mb`` (SVROBS_MAX_UNIT_MEMORY_MB), and plans the units
+under that memory cap; the records
 file appears only once every unit has run.
 ``svrobs reproduce`` runs the paper's Section 6 (:mod:`service.reports.reproduce`).
 """
@@ -30,31 +32,28 @@ def load_spec_file(path: Path) -> dict:
     return json.loads(text)
 
 
-DEFAULT_MAX_CPU_SECONDS = 24 * 3600.0
-DEFAULT_MAX_MEMORY_MB = 4096
-
-
 def run_local(
     spec_obj: dict,
     out: Path,
     *,
     quiet: bool = False,
-    max_cpu_seconds: float | None = DEFAULT_MAX_CPU_SECONDS,
-    max_memory_mb: float | None = DEFAULT_MAX_MEMORY_MB,
+    max_cpu_seconds: float | None = None,
+    max_memory_mb: float | None = None,
 ) -> dict:
     """Run a spec in process; returns ``{"records": n, "out": str}``.
 
-    Raises SpecError (a WorkloadError for the limits) before writing anything."""
+    The service's job limits apply (:func:`service.db.jobs.admit`; None:
+    SVROBS_MAX_JOB_CPU_SECONDS, SVROBS_MAX_UNIT_MEMORY_MB): a spec over one raises
+    its SpecError before anything is written."""
     from rich.console import Console
 
+    from service.db.jobs import admit
     from service.progress import progress_bar
     from svrobs_core import parse_spec, summarize
     from svrobs_core.runner import run_unit_result
-    from svrobs_core.workload import admit
 
     spec = parse_spec(spec_obj)
-    cap = None if max_memory_mb is None else int(max_memory_mb * 2**20)
-    units, _ = admit(spec, max_cpu_seconds=max_cpu_seconds, max_unit_bytes=cap)
+    units = admit(spec, max_cpu_seconds=max_cpu_seconds, max_unit_mb=max_memory_mb)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     records: list[dict] = []
@@ -83,11 +82,15 @@ def run_local_command(
     spec_path: Path = typer.Argument(..., help="section 10 spec (JSON)"),
     out: Path = typer.Option(Path("out"), "--out", help="output folder"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
-    max_cpu_seconds: float = typer.Option(
-        DEFAULT_MAX_CPU_SECONDS, "--max-cpu-seconds", help="refuse a spec estimated above this"
+    max_cpu_seconds: float | None = typer.Option(
+        None,
+        "--max-cpu-seconds",
+        help="refuse a spec estimated above this [SVROBS_MAX_JOB_CPU_SECONDS, 3600]",
     ),
-    max_memory_mb: float = typer.Option(
-        DEFAULT_MAX_MEMORY_MB, "--max-memory-mb", help="peak memory of one work unit"
+    max_memory_mb: float | None = typer.Option(
+        None,
+        "--max-memory-mb",
+        help="peak memory of one work unit [SVROBS_MAX_UNIT_MEMORY_MB, 2048]",
     ),
 ) -> None:
     """Run a spec in process: DIR/records.jsonl and DIR/summary.json."""

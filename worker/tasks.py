@@ -11,18 +11,21 @@
 3. ``units.complete_unit`` upserts them on the cell key and updates progress;
    the job finishes when the DB says every unit is done.
 
-A redelivered or duplicated message is therefore harmless. Transient DB or
-broker errors retry the task with exponential backoff (acks_late: the message
-is acknowledged only after the task returned, and rejected - so redelivered -
-if the worker process is lost). Any other error is recorded with
-``units.fail_unit``; it is final once the unit was attempted
-``MAX_UNIT_ATTEMPTS`` times, otherwise the task is retried.
+A redelivered or duplicated message is therefore harmless. Only transient
+errors (the DB or the broker unreachable: ``is_transient``) retry the task, with
+exponential backoff (acks_late: the message is acknowledged only after the task
+returned, and rejected - so redelivered - if the worker process is lost; a unit
+that keeps killing its worker is failed after ``MAX_UNIT_ATTEMPTS`` starts). Any
+other error (MemoryError, a ValueError of the core...) would fail again: it fails
+the unit and its job at once, with the reason (``units.fail_unit``). A unit
+cancelled while it runs stops within ``CANCEL_CHECK_SECONDS`` (``_Watch``).
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import signal
 import socket
 import threading
 import time
@@ -34,7 +37,6 @@ from celery.signals import worker_process_init
 from celery.worker.request import Request
 
 from service.db import units
-from service.db.models import WorkUnit
 from service.db.session import dispose_all, session_scope
 from svrobs_core import parse_spec
 from svrobs_core.runner import run_unit_result
@@ -71,10 +73,6 @@ TRANSIENT = _transient_errors()
 MAX_RETRIES = 8
 
 
-def max_attempts() -> int:
-    return settings.MAX_UNIT_ATTEMPTS
-
-
 def lease_seconds() -> int:
     return settings.UNIT_LEASE_SECONDS
 
@@ -83,12 +81,6 @@ def lease_seconds() -> int:
 def _fresh_connections_after_fork(**_kw):
     """Pool children must not share the parent's DB sockets."""
     dispose_all()
-
-
-def _attempts(unit_id: int) -> int:
-    with session_scope(write=False) as s:
-        unit = s.get(WorkUnit, unit_id)
-        return int(unit.attempts) if unit is not None else 0
 
 
 def _test_crash_hook(unit_id: int) -> None:
@@ -100,49 +92,62 @@ def _test_crash_hook(unit_id: int) -> None:
         os._exit(1)
 
 
+def is_transient(exc: BaseException) -> bool:
+    """A failure that another attempt may not meet: the database or the broker was
+    unreachable (a dropped connection, a restart, SQLITE_BUSY, a deadlock). Anything
+    else (MemoryError, the core's SpecError/DimensionError/ValueError, a bug) fails
+    the same way every time."""
+    import sqlalchemy.exc
+
+    if isinstance(exc, TRANSIENT):
+        return True
+    return isinstance(exc, sqlalchemy.exc.DBAPIError) and bool(exc.connection_invalidated)
+
+
 def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
     """Claim, compute and store one work unit (the task body, callable without Celery).
 
-    Raises :class:`UnitFailed` (not final) for a failure that should be retried.
+    A transient error (:func:`is_transient`) propagates (the task retries it); any
+    other failure fails the unit and its job at once, with the reason. A unit
+    cancelled while it runs (its job cancelled or failed) stops within
+    SVROBS_CANCEL_CHECK_SECONDS and stores nothing. After the unit, the team's next
+    units are published (fair share, :func:`service.db.outbox.dispatch`).
     """
     worker_name = worker_name or f"{socket.gethostname()}:{os.getpid()}"
     t0 = time.perf_counter()
     with session_scope() as s:
         claimed = units.start_unit(s, unit_id, worker_name, lease_seconds())
-    if claimed is None:
+    if claimed is None:  # done, cancelled, or just failed after MAX_UNIT_ATTEMPTS
+        _dispatch_team(unit_id)
         return {"unit": unit_id, "status": "skipped"}
     spec_dict, payload = claimed
     t1 = time.perf_counter()
     try:
-        with _Heartbeat(unit_id, lease_seconds()):
+        with _Watch(unit_id, lease_seconds(), settings.CANCEL_CHECK_SECONDS):
             _test_crash_hook(unit_id)
             records = run_unit_result(parse_spec(spec_dict), payload)
-    except Exception as exc:
-        attempts = _attempts(unit_id)
-        final = bool(max_attempts()) and attempts >= max_attempts()
-        error = f"{type(exc).__name__}: {exc}"
-        log.error(
-            "unit %s failed (attempt %d/%d, final=%s): %s\n%s",
-            unit_id,
-            attempts,
-            max_attempts(),
-            final,
-            error,
-            traceback.format_exc(),
-        )
+        t2 = time.perf_counter()
         with session_scope() as s:
-            units.fail_unit(s, unit_id, error, final)
-        if final:
-            return {"unit": unit_id, "status": "failed", "error": error}
-        raise UnitFailed(error) from exc
-    t2 = time.perf_counter()
-    with session_scope() as s:
-        units.complete_unit(s, unit_id, records)
+            stored = units.complete_unit(s, unit_id, records)
+    except UnitCancelled:
+        log.info("unit %s: cancelled while running; stopped after %.2f s", unit_id, _since(t1))
+        _dispatch_team(unit_id)
+        return {"unit": unit_id, "status": "cancelled", "run_s": round(_since(t1), 4)}
+    except Exception as exc:
+        if is_transient(exc):
+            raise
+        error = f"{type(exc).__name__}: {exc}"
+        log.error("unit %s failed (final): %s\n%s", unit_id, error, traceback.format_exc())
+        with session_scope() as s:
+            units.fail_unit(s, unit_id, error, True)
+        _dispatch_team(unit_id)
+        return {"unit": unit_id, "status": "failed", "error": error}
     t3 = time.perf_counter()
+    _dispatch_team(unit_id)
     # logged by Celery ("succeeded in ...: {...}"): where a unit's time goes
     return {
         "unit": unit_id,
-        "status": "done",
+        "status": "done" if stored else "cancelled",
         "records": len(records),
         "claim_s": round(t1 - t0, 4),
         "compute_s": round(t2 - t1, 4),
@@ -150,45 +155,99 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
     }
 
 
-class _Heartbeat:
-    """Extend the unit's lease every lease/3 seconds while it runs (a daemon thread).
+def _since(t: float) -> float:
+    return time.perf_counter() - t
 
-    The lease is what lets the relay re-queue a unit whose worker vanished
-    without the broker redelivering it; the heartbeat keeps a long unit that
-    is still alive from being re-queued. A stuck computation is bounded by
-    the Celery time limit, which kills the process (and so the heartbeat).
+
+def _dispatch_team(unit_id: int) -> None:
+    """Publish the next units of the unit's team (its slot is free); best effort: the
+    tick's relay publishes whatever this misses."""
+    from service.broker import publish_units
+    from service.db import outbox
+
+    try:
+        with session_scope(write=False) as s:
+            team_id = outbox.team_of_unit(s, unit_id)
+        if team_id is not None:
+            outbox.dispatch(
+                session_scope, lambda ids: publish_units(celery_app, ids), team_id=team_id
+            )
+    except Exception as exc:  # noqa: BLE001 - the unit's own outcome is stored already
+        log.warning("unit %s: publishing its team's next units failed: %s", unit_id, exc)
+
+
+class UnitCancelled(BaseException):
+    """Raised in a running unit's thread when its status became ``cancelled`` (a
+    BaseException, like KeyboardInterrupt: no ``except Exception`` in the core
+    swallows it)."""
+
+
+class _Watch:
+    """While a unit computes: a daemon thread that extends its lease every lease/3
+    seconds and checks every ``check`` seconds that it is still wanted.
+
+    The lease is what lets the relay re-queue a unit whose worker vanished without
+    the broker redelivering it; the heartbeat keeps a long unit that is still alive
+    from being re-queued. When the unit's status became ``cancelled`` (its job was
+    cancelled or failed), the thread interrupts the computation: a signal to the
+    unit's (main) thread, whose handler raises :class:`UnitCancelled` between two
+    Python-level steps of the core (a numpy call is never cut in half; the core's
+    stages are short calls in loops). A stuck computation is bounded by the Celery
+    time limit, which kills the process (and so the thread).
     """
 
-    def __init__(self, unit_id: int, lease: int):
+    SIGNAL = signal.SIGUSR2
+
+    def __init__(self, unit_id: int, lease: int, check: float = 1.0):
         self.unit_id = unit_id
         self.lease = lease
-        self.interval = max(1.0, min(300.0, lease / 3))
+        self.beat = max(1.0, min(300.0, lease / 3))
+        self.check = max(0.05, min(check, self.beat)) if check > 0 else self.beat
         self._stop = threading.Event()
+        self._cancelled = False
+        self._old_handler = None
+        self._target = threading.get_ident()
+        self._can_signal = threading.current_thread() is threading.main_thread()
         self._thread = threading.Thread(
-            target=self._run, daemon=True, name=f"svrobs-heartbeat-{unit_id}"
+            target=self._run, daemon=True, name=f"svrobs-watch-{unit_id}"
         )
 
     def __enter__(self):
+        if self._can_signal:
+            self._old_handler = signal.signal(self.SIGNAL, self._on_signal)
         self._thread.start()
         return self
 
     def __exit__(self, *exc):
         self._stop.set()
-        self._thread.join(timeout=5)
+        self._thread.join(timeout=10)
+        if self._can_signal:
+            signal.signal(self.SIGNAL, self._old_handler or signal.SIG_DFL)
         return False
 
+    def _on_signal(self, signum, frame):
+        if self._cancelled and not self._stop.is_set():
+            raise UnitCancelled(f"unit {self.unit_id} was cancelled")
+
     def _run(self):
-        while not self._stop.wait(self.interval):
+        next_beat = time.monotonic() + self.beat
+        while not self._stop.wait(self.check):
             try:
-                with session_scope() as s:
-                    if not units.heartbeat_unit(s, self.unit_id, self.lease):
-                        return  # no longer running (cancelled job, failed, re-claimed)
+                with session_scope(write=False) as s:
+                    status = units.unit_status(s, self.unit_id)
+                if status == "cancelled":
+                    log.info("unit %s: cancelled; stopping it", self.unit_id)
+                    self._cancelled = True
+                    if self._can_signal:
+                        signal.pthread_kill(self._target, self.SIGNAL)
+                    return
+                if time.monotonic() >= next_beat:
+                    next_beat = time.monotonic() + self.beat
+                    with session_scope() as s:
+                        if not units.heartbeat_unit(s, self.unit_id, self.lease):
+                            return  # no longer running (failed, re-claimed elsewhere)
             except Exception as exc:  # noqa: BLE001 - the DB may be restarting
                 log.warning("unit %s: heartbeat failed: %s", self.unit_id, exc)
-
-
-class UnitFailed(Exception):
-    """A unit's computation failed and may succeed on another attempt."""
 
 
 class UnitRequest(Request):
@@ -241,11 +300,7 @@ def run_unit(self, unit_id: int):
         return execute_unit(int(unit_id), worker_name=self.request.hostname)
     except Retry:
         raise
-    except UnitFailed as exc:
-        raise self.retry(
-            exc=exc, countdown=_backoff(self.request.retries), max_retries=None
-        ) from exc
-    except TRANSIENT as exc:
+    except Exception as exc:  # only transient errors reach here (execute_unit)
         log.warning(
             "unit %s: transient error, retry %d: %s", unit_id, self.request.retries + 1, exc
         )

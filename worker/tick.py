@@ -8,8 +8,9 @@ once:
 * ``schedules.create_due_schedule_jobs`` is keyed on (schedule, due time), so a
   doubled or restarted beat never creates a sweep twice;
 * the relay publishes work units that were committed but never published
-  (the API's publish failed, e.g. the broker was down) or whose lease ran
-  out (the worker died and the broker did not redeliver), then marks them.
+  (the API's publish failed, e.g. the broker was down, or the team had its
+  fair share of units in flight) or whose lease ran out (the worker died and
+  the broker did not redeliver), marking them first under the teams' locks.
   Publishing twice is harmless: ``units.start_unit`` lets one delivery run a
   unit and the other skip it, and results are upserted on the cell key.
 """
@@ -44,7 +45,8 @@ def create_due_jobs(now: datetime | None = None) -> list[int]:
 
 
 def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
-    """Publish units that need it; returns how many were published.
+    """Publish units that need it, every team within its fair share
+    (:func:`service.db.outbox.dispatch`); returns how many were published.
 
     Units published before the broker's current data began (``broker_epoch``: a
     Redis restarted without persistence lost them) are re-published at once. Every
@@ -64,23 +66,16 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
     epoch = broker_epoch(celery, now=start)
     sent = 0
     while sent < limit:
-        with session_scope() as s:
-            ids = list(
-                outbox.units_to_publish(
-                    s, min(RELAY_BATCH, limit - sent), now=start, lost_before=epoch
-                )
-            )
-        if not ids:
-            break
-        out = publish_units(celery, ids)  # raises if the broker is unreachable
-        published = list(out) if isinstance(out, (list, tuple, set)) else ids
-        if published:
-            with session_scope() as s:
-                outbox.mark_published(s, published)
-        sent += len(published)
-        if len(published) < len(ids):  # partial failure: try again next tick
-            break
-        if len(ids) < RELAY_BATCH:
+        batch = min(RELAY_BATCH, limit - sent)
+        n = outbox.dispatch(
+            session_scope,
+            lambda ids: publish_units(celery, ids),
+            republish=True,
+            lost_before=epoch,
+            limit=batch,
+        )
+        sent += n
+        if n < batch:  # nothing more, or the broker took only part: next tick
             break
     if sent:
         log.info("tick: relayed %d work units", sent)

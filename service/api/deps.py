@@ -16,6 +16,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, joinedload
 
 from service.api.errors import FieldHTTPException
+from service.api.params import check_numbers
 from service.config import Settings
 from service.db.accounts import authenticate
 from service.db.models import ApiKey, Job
@@ -146,7 +147,9 @@ def get_caller(
 async def clean_query_text(request: Request) -> None:
     """422 for a query parameter or an Idempotency-Key holding a NUL character (which a
     PostgreSQL text column cannot hold: it would be a 500 there and a silent miss on
-    SQLite). Registered on every /api/v1 router."""
+    SQLite), and for a numeric query or path parameter not written in plain ASCII
+    decimal (:mod:`service.api.params`: ``+30``, ``3_0``, ``3.0``, ``٣٠`` are not the
+    integer 30). Registered on every /api/v1 router."""
     items = list(request.query_params.multi_items())
     key = request.headers.get("idempotency-key")
     for name, value in items + ([("Idempotency-Key", key)] if key is not None else []):
@@ -154,6 +157,9 @@ async def clean_query_text(request: Request) -> None:
             raise FieldHTTPException(
                 422, "must not contain NUL (\\u0000) characters", name.replace("\x00", "")
             )
+    bad = check_numbers(items + list(request.path_params.items()))
+    if bad is not None:
+        raise FieldHTTPException(422, bad[1], bad[0])
 
 
 def team_job(session: Session, team_id: int, job_id: int) -> Job:

@@ -57,7 +57,10 @@ def bad_text(value: Any) -> tuple[tuple, str] | None:
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """A request body: unknown fields forbidden, no coercion (``"yes"`` is not a bool,
+    ``3.0`` not an int), strings stripped before their length is checked."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, str_strip_whitespace=True)
 
     @model_validator(mode="before")
     @classmethod
@@ -80,14 +83,14 @@ def _spec_fields() -> dict[str, Any]:
     return {k: _SPEC_HINTS.get(k, (Any, None)) for k in sorted(SPEC_KEYS)}
 
 
-TagStr = Annotated[str, StringConstraints(min_length=1, max_length=100)]
+TagStr = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=100)]
 Tag = Field(default_factory=list, max_length=50)
 
 JobSubmit = create_model(
     "JobSubmit",
     __base__=_Strict,
     __doc__="A SPEC section 10 experiment spec plus an optional name and tags.",
-    name=(Optional[str], Field(None, max_length=200)),
+    name=(Optional[str], Field(None, min_length=1, max_length=200)),
     tags=(list[TagStr], Tag),
     **_spec_fields(),
 )
@@ -108,6 +111,7 @@ class _JobBase(BaseModel):
     status: str
     progress: Progress
     n_cells: int
+    cells_done: int
     owner: str | None
     schedule_id: int | None
     idempotency_key: str | None
@@ -206,6 +210,7 @@ class ScheduleRunOut(BaseModel):
     due_at: datetime
     job_id: int | None
     error: str | None
+    skipped_reason: str | None
     created_at: datetime
 
 

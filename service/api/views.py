@@ -27,6 +27,7 @@ def job_out(job: Job, *, spec: bool = True) -> dict:
             "fraction": (done / total) if total else (1.0 if job.status == "succeeded" else 0.0),
         },
         "n_cells": job.n_cells,
+        "cells_done": job.cells_done or 0,
         "owner": job.user.email if job.user is not None else None,
         "schedule_id": job.schedule_id,
         "idempotency_key": job.idempotency_key,

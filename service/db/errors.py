@@ -11,7 +11,8 @@ from svrobs_core.errors import SpecError
 
 
 class JobTooLarge(SpecError):
-    """The spec is valid but has more cells than SVROBS_MAX_JOB_CELLS (HTTP 422)."""
+    """The spec is valid but over a job limit: SVROBS_MAX_JOB_CELLS, the estimated
+    SVROBS_MAX_JOB_CPU_SECONDS or SVROBS_MAX_UNIT_MEMORY_MB (HTTP 422)."""
 
 
 class QuotaExceeded(Exception):

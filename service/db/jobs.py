@@ -15,8 +15,9 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from service.config import get_settings
-from svrobs_core.planning import plan_units, unit_cells
-from svrobs_core.spec import parse_spec
+from svrobs_core import workload
+from svrobs_core.planning import unit_cells
+from svrobs_core.spec import ExperimentSpec, parse_spec
 
 from .errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
 from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
@@ -33,13 +34,16 @@ def create_job(
     tags: Iterable[str] = (),
     idempotency_key: str | None = None,
     max_cells: int | None = None,
+    max_cpu_seconds: float | None = None,
+    max_unit_mb: int | None = None,
     max_active_jobs: int | None = None,
     schedule_id: int | None = None,
 ) -> tuple[Job, bool]:
     """Validate ``spec`` and insert the job and its work units (not committed).
 
     Raises :class:`SpecError` (naming the field) for a bad spec,
-    :class:`JobTooLarge` over ``max_cells`` (default SVROBS_MAX_JOB_CELLS),
+    :class:`JobTooLarge` over ``max_cells`` (default SVROBS_MAX_JOB_CELLS) or over the
+    work limits of :func:`admit`,
     :class:`QuotaExceeded` when the team has ``max_active_jobs`` queued or
     running jobs (default SVROBS_MAX_QUEUED_JOBS_PER_TEAM; pass 0 to skip),
     :class:`IdempotencyConflict` when the key was used with another spec.
@@ -48,12 +52,9 @@ def create_job(
     """
     parsed = parse_spec(spec)
     normalised = parsed.to_dict()
-    limit = get_settings().MAX_JOB_CELLS if max_cells is None else max_cells
-    if parsed.n_cells > limit:
-        raise JobTooLarge(
-            "spec",
-            f"the job has {parsed.n_cells} cells; the limit is {limit} (SVROBS_MAX_JOB_CELLS)",
-        )
+    units = admit(
+        parsed, max_cells=max_cells, max_cpu_seconds=max_cpu_seconds, max_unit_mb=max_unit_mb
+    )
     tags = list(dict.fromkeys(str(t) for t in tags))
 
     if idempotency_key is not None:
@@ -72,7 +73,6 @@ def create_job(
                 "(SVROBS_MAX_QUEUED_JOBS_PER_TEAM)"
             )
 
-    units = plan_units(parsed)
     job = Job(
         team_id=team_id,
         user_id=user_id,
@@ -123,6 +123,43 @@ def create_job(
     return job, True
 
 
+def admit(
+    spec: ExperimentSpec,
+    *,
+    field: str | None = None,
+    max_cells: int | None = None,
+    max_cpu_seconds: float | None = None,
+    max_unit_mb: float | None = None,
+) -> list[dict]:
+    """The spec's work units, planned to stay under SVROBS_MAX_UNIT_MEMORY_MB, if the
+    job is admissible (:func:`svrobs_core.workload.admit`).
+
+    Raises :class:`JobTooLarge` when the job's estimated CPU time is over
+    SVROBS_MAX_JOB_CPU_SECONDS or a unit needs more memory than the cap even split
+    down to one repetition (naming the spec field that weighs most, under ``field``
+    if given: ``spec_template.mc_runs``; the message gives the estimate, the limit
+    and the setting), or when the job has more than SVROBS_MAX_JOB_CELLS cells
+    (naming ``field``, default ``spec``). Each limit defaults to its setting.
+    """
+    settings = get_settings()
+    cpu = settings.MAX_JOB_CPU_SECONDS if max_cpu_seconds is None else max_cpu_seconds
+    mb = settings.MAX_UNIT_MEMORY_MB if max_unit_mb is None else max_unit_mb
+    try:  # (a job too big to plan is refused by the estimate's floor first)
+        units, _cost = workload.admit(spec, max_cpu_seconds=cpu, max_unit_bytes=int(mb * 2**20))
+    except workload.WorkloadError as exc:
+        setting = "SVROBS_MAX_JOB_CPU_SECONDS" if exc.kind == "cpu" else "SVROBS_MAX_UNIT_MEMORY_MB"
+        raise JobTooLarge(
+            f"{field}.{exc.field}" if field else exc.field, f"{exc.message} ({setting})"
+        ) from None
+    cells = settings.MAX_JOB_CELLS if max_cells is None else max_cells
+    if spec.n_cells > cells:
+        raise JobTooLarge(
+            field or "spec",
+            f"the job has {spec.n_cells:,} cells; the limit is {cells:,} (SVROBS_MAX_JOB_CELLS)",
+        )
+    return units
+
+
 def _job_by_key(session: Session, team_id: int, key: str) -> Job | None:
     return session.scalar(select(Job).where(Job.team_id == team_id, Job.idempotency_key == key))
 
@@ -141,23 +178,24 @@ def unit_ids_of_job(session: Session, job_id: int, *, pending_only: bool = True)
 
 
 def cancel_job(session: Session, job: Job) -> Job:
-    """Pending units -> cancelled and the job -> cancelled (a finished job is left as is).
-
-    Units already running finish and store their results; no new unit starts.
-    """
+    """Pending and running units -> cancelled, and the job -> cancelled (a finished job
+    is left as is). No new unit starts; a running unit sees its status and stops
+    within SVROBS_CANCEL_CHECK_SECONDS (``worker.tasks``), storing nothing. The job
+    keeps the cells of the units done before (``cells_done``)."""
     if job.status not in JOB_ACTIVE:
         return job
     # units first, then the job (the lock order of this module)
+    live = WorkUnit.status.in_(("pending", "running"))
     session.execute(
         select(WorkUnit.id)
-        .where(WorkUnit.job_id == job.id, WorkUnit.status == "pending")
+        .where(WorkUnit.job_id == job.id, live)
         .order_by(WorkUnit.id)
         .with_for_update()
     ).all()
     session.execute(
         update(WorkUnit)
-        .where(WorkUnit.job_id == job.id, WorkUnit.status == "pending")
-        .values(status="cancelled", finished_at=utcnow())
+        .where(WorkUnit.job_id == job.id, live)
+        .values(status="cancelled", finished_at=utcnow(), lease_expires_at=None)
     )
     locked = lock_job(session, job.id)
     if locked.status in JOB_ACTIVE:

@@ -130,6 +130,8 @@ class Job(Base):
     progress_done: Mapped[int] = mapped_column(default=0)
     progress_total: Mapped[int] = mapped_column(default=0)
     n_cells: Mapped[int] = mapped_column(default=0)
+    # cells of the units done so far (a cancelled job says how much of it ran)
+    cells_done: Mapped[int] = mapped_column(default=0, server_default="0")
     provenance: Mapped[dict[str, Any]] = mapped_column(default=dict)
     idempotency_key: Mapped[str | None] = mapped_column(String(200))
     error: Mapped[str | None] = mapped_column(Text)
@@ -285,6 +287,8 @@ class ScheduleRun(Base):
     due_at: Mapped[datetime]
     job_id: Mapped[int | None] = mapped_column(ForeignKey("jobs.id", ondelete="SET NULL"))
     error: Mapped[str | None] = mapped_column(Text)
+    # why no job was made for this due time although the spec is valid (team's cap...)
+    skipped_reason: Mapped[str | None] = mapped_column(Text)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 

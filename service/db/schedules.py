@@ -1,5 +1,6 @@
-"""Schedules: validating a cron expression and time zone, the latest due time, and
-turning due schedules into jobs (once per due time, however many ticks run).
+"""Schedules: validating a cron expression (and how often it fires) and a time zone,
+the latest due time, and turning due schedules into jobs (once per due time, however
+many ticks run; within the team's cap).
 """
 
 from __future__ import annotations
@@ -8,12 +9,13 @@ from datetime import UTC, datetime, timedelta
 from zoneinfo import ZoneInfo
 
 from croniter import croniter
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from service.config import get_settings
 from svrobs_core.errors import SpecError
 
-from .errors import IdempotencyConflict
+from .errors import IdempotencyConflict, QuotaExceeded
 from .jobs import create_job
 from .models import Job, Schedule, ScheduleRun, as_utc, utcnow
 
@@ -55,6 +57,40 @@ def validate_cron(expr: str) -> str:
     return expr
 
 
+def shortest_interval(cron: str, tz: str = "UTC", *, start: datetime | None = None) -> float:
+    """The shortest time (seconds) between two consecutive runs of ``cron`` in ``tz``,
+    over its next :data:`INTERVAL_SAMPLES` firings from ``start`` (default now). A cron
+    that fires more than that many times a day fires less than 86400/500 s apart, so
+    the sample always holds at least one whole day's firings when it matters."""
+    zone = ZoneInfo(tz)
+    it = croniter(cron, as_utc(start).astimezone(zone))
+    prev = it.get_next(float)
+    shortest = float("inf")
+    for _ in range(INTERVAL_SAMPLES):
+        nxt = it.get_next(float)
+        if nxt > prev:  # croniter may repeat a local time at a DST change: one due time
+            shortest = min(shortest, nxt - prev)
+        prev = nxt
+    return shortest
+
+
+INTERVAL_SAMPLES = 500
+
+
+def check_interval(cron: str, tz: str, min_seconds: float) -> str:
+    """``cron`` if its runs are at least ``min_seconds`` apart (SVROBS_MIN_SCHEDULE_INTERVAL_SECONDS);
+    SpecError('cron') naming the shortest interval and the limit otherwise."""
+    if min_seconds > 0:
+        gap = shortest_interval(cron, tz)
+        if gap < min_seconds:
+            raise SpecError(
+                "cron",
+                f"runs {gap:.0f} s apart; schedules must run at least {min_seconds:.0f} s "
+                "apart (SVROBS_MIN_SCHEDULE_INTERVAL_SECONDS)",
+            )
+    return cron
+
+
 def validate_timezone(tz: str) -> str:
     """``tz`` if it is an IANA time zone; SpecError('timezone') if not."""
     try:
@@ -83,7 +119,11 @@ def create_due_schedule_jobs(session: Session, now: datetime) -> list[Job]:
     """Create one job per enabled schedule whose latest due time (<= now, not before
     the schedule was created) has no run yet. A ScheduleRun row is inserted on the
     unique (schedule, due_at) first and the job is made only by the inserter, so a
-    doubled or restarted tick never runs one sweep twice. Not committed."""
+    doubled or restarted tick never runs one sweep twice. The team's cap on active
+    jobs and every job limit apply as for ``POST /jobs``; a due time that makes no
+    job says why on its run (``skipped_reason`` for the cap or a run less than
+    SVROBS_MIN_SCHEDULE_INTERVAL_SECONDS after the previous job, ``error`` for a spec
+    over a limit). Not committed."""
     now = as_utc(now)
     dialect = session.get_bind().dialect.name
     if dialect == "postgresql":
@@ -91,6 +131,7 @@ def create_due_schedule_jobs(session: Session, now: datetime) -> list[Job]:
     else:
         from sqlalchemy.dialects.sqlite import insert as dialect_insert
 
+    min_gap = timedelta(seconds=get_settings().MIN_SCHEDULE_INTERVAL_SECONDS)
     jobs: list[Job] = []
     schedules = session.scalars(
         select(Schedule).where(Schedule.enabled.is_(True)).order_by(Schedule.id)
@@ -103,6 +144,13 @@ def create_due_schedule_jobs(session: Session, now: datetime) -> list[Job]:
         created = sched.created_at.replace(microsecond=0) if sched.created_at else None
         if created is not None and due < created:
             continue
+        previous = session.scalar(
+            select(func.max(ScheduleRun.due_at)).where(
+                ScheduleRun.schedule_id == sched.id,
+                ScheduleRun.due_at < due,
+                ScheduleRun.job_id.is_not(None),
+            )
+        )
         run_id = session.execute(
             dialect_insert(ScheduleRun)
             .values(schedule_id=sched.id, due_at=due, created_at=utcnow())
@@ -112,6 +160,13 @@ def create_due_schedule_jobs(session: Session, now: datetime) -> list[Job]:
         if run_id is None:
             continue  # another tick already took this due time
         run = session.get(ScheduleRun, run_id)
+        if previous is not None and due - as_utc(previous) < min_gap:
+            run.skipped_reason = (
+                f"{(due - as_utc(previous)).total_seconds():.0f} s after the previous run; "
+                f"the minimum is {min_gap.total_seconds():.0f} s "
+                "(SVROBS_MIN_SCHEDULE_INTERVAL_SECONDS)"
+            )
+            continue
         stamp = due.strftime("%Y-%m-%dT%H:%M:%SZ")
         try:
             with session.begin_nested():
@@ -123,9 +178,11 @@ def create_due_schedule_jobs(session: Session, now: datetime) -> list[Job]:
                     name=f"{sched.name} @ {stamp}",
                     tags=list(sched.tags or []) + [f"schedule:{sched.name}"],
                     idempotency_key=f"schedule:{sched.id}:{stamp}",
-                    max_active_jobs=0,
                     schedule_id=sched.id,
                 )
+        except QuotaExceeded as exc:
+            run.skipped_reason = str(exc)
+            continue
         except (SpecError, IdempotencyConflict) as exc:
             run.error = str(exc)
             continue

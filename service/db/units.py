@@ -83,6 +83,12 @@ def start_unit(
     return job.spec, unit.payload
 
 
+def unit_status(session: Session, unit_id: int) -> str | None:
+    """The unit's status (None if it does not exist): a running unit whose status
+    became ``cancelled`` (its job was cancelled or failed) stops."""
+    return session.scalar(select(WorkUnit.status).where(WorkUnit.id == unit_id))
+
+
 def heartbeat_unit(session: Session, unit_id: int, lease_seconds: int) -> bool:
     """Extend a running unit's lease; False when it is no longer running."""
     res = session.execute(
@@ -93,13 +99,14 @@ def heartbeat_unit(session: Session, unit_id: int, lease_seconds: int) -> bool:
     return res.rowcount > 0
 
 
-def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | UnitResult) -> None:
+def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | UnitResult) -> bool:
     """Upsert the unit's records (and its groups' summaries when it holds every
     repetition of them), mark it done, update progress; finish the job when the DB
-    says every unit is done (summarising the stored results if a group has none)."""
+    says every unit is done (summarising the stored results if a group has none).
+    False (nothing stored) when the unit was cancelled or failed meanwhile."""
     unit = _lock_unit(session, unit_id)
-    if unit is None:
-        return
+    if unit is None or unit.status in ("cancelled", "failed"):
+        return False  # cancelled while it ran (its job cancelled or failed)
     stored = upsert_results(session, unit.job_id, records)
     if stored["system"] and _whole_groups(session, unit):  # every repetition of its groups
         scope = (stored["system"][0], stored["sigma_w"][0], sorted(set(stored["N"])))
@@ -114,14 +121,16 @@ def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | Unit
             unit.error = None
     session.flush()
     job = lock_job(session, unit.job_id)
-    done, total = session.execute(
+    done, total, cells = session.execute(
         select(
             func.count(WorkUnit.id).filter(WorkUnit.status == "done"),
             func.count(WorkUnit.id),
+            func.coalesce(func.sum(WorkUnit.n_cells).filter(WorkUnit.status == "done"), 0),
         ).where(WorkUnit.job_id == job.id)
     ).one()
     job.progress_done = int(done)
     job.progress_total = int(total)
+    job.cells_done = int(cells)
     if done == total and job.status in JOB_ACTIVE:
         if _stored_summaries(session, job.id) != _expected_groups(job):  # some unit wrote none
             _write_summaries(session, job.id, summarize_job(session, job.id))
@@ -131,6 +140,7 @@ def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | Unit
             job.started_at = unit.started_at or now
         set_timing(job)
     session.flush()
+    return True
 
 
 def summarize_job(session: Session, job_id: int) -> list[dict]:
@@ -219,19 +229,20 @@ def _fail(session: Session, unit: WorkUnit, job: Job, error: str) -> None:
         job.error = f"{_cells_label(job, unit)} failed: {error}"
         job.finished_at = now
         set_timing(job)
+        # the job's other units are cancelled (running ones stop: units.unit_status);
         # units locked by a starting worker are skipped (no deadlock): start_unit sees the
         # failed job and cancels its unit itself
-        pending = (
+        others = (
             select(WorkUnit.id)
-            .where(WorkUnit.job_id == job.id, WorkUnit.status == "pending")
+            .where(WorkUnit.job_id == job.id, WorkUnit.status.in_(("pending", "running")))
             .with_for_update(skip_locked=True)
         )
-        ids = list(session.scalars(pending))
+        ids = list(session.scalars(others))
         if ids:
             session.execute(
                 update(WorkUnit)
-                .where(WorkUnit.id.in_(ids), WorkUnit.status == "pending")
-                .values(status="cancelled", finished_at=now)
+                .where(WorkUnit.id.in_(ids), WorkUnit.status.in_(("pending", "running")))
+                .values(status="cancelled", finished_at=now, lease_expires_at=None)
             )
     session.flush()
 

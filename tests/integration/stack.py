@@ -94,6 +94,8 @@ class Stack:
                 SVROBS_BROKER_DIR=str(root / "broker"),
             )
         env.update(SVROBS_TASK_TIME_LIMIT="300", SVROBS_UNIT_LEASE_SECONDS="360")
+        # the schedule tests step through due times a minute apart
+        env.update(SVROBS_MIN_SCHEDULE_INTERVAL_SECONDS="60")
         env.update(SVROBS_VAR_DIR=str(root))
         env.update(extra_env or {})
         self.env = child_env(None, env)

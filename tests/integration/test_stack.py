@@ -213,6 +213,8 @@ def test_schedule_due_once_even_with_two_ticks(stack):
         listed = c.get("/jobs", params={"tag": f"schedule:nightly-{stack.kind}"}).json()
         assert sorted(j["id"] for j in listed["items"]) == sorted(jobs)
         assert all(j["schedule_id"] == sched["id"] for j in listed["items"])
-        assert sum(o["relayed"] for outs in rounds for o in outs) >= 2  # their units
+        # the first job's unit is relayed by a tick; the second's by a tick or by the
+        # worker, which publishes its team's next units when the first one finishes
+        assert sum(o["relayed"] for outs in rounds for o in outs) >= 1
         for job_id in jobs:  # the tick's relay published them: they run
             assert stack.wait_job(c, job_id)["status"] == "succeeded"

@@ -5,6 +5,7 @@ from __future__ import annotations
 from service.config import Settings
 from svrobs_core.planning import plan_units
 from svrobs_core.spec import parse_spec
+from tests.core.test_workload import ISSUE_MC
 
 
 class Account:
@@ -71,3 +72,36 @@ def scope_of(session_factory):
             s.close()
 
     return scope
+
+
+# issue 10, item 6: one cell of about 11 h of CPU (now over the core's hard cap on
+# mc_runs * horizon); the core's admission tests use the same cell at 10^4 x 10^4
+ITEM6_SPEC = {**ISSUE_MC, "mc_runs": 1_000_000, "horizon": 100_000}
+# one small unit
+TINY_SPEC = {
+    "systems": ["paper-stable"],
+    "sigma_w": [1.0],
+    "N": [10],
+    "reps": 2,
+    "estimators": ["ols"],
+    "stages": ["estimate", "bounds"],
+    "seed": 5,
+}
+# within every hard cap, but about 2.6 h of CPU by the cost model: refused by its work
+HEAVY_SPEC = {**ISSUE_MC, "reps": 1000, "mc_reps": 1000}
+# one repetition needs about 2.9 GB (a 10-state system, T0 * N = 10^7 samples)
+BIG_MEMORY_SPEC = {
+    "systems": [
+        {
+            "name": "ten",
+            "A": [[0.5 if i == j else 0.0 for j in range(10)] for i in range(10)],
+            "B": [[1.0] for _ in range(10)],
+        }
+    ],
+    "sigma_w": [1.0],
+    "N": [1_000_000],
+    "T0": 10,
+    "reps": 1,
+    "estimators": ["ols"],
+    "stages": ["estimate"],
+}

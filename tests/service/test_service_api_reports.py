@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import re
 
+from service.config import Settings
 from service.db import jobs, units
+from service.db import jobs as jobs_db
 from service.reports.html import job_report_html
 from svrobs_core.paper import paper_specs
 from svrobs_core.report import table2
@@ -40,7 +42,10 @@ def test_preset_run_queues_one_job_per_experiment(client, publisher, session, ma
         assert j["tags"] == ["paper-section-6", e]
         assert j["spec"] == parse_spec(specs[e]).to_dict()
         assert j["n_cells"] == parse_spec(specs[e]).n_cells
-    assert sum(len(c) for c in publisher.calls) == sum(j["progress"]["total"] for j in jobs)
+    # the team's fair share is published at once (oldest job first), the rest as units finish
+    total = sum(j["progress"]["total"] for j in jobs)
+    first = sorted(u for j in jobs for u in jobs_db.unit_ids_of_job(session, j["id"]))
+    assert publisher.published == first[: min(total, Settings().MAX_UNITS_IN_FLIGHT_PER_TEAM)]
     listed = client.get(f"{API}/jobs", params={"tag": "paper-section-6"}, headers=acc.headers)
     assert listed.json()["total"] == len(specs)
 

@@ -9,6 +9,7 @@ from sqlalchemy import delete, func, select
 
 from service.db import errors, jobs, outbox, results_store, schedules, units
 from service.db.models import Job, Result, Schedule, ScheduleRun, Summary, WorkUnit
+from svrobs_core import planning
 from svrobs_core.errors import SpecError
 from svrobs_core.spec import parse_spec
 from tests.service.svc_fakes import fake_records, run_job_units
@@ -207,13 +208,14 @@ def test_cancel_job(session, make_account):
     statuses = {
         u.status for u in session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id))
     }
-    assert statuses == {"running", "cancelled"}
+    assert statuses == {"cancelled"}  # the running one too: its worker stops it
     assert units.start_unit(session, ids[1], "w", 60) is None
-    # the running unit may still finish; the job stays cancelled
+    # a running unit that finishes anyway stores nothing; the job stays cancelled
     spec = job.spec
     units.complete_unit(session, ids[0], fake_records(spec, session.get(WorkUnit, ids[0]).payload))
     session.refresh(job)
-    assert job.status == "cancelled"
+    assert job.status == "cancelled" and job.cells_done == 0
+    assert session.scalar(select(func.count(Result.id)).where(Result.job_id == job.id)) == 0
 
 
 def _schedule(session, acc, **kw):
@@ -347,7 +349,7 @@ def test_unit_columns_store_the_same_rows_as_records(session, make_account):
         )
     columns, records = got
     assert len(columns) == 2 * 3 and columns == records
-    want = run_unit_result(parse_spec(spec), jobs.plan_units(parse_spec(spec))[0]).records()
+    want = run_unit_result(parse_spec(spec), planning.plan_units(parse_spec(spec))[0]).records()
     for rec in want:
         stored = columns[(rec["N"], rec["estimator"], rec["gamma"], rec["rep"])]
         assert stored == {k: json_value(v) for k, v in rec.items()}
@@ -390,7 +392,9 @@ def test_stored_summaries_equal_a_summary_of_all_results(
     from svrobs_core.records import summarize
 
     if split_reps is True:  # 1 repetition per unit: every group spans three units
-        monkeypatch.setattr(jobs, "plan_units", functools.partial(jobs.plan_units, max_cells=6))
+        # (service.db.jobs.admit plans through svrobs_core.workload.admit)
+        split = functools.partial(planning.plan_units, max_cells=6)
+        monkeypatch.setattr(planning, "plan_units", split)
     acc = make_account()
     job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     session.commit()

@@ -45,7 +45,9 @@ def test_delete_refused_while_queued_then_allowed_once_cancelled(client, session
     jid = _submit(client, acc)
     r = client.delete(f"{API}/jobs/{jid}", headers=acc.headers)
     assert r.status_code == 409 and "cancel it" in r.json()["detail"]
-    assert r.json()["field"] is None  # JobActive, mapped once in service.api.errors (the detail names the job)
+    assert (
+        r.json()["field"] is None
+    )  # JobActive, mapped once in service.api.errors (the detail names the job)
     assert _count(session, WorkUnit, jid) > 0
     assert client.post(f"{API}/jobs/{jid}/cancel", headers=acc.headers).status_code == 200
     assert client.delete(f"{API}/jobs/{jid}", headers=acc.headers).status_code == 204

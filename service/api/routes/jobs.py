@@ -94,14 +94,18 @@ def get_job(job_id: JobId, session: DB, caller: CurrentCaller):
 @router.post(
     "/jobs/{job_id}/cancel", response_model=JobOut, responses={**ERRORS, 409: {"model": ErrorOut}}
 )
-def cancel(job_id: JobId, session: DB, caller: CurrentCaller):
-    """Cancel a queued or running job: units not yet started never run."""
+def cancel(job_id: JobId, session: DB, caller: CurrentCaller, submission: SubmissionDep):
+    """Cancel a queued or running job: units not yet started never run, running
+    units stop within seconds and store nothing; `cells_done` says what was done."""
     job = team_job(session, caller.team_id, job_id)
     if job.status in ("succeeded", "failed"):
         raise HTTPException(409, f"job {job_id} already {job.status}")
     job = cancel_job(session, job)
     session.commit()
-    return job_out(team_job(session, caller.team_id, job_id))
+    out = job_out(team_job(session, caller.team_id, job_id))
+    session.close()  # end the transaction (SQLite's write lock) before publishing
+    submission.dispatch_after_response()  # the team's freed slots go to its other jobs
+    return out
 
 
 @router.delete("/jobs/{job_id}", status_code=204, responses={**ERRORS, 409: {"model": ErrorOut}})

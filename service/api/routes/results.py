@@ -15,6 +15,7 @@ from sqlalchemy import Select, func, select
 
 from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep, team_job
 from service.api.errors import ERRORS, FieldHTTPException, error_docs
+from service.api.params import is_float_text, is_int_text
 from service.api.query_params import accepts_query, is_range_param, range_conditions, sort_order
 from service.api.record_json import ORDER, RESULT_COLUMNS, encode_lines, encode_page, record_columns
 from service.api.schemas import CompareOut, ResultPage, SummaryOut
@@ -60,13 +61,9 @@ def _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep) -> list:
             if g.lower() in ("null", "none", "ols"):
                 keys.append(-1.0)
                 continue
-            try:
-                v = float(g)
-            except ValueError:
-                raise FieldHTTPException(422, "must be a number or 'null'", "gamma") from None
-            if not math.isfinite(v):
-                raise FieldHTTPException(422, "must be finite", "gamma")
-            keys.append(v)
+            if not is_float_text(g) or not math.isfinite(float(g)):
+                raise FieldHTTPException(422, "must be a finite decimal number or 'null'", "gamma")
+            keys.append(float(g))
         conds.append(t.c.gamma_key.in_(keys))
     if rep:
         conds.append(t.c.rep.in_(rep))
@@ -84,7 +81,14 @@ def _not_pruned(job: Job) -> None:
         )
 
 
+# a text cell starting with one of these is a formula to a spreadsheet (OWASP, "CSV
+# injection"): it is written with a leading single quote
+FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
 def _csv_value(v):
+    if isinstance(v, str):
+        return "'" + v if v.startswith(FORMULA_START) else v
     if v is None:
         return ""
     if isinstance(v, bool):
@@ -93,23 +97,26 @@ def _csv_value(v):
         return repr(v) if math.isfinite(v) else ""
     if isinstance(v, (list, dict)):
         return json.dumps(v, allow_nan=False, separators=(",", ":"))
-    return v
+    return v  # an int
 
 
 def _stream(session_factory, query: Select, fmt: str):
+    """The selection as CSV (RFC 4180: CRLF line ends, so a cell holding a CR or LF is
+    quoted) or JSON lines, read in chunks by a session of its own."""
+
     def gen():
         session = session_factory(False)
         try:
             if fmt == "csv":
                 buf = io.StringIO()
-                writer = csv.writer(buf, lineterminator="\n")
+                writer = csv.writer(buf, lineterminator="\r\n")
                 writer.writerow(RECORD_FIELDS)
                 yield buf.getvalue()
             rows = session.execute(query.execution_options(yield_per=STREAM_CHUNK))
             for chunk in rows.partitions(STREAM_CHUNK):
                 if fmt == "csv":
                     buf = io.StringIO()
-                    writer = csv.writer(buf, lineterminator="\n")
+                    writer = csv.writer(buf, lineterminator="\r\n")
                     for r in chunk:
                         rec = row_to_record(r._mapping)
                         writer.writerow([_csv_value(rec[f]) for f in RECORD_FIELDS])
@@ -252,10 +259,12 @@ def compare(
     database; one page of at most `limit` groups (at most 10,000; `total` counts
     them all). Finished jobs are read from their stored summaries when `by` is
     within system, sigma_w, N, estimator and gamma."""
-    try:
-        ids = [int(j) for j in _csv_list(jobs, "jobs")]
-    except ValueError:
-        raise FieldHTTPException(422, "must be comma-separated job ids", "jobs") from None
+    items = _csv_list(jobs, "jobs")
+    if not all(is_int_text(j) for j in items):
+        raise FieldHTTPException(
+            422, "must be comma-separated job ids (digits 0-9), e.g. 1,2", "jobs"
+        )
+    ids = [int(j) for j in items]
     if len(ids) > 50 or any(i < 1 or i > MAX_ID for i in ids):
         raise FieldHTTPException(422, "at most 50 valid job ids", "jobs")
     ids = list(dict.fromkeys(ids))

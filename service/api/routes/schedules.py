@@ -12,7 +12,7 @@ from zoneinfo import ZoneInfo
 
 from croniter import croniter
 from fastapi import APIRouter, HTTPException, Path, Response
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 
 from service.api.deps import DB, MAX_ID, CurrentCaller, SettingsDep
@@ -23,9 +23,10 @@ from service.api.schemas import (
     ScheduleRunOut,
     ScheduleUpdate,
 )
-from service.db.errors import JobTooLarge
+from service.config import Settings
+from service.db.jobs import admit
 from service.db.models import Schedule, ScheduleRun, utcnow
-from service.db.schedules import validate_cron, validate_timezone
+from service.db.schedules import check_interval, validate_cron, validate_timezone
 from svrobs_core.errors import SpecError
 from svrobs_core.spec import parse_spec
 
@@ -35,19 +36,25 @@ BODY_ERRORS = {**ERRORS, **error_docs(413)}  # routes with a body: SVROBS_MAX_BO
 ScheduleId = Annotated[int, Path(ge=1, le=MAX_ID)]
 
 
-def validate_template(spec: dict, max_cells: int) -> dict:
+def validate_template(spec: dict, settings: Settings) -> dict:
+    """``spec`` if it is a valid spec within the job limits (a SpecError naming
+    ``spec_template.<field>`` otherwise; anything else is a bug, not a 422)."""
     try:
         parsed = parse_spec(spec)
     except SpecError as exc:
         raise SpecError(f"spec_template.{exc.field}", exc.message) from None
-    except (TypeError, ValueError, KeyError, IndexError) as exc:
-        raise SpecError("spec_template", f"invalid spec: {exc}") from None
-    if parsed.n_cells > max_cells:
-        raise JobTooLarge(
-            "spec_template",
-            f"the job has {parsed.n_cells} cells; the limit is {max_cells} (SVROBS_MAX_JOB_CELLS)",
-        )
+    admit(
+        parsed,
+        field="spec_template",
+        max_cells=settings.MAX_JOB_CELLS,
+        max_cpu_seconds=settings.MAX_JOB_CPU_SECONDS,
+        max_unit_mb=settings.MAX_UNIT_MEMORY_MB,
+    )
     return spec
+
+
+def _checked_cron(cron: str, timezone: str, settings: Settings) -> str:
+    return check_interval(validate_cron(cron), timezone, settings.MIN_SCHEDULE_INTERVAL_SECONDS)
 
 
 def next_run(cron: str, tz: str) -> datetime | None:
@@ -100,13 +107,24 @@ def create_schedule(
 ):
     """Create a schedule; the cron expression, time zone and spec template are validated."""
     now = utcnow()
+    count = session.scalar(
+        select(func.count(Schedule.id)).where(Schedule.team_id == caller.team_id)
+    )
+    if count >= settings.MAX_SCHEDULES_PER_TEAM:
+        raise FieldHTTPException(
+            422,
+            f"the team has {count} schedules; the limit is {settings.MAX_SCHEDULES_PER_TEAM} "
+            "(SVROBS_MAX_SCHEDULES_PER_TEAM)",
+            "schedules",
+        )
+    timezone = validate_timezone(body.timezone)
     s = Schedule(
         team_id=caller.team_id,
         user_id=caller.user_id,
-        name=body.name.strip(),
-        cron=validate_cron(body.cron),
-        timezone=validate_timezone(body.timezone),
-        spec_template=validate_template(body.spec_template, settings.MAX_JOB_CELLS),
+        name=body.name,
+        cron=_checked_cron(body.cron, timezone, settings),
+        timezone=timezone,
+        spec_template=validate_template(body.spec_template, settings),
         tags=list(dict.fromkeys(body.tags)),
         enabled=body.enabled,
         seed_policy=body.seed_policy,
@@ -145,16 +163,16 @@ def update_schedule(
     for key in ("name", "cron", "timezone", "spec_template", "enabled", "seed_policy"):
         if key in data and data[key] is None:
             raise SpecError(key, "must not be null")
-    if "cron" in data:
-        data["cron"] = validate_cron(data["cron"])
     if "timezone" in data:
         data["timezone"] = validate_timezone(data["timezone"])
+    if "cron" in data or "timezone" in data:
+        data["cron"] = _checked_cron(
+            data.get("cron", s.cron), data.get("timezone", s.timezone), settings
+        )
     if "spec_template" in data:
-        validate_template(data["spec_template"], settings.MAX_JOB_CELLS)
+        validate_template(data["spec_template"], settings)
     if "tags" in data:
         data["tags"] = list(dict.fromkeys(data["tags"] or []))
-    if "name" in data:
-        data["name"] = data["name"].strip()
     for key, value in data.items():
         setattr(s, key, value)
     s.updated_at = utcnow()
@@ -173,7 +191,7 @@ def delete_schedule(schedule_id: ScheduleId, session: DB, caller: CurrentCaller)
 
 @router.get("/schedules/{schedule_id}/runs", response_model=list[ScheduleRunOut], responses=ERRORS)
 def schedule_runs(schedule_id: ScheduleId, session: DB, caller: CurrentCaller):
-    """The due times already turned into jobs, newest first (last 100)."""
+    """The due times taken, newest first (last 100): the job made, or why none was."""
     _team_schedule(session, caller.team_id, schedule_id)
     rows = session.scalars(
         select(ScheduleRun)
@@ -187,6 +205,7 @@ def schedule_runs(schedule_id: ScheduleId, session: DB, caller: CurrentCaller):
             "due_at": r.due_at,
             "job_id": r.job_id,
             "error": r.error,
+            "skipped_reason": r.skipped_reason,
             "created_at": r.created_at,
         }
         for r in rows
