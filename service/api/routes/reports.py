@@ -7,17 +7,14 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, BackgroundTasks, Header
 from fastapi.responses import HTMLResponse
 from pydantic import BaseModel, ConfigDict
-from sqlalchemy import select
 
 from service.api.deps import DB, CurrentCaller, PublisherDep, SessionFactoryDep, SettingsDep
 from service.api.routes.common import FieldHTTPException, JobId, job_out, team_job
 from service.api.routes.jobs import BODY_ERRORS, ERRORS, publish_after_commit
-from service.api.routes.results import ORDER, RESULT_COLUMNS
 from service.api.schemas import ErrorOut, JobOut
 from service.db.errors import IdempotencyConflict, QuotaExceeded
 from service.db.jobs import create_job, unit_ids_of_job
-from service.db.models import Result
-from service.db.results_store import row_to_record
+from service.db.results_store import load_records
 from service.reports.html import job_report_html
 from svrobs_core.paper import PRESET_NAME, paper_specs
 
@@ -40,10 +37,7 @@ def job_report(job_id: JobId, session: DB, caller: CurrentCaller) -> HTMLRespons
     """The job's report as one HTML page: tables, figures (embedded PNG), the spec,
     provenance and the data-generated findings. Built from the stored records."""
     job = team_job(session, caller.team_id, job_id)
-    rows = session.execute(
-        select(*RESULT_COLUMNS).where(Result.__table__.c.job_id == job.id).order_by(*ORDER)
-    ).all()
-    records = [row_to_record(r._mapping) for r in rows]
+    records = load_records(session, job.id)
     provenance = {
         **(job.provenance or {}),
         "job_id": job.id,

@@ -16,21 +16,20 @@ from pydantic import Field
 from sqlalchemy import Select, func, select
 
 from service.api.deps import DB, CurrentCaller, SessionFactoryDep
-from service.api.record_json import encode_lines, encode_page, record_columns
+from service.api.record_json import encode_lines, encode_page
 from service.api.routes.common import MAX_ID, FieldHTTPException, JobId, team_job
 from service.api.schemas import CompareOut, ErrorOut, ResultPage, SummaryOut
 from service.db.models import Result, Summary
-from service.db.results_store import row_to_record
+from service.db.result_codec import ResultCodec
+from service.db.results_store import decode_rows, record_select
 from service.db.units import summarize_job
 from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
 
 router = APIRouter(tags=["results"])
 ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 422, 429, 503)}
 
-RESULT_COLUMNS = [Result.__table__.c[f] for f in RECORD_FIELDS]
 # built once (a select of 41 columns costs ~1 ms to construct); routes add WHERE/ORDER
-RESULT_ROWS = select(*RESULT_COLUMNS)  # JSON columns decoded by SQLAlchemy (CSV)
-RECORDS = select(*record_columns())  # JSON columns as text (record_json)
+RECORDS = record_select()  # as stored: decoded by results_store.decode_rows
 COUNT = select(func.count()).select_from(Result.__table__)
 ORDER = [Result.__table__.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
 COMPARE_BY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep")
@@ -87,7 +86,7 @@ def _csv_value(v):
     return v
 
 
-def _stream(session_factory, query: Select, fmt: str):
+def _stream(session_factory, query: Select, fmt: str, codec: ResultCodec):
     def gen():
         session = session_factory(False)
         try:
@@ -101,12 +100,11 @@ def _stream(session_factory, query: Select, fmt: str):
                 if fmt == "csv":
                     buf = io.StringIO()
                     writer = csv.writer(buf, lineterminator="\n")
-                    for r in chunk:
-                        rec = row_to_record(r._mapping)
+                    for rec in decode_rows(chunk, codec):
                         writer.writerow([_csv_value(rec[f]) for f in RECORD_FIELDS])
                     yield buf.getvalue()
                 else:
-                    yield encode_lines(chunk)
+                    yield encode_lines(chunk, codec)
         finally:
             session.close()
 
@@ -144,23 +142,23 @@ def get_results(
     never NaN), filtered by any grid coordinate (repeat a parameter for several
     values). JSON is paginated (default limit 100); CSV and JSONL stream the whole
     selection (or `limit`/`offset` if given)."""
-    team_job(session, caller.team_id, job_id)
+    codec = ResultCodec.of(team_job(session, caller.team_id, job_id).spec)
     conds = _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep)
     if format == "json":
         lim = limit or 100
-        t = Result.__table__
         total = session.scalar(COUNT.where(*conds))
-        # the page's ids first (sorting the narrow key columns only), then their records
-        page = select(t.c.id).where(*conds).order_by(*ORDER).limit(lim).offset(offset).subquery()
-        rows = session.execute(RECORDS.join(page, t.c.id == page.c.id).order_by(*ORDER)).all()
-        return Response(encode_page(rows, total, lim, offset), media_type="application/json")
-    query = (RESULT_ROWS if format == "csv" else RECORDS).where(*conds).order_by(*ORDER)
+        # in key order: the primary key's order, so the page is read off its index
+        page = RECORDS.where(*conds).order_by(*ORDER).limit(lim).offset(offset)
+        rows = session.execute(page).all()
+        body = encode_page(rows, codec, total, lim, offset)
+        return Response(body, media_type="application/json")
+    query = RECORDS.where(*conds).order_by(*ORDER)
     if limit is not None:
         query = query.limit(limit)
     if offset:
         query = query.offset(offset)
     session.close()  # the stream opens its own (reading) session
-    body, media = _stream(session_factory, query, format)
+    body, media = _stream(session_factory, query, format, codec)
     ext = "csv" if format == "csv" else "jsonl"
     return StreamingResponse(
         body,
