@@ -137,9 +137,7 @@ def main() -> None:
             downgrade(url, "0001")
             before = sqlite_bytes(path)
             out["sqlite (file / cell)"] = (before / n, after / n)
-    base = os.environ.get("SVROBS_BENCH_DATABASE_URL") or os.environ.get(
-        "SVROBS_TEST_DATABASE_URL"
-    )
+    base = os.environ.get("SVROBS_BENCH_DATABASE_URL") or os.environ.get("SVROBS_TEST_DATABASE_URL")
     if "pg" in args.stacks and base:
         name = f"svrobs_storage_{uuid.uuid4().hex[:8]}"
         admin = create_engine(make_url(base), isolation_level="AUTOCOMMIT")

@@ -5,8 +5,9 @@ The ``results`` table is rebuilt (both dialects) in the format of
 (shapes from the job's spec), ``notes`` as an id into the new ``result_notes``,
 ``seed_key`` NULL when it is the spec's ``[system index, sigma_w index, N,
 rep]`` (else its JSON text), the cell key as the primary key (no surrogate id,
-SQLite WITHOUT ROWID) and no secondary indexes (every per-job filter and the
-results order use the key's prefix). Rows are converted in batches; the
+SQLite WITHOUT ROWID), no secondary indexes (every per-job filter and the
+results order use the key's prefix) and no foreign keys (a per-row trigger
+check on PostgreSQL; see ``service.db.models.Result``). Rows are converted in batches; the
 downgrade converts them back to the 0001 format.
 
 Revision ID: 0005
@@ -78,7 +79,6 @@ def _scalar_columns() -> list[sa.Column]:
 
 
 def _create_compact(name: str) -> None:
-    job_fk = sa.ForeignKeyConstraint(["job_id"], ["jobs.id"], ondelete="CASCADE")
     op.create_table(
         name,
         *_scalar_columns()[:-4],
@@ -89,8 +89,6 @@ def _create_compact(name: str) -> None:
         sa.Column("sls_status", sa.String(length=64), nullable=True),
         sa.Column("seed_key", sa.Text(), nullable=True),
         *[sa.Column(f, sa.LargeBinary(), nullable=True) for f in MATRICES],
-        job_fk,
-        sa.ForeignKeyConstraint(["notes_id"], ["result_notes.id"]),
         sa.PrimaryKeyConstraint(*KEY, name="pk_results"),
         sqlite_with_rowid=False,
     )

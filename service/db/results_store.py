@@ -20,7 +20,7 @@ import math
 from collections.abc import Iterable, Sequence
 
 import numpy as np
-from sqlalchemy import Select, select
+from sqlalchemy import Boolean, Float, Integer, LargeBinary, Select, select
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import Session
 
@@ -296,29 +296,61 @@ STAGE = "results_stage"
 
 
 @functools.lru_cache(maxsize=8)
-def _stage_sql(dialect: Dialect) -> tuple[str, str, str]:
-    """(create the session's staging table, COPY into it, upsert from it)."""
+def _copy_sql(dialect: Dialect) -> dict[str, str]:
+    """COPY straight into ``results``; else the session's staging table (create, COPY
+    into it, upsert from it)."""
     quote = dialect.identifier_preparer.quote
     cols = ", ".join(quote(c) for c in COLUMNS)
     table = quote(Result.__tablename__)
-    create = (
-        f"CREATE TEMP TABLE IF NOT EXISTS {STAGE} ON COMMIT DELETE ROWS AS "
-        f"SELECT {cols} FROM {table} WITH NO DATA"
-    )
-    copy = f"COPY {STAGE} ({cols}) FROM STDIN"
-    upsert = f"INSERT INTO {table} ({cols}) SELECT {cols} FROM {STAGE} {_on_conflict(quote)}"
-    return create, copy, upsert
+    return {
+        "direct": f"COPY {table} ({cols}) FROM STDIN (FORMAT BINARY)",
+        "create": (
+            f"CREATE TEMP TABLE IF NOT EXISTS {STAGE} ON COMMIT DELETE ROWS AS "
+            f"SELECT {cols} FROM {table} WITH NO DATA"
+        ),
+        "stage": f"COPY {STAGE} ({cols}) FROM STDIN (FORMAT BINARY)",
+        "upsert": f"INSERT INTO {table} ({cols}) SELECT {cols} FROM {STAGE} {_on_conflict(quote)}",
+    }
+
+
+def _pg_type(column) -> str:
+    t = column.type
+    for py, name in ((Boolean, "bool"), (Integer, "int4"), (Float, "float8")):
+        if isinstance(t, py):
+            return name
+    return "bytea" if isinstance(t, LargeBinary) else "text"
+
+
+PG_TYPES = tuple(_pg_type(c) for c in Result.__table__.columns)
+
+
+def _copy(cur, sql: str, rows: list[tuple]) -> None:
+    """Binary COPY (the values dumped by type: ~4x less time than the text format)."""
+    with cur.copy(sql) as cp:
+        cp.set_types(PG_TYPES)
+        for row in rows:
+            cp.write_row(row)
 
 
 def _copy_upsert(pg, dialect: Dialect, rows: list[tuple]) -> None:
-    """PostgreSQL: COPY the rows into a per-connection temporary table (emptied at
-    COMMIT), then one INSERT .. SELECT .. ON CONFLICT DO UPDATE. ~3x less client
-    time than a pipelined executemany of 1,800 rows (measured: 100 vs 160-200 ms)."""
-    create, copy, upsert = _stage_sql(dialect)
+    """PostgreSQL: COPY the rows straight into ``results`` (a unit's first store: no
+    cell of it is there yet); when a cell is (a redelivered unit: unique violation),
+    back to the savepoint, COPY into a per-connection temporary table (emptied at
+    COMMIT) and one INSERT .. SELECT .. ON CONFLICT DO UPDATE. The direct COPY costs
+    the server about half of the staged upsert."""
+    import psycopg
+
+    sql = _copy_sql(dialect)
     with pg.cursor() as cur:
-        cur.execute(create)
+        cur.execute("SAVEPOINT results_copy")
+        try:
+            _copy(cur, sql["direct"], rows)
+        except psycopg.errors.UniqueViolation:
+            cur.execute("ROLLBACK TO SAVEPOINT results_copy")
+        else:
+            cur.execute("RELEASE SAVEPOINT results_copy")
+            return
+        cur.execute(sql["create"])
         cur.execute(f"TRUNCATE {STAGE}")  # a unit upserted twice in one transaction
-        with cur.copy(copy) as cp:
-            for row in rows:
-                cp.write_row(row)
-        cur.execute(upsert)
+        _copy(cur, sql["stage"], rows)
+        cur.execute(sql["upsert"])
