@@ -12,9 +12,11 @@ stored through the real write path (``units.complete_unit`` of each unit's
 else ``SVROBS_TEST_DATABASE_URL``: a private database is created and dropped).
 Then it prints bytes per cell
 
-* SQLite: the file size after ``VACUUM`` / cells;
-* PostgreSQL: ``pg_total_relation_size`` of ``results`` (+ ``result_notes``) / cells,
-  after ``VACUUM FULL``;
+* SQLite: the file size after ``VACUUM`` / cells, and of it the pages of the
+  results tables (``results``, ``result_notes``, ``result_constants`` and their
+  indexes; the rest is summaries, jobs, units and one page per empty table);
+* PostgreSQL: ``pg_total_relation_size`` of the same tables / cells, after
+  ``VACUUM FULL``;
 
 for the compact format, and for the same rows after ``alembic downgrade 0001``
 (the migration converts them back to the JSON format): "before" vs "after".
@@ -86,14 +88,24 @@ def load(url: str, spec_dict: dict) -> int:
         return s.execute(text("SELECT count(*) FROM results")).scalar()
 
 
-def sqlite_bytes(path: Path) -> int:
+RESULT_TABLES = ("results", "result_notes", "result_constants")
+
+
+def sqlite_bytes(path: Path) -> tuple[int, int]:
+    """(the file's size, of it the pages of the results tables and their indexes),
+    after VACUUM."""
     dispose_all()
     eng = create_engine(f"sqlite:///{path}")
     with eng.connect() as c:
         c.exec_driver_sql("PRAGMA wal_checkpoint(TRUNCATE)")
         c.exec_driver_sql("VACUUM")
+        tables = ", ".join(f"'{t}'" for t in RESULT_TABLES)
+        pages = c.exec_driver_sql(
+            f"SELECT sum(pgsize) FROM dbstat WHERE name IN ({tables}) OR name IN "
+            f"(SELECT name FROM sqlite_schema WHERE tbl_name IN ({tables}))"
+        ).scalar()
     eng.dispose()
-    return path.stat().st_size
+    return path.stat().st_size, pages
 
 
 def pg_bytes(url: str) -> tuple[int, int]:
@@ -101,9 +113,7 @@ def pg_bytes(url: str) -> tuple[int, int]:
     dispose_all()
     eng = create_engine(url, isolation_level="AUTOCOMMIT")
     with eng.connect() as c:
-        tables = [
-            t for t in ("results", "result_notes") if c.scalar(text(f"SELECT to_regclass('{t}')"))
-        ]
+        tables = [t for t in RESULT_TABLES if c.scalar(text(f"SELECT to_regclass('{t}')"))]
         total = idx = 0
         for t in tables:
             c.exec_driver_sql(f"VACUUM FULL ANALYZE {t}")
@@ -133,10 +143,11 @@ def main() -> None:
             t0 = time.perf_counter()
             n = load(url, spec)
             print(f"sqlite: stored {n} cells in {time.perf_counter() - t0:.1f} s")
-            after = sqlite_bytes(path)
+            after, after_t = sqlite_bytes(path)
             downgrade(url, "0001")
-            before = sqlite_bytes(path)
+            before, before_t = sqlite_bytes(path)
             out["sqlite (file / cell)"] = (before / n, after / n)
+            out["sqlite (results tables / cell)"] = (before_t / n, after_t / n)
     base = os.environ.get("SVROBS_BENCH_DATABASE_URL") or os.environ.get("SVROBS_TEST_DATABASE_URL")
     if "pg" in args.stacks and base:
         name = f"svrobs_storage_{uuid.uuid4().hex[:8]}"

@@ -2,7 +2,9 @@
 
 The ``results`` table is rebuilt (both dialects) in the format of
 ``service.db.result_codec``: the matrix fields as little-endian float64 bytes
-(shapes from the job's spec), ``notes`` as an id into the new ``result_notes``,
+(shapes from the job's spec; a K constant over a (system, sigma_w) is written
+once into the new ``result_constants`` by the worker, while converted rows keep
+theirs inline), ``notes`` as an id into the new ``result_notes``,
 ``seed_key`` NULL when it is the spec's ``[system index, sigma_w index, N,
 rep]`` (else its JSON text), the cell key as the primary key (no surrogate id,
 SQLite WITHOUT ROWID), no secondary indexes (every per-job filter and the
@@ -114,10 +116,12 @@ def _create_old(name: str) -> None:
 
 
 class _Specs:
-    """Per job: system name -> (n, m, p) and the spec's system / sigma_w indices."""
+    """Per job: system name -> (n, m, p) and the spec's system / sigma_w indices (and
+    its result_constants, when reading the compact format)."""
 
-    def __init__(self, conn):
-        self.conn, self.cache = conn, {}
+    def __init__(self, conn, constants: bool = False):
+        self.conn, self.cache, self.constants = conn, {}, constants
+        self.shared: dict[int, dict] = {}
 
     def __call__(self, job_id: int):
         if job_id not in self.cache:
@@ -131,6 +135,15 @@ class _Specs:
                 {s.name: i for i, s in enumerate(systems)},
                 {float(w): i for i, w in enumerate(spec["sigma_w"])},
             )
+            if self.constants:
+                rows = self.conn.execute(
+                    sa.text(
+                        "SELECT system, sigma_w, field, value FROM result_constants "
+                        "WHERE job_id = :id"
+                    ),
+                    {"id": job_id},
+                )
+                self.shared[job_id] = {(s, float(w), f): bytes(v) for s, w, f, v in rows}
         return self.cache[job_id]
 
 
@@ -159,6 +172,15 @@ def upgrade() -> None:
         sa.Column("text", sa.Text(), nullable=False),
         sa.PrimaryKeyConstraint("id"),
         sa.UniqueConstraint("digest"),
+    )
+    op.create_table(
+        "result_constants",
+        sa.Column("job_id", sa.Integer(), nullable=False),
+        sa.Column("system", sa.String(length=200), nullable=False),
+        sa.Column("sigma_w", sa.Float(), nullable=False),
+        sa.Column("field", sa.String(length=32), nullable=False),
+        sa.Column("value", sa.LargeBinary(), nullable=False),
+        sa.PrimaryKeyConstraint("job_id", "system", "sigma_w", "field"),
     )
     _create_compact("results_compact")
     old = sa.table(
@@ -217,7 +239,7 @@ def downgrade() -> None:
         .select_from(cur.outerjoin(notes_t, cur.c.notes_id == notes_t.c.id))
         .order_by(*(cur.c[k] for k in KEY))
     )
-    specs = _Specs(conn)
+    specs = _Specs(conn, constants=True)
     for rows in _stream(conn, q):
         out = []
         for r in rows:
@@ -227,6 +249,8 @@ def downgrade() -> None:
             row["seed_key"] = _derived_seed(specs, r) if seed is None else json.loads(seed)
             for f in MATRICES:  # JSON-typed columns: the lists are serialised on insert
                 b = r[f]
+                if b is not None and len(b) == 0:  # the job's constant of (system, sigma_w)
+                    b = specs.shared[r["job_id"]][(r["system"], float(r["sigma_w"]), f)]
                 if b is not None:
                     a = np.frombuffer(bytes(b), dtype="<f8").reshape(_shape(f, *dims))
                     b = np.where(np.isfinite(a), a, None).tolist()
@@ -235,6 +259,7 @@ def downgrade() -> None:
         conn.execute(old.insert(), out)
     op.drop_table("results")
     op.drop_table("result_notes")
+    op.drop_table("result_constants")
     op.rename_table("results_json", "results")
     with op.batch_alter_table("results", schema=None) as batch_op:
         for name, cols in OLD_INDEXES.items():

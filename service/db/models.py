@@ -222,6 +222,18 @@ class ResultNote(Base):
     text: Mapped[str] = mapped_column(Text)
 
 
+class ResultConstant(Base):
+    """A matrix field that is the same in every cell of a (job, system, sigma_w) (K),
+    stored once; its rows hold zero bytes (``service.db.result_codec``)."""
+
+    __tablename__ = "result_constants"
+    job_id: Mapped[int] = mapped_column(primary_key=True)
+    system: Mapped[str] = mapped_column(String(200), primary_key=True)
+    sigma_w: Mapped[float] = mapped_column(Float, primary_key=True)
+    field: Mapped[str] = mapped_column(String(32), primary_key=True)
+    value: Mapped[bytes] = mapped_column(LargeBinary)
+
+
 class Result(Base):
     """One cell (SPEC section 10), keyed by its grid coordinates (the primary key;
     ``gamma_key`` is gamma, or -1 for ols). The compact format of migration 0005

@@ -4,9 +4,12 @@ A job's rows are decoded with its spec (:class:`ResultCodec`): each matrix field
 is stored as its entries, row-major little-endian float64, with no shape (the
 shape follows from the system's n, m, p: A_hat n x n, B_hat n x m, L and K
 n x p); a null entry (NaN or inf in the core) is stored as NaN and read back
-as None. ``seed_key`` is stored only when it differs from the one the spec
-gives a cell: ``[system index, sigma_w index, N, rep]``. Reads decode a batch
-of rows at once (one ``numpy.frombuffer`` per field and system).
+as None. A matrix that is the same in every cell of a (system, sigma_w) of the
+job (K, the true system's Kalman gain: SPEC section 5) is stored once in
+``result_constants`` and as zero bytes in its rows. ``seed_key`` is stored
+only when it differs from the one the spec gives a cell: ``[system index,
+sigma_w index, N, rep]``. Reads decode a batch of rows at once (one
+``numpy.frombuffer`` per field and system).
 """
 
 from __future__ import annotations
@@ -15,13 +18,16 @@ import functools
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass
+from dataclasses import field as dc_field
 
 import numpy as np
 
 from svrobs_core import resolve_system
-from svrobs_core.records import MATRIX_FIELDS, json_value
+from svrobs_core.records import json_value
 
 DTYPE = np.dtype("<f8")
+SHARED_FIELDS = ("K",)  # matrices stored once per (job, system, sigma_w) when constant
+SHARED = b""  # the stored value of a row whose matrix is its (system, sigma_w)'s constant
 
 
 @dataclass(frozen=True)
@@ -31,6 +37,8 @@ class ResultCodec:
     shapes: dict[str, dict[str, tuple[int, int]]]  # system name -> field -> (rows, cols)
     system_index: dict[str, int]
     sigma_index: dict[float, int]
+    # (system, sigma_w, field) -> bytes: the job's rows in result_constants
+    constants: dict[tuple[str, float, str], bytes] = dc_field(default_factory=dict)
 
     @classmethod
     def of(cls, spec: dict) -> ResultCodec:
@@ -63,7 +71,9 @@ class ResultCodec:
         size = a[0].nbytes if k else 0
         return a.reshape(k, -1).view(np.dtype((np.void, size))).ravel().tolist() if k else []
 
-    def decode_matrices(self, systems: Sequence[str], field: str, blobs: Sequence) -> list:
+    def decode_matrices(
+        self, systems: Sequence[str], sigmas: Sequence[float], field: str, blobs: Sequence
+    ) -> list:
         """One matrix field of many rows -> nested lists (None where the row has none,
         None entries where a value is not finite)."""
         out: list = [None] * len(blobs)
@@ -73,7 +83,10 @@ class ResultCodec:
                 by_system.setdefault(s, []).append(i)
         for system, idx in by_system.items():
             r, c = self.shape(system, field)
-            buf = b"".join(bytes(blobs[i]) for i in idx)
+            parts = [bytes(blobs[i]) for i in idx]
+            if SHARED in parts:
+                parts = [p or self._constant(system, sigmas[i], field) for p, i in zip(parts, idx)]
+            buf = b"".join(parts)
             if len(buf) != len(idx) * r * c * DTYPE.itemsize:
                 raise ValueError(f"stored {field} of system {system!r} is not {r}x{c} float64")
             a = np.frombuffer(buf, dtype=DTYPE).reshape(len(idx), r, c)
@@ -84,6 +97,12 @@ class ResultCodec:
             for i, v in zip(idx, values):
                 out[i] = v
         return out
+
+    def _constant(self, system: str, sigma_w: float, field: str) -> bytes:
+        try:
+            return self.constants[(system, float(sigma_w), field)]
+        except KeyError:
+            raise ValueError(f"no stored {field} of ({system!r}, {sigma_w})") from None
 
     # -- seed_key ---------------------------------------------------------------------
     def derived_seed_key(self, system: str, sigma_w: float, N: int, rep: int) -> list | None:
@@ -117,7 +136,6 @@ def _codec(key: str) -> ResultCodec:
         }
         for s in systems
     }
-    assert set(next(iter(shapes.values()), {})) <= set(MATRIX_FIELDS)
     return ResultCodec(
         shapes=shapes,
         system_index={s.name: i for i, s in enumerate(systems)},

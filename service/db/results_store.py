@@ -18,6 +18,7 @@ import functools
 import hashlib
 import math
 from collections.abc import Iterable, Sequence
+from dataclasses import replace
 
 import numpy as np
 from sqlalchemy import Boolean, Float, Integer, LargeBinary, Select, select
@@ -33,9 +34,10 @@ from .models import (
     RESULT_SCALAR_FIELDS,
     Job,
     Result,
+    ResultConstant,
     ResultNote,
 )
-from .result_codec import ResultCodec
+from .result_codec import SHARED, SHARED_FIELDS, ResultCodec
 
 KEY_COLUMNS = RESULT_KEY
 TEXT_COLUMNS = ("system", "estimator", "sls_status")
@@ -43,6 +45,7 @@ INT_FIELDS = ("N", "N0", "rep")
 _NOT_FLOAT = frozenset(BOOL_FIELDS + INT_FIELDS)
 COLUMNS = tuple(c.name for c in Result.__table__.columns)  # in table order
 NOTES = ResultNote.__table__
+CONSTANTS = ResultConstant.__table__
 
 
 def gamma_key(estimator: str, gamma) -> float:
@@ -50,8 +53,38 @@ def gamma_key(estimator: str, gamma) -> float:
     return OLS_GAMMA_KEY if gamma is None else float(gamma)
 
 
-def job_codec(session: Session, job_id: int) -> ResultCodec:
-    return ResultCodec.of(session.scalar(select(Job.spec).where(Job.id == job_id)))
+def job_codec(session: Session, job_id: int, spec: dict | None = None) -> ResultCodec:
+    """The codec of a job's rows: from its spec (read if not given) and its constants."""
+    if spec is None:
+        spec = session.scalar(select(Job.spec).where(Job.id == job_id))
+    c = CONSTANTS.c
+    rows = session.execute(
+        select(c.system, c.sigma_w, c.field, c.value).where(c.job_id == job_id)
+    ).all()
+    constants = {(s, float(w), f): bytes(v) for s, w, f, v in rows}
+    return replace(ResultCodec.of(spec), constants=constants)
+
+
+def _shared(session: Session, codec: ResultCodec, job_id: int, key: tuple, value: bytes) -> bool:
+    """Whether ``value`` is (now) the stored constant of ``key`` = (system, sigma_w,
+    field): stored if the job has none yet (a concurrent writer's wins)."""
+    if key not in codec.constants:
+        system, sigma_w, field = key
+        row = {"job_id": job_id, "system": system, "sigma_w": sigma_w, "field": field}
+        session.execute(_insert_ignore(session, CONSTANTS, list(row)), [{**row, "value": value}])
+        stored = session.scalar(
+            select(CONSTANTS.c.value).where(*(CONSTANTS.c[k] == v for k, v in row.items()))
+        )
+        codec.constants[key] = bytes(stored)
+    return codec.constants[key] == value
+
+
+def _insert_ignore(session: Session, table, key: list[str]):
+    if session.get_bind().dialect.name == "postgresql":
+        from sqlalchemy.dialects.postgresql import insert as upsert
+    else:
+        from sqlalchemy.dialects.sqlite import insert as upsert
+    return upsert(table).on_conflict_do_nothing(index_elements=key)
 
 
 # -- notes: a dictionary of distinct texts -----------------------------------------------
@@ -70,13 +103,8 @@ def note_ids(session: Session, texts: Iterable[str | None]) -> dict[str | None, 
     found = dict(session.execute(q).all())
     missing = sorted(set(wanted) - set(found))
     if missing:
-        dialect = session.get_bind().dialect.name
-        if dialect == "postgresql":
-            from sqlalchemy.dialects.postgresql import insert as upsert
-        else:
-            from sqlalchemy.dialects.sqlite import insert as upsert
         session.execute(
-            upsert(NOTES).on_conflict_do_nothing(index_elements=["digest"]),
+            _insert_ignore(session, NOTES, ["digest"]),
             [{"digest": d, "text": wanted[d]} for d in missing],
         )
         found.update(session.execute(q).all())
@@ -102,9 +130,9 @@ def decode_rows(rows: Sequence[Sequence], codec: ResultCodec) -> list[dict]:
     if not rows:
         return []
     cols = list(zip(*rows))
-    system = cols[_IDX["system"]]
+    system, sigma = cols[_IDX["system"]], cols[_IDX["sigma_w"]]
     for f in MATRIX_FIELDS:
-        cols[_IDX[f]] = codec.decode_matrices(system, f, cols[_IDX[f]])
+        cols[_IDX[f]] = codec.decode_matrices(system, sigma, f, cols[_IDX[f]])
     cols[_IDX["seed_key"]] = codec.decode_seed_keys(
         system, *(cols[_IDX[f]] for f in ("sigma_w", "N", "rep", "seed_key"))
     )
@@ -221,11 +249,16 @@ def _unit_tuples(
     out["notes_id"] = [notes[t] for t in cols["notes"]]
     for f in MATRIX_FIELDS:
         out[f] = []
+    sigma_w = float(result.sigma_w)
     for block in result.matrix_blocks():
-        k = len(next(iter(block.values())) if block else ())
+        k = len(result.reps) * len(result.axis.names)
         for f in MATRIX_FIELDS:
             b = block[f]
-            out[f] += [None] * k if b is None else codec.encode_block(b)
+            blobs = [None] * k if b is None else codec.encode_block(b)
+            if f in SHARED_FIELDS and b is not None and len(set(blobs)) == 1:
+                if _shared(session, codec, job_id, (result.system, sigma_w, f), blobs[0]):
+                    blobs = [SHARED] * k
+            out[f] += blobs
     derived = (
         codec.system_index.get(result.system) == result.system_idx
         and codec.sigma_index.get(float(result.sigma_w)) == result.sigma_w_idx

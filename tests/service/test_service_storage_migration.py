@@ -70,12 +70,12 @@ def _records() -> list[dict]:
     return out
 
 
-def _write_0001_rows(conn, records: list[dict]) -> int:
-    """Insert a team, a job and its records exactly as the 0001-era writer stored them."""
+def _insert_job(conn, job_id: int, n_cells: int) -> None:
     now = datetime.now(UTC)
-    conn.execute(
-        sa.text("INSERT INTO teams (id, name, created_at) VALUES (1, 't', :now)"), {"now": now}
-    )
+    if job_id == 1:
+        conn.execute(
+            sa.text("INSERT INTO teams (id, name, created_at) VALUES (1, 't', :now)"), {"now": now}
+        )
     jobs = sa.table(
         "jobs",
         *[sa.column(c) for c in ("id", "team_id", "status", "created_at")],
@@ -85,19 +85,24 @@ def _write_0001_rows(conn, records: list[dict]) -> int:
     conn.execute(
         jobs.insert(),
         {
-            "id": 1,
+            "id": job_id,
             "team_id": 1,
             "status": "succeeded",
             "created_at": now,
             "progress_done": 0,
             "progress_total": 0,
-            "n_cells": len(records),
+            "n_cells": n_cells,
             "spec": parse_spec(SPEC).to_dict(),
             "tags": [],
             "provenance": {},
             "timings": {},
         },
     )
+
+
+def _write_0001_rows(conn, records: list[dict]) -> int:
+    """Insert a team, a job and its records exactly as the 0001-era writer stored them."""
+    _insert_job(conn, 1, len(records))
     text_json = ("seed_key",) + MATRIX_FIELDS
     fields = [f for f in RECORD_FIELDS if f not in text_json]
     results = sa.table(
@@ -128,21 +133,45 @@ def _bits(rec: dict) -> dict:
 
 
 def test_0001_rows_upgrade_to_the_same_records_and_back(url):
+    """Job 1: written in the 0001 format, upgraded. Job 2: stored by the worker's write
+    path after the upgrade (K once per (system, sigma_w) in result_constants). Both
+    read back as the core's records, and both downgrade to them."""
+    from sqlalchemy.orm import Session
+
+    from service.db.results_store import upsert_results
+
     records = _records()
     upgrade(url, "0001")
     engine = create_db_engine(url)
     with engine.begin() as conn:
         n = _write_0001_rows(conn, records)
     upgrade(url)  # 0005: JSON -> float64 bytes, notes dictionary, derived seed_key
+    spec = parse_spec(SPEC)
+    with engine.begin() as conn:
+        _insert_job(conn, 2, n)
+    with Session(engine) as s, s.begin():
+        for u in plan_units(spec):
+            upsert_results(s, 2, run_unit_result(spec, u))
     with engine.connect() as conn:
-        assert conn.execute(sa.text("SELECT count(*) FROM results")).scalar() == n
+        shared = conn.execute(sa.text("SELECT count(*) FROM result_constants")).scalar()
+        assert shared == 4  # K of each (system, sigma_w)
+        empty = 'SELECT count(*) FROM results WHERE job_id = 2 AND length("K") = 0'
+        assert conn.execute(sa.text(empty)).scalar() == n
+    want2 = {
+        _key(r): {k: json_value(v) for k, v in r.items()}
+        for u in plan_units(spec)
+        for r in run_unit_result(spec, u).records()
+    }
+    with Session(engine) as s:
+        back2 = load_records(s, 2)
+    assert len(back2) == n and all(_bits(r) == _bits(want2[_key(r)]) for r in back2)
+    with engine.connect() as conn:
+        assert conn.execute(sa.text("SELECT count(*) FROM results")).scalar() == 2 * n
         derived = conn.execute(
             sa.text("SELECT count(*) FROM results WHERE seed_key IS NULL")
         ).scalar()
-        assert derived == n - 1  # only the record whose seed_key the spec does not give
+        assert derived == 2 * n - 1  # only the record whose seed_key the spec does not give
         assert conn.execute(sa.text("SELECT count(*) FROM result_notes")).scalar() < n / 4
-    from sqlalchemy.orm import Session
-
     with Session(engine) as s:
         back = {_key(r): r for r in load_records(s, 1)}
     assert len(back) == n
@@ -154,7 +183,9 @@ def test_0001_rows_upgrade_to_the_same_records_and_back(url):
     with engine.connect() as conn:
         text = [sa.cast(sa.column(c), sa.Text).label(c) for c in ("seed_key",) + MATRIX_FIELDS]
         others = [sa.column(c) for c in RECORD_FIELDS if c not in ("seed_key",) + MATRIX_FIELDS]
-        rows = conn.execute(sa.select(*others, *text).select_from(sa.table("results"))).mappings()
+        rows = conn.execute(
+            sa.select(sa.column("job_id"), *others, *text).select_from(sa.table("results"))
+        ).mappings()
         old = {}
         for r in rows:
             rec = {
@@ -164,8 +195,10 @@ def test_0001_rows_upgrade_to_the_same_records_and_back(url):
             rec = {
                 k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in rec.items()
             }
-            old[_key(rec)] = rec
+            old[(rec.pop("job_id"),) + _key(rec)] = rec
     engine.dispose()
-    assert len(old) == n
+    assert len(old) == 2 * n
     for rec in records:
-        assert _bits(old[_key(rec)]) == _bits(rec)
+        assert _bits(old[(1,) + _key(rec)]) == _bits(rec)
+    for key, rec in want2.items():
+        assert _bits(old[(2,) + key]) == _bits(rec)

@@ -21,7 +21,7 @@ from service.api.routes.common import MAX_ID, FieldHTTPException, JobId, team_jo
 from service.api.schemas import CompareOut, ErrorOut, ResultPage, SummaryOut
 from service.db.models import Result, Summary
 from service.db.result_codec import ResultCodec
-from service.db.results_store import decode_rows, record_select
+from service.db.results_store import decode_rows, job_codec, record_select
 from service.db.units import summarize_job
 from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
 
@@ -142,7 +142,7 @@ def get_results(
     never NaN), filtered by any grid coordinate (repeat a parameter for several
     values). JSON is paginated (default limit 100); CSV and JSONL stream the whole
     selection (or `limit`/`offset` if given)."""
-    codec = ResultCodec.of(team_job(session, caller.team_id, job_id).spec)
+    codec = job_codec(session, job_id, team_job(session, caller.team_id, job_id).spec)
     conds = _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep)
     if format == "json":
         lim = limit or 100
