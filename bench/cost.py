@@ -32,14 +32,16 @@ import scipy.linalg as sla
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from svrobs_core.cost import exact_cost, mc_cost, stationary_cost
+from svrobs_core.cost import exact_cost, stationary_cost
 from svrobs_core.cost_bound import theorem3_bound, true_system_norms
+from svrobs_core.cost_mc import mc_cost
 from svrobs_core.norms import spectral_radius
 
 A = np.array([[0.9, 0.01, 0.0], [0.01, 0.9, 0.01], [0.0, 0.01, 0.9]])
 B = np.array([[1.0], [1.5], [2.0]])
 C = np.eye(3)
 SU, SW, SV, T = 1.0, 1.0, 0.1, 200
+NOISE = dict(sigma_u=SU, sigma_w=SW, sigma_v=SV)
 
 
 def kalman():
@@ -126,19 +128,32 @@ def main():
         f"{os.cpu_count()} cpus, load avg {os.getloadavg()[0]:.2f}"
     )
 
-    t_exact, J = best_of(lambda: exact_cost(A, B, At, Bt, L, C, SU, SW, SV, T), args.repeat)
+    t_exact, J = best_of(
+        lambda: exact_cost(A, B, At, Bt, L=L, C=C, **NOISE, horizon=T),
+        args.repeat,
+    )
     c_exact = CPU["last"]
     t_step, Js = best_of(lambda: stepwise_batched(At, Bt, L), max(1, args.repeat - 1))
     err = np.abs(J / Js - 1).max()
-    t_stat, _ = best_of(lambda: stationary_cost(A, B, At, Bt, L, C, SU, SW, SV), args.repeat)
+    t_stat, _ = best_of(
+        lambda: stationary_cost(A, B, At, Bt, L=L, C=C, **NOISE),
+        args.repeat,
+    )
     rho_F = spectral_radius(At - L @ C)
     t_stat2, _ = best_of(
-        lambda: stationary_cost(A, B, At, Bt, L, C, SU, SW, SV, rho_F=rho_F), args.repeat
+        lambda: stationary_cost(A, B, At, Bt, L=L, C=C, **NOISE, rho_F=rho_F),
+        args.repeat,
     )
     t_norms, tn = best_of(lambda: true_system_norms(A, B, C, K), 1)
-    t_thm3, _ = best_of(lambda: theorem3_bound(At, L, C, K, eps, eps, SU, SV, tn), args.repeat)
+    t_thm3, _ = best_of(
+        lambda: theorem3_bound(At, L, C, K, eps_A=eps, eps_B=eps, sigma_u=SU, sigma_v=SV, norms=tn),
+        args.repeat,
+    )
     t_thm3b, _ = best_of(
-        lambda: theorem3_bound(At, L, C, K, eps, eps, SU, SV, tn, rho_F=rho_F), args.repeat
+        lambda: theorem3_bound(
+            At, L, C, K, eps_A=eps, eps_B=eps, sigma_u=SU, sigma_v=SV, norms=tn, rho_F=rho_F
+        ),
+        args.repeat,
     )
     t_rho, _ = best_of(lambda: spectral_radius(At - L @ C), args.repeat)
 
@@ -164,10 +179,23 @@ def main():
 
     # Monte Carlo, one cell per call
     M = args.mc_cells
-    mc_cost(A, B, At[0], Bt[0], L[0], C, SU, SW, SV, T, np.random.default_rng(0), 10)  # warm-up
+    mc_cost(
+        A, B, At[0], Bt[0], L=L[0], C=C, **NOISE, horizon=T, rng=np.random.default_rng(0), runs=10
+    )  # warm-up
     t0, c0 = time.perf_counter(), time.process_time()
     mc = [
-        mc_cost(A, B, At[i], Bt[i], L[i], C, SU, SW, SV, T, np.random.default_rng(i), args.runs)
+        mc_cost(
+            A,
+            B,
+            At[i],
+            Bt[i],
+            L=L[i],
+            C=C,
+            **NOISE,
+            horizon=T,
+            rng=np.random.default_rng(i),
+            runs=args.runs,
+        )
         for i in range(M)
     ]
     t_mc = (time.perf_counter() - t0) / M

@@ -46,7 +46,8 @@ sys.path.insert(0, str(ROOT))
 
 import httpx
 
-from service.serve import Child, api_command, child_env, stop_all, worker_command
+from svrobs_cli.processes import Child, stop_all
+from svrobs_cli.serve import api_command, child_env, worker_command
 
 GRID = {
     "systems": ["paper-stable", "paper-unstable"],
@@ -73,7 +74,7 @@ BIG = {
 SETUP = """
 import json
 from service.config import get_settings
-from service.serve import prepare_dirs, migrate
+from svrobs_cli.serve import prepare_dirs, migrate
 from service.db.session import session_scope
 from service.db import accounts
 s = get_settings(); prepare_dirs(s); migrate(s)

@@ -56,6 +56,13 @@ class Settings(BaseSettings):
     # Seconds the API waits for the broker when publishing / in /readyz.
     BROKER_TIMEOUT: float = 2.0
 
+    # Web UI sessions (service.web.session): the key that signs the session cookie
+    # (unset: one is generated once and kept in VAR_DIR/secret_key, so restarts keep
+    # sessions; set it when API processes on several hosts serve the same users) and
+    # how long a sign-in lasts.
+    SECRET_KEY: str | None = None
+    SESSION_HOURS: float = 12.0
+
     # The level of every svrobs process's log (service.logging_config).
     LOG_LEVEL: Literal["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"] = "INFO"
     # The commit stored in job provenance; unset: ``git rev-parse HEAD`` of the checkout.

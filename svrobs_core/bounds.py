@@ -76,7 +76,7 @@ def radii(*, n, m, N, N0, T0, sigma_u, sigma_w, gamma, M, delta) -> Radii:
     return Radii(H_A=H_A.copy(), H_B=H_B.copy(), r_A=np.sqrt(one_g * H_A), r_B=np.sqrt(one_g * H_B))
 
 
-@dataclass
+@dataclass(kw_only=True)
 class BoundsResult:
     """Per-estimate bound quantities; every array has the batch shape (...)."""
 
@@ -107,7 +107,7 @@ def _thm1(true, est, g, H_):
     return np.all(lhs <= H_[..., None], axis=-1)
 
 
-def evaluate_bounds(A_tilde, B_tilde, gamma, r: Radii, A_true=None, B_true=None) -> BoundsResult:
+def evaluate_bounds(A_tilde, B_tilde, gamma, r: Radii, *, A_true=None, B_true=None) -> BoundsResult:
     """Corollary 1 eps, the Perron-Frobenius certificate, and (with truth) coverage.
 
     A_tilde (..., n, n), B_tilde (..., n, m); gamma and the radii broadcast

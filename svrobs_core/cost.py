@@ -1,4 +1,4 @@
-"""Observer cost J of SPEC section 6: exact finite horizon, stationary, Monte Carlo.
+"""Observer cost J of SPEC section 6: exact finite horizon and stationary.
 
 Model (SPEC section 6). True system and observer on the estimates:
 
@@ -37,16 +37,14 @@ step-by-step recursion). Small products are evaluated with the batch in the
 last axis ("structure of arrays"), which is ~5x faster in numpy than stacked
 ``matmul`` on 3 x 3 matrices.
 
-Monte Carlo: :func:`mc_cost` simulates one batch of cells with one noise
-stream; :func:`mc_cost_shared` simulates a grid (repetitions x estimators /
-gammas) where the cells of a repetition share that repetition's stream (the
-experiment runner's case), drawing it once and simulating the plant once.
+Monte Carlo estimates of the same J: :mod:`svrobs_core.cost_mc`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from .errors import check_matrix
 from .norms import REASON_UNSTABLE, spectral_radius, stability_reason, stein_solve
 
 # Up to this state dimension the batched small products are done with the
@@ -57,10 +55,10 @@ _SOA_MAX_N = 12
 # --------------------------------------------------------------------------
 # argument handling
 # --------------------------------------------------------------------------
-class _Cells:
+class CostCells:
     """Validated, broadcast arguments of one cost call."""
 
-    def __init__(self, A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v):
+    def __init__(self, A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v):
         A = np.asarray(A, dtype=float)
         B = np.asarray(B, dtype=float)
         At = np.asarray(A_tilde, dtype=float)
@@ -70,8 +68,7 @@ class _Cells:
             B = B[:, None]
         if Bt.ndim == 1:
             Bt = Bt[:, None]
-        if A.ndim < 2 or A.shape[-1] != A.shape[-2]:
-            raise ValueError(f"A must be (..., n, n), got {A.shape}")
+        A = check_matrix("A", A, ("n", "n"))
         n = A.shape[-1]
         if C is None:
             C = np.eye(n)
@@ -88,8 +85,7 @@ class _Cells:
             ("L", L, (n, p)),
             ("C", C, (p, n)),
         ):
-            if arr.ndim < 2 or arr.shape[-2:] != shape:
-                raise ValueError(f"{name} must be (..., {shape[0]}, {shape[1]}), got {arr.shape}")
+            check_matrix(name, arr, shape)
         su = np.asarray(sigma_u, dtype=float)
         sw = np.asarray(sigma_w, dtype=float)
         sv = np.asarray(sigma_v, dtype=float)
@@ -129,97 +125,66 @@ class _Cells:
 # --------------------------------------------------------------------------
 # batched small products in two layouts
 # --------------------------------------------------------------------------
-class _SoA:
-    """Matrices stored as (r, c, S, N): batch N in the last axis, S a stack axis."""
+class _Layout:
+    """Batched small matrices in one of two layouts.
 
-    def __init__(self, batch):
+    ``soa=True``: stored as (r, c, S, N), batch N in the last axis (products
+    by einsum); ``soa=False``: stored as (S, N, r, c) (stacked matmul, BLAS
+    per matrix). S is a stack axis (Sigma and W of a segment).
+    """
+
+    def __init__(self, batch, soa: bool):
         self.batch = batch
         self.N = int(np.prod(batch, dtype=np.int64))
+        self.soa = soa
+        self._mat = (0, 1) if soa else (-2, -1)  # the matrix axes
+        self._lead = (slice(None),) * 2 if soa else ()  # index prefix up to the stack axis
 
     def put(self, X):
-        """(..., r, c) with batch broadcastable to self.batch -> (r, c, 1, N|1)."""
+        """(..., r, c) with batch broadcastable to self.batch -> the layout, batch N or 1."""
         X = np.asarray(X, dtype=float)
         r, c = X.shape[-2:]
         if int(np.prod(X.shape[:-2], dtype=np.int64)) == 1:
-            return X.reshape(r, c, 1, 1)
+            return X.reshape(r, c, 1, 1) if self.soa else X.reshape(1, 1, r, c)
         X = np.broadcast_to(X, self.batch + (r, c)).reshape(self.N, r, c)
-        return np.ascontiguousarray(np.moveaxis(X, 0, -1))[:, :, None, :]
+        if self.soa:
+            return np.ascontiguousarray(np.moveaxis(X, 0, -1))[:, :, None, :]
+        return X.reshape(1, self.N, r, c)
 
-    @staticmethod
-    def mm(a, b):
-        return np.einsum("ik...,kj...->ij...", a, b)
+    def mm(self, a, b):
+        return np.einsum("ik...,kj...->ij...", a, b) if self.soa else a @ b
 
-    @staticmethod
-    def t(a):
-        return np.swapaxes(a, 0, 1)
+    def t(self, a):
+        return np.swapaxes(a, *self._mat)
 
-    @staticmethod
-    def stack(x, y):
+    def stack(self, x, y):
         x, y = np.broadcast_arrays(x, y)
-        return np.concatenate([x, y], axis=2)
+        return np.concatenate([x, y], axis=len(self._lead))
 
-    @staticmethod
-    def part(x, i):
-        return x[:, :, i : i + 1]
+    def part(self, x, i):
+        return x[self._lead + (slice(i, i + 1),)]
 
-    @staticmethod
-    def addto_w(new, t, Ma):
-        new[:, :, 1] += t * Ma[:, :, 0]
+    def addto_w(self, new, t, Ma):
+        new[self._lead + (1,)] += t * Ma[self._lead + (0,)]
 
-    @staticmethod
-    def trace(x):
-        return np.trace(x, axis1=0, axis2=1)  # -> (S, N)
+    def trace(self, x):
+        return np.trace(x, axis1=self._mat[0], axis2=self._mat[1])  # -> (S, N)
 
     def get(self, v):
         """(S=1, N|1) -> batch shape."""
         return np.broadcast_to(v[0], (self.N,)).reshape(self.batch)
 
 
-class _AoS:
-    """Matrices stored as (S, N, r, c); products by stacked matmul."""
-
-    def __init__(self, batch):
-        self.batch = batch
-        self.N = int(np.prod(batch, dtype=np.int64))
-
-    def put(self, X):
-        X = np.asarray(X, dtype=float)
-        r, c = X.shape[-2:]
-        if int(np.prod(X.shape[:-2], dtype=np.int64)) == 1:
-            return X.reshape(1, 1, r, c)
-        return np.broadcast_to(X, self.batch + (r, c)).reshape(1, self.N, r, c)
-
-    @staticmethod
-    def mm(a, b):
-        return a @ b
-
-    @staticmethod
-    def t(a):
-        return np.swapaxes(a, -1, -2)
-
-    @staticmethod
-    def stack(x, y):
-        x, y = np.broadcast_arrays(x, y)
-        return np.concatenate([x, y], axis=0)
-
-    @staticmethod
-    def part(x, i):
-        return x[i : i + 1]
-
-    @staticmethod
-    def addto_w(new, t, Ma):
-        new[1] += t * Ma[0]
-
-    @staticmethod
-    def trace(x):
-        return np.trace(x, axis1=-2, axis2=-1)  # -> (S, N)
-
-    def get(self, v):
-        return np.broadcast_to(v[0], (self.N,)).reshape(self.batch)
+def horizon_steps(horizon) -> int:
+    """The horizon T as an int; ValueError unless it is a positive integer."""
+    T = int(horizon)
+    if T < 1 or T != horizon:
+        raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
+    return T
 
 
 def _layout(n, batch):
-    return _SoA(batch) if n <= _SOA_MAX_N else _AoS(batch)
+    return _Layout(batch, soa=n <= _SOA_MAX_N)
 
 
 def _congruence(ops, P, M, need_xe=True):
@@ -237,7 +202,7 @@ def _congruence(ops, P, M, need_xe=True):
     return xx, xe, ee
 
 
-def _join(ops, P_a, M_a, M_b, t_b, need_xe=True):
+def _join(ops, P_a, M_a, M_b, *, t_b, need_xe=True):
     """Stacked (Sigma, W) of the concatenation of segment a (power P_a, stacked
     M_a = (Sigma_a, W_a) blocks) followed by segment b (M_b, length t_b)."""
     C = _congruence(ops, P_a, M_b, need_xe)
@@ -261,7 +226,7 @@ def _square(ops, P):
 # --------------------------------------------------------------------------
 # exact finite-horizon cost
 # --------------------------------------------------------------------------
-def exact_cost(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, horizon=200):
+def exact_cost(A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v, horizon=200):
     """Mean over k=1..T of E||e_k||^2 by covariance propagation. -> (...)
 
     Deterministic and exact up to rounding (binary doubling of the augmented
@@ -276,10 +241,10 @@ def exact_cost(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, horizon=
     once for a whole batch of cells, not once per cell (the per-call Python
     overhead is ~1 ms).
     """
-    T = int(horizon)
-    if T < 1 or T != horizon:
-        raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
-    c = _Cells(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v)
+    T = horizon_steps(horizon)
+    c = CostCells(
+        A, B, A_tilde, B_tilde, L=L, C=C, sigma_u=sigma_u, sigma_w=sigma_w, sigma_v=sigma_v
+    )
     ops = _layout(c.n, c.batch)
     Qxx, Qxe, Qee = c.Q_blocks()
     # one-step power Acal = [[A, 0], [-dA, F]]
@@ -297,22 +262,24 @@ def exact_cost(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, horizon=
             if acc is None:
                 acc, t_acc = blk, t_blk
             else:
-                acc = _join(ops, P, blk, acc, t_acc, need_xe=(j < top))
+                acc = _join(ops, P, blk, acc, t_b=t_acc, need_xe=(j < top))
                 t_acc += t_blk
         if j < top:
-            blk = _join(ops, P, blk, blk, t_blk)
+            blk = _join(ops, P, blk, blk, t_b=t_blk)
             t_blk *= 2
             P = _square(ops, P)
     tr = ops.trace(ops.part(acc[2], 1))
     return ops.get(tr) / T
 
 
-def optimal_cost(A, B, K, C, sigma_u, sigma_w, sigma_v, horizon=200):
+def optimal_cost(A, B, K, C, *, sigma_u, sigma_w, sigma_v, horizon=200):
     """J* of SPEC section 6: exact_cost with A~ = A, B~ = B, L = K. -> (...)
 
     (With the true model the error is the Kalman predictor error, decoupled
     from x; its stationary value is trace(P), P the DARE solution.)"""
-    return exact_cost(A, B, A, B, K, C, sigma_u, sigma_w, sigma_v, horizon)
+    return exact_cost(
+        A, B, A, B, L=K, C=C, sigma_u=sigma_u, sigma_w=sigma_w, sigma_v=sigma_v, horizon=horizon
+    )
 
 
 j_star = optimal_cost
@@ -322,7 +289,7 @@ j_star = optimal_cost
 # stationary cost
 # --------------------------------------------------------------------------
 def stationary_cost(
-    A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, *, rho_F=None, return_reason=False
+    A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v, rho_F=None, return_reason=False
 ):
     """Stationary E||e||^2 by discrete Lyapunov; NaN where the augmented system
     is not Schur stable. -> (...)
@@ -338,7 +305,9 @@ def stationary_cost(
     gives ``(value, reason)``, reason an object array of None / str (a plain
     object for one cell).
     """
-    c = _Cells(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v)
+    c = CostCells(
+        A, B, A_tilde, B_tilde, L=L, C=C, sigma_u=sigma_u, sigma_w=sigma_w, sigma_v=sigma_v
+    )
     batch = c.batch
     tp = lambda M: np.swapaxes(M, -1, -2)
     F = c.F()
@@ -373,189 +342,10 @@ def stationary_cost(
     return J
 
 
-# --------------------------------------------------------------------------
-# Monte Carlo
-# --------------------------------------------------------------------------
-def mc_cost(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, horizon, rng, runs):
-    """Monte Carlo mean and standard error of (1/T) sum_k ||e_k||^2 over ``runs``
-    simulations, vectorised across runs. -> (mean, se), each (...)
-
-    Simulates the plant and the observer themselves (not the e recursion):
-    ``s = [x; x~]``, ``s_{k+1} = [[A, 0], [L C, A~ - L C]] s_k + [[B, I, 0],
-    [B~, 0, L]] [u_k; w_k; v_k]``, ``s_0 = 0``, ``e_k = x~_k - x_k`` for
-    k = 1..T. Each run's statistic is ``(1/T) sum_{k=1..T} ||e_k||^2``;
-    ``mean`` is their average, ``se = std(ddof=1) / sqrt(runs)``.
-
-    Order of draws (reproducibility): for k = 0, 1, ..., T-1, one call
-    ``z = rng.standard_normal(batch + (runs, m + n + p))`` and
-    ``u_k = sigma_u z[..., :m]``, ``w_k = sigma_w z[..., m:m+n]``,
-    ``v_k = sigma_v z[..., m+n:]`` (all three are always drawn, also when a
-    sigma is 0). Since numpy's Generator fills arrays in C order from one
-    stream, this is the same as one draw of shape (T,) + batch + (runs, m+n+p);
-    the implementation draws several steps at once to save calls. ``batch``
-    is the broadcast batch shape of the arguments (``()`` for one cell).
-    """
-    T = int(horizon)
-    runs = int(runs)
-    if T < 1 or T != horizon:
-        raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
-    if runs < 2:
-        raise ValueError("runs must be at least 2 (for a standard error)")
-    c = _Cells(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v)
-    n, m, p, batch = c.n, c.m, c.p, c.batch
-    q = m + n + p
-    tp = lambda M: np.swapaxes(M, -1, -2)
-    LC = c.L @ c.C
-    zero = np.zeros(batch + (n, n))
-    # augmented transition and input matrices, batch + (2n, 2n) / (q, 2n)
-    top = np.concatenate([np.broadcast_to(c.A, batch + (n, n)), zero], axis=-1)
-    bot = np.concatenate(
-        [np.broadcast_to(LC, batch + (n, n)), np.broadcast_to(c.At - LC, batch + (n, n))], axis=-1
-    )
-    Acal_T = tp(np.concatenate([top, bot], axis=-2))  # batch+(2n,2n)
-    su = np.broadcast_to(c.su, batch)[..., None, None]
-    sw = np.broadcast_to(c.sw, batch)[..., None, None]
-    sv = np.broadcast_to(c.sv, batch)[..., None, None]
-    Bx = np.concatenate(
-        [
-            su * np.broadcast_to(c.B, batch + (n, m)),
-            sw * np.broadcast_to(np.eye(n), batch + (n, n)),
-            np.zeros(batch + (n, p)),
-        ],
-        axis=-1,
-    )
-    Be = np.concatenate(
-        [
-            su * np.broadcast_to(c.Bt, batch + (n, m)),
-            np.zeros(batch + (n, n)),
-            sv * np.broadcast_to(c.L, batch + (n, p)),
-        ],
-        axis=-1,
-    )
-    Bcal_T = tp(np.concatenate([Bx, Be], axis=-2))  # batch+(q,2n)
-    cells = int(np.prod(batch, dtype=np.int64))
-    chunk = max(1, min(T, (4 * 2**20) // max(1, cells * runs * max(q, 2 * n))))  # ~32 MB
-    s = np.zeros(batch + (runs, 2 * n))
-    acc = np.zeros(batch + (runs,))
-    k = 0
-    while k < T:
-        h = min(chunk, T - k)
-        Z = rng.standard_normal((h,) + batch + (runs, q))
-        # noise input for h steps at once, then turned in place into the states
-        # s_{k+1..k+h}: S[i] = S[i-1] Acal^T + N[i]
-        S = Z @ Bcal_T  # (h, *batch, runs, 2n)
-        del Z
-        S[0] += s @ Acal_T
-        for i in range(1, h):
-            S[i] += S[i - 1] @ Acal_T
-        s = S[-1].copy()
-        E = S[..., n:] - S[..., :n]
-        acc += np.einsum("h...i,h...i->...", E, E)
-        k += h
-    per_run = acc / T
-    mean = per_run.mean(axis=-1)
-    se = per_run.std(axis=-1, ddof=1) / np.sqrt(runs)
-    return mean, se
-
-
-def mc_cost_shared(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v, horizon, rngs, runs):
-    """:func:`mc_cost` for a grid of cells (R, E) where the E cells of row r share
-    the noise of ``rngs[r]`` (common random numbers). -> (mean, se), each (R, E)
-
-    Cell (r, e) gets the statistic :func:`mc_cost` gives for that cell alone
-    with ``rng = rngs[r]`` (same draws in the same order: per row one
-    ``standard_normal`` stream of shape (T, runs, m+n+p), split into u, w, v as
-    in :func:`mc_cost`); only the arithmetic is arranged differently (equal to
-    ~1e-13 relative), so a row's noise is drawn once for all its cells.
-
-    A (n, n), B (n, m), C (p, n) or None (one true system); A_tilde
-    (R, E, n, n), B_tilde (R, E, n, m), L (R, E, n, p); scalar sigmas;
-    ``rngs``: R generators, each used only for its own row.
-
-    Simulation (plant and observer, as :func:`mc_cost`). The plant
-    ``x_{k+1} = A x_k + B u_k + w_k`` is the same for every cell of a row and
-    runs once per row. Each observer is followed through its error
-    ``e = x~ - x`` (the change of variables ``x~ = e + x`` in the observer
-    equation, so the recorded error needs no extra pass):
-
-        e_{k+1} = F e_k + G [x_k; z_k],  F = A~ - L C,
-        G [x; z] = (F + L C) x + B~ u + L v - (A x + B u + w)
-
-    ``G [x_k; z_k]`` for a block of steps is one BLAS product per cell, the
-    recursion one (n, n) x (n, runs) product per cell and step (runs in the
-    last axis). Every cell is computed with the same shapes whatever the grid
-    (the block length depends only on ``runs`` and the sizes), so a cell's
-    numbers do not depend on which other cells (estimators, gammas,
-    repetitions) are computed with it.
-    """
-    T = int(horizon)
-    runs = int(runs)
-    if T < 1 or T != horizon:
-        raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
-    if runs < 2:
-        raise ValueError("runs must be at least 2 (for a standard error)")
-    c = _Cells(A, B, A_tilde, B_tilde, L, C, sigma_u, sigma_w, sigma_v)
-    if c.xbatch != () or c.C.ndim != 2 or c.su.ndim or c.sw.ndim or c.sv.ndim:
-        raise ValueError("mc_cost_shared needs one true system (A, B, C) and scalar sigmas")
-    n, m, p = c.n, c.m, c.p
-    q = m + n + p
-    shape = c.batch
-    if len(shape) != 2:
-        raise ValueError(f"A_tilde, B_tilde, L must be (R, E, ...), batch {shape}")
-    R, E = shape
-    rngs = list(rngs)
-    if len(rngs) != R:
-        raise ValueError(f"need one generator per row: {len(rngs)} for {R} rows")
-    su, sw, sv = float(c.su), float(c.sw), float(c.sv)
-    At = np.broadcast_to(c.At, shape + (n, n))
-    Bt = np.broadcast_to(c.Bt, shape + (n, m))
-    Lc = np.broadcast_to(c.L, shape + (n, p))
-    LC = Lc @ c.C
-    F = np.ascontiguousarray(At - LC)
-    W = n + q  # [x; z], z = [u; w; v]
-    xs, us, ws, vs = slice(0, n), slice(n, n + m), slice(n + m, n + m + n), slice(n + m + n, W)
-    Mx = np.zeros((n, W))  # plant: x <- A x + su B u + sw w
-    Mx[:, xs], Mx[:, us], Mx[:, ws] = c.A, su * c.B, sw * np.eye(n)
-    G = np.zeros(shape + (n, W))  # observer error input
-    G[..., xs] = (F + LC) - c.A
-    G[..., us] = su * Bt - su * c.B
-    G[..., ws] = -sw * np.eye(n)
-    G[..., vs] = sv * Lc
-    # steps per block: fixed by runs and sizes only (never by R or E), so the
-    # grouping of the sums over k is the same for every grid
-    h_max = max(1, min(T, (2**17) // (runs * W)))
-    Xz = np.zeros((R, W, h_max + 1, runs))  # [x_k; z_k] for the block's steps
-    Ev = np.zeros((R, E, h_max + 1, n, runs))  # e_k
-    acc = np.zeros((R, E, n, runs))
-    k = 0
-    while k < T:
-        h = min(h_max, T - k)
-        for r, g in enumerate(rngs):
-            Xz[r, n:, :h, :] = g.standard_normal((h, runs, q)).transpose(2, 0, 1)
-        for i in range(h):
-            np.matmul(Mx, Xz[:, :, i, :], out=Xz[:, :n, i + 1, :])
-        D = G @ Xz[:, None, :, :h, :].reshape(R, 1, W, h * runs)  # (R, E, n, h runs)
-        D = D.reshape(R, E, n, h, runs)
-        for i in range(h):
-            np.matmul(F, Ev[:, :, i], out=Ev[:, :, i + 1])
-            Ev[:, :, i + 1] += D[:, :, :, i]
-        err = Ev[:, :, 1 : h + 1]
-        acc += np.einsum("rehks,rehks->reks", err, err)
-        Ev[:, :, 0] = Ev[:, :, h]
-        Xz[:, :n, 0] = Xz[:, :n, h]
-        k += h
-    per_run = acc.sum(axis=2) / T  # (R, E, runs)
-    mean = per_run.mean(axis=-1)
-    se = per_run.std(axis=-1, ddof=1) / np.sqrt(runs)
-    return mean, se
-
-
 __all__ = [
     "REASON_UNSTABLE",
     "exact_cost",
     "j_star",
-    "mc_cost",
-    "mc_cost_shared",
     "optimal_cost",
     "stationary_cost",
 ]

@@ -43,7 +43,7 @@ REASON_F_UNSTABLE = "unstable: rho(A_tilde - L C) >= 1, H2 of Phi~_w undefined"
 REASON_CLOSED_UNSTABLE = "unstable: rho(A - K C) >= 1"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class TrueSystemNorms:
     """Norms that depend only on the true system (compute once per system).
 
@@ -118,7 +118,7 @@ def true_system_norms(A, B, C, K, *, grid=1024) -> TrueSystemNorms:
     )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Theorem3Result:
     """Per-cell Theorem 3 quantities, arrays of the batch shape."""
 
@@ -169,7 +169,7 @@ def phi_w_h2_norms(A_tilde, L, C, K, *, rho_F=None):
 
 
 def theorem3_bound(
-    A_tilde, L, C, K, eps_A, eps_B, sigma_u, sigma_v, norms: TrueSystemNorms, *, rho_F=None
+    A_tilde, L, C, K, *, eps_A, eps_B, sigma_u, sigma_v, norms: TrueSystemNorms, rho_F=None
 ) -> Theorem3Result:
     """J_b of Theorem 3 per cell. -> Theorem3Result (arrays of the batch shape)
 

@@ -1,6 +1,18 @@
-"""Validation errors that name the offending field (SPEC section 10)."""
+"""Typed errors of the core and the one shape check (SPEC section 10).
+
+* :class:`SpecError`: a bad experiment or system spec, naming the field; the
+  service answers it with HTTP 422, the CLI prints it on one line.
+* :class:`DimensionError`: arrays of inconsistent shapes passed to a core
+  function. It is a ``ValueError`` but not a ``SpecError``: a spec that
+  passed :func:`svrobs_core.parse_spec` never causes one, so reaching it
+  from the service is a bug, not the user's mistake.
+"""
 
 from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
 
 
 class SpecError(ValueError):
@@ -14,3 +26,38 @@ class SpecError(ValueError):
         super().__init__(f"{field}: {message}")
         self.field = field
         self.message = message
+
+
+class DimensionError(ValueError):
+    """An array argument of the wrong shape; ``name`` is the argument."""
+
+    def __init__(self, name: str, message: str):
+        super().__init__(f"{name} {message}")
+        self.name = name
+        self.message = message
+
+
+def check_matrix(name: str, array, shape: Sequence[int | str | None], *, batch: bool = True):
+    """``array`` as a float ndarray whose trailing axes have ``shape``, else DimensionError.
+
+    ``shape`` entries: an int (that size), a str (any size, equal for equal
+    labels: ``("n", "n")`` is square) or None (any size). ``batch=True``
+    allows leading batch axes ``(..., *shape)``; ``batch=False`` wants exactly
+    ``shape``. Returns the array (``np.asarray(array, dtype=float)``).
+    """
+    arr = np.asarray(array, dtype=float)
+    k = len(shape)
+    ok = arr.ndim >= k if batch else arr.ndim == k
+    if ok:
+        sizes: dict[str, int] = {}
+        for want, got in zip(shape, arr.shape[arr.ndim - k :]):
+            if isinstance(want, str):
+                want = sizes.setdefault(want, got)
+            if want is not None and want != got:
+                ok = False
+                break
+    if not ok:
+        dims = ", ".join("." if d is None else str(d) for d in shape)
+        lead = "..., " if batch else ""
+        raise DimensionError(name, f"must be ({lead}{dims}), got shape {arr.shape}")
+    return arr

@@ -11,23 +11,23 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import DimensionError, check_matrix
+
 LOSS_SCALES = ("sum", "mean")
 
 
 def _check(Z, F):
-    Z = np.asarray(Z, dtype=float)
-    F = np.asarray(F, dtype=float)
-    if Z.ndim < 2 or F.ndim < 2:
-        raise ValueError(f"Z and F must be (..., d, N0) and (..., n, N0); got {Z.shape}, {F.shape}")
-    if Z.shape[-1] != F.shape[-1] or Z.shape[-1] < 1:
-        raise ValueError(f"Z and F need the same sample count N0 >= 1: {Z.shape}, {F.shape}")
+    Z = check_matrix("Z", Z, ("d", "N0"))
+    F = check_matrix("F", F, ("n", Z.shape[-1]))
+    if Z.shape[-1] < 1:
+        raise DimensionError("Z", f"needs a sample count N0 >= 1, got shape {Z.shape}")
     return Z, F
 
 
 def _gammas(gammas, *, allow_zero: bool) -> np.ndarray:
     g = np.asarray(gammas, dtype=float)
     if g.ndim > 1:
-        raise ValueError(f"gammas must be a scalar or a 1-D array, got shape {g.shape}")
+        raise DimensionError("gammas", f"must be a scalar or a 1-D array, got shape {g.shape}")
     g = np.atleast_1d(g)
     low_ok = g >= 0 if allow_zero else g > 0
     if g.size == 0 or not np.all(np.isfinite(g)) or not np.all(low_ok):
@@ -114,11 +114,13 @@ def fit_svr(Z: np.ndarray, F: np.ndarray, gammas, loss_scale: str = "sum") -> np
     """
     Z, F = _check(Z, F)
     Zt = np.swapaxes(Z, -1, -2)
-    return svr_from_gram(np.matmul(Z, Zt), np.matmul(F, Zt), Z.shape[-1], gammas, loss_scale)
+    return svr_from_gram(
+        np.matmul(Z, Zt), np.matmul(F, Zt), Z.shape[-1], gammas, loss_scale=loss_scale
+    )
 
 
 def svr_from_gram(
-    G: np.ndarray, FZt: np.ndarray, N0: int, gammas, loss_scale: str = "sum"
+    G: np.ndarray, FZt: np.ndarray, N0: int, gammas, *, loss_scale: str = "sum"
 ) -> np.ndarray:
     """:func:`fit_svr` from the sufficient statistics ``G = Z Z^T`` (..., d, d)
     and ``FZt = F Z^T`` (..., n, d) of datasets with ``N0`` samples each.

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import check_matrix
+
 REASON_UNSTABLE = "unstable"
 REASON_NONFINITE = "non-finite input"
 
@@ -97,11 +99,11 @@ def _stein_multi(F, Fr, Q):
     k = Q.shape[-1]
     batch = np.broadcast_shapes(F.shape[:-2], Fr.shape[:-2], Q.shape[:-3])
     if n * r <= _KRON_MAX_UNKNOWNS:
-        return _stein_kron(F, Fr, Q, batch, n, r, k)
+        return _stein_kron(F, Fr, Q, batch, n=n, r=r, k=k)
     return _stein_smith(F, Fr, Q, batch)
 
 
-def _stein_kron(F, Fr, Q, batch, n, r, k):
+def _stein_kron(F, Fr, Q, batch, *, n, r, k):
     nr = n * r
     Nb = int(np.prod(batch, dtype=np.int64))
     Ff = F.reshape(-1, n, n)
@@ -127,7 +129,7 @@ def _stein_kron(F, Fr, Q, batch, n, r, k):
     return out.reshape(batch + (n, r, k))
 
 
-def _stein_smith(F, Fr, Q, batch, max_iter=64):
+def _stein_smith(F, Fr, Q, batch, *, max_iter=64):
     """X = sum_i F^i Q Fr^iT by X <- X + P X Pr^T, P <- P^2 (squared Smith)."""
     X = np.array(np.broadcast_to(np.moveaxis(Q, -1, -3), batch + Q.shape[-1:] + Q.shape[-3:-1]))
     P = np.broadcast_to(F, batch + F.shape[-2:])[..., None, :, :]
@@ -146,22 +148,14 @@ def _stein_smith(F, Fr, Q, batch, max_iter=64):
 # H2
 # --------------------------------------------------------------------------
 def _broadcast_sys(F, G, H, D=None):
-    F = np.asarray(F, dtype=float)
-    G = np.asarray(G, dtype=float)
-    H = np.asarray(H, dtype=float)
-    if F.ndim < 2 or F.shape[-1] != F.shape[-2]:
-        raise ValueError(f"F must be (..., n, n), got {F.shape}")
+    F = check_matrix("F", F, ("n", "n"))
     n = F.shape[-1]
-    if G.ndim < 2 or G.shape[-2] != n:
-        raise ValueError(f"G must be (..., {n}, m), got {G.shape}")
-    if H.ndim < 2 or H.shape[-1] != n:
-        raise ValueError(f"H must be (..., p, {n}), got {H.shape}")
+    G = check_matrix("G", G, (n, "m"))
+    H = check_matrix("H", H, ("p", n))
     m, p = G.shape[-1], H.shape[-2]
     shapes = [F.shape[:-2], G.shape[:-2], H.shape[:-2]]
     if D is not None:
-        D = np.asarray(D, dtype=float)
-        if D.ndim < 2 or D.shape[-2:] != (p, m):
-            raise ValueError(f"D must be (..., {p}, {m}), got {D.shape}")
+        D = check_matrix("D", D, (p, m))
         shapes.append(D.shape[:-2])
     batch = np.broadcast_shapes(*shapes)
     return F, G, H, D, batch, n, m, p
@@ -210,7 +204,7 @@ def h2_norm(F, G, H, *, rho=None, return_reason=False):
 _GOLD = (np.sqrt(5.0) - 1.0) / 2.0
 
 
-def _sigma_max(F, G, H, D, w):
+def _sigma_max(F, G, H, D, *, w):
     """sigma_max(H (e^{jw} I - F)^-1 G + D) for F (c,n,n) ... and w (c, k). -> (c, k)"""
     n = F.shape[-1]
     z = np.exp(1j * w)[..., None, None]
@@ -261,17 +255,19 @@ def hinf_norm(F, G, H, D=None, *, grid=1024, peaks=4, iters=48, rho=None, return
         step = max(1, _CHUNK_BYTES // max(per_cell, 1))
         for s in range(0, idx.size, step):
             sel = idx[s : s + step]
-            out[sel] = _hinf_chunk(Ff[sel], Gf[sel], Hf[sel], Df[sel], grid, peaks, iters)
+            out[sel] = _hinf_chunk(
+                Ff[sel], Gf[sel], Hf[sel], Df[sel], grid=grid, peaks=peaks, iters=iters
+            )
     out = out.reshape(batch)
     return _finish(out, rho, return_reason)
 
 
-def _hinf_chunk(F, G, H, D, grid, peaks, iters):
+def _hinf_chunk(F, G, H, D, *, grid, peaks, iters):
     c, n = F.shape[0], F.shape[-1]
     base = np.linspace(0.0, np.pi, grid)
     poles = np.abs(np.angle(np.linalg.eigvals(F))) if n else np.zeros((c, 0))
     w = np.sort(np.concatenate([np.broadcast_to(base, (c, grid)), poles], axis=1), axis=1)
-    f = _sigma_max(F, G, H, D, w)
+    f = _sigma_max(F, G, H, D, w=w)
     best = f.max(axis=1)
     # local maxima (ends included), the `peaks` largest per system
     left = np.concatenate([np.full((c, 1), -np.inf), f[:, :-1]], axis=1)
@@ -285,8 +281,8 @@ def _hinf_chunk(F, G, H, D, grid, peaks, iters):
     b = np.take_along_axis(w, np.minimum(cand + 1, last), axis=1)
     x1 = b - _GOLD * (b - a)
     x2 = a + _GOLD * (b - a)
-    f1 = _sigma_max(F, G, H, D, x1)
-    f2 = _sigma_max(F, G, H, D, x2)
+    f1 = _sigma_max(F, G, H, D, w=x1)
+    f2 = _sigma_max(F, G, H, D, w=x2)
     for _ in range(iters):
         go_left = f1 >= f2  # max in [a, x2]
         a = np.where(go_left, a, x1)
@@ -294,7 +290,7 @@ def _hinf_chunk(F, G, H, D, grid, peaks, iters):
         keep_x = np.where(go_left, x1, x2)
         keep_f = np.where(go_left, f1, f2)
         new_x = np.where(go_left, b - _GOLD * (b - a), a + _GOLD * (b - a))
-        new_f = _sigma_max(F, G, H, D, new_x)
+        new_f = _sigma_max(F, G, H, D, w=new_x)
         x1 = np.where(go_left, new_x, keep_x)
         f1 = np.where(go_left, new_f, keep_f)
         x2 = np.where(go_left, keep_x, new_x)

@@ -34,15 +34,10 @@ COST_FIELDS = (
     "delta_J",
 )
 SLS_FIELDS = ("J_opt", "J_opt_bound", "sls_status")
-RECORD_FIELDS = (
-    KEY_FIELDS
-    + ESTIMATE_FIELDS
-    + BOUND_FIELDS
-    + GAIN_FIELDS
-    + COST_FIELDS
-    + SLS_FIELDS
-    + ("notes",)
-)
+# The fields computed per cell by the stages (the rest: keys and notes).
+CELL_FIELDS = ESTIMATE_FIELDS + BOUND_FIELDS + GAIN_FIELDS + COST_FIELDS + SLS_FIELDS
+RECORD_FIELDS = KEY_FIELDS + CELL_FIELDS + ("notes",)
+# Every field whose value is a matrix (a list of rows in JSON): the one definition.
 MATRIX_FIELDS = ("A_hat", "B_hat", "L", "K")
 BOOL_FIELDS = ("thm1_holds_A", "thm1_holds_B", "stable_certified", "certified")
 TEXT_FIELDS = ("system", "estimator", "sls_status", "notes")

@@ -222,7 +222,7 @@ def draw_noise(seed, keys, *, N, T0, n, m, sigma_u, sigma_w, x0_std=0.0):
     return x0, u, w
 
 
-def simulate(A, B, x0, u, w) -> np.ndarray:
+def simulate(A, B, *, x0, u, w) -> np.ndarray:
     """x_{k+1} = A x_k + B u_k + w_k for all rollouts at once -> x (R, n, T0+1, N).
 
     A plain reference (elementwise multiply-adds); the runner simulates in
@@ -258,11 +258,13 @@ def regression_data(x, u, data: str = "all"):
     return Z, F
 
 
-def collect(system, sigma_w, N, T0, seed, keys, data="all", x0_std=0.0):
+def collect(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0):
     """Simulate the rollouts of every key and return (Z, F); SPEC section 1.
 
     The same numbers as the experiment runner uses (it calls :func:`gram_data`)."""
-    _, _, Z, F = gram_data(system, sigma_w, N, T0, seed, keys, data, x0_std, keep_data=True)
+    _, _, Z, F = gram_data(
+        system, sigma_w, N, T0, seed=seed, keys=keys, data=data, x0_std=x0_std, keep_data=True
+    )
     return Z, F
 
 
@@ -270,7 +272,7 @@ def collect(system, sigma_w, N, T0, seed, keys, data="all", x0_std=0.0):
 CHUNK_BYTES = 2 * 2**20
 
 
-def gram_data(system, sigma_w, N, T0, seed, keys, data="all", x0_std=0.0, *, keep_data=False):
+def gram_data(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0, keep_data=False):
     """Sufficient statistics of every key's regression data, without forming Z.
 
     Draws in the documented order (:func:`draw_noise`; u and w of a key come

@@ -58,6 +58,8 @@ from dataclasses import dataclass
 import cvxpy as cp
 import numpy as np
 
+from .errors import check_matrix
+
 SQRT2 = math.sqrt(2.0)
 
 #: cvxpy statuses for which J_opt is reported as a number.
@@ -68,7 +70,7 @@ REASON_CONDITION = "J_opt bound: condition eps_A*||(zI-A+KC)^-1||_Hinf <= 1/2 fa
 REASON_UNDEFINED = "J_opt bound: undefined input (NaN/inf, e.g. unstable transfer matrix)"
 
 
-@dataclass
+@dataclass(kw_only=True)
 class SLSResult:
     """Outcome of one SLS program.
 
@@ -94,7 +96,7 @@ class SLSResult:
     L: np.ndarray | None = None
 
 
-@dataclass
+@dataclass(kw_only=True)
 class _Compiled:
     problem: cp.Problem
     A: cp.Parameter
@@ -134,7 +136,7 @@ def _build(n: int, p: int, T: int, bounded: bool) -> _Compiled:
     prob = cp.Problem(cp.Minimize(obj), cons)
     if not prob.is_dpp():  # pragma: no cover - guards the parameterised fast path
         raise RuntimeError("SLS program is not DPP; re-solves would recompile")
-    return _Compiled(prob, A, C, K, F, Cb, Pw, Pv)
+    return _Compiled(problem=prob, A=A, C=C, K=K, F=F, C_bound=Cb, Phi_w=Pw, Phi_v=Pv)
 
 
 def _compiled(n: int, p: int, T: int, bounded: bool) -> _Compiled:
@@ -152,7 +154,7 @@ def clear_cache() -> None:
     _local.cache = {}
 
 
-def sls_observer(A_tilde, C, K, F, C_bound, T_fir: int = 30) -> SLSResult:
+def sls_observer(A_tilde, C, K, F, *, C_bound, T_fir: int = 30) -> SLSResult:
     """Solve the FIR SLS program of SPEC section 8 (sign convention: module doc).
 
     A_tilde (n, n) estimated A; C (p, n); K (n, p) optimal (Kalman predictor)
@@ -164,17 +166,11 @@ def sls_observer(A_tilde, C, K, F, C_bound, T_fir: int = 30) -> SLSResult:
     for wrong shapes, ``T_fir < 1`` or ``F < 0``.
     """
     t0 = time.perf_counter()
-    A_tilde = np.asarray(A_tilde, dtype=float)
-    C = np.asarray(C, dtype=float)
-    K = np.asarray(K, dtype=float)
-    if A_tilde.ndim != 2 or A_tilde.shape[0] != A_tilde.shape[1]:
-        raise ValueError(f"A_tilde must be (n, n), got {A_tilde.shape}")
+    A_tilde = check_matrix("A_tilde", A_tilde, ("n", "n"), batch=False)
     n = A_tilde.shape[0]
-    if C.ndim != 2 or C.shape[1] != n:
-        raise ValueError(f"C must be (p, {n}), got {C.shape}")
+    C = check_matrix("C", C, ("p", n), batch=False)
     p = C.shape[0]
-    if K.shape != (n, p):
-        raise ValueError(f"K must be ({n}, {p}), got {K.shape}")
+    K = check_matrix("K", K, (n, p), batch=False)
     T = int(T_fir)
     if T < 1 or T != T_fir:
         raise ValueError(f"T_fir must be an integer >= 1, got {T_fir!r}")
@@ -187,7 +183,9 @@ def sls_observer(A_tilde, C, K, F, C_bound, T_fir: int = 30) -> SLSResult:
 
     finite = all(np.all(np.isfinite(x)) for x in (A_tilde, C, K)) and math.isfinite(F)
     if not finite or (bound is not None and math.isnan(bound)):
-        return SLSResult(math.nan, "invalid_input", time.perf_counter() - t0)
+        return SLSResult(
+            J_opt=math.nan, status="invalid_input", solve_time=time.perf_counter() - t0
+        )
 
     pr = _compiled(n, p, T, bound is not None)
     pr.A.value = A_tilde
@@ -204,13 +202,15 @@ def sls_observer(A_tilde, C, K, F, C_bound, T_fir: int = 30) -> SLSResult:
     dt = time.perf_counter() - t0
 
     if status not in SOLVED_STATUSES or pr.Phi_w.value is None or pr.Phi_v.value is None:
-        return SLSResult(math.nan, status, dt)
+        return SLSResult(J_opt=math.nan, status=status, solve_time=dt)
     value = float(pr.problem.value)
     if not math.isfinite(value):
-        return SLSResult(math.nan, status, dt)
+        return SLSResult(J_opt=math.nan, status=status, solve_time=dt)
     Phi_w = np.array(pr.Phi_w.value).reshape(T, n, n)
     Phi_v = np.array(pr.Phi_v.value).reshape(T, n, p)
-    return SLSResult(value, status, dt, Phi_w, Phi_v, Phi_v[0].copy())
+    return SLSResult(
+        J_opt=value, status=status, solve_time=dt, Phi_w=Phi_w, Phi_v=Phi_v, L=Phi_v[0].copy()
+    )
 
 
 def _out(x):
@@ -226,14 +226,12 @@ def default_C_bound(K, h2_closed_loop_inv):
     the H2 norm of the true closed loop ``(zI - A + KC)^-1`` (NaN propagates).
     Broadcasts; a scalar result is a float.
     """
-    K = np.asarray(K, dtype=float)
-    if K.ndim < 2:
-        raise ValueError(f"K must be (..., n, p), got {K.shape}")
+    K = check_matrix("K", K, ("n", "p"))
     k_norm = np.linalg.norm(K, ord=2, axis=(-2, -1))
     return _out(2.0 * (1.0 + k_norm) * np.asarray(h2_closed_loop_inv, dtype=float))
 
 
-def sls_F(eps1, hinf_AB, hinf_AK, sigma_u, sigma_v):
+def sls_F(eps1, hinf_AB, hinf_AK, *, sigma_u, sigma_v):
     """``F = sqrt(2) eps1 (||[Phi_A B; I]||_Hinf sigma_u + ||[Phi_A K; I]||_Hinf sigma_v)``.
 
     Broadcasts over arrays; NaN propagates; a scalar result is a float.
@@ -245,7 +243,7 @@ def sls_F(eps1, hinf_AB, hinf_AK, sigma_u, sigma_v):
 
 
 def jopt_upper_bound(
-    eps_A, eps1, C_bound, hinf_AB, hinf_AK, sigma_u, sigma_v, h2_cl_inv, hinf_cl_inv
+    eps_A, eps1, C_bound, *, hinf_AB, hinf_AK, sigma_u, sigma_v, h2_cl_inv, hinf_cl_inv
 ):
     """The paper's bound on J_opt, where its condition holds.
 

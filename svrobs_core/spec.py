@@ -51,7 +51,7 @@ SPEC_KEYS = {
 MAX_GRID = 100_000  # any single list longer than this is surely a mistake
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ExperimentSpec:
     """A validated section 10 spec. ``to_dict()`` gives the normalised JSON."""
 

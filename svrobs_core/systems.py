@@ -21,7 +21,7 @@ PRESETS: dict[str, dict] = {
 }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SystemSpec:
     """One true system: x+ = A x + B u + w, y = C x + v (SPEC section 1)."""
 

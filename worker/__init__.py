@@ -5,13 +5,6 @@ a worker process: one unit per process is the unit of parallelism, and a
 single-threaded BLAS gives the same bits as the in-process run.
 """
 
-import os
+from svrobs_core.threads import single_thread_env
 
-for _var in (
-    "OPENBLAS_NUM_THREADS",
-    "OMP_NUM_THREADS",
-    "MKL_NUM_THREADS",
-    "NUMEXPR_NUM_THREADS",
-    "VECLIB_MAXIMUM_THREADS",
-):
-    os.environ.setdefault(_var, "1")
+single_thread_env()

@@ -37,7 +37,7 @@ from service.db import units
 from service.db.models import WorkUnit
 from service.db.session import dispose_all, session_scope
 from svrobs_core import parse_spec
-from svrobs_core.experiments import run_unit_result
+from svrobs_core.runner import run_unit_result
 from worker.celery_app import celery_app, settings
 
 # (imported here, in the worker's main process, so that every pool child forks

@@ -14,8 +14,12 @@ from collections.abc import Sequence
 
 from pydantic_core import to_json
 
+from service.db.models import Result
 from service.db.result_codec import ResultCodec
 from service.db.results_store import decode_rows
+
+# the order results are listed in (the primary key's, after job_id)
+ORDER = [Result.__table__.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
 
 
 def _json(value) -> bytes:

@@ -15,17 +15,12 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from service.config import get_settings
-from svrobs_core.experiments import plan_units
+from svrobs_core.planning import plan_units, unit_cells
 from svrobs_core.spec import parse_spec
 
 from .errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
 from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
 from .provenance import provenance
-
-
-def _unit_cells(spec, payload: dict) -> int:
-    r0, r1 = payload["reps"]
-    return len(payload["N"]) * (r1 - r0) * spec.cells_per_rep
 
 
 def create_job(
@@ -115,7 +110,7 @@ def create_job(
                     "job_id": job.id,
                     "index": i,
                     "payload": u,
-                    "n_cells": _unit_cells(parsed, u),
+                    "n_cells": unit_cells(parsed, u),
                     "status": "pending",
                     "attempts": 0,
                     "created_at": job.created_at,

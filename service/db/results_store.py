@@ -25,8 +25,8 @@ from sqlalchemy import Boolean, Float, Integer, LargeBinary, Select, select
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import Session
 
-from svrobs_core.experiments import UnitResult
 from svrobs_core.records import BOOL_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, json_value
+from svrobs_core.unit_result import UnitResult
 
 from .models import (
     OLS_GAMMA_KEY,
@@ -48,7 +48,7 @@ NOTES = ResultNote.__table__
 CONSTANTS = ResultConstant.__table__
 
 
-def gamma_key(estimator: str, gamma) -> float:
+def gamma_key(gamma) -> float:
     """The gamma part of the cell key: the value, or -1 for OLS (no gamma)."""
     return OLS_GAMMA_KEY if gamma is None else float(gamma)
 
@@ -196,7 +196,7 @@ def record_to_row(job_id: int, record: dict) -> dict:
         row[f] = _clean_matrix(get(f))
     row["system"] = str(record["system"])
     row["estimator"] = str(record["estimator"])
-    row["gamma_key"] = gamma_key(row["estimator"], row["gamma"])
+    row["gamma_key"] = gamma_key(row["gamma"])
     row["seed_key"] = json_value(record.get("seed_key"))
     row["sls_status"] = record.get("sls_status")
     notes = record.get("notes")
@@ -244,7 +244,7 @@ def _unit_tuples(
         out[f] = _clean_column(f, cols[f])
     for f in TEXT_COLUMNS:
         out[f] = [None if v is None else str(v) for v in cols[f]]
-    out["gamma_key"] = [gamma_key(e, g) for e, g in zip(out["estimator"], out["gamma"])]
+    out["gamma_key"] = [gamma_key(g) for g in out["gamma"]]
     notes = note_ids(session, cols["notes"])
     out["notes_id"] = [notes[t] for t in cols["notes"]]
     for f in MATRIX_FIELDS:

@@ -16,9 +16,9 @@ from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from service.config import get_settings
-from svrobs_core.experiments import UnitResult
 from svrobs_core.records import GROUP_FIELDS, SUMMARY_FIELDS, summarize_columns
 from svrobs_core.spec import parse_spec
+from svrobs_core.unit_result import UnitResult
 
 from .jobs import lock_job, set_timing
 from .models import JOB_ACTIVE, Job, Result, Summary, WorkUnit, utcnow
@@ -178,7 +178,7 @@ def _write_summaries(
                 {
                     "job_id": job_id,
                     **{g: s[g] for g in GROUP_FIELDS},
-                    "gamma_key": gamma_key(s["estimator"], s["gamma"]),
+                    "gamma_key": gamma_key(s["gamma"]),
                     "count": s["count"],
                     "stats": s["stats"],
                 }

@@ -87,11 +87,13 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
         H.append("<p>No data for Table 2.</p>")
     H.append("<h2>Figures</h2>")
     for fg in report.figures:
-        src = (figure_src or {}).get(fg.name)
-        if src is None:
-            src = "data:image/png;base64," + base64.b64encode(fg.png()).decode("ascii")
-        H.append(f"<h3>{e(fg.title)}</h3><img alt='{e(fg.title)}' src='{e(src)}'>")
-        H.append(f"<p>{e(fg.caption)} Data: experiment {e(fg.experiment)}.</p>")
+        H.append(f"<h3>{e(fg.title)}</h3>")
+        if not fg.empty:  # an empty figure is its note only
+            src = (figure_src or {}).get(fg.name)
+            if src is None:
+                src = "data:image/png;base64," + base64.b64encode(fg.png()).decode("ascii")
+            H.append(f"<img alt='{e(fg.title)}' src='{e(src)}'>")
+        H.append(f"<p>{e(fg.full_caption)} Data: experiment {e(fg.experiment)}.</p>")
     H.append("<h2>Specs</h2>")
     for name, x in report.experiments.items():
         H.append(f"<h3>{e(name)}</h3><pre>{e(spec_json(x['spec']))}</pre>")

@@ -6,7 +6,8 @@ writes::
     DIR/<experiment>/records.jsonl   one section 10 record per line (null, never NaN)
     DIR/<experiment>/spec.json       the spec that ran
     DIR/table2.md, DIR/table2.csv    Table 2, ours beside the published values
-    DIR/<figure>.png, .svg           Figs. 2-5 and the figures beyond the paper
+    DIR/<figure>.png, .svg, .pdf     Figs. 2-5 and the figures beyond the paper
+    DIR/<figure>.csv                 each figure's plotted data
     DIR/report.md, DIR/report.html   the whole report (HTML self-contained)
     DIR/provenance.json
 
@@ -37,13 +38,15 @@ from pathlib import Path
 
 import numpy as np
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+from rich.progress import Progress
 
 from service.db.provenance import git_commit
+from service.progress import progress_bar
 from svrobs_core import __version__, parse_spec, plan_units, run_spec
 from svrobs_core import report as rpt
-from svrobs_core.experiments import UnitResult, open_pool
 from svrobs_core.paper import EXPERIMENTS, MC_DECISION, PRESET_NAME, paper_specs
+from svrobs_core.parallel import open_pool
+from svrobs_core.unit_result import UnitResult
 
 from .html import render_html
 
@@ -331,15 +334,7 @@ def reproduce(
         )
         background = stack.enter_context(ThreadPoolExecutor(max_workers=1))
         report_parts = []
-        with Progress(
-            "[progress.description]{task.description}",
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeElapsedColumn(),
-            console=console,
-            disable=quiet,
-            transient=False,
-        ) as bar:
+        with progress_bar(console, quiet=quiet) as bar:
             for parent, children in plan:
                 group = _run_group(
                     parent, children, specs, out, None if quiet else bar, pool=pool, n_jobs=n_jobs
@@ -428,8 +423,12 @@ def _write_report(
     write("table2.md", rpt.table2_markdown(report.table2))
     write("table2.csv", rpt.table2_csv(report.table2))
     for fg in report.figures:
+        if fg.empty:  # nothing to plot: the report carries the note instead
+            continue
         write(f"{fg.name}.png", fg.png())
         write(f"{fg.name}.svg", fg.svg())
+        write(f"{fg.name}.pdf", fg.pdf())
+        write(f"{fg.name}.csv", fg.csv())
     # the part of the report made after the last run (the rest overlaps the runs)
     provenance["report_seconds"] = round(time.perf_counter() - t_rep, 3)
     provenance["run_total_seconds"] = round(t_run, 3)

@@ -16,10 +16,17 @@ Modules, in the order a report is made:
   selection, grouping and formatting helpers.
 * ``tables``: ``table2(records, gamma=None)``, ``table2_markdown``, ``table2_csv``.
 * ``derived``: per-record quantities, ``first_stable_certified``, ``cost_ratio_of_means``.
-* ``plotting``: figure plumbing, ``figure_bytes(fig, fmt="png" | "svg")``.
-* ``figures``: ``fig_rmse``, ``fig2``, ``fig3``, ``fig4``, ``fig5``,
-  ``fig_coverage``, ``fig_certified``, ``fig_svr_ols_diff``; each
-  ``f(records, spec=None, *, experiment=...) -> matplotlib.figure.Figure``.
+* ``style``: the one figure style (print sizes, fonts ≥ 8 pt, Okabe-Ito palette,
+  line styles and markers), ``figure_style()``.
+* ``series``: ``FIGURE_SERIES``, what each figure plots (field, statistic,
+  grouping, band, difference reference), shared with the dashboard's charts:
+  ``summary_lines(groups, row, summary_context(groups, spec))`` gives a row's
+  curves from stored summaries, the same as the figures draw from the records.
+* ``plotting``: figure plumbing, ``figure_bytes(fig, fmt="png" | "svg" | "pdf")``,
+  ``figure_csv(fig)`` (the plotted data).
+* ``figures``: ``fig_rmse``, ``fig2``, ``fig3``, ``fig_coverage``,
+  ``fig_svr_ols_diff``; ``cost_figures``: ``fig4``, ``fig5``, ``fig_certified``;
+  each ``f(records, spec=None, *, experiment=...) -> matplotlib.figure.Figure``.
 * ``findings``: ``findings(records, spec) -> list[str]``.
 * ``build``: ``build_report(experiments, provenance)``, ``ReportBuilder``, ``Report``.
 * ``markdown``: ``render_markdown(report)``, ``spec_json(spec)``.
@@ -35,22 +42,28 @@ from .columns import (
     Columns,
     as_columns,
 )
+from .cost_figures import fig4, fig5, fig_certified
 from .derived import cost_ratio_of_means, first_stable_certified, svr_ols_diff
-from .figures import fig2, fig3, fig4, fig5, fig_certified, fig_coverage, fig_rmse, fig_svr_ols_diff
+from .figures import fig2, fig3, fig_coverage, fig_rmse, fig_svr_ols_diff
 from .findings import findings
 from .markdown import render_markdown, spec_json
-from .plotting import figure_bytes
+from .plotting import figure_bytes, figure_csv
+from .series import (
+    FIGURE_SERIES,
+    FigureSeries,
+    figure_series,
+    figure_series_json,
+    summary_context,
+    summary_lines,
+)
+from .style import figure_style
 from .tables import TABLE2_COLUMNS, table2, table2_csv, table2_markdown
-
-# Transitional: ``experiments.UnitResult.columns`` imports this name for the
-# report's matrices; point it at COLUMN_MATRIX_FIELDS, then drop this alias
-# (``records.MATRIX_FIELDS`` is the record's full list).
-MATRIX_FIELDS = COLUMN_MATRIX_FIELDS
 
 __all__ = [
     "COLUMN_MATRIX_FIELDS",
     "FIGURE_PLAN",
-    "MATRIX_FIELDS",
+    "FIGURE_SERIES",
+    "FigureSeries",
     "REPORT_FIELDS",
     "SCALAR_FIELDS",
     "STAGE_FIELDS",
@@ -72,11 +85,17 @@ __all__ = [
     "fig_rmse",
     "fig_svr_ols_diff",
     "figure_bytes",
+    "figure_csv",
+    "figure_series",
+    "figure_series_json",
+    "figure_style",
     "findings",
     "first_stable_certified",
     "render_figure",
     "render_markdown",
     "spec_json",
+    "summary_context",
+    "summary_lines",
     "svr_ols_diff",
     "table2",
     "table2_csv",

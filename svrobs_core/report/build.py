@@ -10,23 +10,20 @@ from typing import Any
 
 from ..paper import EXPERIMENTS, PRESET_NAME
 from .columns import Columns, as_columns
-from .figures import (
-    fig2,
-    fig3,
-    fig4,
-    fig5,
-    fig_certified,
-    fig_coverage,
-    fig_rmse,
-    fig_svr_ols_diff,
-)
+from .cost_figures import fig4, fig5, fig_certified
+from .figures import fig2, fig3, fig_coverage, fig_rmse, fig_svr_ols_diff
 from .findings import findings
-from .plotting import figure_bytes
+from .plotting import figure_bytes, figure_csv
 from .tables import table2
 
 
 @dataclass
 class ReportFigure:
+    """One figure of the report: its caption (the plan's text plus the figure's
+    own notes: what coincides, the largest gaps, what is left out), the
+    Figure, and its PNG / SVG / PDF / CSV. An *empty* figure (nothing to plot,
+    e.g. every coverage is 1) has only its notes: no image is written."""
+
     name: str
     title: str
     caption: str
@@ -34,12 +31,25 @@ class ReportFigure:
     figure: object  # matplotlib.figure.Figure
     _png: bytes | None = None
     _svg: bytes | None = None
+    _pdf: bytes | None = None
+
+    @property
+    def notes(self) -> list[str]:
+        return list(getattr(self.figure, "svrobs_notes", []))
+
+    @property
+    def empty(self) -> bool:
+        return bool(getattr(self.figure, "svrobs_empty", False))
+
+    @property
+    def full_caption(self) -> str:
+        return " ".join([self.caption, *self.notes]).strip()
 
     def png(self) -> bytes:
         if self._png is None:
             self._png = figure_bytes(self.figure, "png")
             # the constrained layout is computed by that first draw; keep it fixed
-            # so the SVG (and any later render) skips the second layout pass
+            # so the SVG and PDF (and any later render) skip the second layout pass
             self.figure.set_layout_engine("none")
         return self._png
 
@@ -49,16 +59,28 @@ class ReportFigure:
             self._svg = figure_bytes(self.figure, "svg")
         return self._svg
 
-    def set_rendered(self, png: bytes, svg: bytes):
+    def pdf(self) -> bytes:
+        if self._pdf is None:
+            self.png()
+            self._pdf = figure_bytes(self.figure, "pdf")
+        return self._pdf
+
+    def csv(self) -> str:
+        """The plotted data (:func:`~.plotting.figure_csv`)."""
+        return figure_csv(self.figure)
+
+    def set_rendered(self, png: bytes, svg: bytes, pdf: bytes | None = None):
         """Bytes rendered elsewhere (e.g. :func:`render_figure` in another process)."""
-        self._png, self._svg = png, svg
+        self._png, self._svg, self._pdf = png, svg, pdf
 
 
-def render_figure(fig) -> tuple[bytes, bytes]:
-    """(PNG, SVG) of a Figure, as ``ReportFigure.png()``/``svg()`` give them
-    (picklable: figures can be rendered in worker processes)."""
+def render_figure(fig) -> tuple[bytes, bytes, bytes]:
+    """(PNG, SVG, PDF) of a Figure, as ``ReportFigure.png()``/``svg()``/``pdf()``
+    give them (picklable: figures can be rendered in worker processes)."""
     rf = ReportFigure("", "", "", "", fig)
-    return rf.png(), rf.svg()
+    if rf.empty:
+        return b"", b"", b""
+    return rf.png(), rf.svg(), rf.pdf()
 
 
 @dataclass
@@ -79,7 +101,8 @@ FIGURE_PLAN = (
         ("E1",),
         ("rmse_A",),
         "RMSE per sample length (Table 2 curves)",
-        "Mean RMSE of Ã and B̃ over repetitions at each N, OLS (solid) and SVR (dashed).",
+        "Mean RMSE of Ã and B̃ over repetitions at each N, OLS (solid, filled markers) and SVR "
+        "(dashed, open markers), one colour and marker per σ_w; below each, SVR − OLS.",
     ),
     (
         "fig2",
@@ -87,8 +110,10 @@ FIGURE_PLAN = (
         ("E1", "E2"),
         ("A_hat", "r_A"),
         "Fig. 2: estimation error and Lemma 2 interval ends, γ = 0.05",
-        "Solid: max_ij |ΔX_ij| with ΔX = X − X̃; dashed: the envelope "
-        "of the Lemma 2 intervals γX̃_ij ± r_X; dotted: ε_X of Corollary 1. Means over repetitions.",
+        "Solid (error): max_ij |ΔX_ij| with ΔX = X − X̃; dashed (upper end): max_ij (γX̃_ij + r_X); "
+        "dash-dot (−(lower end)): −min_ij (γX̃_ij − r_X), i.e. the envelope of the Lemma 2 "
+        "intervals, the lower end negated to share the log axis; dotted: ε_X of Corollary 1. "
+        "Means over repetitions, one colour and marker per σ_w.",
     ),
     (
         "fig3",
@@ -96,8 +121,8 @@ FIGURE_PLAN = (
         ("E2",),
         ("A_hat", "r_A"),
         "Fig. 3: the same for the four γ",
-        "As Fig. 2, one color per γ, at σ_w = 1; the dotted vertical line marks the first N0 at "
-        "which stable_certified holds in at least half of the repetitions.",
+        "As Fig. 2, one colour and marker per γ, at σ_w = 1; below each row, each γ's error "
+        "minus that of the smallest γ.",
     ),
     (
         "fig4",
@@ -105,8 +130,9 @@ FIGURE_PLAN = (
         ("E3", "E4"),
         ("delta_J",),
         "Fig. 4: ΔJ = J_b − J on S",
-        "Left: mean ΔJ over repetitions with the 5-95 % band; right: share of repetitions where "
-        "Theorem 3's bound is below the exact cost (ΔJ < 0).",
+        "Top: mean ΔJ over repetitions with the band from the 5 % to the 95 % quantile; "
+        "middle: each γ's mean minus that of the smallest γ; a bottom panel with the share of "
+        "repetitions where Theorem 3's bound is below the exact cost (ΔJ < 0) when there are any.",
     ),
     (
         "fig5",
@@ -115,7 +141,8 @@ FIGURE_PLAN = (
         ("J_exact",),
         "Fig. 5: cost ratio",
         "r = |mean J_γ − mean J_ref| / mean J_ref with J the exact finite-horizon cost (solid) "
-        "and the mean of the per-repetition cost_ratio (dashed).",
+        "and the mean of the per-repetition cost_ratio (dashed); below, each γ's r minus that "
+        "of the smallest γ.",
     ),
     (
         "fig_coverage",

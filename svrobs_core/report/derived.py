@@ -100,13 +100,10 @@ def first_stable_certified(records, share: float = 0.5) -> dict[tuple, dict | No
     return out
 
 
-def cost_ratio_of_means(cols: Columns, system: str, gamma: float, gamma_ref: float):
-    """r(N) = |mean J_γ − mean J_ref| / mean J_ref with J the exact cost (SPEC 9)."""
-    J = cols["J_exact"]
-    m = select(cols, system=system, estimator="svr", gamma=gamma)
-    mr = select(cols, system=system, estimator="svr", gamma=gamma_ref)
-    x, Ns, mean, _ = by_N(cols, m, J, mean_of)
-    _, Nr, mean_r, _ = by_N(cols, mr, J, mean_of)
+def ratio_to_reference(cols: Columns, m, mr, values):
+    """Per N: |mean(values[m]) − mean(values[mr])| / mean(values[mr]) -> (N0, N, r, count)."""
+    x, Ns, mean, cnt = by_N(cols, m, values, mean_of)
+    _, Nr, mean_r, _ = by_N(cols, mr, values, mean_of)
     ref = dict(zip(Nr.tolist(), mean_r.tolist()))
     r = np.array(
         [
@@ -114,4 +111,12 @@ def cost_ratio_of_means(cols: Columns, system: str, gamma: float, gamma_ref: flo
             for n, v in zip(Ns.tolist(), mean.tolist())
         ]
     )
+    return x, Ns, r, cnt
+
+
+def cost_ratio_of_means(cols: Columns, system: str, gamma: float, gamma_ref: float):
+    """r(N) = |mean J_γ − mean J_ref| / mean J_ref with J the exact cost (SPEC 9)."""
+    m = select(cols, system=system, estimator="svr", gamma=gamma)
+    mr = select(cols, system=system, estimator="svr", gamma=gamma_ref)
+    x, Ns, r, _ = ratio_to_reference(cols, m, mr, cols["J_exact"])
     return x, Ns, r

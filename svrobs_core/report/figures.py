@@ -1,492 +1,486 @@
-"""The report's figures: Figs. 2-5 of the paper and the figures beyond it.
+"""The report's figures on estimation: Table 2's curves, Figs. 2-3 of the paper,
+coverage and SVR minus OLS (the cost figures are in ``cost_figures``).
 
 Each is ``f(records, spec=None, *, experiment=...) -> matplotlib.figure.Figure``;
 records are section 10 dicts or :class:`~svrobs_core.report.columns.Columns`.
+What is plotted comes from :data:`~svrobs_core.report.series.FIGURE_SERIES`;
+the look from :mod:`~svrobs_core.report.style`. Curves that coincide get a
+difference panel and a caption note with the largest gap (``fig.svrobs_notes``).
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from ..paper import STABLE
-from .columns import (
-    GAMMA_RTOL,
-    Columns,
-    as_columns,
-    by_N,
-    fmt_num,
-    gamma_label,
-    gammas_of,
-    mean_of,
-    n0_ratio,
-    select,
-    sigmas_of,
-    spec_meta,
-    systems_of,
-)
-from .derived import cost_ratio_of_means, entry_quantities, first_stable_certified, svr_ols_diff
+from .columns import Columns, as_columns, fmt_num, n0_ratio, select, spec_meta, systems_of
+from .derived import first_stable_certified
 from .plotting import (
+    MERGED_NOTE,
+    differences,
     figure_legend,
     figure_title,
+    fmt_gap,
+    grid_legend,
+    joined,
     label_panel,
     legend_line,
-    n0_axis,
     new_figure,
     no_data_panel,
     no_data_reason,
+    note,
+    overlap_text,
+    plot_line,
+    plot_merged,
+    ref_line,
+    series_handle,
+    value_axis,
 )
-from .tables import table_gamma
+from .series import context, figure_series, series_lines
+from .style import LINESTYLES, series_style, size, styled
 
 
-def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float | None = None):
-    """RMSE of Ã and B̃ per N (the curves behind Table 2): OLS vs SVR, per σ_w."""
-    cols, meta = as_columns(records), spec_meta(spec)
-    g = table_gamma(cols, gamma)
+def series_name(key: dict) -> str:
+    """A line's name from its group key: "OLS", "SVR γ=0.05", "σ_w=1", ..."""
+    parts = []
+    if "sigma_w" in key:
+        parts.append(f"σ_w={fmt_num(key['sigma_w'])}")
+    if "estimator" in key:
+        parts.append("OLS" if key["estimator"] == "ols" else "SVR")
+    if "gamma" in key and key["gamma"] is not None:
+        parts.append(f"γ={fmt_num(key['gamma'])}")
+    return " ".join(parts) if parts else "all"
+
+
+def draw(ax, ln, panel: str, series: str, quantity: str, **style):
+    """Plot a :class:`~.series.Line` (recorded for the CSV)."""
+    return plot_line(ax, ln.x, ln.y, panel=panel, series=series, quantity=quantity, **style)
+
+
+def _panels(cols: Columns):
     systems = systems_of(cols) or ["(none)"]
-    fig, axes = new_figure(2, len(systems), (5.2 * len(systems), 7), sharex=True)
-    sig = sigmas_of(cols)
+    return [(s, select(cols, system=s)) for s in systems]
+
+
+def _diff_panel(ax, fig, panel, lines, ref, styles, what):
+    """Each line minus ``ref`` in ``ax``; returns the largest gap (value, name, x)."""
+    diffs, big = differences([(n, ln.x, ln.y) for n, ln in lines], (ref[0], ref[1].x, ref[1].y))
+    for name, x, d in diffs:
+        plot_line(ax, x, d, panel=panel, series=name, quantity=what, **styles[name])
+    ref_line(ax, 0.0)
+    value_axis(ax)
+    return big
+
+
+# ---------------------------------------------------------------------------
+# fig_rmse
+# ---------------------------------------------------------------------------
+
+
+@styled
+def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float | None = None):
+    """RMSE of Ã and B̃ per N (the curves behind Table 2): OLS (solid, filled
+    markers) and SVR (dashed, open markers), one colour and marker per σ_w; below
+    each, SVR − OLS."""
+    cols, meta = as_columns(records), spec_meta(spec)
+    ctx = context(cols, meta, table=gamma)
+    rows = figure_series("fig_rmse")
+    panels = _panels(cols)
+    fig, axes = new_figure(
+        4, len(panels), size("two", 19), sharex=True, height_ratios=[2, 1.1, 2, 1.1]
+    )
     ratio = n0_ratio(cols)
-    for c, system in enumerate(systems):
+    sig_styles: dict = {}
+    gaps = []
+    for c, (system, pm) in enumerate(panels):
         for r, mat in enumerate(("A", "B")):
-            ax = axes[r, c]
-            f = f"rmse_{mat}"
-            any_line = False
-            for i, s in enumerate(sig):
-                for est, ls in (("ols", "-"), ("svr", "--")):
-                    m = select(
-                        cols,
-                        system=system,
-                        estimator=est,
-                        sigma_w=s,
-                        gamma=None if est == "ols" else g,
-                    )
-                    x, _, y, _ = by_N(cols, m, cols[f], mean_of)
-                    if np.isfinite(y).any():
-                        ax.plot(x, y, color=f"C{i}", ls=ls, lw=1.3)
-                        any_line = True
-            if not any_line:
-                no_data_panel(ax, no_data_reason(cols, select(cols, system=system), (f,), meta))
+            s = rows[f"rmse_{mat}"]
+            ax, axd = axes[2 * r, c], axes[2 * r + 1, c]
+            lines = series_lines(cols, meta, s, pm, ctx)
+            if not lines:
+                no_data_panel(ax, no_data_reason(cols, pm, (s.field,), meta))
+                axd.set_visible(False)
                 continue
-            ax.set_yscale("log")
-            ax.minorticks_off()
-            label_panel(
-                ax, f"RMSE of {mat}̃ (mean over reps)", f"{system}: {mat}", ratio, xlabel=r == 1
+            panel = f"{system}: {mat}"
+            by_sig: dict = {}
+            for ln in lines:
+                sw = ln.key["sigma_w"]
+                j = sig_styles.setdefault(sw, len(sig_styles))
+                st = series_style(j, line=False)
+                ols = ln.key["estimator"] == "ols"
+                # OLS: small filled marker on top; SVR: larger open marker around it
+                # the same marker positions for both estimators of a σ_w
+                step = max(2, len(ln.x) // 8)
+                st["markevery"] = (j % step, step) if len(ln.x) > 10 else None
+                if ols:
+                    st.update(markerfacecolor=st["color"], zorder=3)
+                else:
+                    st.update(markerfacecolor="none", markersize=6.5, zorder=2)
+                name = series_name(ln.key) + ("" if ols else f" γ={fmt_num(ctx['table'])}")
+                draw(ax, ln, panel, name, s.field, ls="-" if ols else "--", **st)
+                by_sig.setdefault(sw, {})["ols" if ols else "svr"] = ln
+            value_axis(ax)
+            label_panel(ax, f"{s.label} (mean)", panel, ratio, xlabel=False)
+            pairs = {sw: d for sw, d in by_sig.items() if "ols" in d and "svr" in d}
+            if not pairs:
+                axd.set_visible(False)
+                continue
+            for sw, d in pairs.items():
+                name = f"σ_w={fmt_num(sw)}"
+                [(_, x, dy)], big = differences(
+                    [(name, d["svr"].x, d["svr"].y)], ("OLS", d["ols"].x, d["ols"].y)
+                )
+                st = dict(series_style(sig_styles[sw], line=False), ls="-")
+                plot_line(
+                    axd, x, dy, panel=panel, series=name, quantity=f"{s.field} SVR − OLS", **st
+                )
+                gaps.append((big[0], f"{system} {mat}, {name}, N0={big[2]:g}", big[3]))
+            ref_line(axd, 0.0)
+            value_axis(axd)
+            label_panel(axd, "SVR − OLS", None, ratio, xlabel=r == 1)
+    handles = [
+        series_handle(f"σ_w={fmt_num(sw)}", series_style(j, line=False))
+        for sw, j in sig_styles.items()
+    ]
+    est = [
+        legend_line(ls="-", label="OLS (filled markers)"),
+        legend_line(ls="--", label=f"SVR γ={fmt_num(ctx['table'])} (open markers)"),
+    ]
+    grid_legend(fig, [handles, est])
+    if gaps:
+        g = max(gaps, key=lambda t: t[0])
+        note(
+            fig,
+            overlap_text(
+                f"The OLS and SVR γ={fmt_num(ctx['table'])} RMSE curves",
+                max(t[2] for t in gaps),
+                "OLS",
             )
-    handles = [legend_line(f"C{i}", "-", f"σ_w={fmt_num(s)}") for i, s in enumerate(sig)]
-    handles += [legend_line("0.2", "-", "OLS"), legend_line("0.2", "--", f"SVR γ={fmt_num(g)}")]
-    figure_legend(fig, handles, ncol=len(handles))
+            + f"; the difference panels show SVR − OLS; the largest |SVR − OLS| is "
+            f"{fmt_gap(g[0])} ({g[1]}).",
+        )
     figure_title(
-        fig, f"RMSE per sample length behind Table 2 (OLS vs SVR γ={fmt_num(g)})", experiment, meta
+        fig,
+        f"RMSE per sample length behind Table 2 (OLS vs SVR γ={fmt_num(ctx['table'])})",
+        experiment,
+        meta,
     )
     return fig
 
 
-def _interval_panels(
-    fig, axes, cols, meta, series, series_label, systems, ratio, certified_marks=None
-):
-    """Shared body of fig2/fig3: rows A, B; columns systems; one color per series.
+# ---------------------------------------------------------------------------
+# Figs. 2 and 3: entry error, Lemma 2 interval ends, ε
+# ---------------------------------------------------------------------------
 
-    series: list of (label, mask-builder(system) -> mask)."""
-    q = {mat: entry_quantities(cols, meta, mat) for mat in ("A", "B")}
-    for c, system in enumerate(systems):
+QUANTITY_LS = {"err": "-", "hi": "--", "lo": "-.", "eps": ":"}
+QUANTITY_LEGEND = (  # the caption gives the formulas
+    ("err", "error"),
+    ("hi", "upper end"),
+    ("lo", "−(lower end)"),
+    ("eps", "ε_X"),
+)
+
+
+def _entry_figure(fig_name, records, spec, experiment, ctx_over, title, height_cm):
+    """Shared body of fig2/fig3: per system (columns) and matrix (rows) the entry
+    error, the interval ends and ε of each line; fig3 adds difference rows."""
+    cols, meta = as_columns(records), spec_meta(spec)
+    ctx = context(cols, meta, **ctx_over)
+    rows = figure_series(fig_name)
+    with_diff = rows["err_A"].diff_to is not None
+    panels = _panels(cols)
+    nr, hr = (4, [2, 1, 2, 1]) if with_diff else (2, [1, 1])
+    fig, axes = new_figure(nr, len(panels), size("two", height_cm), sharex=True, height_ratios=hr)
+    ratio = n0_ratio(cols)
+    styles: dict = {}
+    gaps = []
+    for c, (system, pm) in enumerate(panels):
         for r, mat in enumerate(("A", "B")):
-            ax = axes[r, c]
-            err, lo, hi = q[mat]
-            any_line = False
-            for i, (_label, mk) in enumerate(series):
-                m = mk(system)
-                x, _, y_err, _ = by_N(cols, m, err, mean_of)
-                _, _, y_hi, _ = by_N(cols, m, hi, mean_of)
-                _, _, y_lo, _ = by_N(cols, m, lo, mean_of)
-                _, _, y_eps, _ = by_N(cols, m, cols[f"eps_{mat}"], mean_of)
-                col = f"C{i}"
-                for y, ls in ((y_err, "-"), (y_hi, "--"), (y_lo, "--"), (y_eps, ":")):
-                    if np.isfinite(y).any():
-                        ax.plot(x, y, color=col, ls=ls, lw=1.3)
-                        any_line = True
-                if certified_marks is not None and mat == "A":
-                    mark = certified_marks(system, i)
-                    if mark is not None:
-                        ax.axvline(mark, color=col, ls=(0, (1, 2)), lw=2.2, alpha=0.8)
-            if not any_line:
-                no_data_panel(
-                    ax,
-                    no_data_reason(
-                        cols,
-                        _mask_any(series, system, cols.n),
-                        (f"{mat}_hat", f"r_{mat}", f"eps_{mat}"),
-                        meta,
-                    ),
-                )
+            ax = axes[(2 if with_diff else 1) * r, c]
+            panel = f"{system}: {mat}"
+            drawn = {}
+            for q in ("err", "hi", "lo", "eps"):
+                s = rows[f"{q}_{mat}"]
+                for ln in series_lines(cols, meta, s, pm, ctx):
+                    name = series_name(ln.key)
+                    st = styles.setdefault(name, series_style(len(styles), line=False))
+                    draw(ax, ln, panel, name, s.field, ls=QUANTITY_LS[q], **st)
+                    if q == "err":
+                        drawn[name] = ln
+            if not drawn and not ax.lines:
+                fields = (f"{mat}_hat", f"r_{mat}", f"eps_{mat}")
+                no_data_panel(ax, no_data_reason(cols, pm, fields, meta))
+                if with_diff:
+                    axes[2 * r + 1, c].set_visible(False)
                 continue
-            ax.axhline(0.0, color="0.5", lw=0.6)
-            ax.set_yscale("symlog", linthresh=1e-2)
-            ax.minorticks_off()
+            value_axis(ax)
             label_panel(
-                ax,
-                f"{mat}: error / interval ends / ε_{mat}",
-                f"{system}: {mat}",
-                ratio,
-                xlabel=r == 1,
+                ax, f"{mat}: error and bounds", panel, ratio, xlabel=not with_diff and r == 1
             )
+            if with_diff:
+                axd = axes[2 * r + 1, c]
+                if len(drawn) < 2:
+                    axd.set_visible(False)
+                    continue
+                ref_name = next(iter(drawn))  # the smallest γ
+                others = [(n, ln) for n, ln in drawn.items() if n != ref_name]
+                big = _diff_panel(
+                    axd,
+                    fig,
+                    panel,
+                    others,
+                    (ref_name, drawn[ref_name]),
+                    styles,
+                    f"entry_error_{mat} minus {ref_name}",
+                )
+                label_panel(axd, f"minus {ref_name}", None, ratio, xlabel=r == 1)
+                gaps.append((big[0], f"{panel}, {big[1]}, N0={big[2]:g}", ref_name, big[3]))
+    q = [legend_line(ls=QUANTITY_LS[k], label=lab) for k, lab in QUANTITY_LEGEND]
+    grid_legend(fig, [[series_handle(n, st) for n, st in styles.items()], q])
+    figure_title(fig, title, experiment, meta)
+    return fig, cols, meta, ctx, styles, axes, gaps
 
 
-def _mask_any(series, system, n):
-    m = np.zeros(n, bool)
-    for _, mk in series:
-        m |= mk(system)
-    return m
-
-
-def _style_handles(extra_vertical: bool = False):
-    h = [
-        legend_line("0.2", "-", "max_ij |ΔX_ij| (mean over reps)"),
-        legend_line("0.2", "--", "Lemma 2 interval ends: max_ij γX̃_ij + r_X, min_ij γX̃_ij − r_X"),
-        legend_line("0.2", ":", "ε_X (Corollary 1)"),
-    ]
-    if extra_vertical:
-        from matplotlib.lines import Line2D
-
-        h.append(
-            Line2D(
-                [],
-                [],
-                color="0.2",
-                ls=(0, (1, 2)),
-                lw=2.2,
-                label="first N0 with stable_certified in ≥ half the reps (A row)",
-            )
-        )
-    return h
-
-
+@styled
 def fig2(records, spec=None, *, experiment: str | None = "E1", gamma: float | None = None):
     """Fig. 2: SVR (γ = 0.05) estimation error and Lemma 2 interval ends vs N0,
-    S and U, one color per σ_w; ε_A, ε_B of Corollary 1 dotted."""
-    cols, meta = as_columns(records), spec_meta(spec)
-    g = table_gamma(cols, gamma)
-    systems = systems_of(cols) or ["(none)"]
-    sig = sigmas_of(cols)
-    fig, axes = new_figure(2, len(systems), (5.6 * len(systems), 8), sharex=True)
-    series = (
-        [
-            (
-                f"σ_w={fmt_num(s)}",
-                (
-                    lambda system, s=s: select(
-                        cols, system=system, estimator="svr", gamma=g, sigma_w=s
-                    )
-                ),
-            )
-            for s in sig
-        ]
-        if g is not None
-        else []
-    )
-    _interval_panels(fig, axes, cols, meta, series, "σ_w", systems, n0_ratio(cols))
-    handles = [
-        legend_line(f"C{i}", "-", lab) for i, (lab, _) in enumerate(series)
-    ] + _style_handles()
-    figure_legend(fig, handles, ncol=3)
-    figure_title(
-        fig,
-        f"Fig. 2: SVR (γ={fmt_num(g)}) estimation error and Lemma 2 interval ends vs "
-        f"sample length, for each σ_w",
+    S and U, one colour and marker per σ_w; ε_A, ε_B of Corollary 1 dotted."""
+    g = gamma if gamma is not None else None
+    cols = as_columns(records)
+    ctx_g = context(cols, spec_meta(spec), table=g)["table"]
+    fig, *_ = _entry_figure(
+        "fig2",
+        cols,
+        spec,
         experiment,
-        meta,
+        {"table": g},
+        f"Fig. 2: SVR (γ={fmt_num(ctx_g)}) estimation error and Lemma 2 interval ends vs "
+        "sample length, for each σ_w",
+        13,
     )
     return fig
 
 
+@styled
 def fig3(records, spec=None, *, experiment: str | None = "E2", sigma_w: float | None = None):
-    """Fig. 3: as Fig. 2 for the four gammas at one σ_w (default 1), with the
-    first N0 at which stable_certified holds in ≥ half the reps ("never" else)."""
-    cols, meta = as_columns(records), spec_meta(spec)
-    sig = sigmas_of(cols)
-    if sigma_w is None:
-        sigma_w = 1.0 if any(math.isclose(s, 1.0) for s in sig) else (sig[0] if sig else None)
-    systems = systems_of(cols) or ["(none)"]
-    gs = gammas_of(cols)
-    fig, axes = new_figure(2, len(systems), (5.6 * len(systems), 8.4), sharex=True)
-    series = [
-        (
-            g,
-            (
-                lambda system, g=g: select(
-                    cols, system=system, estimator="svr", gamma=g, sigma_w=sigma_w
-                )
-            ),
-        )
-        for g in gs
-    ]
-    first = first_stable_certified(cols) if sigma_w is not None else {}
-
-    def mark(system, i):
-        hit = first.get((system, sigma_w, "svr", gs[i]))
-        return None if hit is None or hit["N0"] is None else hit["N0"]
-
-    _interval_panels(
-        fig, axes, cols, meta, series, "γ", systems, n0_ratio(cols), certified_marks=mark
-    )
-    handles = []
-    for i, g in enumerate(gs):
-        parts = []
-        for system in systems:
-            hit = first.get((system, sigma_w, "svr", g))
-            if hit is None:
-                parts.append(f"{system}: no data")
-            elif hit["N0"] is None:
-                parts.append(f"{system}: never (N0 ≤ {hit['N0_max']})")
-            else:
-                parts.append(f"{system}: from N0={hit['N0']}")
-        handles.append(
-            legend_line(f"C{i}", "-", f"γ={fmt_num(g)} — certified stable " + "; ".join(parts))
-        )
-    handles += _style_handles(extra_vertical=True)
-    figure_legend(fig, handles, ncol=2)
-    figure_title(
-        fig,
-        f"Fig. 3: SVR estimation error and Lemma 2 interval ends for each γ (σ_w={fmt_num(sigma_w)})",
+    """Fig. 3: as Fig. 2 for the four γ at one σ_w (default 1), each γ's error
+    minus that of γ_ref below; the first N0 at which stable_certified holds in
+    ≥ half the reps (vertical lines, if any, and in the caption)."""
+    cols = as_columns(records)
+    sw = context(cols, spec_meta(spec), sigma_ref=sigma_w)["sigma_ref"]
+    fig, cols, meta, ctx, styles, axes, gaps = _entry_figure(
+        "fig3",
+        cols,
+        spec,
         experiment,
-        meta,
+        {"sigma_ref": sigma_w},
+        f"Fig. 3: SVR estimation error and Lemma 2 interval ends for each γ (σ_w={fmt_num(sw)})",
+        17,
     )
-    return fig
-
-
-def _pick_system(cols: Columns, prefer: str, field_: str) -> str | None:
-    systems = systems_of(cols)
-    if prefer in systems:
-        return prefer
-    for s in systems:
-        if cols.has(field_, select(cols, system=s)):
-            return s
-    return systems[0] if systems else None
-
-
-def fig4(records, spec=None, *, experiment: str | None = "E3", system: str = STABLE):
-    """Fig. 4: ΔJ = J_b − J vs N0 for each γ on S (mean, 5-95 % band), and the
-    share of cells with ΔJ < 0."""
-    cols, meta = as_columns(records), spec_meta(spec)
-    system = _pick_system(cols, system, "delta_J")
-    fig, axes = new_figure(1, 2, (12, 5))
-    ax, ax2 = axes[0]
-    ms = select(cols, system=system) if system else np.zeros(cols.n, bool)
-    gs = gammas_of(cols, ms)
-    ratio = n0_ratio(cols, ms)
-    handles = []
-    if not cols.has("delta_J", ms):
-        reason = no_data_reason(cols, ms, ("delta_J", "J_bound", "J_exact"), meta)
-        no_data_panel(ax, reason)
-        no_data_panel(ax2, reason)
-    else:
-        dJ = cols["delta_J"]
-        for i, g in enumerate(gs):
-            m = ms & select(cols, estimator="svr", gamma=g)
-            x, _, mean, _ = by_N(cols, m, dJ, mean_of)
-            _, _, q05, _ = by_N(cols, m, dJ, lambda v: float(np.quantile(v, 0.05)))
-            _, _, q95, _ = by_N(cols, m, dJ, lambda v: float(np.quantile(v, 0.95)))
-            _, _, neg, _ = by_N(cols, m, dJ, lambda v: float(np.mean(v < 0)))
-            n_neg = int(np.sum((dJ[m] < 0) & np.isfinite(dJ[m])))
-            n_all = int(np.isfinite(dJ[m]).sum())
-            ax.plot(x, mean, color=f"C{i}", lw=1.4)
-            ax.fill_between(x, q05, q95, color=f"C{i}", alpha=0.15, lw=0)
-            ax2.plot(x, neg, color=f"C{i}", lw=1.4)
-            handles.append(
-                legend_line(f"C{i}", "-", f"γ={fmt_num(g)} (ΔJ<0 in {n_neg} of {n_all} cells)")
+    if gaps:
+        g = max(gaps, key=lambda t: t[0])
+        note(
+            fig,
+            overlap_text(
+                f"The error curves of the {len(styles)} γ", max(t[3] for t in gaps), gaps[0][2]
             )
-        ax.axhline(0, color="k", lw=0.8)
-        ax.set_ylabel("ΔJ = J_b − J (mean over reps; band 5-95 %)")
-        ax.set_yscale("symlog", linthresh=1e-2)
-        ax.minorticks_off()
-        ax2.set_ylabel("share of repetitions with ΔJ < 0")
-        ax2.set_ylim(-0.02, 1.02)
-        for a in (ax, ax2):
-            n0_axis(a, ratio)
-            a.grid(alpha=0.3)
-        ax.set_title(f"{system}: bound minus exact cost", fontsize=10)
-        ax2.set_title(f"{system}: where Theorem 3's bound fails", fontsize=10)
-    figure_legend(fig, handles, ncol=2)
-    figure_title(
-        fig, f"Fig. 4: ΔJ = J_b − J vs sample length for each γ on {system}", experiment, meta
-    )
+            + f"; the difference rows show each γ's error minus that of {g[2]}; the "
+            f"largest gap is {fmt_gap(g[0])} ({g[1]}).",
+        )
+    _certified_marks(fig, cols, meta, ctx, styles, axes)
     return fig
 
 
-def fig5(records, spec=None, *, experiment: str | None = "E4"):
-    """Fig. 5: cost ratio r = |mean J_γ − mean J_ref| / mean J_ref vs N0, S and U
-    (solid); the mean of the per-repetition ``cost_ratio`` field dashed."""
-    cols, meta = as_columns(records), spec_meta(spec)
-    systems = systems_of(cols) or ["(none)"]
-    g_ref = meta.gamma_ref
-    fig, axes = new_figure(1, len(systems), (5.8 * len(systems), 5), sharey=True)
-    gs = gammas_of(cols)
-    handles = [
-        legend_line(f"C{i}", "-", f"γ={fmt_num(g)}")
-        for i, g in enumerate(gs)
-        if not math.isclose(g, g_ref, rel_tol=GAMMA_RTOL)
-    ]
-    for c, system in enumerate(systems):
-        ax = axes[0, c]
-        ms = select(cols, system=system)
-        if not cols.has("J_exact", ms):
-            no_data_panel(ax, no_data_reason(cols, ms, ("J_exact",), meta))
-            continue
-        if not cols.has("J_exact", ms & select(cols, gamma=g_ref)):
-            no_data_panel(ax, f"no J at the reference γ_ref={fmt_num(g_ref)}")
-            continue
-        for i, g in enumerate(gs):
-            if math.isclose(g, g_ref, rel_tol=GAMMA_RTOL):
+def _certified_marks(fig, cols, meta, ctx, styles, axes):
+    """Vertical lines at the first N0 with stable_certified in ≥ half the reps; the
+    caption says where (or that it never happens in the grid)."""
+    sw = ctx["sigma_ref"]
+    first = first_stable_certified(cols) if sw is not None else {}
+    hits, never, n0_max = [], [], None
+    for c, system in enumerate(systems_of(cols)):
+        for name in styles:
+            g = float(name.split("=")[1]) if name.startswith("γ=") else None
+            key = next(
+                (
+                    k
+                    for k in first
+                    if k[0] == system
+                    and k[2] == "svr"
+                    and k[1] is not None
+                    and np.isclose(k[1], sw)
+                    and k[3] is not None
+                    and np.isclose(k[3], g)
+                ),
+                None,
+            )
+            if key is None:
                 continue
-            x, _, r = cost_ratio_of_means(cols, system, g, g_ref)
-            ax.plot(x, r, color=f"C{i}", lw=1.4)
-            m = ms & select(cols, estimator="svr", gamma=g)
-            if cols.has("cost_ratio", m):
-                x2, _, y2, _ = by_N(cols, m, cols["cost_ratio"], mean_of)
-                ax.plot(x2, y2, color=f"C{i}", lw=0.9, ls="--", alpha=0.7)
-        ax.set_yscale("log")
-        ax.minorticks_off()
-        ylabel = f"r = |J_γ − J_ref| / J_ref  (γ_ref = {fmt_num(g_ref)})"
-        label_panel(ax, ylabel, system, n0_ratio(cols, ms), grid="both")
-    handles += [
-        legend_line("0.2", "-", "ratio of the mean exact costs (SPEC 9)"),
-        legend_line("0.2", "--", "mean of per-repetition cost_ratio"),
-    ]
-    figure_legend(fig, handles, ncol=len(handles))
-    figure_title(
-        fig,
-        f"Fig. 5: observer cost ratio vs sample length (reference γ={fmt_num(g_ref)})",
-        experiment,
-        meta,
-    )
-    return fig
+            hit = first[key]
+            n0_max = hit["N0_max"]
+            if hit["N0"] is None:
+                never.append(f"{system} {name}")
+                continue
+            hits.append(f"{system} {name}: N0={hit['N0']}")
+            ln = axes[0, c].axvline(hit["N0"], color=styles[name]["color"], ls=(0, (1, 2)), lw=1.6)
+            ln.svrobs_ref = True
+    if hits:
+        handles = list(fig.legends[0].legend_handles) if fig.legends else []
+        fig.legends.clear()
+        handles.append(
+            legend_line(
+                ls=(0, (1, 2)), lw=1.6, label="first N0 with stable_certified in ≥ half the reps"
+            )
+        )
+        figure_legend(fig, handles, ncol=max(1, min(4, len(styles))))
+    if not first:
+        return
+    if not hits:
+        text = (
+            "stable_certified holds in at least half of the repetitions at no N0 of the grid "
+            f"(N0 ≤ {n0_max}), for no γ on any system, so no vertical line is drawn"
+        )
+    else:
+        text = "The dotted vertical lines mark the first N0 at which stable_certified holds in "
+        text += "at least half of the repetitions: " + "; ".join(hits)
+        if never:
+            text += f"; never (N0 ≤ {n0_max}) for {joined(never)}"
+    note(fig, text + ".")
 
 
+# ---------------------------------------------------------------------------
+# coverage and SVR minus OLS
+# ---------------------------------------------------------------------------
+
+
+@styled
 def fig_coverage(records, spec=None, *, experiment: str | None = "E2"):
     """Empirical coverage of the Lemma 2 intervals vs N0 with the 1 − δ line:
-    rows A, B; columns (system, σ_w); one line per estimator / γ."""
+    rows (system, A/B), columns σ_w; one line per estimator / γ, identical lines
+    drawn once. If every coverage is 1 there is nothing to plot: the figure is
+    empty (``svrobs_empty``) and its note says so."""
     cols, meta = as_columns(records), spec_meta(spec)
+    ctx = context(cols, meta)
+    rows = figure_series("fig_coverage")
     systems = systems_of(cols) or ["(none)"]
+    from .columns import sigmas_of
+
     sig = sigmas_of(cols) or [None]
-    rows_ = [(system, mat) for system in systems for mat in ("A", "B")]
-    fig, axes = new_figure(
-        len(rows_),
-        len(sig),
-        (3.9 * len(sig) + 0.8, 2.6 * len(rows_) + 1.2),
-        sharex=True,
-        sharey=True,
-    )
-    series = [
-        (est, g)
-        for est, g in ([("ols", None)] if np.any(cols["estimator"] == "ols") else [])
-        + [("svr", g) for g in gammas_of(cols)]
-    ]
+    cells = [(system, mat) for system in systems for mat in ("A", "B")]
     level = 1 - meta.delta
-    lows = [level]
-    for r, (system, mat) in enumerate(rows_):
+    lines = {}
+    for system, mat in cells:
+        for s in sig:
+            pm = select(cols, system=system, sigma_w=s) if s is not None else np.zeros(cols.n, bool)
+            lines[(system, mat, s)] = series_lines(cols, meta, rows[f"coverage_{mat}"], pm, ctx)
+
+    def values(mats):
+        ys = [ln.y[np.isfinite(ln.y)] for (_, m, _), v in lines.items() if m in mats for ln in v]
+        return np.concatenate(ys) if ys else np.array([])
+
+    def n_records(mats):
+        ok = np.zeros(cols.n, bool)
+        for m in mats:
+            ok |= np.isfinite(cols[f"coverage_{m}"])
+        return f"{int(ok.sum()):,}"
+
+    ones = [m for m in ("A", "B") if values([m]).size and (values([m]) == 1.0).all()]
+    title = "Empirical coverage of the Lemma 2 entry intervals (mean share of entries inside)"
+    if len(ones) == 2:
+        return _empty_figure(
+            "Every Lemma 2 interval contains its entry: the coverage of A and B is 1 in all "
+            f"{n_records(ones)} records (every system, σ_w, N, estimator and γ), above "
+            f"1 − δ = {fmt_num(level)}; no figure is drawn.",
+            title,
+            experiment,
+            meta,
+        )
+    cells = [(system, mat) for system, mat in cells if mat not in ones]
+    ys = values([m for m in ("A", "B") if m not in ones])
+    fig, axes = new_figure(
+        len(cells), len(sig), size("two", 4.2 * len(cells) + 2.5), sharex=True, sharey=True
+    )
+    for m in ones:
+        note(
+            fig,
+            f"The coverage of {m} is 1 in all {n_records([m])} records (every system, σ_w, N, "
+            f"estimator and γ), above 1 − δ = {fmt_num(level)}: its rows are left out.",
+        )
+    styles: dict = {}
+    for r, (system, mat) in enumerate(cells):
         for c, s in enumerate(sig):
             ax = axes[r, c]
-            f = f"coverage_{mat}"
-            ms = select(cols, system=system, sigma_w=s) if s is not None else np.zeros(cols.n, bool)
-            if not cols.has(f, ms):
-                no_data_panel(ax, no_data_reason(cols, ms, (f,), meta))
+            panel = f"{system}, σ_w={fmt_num(s)}: {mat}"
+            items = [(series_name(ln.key), ln.x, ln.y) for ln in lines[(system, mat, s)]]
+            if not items:
+                pm = select(cols, system=system, sigma_w=s)
+                no_data_panel(ax, no_data_reason(cols, pm, (f"coverage_{mat}",), meta))
                 continue
-            for i, (est, g) in enumerate(series):
-                m = ms & select(cols, estimator=est, gamma=g)
-                x, _, y, _ = by_N(cols, m, cols[f], mean_of)
-                ax.plot(x, y, color=f"C{i}", lw=1.3, marker="." if len(x) < 8 else None)
-                if np.isfinite(y).any():
-                    lows.append(float(np.nanmin(y)))
-            ax.axhline(level, color="k", ls="--", lw=1)
-            ax.set_title(f"{system}, σ_w={fmt_num(s)}: {mat}", fontsize=9)
+            for name, *_ in items:
+                styles.setdefault(name, series_style(len(styles)))
+            if plot_merged(ax, items, styles, panel=panel, quantity=f"coverage_{mat}"):
+                note(fig, MERGED_NOTE)
+            ref_line(ax, level, ls="--", color="k")
+            ax.set_title(panel)
             if c == 0:
-                ax.set_ylabel(f"coverage of {mat}_ij intervals", fontsize=9)
-            if r == len(rows_) - 1:
-                n0_axis(ax, n0_ratio(cols, ms))
-            ax.grid(alpha=0.3)
-    axes[0, 0].set_ylim(min(lows) - 0.03, 1.01)
-    handles = [legend_line(f"C{i}", "-", gamma_label(e, g)) for i, (e, g) in enumerate(series)]
-    handles.append(legend_line("k", "--", f"1 − δ = {fmt_num(level)}"))
-    figure_legend(fig, handles, ncol=len(handles))
-    figure_title(
-        fig,
-        "Empirical coverage of the Lemma 2 entry intervals (mean share of entries "
-        "inside, over reps)",
-        experiment,
-        meta,
-    )
+                ax.set_ylabel(f"coverage of {mat}_ij intervals")
+            if r == len(cells) - 1:
+                from .plotting import n0_axis
+
+                n0_axis(ax, n0_ratio(cols))
+            ax.grid(True)
+    lo = float(ys.min()) if ys.size else level
+    axes[0, 0].set_ylim(min(lo, level) - 0.02, 1.005)
+    handles = [series_handle(n, st) for n, st in styles.items()]
+    level_h = legend_line("k", "--", f"1 − δ = {fmt_num(level)}")
+    grid_legend(fig, [handles[i : i + 3] for i in range(0, len(handles), 3)] + [[level_h]])
+    figure_title(fig, title, experiment, meta)
     return fig
 
 
-def fig_certified(records, spec=None, *, experiment: str | None = "E4"):
-    """Share of repetitions whose observer gain L is certified (g(L) < 1), and
-    the share with ρ(A − LC) < 1 for the true A, vs N0 per γ."""
-    cols, meta = as_columns(records), spec_meta(spec)
-    systems = systems_of(cols) or ["(none)"]
-    fig, axes = new_figure(1, len(systems), (5.6 * len(systems), 5), sharey=True)
-    gs = gammas_of(cols)
-    for c, system in enumerate(systems):
-        ax = axes[0, c]
-        ms = select(cols, system=system)
-        if not cols.has("certified", ms):
-            no_data_panel(ax, no_data_reason(cols, ms, ("certified", "g_L"), meta))
-            continue
-        rho = cols["rho_true"]
-        stable = np.where(np.isfinite(rho), (rho < 1).astype(float), np.nan)
-        for i, g in enumerate(gs):
-            m = ms & select(cols, estimator="svr", gamma=g)
-            x, _, y, _ = by_N(cols, m, cols["certified"], mean_of)
-            ax.plot(x, y, color=f"C{i}", lw=1.4)
-            if np.isfinite(rho[m]).any():
-                x2, _, y2, _ = by_N(cols, m, stable, mean_of)
-                ax.plot(x2, y2, color=f"C{i}", lw=0.9, ls="--", alpha=0.7)
-        ax.set_ylim(-0.02, 1.02)
-        label_panel(ax, "share of repetitions", system, n0_ratio(cols, ms))
-    handles = [legend_line(f"C{i}", "-", f"γ={fmt_num(g)}") for i, g in enumerate(gs)]
-    handles += [
-        legend_line("0.2", "-", "certified: g(L) < 1 (Theorem 2 on the Lemma 2 box)"),
-        legend_line("0.2", "--", "ρ(A − LC) < 1 for the true A"),
-    ]
-    figure_legend(fig, handles, ncol=3)
-    figure_title(fig, "Share of certified observer gains vs sample length", experiment, meta)
+def _empty_figure(text: str, title: str, experiment, meta):
+    """A figure with nothing to plot: no panels, the note as its only text; the
+    report shows the note instead of an image (``svrobs_empty``)."""
+    import textwrap
+
+    fig, axes = new_figure(1, 1, size("two", 4))
+    fig.delaxes(axes[0, 0])
+    note(fig, text)
+    fig.text(0.5, 0.3, "\n".join(textwrap.wrap(text, 100)), ha="center", va="center")
+    fig.svrobs_empty = True
+    figure_title(fig, title, experiment, meta)
     return fig
 
 
+@styled
 def fig_svr_ols_diff(records, spec=None, *, experiment: str | None = "E2"):
-    """max_ij |Ã_svr − Ã_ols| on the same data (mean over reps) vs N0, per γ
-    (color) and σ_w (line style): where SVR and OLS really differ."""
+    """max_ij |Ã_svr − Ã_ols| on the same data (mean over reps) vs N0, one colour
+    and marker per γ, one line style per σ_w: where SVR and OLS really differ."""
     cols, meta = as_columns(records), spec_meta(spec)
-    systems = systems_of(cols) or ["(none)"]
-    fig, axes = new_figure(1, len(systems), (5.8 * len(systems), 5.2), sharey=True)
-    d = svr_ols_diff(cols)
-    gs = gammas_of(cols)
-    sig = sigmas_of(cols)
-    styles = ["-", "--", ":", "-."]
-    for c, system in enumerate(systems):
+    ctx = context(cols, meta)
+    s = figure_series("fig_svr_ols_diff")["svr_ols_A"]
+    panels = _panels(cols)
+    fig, axes = new_figure(1, len(panels), size("two", 9.5), sharey=True)
+    g_styles, s_styles = {}, {}
+    for c, (system, pm) in enumerate(panels):
         ax = axes[0, c]
-        ms = select(cols, system=system)
-        if not np.isfinite(d[ms]).any():
+        lines = series_lines(cols, meta, s, pm, ctx)
+        if not lines:
             why = (
                 "needs OLS and SVR estimates (A_hat) of the same repetitions"
-                if cols.has("rmse_A", ms)
-                else no_data_reason(cols, ms, ("A_hat",), meta)
+                if cols.has("rmse_A", pm)
+                else no_data_reason(cols, pm, ("A_hat",), meta)
             )
             no_data_panel(ax, why)
             continue
-        for i, g in enumerate(gs):
-            for j, s in enumerate(sig):
-                m = ms & select(cols, estimator="svr", gamma=g, sigma_w=s)
-                x, _, y, _ = by_N(cols, m, d, mean_of)
-                if np.isfinite(y).any():
-                    ax.plot(x, y, color=f"C{i}", ls=styles[j % 4], lw=1.3)
-        ax.set_yscale("log")
-        ax.minorticks_off()
-        ylabel = "max_ij |Ã_SVR − Ã_OLS| (mean over reps)"
-        label_panel(ax, ylabel, system, n0_ratio(cols, ms), grid="both")
-    handles = [legend_line(f"C{i}", "-", f"γ={fmt_num(g)}") for i, g in enumerate(gs)]
-    handles += [legend_line("0.2", styles[j % 4], f"σ_w={fmt_num(s)}") for j, s in enumerate(sig)]
-    figure_legend(fig, handles, ncol=len(handles))
+        for ln in lines:
+            gname, sname = f"γ={fmt_num(ln.key['gamma'])}", f"σ_w={fmt_num(ln.key['sigma_w'])}"
+            st = g_styles.setdefault(gname, series_style(len(g_styles), line=False))
+            ls = s_styles.setdefault(sname, LINESTYLES[len(s_styles) % len(LINESTYLES)])
+            draw(ax, ln, system, f"{gname} {sname}", s.field, ls=ls, **st)
+        value_axis(ax)
+        label_panel(ax, f"{s.label} (mean)", system, n0_ratio(cols, pm))
+    handles = [series_handle(n, st) for n, st in g_styles.items()]
+    handles += [legend_line(ls=ls, label=n) for n, ls in s_styles.items()]
+    figure_legend(fig, handles, ncol=min(len(handles), 4))
     figure_title(
         fig, "SVR minus OLS: largest entry difference of Ã on the same data", experiment, meta
     )

@@ -23,7 +23,8 @@ def _md_escape(s: str) -> str:
 
 def render_markdown(report: Report, figure_files: dict[str, str] | None = None) -> str:
     """The report as Markdown; figures referenced by file name (``<name>.png``,
-    with a link to ``<name>.svg``) unless ``figure_files`` maps names to paths."""
+    with links to ``<name>.svg``, ``.pdf`` and the plotted data ``.csv``) unless
+    ``figure_files`` maps names to paths. An empty figure is its note only."""
     L = [f"# {report.title}", ""]
     L.append(
         "Every number below comes from the records of this run (and, for the true "
@@ -52,15 +53,18 @@ def render_markdown(report: Report, figure_files: dict[str, str] | None = None) 
         L.append("")
     L += ["## Figures", ""]
     for fg in report.figures:
-        png = (figure_files or {}).get(fg.name, f"{fg.name}.png")
-        svg = png[:-4] + ".svg" if png.endswith(".png") else None
         L.append(f"### {fg.title}")
         L.append("")
+        if fg.empty:  # nothing to plot: the note says why
+            L.append(f"{fg.full_caption} Data: experiment {fg.experiment}.")
+            L.append("")
+            continue
+        png = (figure_files or {}).get(fg.name, f"{fg.name}.png")
+        stem = png[:-4] if png.endswith(".png") else None
+        links = f" [SVG]({stem}.svg) · [PDF]({stem}.pdf) · [data (CSV)]({stem}.csv)" if stem else ""
         L.append(f"![{fg.title}]({png})")
         L.append("")
-        L.append(
-            f"{fg.caption} Data: experiment {fg.experiment}." + (f" [SVG]({svg})" if svg else "")
-        )
+        L.append(f"{fg.full_caption} Data: experiment {fg.experiment}." + links)
         L.append("")
     L += ["## Specs", ""]
     for name, e in report.experiments.items():

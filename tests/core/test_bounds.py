@@ -230,7 +230,7 @@ def test_batched_bounds_equal_slices_bit_for_bit():
     noise = 0.03 * np.arange(5)[:, None, None, None]  # repetition b has noise 0.03 b
     At = A_true / (1 + gam[:, None, None]) + noise * rng.standard_normal((5, 4, 3, 3))
     Bt = B_true / (1 + gam[:, None, None]) + noise * rng.standard_normal((5, 4, 3, 1))
-    full = evaluate_bounds(At, Bt, gam, r, A_true, B_true)
+    full = evaluate_bounds(At, Bt, gam, r, A_true=A_true, B_true=B_true)
     fields = (
         "eps_A",
         "eps_B",
@@ -246,7 +246,7 @@ def test_batched_bounds_equal_slices_bit_for_bit():
     for b in range(5):
         for k in range(4):
             rk = Radii(r.H_A[k], r.H_B[k], r.r_A[k], r.r_B[k])
-            one = evaluate_bounds(At[b, k], Bt[b, k], gam[k], rk, A_true, B_true)
+            one = evaluate_bounds(At[b, k], Bt[b, k], gam[k], rk, A_true=A_true, B_true=B_true)
             for name in fields:
                 assert np.array_equal(getattr(one, name), getattr(full, name)[b, k]), name
     # the data were drawn so that every check has both outcomes somewhere (they can fail)

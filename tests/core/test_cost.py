@@ -8,13 +8,16 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from svrobs_core.cost import exact_cost, mc_cost, mc_cost_shared, optimal_cost, stationary_cost
+from svrobs_core.cost import exact_cost, optimal_cost, stationary_cost
+from svrobs_core.cost_mc import mc_cost, mc_cost_shared
 from svrobs_core.norms import REASON_UNSTABLE
 
 A_S = np.array([[0.9, 0.01, 0.0], [0.01, 0.9, 0.01], [0.0, 0.01, 0.9]])
 A_U = A_S + 0.11 * np.eye(3)  # 1.01 on the diagonal
 B_P = np.array([[1.0], [1.5], [2.0]])
 SU, SW, SV = 1.0, 1.0, 0.1
+NOISE = dict(sigma_u=SU, sigma_w=SW, sigma_v=SV)
+NOISE_W07 = dict(NOISE, sigma_w=0.7)
 
 
 def kalman(A, C, sw, sv):
@@ -80,7 +83,7 @@ def test_exact_equals_naive_propagation(name):
     K, _ = kalman(A, C, SW, SV)
     rng = np.random.default_rng(1)
     At, Bt, L = perturbed_cells(rng, A, B, C, K, 6)
-    got = exact_cost(A, B, At, Bt, L, C, SU, SW, SV, horizon=T)
+    got = exact_cost(A, B, At, Bt, L=L, C=C, **NOISE, horizon=T)
     assert got.shape == (6,)
     for i in range(6):
         ref = naive_exact(A, B, At[i], Bt[i], L[i], C, SU, SW, SV, T)
@@ -92,7 +95,7 @@ def test_exact_every_horizon(T):
     rng = np.random.default_rng(T)
     K, _ = kalman(A_S, np.eye(3), SW, SV)
     At, Bt, L = perturbed_cells(rng, A_S, B_P, np.eye(3), K, 2)
-    got = exact_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, horizon=T)
+    got = exact_cost(A_S, B_P, At, Bt, L=L, C=np.eye(3), **NOISE, horizon=T)
     ref = [naive_exact(A_S, B_P, At[i], Bt[i], L[i], np.eye(3), SU, SW, SV, T) for i in range(2)]
     np.testing.assert_allclose(got, ref, rtol=1e-10)
 
@@ -103,7 +106,9 @@ def test_exact_batch_broadcasting_and_per_cell_sigmas():
     At, Bt, L = perturbed_cells(rng, A_S, B_P, np.eye(3), K, 6)
     At, Bt, L = At.reshape(2, 3, 3, 3), Bt.reshape(2, 3, 3, 1), L.reshape(2, 3, 3, 3)
     sw = np.array([[0.1], [1.0]])  # (2, 1) broadcasts over cells
-    got = exact_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, sw, SV, horizon=37)
+    got = exact_cost(
+        A_S, B_P, At, Bt, L=L, C=np.eye(3), sigma_u=SU, sigma_w=sw, sigma_v=SV, horizon=37
+    )
     assert got.shape == (2, 3)
     for i in range(2):
         for j in range(3):
@@ -111,7 +116,18 @@ def test_exact_batch_broadcasting_and_per_cell_sigmas():
                 A_S, B_P, At[i, j], Bt[i, j], L[i, j], np.eye(3), SU, sw[i, 0], SV, 37
             )
             assert got[i, j] == pytest.approx(ref, rel=1e-10)
-    one = exact_cost(A_S, B_P, At[1, 2], Bt[1, 2], L[1, 2], np.eye(3), SU, 1.0, SV, horizon=37)
+    one = exact_cost(
+        A_S,
+        B_P,
+        At[1, 2],
+        Bt[1, 2],
+        L=L[1, 2],
+        C=np.eye(3),
+        sigma_u=SU,
+        sigma_w=1.0,
+        sigma_v=SV,
+        horizon=37,
+    )
     assert one.shape == () and float(one) == pytest.approx(got[1, 2], rel=1e-13)
 
 
@@ -123,7 +139,7 @@ def test_exact_large_state_uses_matmul_layout():
     B, C = rng.standard_normal((n, m)), rng.standard_normal((p, n))
     K, _ = kalman(A, C, SW, SV)
     At, Bt, L = perturbed_cells(rng, A, B, C, K, 3, dA=0.01, dB=0.01, dL=0.01)
-    got = exact_cost(A, B, At, Bt, L, C, SU, SW, SV, horizon=45)
+    got = exact_cost(A, B, At, Bt, L=L, C=C, **NOISE, horizon=45)
     for i in range(3):
         assert got[i] == pytest.approx(
             naive_exact(A, B, At[i], Bt[i], L[i], C, SU, SW, SV, 45), rel=1e-10
@@ -135,16 +151,16 @@ def test_optimal_cost_is_kalman_predictor_error():
     covariance is the DARE solution P (an oracle independent of the code)."""
     for A, B, C, _ in (SYSTEMS["stable"], SYSTEMS["partial"], SYSTEMS["unstable"]):
         K, P = kalman(A, C, SW, SV)
-        Jstar = optimal_cost(A, B, K, C, SU, SW, SV, horizon=200)
+        Jstar = optimal_cost(A, B, K, C, **NOISE, horizon=200)
         assert float(Jstar) == pytest.approx(
             naive_exact(A, B, A, B, K, C, SU, SW, SV, 200), rel=1e-10
         )
         if np.abs(np.linalg.eigvals(A)).max() < 1:
-            st = stationary_cost(A, B, A, B, K, C, SU, SW, SV)
+            st = stationary_cost(A, B, A, B, L=K, C=C, **NOISE)
             assert float(st) == pytest.approx(np.trace(P), rel=1e-9)
         # long horizon -> trace P, also for the unstable A (the error is decoupled;
         # T stays moderate so that the x block, ~1.024^(2T), does not overflow)
-        assert float(optimal_cost(A, B, K, C, SU, SW, SV, horizon=4096)) == pytest.approx(
+        assert float(optimal_cost(A, B, K, C, **NOISE, horizon=4096)) == pytest.approx(
             np.trace(P), rel=1e-3
         )
 
@@ -157,7 +173,7 @@ def test_stationary_equals_scipy_augmented_lyapunov(name):
     K, _ = kalman(A, C, SW, SV)
     rng = np.random.default_rng(4)
     At, Bt, L = perturbed_cells(rng, A, B, C, K, 5)
-    got, why = stationary_cost(A, B, At, Bt, L, C, SU, SW, SV, return_reason=True)
+    got, why = stationary_cost(A, B, At, Bt, L=L, C=C, **NOISE, return_reason=True)
     assert list(why) == [None] * 5
     for i in range(5):
         Acal, Bcal = augmented(A, B, At[i], Bt[i], L[i], C, SU, SW, SV)
@@ -169,9 +185,9 @@ def test_stationary_is_long_horizon_limit():
     K, _ = kalman(A_S, np.eye(3), SW, SV)
     rng = np.random.default_rng(5)
     At, Bt, L = perturbed_cells(rng, A_S, B_P, np.eye(3), K, 4)
-    st = stationary_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV)
+    st = stationary_cost(A_S, B_P, At, Bt, L=L, C=np.eye(3), **NOISE)
     gaps = [
-        np.abs(exact_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, horizon=T) / st - 1).max()
+        np.abs(exact_cost(A_S, B_P, At, Bt, L=L, C=np.eye(3), **NOISE, horizon=T) / st - 1).max()
         for T in (10**3, 10**4, 10**6)
     ]
     assert gaps[0] > gaps[1] > gaps[2] and gaps[2] < 1e-5
@@ -183,18 +199,20 @@ def test_stationary_unstable_is_nan_with_reason():
     K, _ = kalman(A_U, np.eye(3), SW, SV)
     rng = np.random.default_rng(6)
     At, Bt, L = perturbed_cells(rng, A_U, B_P, np.eye(3), K, 3)
-    val, why = stationary_cost(A_U, B_P, At, Bt, L, np.eye(3), SU, SW, SV, return_reason=True)
+    val, why = stationary_cost(A_U, B_P, At, Bt, L=L, C=np.eye(3), **NOISE, return_reason=True)
     assert np.isnan(val).all() and list(why) == [REASON_UNSTABLE] * 3
     # stable A but unstable observer F = A~ - L C
     Ks, _ = kalman(A_S, np.eye(3), SW, SV)
     L = np.stack([Ks, Ks - 1.2 * np.eye(3)])  # F = A~ - L ~ 1.2 I + ...
-    val, why = stationary_cost(A_S, B_P, A_S, B_P, L, np.eye(3), SU, SW, SV, return_reason=True)
+    val, why = stationary_cost(A_S, B_P, A_S, B_P, L=L, C=np.eye(3), **NOISE, return_reason=True)
     assert np.isfinite(val[0]) and np.isnan(val[1])
     assert list(why) == [None, REASON_UNSTABLE]
-    one, w1 = stationary_cost(A_S, B_P, A_S, B_P, L[1], np.eye(3), SU, SW, SV, return_reason=True)
+    one, w1 = stationary_cost(A_S, B_P, A_S, B_P, L=L[1], C=np.eye(3), **NOISE, return_reason=True)
     assert np.isnan(one) and w1 == REASON_UNSTABLE
     # the exact finite-horizon cost stays defined
-    assert np.isfinite(exact_cost(A_U, B_P, At, Bt, L[:1], np.eye(3), SU, SW, SV, 50)).all()
+    assert np.isfinite(
+        exact_cost(A_U, B_P, At, Bt, L=L[:1], C=np.eye(3), **NOISE, horizon=50)
+    ).all()
 
 
 # ------------------------------------------------------------- Monte Carlo
@@ -204,10 +222,19 @@ def test_exact_within_4_se_of_monte_carlo(name):
     K, _ = kalman(A, C, SW, SV)
     rng = np.random.default_rng(7)
     At, Bt, L = perturbed_cells(rng, A, B, C, K, 2)
-    J = exact_cost(A, B, At, Bt, L, C, SU, SW, SV, horizon=T)
+    J = exact_cost(A, B, At, Bt, L=L, C=C, **NOISE, horizon=T)
     for i in range(2):
         mean, se = mc_cost(
-            A, B, At[i], Bt[i], L[i], C, SU, SW, SV, T, np.random.default_rng(100 + i), 1500
+            A,
+            B,
+            At[i],
+            Bt[i],
+            L=L[i],
+            C=C,
+            **NOISE,
+            horizon=T,
+            rng=np.random.default_rng(100 + i),
+            runs=1500,
         )
         assert mean.shape == () and se > 0
         assert abs(mean - J[i]) < 4 * se, (name, i, mean, se, J[i])
@@ -217,10 +244,9 @@ def test_monte_carlo_batch_of_cells():
     K, _ = kalman(A_S, np.eye(3), SW, SV)
     rng = np.random.default_rng(8)
     At, Bt, L = perturbed_cells(rng, A_S, B_P, np.eye(3), K, 3)
-    J = exact_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, horizon=60)
-    mean, se = mc_cost(
-        A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, 60, np.random.default_rng(9), 800
-    )
+    kw = dict(L=L, C=np.eye(3), **NOISE, horizon=60)
+    J = exact_cost(A_S, B_P, At, Bt, **kw)
+    mean, se = mc_cost(A_S, B_P, At, Bt, **kw, rng=np.random.default_rng(9), runs=800)
     assert mean.shape == se.shape == (3,)
     assert (np.abs(mean - J) < 4 * se).all()
 
@@ -235,7 +261,9 @@ def test_monte_carlo_documented_draw_order():
     At, Bt, L = perturbed_cells(np.random.default_rng(10), A, B, C, K, 1)
     At, Bt, L = At[0], Bt[0], L[0]
     T, runs = 23, 7
-    mean, se = mc_cost(A, B, At, Bt, L, C, SU, 0.7, SV, T, np.random.default_rng(11), runs)
+    mean, se = mc_cost(
+        A, B, At, Bt, L=L, C=C, **NOISE_W07, horizon=T, rng=np.random.default_rng(11), runs=runs
+    )
     rng = np.random.default_rng(11)
     x = np.zeros((runs, n))
     xt = np.zeros((runs, n))
@@ -263,7 +291,16 @@ def test_shared_noise_monte_carlo_equals_one_cell_at_a_time(name):
     n, m, p = A.shape[0], B.shape[1], C.shape[0]
     At, Bt, L = At.reshape(R, E, n, n), Bt.reshape(R, E, n, m), L.reshape(R, E, n, p)
     mean, se = mc_cost_shared(
-        A, B, At, Bt, L, C, SU, 0.7, SV, T, [np.random.default_rng(40 + r) for r in range(R)], runs
+        A,
+        B,
+        At,
+        Bt,
+        L=L,
+        C=C,
+        **NOISE_W07,
+        horizon=T,
+        rngs=[np.random.default_rng(40 + r) for r in range(R)],
+        runs=runs,
     )
     assert mean.shape == se.shape == (R, E)
     for r in range(R):
@@ -273,14 +310,12 @@ def test_shared_noise_monte_carlo_equals_one_cell_at_a_time(name):
                 B,
                 At[r, e],
                 Bt[r, e],
-                L[r, e],
-                C,
-                SU,
-                0.7,
-                SV,
-                T,
-                np.random.default_rng(40 + r),
-                runs,
+                L=L[r, e],
+                C=C,
+                **NOISE_W07,
+                horizon=T,
+                rng=np.random.default_rng(40 + r),
+                runs=runs,
             )
             assert mean[r, e] == pytest.approx(float(m1), rel=1e-10)
             assert se[r, e] == pytest.approx(float(s1), rel=1e-8)
@@ -297,9 +332,20 @@ def test_shared_noise_monte_carlo_does_not_depend_on_the_other_cells():
     def rngs(rows):
         return [np.random.default_rng(50 + r) for r in rows]
 
-    full = mc_cost_shared(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, T, rngs(range(3)), runs)
+    full = mc_cost_shared(
+        A_S, B_P, At, Bt, L=L, C=np.eye(3), **NOISE, horizon=T, rngs=rngs(range(3)), runs=runs
+    )
     part = mc_cost_shared(
-        A_S, B_P, At[1:, 2:3], Bt[1:, 2:3], L[1:, 2:3], np.eye(3), SU, SW, SV, T, rngs([1, 2]), runs
+        A_S,
+        B_P,
+        At[1:, 2:3],
+        Bt[1:, 2:3],
+        L=L[1:, 2:3],
+        C=np.eye(3),
+        **NOISE,
+        horizon=T,
+        rngs=rngs([1, 2]),
+        runs=runs,
     )
     for a, b in zip(full, part):
         assert np.array_equal(a[1:, 2:3], b)
@@ -309,34 +355,41 @@ def test_shared_noise_monte_carlo_agrees_with_exact():
     K, _ = kalman(A_S, np.eye(3), SW, SV)
     At, Bt, L = perturbed_cells(np.random.default_rng(13), A_S, B_P, np.eye(3), K, 4)
     At, Bt, L = At.reshape(2, 2, 3, 3), Bt.reshape(2, 2, 3, 1), L.reshape(2, 2, 3, 3)
-    J = exact_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, horizon=60)
-    mean, se = mc_cost_shared(
-        A_S,
-        B_P,
-        At,
-        Bt,
-        L,
-        np.eye(3),
-        SU,
-        SW,
-        SV,
-        60,
-        [np.random.default_rng(14), np.random.default_rng(15)],
-        1500,
-    )
+    kw = dict(L=L, C=np.eye(3), **NOISE, horizon=60)
+    J = exact_cost(A_S, B_P, At, Bt, **kw)
+    rngs = [np.random.default_rng(14), np.random.default_rng(15)]
+    mean, se = mc_cost_shared(A_S, B_P, At, Bt, **kw, rngs=rngs, runs=1500)
     assert (np.abs(mean - J) < 4 * se).all()
     with pytest.raises(ValueError):
         mc_cost_shared(
-            A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV, 60, [np.random.default_rng(14)], 100
+            A_S,
+            B_P,
+            At,
+            Bt,
+            L=L,
+            C=np.eye(3),
+            **NOISE,
+            horizon=60,
+            rngs=[np.random.default_rng(14)],
+            runs=100,
         )
 
 
 def test_bad_arguments():
     with pytest.raises(ValueError):
-        exact_cost(A_S, B_P, A_S, B_P, np.eye(2), np.eye(3), SU, SW, SV)
+        exact_cost(A_S, B_P, A_S, B_P, L=np.eye(2), C=np.eye(3), **NOISE)
     with pytest.raises(ValueError):
-        exact_cost(A_S, B_P, A_S, B_P, np.eye(3), np.eye(3), SU, SW, SV, horizon=0)
+        exact_cost(A_S, B_P, A_S, B_P, L=np.eye(3), C=np.eye(3), **NOISE, horizon=0)
     with pytest.raises(ValueError):
         mc_cost(
-            A_S, B_P, A_S, B_P, np.eye(3), np.eye(3), SU, SW, SV, 10, np.random.default_rng(0), 1
+            A_S,
+            B_P,
+            A_S,
+            B_P,
+            L=np.eye(3),
+            C=np.eye(3),
+            **NOISE,
+            horizon=10,
+            rng=np.random.default_rng(0),
+            runs=1,
         )

@@ -24,6 +24,7 @@ A_S = np.array([[0.9, 0.01, 0.0], [0.01, 0.9, 0.01], [0.0, 0.01, 0.9]])
 A_U = A_S + 0.11 * np.eye(3)
 B_P = np.array([[1.0], [1.5], [2.0]])
 SU, SW, SV = 1.0, 1.0, 0.1
+NOISE = dict(sigma_u=SU, sigma_w=SW, sigma_v=SV)
 
 
 def kalman(A, C, sw, sv):
@@ -103,7 +104,7 @@ def test_theorem3_recomputed_from_python_control(which):
     eps_A = rng.uniform(0.05, 0.3, cells)
     eps_B = rng.uniform(0.05, 0.3, cells)
     tn = true_system_norms(A, B, C, K)
-    res = theorem3_bound(At, L, C, K, eps_A, eps_B, SU, SV, tn)
+    res = theorem3_bound(At, L, C, K, eps_A=eps_A, eps_B=eps_B, sigma_u=SU, sigma_v=SV, norms=tn)
     assert res.J_b.shape == (cells,)
     assert list(res.reason) == [None] * cells
     hB, hK = stacked_hinf(A, B), stacked_hinf(A, K)
@@ -119,7 +120,9 @@ def test_theorem3_recomputed_from_python_control(which):
         assert res.h2_Phi_w[i] == pytest.approx(h_w, rel=1e-9)
         assert res.h2_Phi_dK[i] == pytest.approx(h_dk, rel=1e-9)
         assert res.term_v[i] + res.term_u[i] + res.term_K[i] == pytest.approx(res.J_b[i])
-    one = theorem3_bound(At[2], L[2], C, K, eps_A[2], eps_B[2], SU, SV, tn)
+    one = theorem3_bound(
+        At[2], L[2], C, K, eps_A=eps_A[2], eps_B=eps_B[2], sigma_u=SU, sigma_v=SV, norms=tn
+    )
     assert one.reason is None and float(one.J_b) == pytest.approx(res.J_b[2], rel=1e-12)
 
 
@@ -128,9 +131,11 @@ def test_theorem3_with_true_model_and_gain_is_zero():
     the paper's bound only measures the excess over the optimal observer)."""
     K = kalman(A_S, np.eye(3), SW, SV)
     tn = true_system_norms(A_S, B_P, np.eye(3), K)
-    res = theorem3_bound(A_S, K, np.eye(3), K, 0.0, 0.0, SU, SV, tn)
+    res = theorem3_bound(
+        A_S, K, np.eye(3), K, eps_A=0.0, eps_B=0.0, sigma_u=SU, sigma_v=SV, norms=tn
+    )
     assert float(res.J_b) == 0.0
-    assert float(exact_cost(A_S, B_P, A_S, B_P, K, np.eye(3), SU, SW, SV)) > 0
+    assert float(exact_cost(A_S, B_P, A_S, B_P, L=K, C=np.eye(3), **NOISE)) > 0
 
 
 def test_theorem3_null_for_unstable_system_U():
@@ -146,11 +151,11 @@ def test_theorem3_null_for_unstable_system_U():
         np.broadcast_to(K, (3, 3, 3)),
         np.eye(3),
         K,
-        np.full(3, 0.1),
-        np.full(3, 0.1),
-        SU,
-        SV,
-        tn,
+        eps_A=np.full(3, 0.1),
+        eps_B=np.full(3, 0.1),
+        sigma_u=SU,
+        sigma_v=SV,
+        norms=tn,
     )
     assert np.isnan(res.J_b).all()
     assert list(res.reason) == [REASON_A_UNSTABLE] * 3
@@ -167,11 +172,11 @@ def test_theorem3_unstable_observer_and_missing_gain():
         L,
         np.eye(3),
         K,
-        np.full(3, 0.1),
-        np.full(3, 0.1),
-        SU,
-        SV,
-        tn,
+        eps_A=np.full(3, 0.1),
+        eps_B=np.full(3, 0.1),
+        sigma_u=SU,
+        sigma_v=SV,
+        norms=tn,
     )
     assert np.isfinite(res.J_b[0]) and np.isnan(res.J_b[1:]).all()
     assert list(res.reason) == [None, REASON_F_UNSTABLE, REASON_NONFINITE]
@@ -189,7 +194,9 @@ def test_theorem3_paper_cell_sanity():
     L = K + 0.02 * rng.standard_normal((5, 3, 3))
     eps_A = np.linalg.norm(A_S - At, 2, axis=(1, 2)) * 1.5
     eps_B = np.linalg.norm(B_P - Bt, 2, axis=(1, 2)) * 1.5
-    res = theorem3_bound(At, L, np.eye(3), K, eps_A, eps_B, SU, SV, tn)
-    J = exact_cost(A_S, B_P, At, Bt, L, np.eye(3), SU, SW, SV)
+    res = theorem3_bound(
+        At, L, np.eye(3), K, eps_A=eps_A, eps_B=eps_B, sigma_u=SU, sigma_v=SV, norms=tn
+    )
+    J = exact_cost(A_S, B_P, At, Bt, L=L, C=np.eye(3), **NOISE)
     dJ = res.J_b - J
     assert np.isfinite(dJ).all() and (res.J_b > 0).all()

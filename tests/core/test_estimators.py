@@ -106,7 +106,7 @@ def test_svr_matches_constrained_primal_qp(loss_scale):
     got = fit_svr(Z, F, GAMMAS, loss_scale)
     ols = fit_ols(Z, F)
     # from the sufficient statistics only (what the runner uses for svr)
-    from_gram = svr_from_gram(Z @ Z.T, F @ Z.T, N0, GAMMAS, loss_scale)
+    from_gram = svr_from_gram(Z @ Z.T, F @ Z.T, N0, GAMMAS, loss_scale=loss_scale)
     for k, gamma in enumerate(GAMMAS):
         weight = 1 / (2 * gamma) if loss_scale == "sum" else 1 / (2 * gamma * N0)
         ref = qp_svr(Z, F, gamma, weight)

@@ -73,7 +73,7 @@ def test_estimators_and_gammas_see_the_same_data(small):
         and x["rep"] == 2
         and x["sigma_w"] == 1.0
     )
-    Z, F = collect(spec.systems[1], 1.0, 30, 11, 11, [seed_key(1, 1, 30, 2)])
+    Z, F = collect(spec.systems[1], 1.0, 30, 11, seed=11, keys=[seed_key(1, 1, 30, 2)])
     theta = np.linalg.lstsq(Z[0].T, F[0].T, rcond=None)[0].T
     np.testing.assert_allclose(r["A_hat"], theta[:, :3], rtol=1e-10, atol=1e-12)
     # a spec with fewer gammas gives the same numbers for the gammas it shares
@@ -168,7 +168,7 @@ def test_run_local_cli_writes_records_and_summary(tmp_path):
         [
             sys.executable,
             "-m",
-            "service.cli_main",
+            "svrobs_cli",
             "run-local",
             str(tmp_path / "spec.json"),
             "--out",
@@ -201,7 +201,7 @@ def test_run_local_cli_bad_spec_is_one_line_exit_2(tmp_path):
         [
             sys.executable,
             "-m",
-            "service.cli_main",
+            "svrobs_cli",
             "run-local",
             str(tmp_path / "bad.json"),
             "--out",
@@ -221,8 +221,8 @@ def test_run_local_cli_bad_spec_is_one_line_exit_2(tmp_path):
 def test_json_lines_and_columns_equal_the_records():
     """UnitResult.json_lines() is json.dumps(record) to the byte, and
     UnitResult.columns() is what report.Columns builds from the records."""
-    from svrobs_core.experiments import run_unit_result
     from svrobs_core.report import Columns
+    from svrobs_core.runner import run_unit_result
 
     for spec_obj in (
         SMALL,
@@ -248,11 +248,11 @@ def test_json_lines_and_columns_equal_the_records():
 
 def test_notes_match_a_per_cell_list():
     """The vectorised notes equal the obvious per-cell implementation."""
-    from svrobs_core.experiments import _Notes
+    from svrobs_core.notes import Notes
 
     rng = np.random.default_rng(3)
     shape = (7, 5)
-    notes = _Notes(shape)
+    notes = Notes(shape)
     naive = [[[] for _ in range(shape[1])] for _ in range(shape[0])]
     texts = ["a", "b; c", "a", "d", "e", "b; c"] + [f"t{i}" for i in range(70)]
     for t in texts:
@@ -282,7 +282,7 @@ def test_worker_processes_give_the_same_records(small):
 
 
 def test_records_for_a_smaller_mc_reps_equal_a_direct_run():
-    from svrobs_core.experiments import run_unit_result
+    from svrobs_core.runner import run_unit_result
 
     spec = parse_spec({**SMALL, "mc_reps": 2, "mc_runs": 50})
     for mc in (0, 1, 2):
@@ -292,3 +292,13 @@ def test_records_for_a_smaller_mc_reps_equal_a_direct_run():
             assert got == [json.dumps(r) for r in run_unit(other, unit)]
     with pytest.raises(ValueError):
         run_unit_result(spec, plan_units(spec)[0]).with_mc_reps(3)
+
+
+def test_unit_cells_counts_the_records_of_each_unit():
+    from svrobs_core.planning import unit_cells
+
+    spec = parse_spec({**SMALL, "stages": ["estimate"]})
+    for units in (plan_units(spec), plan_units(spec, max_cells=7, target_cells=7)):
+        assert sum(unit_cells(spec, u) for u in units) == spec.n_cells
+        for u in units[:3]:
+            assert unit_cells(spec, u) == len(run_unit(spec, u))

@@ -12,17 +12,19 @@ from scipy.optimize import minimize
 
 from svrobs_core import SpecError
 from svrobs_core.gains import (
+    certificate,
+    design_gain,
+    project_l1_ball,
+    reuse_gains,
+)
+from svrobs_core.kalman import (
     KALMAN_OK,
     KALMAN_REASONS,
     KALMAN_UNDETECTABLE,
     KALMAN_UNIT_CIRCLE,
-    certificate,
     dare_residual,
-    design_gain,
     kalman_gain,
     kalman_predictor,
-    project_l1_ball,
-    reuse_gains,
 )
 
 # SPEC section 9, written out here so that these tests do not depend on systems.py
@@ -67,7 +69,7 @@ def test_kalman_gain_is_dlqe_predictor_form(A, sw):
     np.testing.assert_allclose(
         np.sort(np.abs(np.linalg.eigvals(A - res.K))), np.sort(np.abs(E)), atol=1e-10
     )
-    assert dare_residual(A, I3, sw, SIGMA_V, res.P) < 1e-13
+    assert dare_residual(A, I3, sw, SIGMA_V, P=res.P) < 1e-13
 
 
 def test_batched_sda_matches_scipy_on_paper_systems():
@@ -81,7 +83,7 @@ def test_batched_sda_matches_scipy_on_paper_systems():
             K_ref, P_ref = scipy_kalman(A[j], I3, sw[i, 0], SIGMA_V)
             np.testing.assert_allclose(res.P[i, j], P_ref, rtol=0, atol=1e-12 * np.abs(P_ref).max())
             np.testing.assert_allclose(res.K[i, j], K_ref, rtol=0, atol=1e-12)
-    assert (dare_residual(A, I3, sw, SIGMA_V, res.P) < 1e-13).all()
+    assert (dare_residual(A, I3, sw, SIGMA_V, P=res.P) < 1e-13).all()
     assert (spectral_radius(A - res.K) < 1).all()
     np.testing.assert_array_equal(kalman_gain(A, I3, sw, SIGMA_V), res.K)
 
@@ -110,7 +112,7 @@ def test_batched_sda_matches_scipy_on_random_systems(n, p):
         np.testing.assert_allclose(
             res.K[i], K_ref, atol=1e-8 * max(1.0, np.abs(K_ref).max()), rtol=0
         )
-    assert (dare_residual(A, C, sw, sv, res.P) < 1e-12).all()
+    assert (dare_residual(A, C, sw, sv, P=res.P) < 1e-12).all()
     assert (spectral_radius(A - res.K @ C) < 1).all()
 
 
@@ -162,7 +164,7 @@ def test_sigma_w_zero_stable_and_unstable():
         np.testing.assert_allclose(res.K, K_ref, atol=1e-9 * np.abs(K_ref).max(), rtol=0)
         assert np.abs(res.P).max() > 1e-4  # not the non-stabilising P = 0
         assert spectral_radius(A - res.K @ C) < 1
-        assert dare_residual(A, C, 0.0, SIGMA_V, res.P) < 1e-12
+        assert dare_residual(A, C, 0.0, SIGMA_V, P=res.P) < 1e-12
 
 
 def test_failures_are_nan_with_a_reason_and_do_not_contaminate_the_batch():
@@ -219,7 +221,7 @@ def test_certificate_matches_a_loop():
         C = rng.standard_normal((p, n))
         gamma = rng.uniform(0, 0.2, size=b)
         r_A = rng.uniform(0, 0.1, size=b)
-        g = certificate(L, At, gamma, r_A, C)
+        g = certificate(L, At, gamma, r_A, C=C)
         assert g.shape == (b,)
         for i in range(b):
             assert g[i] == pytest.approx(
@@ -241,8 +243,8 @@ def random_design_cells(rng, b, n=3):
 def test_closed_form_design_equals_cvxpy_clarabel():
     rng = np.random.default_rng(21)
     At, gamma, r_A, K_hat = random_design_cells(rng, 16)
-    fast = design_gain(At, gamma, r_A, I3, K_hat, margin=0.01)
-    slow = design_gain(At, gamma, r_A, I3, K_hat, margin=0.01, method="cvxpy")
+    fast = design_gain(At, gamma, r_A, I3, K_hat=K_hat, margin=0.01)
+    slow = design_gain(At, gamma, r_A, I3, K_hat=K_hat, margin=0.01, method="cvxpy")
     assert fast.feasible.any() and (~fast.feasible).any()  # both branches exercised
     np.testing.assert_array_equal(fast.feasible, slow.feasible)
     np.testing.assert_allclose(fast.L, slow.L, atol=1e-6)
@@ -260,8 +262,8 @@ def test_orthogonal_C_closed_form_equals_cvxpy():
     rng = np.random.default_rng(22)
     Q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
     At, gamma, r_A, K_hat = random_design_cells(rng, 6)
-    fast = design_gain(At, gamma, r_A, Q, K_hat)
-    slow = design_gain(At, gamma, r_A, Q, K_hat, method="cvxpy")
+    fast = design_gain(At, gamma, r_A, Q, K_hat=K_hat)
+    slow = design_gain(At, gamma, r_A, Q, K_hat=K_hat, method="cvxpy")
     np.testing.assert_allclose(fast.L, slow.L, atol=1e-6)
     np.testing.assert_array_equal(fast.feasible, slow.feasible)
 
@@ -317,7 +319,7 @@ def test_general_C_design_4_state_2_output():
     gamma = np.array([0.05, 0.05, 0.05])
     r_A = np.array([0.01, 0.02, 0.5])  # the last is infeasible (n r_A > 1)
     K_hat = kalman_gain((1 + gamma)[:, None, None] * At, C, 1.0, 0.1)
-    res = design_gain(At, gamma, r_A, C, K_hat)
+    res = design_gain(At, gamma, r_A, C, K_hat=K_hat)
     assert res.feasible.tolist() == [True, True, False]
     assert res.certified.tolist() == [True, True, False]
     for i in range(2):
@@ -347,14 +349,14 @@ def test_general_C_design_4_state_2_output():
 def test_nan_K_hat_gives_nan_uncertified_gain():
     At = np.stack([A_S, A_S])
     K_hat = np.stack([A_S, np.full((3, 3), np.nan)])
-    res = design_gain(At, 0.05, 0.01, I3, K_hat)
+    res = design_gain(At, 0.05, 0.01, I3, K_hat=K_hat)
     assert np.isfinite(res.L[0]).all() and np.isnan(res.L[1]).all()
     assert res.certified.tolist() == [True, False] and np.isnan(res.g_L[1])
 
 
 def test_single_cell_and_margin_band():
     # infeasible with the margin yet g(L) = n r_A < 1: certified is g < 1 (SPEC Decision)
-    res = design_gain(A_S, 0.05, 0.996 / 3, I3, np.zeros((3, 3)), margin=0.01)
+    res = design_gain(A_S, 0.05, 0.996 / 3, I3, K_hat=np.zeros((3, 3)), margin=0.01)
     assert res.L.shape == (3, 3) and not res.feasible
     assert res.g_L == pytest.approx(0.996) and res.certified
 
@@ -376,7 +378,7 @@ def test_certified_gain_stabilises_every_sampled_matrix_of_the_box(
     At = rng.normal(scale=rng.uniform(0.1, 1.5), size=(n, n))
     K_hat = rng.normal(size=(n, n))
     C = np.linalg.qr(rng.standard_normal((n, n)))[0] if orthogonal else np.eye(n)
-    res = design_gain(At, gamma, r_A, C, K_hat, margin=margin)
+    res = design_gain(At, gamma, r_A, C, K_hat=K_hat, margin=margin)
     assert res.feasible and res.certified and res.g_L <= 1 - margin + 1e-12
     center = (1 + gamma) * At
     A = center + rng.uniform(-r_A, r_A, size=(1000, n, n))
@@ -405,7 +407,7 @@ def test_reuse_policy_on_a_constructed_sequence():
     At = np.stack([np.stack([x * I2, 0.5 * I2]) for x in a])  # (6, 2, 2, 2)
     L = np.stack([np.stack([x * I2, (0.4 + 0.01 * k) * I2]) for k, x in enumerate(ell)])
     r_A = np.stack([[x, 0.1] for x in r])
-    res = reuse_gains(L, At, 0.0, r_A, I2)
+    res = reuse_gains(L, At, 0.0, r_A, C=I2)
     assert res.source[:, 0].tolist() == [0, 0, 2, 2, 4, 5]
     assert res.reused[:, 0].tolist() == [False, True, False, True, False, False]
     assert res.certified[:, 0].tolist() == [True, True, True, True, False, True]
@@ -427,9 +429,9 @@ def test_reuse_with_designed_gains_never_loses_certification():
     )
     r_A = np.linspace(0.4, 0.05, nN)[:, None] * rng.uniform(0.5, 1.0, size=b)
     K_hat = kalman_gain(1.05 * At, I3, 1.0, 0.1)
-    design = design_gain(At, 0.05, r_A, I3, K_hat)
-    res = reuse_gains(design.L, At, 0.05, r_A, I3)
+    design = design_gain(At, 0.05, r_A, I3, K_hat=K_hat)
+    res = reuse_gains(design.L, At, 0.05, r_A, C=I3)
     # where the fresh design is certified, the reuse choice is certified too
     assert (res.certified >= design.certified).all()
     assert res.reused.any()
-    np.testing.assert_allclose(res.g_L, certificate(res.L, At, 0.05, r_A, I3))
+    np.testing.assert_allclose(res.g_L, certificate(res.L, At, 0.05, r_A, C=I3))

@@ -359,6 +359,9 @@ def test_figures_show_no_data_instead_of_crashing():
 def test_figure_titles_name_experiment_and_seed():
     spec = tiny_spec(seed=7)
     recs = make_records(spec, cost=False)
+    for r in recs:  # some coverage below 1, else fig_coverage has nothing to draw
+        if r["rep"] == 0 and r["N"] == 10:
+            r["coverage_A"] = 0.75
     for fn in (rpt.fig_rmse, rpt.fig2, rpt.fig3, rpt.fig_coverage, rpt.fig_svr_ols_diff):
         fig = fn(recs, spec, experiment="X9")
         title = fig._suptitle.get_text()
@@ -368,6 +371,23 @@ def test_figure_titles_name_experiment_and_seed():
         assert rows and rows <= labelled, fn.__name__  # every row of panels has a y label
         assert any(ax.get_xlabel() for ax in fig.axes), fn.__name__
         assert fig.legends, fn.__name__
+
+
+def test_coverage_of_one_everywhere_is_a_note_not_a_figure():
+    spec = tiny_spec()
+    recs = make_records(spec, cost=False)  # coverage 1 in every record
+    fig = rpt.fig_coverage(recs, spec)
+    assert fig.svrobs_empty and not fig.axes
+    assert f"is 1 in all {len(recs):,} records" in fig.svrobs_notes[0]
+    for r in recs:  # B below 1 somewhere: only the A rows are left out
+        r["coverage_B"] = 0.5 if r["rep"] == 0 else 1.0
+    fig = rpt.fig_coverage(recs, spec)
+    assert len(fig.axes) == 2 * 2 and all(ax.get_title().endswith(": B") for ax in fig.axes)
+    assert f"The coverage of A is 1 in all {len(recs):,} records" in fig.svrobs_notes[0]
+    recs = make_records(spec, cost=False)
+    rep = rpt.build_report({"X": {"spec": spec, "records": recs}})
+    md = rpt.render_markdown(rep)
+    assert "fig_coverage.png" not in md and f"is 1 in all {len(recs):,} records" in md
 
 
 def test_svr_ols_difference_uses_the_same_repetition():
@@ -444,6 +464,10 @@ def reproduced(tmp_path_factory):
     return out, result
 
 
+def drawn_figures(out):
+    return [f for f in FIGURES if (out / f"{f}.png").exists()]
+
+
 def read_jsonl(path):
     return [json.loads(line) for line in path.read_text().splitlines()]
 
@@ -452,10 +476,17 @@ def test_reproduce_writes_every_file(reproduced):
     out, result = reproduced
     for name in ("table2.md", "table2.csv", "report.md", "report.html", "provenance.json"):
         assert (out / name).stat().st_size > 0, name
-    for fig in FIGURES:
+    md = (out / "report.md").read_text()
+    for fig in drawn_figures(out):
         assert (out / f"{fig}.png").read_bytes().startswith(PNG_MAGIC), fig
         svg = (out / f"{fig}.svg").read_text()
         assert "<svg" in svg and svg.rstrip().endswith("</svg>"), fig
+        assert (out / f"{fig}.pdf").read_bytes().startswith(b"%PDF-"), fig
+        header = (out / f"{fig}.csv").read_text().splitlines()[0]
+        assert header == "panel,series,quantity,N0,value", fig
+    for fig in set(FIGURES) - set(drawn_figures(out)):
+        # only a figure with nothing to plot is left out, and the report says why
+        assert fig == "fig_coverage" and "coverage of A and B is 1 in all" in md
     for exp in ("E1", "E2", "E3", "E4"):
         recs = read_jsonl(out / exp / "records.jsonl")
         assert len(recs) == result["records"][exp] > 0
@@ -523,15 +554,16 @@ def test_report_contents(reproduced):
     md = (out / "report.md").read_text()
     assert "## Findings" in md and "## Table 2" in md and "## Provenance" in md
     assert "published" in md
-    for fig in FIGURES:
-        assert f"({fig}.png)" in md and f"({fig}.svg)" in md
+    for fig in drawn_figures(out):
+        for ext in ("png", "svg", "pdf", "csv"):
+            assert f"({fig}.{ext})" in md
     for exp in ("E1", "E2", "E3", "E4"):
         assert f"### {exp}:" in md
     # findings with counts for the estimate/bounds claims
     assert re.search(r"Theorem 1 for A \(every row\): violated in \d+ of \d+", md)
     assert re.search(r"below 1 − δ = 0.99 in \d+ of \d+", md)
     html = (out / "report.html").read_text()
-    assert html.count("data:image/png;base64,") == len(FIGURES)
+    assert html.count("data:image/png;base64,") == len(drawn_figures(out))
     assert "<h2>Findings" in html and "paper-section-6" in html
     prov = json.loads((out / "provenance.json").read_text())
     assert prov["preset"] == "paper-section-6" and prov["scale"] == "reduced"

@@ -29,7 +29,7 @@ def naive(system, sigma_w, N, T0, seed, key, data, x0_std=0.0):
 
 def test_all_data_matches_naive_simulation_and_sample_count():
     key = seed_key(0, 1, 7, 3)
-    Z, F = collect(S, 1.0, 7, 11, 42, [key], "all")
+    Z, F = collect(S, 1.0, 7, 11, seed=42, keys=[key], data="all")
     Zn, Fn = naive(S, 1.0, 7, 11, 42, key, "all")
     assert Z.shape == (1, 4, 70) and F.shape == (1, 3, 70)  # N0 = (T0-1) N
     np.testing.assert_allclose(Z[0], Zn, rtol=1e-12, atol=1e-12)
@@ -38,7 +38,7 @@ def test_all_data_matches_naive_simulation_and_sample_count():
 
 def test_final_data_and_random_initial_state():
     key = seed_key(1, 0, 5, 0)
-    Z, F = collect(S, 0.1, 5, 6, 7, [key], "final", x0_std=2.0)
+    Z, F = collect(S, 0.1, 5, 6, seed=7, keys=[key], data="final", x0_std=2.0)
     Zn, Fn = naive(S, 0.1, 5, 6, 7, key, "final", x0_std=2.0)
     assert Z.shape == (1, 4, 5)
     np.testing.assert_allclose(Z[0], Zn, rtol=1e-12, atol=1e-12)
@@ -47,9 +47,9 @@ def test_final_data_and_random_initial_state():
 
 def test_batching_does_not_change_a_repetitions_numbers():
     keys = [seed_key(0, 0, 20, r) for r in range(6)]
-    Z, F = collect(S, 1.0, 20, 11, 5, keys)
+    Z, F = collect(S, 1.0, 20, 11, seed=5, keys=keys)
     for r in (0, 3, 5):
-        Z1, F1 = collect(S, 1.0, 20, 11, 5, [keys[r]])
+        Z1, F1 = collect(S, 1.0, 20, 11, seed=5, keys=[keys[r]])
         assert np.array_equal(Z1[0], Z[r]) and np.array_equal(F1[0], F[r])
 
 
@@ -89,7 +89,9 @@ def test_fast_generators_are_numpys_seedsequence_streams():
 def test_gram_data_is_z_zt_and_f_zt_of_the_rollouts():
     for data, x0_std in (("all", 0.0), ("final", 1.5)):
         keys = [seed_key(1, 0, 13, r) for r in range(5)]
-        G, P, Z, F = gram_data(S, 0.5, 13, 11, 9, keys, data, x0_std, keep_data=True)
+        G, P, Z, F = gram_data(
+            S, 0.5, 13, 11, seed=9, keys=keys, data=data, x0_std=x0_std, keep_data=True
+        )
         Zn, Fn = zip(*(naive(S, 0.5, 13, 11, 9, k, data, x0_std) for k in keys))
         np.testing.assert_allclose(Z, np.array(Zn), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(F, np.array(Fn), rtol=1e-12, atol=1e-12)
@@ -97,10 +99,10 @@ def test_gram_data_is_z_zt_and_f_zt_of_the_rollouts():
             np.testing.assert_allclose(G[r], Zn[r] @ Zn[r].T, rtol=1e-12)
             np.testing.assert_allclose(P[r], Fn[r] @ Zn[r].T, rtol=1e-12, atol=1e-12)
         # without the data: the same statistics, bit for bit; any batch gives the same bits
-        G2, P2, Z2, F2 = gram_data(S, 0.5, 13, 11, 9, keys, data, x0_std)
+        G2, P2, Z2, F2 = gram_data(S, 0.5, 13, 11, seed=9, keys=keys, data=data, x0_std=x0_std)
         assert Z2 is None and F2 is None
         assert np.array_equal(G, G2) and np.array_equal(P, P2)
-        G3, P3, _, _ = gram_data(S, 0.5, 13, 11, 9, keys[3:4], data, x0_std)
+        G3, P3, _, _ = gram_data(S, 0.5, 13, 11, seed=9, keys=keys[3:4], data=data, x0_std=x0_std)
         assert np.array_equal(G3[0], G[3]) and np.array_equal(P3[0], P[3])
 
 
@@ -108,7 +110,7 @@ def test_gram_data_chunks_do_not_change_bits(monkeypatch):
     import svrobs_core.rollouts as ro
 
     keys = [seed_key(0, 1, 40, r) for r in range(9)]
-    G, P, _, _ = gram_data(S, 1.0, 40, 11, 2, keys)
+    G, P, _, _ = gram_data(S, 1.0, 40, 11, seed=2, keys=keys)
     monkeypatch.setattr(ro, "CHUNK_BYTES", 1)  # one repetition per chunk
-    G1, P1, _, _ = gram_data(S, 1.0, 40, 11, 2, keys)
+    G1, P1, _, _ = gram_data(S, 1.0, 40, 11, seed=2, keys=keys)
     assert np.array_equal(G, G1) and np.array_equal(P, P1)

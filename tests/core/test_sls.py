@@ -293,9 +293,9 @@ def test_nan_input_is_invalid_not_an_exception():
     K = kalman(A_S, I3, 1.0, 0.1)
     A = A_S.copy()
     A[0, 0] = np.nan
-    res = sls_observer(A, I3, K, 0.5, 10.0)
+    res = sls_observer(A, I3, K, 0.5, C_bound=10.0)
     assert res.status == "invalid_input" and math.isnan(res.J_opt)
-    res = sls_observer(A_S, I3, K, math.nan, 10.0)
+    res = sls_observer(A_S, I3, K, math.nan, C_bound=10.0)
     assert res.status == "invalid_input" and math.isnan(res.J_opt)
 
 
@@ -304,19 +304,19 @@ def test_solver_error_is_reported(monkeypatch):
         raise cp.error.SolverError("simulated failure")
 
     monkeypatch.setattr(cp.Problem, "solve", boom)
-    res = sls_observer(A_S, I3, A_S, 0.5, 10.0)
+    res = sls_observer(A_S, I3, A_S, 0.5, C_bound=10.0)
     assert res.status == "solver_error" and math.isnan(res.J_opt) and res.Phi_w is None
 
 
 def test_bad_shapes_raise():
     with pytest.raises(ValueError):
-        sls_observer(A_S, I3, np.zeros((3, 2)), 0.5, 10.0)
+        sls_observer(A_S, I3, np.zeros((3, 2)), 0.5, C_bound=10.0)
     with pytest.raises(ValueError):
-        sls_observer(A_S, np.eye(2), np.zeros((3, 2)), 0.5, 10.0)
+        sls_observer(A_S, np.eye(2), np.zeros((3, 2)), 0.5, C_bound=10.0)
     with pytest.raises(ValueError):
-        sls_observer(A_S, I3, A_S, -1.0, 10.0)
+        sls_observer(A_S, I3, A_S, -1.0, C_bound=10.0)
     with pytest.raises(ValueError):
-        sls_observer(A_S, I3, A_S, 1.0, 10.0, T_fir=0)
+        sls_observer(A_S, I3, A_S, 1.0, C_bound=10.0, T_fir=0)
 
 
 # ---------------------------------------------------------------- cached compilation
@@ -324,26 +324,26 @@ def test_compiled_problem_is_cached_and_reuse_is_exact():
     K = kalman(A_S, I3, 1.0, 0.1)
     rng = np.random.default_rng(5)
     cells = [A_S + 0.02 * rng.standard_normal((3, 3)) for _ in range(3)]
-    first = [sls_observer(A, I3, K, 0.3, 8.0, T_fir=12).J_opt for A in cells]
+    first = [sls_observer(A, I3, K, 0.3, C_bound=8.0, T_fir=12).J_opt for A in cells]
     prob = sls._compiled(3, 3, 12, True).problem
-    again = [sls_observer(A, I3, K, 0.3, 8.0, T_fir=12).J_opt for A in reversed(cells)]
+    again = [sls_observer(A, I3, K, 0.3, C_bound=8.0, T_fir=12).J_opt for A in reversed(cells)]
     assert sls._compiled(3, 3, 12, True).problem is prob
     sls.clear_cache()
-    fresh = [sls_observer(A, I3, K, 0.3, 8.0, T_fir=12).J_opt for A in cells]
+    fresh = [sls_observer(A, I3, K, 0.3, C_bound=8.0, T_fir=12).J_opt for A in cells]
     np.testing.assert_allclose(first, again[::-1], rtol=1e-9)
     np.testing.assert_allclose(first, fresh, rtol=1e-9)
 
 
 def test_C_bound_none_and_inf_mean_unbounded():
     K = kalman(A_S, I3, 1.0, 0.1)
-    a = sls_observer(A_S, I3, K, 0.3, None, T_fir=10)
-    b = sls_observer(A_S, I3, K, 0.3, math.inf, T_fir=10)
-    c = sls_observer(A_S, I3, K, 0.3, 1e3, T_fir=10)
+    a = sls_observer(A_S, I3, K, 0.3, C_bound=None, T_fir=10)
+    b = sls_observer(A_S, I3, K, 0.3, C_bound=math.inf, T_fir=10)
+    c = sls_observer(A_S, I3, K, 0.3, C_bound=1e3, T_fir=10)
     assert a.J_opt == pytest.approx(b.J_opt, rel=1e-9)
     assert a.J_opt == pytest.approx(c.J_opt, rel=1e-7)
     # a binding C_bound can only increase J_opt
-    tight = sls_observer(A_S, I3, K, 0.0, math.sqrt(3) * 1.001, T_fir=10)
-    loose = sls_observer(A_S, I3, K, 0.0, None, T_fir=10)
+    tight = sls_observer(A_S, I3, K, 0.0, C_bound=math.sqrt(3) * 1.001, T_fir=10)
+    loose = sls_observer(A_S, I3, K, 0.0, C_bound=None, T_fir=10)
     assert tight.J_opt >= loose.J_opt - 1e-8
     assert fir_h2(tight.Phi_w) <= math.sqrt(3) * 1.001 + 1e-6
 
@@ -360,33 +360,42 @@ def test_default_C_bound_by_hand():
 
 def test_sls_F_by_hand():
     # sqrt(2) * 0.1 * (2 * 1 + 3 * 0.1)
-    assert sls_F(0.1, 2.0, 3.0, 1.0, 0.1) == pytest.approx(math.sqrt(2) * 0.1 * 2.3)
-    out = sls_F(np.array([0.0, 0.1, 0.2]), 2.0, 3.0, 1.0, 0.1)
+    assert sls_F(0.1, 2.0, 3.0, sigma_u=1.0, sigma_v=0.1) == pytest.approx(math.sqrt(2) * 0.1 * 2.3)
+    out = sls_F(np.array([0.0, 0.1, 0.2]), 2.0, 3.0, sigma_u=1.0, sigma_v=0.1)
     np.testing.assert_allclose(out, math.sqrt(2) * np.array([0.0, 0.1, 0.2]) * 2.3)
-    assert math.isnan(sls_F(0.1, math.nan, 3.0, 1.0, 0.1))
+    assert math.isnan(sls_F(0.1, math.nan, 3.0, sigma_u=1.0, sigma_v=0.1))
 
 
 def test_jopt_upper_bound_both_branches_by_hand():
     eps1, Cb, hAB, hAK, su, sv, h2, hinf = 0.05, 4.0, 2.0, 3.0, 1.0, 0.1, 1.5, 2.0
+    kw = dict(hinf_AB=hAB, hinf_AK=hAK, sigma_u=su, sigma_v=sv, h2_cl_inv=h2)
     expected = 0.05 * (math.sqrt(2) * 4.0 * (2.0 * 1.0 + 3.0 * 0.1) + 2 * 1.5 * 0.1)
     # condition holds: 0.2 * 2 = 0.4 <= 0.5
-    v, reason = jopt_upper_bound(0.2, eps1, Cb, hAB, hAK, su, sv, h2, hinf)
+    v, reason = jopt_upper_bound(0.2, eps1, Cb, **kw, hinf_cl_inv=hinf)
     assert reason is None and v == pytest.approx(expected)
     # boundary: 0.25 * 2 = 0.5 holds
-    v, reason = jopt_upper_bound(0.25, eps1, Cb, hAB, hAK, su, sv, h2, hinf)
+    v, reason = jopt_upper_bound(0.25, eps1, Cb, **kw, hinf_cl_inv=hinf)
     assert reason is None and v == pytest.approx(expected)
     # fails: 0.3 * 2 = 0.6 > 0.5
-    v, reason = jopt_upper_bound(0.3, eps1, Cb, hAB, hAK, su, sv, h2, hinf)
+    v, reason = jopt_upper_bound(0.3, eps1, Cb, **kw, hinf_cl_inv=hinf)
     assert math.isnan(v) and reason == REASON_CONDITION
     # undefined input (e.g. an unstable transfer matrix gave NaN)
-    v, reason = jopt_upper_bound(0.2, eps1, Cb, hAB, hAK, su, sv, h2, math.nan)
+    v, reason = jopt_upper_bound(0.2, eps1, Cb, **kw, hinf_cl_inv=math.nan)
     assert math.isnan(v) and reason == REASON_UNDEFINED
+
+
+NORMS = dict(hinf_AB=2.0, hinf_AK=3.0, sigma_u=1.0, sigma_v=0.1, h2_cl_inv=1.5, hinf_cl_inv=2.0)
 
 
 def test_jopt_upper_bound_vectorised():
     eps_A = np.array([0.1, 0.3, np.nan, 0.0])
     eps1 = np.array([0.1, 0.3, 0.2, 0.0])
-    v, reason = jopt_upper_bound(eps_A, eps1, 4.0, 2.0, 3.0, 1.0, 0.1, 1.5, 2.0)
+    v, reason = jopt_upper_bound(
+        eps_A,
+        eps1,
+        4.0,
+        **NORMS,
+    )
     assert v.shape == reason.shape == (4,)
     base = math.sqrt(2) * 4.0 * 2.3 + 0.3
     np.testing.assert_allclose(v[[0, 3]], [0.1 * base, 0.0])
@@ -394,7 +403,10 @@ def test_jopt_upper_bound_vectorised():
     assert list(reason) == [None, REASON_CONDITION, REASON_UNDEFINED, None]
     # broadcasting a grid: (2, 1) x (3,)
     v2, r2 = jopt_upper_bound(
-        np.array([[0.1], [0.4]]), np.array([0.1, 0.2, 0.3]), 4.0, 2.0, 3.0, 1.0, 0.1, 1.5, 2.0
+        np.array([[0.1], [0.4]]),
+        np.array([0.1, 0.2, 0.3]),
+        4.0,
+        **NORMS,
     )
     assert v2.shape == (2, 3)
     np.testing.assert_allclose(v2[0], np.array([0.1, 0.2, 0.3]) * base)

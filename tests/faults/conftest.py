@@ -84,7 +84,7 @@ class FaultStack(Stack):
 
     def teardown(self) -> None:
         # the servers (and the schema with them) go away at the end of the session
-        from service.serve import stop_all
+        from svrobs_cli.processes import stop_all
 
         stop_all(list(self.children.values()), grace=10)
         self.children.clear()
@@ -140,7 +140,7 @@ def fstack(servers, tmp_path_factory):
 
 
 def _stop_all_but_api(st: FaultStack) -> None:
-    from service.serve import stop_all
+    from svrobs_cli.processes import stop_all
 
     names = [n for n in st.children if n != "api"]
     stop_all([st.children.pop(n) for n in names], grace=5)  # in parallel

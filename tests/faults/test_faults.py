@@ -39,7 +39,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service.serve import worker_command
+from svrobs_cli.serve import worker_command
 from svrobs_core import RECORD_FIELDS, parse_spec, plan_units
 from tests.integration.servers import deathsig
 from tests.integration.stack import ROOT, cell_key, fetch_jsonl, same, submit

@@ -35,8 +35,8 @@ from schemathesis.specs.openapi.checks import (
     status_code_conformance,
 )
 
+from service.api.deps import MAX_ID, get_broker_check
 from service.api.main import create_app
-from service.api.routes.common import MAX_ID
 from service.config import Settings
 from service.db import accounts, jobs
 from service.db.migrate import upgrade
@@ -44,7 +44,7 @@ from service.db.models import Job, Result, Schedule, utcnow
 from service.db.session import dispose_all, get_sessionmaker
 from svrobs_core.records import NUMERIC_FIELDS
 from tests.service.svc_fakes import run_job_units
-from tests.service.svc_helpers import SMALL_SPEC
+from tests.service.svc_helpers import SMALL_SPEC, no_broker_check
 
 # Budget: ~1230 generated requests on SQLite, 30-45 s on 2 cores.
 MAX_EXAMPLES_FUZZ = 40  # per operation and generation mode (positive, negative)
@@ -194,7 +194,7 @@ def fuzz_env(url: str):
         _make_schedule(session, b)
         app = create_app(_settings(url))
         app.state.publisher = FakePublisher()
-        app.state.broker_check = lambda: None
+        app.dependency_overrides[get_broker_check] = lambda: no_broker_check
         schema = schemathesis.openapi.from_asgi("/openapi.json", app)
         with asgi.get_client(app) as client:
             yield SimpleNamespace(

@@ -9,10 +9,10 @@
   schema of its own (``search_path`` in the URL; dropped at teardown) and
   flushes the Redis database number of the broker URL before and after.
 
-A stack migrates (a subprocess running ``service.serve.migrate``, i.e. what
+A stack migrates (a subprocess running ``svrobs_cli.serve.migrate``, i.e. what
 ``svrobs serve`` runs), creates a team and key, and starts uvicorn on a free
-port plus one celery worker - the exact commands ``service.serve`` uses, from
-``service.serve.child_commands``. Tests can stop/start workers, start beat or a
+port plus one celery worker - the exact commands ``svrobs_cli.serve`` uses, from
+``svrobs_cli.serve.child_commands``. Tests can stop/start workers, start beat or a
 second API with another environment. Teardown terminates every child, then
 kills its process group: no orphans. Logs are under the stack's folder and
 their tails are printed when a wait times out.

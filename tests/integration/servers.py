@@ -10,7 +10,6 @@ the machine's own servers are never touched and nothing is left behind.
 
 from __future__ import annotations
 
-import ctypes
 import os
 import shutil
 import signal
@@ -20,7 +19,7 @@ import time
 from glob import glob
 from pathlib import Path
 
-from service.serve import Child
+from svrobs_cli.processes import Child, deathsig, kill_group
 
 from .stack import free_port
 
@@ -41,21 +40,6 @@ def _pg_bindir() -> Path | None:
 
 PG_BINDIR = _pg_bindir()
 REDIS_SERVER = shutil.which("redis-server")
-
-try:
-    _prctl = ctypes.CDLL(None, use_errno=True).prctl
-except (OSError, AttributeError):  # pragma: no cover - not Linux
-    _prctl = None
-
-
-def deathsig(sig: int):
-    """preexec_fn: the child gets ``sig`` when this process dies (runs after setuid)."""
-
-    def preexec():  # pragma: no cover - runs in the child
-        if _prctl is not None:
-            _prctl(1, int(sig))  # PR_SET_PDEATHSIG
-
-    return preexec
 
 
 def _wait(pred, timeout: float, what: str, step: float = 0.1):
@@ -308,17 +292,10 @@ class PrivatePostgres:
         if self.proc is None:
             return
         try:
-            self.proc.wait(10)
+            self.proc.wait(10)  # the postmaster's own shutdown first
         except subprocess.TimeoutExpired:
             pass
-        try:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:  # pragma: no cover
-            pass
+        kill_group(self.proc)
 
     def restart(self, down: float) -> float:
         t0 = time.monotonic()

@@ -1,8 +1,8 @@
 """Real-process stacks shared by the integration and the fault tests.
 
 :class:`Stack` migrates a database, creates a team and key, and starts uvicorn,
-celery workers and beat with the exact commands ``service.serve`` uses
-(``service.serve.child_commands``); teardown terminates every child, then kills
+celery workers and beat with the exact commands ``svrobs_cli.serve`` uses
+(``svrobs_cli.serve.child_commands``); teardown terminates every child, then kills
 its process group: no orphans. Logs are under the stack's folder and their
 tails are printed when a wait times out.
 """
@@ -24,14 +24,8 @@ import httpx
 
 ROOT = Path(__file__).resolve().parents[2]
 
-from service.serve import (
-    Child,
-    api_command,
-    beat_command,
-    child_env,
-    stop_all,
-    worker_command,
-)
+from svrobs_cli.processes import Child, stop_all
+from svrobs_cli.serve import api_command, beat_command, child_env, worker_command
 from svrobs_core import parse_spec, run_spec
 
 PG_URL = os.environ.get("SVROBS_TEST_DATABASE_URL")
@@ -120,7 +114,7 @@ class Stack:
         out = self.python(
             "import json\n"
             "from service.config import get_settings\n"
-            "from service.serve import prepare_dirs, migrate\n"
+            "from svrobs_cli.serve import prepare_dirs, migrate\n"
             "from service.db.session import session_scope\n"
             "from service.db import accounts\n"
             "s = get_settings(); prepare_dirs(s); migrate(s)\n"

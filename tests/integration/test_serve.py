@@ -1,4 +1,4 @@
-"""`svrobs serve` (service.serve.main) as a user runs it: one command, Ctrl-C stops all."""
+"""`svrobs serve` (svrobs_cli.serve) as a user runs it: one command, Ctrl-C stops all."""
 
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ def _start_serve(tmp_path, port):
     )
     log = open(tmp_path / "serve.log", "wb")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "service.cli_main", "serve"],
+        [sys.executable, "-m", "svrobs_cli", "serve"],
         cwd=str(ROOT),
         env=env,
         stdout=log,

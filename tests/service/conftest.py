@@ -13,10 +13,11 @@ from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session
 
+from service.api.deps import get_broker_check
 from service.db import accounts
 from service.db.migrate import upgrade
 from service.db.session import create_db_engine
-from tests.service.svc_helpers import Account, RecordingPublisher, make_settings
+from tests.service.svc_helpers import Account, RecordingPublisher, make_settings, no_broker_check
 
 PG_ENV = "SVROBS_TEST_DATABASE_URL"
 
@@ -124,7 +125,7 @@ def build_client(session_factory, db_url):
         app.state.session_factory = session_factory
         publisher = RecordingPublisher()
         app.state.publisher = publisher
-        app.state.broker_check = lambda: None
+        app.dependency_overrides[get_broker_check] = lambda: no_broker_check
         client = TestClient(app, raise_server_exceptions=False)
         return client, publisher
 

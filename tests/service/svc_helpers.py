@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from service.config import Settings
-from svrobs_core.experiments import plan_units
+from svrobs_core.planning import plan_units
 from svrobs_core.spec import parse_spec
 
 
@@ -50,3 +50,7 @@ SMALL_SPEC = {
 }
 # units of SMALL_SPEC as the core plans them (consecutive N values packed per unit)
 SMALL_UNITS = len(plan_units(parse_spec(SMALL_SPEC)))
+
+
+def no_broker_check() -> None:
+    """A broker that always answers (for ``app.dependency_overrides[get_broker_check]``)."""

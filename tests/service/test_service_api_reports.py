@@ -5,9 +5,9 @@ from __future__ import annotations
 import re
 
 from service.db import jobs, units
-from svrobs_core.experiments import run_unit
 from svrobs_core.paper import paper_specs
 from svrobs_core.report import table2
+from svrobs_core.runner import run_unit
 from svrobs_core.spec import parse_spec
 
 API = "/api/v1"

@@ -9,8 +9,9 @@ import json
 
 import pytest
 
-from service import cli
 from service.config import get_settings
+from svrobs_cli import rest as cli
+from svrobs_cli.app import app
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC, SMALL_UNITS
 
@@ -19,7 +20,7 @@ from tests.service.svc_helpers import SMALL_SPEC, SMALL_UNITS
 def run(capsys):
     def run(*args) -> tuple[int, str, str]:
         try:
-            cli.app(list(args))
+            app(list(args))
             code = 0
         except SystemExit as e:
             code = e.code or 0

@@ -317,8 +317,8 @@ def test_record_to_row_coerces_every_field_to_its_column_type():
 def test_unit_columns_store_the_same_rows_as_records(session, make_account):
     """The columnar write (a worker's UnitResult) = the record-dict write, cell by cell,
     = the core's records with NaN as null; every stage, so every field is exercised."""
-    from svrobs_core.experiments import run_unit_result
     from svrobs_core.records import json_value
+    from svrobs_core.runner import run_unit_result
 
     spec = {
         **SMALL_SPEC,

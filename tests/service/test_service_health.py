@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from fastapi.testclient import TestClient
 
+from service.api.deps import get_broker_check
 from service.api.main import create_app
-from tests.service.svc_helpers import make_settings
+from tests.service.svc_helpers import make_settings, no_broker_check
 
 BAD_DB = "postgresql+psycopg://postgres@127.0.0.1:1/nowhere"
 
@@ -18,7 +19,7 @@ def test_healthz_readyz(client):
 
 def test_readyz_503_when_db_unreachable():
     app = create_app(make_settings(BAD_DB))
-    app.state.broker_check = lambda: None
+    app.dependency_overrides[get_broker_check] = lambda: no_broker_check
     client = TestClient(app, raise_server_exceptions=False)
     r = client.get("/readyz")
     assert r.status_code == 503

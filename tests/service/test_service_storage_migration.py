@@ -17,8 +17,9 @@ import sqlalchemy as sa
 from service.db.migrate import downgrade, upgrade
 from service.db.results_store import gamma_key, load_records
 from service.db.session import create_db_engine, dispose_all
-from svrobs_core.experiments import plan_units, run_unit_result
+from svrobs_core.planning import plan_units
 from svrobs_core.records import MATRIX_FIELDS, RECORD_FIELDS, json_value
+from svrobs_core.runner import run_unit_result
 from svrobs_core.spec import parse_spec
 from tests.service.conftest import PG_ENV, _pg_private_db
 
@@ -110,7 +111,7 @@ def _write_0001_rows(conn, records: list[dict]) -> int:
         *[sa.column(c) for c in ["job_id", "gamma_key", *fields]],
         *[sa.column(c, sa.JSON()) for c in text_json],
     )
-    rows = [{"job_id": 1, "gamma_key": gamma_key(r["estimator"], r["gamma"]), **r} for r in records]
+    rows = [{"job_id": 1, "gamma_key": gamma_key(r["gamma"]), **r} for r in records]
     conn.execute(results.insert(), rows)
     return len(rows)
 

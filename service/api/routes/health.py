@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import concurrent.futures
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 from sqlalchemy import text
+
+from service.api.deps import BrokerCheckDep, SessionFactory, SessionFactoryDep, SettingsDep
 
 router = APIRouter(tags=["health"])
 _pool = concurrent.futures.ThreadPoolExecutor(max_workers=4, thread_name_prefix="readyz")
@@ -17,34 +19,24 @@ def healthz() -> dict:
     return {"status": "ok"}
 
 
-def _check_db(request: Request) -> None:
-    session = request.app.state.session_factory(False)
+def _check_db(session_factory: SessionFactory) -> None:
+    session = session_factory(False)
     try:
         session.execute(text("SELECT 1"))
     finally:
         session.close()
 
 
-def _check_broker(request: Request) -> None:
-    check = getattr(request.app.state, "broker_check", None)
-    if check is not None:
-        check()
-        return
-    from service.broker import check_broker
-
-    get_celery = getattr(request.app.state.publisher, "get_celery", None)
-    if get_celery is None:  # a test publisher without a broker
-        return
-    check_broker(get_celery(), timeout=request.app.state.settings.BROKER_TIMEOUT)
-
-
 @router.get("/readyz", responses={503: {"description": "DB or broker unreachable"}})
-def readyz(request: Request):
-    timeout = request.app.state.settings.BROKER_TIMEOUT + 3
+def readyz(session_factory: SessionFactoryDep, broker_check: BrokerCheckDep, settings: SettingsDep):
+    timeout = settings.BROKER_TIMEOUT + 3
     checks: dict[str, str] = {}
-    for name, fn in (("database", _check_db), ("broker", _check_broker)):
+    for name, fn, args in (
+        ("database", _check_db, (session_factory,)),
+        ("broker", broker_check, ()),
+    ):
         try:
-            _pool.submit(fn, request).result(timeout=timeout)
+            _pool.submit(fn, *args).result(timeout=timeout)
             checks[name] = "ok"
         except concurrent.futures.TimeoutError:
             checks[name] = "timeout"

@@ -1,49 +1,23 @@
-"""POST/GET /jobs, GET /jobs/{id}, POST /jobs/{id}/cancel."""
+"""POST/GET /jobs, GET/DELETE /jobs/{id}, POST /jobs/{id}/cancel."""
 
 from __future__ import annotations
 
-import logging
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, BackgroundTasks, Header, HTTPException, Query
+from fastapi import APIRouter, Header, HTTPException, Query, Response
 from sqlalchemy import func, select
 from sqlalchemy.orm import joinedload
 
-from service.api.deps import DB, CurrentCaller, PublisherDep, SessionFactoryDep, SettingsDep
-from service.api.routes.common import FieldHTTPException, JobId, job_out, team_job
+from service.api.deps import DB, CurrentCaller, JobId, team_job
+from service.api.errors import BODY_ERRORS, ERRORS
 from service.api.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
-from service.db.errors import IdempotencyConflict, QuotaExceeded
-from service.db.jobs import cancel_job, create_job, unit_ids_of_job
+from service.api.submission import JobRequest, SubmissionDep
+from service.api.views import job_out
+from service.db.job_delete import JobActive, delete_job
+from service.db.jobs import cancel_job
 from service.db.models import Job, JobTag, User
-from service.db.outbox import mark_published
-from svrobs_core.errors import SpecError
 
-log = logging.getLogger(__name__)
 router = APIRouter(tags=["jobs"])
-
-ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 422, 429, 503)}
-BODY_ERRORS = {**ERRORS, 413: {"model": ErrorOut}}  # routes with a body: SVROBS_MAX_BODY_BYTES
-
-
-def publish_after_commit(publisher, session_factory, unit_ids: list[int]) -> None:
-    """Send the committed units to the broker and mark them; on failure nothing is lost:
-    the relay (beat) re-publishes units never marked published."""
-    try:
-        sent = publisher(unit_ids)
-    except Exception as exc:  # pragma: no cover - publishers catch their own errors
-        log.warning("publishing failed: %s", exc)
-        return
-    if not sent:
-        return
-    try:
-        session = session_factory(True)
-        try:
-            mark_published(session, sent)
-            session.commit()
-        finally:
-            session.close()
-    except Exception as exc:
-        log.warning("marking %d units published failed: %s", len(sent), exc)
 
 
 @router.post(
@@ -54,12 +28,7 @@ def publish_after_commit(publisher, session_factory, unit_ids: list[int]) -> Non
 )
 def submit_job(
     body: JobSubmit,  # type: ignore[valid-type]
-    session: DB,
-    caller: CurrentCaller,
-    settings: SettingsDep,
-    publisher: PublisherDep,
-    session_factory: SessionFactoryDep,
-    background: BackgroundTasks,
+    submission: SubmissionDep,
     idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
 ):
     """Validate and queue a job (SPEC section 10 spec plus `name` and `tags`).
@@ -68,37 +37,13 @@ def submit_job(
     work units are committed before anything is sent to the workers.
     """
     data = body.model_dump(exclude_unset=True)
-    spec = {k: data[k] for k in SPEC_FIELD_NAMES if k in data}
-    try:
-        job, created = create_job(
-            session,
-            team_id=caller.team_id,
-            user_id=caller.user_id,
-            spec=spec,
-            name=data.get("name"),
-            tags=data.get("tags") or (),
-            idempotency_key=idempotency_key or None,
-            max_cells=settings.MAX_JOB_CELLS,
-            max_active_jobs=settings.MAX_QUEUED_JOBS_PER_TEAM,
-        )
-    except SpecError:
-        session.rollback()
-        raise
-    except (TypeError, ValueError, KeyError, IndexError) as exc:  # a spec the core choked on
-        session.rollback()
-        raise FieldHTTPException(422, f"invalid spec: {exc}", "spec") from exc
-    except QuotaExceeded as exc:
-        session.rollback()
-        raise HTTPException(429, str(exc)) from exc
-    except IdempotencyConflict as exc:
-        session.rollback()
-        raise FieldHTTPException(409, str(exc), "Idempotency-Key") from exc
-    unit_ids = unit_ids_of_job(session, job.id) if created else []
-    out = job_out(job)  # flushed: ids and defaults are set; no read-back after COMMIT
-    session.commit()
-    session.close()  # end this request's transaction before publishing
-    if unit_ids:
-        background.add_task(publish_after_commit, publisher, session_factory, unit_ids)
+    request = JobRequest(
+        spec={k: data[k] for k in SPEC_FIELD_NAMES if k in data},
+        name=data.get("name"),
+        tags=data.get("tags") or (),
+        idempotency_key=idempotency_key or None,
+    )
+    (out,) = submission.submit([request])
     return out
 
 
@@ -153,3 +98,16 @@ def cancel(job_id: JobId, session: DB, caller: CurrentCaller):
     job = cancel_job(session, job)
     session.commit()
     return job_out(team_job(session, caller.team_id, job_id))
+
+
+@router.delete("/jobs/{job_id}", status_code=204, responses={**ERRORS, 409: {"model": ErrorOut}})
+def delete(job_id: JobId, session: DB, caller: CurrentCaller):
+    """Delete a finished or cancelled job with its units, results and summaries (one
+    transaction); 409 while it is queued or running (cancel it first)."""
+    job = team_job(session, caller.team_id, job_id)
+    try:
+        delete_job(session, job)
+    except JobActive as exc:
+        raise HTTPException(409, str(exc)) from exc
+    session.commit()
+    return Response(status_code=204)

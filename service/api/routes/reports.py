@@ -4,16 +4,14 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, BackgroundTasks, Header
+from fastapi import APIRouter, Header
 from fastapi.responses import HTMLResponse
 from pydantic import BaseModel, ConfigDict
 
-from service.api.deps import DB, CurrentCaller, PublisherDep, SessionFactoryDep, SettingsDep
-from service.api.routes.common import FieldHTTPException, JobId, job_out, team_job
-from service.api.routes.jobs import BODY_ERRORS, ERRORS, publish_after_commit
+from service.api.deps import DB, CurrentCaller, JobId, team_job
+from service.api.errors import BODY_ERRORS, ERRORS
 from service.api.schemas import ErrorOut, JobOut
-from service.db.errors import IdempotencyConflict, QuotaExceeded
-from service.db.jobs import create_job, unit_ids_of_job
+from service.api.submission import JobRequest, SubmissionDep
 from service.db.results_store import load_records
 from service.reports.html import job_report_html
 from svrobs_core.paper import PRESET_NAME, paper_specs
@@ -61,12 +59,7 @@ class PresetRun(BaseModel):
     responses={**BODY_ERRORS, 409: {"model": ErrorOut}},
 )
 def run_paper_preset(
-    session: DB,
-    caller: CurrentCaller,
-    settings: SettingsDep,
-    publisher: PublisherDep,
-    session_factory: SessionFactoryDep,
-    background: BackgroundTasks,
+    submission: SubmissionDep,
     body: PresetRun | None = None,
     idempotency_key: Annotated[str | None, Header(max_length=180)] = None,
 ):
@@ -75,32 +68,13 @@ def run_paper_preset(
     body = body or PresetRun()
     specs = paper_specs(body.scale)
     names = body.experiments or sorted(specs)
-    jobs, unit_ids = [], []
-    try:
-        for name in names:
-            job, created = create_job(
-                session,
-                team_id=caller.team_id,
-                user_id=caller.user_id,
-                spec=specs[name],
-                name=f"{PRESET_NAME} {name} ({body.scale})",
-                tags=(PRESET_NAME, name),
-                idempotency_key=f"{idempotency_key}:{name}" if idempotency_key else None,
-                max_cells=settings.MAX_JOB_CELLS,
-                max_active_jobs=settings.MAX_QUEUED_JOBS_PER_TEAM,
-            )
-            jobs.append(job.id)
-            if created:
-                unit_ids += unit_ids_of_job(session, job.id)
-    except QuotaExceeded as exc:
-        session.rollback()
-        raise FieldHTTPException(429, str(exc)) from exc
-    except IdempotencyConflict as exc:  # the key was used with another scale
-        session.rollback()
-        raise FieldHTTPException(409, str(exc), "Idempotency-Key") from exc
-    session.commit()
-    out = [job_out(team_job(session, caller.team_id, j)) for j in jobs]
-    session.close()
-    if unit_ids:
-        background.add_task(publish_after_commit, publisher, session_factory, unit_ids)
-    return out
+    requests = [
+        JobRequest(
+            spec=specs[name],
+            name=f"{PRESET_NAME} {name} ({body.scale})",
+            tags=(PRESET_NAME, name),
+            idempotency_key=f"{idempotency_key}:{name}" if idempotency_key else None,
+        )
+        for name in names
+    ]
+    return submission.submit(requests)

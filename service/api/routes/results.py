@@ -15,10 +15,10 @@ from fastapi.responses import Response, StreamingResponse
 from pydantic import Field
 from sqlalchemy import Select, func, select
 
-from service.api.deps import DB, CurrentCaller, SessionFactoryDep
-from service.api.record_json import encode_lines, encode_page
-from service.api.routes.common import MAX_ID, FieldHTTPException, JobId, team_job
-from service.api.schemas import CompareOut, ErrorOut, ResultPage, SummaryOut
+from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep, team_job
+from service.api.errors import ERRORS, FieldHTTPException
+from service.api.record_json import ORDER, encode_lines, encode_page
+from service.api.schemas import CompareOut, ResultPage, SummaryOut
 from service.db.models import Result, Summary
 from service.db.result_codec import ResultCodec
 from service.db.results_store import decode_rows, job_codec, record_select
@@ -26,12 +26,10 @@ from service.db.units import summarize_job
 from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
 
 router = APIRouter(tags=["results"])
-ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 422, 429, 503)}
 
 # built once (a select of 41 columns costs ~1 ms to construct); routes add WHERE/ORDER
 RECORDS = record_select()  # as stored: decoded by results_store.decode_rows
 COUNT = select(func.count()).select_from(Result.__table__)
-ORDER = [Result.__table__.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
 COMPARE_BY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep")
 STREAM_CHUNK = 1000
 

@@ -15,10 +15,9 @@ from fastapi import APIRouter, HTTPException, Path, Response
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
-from service.api.deps import DB, CurrentCaller, SettingsDep
-from service.api.routes.common import MAX_ID
+from service.api.deps import DB, MAX_ID, CurrentCaller, SettingsDep
+from service.api.errors import FieldHTTPException, error_docs
 from service.api.schemas import (
-    ErrorOut,
     ScheduleCreate,
     ScheduleOut,
     ScheduleRunOut,
@@ -31,8 +30,8 @@ from svrobs_core.errors import SpecError
 from svrobs_core.spec import parse_spec
 
 router = APIRouter(tags=["schedules"])
-ERRORS = {s: {"model": ErrorOut} for s in (401, 404, 409, 422, 429, 503)}
-BODY_ERRORS = {**ERRORS, 413: {"model": ErrorOut}}  # routes with a body: SVROBS_MAX_BODY_BYTES
+ERRORS = error_docs(401, 404, 409, 422, 429, 503)
+BODY_ERRORS = {**ERRORS, **error_docs(413)}  # routes with a body: SVROBS_MAX_BODY_BYTES
 ScheduleId = Annotated[int, Path(ge=1, le=MAX_ID)]
 
 
@@ -89,8 +88,6 @@ def _commit_or_409(session, name: str) -> None:
         session.commit()
     except IntegrityError:
         session.rollback()
-        from service.api.routes.common import FieldHTTPException
-
         raise FieldHTTPException(
             409, f"the team already has a schedule named {name!r}", "name"
         ) from None

@@ -8,40 +8,34 @@ points at)::
                                             CPU, at most 4: DEFAULT_CONCURRENCY)
     celery -A worker.celery_app beat        the scheduler (runs the tick)
 
-Each child gets its own process group (so a terminal Ctrl-C reaches only this
-supervisor, which then stops the children in order) and, on Linux, a
-parent-death signal (so a SIGKILLed supervisor leaves no orphans). Ctrl-C or
-SIGTERM is forwarded to every child as SIGTERM; a child still running after
-``grace`` seconds gets SIGKILL (its whole group: the prefork pool too). A
+Each child is a :class:`svrobs_cli.processes.Child`: its own process group (so a
+terminal Ctrl-C reaches only this supervisor, which then stops the children in
+order) and a parent-death signal (so a SIGKILLed supervisor leaves no orphans).
+Ctrl-C or SIGTERM is forwarded to every child as SIGTERM; a child still running
+after ``grace`` seconds gets SIGKILL (its whole group: the prefork pool too). A
 second Ctrl-C kills at once. If any child exits on its own, the others are
 stopped and ``serve`` returns non-zero.
 
-The helpers (:func:`prepare_dirs`, :func:`migrate`, :func:`child_commands`,
-:class:`Child`) are what the integration tests and ``bench/service.py`` use,
-so they start exactly the processes ``serve`` starts.
+The helpers (:func:`prepare_dirs`, :func:`migrate`, :func:`child_commands`) are
+what the integration tests and ``bench/service.py`` use, so they start exactly
+the processes ``serve`` starts.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import signal
-import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
+import typer
+
 from service.config import Settings, get_settings
+from svrobs_cli.processes import Child, stop_all
+from svrobs_core.threads import THREAD_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
-THREAD_ENV = {
-    "OPENBLAS_NUM_THREADS": "1",
-    "OMP_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "NUMEXPR_NUM_THREADS": "1",
-    "VECLIB_MAXIMUM_THREADS": "1",
-}
 
 
 # --------------------------------------------------------------------------- setup
@@ -81,45 +75,11 @@ def prepare_dirs(settings: Settings) -> None:
         folder.mkdir(parents=True, exist_ok=True)
 
 
-def alembic_config(url: str):
-    from alembic.config import Config
+def migrate(settings: Settings | None = None) -> None:
+    """``alembic upgrade head`` against settings.DATABASE_URL."""
+    from service.db.migrate import upgrade
 
-    ini = ROOT / "alembic.ini"
-    cfg = Config(str(ini)) if ini.exists() else Config()
-    cfg.set_main_option("script_location", str(ROOT / "migrations"))
-    cfg.set_main_option("sqlalchemy.url", url.replace("%", "%%"))
-    return cfg
-
-
-def migrate(settings: Settings | None = None, revision: str = "head") -> None:
-    """``alembic upgrade head`` against settings.DATABASE_URL (S1's helper if present)."""
-    settings = settings or get_settings()
-    try:
-        from service.db import migrate as db_migrate
-    except ImportError:
-        db_migrate = None
-    fn = None
-    if db_migrate is not None:
-        fn = next(
-            (
-                getattr(db_migrate, n)
-                for n in ("upgrade", "upgrade_head", "migrate")
-                if callable(getattr(db_migrate, n, None))
-            ),
-            None,
-        )
-    if fn is not None and revision == "head":
-        import inspect
-
-        params = inspect.signature(fn).parameters
-        if "url" in params:
-            fn(url=settings.DATABASE_URL)
-        else:
-            fn(settings.DATABASE_URL) if params else fn()
-        return
-    from alembic import command
-
-    command.upgrade(alembic_config(settings.DATABASE_URL), revision)
+    upgrade((settings or get_settings()).DATABASE_URL)
 
 
 ADMIN_TEAM = "admin"
@@ -206,15 +166,14 @@ def api_command(host: str, port: int) -> list[str]:
 DEFAULT_CONCURRENCY = max(1, min(os.cpu_count() or 1, 4))
 
 
+def _celery(*argv: str) -> list[str]:
+    return [sys.executable, "-m", "celery", "-A", "worker.celery_app", *argv]
+
+
 def worker_command(
     name: str = "worker1", concurrency: int = 1, loglevel: str = "info"
 ) -> list[str]:
-    return [
-        sys.executable,
-        "-m",
-        "celery",
-        "-A",
-        "worker.celery_app",
+    return _celery(
         "worker",
         "--concurrency",
         str(concurrency),
@@ -226,16 +185,11 @@ def worker_command(
         f"{name}@%h",
         "--without-gossip",
         "--without-mingle",
-    ]
+    )
 
 
 def beat_command(schedule_file: Path, loglevel: str = "info") -> list[str]:
-    return [
-        sys.executable,
-        "-m",
-        "celery",
-        "-A",
-        "worker.celery_app",
+    return _celery(
         "beat",
         "-l",
         loglevel,
@@ -243,7 +197,7 @@ def beat_command(schedule_file: Path, loglevel: str = "info") -> list[str]:
         str(schedule_file),
         "-S",
         "worker.beat:TickScheduler",
-    ]
+    )
 
 
 def child_commands(
@@ -256,115 +210,6 @@ def child_commands(
     if beat:
         cmds.append(("beat", beat_command(beat_schedule_file(settings))))
     return cmds
-
-
-def _load_prctl():
-    """libc's prctl, resolved once in the parent (the child must not dlopen after fork)."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        import ctypes
-
-        return ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
-        return None
-
-
-_PRCTL = _load_prctl()
-PR_SET_PDEATHSIG = 1
-
-
-def _child_preexec() -> None:  # pragma: no cover - runs in the child, between fork and exec
-    # the child gets SIGTERM if the supervisor dies (even by SIGKILL): no orphans
-    if _PRCTL is not None:
-        _PRCTL(PR_SET_PDEATHSIG, int(signal.SIGTERM))
-
-
-@dataclass
-class Child:
-    """One supervised child process in its own process group."""
-
-    name: str
-    argv: list[str]
-    env: dict
-    log: Path | None = None
-    cwd: Path | None = None  # default: the caller's working directory
-    proc: subprocess.Popen | None = field(default=None, repr=False)
-
-    def start(self) -> Child:
-        out = open(self.log, "ab") if self.log else None
-        self.proc = subprocess.Popen(
-            self.argv,
-            env=self.env,
-            cwd=str(self.cwd or os.getcwd()),
-            stdin=subprocess.DEVNULL,
-            stdout=out,
-            stderr=subprocess.STDOUT if out else None,
-            start_new_session=True,
-            preexec_fn=_child_preexec if _PRCTL is not None else None,  # noqa: PLW1509
-        )
-        if out:
-            out.close()
-        return self
-
-    @property
-    def pid(self) -> int | None:
-        return self.proc.pid if self.proc else None
-
-    def poll(self) -> int | None:
-        return self.proc.poll() if self.proc else 0
-
-    def signal(self, sig: int, group: bool = False) -> None:
-        if self.proc is None or self.proc.poll() is not None:
-            return
-        try:
-            if group:
-                os.killpg(self.proc.pid, sig)
-            else:
-                self.proc.send_signal(sig)
-        except ProcessLookupError:
-            pass
-
-    def stop(self, grace: float = 10.0) -> int | None:
-        """SIGTERM, wait ``grace`` s, then SIGKILL the whole group; reap."""
-        if self.proc is None:
-            return None
-        self.signal(signal.SIGTERM)
-        try:
-            self.proc.wait(grace)
-        except subprocess.TimeoutExpired:
-            pass
-        self.kill_group()
-        return self.proc.returncode
-
-    def kill_group(self) -> None:
-        """SIGKILL the child's process group (the prefork pool too) and reap."""
-        if self.proc is None:
-            return
-        try:
-            os.killpg(self.proc.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:  # pragma: no cover
-            pass
-
-
-def stop_all(children: list[Child], grace: float = 10.0) -> None:
-    """SIGTERM every child at once, wait up to ``grace`` s in total, SIGKILL the rest."""
-    for c in children:
-        c.signal(signal.SIGTERM)
-    deadline = time.monotonic() + grace
-    for c in children:
-        if c.proc is None:
-            continue
-        try:
-            c.proc.wait(max(0.0, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            pass
-    for c in children:
-        c.kill_group()  # also sweeps leftover grandchildren of exited children
 
 
 # --------------------------------------------------------------------------- serve
@@ -442,26 +287,19 @@ def _redact(url: str) -> str:
         return url
 
 
-def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="svrobs serve", description=__doc__.splitlines()[0])
-    p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
-    p.add_argument(
+def serve_command(
+    workers: int = typer.Option(1, "--workers", help="worker processes"),
+    concurrency: int = typer.Option(
+        DEFAULT_CONCURRENCY,
         "--concurrency",
-        type=int,
-        default=DEFAULT_CONCURRENCY,
-        help=f"pool processes per worker (default {DEFAULT_CONCURRENCY}: one per CPU, at most 4)",
-    )
-    p.add_argument("--no-beat", action="store_true", help="do not start the scheduler")
-    args = p.parse_args(argv)
-    sys.exit(
-        serve(
-            get_settings(),
-            workers=args.workers,
-            concurrency=args.concurrency,
-            beat=not args.no_beat,
-        )
-    )
+        help="pool processes per worker (default: one per CPU, at most 4)",
+    ),
+    no_beat: bool = typer.Option(False, "--no-beat", help="do not start the scheduler"),
+) -> None:
+    """Migrate, then run API + worker + scheduler (embedded default: SQLite + filesystem broker)."""
+    from service.logging_config import configure_logging
 
-
-if __name__ == "__main__":
-    main()
+    settings = get_settings()
+    configure_logging(settings)
+    rc = serve(settings, workers=workers, concurrency=concurrency, beat=not no_beat)
+    raise typer.Exit(rc)

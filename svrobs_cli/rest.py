@@ -1,7 +1,5 @@
-"""The ``svrobs`` command line (Typer).
+"""The REST commands of ``svrobs``: a small HTTP client of the API.
 
-    svrobs migrate                         # alembic upgrade head on SVROBS_DATABASE_URL
-    svrobs admin create-team|create-user|create-key|revoke-key|list-keys
     svrobs submit SPEC.json [--wait] [--name N] [--tag T]...
     svrobs status [JOB]
     svrobs results JOB --format csv|jsonl|json [--out FILE]
@@ -9,10 +7,8 @@
 
 The REST commands read the base URL and key from ``SVROBS_URL`` /
 ``SVROBS_API_KEY`` or ``~/.config/svrobs/config.json`` (``{"url", "api_key"}``).
-Every error prints one line and exits with status 2, never a traceback.
-
-Other modules add commands to the same ``app`` (``@app.command()``), e.g. the
-``serve`` and ``run-local`` commands.
+Errors are :class:`~svrobs_cli.errors.CliError` (one line, exit status 2). The
+commands are registered in :mod:`svrobs_cli.app`.
 """
 
 from __future__ import annotations
@@ -22,161 +18,14 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import typer
+
+from svrobs_cli.errors import CliError
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 CONFIG_PATH = Path(os.environ.get("SVROBS_CONFIG", "~/.config/svrobs/config.json")).expanduser()
 TERMINAL = ("succeeded", "failed", "cancelled")
-
-
-class CliError(Exception):
-    """An error shown to the user as one line (exit status 2)."""
-
-
-class SvrobsTyper(typer.Typer):
-    """A Typer app that turns every error into one line on stderr and exit status 2."""
-
-    def __call__(self, *args, **kwargs):
-        try:
-            return super().__call__(*args, **kwargs)
-        except SystemExit:
-            raise
-        except KeyboardInterrupt:
-            print("interrupted", file=sys.stderr)
-            sys.exit(130)
-        except Exception as exc:  # noqa: BLE001 - the one place errors become a line
-            print(f"error: {_one_line(exc)}", file=sys.stderr)
-            sys.exit(2)
-
-
-def _one_line(exc: BaseException) -> str:
-    text = str(exc).strip() or type(exc).__name__
-    return " ".join(text.split())[:500]
-
-
-app = SvrobsTyper(
-    name="svrobs",
-    help="SVR-based observer design experiments as a service.",
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
-    add_completion=False,
-)
-admin_app = SvrobsTyper(
-    help="Teams, users and API keys (direct database access).",
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
-)
-app.add_typer(admin_app, name="admin")
-
-
-# --------------------------------------------------------------------------- database
-
-
-@app.command()
-def migrate(
-    url: str | None = typer.Option(None, help="database URL [SVROBS_DATABASE_URL]"),
-) -> None:
-    """Create or upgrade the database tables (alembic upgrade head)."""
-    from service.db.migrate import upgrade
-
-    upgrade(url)
-    typer.echo("database is at the latest revision")
-
-
-def _admin_session():
-    from service.db.session import session_scope
-
-    return session_scope()
-
-
-def _admin_call(fn, *args, **kwargs):
-    from service.db.errors import AdminError
-
-    try:
-        with _admin_session() as session:
-            return fn(session, *args, **kwargs)
-    except AdminError as exc:
-        raise CliError(str(exc)) from None
-
-
-@admin_app.command("create-team")
-def admin_create_team(name: str) -> None:
-    """Create a team."""
-    from service.db import accounts
-
-    team_id = _admin_call(lambda s: accounts.create_team(s, name).id)
-    typer.echo(f"team {name!r} created (id {team_id})")
-
-
-@admin_app.command("create-user")
-def admin_create_user(
-    team: str = typer.Argument(..., help="team name or id"),
-    email: str = typer.Argument(...),
-    is_admin: bool = typer.Option(False, "--admin", help="team administrator"),
-) -> None:
-    """Create a user in a team."""
-    from service.db import accounts
-
-    t: Any = int(team) if team.isdigit() else team
-    user_id = _admin_call(lambda s: accounts.create_user(s, t, email, is_admin=is_admin).id)
-    typer.echo(f"user {email} created (id {user_id})")
-
-
-@admin_app.command("create-key")
-def admin_create_key(
-    user: str = typer.Argument(..., help="user email or id"),
-    name: str | None = typer.Option(None, help="a label for the key"),
-    expires_days: float | None = typer.Option(None, help="expire after this many days"),
-) -> None:
-    """Create an API key; the key is printed once and never stored."""
-    from service.db import accounts
-
-    u: Any = int(user) if user.isdigit() else user
-
-    def make(session):
-        row, key = accounts.create_key(session, u, name=name, expires_in_days=expires_days)
-        return row.prefix, key
-
-    prefix, key = _admin_call(make)
-    typer.echo(key)
-    print(f"(key prefix {prefix}; store it now, it is shown only once)", file=sys.stderr)
-
-
-@admin_app.command("revoke-key")
-def admin_revoke_key(key: str = typer.Argument(..., help="key prefix, key id or full key")) -> None:
-    """Revoke an API key (it gets 401 from now on)."""
-    from service.db import accounts
-
-    k: Any = int(key) if key.isdigit() else key
-    prefix = _admin_call(lambda s: accounts.revoke_key(s, k).prefix)
-    typer.echo(f"key {prefix} revoked")
-
-
-@admin_app.command("list-keys")
-def admin_list_keys(team: str | None = typer.Argument(None)) -> None:
-    """List API keys (prefix, team, user, created, expires, revoked)."""
-    from service.db import accounts
-
-    t: Any = int(team) if team and team.isdigit() else team
-
-    def rows(session):
-        return [
-            (
-                k.id,
-                k.prefix,
-                k.team_id,
-                k.user.email if k.user else "",
-                k.created_at,
-                k.expires_at,
-                k.revoked_at,
-            )
-            for k in accounts.list_keys(session, t)
-        ]
-
-    for r in _admin_call(rows):
-        typer.echo("\t".join("" if v is None else str(v) for v in r))
 
 
 # --------------------------------------------------------------------------- REST client
@@ -295,7 +144,6 @@ def wait_for(api: Api, job: dict, interval: float = 1.0) -> dict:
     return job
 
 
-@app.command()
 def submit(
     spec_file: Path = typer.Argument(
         ..., help="a SPEC section 10 JSON (or YAML) file; - for stdin"
@@ -327,7 +175,6 @@ def submit(
             raise CliError(f"job {job['id']} {job['status']}: {job.get('error') or ''}".strip())
 
 
-@app.command()
 def status(
     job: int | None = typer.Argument(None, help="a job id; none lists recent jobs"),
     limit: int = typer.Option(20, help="jobs to list"),
@@ -386,7 +233,6 @@ def status(
     typer.echo(f"{len(page['items'])} of {page['total']} jobs")
 
 
-@app.command()
 def results(
     job: int = typer.Argument(...),
     fmt: str = typer.Option("csv", "--format", help="csv, jsonl or json"),
@@ -446,7 +292,6 @@ def results(
         print(f"wrote {out}", file=sys.stderr)
 
 
-@app.command()
 def compare(
     jobs: str = typer.Option(..., help="comma-separated job ids"),
     metric: str = typer.Option("rmse_A", help="a numeric record field"),
@@ -475,11 +320,3 @@ def compare(
             )
         )
     Console().print(table)
-
-
-def main() -> None:  # pragma: no cover
-    app()
-
-
-if __name__ == "__main__":  # pragma: no cover
-    main()

@@ -1,0 +1,24 @@
+"""The web UI (issue 11): server-rendered pages (Jinja2 + htmx + Chart.js, all served
+from ``static/``) behind a sign-in with an API key; see ``session`` for the cookie
+and CSRF rules. ``mount_web(app)`` adds it to the API's app."""
+
+from __future__ import annotations
+
+from fastapi import FastAPI
+from fastapi.staticfiles import StaticFiles
+
+from service.web.render import STATIC, SignInRequired, WebError, sign_in_redirect, web_error_page
+from service.web.session import Signer, load_secret
+
+
+def mount_web(app: FastAPI) -> None:
+    """Serve the pages, ``/static`` and the error pages on ``app`` (its settings set)."""
+    from service.web.pages import auth, job, jobs, submit
+
+    settings = app.state.settings
+    app.state.web_signer = Signer(load_secret(settings), session_hours=settings.SESSION_HOURS)
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    for module in (auth, jobs, submit, job):  # /jobs/rows and /jobs/new before /jobs/{id}
+        app.include_router(module.router)
+    app.add_exception_handler(WebError, web_error_page)
+    app.add_exception_handler(SignInRequired, sign_in_redirect)

@@ -1,0 +1,85 @@
+"""``/``, ``/login`` and ``/logout``: signing in with an API key (checked by the same
+``service.db.accounts.authenticate`` as the API) into a signed session cookie."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Form, Request
+from fastapi.responses import RedirectResponse
+from sqlalchemy.orm import Session
+
+from service.api.deps import caller_of, get_db
+from service.db.accounts import authenticate
+from service.web.deps import CSRF, get_viewer
+from service.web.render import SignInRequired, render, safe_next
+from service.web.session import clear_cookie, request_session, set_cookie, signer_of
+
+router = APIRouter(include_in_schema=False)
+
+
+def _signed_in(request: Request, db: Session) -> bool:
+    try:
+        get_viewer(request, db)
+    except SignInRequired:
+        return False
+    return True
+
+
+@router.get("/")
+def home(request: Request, db: Annotated[Session, Depends(get_db)]):
+    return RedirectResponse("/jobs" if _signed_in(request, db) else "/login", status_code=303)
+
+
+def _login_page(request: Request, next_url: str, error: str | None = None, status: int = 200):
+    """The sign-in form under the request's (anonymous) session, making one if needed."""
+    signer = signer_of(request.app)
+    ws = request_session(request)
+    if ws is None or ws.signed_in:
+        ws = signer.new()
+    response = render(
+        request,
+        "login.html",
+        status=status,
+        viewer=None,
+        csrf=signer.csrf(ws),
+        next=next_url,
+        error=error,
+        hours=request.app.state.settings.SESSION_HOURS,
+    )
+    set_cookie(response, request, ws, signer)
+    return response
+
+
+@router.get("/login")
+def login_form(request: Request, db: Annotated[Session, Depends(get_db)], next: str = "/jobs"):
+    if _signed_in(request, db):
+        return RedirectResponse(safe_next(next), status_code=303)
+    return _login_page(request, safe_next(next))
+
+
+@router.post("/login", dependencies=[CSRF])
+def login(
+    request: Request,
+    db: Annotated[Session, Depends(get_db)],
+    key: Annotated[str, Form(max_length=500)] = "",
+    next: Annotated[str, Form(max_length=2000)] = "/jobs",
+):
+    """A valid key starts a new session (a new nonce, so a new CSRF token) holding the
+    key's id; the key itself is neither stored nor echoed back."""
+    caller = caller_of(request, db, lambda s: authenticate(s, key.strip()))
+    if caller is None:
+        return _login_page(
+            request, safe_next(next), "Invalid, revoked or expired API key.", status=401
+        )
+    signer = signer_of(request.app)
+    response = RedirectResponse(safe_next(next), status_code=303)
+    set_cookie(response, request, signer.new(caller.key_id), signer)
+    return response
+
+
+@router.post("/logout", dependencies=[CSRF])
+def logout(request: Request):
+    response = RedirectResponse("/login", status_code=303)
+    clear_cookie(response, request)
+    return response

@@ -1,0 +1,115 @@
+"""``/jobs/{id}``: one job's spec, provenance, timings, live progress and charts;
+cancel, and delete with a confirmation page. Another team's job is a 404 page."""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi.responses import JSONResponse, RedirectResponse
+from sqlalchemy.orm import Session
+
+from service.api.deps import get_db
+from service.db.job_delete import JobActive, delete_job
+from service.db.jobs import cancel_job
+from service.db.models import JOB_ACTIVE, Job
+from service.web import charts, queries
+from service.web.deps import CSRF, CurrentViewer
+from service.web.render import PAGE_HEADERS, WebError, render
+
+router = APIRouter(include_in_schema=False)
+DB = Annotated[Session, Depends(get_db)]
+MAX_ID = 2_147_483_647
+FINISHED_EVENT = "svrobs:job-finished"
+
+
+def _job(db: Session, viewer, job_id: int) -> Job:
+    job = queries.team_job(db, viewer.team_id, job_id) if 1 <= job_id <= MAX_ID else None
+    if job is None:
+        raise WebError(404, f"Job {job_id} not found.")
+    return job
+
+
+def _progress_context(job: Job) -> dict:
+    total, done = job.progress_total or 0, job.progress_done or 0
+    return {"job": job, "active": job.status in JOB_ACTIVE, "done": done, "total": total}
+
+
+@router.get("/jobs/{job_id:int}")
+def job_page(request: Request, db: DB, viewer: CurrentViewer, job_id: int):
+    job = _job(db, viewer, job_id)
+    return render(
+        request,
+        "job.html",
+        viewer=viewer,
+        nav="jobs",
+        spec_json=json.dumps(job.spec, indent=2),
+        provenance=job.provenance or {},
+        x_fields=charts.X_FIELDS,
+        x_labels=charts.LABELS,
+        **_progress_context(job),
+    )
+
+
+@router.get("/jobs/{job_id:int}/progress")
+def job_progress(request: Request, db: DB, viewer: CurrentViewer, job_id: int):
+    """The status/progress card alone, polled by htmx every 2 s while the job is active;
+    the first poll that sees it finished also fires ``svrobs:job-finished`` (charts
+    reload)."""
+    ctx = _progress_context(_job(db, viewer, job_id))
+    response = render(request, "_job_progress.html", viewer=viewer, **ctx)
+    if not ctx["active"]:
+        response.headers["HX-Trigger"] = FINISHED_EVENT
+    return response
+
+
+@router.get("/jobs/{job_id:int}/chart-data")
+def chart_data(
+    db: DB,
+    viewer: CurrentViewer,
+    job_id: int,
+    metric: Annotated[str, Query(max_length=100)] = "rmse_A",
+    x: Annotated[str, Query(max_length=20)] = "N",
+):
+    """The plotted numbers as JSON, from the stored summaries (service.web.charts)."""
+    job = _job(db, viewer, job_id)
+    try:
+        charts.check(metric, x)
+    except charts.ChartError as exc:
+        return JSONResponse({"detail": str(exc), "field": exc.field}, status_code=422)
+    groups = charts.stored_groups(db, job.id, metric)
+    data = charts.chart_data(groups, metric=metric, x=x)
+    data.update(
+        job_id=job.id,
+        status=job.status,
+        groups=len(groups),
+        metrics=charts.stored_metrics(db, job.id),
+    )
+    return JSONResponse(data, headers=PAGE_HEADERS)
+
+
+@router.post("/jobs/{job_id:int}/cancel", dependencies=[CSRF])
+def cancel(db: DB, viewer: CurrentViewer, job_id: int):
+    job = _job(db, viewer, job_id)
+    if job.status not in JOB_ACTIVE:
+        raise WebError(409, f"Job {job_id} is already {job.status}; there is nothing to cancel.")
+    cancel_job(db, job)
+    db.commit()
+    return RedirectResponse(f"/jobs/{job_id}", status_code=303)
+
+
+@router.get("/jobs/{job_id:int}/delete")
+def confirm_delete(request: Request, db: DB, viewer: CurrentViewer, job_id: int):
+    job = _job(db, viewer, job_id)
+    return render(request, "delete.html", viewer=viewer, nav="jobs", job=job)
+
+
+@router.post("/jobs/{job_id:int}/delete", dependencies=[CSRF])
+def delete(db: DB, viewer: CurrentViewer, job_id: int):
+    try:
+        delete_job(db, _job(db, viewer, job_id))
+    except JobActive as exc:
+        raise WebError(409, f"{exc}.") from exc
+    db.commit()
+    return RedirectResponse(f"/jobs?deleted={job_id}", status_code=303)

@@ -1,0 +1,107 @@
+"""Templates, the pages' security headers and the web UI's error pages.
+
+Every page is sent with a Content-Security-Policy that allows scripts, styles,
+images and requests from this server only: no page can load anything from another
+host, even by mistake.
+"""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime
+from pathlib import Path
+from urllib.parse import quote
+
+from fastapi import Request
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
+from jinja2 import Environment, FileSystemLoader, select_autoescape
+
+HERE = Path(__file__).resolve().parent
+TEMPLATES = HERE / "templates"
+STATIC = HERE / "static"
+
+CSP = (
+    "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; "
+    "connect-src 'self'; font-src 'self'; object-src 'none'; base-uri 'none'; "
+    "form-action 'self'; frame-ancestors 'none'"
+)
+PAGE_HEADERS = {
+    "Content-Security-Policy": CSP,
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "same-origin",
+    "Cache-Control": "no-store",
+}
+
+
+def _when(value: datetime | None) -> str:
+    return value.strftime("%Y-%m-%d %H:%M:%S UTC") if value else "–"
+
+
+def _seconds(value) -> str:
+    if value is None:
+        return "–"
+    value = float(value)
+    return f"{value:.2f} s" if value < 120 else f"{value / 60:.1f} min"
+
+
+env = Environment(
+    loader=FileSystemLoader(TEMPLATES),
+    autoescape=select_autoescape(["html"]),
+    trim_blocks=True,
+    lstrip_blocks=True,
+)
+env.filters["when"] = _when
+env.filters["seconds"] = _seconds
+env.filters["pretty"] = lambda v: json.dumps(v, indent=2, sort_keys=False, allow_nan=False)
+env.filters["tojson_attr"] = lambda v: json.dumps(v, separators=(",", ":"))
+
+
+def render(request: Request, template: str, status: int = 200, **context) -> HTMLResponse:
+    """A page (or an htmx partial) from ``templates/``, with the security headers.
+    ``viewer`` (service.web.deps.Viewer) in the context fills the header bar."""
+    html = env.get_template(template).render(request=request, **context)
+    return HTMLResponse(html, status_code=status, headers=PAGE_HEADERS)
+
+
+class WebError(Exception):
+    """An error page: 403 (CSRF), 404 (not this team's, or missing), 409, 422, 429."""
+
+    def __init__(self, status: int, message: str, *, title: str | None = None):
+        super().__init__(message)
+        self.status = status
+        self.message = message
+        self.title = title or {
+            403: "Forbidden",
+            404: "Not found",
+            409: "Conflict",
+            422: "Invalid input",
+            429: "Too many requests",
+        }.get(status, "Error")
+
+
+class SignInRequired(Exception):
+    """No valid session: pages redirect to /login, htmx requests get HX-Redirect."""
+
+
+def login_url(request: Request) -> str:
+    path = request.url.path
+    if request.url.query:
+        path += "?" + request.url.query
+    return "/login" if path in ("/", "/login") else f"/login?next={quote(path, safe='')}"
+
+
+async def web_error_page(request: Request, exc: WebError) -> Response:
+    return render(request, "error.html", status=exc.status, error=exc, viewer=None)
+
+
+async def sign_in_redirect(request: Request, exc: SignInRequired) -> Response:
+    if request.headers.get("hx-request"):
+        return Response(status_code=401, headers={"HX-Redirect": login_url(request)})
+    return RedirectResponse(login_url(request), status_code=303)
+
+
+def safe_next(target: str | None) -> str:
+    """Only a path on this server (no scheme, no host, no ``//``) is followed."""
+    if not target or not target.startswith("/") or target.startswith("//") or "\\" in target:
+        return "/jobs"
+    return target

@@ -1,0 +1,100 @@
+"""``svrobs migrate`` and ``svrobs admin ...``: the database directly, no API.
+
+The operations are :mod:`service.db.accounts`; each command runs in one committed
+transaction.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+import typer
+
+from svrobs_cli.errors import CliError
+
+
+def migrate(
+    url: str | None = typer.Option(None, help="database URL [SVROBS_DATABASE_URL]"),
+) -> None:
+    """Create or upgrade the database tables (alembic upgrade head)."""
+    from service.db.migrate import upgrade
+
+    upgrade(url)
+    typer.echo("database is at the latest revision")
+
+
+def _admin_call(fn):
+    """``fn(session, accounts)`` in one committed transaction; an AdminError is one line."""
+    from service.db import accounts
+    from service.db.errors import AdminError
+    from service.db.session import session_scope
+
+    try:
+        with session_scope() as session:
+            return fn(session, accounts)
+    except AdminError as exc:
+        raise CliError(str(exc)) from None
+
+
+def admin_create_team(name: str) -> None:
+    """Create a team."""
+    team_id = _admin_call(lambda s, a: a.create_team(s, name).id)
+    typer.echo(f"team {name!r} created (id {team_id})")
+
+
+def admin_create_user(
+    team: str = typer.Argument(..., help="team name or id"),
+    email: str = typer.Argument(...),
+    is_admin: bool = typer.Option(False, "--admin", help="team administrator"),
+) -> None:
+    """Create a user in a team."""
+    t: Any = int(team) if team.isdigit() else team
+    user_id = _admin_call(lambda s, a: a.create_user(s, t, email, is_admin=is_admin).id)
+    typer.echo(f"user {email} created (id {user_id})")
+
+
+def admin_create_key(
+    user: str = typer.Argument(..., help="user email or id"),
+    name: str | None = typer.Option(None, help="a label for the key"),
+    expires_days: float | None = typer.Option(None, help="expire after this many days"),
+) -> None:
+    """Create an API key; the key is printed once and never stored."""
+    u: Any = int(user) if user.isdigit() else user
+
+    def make(session, a):
+        row, key = a.create_key(session, u, name=name, expires_in_days=expires_days)
+        return row.prefix, key
+
+    prefix, key = _admin_call(make)
+    typer.echo(key)
+    print(f"(key prefix {prefix}; store it now, it is shown only once)", file=sys.stderr)
+
+
+def admin_revoke_key(key: str = typer.Argument(..., help="key prefix, key id or full key")) -> None:
+    """Revoke an API key (it gets 401 from now on)."""
+    k: Any = int(key) if key.isdigit() else key
+    prefix = _admin_call(lambda s, a: a.revoke_key(s, k).prefix)
+    typer.echo(f"key {prefix} revoked")
+
+
+def admin_list_keys(team: str | None = typer.Argument(None)) -> None:
+    """List API keys (prefix, team, user, created, expires, revoked)."""
+    t: Any = int(team) if team and team.isdigit() else team
+
+    def rows(session, a):
+        return [
+            (
+                k.id,
+                k.prefix,
+                k.team_id,
+                k.user.email if k.user else "",
+                k.created_at,
+                k.expires_at,
+                k.revoked_at,
+            )
+            for k in a.list_keys(session, t)
+        ]
+
+    for r in _admin_call(rows):
+        typer.echo("\t".join("" if v is None else str(v) for v in r))

@@ -1,0 +1,53 @@
+"""The ``svrobs`` console script: every command is registered here, in one place.
+
+    svrobs migrate                         alembic upgrade head on SVROBS_DATABASE_URL
+    svrobs admin create-team|create-user|create-key|revoke-key|list-keys
+    svrobs submit|status|results|compare   REST commands (svrobs_cli.rest)
+    svrobs run-local|reproduce             the core in process (svrobs_cli.local)
+    svrobs serve                           API + worker + beat (svrobs_cli.serve)
+
+Every error prints one line and exits with status 2, never a traceback
+(:class:`~svrobs_cli.errors.SvrobsTyper`).
+"""
+
+from __future__ import annotations
+
+from svrobs_cli import admin, local, rest, serve
+from svrobs_cli.errors import SvrobsTyper
+
+__all__ = ["app"]
+
+app = SvrobsTyper(
+    name="svrobs",
+    help="SVR-based observer design experiments as a service.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+admin_app = SvrobsTyper(
+    help="Teams, users and API keys (direct database access).",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+)
+app.add_typer(admin_app, name="admin")
+
+COMMANDS = (
+    (app, "migrate", admin.migrate),
+    (admin_app, "create-team", admin.admin_create_team),
+    (admin_app, "create-user", admin.admin_create_user),
+    (admin_app, "create-key", admin.admin_create_key),
+    (admin_app, "revoke-key", admin.admin_revoke_key),
+    (admin_app, "list-keys", admin.admin_list_keys),
+    (app, "submit", rest.submit),
+    (app, "status", rest.status),
+    (app, "results", rest.results),
+    (app, "compare", rest.compare),
+    (app, "run-local", local.run_local_command),
+    (app, "reproduce", local.reproduce_command),
+    (app, "serve", serve.serve_command),
+)
+for group, name, command in COMMANDS:
+    group.command(name)(command)
+
+if __name__ == "__main__":
+    app()

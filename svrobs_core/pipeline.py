@@ -1,0 +1,381 @@
+"""The stage chain of one dataset: estimate -> bounds -> gain -> cost -> cost_bound -> sls.
+
+One dataset is one (system, sigma_w, N) over a range of repetitions; every
+stage is vectorised over the (rep, estimator/gamma) grid (R, E) and fills
+record fields and per-cell notes (SPEC sections 2-8, 10). What depends only
+on the true system (K, J*, its transfer-matrix norms) is computed once and
+cached (:func:`truth`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from . import bounds as _bounds
+from . import cost as _cost
+from . import cost_bound as _cb
+from . import cost_mc as _mc
+from . import estimators as _est
+from . import gains as _gains
+from . import kalman as _kalman
+from .norms import spectral_radius
+from .notes import Notes
+from .planning import EstimatorAxis
+from .rollouts import MC_STREAM, generators, gram_data, seed_key
+from .spec import STAGES, ExperimentSpec
+from .systems import SystemSpec
+
+
+@dataclass(kw_only=True)
+class _Cells:
+    """One dataset's context shared by its stages; ``out`` and ``notes`` are filled."""
+
+    spec: ExperimentSpec
+    system: SystemSpec
+    sigma_w: float
+    keys: list
+    axis: EstimatorAxis
+    A_hat: np.ndarray
+    B_hat: np.ndarray
+    out: dict
+    notes: Notes
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.A_hat.shape[:2]
+
+
+# ---------------------------------------------------------------------------
+# dataset driver
+# ---------------------------------------------------------------------------
+def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
+    """All stages for one (system, sigma_w, N) and a range of reps.
+
+    -> (fields, notes, N0, gain state for ``reuse_gain`` or None)."""
+    system = spec.systems[si]
+    sigma_w = spec.sigma_w[wi]
+    n = system.n
+    keys = [seed_key(si, wi, N, r) for r in reps]
+    need_data = any(e in ("ols", "shrunk-ols") for e in spec.estimators)
+    G, P, Z, F = gram_data(
+        system,
+        sigma_w,
+        N,
+        spec.T0,
+        seed=spec.seed,
+        keys=keys,
+        data=spec.data,
+        x0_std=spec.x0_std,
+        keep_data=need_data,
+    )
+    N0 = (spec.T0 - 1) * N if spec.data == "all" else N
+    theta = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0)
+    A_hat, B_hat = theta[..., :n], theta[..., n:]
+    R, E = theta.shape[:2]
+    out: dict[str, np.ndarray] = {
+        "A_hat": A_hat,
+        "B_hat": B_hat,
+        "rmse_A": _rmse(A_hat, system.A),
+        "rmse_B": _rmse(B_hat, system.B),
+    }
+    notes = Notes((R, E))
+    skipped = [st for st in STAGES if not spec.has(st)]
+    if skipped:
+        notes.add(True, "stages not run: " + ", ".join(skipped))
+    cells = _Cells(
+        spec=spec,
+        system=system,
+        sigma_w=sigma_w,
+        keys=keys,
+        axis=axis,
+        A_hat=A_hat,
+        B_hat=B_hat,
+        out=out,
+        notes=notes,
+    )
+    state = _run_stages(cells, N=N, N0=N0, prev_gain=prev_gain)
+    return out, notes, N0, state
+
+
+def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0) -> np.ndarray:
+    """Theta for every (rep, estimator/gamma): (R, E, n, d); SPEC section 2.
+
+    SVR needs only the sufficient statistics G = Z Z^T, P = F Z^T; OLS (and
+    shrunk OLS) use the data themselves (iterative refinement, QR fallback).
+    """
+    parts = []
+    theta_ols = None
+    for e in spec.estimators:
+        if e == "ols":
+            theta_ols = _est.fit_ols(Z, F) if theta_ols is None else theta_ols
+            parts.append(theta_ols[:, None])
+        elif e == "svr":
+            parts.append(_est.svr_from_gram(G, P, N0, spec.gamma, loss_scale=spec.loss_scale))
+        else:  # shrunk-ols
+            theta_ols = _est.fit_ols(Z, F) if theta_ols is None else theta_ols
+            parts.append(_est.shrunk_ols(theta_ols, spec.gamma))
+    return np.concatenate(parts, axis=1)
+
+
+def _rmse(X, X_true) -> np.ndarray:
+    return np.sqrt(np.mean((X - X_true) ** 2, axis=(-2, -1)))
+
+
+def _run_stages(c: _Cells, *, N, N0, prev_gain):
+    """bounds, then the observer stages; -> the gain state for ``reuse_gain``."""
+    spec, system, out, notes = c.spec, c.system, c.out, c.notes
+    if not spec.has("bounds"):
+        return None
+    gamma = c.axis.gamma_array
+    rad = _bounds.radii(
+        n=system.n,
+        m=system.m,
+        N=N,
+        N0=N0,
+        T0=spec.T0,
+        sigma_u=system.sigma_u,
+        sigma_w=c.sigma_w,
+        gamma=gamma,
+        M=spec.M,
+        delta=spec.delta,
+    )
+    b = _bounds.evaluate_bounds(c.A_hat, c.B_hat, gamma, rad, A_true=system.A, B_true=system.B)
+    shape = c.shape
+    out.update(
+        {
+            "H_A": np.broadcast_to(rad.H_A, shape),
+            "H_B": np.broadcast_to(rad.H_B, shape),
+            "r_A": np.broadcast_to(rad.r_A, shape),
+            "r_B": np.broadcast_to(rad.r_B, shape),
+            "eps_A": b.eps_A,
+            "eps_B": b.eps_B,
+            "coverage_A": b.coverage_A,
+            "coverage_B": b.coverage_B,
+            "thm1_holds_A": b.thm1_holds_A,
+            "thm1_holds_B": b.thm1_holds_B,
+            "rho_upper_bound": b.rho_upper_bound,
+            "stable_certified": b.stable_certified,
+        }
+    )
+    if not spec.has("gain"):
+        return None
+    designed, k_hat_reasons = design(c, gamma, rad)
+    if k_hat_reasons is not None:
+        notes.add_reasons(k_hat_reasons, "K_hat")
+    state = (designed.L, c.A_hat, np.broadcast_to(rad.r_A, shape))
+    if prev_gain is not None:  # reuse_gain: keep the previous L while certified (SPEC 4)
+        L_prev, A_prev, r_prev = prev_gain
+        reuse = _gains.reuse_gains(
+            np.stack([L_prev, designed.L]),
+            np.stack([A_prev, c.A_hat]),
+            gamma,
+            r_A=np.stack([r_prev, state[2]]),
+            C=system.C,
+        )
+        designed = _gains.GainResult(
+            L=reuse.L[1], g_L=reuse.g_L[1], certified=reuse.certified[1], feasible=None
+        )
+        notes.add(reuse.reused[1], "gain: reused from the previous N")
+        state = (reuse.L[1], c.A_hat, state[2])
+    _observer_stages(c, b, designed)
+    return state
+
+
+# ---------------------------------------------------------------------------
+# observer stages: gain, cost, cost_bound, sls (SPEC sections 4-8)
+# ---------------------------------------------------------------------------
+@lru_cache(maxsize=64)
+def _truth_cached(matrices, shapes, sigmas, horizon):
+    A, B, C = (np.frombuffer(x).reshape(s) for x, s in zip(matrices, shapes))
+    sigma_u, sigma_w, sigma_v = sigmas
+    kal = _kalman.kalman_predictor(A, C, sigma_w, sigma_v)
+    K = kal.K
+    J_star = float(
+        _cost.optimal_cost(
+            A, B, K, C, sigma_u=sigma_u, sigma_w=sigma_w, sigma_v=sigma_v, horizon=horizon
+        )
+    )
+    norms = _cb.true_system_norms(A, B, C, K)
+    return K, J_star, norms, kal.reasons() if not kal.ok else None
+
+
+def truth(system, sigma_w: float, horizon: int):
+    """K, J*, TrueSystemNorms and Kalman failure reason of the true system (cached)."""
+    A, B, C = system.A, system.B, system.C
+    return _truth_cached(
+        (A.tobytes(), B.tobytes(), C.tobytes()),
+        (A.shape, B.shape, C.shape),
+        (system.sigma_u, float(sigma_w), system.sigma_v),
+        horizon,
+    )
+
+
+def design(c: _Cells, gamma, rad):
+    """The designed gain of every cell (before the reuse policy): GainResult, K-hat notes."""
+    system = c.system
+    g = gamma[None, :]
+    scaled = (1.0 + g)[..., None, None] * c.A_hat
+    kal = _kalman.kalman_predictor(scaled, system.C, c.sigma_w, system.sigma_v)
+    res = _gains.design_gain(
+        c.A_hat, g, rad.r_A[None, :], C=system.C, K_hat=kal.K, margin=c.spec.margin
+    )
+    return res, (None if kal.ok.all() else kal.reasons())
+
+
+def _observer_stages(c: _Cells, b, designed):
+    """Fill gain/cost/bound/sls fields for one dataset; ``designed`` is the
+    (possibly reused) GainResult the caller chose for this N."""
+    spec, system, out, notes = c.spec, c.system, c.out, c.notes
+    A, B, C = system.A, system.B, system.C
+    A_hat, B_hat = c.A_hat, c.B_hat
+    R, E = c.shape
+    K, J_star, norms, k_reason = truth(system, c.sigma_w, spec.horizon)
+    if k_reason is not None:
+        notes.add(True, f"true system: {k_reason}")
+    L = designed.L
+    out["L"], out["g_L"], out["certified"] = L, designed.g_L, designed.certified
+    out["K"] = np.broadcast_to(K, (R, E) + K.shape)
+    rho_F = spectral_radius(A_hat - L @ C)
+    out["rho_true"] = spectral_radius(A - L @ C)
+    if designed.feasible is not None:
+        notes.add(
+            ~designed.feasible & np.isfinite(designed.g_L),
+            "gain: margin not reachable, L minimises g(L)",
+        )
+    if not spec.has("cost"):
+        return
+    noise = dict(sigma_u=system.sigma_u, sigma_w=c.sigma_w, sigma_v=system.sigma_v)
+    J = _cost.exact_cost(A, B, A_hat, B_hat, L=L, C=C, **noise, horizon=spec.horizon)
+    J_stat, stat_reason = _cost.stationary_cost(
+        A, B, A_hat, B_hat, L=L, C=C, **noise, rho_F=rho_F, return_reason=True
+    )
+    notes.add_reasons(stat_reason, "J_stationary")
+    out["J_exact"], out["J_stationary"] = J, J_stat
+    out["J_star"] = np.broadcast_to(J_star, (R, E))
+    _monte_carlo(c, L)
+    _cost_ratio(c, J)
+    if spec.has("cost_bound"):
+        t3 = _cb.theorem3_bound(
+            A_hat,
+            L,
+            C,
+            K,
+            eps_A=b.eps_A,
+            eps_B=b.eps_B,
+            sigma_u=system.sigma_u,
+            sigma_v=system.sigma_v,
+            norms=norms,
+            rho_F=rho_F,
+        )
+        notes.add_reasons(t3.reason, "J_bound")
+        out["J_bound"] = t3.J_b
+        out["delta_J"] = t3.J_b - J
+    if spec.has("sls"):
+        _sls_stage(c, b, norms, K)
+
+
+def mc_note(limit: int) -> str:
+    """The note of the cells without a Monte Carlo J (tagged "mc" in the notes)."""
+    if limit == 0:
+        return "J_mc: not requested (mc_reps = 0)"
+    return f"J_mc: only computed for rep < mc_reps = {limit}"
+
+
+def _monte_carlo(c: _Cells, L):
+    """J_mc for reps < mc_reps; one generator per (key, MC stream), so every
+    estimator and gamma of a repetition sees the same noise: it is drawn once
+    per repetition and drives all the repetition's cells (common random
+    numbers, :func:`svrobs_core.cost_mc.mc_cost_shared`)."""
+    spec, system, keys = c.spec, c.system, c.keys
+    R, E = c.shape
+    J_mc = np.full((R, E), np.nan)
+    J_se = np.full((R, E), np.nan)
+    limit = spec.reps if spec.mc_reps is None else spec.mc_reps
+    rows = np.array([key[3] < limit for key in keys], dtype=bool)
+    c.notes.add(~rows[:, None], mc_note(limit), tag="mc")
+    idx = np.flatnonzero(rows)
+    if idx.size:
+        gens = generators(spec.seed, [keys[i] for i in idx], MC_STREAM, fresh=True)
+        J_mc[idx], J_se[idx] = _mc.mc_cost_shared(
+            system.A,
+            system.B,
+            c.A_hat[idx],
+            c.B_hat[idx],
+            L=L[idx],
+            C=system.C,
+            sigma_u=system.sigma_u,
+            sigma_w=c.sigma_w,
+            sigma_v=system.sigma_v,
+            horizon=spec.horizon,
+            rngs=list(gens),
+            runs=spec.mc_runs,
+        )
+    c.out["J_mc"], c.out["J_mc_se"] = J_mc, J_se
+
+
+def _cost_ratio(c: _Cells, J):
+    """r = |J_gamma - J_ref| / J_ref against gamma_ref of the same estimator (SPEC 6)."""
+    axis = c.axis
+    ratio = np.full(J.shape, np.nan)
+    names = np.array(axis.names)
+    for ei, (name, g) in enumerate(zip(axis.names, axis.gammas)):
+        if g is None:
+            continue
+        ref = [
+            j
+            for j, (nm, gg) in enumerate(zip(names, axis.gammas))
+            if nm == name and gg == c.spec.gamma_ref
+        ]
+        if ref:
+            ratio[:, ei] = np.abs(J[:, ei] - J[:, ref[0]]) / J[:, ref[0]]
+        else:
+            missing = np.zeros(J.shape, dtype=bool)
+            missing[:, ei] = True
+            c.notes.add(missing, "cost_ratio: gamma_ref not in the gamma grid")
+    c.out["cost_ratio"] = ratio
+
+
+def _sls_stage(c: _Cells, b, norms, K):
+    """J_opt by SLS per cell (cvxpy + Clarabel) and the paper's bound on it (SPEC 8)."""
+    from . import sls as _sls  # cvxpy: imported only when the sls stage runs
+
+    spec, system, notes = c.spec, c.system, c.notes
+    R, E = c.shape
+    su, sv = system.sigma_u, system.sigma_v
+    eps1 = np.fmax(b.eps_A, b.eps_B)
+    F = _sls.sls_F(eps1, norms.hinf_PhiA_B, norms.hinf_PhiA_K, sigma_u=su, sigma_v=sv)
+    C_bound = spec.sls_C_bound
+    if C_bound is None:
+        C_bound = float(_sls.default_C_bound(K, norms.h2_closed))
+    J_opt = np.full((R, E), np.nan)
+    status = np.empty((R, E), dtype=object)
+    undefined = ~np.isfinite(np.broadcast_to(F, (R, E)))
+    notes.add(undefined, "J_opt: F undefined (true system unstable: H-infinity norms infinite)")
+    for ri, ei in np.ndindex(R, E):
+        if undefined[ri, ei]:
+            status[ri, ei] = "not_run"
+            continue
+        res = _sls.sls_observer(
+            c.A_hat[ri, ei], system.C, K, F[ri, ei], C_bound=C_bound, T_fir=spec.sls_T_fir
+        )
+        J_opt[ri, ei], status[ri, ei] = res.J_opt, res.status
+    bound, reason = _sls.jopt_upper_bound(
+        b.eps_A,
+        eps1,
+        C_bound,
+        hinf_AB=norms.hinf_PhiA_B,
+        hinf_AK=norms.hinf_PhiA_K,
+        sigma_u=su,
+        sigma_v=sv,
+        h2_cl_inv=norms.h2_closed,
+        hinf_cl_inv=norms.hinf_closed,
+    )
+    notes.add_reasons(reason, None)
+    c.out["J_opt"], c.out["sls_status"], c.out["J_opt_bound"] = (
+        J_opt,
+        status,
+        np.broadcast_to(bound, (R, E)),
+    )

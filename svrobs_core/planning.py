@@ -1,0 +1,89 @@
+"""Work units of a grid and the estimator axis of a dataset (SPEC sections 1 and 10).
+
+``plan_units(spec)`` splits the grid into JSON-able work units; the records
+do not depend on how the grid is split (SPEC section 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .spec import ExperimentSpec
+
+MAX_CELLS_PER_UNIT = 20_000
+TARGET_CELLS_PER_UNIT = 2_000  # ~0.1-1 s of work: amortises a worker's per-unit cost
+
+
+def plan_units(
+    spec: ExperimentSpec,
+    *,
+    max_cells: int = MAX_CELLS_PER_UNIT,
+    target_cells: int = TARGET_CELLS_PER_UNIT,
+) -> list[dict]:
+    """Work units ``{"system", "sigma_w", "N": [...], "reps": [start, stop]}``.
+
+    Consecutive N values of one (system, sigma_w) are packed into a unit
+    while it stays within ``target_cells`` (all N at once when ``reuse_gain``
+    couples them); a single N over ``max_cells`` is split by repetitions.
+    The records do not depend on the split.
+    """
+    per_N = spec.cells_per_rep * spec.reps
+    if spec.reuse_gain:
+        n_groups = [list(spec.N)]
+    else:
+        n_groups, group = [], []
+        for N in sorted(spec.N):
+            if group and per_N * (len(group) + 1) > target_cells:
+                n_groups.append(group)
+                group = []
+            group.append(N)
+        n_groups.append(group)
+    units = []
+    for si in range(len(spec.systems)):
+        for wi in range(len(spec.sigma_w)):
+            for Ns in n_groups:
+                per_rep = spec.cells_per_rep * len(Ns)
+                chunk = max(1, min(spec.reps, max_cells // per_rep))
+                for r0 in range(0, spec.reps, chunk):
+                    units.append(
+                        {
+                            "system": si,
+                            "sigma_w": wi,
+                            "N": list(Ns),
+                            "reps": [r0, min(spec.reps, r0 + chunk)],
+                        }
+                    )
+    return units
+
+
+def unit_cells(spec: ExperimentSpec, unit: dict) -> int:
+    """The number of records (cells) a work unit of :func:`plan_units` gives."""
+    r0, r1 = unit["reps"]
+    return len(unit["N"]) * (r1 - r0) * spec.cells_per_rep
+
+
+@dataclass
+class EstimatorAxis:
+    """The estimator axis E of one dataset: (estimator name, gamma or None)."""
+
+    names: list[str]
+    gammas: list[float | None]
+
+    @property
+    def gamma_array(self) -> np.ndarray:  # 0 for ols: the bounds use gamma = 0
+        return np.array([0.0 if g is None else g for g in self.gammas])
+
+
+def estimator_axis(spec: ExperimentSpec) -> EstimatorAxis:
+    """The (estimator, gamma) columns of every dataset: OLS once, the others per gamma."""
+    names, gammas = [], []
+    for e in spec.estimators:
+        if e == "ols":
+            names.append(e)
+            gammas.append(None)
+        else:
+            names += [e] * len(spec.gamma)
+            gammas += list(spec.gamma)
+    return EstimatorAxis(names, gammas)

@@ -1,0 +1,102 @@
+"""Run work units -> section 10 records (SPEC sections 1-10).
+
+``run_unit_result(spec, unit)`` is the one pure function a worker calls (one
+unit of :func:`svrobs_core.planning.plan_units` -> a :class:`UnitResult`);
+``run_unit`` gives the same unit's record dicts; ``run_spec`` runs every
+unit in process (or in ``n_jobs`` processes). Records do not depend on how
+the grid is split nor on where the units run (SPEC section 1).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import replace
+from typing import Any
+
+from .parallel import open_pool, run_ordered
+from .pipeline import run_dataset
+from .planning import estimator_axis, plan_units
+from .spec import ExperimentSpec
+from .threads import blas_single_thread
+from .unit_result import Dataset, UnitResult
+
+
+def run_unit_result(spec: ExperimentSpec, unit: dict) -> UnitResult:
+    """Run one work unit of ``plan_units`` -> its records as a :class:`UnitResult`.
+
+    A unit may carry ``"mc_reps"``: it overrides the spec's for this unit
+    (used to compute the Monte Carlo J once for several specs that differ
+    only there; see :meth:`UnitResult.with_mc_reps`)."""
+    if "mc_reps" in unit and unit["mc_reps"] != spec.mc_reps:
+        spec = replace(spec, mc_reps=unit["mc_reps"])
+    si, wi = unit["system"], unit["sigma_w"]
+    reps = list(range(*unit["reps"]))
+    axis = estimator_axis(spec)
+    datasets = []
+    prev_gain = None
+    with blas_single_thread():
+        for N in sorted(unit["N"]):
+            fields, notes, N0, gain = run_dataset(
+                spec, si=si, wi=wi, N=N, reps=reps, axis=axis, prev_gain=prev_gain
+            )
+            if spec.reuse_gain:
+                prev_gain = gain
+            datasets.append(Dataset(N=int(N), N0=int(N0), fields=fields, note_entries=notes))
+    return UnitResult(
+        system=spec.systems[si].name,
+        system_idx=si,
+        sigma_w=spec.sigma_w[wi],
+        sigma_w_idx=wi,
+        reps=reps,
+        axis=axis,
+        datasets=datasets,
+        mc_reps=spec.mc_reps,
+        n_reps=spec.reps,
+    )
+
+
+def run_unit(spec: ExperimentSpec, unit: dict) -> list[dict]:
+    """Run one work unit of ``plan_units`` -> its section 10 records."""
+    return run_unit_result(spec, unit).records()
+
+
+def _records_of(result: UnitResult) -> list[dict]:
+    return result.records()
+
+
+def _work(spec, unit, post):
+    return post(run_unit_result(spec, unit))
+
+
+def run_spec(
+    spec: ExperimentSpec,
+    *,
+    progress: Callable[[int, int], None] | None = None,
+    units: list[dict] | None = None,
+    n_jobs: int = 1,
+    post: Callable[[UnitResult], Any] | None = None,
+    pool=None,
+) -> Iterator[Any]:
+    """Run every unit, yielding each unit's records in unit order.
+
+    ``n_jobs > 1`` runs units in that many worker processes (scikit-learn's
+    convention); the records are the same to the bit either way. ``pool``:
+    an executor from :func:`svrobs_core.parallel.open_pool` to reuse across
+    calls. ``post``: a picklable function applied to each unit's
+    :class:`UnitResult` (in the worker process when ``n_jobs > 1``); its value
+    is yielded instead of the list of record dicts (e.g. ``UnitResult.json_lines``).
+    """
+    units = plan_units(spec) if units is None else units
+    post = _records_of if post is None else post
+    if (n_jobs > 1 or pool is not None) and len(units) > 1:
+        calls = [(spec, u, post) for u in units]
+        if pool is not None:
+            yield from run_ordered(pool, _work, calls, progress)
+        else:
+            with open_pool(n_jobs) as own:
+                yield from run_ordered(own, _work, calls, progress)
+        return
+    for i, unit in enumerate(units):
+        yield post(run_unit_result(spec, unit))
+        if progress is not None:
+            progress(i + 1, len(units))

@@ -1,0 +1,351 @@
+"""The records of one work unit as column arrays (SPEC section 10).
+
+A unit's results are kept as column arrays (:class:`UnitResult`), one array
+per record field over the (repetition, estimator/gamma) grid of each N.
+From them ``records()`` builds the section 10 dicts, ``json_lines()`` the
+same records as JSON text (identical to ``json.dumps(record)``, built per
+field rather than per record) and ``columns()`` the arrays a report reads,
+so a large run never has to go through one dict per cell.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from itertools import repeat
+from typing import Any
+
+import numpy as np
+
+from .notes import Notes
+from .pipeline import mc_note
+from .planning import EstimatorAxis
+from .records import CELL_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, json_value
+
+
+def _flat(arr, RE: int) -> np.ndarray:
+    arr = np.asarray(arr)
+    return arr.reshape((RE,) + arr.shape[2:])
+
+
+def _values(arr, RE: int) -> list:
+    """An (R, E, ...) field -> one plain value per cell (NaN/inf -> None), cell order."""
+    arr = _flat(arr, RE)
+    if arr.dtype == object or arr.dtype == bool:
+        return arr.tolist()
+    arr = arr.astype(float, copy=False)
+    finite = np.isfinite(arr)
+    out = np.where(finite, arr, 0.0).tolist()
+    bad = ~finite.reshape(RE, -1).all(axis=1)
+    for i in np.flatnonzero(bad).tolist():
+        out[i] = json_value(arr[i])
+    return out
+
+
+def _broadcast_row(arr) -> np.ndarray | None:
+    """The (E, ...) row of an (R, E, ...) array that is constant along R (stride 0), else None."""
+    arr = np.asarray(arr)
+    if arr.ndim >= 1 and arr.shape[0] > 1 and arr.strides[0] == 0:
+        return arr[0]
+    return None
+
+
+def _json_strings(arr, RE: int) -> list[str]:
+    """JSON text of each cell's value, exactly as ``json.dumps`` writes it."""
+    arr = np.asarray(arr)
+    row = _broadcast_row(arr)
+    if row is not None:  # constant along the repetitions: encode one row, repeat it
+        return _json_strings(row[None], row.shape[0]) * (RE // row.shape[0])
+    arr = _flat(arr, RE)
+    if arr.dtype == bool:
+        return np.where(arr, "true", "false").tolist()
+    if arr.dtype == object:
+        return [json.dumps(v, allow_nan=False) for v in arr.tolist()]
+    arr = arr.astype(float, copy=False)
+    finite = np.isfinite(arr)
+    if arr.ndim == 1:
+        vals = np.where(finite, arr, 0.0)
+        # few distinct values (coverage, gamma_ref's ratio 0): repr each once;
+        # unique on the bits, so that -0.0 and 0.0 stay apart
+        u, first, inv = np.unique(vals.view(np.int64), return_index=True, return_inverse=True)
+        if 2 * u.size < vals.size:
+            table = np.empty(u.size, dtype=object)
+            table[:] = list(map(repr, vals[first].tolist()))
+            out = table[inv.reshape(-1)].tolist()
+        else:
+            out = list(map(repr, vals.tolist()))
+        for i in np.flatnonzero(~finite).tolist():
+            out[i] = "null"
+        return out
+    # a matrix per cell: repr of nested lists of floats is the JSON text
+    out = list(map(repr, np.where(finite, arr, 0.0).tolist()))
+    bad = ~finite.reshape(RE, -1).all(axis=1)
+    for i in np.flatnonzero(bad).tolist():
+        out[i] = json.dumps(json_value(arr[i]), allow_nan=False)
+    return out
+
+
+@dataclass
+class Dataset:
+    """One N of a unit: the fields over (reps, E) and their notes."""
+
+    N: int
+    N0: int
+    fields: dict[str, np.ndarray]
+    note_entries: Notes
+
+    def __post_init__(self):
+        self.notes = self.note_entries.strings()  # object (R, E): str or None
+
+
+class UnitResult:
+    """The records of one work unit as column arrays.
+
+    ``records()`` -> section 10 dicts; ``json_lines()`` -> the same records as
+    JSON text, one string per record (``json.dumps(record)`` to the byte);
+    ``columns(matrices)`` -> {field: array} for :class:`svrobs_core.report.Columns`.
+    Record order: N ascending, then repetition, then estimator/gamma.
+    """
+
+    def __init__(
+        self,
+        *,
+        system: str,
+        system_idx: int,
+        sigma_w: float,
+        sigma_w_idx: int,
+        reps: list[int],
+        axis: EstimatorAxis,
+        datasets: list[Dataset],
+        mc_reps: int | None = None,
+        n_reps: int | None = None,
+    ):
+        self.system = system
+        self.system_idx = system_idx
+        self.sigma_w = sigma_w
+        self.sigma_w_idx = sigma_w_idx
+        self.reps = list(reps)
+        self.axis = axis
+        self.datasets = datasets
+        self.mc_reps = mc_reps  # the Monte Carlo limit these records were computed with
+        self.n_reps = n_reps  # the spec's repetition count (mc_reps = None means all)
+        self._strings: dict[tuple, list[str]] = {}  # JSON text per (dataset, field[, limit])
+
+    def with_mc_reps(self, mc_reps: int | None) -> UnitResult:
+        """The records a spec with this ``mc_reps`` (and otherwise the same) gives.
+
+        ``mc_reps`` changes only J_mc, J_mc_se and the note that says where
+        they are null, so they are recomputed from this result when the new
+        limit is not above the one it was computed with.
+        """
+
+        def lim(x):
+            return self.n_reps if x is None else x
+
+        if lim(mc_reps) == lim(self.mc_reps):
+            return self
+        if lim(mc_reps) > lim(self.mc_reps):
+            raise ValueError(f"Monte Carlo was computed for rep < {lim(self.mc_reps)} only")
+        rows = np.asarray(self.reps) < lim(mc_reps)
+        datasets = []
+        for ds in self.datasets:
+            fields = dict(ds.fields)
+            notes = ds.note_entries
+            if "mc" in notes.tags:
+                for f in ("J_mc", "J_mc_se"):
+                    fields[f] = np.where(rows[:, None], fields[f], np.nan)
+                notes = notes.replace("mc", ~rows[:, None], mc_note(lim(mc_reps)))
+            datasets.append(Dataset(N=ds.N, N0=ds.N0, fields=fields, note_entries=notes))
+        new = UnitResult(
+            system=self.system,
+            system_idx=self.system_idx,
+            sigma_w=self.sigma_w,
+            sigma_w_idx=self.sigma_w_idx,
+            reps=self.reps,
+            axis=self.axis,
+            datasets=datasets,
+            mc_reps=mc_reps,
+            n_reps=self.n_reps,
+        )
+        new._strings = self._strings  # shared: the keys of J_mc, J_mc_se hold the limit
+        return new
+
+    def __len__(self) -> int:
+        return len(self.reps) * len(self.axis.names) * len(self.datasets)
+
+    # -- per-cell key columns -------------------------------------------------
+    def _key_columns(self, ds: Dataset) -> dict[str, Any]:
+        R, E = len(self.reps), len(self.axis.names)
+        RE = R * E
+        return {
+            "system": repeat(self.system, RE),
+            "sigma_w": repeat(self.sigma_w, RE),
+            "N": repeat(ds.N, RE),
+            "N0": repeat(ds.N0, RE),
+            "estimator": self.axis.names * R,
+            "gamma": self.axis.gammas * R,
+            "rep": [r for r in self.reps for _ in range(E)],
+            "seed_key": [
+                [self.system_idx, self.sigma_w_idx, ds.N, r] for r in self.reps for _ in range(E)
+            ],
+        }
+
+    def value_columns(
+        self,
+        as_json: frozenset[str] | set[str] = frozenset(),
+        omit: frozenset[str] | set[str] = frozenset(),
+    ) -> dict[str, list]:
+        """{field: one value per record, in record order} for every section 10 field
+        not in ``omit``: plain Python values (NaN/inf -> None), and for the fields in
+        ``as_json`` their JSON text (as ``json.dumps`` writes it) instead. The
+        columnar form the DB layer stores without building a dict per record."""
+        R, E = len(self.reps), len(self.axis.names)
+        RE = R * E
+        out: dict[str, list] = {f: [] for f in RECORD_FIELDS if f not in omit}
+        for di, ds in enumerate(self.datasets):
+            cols = self._key_columns(ds)
+            if "seed_key" in as_json:
+                cols["seed_key"] = self._seed_key_strings(ds)
+            for f in CELL_FIELDS:
+                v = ds.fields.get(f)
+                if f in omit:
+                    continue
+                if v is None:
+                    cols[f] = repeat("null" if f in as_json else None, RE)
+                elif f in as_json:
+                    cols[f] = self._json_strings(di, f, v, RE)
+                else:
+                    cols[f] = _values(v, RE)
+            cols["notes"] = ds.notes.reshape(RE).tolist()
+            for f in out:
+                out[f].extend(cols[f])
+        return out
+
+    def matrix_blocks(self) -> list[dict[str, np.ndarray | None]]:
+        """Per dataset (in :meth:`value_columns` order), each matrix field as one
+        (records, rows, cols) float array in record order, or None where it was not
+        computed (NaN/inf entries are the records' nulls)."""
+        RE = len(self.reps) * len(self.axis.names)
+        return [
+            {f: None if ds.fields.get(f) is None else _flat(ds.fields[f], RE) for f in MATRIX_FIELDS}
+            for ds in self.datasets
+        ]
+
+    def records(self) -> list[dict]:
+        cols = self.value_columns()
+        return [dict(zip(RECORD_FIELDS, vals)) for vals in zip(*(cols[f] for f in RECORD_FIELDS))]
+
+    def _seed_key_strings(self, ds: Dataset) -> list[str]:
+        E = len(self.axis.names)
+        return [
+            f"[{self.system_idx}, {self.sigma_w_idx}, {ds.N}, {r}]"
+            for r in self.reps
+            for _ in range(E)
+        ]
+
+    def _json_strings(self, di: int, f: str, v, RE: int) -> list[str]:
+        """``_json_strings`` of a field, cached (J_mc and J_mc_se per Monte Carlo limit)."""
+        key = (di, f, self.mc_reps) if f in ("J_mc", "J_mc_se") else (di, f)
+        if key not in self._strings:
+            self._strings[key] = _json_strings(v, RE)
+        return self._strings[key]
+
+    def json_lines(self) -> list[str]:
+        """Each record as ``json.dumps(record, allow_nan=False)`` would write it."""
+        R, E = len(self.reps), len(self.axis.names)
+        RE = R * E
+        lines: list[str] = []
+        for di, ds in enumerate(self.datasets):
+            const: dict[str, str] = {
+                "system": json.dumps(self.system),
+                "sigma_w": repr(float(self.sigma_w)),
+                "N": str(int(ds.N)),
+                "N0": str(int(ds.N0)),
+            }
+            var: dict[str, list[str]] = {
+                "estimator": [json.dumps(x) for x in self.axis.names] * R,
+                "gamma": ["null" if g is None else repr(float(g)) for g in self.axis.gammas] * R,
+                "rep": [str(r) for r in self.reps for _ in range(E)],
+                "seed_key": self._seed_key_strings(ds),
+            }
+            for f in CELL_FIELDS:
+                v = ds.fields.get(f)
+                if v is None:
+                    const[f] = "null"
+                else:
+                    var[f] = self._json_strings(di, f, v, RE)
+            cache: dict[Any, str] = {}
+            note_col = []
+            for t in ds.notes.reshape(RE).tolist():
+                s = cache.get(t)
+                if s is None:
+                    s = cache[t] = json.dumps(t)
+                note_col.append(s)
+            var["notes"] = note_col
+            parts, order = [], []
+            for f in RECORD_FIELDS:
+                if f in var:
+                    parts.append(f'"{f}": %s')
+                    order.append(var[f])
+                else:
+                    parts.append(f'"{f}": ' + const[f].replace("%", "%%"))
+            template = "{" + ", ".join(parts) + "}"
+            lines += [template % t for t in zip(*order)]
+        return lines
+
+    def columns(self, matrices: bool = True) -> dict[str, np.ndarray]:
+        """{field: array over the unit's records} as :mod:`svrobs_core.report` reads them:
+        numbers as float (NaN = null, booleans 0/1), text as object arrays,
+        A_hat/B_hat as (k, n, .) floats if ``matrices``."""
+        from .report import COLUMN_MATRIX_FIELDS, SCALAR_FIELDS, TEXT_FIELDS
+
+        R, E = len(self.reps), len(self.axis.names)
+        RE = R * E
+        parts: dict[str, list[np.ndarray]] = {}
+
+        def put(f, a):
+            parts.setdefault(f, []).append(a)
+
+        gam = np.array([np.nan if g is None else g for g in self.axis.gammas], dtype=float)
+        for ds in self.datasets:
+            keys = {
+                "sigma_w": np.full(RE, float(self.sigma_w)),
+                "N": np.full(RE, float(ds.N)),
+                "N0": np.full(RE, float(ds.N0)),
+                "gamma": np.tile(gam, R),
+                "rep": np.repeat(np.asarray(self.reps, dtype=float), E),
+            }
+            for f in SCALAR_FIELDS:
+                if f in keys:
+                    put(f, keys[f])
+                    continue
+                v = ds.fields.get(f)
+                if v is None:
+                    put(f, np.full(RE, np.nan))
+                else:
+                    a = _flat(v, RE)
+                    if a.dtype == object:
+                        a = np.array([np.nan if x is None else float(x) for x in a.tolist()])
+                    put(f, np.where(np.isfinite(a), a, np.nan).astype(float))
+            for f in TEXT_FIELDS:
+                if f == "system":
+                    col = np.full(RE, self.system, dtype=object)
+                elif f == "estimator":
+                    col = np.array(self.axis.names * R, dtype=object)
+                elif f == "notes":
+                    col = ds.notes.reshape(RE)
+                else:
+                    v = ds.fields.get(f)
+                    col = (
+                        np.full(RE, None, dtype=object)
+                        if v is None
+                        else np.asarray(_flat(v, RE), dtype=object)
+                    )
+                put(f, col)
+            if matrices:
+                for f in COLUMN_MATRIX_FIELDS:
+                    v = ds.fields.get(f)
+                    if v is not None:
+                        a = _flat(v, RE).astype(float)
+                        put(f, np.where(np.isfinite(a).all(axis=(1, 2))[:, None, None], a, np.nan))
+        return {f: np.concatenate(v) for f, v in parts.items()}

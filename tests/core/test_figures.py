@@ -1,0 +1,363 @@
+"""The report's figures checked on the figure objects, not on pixels.
+
+Figures are built from real records (the reduced E2 and E4 grids of the paper
+preset, run in process) and from constructed records; each check reads the
+drawn artists back (Line2D data, tick labels, text sizes, legend handles).
+"""
+
+import csv
+import io
+import json
+import math
+from collections import defaultdict
+
+import matplotlib
+import numpy as np
+import pytest
+from matplotlib.collections import PolyCollection
+from matplotlib.colors import to_rgba
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
+from matplotlib.text import Text
+
+from svrobs_core import parse_spec, run_spec
+from svrobs_core import report as rpt
+from svrobs_core.paper import paper_specs
+from svrobs_core.records import SUMMARY_FIELDS
+from svrobs_core.report.style import MIN_FONT_PT, NEUTRAL, ONE_COLUMN_CM, TWO_COLUMN_CM
+from tests.core.test_report import make_records, tiny_spec
+
+CM = 1 / 2.54
+
+
+@pytest.fixture(scope="module")
+def real():
+    """Records of the reduced E2 (estimation) and E4 (cost) grids."""
+    specs = paper_specs("reduced")
+    out = {}
+    for name in ("E2", "E4"):
+        out[name] = (specs[name], [r for b in run_spec(parse_spec(specs[name])) for r in b])
+    return out
+
+
+def all_figures(real):
+    """(name, figure) of every figure of the report plan, drawn from its experiment."""
+    figs = []
+    for name, fn, prefer, *_ in rpt.FIGURE_PLAN:
+        exp = "E2" if prefer[0] in ("E1", "E2") else "E4"
+        spec, recs = real[exp]
+        figs.append((name, fn(recs, spec, experiment=exp)))
+    # constructed records with coverage below 1 somewhere: fig_coverage is drawn
+    spec = tiny_spec()
+    recs = make_records(spec, cost=False)
+    for r in recs:
+        if r["rep"] == 0:
+            r["coverage_A"] = 0.5
+    figs.append(("fig_coverage (constructed)", rpt.fig_coverage(recs, spec)))
+    # constructed cost records with some ΔJ < 0: fig4 draws its share panel
+    spec4 = paper_specs("reduced")["E4"]
+    recs4 = make_records(spec4, seed=3)
+    for r in recs4[:5]:
+        r["delta_J"] = -1.0
+    figs.append(("fig4 (constructed)", rpt.fig4(recs4, spec4)))
+    return [(n, f) for n, f in figs if not f.svrobs_empty]
+
+
+@pytest.fixture(scope="module")
+def figures(real):
+    figs = all_figures(real)
+    for _, fig in figs:
+        fig.canvas.draw()  # tick labels and layout exist only after a draw
+    return figs
+
+
+def data_lines(ax):
+    return [ln for ln in ax.lines if hasattr(ln, "svrobs_key")]
+
+
+def panels(fig):
+    return [ax for ax in fig.axes if ax.get_visible() and data_lines(ax)]
+
+
+def labelled_ticks(axis, lo, hi):
+    n = 0
+    for loc, lab in zip(axis.get_majorticklocs(), axis.get_ticklabels()):
+        if lab.get_visible() and lab.get_text().strip() and lo <= loc <= hi:
+            n += 1
+    return n
+
+
+def test_every_figure_is_drawn_at_a_column_width(figures):
+    names = {n for n, _ in figures}
+    assert {"fig_rmse", "fig2", "fig3", "fig4", "fig5", "fig_certified"} <= names
+    for name, fig in figures:
+        w = fig.get_figwidth() / CM
+        assert math.isclose(w, ONE_COLUMN_CM, abs_tol=0.01) or math.isclose(
+            w, TWO_COLUMN_CM, abs_tol=0.01
+        ), name
+    assert any(math.isclose(f.get_figwidth() / CM, ONE_COLUMN_CM) for _, f in figures)
+
+
+def test_every_axis_has_three_labelled_ticks(figures):
+    for name, fig in figures:
+        for ax in panels(fig):
+            for axis, lim, siblings in (
+                (ax.yaxis, ax.get_ylim(), ax.get_shared_y_axes().get_siblings(ax)),
+                (ax.xaxis, ax.get_xlim(), ax.get_shared_x_axes().get_siblings(ax)),
+            ):
+                lo, hi = sorted(lim)
+                n = labelled_ticks(axis, lo, hi)
+                if n == 0:  # labels hidden on an inner panel: a sibling carries them
+                    other = [
+                        labelled_ticks(s.yaxis if axis is ax.yaxis else s.xaxis, lo, hi)
+                        for s in siblings
+                        if s is not ax and s.get_visible()
+                    ]
+                    assert other and max(other) >= 3, (name, ax.get_title(), axis.axis_name)
+                else:
+                    assert n >= 3, (name, ax.get_title(), axis.axis_name, n)
+
+
+def test_every_text_is_at_least_8_pt_at_print_size(figures):
+    for name, fig in figures:
+        texts = [t for t in fig.findobj(Text) if t.get_visible() and t.get_text().strip()]
+        assert texts
+        small = [(t.get_text(), t.get_fontsize()) for t in texts if t.get_fontsize() < MIN_FONT_PT]
+        assert not small, (name, small[:3])
+
+
+def same(a, b):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    if a.shape != b.shape or not np.array_equal(np.isnan(a), np.isnan(b)):
+        return False
+    ok = np.isfinite(a)
+    return bool(np.all(np.abs(a[ok] - b[ok]) <= 1e-12 * max(1.0, np.abs(a[ok]).max(initial=0))))
+
+
+def test_no_two_series_of_a_panel_are_identical_unless_said(figures):
+    for name, fig in figures:
+        said = " ".join(fig.svrobs_notes).lower()
+        for ax in panels(fig):
+            lines = data_lines(ax)
+            for i, a in enumerate(lines):
+                for b in lines[i + 1 :]:
+                    if same(a.get_xdata(), b.get_xdata()) and same(a.get_ydata(), b.get_ydata()):
+                        labels = a.svrobs_key[1] + b.svrobs_key[1]
+                        assert "identical" in labels or "identical" in said, (
+                            name,
+                            a.svrobs_key,
+                            b.svrobs_key,
+                        )
+
+
+def _dashes(ln):
+    return ln.get_linestyle(), ln._unscaled_dash_pattern
+
+
+def test_every_legend_entry_is_a_drawn_artist(figures):
+    for name, fig in figures:
+        drawn = [ln for ax in fig.axes for ln in ax.lines]
+        fills = [c for ax in fig.axes for c in ax.collections if isinstance(c, PolyCollection)]
+        legends = list(fig.legends) + [ax.get_legend() for ax in fig.axes if ax.get_legend()]
+        assert legends, name
+        for leg in legends:
+            labels = [t.get_text() for t in leg.get_texts() if t.get_text()]
+            assert len(labels) == len(set(labels)), (name, labels)  # no entry twice
+            for h, text in zip(leg.legend_handles, leg.get_texts()):
+                label = text.get_text()
+                if not label:
+                    continue  # a blank cell of a row-wise legend
+                if isinstance(h, Patch):
+                    assert fills, (name, label)
+                    continue
+                assert isinstance(h, Line2D), (name, label)
+                if to_rgba(h.get_color()) == to_rgba(NEUTRAL):  # a line-style entry
+                    hits = [ln for ln in drawn if _dashes(ln) == _dashes(h)]
+                else:  # a series entry: its colour and marker
+                    hits = [
+                        ln
+                        for ln in drawn
+                        if to_rgba(ln.get_color()) == to_rgba(h.get_color())
+                        and ln.get_marker() == h.get_marker()
+                    ]
+                assert hits, (name, label)
+
+
+def read_csv(text):
+    rows = defaultdict(list)
+    for r in csv.DictReader(io.StringIO(text)):
+        y = float(r["value"]) if r["value"] else math.nan
+        rows[(r["panel"], r["series"], r["quantity"])].append((float(r["N0"]), y))
+    return rows
+
+
+def test_each_figure_csv_equals_the_plotted_data(figures):
+    for name, fig in figures:
+        rows = read_csv(rpt.figure_csv(fig))
+        keys = set()
+        for ax in fig.axes:
+            for ln in ax.lines:
+                if not hasattr(ln, "svrobs_key"):
+                    assert getattr(ln, "svrobs_ref", False), (name, ln.get_label())
+                    continue
+                assert ln.svrobs_key not in keys, (name, ln.svrobs_key)  # keys are unique
+                keys.add(ln.svrobs_key)
+                got = rows[ln.svrobs_key]
+                x, y = np.asarray(ln.get_xdata(), float), np.asarray(ln.get_ydata(), float)
+                assert len(got) == len(x), (name, ln.svrobs_key)
+                np.testing.assert_array_equal(np.array([g[0] for g in got]), x)
+                np.testing.assert_array_equal(np.array([g[1] for g in got]), y)
+        assert keys == set(rows), name
+
+
+def test_bands_are_drawn_where_the_label_says(real):
+    spec, recs = real["E4"]
+    fig = rpt.fig4(recs, spec)
+    ax = fig.axes[0]
+    assert "5-95 % band" in ax.get_ylabel()
+    fills = [c for c in ax.collections if isinstance(c, PolyCollection)]
+    rows = read_csv(rpt.figure_csv(fig))
+    series = sorted({k[1] for k in rows if k[2] == "q05"})
+    assert len(fills) == len(series) == 4
+    for fill, s in zip(fills, series):
+        lo = [y for _, y in rows[("delta_J", s, "q05")]]
+        hi = [y for _, y in rows[("delta_J", s, "q95")]]
+        ys = fill.get_paths()[0].vertices[:, 1]
+        assert min(ys) == pytest.approx(min(lo)) and max(ys) == pytest.approx(max(hi))
+        # the band is the 5 % and 95 % quantiles of ΔJ over the repetitions
+        g = float(s.split("=")[1])
+        N0 = rows[("delta_J", s, "q05")][0][0]
+        v = [
+            r["delta_J"]
+            for r in recs
+            if r["system"] == "paper-stable"
+            and r["gamma"] == g
+            and r["N0"] == N0
+            and r["delta_J"] is not None
+        ]
+        assert len(v) == spec["reps"]
+        assert lo[0] == pytest.approx(float(np.quantile(v, 0.05)), rel=1e-12)
+        assert hi[0] == pytest.approx(float(np.quantile(v, 0.95)), rel=1e-12)
+
+
+def test_log_and_symlog_axes_follow_the_data(figures):
+    for name, fig in figures:
+        for ax in panels(fig):
+            v = np.concatenate([np.asarray(ln.get_ydata(), float) for ln in data_lines(ax)])
+            v = v[np.isfinite(v)]
+            scale = ax.get_yscale()
+            if scale == "log":
+                assert (v > 0).all(), name
+            if scale == "symlog":
+                assert (v < 0).any() and (v > 0).any(), (name, ax.get_title())
+                lt = ax.yaxis.get_transform().linthresh
+                q = float(np.quantile(np.abs(v[v != 0]), 0.1))
+                assert lt <= q < 10 * lt, (name, lt, q)  # the linear region fits the data
+            if (v > 0).all() and v.max() / v.min() > 10:
+                assert scale == "log", (name, ax.get_title(), scale)
+
+
+def test_fig_rmse_plots_the_mean_rmse_per_N(real):
+    """Oracle: plain-Python means of rmse_A over the repetitions at each N."""
+    spec, recs = real["E2"]
+    fig = rpt.fig_rmse(recs, spec)
+    rows = read_csv(rpt.figure_csv(fig))
+    for est, g, series in (("ols", None, "σ_w=1 OLS"), ("svr", 0.05, "σ_w=1 SVR γ=0.05")):
+        got = rows[("paper-stable: A", series, "rmse_A")]
+        assert got
+        for N0, y in got:
+            v = [
+                r["rmse_A"]
+                for r in recs
+                if r["system"] == "paper-stable"
+                and r["sigma_w"] == 1.0
+                and r["estimator"] == est
+                and r["gamma"] == g
+                and r["N0"] == N0
+            ]
+            assert y == pytest.approx(sum(v) / len(v), rel=1e-12)
+
+
+def test_coinciding_curves_get_a_difference_and_the_largest_gap(real):
+    spec, recs = real["E2"]
+    fig = rpt.fig3(recs, spec)
+    rows = read_csv(rpt.figure_csv(fig))
+    gaps = []
+    for panel in ("paper-stable: A", "paper-unstable: A", "paper-stable: B", "paper-unstable: B"):
+        mat = panel[-1]
+        ref = dict(rows[(panel, "γ=0.005", f"entry_error_{mat}")])
+        for g in ("γ=0.01", "γ=0.05", "γ=0.1"):
+            for N0, y in rows[(panel, g, f"entry_error_{mat}")]:
+                gaps.append(abs(y - ref[N0]))
+    text = " ".join(fig.svrobs_notes)
+    assert "lie on top of each other" in text or "differ by up to" in text
+    assert f"largest gap is {max(gaps):.2g}" in text
+
+
+def test_empty_share_panel_is_a_note(real):
+    spec, recs = real["E4"]
+    fig = rpt.fig4(recs, spec)
+    dJ = [r["delta_J"] for r in recs if r["system"] == "paper-stable" and r["delta_J"] is not None]
+    n_neg = sum(1 for v in dJ if v < 0)
+    assert n_neg == 0  # Theorem 3's bound holds on the reduced grid
+    assert f"ΔJ < 0 in 0 of {len(dJ):,} cells" in " ".join(fig.svrobs_notes)
+    assert not any("share" in ax.get_ylabel() for ax in fig.axes if ax.get_visible())
+
+
+def test_pdf_embeds_its_fonts_and_style_does_not_leak(real):
+    size_before = matplotlib.rcParams["font.size"]
+    spec, recs = real["E4"]
+    fig = rpt.fig5(recs, spec)
+    pdf = rpt.figure_bytes(fig, "pdf")
+    assert pdf.startswith(b"%PDF-") and b"/FontFile2" in pdf and b"/Type3" not in pdf
+    assert rpt.figure_bytes(fig, "pdf") == pdf  # deterministic
+    assert matplotlib.rcParams["font.size"] == size_before
+
+
+def test_figure_series_is_shared_data():
+    rows = json.loads(json.dumps(rpt.figure_series_json()))
+    assert {r["figure"] for r in rows} == {name for name, *_ in rpt.FIGURE_PLAN}
+    for r in rows:
+        assert set(r) >= {"field", "stat", "where", "panels", "lines", "band", "x", "derived"}
+        if not r["derived"]:  # the dashboard reads these from the summaries
+            assert r["field"] in SUMMARY_FIELDS, r
+    keys = [(r["figure"], r["key"]) for r in rows]
+    assert len(keys) == len(set(keys))
+
+
+def test_summary_lines_give_the_figures_curves(real):
+    """The dashboard's reading of FIGURE_SERIES (summaries) against the figures'
+    own (records): the same curves for every row the summaries can give."""
+    from svrobs_core import summarize
+    from svrobs_core.report.columns import as_columns, select, spec_meta
+    from svrobs_core.report.series import (
+        context,
+        series_lines,
+        summary_context,
+        summary_lines,
+    )
+
+    checked = 0
+    for exp in ("E2", "E4"):
+        spec, recs = real[exp]
+        groups = summarize(recs)
+        cols, meta = as_columns(recs), spec_meta(spec)
+        ctx, sctx = context(cols, meta), summary_context(groups, spec)
+        assert {k: ctx[k] for k in sctx} == sctx
+        for s in rpt.FIGURE_SERIES:
+            if s.derived or s.stat not in ("mean", "ratio_of_means"):
+                with pytest.raises(ValueError):
+                    summary_lines(groups, s, sctx)
+                continue
+            for line in summary_lines(groups, s, sctx):
+                pm = select(cols, **line["panel"]) if s.panels == ("system",) else None
+                if pm is None:
+                    pm = select(
+                        cols, system=line["panel"]["system"], sigma_w=line["panel"]["sigma_w"]
+                    )
+                mine = [ln for ln in series_lines(cols, meta, s, pm, ctx) if ln.key == line["line"]]
+                assert len(mine) == 1, (s.figure, s.key, line["line"])
+                np.testing.assert_array_equal(mine[0].N, line["N"])
+                np.testing.assert_allclose(mine[0].y, line["y"], rtol=1e-12)
+                checked += 1
+    assert checked > 20

@@ -1,0 +1,64 @@
+"""Playwright driving Debian's chromium (never a downloaded browser) for the web tests.
+
+:class:`Browser` opens one chromium per test module; every context it makes records
+the URL of each request the page sends, so a test can check that nothing went to
+another host.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import pytest
+
+CHROMIUM = Path("/usr/bin/chromium")
+ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--disable-quic",
+]
+# SVROBS_SCREENSHOTS=docs/img writes the dashboard screenshots of the README there.
+SCREENSHOTS = os.environ.get("SVROBS_SCREENSHOTS")
+
+needs_chromium = pytest.mark.skipif(
+    not CHROMIUM.exists(), reason=f"{CHROMIUM} missing (Debian package 'chromium')"
+)
+
+
+class Browser:
+    def __init__(self):
+        from playwright.sync_api import sync_playwright
+
+        self._pw = sync_playwright().start()
+        self.chromium = self._pw.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
+        self.requests: list[str] = []
+        self.console_errors: list[str] = []
+
+    def page(self, base_url: str):
+        """A fresh context (no cookies) and page on ``base_url``, its requests logged."""
+        context = self.chromium.new_context(
+            base_url=base_url, viewport={"width": 1280, "height": 900}
+        )
+        context.on("request", lambda r: self.requests.append(r.url))
+        page = context.new_page()
+        page.on(
+            "console",
+            lambda m: self.console_errors.append(m.text) if m.type == "error" else None,
+        )
+        page.set_default_timeout(30_000)
+        return page
+
+    def foreign_requests(self, base_url: str) -> list[str]:
+        """Requests to any host but the server (data: URLs never leave the page)."""
+        own = urlsplit(base_url).netloc
+        return [u for u in self.requests if not u.startswith("data:") and urlsplit(u).netloc != own]
+
+    def close(self) -> None:
+        self.chromium.close()
+        self._pw.stop()

@@ -1,0 +1,279 @@
+"""The web UI in a real chromium against a real server (uvicorn + celery worker on the
+embedded stack of tests/integration): sign in, submit, live progress, charts equal
+to the API's summary, cancel, delete, sign out, team scoping, CSRF, and no request
+to any host but the server."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+from playwright.sync_api import expect
+
+from tests.integration.stack import submit
+
+from .browser import SCREENSHOTS, Browser, needs_chromium
+
+pytestmark = [
+    pytest.mark.integration,
+    pytest.mark.timeout(600),
+    needs_chromium,
+    pytest.mark.parametrize("stack", ["embedded"], indirect=True),
+]
+
+SPEC = {
+    "systems": ["paper-stable", "paper-unstable"],
+    "sigma_w": [0.1, 1.0],
+    "N": [10, 20, 40],
+    "gamma": [0.01, 0.1],
+    "estimators": ["ols", "svr"],
+    "reps": 3,
+    "stages": ["estimate", "bounds"],
+    "seed": 11,
+}
+TINY = {"systems": ["paper-stable"], "sigma_w": [1.0], "N": [10], "reps": 2, "seed": 2}
+
+PLOTTED = """() => window.svrobsCharts.charts.map(c => ({
+  panel: c.panel,
+  y: c.chart.options.scales.y.type,
+  lines: c.chart.data.datasets.filter(d => d.svrobs.role === "mean").map(d => ({
+    estimator: d.svrobs.estimator, gamma: d.svrobs.gamma,
+    points: d.data.map(p => [p.x, p.y]), std: d.svrobs.std,
+  })),
+}))"""
+
+
+@pytest.fixture(scope="module")
+def browser():
+    b = Browser()
+    try:
+        yield b
+    finally:
+        b.close()
+
+
+@pytest.fixture(autouse=True)
+def only_the_server(browser, stack):
+    """After every test: the pages asked nothing of another host and logged no error."""
+    browser.requests.clear()
+    browser.console_errors.clear()
+    yield
+    assert browser.requests, "no request was recorded"
+    assert browser.foreign_requests(stack.base_url) == []
+    assert [
+        e for e in browser.console_errors if "the server responded with a status of 4" not in e
+    ] == []
+
+
+@pytest.fixture(scope="module")
+def team_b_key(stack) -> str:
+    out = stack.python(
+        "from service.db.session import session_scope\n"
+        "from service.db import accounts as admin\n"
+        "with session_scope() as db:\n"
+        "    admin.create_team(db, 'other-lab')\n"
+        "    admin.create_user(db, 'other-lab', 'b@other.example')\n"
+        "    _, key = admin.create_key(db, 'b@other.example')\n"
+        "print(key)\n"
+    )
+    return out.strip().splitlines()[-1]
+
+
+def sign_in(page, key: str) -> None:
+    page.goto("/jobs")
+    assert re.search(r"/login\?next=%2Fjobs$", page.url), page.url
+    page.fill("#key", key)
+    page.click("form[action='/login'] button[type=submit]")
+    page.wait_for_url(re.compile(r"/jobs$"))
+
+
+def wait_charts(page, loads: int) -> list[dict]:
+    page.wait_for_selector(f"#charts-card[data-loads='{loads}']")  # (the CSP forbids eval)
+    return page.evaluate(PLOTTED)
+
+
+def assert_charts_equal_summary(plotted: list[dict], summary: dict, x: str, metric: str) -> None:
+    """Every summary group is one plotted point (x, mean) with its std, nothing else."""
+    panel_fields = [f for f in ("system", "sigma_w", "N") if f != x]
+    want = {}
+    for g in summary["groups"]:
+        gamma = None if x == "gamma" else g["gamma"]
+        key = ("|".join(str(g[f]) for f in panel_fields), g["estimator"], gamma, g[x])
+        want[key] = (g["stats"][metric]["mean"], g["stats"][metric]["std"])
+    got = {}
+    for chart in plotted:
+        for line in chart["lines"]:
+            for (xv, y), std in zip(line["points"], line["std"]):
+                got[(chart["panel"], line["estimator"], line["gamma"], xv)] = (y, std)
+    assert got == want
+
+
+def log_text(stack) -> str:
+    return "".join(p.read_text(errors="replace") for p in stack.logs.glob("*.log"))
+
+
+def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    assert stack.key not in page.content()
+    stack.stop("worker1")  # the job waits, so the page sees it run and finish
+    try:
+        page.click("nav a[href='/jobs/new']")
+        page.select_option("#preset", "system:paper-unstable")  # htmx fills the textarea
+        expect(page.locator("#spec")).to_have_value(re.compile("paper-unstable"))
+        assert json.loads(page.input_value("#spec"))["systems"] == ["paper-unstable"]
+        page.fill("#spec", json.dumps({**SPEC, "reps": 0}))
+        page.fill("#name", "browser sweep")
+        page.fill("#tags", "web, tiny")
+        page.click("#submit-job")
+        assert page.locator("#spec-error").inner_text() == "reps: must be >= 1"
+        assert page.input_value("#name") == "browser sweep"  # the form keeps its values
+        upload = {"name": "sweep.json", "mimeType": "application/json"}
+        page.set_input_files("#spec_file", files=[{**upload, "buffer": json.dumps(SPEC).encode()}])
+        page.click("#submit-job")  # the uploaded file, not the (bad) text, is the spec
+        page.wait_for_url(re.compile(r"/jobs/\d+$"))
+        job_id = int(page.url.rsplit("/", 1)[1])
+        page.click("nav a[href='/jobs']")
+        row = page.locator(f"#job-{job_id}")
+        assert row.get_attribute("data-status") == "queued"
+        assert page.get_attribute("#jobs-table", "data-polling") == "yes"
+        navigations = []
+        page.on("framenavigated", lambda frame: navigations.append(frame.url))
+        page.evaluate("window.notReloaded = true")
+    finally:
+        stack.start_worker()
+    page.wait_for_selector(f"#job-{job_id}[data-status=succeeded]", timeout=180_000)
+    assert page.evaluate("window.notReloaded") is True and navigations == []
+    bar = page.locator(f"#job-{job_id} progress")
+    assert bar.get_attribute("value") == bar.get_attribute("max") != "0"
+    page.wait_for_selector("#jobs-table[data-polling=no]")  # polling stopped
+
+    with stack.client() as api:
+        summary = api.get(f"/jobs/{job_id}/summary").json()
+        assert summary["partial"] is False and len(summary["groups"]) == 2 * 2 * 3 * 3
+        job = api.get(f"/jobs/{job_id}").json()
+    assert job["name"] == "browser sweep" and job["tags"] == ["web", "tiny"]
+
+    page.click(f"#job-{job_id} a")
+    plotted = wait_charts(page, 1)
+    assert len(plotted) == 4 and all(c["y"] == "logarithmic" for c in plotted)
+    assert_charts_equal_summary(plotted, summary, "N", "rmse_A")
+    if SCREENSHOTS:
+        page.screenshot(path=str(Path(SCREENSHOTS) / "dashboard-job.png"), full_page=True)
+    page.select_option("#chart-x", "sigma_w")
+    wait_charts(page, 2)
+    page.select_option("#chart-metric", "H_A")
+    plotted = wait_charts(page, 3)
+    assert_charts_equal_summary(plotted, summary, "sigma_w", "H_A")
+    page.select_option("#chart-x", "gamma")
+    plotted = wait_charts(page, 4)
+    ols = [ln for c in plotted for ln in c["lines"] if ln["estimator"] == "ols"]
+    assert ols and all(len({y for _, y in ln["points"]}) == 1 for ln in ols)  # flat line
+    page.uncheck("#chart-logy")
+    assert {c["y"] for c in page.evaluate(PLOTTED)} == {"linear"}
+    hidden = page.evaluate(
+        """() => { const c = window.svrobsCharts.charts[0].chart;
+        c.options.plugins.legend.onClick(null, {datasetIndex: 0}, c.legend);
+        return c.data.datasets.map((d, i) => [d.svrobs.series, c.isDatasetVisible(i)]); }"""
+    )
+    assert {vis for s, vis in hidden if s == 0} == {False}  # the line and its band
+    assert {vis for s, vis in hidden if s != 0} == {True}
+    page.uncheck("#chart-bands")
+    roles = page.evaluate(
+        "() => window.svrobsCharts.charts[0].chart.data.datasets.map(d => d.svrobs.role)"
+    )
+    assert roles and set(roles) == {"mean"}
+
+    with stack.client() as api:  # downloads: the API's own streams, under the cookie
+        for fmt in ("csv", "jsonl"):
+            path = f"/api/v1/jobs/{job_id}/results?format={fmt}"
+            href = page.get_attribute(f"a[href='{path}']", "href")
+            assert page.request.get(href).text() == api.get(path[len("/api/v1") :]).text
+    page.click("#report-link")  # the API's report, opened with the session cookie
+    page.wait_for_load_state()
+    assert page.url.endswith(f"/api/v1/jobs/{job_id}/report") and "<html" in page.content()
+    page.go_back()
+    page.click("form[action='/logout'] button")
+    page.wait_for_url(re.compile(r"/login$"))
+    page.goto(f"/jobs/{job_id}")
+    assert "/login?next=" in page.url
+    assert stack.key not in log_text(stack)  # uvicorn's access log never saw the key
+
+
+def test_cancel_then_delete_with_confirmation(browser, stack):
+    stack.stop("worker1")
+    try:
+        with stack.client() as api:
+            job_id = submit(api, TINY, name="to delete")["id"]
+        page = browser.page(stack.base_url)
+        sign_in(page, stack.key)
+        page.goto(f"/jobs/{job_id}")
+        assert page.locator("#delete-job").count() == 0  # a queued job is cancelled first
+        page.click("#cancel-job")
+        page.wait_for_selector("#job-status:text('cancelled')")
+        page.click("#delete-job")
+        assert page.url.endswith(f"/jobs/{job_id}/delete")
+        with stack.client() as api:  # asking is not deleting
+            assert api.get(f"/jobs/{job_id}").status_code == 200
+        page.click("#confirm-delete")
+        page.wait_for_url(re.compile(rf"/jobs\?deleted={job_id}$"))
+        assert page.locator(f"#job-{job_id}").count() == 0
+        with stack.client() as api:
+            assert api.get(f"/jobs/{job_id}").status_code == 404
+        page.goto(f"/jobs/{job_id}")
+        assert "404" in page.inner_text("h1")
+    finally:
+        stack.start_worker()
+
+
+def test_other_team_gets_404_and_posts_need_the_csrf_token(browser, stack, team_b_key):
+    with stack.client() as api:
+        job_id = submit(api, TINY, name="team a")["id"]
+        stack.wait_job(api, job_id)
+    page = browser.page(stack.base_url)
+    sign_in(page, team_b_key)
+    assert page.locator(f"#job-{job_id}").count() == 0
+    for path in (f"/jobs/{job_id}", f"/jobs/{job_id}/delete"):
+        response = page.goto(path)
+        assert response.status == 404 and "not found" in page.inner_text("main").lower()
+    for path in (f"/jobs/{job_id}/chart-data", f"/api/v1/jobs/{job_id}/report"):
+        assert page.request.get(path).status == 404
+
+    page.goto("/jobs")
+    status = page.evaluate(
+        """async (id) => (await fetch(`/jobs/${id}/cancel`, {method: "POST"})).status""", job_id
+    )
+    assert status == 403  # no token, though the browser sends the session cookie
+    own = page.evaluate(
+        """async () => { const r = await fetch("/logout", {method: "POST",
+             headers: {"X-CSRF-Token": "forged"}}); return r.status; }"""
+    )
+    assert own == 403
+    assert page.goto("/jobs").url.endswith("/jobs")  # still signed in
+
+
+@pytest.mark.skipif(not SCREENSHOTS, reason="SVROBS_SCREENSHOTS (a folder) not set")
+def test_dashboard_screenshot_of_jobs_in_every_state(browser, stack):
+    """Not a check: the README's picture of the jobs page with queued, running,
+    cancelled and finished jobs (runs after the other tests of this module)."""
+    import time
+
+    with stack.client() as api:
+        big = submit(api, {**SPEC, "N": list(range(10, 410, 10)), "reps": 5}, name="N sweep")
+        cancelled = submit(api, TINY, name="cancelled sweep", tags=["demo"])
+        api.post(f"/jobs/{cancelled['id']}/cancel")
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            job = api.get(f"/jobs/{big['id']}").json()
+            if job["progress"]["done"] >= 2 or job["status"] != "queued":
+                break
+            time.sleep(0.2)
+        submit(api, TINY, name="queued sweep", tags=["nightly"])
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.set_viewport_size({"width": 1280, "height": 440})  # full_page: as high as the page
+    page.screenshot(path=str(Path(SCREENSHOTS) / "dashboard-jobs.png"), full_page=True)
+    with stack.client() as api:
+        api.post(f"/jobs/{big['id']}/cancel")

@@ -1,0 +1,234 @@
+"""The jobs and job pages through the app (TestClient): filters, search and pages
+match the API's own listing, another team's job is a 404 page on every job route,
+cancel/delete need CSRF, and chart data are the stored summaries."""
+
+from __future__ import annotations
+
+import html
+import json
+import re
+
+import pytest
+
+from service.web import charts
+from tests.service.svc_fakes import run_job_units
+from tests.service.svc_helpers import SMALL_SPEC
+
+from .helpers import csrf_of, sign_in
+
+API = "/api/v1"
+ROW = re.compile(r'<tr id="job-(\d+)" data-status="(\w+)">')
+
+
+@pytest.fixture
+def web_pub(build_client):
+    return build_client(SECRET_KEY="pages-secret-0123456789")
+
+
+@pytest.fixture
+def web(web_pub):
+    return web_pub[0]
+
+
+@pytest.fixture
+def sent(web_pub):
+    """The unit ids the app published."""
+    return web_pub[1]
+
+
+def _submit(client, acc, **extra) -> int:
+    r = client.post(f"{API}/jobs", json={**SMALL_SPEC, **extra}, headers=acc.headers)
+    assert r.status_code == 202, r.text
+    return r.json()["id"]
+
+
+def _rows(html: str) -> list[int]:
+    return [int(i) for i, _ in ROW.findall(html)]
+
+
+def test_filters_search_and_pages_agree_with_the_api(web, session, make_account):
+    acc = make_account()
+    ids = [
+        _submit(web, acc, name=f"Sweep {i}%", tags=["even" if i % 2 else "odd"]) for i in range(30)
+    ]
+    run_job_units(session, ids[3])
+    sign_in(web, acc.key)
+    first = web.get("/jobs")
+    assert _rows(first.text) == ids[::-1][:25] and "page 1 of 2" in first.text
+    assert _rows(web.get("/jobs?page=2").text) == ids[::-1][25:]
+    for query in ("status=succeeded", "tag=even", "owner=me", f"owner={acc.user.email}"):
+        api = web.get(f"{API}/jobs?{query}&limit=500", headers=acc.headers).json()["items"]
+        assert _rows(web.get(f"/jobs?{query}").text) == [j["id"] for j in api][:25], query
+    # name search: any case, a part of the name, % and _ are literal characters
+    assert _rows(web.get("/jobs?q=sweep 1").text) == [ids[i] for i in range(19, 9, -1)] + [ids[1]]
+    assert _rows(web.get("/jobs?q=WEEP 29%").text) == [ids[29]]
+    assert _rows(web.get("/jobs?q=_").text) == []
+    assert web.get("/jobs?status=bogus").status_code == 422
+
+
+def test_polling_only_while_a_job_on_the_page_is_active(web, session, make_account):
+    acc = make_account()
+    jid = _submit(web, acc)
+    sign_in(web, acc.key)
+    assert 'hx-trigger="every 2s"' in web.get("/jobs/rows").text
+    assert 'hx-trigger="every 2s"' in web.get(f"/jobs/{jid}/progress").text
+    run_job_units(session, jid)
+    assert "hx-trigger" not in web.get("/jobs/rows").text
+    done = web.get(f"/jobs/{jid}/progress")
+    assert "hx-trigger" not in done.text and done.headers["hx-trigger"] == "svrobs:job-finished"
+
+
+def test_another_teams_job_is_a_404_page_everywhere(web, session, make_account):
+    a, b = make_account(), make_account()
+    jid = _submit(web, a)
+    sign_in(web, b.key)
+    token = csrf_of(web.get("/jobs").text)
+    for path in ("", "/progress", "/chart-data", "/delete"):
+        assert web.get(f"/jobs/{jid}{path}").status_code == 404, path
+    for path in ("/cancel", "/delete"):
+        r = web.post(f"/jobs/{jid}{path}", data={"csrf_token": token}, follow_redirects=False)
+        assert r.status_code == 404 and "not found" in r.text
+    assert web.get("/jobs/2147483648").status_code == 404
+    assert _rows(web.get("/jobs").text) == []
+    r = web.get(f"{API}/jobs/{jid}", headers=a.headers).json()
+    assert r["status"] == "queued"  # untouched
+
+
+def test_cancel_and_delete_need_the_token_and_refuse_active_jobs(web, session, make_account):
+    acc = make_account()
+    jid = _submit(web, acc)
+    sign_in(web, acc.key)
+    token = csrf_of(web.get(f"/jobs/{jid}").text)
+    assert web.post(f"/jobs/{jid}/cancel", follow_redirects=False).status_code == 403
+    r = web.post(f"/jobs/{jid}/delete", data={"csrf_token": token}, follow_redirects=False)
+    assert r.status_code == 409 and "cancel it" in r.text
+    r = web.post(f"/jobs/{jid}/cancel", data={"csrf_token": token}, follow_redirects=False)
+    assert r.status_code == 303
+    assert web.get(f"{API}/jobs/{jid}", headers=acc.headers).json()["status"] == "cancelled"
+    assert web.post(f"/jobs/{jid}/delete", follow_redirects=False).status_code == 403
+    r = web.post(f"/jobs/{jid}/delete", data={"csrf_token": token}, follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"] == f"/jobs?deleted={jid}"
+    assert web.get(f"{API}/jobs/{jid}", headers=acc.headers).status_code == 404
+
+
+def test_chart_data_are_the_stored_summaries(web, session, make_account):
+    acc = make_account()
+    jid = _submit(web, acc)
+    run_job_units(session, jid)
+    sign_in(web, acc.key)
+    summary = web.get(f"{API}/jobs/{jid}/summary", headers=acc.headers).json()["groups"]
+    data = web.get(f"/jobs/{jid}/chart-data?metric=rmse_A&x=N").json()
+    got = {
+        (p["coords"]["system"], p["coords"]["sigma_w"], s["estimator"], s["gamma"], n): (m, sd)
+        for p in data["panels"]
+        for s in p["series"]
+        for n, m, sd in zip(p["x"], s["mean"], s["std"])
+    }
+    want = {
+        (g["system"], g["sigma_w"], g["estimator"], g["gamma"], g["N"]): (
+            g["stats"]["rmse_A"]["mean"],
+            g["stats"]["rmse_A"]["std"],
+        )
+        for g in summary
+    }
+    assert got == want and data["positive"] is True
+    assert "rmse_B" not in data["metrics"]  # every value NaN (null): nothing to plot
+    r = web.get(f"/jobs/{jid}/chart-data?metric=A_hat")
+    assert r.status_code == 422 and r.json()["field"] == "metric"
+    assert web.get(f"/jobs/{jid}/chart-data?x=rep").json()["field"] == "x"
+
+
+def test_chart_gaps_flat_ols_and_non_positive_means():
+    stats = lambda m: {"rmse_A": {"mean": m, "std": 0.5, "count": 3}}  # noqa: E731
+    groups = [
+        dict(system="s", sigma_w=1.0, N=10, estimator="ols", gamma=None, stats=stats(2.0)),
+        dict(system="s", sigma_w=1.0, N=10, estimator="svr", gamma=0.1, stats=stats(1.0)),
+        dict(system="s", sigma_w=1.0, N=10, estimator="svr", gamma=0.5, stats=stats(-1.0)),
+        dict(system="s", sigma_w=1.0, N=20, estimator="svr", gamma=0.1, stats=stats(None)),
+    ]
+    by_n = charts.chart_data(groups, metric="rmse_A", x="N")
+    (panel,) = by_n["panels"]
+    assert panel["x"] == [10, 20] and by_n["positive"] is False
+    assert [(s["label"], s["mean"]) for s in panel["series"]] == [
+        ("ols", [2.0, None]),  # no N = 20 group: a gap
+        ("svr γ=0.1", [1.0, None]),  # a null mean: a gap
+        ("svr γ=0.5", [-1.0, None]),
+    ]
+    by_gamma = charts.chart_data(groups, metric="rmse_A", x="gamma")
+    first = by_gamma["panels"][0]
+    assert first["x"] == [0.1, 0.5] and first["title"] == "system = s · σ_w = 1 · N = 10"
+    ols, svr = first["series"]
+    assert ols["label"] == "ols (no γ)" and ols["flat"] and ols["mean"] == [2.0, 2.0]
+    assert svr["label"] == "svr" and svr["mean"] == [1.0, -1.0]
+
+
+def _post_spec(web, token: str, spec_text: str, **fields):
+    data = {"csrf_token": token, "spec": spec_text, **fields}
+    return web.post("/jobs/new", data=data, follow_redirects=False)
+
+
+@pytest.mark.parametrize(
+    ("spec", "fields", "where", "shown"),
+    [
+        (
+            {"systems": [{"name": "x", "A": [[1, 2]], "B": [[1]]}], "sigma_w": [1], "N": [10]},
+            {},
+            "spec-error",
+            "<code>systems[0].A</code>: must be square, got 1x2",
+        ),
+        ({**SMALL_SPEC, "N": "100"}, {}, "spec-error", "<code>N</code>: must be a non-empty list"),
+        ({**SMALL_SPEC, "bogus": 1}, {}, "spec-error", "<code>bogus</code>: unknown field"),
+        (SMALL_SPEC, {"name": "n" * 201}, "name-error", "<code>name</code>:"),
+        (SMALL_SPEC, {"tags": "ok, " + "t" * 101}, "tags-error", "<code>tags[1]</code>:"),
+        ("{not json", {}, "spec-error", "<code>spec</code>: not valid JSON"),
+        ("[1, 2]", {}, "spec-error", "<code>spec</code>: must be a JSON object"),
+        ("", {}, "spec-error", "<code>spec</code>: paste a spec"),
+    ],
+)
+def test_submit_errors_are_shown_beside_their_field(
+    web, sent, make_account, spec, fields, where, shown
+):
+    acc = make_account()
+    sign_in(web, acc.key)
+    token = csrf_of(web.get("/jobs/new").text)
+    text = spec if isinstance(spec, str) else json.dumps(spec)
+    r = _post_spec(web, token, text, **fields)
+    assert r.status_code == 422
+    error = re.search(rf'<p id="{where}" class="field-error" role="alert">(.*?)</p>', r.text, re.S)
+    assert error is not None and shown in error.group(1), r.text[-3000:]
+    kept = re.search(r"<textarea[^>]*>(.*?)</textarea>", r.text, re.S).group(1)
+    assert html.unescape(kept) == text  # kept for correcting it
+    assert sent.published == []
+    assert web.get(f"{API}/jobs", headers=acc.headers).json()["total"] == 0
+
+
+def test_submit_text_upload_and_preset_create_jobs_once(web, sent, make_account):
+    acc = make_account()
+    sign_in(web, acc.key)
+    form = web.get("/jobs/new").text
+    token = csrf_of(form)
+    key = re.search(r'name="idempotency_key" value="([^"]+)"', form).group(1)
+    fields = {"name": "pasted", "tags": "a, b", "idempotency_key": key}
+    r = _post_spec(web, token, json.dumps(SMALL_SPEC), **fields)
+    assert r.status_code == 303
+    jid = int(r.headers["location"].rsplit("/", 1)[1])
+    again = _post_spec(web, token, json.dumps(SMALL_SPEC), **fields)  # a double submit
+    assert again.headers["location"] == f"/jobs/{jid}"
+    job = web.get(f"{API}/jobs/{jid}", headers=acc.headers).json()
+    assert (job["name"], job["tags"], job["owner"]) == ("pasted", ["a", "b"], acc.user.email)
+    assert len(sent.published) == job["progress"]["total"]  # published once
+
+    upload = {"spec_file": ("s.json", json.dumps({**SMALL_SPEC, "seed": 9}), "application/json")}
+    r = web.post("/jobs/new", data={"csrf_token": token, "spec": "ignored"}, files=upload)
+    assert r.status_code == 200 and r.url.path.startswith("/jobs/")
+    uploaded = web.get(f"{API}{r.url.path}", headers=acc.headers).json()
+    assert uploaded["spec"]["seed"] == 9
+
+    preset = web.get("/jobs/new/preset?preset=paper-section-6:E1:reduced").text
+    text = html.unescape(re.search(r"<textarea[^>]*>(.*?)</textarea>", preset, re.S).group(1))
+    r = _post_spec(web, token, text)
+    job = web.get(f"{API}{r.headers['location']}", headers=acc.headers).json()
+    from svrobs_core.paper import paper_specs
+
+    assert job["spec"]["sigma_w"] == paper_specs("reduced")["E1"]["sigma_w"]
+    assert web.post("/jobs/new", data={"spec": text}).status_code == 403  # no token

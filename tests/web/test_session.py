@@ -1,0 +1,158 @@
+"""The session cookie and CSRF rules (service.web.session) through the app: a signed
+cookie is a session until it is tampered with, expires or its key is revoked; a
+state-changing form without this session's token is a 403; the key never shows."""
+
+from __future__ import annotations
+
+import time
+from datetime import timedelta
+
+import pytest
+
+from service.db import accounts
+from service.db.models import utcnow
+from service.web.session import COOKIE, Signer, load_secret
+from tests.service.svc_helpers import make_settings
+
+from .helpers import csrf_of, sign_in
+
+
+@pytest.fixture
+def web(build_client):
+    client, _ = build_client(SECRET_KEY="test-secret-0123456789", SESSION_HOURS=1.0)
+    return client
+
+
+def test_sign_in_sets_a_signed_httponly_strict_cookie_without_the_key(web, make_account):
+    acc = make_account()
+    r = sign_in(web, acc.key)
+    assert r.status_code == 303 and r.headers["location"] == "/jobs"
+    header = r.headers["set-cookie"]
+    assert header.startswith(f"{COOKIE}=")
+    low = header.lower()
+    assert "httponly" in low and "samesite=strict" in low and "max-age=3600" in low
+    assert "secure" not in low  # plain http: a Secure cookie would never come back
+    assert acc.key not in header and acc.key.split("_")[2] not in header
+    page = web.get("/jobs")
+    assert page.status_code == 200 and acc.user.email in page.text
+    assert acc.key not in page.text
+
+
+def test_wrong_key_stays_signed_out_and_is_not_echoed(web, make_account):
+    acc = make_account()
+    wrong = acc.key[:-3] + "xyz"
+    r = sign_in(web, wrong)
+    assert r.status_code == 401 and "Invalid, revoked or expired" in r.text
+    assert wrong not in r.text
+    assert web.get("/jobs", follow_redirects=False).status_code == 303
+
+
+def test_pages_redirect_to_login_without_a_session(web):
+    r = web.get("/jobs?status=running", follow_redirects=False)
+    assert r.status_code == 303
+    assert r.headers["location"] == "/login?next=%2Fjobs%3Fstatus%3Drunning"
+    assert web.get("/", follow_redirects=False).headers["location"] == "/login"
+    r = web.get("/jobs/rows", headers={"HX-Request": "true"}, follow_redirects=False)
+    assert r.status_code == 401 and r.headers["hx-redirect"].startswith("/login")
+
+
+def test_tampered_cookie_is_signed_out(web, make_account):
+    acc = make_account()
+    sign_in(web, acc.key)
+    value = web.cookies[COOKIE]
+    payload, mac = value.split(".")
+    flipped = payload[:-1] + ("A" if payload[-1] != "A" else "B")
+    for bad in (f"{flipped}.{mac}", f"{payload}.{mac[:-1]}x", payload, "garbage"):
+        web.cookies.set(COOKIE, bad)
+        assert web.get("/jobs", follow_redirects=False).status_code == 303, bad
+
+
+def test_another_secret_or_an_expired_session_is_signed_out():
+    signer = Signer(b"one", session_hours=1)
+    s = signer.new(key_id=5, now=1000.0)
+    cookie = signer.dumps(s)
+    assert signer.loads(cookie, now=1000.0 + 3599) == s
+    assert signer.loads(cookie, now=1000.0 + 3600) is None  # expired
+    assert Signer(b"two", session_hours=1).loads(cookie, now=1000.0) is None
+    # the expiry is inside the signed payload: it cannot be extended
+    forged = Signer(b"one", session_hours=100).new(key_id=5, now=1000.0)
+    assert signer.loads(Signer(b"two", session_hours=100).dumps(forged), now=5000.0) is None
+
+
+def test_expired_cookie_through_the_app(build_client, make_account):
+    client, _ = build_client(SECRET_KEY="k" * 20, SESSION_HOURS=1.0)
+    acc = make_account()
+    signer = Signer(b"k" * 20, session_hours=1.0)
+    old = signer.new(key_id=acc.key_row.id, now=time.time() - 3601)
+    client.cookies.set(COOKIE, signer.dumps(old))
+    assert client.get("/jobs", follow_redirects=False).status_code == 303
+    fresh = signer.new(key_id=acc.key_row.id)
+    client.cookies.set(COOKIE, signer.dumps(fresh))
+    assert client.get("/jobs", follow_redirects=False).status_code == 200
+
+
+@pytest.mark.parametrize("how", ["revoke", "expire"])
+def test_revoking_or_expiring_the_key_ends_its_sessions(web, make_account, session, how):
+    acc = make_account()
+    sign_in(web, acc.key)
+    assert web.get("/jobs", follow_redirects=False).status_code == 200
+    assert web.get(f"/api/v1/jobs/{999}").status_code == 404  # the cookie reads the API
+    if how == "revoke":
+        accounts.revoke_key(session, acc.key_row.prefix)
+    else:
+        acc.key_row.expires_at = utcnow() - timedelta(seconds=1)
+    session.commit()
+    assert web.get("/jobs", follow_redirects=False).status_code == 303
+    assert web.get("/api/v1/jobs").status_code == 401
+
+
+def test_cookie_never_authorises_an_api_write(web, make_account):
+    acc = make_account()
+    sign_in(web, acc.key)
+    r = web.post("/api/v1/jobs", json={"systems": ["paper-stable"], "sigma_w": [1], "N": [10]})
+    assert r.status_code == 401
+
+
+def test_state_changing_posts_need_this_sessions_csrf_token(web, make_account):
+    acc = make_account()
+    sign_in(web, acc.key)
+    assert web.post("/logout", data={}, follow_redirects=False).status_code == 403
+    r = web.post("/logout", data={"csrf_token": "x" * 43}, follow_redirects=False)
+    assert r.status_code == 403 and "security token" in r.text
+    token = csrf_of(web.get("/jobs").text)
+    r = web.post("/logout", headers={"X-CSRF-Token": token}, follow_redirects=False)
+    assert r.status_code == 303 and r.headers["location"] == "/login"
+    assert web.get("/jobs", follow_redirects=False).status_code == 303
+
+
+def test_sign_in_itself_needs_the_login_forms_token(web, make_account):
+    acc = make_account()
+    r = web.post("/login", data={"key": acc.key}, follow_redirects=False)
+    assert r.status_code == 403
+    assert web.get("/jobs", follow_redirects=False).status_code == 303
+
+
+def test_a_new_sign_in_gets_a_new_csrf_token(web, make_account):
+    acc = make_account()
+    before = csrf_of(web.get("/login").text)
+    sign_in(web, acc.key)
+    after = csrf_of(web.get("/jobs").text)
+    assert before != after
+    r = web.post("/logout", data={"csrf_token": before}, follow_redirects=False)
+    assert r.status_code == 403
+
+
+def test_generated_secret_is_kept_across_restarts(tmp_path):
+    settings = make_settings("sqlite://", VAR_DIR=str(tmp_path / "var"))
+    first = load_secret(settings)
+    assert len(first) >= 32 and load_secret(settings) == first
+    assert (tmp_path / "var" / "secret_key").stat().st_mode & 0o077 == 0
+    assert load_secret(make_settings("sqlite://", SECRET_KEY="abc")) == b"abc"
+
+
+def test_cookie_is_secure_over_https(build_client, make_account):
+    client, _ = build_client(SECRET_KEY="s" * 20)
+    client.base_url = "https://testserver"
+    acc = make_account()
+    r = sign_in(client, acc.key)
+    assert r.status_code == 303 and "; secure" in r.headers["set-cookie"].lower()
