@@ -38,11 +38,11 @@ sys.path.insert(0, str(ROOT))
 
 from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
-from svrobs_core.runner import run_unit_result
 
 from service.db import accounts, jobs, units
 from service.db.migrate import downgrade, upgrade
 from service.db.session import dispose_all, session_scope
+from svrobs_core.runner import run_unit_result
 from svrobs_core.spec import parse_spec
 
 

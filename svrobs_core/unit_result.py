@@ -227,7 +227,10 @@ class UnitResult:
         computed (NaN/inf entries are the records' nulls)."""
         RE = len(self.reps) * len(self.axis.names)
         return [
-            {f: None if ds.fields.get(f) is None else _flat(ds.fields[f], RE) for f in MATRIX_FIELDS}
+            {
+                f: None if ds.fields.get(f) is None else _flat(ds.fields[f], RE)
+                for f in MATRIX_FIELDS
+            }
             for ds in self.datasets
         ]
 

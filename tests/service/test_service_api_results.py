@@ -254,3 +254,40 @@ def test_record_json_edge_values():
     assert all(list(x) == list(RECORD_FIELDS) for x in parsed["items"])
     assert str(parsed["items"][0]["A_hat"][1][1]) == "-0.0"
     assert [json.loads(x) for x in encode_lines(rows, codec).decode().splitlines()] == wants
+
+
+def test_exports_of_a_worker_stored_job_are_the_core_records(client, session, make_account):
+    """Every stage (K stored once per (system, sigma_w)), units stored as a worker stores
+    them: the JSON lines are the core's records serialised as before the compact format
+    (pydantic_core.to_json of the records, NaN -> null), in the results order, and the
+    JSON page holds the same records."""
+    from pydantic_core import to_json
+
+    from service.db import jobs, units
+    from svrobs_core.runner import run_unit_result
+    from svrobs_core.spec import parse_spec
+
+    acc = make_account()
+    spec = {
+        **SMALL_SPEC,
+        "systems": ["paper-unstable"],
+        "sigma_w": [1.0, 0.5],
+        "N": [40],
+        "reps": 2,
+        "stages": ["estimate", "bounds", "gain", "cost", "sls"],
+        "mc_reps": 1,
+        "mc_runs": 20,
+    }
+    jid = client.post(f"{API}/jobs", json=spec, headers=acc.headers).json()["id"]
+    want = []
+    for uid in jobs.unit_ids_of_job(session, jid):
+        spec_dict, payload = units.start_unit(session, uid, "w", 60)
+        result = run_unit_result(parse_spec(spec_dict), payload)
+        units.complete_unit(session, uid, result)
+        want += [{k: json_value(v) for k, v in r.items()} for r in result.records()]
+        session.commit()
+    want.sort(key=_key)
+    r = client.get(f"{API}/jobs/{jid}/results", params={"format": "jsonl"}, headers=acc.headers)
+    assert r.content == b"".join(to_json(x, inf_nan_mode="null") + b"\n" for x in want)
+    page = client.get(f"{API}/jobs/{jid}/results", headers=acc.headers).json()
+    assert page["items"] == json.loads(json.dumps(want)) and page["items"][0]["K"] is not None
