@@ -14,14 +14,14 @@ with COPY in the stored format (random values; real rows of the same shape),
 each job's summaries likewise, then ``VACUUM ANALYZE``. It prints
 
 * the database size per cell and the ``results`` table's (heap / indexes);
-* a filtered results page through the API's route code
-  (``GET /jobs/{id}/results?N=..&estimator=svr&gamma=..&limit=100`` of the biggest
-  job; target < 100 ms);
+* a filtered results page through the API (the app in process, a TestClient with
+  an API key: ``GET /jobs/{id}/results?N=..&estimator=svr&gamma=..&limit=100`` of
+  the biggest job; target < 100 ms);
 * compare across five jobs (``GET /compare?jobs=..&metric=rmse_A``; < 300 ms);
 * a dashboard chart's data (``GET /jobs/{id}/summary`` of the biggest job, read
   from the stored summaries; < 300 ms);
 
-each the median and p95 of 20 calls after 3 warm-up calls.
+each the median and p95 of 5-20 calls after a warm-up call.
 """
 
 from __future__ import annotations
@@ -39,12 +39,13 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import numpy as np
+from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session
 
-from service.api.deps import Caller
-from service.api.routes import results as routes
+from service.api.main import create_app
+from service.config import Settings
 from service.db import accounts
 from service.db.jobs import create_job
 from service.db.migrate import upgrade
@@ -115,8 +116,8 @@ def payload_pool(full: bool, rng) -> list[str]:
             vals += ["\\N"] * (len(GAIN_FLOATS) + 2)
         vals += ["t", "t", "f", ("f" if full else "\\N")]
         vals += ["\\N", _hex(rng.standard_normal(9)), _hex(rng.standard_normal(3))]
-        if full:
-            vals += [_hex(rng.standard_normal(9)), _hex(rng.standard_normal(9))]
+        if full:  # L, and K as stored: once per (system, sigma_w) in result_constants
+            vals += [_hex(rng.standard_normal(9)), "\\\\x"]
         else:
             vals += ["\\N", "\\N"]
         out.append("\t".join(vals))
@@ -163,6 +164,14 @@ def load_job(conn, job_id: int, spec: dict, pools: dict, notes: dict, rng) -> in
                             lines.append(f"{head}{rep}{mid}{note}\t{tail}\n")
                         cp.write("".join(lines))
                         n += s.reps
+    if full:
+        with cur.copy(
+            "COPY result_constants (job_id, system, sigma_w, field, value) FROM STDIN"
+        ) as cp:
+            for system in s.systems:
+                for sigma in s.sigma_w:
+                    k = _hex(rng.standard_normal(9))
+                    cp.write(f"{job_id}\t{system.name}\t{_f(sigma)}\tK\t{k}\n")
     with cur.copy(
         'COPY summaries (job_id, system, sigma_w, "N", estimator, gamma, gamma_key, count, '
         "stats) FROM STDIN"
@@ -225,6 +234,8 @@ def run(url: str, args) -> None:
     t0 = time.perf_counter()
     with Session(engine) as s, s.begin():
         team = accounts.create_team(s, "bench")
+        user = accounts.create_user(s, team.id, "bench@lab.example")
+        _, key = accounts.create_key(s, user.id)
         ids = []
         for spec in specs:
             job, _ = create_job(
@@ -235,7 +246,6 @@ def run(url: str, args) -> None:
         s.execute(text("UPDATE jobs SET status = 'succeeded', n_cells = n_cells"))
         s.execute(text("UPDATE work_units SET status = 'done'"))
         notes = {t: str(i) for t, i in note_ids(s, [NOTE_MC, NOTE_EB]).items() if t}
-        team_id = team.id
     cells = 0
     for job_id, spec in zip(ids, specs):
         with engine.begin() as conn:
@@ -249,62 +259,51 @@ def run(url: str, args) -> None:
         heap = c.scalar(text("SELECT pg_table_size('results')"))
         idx = c.scalar(text("SELECT pg_indexes_size('results')"))
         summ = c.scalar(text("SELECT pg_total_relation_size('summaries')"))
+        heap += c.scalar(text("SELECT pg_total_relation_size('result_constants')"))
     print(
         f"database {db / 2**30:.2f} GiB = {db / cells:.0f} B/cell; results: heap "
         f"{heap / cells:.0f} + indexes {idx / cells:.0f} B/cell; summaries {summ / cells:.1f} B/cell"
     )
     sizes = [parse_spec(sp).n_cells for sp in specs]
-    big = ids[int(np.argmax(sizes))]
-    big_spec = specs[int(np.argmax(sizes))]
-    caller = Caller(key_id=0, team_id=team_id, user_id=None, is_admin=False)
+    biggest = int(np.argmax(sizes))
+    big, big_spec = ids[biggest], specs[biggest]
+    app = create_app(
+        Settings(DATABASE_URL=url, BROKER_URL="memory://", RATE_LIMIT_PER_MINUTE=10**7)
+    )
+    app.state.broker_check = lambda: None
+    client = TestClient(app)
+    headers = {"Authorization": f"Bearer {key}"}
 
-    def session():
-        return Session(engine)
+    def get(path, **params):
+        r = client.get(f"/api/v1{path}", params=params, headers=headers)
+        assert r.status_code == 200, (path, r.status_code, r.text[:300])
+        return r
+
+    n_page = big_spec["N"]["start"] + 4 * big_spec["N"]["step"]
+    gamma = str(big_spec["gamma"][-1])
 
     def page():
-        with session() as s:
-            r = routes.get_results(
-                big,
-                s,
-                caller,
-                lambda write=False: Session(engine),
-                system=None,
-                sigma_w=None,
-                N=[big_spec["N"]["start"] + 4 * big_spec["N"]["step"]],
-                estimator=["svr"],
-                gamma=[str(big_spec["gamma"][-1])],
-                rep=None,
-                format="json",
-                limit=100,
-                offset=0,
-            )
-            assert len(json.loads(r.body)["items"]) == 100 or True
-            return r
+        return get(f"/jobs/{big}/results", N=n_page, estimator="svr", gamma=gamma, limit=100)
 
     # five jobs of one grid kind (the same estimators/gammas), the biggest ones
-    kind = [i for i in range(len(specs)) if i % 3 == int(np.argmax(sizes)) % 3]
+    kind = [i for i in range(len(specs)) if i % 3 == biggest % 3]
     five = [ids[i] for i in sorted(kind, key=lambda i: -sizes[i])[:5]]
+    five_cells = sum(sizes[ids.index(j)] for j in five)
 
     def compare():
-        with session() as s:
-            return routes.compare(
-                s, caller, jobs=",".join(map(str, five)), metric="rmse_A", by="N,estimator,gamma"
-            )
+        return get("/compare", jobs=",".join(map(str, five)), metric="rmse_A")
 
     def chart():
-        with session() as s:
-            return routes.get_summary(big, s, caller)
+        return get(f"/jobs/{big}/summary")
 
-    body = page().body
-    print(
-        f"results page of job {big} ({max(sizes):,} cells): {len(json.loads(body)['items'])} items"
-    )
-    for label, fn, target in (
-        ("filtered results page", page, 100),
-        (f"compare across 5 jobs ({sum(sizes[ids.index(j)] for j in five):,} cells)", compare, 300),
-        ("dashboard chart data (summary of the biggest job)", chart, 300),
+    items = len(page().json()["items"])
+    print(f"results page of job {big} ({max(sizes):,} cells): {items} items")
+    for label, fn, target, runs in (
+        ("filtered results page", page, 100, 20),
+        (f"compare across 5 jobs ({five_cells:,} cells)", compare, 300, 5),
+        ("dashboard chart data (summary of the biggest job)", chart, 300, 10),
     ):
-        med, p95 = timed(fn, runs=20 if label.startswith("filtered") else 5, warm=1)
+        med, p95 = timed(fn, runs=runs, warm=1)
         print(f"{label:<60} median {med:8.1f} ms  p95 {p95:8.1f} ms  (target < {target} ms)")
 
 

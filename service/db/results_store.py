@@ -7,8 +7,8 @@ compact format of :mod:`service.db.result_codec` (matrices as float64 bytes,
 ``notes`` as an id into ``result_notes``, ``seed_key`` NULL when derived), with
 no per-row SQLAlchemy parameter processing: on SQLite one DBAPI
 ``executemany`` of an ``INSERT .. ON CONFLICT (cell key) DO UPDATE``; on
-PostgreSQL a COPY into a temporary table and one ``INSERT .. SELECT .. ON
-CONFLICT``. Values are cleaned as the ORM would store them: NaN/inf -> NULL,
+PostgreSQL a binary COPY into ``results`` (or, for a unit stored before, into a
+temporary table and one ``INSERT .. SELECT .. ON CONFLICT``). Values are cleaned as the ORM would store them: NaN/inf -> NULL,
 numpy scalars -> Python.
 """
 
