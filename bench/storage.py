@@ -26,19 +26,17 @@ The target is at most 400 bytes per cell.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import tempfile
 import time
-import uuid
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from sqlalchemy import create_engine, text
-from sqlalchemy.engine import make_url
 
+from bench.pg_private import bench_pg_url, private_database
 from service.db import accounts, jobs, units
 from service.db.migrate import downgrade, upgrade
 from service.db.session import dispose_all, session_scope
@@ -123,6 +121,18 @@ def pg_bytes(url: str) -> tuple[int, int]:
     return total, idx
 
 
+def measure(label: str, url: str, spec: dict, sizes) -> tuple[int, tuple, tuple]:
+    """Store the job at head, ``sizes()`` (compact), downgrade to 0001, ``sizes()`` again
+    -> (cells, sizes before, sizes after)."""
+    upgrade(url)
+    t0 = time.perf_counter()
+    n = load(url, spec)
+    print(f"{label}: stored {n} cells in {time.perf_counter() - t0:.1f} s")
+    after = sizes()
+    downgrade(url, "0001")
+    return n, sizes(), after
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--grid", choices=("e4", "section6"), default="e4")
@@ -138,38 +148,17 @@ def main() -> None:
     if "sqlite" in args.stacks:
         with tempfile.TemporaryDirectory() as d:
             path = Path(d) / "bench.db"
-            url = f"sqlite:///{path}"
-            upgrade(url)
-            t0 = time.perf_counter()
-            n = load(url, spec)
-            print(f"sqlite: stored {n} cells in {time.perf_counter() - t0:.1f} s")
-            after, after_t = sqlite_bytes(path)
-            downgrade(url, "0001")
-            before, before_t = sqlite_bytes(path)
-            out["sqlite (file / cell)"] = (before / n, after / n)
-            out["sqlite (results tables / cell)"] = (before_t / n, after_t / n)
-    base = os.environ.get("SVROBS_BENCH_DATABASE_URL") or os.environ.get("SVROBS_TEST_DATABASE_URL")
+            n, before, after = measure(
+                "sqlite", f"sqlite:///{path}", spec, lambda: sqlite_bytes(path)
+            )
+            out["sqlite (file / cell)"] = (before[0] / n, after[0] / n)
+            out["sqlite (results tables / cell)"] = (before[1] / n, after[1] / n)
+    base = bench_pg_url()
     if "pg" in args.stacks and base:
-        name = f"svrobs_storage_{uuid.uuid4().hex[:8]}"
-        admin = create_engine(make_url(base), isolation_level="AUTOCOMMIT")
-        with admin.connect() as c:
-            c.exec_driver_sql(f'CREATE DATABASE "{name}"')
-        url = make_url(base).set(database=name).render_as_string(hide_password=False)
-        try:
-            upgrade(url)
-            t0 = time.perf_counter()
-            n = load(url, spec)
-            print(f"pg: stored {n} cells in {time.perf_counter() - t0:.1f} s")
-            after, after_idx = pg_bytes(url)
-            downgrade(url, "0001")
-            before, before_idx = pg_bytes(url)
-            out["pg (results tables / cell)"] = (before / n, after / n)
-            out["pg  of which indexes"] = (before_idx / n, after_idx / n)
-        finally:
-            dispose_all()
-            with admin.connect() as c:
-                c.exec_driver_sql(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
-            admin.dispose()
+        with private_database(base, "svrobs_storage") as url:
+            n, before, after = measure("pg", url, spec, lambda: pg_bytes(url))
+            out["pg (results tables / cell)"] = (before[0] / n, after[0] / n)
+            out["pg  of which indexes"] = (before[1] / n, after[1] / n)
     print(f"\n{'bytes per cell':<28} {'before (0001)':>14} {'after (0005)':>13}")
     for k, (b, a) in out.items():
         print(f"{k:<28} {b:>14.0f} {a:>13.0f}")

@@ -28,11 +28,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import sys
 import time
-import uuid
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -41,9 +39,9 @@ sys.path.insert(0, str(ROOT))
 import numpy as np
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
-from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session
 
+from bench.pg_private import bench_pg_url, private_database
 from service.api.main import create_app
 from service.config import Settings
 from service.db import accounts
@@ -51,7 +49,7 @@ from service.db.jobs import create_job
 from service.db.migrate import upgrade
 from service.db.models import OLS_GAMMA_KEY
 from service.db.results_store import note_ids
-from service.db.session import dispose_all, get_engine
+from service.db.session import get_engine
 from svrobs_core.records import SUMMARY_FIELDS
 from svrobs_core.spec import parse_spec
 
@@ -207,22 +205,11 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=50)
     ap.add_argument("--keep", action="store_true", help="do not drop the database")
     args = ap.parse_args()
-    base = os.environ.get("SVROBS_BENCH_DATABASE_URL") or os.environ.get("SVROBS_TEST_DATABASE_URL")
+    base = bench_pg_url()
     if not base:
         sys.exit("set SVROBS_BENCH_DATABASE_URL (or SVROBS_TEST_DATABASE_URL) to a PostgreSQL URL")
-    name = f"svrobs_tenm_{uuid.uuid4().hex[:8]}"
-    admin = create_engine(make_url(base), isolation_level="AUTOCOMMIT")
-    with admin.connect() as c:
-        c.exec_driver_sql(f'CREATE DATABASE "{name}"')
-    url = make_url(base).set(database=name).render_as_string(hide_password=False)
-    try:
+    with private_database(base, "svrobs_tenm", keep=args.keep) as url:
         run(url, args)
-    finally:
-        dispose_all()
-        if not args.keep:
-            with admin.connect() as c:
-                c.exec_driver_sql(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
-        admin.dispose()
 
 
 def run(url: str, args) -> None:
