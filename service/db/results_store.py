@@ -26,6 +26,7 @@ from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import Session
 
 from svrobs_core.records import BOOL_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, json_value
+from svrobs_core.spec import parse_spec
 from svrobs_core.unit_result import UnitResult
 
 from .models import (
@@ -146,6 +147,28 @@ def load_records(session: Session, job_id: int, *conds, ordered: bool = True) ->
     if ordered:
         q = q.order_by(*(t.c[c] for c in KEY_COLUMNS[1:]))
     return decode_rows(session.execute(q).all(), job_codec(session, job_id))
+
+
+def count_cells(spec: dict, system, sigma_w, N, estimator, gamma_key, rep) -> int:
+    """How many cells of the job's grid (SPEC section 10) match the filters (each a list
+    of values, or None for all): the row count of a selection of a job whose every
+    cell is stored (a succeeded job), without counting rows."""
+    s = parse_spec(spec)
+    axis = [(e, OLS_GAMMA_KEY) for e in s.estimators if e == "ols"]
+    axis += [(e, float(g)) for e in s.estimators if e != "ols" for g in s.gamma]
+
+    def n(values, allowed) -> int:
+        return len(values) if allowed is None else len(set(values) & set(allowed))
+
+    est, gk = set(estimator or ()), set(gamma_key or ())
+    n_axis = sum(1 for e, g in axis if (not est or e in est) and (not gk or g in gk))
+    return (
+        n([x.name for x in s.systems], system or None)
+        * n(s.sigma_w, sigma_w or None)
+        * n(s.N, N or None)
+        * n_axis
+        * (s.reps if not rep else len({r for r in rep if 0 <= r < s.reps}))
+    )
 
 
 # -- one record at a time --------------------------------------------------------------

@@ -291,3 +291,30 @@ def test_exports_of_a_worker_stored_job_are_the_core_records(client, session, ma
     assert r.content == b"".join(to_json(x, inf_nan_mode="null") + b"\n" for x in want)
     page = client.get(f"{API}/jobs/{jid}/results", headers=acc.headers).json()
     assert page["items"] == json.loads(json.dumps(want)) and page["items"][0]["K"] is not None
+
+
+def test_page_total_of_a_succeeded_job_is_the_row_count(client, session, done_job):
+    """A succeeded job's page total is counted on the spec's grid: it equals SQL's
+    COUNT(*) of the same selection for filters on every coordinate."""
+    from sqlalchemy import func
+
+    from service.db.models import Result
+
+    acc, jid, _ = done_job
+    t = Result.__table__
+    cases = [
+        ({}, []),
+        ({"system": "paper-unstable"}, [t.c.system == "paper-unstable"]),
+        ({"sigma_w": [0.5, 7.0]}, [t.c.sigma_w.in_([0.5, 7.0])]),
+        ({"N": [20, 20, 99]}, [t.c.N.in_([20, 99])]),
+        ({"estimator": "svr", "gamma": "0.1"}, [t.c.estimator == "svr", t.c.gamma_key == 0.1]),
+        ({"gamma": ["null", "0.05"]}, [t.c.gamma_key.in_([-1.0, 0.05])]),
+        ({"estimator": "ols", "gamma": "0.05"}, [t.c.estimator == "ols", t.c.gamma_key == 0.05]),
+        ({"rep": [0, 2, 5, -1]}, [t.c.rep.in_([0, 2, 5, -1])]),
+        ({"system": "nope", "N": 40}, [t.c.system == "nope"]),
+    ]
+    for params, conds in cases:
+        want = session.scalar(select(func.count()).select_from(t).where(t.c.job_id == jid, *conds))
+        got = client.get(f"{API}/jobs/{jid}/results", params=params, headers=acc.headers).json()
+        assert got["total"] == want, params
+    assert want == 0 and got["items"] == []

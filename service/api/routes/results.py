@@ -21,7 +21,7 @@ from service.api.record_json import ORDER, encode_lines, encode_page
 from service.api.schemas import CompareOut, ResultPage, SummaryOut
 from service.db.models import Result, Summary
 from service.db.result_codec import ResultCodec
-from service.db.results_store import decode_rows, job_codec, record_select
+from service.db.results_store import count_cells, decode_rows, job_codec, record_select
 from service.db.units import summarize_job
 from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
 
@@ -54,22 +54,26 @@ def _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep) -> list:
     if estimator:
         conds.append(t.c.estimator.in_(estimator))
     if gamma:
-        keys = []
-        for g in gamma:
-            if g.lower() in ("null", "none", "ols"):
-                keys.append(-1.0)
-                continue
-            try:
-                v = float(g)
-            except ValueError:
-                raise FieldHTTPException(422, "must be a number or 'null'", "gamma") from None
-            if not math.isfinite(v):
-                raise FieldHTTPException(422, "must be finite", "gamma")
-            keys.append(v)
-        conds.append(t.c.gamma_key.in_(keys))
+        conds.append(t.c.gamma_key.in_(_gamma_keys(gamma)))
     if rep:
         conds.append(t.c.rep.in_(rep))
     return conds
+
+
+def _gamma_keys(gamma: list[str]) -> list[float]:
+    keys = []
+    for g in gamma:
+        if g.lower() in ("null", "none", "ols"):
+            keys.append(-1.0)
+            continue
+        try:
+            v = float(g)
+        except ValueError:
+            raise FieldHTTPException(422, "must be a number or 'null'", "gamma") from None
+        if not math.isfinite(v):
+            raise FieldHTTPException(422, "must be finite", "gamma")
+        keys.append(v)
+    return keys
 
 
 def _csv_value(v):
@@ -140,11 +144,16 @@ def get_results(
     never NaN), filtered by any grid coordinate (repeat a parameter for several
     values). JSON is paginated (default limit 100); CSV and JSONL stream the whole
     selection (or `limit`/`offset` if given)."""
-    codec = job_codec(session, job_id, team_job(session, caller.team_id, job_id).spec)
+    job = team_job(session, caller.team_id, job_id)
+    codec = job_codec(session, job_id, job.spec)
     conds = _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep)
     if format == "json":
         lim = limit or 100
-        total = session.scalar(COUNT.where(*conds))
+        if job.status == "succeeded":  # every cell is stored: counted on the grid, O(1)
+            keys = _gamma_keys(gamma) if gamma else None
+            total = count_cells(job.spec, system, sigma_w, N, estimator, keys, rep)
+        else:
+            total = session.scalar(COUNT.where(*conds))
         # in key order: the primary key's order, so the page is read off its index
         page = RECORDS.where(*conds).order_by(*ORDER).limit(lim).offset(offset)
         rows = session.execute(page).all()
