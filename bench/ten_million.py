@@ -18,8 +18,9 @@ each job's summaries likewise, then ``VACUUM ANALYZE``. It prints
   an API key: ``GET /jobs/{id}/results?N=..&estimator=svr&gamma=..&limit=100`` of
   the biggest job; target < 100 ms);
 * compare across five jobs (``GET /compare?jobs=..&metric=rmse_A``; < 300 ms);
-* a dashboard chart's data (``GET /jobs/{id}/summary`` of the biggest job, read
-  from the stored summaries; < 300 ms);
+* a dashboard chart's data (what the dashboard's ``GET /jobs/{id}/chart-data``
+  computes, from the stored summaries: rmse_A against N of the biggest job;
+  < 300 ms);
 
 each the median and p95 of 5-20 calls after a warm-up call.
 """
@@ -50,6 +51,7 @@ from service.db.migrate import upgrade
 from service.db.models import OLS_GAMMA_KEY
 from service.db.results_store import note_ids
 from service.db.session import get_engine
+from service.web import charts
 from svrobs_core.records import SUMMARY_FIELDS
 from svrobs_core.spec import parse_spec
 
@@ -280,15 +282,19 @@ def run(url: str, args) -> None:
     def compare():
         return get("/compare", jobs=",".join(map(str, five)), metric="rmse_A")
 
-    def chart():
-        return get(f"/jobs/{big}/summary")
+    def chart():  # the body of the dashboard's GET /jobs/{id}/chart-data (service.web)
+        with Session(engine) as s:
+            groups = charts.stored_groups(s, big, "rmse_A")
+            data = charts.chart_data(groups, metric="rmse_A", x="N")
+            data.update(groups=len(groups), metrics=charts.stored_metrics(s, big))
+            return json.dumps(data)
 
     items = len(page().json()["items"])
     print(f"results page of job {big} ({max(sizes):,} cells): {items} items")
     for label, fn, target, runs in (
         ("filtered results page", page, 100, 20),
         (f"compare across 5 jobs ({five_cells:,} cells)", compare, 300, 5),
-        ("dashboard chart data (summary of the biggest job)", chart, 300, 10),
+        ("dashboard chart data (rmse_A vs N of the biggest job)", chart, 300, 10),
     ):
         med, p95 = timed(fn, runs=runs, warm=1)
         print(f"{label:<60} median {med:8.1f} ms  p95 {p95:8.1f} ms  (target < {target} ms)")
