@@ -1,4 +1,4 @@
-"""Bytes per stored cell, before (migration 0001's JSON format) and after (0005's compact one).
+"""Bytes per stored cell, before (the JSON format of migrations 0001-0002) and after (0005's).
 
     python bench/storage.py                 # SQLite, and PostgreSQL if configured
     python bench/storage.py --reps 10       # quicker
@@ -18,7 +18,7 @@ Then it prints bytes per cell
 * PostgreSQL: ``pg_total_relation_size`` of the same tables / cells, after
   ``VACUUM FULL``;
 
-for the compact format, and for the same rows after ``alembic downgrade 0001``
+for the compact format, and for the same rows after ``alembic downgrade 0002``
 (the migration converts them back to the JSON format): "before" vs "after".
 The target is at most 400 bytes per cell.
 """
@@ -122,14 +122,14 @@ def pg_bytes(url: str) -> tuple[int, int]:
 
 
 def measure(label: str, url: str, spec: dict, sizes) -> tuple[int, tuple, tuple]:
-    """Store the job at head, ``sizes()`` (compact), downgrade to 0001, ``sizes()`` again
+    """Store the job at head, ``sizes()`` (compact), downgrade to 0002, ``sizes()`` again
     -> (cells, sizes before, sizes after)."""
     upgrade(url)
     t0 = time.perf_counter()
     n = load(url, spec)
     print(f"{label}: stored {n} cells in {time.perf_counter() - t0:.1f} s")
     after = sizes()
-    downgrade(url, "0001")
+    downgrade(url, "0002")
     return n, sizes(), after
 
 
@@ -159,7 +159,7 @@ def main() -> None:
             n, before, after = measure("pg", url, spec, lambda: pg_bytes(url))
             out["pg (results tables / cell)"] = (before[0] / n, after[0] / n)
             out["pg  of which indexes"] = (before[1] / n, after[1] / n)
-    print(f"\n{'bytes per cell':<28} {'before (0001)':>14} {'after (0005)':>13}")
+    print(f"\n{'bytes per cell':<28} {'before (JSON)':>14} {'after (0005)':>13}")
     for k, (b, a) in out.items():
         print(f"{k:<28} {b:>14.0f} {a:>13.0f}")
     print("target: <= 400 bytes per cell")

@@ -2,7 +2,10 @@
 
     svrobs migrate                         alembic upgrade head on SVROBS_DATABASE_URL
     svrobs admin create-team|create-user|create-key|revoke-key|list-keys
-    svrobs submit|status|results|compare   REST commands (svrobs_cli.rest)
+    svrobs submit|status|results|summary|compare|report|cancel|delete
+                                           REST commands (svrobs_cli.rest)
+    svrobs schedules list|show|create|enable|disable|delete|runs
+    svrobs presets list|run                REST commands (svrobs_cli.schedules)
     svrobs run-local|reproduce             the core in process (svrobs_cli.local)
     svrobs serve                           API + worker + beat (svrobs_cli.serve)
 
@@ -12,7 +15,7 @@ Every error prints one line and exits with status 2, never a traceback
 
 from __future__ import annotations
 
-from svrobs_cli import admin, local, rest, serve
+from svrobs_cli import admin, local, rest, schedules, serve
 from svrobs_cli.errors import SvrobsTyper
 
 __all__ = ["app"]
@@ -30,6 +33,18 @@ admin_app = SvrobsTyper(
     pretty_exceptions_enable=False,
 )
 app.add_typer(admin_app, name="admin")
+schedules_app = SvrobsTyper(
+    help="Cron schedules that turn a spec template into a job at every due time.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+)
+app.add_typer(schedules_app, name="schedules")
+presets_app = SvrobsTyper(
+    help="The system presets, and the paper's Section 6 preset.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+)
+app.add_typer(presets_app, name="presets")
 
 COMMANDS = (
     (app, "migrate", admin.migrate),
@@ -41,7 +56,20 @@ COMMANDS = (
     (app, "submit", rest.submit),
     (app, "status", rest.status),
     (app, "results", rest.results),
+    (app, "summary", rest.summary),
     (app, "compare", rest.compare),
+    (app, "report", rest.report),
+    (app, "cancel", rest.cancel),
+    (app, "delete", rest.delete),
+    (schedules_app, "list", schedules.list_schedules),
+    (schedules_app, "show", schedules.show),
+    (schedules_app, "create", schedules.create),
+    (schedules_app, "enable", schedules.enable),
+    (schedules_app, "disable", schedules.disable),
+    (schedules_app, "delete", schedules.delete),
+    (schedules_app, "runs", schedules.runs),
+    (presets_app, "list", schedules.list_presets),
+    (presets_app, "run", schedules.run_preset),
     (app, "run-local", local.run_local_command),
     (app, "reproduce", local.reproduce_command),
     (app, "serve", serve.serve_command),

@@ -1,18 +1,48 @@
-"""Errors on the command line: one line on stderr, exit status 2, never a traceback."""
+"""Errors on the command line: one line on stderr, exit status 2, never a traceback.
+
+An API error (:class:`svrobs_client.SvrobsError`) is shown as
+``error: <field in plain words>: <message>``, e.g. ``error: invalid spec: reps: must
+be >= 1`` for a bad spec (README, "The spec and the record").
+"""
 
 from __future__ import annotations
 
+import re
 import sys
 
 import typer
+
+from svrobs_client import SvrobsError
 
 
 class CliError(Exception):
     """An error shown to the user as one line (exit status 2)."""
 
 
+# pydantic's names for the branches of a union or a validator ("N.list[any]"): not a
+# field a user wrote, so dropped from the field path
+_VALIDATOR_PART = re.compile(
+    r"\.(?:list|dict|tuple|set|frozenset|union|tagged-union|json-or-python|lax-or-strict"
+    r"|is-instance|nullable|default|function-[a-z-]+|constrained-[a-z-]+)(?:\[[^\]]*\])?"
+)
+
+
+def plain_field(field: str | None) -> str | None:
+    """The field path as the user wrote it (``N.list[any]`` -> ``N``)."""
+    if not field:
+        return None
+    return _VALIDATOR_PART.sub("", field) or None
+
+
+def plain_message(exc: SvrobsError) -> str:
+    """``field: message`` (or the message alone when the API names no field)."""
+    field = plain_field(exc.field)
+    return f"{field}: {exc.message}" if field else exc.message
+
+
 def one_line(exc: BaseException) -> str:
-    text = str(exc).strip() or type(exc).__name__
+    text = plain_message(exc) if isinstance(exc, SvrobsError) else str(exc)
+    text = text.strip() or type(exc).__name__
     return " ".join(text.split())[:500]
 
 

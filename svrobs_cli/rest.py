@@ -1,96 +1,40 @@
-"""The REST commands of ``svrobs``: a small HTTP client of the API.
+"""The REST commands of ``svrobs`` on jobs and results, through :mod:`svrobs_client`.
 
-    svrobs submit SPEC.json [--wait] [--name N] [--tag T]...
-    svrobs status [JOB]
-    svrobs results JOB --format csv|jsonl|json [--out FILE]
-    svrobs compare --jobs 1,2 --metric rmse_A --by N,estimator
+    svrobs submit SPEC.json [--wait] [--name N] [--tag T]... [--idempotency-key K]
+    svrobs status [JOB] [--status S] [--tag T] [--owner me|EMAIL] [--json]
+    svrobs results JOB --format csv|jsonl|json [--out FILE] [filters]
+    svrobs summary JOB [--field rmse_A]... [--json]
+    svrobs compare --jobs 1,2 --metric rmse_A --by N,estimator [--json]
+    svrobs report JOB [--out FOLDER]
+    svrobs cancel JOB
+    svrobs delete JOB [--yes]
 
-The REST commands read the base URL and key from ``SVROBS_URL`` /
-``SVROBS_API_KEY`` or ``~/.config/svrobs/config.json`` (``{"url", "api_key"}``).
-Errors are :class:`~svrobs_cli.errors.CliError` (one line, exit status 2). The
-commands are registered in :mod:`svrobs_cli.app`.
+The base URL and key come from ``SVROBS_URL`` / ``SVROBS_API_KEY`` or
+``~/.config/svrobs/config.json`` (``{"url", "api_key"}``), as for
+:class:`svrobs_client.Client`. Errors are one line (:mod:`svrobs_cli.errors`); a
+file or folder is written whole or not at all. The commands are registered in
+:mod:`svrobs_cli.app`.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import sys
-import time
 from pathlib import Path
 
 import typer
 
-from svrobs_cli.errors import CliError
-
-DEFAULT_URL = "http://127.0.0.1:8000"
-CONFIG_PATH = Path(os.environ.get("SVROBS_CONFIG", "~/.config/svrobs/config.json")).expanduser()
-TERMINAL = ("succeeded", "failed", "cancelled")
+from svrobs_cli.errors import CliError, plain_message
+from svrobs_client import Client, Job, ValidationError
 
 
-# --------------------------------------------------------------------------- REST client
+def client(*, timeout: float = 30.0) -> Client:
+    """The client of the configured server (the one HTTP code path of the CLI)."""
+    return Client(timeout=timeout)
 
 
-def client_config() -> tuple[str, str]:
-    """(base URL, API key) from the environment or the config file."""
-    cfg: dict = {}
-    if CONFIG_PATH.is_file():
-        try:
-            cfg = json.loads(CONFIG_PATH.read_text())
-        except (OSError, ValueError) as exc:
-            raise CliError(f"cannot read {CONFIG_PATH}: {exc}") from None
-    url = os.environ.get("SVROBS_URL") or cfg.get("url") or DEFAULT_URL
-    key = os.environ.get("SVROBS_API_KEY") or cfg.get("api_key")
-    if not key:
-        raise CliError(f"no API key: set SVROBS_API_KEY or 'api_key' in {CONFIG_PATH}")
-    return url.rstrip("/"), key
-
-
-class Api:
-    def __init__(
-        self, url: str | None = None, key: str | None = None, timeout: float = 30.0, http=None
-    ):
-        import httpx
-
-        if http is not None:  # an injected client (tests)
-            self.base, self.http = str(http.base_url).rstrip("/"), http
-            return
-        if url is None or key is None:
-            u, k = client_config()
-            url, key = url or u, key or k
-        self.base = url.rstrip("/")
-        self.http = httpx.Client(
-            base_url=f"{self.base}/api/v1",
-            timeout=timeout,
-            headers={"Authorization": f"Bearer {key}"},
-        )
-
-    def request(self, method: str, path: str, **kw):
-        import httpx
-
-        try:
-            r = self.http.request(method, path, **kw)
-        except httpx.HTTPError as exc:
-            raise CliError(f"cannot reach {self.base}: {exc}") from None
-        if r.status_code >= 400:
-            raise CliError(_http_error(r))
-        return r
-
-    def stream(self, path: str, **kw):
-        return self.http.stream("GET", path, **kw)
-
-
-def _http_error(r) -> str:
-    try:
-        body = r.json()
-        detail, field = body.get("detail"), body.get("field")
-    except ValueError:
-        detail, field = r.text[:200], None
-    where = f"{field}: " if field else ""
-    return f"HTTP {r.status_code}: {where}{detail}"
-
-
-def _load_spec(path: Path) -> dict:
+def load_spec(path: Path) -> dict:
+    """A spec file (JSON, or YAML with PyYAML installed); ``-`` reads stdin."""
     if str(path) == "-":
         text = sys.stdin.read()
     else:
@@ -114,34 +58,48 @@ def _load_spec(path: Path) -> dict:
     return data
 
 
-def _progress_line(job: dict) -> str:
-    p = job["progress"]
-    return f"job {job['id']} {job['status']} {p['done']}/{p['total']} units"
+def fmt(value) -> str:
+    """A table cell: blank for null, 6 significant digits for a float."""
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    if isinstance(value, list):
+        return ",".join(map(str, value))
+    return str(value)
 
 
-def wait_for(api: Api, job: dict, interval: float = 1.0) -> dict:
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+def print_table(columns: list[str], rows: list[list], *, title: str | None = None) -> None:
+    """A rich table in a terminal; tab-separated lines (header first, nothing cut) when
+    stdout is a pipe or a file."""
+    if not sys.stdout.isatty():
+        for line in [columns, *rows]:
+            typer.echo("\t".join(fmt(v) for v in line))
+        return
+    from rich.console import Console
+    from rich.table import Table
 
-    with Progress(
-        TextColumn("job {task.fields[job]} {task.fields[status]}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total} units"),
-        TimeElapsedColumn(),
-        transient=False,
-    ) as bar:
-        task = bar.add_task(
-            "run", total=job["progress"]["total"] or 1, job=job["id"], status=job["status"]
-        )
-        while job["status"] not in TERMINAL:
-            time.sleep(interval)
-            job = api.request("GET", f"/jobs/{job['id']}").json()
-            bar.update(
-                task,
-                completed=job["progress"]["done"],
-                total=job["progress"]["total"] or 1,
-                status=job["status"],
-            )
-    return job
+    table = Table(*columns, title=title)
+    for row in rows:
+        table.add_row(*(fmt(v) for v in row))
+    Console().print(table)
+
+
+def print_json(data) -> None:
+    typer.echo(json.dumps(data, indent=2))
+
+
+def progress_line(job: Job) -> str:
+    return f"job {job.id} {job.status} {job.progress.done}/{job.progress.total} units"
+
+
+def finish(c: Client, job: Job) -> None:
+    """Wait for ``job`` with a progress bar, print its last state; an error unless it
+    succeeded."""
+    job = c.wait(job)
+    typer.echo(progress_line(job))
+    if job.status != "succeeded":
+        raise CliError(f"job {job.id} {job.status}: {job.error or ''}".strip())
 
 
 def submit(
@@ -156,86 +114,69 @@ def submit(
     ),
 ) -> None:
     """Submit an experiment spec as a job."""
-    spec = _load_spec(spec_file)
-    if name is not None:
-        spec["name"] = name
-    if tag:
-        spec["tags"] = list(spec.get("tags") or []) + list(tag)
-    api = Api()
-    headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
-    job = api.request("POST", "/jobs", json=spec, headers=headers).json()
-    typer.echo(
-        f"job {job['id']} {job['status']} ({job['n_cells']} cells, "
-        f"{job['progress']['total']} units)"
-    )
-    if wait:
-        job = wait_for(api, job)
-        typer.echo(_progress_line(job))
-        if job["status"] != "succeeded":
-            raise CliError(f"job {job['id']} {job['status']}: {job.get('error') or ''}".strip())
+    spec = load_spec(spec_file)
+    with client() as c:
+        try:
+            job = c.submit(spec, name=name, tags=tag, idempotency_key=idempotency_key, wait=False)
+        except ValidationError as exc:
+            raise CliError(f"invalid spec: {plain_message(exc)}") from None
+        typer.echo(f"job {job.id} {job.status} ({job.n_cells} cells, {job.progress.total} units)")
+        if wait:
+            finish(c, job)
 
 
 def status(
     job: int | None = typer.Argument(None, help="a job id; none lists recent jobs"),
     limit: int = typer.Option(20, help="jobs to list"),
+    offset: int = typer.Option(0, help="skip this many jobs (newest first)"),
     state: str | None = typer.Option(None, "--status", help="only jobs in this state"),
     tag: str | None = typer.Option(None, help="only jobs with this tag"),
+    owner: str | None = typer.Option(None, help="only jobs of this owner: an email or 'me'"),
     as_json: bool = typer.Option(False, "--json", help="print JSON"),
 ) -> None:
     """Show one job, or list the team's recent jobs."""
-    api = Api()
-    if job is not None:
-        data = api.request("GET", f"/jobs/{job}").json()
-        if as_json:
-            typer.echo(json.dumps(data, indent=2))
+    with client() as c:
+        if job is not None:
+            j = c.job(job)
+            if as_json:
+                return print_json(j.raw)
+            typer.echo(progress_line(j))
+            for key in ("name", "tags", "owner", "n_cells", "created_at", "started_at"):
+                if j.raw.get(key) not in (None, [], ""):
+                    typer.echo(f"  {key}: {j.raw[key]}")
+            for key in ("finished_at", "error", "timings"):
+                if j.raw.get(key) not in (None, {}, ""):
+                    typer.echo(f"  {key}: {j.raw[key]}")
             return
-        typer.echo(_progress_line(data))
-        for key in (
-            "name",
-            "tags",
-            "owner",
-            "n_cells",
-            "created_at",
-            "started_at",
-            "finished_at",
-            "error",
-        ):
-            if data.get(key) not in (None, [], ""):
-                typer.echo(f"  {key}: {data[key]}")
-        if data.get("timings"):
-            typer.echo(f"  timings: {data['timings']}")
-        return
-    params = {"limit": limit}
-    if state:
-        params["status"] = state
-    if tag:
-        params["tag"] = tag
-    page = api.request("GET", "/jobs", params=params).json()
+        page = c.jobs(status=state, tag=tag, owner=owner, limit=limit, offset=offset)
     if as_json:
-        typer.echo(json.dumps(page, indent=2))
-        return
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table("id", "name", "status", "progress", "cells", "tags", "created")
-    for j in page["items"]:
-        p = j["progress"]
-        table.add_row(
-            str(j["id"]),
-            j["name"] or "",
-            j["status"],
-            f"{p['done']}/{p['total']}",
-            str(j["n_cells"]),
-            ",".join(j["tags"]),
-            str(j["created_at"])[:19],
+        return print_json(
+            {
+                **{k: getattr(page, k) for k in ("total", "limit", "offset")},
+                "items": [j.raw for j in page],
+            }
         )
-    Console().print(table)
-    typer.echo(f"{len(page['items'])} of {page['total']} jobs")
+    print_table(
+        ["id", "name", "status", "progress", "cells", "tags", "created"],
+        [
+            [
+                j.id,
+                j.name,
+                j.status,
+                f"{j.progress.done}/{j.progress.total}",
+                j.n_cells,
+                j.tags,
+                str(j.raw.get("created_at"))[:19],
+            ]
+            for j in page
+        ],
+    )
+    typer.echo(f"{len(page)} of {page.total} jobs")
 
 
 def results(
     job: int = typer.Argument(...),
-    fmt: str = typer.Option("csv", "--format", help="csv, jsonl or json"),
+    format: str = typer.Option("csv", "--format", help="csv, jsonl or json"),
     out: Path | None = typer.Option(None, "--out", help="write to this file (default stdout)"),
     system: list[str] = typer.Option([], help="filter (repeatable)"),
     sigma_w: list[float] = typer.Option([], help="filter (repeatable)"),
@@ -244,10 +185,11 @@ def results(
     gamma: list[str] = typer.Option([], help="filter, 'null' for ols (repeatable)"),
     rep: list[int] = typer.Option([], help="filter (repeatable)"),
 ) -> None:
-    """Download a job's records (CSV and JSONL stream everything; JSON is every page)."""
-    if fmt not in ("csv", "jsonl", "json"):
+    """Download a job's records (CSV and JSONL stream everything; JSON is one array).
+    A file given by --out is written whole or not at all."""
+    if format not in ("csv", "jsonl", "json"):
         raise CliError("--format must be csv, jsonl or json")
-    params: dict = {
+    filters = {
         "system": system,
         "sigma_w": sigma_w,
         "N": n,
@@ -255,41 +197,42 @@ def results(
         "gamma": gamma,
         "rep": rep,
     }
-    params = {k: v for k, v in params.items() if v}
-    api = Api(timeout=300)
-    sink = open(out, "w", encoding="utf-8", newline="") if out else sys.stdout
-    try:
-        if fmt == "json":
-            items, offset = [], 0
-            while True:
-                page = api.request(
-                    "GET",
-                    f"/jobs/{job}/results",
-                    params={**params, "limit": 10_000, "offset": offset},
-                ).json()
-                items += page["items"]
-                offset += len(page["items"])
-                if not page["items"] or offset >= page["total"]:
-                    break
-            json.dump(items, sink)
-            sink.write("\n")
-        else:
-            import httpx
-
-            try:
-                with api.stream(f"/jobs/{job}/results", params={**params, "format": fmt}) as r:
-                    if r.status_code >= 400:
-                        r.read()
-                        raise CliError(_http_error(r))
-                    for chunk in r.iter_text():
-                        sink.write(chunk)
-            except httpx.HTTPError as exc:
-                raise CliError(f"cannot reach {api.base}: {exc}") from None
-    finally:
-        if out:
-            sink.close()
-    if out:
+    filters = {k: v for k, v in filters.items() if v}
+    with client(timeout=300) as c:
+        c.download_results(job, out if out is not None else sys.stdout, format=format, **filters)
+    if out is not None:
         print(f"wrote {out}", file=sys.stderr)
+
+
+def summary(
+    job: int = typer.Argument(...),
+    field: list[str] = typer.Option(
+        ["rmse_A", "rmse_B"], "--field", help="a numeric record field to show (repeatable)"
+    ),
+    as_json: bool = typer.Option(False, "--json", help="print the API's JSON (every field)"),
+) -> None:
+    """Mean and std of record fields per (system, sigma_w, N, estimator, gamma)."""
+    with client() as c:
+        data = c.summary_json(job)
+    if as_json:
+        return print_json(data)
+    groups = data["groups"]
+    known = set(groups[0]["stats"]) if groups else set(field)
+    unknown = [f for f in field if f not in known]
+    if unknown:
+        raise CliError(
+            f"--field: {', '.join(unknown)} not a summarised field; one of "
+            f"{', '.join(sorted(known))}"
+        )
+    cols = ["system", "sigma_w", "N", "estimator", "gamma", "count"]
+    rows = [
+        [g[k] for k in cols] + [g["stats"][f][s] for f in field for s in ("mean", "std")]
+        for g in groups
+    ]
+    if data["partial"]:
+        print(f"note: job {job} has not succeeded; the summary is partial", file=sys.stderr)
+    header = cols + [f"{f} {s}" for f in field for s in ("mean", "std")]
+    print_table(header, rows, title=f"job {data['job_id']} summary")
 
 
 def compare(
@@ -299,24 +242,47 @@ def compare(
     as_json: bool = typer.Option(False, "--json", help="print JSON"),
 ) -> None:
     """One metric across several jobs, grouped by grid coordinates."""
-    data = (
-        Api().request("GET", "/compare", params={"jobs": jobs, "metric": metric, "by": by}).json()
-    )
+    ids = [j.strip() for j in jobs.split(",") if j.strip()]
+    with client() as c:
+        data = c.compare_json(ids, metric, by)
     if as_json:
-        typer.echo(json.dumps(data, indent=2))
-        return
-    from rich.console import Console
-    from rich.table import Table
-
+        return print_json(data)
     cols = ["job_id", *data["by"], "mean", "std", "count"]
-    table = Table(*cols, title=f"{data['metric']} by {', '.join(data['by'])}")
-    for row in data["rows"]:
-        table.add_row(
-            *(
-                ""
-                if row[c] is None
-                else (f"{row[c]:.6g}" if isinstance(row[c], float) else str(row[c]))
-                for c in cols
-            )
-        )
-    Console().print(table)
+    print_table(
+        cols,
+        [[r[k] for k in cols] for r in data["rows"]],
+        title=f"{data['metric']} by {', '.join(data['by'])}",
+    )
+
+
+def report(
+    job: int = typer.Argument(...),
+    out: Path | None = typer.Option(None, "--out", help="folder (default job-ID-report)"),
+) -> None:
+    """Write a job's HTML report and its figures (PNG) into a folder."""
+    folder = out or Path(f"job-{job}-report")
+    with client(timeout=300) as c:
+        rep = c.report(job, folder)
+    typer.echo(f"wrote {rep.html} and {len(rep.figures)} figures in {folder / 'figures'}")
+
+
+def cancel(job: int = typer.Argument(...)) -> None:
+    """Cancel a queued or running job (units not yet started never run)."""
+    with client() as c:
+        typer.echo(progress_line(c.cancel(job)))
+
+
+def delete(
+    job: int = typer.Argument(...),
+    yes: bool = typer.Option(False, "--yes", "-y", help="delete without asking"),
+) -> None:
+    """Delete a job with its results and summaries (a queued or running job: cancel it
+    first)."""
+    if not yes:
+        if not sys.stdin.isatty():
+            raise CliError("not deleted: give --yes to delete without a prompt")
+        if not typer.confirm(f"delete job {job} with all its results?"):
+            raise CliError("not deleted")
+    with client() as c:
+        c.delete(job)
+    typer.echo(f"job {job} deleted")

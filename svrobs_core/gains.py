@@ -12,6 +12,11 @@ Everything here is pure and vectorised over leading batch dimensions ``...``:
   ``(1+gamma) A_tilde - K_hat C`` onto an l1 ball (Duchi et al. 2008); for any
   other ``C`` cvxpy + Clarabel solves it cell by cell.
 * ``reuse_gains``: the ``reuse_gain`` sweep option along increasing ``N``.
+
+Each takes either the paper's scalar radius ``r_A`` (every entry of A within
+``r_A`` of the centre) or, keyword ``R_A``, a per-entry radius matrix
+(SPEC section 3.1): then ``g(L) = max_i sum_j (|c_ij| + (R_A)_ij)`` and row
+``i`` of the design has the budget ``1 - margin - sum_j (R_A)_ij``.
 """
 
 from __future__ import annotations
@@ -65,15 +70,19 @@ def _scaled_center(A_tilde, gamma):
     return (1.0 + gamma)[..., None, None] * A_tilde
 
 
-def certificate(L, A_tilde, gamma, r_A, *, C) -> np.ndarray:
+def certificate(L, A_tilde, gamma, r_A, *, C, R_A=None) -> np.ndarray:
     """g(L) = max_i sum_j |c_ij| + n r_A with c = (1+gamma) A_tilde - L C. -> (...)
 
     L (..., n, p), A_tilde (..., n, n), C (p, n) or (..., p, n); gamma and r_A
-    broadcast against the batch shape (use gamma = 0 for OLS).
+    broadcast against the batch shape (use gamma = 0 for OLS). With a radius
+    matrix ``R_A`` (..., n, n) instead (r_A ignored):
+    g(L) = max_i sum_j (|c_ij| + (R_A)_ij).
     """
     Ct = _scaled_center(A_tilde, gamma)
     n = Ct.shape[-1]
     c = Ct - np.asarray(L, dtype=float) @ np.asarray(C, dtype=float)
+    if R_A is not None:
+        return (np.abs(c) + np.asarray(R_A, dtype=float)).sum(axis=-1).max(axis=-1)
     return np.abs(c).sum(axis=-1).max(axis=-1) + n * np.asarray(r_A, dtype=float)
 
 
@@ -107,8 +116,13 @@ def _is_orthogonal(C) -> bool:
     return bool(np.all(np.abs(_mT(C) @ C - np.eye(p)) <= 1e-12))
 
 
-def design_gain(A_tilde, gamma, r_A, C, *, K_hat, margin=0.01, method="auto") -> GainResult:
+def design_gain(
+    A_tilde, gamma, r_A, C, *, K_hat, margin=0.01, method="auto", R_A=None
+) -> GainResult:
     """min ||L - K_hat||_F s.t. sum_j |c_ij(L)| + n r_A <= 1 - margin for all i.
+
+    With a radius matrix ``R_A`` (..., n, n) (r_A ignored, may be None) the
+    constraint of row i is sum_j |c_ij(L)| + sum_j (R_A)_ij <= 1 - margin.
 
     A_tilde (..., n, n), K_hat (..., n, p), C (p, n) or (..., p, n); gamma,
     r_A, margin broadcast against the batch shape. If the constraint is
@@ -122,19 +136,30 @@ def design_gain(A_tilde, gamma, r_A, C, *, K_hat, margin=0.01, method="auto") ->
     C = np.asarray(C, dtype=float)
     n, p = Ct.shape[-1], C.shape[-2]
     K_hat = check_matrix("K_hat", K_hat, (n, p))
-    r_A = np.asarray(r_A, dtype=float)
+    if R_A is None:
+        r_A = np.asarray(r_A, dtype=float)
+        rshape = r_A.shape
+    else:
+        R_A = np.asarray(R_A, dtype=float)
+        rshape = R_A.shape[:-2]
     batch = np.broadcast_shapes(
-        Ct.shape[:-2], K_hat.shape[:-2], C.shape[:-2], r_A.shape, np.shape(margin)
+        Ct.shape[:-2], K_hat.shape[:-2], C.shape[:-2], rshape, np.shape(margin)
     )
     Ct = np.broadcast_to(Ct, batch + (n, n))
     K_hat = np.broadcast_to(K_hat, batch + (n, p))
     Cb = np.broadcast_to(C, batch + (p, n))
-    rho = np.broadcast_to(1.0 - np.asarray(margin, dtype=float) - n * r_A, batch)
+    if R_A is None:
+        rho = np.broadcast_to(1.0 - np.asarray(margin, dtype=float) - n * r_A, batch)
+        rows = rho[..., None]  # the same budget for every row
+    else:  # one budget per row: (..., n)
+        rows = np.asarray(1.0 - np.asarray(margin, dtype=float))[..., None] - R_A.sum(axis=-1)
+        rows = np.broadcast_to(rows, batch + (n,))
+        rho = rows.min(axis=-1)
     good = (
         np.isfinite(Ct).all(axis=(-1, -2))
         & np.isfinite(K_hat).all(axis=(-1, -2))
         & np.isfinite(Cb).all(axis=(-1, -2))
-        & np.isfinite(rho)
+        & np.isfinite(rows).all(axis=-1)
     )
 
     orth = _is_orthogonal(C)
@@ -147,43 +172,54 @@ def design_gain(A_tilde, gamma, r_A, C, *, K_hat, margin=0.01, method="auto") ->
         with np.errstate(invalid="ignore"):
             c0 = Ct - K_hat @ Cb
             # infeasible -> radius 0 -> c = 0, the unique minimiser of g(L)
-            c = project_l1_ball(c0, np.where(feasible, rho, 0.0)[..., None])
+            c = project_l1_ball(c0, np.where(feasible[..., None], rows, 0.0))
             L = (Ct - c) @ _mT(Cb)  # C orthogonal: L C = Ct - c
     elif method == "cvxpy":
         L = np.full(batch + (n, p), np.nan)
         feasible = np.zeros(batch, dtype=bool)
-        solver = _CvxpyDesign(n, p)
+        solver = _CvxpyDesign(n, p, per_row=R_A is not None)
         for ix in np.ndindex(batch):
             if good[ix]:
-                L[ix], feasible[ix] = solver.solve(Ct[ix], Cb[ix], K_hat[ix], rho[ix])
+                budget = rho[ix] if R_A is None else rows[ix]
+                L[ix], feasible[ix] = solver.solve(Ct[ix], Cb[ix], K_hat[ix], budget)
     else:
         raise ValueError(f"unknown method {method!r}")
 
     L = np.where(good[..., None, None], L, np.nan)
-    g = certificate(L, Ct, 0.0, r_A, C=Cb)
+    g = certificate(L, Ct, 0.0, r_A, C=Cb, R_A=R_A)
     with np.errstate(invalid="ignore"):
         certified = g < 1.0
     return GainResult(L=L, g_L=g, certified=certified, feasible=feasible & good)
 
 
 class _CvxpyDesign:
-    """The general-C design as parametrised cvxpy problems, solved by Clarabel."""
+    """The general-C design as parametrised cvxpy problems, solved by Clarabel.
 
-    def __init__(self, n, p):
+    ``per_row``: one budget per row (a radius matrix); else one scalar budget
+    (the paper's scalar radius, the problem exactly as it always was)."""
+
+    def __init__(self, n, p, per_row=False):
         import cvxpy as cp
 
         self.cp = cp
+        self.per_row = per_row
         self.L = cp.Variable((n, p))
         self.Ct = cp.Parameter((n, n))
         self.C = cp.Parameter((p, n))
         self.K = cp.Parameter((n, p))
-        self.rho = cp.Parameter()
+        self.rho = cp.Parameter(n) if per_row else cp.Parameter()
         rows = cp.sum(cp.abs(self.Ct - self.L @ self.C), axis=1)
         self.main = cp.Problem(cp.Minimize(cp.sum_squares(self.L - self.K)), [rows <= self.rho])
         self.t = cp.Variable()
-        self.min_g = cp.Problem(cp.Minimize(self.t), [rows <= self.t])
+        if per_row:  # min_L max_i (row_i + offset_i), offset_i = 1 - margin - budget_i >= 0
+            self.offset = cp.Parameter(n)
+            self.min_g = cp.Problem(cp.Minimize(self.t), [rows + self.offset <= self.t])
+        else:
+            self.min_g = cp.Problem(cp.Minimize(self.t), [rows <= self.t])
 
     def solve(self, Ct, C, K_hat, rho):
+        if self.per_row:
+            return self._solve_rows(Ct, C, K_hat, np.asarray(rho, dtype=float))
         cp = self.cp
         self.Ct.value, self.C.value, self.K.value = Ct, C, K_hat
         self.rho.value = float(rho)
@@ -203,6 +239,32 @@ class _CvxpyDesign:
         if self.main.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
             L2 = self.L.value
             if np.abs(Ct - L2 @ C).sum(axis=-1).max() <= self.rho.value + 1e-9:
+                return L2, False
+        return L1, False
+
+    def _solve_rows(self, Ct, C, K_hat, budget):
+        """Per-row budgets; the fallback minimises max_i (row_i(L) + offset_i)."""
+        cp = self.cp
+        self.Ct.value, self.C.value, self.K.value = Ct, C, K_hat
+        self.rho.value = budget
+        self.main.solve(solver=cp.CLARABEL)
+        if self.main.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+            return self.L.value, True
+        nan = np.full(self.L.shape, np.nan)
+        if self.main.status not in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
+            return nan, False
+        offset = budget.max() - budget  # shifts that keep the row order of the budgets
+        self.offset.value = offset
+        self.min_g.solve(solver=cp.CLARABEL)
+        if self.min_g.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+            return nan, False
+        L1 = self.L.value
+        top = float((np.abs(Ct - L1 @ C).sum(axis=-1) + offset).max())
+        self.rho.value = top - offset
+        self.main.solve(solver=cp.CLARABEL)
+        if self.main.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+            L2 = self.L.value
+            if (np.abs(Ct - L2 @ C).sum(axis=-1) + offset).max() <= top + 1e-9:
                 return L2, False
         return L1, False
 
@@ -228,7 +290,7 @@ class ReuseResult:
     source: np.ndarray
 
 
-def reuse_gains(L, A_tilde, gamma, r_A, *, C) -> ReuseResult:
+def reuse_gains(L, A_tilde, gamma, r_A, *, C, R_A=None) -> ReuseResult:
     """reuse_gain policy along increasing N (SPEC section 4).
 
     L (nN, ..., n, p): the gain designed at each N (axis 0 sorted by
@@ -239,14 +301,21 @@ def reuse_gains(L, A_tilde, gamma, r_A, *, C) -> ReuseResult:
     chosen gain is kept iff it was certified at the previous N and is still
     certified (g < 1) for the new estimate (A_tilde, gamma, r_A); otherwise
     the gain designed at this N is used. Vectorised over all non-N dims.
+    ``R_A`` (nN, ..., n, n): a radius matrix per N instead of r_A.
     """
     L = np.asarray(L, dtype=float)
     Ct = _scaled_center(A_tilde, gamma)
     n, p = L.shape[-2], L.shape[-1]
-    batch = np.broadcast_shapes(L.shape[:-2], Ct.shape[:-2], np.shape(r_A))
+    rshape = np.shape(r_A) if R_A is None else np.shape(R_A)[:-2]
+    batch = np.broadcast_shapes(L.shape[:-2], Ct.shape[:-2], rshape)
     L = np.broadcast_to(L, batch + (n, p))
     Ct = np.broadcast_to(Ct, batch + (n, n))
-    r_A = np.broadcast_to(np.asarray(r_A, dtype=float), batch)
+    if R_A is None:
+        r_A = np.broadcast_to(np.asarray(r_A, dtype=float), batch)
+        R_A = [None] * batch[0]
+    else:
+        R_A = np.broadcast_to(np.asarray(R_A, dtype=float), batch + (n, n))
+        r_A = np.zeros(batch)
     nN = batch[0]
 
     out_L = np.empty(batch + (n, p))
@@ -255,12 +324,12 @@ def reuse_gains(L, A_tilde, gamma, r_A, *, C) -> ReuseResult:
     source = np.empty(batch, dtype=np.intp)
     with np.errstate(invalid="ignore"):
         for k in range(nN):
-            g_new = certificate(L[k], Ct[k], 0.0, r_A[k], C=C)
+            g_new = certificate(L[k], Ct[k], 0.0, r_A[k], C=C, R_A=R_A[k])
             if k == 0:
                 keep = np.zeros(batch[1:], dtype=bool)
                 g_prev = np.zeros(batch[1:])
             else:
-                g_prev = certificate(out_L[k - 1], Ct[k], 0.0, r_A[k], C=C)
+                g_prev = certificate(out_L[k - 1], Ct[k], 0.0, r_A[k], C=C, R_A=R_A[k])
                 keep = (g[k - 1] < 1.0) & (g_prev < 1.0)
             out_L[k] = np.where(keep[..., None, None], out_L[k - 1] if k else L[k], L[k])
             g[k] = np.where(keep, g_prev, g_new)

@@ -17,6 +17,14 @@
   ``svrobs reproduce`` computes the Monte Carlo J of S's first 10
   repetitions once and writes both (``UnitResult.with_mc_reps``).
 
+Beyond the paper (issue 12, SPEC section 3.1), the audit of the uncertainty
+sets on E2's grid:
+
+* **A1**: E2 with ``bounds_method = "self-normalized"`` (same data: the seed
+  key does not depend on the method).
+* **A2**: E2 with ``bounds_method = "bootstrap"`` (100 resamples) on
+  N in {10, 50, 100, 200, 450}: the bootstrap re-simulates every cell.
+
 ``scale="reduced"`` keeps exactly this structure (systems, sigma_w, gammas,
 estimators, stages) on a tiny grid, for tests and smoke runs.
 
@@ -70,7 +78,18 @@ EXPERIMENTS: dict[str, dict] = {
         "title": "Fig. 5: cost ratio r = |J_gamma - J_ref| / J_ref on S and U",
         "paper": "Section 6.3, Fig. 5",
     },
+    "A1": {
+        "title": "Beyond the paper: the self-normalized confidence box on E2's grid",
+        "paper": None,
+        "findings": ("bounds",),  # the estimates are E2's: report only the bounds
+    },
+    "A2": {
+        "title": "Beyond the paper: the parametric bootstrap box on E2's systems and noise",
+        "paper": None,
+        "findings": ("bounds",),
+    },
 }
+AUDIT_N = [10, 50, 100, 200, 450]  # A2's N grid (the bootstrap re-simulates every cell)
 
 # ---------------------------------------------------------------------------
 # The paper's PUBLISHED numbers (Table 2), transcribed from SPEC section 9 and
@@ -160,7 +179,9 @@ def _full_specs() -> dict[str, dict]:
         **copy.deepcopy(common),
     }
     e4 = {**copy.deepcopy(e3), "systems": [STABLE, UNSTABLE], "mc_reps": 0}
-    return {"E1": e1, "E2": e2, "E3": e3, "E4": e4}
+    a1 = {**copy.deepcopy(e2), "bounds_method": "self-normalized"}
+    a2 = {**copy.deepcopy(e2), "N": list(AUDIT_N), "bounds_method": "bootstrap", "boot_reps": 100}
+    return {"E1": e1, "E2": e2, "E3": e3, "E4": e4, "A1": a1, "A2": a2}
 
 
 def paper_specs(scale: str = "full") -> dict[str, dict]:
@@ -180,4 +201,6 @@ def paper_specs(scale: str = "full") -> dict[str, dict]:
         s["reps"] = 3
         if "cost" in s["stages"]:
             s.update(horizon=50, mc_runs=50, mc_reps=min(2, s["mc_reps"]))
+        if "boot_reps" in s:
+            s["boot_reps"] = 20
     return specs

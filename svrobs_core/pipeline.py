@@ -27,6 +27,7 @@ from .planning import EstimatorAxis
 from .rollouts import MC_STREAM, generators, gram_data, seed_key
 from .spec import STAGES, ExperimentSpec
 from .systems import SystemSpec
+from .uncertainty_stage import sound_bounds
 
 
 @dataclass(kw_only=True)
@@ -59,7 +60,9 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
     sigma_w = spec.sigma_w[wi]
     n = system.n
     keys = [seed_key(si, wi, N, r) for r in reps]
-    need_data = any(e in ("ols", "shrunk-ols") for e in spec.estimators)
+    need_data = any(e in ("ols", "shrunk-ols") for e in spec.estimators) or (
+        spec.bounds_method == "bootstrap" and spec.boot_sigma_w == "estimate"
+    )
     G, P, Z, F = gram_data(
         system,
         sigma_w,
@@ -96,7 +99,7 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
         out=out,
         notes=notes,
     )
-    state = _run_stages(cells, N=N, N0=N0, prev_gain=prev_gain)
+    state = _run_stages(cells, N=N, N0=N0, prev_gain=prev_gain, data=(G, Z, F))
     return out, notes, N0, state
 
 
@@ -124,11 +127,54 @@ def _rmse(X, X_true) -> np.ndarray:
     return np.sqrt(np.mean((X - X_true) ** 2, axis=(-2, -1)))
 
 
-def _run_stages(c: _Cells, *, N, N0, prev_gain):
-    """bounds, then the observer stages; -> the gain state for ``reuse_gain``."""
+def _run_stages(c: _Cells, *, N, N0, prev_gain, data):
+    """bounds, then the observer stages; -> the gain state for ``reuse_gain``.
+
+    The gain is designed on the chosen method's box: the paper's (centre
+    (1+gamma) A_tilde, scalar radius r_A) or, for the sound methods of SPEC
+    section 3.1, centre A_hat and the radius matrix R_A."""
     spec, system, out, notes = c.spec, c.system, c.out, c.notes
     if not spec.has("bounds"):
         return None
+    if spec.bounds_method == "paper":
+        b, gamma, radius = _paper_bounds(c, N=N, N0=N0)
+    else:
+        G, Z, F = data
+        sound = sound_bounds(c, G=G, Z=Z, F=F, N=N, N0=N0)
+        out.update(sound.fields)
+        b, gamma, radius = sound.result, np.zeros(len(c.axis.names)), sound.box.R_A
+    if not spec.has("gain"):
+        return None
+    matrix = spec.bounds_method != "paper"
+    designed, k_hat_reasons = design(c, gamma, radius, matrix=matrix)
+    if k_hat_reasons is not None:
+        notes.add_reasons(k_hat_reasons, "K_hat")
+    shape = c.shape
+    radius = np.broadcast_to(radius, shape + (radius.shape[-2:] if matrix else ()))
+    state = (designed.L, c.A_hat, radius)
+    if prev_gain is not None:  # reuse_gain: keep the previous L while certified (SPEC 4)
+        L_prev, A_prev, r_prev = prev_gain
+        radii = np.stack([r_prev, radius])
+        reuse = _gains.reuse_gains(
+            np.stack([L_prev, designed.L]),
+            np.stack([A_prev, c.A_hat]),
+            gamma,
+            r_A=None if matrix else radii,
+            C=system.C,
+            R_A=radii if matrix else None,
+        )
+        designed = _gains.GainResult(
+            L=reuse.L[1], g_L=reuse.g_L[1], certified=reuse.certified[1], feasible=None
+        )
+        notes.add(reuse.reused[1], "gain: reused from the previous N")
+        state = (reuse.L[1], c.A_hat, radius)
+    _observer_stages(c, b, designed)
+    return state
+
+
+def _paper_bounds(c: _Cells, *, N, N0):
+    """SPEC section 3's bounds -> (BoundsResult, gamma of the centre, r_A per estimator)."""
+    spec, system, out = c.spec, c.system, c.out
     gamma = c.axis.gamma_array
     rad = _bounds.radii(
         n=system.n,
@@ -144,8 +190,12 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain):
     )
     b = _bounds.evaluate_bounds(c.A_hat, c.B_hat, gamma, rad, A_true=system.A, B_true=system.B)
     shape = c.shape
+    n, m = system.n, system.m
     out.update(
         {
+            "bounds_method": np.broadcast_to(np.array("paper", dtype=object), shape),
+            "radii_A": np.broadcast_to(rad.r_A[:, None, None], shape + (n, n)),
+            "radii_B": np.broadcast_to(rad.r_B[:, None, None], shape + (n, m)),
             "H_A": np.broadcast_to(rad.H_A, shape),
             "H_B": np.broadcast_to(rad.H_B, shape),
             "r_A": np.broadcast_to(rad.r_A, shape),
@@ -160,28 +210,7 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain):
             "stable_certified": b.stable_certified,
         }
     )
-    if not spec.has("gain"):
-        return None
-    designed, k_hat_reasons = design(c, gamma, rad)
-    if k_hat_reasons is not None:
-        notes.add_reasons(k_hat_reasons, "K_hat")
-    state = (designed.L, c.A_hat, np.broadcast_to(rad.r_A, shape))
-    if prev_gain is not None:  # reuse_gain: keep the previous L while certified (SPEC 4)
-        L_prev, A_prev, r_prev = prev_gain
-        reuse = _gains.reuse_gains(
-            np.stack([L_prev, designed.L]),
-            np.stack([A_prev, c.A_hat]),
-            gamma,
-            r_A=np.stack([r_prev, state[2]]),
-            C=system.C,
-        )
-        designed = _gains.GainResult(
-            L=reuse.L[1], g_L=reuse.g_L[1], certified=reuse.certified[1], feasible=None
-        )
-        notes.add(reuse.reused[1], "gain: reused from the previous N")
-        state = (reuse.L[1], c.A_hat, state[2])
-    _observer_stages(c, b, designed)
-    return state
+    return b, gamma, rad.r_A
 
 
 # ---------------------------------------------------------------------------
@@ -213,14 +242,23 @@ def truth(system, sigma_w: float, horizon: int):
     )
 
 
-def design(c: _Cells, gamma, rad):
-    """The designed gain of every cell (before the reuse policy): GainResult, K-hat notes."""
+def design(c: _Cells, gamma, radius, *, matrix=False):
+    """The designed gain of every cell (before the reuse policy): GainResult, K-hat notes.
+
+    Centre (1+gamma) A_hat (gamma = 0: A_hat itself); ``radius`` is r_A per
+    estimator (E,) or, with ``matrix``, the radius matrices R_A (R, E, n, n)."""
     system = c.system
     g = gamma[None, :]
     scaled = (1.0 + g)[..., None, None] * c.A_hat
     kal = _kalman.kalman_predictor(scaled, system.C, c.sigma_w, system.sigma_v)
     res = _gains.design_gain(
-        c.A_hat, g, rad.r_A[None, :], C=system.C, K_hat=kal.K, margin=c.spec.margin
+        c.A_hat,
+        g,
+        None if matrix else radius[None, :],
+        C=system.C,
+        K_hat=kal.K,
+        margin=c.spec.margin,
+        R_A=radius if matrix else None,
     )
     return res, (None if kal.ok.all() else kal.reasons())
 

@@ -9,10 +9,13 @@ import numpy as np
 KEY_FIELDS = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep", "seed_key")
 ESTIMATE_FIELDS = ("A_hat", "B_hat", "rmse_A", "rmse_B")
 BOUND_FIELDS = (
+    "bounds_method",
     "H_A",
     "H_B",
     "r_A",
     "r_B",
+    "radii_A",
+    "radii_B",
     "eps_A",
     "eps_B",
     "coverage_A",
@@ -38,9 +41,9 @@ SLS_FIELDS = ("J_opt", "J_opt_bound", "sls_status")
 CELL_FIELDS = ESTIMATE_FIELDS + BOUND_FIELDS + GAIN_FIELDS + COST_FIELDS + SLS_FIELDS
 RECORD_FIELDS = KEY_FIELDS + CELL_FIELDS + ("notes",)
 # Every field whose value is a matrix (a list of rows in JSON): the one definition.
-MATRIX_FIELDS = ("A_hat", "B_hat", "L", "K")
+MATRIX_FIELDS = ("A_hat", "B_hat", "radii_A", "radii_B", "L", "K")
 BOOL_FIELDS = ("thm1_holds_A", "thm1_holds_B", "stable_certified", "certified")
-TEXT_FIELDS = ("system", "estimator", "sls_status", "notes")
+TEXT_FIELDS = ("system", "estimator", "bounds_method", "sls_status", "notes")
 # Scalars a user filters, sorts and averages on: one numeric SQL column each.
 NUMERIC_FIELDS = tuple(
     f for f in RECORD_FIELDS if f not in MATRIX_FIELDS + TEXT_FIELDS + ("seed_key",)

@@ -14,6 +14,13 @@ from .errors import SpecError
 from .systems import SystemSpec, resolve_system
 
 ESTIMATORS = ("ols", "svr", "shrunk-ols")
+BOUNDS_METHODS = ("paper", "self-normalized", "bootstrap")
+BOOT_SIGMA_SOURCES = ("estimate", "spec")
+# Options of each non-paper bounds method (SPEC section 3.1), with their defaults.
+BOUNDS_OPTIONS = {
+    "self-normalized": {"S": None, "lambda0": 1.0},
+    "bootstrap": {"boot_reps": 100, "boot_sigma_w": "estimate"},
+}
 STAGES = ("estimate", "bounds", "gain", "cost", "cost_bound", "sls")
 # A stage needs the ones before it in this order (cost_bound needs cost's J).
 STAGE_NEEDS = {
@@ -47,6 +54,11 @@ SPEC_KEYS = {
     "sls",
     "seed",
     "x0_std",
+    "bounds_method",
+    "S",
+    "lambda0",
+    "boot_reps",
+    "boot_sigma_w",
 }
 MAX_GRID = 100_000  # any single list longer than this is surely a mistake
 
@@ -77,6 +89,11 @@ class ExperimentSpec:
     sls_C_bound: float | None = None
     seed: int = 0
     x0_std: float = 0.0
+    bounds_method: str = "paper"
+    S: float | None = None  # self-normalized: bound on ||theta_i|| (None: sqrt(2) M)
+    lambda0: float = 1.0  # self-normalized OLS: V0 = lambda0 I
+    boot_reps: int = 100
+    boot_sigma_w: str = "estimate"  # bootstrap noise level: residual estimate or the spec's
     raw_systems: tuple = field(default=(), compare=False)
 
     def has(self, stage: str) -> bool:
@@ -114,7 +131,21 @@ class ExperimentSpec:
             "sls": {"T_fir": self.sls_T_fir, "C_bound": self.sls_C_bound},
             "seed": self.seed,
             "x0_std": self.x0_std,
+            **self._bounds_dict(),
         }
+
+    def _bounds_dict(self) -> dict:
+        """The bounds options, only for a non-paper method (so that the normalised
+        JSON of every spec written before ``bounds_method`` existed is unchanged)."""
+        if self.bounds_method == "paper":
+            return {}
+        opts = BOUNDS_OPTIONS[self.bounds_method]
+        return {"bounds_method": self.bounds_method, **{k: getattr(self, k) for k in opts}}
+
+    @property
+    def S_bound(self) -> float:
+        """S of the self-normalized method: the spec's, else sqrt(2) M (SPEC section 3.1)."""
+        return math.sqrt(2.0) * self.M if self.S is None else self.S
 
 
 def _int(value, name: str, *, lo: int, hi: int | None = None) -> int:
@@ -245,6 +276,7 @@ def parse_spec(obj) -> ExperimentSpec:
     if margin >= 1:
         raise SpecError("margin", "must be < 1")
     seed = _int(obj.get("seed", 0), "seed", lo=0, hi=2**63 - 1)
+    bounds = _bounds_options(obj)
 
     return ExperimentSpec(
         systems=systems,
@@ -269,5 +301,29 @@ def parse_spec(obj) -> ExperimentSpec:
         sls_C_bound=None if c_bound is None else _float(c_bound, "sls.C_bound", positive=True),
         seed=seed,
         x0_std=_float(obj.get("x0_std", 0.0), "x0_std", nonneg=True),
+        **bounds,
         raw_systems=tuple(raw_systems),
     )
+
+
+def _bounds_options(obj: dict) -> dict:
+    """bounds_method and the options of that method (SPEC section 3.1); an option
+    of another method is an error naming it."""
+    method = _choice(obj.get("bounds_method", "paper"), "bounds_method", BOUNDS_METHODS)
+    own = BOUNDS_OPTIONS.get(method, {})
+    for opts in BOUNDS_OPTIONS.values():
+        for key in opts:
+            if key in obj and key not in own:
+                users = [m for m, o in BOUNDS_OPTIONS.items() if key in o]
+                raise SpecError(key, f"is only used with bounds_method {users[0]!r}")
+    out: dict = {"bounds_method": method}
+    if method == "self-normalized":
+        S = obj.get("S")
+        out["S"] = None if S is None else _float(S, "S", positive=True)
+        out["lambda0"] = _float(obj.get("lambda0", 1.0), "lambda0", positive=True)
+    elif method == "bootstrap":
+        out["boot_reps"] = _int(obj.get("boot_reps", 100), "boot_reps", lo=2, hi=100_000)
+        out["boot_sigma_w"] = _choice(
+            obj.get("boot_sigma_w", "estimate"), "boot_sigma_w", BOOT_SIGMA_SOURCES
+        )
+    return out

@@ -1,6 +1,7 @@
 """compact results: matrices as float64 bytes, notes dictionary-coded, derived seed_key
 
-The ``results`` table is rebuilt (both dialects) in the format of
+The ``results`` table (0002's: with bounds_method and the radius matrices) is
+rebuilt (both dialects) in the format of
 ``service.db.result_codec``: the matrix fields as little-endian float64 bytes
 (shapes from the job's spec; a K constant over a (system, sigma_w) is written
 once into the new ``result_constants`` by the worker, while converted rows keep
@@ -10,10 +11,10 @@ rep]`` (else its JSON text), the cell key as the primary key (no surrogate id,
 SQLite WITHOUT ROWID), no secondary indexes (every per-job filter and the
 results order use the key's prefix) and no foreign keys (a per-row trigger
 check on PostgreSQL; see ``service.db.models.Result``). Rows are converted in batches; the
-downgrade converts them back to the 0001 format.
+downgrade converts them back to the 0002 format.
 
 Revision ID: 0005
-Revises: 0001
+Revises: 0002
 Create Date: 2026-12-01 09:30:00
 """
 
@@ -29,11 +30,11 @@ from alembic import op
 from svrobs_core import resolve_system
 
 revision = "0005"
-down_revision = "0001"
+down_revision = "0002"
 branch_labels = None
 depends_on = None
 
-MATRICES = ("A_hat", "B_hat", "L", "K")
+MATRICES = ("A_hat", "B_hat", "radii_A", "radii_B", "L", "K")
 FLOATS = (
     "sigma_w",
     "gamma_key",
@@ -88,6 +89,7 @@ def _create_compact(name: str) -> None:
         *_scalar_columns()[-4:],
         sa.Column("system", sa.String(length=200), nullable=False),
         sa.Column("estimator", sa.String(length=32), nullable=False),
+        sa.Column("bounds_method", sa.String(length=32), nullable=True),
         sa.Column("sls_status", sa.String(length=64), nullable=True),
         sa.Column("seed_key", sa.Text(), nullable=True),
         *[sa.Column(f, sa.LargeBinary(), nullable=True) for f in MATRICES],
@@ -108,7 +110,10 @@ def _create_old(name: str) -> None:
         sa.Column("sls_status", sa.String(length=64), nullable=True),
         sa.Column("notes", sa.Text(), nullable=True),
         *[c for c in _scalar_columns() if c.name not in ("job_id", "gamma_key")],
-        *[sa.Column(f, sa.JSON(), nullable=True) for f in MATRICES],
+        *[sa.Column(f, sa.JSON(), nullable=True) for f in MATRICES if "radii" not in f],
+        sa.Column("bounds_method", sa.String(length=32), nullable=True),  # 0002's columns
+        sa.Column("radii_A", sa.JSON(), nullable=True),
+        sa.Column("radii_B", sa.JSON(), nullable=True),
         sa.ForeignKeyConstraint(["job_id"], ["jobs.id"], ondelete="CASCADE"),
         sa.PrimaryKeyConstraint("id"),
         sa.UniqueConstraint(*KEY, name="uq_results_cell"),
@@ -148,7 +153,9 @@ class _Specs:
 
 
 def _shape(field: str, n: int, m: int, p: int) -> tuple[int, int]:
-    return {"A_hat": (n, n), "B_hat": (n, m), "L": (n, p), "K": (n, p)}[field]
+    return {"A_hat": (n, n), "B_hat": (n, m), "L": (n, p), "K": (n, p)}.get(
+        field, (n, n) if field == "radii_A" else (n, m)
+    )
 
 
 def _derived_seed(specs, row) -> list | None:
@@ -186,6 +193,7 @@ def upgrade() -> None:
     old = sa.table(
         "results",
         *[sa.column(c) for c in ("id", "job_id", "system", "estimator", "sls_status", "notes")],
+        sa.column("bounds_method"),
         *[sa.column(c) for c in FLOATS + INTS + BOOLS if c != "job_id"],
         *[sa.column(c) for c in ("seed_key",) + MATRICES],
     )
@@ -219,7 +227,10 @@ def upgrade() -> None:
 
 
 def _new_names() -> tuple[str, ...]:
-    return FLOATS + INTS + ("notes_id",) + BOOLS + ("system", "estimator", "sls_status")
+    return FLOATS + INTS + ("notes_id",) + BOOLS + TEXTS
+
+
+TEXTS = ("system", "estimator", "bounds_method", "sls_status")
 
 
 def downgrade() -> None:
@@ -252,7 +263,10 @@ def downgrade() -> None:
                 if b is not None and len(b) == 0:  # the job's constant of (system, sigma_w)
                     b = specs.shared[r["job_id"]][(r["system"], float(r["sigma_w"]), f)]
                 if b is not None:
-                    a = np.frombuffer(bytes(b), dtype="<f8").reshape(_shape(f, *dims))
+                    shape = _shape(f, *dims)
+                    size = shape[0] * shape[1]
+                    b = bytes(b) * size if len(b) == 8 else bytes(b)  # one repeated float
+                    a = np.frombuffer(b, dtype="<f8").reshape(shape)
                     b = np.where(np.isfinite(a), a, None).tolist()
                 row[f] = b
             out.append(row)

@@ -189,7 +189,8 @@ _FLOATS = ("sigma_w", "gamma_key") + tuple(
 )
 _INTS = ("job_id", "N", "N0", "rep", "notes_id")
 _BOOLS = tuple(BOOL_FIELDS)
-_VARIABLE = ("system", "estimator", "sls_status", "seed_key") + RESULT_MATRIX_FIELDS
+_VARIABLE = ("system", "estimator", "bounds_method", "sls_status", "seed_key")
+_VARIABLE += RESULT_MATRIX_FIELDS
 RESULT_COLUMN_ORDER = _FLOATS + _INTS + _BOOLS + _VARIABLE
 
 
@@ -202,8 +203,8 @@ def _result_column(name: str):
         return mapped_column(String(200 if name == "system" else 32), primary_key=True)
     if name == "gamma_key":
         return mapped_column(Float, primary_key=True)
-    if name == "sls_status":
-        return mapped_column(String(64), nullable=True)
+    if name in ("sls_status", "bounds_method"):
+        return mapped_column(String(64 if name == "sls_status" else 32), nullable=True)
     if name == "seed_key":
         return mapped_column(Text, nullable=True)
     if name in RESULT_MATRIX_FIELDS:

@@ -2,9 +2,9 @@
 
 A job's rows are decoded with its spec (:class:`ResultCodec`): each matrix field
 is stored as its entries, row-major little-endian float64, with no shape (the
-shape follows from the system's n, m, p: A_hat n x n, B_hat n x m, L and K
-n x p); a null entry (NaN or inf in the core) is stored as NaN and read back
-as None. A matrix that is the same in every cell of a (system, sigma_w) of the
+shape follows from the system's n, m, p: A_hat and radii_A n x n, B_hat and
+radii_B n x m, L and K n x p), or as 8 bytes when every entry is the same
+float; a non-finite entry (the records' null) is read back as None. A matrix that is the same in every cell of a (system, sigma_w) of the
 job (K, the true system's Kalman gain: SPEC section 5) is stored once in
 ``result_constants`` and as zero bytes in its rows. ``seed_key`` is stored
 only when it differs from the one the spec gives a cell: ``[system index,
@@ -61,15 +61,23 @@ class ResultCodec:
             raise ValueError(
                 f"{field} of system {system!r} must be {self.shape(system, field)}, got {a.shape}"
             )
-        return np.ascontiguousarray(a, dtype=DTYPE).tobytes()
+        return self.encode_block(a[None])[0]
 
     @staticmethod
     def encode_block(block: np.ndarray) -> list[bytes]:
-        """(k, rows, cols) matrices -> k byte strings (vectorised; non-finite -> NaN)."""
+        """(k, rows, cols) matrices -> k byte strings (vectorised); a matrix whose
+        entries are all the same float (bit for bit: e.g. the paper's radius
+        matrices) as that one float's 8 bytes."""
         a = np.ascontiguousarray(block, dtype=DTYPE)
         k = a.shape[0]
-        size = a[0].nbytes if k else 0
-        return a.reshape(k, -1).view(np.dtype((np.void, size))).ravel().tolist() if k else []
+        if not k:
+            return []
+        flat = a.reshape(k, -1)
+        out = flat.view(np.dtype((np.void, flat.shape[1] * 8))).ravel().tolist()
+        bits = flat.view(np.int64)
+        for i in np.flatnonzero((bits == bits[:, :1]).all(axis=1)).tolist():
+            out[i] = out[i][:8]
+        return out
 
     def decode_matrices(
         self, systems: Sequence[str], sigmas: Sequence[float], field: str, blobs: Sequence
@@ -86,6 +94,8 @@ class ResultCodec:
             parts = [bytes(blobs[i]) for i in idx]
             if SHARED in parts:
                 parts = [p or self._constant(system, sigmas[i], field) for p, i in zip(parts, idx)]
+            if r * c > 1:  # a matrix of one repeated float is stored as that float
+                parts = [p * (r * c) if len(p) == 8 else p for p in parts]
             buf = b"".join(parts)
             if len(buf) != len(idx) * r * c * DTYPE.itemsize:
                 raise ValueError(f"stored {field} of system {system!r} is not {r}x{c} float64")
@@ -131,6 +141,8 @@ def _codec(key: str) -> ResultCodec:
         s.name: {
             "A_hat": (s.n, s.n),
             "B_hat": (s.n, s.m),
+            "radii_A": (s.n, s.n),
+            "radii_B": (s.n, s.m),
             "L": (s.n, s.p),
             "K": (s.n, s.p),
         }

@@ -41,7 +41,7 @@ from .models import (
 from .result_codec import SHARED, SHARED_FIELDS, ResultCodec
 
 KEY_COLUMNS = RESULT_KEY
-TEXT_COLUMNS = ("system", "estimator", "sls_status")
+TEXT_COLUMNS = ("system", "estimator", "bounds_method", "sls_status")
 INT_FIELDS = ("N", "N0", "rep")
 _NOT_FLOAT = frozenset(BOOL_FIELDS + INT_FIELDS)
 COLUMNS = tuple(c.name for c in Result.__table__.columns)  # in table order
@@ -221,6 +221,7 @@ def record_to_row(job_id: int, record: dict) -> dict:
     row["estimator"] = str(record["estimator"])
     row["gamma_key"] = gamma_key(row["gamma"])
     row["seed_key"] = json_value(record.get("seed_key"))
+    row["bounds_method"] = record.get("bounds_method")
     row["sls_status"] = record.get("sls_status")
     notes = record.get("notes")
     row["notes"] = "; ".join(notes) if isinstance(notes, (list, tuple)) else notes

@@ -14,6 +14,7 @@ from functools import cache
 from importlib.resources import files
 
 from svrobs_core.report import Report, build_report, spec_json, table2_markdown
+from svrobs_core.report.audit import audit_markdown
 from svrobs_core.report.columns import fmt_num
 
 
@@ -38,6 +39,16 @@ def _html_finding(f: str) -> str:
             rest = html.escape(f[len(tag) :])
             return f'<li><span class="{cls}">{html.escape(tag)}</span>{rest}</li>'
     return f"<li>{html.escape(f)}</li>"
+
+
+def _markdown_table(md: str) -> str:
+    """A pipe table (header, rule, rows) as an HTML table."""
+    lines = [ln.strip().strip("|") for ln in md.strip().splitlines()]
+    rows = [[c.strip() for c in ln.split(" | ")] for ln in lines[:1] + lines[2:]]
+    out = ["<table><tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in rows[0]) + "</tr>"]
+    for r in rows[1:]:
+        out.append("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>")
+    return "".join(out) + "</table>"
 
 
 def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str:
@@ -85,6 +96,11 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
         H.append(f"<p>{e(note)}</p>")
     else:
         H.append("<p>No data for Table 2.</p>")
+    if report.audit:
+        H.append("<h2>Beyond the paper: uncertainty sets that hold (bounds_method)</h2><ul>")
+        H += [_html_finding(f) for f in report.audit_findings]
+        H.append("</ul>")
+        H.append(_markdown_table(audit_markdown(report.audit, report.audit[0]["delta"])))
     H.append("<h2>Figures</h2>")
     for fg in report.figures:
         H.append(f"<h3>{e(fg.title)}</h3>")

@@ -64,10 +64,10 @@ def _derivable(child: dict, parent: dict) -> bool:
     (``UnitResult.with_mc_reps``)."""
     c, p = parse_spec(child), parse_spec(parent)
     cd, pd = c.to_dict(), p.to_dict()
-    for k in cd:
+    for k in cd.keys() | pd.keys():  # both ways: e.g. bounds_method is in only one of them
         if k in ("systems", "gamma", "estimators", "mc_reps"):
             continue
-        if cd[k] != pd[k]:
+        if cd.get(k) != pd.get(k):
             return False
     # the seed key holds the system index: it must be the same in both
     for i, s in enumerate(cd["systems"]):

@@ -1,6 +1,13 @@
 """The web UI (issue 11): server-rendered pages (Jinja2 + htmx + Chart.js, all served
 from ``static/``) behind a sign-in with an API key; see ``session`` for the cookie
-and CSRF rules. ``mount_web(app)`` adds it to the API's app."""
+and CSRF rules. ``mount_web(app)`` adds it to the API's app.
+
+A page module under ``pages/`` has a ``router``, included by ``mount_web``. Its
+routes take ``deps.CurrentViewer`` (the signed-in viewer, else a redirect to
+/login), state-changing ones ``dependencies=[deps.CSRF]``; they answer with
+``render.render(request, template, viewer=viewer, ...)`` (templates extend
+``base.html``) and raise ``render.WebError(404, ...)`` for another team's object.
+"""
 
 from __future__ import annotations
 
@@ -13,12 +20,12 @@ from service.web.session import Signer, load_secret
 
 def mount_web(app: FastAPI) -> None:
     """Serve the pages, ``/static`` and the error pages on ``app`` (its settings set)."""
-    from service.web.pages import auth, job, jobs, submit
+    from service.web.pages import auth, job, jobs, submit  # a new page module: add it here
 
     settings = app.state.settings
     app.state.web_signer = Signer(load_secret(settings), session_hours=settings.SESSION_HOURS)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
-    for module in (auth, jobs, submit, job):  # /jobs/rows and /jobs/new before /jobs/{id}
+    for module in (auth, jobs, submit, job):
         app.include_router(module.router)
     app.add_exception_handler(WebError, web_error_page)
     app.add_exception_handler(SignInRequired, sign_in_redirect)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 
-from sqlalchemy import case, func, select
+from sqlalchemy import JSON, String, column, func, select, true
 from sqlalchemy.orm import Session
 
 from service.db.models import Summary
@@ -60,13 +60,18 @@ def stored_groups(session: Session, job_id: int, metric: str) -> list[dict]:
 
 def stored_metrics(session: Session, job_id: int) -> list[str]:
     """Summary fields with a non-null mean in at least one of the job's groups, in
-    SPEC section 10 order (one aggregate query)."""
-    has = [
-        func.max(case((Summary.stats[(f, "mean")].as_float().is_not(None), 1), else_=0))
-        for f in SUMMARY_FIELDS
-    ]
-    row = session.execute(select(*has).where(Summary.job_id == job_id)).one()
-    return [f for f, v in zip(SUMMARY_FIELDS, row) if v]
+    SPEC section 10 order (json_each: each row's stats parsed once, on either dialect)."""
+    each = func.json_each(Summary.stats).table_valued(column("key", String), column("value", JSON))
+    seen = set(
+        session.scalars(
+            select(each.c.key)
+            .select_from(Summary)
+            .join(each, true())
+            .where(Summary.job_id == job_id, each.c.value["mean"].as_float().is_not(None))
+            .distinct()
+        )
+    )
+    return [f for f in SUMMARY_FIELDS if f in seen]
 
 
 def _number(v) -> float | None:

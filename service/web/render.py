@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from datetime import datetime
 from pathlib import Path
-from urllib.parse import quote
+from urllib.parse import quote, urlsplit
 
 from fastapi import Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
@@ -84,9 +84,13 @@ class SignInRequired(Exception):
 
 
 def login_url(request: Request) -> str:
-    path = request.url.path
-    if request.url.query:
-        path += "?" + request.url.query
+    """/login, coming back to this page (for htmx, the page it was polling from)."""
+    current = request.headers.get("hx-current-url")
+    if current:
+        parts = urlsplit(current)
+        path = parts.path + (f"?{parts.query}" if parts.query else "")
+    else:
+        path = request.url.path + (f"?{request.url.query}" if request.url.query else "")
     return "/login" if path in ("/", "/login") else f"/login?next={quote(path, safe='')}"
 
 
@@ -102,6 +106,11 @@ async def sign_in_redirect(request: Request, exc: SignInRequired) -> Response:
 
 def safe_next(target: str | None) -> str:
     """Only a path on this server (no scheme, no host, no ``//``) is followed."""
-    if not target or not target.startswith("/") or target.startswith("//") or "\\" in target:
-        return "/jobs"
+    if (
+        not target
+        or not target.startswith("/")
+        or target.startswith("//")
+        or any(c == "\\" or c.isspace() or not c.isprintable() for c in target)
+    ):
+        return "/jobs"  # browsers drop tabs and newlines: "/\t/host" would be "//host"
     return target

@@ -26,12 +26,14 @@ Modules, in the order a report is made:
   ``figure_csv(fig)`` (the plotted data).
 * ``figures``: ``fig_rmse``, ``fig2``, ``fig3``, ``fig_coverage``,
   ``fig_svr_ols_diff``; ``cost_figures``: ``fig4``, ``fig5``, ``fig_certified``;
-  each ``f(records, spec=None, *, experiment=...) -> matplotlib.figure.Figure``.
+  each ``f(records, spec=None, *, experiment=...) -> matplotlib.figure.Figure``;
+  ``audit``: the uncertainty-set audit (rows, findings, ``fig_bounds_audit``).
 * ``findings``: ``findings(records, spec) -> list[str]``.
 * ``build``: ``build_report(experiments, provenance)``, ``ReportBuilder``, ``Report``.
 * ``markdown``: ``render_markdown(report)``, ``spec_json(spec)``.
 """
 
+from .audit import fig_bounds_audit
 from .build import FIGURE_PLAN, Report, ReportBuilder, ReportFigure, build_report, render_figure
 from .columns import (
     COLUMN_MATRIX_FIELDS,
@@ -80,6 +82,7 @@ __all__ = [
     "fig3",
     "fig4",
     "fig5",
+    "fig_bounds_audit",
     "fig_certified",
     "fig_coverage",
     "fig_rmse",

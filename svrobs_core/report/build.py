@@ -5,11 +5,12 @@ experiment and Table 2, assembled into a :class:`Report` (all at once with
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from ..paper import EXPERIMENTS, PRESET_NAME
-from .columns import Columns, as_columns
+from .audit import audit_findings, audit_rows, audit_sources, fig_bounds_audit
+from .columns import Columns, as_columns, spec_meta
 from .cost_figures import fig4, fig5, fig_certified
 from .figures import fig2, fig3, fig_coverage, fig_rmse, fig_svr_ols_diff
 from .findings import findings
@@ -91,6 +92,11 @@ class Report:
     table2_source: str | None
     figures: list[ReportFigure]
     provenance: dict
+    # the uncertainty-set audit (issue 12): rows of audit.audit_rows, its findings,
+    # and bounds_method -> the experiment it was computed from
+    audit: list[dict] = field(default_factory=list)
+    audit_findings: list[str] = field(default_factory=list)
+    audit_sources: dict[str, str] = field(default_factory=dict)
 
 
 # name, function, preferred experiments, fields it needs, title, caption
@@ -267,7 +273,11 @@ class ReportBuilder:
             "n_records": len(self.cols[name]),
             "notes": list(e.get("notes") or []),
             "findings": [f"[no data] {n}" for n in (e.get("notes") or [])]
-            + findings(self.cols[name], e.get("spec")),
+            + findings(
+                self.cols[name],
+                e.get("spec"),
+                **({"topics": EXPERIMENTS[name]["findings"]} if _topics(name) else {}),
+            ),
         }
 
     def finish(self) -> Report:
@@ -281,6 +291,7 @@ class ReportBuilder:
             if fut is not None:
                 fg.set_rendered(*fut.result())
             figs.append(fg)
+        audit, a_findings, a_sources = self._audit(experiments, figs)
         return Report(
             title=self.title or f"Reproduction of the paper's Section 6 ({PRESET_NAME})",
             experiments={n: self.exps[n] for n in experiments},
@@ -288,7 +299,46 @@ class ReportBuilder:
             table2_source=t_src,
             figures=figs,
             provenance=dict(self.provenance or {}),
+            audit=audit,
+            audit_findings=a_findings,
+            audit_sources=a_sources,
         )
+
+    def _audit(self, experiments, figs):
+        """The uncertainty-set audit when two or more bounds_methods ran (issue 12)."""
+        sources = audit_sources(experiments, self.cols)
+        if len(sources) < 2:
+            return [], [], {}
+        cols = {m: self.cols[n] for m, n in sources.items()}
+        meta = spec_meta(experiments[next(iter(sources.values()))].get("spec"))
+        rows = audit_rows(cols, meta.delta)
+        label = " + ".join(f"{n} ({m})" for m, n in sources.items())
+        fig = fig_bounds_audit(
+            cols, meta.delta, experiment=_exp_label(label, self.provenance), seed=meta.seed
+        )
+        rendered = None if self.render is None else self.render(fig).result()
+        caption = (
+            "Top: share of records with every entry of A and of B inside the method's box "
+            "(linear axis), with the 1 − δ line; bottom: mean largest radius r_A (log axis). "
+            "σ_w = 1; one colour and marker per bounds_method; SVR at the table's γ solid "
+            "with small filled markers, OLS dashed with large open markers. The paper's box "
+            "is centred at (1+γ)Ã, the others at the estimate."
+        )
+        fg = ReportFigure(
+            "fig_bounds_audit",
+            "Beyond the paper: coverage and width of the uncertainty sets per bounds_method",
+            caption,
+            " + ".join(sources.values()),
+            fig,
+        )
+        if rendered is not None:
+            fg.set_rendered(*rendered)
+        figs.append(fg)
+        return rows, audit_findings(rows, meta.delta), dict(sources)
+
+
+def _topics(name: str) -> bool:
+    return "findings" in EXPERIMENTS.get(name, {})
 
 
 def _exp_label(name: str, provenance: dict | None) -> str:

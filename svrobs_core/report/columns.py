@@ -17,8 +17,11 @@ import numpy as np
 from ..paper import STABLE, UNSTABLE
 from ..records import BOUND_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, TEXT_FIELDS
 
-# Fields the report reads: L, K (matrices) and seed_key are never needed.
-REPORT_FIELDS = tuple(f for f in RECORD_FIELDS if f not in ("L", "K", "seed_key"))
+# Fields the report reads: L, K, the radius matrices (r_A, r_B are their largest
+# entries) and seed_key are never needed.
+REPORT_FIELDS = tuple(
+    f for f in RECORD_FIELDS if f not in ("L", "K", "radii_A", "radii_B", "seed_key")
+)
 # The matrices among them (records' MATRIX_FIELDS without the gains): A_hat, B_hat.
 COLUMN_MATRIX_FIELDS = tuple(f for f in MATRIX_FIELDS if f in REPORT_FIELDS)
 SCALAR_FIELDS = tuple(f for f in REPORT_FIELDS if f not in COLUMN_MATRIX_FIELDS + TEXT_FIELDS)
@@ -167,6 +170,7 @@ class Meta:
     stages: tuple = ()
     truth: dict = field(default_factory=dict)  # system name -> (A, B)
     spec_dict: dict | None = None
+    bounds_method: str = "paper"
 
 
 def spec_meta(spec) -> Meta:
@@ -193,6 +197,7 @@ def spec_meta(spec) -> Meta:
         stages=tuple(spec.stages),
         truth=truth,
         spec_dict=spec.to_dict(),
+        bounds_method=spec.bounds_method,
     )
 
 

@@ -64,6 +64,14 @@ def _svr_ols_diff_calc(cols: Columns) -> np.ndarray:
     return out
 
 
+def all_inside(cols: Columns) -> np.ndarray:
+    """Per record: 1 where every entry of A and of B is inside its interval
+    (coverage_A = coverage_B = 1), 0 where not, NaN where either is null."""
+    a, b = cols["coverage_A"], cols["coverage_B"]
+    ok = np.isfinite(a) & np.isfinite(b)
+    return np.where(ok, ((a == 1) & (b == 1)).astype(float), np.nan)
+
+
 def first_stable_certified(records, share: float = 0.5) -> dict[tuple, dict | None]:
     """(system, sigma_w, estimator, gamma) -> {"N", "N0", "share"} of the first N
     at which stable_certified holds in at least ``share`` of the repetitions,

@@ -118,6 +118,8 @@ def _f_svr_vs_ols(cols: Columns) -> list[str]:
 
 
 def _f_coverage(cols: Columns, meta: Meta) -> list[str]:
+    if meta.bounds_method != "paper":
+        return _f_box_coverage(cols, meta)
     out = []
     level = 1 - meta.delta
     claim = PUBLISHED_CLAIMS["lemma2_intervals"]
@@ -152,6 +154,42 @@ def _f_coverage(cols: Columns, meta: Meta) -> list[str]:
     return out
 
 
+def _f_box_coverage(cols: Columns, meta: Meta) -> list[str]:
+    """A sound method's box (SPEC section 3.1) must hold for every entry of A and
+    of B at once with probability >= 1 - delta: check that share per group."""
+    level = 1 - meta.delta
+    ok = np.isfinite(cols["coverage_A"]) & np.isfinite(cols["coverage_B"])
+    if not ok.any():
+        return []
+    inside = (cols["coverage_A"] == 1) & (cols["coverage_B"] == 1)
+    groups = group_indices(cols, GROUP_FIELDS, ok)
+    below = sorted(
+        (float(np.mean(inside[idx])), key)
+        for key, idx in groups.items()
+        if np.mean(inside[idx]) < level
+    )
+    status = "holds" if not below else "does not hold"
+    claim = (
+        "claimed"
+        if meta.bounds_method == "self-normalized"
+        else "targeted, approximately: no finite-sample guarantee"
+    )
+    text = (
+        f"[{status}] The {meta.bounds_method} box (every entry of A and of B inside at "
+        f"once, probability ≥ 1 − δ = {fmt_num(level)} {claim}): the share of repetitions "
+        f"covered is below 1 − δ in {_pct(len(below), len(groups))} groups (system, σ_w, N, "
+        f"estimator, γ); overall {_pct(int(inside[ok].sum()), int(ok.sum()))} records covered."
+    )
+    if below:
+        worst = ", ".join(
+            f"{k[0]} σ_w={fmt_num(k[1])} N={fmt_num(k[2])} {gamma_label(k[3], k[4])}: "
+            f"{fmt_num(c, 3)}"
+            for c, k in below[:3]
+        )
+        text += f" Lowest: {worst}."
+    return [text]
+
+
 def _f_theorem1(cols: Columns, meta: Meta) -> list[str]:
     out = []
     for mat in ("A", "B"):
@@ -181,6 +219,11 @@ def _f_stable_certified(cols: Columns, meta: Meta) -> list[str]:
     if not cols.has("stable_certified"):
         return out
     claim = PUBLISHED_CLAIMS["stable_after_sample_length"]
+    box_name = (
+        "of SPEC section 3"
+        if meta.bounds_method == "paper"
+        else f"on the {meta.bounds_method} box (SPEC section 3.1)"
+    )
     first = first_stable_certified(cols)
     by_sys: dict[str, list[str]] = {}
     never: dict[str, list[str]] = {}
@@ -230,7 +273,7 @@ def _f_stable_certified(cols: Columns, meta: Meta) -> list[str]:
             0,
             f'[{status}] Paper ({claim["where"]}, published): "{claim["quote"]}" '
             f"(sample length {pub}). Here, with the sound Perron-Frobenius certificate "
-            f"of SPEC section 3, {claim['system']} is certified stable {got}.",
+            f"{box_name}, {claim['system']} is certified stable {got}.",
         )
     # soundness: a certificate of stability for a truly unstable A is a false positive
     sc = cols["stable_certified"]
@@ -385,20 +428,30 @@ def _f_notes(cols: Columns) -> list[str]:
     ]
 
 
-def findings(records, spec=None) -> list[str]:
+FINDING_TOPICS = ("estimate", "bounds", "cost", "notes")
+
+
+def findings(records, spec=None, *, topics=FINDING_TOPICS) -> list[str]:
     """Statements generated from the data: where the paper's claims hold here and
     where not, with counts. Each starts with [holds], [does not hold], [partly],
-    [no data] or [info]."""
+    [no data] or [info]. ``topics``: the subset of FINDING_TOPICS to report
+    (e.g. only "bounds" for a run that repeats another's data with another
+    bounds_method)."""
     cols, meta = as_columns(records), spec_meta(spec)
     if cols.n == 0:
         return ["[no data] No records."]
     out: list[str] = []
     out += _stage_findings(cols, meta)
-    out += _f_svr_vs_ols(cols)
-    out += _f_coverage(cols, meta)
-    out += _f_theorem1(cols, meta)
-    out += _f_stable_certified(cols, meta)
-    out += _f_cost(cols, meta)
-    out += _f_svr_ols_diff(cols)
-    out += _f_notes(cols)
+    if "estimate" in topics:
+        out += _f_svr_vs_ols(cols)
+    if "bounds" in topics:
+        out += _f_coverage(cols, meta)
+        out += _f_theorem1(cols, meta)
+        out += _f_stable_certified(cols, meta)
+    if "cost" in topics:
+        out += _f_cost(cols, meta)
+    if "estimate" in topics:
+        out += _f_svr_ols_diff(cols)
+    if "notes" in topics:
+        out += _f_notes(cols)
     return out

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+from .audit import audit_markdown
 from .build import Report
 from .tables import table2_markdown
 
@@ -51,6 +52,20 @@ def render_markdown(report: Report, figure_files: dict[str, str] | None = None) 
     else:
         L.append("No data for Table 2.")
         L.append("")
+    if report.audit:
+        L += ["## Beyond the paper: uncertainty sets that hold (bounds_method)", ""]
+        L.append(
+            "The same grid with the paper's intervals and with the sound sets of "
+            "docs/uncertainty.md (experiments: "
+            + ", ".join(f"{m}: {n}" for m, n in report.audit_sources.items())
+            + "). Coverage is measured against the true system; 'all inside' is the share "
+            "of records with every entry of A and of B in its interval at once, which is "
+            "what a box claiming probability ≥ 1 − δ must reach."
+        )
+        L.append("")
+        L += [f"- {f}" for f in report.audit_findings]
+        L.append("")
+        L.append(audit_markdown(report.audit, report.audit[0]["delta"]))
     L += ["## Figures", ""]
     for fg in report.figures:
         L.append(f"### {fg.title}")

@@ -62,6 +62,7 @@ def _fs(figure, key, field, label, **kw) -> FigureSeries:
 _SVR_TABLE = (("estimator", "svr"), ("gamma", "table"))
 _E2 = (("estimator", "svr"), ("sigma_w", "sigma_ref"))
 _S = (("estimator", "svr"), ("system", "system_S"))
+_AUDIT = (("sigma_w", "sigma_ref"), ("gamma", "table"))  # SVR at the table's γ, and OLS
 
 
 def _entry_rows(figure, where, lines, diff):
@@ -175,6 +176,25 @@ FIGURE_SERIES: tuple[FigureSeries, ...] = (
         where=(("estimator", "svr"),),
         lines=("gamma", "sigma_w"),
     ),
+    # the uncertainty-set audit (issue 12): one set of these lines per bounds_method,
+    # each from its own experiment (a job has one bounds_method)
+    _fs(
+        "fig_bounds_audit",
+        "all_inside",
+        "all_inside",
+        "share of records with every entry of A and of B inside",
+        where=_AUDIT,
+        lines=("estimator",),
+        scale="linear",
+    ),
+    _fs(
+        "fig_bounds_audit",
+        "r_A",
+        "r_A",
+        "r_A (largest entry radius of A)",
+        where=_AUDIT,
+        lines=("estimator",),
+    ),
 )
 
 
@@ -212,6 +232,12 @@ def _svr_ols(cols, meta, m):
     return svr_ols_diff(cols)
 
 
+def _all_inside(cols, meta, m):
+    from .derived import all_inside
+
+    return all_inside(cols)
+
+
 def _stable_true(cols, meta, m):
     rho = cols["rho_true"]
     return np.where(np.isfinite(rho), (rho < 1).astype(float), np.nan)
@@ -226,6 +252,7 @@ DERIVED = {
     **{f"interval_hi_{m}": (_entry(2), m) for m in ("A", "B")},
     "svr_ols_diff_A": (_svr_ols, "A"),
     "stable_true": (_stable_true, None),
+    "all_inside": (_all_inside, None),
 }
 
 

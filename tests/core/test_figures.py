@@ -32,10 +32,11 @@ CM = 1 / 2.54
 
 @pytest.fixture(scope="module")
 def real():
-    """Records of the reduced E2 (estimation) and E4 (cost) grids."""
+    """Records of the reduced E2 (estimation) and E4 (cost) grids, and of A1, A2
+    (E2's grid with the self-normalized and the bootstrap boxes)."""
     specs = paper_specs("reduced")
     out = {}
-    for name in ("E2", "E4"):
+    for name in ("E2", "E4", "A1", "A2"):
         out[name] = (specs[name], [r for b in run_spec(parse_spec(specs[name])) for r in b])
     return out
 
@@ -60,7 +61,25 @@ def all_figures(real):
     for r in recs4[:5]:
         r["delta_J"] = -1.0
     figs.append(("fig4 (constructed)", rpt.fig4(recs4, spec4)))
+    figs.append(("fig_bounds_audit", audit_figure(audit_sources(real))))
+    # every box covers in every record: no share row, radii only
+    inside = {
+        m: [{**r, "coverage_A": 1.0, "coverage_B": 1.0} for r in recs]
+        for m, recs in audit_sources(real).items()
+    }
+    figs.append(("fig_bounds_audit (all inside)", audit_figure(inside)))
     return [(n, f) for n, f in figs if not f.svrobs_empty]
+
+
+AUDIT_EXPERIMENTS = {"paper": "E2", "self-normalized": "A1", "bootstrap": "A2"}
+
+
+def audit_sources(real):
+    return {m: real[e][1] for m, e in AUDIT_EXPERIMENTS.items()}
+
+
+def audit_figure(sources, delta=0.01):
+    return rpt.fig_bounds_audit(sources, delta, experiment="E2 + A1 + A2", seed=0)
 
 
 @pytest.fixture(scope="module")
@@ -316,7 +335,9 @@ def test_pdf_embeds_its_fonts_and_style_does_not_leak(real):
 
 def test_figure_series_is_shared_data():
     rows = json.loads(json.dumps(rpt.figure_series_json()))
-    assert {r["figure"] for r in rows} == {name for name, *_ in rpt.FIGURE_PLAN}
+    # every figure: the plan's and the audit's (made when two bounds_methods ran)
+    figures = {name for name, *_ in rpt.FIGURE_PLAN} | {"fig_bounds_audit"}
+    assert {r["figure"] for r in rows} == figures
     for r in rows:
         assert set(r) >= {"field", "stat", "where", "panels", "lines", "band", "x", "derived"}
         if not r["derived"]:  # the dashboard reads these from the summaries
@@ -361,3 +382,102 @@ def test_summary_lines_give_the_figures_curves(real):
                 np.testing.assert_allclose(mine[0].y, line["y"], rtol=1e-12)
                 checked += 1
     assert checked > 20
+
+
+def test_fig_bounds_audit_plots_the_shares_and_radii(real):
+    """Oracle: plain-Python shares (coverage_A = coverage_B = 1) and mean r_A over
+    the repetitions at each N0, σ_w = 1, SVR at γ = 0.05 and OLS, per method."""
+    sources = audit_sources(real)
+    fig = audit_figure(sources)
+    rows = read_csv(rpt.figure_csv(fig))
+    checked = {"all_inside": 0, "r_A": 0}
+    for (panel, series, quantity), pts in rows.items():
+        if "(identical)" in series:
+            continue  # the shared line; each series' own markers carry its curve
+        system = panel.split(":")[0]
+        method, est = series.split(" ")[0], series.split(" ")[1].lower()
+        for N0, y in pts:
+            mine = [
+                r
+                for r in sources[method]
+                if r["system"] == system
+                and r["sigma_w"] == 1.0
+                and r["estimator"] == est
+                and (r["gamma"] is None if est == "ols" else r["gamma"] == 0.05)
+                and r["N0"] == N0
+            ]
+            assert len(mine) == 3  # the reduced grid's repetitions
+            if quantity == "all_inside":
+                want = sum(r["coverage_A"] == 1 and r["coverage_B"] == 1 for r in mine) / 3
+            else:
+                want = sum(r["r_A"] for r in mine) / 3
+            assert y == pytest.approx(want, rel=1e-12), (panel, series, N0)
+            checked[quantity] += 1
+    assert checked["all_inside"] > 0 and checked["r_A"] >= 3 * 2 * 2 * 3
+    # a method inside in every record of a system is a note there, not a flat line
+    for method in AUDIT_EXPERIMENTS:
+        for system in ("paper-stable", "paper-unstable"):
+            ys = [
+                y
+                for (p, s, q), pts in rows.items()
+                if q == "all_inside" and p.startswith(system) and s.startswith(method + " ")
+                for _, y in pts
+            ]
+            every = [
+                r["coverage_A"] == 1 and r["coverage_B"] == 1
+                for r in sources[method]
+                if r["system"] == system and r["sigma_w"] == 1.0 and r["gamma"] in (None, 0.05)
+            ]
+            assert (not ys) == all(every), (method, system)
+    text = " ".join(fig.svrobs_notes)
+    n = sum(
+        1
+        for m in ("paper", "self-normalized")
+        for r in sources[m]
+        if r["sigma_w"] == 1.0 and r["gamma"] in (None, 0.05)
+    )
+    assert all(
+        r["coverage_A"] == 1 and r["coverage_B"] == 1
+        for m in ("paper", "self-normalized")
+        for r in sources[m]
+        if r["sigma_w"] == 1.0 and r["gamma"] in (None, 0.05)
+    )  # on the reduced grid (what the note below rests on)
+    assert (
+        f"The paper and self-normalized boxes contain every entry of A and of B in all {n:,}"
+        in text
+    )
+
+
+def _legend_labels(fig):
+    return [t.get_text() for leg in fig.legends for t in leg.get_texts() if t.get_text()]
+
+
+def test_fig_bounds_audit_axes_and_reference_line(real):
+    """Shares on a linear axis with the 1 − δ line (and its legend entry), r_A on a
+    log axis; with every box covering everywhere, no share row and no 1 − δ entry."""
+    delta = 0.01
+    fig = audit_figure(audit_sources(real), delta)
+    fig.canvas.draw()
+    share = [ax for ax in panels(fig) if ax.get_ylabel().startswith("share")]
+    radius = [ax for ax in panels(fig) if ax.get_ylabel().startswith("mean r_A")]
+    assert share and len(radius) == 2
+    for ax in share:
+        assert ax.get_yscale() == "linear"
+        refs = [ln for ln in ax.lines if getattr(ln, "svrobs_ref", False)]
+        assert [tuple(ln.get_ydata()) for ln in refs] == [(1 - delta, 1 - delta)]
+        lo, hi = ax.get_ylim()
+        assert lo < 1 - delta < hi and hi < 1.05  # a share, zoomed to the data
+    for ax in radius:
+        assert ax.get_yscale() == "log"
+    assert "1 − δ = 0.99" in _legend_labels(fig)
+    inside = {
+        m: [{**r, "coverage_A": 1.0, "coverage_B": 1.0} for r in recs]
+        for m, recs in audit_sources(real).items()
+    }
+    fig1 = audit_figure(inside, delta)
+    assert not any(ax.get_ylabel().startswith("share") for ax in fig1.axes)
+    assert not any(getattr(ln, "svrobs_ref", False) for ax in fig1.axes for ln in ax.lines)
+    assert not any("δ" in lab for lab in _legend_labels(fig1))
+    assert "The paper, self-normalized and bootstrap boxes contain every entry" in " ".join(
+        fig1.svrobs_notes
+    )

@@ -30,14 +30,28 @@ def names(spec):
     return tuple(s.name for s in spec.systems)
 
 
-def test_experiments_are_e1_to_e4(full):
-    assert list(full) == ["E1", "E2", "E3", "E4"] == list(EXPERIMENTS)
+def test_experiments_are_e1_to_e4_and_the_audit(full):
+    assert list(full) == ["E1", "E2", "E3", "E4", "A1", "A2"] == list(EXPERIMENTS)
+
+
+def test_audit_experiments_are_e2_with_another_bounds_method(full):
+    e2 = full["E2"].to_dict()
+    a1, a2 = full["A1"].to_dict(), full["A2"].to_dict()
+    assert a1 == {**e2, "bounds_method": "self-normalized", "S": None, "lambda0": 1.0}
+    assert a2 == {
+        **e2,
+        "N": [10, 50, 100, 200, 450],
+        "bounds_method": "bootstrap",
+        "boot_reps": 100,
+        "boot_sigma_w": "estimate",
+    }
 
 
 def test_common_grid_is_section_9(full):
     for spec in full.values():
         assert spec.T0 == 11
-        assert spec.N == N_GRID and len(spec.N) == 45
+        if spec.bounds_method != "bootstrap":  # A2 re-simulates every cell: 5 N values
+            assert spec.N == N_GRID and len(spec.N) == 45
         assert spec.M == 1.1 and spec.delta == 0.01
         assert spec.loss_scale == "sum" and spec.data == "all" and spec.seed == 0
         # sample length N0 = (T0 - 1) N runs over the paper's 100 .. 4500

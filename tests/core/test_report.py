@@ -31,6 +31,7 @@ FIGURES = (
     "fig_coverage",
     "fig_certified",
     "fig_svr_ols_diff",
+    "fig_bounds_audit",
 )
 
 
@@ -413,8 +414,16 @@ def test_svr_ols_difference_uses_the_same_repetition():
 
 def test_plan_takes_sub_grids_from_their_parents():
     specs = paper_specs("reduced")
-    assert rep_mod._plan(specs, derive=True) == [("E2", ["E1"]), ("E4", ["E3"])]
+    # A1 (self-normalized) has E2's grid and data but not its bounds: neither is the other's
+    assert rep_mod._plan(specs, derive=True) == [
+        ("E2", ["E1"]),
+        ("E4", ["E3"]),
+        ("A1", []),
+        ("A2", []),
+    ]
     assert rep_mod._plan(specs, derive=False) == [(n, []) for n in specs]
+    assert not rep_mod._derivable(specs["E2"], specs["A1"])
+    assert not rep_mod._derivable(specs["A1"], specs["E2"])
     other_seed = dict(specs["E1"], seed=1)
     assert not rep_mod._derivable(other_seed, specs["E2"])
     swapped = dict(specs["E3"], systems=["paper-unstable"])  # index 0 in E3, 1 in E4
@@ -487,7 +496,7 @@ def test_reproduce_writes_every_file(reproduced):
     for fig in set(FIGURES) - set(drawn_figures(out)):
         # only a figure with nothing to plot is left out, and the report says why
         assert fig == "fig_coverage" and "coverage of A and B is 1 in all" in md
-    for exp in ("E1", "E2", "E3", "E4"):
+    for exp in ("E1", "E2", "E3", "E4", "A1", "A2"):
         recs = read_jsonl(out / exp / "records.jsonl")
         assert len(recs) == result["records"][exp] > 0
         assert all(tuple(r) == RECORD_FIELDS for r in recs[:5])
@@ -557,14 +566,20 @@ def test_report_contents(reproduced):
     for fig in drawn_figures(out):
         for ext in ("png", "svg", "pdf", "csv"):
             assert f"({fig}.{ext})" in md
-    for exp in ("E1", "E2", "E3", "E4"):
+    for exp in ("E1", "E2", "E3", "E4", "A1", "A2"):
         assert f"### {exp}:" in md
+    # the uncertainty-set audit: one table row per (method, system, sigma_w, estimator)
+    audit = md[md.index("## Beyond the paper: uncertainty sets") : md.index("## Figures")]
+    for method in ("paper", "self-normalized", "bootstrap"):
+        assert len(re.findall(rf"^\| {method} \| paper-", audit, flags=re.M)) == 2 * 3 * 2
+        assert re.search(rf"^- \[(holds|does not hold)\] {method}: ", audit, flags=re.M)
     # findings with counts for the estimate/bounds claims
     assert re.search(r"Theorem 1 for A \(every row\): violated in \d+ of \d+", md)
     assert re.search(r"below 1 − δ = 0.99 in \d+ of \d+", md)
     html = (out / "report.html").read_text()
     assert html.count("data:image/png;base64,") == len(drawn_figures(out))
     assert "<h2>Findings" in html and "paper-section-6" in html
+    assert "<h2>Beyond the paper: uncertainty sets" in html
     prov = json.loads((out / "provenance.json").read_text())
     assert prov["preset"] == "paper-section-6" and prov["scale"] == "reduced"
     assert prov["derived_from"] == {"E1": "E2", "E3": "E4"}

@@ -220,6 +220,9 @@ def test_record_json_edge_values():
             "B_hat": None,
             "L": f64(L),
             "K": f64([[0.1], [x]]),
+            "radii_A": f64([x]),  # one float: every entry of the matrix
+            "radii_B": f64([[0.25], [-0.0]]),
+            "bounds_method": "paper",
             "seed_key": None if i % 2 else "[9, 9, 9, 9]",
             "rmse_A": float("nan"),
             "J_mc": float("-inf"),
@@ -236,6 +239,8 @@ def test_record_json_edge_values():
             B_hat=None,
             L=[[None], [1e300]],
             K=[[0.1], [x]],
+            radii_A=[[x, x], [x, x]],
+            radii_B=[[0.25], [-0.0]],
             seed_key=[1, 1, 7, i] if i % 2 else [9, 9, 9, 9],
             rmse_A=None,
             J_mc=None,

@@ -1,7 +1,7 @@
-"""Migration 0005 (compact results) on both dialects: rows written in the 0001
-format (matrices and seed_key as JSON text, notes inline) by the 0001 schema are
+"""Migration 0005 (compact results) on both dialects: rows written in the JSON
+format (matrices and seed_key as JSON text, notes inline) by the 0002 schema are
 upgraded and read back as the core's records, bit for bit; the downgrade gives
-back the 0001 rows with the same values."""
+back the 0002 rows with the same values."""
 
 from __future__ import annotations
 
@@ -101,8 +101,8 @@ def _insert_job(conn, job_id: int, n_cells: int) -> None:
     )
 
 
-def _write_0001_rows(conn, records: list[dict]) -> int:
-    """Insert a team, a job and its records exactly as the 0001-era writer stored them."""
+def _write_json_rows(conn, records: list[dict]) -> int:
+    """Insert a team, a job and its records exactly as the JSON-format writer stored them."""
     _insert_job(conn, 1, len(records))
     text_json = ("seed_key",) + MATRIX_FIELDS
     fields = [f for f in RECORD_FIELDS if f not in text_json]
@@ -133,8 +133,8 @@ def _bits(rec: dict) -> dict:
     return {k: b(v) for k, v in rec.items()}
 
 
-def test_0001_rows_upgrade_to_the_same_records_and_back(url):
-    """Job 1: written in the 0001 format, upgraded. Job 2: stored by the worker's write
+def test_json_rows_upgrade_to_the_same_records_and_back(url):
+    """Job 1: written in the JSON format (0002), upgraded. Job 2: stored by the worker's write
     path after the upgrade (K once per (system, sigma_w) in result_constants). Both
     read back as the core's records, and both downgrade to them."""
     from sqlalchemy.orm import Session
@@ -142,10 +142,10 @@ def test_0001_rows_upgrade_to_the_same_records_and_back(url):
     from service.db.results_store import upsert_results
 
     records = _records()
-    upgrade(url, "0001")
+    upgrade(url, "0002")
     engine = create_db_engine(url)
     with engine.begin() as conn:
-        n = _write_0001_rows(conn, records)
+        n = _write_json_rows(conn, records)
     upgrade(url)  # 0005: JSON -> float64 bytes, notes dictionary, derived seed_key
     spec = parse_spec(SPEC)
     with engine.begin() as conn:
@@ -180,7 +180,7 @@ def test_0001_rows_upgrade_to_the_same_records_and_back(url):
         assert _bits(back[_key(rec)]) == _bits(rec)
     assert back[_key(records[1])]["A_hat"][0][1] is None
     assert back[_key(records[2])]["L"] is None
-    downgrade(url, "0001")
+    downgrade(url, "0002")
     with engine.connect() as conn:
         text = [sa.cast(sa.column(c), sa.Text).label(c) for c in ("seed_key",) + MATRIX_FIELDS]
         others = [sa.column(c) for c in RECORD_FIELDS if c not in ("seed_key",) + MATRIX_FIELDS]

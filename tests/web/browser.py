@@ -39,9 +39,11 @@ class Browser:
         self.chromium = self._pw.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
         self.requests: list[str] = []
         self.console_errors: list[str] = []
+        self.servers: set[str] = set()  # host:port of every base_url a page was opened on
 
     def page(self, base_url: str):
         """A fresh context (no cookies) and page on ``base_url``, its requests logged."""
+        self.servers.add(urlsplit(base_url).netloc)
         context = self.chromium.new_context(
             base_url=base_url, viewport={"width": 1280, "height": 900}
         )
@@ -54,10 +56,14 @@ class Browser:
         page.set_default_timeout(30_000)
         return page
 
-    def foreign_requests(self, base_url: str) -> list[str]:
-        """Requests to any host but the server (data: URLs never leave the page)."""
-        own = urlsplit(base_url).netloc
-        return [u for u in self.requests if not u.startswith("data:") and urlsplit(u).netloc != own]
+    def foreign_requests(self) -> list[str]:
+        """Requests to any host but the servers pages were opened on (data: URLs never
+        leave the page)."""
+        return [
+            u
+            for u in self.requests
+            if not u.startswith("data:") and urlsplit(u).netloc not in self.servers
+        ]
 
     def close(self) -> None:
         self.chromium.close()

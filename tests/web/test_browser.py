@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 from playwright.sync_api import expect
 
-from tests.integration.stack import submit
+from svrobs_cli.serve import api_command
+from tests.integration.stack import free_port, submit
 
 from .browser import SCREENSHOTS, Browser, needs_chromium
 
@@ -55,13 +56,14 @@ def browser():
 
 
 @pytest.fixture(autouse=True)
-def only_the_server(browser, stack):
-    """After every test: the pages asked nothing of another host and logged no error."""
+def only_the_server(browser):
+    """After every test: the pages asked nothing of a host but the servers they were
+    opened on, and logged no error (an intended 4xx page aside)."""
     browser.requests.clear()
     browser.console_errors.clear()
     yield
     assert browser.requests, "no request was recorded"
-    assert browser.foreign_requests(stack.base_url) == []
+    assert browser.foreign_requests() == []
     assert [
         e for e in browser.console_errors if "the server responded with a status of 4" not in e
     ] == []
@@ -79,6 +81,18 @@ def team_b_key(stack) -> str:
         "print(key)\n"
     )
     return out.strip().splitlines()[-1]
+
+
+@pytest.fixture(scope="module")
+def access_logged_api(stack) -> str:
+    """A second API process of the stack with uvicorn's access log on (``svrobs serve``
+    turns it off), to show that the key never reaches it."""
+    port = free_port()
+    stack.start("api-access", [a for a in api_command("127.0.0.1", port) if a != "--no-access-log"])
+    url = f"http://127.0.0.1:{port}"
+    stack.wait_http(f"{url}/readyz", "api-access")
+    yield url
+    stack.stop("api-access")
 
 
 def sign_in(page, key: str) -> None:
@@ -200,6 +214,17 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
     page.goto(f"/jobs/{job_id}")
     assert "/login?next=" in page.url
     assert stack.key not in log_text(stack)  # uvicorn's access log never saw the key
+    assert not [u for u in browser.requests if stack.key in u]  # nor did any URL
+
+
+def test_the_key_never_reaches_the_access_log(browser, stack, access_logged_api):
+    page = browser.page(access_logged_api)
+    sign_in(page, stack.key)
+    page.click("form[action='/logout'] button")
+    page.wait_for_url(re.compile(r"/login$"))
+    log = (stack.logs / "api-access.log").read_text(errors="replace")
+    assert '"POST /login HTTP/1.1" 303' in log and '"GET /jobs HTTP/1.1" 200' in log
+    assert stack.key not in log and stack.key.split("_")[2] not in log
 
 
 def test_cancel_then_delete_with_confirmation(browser, stack):

@@ -131,8 +131,11 @@ def test_chart_data_are_the_stored_summaries(web, session, make_account):
         )
         for g in summary
     }
-    assert got == want and data["positive"] is True
-    assert "rmse_B" not in data["metrics"]  # every value NaN (null): nothing to plot
+    assert got == want and data["positive"] is True and "metrics" not in data
+    fields = web.get(f"/jobs/{jid}/chart-data?metric=rmse_A&metrics=1").json()["metrics"]
+    stored = {f for g in summary for f, s in g["stats"].items() if s["mean"] is not None}
+    assert set(fields) == stored and "rmse_A" in fields
+    assert "rmse_B" not in fields  # every value NaN (null): nothing to plot
     r = web.get(f"/jobs/{jid}/chart-data?metric=A_hat")
     assert r.status_code == 422 and r.json()["field"] == "metric"
     assert web.get(f"/jobs/{jid}/chart-data?x=rep").json()["field"] == "x"

@@ -11,6 +11,7 @@ import pytest
 
 from service.db import accounts
 from service.db.models import utcnow
+from service.web.render import safe_next
 from service.web.session import COOKIE, Signer, load_secret
 from tests.service.svc_helpers import make_settings
 
@@ -32,7 +33,7 @@ def test_sign_in_sets_a_signed_httponly_strict_cookie_without_the_key(web, make_
     low = header.lower()
     assert "httponly" in low and "samesite=strict" in low and "max-age=3600" in low
     assert "secure" not in low  # plain http: a Secure cookie would never come back
-    assert acc.key not in header and acc.key.split("_")[2] not in header
+    assert acc.key not in header and acc.key.split("_", 2)[2] not in header
     page = web.get("/jobs")
     assert page.status_code == 200 and acc.user.email in page.text
     assert acc.key not in page.text
@@ -156,3 +157,28 @@ def test_cookie_is_secure_over_https(build_client, make_account):
     acc = make_account()
     r = sign_in(client, acc.key)
     assert r.status_code == 303 and "; secure" in r.headers["set-cookie"].lower()
+
+
+@pytest.mark.parametrize(
+    ("target", "followed"),
+    [
+        ("/jobs/3?x=1", "/jobs/3?x=1"),
+        ("https://evil.example/", "/jobs"),
+        ("//evil.example/", "/jobs"),
+        ("/\t/evil.example/", "/jobs"),
+        ("/\\evil.example", "/jobs"),
+        ("jobs", "/jobs"),
+        ("", "/jobs"),
+    ],
+)
+def test_sign_in_only_returns_to_a_page_of_this_server(target, followed):
+    assert safe_next(target) == followed
+
+
+def test_signed_out_htmx_poll_comes_back_to_its_page(web):
+    r = web.get(
+        "/jobs/rows?page=2",
+        headers={"HX-Request": "true", "HX-Current-URL": "http://testserver/jobs?tag=a"},
+        follow_redirects=False,
+    )
+    assert r.status_code == 401 and r.headers["hx-redirect"] == "/login?next=%2Fjobs%3Ftag%3Da"

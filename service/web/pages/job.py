@@ -71,8 +71,10 @@ def chart_data(
     job_id: int,
     metric: Annotated[str, Query(max_length=100)] = "rmse_A",
     x: Annotated[str, Query(max_length=20)] = "N",
+    metrics: bool = False,
 ):
-    """The plotted numbers as JSON, from the stored summaries (service.web.charts)."""
+    """The plotted numbers as JSON, from the stored summaries (service.web.charts);
+    with ``metrics=1`` also the fields that have data (the field list, asked once)."""
     job = _job(db, viewer, job_id)
     try:
         charts.check(metric, x)
@@ -80,12 +82,9 @@ def chart_data(
         return JSONResponse({"detail": str(exc), "field": exc.field}, status_code=422)
     groups = charts.stored_groups(db, job.id, metric)
     data = charts.chart_data(groups, metric=metric, x=x)
-    data.update(
-        job_id=job.id,
-        status=job.status,
-        groups=len(groups),
-        metrics=charts.stored_metrics(db, job.id),
-    )
+    data.update(job_id=job.id, status=job.status, groups=len(groups))
+    if metrics:
+        data["metrics"] = charts.stored_metrics(db, job.id)
     return JSONResponse(data, headers=PAGE_HEADERS)
 
 

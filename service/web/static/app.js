@@ -141,11 +141,12 @@
     });
   }
 
-  async function load(card, resetLog) {
+  async function load(card, resetLog, withMetrics) {
     const metric = card.querySelector("#chart-metric");
     const x = card.querySelector("#chart-x");
     const status = card.querySelector("#chart-status");
-    const url = `${card.dataset.chartUrl}?metric=${encodeURIComponent(metric.value)}&x=${encodeURIComponent(x.value)}`;
+    const url = `${card.dataset.chartUrl}?metric=${encodeURIComponent(metric.value)}` +
+      `&x=${encodeURIComponent(x.value)}` + (withMetrics ? "&metrics=1" : "");
     const r = await fetch(url, { credentials: "same-origin", headers: { Accept: "application/json" } });
     if (!r.ok) {
       status.textContent = `Could not load the chart data (HTTP ${r.status}).`;
@@ -153,7 +154,7 @@
       return;
     }
     const data = await r.json();
-    if (data.metrics.length) setOptions(metric, data.metrics, data.metric);
+    if (data.metrics && data.metrics.length) setOptions(metric, data.metrics, data.metric);
     if (resetLog) {
       card.querySelector("#chart-logy").checked = data.positive;
       card.querySelector("#chart-logx").checked = data.x !== "N";
@@ -184,8 +185,8 @@
     });
     ["#chart-panel", "#chart-logy", "#chart-logx", "#chart-bands"].forEach((sel) =>
       card.querySelector(sel).addEventListener("change", () => draw(card, registry.data)));
-    document.body.addEventListener("svrobs:job-finished", () => load(card, false));
-    load(card, true);
+    document.body.addEventListener("svrobs:job-finished", () => load(card, false, true));
+    load(card, true, true);
   }
 
   if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", init);

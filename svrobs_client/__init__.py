@@ -1,0 +1,64 @@
+"""svrobs_client: a Python client of the svrobs REST API (httpx; pandas optional).
+
+    from svrobs_client import Client
+
+    with Client("http://127.0.0.1:8000", "svr_...") as c:
+        job = c.submit(spec, name="tour", tags=["demo"])   # waits, with a progress bar
+        df = c.results(job, estimator="svr", N=[50, 100])  # a DataFrame; matrices as arrays
+        c.summary(job)                                     # mean/std/count per group
+        c.report(job, "report/")                           # report.html + figures/
+
+Errors are :class:`SvrobsError` subclasses carrying ``status``, ``field`` and
+``message`` (see :mod:`svrobs_client.errors`).
+"""
+
+from .client import RESULT_FILTERS, Client
+from .config import DEFAULT_URL, config_path, resolve
+from .errors import (
+    AuthError,
+    BadRequest,
+    ConfigError,
+    Conflict,
+    ConnectionFailed,
+    MethodNotAllowed,
+    NotFound,
+    RateLimited,
+    ServerError,
+    SvrobsError,
+    TooLarge,
+    Unavailable,
+    ValidationError,
+    WaitTimeout,
+)
+from .frames import MATRIX_FIELDS
+from .models import TERMINAL, Job, JobPage, Progress, Report, Schedule, ScheduleRun
+
+__all__ = [
+    "AuthError",
+    "BadRequest",
+    "Client",
+    "ConfigError",
+    "Conflict",
+    "ConnectionFailed",
+    "DEFAULT_URL",
+    "Job",
+    "JobPage",
+    "MATRIX_FIELDS",
+    "MethodNotAllowed",
+    "NotFound",
+    "Progress",
+    "RESULT_FILTERS",
+    "RateLimited",
+    "Report",
+    "Schedule",
+    "ScheduleRun",
+    "ServerError",
+    "SvrobsError",
+    "TERMINAL",
+    "TooLarge",
+    "Unavailable",
+    "ValidationError",
+    "WaitTimeout",
+    "config_path",
+    "resolve",
+]

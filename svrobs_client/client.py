@@ -1,0 +1,453 @@
+"""The svrobs REST client: one :class:`httpx.Client` per :class:`Client`.
+
+Covers the routes of ``/api/v1`` (README, "API"): jobs, results, summaries,
+comparisons, reports, presets and schedules. HTTP errors are raised as the typed
+exceptions of :mod:`svrobs_client.errors`; results come as pandas DataFrames (the
+``dataframe`` extra) or as plain dicts.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import os
+import re
+import time
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import IO, Any
+
+import httpx
+
+from . import frames
+from .config import resolve
+from .errors import ConnectionFailed, Unavailable, WaitTimeout, error_from_response
+from .models import Job, JobPage, Report, Schedule, ScheduleRun
+from .progress import make_bar
+
+__all__ = ["Client", "RESULT_FILTERS"]
+
+API = "/api/v1"
+PAPER_PRESET = "paper-section-6"
+RESULT_FILTERS = ("system", "sigma_w", "N", "estimator", "gamma", "rep")
+FORMATS = ("csv", "jsonl", "json")
+_FIGURE = re.compile(r"<img[^>]*?alt='([^']*)'[^>]*?src='data:image/png;base64,([^']+)'")
+
+
+def _id(obj) -> int:
+    """The id of a Job / Schedule or an id given as int (or a digit string)."""
+    value = getattr(obj, "id", obj)
+    if isinstance(value, bool) or not isinstance(value, (int, str)):
+        raise TypeError(f"expected a job/schedule or its id, got {type(obj).__name__}")
+    return int(value)
+
+
+def _load_json(spec) -> dict:
+    """A spec given as a mapping, a Job (its spec), or a path to a JSON file."""
+    if isinstance(spec, Job):
+        return dict(spec.spec)
+    if isinstance(spec, Mapping):
+        return dict(spec)
+    if isinstance(spec, (str, os.PathLike)):
+        data = json.loads(Path(spec).read_text())
+        if not isinstance(data, dict):
+            raise ValueError(f"{spec}: the spec must be a JSON object")
+        return data
+    raise TypeError(f"a spec is a dict or a path to a JSON file, got {type(spec).__name__}")
+
+
+def _filter_params(filters: Mapping[str, Any]) -> dict[str, list[str]]:
+    """Result filters -> query parameters (a sequence repeats the parameter; for
+    ``gamma``, ``None`` selects OLS, whose gamma is null)."""
+    unknown = sorted(set(filters) - set(RESULT_FILTERS) - {"limit", "offset"})
+    if unknown:
+        raise TypeError(f"unknown results filter(s) {unknown}; known: {list(RESULT_FILTERS)}")
+    params: dict[str, Any] = {}
+    for name, value in filters.items():
+        if name in ("limit", "offset"):
+            if value is not None:
+                params[name] = int(value)
+            continue
+        if value is None and name != "gamma":
+            continue
+        values = (
+            list(value) if isinstance(value, Iterable) and not isinstance(value, str) else [value]
+        )
+        if name == "gamma":
+            values = ["null" if v is None else v for v in values]
+        params[name] = [str(v) for v in values]
+    return params
+
+
+def _write_atomic(path: Path, write) -> None:
+    """Write through ``write(file)`` into a temporary file beside ``path``, then rename it:
+    ``path`` appears complete or not at all."""
+    import tempfile
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+class Client:
+    """A client of one svrobs server.
+
+    ``url`` and ``key`` default to ``SVROBS_URL`` / ``SVROBS_API_KEY``, then to the
+    config file (``~/.config/svrobs/config.json``, ``{"url", "api_key"}``), as the CLI
+    does. Use it as a context manager (or call :meth:`close`)::
+
+        with Client() as c:
+            job = c.submit({"systems": ["paper-stable"], "sigma_w": [1.0], "N": [50]})
+            df = c.results(job, estimator="svr")
+    """
+
+    def __init__(
+        self,
+        url: str | None = None,
+        key: str | None = None,
+        *,
+        timeout: float = 30.0,
+        poll_interval: float = 1.0,
+    ):
+        self.url, key = resolve(url, key)
+        self.poll_interval = poll_interval
+        self._http = httpx.Client(
+            base_url=self.url + API,
+            timeout=timeout,
+            headers={"Authorization": f"Bearer {key}", "User-Agent": "svrobs-client/0.1"},
+        )
+
+    def __repr__(self) -> str:  # never shows the key
+        return f"Client({self.url!r})"
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ HTTP
+    def request(self, method: str, path: str, **kw) -> httpx.Response:
+        """One request under ``/api/v1``; a typed :class:`SvrobsError` for any HTTP error
+        status, :class:`ConnectionFailed` when the server cannot be reached."""
+        try:
+            r = self._http.request(method, path, **kw)
+        except httpx.HTTPError as exc:
+            raise ConnectionFailed(f"cannot reach {self.url}: {exc}") from None
+        if r.status_code >= 400:
+            raise error_from_response(r.status_code, r.content, r.headers)
+        return r
+
+    @contextmanager
+    def _stream(self, path: str, params) -> Iterator[httpx.Response]:
+        try:
+            with self._http.stream("GET", path, params=params) as r:
+                if r.status_code >= 400:
+                    r.read()
+                    raise error_from_response(r.status_code, r.content, r.headers)
+                yield r
+        except httpx.HTTPError as exc:
+            raise ConnectionFailed(f"cannot reach {self.url}: {exc}") from None
+
+    # ------------------------------------------------------------------ jobs
+    def submit(
+        self,
+        spec: Mapping[str, Any] | str | os.PathLike,
+        *,
+        name: str | None = None,
+        tags: Sequence[str] = (),
+        idempotency_key: str | None = None,
+        wait: bool = True,
+        progress: bool = True,
+        timeout: float | None = None,
+    ) -> Job:
+        """Submit a SPEC section 10 spec (a dict or a JSON file) as a job.
+
+        ``tags`` are added to any ``tags`` in the spec; a retry with the same
+        ``idempotency_key`` returns the same job. With ``wait`` (the default) this
+        returns when the job has finished (see :meth:`wait`); check ``job.status``.
+        """
+        body = _load_json(spec)
+        if name is not None:
+            body["name"] = name
+        if tags:
+            body["tags"] = list(body.get("tags") or []) + (
+                [tags] if isinstance(tags, str) else list(tags)
+            )
+        headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+        job = Job.from_json(self.request("POST", "/jobs", json=body, headers=headers).json())
+        if wait:
+            job = self.wait(job, progress=progress, timeout=timeout)
+        return job
+
+    def wait(
+        self,
+        job: Job | int,
+        *,
+        timeout: float | None = None,
+        interval: float | None = None,
+        progress: bool = True,
+    ) -> Job:
+        """Poll the job until it is succeeded, failed or cancelled, with a progress bar
+        (terminal or notebook, :mod:`svrobs_client.progress`). A brief outage (503, lost
+        connection) is waited out; :class:`WaitTimeout` after ``timeout`` seconds."""
+        interval = self.poll_interval if interval is None else interval
+        current = job if isinstance(job, Job) else self.job(job)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        bar = make_bar(current.id, current.progress.total, current.status, enabled=progress)
+        failures = 0
+        try:
+            bar.update(current.progress.done, current.progress.total, current.status)
+            while not current.finished:
+                if deadline is not None and time.monotonic() >= deadline:
+                    raise WaitTimeout(
+                        f"job {current.id} still {current.status} after {timeout} s "
+                        f"({current.progress.done}/{current.progress.total} units)"
+                    )
+                time.sleep(interval)
+                try:
+                    current = self.job(current.id)
+                    failures = 0
+                except (Unavailable, ConnectionFailed):
+                    failures += 1
+                    if failures > 5:
+                        raise
+                    continue
+                bar.update(current.progress.done, current.progress.total, current.status)
+        finally:
+            bar.close()
+        return current
+
+    def jobs(
+        self,
+        *,
+        status: str | None = None,
+        tag: str | None = None,
+        owner: str | None = None,
+        limit: int = 50,
+        offset: int = 0,
+    ) -> JobPage:
+        """The team's jobs, newest first; ``owner`` is an email or ``"me"``."""
+        params = {"status": status, "tag": tag, "owner": owner, "limit": limit, "offset": offset}
+        body = self.request(
+            "GET", "/jobs", params={k: v for k, v in params.items() if v is not None}
+        ).json()
+        return JobPage(
+            items=[Job.from_json(j) for j in body["items"]],
+            total=body["total"],
+            limit=body["limit"],
+            offset=body["offset"],
+        )
+
+    def job(self, job: Job | int) -> Job:
+        """One job (status, progress, timings, provenance, error)."""
+        return Job.from_json(self.request("GET", f"/jobs/{_id(job)}").json())
+
+    def cancel(self, job: Job | int) -> Job:
+        """Cancel a queued or running job (its units not yet started never run);
+        :class:`Conflict` if it already succeeded or failed."""
+        return Job.from_json(self.request("POST", f"/jobs/{_id(job)}/cancel").json())
+
+    def delete(self, job: Job | int) -> None:
+        """Delete a job with its results and summaries (``DELETE /jobs/{id}``);
+        :class:`Conflict` while it runs; :class:`MethodNotAllowed` on a server without
+        the route."""
+        self.request("DELETE", f"/jobs/{_id(job)}")
+
+    # ------------------------------------------------------------------ results
+    def iter_results(self, job: Job | int, **filters) -> Iterator[dict[str, Any]]:
+        """The job's records one by one, streamed as JSON lines (SPEC section 10 fields;
+        matrices as nested lists, null never NaN). Filters: ``system``, ``sigma_w``,
+        ``N``, ``estimator``, ``gamma`` (``None`` = OLS) and ``rep``, each a value or a
+        sequence of values, plus ``limit`` / ``offset``."""
+        params = {**_filter_params(filters), "format": "jsonl"}
+        with self._stream(f"/jobs/{_id(job)}/results", params) as r:
+            for line in r.iter_lines():
+                if line.strip():
+                    yield json.loads(line)
+
+    def results_records(self, job: Job | int, **filters) -> list[dict[str, Any]]:
+        """:meth:`iter_results` as a list of plain dicts (no pandas needed)."""
+        return list(self.iter_results(job, **filters))
+
+    def results(self, job: Job | int, **filters):
+        """The job's records as a pandas DataFrame, one row per cell, columns in record
+        order; ``A_hat``, ``B_hat``, ``L`` and ``K`` hold 2-D numpy arrays (or None).
+        Filters as in :meth:`iter_results`."""
+        return frames.records_frame(self.results_records(job, **filters))
+
+    def download_results(
+        self,
+        job: Job | int,
+        out: str | os.PathLike | IO[str],
+        *,
+        format: str = "csv",
+        **filters,
+    ) -> None:
+        """Write the job's records as ``csv``, ``jsonl`` (both streamed) or ``json`` (one
+        array) to a path or a text stream. A path is written through a temporary file
+        and renamed, so a failed download leaves no file behind."""
+        if format not in FORMATS:
+            raise ValueError(f"format must be one of {list(FORMATS)}, got {format!r}")
+
+        def chunks() -> Iterator[str]:
+            if format == "json":
+                yield json.dumps(self.results_records(job, **filters)) + "\n"
+                return
+            params = {**_filter_params(filters), "format": format}
+            with self._stream(f"/jobs/{_id(job)}/results", params) as r:
+                yield from r.iter_text()
+
+        if hasattr(out, "write"):
+            for chunk in chunks():
+                out.write(chunk)
+            return
+        _write_atomic(Path(out), lambda f: [f.write(c.encode("utf-8")) for c in chunks()])
+
+    def summary_json(self, job: Job | int) -> dict[str, Any]:
+        """``GET /jobs/{id}/summary`` as the API sends it."""
+        return self.request("GET", f"/jobs/{_id(job)}/summary").json()
+
+    def summary(self, job: Job | int, *, long: bool = False):
+        """Mean, std and count of every numeric field per (system, sigma_w, N, estimator,
+        gamma) as a DataFrame (see :func:`svrobs_client.frames.summary_frame`)."""
+        return frames.summary_frame(self.summary_json(job), long=long)
+
+    def compare_json(
+        self,
+        jobs: Iterable[Job | int],
+        metric: str,
+        by: Sequence[str] | str = ("N", "estimator", "gamma"),
+    ) -> dict[str, Any]:
+        """``GET /compare`` as the API sends it."""
+        by = by if isinstance(by, str) else ",".join(by)
+        ids = ",".join(str(_id(j)) for j in jobs)
+        return self.request(
+            "GET", "/compare", params={"jobs": ids, "metric": metric, "by": by}
+        ).json()
+
+    def compare(
+        self,
+        jobs: Iterable[Job | int],
+        metric: str,
+        by: Sequence[str] | str = ("N", "estimator", "gamma"),
+    ):
+        """One numeric field across jobs: mean, std (ddof 0) and count per job and per
+        combination of the ``by`` grid fields, as a DataFrame."""
+        return frames.compare_frame(self.compare_json(jobs, metric, by))
+
+    def report_html(self, job: Job | int) -> str:
+        """The job's HTML report (tables, embedded figures, spec, provenance, findings)."""
+        return self.request("GET", f"/jobs/{_id(job)}/report", timeout=300).text
+
+    def report(self, job: Job | int, folder: str | os.PathLike, *, figures: bool = True) -> Report:
+        """Write ``report.html`` into ``folder`` (created if needed) and, with
+        ``figures``, each embedded figure as ``figures/NN-title.png``."""
+        folder = Path(folder)
+        text = self.report_html(job)
+        page = folder / "report.html"
+        _write_atomic(page, lambda f: f.write(text.encode("utf-8")))
+        written = []
+        if figures:
+            import base64
+
+            for i, (alt, data) in enumerate(_FIGURE.findall(text), start=1):
+                slug = re.sub(r"[^A-Za-z0-9]+", "-", html.unescape(alt)).strip("-").lower()
+                path = folder / "figures" / f"{i:02d}-{slug[:60] or 'figure'}.png"
+                png = base64.b64decode(data)
+                _write_atomic(path, lambda f, png=png: f.write(png))
+                written.append(path)
+        return Report(html=page, figures=written)
+
+    # ------------------------------------------------------------------ presets
+    def presets(self) -> list[dict[str, Any]]:
+        """The system presets (name, matrices, noise levels) a spec may name."""
+        return self.request("GET", "/presets").json()
+
+    def run_paper_preset(
+        self,
+        *,
+        scale: str = "full",
+        experiments: Sequence[str] | None = None,
+        idempotency_key: str | None = None,
+        wait: bool = False,
+        progress: bool = True,
+    ) -> list[Job]:
+        """Queue the paper's Section 6 (E1-E4, or ``experiments``), one job each, at
+        ``scale`` ``"full"`` or ``"reduced"``; with ``wait``, return them finished."""
+        body: dict[str, Any] = {"scale": scale}
+        if experiments is not None:
+            body["experiments"] = list(experiments)
+        headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+        out = self.request("POST", f"/presets/{PAPER_PRESET}/run", json=body, headers=headers)
+        jobs = [Job.from_json(j) for j in out.json()]
+        if wait:
+            jobs = [self.wait(j, progress=progress) for j in jobs]
+        return jobs
+
+    # ------------------------------------------------------------------ schedules
+    def schedules(self) -> list[Schedule]:
+        """The team's schedules."""
+        return [Schedule.from_json(s) for s in self.request("GET", "/schedules").json()]
+
+    def schedule(self, schedule: Schedule | int) -> Schedule:
+        return Schedule.from_json(self.request("GET", f"/schedules/{_id(schedule)}").json())
+
+    def create_schedule(
+        self,
+        name: str,
+        cron: str,
+        spec_template: Mapping[str, Any] | Job | str | os.PathLike,
+        *,
+        timezone: str = "UTC",
+        tags: Sequence[str] = (),
+        enabled: bool = True,
+        **extra: Any,
+    ) -> Schedule:
+        """Create a schedule: a 5-field cron expression (or ``@daily`` etc.) in an IANA
+        ``timezone``; ``spec_template`` is a spec (dict, JSON file, or a Job's spec).
+        ``extra`` fields go into the body as given (for server versions that accept
+        more)."""
+        body = {
+            "name": name,
+            "cron": cron,
+            "timezone": timezone,
+            "spec_template": _load_json(spec_template),
+            "tags": [tags] if isinstance(tags, str) else list(tags),
+            "enabled": enabled,
+            **extra,
+        }
+        return Schedule.from_json(self.request("POST", "/schedules", json=body).json())
+
+    def update_schedule(self, schedule: Schedule | int, **changes: Any) -> Schedule:
+        """Change any of ``name``, ``cron``, ``timezone``, ``spec_template``, ``tags``,
+        ``enabled``."""
+        if "spec_template" in changes:
+            changes["spec_template"] = _load_json(changes["spec_template"])
+        r = self.request("PATCH", f"/schedules/{_id(schedule)}", json=changes)
+        return Schedule.from_json(r.json())
+
+    def enable_schedule(self, schedule: Schedule | int) -> Schedule:
+        return self.update_schedule(schedule, enabled=True)
+
+    def disable_schedule(self, schedule: Schedule | int) -> Schedule:
+        return self.update_schedule(schedule, enabled=False)
+
+    def delete_schedule(self, schedule: Schedule | int) -> None:
+        """Delete a schedule (its jobs stay)."""
+        self.request("DELETE", f"/schedules/{_id(schedule)}")
+
+    def schedule_runs(self, schedule: Schedule | int) -> list[ScheduleRun]:
+        """The due times already turned into jobs, newest first (last 100)."""
+        r = self.request("GET", f"/schedules/{_id(schedule)}/runs")
+        return [ScheduleRun.from_json(x) for x in r.json()]

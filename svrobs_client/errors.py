@@ -1,0 +1,147 @@
+"""Typed exceptions built from the API's JSON error body ``{"detail", "field"}``.
+
+Every error the client raises is a :class:`SvrobsError`; an HTTP error carries the
+``status`` code, the offending ``field`` (``None`` when the API names none) and the
+``message`` (the API's ``detail``). Transport and configuration problems have
+``status`` ``None``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class SvrobsError(Exception):
+    """Base class: ``status`` (HTTP code or None), ``field`` and ``message``."""
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        status: int | None = None,
+        field: str | None = None,
+        errors: list[dict] | None = None,
+    ):
+        super().__init__(message)
+        self.message = message
+        self.status = status
+        self.field = field
+        self.errors = errors or []  # every validation error, when the API lists several
+
+    def __str__(self) -> str:
+        where = f"{self.field}: " if self.field else ""
+        code = f" (HTTP {self.status})" if self.status is not None else ""
+        return f"{where}{self.message}{code}"
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(status={self.status!r}, field={self.field!r}, "
+            f"message={self.message!r})"
+        )
+
+
+class ConfigError(SvrobsError):
+    """No API key configured, or an unreadable config file."""
+
+
+class ConnectionFailed(SvrobsError, ConnectionError):
+    """The server could not be reached (or the connection broke mid-response)."""
+
+
+class WaitTimeout(SvrobsError, TimeoutError):
+    """:meth:`Client.wait` gave up before the job finished."""
+
+
+class BadRequest(SvrobsError):
+    """HTTP 400."""
+
+
+class AuthError(SvrobsError):
+    """HTTP 401 (missing, unknown, revoked or expired key) or 403."""
+
+
+class NotFound(SvrobsError):
+    """HTTP 404: missing, or another team's (the API does not distinguish)."""
+
+
+class MethodNotAllowed(SvrobsError):
+    """HTTP 405: the server does not offer this operation (an older server)."""
+
+
+class Conflict(SvrobsError):
+    """HTTP 409: e.g. an idempotency key reused with another spec, or cancelling a
+    finished job."""
+
+
+class TooLarge(SvrobsError):
+    """HTTP 413: the request body is over the server's limit."""
+
+
+class ValidationError(SvrobsError):
+    """HTTP 422: invalid input; ``field`` names it."""
+
+
+class RateLimited(SvrobsError):
+    """HTTP 429: the key's rate limit or the team's queued-jobs cap.
+    ``retry_after`` is the server's Retry-After in seconds, if it sent one."""
+
+    def __init__(self, message: str, *, retry_after: float | None = None, **kw):
+        super().__init__(message, **kw)
+        self.retry_after = retry_after
+
+
+class ServerError(SvrobsError):
+    """HTTP 5xx other than 503."""
+
+
+class Unavailable(ServerError):
+    """HTTP 503: the database or the broker is unavailable; retry later."""
+
+
+_BY_STATUS: dict[int, type[SvrobsError]] = {
+    400: BadRequest,
+    401: AuthError,
+    403: AuthError,
+    404: NotFound,
+    405: MethodNotAllowed,
+    409: Conflict,
+    413: TooLarge,
+    422: ValidationError,
+    429: RateLimited,
+    503: Unavailable,
+}
+
+
+def _message(detail: Any) -> str:
+    if isinstance(detail, str):
+        return detail
+    if isinstance(detail, list) and detail and isinstance(detail[0], dict):
+        return "; ".join(str(d.get("msg") or d.get("message") or d) for d in detail)
+    return "" if detail is None else str(detail)
+
+
+def error_from_response(status: int, body: bytes, headers) -> SvrobsError:
+    """The typed error of an HTTP error response (JSON ``{"detail", "field"}`` when the
+    API sent it; the start of the body otherwise)."""
+    import json
+
+    field, errors = None, None
+    try:
+        data = json.loads(body)
+    except ValueError:
+        data = None
+    if isinstance(data, dict) and "detail" in data:
+        message = _message(data.get("detail"))
+        field = data.get("field") if isinstance(data.get("field"), str) else None
+        errors = data.get("errors") if isinstance(data.get("errors"), list) else None
+    else:
+        message = " ".join(body[:300].decode("utf-8", "replace").split())
+    message = message or f"HTTP {status}"
+    cls = _BY_STATUS.get(status) or (ServerError if status >= 500 else SvrobsError)
+    kw: dict[str, Any] = {"status": status, "field": field, "errors": errors}
+    if cls is RateLimited:
+        try:
+            kw["retry_after"] = float(headers.get("retry-after"))
+        except (TypeError, ValueError):
+            kw["retry_after"] = None
+    return cls(message, **kw)

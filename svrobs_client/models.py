@@ -1,0 +1,148 @@
+"""Result objects of the client: a job, its progress, a page of jobs, a schedule and its
+runs. Built from the API's JSON; ``raw`` keeps that JSON as received."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field, fields
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+def _time(value: str | None) -> datetime | None:
+    if not value:
+        return None
+    return datetime.fromisoformat(value.replace("Z", "+00:00"))
+
+
+def _build(cls, data: dict[str, Any], **given):
+    """``cls`` from the API's JSON: each field from the key of its name (``*_at`` parsed
+    as a datetime, a missing list or dict empty), unless ``given``; ``raw`` = ``data``."""
+    kw: dict[str, Any] = {}
+    for f in fields(cls):
+        if f.name == "raw":
+            continue
+        if f.name in given:
+            kw[f.name] = given[f.name]
+        elif f.name.endswith("_at"):
+            kw[f.name] = _time(data.get(f.name))
+        elif f.type.startswith(("list", "dict")):
+            value = data.get(f.name) or ()
+            kw[f.name] = list(value) if f.type.startswith("list") else dict(value)
+        else:
+            kw[f.name] = data.get(f.name)
+    return cls(**kw, raw=data)
+
+
+class _FromJSON:
+    @classmethod
+    def from_json(cls, data: dict[str, Any]):
+        """Built from the API's JSON body."""
+        return _build(cls, data)
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Work units done out of total (``fraction`` as the API reports it)."""
+
+    done: int
+    total: int
+    fraction: float
+
+
+@dataclass(frozen=True)
+class Job(_FromJSON):
+    """One job as ``GET /api/v1/jobs/{id}`` returns it."""
+
+    id: int
+    name: str | None
+    tags: list[str]
+    status: str
+    progress: Progress
+    n_cells: int
+    owner: str | None
+    spec: dict[str, Any] = field(repr=False)
+    provenance: dict[str, Any] = field(repr=False)
+    error: str | None
+    timings: dict[str, Any] = field(repr=False)
+    created_at: datetime | None
+    started_at: datetime | None
+    finished_at: datetime | None
+    schedule_id: int | None = None
+    idempotency_key: str | None = None
+    raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Job:
+        p = data.get("progress") or {}
+        progress = Progress(
+            done=int(p.get("done", 0)),
+            total=int(p.get("total", 0)),
+            fraction=float(p.get("fraction", 0.0)),
+        )
+        return _build(cls, data, progress=progress, n_cells=int(data.get("n_cells") or 0))
+
+    @property
+    def finished(self) -> bool:
+        """True once the job is succeeded, failed or cancelled."""
+        return self.status in TERMINAL
+
+
+@dataclass(frozen=True)
+class JobPage:
+    """A page of ``GET /api/v1/jobs``: iterate it for the jobs; ``total`` counts every
+    job matching the filters."""
+
+    items: list[Job]
+    total: int
+    limit: int
+    offset: int
+
+    def __iter__(self) -> Iterator[Job]:
+        return iter(self.items)
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int) -> Job:
+        return self.items[i]
+
+
+@dataclass(frozen=True)
+class Schedule(_FromJSON):
+    """A cron schedule: a spec template turned into a job at every due time."""
+
+    id: int
+    name: str
+    cron: str
+    timezone: str
+    spec_template: dict[str, Any] = field(repr=False)
+    tags: list[str]
+    enabled: bool
+    next_run_at: datetime | None
+    created_at: datetime | None
+    updated_at: datetime | None
+    raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class ScheduleRun(_FromJSON):
+    """One due time of a schedule already turned into a job (``job_id``) or an error."""
+
+    id: int
+    due_at: datetime | None
+    job_id: int | None
+    error: str | None
+    created_at: datetime | None
+    raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class Report:
+    """What :meth:`Client.report` wrote: the HTML page and the figures found in it."""
+
+    html: Path
+    figures: list[Path]

@@ -1,0 +1,332 @@
+"""Sound uncertainty sets for Theta = [A B] (SPEC section 3.1, docs/uncertainty.md).
+
+* :func:`self_normalized_box`: the confidence ellipsoid of Abbasi-Yadkori,
+  Pal, Szepesvari (2011, Thms 1-2) per row of Theta, union bound over the n
+  rows, projected on the entries (radius matrices R_A, R_B) and on the
+  spectral norms of the A and B blocks (eps_A, eps_B).
+* :func:`bootstrap_box`: the parametric bootstrap of Dean, Mania, Matni,
+  Recht, Tu (2020, Algorithm 2), re-simulating with the rollout code of
+  :mod:`svrobs_core.rollouts` and re-estimating with :mod:`svrobs_core.estimators`.
+* :func:`rho_upper_bound`: the stability certificate on a box (the observer
+  gain's, g(L) with a radius matrix, is :func:`svrobs_core.gains.certificate`).
+
+Everything is batched over leading dims (...), e.g. (rep, estimator/gamma).
+Undefined results are NaN with a reason (python-control style), never an
+exception from deep inside.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import estimators as _est
+from .norms import spectral_radius
+from .rollouts import draw_noise, regression_data
+
+__all__ = [
+    "BOOT_STREAM",
+    "BoxResult",
+    "GramFactor",
+    "bootstrap_box",
+    "gram_factor",
+    "noise_level",
+    "rho_upper_bound",
+    "self_normalized_box",
+]
+
+BOOT_STREAM = (2,)  # resample b of a cell's key uses the stream key + (2, b)
+SINGULAR_RTOL = 1e-12  # lambda_min(G) <= this * lambda_max(G): Z Z^T treated as singular
+BOOT_CHUNK_BYTES = 16 * 2**20  # working set of one chunk of resampled datasets
+REASON_SINGULAR = "Z Z^T is singular (OLS self-normalized bound undefined)"
+REASON_NONFINITE = "non-finite estimate or noise level"
+
+
+@dataclass
+class BoxResult:
+    """An uncertainty set centred at the estimate Theta_hat, batch shape (...).
+
+    R_A (..., n, n), R_B (..., n, m): per-entry radii, |Theta_hat_ij - Theta_ij| <= R_ij;
+    eps_A, eps_B (...): bounds on ||A - A_hat||, ||B - B_hat|| (spectral);
+    beta (...): the V-norm radius of every row (self-normalized only);
+    sigma_w (...): the noise level used; reason (...) object: why a cell is
+    NaN (None where defined); notes (...) object: caveats of a defined cell.
+    """
+
+    R_A: np.ndarray
+    R_B: np.ndarray
+    eps_A: np.ndarray
+    eps_B: np.ndarray
+    reason: np.ndarray
+    notes: np.ndarray
+    sigma_w: np.ndarray
+    beta: np.ndarray | None = None
+
+    @property
+    def ok(self) -> np.ndarray:
+        return np.vectorize(lambda r: r is None, otypes=[bool])(self.reason)
+
+    @property
+    def r_A(self) -> np.ndarray:
+        """The largest entry of R_A (the record's scalar r_A)."""
+        return np.max(self.R_A, axis=(-2, -1))
+
+    @property
+    def r_B(self) -> np.ndarray:
+        return np.max(self.R_B, axis=(-2, -1))
+
+
+@dataclass
+class GramFactor:
+    """Z Z^T = U diag(lam) U^T, the eigendecomposition SVR uses (SPEC section 2)."""
+
+    lam: np.ndarray  # (..., d), ascending, floored at 0
+    U: np.ndarray  # (..., d, d)
+
+
+def gram_factor(G) -> GramFactor:
+    """Eigendecomposition of the Gram matrices G = Z Z^T (..., d, d), once per dataset."""
+    lam, U = np.linalg.eigh(np.asarray(G, dtype=float))
+    return GramFactor(lam=np.maximum(lam, 0.0), U=U)
+
+
+def _objects(shape, mask, text) -> np.ndarray:
+    out = np.full(shape, None, dtype=object)
+    out[np.broadcast_to(mask, shape)] = text
+    return out
+
+
+def self_normalized_box(
+    gram, theta_hat, *, sigma_w, delta, lam, S, lambda0=1.0, shrink=0.0
+) -> BoxResult:
+    """Self-normalized box of SPEC section 3.1 (docs/uncertainty.md (b)-(d)).
+
+    gram: Gram matrices Z Z^T (..., d, d) or their :class:`GramFactor`;
+    theta_hat (..., n, d) the estimate (the centre); lam (...) the ridge
+    parameter of the estimator (gamma, or gamma N0 for the mean loss;
+    lam = 0 means OLS, which uses V0 = lambda0 I); S bounds ||theta_i||
+    (ridge only); shrink (...) is gamma for shrunk-ols (Theta_OLS / (1+gamma),
+    with lam = 0), else 0. All batch shapes broadcast.
+
+    Ridge: beta = sigma_w sqrt(log det(I + G/lam) + 2 log(n/delta)) + sqrt(lam) S, V = G + lam I.
+    OLS: beta = sigma_w sqrt((1 + lambda0/lambda_min(G)) (log det(I + G/lambda0)
+    + 2 log(n/delta))), V = G. R_ij = beta sqrt((V^-1)_jj) (+ shrink |Theta_hat_ij|);
+    eps_A = sqrt(n) beta sqrt(lambda_max((V^-1)_AA)) (+ shrink ||A_hat||), B alike.
+    """
+    fac = gram if isinstance(gram, GramFactor) else gram_factor(gram)
+    theta = np.asarray(theta_hat, dtype=float)
+    n, d = theta.shape[-2:]
+    lam = np.asarray(lam, dtype=float)
+    sw = np.asarray(sigma_w, dtype=float)
+    shrink = np.asarray(shrink, dtype=float)
+    batch = np.broadcast_shapes(
+        fac.lam.shape[:-1], theta.shape[:-2], lam.shape, sw.shape, shrink.shape
+    )
+    g = np.broadcast_to(fac.lam, batch + (d,))
+    U = np.broadcast_to(fac.U, batch + (d, d))
+    lam = np.broadcast_to(lam, batch)
+    ols = lam == 0
+    log_n_delta = 2.0 * np.log(n / float(delta))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam_min, lam_max = g[..., 0], g[..., -1]
+        singular = ols & ~(lam_min > SINGULAR_RTOL * lam_max)
+        lv = g + np.where(ols, 0.0, lam)[..., None]  # eigenvalues of V
+        scale = np.where(ols, lambda0, lam)[..., None]
+        logdet = np.sum(np.log1p(g / scale), axis=-1)
+        beta_ridge = sw * np.sqrt(logdet + log_n_delta) + np.sqrt(lam) * S
+        beta_ols = sw * np.sqrt((1.0 + lambda0 / lam_min) * (logdet + log_n_delta))
+        beta = np.where(ols, beta_ols, beta_ridge)
+        inv = np.where(singular[..., None], np.nan, 1.0 / lv)  # eigenvalues of V^-1
+        diag = np.einsum("...jk,...jk,...k->...j", U, U, inv)  # diag(V^-1)
+        UA, UB = U[..., :n, :], U[..., n:, :]
+        WA = np.matmul(UA * inv[..., None, :], np.swapaxes(UA, -1, -2))  # (V^-1)_AA
+        WB = np.matmul(UB * inv[..., None, :], np.swapaxes(UB, -1, -2))
+    bad = singular | ~np.isfinite(beta) | ~np.isfinite(theta).all(axis=(-2, -1))
+    safe = np.where(bad[..., None, None], 0.0, WA), np.where(bad[..., None, None], 0.0, WB)
+    lmax_A = np.linalg.eigvalsh(safe[0])[..., -1]
+    lmax_B = np.linalg.eigvalsh(safe[1])[..., -1] if d > n else np.zeros(batch)
+    root_n = np.sqrt(n)
+    beta = np.where(bad, 0.0, beta)  # NaN again below; keeps the arithmetic quiet
+    R = beta[..., None, None] * np.sqrt(np.maximum(diag, 0.0))[..., None, :]
+    R = np.broadcast_to(R, batch + (n, d))
+    eps_A = root_n * beta * np.sqrt(np.maximum(lmax_A, 0.0))
+    eps_B = root_n * beta * np.sqrt(np.maximum(lmax_B, 0.0))
+    th = np.broadcast_to(theta, batch + (n, d))
+    if np.any(shrink != 0):
+        R = R + shrink[..., None, None] * np.abs(th)
+        safe_th = np.where(np.isfinite(th), th, 0.0)
+        eps_A = eps_A + shrink * np.linalg.norm(safe_th[..., :n], ord=2, axis=(-2, -1))
+        if d > n:
+            eps_B = eps_B + shrink * np.linalg.norm(safe_th[..., n:], ord=2, axis=(-2, -1))
+    nan = bad[..., None, None]
+    R = np.where(nan, np.nan, R)
+    eps_A, eps_B, beta = (np.where(bad, np.nan, x) for x in (eps_A, eps_B, beta))
+    reason = _objects(batch, singular, REASON_SINGULAR)
+    reason[(bad & ~singular)] = REASON_NONFINITE
+    with np.errstate(invalid="ignore"):
+        over = ~ols & (np.linalg.norm(th, axis=-1).max(axis=-1) > S)
+    notes = _objects(batch, over & ~bad, f"some row of Theta_hat has norm > S = {S:g}")
+    return BoxResult(
+        R_A=R[..., :n],
+        R_B=R[..., n:],
+        eps_A=eps_A,
+        eps_B=eps_B,
+        reason=reason,
+        notes=notes,
+        sigma_w=np.broadcast_to(sw, batch).astype(float),
+        beta=beta,
+    )
+
+
+def rho_upper_bound(A_hat, R_A) -> np.ndarray:
+    """rho(|A_hat| + R_A) >= rho(A) for every A in the box; inf where non-finite. -> (...)"""
+    M = np.abs(np.asarray(A_hat, dtype=float)) + np.asarray(R_A, dtype=float)
+    fin = np.isfinite(M).all(axis=(-2, -1))
+    rho = spectral_radius(np.where(fin[..., None, None], M, 0.0))
+    return np.where(fin, rho, np.inf)
+
+
+# ---------------------------------------------------------------------------
+# parametric bootstrap (Dean et al. 2020, Algorithm 2)
+# ---------------------------------------------------------------------------
+def noise_level(Z, F, theta_hat):
+    """sigma_hat_w^2 = ||F - Theta_hat Z||_F^2 / (n (N0 - d)); -> (sigma_hat (...), reason).
+
+    Z (..., d, N0), F (..., n, N0), theta_hat (..., n, d), batch dims broadcast.
+    NaN with a reason when N0 <= d.
+    """
+    Z = np.asarray(Z, dtype=float)
+    F = np.asarray(F, dtype=float)
+    theta = np.asarray(theta_hat, dtype=float)
+    n, d = theta.shape[-2:]
+    N0 = Z.shape[-1]
+    rss = np.sum((F - theta @ Z) ** 2, axis=(-2, -1))
+    if N0 <= d:
+        return np.full(rss.shape, np.nan), f"sigma_w estimate needs N0 > d = {d}"
+    return np.sqrt(rss / (n * (N0 - d))), None
+
+
+def _refit(name: str, gamma, Z, F, loss_scale: str) -> np.ndarray:
+    """Re-estimate with the cell's own estimator (SPEC section 2). -> (..., n, d)"""
+    if name == "ols":
+        return _est.fit_ols(Z, F)
+    if name == "svr":
+        return _est.fit_svr(Z, F, [gamma], loss_scale=loss_scale)[..., 0, :, :]
+    if name == "shrunk-ols":
+        return _est.shrunk_ols(_est.fit_ols(Z, F), [gamma])[..., 0, :, :]
+    raise ValueError(f"unknown estimator {name!r}")
+
+
+def _simulate(A, B, x0, u, w, sigma_w) -> np.ndarray:
+    """x_{k+1} = A x_k + B u_k + sigma_w w_k with a system per (dataset, cell).
+
+    A (D, E, n, n), B (D, E, n, m), x0 (D, n, N), u (D, m, T0, N), w (D, n, T0, N)
+    (standard normal), sigma_w (D, E). -> x (D, E, n, T0+1, N). Elementwise
+    multiply-adds over the n + m columns (n, m are small; a stacked matmul on
+    these strided slices would not use BLAS).
+    """
+    D, E, n = A.shape[:3]
+    m = B.shape[-1]
+    T0, N = u.shape[-2:]
+    x = np.empty((D, E, n, T0 + 1, N))
+    x[:, :, :, 0] = x0[:, None]
+    s = sigma_w[..., None, None]
+    Ac = A[..., None]  # (D, E, n, n, 1): column j is Ac[..., j, :]
+    Bc = B[..., None]
+    xn = np.empty((D, E, n, N))
+    for k in range(T0):
+        np.multiply(s, w[:, None, :, k], out=xn)
+        for j in range(n):
+            xn += Ac[:, :, :, j] * x[:, :, j, None, k]
+        for j in range(m):
+            xn += Bc[:, :, :, j] * u[:, None, j, None, k]
+        x[:, :, :, k + 1] = xn
+    return x
+
+
+def bootstrap_box(
+    theta_hat,
+    *,
+    estimators: Sequence[tuple[str, float | None]],
+    sigma_w,
+    sigma_u: float,
+    N: int,
+    T0: int,
+    seed: int,
+    keys: Sequence[tuple],
+    delta: float,
+    boot_reps: int = 100,
+    data: str = "all",
+    x0_std: float = 0.0,
+    loss_scale: str = "sum",
+    joint: bool = True,
+) -> BoxResult:
+    """Parametric bootstrap box of SPEC section 3.1 (docs/uncertainty.md (e)).
+
+    theta_hat (R, E, n, d): the estimate of each (repetition, estimator) cell;
+    estimators: the E (name, gamma) pairs; sigma_w (R, E) (or broadcasting):
+    the noise level to re-simulate with; keys: the R seed keys. Resample b of
+    repetition r draws from the stream keys[r] + (2, b) in the data order of
+    SPEC section 1, shared by the E cells of the repetition. eps_A, eps_B:
+    (1 - delta) quantiles of ||A_b - A_hat||, ||B_b - B_hat||. Radii: with
+    ``joint`` the studentised max-statistic box R = c s (s the RMS of
+    Theta_b - Theta_hat per entry, c the (1 - delta) quantile of
+    max_ij |Theta_b - Theta_hat|_ij / s_ij), else the (1 - delta) quantile
+    of |Theta_b - Theta_hat| per entry. numpy's default (linear) quantiles.
+    """
+    theta = np.asarray(theta_hat, dtype=float)
+    R, E, n, d = theta.shape
+    m = d - n
+    if len(estimators) != E or len(keys) != R:
+        raise ValueError("estimators and keys must match theta_hat's (R, E) axes")
+    Bn = int(boot_reps)
+    sw = np.broadcast_to(np.asarray(sigma_w, dtype=float), (R, E))
+    good = np.isfinite(theta).all(axis=(-2, -1)) & np.isfinite(sw) & (sw >= 0)
+    th = np.where(good[..., None, None], theta, 0.0)
+    s_ok = np.where(good, sw, 0.0)
+    K = T0 - 1 if data == "all" else 1
+    per_set = 8 * N * (E * (n * (T0 + 1) + (d + n) * K + m * T0) + (n + m) * T0 + n)
+    c = int(max(1, BOOT_CHUNK_BYTES // per_set))
+    D = R * Bn
+    theta_b = np.empty((D, E, n, d))
+    for s in range(0, D, c):
+        q = np.arange(s, min(D, s + c))
+        r = q // Bn
+        bkeys = [tuple(keys[ri]) + BOOT_STREAM + (int(b),) for ri, b in zip(r, q % Bn)]
+        x0, u, w = draw_noise(
+            seed, bkeys, N=N, T0=T0, n=n, m=m, sigma_u=sigma_u, sigma_w=1.0, x0_std=x0_std
+        )
+        x = _simulate(th[r, :, :, :n], th[r, :, :, n:], x0, u, w, s_ok[r])
+        h = q.size
+        ub = np.broadcast_to(u[:, None], (h, E) + u.shape[1:]).reshape((h * E,) + u.shape[1:])
+        Z, F = regression_data(x.reshape((h * E,) + x.shape[2:]), ub, data)
+        Z = Z.reshape(h, E, d, -1)
+        F = F.reshape(h, E, n, -1)
+        for ei, (name, gamma) in enumerate(estimators):
+            theta_b[q, ei] = _refit(name, gamma, Z[:, ei], F[:, ei], loss_scale)
+    dev = theta_b.reshape(R, Bn, E, n, d).transpose(0, 2, 1, 3, 4) - th[:, :, None]
+    level = 1.0 - float(delta)
+    eps_A = np.quantile(np.linalg.norm(dev[..., :n], ord=2, axis=(-2, -1)), level, axis=-1)
+    eps_B = np.quantile(np.linalg.norm(dev[..., n:], ord=2, axis=(-2, -1)), level, axis=-1)
+    a = np.abs(dev)
+    if joint:
+        scale = np.sqrt(np.mean(dev**2, axis=2))  # (R, E, n, d)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(a > 0, a / scale[:, :, None], 0.0).max(axis=(-2, -1))
+        Rad = np.quantile(t, level, axis=-1)[..., None, None] * scale
+    else:
+        Rad = np.quantile(a, level, axis=2)
+    bad = ~good
+    Rad = np.where(bad[..., None, None], np.nan, Rad)
+    eps_A, eps_B = np.where(bad, np.nan, eps_A), np.where(bad, np.nan, eps_B)
+    return BoxResult(
+        R_A=Rad[..., :n],
+        R_B=Rad[..., n:],
+        eps_A=eps_A,
+        eps_B=eps_B,
+        reason=_objects((R, E), bad, REASON_NONFINITE),
+        notes=np.full((R, E), None, dtype=object),
+        sigma_w=np.asarray(sw, dtype=float).copy(),
+    )

@@ -1,0 +1,286 @@
+"""Every REST command of the ``svrobs`` CLI against a real server (uvicorn + a celery
+worker as real processes). The oracle is the API read with plain httpx; errors must be
+one line on stderr, exit status 2, and leave no file behind."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from svrobs_cli.errors import plain_field
+from svrobs_cli.rest import fmt
+from tests.client.cli_helpers import run_cli, run_process
+from tests.client.test_client import QUICK, SPEC
+from tests.integration.stack import fetch_jsonl, free_port
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
+
+
+@pytest.fixture
+def run(stack, capsys, monkeypatch):
+    """``run(*args) -> (exit status, stdout, stderr)`` of the console-script entry."""
+    monkeypatch.setenv("SVROBS_URL", stack.base_url)
+    monkeypatch.setenv("SVROBS_API_KEY", stack.key)
+    monkeypatch.setenv("SVROBS_CONFIG", os.devnull)
+
+    return lambda *args: run_cli(capsys, *args)
+
+
+def _table(out: str) -> list[list[str]]:
+    """The tab-separated table a command prints to a pipe (header first)."""
+    return [line.split("\t") for line in out.splitlines() if "\t" in line]
+
+
+def _fails(result, message: str) -> None:
+    """Exit status 2 and exactly one line on stderr, starting with ``message``."""
+    code, out, err = result
+    assert code == 2, result
+    assert err.startswith(message) and err.count("\n") == 1, err
+    assert "Traceback" not in err + out
+
+
+@pytest.fixture(scope="module")
+def spec_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cli") / "spec.json"
+    path.write_text(json.dumps(SPEC))
+    return path
+
+
+@pytest.fixture(scope="module")
+def job_id(stack, spec_file):
+    """A job submitted with ``svrobs submit --wait`` (as a real process)."""
+    proc = run_process(stack, "submit", spec_file, "--name", "cli", "--tag", "cli", "--wait")
+    assert proc.returncode == 0, proc.stderr
+    first, last = proc.stdout.splitlines()[0], proc.stdout.splitlines()[-1]
+    jid = int(first.split()[1])
+    assert first.startswith(f"job {jid} queued (8 cells, ")
+    assert last.startswith(f"job {jid} succeeded ") and last.endswith(" units")
+    return jid
+
+
+def test_status(run, job_id, http):
+    code, out, err = run("status", job_id)
+    assert code == 0, err
+    total = http.get(f"/jobs/{job_id}").json()["progress"]["total"]
+    assert out.splitlines()[0] == f"job {job_id} succeeded {total}/{total} units"
+    assert "  name: cli" in out and "  tags: ['cli']" in out
+    code, out, _ = run("status", job_id, "--json")
+    assert code == 0 and json.loads(out) == http.get(f"/jobs/{job_id}").json()
+    code, out, _ = run("status", "--tag", "cli", "--status", "succeeded", "--json")
+    api = http.get("/jobs", params={"tag": "cli", "status": "succeeded", "limit": 20}).json()
+    assert code == 0 and json.loads(out) == api
+    code, out, _ = run("status", "--owner", "me", "--limit", "1")
+    newest = http.get("/jobs", params={"limit": 1}).json()
+    j = newest["items"][0]
+    assert code == 0 and _table(out) == [
+        ["id", "name", "status", "progress", "cells", "tags", "created"],
+        [
+            str(j["id"]),
+            fmt(j["name"]),
+            j["status"],
+            f"{j['progress']['done']}/{j['progress']['total']}",
+            str(j["n_cells"]),
+            ",".join(j["tags"]),
+            j["created_at"][:19],
+        ],
+    ]
+    assert out.splitlines()[-1] == f"1 of {newest['total']} jobs"
+    _fails(run("status", 999_999), "error: job 999999 not found")
+
+
+def test_results(run, job_id, http, tmp_path):
+    out_csv = tmp_path / "r.csv"
+    code, _, err = run("results", job_id, "--format", "csv", "--out", out_csv, "--N", 20)
+    assert code == 0 and err == f"wrote {out_csv}\n"
+    api_csv = http.get(f"/jobs/{job_id}/results", params={"format": "csv", "N": 20}).text
+    assert out_csv.read_text() == api_csv and api_csv.count("\n") == 5
+    code, out, _ = run("results", job_id, "--format", "jsonl", "--estimator", "ols")
+    params = {"format": "jsonl", "estimator": "ols"}
+    assert code == 0 and out == http.get(f"/jobs/{job_id}/results", params=params).text
+    code, out, _ = run("results", job_id, "--format", "jsonl", "--gamma", "null", "--rep", 1)
+    assert code == 0 and [json.loads(x) for x in out.splitlines()] == [
+        r for r in fetch_jsonl(http, job_id) if r["gamma"] is None and r["rep"] == 1
+    ]
+    code, out, _ = run("results", job_id, "--format", "json")
+    assert code == 0 and json.loads(out) == fetch_jsonl(http, job_id)
+    missing = tmp_path / "x.csv"
+    _fails(run("results", 999_999, "--out", missing), "error: job 999999 not found")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.csv"]  # no x.csv, no temp file
+    _fails(run("results", job_id, "--format", "xml"), "error: --format must be")
+
+
+def test_summary_and_compare(run, job_id, http):
+    code, out, _ = run("summary", job_id, "--json")
+    assert code == 0 and json.loads(out) == http.get(f"/jobs/{job_id}/summary").json()
+    code, out, err = run("summary", job_id, "--field", "rmse_A", "--field", "g_L")
+    assert code == 0 and err == "", err
+    groups = http.get(f"/jobs/{job_id}/summary").json()["groups"]
+    keys = ["system", "sigma_w", "N", "estimator", "gamma", "count"]
+    assert _table(out) == [keys + ["rmse_A mean", "rmse_A std", "g_L mean", "g_L std"]] + [
+        [fmt(g[k]) for k in keys]
+        + [fmt(g["stats"][f][s]) for f in ("rmse_A", "g_L") for s in ("mean", "std")]
+        for g in groups
+    ]
+    _fails(run("summary", job_id, "--field", "colour"), "error: --field: colour")
+    params = {"jobs": str(job_id), "metric": "rmse_B", "by": "N"}
+    code, out, _ = run("compare", "--jobs", job_id, "--metric", "rmse_B", "--by", "N", "--json")
+    assert code == 0 and json.loads(out) == http.get("/compare", params=params).json()
+    code, out, _ = run("compare", "--jobs", job_id, "--metric", "rmse_B", "--by", "N")
+    rows = http.get("/compare", params=params).json()["rows"]
+    cols = ["job_id", "N", "mean", "std", "count"]
+    assert code == 0 and _table(out) == [cols] + [[fmt(r[c]) for c in cols] for r in rows]
+    _fails(run("compare", "--jobs", job_id, "--metric", "colour"), "error: metric: must be")
+
+
+def test_report(run, job_id, http, tmp_path):
+    folder = tmp_path / "rep"
+    code, out, err = run("report", job_id, "--out", folder)
+    assert code == 0, err
+    page = http.get(f"/jobs/{job_id}/report").text
+    assert (folder / "report.html").read_text() == page
+    n = len(list((folder / "figures").iterdir()))
+    assert n == page.count("src='data:image/png;base64,") >= 1
+    assert out == f"wrote {folder / 'report.html'} and {n} figures in {folder / 'figures'}\n"
+    _fails(run("report", 999_999, "--out", tmp_path / "none"), "error: job 999999 not found")
+    assert not (tmp_path / "none").exists()
+
+
+def test_cancel_and_presets(stack, run, job_id, http, tmp_path):
+    code, out, _ = run("presets", "list", "--json")
+    assert code == 0 and json.loads(out) == http.get("/presets").json()
+    code, out, _ = run("presets", "list")
+    assert code == 0 and ["paper-stable", "3", "1", "3", "1", "0.1"] in _table(out)
+    quick = tmp_path / "quick.json"
+    quick.write_text(json.dumps(QUICK))
+    stack.stop("worker1", grace=3)
+    try:
+        code, out, err = run("submit", quick)
+        assert code == 0, err
+        jid = int(out.split()[1])
+        code, out, _ = run("cancel", jid)
+        assert code == 0 and out.startswith(f"job {jid} cancelled 0/")
+        assert http.get(f"/jobs/{jid}").json()["status"] == "cancelled"
+        code, out, err = run("presets", "run", "--scale", "reduced", "--experiment", "E1")
+        assert code == 0, err
+        pid = int(out.split()[1])
+        assert out.startswith(f"job {pid} queued paper-section-6 E1 (reduced)")
+        assert http.get(f"/jobs/{pid}").json()["tags"] == ["paper-section-6", "E1"]
+        assert run("cancel", pid)[0] == 0
+        _fails(run("presets", "run", "--scale", "huge"), "error: scale: ")
+    finally:
+        stack.start_worker()
+    _fails(run("cancel", job_id), f"error: job {job_id} already succeeded")
+
+
+def test_schedules(run, job_id, http, spec_file):
+    code, out, err = run(
+        "schedules",
+        "create",
+        "cli-nightly",
+        "--cron",
+        "0 2 * * *",
+        "--from-job",
+        job_id,
+        "--timezone",
+        "Europe/Berlin",
+        "--tag",
+        "n",
+    )
+    assert code == 0, err
+    sid = int(out.split()[1])
+    api = http.get(f"/schedules/{sid}").json()
+    assert api["spec_template"] == http.get(f"/jobs/{job_id}").json()["spec"]
+    assert (
+        out
+        == f"schedule {sid} 'cli-nightly' '0 2 * * *' Europe/Berlin (enabled, next run {api['next_run_at']}) created\n"
+    )
+    code, out, _ = run("schedules", "list", "--json")
+    assert code == 0 and json.loads(out) == http.get("/schedules").json()
+    code, out, _ = run("schedules", "list")
+    row = [str(sid), "cli-nightly", "0 2 * * *", "Europe/Berlin", "True", api["next_run_at"], "n"]
+    assert code == 0 and row in _table(out)
+    code, out, _ = run("schedules", "show", sid, "--json")
+    assert code == 0 and json.loads(out) == api
+    code, out, _ = run("schedules", "disable", sid)
+    assert code == 0 and out.endswith("(disabled)\n")
+    assert http.get(f"/schedules/{sid}").json()["enabled"] is False
+    code, out, _ = run("schedules", "enable", sid)
+    assert code == 0 and "(enabled, next run " in out
+    assert http.get(f"/schedules/{sid}").json()["enabled"] is True
+    code, out, _ = run("schedules", "runs", sid, "--json")
+    assert code == 0 and json.loads(out) == http.get(f"/schedules/{sid}/runs").json()
+    _fails(
+        run("schedules", "create", "bad", "--cron", "61 * * * *", "--spec", spec_file),
+        "error: cron: ",
+    )
+    _fails(run("schedules", "create", "x", "--cron", "@daily"), "error: give exactly one of")
+    _fails(
+        run("schedules", "create", "cli-nightly", "--cron", "@daily", "--spec", spec_file),
+        "error: name: the team already has a schedule named 'cli-nightly'",
+    )
+    code, out, _ = run("schedules", "delete", sid)
+    assert code == 0 and out == f"schedule {sid} deleted\n"
+    _fails(run("schedules", "show", sid), f"error: schedule {sid} not found")
+
+
+def test_delete(stack, run, tmp_path, http):
+    quick = tmp_path / "quick.json"
+    quick.write_text(json.dumps(QUICK))
+    code, out, err = run("submit", quick, "--wait")
+    assert code == 0, err
+    jid = int(out.split()[1])
+    _fails(run("delete", jid), "error: not deleted: give --yes")  # stdin is no terminal
+    assert http.get(f"/jobs/{jid}").status_code == 200
+    code, out, err = run("delete", jid, "--yes")
+    assert code == 0 and out == f"job {jid} deleted\n", err
+    assert http.get(f"/jobs/{jid}").status_code == 404
+    _fails(run("delete", jid, "--yes"), f"error: job {jid} not found")
+    stack.stop("worker1", grace=3)
+    try:
+        code, out, err = run("submit", quick)
+        queued = int(out.split()[1])
+        detail = http.delete(f"/jobs/{queued}").json()["detail"]
+        _fails(run("delete", queued, "-y"), f"error: {detail}\n")
+        assert run("cancel", queued)[0] == 0
+        assert run("delete", queued, "-y")[0] == 0
+    finally:
+        stack.start_worker()
+
+
+def test_errors_are_one_line(stack, run, spec_file, tmp_path, http, monkeypatch):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({**SPEC, "reps": 0}))
+    detail = http.post("/jobs", json={**SPEC, "reps": 0}).json()["detail"]
+    _fails(run("submit", bad), f"error: invalid spec: reps: {detail}\n")
+    _fails(run("submit", tmp_path / "none.json"), "error: cannot read")
+    bad.write_text(json.dumps({**SPEC, "N": "100"}))  # pydantic names it "N.list[any]"
+    _fails(run("submit", bad), "error: invalid spec: N: ")
+    assert "[any]" not in run("submit", bad)[2]
+    monkeypatch.setenv("SVROBS_API_KEY", "svr_not-a-key")
+    _fails(run("status"), "error: invalid, revoked or expired API key\n")
+    monkeypatch.setenv("SVROBS_URL", f"http://127.0.0.1:{free_port()}")
+    _fails(run("status"), "error: cannot reach")
+    monkeypatch.delenv("SVROBS_API_KEY")
+    _fails(run("status"), "error: no API key")
+    proc = run_process(stack, "status", 999_999, timeout=60)
+    assert proc.returncode == 2 and proc.stderr == "error: job 999999 not found\n"
+
+
+@pytest.mark.parametrize(
+    "field, plain",
+    [
+        ("N.list[any]", "N"),
+        ("N.dict[str,any]", "N"),
+        ("gamma.list[float][0]", "gamma[0]"),
+        ("sls.dict[str,any].T", "sls.T"),
+        ("systems[0].A", "systems[0].A"),
+        ("spec_template.N[0]", "spec_template.N[0]"),
+        ("Idempotency-Key", "Idempotency-Key"),
+        (None, None),
+    ],
+)
+def test_plain_field(field, plain):
+    """pydantic's union-branch and validator names are dropped from a field path."""
+    assert plain_field(field) == plain

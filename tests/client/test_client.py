@@ -1,0 +1,373 @@
+"""svrobs_client against a real server (uvicorn + celery worker as real processes).
+
+The oracles are the API itself, read with plain httpx: the JSONL export, the summary
+and compare JSON, the report page and the error bodies; and pandas' own group-by of
+the records for the summary and compare statistics.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import re
+
+import httpx
+import numpy as np
+import pandas as pd
+import pytest
+
+import svrobs_client
+from svrobs_client import (
+    AuthError,
+    Client,
+    ConfigError,
+    Conflict,
+    ConnectionFailed,
+    NotFound,
+    ValidationError,
+)
+from svrobs_client.progress import RichBar
+from svrobs_core.records import MATRIX_FIELDS, RECORD_FIELDS, SUMMARY_FIELDS
+from tests.integration.stack import cell_key, fetch_jsonl, free_port, same
+from tests.integration.test_stack import TINY_SPEC
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
+
+# 8 cells: 2 N x (ols + svr at one gamma) x 2 reps, with gains (L, K) for the matrix fields
+SPEC = {**TINY_SPEC, "N": [10, 20], "stages": ["estimate", "bounds", "gain"], "seed": 3}
+QUICK = {**SPEC, "N": [10], "stages": ["estimate"], "reps": 1}  # 2 cells
+
+
+@pytest.fixture(scope="module")
+def client(stack):
+    with Client(stack.base_url, stack.key, poll_interval=0.25) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def job(client):
+    job = client.submit(SPEC, name="client-test", tags=["client"], timeout=150)
+    assert job.status == "succeeded", job
+    return job
+
+
+def _py(value):
+    """A DataFrame cell as the plain Python value JSON would give."""
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _missing(value) -> bool:
+    return value is None or (not isinstance(value, (list, np.ndarray)) and pd.isna(value))
+
+
+def test_client_matrix_fields_are_the_records():
+    assert svrobs_client.MATRIX_FIELDS == MATRIX_FIELDS
+
+
+# --------------------------------------------------------------------------- results
+
+
+def test_results_frame_equals_jsonl_export(client, job, http):
+    """The DataFrame equals GET /results?format=jsonl cell by cell; matrices are float
+    arrays equal to the exported nested lists."""
+    exported = fetch_jsonl(http, job.id)
+    df = client.results(job)
+    assert list(df.columns) == list(RECORD_FIELDS)
+    assert len(df) == len(exported) == job.n_cells == 8
+    problems = []
+    for i, rec in enumerate(exported):
+        row = df.iloc[i]
+        for f in RECORD_FIELDS:
+            got, want = row[f], rec[f]
+            if f in MATRIX_FIELDS:
+                assert want is not None, f  # estimate and gain ran: every matrix is there
+                assert isinstance(got, np.ndarray) and got.dtype == np.float64, (f, got)
+                np.testing.assert_array_equal(got, np.array(want, dtype=float))
+                assert got.shape == (len(want), len(want[0]))
+            elif want is None:
+                if not _missing(got):
+                    problems.append(f"{i}.{f}: {got!r} != None")
+            else:
+                problems += same(_py(got), want, f"{i}.{f}")
+    assert not problems, "\n".join(problems[:20])
+
+
+def test_results_filters_and_records(client, job, http):
+    exported = fetch_jsonl(http, job.id)
+    assert client.results_records(job) == exported
+    svr20 = [r for r in exported if r["estimator"] == "svr" and r["N"] == 20]
+    assert client.results_records(job, estimator="svr", N=20) == svr20
+    assert client.results_records(job.id, estimator=["svr"], N=[20], gamma=0.05) == svr20
+    ols = [r for r in exported if r["gamma"] is None]
+    assert ols and client.results_records(job, gamma=None) == ols
+    df = client.results(job, rep=[1], N=(10, 20))
+    assert sorted(map(cell_key, client.results_records(job, rep=1))) == sorted(
+        cell_key(r) for r in exported if r["rep"] == 1
+    )
+    assert set(df["rep"]) == {1} and len(df) == 4
+    assert client.results_records(job, limit=3, offset=2) == exported[2:5]
+    assert len(client.results(job, system="no-such-system")) == 0
+    with pytest.raises(TypeError, match="unknown results filter"):
+        client.results(job, rmse_A_lt=0.1)
+
+
+def test_download_results_matches_the_export(client, job, http, tmp_path):
+    csv = http.get(f"/jobs/{job.id}/results", params={"format": "csv", "N": 10}).text
+    out = tmp_path / "r.csv"
+    client.download_results(job, out, format="csv", N=10)
+    assert out.read_text() == csv
+    buf = io.StringIO()
+    client.download_results(job, buf, format="json")
+    assert json.loads(buf.getvalue()) == fetch_jsonl(http, job.id)
+    missing = tmp_path / "missing.csv"
+    with pytest.raises(NotFound):
+        client.download_results(2_000_000, missing)
+    assert not missing.exists() and list(tmp_path.iterdir()) == [out]  # no temp file left
+
+
+# --------------------------------------------------------------------------- summary, compare
+
+
+def test_summary_frame_equals_api_json(client, job, http):
+    body = http.get(f"/jobs/{job.id}/summary").json()
+    df = client.summary(job)
+    assert df.attrs == {"job_id": job.id, "partial": False}
+    assert len(df) == len(body["groups"]) == 4
+    for (_, row), g in zip(df.iterrows(), body["groups"]):
+        for k in ("system", "sigma_w", "N", "estimator", "gamma", "count"):
+            assert (_missing(row[k]) and g[k] is None) or _py(row[k]) == g[k], k
+        for f, s in g["stats"].items():
+            for stat in ("mean", "std", "count"):
+                got, want = row[f"{f}_{stat}"], s[stat]
+                assert (_missing(got) and want is None) or _py(got) == want, (f, stat)
+    long = client.summary(job, long=True)
+    assert len(long) == 4 * len(SUMMARY_FIELDS)
+    assert list(long.columns) == [
+        *("system", "sigma_w", "N", "estimator", "gamma"),
+        *("field", "mean", "std", "count"),
+    ]
+    # an independent oracle: pandas' group-by of the records themselves
+    res = client.results(job)
+    res["gamma_key"] = res["gamma"].fillna(-1.0)
+    grouped = res.groupby(["N", "estimator", "gamma_key"])["rmse_A"].agg(["mean", "count"])
+    wide = long[long["field"] == "rmse_A"].assign(gamma_key=lambda d: d["gamma"].fillna(-1.0))
+    for _, r in wide.iterrows():
+        exp = grouped.loc[(r["N"], r["estimator"], r["gamma_key"])]
+        assert r["mean"] == pytest.approx(exp["mean"], rel=1e-12) and r["count"] == exp["count"]
+
+
+def test_compare_frame_equals_api_json(client, job, http):
+    other = client.submit({**SPEC, "seed": 4}, name="client-compare", timeout=150)
+    assert other.status == "succeeded"
+    params = {"jobs": f"{job.id},{other.id}", "metric": "rmse_A", "by": "N,estimator"}
+    body = http.get("/compare", params=params).json()
+    df = client.compare([job, other.id], "rmse_A", by=["N", "estimator"])
+    assert df.attrs["metric"] == "rmse_A" and df.attrs["by"] == ["N", "estimator"]
+    assert list(df.columns) == ["job_id", "N", "estimator", "mean", "std", "count"]
+    assert [{k: _py(v) for k, v in r.items()} for r in df.to_dict("records")] == body["rows"]
+    assert client.compare_json([job, other], "rmse_A", "N,estimator") == body
+    res = pd.concat([client.results(job), client.results(other)], keys=[job.id, other.id])
+    res = res.reset_index(level=0, names="job_id")
+    oracle = res.groupby(["job_id", "N", "estimator"])["rmse_A"].agg(
+        mean="mean", std=lambda x: x.std(ddof=0), count="count"
+    )
+    for r in body["rows"]:
+        exp = oracle.loc[(r["job_id"], r["N"], r["estimator"])]
+        assert r["mean"] == pytest.approx(exp["mean"], rel=1e-12)
+        assert r["std"] == pytest.approx(exp["std"], rel=1e-9, abs=1e-15)
+        assert r["count"] == exp["count"]
+
+
+# --------------------------------------------------------------------------- jobs
+
+
+def test_jobs_list_and_idempotent_submit(client, job, http, monkeypatch):
+    page = client.jobs(tag="client")
+    assert page.total == len(page) >= 1 and job.id in [j.id for j in page]
+    api = http.get("/jobs", params={"tag": "client", "status": "succeeded"}).json()
+    assert [j.raw for j in client.jobs(tag="client", status="succeeded")] == api["items"]
+    assert client.jobs(owner="me", limit=1).limit == 1
+    got = client.job(job.id)
+    assert got == job and got.raw == http.get(f"/jobs/{job.id}").json()
+    assert got.progress.done == got.progress.total and got.finished
+
+    # the progress bar of a real wait, drawn by rich into a buffer
+    from rich.console import Console
+
+    screen = io.StringIO()
+    console = Console(file=screen, width=120, force_terminal=False)
+    monkeypatch.setattr(
+        "svrobs_client.client.make_bar",
+        lambda job_id, total, status, enabled: RichBar(job_id, total, status, console=console),
+    )
+    first = client.submit(QUICK, idempotency_key="client-idem", tags="quick")
+    assert first.status == "succeeded" and first.tags == ["quick"]
+    total = first.progress.total
+    assert f"job {first.id} succeeded" in screen.getvalue()
+    assert f"{total}/{total} units" in screen.getvalue()
+    again = client.submit(QUICK, idempotency_key="client-idem", tags="quick", wait=False)
+    assert again.id == first.id
+    with pytest.raises(Conflict) as err:
+        client.submit({**QUICK, "seed": 99}, idempotency_key="client-idem", wait=False)
+    assert err.value.status == 409 and err.value.field == "Idempotency-Key"
+
+
+def test_cancel_and_paper_preset(stack, client, job):
+    """With the worker stopped, a submitted job stays queued and is cancelled; so are
+    the jobs of the paper preset. Cancelling a finished job is a 409."""
+    stack.stop("worker1", grace=3)
+    try:
+        queued = client.submit(SPEC, name="to-cancel", wait=False)
+        assert queued.status == "queued"
+        cancelled = client.cancel(queued)
+        assert cancelled.id == queued.id and cancelled.status == "cancelled"
+        assert client.job(queued.id).status == "cancelled"
+        assert client.wait(queued.id, timeout=5).status == "cancelled"
+        assert client.cancel(queued.id).status == "cancelled"
+        preset = client.run_paper_preset(scale="reduced", experiments=["E1"])
+        assert len(preset) == 1 and preset[0].tags == ["paper-section-6", "E1"]
+        assert client.cancel(preset[0]).status == "cancelled"
+    finally:
+        stack.start_worker()
+    with pytest.raises(Conflict) as err:
+        client.cancel(job)
+    assert err.value.status == 409 and err.value.message == f"job {job.id} already succeeded"
+
+
+def test_delete(stack, client):
+    done = client.submit(QUICK, name="to-delete", timeout=150)
+    client.delete(done)
+    with pytest.raises(NotFound):
+        client.job(done)
+    with pytest.raises(NotFound):
+        client.results_records(done)
+    stack.stop("worker1", grace=3)
+    try:
+        queued = client.submit(QUICK, name="delete-queued", wait=False)
+        with pytest.raises(Conflict):
+            client.delete(queued)
+        client.cancel(queued)
+        client.delete(queued)
+        with pytest.raises(NotFound):
+            client.job(queued)
+    finally:
+        stack.start_worker()
+
+
+# --------------------------------------------------------------------------- report, presets
+
+
+def test_report_folder(client, job, http, tmp_path):
+    page = http.get(f"/jobs/{job.id}/report").text
+    rep = client.report(job, tmp_path / "rep")
+    assert rep.html == tmp_path / "rep" / "report.html"
+    assert rep.html.read_text() == page
+    srcs = re.findall(r"src='data:image/png;base64,([^']+)'", page)
+    assert len(srcs) == len(rep.figures) >= 1
+    for path, src in zip(rep.figures, srcs):
+        data = path.read_bytes()
+        assert data == base64.b64decode(src) and data.startswith(b"\x89PNG\r\n\x1a\n")
+    assert sorted(p.name for p in (tmp_path / "rep").iterdir()) == ["figures", "report.html"]
+
+
+def test_presets(client, http):
+    presets = client.presets()
+    assert presets == http.get("/presets").json()
+    assert {"paper-stable", "paper-unstable"} <= {p["name"] for p in presets}
+
+
+# --------------------------------------------------------------------------- schedules
+
+
+def test_schedules(client, job, http):
+    s = client.create_schedule(
+        "client-nightly", "0 2 * * *", job, timezone="Europe/Berlin", enabled=False
+    )
+    assert s.spec_template == job.spec and not s.enabled and s.next_run_at is None
+    assert s.raw == http.get(f"/schedules/{s.id}").json()
+    assert client.schedule(s.id) == s
+    assert s.id in [x.id for x in client.schedules()]
+    on = client.enable_schedule(s)
+    assert on.enabled and on.next_run_at is not None
+    assert on.raw == http.get(f"/schedules/{s.id}").json()
+    off = client.disable_schedule(s.id)
+    assert not off.enabled and off.next_run_at is None
+    renamed = client.update_schedule(s, name="client-nightly-2", tags=["n"])
+    assert renamed.name == "client-nightly-2" and renamed.tags == ["n"]
+    runs = client.schedule_runs(s)
+    assert [r.raw for r in runs] == http.get(f"/schedules/{s.id}/runs").json()
+    with pytest.raises(Conflict) as err:
+        client.create_schedule("client-nightly-2", "@daily", SPEC)
+    assert (err.value.status, err.value.field) == (409, "name")
+    with pytest.raises(ValidationError) as err:
+        client.create_schedule("bad", "61 * * * *", SPEC)
+    assert (err.value.status, err.value.field) == (422, "cron")
+    client.delete_schedule(s)
+    with pytest.raises(NotFound):
+        client.schedule(s.id)
+
+
+# --------------------------------------------------------------------------- errors, config
+
+
+def _api_error(response: httpx.Response) -> tuple[int, str | None, str]:
+    body = response.json()
+    return response.status_code, body["field"], body["detail"]
+
+
+def test_typed_errors_carry_the_api_body(stack, client, http):
+    with stack.client() as raw, Client(stack.base_url, "svr_not-a-key") as bad:
+        raw.headers["Authorization"] = "Bearer svr_not-a-key"
+        expected = _api_error(raw.get("/jobs"))
+        with pytest.raises(AuthError) as err:
+            bad.jobs()
+    assert expected[0] == 401 and expected[2]
+    assert (err.value.status, err.value.field, err.value.message) == expected
+
+    with pytest.raises(NotFound) as err:
+        client.job(2_000_000)
+    assert (err.value.status, err.value.field, err.value.message) == _api_error(
+        http.get("/jobs/2000000")
+    )
+    assert err.value.message == "job 2000000 not found"
+
+    bad_spec = {**SPEC, "reps": 0}
+    with pytest.raises(ValidationError) as err:
+        client.submit(bad_spec, wait=False)
+    expected = _api_error(http.post("/jobs", json=bad_spec))
+    assert (err.value.status, err.value.field, err.value.message) == expected
+    assert expected[:2] == (422, "reps")
+    assert str(err.value) == f"reps: {expected[2]} (HTTP 422)"
+
+    with pytest.raises(ValidationError) as err:
+        client.compare([1], "not-a-field")
+    assert (err.value.status, err.value.field) == (422, "metric")
+    assert isinstance(err.value, svrobs_client.SvrobsError)
+
+    with Client(f"http://127.0.0.1:{free_port()}", "k", timeout=2) as nowhere:
+        with pytest.raises(ConnectionFailed) as err:
+            nowhere.jobs()
+    assert err.value.status is None and "cannot reach" in err.value.message
+
+
+def test_config_from_environment_and_file(stack, job, tmp_path, monkeypatch):
+    for var in ("SVROBS_URL", "SVROBS_API_KEY"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("SVROBS_CONFIG", str(tmp_path / "none.json"))
+    with pytest.raises(ConfigError, match="no API key"):
+        Client()
+    monkeypatch.setenv("SVROBS_URL", stack.base_url)
+    monkeypatch.setenv("SVROBS_API_KEY", stack.key)
+    with Client() as c:
+        assert c.job(job.id).id == job.id and stack.key not in repr(c)
+    monkeypatch.delenv("SVROBS_URL")
+    monkeypatch.delenv("SVROBS_API_KEY")
+    cfg = tmp_path / "config.json"
+    cfg.write_text(json.dumps({"url": stack.base_url + "/", "api_key": stack.key}))
+    monkeypatch.setenv("SVROBS_CONFIG", str(cfg))
+    with Client() as c:
+        assert c.url == stack.base_url and c.job(job.id).id == job.id
+    cfg.write_text("{not json")
+    with pytest.raises(ConfigError, match="cannot read"):
+        Client()
