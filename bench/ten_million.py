@@ -66,6 +66,7 @@ GAIN_FLOATS = ["g_L", "rho_true", "J_exact", "J_stationary", "J_star", "cost_rat
 MC = ["J_mc", "J_mc_se"]
 BOOLS = ["thm1_holds_A", "thm1_holds_B", "stable_certified", "certified"]
 PAYLOAD = BOUND_FLOATS + GAIN_FLOATS + MC + BOOLS + ["seed_key", "A_hat", "B_hat", "L", "K"]
+PAYLOAD += ["bounds_method", "radii_A", "radii_B"]
 KEYS = ["job_id", "system", "sigma_w", "N", "estimator", "gamma_key", "rep", "gamma", "N0"]
 COPY_COLUMNS = KEYS + ["notes_id"] + PAYLOAD
 POOL = 4096
@@ -120,6 +121,8 @@ def payload_pool(full: bool, rng) -> list[str]:
             vals += [_hex(rng.standard_normal(9)), "\\\\x"]
         else:
             vals += ["\\N", "\\N"]
+        # the paper's bounds: radius matrices of one repeated float, stored as that float
+        vals += ["paper", _hex(rng.random(1)), _hex(rng.random(1))]
         out.append("\t".join(vals))
     return out
 
