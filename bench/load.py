@@ -167,7 +167,7 @@ def prepare(
             claimed = start_unit(s, uid, "bench", 600)
             complete_unit(s, uid, synthetic_records(spec, claimed[1], rng))
     with session_scope(db_url) as s:
-        rows = s.scalar(select(func.count(Result.id)).where(Result.job_id == job_id))
+        rows = s.scalar(select(func.count()).select_from(Result).where(Result.job_id == job_id))
     dispose_all()
     return key, job_id, rows
 

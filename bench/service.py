@@ -85,16 +85,16 @@ with session_scope() as db:
 print(json.dumps({'key': key}))
 """
 
-# A synthetic 100k-cell job: rows built by record_to_row and bulk-inserted
-# (executemany), then every unit completed through complete_unit (which marks
+# A synthetic 100k-cell job: records stored by upsert_results (the write path)
+# in batches, then every unit completed through complete_unit (which marks
 # the job succeeded and writes its summaries), so the API sees a normal job.
 SYNTH = """
 import json, sys, time
 import numpy as np
 from service.db.jobs import create_job
-from service.db.results_store import record_to_row
+from service.db.results_store import upsert_results
 from service.db.units import complete_unit
-from service.db.models import Result, Team, WorkUnit
+from service.db.models import Team, WorkUnit
 from service.db.session import session_scope
 from sqlalchemy import select
 from svrobs_core import parse_spec
@@ -129,10 +129,10 @@ for uid, p in units:
                 r['coverage_A'] = r['coverage_B'] = 1.0
                 r['thm1_holds_A'] = r['thm1_holds_B'] = True
                 r['stable_certified'] = bool(rng.random() < 0.5)
-                rows.append(record_to_row(job_id, r))
+                rows.append(r)
 for i in range(0, len(rows), 5000):
     with session_scope() as s:
-        s.execute(Result.__table__.insert(), rows[i:i + 5000])
+        upsert_results(s, job_id, rows[i:i + 5000])
 for uid, _ in units:
     with session_scope() as s:
         complete_unit(s, uid, [])

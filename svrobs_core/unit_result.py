@@ -20,7 +20,7 @@ import numpy as np
 from .notes import Notes
 from .pipeline import mc_note
 from .planning import EstimatorAxis
-from .records import CELL_FIELDS, RECORD_FIELDS, json_value
+from .records import CELL_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, json_value
 
 
 def _flat(arr, RE: int) -> np.ndarray:
@@ -190,20 +190,26 @@ class UnitResult:
             ],
         }
 
-    def value_columns(self, as_json: frozenset[str] | set[str] = frozenset()) -> dict[str, list]:
-        """{field: one value per record, in record order} for every section 10 field:
-        plain Python values (NaN/inf -> None), and for the fields in ``as_json``
-        their JSON text (as ``json.dumps`` writes it) instead. The columnar form
-        the DB layer stores without building a dict per record."""
+    def value_columns(
+        self,
+        as_json: frozenset[str] | set[str] = frozenset(),
+        omit: frozenset[str] | set[str] = frozenset(),
+    ) -> dict[str, list]:
+        """{field: one value per record, in record order} for every section 10 field
+        not in ``omit``: plain Python values (NaN/inf -> None), and for the fields in
+        ``as_json`` their JSON text (as ``json.dumps`` writes it) instead. The
+        columnar form the DB layer stores without building a dict per record."""
         R, E = len(self.reps), len(self.axis.names)
         RE = R * E
-        out: dict[str, list] = {f: [] for f in RECORD_FIELDS}
+        out: dict[str, list] = {f: [] for f in RECORD_FIELDS if f not in omit}
         for di, ds in enumerate(self.datasets):
             cols = self._key_columns(ds)
             if "seed_key" in as_json:
                 cols["seed_key"] = self._seed_key_strings(ds)
             for f in CELL_FIELDS:
                 v = ds.fields.get(f)
+                if f in omit:
+                    continue
                 if v is None:
                     cols[f] = repeat("null" if f in as_json else None, RE)
                 elif f in as_json:
@@ -211,9 +217,22 @@ class UnitResult:
                 else:
                     cols[f] = _values(v, RE)
             cols["notes"] = ds.notes.reshape(RE).tolist()
-            for f in RECORD_FIELDS:
+            for f in out:
                 out[f].extend(cols[f])
         return out
+
+    def matrix_blocks(self) -> list[dict[str, np.ndarray | None]]:
+        """Per dataset (in :meth:`value_columns` order), each matrix field as one
+        (records, rows, cols) float array in record order, or None where it was not
+        computed (NaN/inf entries are the records' nulls)."""
+        RE = len(self.reps) * len(self.axis.names)
+        return [
+            {
+                f: None if ds.fields.get(f) is None else _flat(ds.fields[f], RE)
+                for f in MATRIX_FIELDS
+            }
+            for ds in self.datasets
+        ]
 
     def records(self) -> list[dict]:
         cols = self.value_columns()

@@ -16,6 +16,7 @@ from service.db.models import (
     Job,
     JobTag,
     Result,
+    ResultConstant,
     ScheduleRun,
     ShareLink,
     Summary,
@@ -33,7 +34,7 @@ class JobActive(Exception):
 
 
 def delete_job(session: Session, job: Job) -> dict[str, int]:
-    """Delete ``job``, its work units, results, summaries and tags (a schedule run that
+    """Delete ``job``, its work units, results (and their shared matrices), summaries and tags (a schedule run that
     made it keeps its due time, without the job) -> the number of rows per table.
     Flushes; the caller commits. Raises :class:`JobActive` for a queued/running job."""
     job_id = job.id
@@ -51,7 +52,7 @@ def delete_job(session: Session, job: Job) -> dict[str, int]:
     if locked.status in JOB_ACTIVE:
         raise JobActive(job_id, locked.status)
     counts = {}
-    for model in (Result, Summary, WorkUnit, JobTag, ShareLink):
+    for model in (Result, ResultConstant, Summary, WorkUnit, JobTag, ShareLink):
         counts[model.__tablename__] = session.execute(
             delete(model).where(model.job_id == job_id)
         ).rowcount

@@ -1,9 +1,9 @@
 """SQLAlchemy 2 ORM models. Tables are created only by Alembic (migrations/).
 
 Result rows carry one SQL column per scalar of SPEC section 10 (booleans as
-Boolean, the rest Float/Integer) and the matrices as JSON, keyed uniquely on
-(job, system, sigma_w, N, estimator, gamma_key, rep) where ``gamma_key`` is
-gamma, or -1 for ols (NULLs are never equal in a UNIQUE constraint).
+Boolean, the rest Float/Integer) and the matrices as binary, keyed on (job,
+system, sigma_w, N, estimator, gamma_key, rep) where ``gamma_key`` is gamma,
+or -1 for ols (NULLs are never equal in a key).
 """
 
 from __future__ import annotations
@@ -13,13 +13,13 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
-    BigInteger,
     Boolean,
     DateTime,
     Float,
     ForeignKey,
     Index,
     Integer,
+    LargeBinary,
     String,
     Text,
     UniqueConstraint,
@@ -189,46 +189,83 @@ def _numeric_type(field: str):
 # Columns of `results` that hold record fields, in SPEC section 10 order.
 RESULT_SCALAR_FIELDS = tuple(NUMERIC_FIELDS)
 RESULT_MATRIX_FIELDS = tuple(MATRIX_FIELDS)
+RESULT_KEY = ("job_id", "system", "sigma_w", "N", "estimator", "gamma_key", "rep")
+# The table's column order: 8-byte floats, then 4-byte integers, then booleans, then
+# variable-length values, so that PostgreSQL pads no field to its alignment.
+_FLOATS = ("sigma_w", "gamma_key") + tuple(
+    f for f in NUMERIC_FIELDS if _numeric_type(f) is Float and f != "sigma_w"
+)
+_INTS = ("job_id", "N", "N0", "rep", "notes_id")
+_BOOLS = tuple(BOOL_FIELDS)
+_VARIABLE = ("system", "estimator", "bounds_method", "sls_status", "seed_key")
+_VARIABLE += RESULT_MATRIX_FIELDS
+RESULT_COLUMN_ORDER = _FLOATS + _INTS + _BOOLS + _VARIABLE
 
 
-BigIntPK = BigInteger().with_variant(Integer, "sqlite")  # SQLite rowids are 64-bit already
+def _result_column(name: str):
+    if name == "job_id":
+        return mapped_column(Integer, primary_key=True)
+    if name == "notes_id":
+        return mapped_column(Integer, nullable=True)
+    if name in ("system", "estimator"):
+        return mapped_column(String(200 if name == "system" else 32), primary_key=True)
+    if name == "gamma_key":
+        return mapped_column(Float, primary_key=True)
+    if name in ("sls_status", "bounds_method"):
+        return mapped_column(String(64 if name == "sls_status" else 32), nullable=True)
+    if name == "seed_key":
+        return mapped_column(Text, nullable=True)
+    if name in RESULT_MATRIX_FIELDS:
+        return mapped_column(name, LargeBinary, nullable=True)
+    key = name in ("sigma_w", "N", "rep")
+    return mapped_column(name, _numeric_type(name), primary_key=key, nullable=not key)
+
+
+class ResultNote(Base):
+    """The distinct ``notes`` texts, stored once (results rows point here); ``digest``
+    (sha256 of the text) is the unique key, as a text may be longer than an index entry."""
+
+    __tablename__ = "result_notes"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    digest: Mapped[str] = mapped_column(String(64), unique=True)
+    text: Mapped[str] = mapped_column(Text)
+
+
+class ResultConstant(Base):
+    """A matrix field that is the same in every cell of a (job, system, sigma_w) (K),
+    stored once; its rows hold zero bytes (``service.db.result_codec``)."""
+
+    __tablename__ = "result_constants"
+    job_id: Mapped[int] = mapped_column(primary_key=True)
+    system: Mapped[str] = mapped_column(String(200), primary_key=True)
+    sigma_w: Mapped[float] = mapped_column(Float, primary_key=True)
+    field: Mapped[str] = mapped_column(String(32), primary_key=True)
+    value: Mapped[bytes] = mapped_column(LargeBinary)
 
 
 class Result(Base):
+    """One cell (SPEC section 10), keyed by its grid coordinates (the primary key;
+    ``gamma_key`` is gamma, or -1 for ols). The compact format of migration 0005
+    (``service.db.result_codec``): matrices as little-endian float64 bytes, their
+    shapes from the job's spec; ``notes`` as an id into ``result_notes``;
+    ``seed_key`` NULL when it is the one the spec gives (system and sigma_w
+    indices, N, rep), else its JSON text. SQLite stores the table WITHOUT ROWID
+    (clustered on the key: no second copy of it in an index).
+
+    ``job_id`` and ``notes_id`` carry no foreign key: on PostgreSQL each costs a
+    trigger check per stored row (11 us, half the COPY of a unit) and the job's
+    check takes KEY SHARE locks on the job row that the unit completion of another
+    worker holds FOR UPDATE. Rows are written only by ``complete_unit`` for an
+    existing job; ``result_notes`` is never deleted from."""
+
     __tablename__ = "results"
-    __table_args__ = (
-        UniqueConstraint(
-            "job_id",
-            "system",
-            "sigma_w",
-            "N",
-            "estimator",
-            "gamma_key",
-            "rep",
-            name="uq_results_cell",
-        ),
-        Index("ix_results_job_N", "job_id", "N"),
-        Index("ix_results_job_estimator", "job_id", "estimator", "gamma_key"),
-        Index("ix_results_job_rep", "job_id", "rep"),
-        Index("ix_results_job_sigma", "job_id", "sigma_w"),
-    )
-    id: Mapped[int] = mapped_column(BigIntPK, primary_key=True)
-    job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"))
-    system: Mapped[str] = mapped_column(String(200))
-    estimator: Mapped[str] = mapped_column(String(32))
-    gamma_key: Mapped[float] = mapped_column(Float)
-    seed_key: Mapped[Any | None] = mapped_column(JSON)
-    bounds_method: Mapped[str | None] = mapped_column(String(32))
-    sls_status: Mapped[str | None] = mapped_column(String(64))
-    notes: Mapped[str | None] = mapped_column(Text)
+    __table_args__ = {"sqlite_with_rowid": False}
 
     # One column per numeric field and per matrix field, named exactly as in SPEC section 10
     # (a class body's namespace is a plain dict, so the loop can add them).
     _ns = locals()
-    for _f in RESULT_SCALAR_FIELDS:
-        _ns[_f] = mapped_column(_f, _numeric_type(_f), nullable=_f not in ("sigma_w", "N", "rep"))
-    for _f in RESULT_MATRIX_FIELDS:
-        _ns[_f] = mapped_column(_f, JSON, nullable=True)
+    for _f in RESULT_COLUMN_ORDER:
+        _ns[_f] = _result_column(_f)
     del _ns, _f
 
 

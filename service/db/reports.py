@@ -11,14 +11,14 @@ record dicts, and no ``A_hat``/``B_hat`` above ``MATRIX_CELLS_LIMIT`` cells
 from __future__ import annotations
 
 import numpy as np
-from pydantic_core import from_json
-from sqlalchemy import Text, cast, func, select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from svrobs_core.records import BOOL_FIELDS
 from svrobs_core.report.columns import COLUMN_MATRIX_FIELDS, SCALAR_FIELDS, TEXT_FIELDS, Columns
 
 from .models import JOB_ACTIVE, Job, JobReport, Result, utcnow
+from .results_store import NOTES, job_codec
 
 CHUNK = 5_000
 MATRIX_CELLS_LIMIT = 200_000
@@ -60,9 +60,9 @@ def jobs_without_report(session: Session, limit: int, finished_after=None) -> li
     return list(session.scalars(q))
 
 
-def _matrix_block(texts: list, shape: tuple[int, int] | None) -> tuple[np.ndarray, tuple | None]:
-    """JSON matrices (text, None for null) -> (k, a, b) floats, NaN where missing."""
-    values = from_json("[" + ",".join(t or "null" for t in texts) + "]")
+def _matrix_block(values: list, shape: tuple[int, int] | None) -> tuple[np.ndarray, tuple | None]:
+    """Decoded matrices (nested lists, None for null) -> (k, a, b) floats, NaN where
+    missing."""
     if shape is None:
         shape = next((np.shape(v) for v in values if v is not None), None)
     if shape is None or len(shape) != 2:
@@ -70,7 +70,7 @@ def _matrix_block(texts: list, shape: tuple[int, int] | None) -> tuple[np.ndarra
     out = np.full((len(values), *shape), np.nan)
     for i, v in enumerate(values):
         if v is not None and np.shape(v) == shape:
-            out[i] = np.asarray(v, dtype=float)
+            out[i] = np.asarray(v, dtype=float)  # None entries -> nan
     return out, shape
 
 
@@ -83,15 +83,24 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
     if matrices is None:
         matrices = n <= MATRIX_CELLS_LIMIT
     mats = COLUMN_MATRIX_FIELDS if matrices else ()
-    cols = [t.c[f] for f in SCALAR_FIELDS + TEXT_FIELDS] + [cast(t.c[f], Text) for f in mats]
+    codec = job_codec(session, job_id)
+    text_cols = [NOTES.c.text if f == "notes" else t.c[f] for f in TEXT_FIELDS]
+    cols = [t.c[f] for f in SCALAR_FIELDS] + text_cols + [t.c[f] for f in mats]
     data: dict[str, np.ndarray] = {f: np.full(n, np.nan) for f in SCALAR_FIELDS}
     text = {f: np.empty(n, dtype=object) for f in TEXT_FIELDS}
     blocks: dict[str, list] = {f: [] for f in mats}
     shapes: dict[str, tuple | None] = dict.fromkeys(mats)
     order = [t.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
     # at most the rows counted (a running job may be writing more meanwhile)
-    q = select(*cols).where(t.c.job_id == job_id).order_by(*order).limit(n)
+    q = (
+        select(*cols)
+        .select_from(t.outerjoin(NOTES, t.c.notes_id == NOTES.c.id))
+        .where(t.c.job_id == job_id)
+        .order_by(*order)
+        .limit(n)
+    )
     ns, nt = len(SCALAR_FIELDS), len(TEXT_FIELDS)
+    sig = SCALAR_FIELDS.index("sigma_w")
     interned: dict[str, dict] = {f: {} for f in TEXT_FIELDS}
     at = 0
     for part in session.execute(q.execution_options(yield_per=CHUNK)).partitions(CHUNK):
@@ -105,8 +114,10 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
         for i, f in enumerate(TEXT_FIELDS):  # one str object per distinct value, not per row
             uniq = interned[f]
             text[f][at : at + k] = [uniq.setdefault(v, v) for v in columns[ns + i]]
+        systems, sigmas = columns[ns + TEXT_FIELDS.index("system")], columns[sig]
         for i, f in enumerate(mats):
-            block, shapes[f] = _matrix_block(list(columns[ns + nt + i]), shapes[f])
+            decoded = codec.decode_matrices(systems, sigmas, f, list(columns[ns + nt + i]))
+            block, shapes[f] = _matrix_block(decoded, shapes[f])
             blocks[f].append(block)
         at += k
     data = {f: a[:at] for f, a in data.items()}

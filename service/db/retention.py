@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session
 from .accounts import get_team
 from .clock import db_now
 from .errors import AdminError
-from .models import Job, Result, Team, as_utc
+from .models import Job, Result, ResultConstant, Team, as_utc
 
 MAX_RETENTION_DAYS = 36_500
 
@@ -57,6 +57,7 @@ def prune_job(session: Session, job_id: int, now: datetime | None = None) -> int
     if job is None or job.pruned_at is not None:
         return 0
     n = session.execute(delete(Result).where(Result.job_id == job_id)).rowcount or 0
+    session.execute(delete(ResultConstant).where(ResultConstant.job_id == job_id))
     job.pruned_at = now or db_now(session)
     session.flush()
     return n

@@ -182,9 +182,9 @@ def _write_summaries(
         system, sigma_w, Ns = scope
         q = q.where(Summary.system == system, Summary.sigma_w == sigma_w, Summary.N.in_(Ns))
     session.execute(q)
-    if groups:
+    if groups:  # a Core executemany (the ORM's bulk insert costs ~1 ms per group)
         session.execute(
-            insert(Summary),
+            insert(Summary.__table__),
             [
                 {
                     "job_id": job_id,

@@ -9,10 +9,9 @@ import json
 import pytest
 from sqlalchemy import select
 
-from service.db.models import Result
-from service.db.results_store import row_to_record
-from svrobs_core.records import MATRIX_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
-from tests.service.svc_fakes import run_job_units
+from service.db.models import WorkUnit
+from svrobs_core.records import MATRIX_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS, json_value
+from tests.service.svc_fakes import fake_records, run_job_units
 from tests.service.svc_helpers import SMALL_SPEC
 
 API = "/api/v1"
@@ -23,8 +22,10 @@ def done_job(client, session, make_account):
     acc = make_account()
     jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
     run_job_units(session, jid)
-    rows = session.scalars(select(Result).where(Result.job_id == jid)).all()
-    return acc, jid, [row_to_record(r) for r in rows]
+    spec = client.get(f"{API}/jobs/{jid}", headers=acc.headers).json()["spec"]
+    units = session.scalars(select(WorkUnit).where(WorkUnit.job_id == jid)).all()
+    written = [r for u in units for r in fake_records(spec, u.payload)]
+    return acc, jid, [{k: json_value(v) for k, v in r.items()} for r in written]
 
 
 def _key(r):
@@ -47,7 +48,7 @@ def test_results_page_and_filters(client, done_job):
     assert isinstance(item["A_hat"], list) and isinstance(item["A_hat"][0], list)
     assert item["rmse_B"] is None  # NaN -> null
     assert [_key(x) for x in r["items"]] == sorted(_key(x) for x in stored)
-    by_key = {_key(x): x for x in stored}  # the page equals the ORM-decoded rows
+    by_key = {_key(x): x for x in stored}  # the page equals the records written
     assert all(x == by_key[_key(x)] for x in r["items"])
 
     def get(**params):
@@ -193,54 +194,132 @@ def test_presets(client, make_account):
 
 
 def test_record_json_edge_values():
-    """The page/line encoder = json.loads of the stored text: non-finite -> null,
-    quotes and non-ASCII intact, SQL NULL and JSON null matrices both null, floats
-    exact (repr round trip), field order of the record."""
-    from service.api.record_json import encode_lines, encode_page
+    """The page/line encoder of stored rows: float64 bytes back to the exact floats
+    (repr round trip, -0.0 and subnormals kept), non-finite entries and scalars ->
+    null, an absent matrix -> null, a derived seed_key rebuilt from the spec and a
+    stored one kept, quotes and non-ASCII intact, field order of the record."""
+    import numpy as np
 
-    def row(x):
-        out = []
-        for f in RECORD_FIELDS:
-            if f in MATRIX_FIELDS:
-                out.append(
-                    {
-                        "A_hat": json.dumps([[x, -2e-300], [1 / 3, 1e300]]),
-                        "B_hat": None,
-                        "L": "null",
-                    }.get(f, "[[0.1]]")
-                )
-            elif f == "seed_key":
-                out.append("[0, 1, 20, 3]")
-            elif f == "system":
-                out.append('sys "q" \u00e9\u2603\n\x00')
-            elif f in ("rmse_A", "J_mc"):
-                out.append(float("nan") if f == "rmse_A" else float("-inf"))
-            elif f in ("N", "N0", "rep"):
-                out.append(7)
-            elif f == "certified":
-                out.append(True)
-            else:
-                out.append(x * len(f))
+    from service.api.record_json import encode_lines, encode_page
+    from service.db.result_codec import ResultCodec
+
+    name = 'sys "q" \u00e9\u2603\n\x00'
+    system = {"name": name, "A": [[0.5, 0.0], [0.0, 0.5]], "B": [[1.0], [0.0]], "C": [[1.0, 0.0]]}
+    codec = ResultCodec.of({"systems": ["paper-stable", system], "sigma_w": [0.1, 2.0]})
+
+    def f64(m):
+        return np.asarray(m, dtype="<f8").tobytes()
+
+    def row(x, i):
+        A = [[x, -2e-300], [1 / 3, -0.0]]
+        L = [[float("nan")], [1e300]]
+        stored = {
+            "system": name,
+            "sigma_w": 2.0,
+            "A_hat": f64(A),
+            "B_hat": None,
+            "L": f64(L),
+            "K": f64([[0.1], [x]]),
+            "radii_A": f64([x]),  # one float: every entry of the matrix
+            "radii_B": f64([[0.25], [-0.0]]),
+            "bounds_method": "paper",
+            "seed_key": None if i % 2 else "[9, 9, 9, 9]",
+            "rmse_A": float("nan"),
+            "J_mc": float("-inf"),
+            "N": 7,
+            "N0": 7,
+            "rep": i,
+            "certified": True,
+            "notes": "a \u2603 note" if i % 3 else None,
+        }
+        out = tuple(stored.get(f, x * len(f)) for f in RECORD_FIELDS)
         want = dict(zip(RECORD_FIELDS, out))
-        want.update({f: [[0.1]] for f in MATRIX_FIELDS})  # the "[[0.1]]" of the others
         want.update(
-            A_hat=[[x, -2e-300], [1 / 3, 1e300]],
+            A_hat=A,
             B_hat=None,
-            L=None,
-            seed_key=[0, 1, 20, 3],
+            L=[[None], [1e300]],
+            K=[[0.1], [x]],
+            radii_A=[[x, x], [x, x]],
+            radii_B=[[0.25], [-0.0]],
+            seed_key=[1, 1, 7, i] if i % 2 else [9, 9, 9, 9],
             rmse_A=None,
             J_mc=None,
         )
-        return tuple(out), want
+        return out, want
 
     import random
 
     rng = random.Random(5)
-    pairs = [row(rng.uniform(-1e6, 1e6) * 10 ** rng.randint(-30, 30)) for _ in range(50)]
+    pairs = [row(rng.uniform(-1e6, 1e6) * 10 ** rng.randint(-30, 30), i) for i in range(50)]
     rows, wants = [p[0] for p in pairs], [p[1] for p in pairs]
-    page = encode_page(rows, total=90, limit=50, offset=4)
+    page = encode_page(rows, codec, total=90, limit=50, offset=4)
     assert b"NaN" not in page and b"Infinity" not in page
     parsed = json.loads(page)
     assert parsed == {"items": wants, "total": 90, "limit": 50, "offset": 4}
     assert all(list(x) == list(RECORD_FIELDS) for x in parsed["items"])
-    assert [json.loads(x) for x in encode_lines(rows).decode().splitlines()] == wants
+    assert str(parsed["items"][0]["A_hat"][1][1]) == "-0.0"
+    assert [json.loads(x) for x in encode_lines(rows, codec).decode().splitlines()] == wants
+
+
+def test_exports_of_a_worker_stored_job_are_the_core_records(client, session, make_account):
+    """Every stage (K stored once per (system, sigma_w)), units stored as a worker stores
+    them: the JSON lines are the core's records serialised as before the compact format
+    (pydantic_core.to_json of the records, NaN -> null), in the results order, and the
+    JSON page holds the same records."""
+    from pydantic_core import to_json
+
+    from service.db import jobs, units
+    from svrobs_core.runner import run_unit_result
+    from svrobs_core.spec import parse_spec
+
+    acc = make_account()
+    spec = {
+        **SMALL_SPEC,
+        "systems": ["paper-unstable"],
+        "sigma_w": [1.0, 0.5],
+        "N": [40],
+        "reps": 2,
+        "stages": ["estimate", "bounds", "gain", "cost", "sls"],
+        "mc_reps": 1,
+        "mc_runs": 20,
+    }
+    jid = client.post(f"{API}/jobs", json=spec, headers=acc.headers).json()["id"]
+    want = []
+    for uid in jobs.unit_ids_of_job(session, jid):
+        spec_dict, payload = units.start_unit(session, uid, "w", 60)
+        result = run_unit_result(parse_spec(spec_dict), payload)
+        units.complete_unit(session, uid, result)
+        want += [{k: json_value(v) for k, v in r.items()} for r in result.records()]
+        session.commit()
+    want.sort(key=_key)
+    r = client.get(f"{API}/jobs/{jid}/results", params={"format": "jsonl"}, headers=acc.headers)
+    assert r.content == b"".join(to_json(x, inf_nan_mode="null") + b"\n" for x in want)
+    page = client.get(f"{API}/jobs/{jid}/results", headers=acc.headers).json()
+    assert page["items"] == json.loads(json.dumps(want)) and page["items"][0]["K"] is not None
+
+
+def test_page_total_of_a_succeeded_job_is_the_row_count(client, session, done_job):
+    """A succeeded job's page total is counted on the spec's grid: it equals SQL's
+    COUNT(*) of the same selection for filters on every coordinate."""
+    from sqlalchemy import func
+
+    from service.db.models import Result
+
+    acc, jid, _ = done_job
+    t = Result.__table__
+    cases = [
+        ({}, []),
+        ({"system": "paper-unstable"}, [t.c.system == "paper-unstable"]),
+        ({"sigma_w": [0.5, 7.0]}, [t.c.sigma_w.in_([0.5, 7.0])]),
+        ({"N": [20, 20, 99]}, [t.c.N.in_([20, 99])]),
+        ({"estimator": "svr", "gamma": "0.1"}, [t.c.estimator == "svr", t.c.gamma_key == 0.1]),
+        ({"gamma": ["null", "0.05"]}, [t.c.gamma_key.in_([-1.0, 0.05])]),
+        ({"estimator": "ols", "gamma": "0.05"}, [t.c.estimator == "ols", t.c.gamma_key == 0.05]),
+        ({"rep": [0, 2, 5, -1]}, [t.c.rep.in_([0, 2, 5, -1])]),
+        ({"system": "nope", "N": 40}, [t.c.system == "nope"]),
+    ]
+    for params, conds in cases:
+        want = session.scalar(select(func.count()).select_from(t).where(t.c.job_id == jid, *conds))
+        got = client.get(f"{API}/jobs/{jid}/results", params=params, headers=acc.headers).json()
+        assert got["total"] == want, params
+    assert want == 0 and got["items"] == []

@@ -11,7 +11,7 @@ from sqlalchemy import delete, func, select
 from sqlalchemy.orm import sessionmaker
 
 from service.db import accounts, jobs, schedules, units
-from service.db.models import Job, Schedule, Team
+from service.db.models import Job, Result, Schedule, Team
 from tests.service.svc_fakes import fake_records
 from tests.service.svc_helpers import SMALL_SPEC
 
@@ -22,7 +22,9 @@ def real_sessions(engine):
     team_ids = []
     yield maker, team_ids
     with maker() as s:
-        for tid in team_ids:
+        for tid in team_ids:  # results rows have no foreign key to cascade on
+            jobs_of = select(Job.id).where(Job.team_id == tid)
+            s.execute(delete(Result).where(Result.job_id.in_(jobs_of)))
             s.execute(delete(Team).where(Team.id == tid))
         s.commit()
 

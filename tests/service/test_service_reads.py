@@ -2,7 +2,7 @@
 compare aggregated in the database and paginated, GET /jobs with a spec summary.
 
 Oracles: the report built from the records decoded row by row
-(``row_to_record``, the pre-issue-13 path); compare numbers from numpy over
+(``load_records``, every record decoded); compare numbers from numpy over
 those records; the spec summary from the spec itself."""
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ from collections import defaultdict
 
 import numpy as np
 import pytest
-from sqlalchemy import delete, select
+from sqlalchemy import delete
 
 from service.db.models import JobReport, Result
 from service.db.reports import load_columns
-from service.db.results_store import row_to_record
+from service.db.results_store import load_records
 from service.reports.html import job_report_html
 from svrobs_core.report import Columns
 from svrobs_core.runner import run_unit
@@ -38,12 +38,7 @@ REAL_SPEC = {
 
 
 def _records(session, job_id) -> list[dict]:
-    t = Result.__table__
-    order = [t.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
-    return [
-        row_to_record(r)
-        for r in session.scalars(select(Result).where(t.c.job_id == job_id).order_by(*order))
-    ]
+    return load_records(session, job_id)  # in grid order
 
 
 def _run_core(session, job_id):

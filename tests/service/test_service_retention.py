@@ -11,7 +11,7 @@ from sqlalchemy import func, select
 
 from service.db.clock import db_now
 from service.db.models import Job, JobReport, Result, Schedule
-from service.db.results_store import row_to_record
+from service.db.results_store import load_records
 from service.db.retention import set_retention
 from service.reports.html import job_report_html
 from tests.service.svc_fakes import run_job_units
@@ -58,9 +58,7 @@ def test_retention_prunes_due_scheduled_jobs_only_and_reads_keep_working(
     summary = get(f"/jobs/{due}/summary").json()
     by_group = {"jobs": due, "metric": "rmse_A", "by": "system,sigma_w,N,estimator,gamma"}
     compared = get("/compare", **by_group).json()
-    records = [
-        row_to_record(r) for r in session.scalars(select(Result).where(Result.job_id == due))
-    ]
+    records = load_records(session, due)
     job = get(f"/jobs/{due}").json()
 
     assert prune_expired(scope=scope_of(session_factory)) == [due]

@@ -17,19 +17,19 @@ from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep
 from service.api.errors import ERRORS, FieldHTTPException, error_docs
 from service.api.params import is_float_text, is_int_text
 from service.api.query_params import accepts_query, is_range_param, range_conditions, sort_order
-from service.api.record_json import ORDER, RESULT_COLUMNS, encode_lines, encode_page, record_columns
+from service.api.record_json import ORDER, encode_lines, encode_page
 from service.api.schemas import CompareOut, ResultPage, SummaryOut
 from service.db.aggregates import summarize_in_db
 from service.db.compare import COMPARE_BY, NeedsCellRows, compare_page
 from service.db.models import Job, Result, Summary
-from service.db.results_store import row_to_record
+from service.db.result_codec import ResultCodec
+from service.db.results_store import count_cells, decode_rows, job_codec, record_select
 from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
 
 router = APIRouter(tags=["results"])
 
 # built once (a select of 41 columns costs ~1 ms to construct); routes add WHERE/ORDER
-RESULT_ROWS = select(*RESULT_COLUMNS)  # JSON columns decoded by SQLAlchemy (CSV)
-RECORDS = select(*record_columns())  # JSON columns as text (record_json)
+RECORDS = record_select()  # as stored: decoded by results_store.decode_rows
 COUNT = select(func.count()).select_from(Result.__table__)
 COMPARE_MAX_ROWS = 10_000
 GONE = error_docs(410)  # a job pruned by retention
@@ -56,15 +56,7 @@ def _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep) -> list:
     if estimator:
         conds.append(t.c.estimator.in_(estimator))
     if gamma:
-        keys = []
-        for g in gamma:
-            if g.lower() in ("null", "none", "ols"):
-                keys.append(-1.0)
-                continue
-            if not is_float_text(g) or not math.isfinite(float(g)):
-                raise FieldHTTPException(422, "must be a finite decimal number or 'null'", "gamma")
-            keys.append(float(g))
-        conds.append(t.c.gamma_key.in_(keys))
+        conds.append(t.c.gamma_key.in_(_gamma_keys(gamma)))
     if rep:
         conds.append(t.c.rep.in_(rep))
     return conds
@@ -86,6 +78,18 @@ def _not_pruned(job: Job) -> None:
 FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
 
 
+def _gamma_keys(gamma: list[str]) -> list[float]:
+    keys = []
+    for g in gamma:
+        if g.lower() in ("null", "none", "ols"):
+            keys.append(-1.0)
+            continue
+        if not is_float_text(g) or not math.isfinite(float(g)):
+            raise FieldHTTPException(422, "must be a finite decimal number or 'null'", "gamma")
+        keys.append(float(g))
+    return keys
+
+
 def _csv_value(v):
     if isinstance(v, str):
         return "'" + v if v.startswith(FORMULA_START) else v
@@ -100,7 +104,7 @@ def _csv_value(v):
     return v  # an int
 
 
-def _stream(session_factory, query: Select, fmt: str):
+def _stream(session_factory, query: Select, fmt: str, codec: ResultCodec):
     """The selection as CSV (RFC 4180: CRLF line ends, so a cell holding a CR or LF is
     quoted) or JSON lines, read in chunks by a session of its own."""
 
@@ -117,12 +121,11 @@ def _stream(session_factory, query: Select, fmt: str):
                 if fmt == "csv":
                     buf = io.StringIO()
                     writer = csv.writer(buf, lineterminator="\r\n")
-                    for r in chunk:
-                        rec = row_to_record(r._mapping)
+                    for rec in decode_rows(chunk, codec):
                         writer.writerow([_csv_value(rec[f]) for f in RECORD_FIELDS])
                     yield buf.getvalue()
                 else:
-                    yield encode_lines(chunk)
+                    yield encode_lines(chunk, codec)
         finally:
             session.close()
 
@@ -170,25 +173,33 @@ def get_results(
     `sort`: comma-separated numeric record fields, `-` for descending
     (`sort=-rmse_A,N`); nulls last; ties in grid order. Range filters on any numeric
     field: `<field>_lt`, `_lte`, `_gt`, `_gte` (`rmse_A_lt=0.01&N_gte=100`)."""
-    _not_pruned(team_job(session, caller.team_id, job_id))
+    job = team_job(session, caller.team_id, job_id)
+    _not_pruned(job)
+    codec = job_codec(session, job_id, job.spec)
     t = Result.__table__
     conds = _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep)
     conds += range_conditions(request, t)
     order = sort_order(sort, t) + ORDER
     if format == "json":
         lim = limit or 100
-        total = session.scalar(COUNT.where(*conds))
-        # the page's ids first (sorting the narrow key columns only), then their records
-        page = select(t.c.id).where(*conds).order_by(*order).limit(lim).offset(offset).subquery()
-        rows = session.execute(RECORDS.join(page, t.c.id == page.c.id).order_by(*order)).all()
-        return Response(encode_page(rows, total, lim, offset), media_type="application/json")
-    query = (RESULT_ROWS if format == "csv" else RECORDS).where(*conds).order_by(*order)
+        ranges = range_conditions(request, t)
+        if job.status == "succeeded" and not ranges:  # every cell stored: counted on the grid
+            keys = _gamma_keys(gamma) if gamma else None
+            total = count_cells(job.spec, system, sigma_w, N, estimator, keys, rep)
+        else:
+            total = session.scalar(COUNT.where(*conds))
+        # in key order by default: the primary key's order, so the page is read off its index
+        page = RECORDS.where(*conds).order_by(*order).limit(lim).offset(offset)
+        rows = session.execute(page).all()
+        body = encode_page(rows, codec, total, lim, offset)
+        return Response(body, media_type="application/json")
+    query = RECORDS.where(*conds).order_by(*order)
     if limit is not None:
         query = query.limit(limit)
     if offset:
         query = query.offset(offset)
     session.close()  # the stream opens its own (reading) session
-    body, media = _stream(session_factory, query, format)
+    body, media = _stream(session_factory, query, format, codec)
     ext = "csv" if format == "csv" else "jsonl"
     return StreamingResponse(
         body,

@@ -17,9 +17,10 @@ from sqlalchemy.orm import Session
 from service.api.deps import get_db
 from service.api.errors import FieldHTTPException
 from service.api.query_params import RANGE_FIELDS, range_terms, sort_order
-from service.api.record_json import ORDER, decode_rows, record_columns
+from service.api.record_json import ORDER
 from service.api.routes.results import _results_filter as results_filter
 from service.db.models import Job, Result, Summary
+from service.db.results_store import decode_rows, job_codec, record_select
 from service.web import queries
 from service.web.deps import CurrentViewer
 from service.web.render import WebError, render
@@ -89,12 +90,14 @@ def _grid(request: Request, db: Session, viewer, job: Job, page: int) -> dict:
     total = db.scalar(select(func.count()).select_from(t).where(*conds)) or 0
     pages = max(1, math.ceil(total / PAGE_SIZE))
     page = min(page, pages)
-    ids = select(t.c.id).where(*conds).order_by(*order).limit(PAGE_SIZE)
-    ids = ids.offset((page - 1) * PAGE_SIZE).subquery()
     rows = db.execute(
-        select(*record_columns()).join(ids, t.c.id == ids.c.id).order_by(*order)
+        record_select()
+        .where(*conds)
+        .order_by(*order)
+        .limit(PAGE_SIZE)
+        .offset((page - 1) * PAGE_SIZE)
     ).all()
-    records = decode_rows(rows)
+    records = decode_rows(rows, job_codec(db, job.id, job.spec))
     shown = [f for f in NUMERIC_FIELDS if f not in GRID and any(r[f] is not None for r in records)]
     params = [(k, v) for k, v in q.multi_items() if k not in ("page", "sort")]
 

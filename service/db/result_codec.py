@@ -1,0 +1,155 @@
+"""The compact storage of section 10 records in ``results`` (SPEC section 10).
+
+A job's rows are decoded with its spec (:class:`ResultCodec`): each matrix field
+is stored as its entries, row-major little-endian float64, with no shape (the
+shape follows from the system's n, m, p: A_hat and radii_A n x n, B_hat and
+radii_B n x m, L and K n x p), or as 8 bytes when every entry is the same
+float; a non-finite entry (the records' null) is read back as None. A matrix that is the same in every cell of a (system, sigma_w) of the
+job (K, the true system's Kalman gain: SPEC section 5) is stored once in
+``result_constants`` and as zero bytes in its rows. ``seed_key`` is stored
+only when it differs from the one the spec gives a cell: ``[system index,
+sigma_w index, N, rep]``. Reads decode a batch of rows at once (one
+``numpy.frombuffer`` per field and system).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from dataclasses import field as dc_field
+
+import numpy as np
+
+from svrobs_core import resolve_system
+from svrobs_core.records import json_value
+
+DTYPE = np.dtype("<f8")
+SHARED_FIELDS = ("K",)  # matrices stored once per (job, system, sigma_w) when constant
+SHARED = b""  # the stored value of a row whose matrix is its (system, sigma_w)'s constant
+
+
+@dataclass(frozen=True)
+class ResultCodec:
+    """How one job's records are stored: matrix shapes and spec indices per system."""
+
+    shapes: dict[str, dict[str, tuple[int, int]]]  # system name -> field -> (rows, cols)
+    system_index: dict[str, int]
+    sigma_index: dict[float, int]
+    # (system, sigma_w, field) -> bytes: the job's rows in result_constants
+    constants: dict[tuple[str, float, str], bytes] = dc_field(default_factory=dict)
+
+    @classmethod
+    def of(cls, spec: dict) -> ResultCodec:
+        """The codec of a job's (validated) spec dict; cached on its systems and sigma_w."""
+        return _codec(json.dumps([spec["systems"], spec["sigma_w"]], sort_keys=True))
+
+    def shape(self, system: str, field: str) -> tuple[int, int]:
+        try:
+            return self.shapes[system][field]
+        except KeyError:
+            raise ValueError(f"system {system!r} is not in the job's spec") from None
+
+    # -- matrices ---------------------------------------------------------------------
+    def encode_matrix(self, system: str, field: str, value) -> bytes | None:
+        """A record's matrix (nested lists, None entries allowed) -> bytes; None -> None."""
+        if value is None:
+            return None
+        a = np.asarray(value, dtype=float)  # None -> nan
+        if a.shape != self.shape(system, field):
+            raise ValueError(
+                f"{field} of system {system!r} must be {self.shape(system, field)}, got {a.shape}"
+            )
+        return self.encode_block(a[None])[0]
+
+    @staticmethod
+    def encode_block(block: np.ndarray) -> list[bytes]:
+        """(k, rows, cols) matrices -> k byte strings (vectorised); a matrix whose
+        entries are all the same float (bit for bit: e.g. the paper's radius
+        matrices) as that one float's 8 bytes."""
+        a = np.ascontiguousarray(block, dtype=DTYPE)
+        k = a.shape[0]
+        if not k:
+            return []
+        flat = a.reshape(k, -1)
+        out = flat.view(np.dtype((np.void, flat.shape[1] * 8))).ravel().tolist()
+        bits = flat.view(np.int64)
+        for i in np.flatnonzero((bits == bits[:, :1]).all(axis=1)).tolist():
+            out[i] = out[i][:8]
+        return out
+
+    def decode_matrices(
+        self, systems: Sequence[str], sigmas: Sequence[float], field: str, blobs: Sequence
+    ) -> list:
+        """One matrix field of many rows -> nested lists (None where the row has none,
+        None entries where a value is not finite)."""
+        out: list = [None] * len(blobs)
+        by_system: dict[str, list[int]] = {}
+        for i, (s, b) in enumerate(zip(systems, blobs)):
+            if b is not None:
+                by_system.setdefault(s, []).append(i)
+        for system, idx in by_system.items():
+            r, c = self.shape(system, field)
+            parts = [bytes(blobs[i]) for i in idx]
+            if SHARED in parts:
+                parts = [p or self._constant(system, sigmas[i], field) for p, i in zip(parts, idx)]
+            if r * c > 1:  # a matrix of one repeated float is stored as that float
+                parts = [p * (r * c) if len(p) == 8 else p for p in parts]
+            buf = b"".join(parts)
+            if len(buf) != len(idx) * r * c * DTYPE.itemsize:
+                raise ValueError(f"stored {field} of system {system!r} is not {r}x{c} float64")
+            a = np.frombuffer(buf, dtype=DTYPE).reshape(len(idx), r, c)
+            values = a.tolist()
+            finite = np.isfinite(a)
+            for j in np.flatnonzero(~finite.all(axis=(1, 2))).tolist():
+                values[j] = np.where(finite[j], a[j], None).tolist()
+            for i, v in zip(idx, values):
+                out[i] = v
+        return out
+
+    def _constant(self, system: str, sigma_w: float, field: str) -> bytes:
+        try:
+            return self.constants[(system, float(sigma_w), field)]
+        except KeyError:
+            raise ValueError(f"no stored {field} of ({system!r}, {sigma_w})") from None
+
+    # -- seed_key ---------------------------------------------------------------------
+    def derived_seed_key(self, system: str, sigma_w: float, N: int, rep: int) -> list | None:
+        si, wi = self.system_index.get(system), self.sigma_index.get(float(sigma_w))
+        return None if si is None or wi is None else [si, wi, int(N), int(rep)]
+
+    def encode_seed_key(self, system: str, sigma_w: float, N: int, rep: int, value) -> str | None:
+        """None when ``value`` is the derived key (stored as NULL), else its JSON text."""
+        value = json_value(value)
+        if isinstance(value, list) and value == self.derived_seed_key(system, sigma_w, N, rep):
+            return None
+        return json.dumps(value)
+
+    def decode_seed_keys(self, systems, sigmas, Ns, reps, texts) -> list:
+        return [
+            self.derived_seed_key(s, w, n, r) if t is None else json.loads(t)
+            for s, w, n, r, t in zip(systems, sigmas, Ns, reps, texts)
+        ]
+
+
+@functools.lru_cache(maxsize=256)
+def _codec(key: str) -> ResultCodec:
+    systems_raw, sigmas = json.loads(key)
+    systems = [resolve_system(s, f"systems[{i}]") for i, s in enumerate(systems_raw)]
+    shapes = {
+        s.name: {
+            "A_hat": (s.n, s.n),
+            "B_hat": (s.n, s.m),
+            "radii_A": (s.n, s.n),
+            "radii_B": (s.n, s.m),
+            "L": (s.n, s.p),
+            "K": (s.n, s.p),
+        }
+        for s in systems
+    }
+    return ResultCodec(
+        shapes=shapes,
+        system_index={s.name: i for i, s in enumerate(systems)},
+        sigma_index={float(w): i for i, w in enumerate(sigmas)},
+    )
