@@ -96,7 +96,7 @@ def test_results(run, job_id, http, tmp_path):
     code, _, err = run("results", job_id, "--format", "csv", "--out", out_csv, "--N", 20)
     assert code == 0 and err == f"wrote {out_csv}\n"
     api_csv = http.get(f"/jobs/{job_id}/results", params={"format": "csv", "N": 20}).text
-    assert out_csv.read_text() == api_csv and api_csv.count("\n") == 5
+    assert out_csv.read_bytes() == api_csv.encode() and api_csv.count("\n") == 5
     code, out, _ = run("results", job_id, "--format", "jsonl", "--estimator", "ols")
     params = {"format": "jsonl", "estimator": "ols"}
     assert code == 0 and out == http.get(f"/jobs/{job_id}/results", params=params).text

@@ -226,7 +226,7 @@ def test_download_results_matches_the_export(client, job, http, tmp_path):
     csv = http.get(f"/jobs/{job.id}/results", params={"format": "csv", "N": 10}).text
     out = tmp_path / "r.csv"
     client.download_results(job, out, format="csv", N=10)
-    assert out.read_text() == csv
+    assert out.read_bytes() == csv.encode()  # byte for byte (CSV lines end in \r\n)
     buf = io.StringIO()
     client.download_results(job, buf, format="json")
     assert json.loads(buf.getvalue()) == fetch_jsonl(http, job.id)
