@@ -6,6 +6,7 @@
                                            REST commands (svrobs_cli.rest)
     svrobs schedules list|show|create|enable|disable|delete|runs
     svrobs presets list|run                REST commands (svrobs_cli.schedules)
+    svrobs share create|list|revoke        share links (svrobs_cli.shares)
     svrobs run-local|reproduce             the core in process (svrobs_cli.local)
     svrobs serve                           API + worker + beat (svrobs_cli.serve)
 
@@ -15,7 +16,7 @@ Every error prints one line and exits with status 2, never a traceback
 
 from __future__ import annotations
 
-from svrobs_cli import admin, local, rest, schedules, serve
+from svrobs_cli import admin, local, rest, schedules, serve, shares
 from svrobs_cli.errors import SvrobsTyper
 
 __all__ = ["app"]
@@ -45,6 +46,12 @@ presets_app = SvrobsTyper(
     pretty_exceptions_enable=False,
 )
 app.add_typer(presets_app, name="presets")
+share_app = SvrobsTyper(
+    help="Read-only links to a job's report and charts, opened without a key.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+)
+app.add_typer(share_app, name="share")
 
 COMMANDS = (
     (app, "migrate", admin.migrate),
@@ -71,6 +78,9 @@ COMMANDS = (
     (schedules_app, "runs", schedules.runs),
     (presets_app, "list", schedules.list_presets),
     (presets_app, "run", schedules.run_preset),
+    (share_app, "create", shares.create),
+    (share_app, "list", shares.list_shares),
+    (share_app, "revoke", shares.revoke),
     (app, "run-local", local.run_local_command),
     (app, "reproduce", local.reproduce_command),
     (app, "serve", serve.serve_command),

@@ -35,9 +35,12 @@ def plain_field(field: str | None) -> str | None:
 
 
 def plain_message(exc: SvrobsError) -> str:
-    """``field: message`` (or the message alone when the API names no field)."""
+    """``field: message`` (the message alone when the API names no field, or when the
+    message already starts with it: ``job 5 is queued: ...``)."""
     field = plain_field(exc.field)
-    return f"{field}: {exc.message}" if field else exc.message
+    if not field or exc.message.split(" ", 1)[0] == field:
+        return exc.message
+    return f"{field}: {exc.message}"
 
 
 def one_line(exc: BaseException) -> str:

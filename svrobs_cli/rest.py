@@ -3,6 +3,7 @@
     svrobs submit SPEC.json [--wait] [--name N] [--tag T]... [--idempotency-key K]
     svrobs status [JOB] [--status S] [--tag T] [--owner me|EMAIL] [--json]
     svrobs results JOB --format csv|jsonl|json [--out FILE] [filters]
+                   [--sort -rmse_A,N] [--where rmse_A_lt=0.01]...
     svrobs summary JOB [--field rmse_A]... [--json]
     svrobs compare --jobs 1,2 --metric rmse_A --by N,estimator [--json]
     svrobs report JOB [--out FOLDER]
@@ -25,7 +26,8 @@ from pathlib import Path
 import typer
 
 from svrobs_cli.errors import CliError, plain_message
-from svrobs_client import Client, Job, ValidationError
+from svrobs_client import RESULT_FILTERS, Client, Job, ValidationError
+from svrobs_client.params import results_params
 
 
 def client(*, timeout: float = 30.0) -> Client:
@@ -184,11 +186,23 @@ def results(
     estimator: list[str] = typer.Option([], help="filter (repeatable)"),
     gamma: list[str] = typer.Option([], help="filter, 'null' for ols (repeatable)"),
     rep: list[int] = typer.Option([], help="filter (repeatable)"),
+    sort: str | None = typer.Option(
+        None, help="numeric fields, - for descending: --sort=-rmse_A,N"
+    ),
+    where: list[str] = typer.Option(
+        [], help="a range: FIELD_lt|_lte|_gt|_gte=NUMBER, e.g. rmse_A_lt=0.01 (repeatable)"
+    ),
 ) -> None:
     """Download a job's records (CSV and JSONL stream everything; JSON is one array).
     A file given by --out is written whole or not at all."""
     if format not in ("csv", "jsonl", "json"):
         raise CliError("--format must be csv, jsonl or json")
+    ranges = {}
+    for item in where:
+        name, eq, value = item.partition("=")
+        if not eq or not name.strip() or name.strip() in ("limit", "offset", *RESULT_FILTERS):
+            raise CliError(f"--where takes FIELD_lt=NUMBER (or _lte, _gt, _gte), not {item!r}")
+        ranges[name.strip()] = value.strip()
     filters = {
         "system": system,
         "sigma_w": sigma_w,
@@ -198,8 +212,20 @@ def results(
         "rep": rep,
     }
     filters = {k: v for k, v in filters.items() if v}
+    try:  # checked before any request or file
+        results_params({**filters, **ranges}, sort)
+    except (TypeError, ValueError) as exc:
+        text = str(exc).replace("unknown results filter", "unknown range")
+        raise CliError(f"--{text}" if text.startswith("sort") else f"--where: {text}") from None
     with client(timeout=300) as c:
-        c.download_results(job, out if out is not None else sys.stdout, format=format, **filters)
+        c.download_results(
+            job,
+            out if out is not None else sys.stdout,
+            format=format,
+            sort=sort,
+            **filters,
+            **ranges,
+        )
     if out is not None:
         print(f"wrote {out}", file=sys.stderr)
 

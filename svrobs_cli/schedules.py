@@ -3,6 +3,7 @@
 svrobs schedules list|show ID|runs ID [--json]
 svrobs schedules create NAME --cron '0 2 * * *' (--spec FILE | --from-job ID)
                         [--timezone Europe/Berlin] [--tag T]... [--disabled]
+                        [--seed-policy fixed|due-time]
 svrobs schedules enable|disable|delete ID
 svrobs presets list [--json]
 svrobs presets run [--scale full|reduced] [--experiment E1]... [--wait]
@@ -16,7 +17,7 @@ import typer
 
 from svrobs_cli.errors import CliError
 from svrobs_cli.rest import client, finish, load_spec, print_json, print_table
-from svrobs_client import Schedule
+from svrobs_client import SEED_POLICIES, Schedule
 
 
 def _line(s: Schedule) -> str:
@@ -31,9 +32,12 @@ def list_schedules(as_json: bool = typer.Option(False, "--json", help="print JSO
     if as_json:
         return print_json([s.raw for s in items])
     print_table(
-        ["id", "name", "cron", "timezone", "enabled", "next run", "tags"],
+        ["id", "name", "cron", "timezone", "enabled", "next run", "tags", "seed policy"],
         [
-            [s.id, s.name, s.cron, s.timezone, s.enabled, s.raw.get("next_run_at"), s.tags]
+            [
+                *(s.id, s.name, s.cron, s.timezone, s.enabled, s.raw.get("next_run_at")),
+                *(s.tags, s.seed_policy),
+            ]
             for s in items
         ],
     )
@@ -49,7 +53,8 @@ def show(
     if as_json:
         return print_json(s.raw)
     typer.echo(_line(s))
-    typer.echo(f"  tags: {s.tags}\n  spec_template: {s.spec_template}")
+    typer.echo(f"  tags: {s.tags}\n  seed_policy: {s.seed_policy}")
+    typer.echo(f"  spec_template: {s.spec_template}")
 
 
 def create(
@@ -60,14 +65,25 @@ def create(
     timezone: str = typer.Option("UTC", help="an IANA time zone, e.g. Europe/Berlin"),
     tag: list[str] = typer.Option([], "--tag", help="a tag of every job (repeatable)"),
     disabled: bool = typer.Option(False, "--disabled", help="create it disabled"),
+    seed_policy: str = typer.Option(
+        "fixed", help="fixed (the template's seed) or due-time (fresh repetitions each run)"
+    ),
 ) -> None:
     """Create a schedule: the spec template runs at every due time of the cron."""
     if (spec is None) == (from_job is None):
         raise CliError("give exactly one of --spec FILE and --from-job ID")
+    if seed_policy not in SEED_POLICIES:
+        raise CliError(f"--seed-policy must be fixed or due-time, not {seed_policy!r}")
     with client() as c:
         template = load_spec(spec) if spec is not None else c.job(from_job)
         s = c.create_schedule(
-            name, cron, template, timezone=timezone, tags=tag, enabled=not disabled
+            name,
+            cron,
+            template,
+            timezone=timezone,
+            tags=tag,
+            enabled=not disabled,
+            seed_policy=seed_policy,
         )
     typer.echo(_line(s) + " created")
 

@@ -12,7 +12,7 @@ Errors are :class:`SvrobsError` subclasses carrying ``status``, ``field`` and
 ``message`` (see :mod:`svrobs_client.errors`).
 """
 
-from .client import RESULT_FILTERS, Client
+from .client import RESULT_FILTERS, SEED_POLICIES, Client
 from .config import DEFAULT_URL, config_path, resolve
 from .errors import (
     AuthError,
@@ -31,7 +31,8 @@ from .errors import (
     WaitTimeout,
 )
 from .frames import MATRIX_FIELDS
-from .models import TERMINAL, Job, JobPage, Progress, Report, Schedule, ScheduleRun
+from .models import TERMINAL, Job, JobPage, Progress, Report, Schedule, ScheduleRun, Share
+from .params import NUMERIC_FIELDS, RANGE_FIELDS
 
 __all__ = [
     "AuthError",
@@ -45,14 +46,18 @@ __all__ = [
     "JobPage",
     "MATRIX_FIELDS",
     "MethodNotAllowed",
+    "NUMERIC_FIELDS",
     "NotFound",
     "Progress",
+    "RANGE_FIELDS",
     "RESULT_FILTERS",
     "RateLimited",
     "Report",
     "Schedule",
     "ScheduleRun",
+    "SEED_POLICIES",
     "ServerError",
+    "Share",
     "SvrobsError",
     "TERMINAL",
     "TooLarge",

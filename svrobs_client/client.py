@@ -1,7 +1,7 @@
 """The svrobs REST client: one :class:`httpx.Client` per :class:`Client`.
 
 Covers the routes of ``/api/v1`` (README, "API"): jobs, results, summaries,
-comparisons, reports, presets and schedules. HTTP errors are raised as the typed
+comparisons, reports, share links, presets and schedules. HTTP errors are raised as the typed
 exceptions of :mod:`svrobs_client.errors`; results come as pandas DataFrames (the
 ``dataframe`` extra) or as plain dicts.
 """
@@ -23,20 +23,21 @@ import httpx
 from . import frames
 from .config import resolve
 from .errors import ConnectionFailed, Unavailable, WaitTimeout, error_from_response
-from .models import Job, JobPage, Report, Schedule, ScheduleRun
+from .models import Job, JobPage, Report, Schedule, ScheduleRun, Share
+from .params import RESULT_FILTERS, results_params
 from .progress import make_bar
 
-__all__ = ["Client", "RESULT_FILTERS"]
+__all__ = ["Client", "RESULT_FILTERS", "SEED_POLICIES"]
 
 API = "/api/v1"
 PAPER_PRESET = "paper-section-6"
-RESULT_FILTERS = ("system", "sigma_w", "N", "estimator", "gamma", "rep")
 FORMATS = ("csv", "jsonl", "json")
+SEED_POLICIES = ("fixed", "due-time")
 _FIGURE = re.compile(r"<img[^>]*?alt='([^']*)'[^>]*?src='data:image/png;base64,([^']+)'")
 
 
 def _id(obj) -> int:
-    """The id of a Job / Schedule or an id given as int (or a digit string)."""
+    """The id of a Job / Schedule / Share or an id given as int (or a digit string)."""
     value = getattr(obj, "id", obj)
     if isinstance(value, bool) or not isinstance(value, (int, str)):
         raise TypeError(f"expected a job/schedule or its id, got {type(obj).__name__}")
@@ -57,27 +58,9 @@ def _load_json(spec) -> dict:
     raise TypeError(f"a spec is a dict or a path to a JSON file, got {type(spec).__name__}")
 
 
-def _filter_params(filters: Mapping[str, Any]) -> dict[str, list[str]]:
-    """Result filters -> query parameters (a sequence repeats the parameter; for
-    ``gamma``, ``None`` selects OLS, whose gamma is null)."""
-    unknown = sorted(set(filters) - set(RESULT_FILTERS) - {"limit", "offset"})
-    if unknown:
-        raise TypeError(f"unknown results filter(s) {unknown}; known: {list(RESULT_FILTERS)}")
-    params: dict[str, Any] = {}
-    for name, value in filters.items():
-        if name in ("limit", "offset"):
-            if value is not None:
-                params[name] = int(value)
-            continue
-        if value is None and name != "gamma":
-            continue
-        values = (
-            list(value) if isinstance(value, Iterable) and not isinstance(value, str) else [value]
-        )
-        if name == "gamma":
-            values = ["null" if v is None else v for v in values]
-        params[name] = [str(v) for v in values]
-    return params
+def _check_seed_policy(policy) -> None:
+    if policy not in SEED_POLICIES:
+        raise ValueError(f"seed_policy must be 'fixed' or 'due-time', got {policy!r}")
 
 
 def _write_atomic(path: Path, write) -> None:
@@ -265,26 +248,35 @@ class Client:
         self.request("DELETE", f"/jobs/{_id(job)}")
 
     # ------------------------------------------------------------------ results
-    def iter_results(self, job: Job | int, **filters) -> Iterator[dict[str, Any]]:
+    def iter_results(
+        self, job: Job | int, *, sort: str | Sequence[str] | None = None, **filters
+    ) -> Iterator[dict[str, Any]]:
         """The job's records one by one, streamed as JSON lines (SPEC section 10 fields;
-        matrices as nested lists, null never NaN). Filters: ``system``, ``sigma_w``,
-        ``N``, ``estimator``, ``gamma`` (``None`` = OLS) and ``rep``, each a value or a
-        sequence of values, plus ``limit`` / ``offset``."""
-        params = {**_filter_params(filters), "format": "jsonl"}
+        matrices as nested lists, null never NaN), in grid order or by ``sort``
+        (``"-rmse_A,N"``: numeric fields, ``-`` descending, nulls last).
+
+        Filters: ``system``, ``sigma_w``, ``N``, ``estimator``, ``gamma`` (``None`` =
+        OLS) and ``rep``, each a value or a sequence of values; ranges
+        ``<field>_lt``, ``_lte``, ``_gt``, ``_gte`` on a numeric field
+        (``rmse_A_lt=0.01``); ``limit`` / ``offset``. An unknown name is a TypeError,
+        a bad value a ValueError, before any request (:mod:`svrobs_client.params`)."""
+        params = {**results_params(filters, sort), "format": "jsonl"}
         with self._stream(f"/jobs/{_id(job)}/results", params) as r:
             for line in r.iter_lines():
                 if line.strip():
                     yield json.loads(line)
 
-    def results_records(self, job: Job | int, **filters) -> list[dict[str, Any]]:
+    def results_records(
+        self, job: Job | int, *, sort: str | Sequence[str] | None = None, **filters
+    ) -> list[dict[str, Any]]:
         """:meth:`iter_results` as a list of plain dicts (no pandas needed)."""
-        return list(self.iter_results(job, **filters))
+        return list(self.iter_results(job, sort=sort, **filters))
 
-    def results(self, job: Job | int, **filters):
+    def results(self, job: Job | int, *, sort: str | Sequence[str] | None = None, **filters):
         """The job's records as a pandas DataFrame, one row per cell, columns in record
         order; ``A_hat``, ``B_hat``, ``L`` and ``K`` hold 2-D numpy arrays (or None).
-        Filters as in :meth:`iter_results`."""
-        return frames.records_frame(self.results_records(job, **filters))
+        ``sort`` and filters as in :meth:`iter_results`."""
+        return frames.records_frame(self.results_records(job, sort=sort, **filters))
 
     def download_results(
         self,
@@ -292,19 +284,21 @@ class Client:
         out: str | os.PathLike | IO[str],
         *,
         format: str = "csv",
+        sort: str | Sequence[str] | None = None,
         **filters,
     ) -> None:
         """Write the job's records as ``csv``, ``jsonl`` (both streamed) or ``json`` (one
-        array) to a path or a text stream. A path is written through a temporary file
-        and renamed, so a failed download leaves no file behind."""
+        array) to a path or a text stream; ``sort`` and filters as in
+        :meth:`iter_results`. A path is written through a temporary file and renamed,
+        so a failed download leaves no file behind."""
         if format not in FORMATS:
             raise ValueError(f"format must be one of {list(FORMATS)}, got {format!r}")
+        params = {**results_params(filters, sort), "format": format}  # checked first
 
         def chunks() -> Iterator[str]:
             if format == "json":
-                yield json.dumps(self.results_records(job, **filters)) + "\n"
+                yield json.dumps(self.results_records(job, sort=sort, **filters)) + "\n"
                 return
-            params = {**_filter_params(filters), "format": format}
             with self._stream(f"/jobs/{_id(job)}/results", params) as r:
                 yield from r.iter_text()
 
@@ -369,6 +363,21 @@ class Client:
                 written.append(path)
         return Report(html=page, figures=written)
 
+    # ------------------------------------------------------------------ share links
+    def share(self, job: Job | int, *, days: float = 7) -> Share:
+        """A read-only link to the job's report and charts that opens without a key and
+        expires after ``days``; ``share.url`` (with its token) is returned only now."""
+        r = self.request("POST", f"/jobs/{_id(job)}/shares", json={"days": days})
+        return Share.from_json(r.json())
+
+    def shares(self, job: Job | int) -> list[Share]:
+        """The job's share links, newest first (without their URLs: tokens are not kept)."""
+        return [Share.from_json(s) for s in self.request("GET", f"/jobs/{_id(job)}/shares").json()]
+
+    def revoke_share(self, share: Share | int) -> None:
+        """Revoke a link: opening it is a 404 from now on (revoking twice is harmless)."""
+        self.request("DELETE", f"/shares/{_id(share)}")
+
     # ------------------------------------------------------------------ presets
     def presets(self) -> list[dict[str, Any]]:
         """The system presets (name, matrices, noise levels) a spec may name."""
@@ -412,12 +421,15 @@ class Client:
         timezone: str = "UTC",
         tags: Sequence[str] = (),
         enabled: bool = True,
+        seed_policy: str = "fixed",
         **extra: Any,
     ) -> Schedule:
         """Create a schedule: a 5-field cron expression (or ``@daily`` etc.) in an IANA
         ``timezone``; ``spec_template`` is a spec (dict, JSON file, or a Job's spec).
-        ``extra`` fields go into the body as given (for server versions that accept
-        more)."""
+        ``seed_policy`` ``"fixed"`` runs the template's seed every time; ``"due-time"``
+        derives each run's seed from its due time, so nightly runs add fresh
+        repetitions. ``extra`` fields go into the body as given."""
+        _check_seed_policy(seed_policy)
         body = {
             "name": name,
             "cron": cron,
@@ -425,13 +437,16 @@ class Client:
             "spec_template": _load_json(spec_template),
             "tags": [tags] if isinstance(tags, str) else list(tags),
             "enabled": enabled,
+            "seed_policy": seed_policy,
             **extra,
         }
         return Schedule.from_json(self.request("POST", "/schedules", json=body).json())
 
     def update_schedule(self, schedule: Schedule | int, **changes: Any) -> Schedule:
         """Change any of ``name``, ``cron``, ``timezone``, ``spec_template``, ``tags``,
-        ``enabled``."""
+        ``enabled``, ``seed_policy``."""
+        if "seed_policy" in changes:
+            _check_seed_policy(changes["seed_policy"])
         if "spec_template" in changes:
             changes["spec_template"] = _load_json(changes["spec_template"])
         r = self.request("PATCH", f"/schedules/{_id(schedule)}", json=changes)

@@ -1,5 +1,5 @@
 """Result objects of the client: a job, its progress, a page of jobs, a schedule and its
-runs. Built from the API's JSON; ``raw`` keeps that JSON as received."""
+runs, a share link. Built from the API's JSON; ``raw`` keeps that JSON as received."""
 
 from __future__ import annotations
 
@@ -125,6 +125,7 @@ class Schedule(_FromJSON):
     next_run_at: datetime | None
     created_at: datetime | None
     updated_at: datetime | None
+    seed_policy: str = "fixed"
     raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
 
@@ -138,6 +139,26 @@ class ScheduleRun(_FromJSON):
     error: str | None
     created_at: datetime | None
     raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class Share(_FromJSON):
+    """A read-only link to one job's report and charts, opened without a key until it
+    expires or is revoked. ``url`` is only known in the answer that created it."""
+
+    id: int
+    job_id: int
+    created_at: datetime | None
+    expires_at: datetime | None
+    revoked_at: datetime | None
+    live: bool
+    url: str | None = None
+    raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def token(self) -> str | None:
+        """The link's secret (the last part of ``url``), or None when not known."""
+        return self.url.rstrip("/").rsplit("/", 1)[-1] if self.url else None
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 
+import httpx
 import pytest
 
 from svrobs_cli.errors import plain_field
@@ -95,7 +96,7 @@ def test_results(run, job_id, http, tmp_path):
     code, _, err = run("results", job_id, "--format", "csv", "--out", out_csv, "--N", 20)
     assert code == 0 and err == f"wrote {out_csv}\n"
     api_csv = http.get(f"/jobs/{job_id}/results", params={"format": "csv", "N": 20}).text
-    assert out_csv.read_text() == api_csv and api_csv.count("\n") == 5
+    assert out_csv.read_bytes() == api_csv.encode() and api_csv.count("\n") == 5
     code, out, _ = run("results", job_id, "--format", "jsonl", "--estimator", "ols")
     params = {"format": "jsonl", "estimator": "ols"}
     assert code == 0 and out == http.get(f"/jobs/{job_id}/results", params=params).text
@@ -109,6 +110,62 @@ def test_results(run, job_id, http, tmp_path):
     _fails(run("results", 999_999, "--out", missing), "error: job 999999 not found")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.csv"]  # no x.csv, no temp file
     _fails(run("results", job_id, "--format", "xml"), "error: --format must be")
+
+
+def test_results_sort_and_where(run, job_id, http, tmp_path):
+    """--sort / --where equal a sort / filter of the JSONL export; a typo is one line and
+    leaves no file."""
+    exported = fetch_jsonl(http, job_id)
+    cut = sorted(r["rmse_A"] for r in exported)[len(exported) // 2]
+    code, out, err = run(
+        "results", job_id, "--format", "jsonl", "--sort", "-rmse_A", "--where", f"rmse_A_lt={cut}"
+    )
+    want = sorted((r for r in exported if r["rmse_A"] < cut), key=lambda r: -r["rmse_A"])
+    assert code == 0 and 0 < len(want) < len(exported), err
+    assert [json.loads(x) for x in out.splitlines()] == want
+    code, out, _ = run(
+        "results", job_id, "--format", "json", "--sort=N,-rmse_A", "--where", "N_gte=20"
+    )
+    want = sorted(
+        sorted((r for r in exported if r["N"] >= 20), key=lambda r: -r["rmse_A"]),
+        key=lambda r: r["N"],
+    )
+    assert code == 0 and json.loads(out) == want and want
+    out_csv = tmp_path / "x.csv"
+    for args, message in [
+        (("--sort", "-rmse_X"), "error: --sort: 'rmse_X' is not a numeric record field"),
+        (("--where", "rmse_A<0.1"), "error: --where takes FIELD_lt=NUMBER"),
+        (("--where", "N=10"), "error: --where takes FIELD_lt=NUMBER"),
+        (("--where", "rmse_X_lt=1"), "error: --where: unknown range 'rmse_X_lt'"),
+        (("--where", "rmse_A_lt=small"), "error: --where: rmse_A_lt must be a number"),
+        (("--where", "certified_gt=0"), "error: --where: certified_gt: certified is a yes/no"),
+    ]:
+        _fails(run("results", job_id, "--out", out_csv, *args), message)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_share(run, job_id, http):
+    """share create prints the link once; it opens without a key until revoked."""
+    code, out, err = run("share", "create", job_id, "--days", 3)
+    assert code == 0 and out.count("\n") == 1, err
+    url = out.strip()
+    listed = http.get(f"/jobs/{job_id}/shares").json()
+    sid = listed[0]["id"]
+    assert err == f"share {sid} of job {job_id}, expires {listed[0]['expires_at']}\n"
+    assert url.startswith(http.base_url.scheme + "://") and "/s/" in url
+    assert httpx.get(url, timeout=30).status_code == 200
+    code, out, _ = run("share", "list", job_id, "--json")
+    assert code == 0 and json.loads(out) == listed
+    code, out, _ = run("share", "list", job_id)
+    row = [str(sid), listed[0]["created_at"], listed[0]["expires_at"], "", "True"]
+    assert code == 0 and row in _table(out) and url not in out
+    code, out, _ = run("share", "revoke", sid)
+    assert code == 0 and out == f"share {sid} revoked\n"
+    assert httpx.get(url, timeout=30).status_code == 404
+    assert http.get(f"/jobs/{job_id}/shares").json()[0]["live"] is False
+    _fails(run("share", "create", 999_999), "error: job 999999 not found\n")
+    _fails(run("share", "create", job_id, "--days", 0), "error: days: ")
+    _fails(run("share", "revoke", 999_999), "error: share link 999999 not found\n")
 
 
 def test_summary_and_compare(run, job_id, http):
@@ -199,7 +256,8 @@ def test_schedules(run, job_id, http, spec_file):
     code, out, _ = run("schedules", "list", "--json")
     assert code == 0 and json.loads(out) == http.get("/schedules").json()
     code, out, _ = run("schedules", "list")
-    row = [str(sid), "cli-nightly", "0 2 * * *", "Europe/Berlin", "True", api["next_run_at"], "n"]
+    row = [str(sid), "cli-nightly", "0 2 * * *", "Europe/Berlin", "True", api["next_run_at"]]
+    row += ["n", "fixed"]
     assert code == 0 and row in _table(out)
     code, out, _ = run("schedules", "show", sid, "--json")
     assert code == 0 and json.loads(out) == api
@@ -222,6 +280,30 @@ def test_schedules(run, job_id, http, spec_file):
     )
     code, out, _ = run("schedules", "delete", sid)
     assert code == 0 and out == f"schedule {sid} deleted\n"
+    code, out, err = run(
+        *("schedules", "create", "cli-fresh", "--cron", "@daily", "--spec", spec_file),
+        *("--seed-policy", "due-time"),
+    )
+    assert code == 0, err
+    fresh = int(out.split()[1])
+    assert http.get(f"/schedules/{fresh}").json()["seed_policy"] == "due-time"
+    code, out, _ = run("schedules", "show", fresh)
+    assert code == 0 and "  seed_policy: due-time\n" in out
+    assert run("schedules", "delete", fresh)[0] == 0
+    _fails(
+        run(
+            "schedules",
+            "create",
+            "y",
+            "--cron",
+            "@daily",
+            "--spec",
+            spec_file,
+            "--seed-policy",
+            "x",
+        ),
+        "error: --seed-policy must be fixed or due-time, not 'x'\n",
+    )
     _fails(run("schedules", "show", sid), f"error: schedule {sid} not found")
 
 

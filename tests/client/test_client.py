@@ -11,6 +11,7 @@ import base64
 import io
 import json
 import re
+from datetime import timedelta
 
 import httpx
 import numpy as np
@@ -109,14 +110,123 @@ def test_results_filters_and_records(client, job, http):
     assert client.results_records(job, limit=3, offset=2) == exported[2:5]
     assert len(client.results(job, system="no-such-system")) == 0
     with pytest.raises(TypeError, match="unknown results filter"):
-        client.results(job, rmse_A_lt=0.1)
+        client.results(job, rmse_X_lt=0.1)
+
+
+def test_client_field_lists_are_the_records():
+    from service.api.query_params import RANGE_FIELDS
+    from svrobs_core.records import NUMERIC_FIELDS
+
+    assert svrobs_client.NUMERIC_FIELDS == NUMERIC_FIELDS
+    assert svrobs_client.RANGE_FIELDS == RANGE_FIELDS
+
+
+def _nulls_last(field: str, desc: bool):
+    """A sort key of one field as SQL orders it: nulls last either way."""
+    return lambda r: (
+        r[field] is None,
+        0 if r[field] is None else (-r[field] if desc else r[field]),
+    )
+
+
+def test_results_sort_and_ranges_equal_the_export(client, job, http):
+    """sort and range filters equal Python's stable sort / filter of the JSONL export
+    (whose order is the grid order, the server's tie-break)."""
+    exported = fetch_jsonl(http, job.id)
+    by_rmse = sorted(exported, key=_nulls_last("rmse_A", True))
+    want = sorted(by_rmse, key=_nulls_last("N", False))  # -> N asc, then rmse_A desc
+    assert client.results_records(job, sort="N,-rmse_A") == want
+    assert client.results_records(job, sort=["-rmse_A"]) == by_rmse
+    assert list(client.results(job, sort="-rmse_A")["rmse_A"]) == [r["rmse_A"] for r in by_rmse]
+    values = sorted(r["rmse_A"] for r in exported)
+    cut = values[len(values) // 2]
+    below = [r for r in exported if r["rmse_A"] < cut]
+    assert 0 < len(below) < len(exported)
+    assert client.results_records(job, rmse_A_lt=cut) == below
+    assert client.results_records(job, rmse_A_gte=cut, N_lte=10) == [
+        r for r in exported if r["rmse_A"] >= cut and r["N"] <= 10
+    ]
+    with_eps = [r for r in exported if r["eps_A"] is not None and r["eps_A"] > 0]
+    assert any(r["estimator"] == "svr" for r in with_eps)
+    assert client.results_records(job, eps_A_gt=0, estimator="svr", sort="-eps_A") == sorted(
+        [r for r in with_eps if r["estimator"] == "svr"], key=_nulls_last("eps_A", True)
+    )
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        ({"sort": "-rmse_X"}, ValueError, "sort: 'rmse_X' is not a numeric record field"),
+        ({"sort": "a,b,c,d,e,f"}, ValueError, "1 to 5"),
+        ({"rmse_X_lt": 1}, TypeError, "unknown results filter 'rmse_X_lt'"),
+        ({"certified_gt": 0}, TypeError, "certified is a yes/no field"),
+        ({"rmse_A_lt": "small"}, ValueError, "rmse_A_lt must be a number"),
+        ({"rmse_A_lt": float("nan")}, ValueError, "rmse_A_lt must be finite"),
+        ({"rmse_A_lt": True}, TypeError, "rmse_A_lt must be a number"),
+    ],
+)
+def test_results_params_checked_before_any_request(kwargs, error, match, tmp_path):
+    """A typo raises before a request: the client points at a closed port, so reaching
+    the network would be a ConnectionFailed; no file is written."""
+    out = tmp_path / "r.csv"
+    with Client(f"http://127.0.0.1:{free_port()}", "k", timeout=2) as nowhere:
+        with pytest.raises(error, match=match):
+            nowhere.results_records(1, **kwargs)
+        with pytest.raises(error, match=match):
+            nowhere.download_results(1, out, **kwargs)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_server_422_is_the_backstop(client, job):
+    """What the client would refuse, the server refuses too, naming the parameter."""
+    path = f"/jobs/{job.id}/results"
+    for params, field in [
+        ({"sort": "-rmse_X"}, "sort"),
+        ({"rmse_X_lt": "1"}, "rmse_X_lt"),
+        ({"rmse_A_lt": "small"}, "rmse_A_lt"),
+    ]:
+        with pytest.raises(ValidationError) as err:
+            client.request("GET", path, params=params)
+        assert (err.value.status, err.value.field) == (422, field)
+
+
+# --------------------------------------------------------------------------- share links
+
+
+def test_share_links(client, job, http):
+    """A link opens without a key (plain httpx) until revoked, then it is a 404."""
+    share = client.share(job, days=2)
+    assert share.job_id == job.id and share.live and share.revoked_at is None
+    assert share.url.endswith(f"/s/{share.token}") and len(share.token) >= 20
+    assert share.expires_at - share.created_at == timedelta(days=2)
+    assert httpx.get(share.url, timeout=30).status_code == 200
+    default = client.share(job.id)
+    assert default.expires_at - default.created_at == timedelta(days=7)
+    listed = client.shares(job)
+    assert [s.raw for s in listed] == http.get(f"/jobs/{job.id}/shares").json()
+    assert {share.id, default.id} <= {s.id for s in listed}
+    assert all(s.url is None for s in listed)  # the token is shown once
+    client.revoke_share(share)
+    assert httpx.get(share.url, timeout=30).status_code == 404
+    assert httpx.get(default.url, timeout=30).status_code == 200
+    gone = next(s for s in client.shares(job) if s.id == share.id)
+    assert not gone.live and gone.revoked_at is not None
+    client.revoke_share(share.id)  # twice: harmless
+    client.revoke_share(default)
+    with pytest.raises(NotFound):
+        client.revoke_share(2_000_000)
+    with pytest.raises(NotFound):
+        client.share(2_000_000)
+    with pytest.raises(ValidationError) as err:
+        client.share(job, days=0)
+    assert (err.value.status, err.value.field) == (422, "days")
 
 
 def test_download_results_matches_the_export(client, job, http, tmp_path):
     csv = http.get(f"/jobs/{job.id}/results", params={"format": "csv", "N": 10}).text
     out = tmp_path / "r.csv"
     client.download_results(job, out, format="csv", N=10)
-    assert out.read_text() == csv
+    assert out.read_bytes() == csv.encode()  # byte for byte (CSV lines end in \r\n)
     buf = io.StringIO()
     client.download_results(job, buf, format="json")
     assert json.loads(buf.getvalue()) == fetch_jsonl(http, job.id)
@@ -306,6 +416,21 @@ def test_schedules(client, job, http):
     client.delete_schedule(s)
     with pytest.raises(NotFound):
         client.schedule(s.id)
+    assert s.seed_policy == "fixed"
+
+
+def test_schedule_seed_policy_round_trips(client, job, http):
+    s = client.create_schedule("client-fresh", "@daily", job, seed_policy="due-time")
+    assert s.seed_policy == "due-time" == http.get(f"/schedules/{s.id}").json()["seed_policy"]
+    assert client.schedule(s) == s
+    fixed = client.update_schedule(s, seed_policy="fixed")
+    assert fixed.seed_policy == "fixed" == http.get(f"/schedules/{s.id}").json()["seed_policy"]
+    with pytest.raises(ValueError, match="seed_policy must be 'fixed' or 'due-time'"):
+        client.create_schedule("client-bad", "@daily", job, seed_policy="random")
+    with pytest.raises(ValueError, match="seed_policy"):
+        client.update_schedule(s, seed_policy="nightly")
+    assert "client-bad" not in [x.name for x in client.schedules()]
+    client.delete_schedule(s)
 
 
 # --------------------------------------------------------------------------- errors, config
