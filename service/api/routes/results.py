@@ -178,11 +178,11 @@ def get_results(
     codec = job_codec(session, job_id, job.spec)
     t = Result.__table__
     conds = _results_filter(job_id, system, sigma_w, N, estimator, gamma, rep)
-    conds += range_conditions(request, t)
+    ranges = range_conditions(request, t)
+    conds += ranges
     order = sort_order(sort, t) + ORDER
     if format == "json":
         lim = limit or 100
-        ranges = range_conditions(request, t)
         if job.status == "succeeded" and not ranges:  # every cell stored: counted on the grid
             keys = _gamma_keys(gamma) if gamma else None
             total = count_cells(job.spec, system, sigma_w, N, estimator, keys, rep)
