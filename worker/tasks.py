@@ -230,7 +230,7 @@ class _Watch:
             raise UnitCancelled(f"unit {self.unit_id} was cancelled")
 
     def _run(self):
-        next_beat = time.monotonic() + self.beat
+        next_beat: float | None = time.monotonic() + self.beat
         while not self._stop.wait(self.check):
             try:
                 with session_scope(write=False) as s:
@@ -241,11 +241,13 @@ class _Watch:
                     if self._can_signal:
                         signal.pthread_kill(self._target, self.SIGNAL)
                     return
-                if time.monotonic() >= next_beat:
+                if next_beat is not None and time.monotonic() >= next_beat:
                     next_beat = time.monotonic() + self.beat
                     with session_scope() as s:
                         if not units.heartbeat_unit(s, self.unit_id, self.lease):
-                            return  # no longer running (failed, re-claimed elsewhere)
+                            # no longer running: cancelled since the check above (the
+                            # next check stops it), failed or re-claimed elsewhere
+                            next_beat = None
             except Exception as exc:  # noqa: BLE001 - the DB may be restarting
                 log.warning("unit %s: heartbeat failed: %s", self.unit_id, exc)
 

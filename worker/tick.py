@@ -17,6 +17,7 @@ once:
 
 from __future__ import annotations
 
+import atexit
 import logging
 import threading
 from datetime import datetime, timedelta
@@ -28,6 +29,7 @@ RELAY_MAX_PER_TICK = 20_000
 PRUNE_MAX_PER_TICK = 5
 REPORTS_PER_TICK = 2
 REPORT_RECENT_DAYS = 2  # reports are built ahead for jobs finished this recently
+REPORT_EXIT_WAIT_SECONDS = 8.0  # inside the supervisor's 10 s stop grace
 _report_thread: threading.Thread | None = None
 
 
@@ -145,9 +147,24 @@ def start_report_builds() -> bool:
         except Exception:  # noqa: BLE001 - retried next tick
             log.exception("tick: building reports failed; will retry next tick")
 
+    if _report_thread is None:  # the first build of this process
+        atexit.register(wait_for_report_builds)
     _report_thread = threading.Thread(target=run, name="svrobs-reports", daemon=True)
     _report_thread.start()
     return True
+
+
+def wait_for_report_builds(timeout: float = REPORT_EXIT_WAIT_SECONDS) -> bool:
+    """At exit: let a report build in flight finish (its write is one transaction,
+    so a build cut short stores nothing). Without it the interpreter would stop
+    the daemon thread inside a native call, which aborts the process ("terminate
+    called without an active exception"). True when no build is left running."""
+    t = _report_thread
+    if t is None or not t.is_alive():
+        return True
+    log.info("tick: waiting up to %.0f s for the report build in flight", timeout)
+    t.join(timeout)
+    return not t.is_alive()
 
 
 def run_tick(now: datetime | None = None, celery=None, *, reports: bool = True) -> dict:

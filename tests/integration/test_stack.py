@@ -145,7 +145,7 @@ from worker.tick import run_tick
 out = []
 for start, now in json.loads(sys.argv[1]):
     time.sleep(max(0.0, start - time.time()))
-    out.append(run_tick(now=datetime.fromisoformat(now)))
+    out.append(run_tick(now=datetime.fromisoformat(now), reports=False))
 print(json.dumps(out))
 """
 
