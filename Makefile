@@ -28,7 +28,7 @@ run: $(STAMP)
 	$(BIN)/svrobs serve
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -p no:cacheprovider --ignore=tests/faults
+	$(BIN)/python -m pytest -q -p no:cacheprovider -n 2 --dist loadscope --ignore=tests/faults
 
 test-core: $(STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider tests/core
