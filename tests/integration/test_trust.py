@@ -220,14 +220,21 @@ def test_cancel_stops_running_units(stack, pool, db):
         t0 = time.monotonic()
         r = c.post(f"/jobs/{job['id']}/cancel")
         assert r.status_code == 200 and r.json()["status"] == "cancelled"
-        wait_for(
-            lambda: (
-                log.read_text(errors="replace").count("'status': 'cancelled'")
-                >= before + len(running)
-            ),
-            30,
-            "the running units stopped",
-        )
+        try:
+            wait_for(
+                lambda: (
+                    log.read_text(errors="replace").count("'status': 'cancelled'")
+                    >= before + len(running)
+                ),
+                30,
+                "the running units stopped",
+            )
+        except AssertionError as exc:  # say what the units and the worker did
+            tail = "\n".join(log.read_text(errors="replace").splitlines()[-40:])
+            raise AssertionError(
+                f"{exc}; units {running} were fresh; rows {unit_rows(db, job['id'])}; "
+                f"{pool}.log ends:\n{tail}"
+            ) from None
         latency = time.monotonic() - t0
         rows = unit_rows(db, job["id"])
         assert {u["status"] for u in rows} <= {"done", "cancelled"}
