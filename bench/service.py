@@ -15,10 +15,10 @@ bounds = 60,750 cells in 270 work units) is
    ``SVROBS_BENCH_BROKER_URL``, else the ``SVROBS_TEST_*`` ones; a fresh
    schema, dropped afterwards, and the Redis DB of the URL flushed).
 
-It prints each wall time and the ratio service / in-process (target <= 1.5), against
-the core in one process and against the core with ``n_jobs=2`` (the same two
-cores the service's worker pool uses with ``--concurrency 2``, ``svrobs
-serve``'s default on this machine).
+It prints each wall time and the ratio service / in-process, against the core in
+one process and against the core with ``n_jobs=2`` (the same two cores; issue 13's
+target is 1.3x of that). The worker runs ``svrobs serve``'s default pool (one
+process per CPU plus one: 3 here) unless ``--concurrency`` says otherwise.
 Then, per stack, it stores a synthetic job of 100,000 cells (bulk-inserted rows,
 units completed through ``units.complete_unit``) and times a filtered results page
 ``GET /jobs/{id}/results?N=..&estimator=svr&gamma=..&limit=100`` (target
@@ -47,7 +47,7 @@ sys.path.insert(0, str(ROOT))
 import httpx
 
 from svrobs_cli.processes import Child, stop_all
-from svrobs_cli.serve import api_command, child_env, worker_command
+from svrobs_cli.serve import DEFAULT_CONCURRENCY, api_command, child_env, worker_command
 
 GRID = {
     "systems": ["paper-stable", "paper-unstable"],
@@ -339,8 +339,8 @@ def main() -> None:
     p.add_argument(
         "--concurrency",
         type=int,
-        default=1,
-        help="pool processes per worker (svrobs serve's --concurrency)",
+        default=DEFAULT_CONCURRENCY,
+        help="pool processes per worker (default: svrobs serve's, one per CPU plus one)",
     )
     p.add_argument("--no-page", action="store_true", help="skip the 100k-cell results page")
     p.add_argument("--keep", action="store_true", help="keep the stacks' folders (logs)")
