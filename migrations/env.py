@@ -57,6 +57,11 @@ def run_migrations_online() -> None:
 
 
 def _run(connection) -> None:
+    if connection.dialect.name == "sqlite" and not connection.in_transaction():
+        # batch mode rebuilds a table by copy, drop and rename: with foreign keys on,
+        # dropping e.g. the old `jobs` would cascade-delete every row that refers to
+        # it (Alembic's batch docs: turn them off; the pragma is a no-op in a transaction)
+        connection.connection.dbapi_connection.execute("PRAGMA foreign_keys = OFF")
     context.configure(
         connection=connection,
         target_metadata=target_metadata,

@@ -6,7 +6,9 @@ shape follows from the system's n, m, p: A_hat and radii_A n x n, B_hat and
 radii_B n x m, L and K n x p), or as 8 bytes when every entry is the same
 float; a non-finite entry (the records' null) is read back as None. A matrix that is the same in every cell of a (system, sigma_w) of the
 job (K, the true system's Kalman gain: SPEC section 5) is stored once in
-``result_constants`` and as zero bytes in its rows. ``seed_key`` is stored
+``result_constants`` and as zero bytes in its rows; a radius matrix whose every
+entry is its row's scalar radius (radii_A = r_A, radii_B = r_B: the paper's
+bounds, SPEC section 3) is stored as zero bytes too (migration 0007). ``seed_key`` is stored
 only when it differs from the one the spec gives a cell: ``[system index,
 sigma_w index, N, rep]``. Reads decode a batch of rows at once (one
 ``numpy.frombuffer`` per field and system).
@@ -28,6 +30,8 @@ from svrobs_core.records import json_value
 DTYPE = np.dtype("<f8")
 SHARED_FIELDS = ("K",)  # matrices stored once per (job, system, sigma_w) when constant
 SHARED = b""  # the stored value of a row whose matrix is its (system, sigma_w)'s constant
+# a radius matrix stored as zero bytes: every entry is the row's scalar radius
+RADIUS_SCALAR = {"radii_A": "r_A", "radii_B": "r_B"}
 
 
 @dataclass(frozen=True)
@@ -52,8 +56,9 @@ class ResultCodec:
             raise ValueError(f"system {system!r} is not in the job's spec") from None
 
     # -- matrices ---------------------------------------------------------------------
-    def encode_matrix(self, system: str, field: str, value) -> bytes | None:
-        """A record's matrix (nested lists, None entries allowed) -> bytes; None -> None."""
+    def encode_matrix(self, system: str, field: str, value, scalar=None) -> bytes | None:
+        """A record's matrix (nested lists, None entries allowed) -> bytes; None -> None.
+        ``scalar``: the row's r_A / r_B for a radius matrix (see :meth:`encode_block`)."""
         if value is None:
             return None
         a = np.asarray(value, dtype=float)  # None -> nan
@@ -61,13 +66,14 @@ class ResultCodec:
             raise ValueError(
                 f"{field} of system {system!r} must be {self.shape(system, field)}, got {a.shape}"
             )
-        return self.encode_block(a[None])[0]
+        return self.encode_block(a[None], None if scalar is None else [scalar])[0]
 
     @staticmethod
-    def encode_block(block: np.ndarray) -> list[bytes]:
+    def encode_block(block: np.ndarray, scalars=None) -> list[bytes]:
         """(k, rows, cols) matrices -> k byte strings (vectorised); a matrix whose
-        entries are all the same float (bit for bit: e.g. the paper's radius
-        matrices) as that one float's 8 bytes."""
+        entries are all the same float (bit for bit) as that one float's 8 bytes, and
+        as zero bytes when that float is also the row's finite ``scalars[i]`` (a radius
+        matrix equal to its row's scalar radius; None entries of ``scalars`` never)."""
         a = np.ascontiguousarray(block, dtype=DTYPE)
         k = a.shape[0]
         if not k:
@@ -75,15 +81,28 @@ class ResultCodec:
         flat = a.reshape(k, -1)
         out = flat.view(np.dtype((np.void, flat.shape[1] * 8))).ravel().tolist()
         bits = flat.view(np.int64)
-        for i in np.flatnonzero((bits == bits[:, :1]).all(axis=1)).tolist():
+        uniform = (bits == bits[:, :1]).all(axis=1)
+        if scalars is not None:
+            sc = np.array([np.nan if v is None else v for v in scalars], dtype=DTYPE)
+            same = uniform & np.isfinite(sc) & (sc.view(np.int64) == bits[:, 0])
+            for i in np.flatnonzero(same).tolist():
+                out[i] = b""
+            uniform &= ~same
+        for i in np.flatnonzero(uniform).tolist():
             out[i] = out[i][:8]
         return out
 
     def decode_matrices(
-        self, systems: Sequence[str], sigmas: Sequence[float], field: str, blobs: Sequence
+        self,
+        systems: Sequence[str],
+        sigmas: Sequence[float],
+        field: str,
+        blobs: Sequence,
+        scalars: Sequence | None = None,
     ) -> list:
         """One matrix field of many rows -> nested lists (None where the row has none,
-        None entries where a value is not finite)."""
+        None entries where a value is not finite). ``scalars``: the rows' r_A / r_B,
+        needed for a radius field (its zero-byte rows are that scalar everywhere)."""
         out: list = [None] * len(blobs)
         by_system: dict[str, list[int]] = {}
         for i, (s, b) in enumerate(zip(systems, blobs)):
@@ -92,7 +111,11 @@ class ResultCodec:
         for system, idx in by_system.items():
             r, c = self.shape(system, field)
             parts = [bytes(blobs[i]) for i in idx]
-            if SHARED in parts:
+            if SHARED in parts and field in RADIUS_SCALAR:
+                if scalars is None:
+                    raise ValueError(f"{field} needs the rows' {RADIUS_SCALAR[field]} to decode")
+                parts = [p or DTYPE.type(scalars[i]).tobytes() for p, i in zip(parts, idx)]
+            elif SHARED in parts:
                 parts = [p or self._constant(system, sigmas[i], field) for p, i in zip(parts, idx)]
             if r * c > 1:  # a matrix of one repeated float is stored as that float
                 parts = [p * (r * c) if len(p) == 8 else p for p in parts]

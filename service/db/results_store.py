@@ -38,7 +38,7 @@ from .models import (
     ResultConstant,
     ResultNote,
 )
-from .result_codec import SHARED, SHARED_FIELDS, ResultCodec
+from .result_codec import RADIUS_SCALAR, SHARED, SHARED_FIELDS, ResultCodec
 
 KEY_COLUMNS = RESULT_KEY
 TEXT_COLUMNS = ("system", "estimator", "bounds_method", "sls_status")
@@ -133,7 +133,8 @@ def decode_rows(rows: Sequence[Sequence], codec: ResultCodec) -> list[dict]:
     cols = list(zip(*rows))
     system, sigma = cols[_IDX["system"]], cols[_IDX["sigma_w"]]
     for f in MATRIX_FIELDS:
-        cols[_IDX[f]] = codec.decode_matrices(system, sigma, f, cols[_IDX[f]])
+        scalars = cols[_IDX[RADIUS_SCALAR[f]]] if f in RADIUS_SCALAR else None
+        cols[_IDX[f]] = codec.decode_matrices(system, sigma, f, cols[_IDX[f]], scalars)
     cols[_IDX["seed_key"]] = codec.decode_seed_keys(
         system, *(cols[_IDX[f]] for f in ("sigma_w", "N", "rep", "seed_key"))
     )
@@ -233,7 +234,8 @@ def _row_tuple(row: dict, codec: ResultCodec, notes: dict) -> tuple:
     system = row["system"]
     out = dict(row)
     for f in MATRIX_FIELDS:
-        out[f] = codec.encode_matrix(system, f, row[f])
+        scalar = row[RADIUS_SCALAR[f]] if f in RADIUS_SCALAR else None
+        out[f] = codec.encode_matrix(system, f, row[f], scalar)
     out["seed_key"] = codec.encode_seed_key(
         system, row["sigma_w"], row["N"], row["rep"], row["seed_key"]
     )
@@ -274,15 +276,18 @@ def _unit_tuples(
     for f in MATRIX_FIELDS:
         out[f] = []
     sigma_w = float(result.sigma_w)
+    start = 0
     for block in result.matrix_blocks():
         k = len(result.reps) * len(result.axis.names)
         for f in MATRIX_FIELDS:
             b = block[f]
-            blobs = [None] * k if b is None else codec.encode_block(b)
+            scalars = out[RADIUS_SCALAR[f]][start : start + k] if f in RADIUS_SCALAR else None
+            blobs = [None] * k if b is None else codec.encode_block(b, scalars)
             if f in SHARED_FIELDS and b is not None and len(set(blobs)) == 1:
                 if _shared(session, codec, job_id, (result.system, sigma_w, f), blobs[0]):
                     blobs = [SHARED] * k
             out[f] += blobs
+        start += k
     derived = (
         codec.system_index.get(result.system) == result.system_idx
         and codec.sigma_index.get(float(result.sigma_w)) == result.sigma_w_idx

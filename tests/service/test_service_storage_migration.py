@@ -1,4 +1,5 @@
-"""Migration 0005 (compact results) on both dialects: rows written in the JSON
+"""Migrations 0006 (compact results) and 0007 (radius matrices as their scalars) on
+both dialects: rows written in the JSON
 format (matrices and seed_key as JSON text, notes inline) by the 0002 schema are
 upgraded and read back as the core's records, bit for bit; the downgrade gives
 back the 0002 rows with the same values."""
@@ -158,6 +159,15 @@ def test_json_rows_upgrade_to_the_same_records_and_back(url):
         assert shared == 4  # K of each (system, sigma_w)
         empty = 'SELECT count(*) FROM results WHERE job_id = 2 AND length("K") = 0'
         assert conn.execute(sa.text(empty)).scalar() == n
+        # the paper's bounds: each radius matrix is its row's scalar radius, stored as
+        # zero bytes (0007) whether written so (job 2) or converted (job 1)
+        for job in (1, 2):
+            for m, r in (("radii_A", "r_A"), ("radii_B", "r_B")):
+                scalar = (
+                    f'SELECT count(*) FROM results WHERE job_id = {job} AND length("{m}") = 0 '
+                    f'AND "{r}" IS NOT NULL'
+                )
+                assert conn.execute(sa.text(scalar)).scalar() == n, (job, m)
     want2 = {
         _key(r): {k: json_value(v) for k, v in r.items()}
         for u in plan_units(spec)
@@ -203,3 +213,29 @@ def test_json_rows_upgrade_to_the_same_records_and_back(url):
         assert _bits(old[(1,) + _key(rec)]) == _bits(rec)
     for key, rec in want2.items():
         assert _bits(old[(2,) + key]) == _bits(rec)
+
+
+def test_downgrade_to_the_first_format_keeps_every_row(url):
+    """Down to 0002 (through 0005-0003, whose SQLite batch mode rebuilds ``jobs`` by
+    copy, drop and rename): no row of ``results`` is lost. With SQLite's foreign keys
+    on during the migration, dropping the old ``jobs`` cascade-deleted them all."""
+    from sqlalchemy.orm import Session
+
+    from service.db.results_store import upsert_results
+
+    spec = parse_spec(SPEC)
+    upgrade(url)
+    engine = create_db_engine(url)
+    with engine.begin() as conn:
+        _insert_job(conn, 1, spec.n_cells)
+    with Session(engine) as s, s.begin():
+        for u in plan_units(spec):
+            upsert_results(s, 1, run_unit_result(spec, u))
+    engine.dispose()
+    downgrade(url, "0002")
+    engine = create_db_engine(url)
+    with engine.connect() as conn:
+        count = "SELECT count(*) FROM results WHERE job_id = 1"
+        assert conn.execute(sa.text(count)).scalar() == spec.n_cells
+        assert conn.execute(sa.text("SELECT count(*) FROM jobs")).scalar() == 1
+    engine.dispose()
