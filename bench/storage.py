@@ -1,4 +1,4 @@
-"""Bytes per stored cell, before (the JSON format of migrations 0001-0002) and after (0005's).
+"""Bytes per stored cell, before (the JSON format of migrations 0001-0002) and after (head's).
 
     python bench/storage.py                 # SQLite, and PostgreSQL if configured
     python bench/storage.py --reps 10       # quicker
@@ -18,7 +18,8 @@ Then it prints bytes per cell
 * PostgreSQL: ``pg_total_relation_size`` of the same tables / cells, after
   ``VACUUM FULL``;
 
-for the compact format, and for the same rows after ``alembic downgrade 0002``
+for the compact format (migrations 0006, 0007; SQLite with 8 KB pages), and for the
+same rows after ``alembic downgrade 0002``
 (the migration converts them back to the JSON format): "before" vs "after".
 The target is at most 400 bytes per cell.
 """
@@ -159,7 +160,7 @@ def main() -> None:
             n, before, after = measure("pg", url, spec, lambda: pg_bytes(url))
             out["pg (results tables / cell)"] = (before[0] / n, after[0] / n)
             out["pg  of which indexes"] = (before[1] / n, after[1] / n)
-    print(f"\n{'bytes per cell':<28} {'before (JSON)':>14} {'after (0005)':>13}")
+    print(f"\n{'bytes per cell':<28} {'before (JSON)':>14} {'after (head)':>13}")
     for k, (b, a) in out.items():
         print(f"{k:<28} {b:>14.0f} {a:>13.0f}")
     print("target: <= 400 bytes per cell")
