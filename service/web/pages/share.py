@@ -6,7 +6,6 @@ stored: service.db.shares)."""
 
 from __future__ import annotations
 
-from types import SimpleNamespace
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Form, Query, Request
@@ -82,9 +81,10 @@ def _shared(db: Session, token: str):
     return link, job
 
 
-def _reader(link) -> SimpleNamespace:
-    """Who reads through a link: the job's team, for the team-scoped lookups only."""
-    return SimpleNamespace(team_id=link.team_id)
+def _reader(link) -> Caller:
+    """Who reads through a link: the job's team, with no key, user or admin right
+    (for the team-scoped lookups only)."""
+    return Caller(key_id=0, team_id=link.team_id, user_id=None, is_admin=False)
 
 
 @router.get("/s/{token}")
@@ -124,8 +124,7 @@ def shared_chart_data(
 @router.get("/s/{token}/report")
 def shared_report(db: DB, token: str, session_factory: SessionFactoryDep):
     link, job = _shared(db, token)
-    reader = Caller(key_id=0, team_id=link.team_id, user_id=None, is_admin=False)
-    response = reports.job_report(job.id, db, reader, session_factory)
+    response = reports.job_report(job.id, db, _reader(link), session_factory)
     response.headers.update(
         {k: v for k, v in PAGE_HEADERS.items() if k != "Content-Security-Policy"}
     )
