@@ -164,7 +164,7 @@ def api_command(host: str, port: int) -> list[str]:
 # One pool process per CPU plus one: a unit's claim and store wait on the database
 # (SQLite's one writer, PostgreSQL's row locks and COMMIT), and the extra process
 # computes meanwhile (bench/service.py, 2 CPUs: 2 -> 3 processes took the Section 6
-# grid from 1.66-1.70x to 1.31-1.41x the core with n_jobs=2 on SQLite). Capped so that
+# grid from 1.66-1.70x to 1.31-1.49x, median 1.39, the core with n_jobs=2 on SQLite). Capped so that
 # a big shared machine does not get dozens of ~200 MB numpy/cvxpy processes by surprise.
 DEFAULT_CONCURRENCY = max(1, min((os.cpu_count() or 1) + 1, 5))
 

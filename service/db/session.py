@@ -43,9 +43,9 @@ def _sqlite_hooks(engine: Engine, immediate: bool) -> None:
         cur = dbapi_conn.cursor()
         cur.execute(f"PRAGMA busy_timeout = {SQLITE_BUSY_TIMEOUT_MS}")
         cur.execute("PRAGMA foreign_keys = ON")
-        # a new database only (then the pragma is a no-op): a results row is ~380 bytes
-        # and rows do not straddle pages, so 4 KB pages hold 10 (410 B per cell) and
-        # 8 KB pages 21 (~390 B per cell: bench/storage.py)
+        # for a new database only (on an existing one the pragma is a no-op): a results
+        # row (~380 bytes) is stored whole in one page, so 4 KB pages hold 10 of them
+        # (410 B per cell) and 8 KB pages 21 (~390 B per cell: bench/storage.py)
         cur.execute(f"PRAGMA page_size = {SQLITE_PAGE_SIZE}")
         # WAL is stored in the file: set it once (setting it takes a lock; twenty
         # connections opened at once would queue on it, sleeping in the busy handler)
