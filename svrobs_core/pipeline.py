@@ -80,6 +80,7 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
         data=spec.data,
         x0_std=spec.x0_std,
         keep_data=need_data,
+        rng=spec.rng,
     )
     N0 = (spec.T0 - 1) * N if spec.data == "all" else N
 
@@ -96,6 +97,7 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
             data=spec.data,
             x0_std=spec.x0_std,
             keep_data=True,
+            rng=spec.rng,
         )
         return Zr, Fr
 
@@ -393,7 +395,7 @@ def _monte_carlo(c: _Cells, L):
     c.notes.add(~rows[:, None], mc_note(limit), tag="mc")
     idx = np.flatnonzero(rows)
     if idx.size:
-        gens = generators(spec.seed, [keys[i] for i in idx], MC_STREAM, fresh=True)
+        gens = generators(spec.seed, [keys[i] for i in idx], MC_STREAM, fresh=True, rng=spec.rng)
         J_mc[idx], J_se[idx] = _mc.mc_cost_shared(
             system.A,
             system.B,

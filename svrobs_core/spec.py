@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass, field
 
 from .errors import SpecError
+from .rollouts import DEFAULT_RNG, RNGS
 from .systems import MAX_DIM, SystemSpec, resolve_system
 
 ESTIMATORS = ("ols", "svr", "shrunk-ols")
@@ -60,6 +61,7 @@ SPEC_KEYS = {
     "lambda0",
     "boot_reps",
     "boot_sigma_w",
+    "rng",
 }
 MAX_GRID = 100_000  # any single list longer than this is surely a mistake
 # Hard caps on the sizes one cell may ask for (issue 10): beyond them a single
@@ -105,6 +107,7 @@ class ExperimentSpec:
     lambda0: float = 1.0  # self-normalized OLS: V0 = lambda0 I
     boot_reps: int = 100
     boot_sigma_w: str = "estimate"  # bootstrap noise level: residual estimate or the spec's
+    rng: str = DEFAULT_RNG  # bit generator of every draw (docs/performance.md#generators)
     raw_systems: tuple = field(default=(), compare=False)
 
     def has(self, stage: str) -> bool:
@@ -143,6 +146,8 @@ class ExperimentSpec:
             "seed": self.seed,
             "x0_std": self.x0_std,
             **self._bounds_dict(),
+            # only a non-default generator: the normalised JSON of older specs is unchanged
+            **({} if self.rng == DEFAULT_RNG else {"rng": self.rng}),
         }
 
     def _bounds_dict(self) -> dict:
@@ -321,6 +326,7 @@ def parse_spec(obj) -> ExperimentSpec:
         seed=seed,
         x0_std=_float(obj.get("x0_std", 0.0), "x0_std", nonneg=True),
         **bounds,
+        rng=_choice(obj.get("rng", DEFAULT_RNG), "rng", tuple(RNGS)),
         raw_systems=tuple(raw_systems),
     )
 

@@ -91,6 +91,7 @@ def sound_bounds(c, *, G, Z, F, N: int, N0: int) -> SoundBounds:
             data=spec.data,
             x0_std=spec.x0_std,
             loss_scale=spec.loss_scale,
+            rng=spec.rng,
         )
     c.notes.add_reasons(box.reason, "bounds")
     c.notes.add_reasons(box.notes, "bounds")
