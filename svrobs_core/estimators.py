@@ -190,6 +190,7 @@ def svr_from_gram(
     loss_scale: str = "sum",
     data=None,
     return_cond: bool = False,
+    factor=None,
 ):
     """:func:`fit_svr` from the sufficient statistics ``G = Z Z^T`` (..., d, d)
     and ``FZt = F Z^T`` (..., n, d) of datasets with ``N0`` samples each.
@@ -203,13 +204,18 @@ def svr_from_gram(
     error grows like cond(G + g I) * eps). -> (..., G, n, d); with
     ``return_cond`` also cond(Z Z^T + g I) (..., G), from the QR factor for
     the QR cells (the eigenvalues of G cannot resolve it above ~1/eps).
+    ``factor``: ``(lam, V)`` of :func:`svrobs_core.uncertainty.gram_factor` (G),
+    when the caller has it already.
     """
     G = np.asarray(G, dtype=float)
     FZt = np.asarray(FZt, dtype=float)
     g = ridge_parameters(gammas, N0, loss_scale)
     ok = np.isfinite(G).all(axis=(-1, -2)) & np.isfinite(FZt).all(axis=(-1, -2))
-    lam, V = np.linalg.eigh(np.where(ok[..., None, None], G, 0.0))  # (..., d), (..., d, d)
-    lam = np.maximum(lam, 0.0)
+    if factor is None:
+        lam, V = np.linalg.eigh(np.where(ok[..., None, None], G, 0.0))  # (..., d), (..., d, d)
+        lam = np.maximum(lam, 0.0)
+    else:  # the same eigh, done by the caller (NaN where G is not finite: masked below)
+        lam, V = factor
     with np.errstate(over="ignore", invalid="ignore"):  # huge data: inf/NaN, noted downstream
         P = np.matmul(FZt, V)  # (..., n, d)
         denom = lam[..., None, None, :] + g[:, None, None]  # (..., G, 1, d)

@@ -21,6 +21,7 @@ from . import cost_mc as _mc
 from . import estimators as _est
 from . import gains as _gains
 from . import kalman as _kalman
+from . import uncertainty as _unc
 from .norms import spectral_radius
 from .notes import Notes
 from .planning import EstimatorAxis
@@ -63,12 +64,41 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
     """All stages for one (system, sigma_w, N) and a range of reps.
 
     -> (fields, notes, N0, gain state for ``reuse_gain`` or None)."""
+    return run_datasets([spec], si=si, wi=wi, N=N, reps=reps, axis=axis, prev_gains=[prev_gain])[0]
+
+
+# The fields in which specs that share their data and estimates may differ
+# (:func:`shares_data`): the bounds method and its options.
+BOUNDS_KEYS = frozenset({"bounds_method", "S", "lambda0", "boot_reps", "boot_sigma_w"})
+
+
+def shares_data(parent: ExperimentSpec, other: ExperimentSpec) -> bool:
+    """True when ``other``'s data and estimates on each of its N are ``parent``'s:
+    the same spec up to the bounds method and its options, with N a subset of
+    the parent's (the whole N grid when ``reuse_gain`` couples them)."""
+    a, b = parent.to_dict(), other.to_dict()
+    for k in (a.keys() | b.keys()) - BOUNDS_KEYS - {"N"}:
+        if a.get(k) != b.get(k):
+            return False
+    if parent.reuse_gain:
+        return list(a["N"]) == list(b["N"])
+    return set(b["N"]) <= set(a["N"])
+
+
+def run_datasets(specs, *, si, wi, N, reps, axis, prev_gains=None):
+    """:func:`run_dataset` for specs that share their data and estimates
+    (:func:`shares_data` with ``specs[0]``): the rollouts are simulated, the
+    Gram matrices factorised and the estimates computed once; then each spec's
+    stages run on them. -> one (fields, notes, N0, gain state) per spec; its
+    records are the ones the spec gives on its own (the same arithmetic)."""
+    spec = specs[0]
+    prev_gains = [None] * len(specs) if prev_gains is None else list(prev_gains)
     system = spec.systems[si]
     sigma_w = spec.sigma_w[wi]
     n = system.n
     keys = [seed_key(si, wi, N, r) for r in reps]
-    need_data = any(e in ("ols", "shrunk-ols") for e in spec.estimators) or (
-        spec.bounds_method == "bootstrap" and spec.boot_sigma_w == "estimate"
+    need_data = any(e in ("ols", "shrunk-ols") for e in spec.estimators) or any(
+        s.bounds_method == "bootstrap" and s.boot_sigma_w == "estimate" for s in specs
     )
     G, P, Z, F = gram_data(
         system,
@@ -101,49 +131,57 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
         )
         return Zr, Fr
 
-    theta, cond = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0, data=rows_data)
+    # one eigendecomposition of Z Z^T per dataset, for SVR and the self-normalized box
+    factor = _unc.gram_factor(G) if "svr" in spec.estimators else None
+    theta, cond = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0, data=rows_data, factor=factor)
     A_hat, B_hat = theta[..., :n], theta[..., n:]
     R, E = theta.shape[:2]
-    out: dict[str, np.ndarray] = {
+    finite = np.isfinite(theta).all(axis=(-2, -1))
+    unreliable = finite & ~(cond <= ESTIMATE_COND_LIMIT)
+    estimate = {
         "A_hat": A_hat,
         "B_hat": B_hat,
         "rmse_A": _rmse(A_hat, system.A),
         "rmse_B": _rmse(B_hat, system.B),
     }
-    notes = Notes((R, E))
-    finite = np.isfinite(theta).all(axis=(-2, -1))
-    notes.add(~finite, "estimate: not finite (the simulated data leave the double range)")
-    unreliable = finite & ~(cond <= ESTIMATE_COND_LIMIT)
-    notes.add(
-        unreliable,
-        f"estimate: data too ill-conditioned (cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g}):"
-        " certificates withheld",
-    )
-    skipped = [st for st in STAGES if not spec.has(st)]
-    if skipped:
-        notes.add(True, "stages not run: " + ", ".join(skipped))
-    cells = _Cells(
-        spec=spec,
-        system=system,
-        sigma_w=sigma_w,
-        keys=keys,
-        axis=axis,
-        A_hat=A_hat,
-        B_hat=B_hat,
-        out=out,
-        notes=notes,
-    )
-    state = _run_stages(cells, N=N, N0=N0, prev_gain=prev_gain, data=(G, Z, F))
-    if unreliable.any():
-        for f in CERTIFICATES:
-            if f in out:
-                withheld = np.array(out[f], dtype=object)
-                withheld[unreliable] = None
-                out[f] = withheld
-    return out, notes, N0, state
+    results = []
+    for s, prev_gain in zip(specs, prev_gains):
+        out: dict[str, np.ndarray] = dict(estimate)
+        notes = Notes((R, E))
+        notes.add(~finite, "estimate: not finite (the simulated data leave the double range)")
+        notes.add(
+            unreliable,
+            f"estimate: data too ill-conditioned (cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g}):"
+            " certificates withheld",
+        )
+        skipped = [st for st in STAGES if not s.has(st)]
+        if skipped:
+            notes.add(True, "stages not run: " + ", ".join(skipped))
+        cells = _Cells(
+            spec=s,
+            system=system,
+            sigma_w=sigma_w,
+            keys=keys,
+            axis=axis,
+            A_hat=A_hat,
+            B_hat=B_hat,
+            out=out,
+            notes=notes,
+        )
+        state = _run_stages(
+            cells, N=N, N0=N0, prev_gain=prev_gain, data=(G if factor is None else factor, Z, F)
+        )
+        if unreliable.any():
+            for f in CERTIFICATES:
+                if f in out:
+                    withheld = np.array(out[f], dtype=object)
+                    withheld[unreliable] = None
+                    out[f] = withheld
+        results.append((out, notes, N0, state))
+    return results
 
 
-def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data):
+def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data, factor=None):
     """Theta for every (rep, estimator/gamma): (R, E, n, d), and cond(Z Z^T + g I)
     of each cell (R, E); SPEC section 2.
 
@@ -162,7 +200,14 @@ def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data):
             conds.append(ols[1][:, None])
         elif e == "svr":
             theta, cond = _est.svr_from_gram(
-                G, P, N0, spec.gamma, loss_scale=spec.loss_scale, data=data, return_cond=True
+                G,
+                P,
+                N0,
+                spec.gamma,
+                loss_scale=spec.loss_scale,
+                data=data,
+                return_cond=True,
+                factor=None if factor is None else (factor.lam, factor.U),
             )
             parts.append(theta)
             conds.append(cond)

@@ -51,7 +51,8 @@ def sound_bounds(c, *, G, Z, F, N: int, N0: int) -> SoundBounds:
     """Box, record fields and BoundsResult of one dataset's cells (SPEC section 3.1).
 
     ``c``: the pipeline's cell context (spec, system, sigma_w, keys, axis,
-    A_hat, B_hat, notes); G the Gram matrices (R, d, d); Z, F the data (only
+    A_hat, B_hat, notes); G the Gram matrices (R, d, d) or their
+    :class:`svrobs_core.uncertainty.GramFactor`; Z, F the data (only
     needed for the bootstrap's residual noise estimate).
     """
     spec, system = c.spec, c.system
@@ -59,7 +60,7 @@ def sound_bounds(c, *, G, Z, F, N: int, N0: int) -> SoundBounds:
     R, E = theta.shape[:2]
     if spec.bounds_method == "self-normalized":
         lam, shrink = _ridge_axis(c.axis, N0, spec.loss_scale)
-        fac = _unc.gram_factor(G)
+        fac = G if isinstance(G, _unc.GramFactor) else _unc.gram_factor(G)
         box = _unc.self_normalized_box(
             _unc.GramFactor(lam=fac.lam[:, None], U=fac.U[:, None]),
             theta,
