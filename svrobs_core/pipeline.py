@@ -9,6 +9,7 @@ cached (:func:`truth`).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -51,6 +52,7 @@ class _Cells:
     B_hat: np.ndarray
     out: dict
     notes: Notes
+    stage: str = "bounds"  # the stage running (named on an exception, :func:`failed_stage`)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -85,12 +87,15 @@ def shares_data(parent: ExperimentSpec, other: ExperimentSpec) -> bool:
     return set(b["N"]) <= set(a["N"])
 
 
-def run_datasets(specs, *, si, wi, N, reps, axis, prev_gains=None):
+def run_datasets(specs, *, si, wi, N, reps, axis, prev_gains=None, timings=None):
     """:func:`run_dataset` for specs that share their data and estimates
     (:func:`shares_data` with ``specs[0]``): the rollouts are simulated, the
     Gram matrices factorised and the estimates computed once; then each spec's
     stages run on them. -> one (fields, notes, N0, gain state) per spec; its
-    records are the ones the spec gives on its own (the same arithmetic)."""
+    records are the ones the spec gives on its own (the same arithmetic).
+    ``timings``: a list that gets each spec's CPU seconds added (the shared
+    part counts for the first)."""
+    clock = time.process_time()
     spec = specs[0]
     prev_gains = [None] * len(specs) if prev_gains is None else list(prev_gains)
     system = spec.systems[si]
@@ -132,8 +137,12 @@ def run_datasets(specs, *, si, wi, N, reps, axis, prev_gains=None):
         return Zr, Fr
 
     # one eigendecomposition of Z Z^T per dataset, for SVR and the self-normalized box
-    factor = _unc.gram_factor(G) if "svr" in spec.estimators else None
-    theta, cond = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0, data=rows_data, factor=factor)
+    try:
+        factor = _unc.gram_factor(G) if "svr" in spec.estimators else None
+        theta, cond = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0, data=rows_data, factor=factor)
+    except Exception as exc:
+        _tag(exc, "estimate", 0)
+        raise
     A_hat, B_hat = theta[..., :n], theta[..., n:]
     R, E = theta.shape[:2]
     finite = np.isfinite(theta).all(axis=(-2, -1))
@@ -145,7 +154,10 @@ def run_datasets(specs, *, si, wi, N, reps, axis, prev_gains=None):
         "rmse_B": _rmse(B_hat, system.B),
     }
     results = []
+    if timings is not None:
+        timings[0] += time.process_time() - clock
     for s, prev_gain in zip(specs, prev_gains):
+        clock = time.process_time()
         out: dict[str, np.ndarray] = dict(estimate)
         notes = Notes((R, E))
         notes.add(~finite, "estimate: not finite (the simulated data leave the double range)")
@@ -168,9 +180,13 @@ def run_datasets(specs, *, si, wi, N, reps, axis, prev_gains=None):
             out=out,
             notes=notes,
         )
-        state = _run_stages(
-            cells, N=N, N0=N0, prev_gain=prev_gain, data=(G if factor is None else factor, Z, F)
-        )
+        try:
+            state = _run_stages(
+                cells, N=N, N0=N0, prev_gain=prev_gain, data=(G if factor is None else factor, Z, F)
+            )
+        except Exception as exc:
+            _tag(exc, cells.stage, len(results))
+            raise
         if unreliable.any():
             for f in CERTIFICATES:
                 if f in out:
@@ -178,7 +194,22 @@ def run_datasets(specs, *, si, wi, N, reps, axis, prev_gains=None):
                     withheld[unreliable] = None
                     out[f] = withheld
         results.append((out, notes, N0, state))
+        if timings is not None:
+            timings[len(results) - 1] += time.process_time() - clock
     return results
+
+
+def _tag(exc: BaseException, stage: str, index: int) -> None:
+    """Name the stage (and which spec of :func:`run_datasets`) on an exception
+    passing through, without changing it (its type is what callers act on)."""
+    if not hasattr(exc, "svrobs_stage"):
+        exc.svrobs_stage = (stage, index)
+        exc.add_note(f"svrobs: raised in stage {stage!r}")
+
+
+def failed_stage(exc: BaseException) -> tuple[str, int] | None:
+    """(stage, index of the spec in :func:`run_datasets`) an exception was raised in."""
+    return getattr(exc, "svrobs_stage", None)
 
 
 def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data, factor=None):
@@ -230,6 +261,7 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain, data):
     spec, out = c.spec, c.out
     if not spec.has("bounds"):
         return None
+    c.stage = "bounds"
     if spec.bounds_method == "paper":
         b, gamma, radius = _paper_bounds(c, N=N, N0=N0)
     else:
@@ -239,6 +271,7 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain, data):
         b, gamma, radius = sound.result, np.zeros(len(c.axis.names)), sound.box.R_A
     state = _gain_stages(c, b, gamma, radius, prev_gain) if spec.has("gain") else None
     if spec.has("sls"):
+        c.stage = "sls"
         _sls_stage(c, b)
     return state
 
@@ -246,6 +279,7 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain, data):
 def _gain_stages(c: _Cells, b, gamma, radius, prev_gain):
     """gain (with the reuse policy), cost, cost_bound; -> the gain state for ``reuse_gain``."""
     spec, system, notes = c.spec, c.system, c.notes
+    c.stage = "gain"
     matrix = spec.bounds_method != "paper"
     designed, k_hat_reasons = design(c, gamma, radius, matrix=matrix)
     if k_hat_reasons is not None:
@@ -391,6 +425,7 @@ def _observer_stages(c: _Cells, b, designed):
         )
     if not spec.has("cost"):
         return
+    c.stage = "cost"
     noise = dict(sigma_u=system.sigma_u, sigma_w=c.sigma_w, sigma_v=system.sigma_v)
     J = _cost.exact_cost(A, B, A_hat, B_hat, L=L, C=C, **noise, horizon=spec.horizon)
     J_stat, stat_reason = _cost.stationary_cost(
@@ -402,6 +437,7 @@ def _observer_stages(c: _Cells, b, designed):
     _monte_carlo(c, L)
     _cost_ratio(c, J)
     if spec.has("cost_bound"):
+        c.stage = "cost_bound"
         t3 = _cb.theorem3_bound(
             A_hat,
             L,

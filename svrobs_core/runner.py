@@ -30,13 +30,16 @@ def run_unit_result(spec: ExperimentSpec, unit: dict) -> UnitResult:
     return run_unit_results([spec], unit)[0]
 
 
-def run_unit_results(specs: list[ExperimentSpec], unit: dict) -> list[UnitResult]:
+def run_unit_results(
+    specs: list[ExperimentSpec], unit: dict, *, timings: list[float] | None = None
+) -> list[UnitResult]:
     """One work unit of ``specs[0]``'s plan for specs that share its data and
     estimates (:func:`svrobs_core.pipeline.shares_data`, e.g. the same grid with
     other bounds methods): every dataset is simulated and estimated once, each
     spec's stages run on it. -> one :class:`UnitResult` per spec, holding the
     unit's N values that are in that spec (its records are the ones the spec
-    gives on its own)."""
+    gives on its own). ``timings``: CPU seconds are added to it per spec (the
+    shared simulation and estimates count for ``specs[0]``)."""
     specs = [
         replace(s, mc_reps=unit["mc_reps"])
         if "mc_reps" in unit and unit["mc_reps"] != s.mc_reps
@@ -65,7 +68,11 @@ def run_unit_results(specs: list[ExperimentSpec], unit: dict) -> list[UnitResult
                 reps=reps,
                 axis=axis,
                 prev_gains=[prev_gains[i] for i in which],
+                timings=None if timings is None else (t := [0.0] * len(which)),
             )
+            if timings is not None:
+                for i, ti in zip(which, t):
+                    timings[i] += ti
             for i, (fields, notes, N0, gain) in zip(which, results):
                 if specs[i].reuse_gain:
                     prev_gains[i] = gain

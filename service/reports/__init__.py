@@ -1,3 +1,3 @@
 """Reports in the service layer: the HTML page of a report (``html``) and the
-paper reproduction that writes tables, figures and reports to a folder
-(``reproduce``). The content itself comes from :mod:`svrobs_core.report`."""
+reports of stored jobs (``stored``). The content itself comes from
+:mod:`svrobs_core.report`; ``svrobs reproduce`` is :mod:`svrobs_cli.reproduce`."""
