@@ -31,15 +31,16 @@ def run_unit_result(spec: ExperimentSpec, unit: dict) -> UnitResult:
 
 
 def run_unit_results(
-    specs: list[ExperimentSpec], unit: dict, *, timings: list[float] | None = None
+    specs: list[ExperimentSpec], unit: dict, *, timings: dict | None = None
 ) -> list[UnitResult]:
     """One work unit of ``specs[0]``'s plan for specs that share its data and
     estimates (:func:`svrobs_core.pipeline.shares_data`, e.g. the same grid with
     other bounds methods): every dataset is simulated and estimated once, each
     spec's stages run on it. -> one :class:`UnitResult` per spec, holding the
     unit's N values that are in that spec (its records are the ones the spec
-    gives on its own). ``timings``: CPU seconds are added to it per spec (the
-    shared simulation and estimates count for ``specs[0]``)."""
+    gives on its own). ``timings``: CPU seconds are added to it per spec index
+    (the shared simulation and estimates count for ``specs[0]``), those of the
+    Monte Carlo J under ``("mc", index)``."""
     specs = [
         replace(s, mc_reps=unit["mc_reps"])
         if "mc_reps" in unit and unit["mc_reps"] != s.mc_reps
@@ -68,11 +69,13 @@ def run_unit_results(
                 reps=reps,
                 axis=axis,
                 prev_gains=[prev_gains[i] for i in which],
-                timings=None if timings is None else (t := [0.0] * len(which)),
+                timings=None if timings is None else (t := {}),
             )
             if timings is not None:
-                for i, ti in zip(which, t):
-                    timings[i] += ti
+                for key, sec in t.items():
+                    i = which[key[1]] if isinstance(key, tuple) else which[key]
+                    k = ("mc", i) if isinstance(key, tuple) else i
+                    timings[k] = timings.get(k, 0.0) + sec
             for i, (fields, notes, N0, gain) in zip(which, results):
                 if specs[i].reuse_gain:
                     prev_gains[i] = gain
