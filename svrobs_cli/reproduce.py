@@ -37,7 +37,7 @@ import json
 import os
 import platform
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -280,9 +280,9 @@ def _error(run: _GroupRun, exc: BaseException) -> ReproduceError:
     return ReproduceError(f"{name}: stage '{stage}' failed: {why}")
 
 
-def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group) -> None:
-    """Every unit of every group, submitted at once (groups in order, the
-    heaviest units of a group first) and written as they finish: each
+def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int = 4) -> None:
+    """Every unit of every group, ``window`` at a time in the pool (groups in
+    order, the heaviest units of a group first), written as they finish: each
     experiment's unit texts go to a scratch file, and its records.jsonl is
     assembled in unit order when its group is complete; ``on_group(run)`` then."""
     tasks = {}
@@ -336,13 +336,18 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group) -> None:
                     take(gi, ui, lambda gi=gi, ui=ui: _work(*args(gi, ui)))
             return
         weight = {c: _unit_weight(*args(*c)[:2]) for c in calls}
-        futures = {
-            pool.submit(_work, *args(*c)): c
-            for c in sorted(calls, key=lambda c: (c[0], -weight[c]))
-        }
+        queue = sorted(calls, key=lambda c: (c[0], -weight[c]), reverse=True)
+        futures: dict = {}
         try:
-            for f in as_completed(futures):
-                take(*futures[f], f.result)
+            while queue or futures:
+                # a few units ahead of the workers, so the report's figure renders
+                # (submitted to the same pool as groups finish) do not wait for all
+                while queue and len(futures) < window:
+                    c = queue.pop()
+                    futures[pool.submit(_work, *args(*c))] = c
+                done, _ = wait(futures, return_when=FIRST_COMPLETED)
+                for f in done:
+                    take(*futures.pop(f), f.result)
         finally:
             for f in futures:
                 f.cancel()
@@ -521,7 +526,7 @@ def reproduce(
 
         runs = [_prepare(g, specs) for g in groups]
         with progress_bar(console, quiet=quiet) as bar:
-            _run_all(runs, out, None if quiet else bar, pool, on_group)
+            _run_all(runs, out, None if quiet else bar, pool, on_group, window=2 * n_jobs)
         t_run = time.perf_counter() - t_start
         for f in report_parts:
             f.result()
