@@ -163,8 +163,13 @@ class _Output:
     select: dict | None  # the child's spec when it is a selection of the source's cells
 
 
-def _work(specs, unit, outputs):
-    """Worker side: one unit of a group -> ({name: (JSON text, record count, report
+def _part(out: Path, name: str, ui: int) -> Path:
+    return out / name / ".parts" / f"{ui:06d}.jsonl"
+
+
+def _work(specs, unit, outputs, out: Path, ui: int):
+    """Worker side: one unit of a group; writes each experiment's JSON lines of
+    the unit to its part file (:func:`_part`) -> ({name: (record count, report
     columns)}, {name: CPU seconds}): the parent's share of the pass and each
     experiment's own stages and encoding."""
     timings: dict = {}
@@ -192,7 +197,8 @@ def _work(specs, unit, outputs):
                     keep = np.flatnonzero(mask)
                     lines = [lines[i] for i in keep.tolist()]
                     data = {f: v[keep] for f, v in data.items()}
-            encoded[o.name] = ("".join(line + "\n" for line in lines), len(lines), data)
+            _part(out, o.name, ui).write_text("".join(line + "\n" for line in lines))
+            encoded[o.name] = (len(lines), data)
         cpu[o.name] += time.process_time() - t
     return encoded, cpu
 
@@ -238,11 +244,9 @@ class _GroupRun:
     specs: tuple  # parsed: parent, then variants
     units: list[dict]
     outputs: list[_Output]
-    files: dict = field(default_factory=dict)
     parts: dict = field(default_factory=dict)
     counts: dict = field(default_factory=dict)
     cpu: dict = field(default_factory=dict)
-    spans: dict = field(default_factory=dict)  # {name: {unit index: (offset, length)}}
     t0: float = 0.0
     seconds: float = 0.0
 
@@ -283,7 +287,7 @@ def _error(run: _GroupRun, exc: BaseException) -> ReproduceError:
 def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int = 4) -> None:
     """Every unit of every group, ``window`` at a time in the pool (groups in
     order, the heaviest units of a group first), written as they finish: each
-    experiment's unit texts go to a scratch file, and its records.jsonl is
+    experiment's unit texts go to part files, and its records.jsonl is
     assembled in unit order when its group is complete; ``on_group(run)`` then."""
     tasks = {}
     pending = {}
@@ -294,17 +298,15 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
         if bar is not None:
             tasks[gi] = bar.add_task(label, total=len(run.units))
         for n in run.group.names:
-            (out / n).mkdir(parents=True, exist_ok=True)
-            run.files[n] = open(out / n / ".records.part", "w+b")
+            (out / n / ".parts").mkdir(parents=True, exist_ok=True)
             run.parts[n], run.counts[n], run.cpu[n] = {}, 0, 0.0
-        run.spans = {n: {} for n in run.group.names}
         pending[gi] = len(run.units)
         run.t0 = time.perf_counter()
     calls = [(gi, ui) for gi, run in enumerate(runs) for ui in range(len(run.units))]
 
     def args(gi, ui):
         run = runs[gi]
-        return run.specs, run.units[ui], tuple(run.outputs)
+        return run.specs, run.units[ui], tuple(run.outputs), out, ui
 
     def take(gi, ui, produce):
         run = runs[gi]
@@ -312,11 +314,7 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
             encoded, cpu = produce()
         except Exception as exc:
             raise _error(run, exc) from exc
-        for n, (text, k, data) in encoded.items():
-            fh = run.files[n]
-            raw = text.encode()
-            run.spans[n][ui] = (fh.tell(), len(raw))
-            fh.write(raw)
+        for n, (k, data) in encoded.items():
             run.counts[n] += k
             run.parts[n][ui] = rpt.Columns(data, k)
         for n, c in cpu.items():
@@ -353,43 +351,41 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
                 f.cancel()
     finally:
         for run in runs:
-            for fh in run.files.values():
-                fh.close()
             for n in run.group.names:
-                (out / n / ".records.part").unlink(missing_ok=True)
+                for part in (out / n / ".parts").glob("*.jsonl"):
+                    part.unlink()
+                (out / n / ".parts").rmdir()
 
 
 def _assemble(run: _GroupRun, out: Path) -> None:
-    """records.jsonl of each experiment of a finished group: the units' texts in
+    """records.jsonl of each experiment of a finished group: its part files in
     unit order (copied within the kernel where it can)."""
     for n in run.group.names:
-        src = run.files[n]
-        src.flush()
         with open(out / n / "records.jsonl", "wb", buffering=0) as dst:
-            for ui in sorted(run.spans[n]):
-                offset, length = run.spans[n][ui]
-                _copy_range(src, dst, offset, length)
+            for ui in sorted(run.parts[n]):
+                part = _part(out, n, ui)
+                with open(part, "rb", buffering=0) as src:
+                    _copy_file(src, dst, os.fstat(src.fileno()).st_size)
+                part.unlink()
         parts = run.parts[n]
         run.parts[n] = [parts[ui] for ui in sorted(parts)]
 
 
-def _copy_range(src, dst, offset: int, length: int) -> None:
+def _copy_file(src, dst, length: int) -> None:
     done = 0
     if hasattr(os, "copy_file_range"):
         try:
             while done < length:
-                k = os.copy_file_range(src.fileno(), dst.fileno(), length - done, offset + done)
+                k = os.copy_file_range(src.fileno(), dst.fileno(), length - done)
                 if k == 0:
                     break
                 done += k
         except OSError:  # e.g. another file system: copy through memory
             pass
-    src.seek(offset + done)
     while done < length:
         chunk = src.read(min(1 << 24, length - done))
         dst.write(chunk)
         done += len(chunk)
-    src.seek(0, os.SEEK_END)
 
 
 def _results(run: _GroupRun, specs: dict[str, dict], out: Path) -> dict[str, dict]:
@@ -524,7 +520,12 @@ def reproduce(
             for n in group:
                 report_parts.append(background.submit(builder.add, n, _report_input(n, group[n])))
 
-        runs = [_prepare(g, specs) for g in groups]
+        # the group with the most records first: its report part (findings,
+        # figures) is then made while the others run
+        runs = sorted(
+            (_prepare(g, specs) for g in groups),
+            key=lambda r: -sum(parse_spec(specs[n]).n_cells for n in r.group.names),
+        )
         with progress_bar(console, quiet=quiet) as bar:
             _run_all(runs, out, None if quiet else bar, pool, on_group, window=2 * n_jobs)
         t_run = time.perf_counter() - t_start

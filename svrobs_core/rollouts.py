@@ -426,9 +426,10 @@ def resampled_grams(
     (one stacked BLAS product per step, every (dataset, system) its own call of
     the same shape, so a dataset's bits do not depend on the chunk).
 
-    Yields ``(idx, G, P, Z, F)`` per chunk of datasets ``idx``: ``G = Z Z^T``
-    (h, E, d, d), ``P = F Z^T`` (h, E, n, d) and the regression data ``Z``
-    (h, E, d, K N), ``F`` (h, E, n, K N) as views into the chunk's buffer
+    Yields ``(idx, G, W, Z, F)`` per chunk of datasets ``idx``: ``G = Z Z^T``
+    (h, E, d, d), ``W = sum_k w_k z_k^T`` (h, E, n, d) over the regression
+    columns (so that ``F Z^T = [A_e B_e] G + s_e W``) and the regression data
+    ``Z`` (h, E, d, K N), ``F`` (h, E, n, K N) as views into the chunk's buffer
     (valid until the next chunk is requested).
     """
     systems = np.asarray(systems, dtype=float)
@@ -445,7 +446,7 @@ def resampled_grams(
     draw = np.empty((m + n, T0, N))
     x0b = np.empty((n, N))
     G = np.empty((c, E, d, d))
-    P = np.empty((c, E, n, d))
+    W = np.empty((c, E, n, d))
     gens = generators(seed, keys, rng=rng)
     for s in range(0, D, c):
         e_ = min(D, s + c)
@@ -462,10 +463,11 @@ def resampled_grams(
         Mh = systems[owner[s:e_]]  # (h, E, n, q)
         Zv = Yh[:, :, :d, k0:T0].reshape(h, E, d, K * N)
         Fv = Yh[:, :, :n, k0 + 1 : T0 + 1].reshape(h, E, n, K * N)
+        Wv = Yh[:, :, d:, k0:T0].reshape(h, E, n, K * N)
         Zt = np.swapaxes(Zv, -1, -2)
         with np.errstate(over="ignore", invalid="ignore"):
             for k in range(T0):
                 np.matmul(Mh, Yh[:, :, :, k], out=Yh[:, :, :n, k + 1])
             np.matmul(Zv, Zt, out=G[:h])
-            np.matmul(Fv, Zt, out=P[:h])
-        yield np.arange(s, e_), G[:h], P[:h], Zv, Fv
+            np.matmul(Wv, Zt, out=W[:h])
+        yield np.arange(s, e_), G[:h], W[:h], Zv, Fv

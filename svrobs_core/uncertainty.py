@@ -219,20 +219,47 @@ def noise_level(Z, F, theta_hat):
     return np.sqrt(rss / (n * (N0 - d))), None
 
 
-def _refit(name: str, gamma, Z, F, G, P, loss_scale: str) -> np.ndarray:
-    """Re-estimate with the cell's own estimator (SPEC section 2). -> (h, n, d)
-
-    Z (h, d, N0), F (h, n, N0) and their statistics G = Z Z^T, P = F Z^T:
-    SVR solves from G, P (the data only for its ill-conditioned datasets)."""
+def _refit(name: str, gamma, Z, F, G, loss_scale: str) -> np.ndarray:
+    """Re-estimate with the cell's own estimator from the data (SPEC section 2). -> (h, n, d)"""
     if name == "ols":
         return _est.fit_ols(Z, F)
     if name == "svr":
+        P = np.matmul(F, np.swapaxes(Z, -1, -2))
         return _est.svr_from_gram(
             G, P, Z.shape[-1], [gamma], loss_scale=loss_scale, data=lambda rows: (Z[rows], F[rows])
         )[:, 0]
     if name == "shrunk-ols":
         return _est.shrunk_ols(_est.fit_ols(Z, F), [gamma])[:, 0]
     raise ValueError(f"unknown estimator {name!r}")
+
+
+def _deviations(name: str, gamma, centre, s, G, W, Z, F, loss_scale: str) -> np.ndarray:
+    """Theta_b - Theta for one estimator column of a chunk of resampled datasets.
+
+    The data were simulated from ``centre`` Theta (h, n, d) with noise level s
+    (h,), so ``F Z^T = Theta G + s W`` and the estimator's deviation is, for the
+    ridge parameter g (0 for OLS), ``(s W - g Theta) (G + g I)^-1`` (shrunk OLS:
+    the OLS one shrunk, ``(s W G^-1 - gamma Theta) / (1 + gamma)``): solved with
+    the eigendecomposition of G, without the cancellation of ``Theta_b - Theta``.
+    Datasets with cond(G + g I) above the estimator's limit (or non-finite)
+    are re-estimated from their data (:func:`_refit`) instead."""
+    N0 = Z.shape[-1]
+    d = G.shape[-1]
+    g = _est.ridge_parameters([gamma], N0, loss_scale)[0] if name == "svr" else 0.0
+    limit = _est.SVR_COND_LIMIT if name == "svr" else _est.REFINE_COND_LIMIT
+    ok = np.isfinite(G).all(axis=(-2, -1)) & np.isfinite(W).all(axis=(-2, -1))
+    lam, V = np.linalg.eigh(np.where(ok[:, None, None], G, np.eye(d)))
+    lam = np.maximum(lam, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        fine = ok & ((lam[:, -1] + g) <= limit * (lam[:, 0] + g)) & (lam[:, 0] + g > 0)
+        rhs = s[:, None, None] * W - g * centre
+        dev = np.matmul(np.matmul(rhs, V) / (lam + g)[:, None, :], np.swapaxes(V, -1, -2))
+    if name == "shrunk-ols":
+        dev = (dev - gamma * centre) / (1.0 + gamma)
+    if not fine.all():
+        rows = np.flatnonzero(~fine)
+        dev[rows] = _refit(name, gamma, Z[rows], F[rows], G[rows], loss_scale) - centre[rows]
+    return dev
 
 
 def bootstrap_box(
@@ -268,8 +295,8 @@ def bootstrap_box(
 
     Batched: all R x boot_reps resampled datasets go through one chunked
     simulation of every cell's system (:func:`svrobs_core.rollouts.resampled_grams`)
-    and one re-estimation per estimator column and chunk; a cell's numbers do
-    not depend on the chunking (docs/performance.md#bootstrap).
+    and one re-estimation per estimator column and chunk (:func:`_deviations`);
+    a cell's numbers do not depend on the chunking (docs/performance.md#bootstrap).
     """
     theta = np.asarray(theta_hat, dtype=float)
     R, E, n, d = theta.shape
@@ -284,8 +311,8 @@ def bootstrap_box(
     D = R * Bn
     owner = np.arange(D) // Bn
     bkeys = [tuple(keys[r]) + BOOT_STREAM + (b,) for r in range(R) for b in range(Bn)]
-    theta_b = np.empty((D, E, n, d))
-    for idx, G, P, Z, F in resampled_grams(
+    dev_b = np.empty((D, E, n, d))
+    for idx, G, W, Z, F in resampled_grams(
         seed,
         bkeys,
         systems,
@@ -298,11 +325,20 @@ def bootstrap_box(
         rng=rng,
         chunk_bytes=BOOT_CHUNK_BYTES,
     ):
+        r = owner[idx]
         for ei, (name, gamma) in enumerate(estimators):
-            theta_b[idx, ei] = _refit(
-                name, gamma, Z[:, ei], F[:, ei], G[:, ei], P[:, ei], loss_scale
+            dev_b[idx, ei] = _deviations(
+                name,
+                gamma,
+                th[r, ei],
+                s_ok[r, ei],
+                G[:, ei],
+                W[:, ei],
+                Z[:, ei],
+                F[:, ei],
+                loss_scale,
             )
-    dev = theta_b.reshape(R, Bn, E, n, d).transpose(0, 2, 1, 3, 4) - th[:, :, None]
+    dev = dev_b.reshape(R, Bn, E, n, d).transpose(0, 2, 1, 3, 4)
     level = 1.0 - float(delta)
     eps_A = np.quantile(_spectral_norm(dev[..., :n]), level, axis=-1)
     eps_B = np.quantile(_spectral_norm(dev[..., n:]), level, axis=-1)
