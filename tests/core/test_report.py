@@ -601,3 +601,31 @@ def test_report_contents(reproduced):
     assert prov["derived_from"] == {"E1": "E2", "E3": "E4"}
     assert prov["shares_data_of"] == {"A1": "E2", "A2": "E2"}
     assert set(prov["normals"]) == set(paper_specs("reduced")) and prov["normals"]["E1"] == 0
+
+
+def test_cli_reproduce_runs_a_subset_and_refuses_unknown_names(tmp_path):
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "svrobs_cli", "reproduce", "--scale", "reduced", "--quiet"]
+    done = subprocess.run(
+        [*cmd, "--only", "E1", "--jobs", "1", "--out", str(tmp_path / "t2")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in (tmp_path / "t2").iterdir() if p.is_dir()) == ["E1"]
+    prov = json.loads((tmp_path / "t2" / "provenance.json").read_text())
+    assert prov["experiments"] == ["E1"] and prov["records"]["E1"] == 2 * 3 * 3 * 3 * 2
+    assert not list((tmp_path / "t2" / "E1").glob(".parts*"))
+    bad = subprocess.run(
+        [*cmd, "--only", "E1,E9", "--out", str(tmp_path / "bad")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert bad.returncode == 2
+    assert bad.stderr.strip().splitlines() == [
+        "error: reproduce: --only: unknown experiment E9; the preset has E1, E2, E3, E4, A1, A2"
+    ]
