@@ -233,6 +233,16 @@ def _n_grid(value) -> tuple[int, ...]:
     return _unique(out, "N")
 
 
+def _object(value, name: str, keys: tuple[str, ...]) -> dict:
+    """A JSON object whose fields are among ``keys`` (an unknown one is named)."""
+    if not isinstance(value, dict):
+        raise SpecError(name, f"must be an object {{{', '.join(keys)}}}")
+    unknown = set(value) - set(keys)
+    if unknown:
+        raise SpecError(f"{name}.{sorted(unknown)[0]}", "unknown field")
+    return value
+
+
 def _unique(values: tuple, name: str) -> tuple:
     if len(set(values)) != len(values):
         raise SpecError(name, "has duplicate entries")
@@ -327,12 +337,7 @@ def shared_options(obj: dict) -> dict:
                 raise SpecError("stages", f"stage {s!r} needs stage {need!r}")
     stages = tuple(s for s in STAGES if s in stages)
 
-    sls = obj.get("sls") or {}
-    if not isinstance(sls, dict):
-        raise SpecError("sls", "must be an object {T_fir, C_bound}")
-    unknown = set(sls) - {"T_fir", "C_bound"}
-    if unknown:
-        raise SpecError(f"sls.{sorted(unknown)[0]}", "unknown field")
+    sls = _object(obj.get("sls") or {}, "sls", ("T_fir", "C_bound"))
     c_bound = sls.get("C_bound")
 
     delta = _float(obj.get("delta", 0.01), "delta", positive=True)

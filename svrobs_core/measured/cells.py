@@ -23,8 +23,8 @@ from ..estimators import fit_ols
 from ..norms import spectral_radius
 from ..notes import Notes
 from ..pipeline import CERTIFICATES, ESTIMATE_COND_LIMIT, _estimate, design
-from ..planning import EstimatorAxis
-from ..spec import STAGES, ExperimentSpec
+from ..pipeline import _Cells as Cells  # the context the stage functions read
+from ..spec import STAGES
 from ..uncertainty_stage import bounds_from_box, sound_box
 from .data import StateModel
 from .noise import noise_level, residual_sum
@@ -56,25 +56,6 @@ class Observer:
     B: None = None
 
 
-@dataclass(kw_only=True)
-class Cells:
-    """The context the stage functions read (the attributes of the pipeline's)."""
-
-    spec: ExperimentSpec
-    system: Observer
-    sigma_w: object
-    keys: list
-    axis: EstimatorAxis
-    A_hat: np.ndarray
-    B_hat: np.ndarray
-    out: dict
-    notes: Notes
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self.A_hat.shape[:2]
-
-
 def run_cells(spec, *, Z, F, model: StateModel, N: int, keys, axis, observer) -> tuple:
     """All stages for R datasets of one N with the same N0 -> (fields, notes)."""
     R, _, N0 = Z.shape
@@ -95,6 +76,9 @@ def run_cells(spec, *, Z, F, model: StateModel, N: int, keys, axis, observer) ->
         out={"A_hat": theta[..., :n], "B_hat": theta[..., n:]},
         notes=notes,
     )
+    ran = [st for st in STAGES if spec.has(st)]
+    truth = [f for st in ran for f in TRUTH_FIELDS.get(st, ())]
+    notes.add(True, f"{NO_TRUTH} (null: {', '.join(truth)})")
     finite = np.isfinite(theta).all(axis=(-2, -1))
     notes.add(~finite, "estimate: not finite")
     unreliable = finite & ~(cond <= ESTIMATE_COND_LIMIT)
@@ -103,11 +87,8 @@ def run_cells(spec, *, Z, F, model: StateModel, N: int, keys, axis, observer) ->
         f"estimate: cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g} (the data do not excite every"
         " direction): certificates withheld",
     )
-    ran = [st for st in STAGES if spec.has(st)]
     if len(ran) < len(STAGES):
         notes.add(True, "stages not run: " + ", ".join(st for st in STAGES if st not in ran))
-    truth = [f for st in ran for f in TRUTH_FIELDS.get(st, ())]
-    notes.add(True, f"{NO_TRUTH} (null: {', '.join(truth)})")
     sigma_box, sigma_model = _noise(c, G=G, Z=Z, F=F, rows=rows, n_rows=F.shape[1], N0=N0)
     if spec.has("bounds"):
         _bounds_and_observer(c, sigma_box, sigma_model, model=model, G=G, N=N, N0=N0)

@@ -10,6 +10,7 @@ the chain on several datasets at once, one per repetition.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -131,6 +132,7 @@ def run_datasets(spec: ExperimentSpec, datasets: Sequence[MeasuredData]) -> Unit
     N = first.rollouts
     if any(d.rollouts != N for d in datasets):
         raise ValueError("every dataset must have the same number of rollouts")
+    spec = replace(spec, N=(N,), measured=replace(spec.measured, holdout=0))
     job = _Job(spec, first)
     joined = MeasuredData(
         X=[x for d in datasets for x in d.X], U=[u for d in datasets for u in d.U]

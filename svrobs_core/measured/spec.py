@@ -24,6 +24,7 @@ from ..spec import (
     _float,
     _int,
     _n_grid,
+    _object,
     shared_options,
 )
 from ..systems import SIGMA_V0_COND_LIMIT, _matrix, _positive_number
@@ -144,12 +145,7 @@ def _lags(value) -> tuple[int, int] | None:
         return None
     if not isinstance(value, dict) or set(value) != {"lags"}:
         raise SpecError("state", 'must be {"lags": {"y": p, "u": q}} (or absent: the full state)')
-    lags = value["lags"]
-    if not isinstance(lags, dict):
-        raise SpecError("state.lags", 'must be an object {"y": p, "u": q}')
-    unknown = set(lags) - {"y", "u"}
-    if unknown:
-        raise SpecError(f"state.lags.{sorted(unknown)[0]}", "unknown field")
+    lags = _object(value["lags"], "state.lags", ("y", "u"))
     if "y" not in lags:
         raise SpecError("state.lags.y", "is required")
     p = _int(lags["y"], "state.lags.y", lo=1, hi=MAX_STATE_DIM)

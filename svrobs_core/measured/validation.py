@@ -192,8 +192,9 @@ def _whiteness(eps: list) -> tuple:
 
 def _cross(eps: list, U: list, h: int, names) -> tuple:
     """Residual-input cross-correlations rho (ny, m, h + 1) and the statistic
-    S = n rho^T R_u^-1 rho per (channel, input), R_u the input's autocorrelation
-    Toeplitz matrix; -> (rho, S, notes)."""
+    S = s^T R_u^-1 s per (channel, input), s_k = n rho_k / sqrt(P_k) (P_k pairs at
+    lag k inside the rollouts), R_u the input's autocorrelation Toeplitz matrix;
+    -> (rho, S, notes)."""
     E, Uall = np.concatenate(eps), np.concatenate(U)
     ny, m = E.shape[1], Uall.shape[1]
     ec = [e - E.mean(axis=0) for e in eps]
@@ -210,10 +211,13 @@ def _cross(eps: list, U: list, h: int, names) -> tuple:
         rho = rho / np.sqrt(s_e[:, None, None] * s_u[None, :, None])
         ru = np.stack([np.diag(_lagged(uc, uc, k)) for k in range(h + 1)], axis=1) / s_u[:, None]
     lag = np.abs(np.subtract.outer(np.arange(h + 1), np.arange(h + 1)))
+    n_res = E.shape[0]
+    pairs = np.array([sum(max(e.shape[0] - k, 0) for e in eps) for k in range(h + 1)])
+    std = rho * (n_res / np.sqrt(pairs))  # Var ~ 1 per lag for a white input (P_k pairs)
     for j in range(m):  # one (h + 1) x (h + 1) solve per input
         Ru = ru[j][lag]
         if np.isfinite(Ru).all() and np.linalg.cond(Ru) < 1e12:
-            S[:, j] = E.shape[0] * np.sum(rho[:, j] * np.linalg.solve(Ru, rho[:, j].T).T, axis=1)
+            S[:, j] = np.sum(std[:, j] * np.linalg.solve(Ru, std[:, j].T).T, axis=1)
         else:
             notes.append(f"cross-correlation: input {names[j]} is not excited (null)")
     return rho, S, notes

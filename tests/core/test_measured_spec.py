@@ -108,7 +108,12 @@ def test_simulation_specs_keep_their_defaults_and_units():
     "obj, shape, field, words",
     [
         (spec_with(holdout=20), (2, 1, 20), "holdout", "below the dataset's 20"),
-        (spec_with(N=[5, 18], holdout=3), (2, 1, 20), "N", "N = 18 rollouts, but the dataset has 17 for training"),
+        (
+            spec_with(N=[5, 18], holdout=3),
+            (2, 1, 20),
+            "N",
+            "N = 18 rollouts, but the dataset has 17 for training",
+        ),
         (spec_with(N={"start": 5, "stop": 25}), (2, 1, 20), "N", "has 20"),
         (spec_with(C=[[1.0, 0.0, 0.0]]), (2, 1, 20), "C", "2 columns"),
         (spec_with(sigma_v=0.0, C=[[1.0, 0.0]]), (2, 1, 20), "sigma_v", "square invertible"),
