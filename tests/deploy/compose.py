@@ -332,7 +332,9 @@ class Deployment:
         try:
             return child.proc.wait(timeout)
         except subprocess.TimeoutExpired:
-            raise AssertionError(f"{name} still running after {timeout}s:\n{self.tail(name)}")
+            raise AssertionError(
+                f"{name} still running after {timeout}s:\n{self.tail(name)}"
+            ) from None
 
     def wait_log(self, name: str, text: str, timeout: float = 120) -> str:
         deadline = time.monotonic() + timeout

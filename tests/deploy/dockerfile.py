@@ -19,8 +19,8 @@ import posixpath
 import re
 import shlex
 import shutil
-import subprocess
 import sys
+import time
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
 from pathlib import Path
@@ -203,13 +203,15 @@ def _copy(args: str, env, workdir: str, context: list[str]) -> dict[str, str]:
         if not flag.startswith(("--chown=", "--chmod=", "--link")):
             raise Unsupported(f"COPY {flag}: not modelled (one stage, files of the context)")
     *sources, dest = [substitute(w, env) for w in words]
-    folders = {posixpath.dirname(f) for f in context}
-    folders |= {posixpath.join(*p.split("/")[:n]) for p in folders if p for n in range(1, 99)}
+    folders = set()
+    for f in context:
+        parts = f.split("/")[:-1]
+        folders |= {"/".join(parts[:n]) for n in range(1, len(parts) + 1)}
     out: dict[str, str] = {}
     for src in sources:
         src = posixpath.normpath(src).lstrip("/")
         matches = (
-            [p for p in sorted(set(context) | folders) if p and fnmatchcase(p, src)]
+            [p for p in sorted(set(context) | folders) if _match(src.split("/"), p.split("/"))]
             if any(c in src for c in "*?[")
             else [src]
         )
@@ -228,7 +230,7 @@ def _copy(args: str, env, workdir: str, context: list[str]) -> dict[str, str]:
     return out
 
 
-def _run_commands(line: str, env, workdir: str, image: Image) -> list[tuple]:
+def _run_commands(line: str, env, workdir: str) -> list[tuple]:
     argv = _argv(line)
     tokens = argv if argv is not None else _shell_words(substitute(line, env))
     steps, commands, current = [], [], []
@@ -318,7 +320,7 @@ def parse(dockerfile: Path, context: Path, build_args: dict[str, str] | None = N
         elif word == "COPY":
             image.steps.append(("copy", _copy(rest, scope, image.workdir, files)))
         elif word == "RUN":
-            image.steps += _run_commands(rest, scope, image.workdir, image)
+            image.steps += _run_commands(rest, scope, image.workdir)
         elif word == "USER":
             image.user = substitute(rest, scope).split(":")[0]
         elif word == "EXPOSE":
@@ -348,8 +350,6 @@ def build(image: Image, context: Path, into: Path, *, timeout: float = 300) -> B
     """Carry ``image``'s steps out under ``into``: the COPYed files under
     ``into/image``, every RUN pip line with the image's interpreter
     (:class:`ImagePython`), the folders RUN makes."""
-    import time
-
     root = into / "image"
     root.mkdir(parents=True)
     python = ImagePython(into / "python")
@@ -396,18 +396,3 @@ def python_version(base: str) -> str | None:
 
 def this_python() -> str:
     return f"{sys.version_info.major}.{sys.version_info.minor}"
-
-
-__all__ = [
-    "Built",
-    "Image",
-    "Unsupported",
-    "build",
-    "context_files",
-    "excluded",
-    "ignore_rules",
-    "parse",
-    "python_version",
-    "subprocess",
-    "this_python",
-]
