@@ -110,7 +110,6 @@ class Deployment:
         self.logs = folder / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
         self.children: dict[str, Child] = {}
-        self.runs = 0
         self.as_root = os.geteuid() == 0
         exposed = set(self.image.exposed)
         for s in self.services.values():

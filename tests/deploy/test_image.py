@@ -39,19 +39,10 @@ from tests.integration.stack import (
     in_process_records,
     same,
 )
+from tests.integration.test_stack import TINY_SPEC as SPEC
 
 ROOT = Path(__file__).resolve().parents[2]
 COMMIT = "0123456789abcdef0123456789abcdef01234567"  # docker compose build's SVROBS_GIT_COMMIT
-SPEC = {
-    "systems": ["paper-stable"],
-    "sigma_w": [1.0],
-    "N": [10, 20],
-    "gamma": [0.05],
-    "estimators": ["ols", "svr"],
-    "reps": 2,
-    "stages": ["estimate", "bounds"],
-    "seed": 3,
-}
 ADMIN_LINE = re.compile(r"^docker compose run --rm (\S+) (svrobs admin [^#\n]*?)\s*(?:#.*)?$", re.M)
 
 pytestmark = [
