@@ -82,9 +82,9 @@ def deployment():
         kind = str(service.get("image", "")).split(":")[0]
         if kind in ("postgres", "redis"):
             servers[name] = pg if kind == "postgres" else REDIS_URL
-    _flush(REDIS_URL)
     deployment = None
     try:
+        _flush(REDIS_URL)
         built = dockerfile.build(image, ROOT, folder)
         deployment = compose.Deployment(
             built, doc, folder, servers, extra_env={"beat": {"SVROBS_TICK_SECONDS": "1"}}
@@ -98,11 +98,11 @@ def deployment():
         if deployment is not None:
             deployment.down()
             deployment.unseal()
+        shutil.rmtree(folder, ignore_errors=True)
         with admin.connect() as c:
             c.exec_driver_sql(f'DROP DATABASE IF EXISTS "{db}" WITH (FORCE)')
         admin.dispose()
         _flush(REDIS_URL)
-        shutil.rmtree(folder, ignore_errors=True)
 
 
 def _api(deployment) -> str:
