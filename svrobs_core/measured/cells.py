@@ -79,13 +79,11 @@ def run_cells(spec, *, Z, F, model: StateModel, N: int, keys, axis, observer) ->
     ran = [st for st in STAGES if spec.has(st)]
     truth = [f for st in ran for f in TRUTH_FIELDS.get(st, ())]
     notes.add(True, f"{NO_TRUTH} (null: {', '.join(truth)})")
-    finite = np.isfinite(theta).all(axis=(-2, -1))
-    notes.add(~finite, "estimate: not finite")
-    unreliable = finite & ~(cond <= ESTIMATE_COND_LIMIT)
+    withheld = ~(cond <= ESTIMATE_COND_LIMIT) | ~np.isfinite(theta).all(axis=(-2, -1))
     notes.add(
-        unreliable,
-        f"estimate: cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g} (the data do not excite every"
-        " direction): certificates withheld",
+        withheld,
+        f"estimate: not finite or cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g} (the data do not"
+        " excite every direction): certificates withheld",
     )
     if len(ran) < len(STAGES):
         notes.add(True, "stages not run: " + ", ".join(st for st in STAGES if st not in ran))
@@ -93,10 +91,8 @@ def run_cells(spec, *, Z, F, model: StateModel, N: int, keys, axis, observer) ->
     if spec.has("bounds"):
         _bounds_and_observer(c, sigma_box, sigma_model, model=model, G=G, N=N, N0=N0)
     for f in CERTIFICATES:
-        if f in c.out and unreliable.any():
-            withheld = np.array(c.out[f], dtype=object)
-            withheld[unreliable] = None
-            c.out[f] = withheld
+        if f in c.out and withheld.any():
+            c.out[f] = np.where(withheld, None, np.asarray(c.out[f], dtype=object))
     return c.out, notes
 
 
