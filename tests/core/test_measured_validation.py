@@ -226,7 +226,7 @@ def test_arx_validation_and_summary():
     summary = validation_summary(spec, data)
     assert [m["estimator"] for m in summary["models"]] == ["ols", "svr"]
     assert summary["N"] == 9 and summary["holdout"] == 3 and summary["excitation"]["N0"] == 9 * 49
-    assert summary["excitation"]["names"] == ["x1[k]", "x1[k-1]", "x1[k-1]".replace("x", "u"), "u1"]
+    assert summary["excitation"]["names"] == ["x1[k]", "x1[k-1]", "u1[k-1]", "u1"]
     assert summary["models"][0]["validation"]["one_step_fit"] == pytest.approx(
         v.one_step_fit.tolist()
     )
