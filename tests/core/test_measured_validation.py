@@ -51,7 +51,7 @@ def hand_statistics(model, data):
     statistic of docs/measured.md#validation, with loops."""
     ny, m = data.n, data.m
     Y, P, eps = [], [], []
-    sim_fit = []
+    sim_fit, sim_all = [], []
     for x, u in zip(data.X, data.U):
         e_roll = []
         xs = x[0].copy()
@@ -65,20 +65,25 @@ def hand_statistics(model, data):
             sims.append(xs.copy())
         eps.append(np.array(e_roll))
         ys, ss = x[1:], np.array(sims)
+        sim_all += list(ss)
         sim_fit.append(
             [
                 100 * (1 - math.sqrt(np.sum((ys[:, j] - ss[:, j]) ** 2) / np.sum((ys[:, j] - ys[:, j].mean()) ** 2)))
                 for j in range(ny)
             ]
         )  # fmt: skip
-    Y, P = np.array(Y), np.array(P)
+    Y, P, sim_all = np.array(Y), np.array(P), np.array(sim_all)
+    pooled = [
+        100 * (1 - math.sqrt(np.sum((Y[:, j] - sim_all[:, j]) ** 2) / np.sum((Y[:, j] - Y[:, j].mean()) ** 2)))
+        for j in range(ny)
+    ]  # fmt: skip
     nrmse = [
         math.sqrt(np.sum((Y[:, j] - P[:, j]) ** 2) / np.sum((Y[:, j] - Y[:, j].mean()) ** 2))
         for j in range(ny)
     ]
     n = Y.shape[0]
     h = min(20, max(e.shape[0] for e in eps) // 4)
-    Q = []
+    Q, R = [], np.zeros((ny, h))
     for j in range(ny):
         mu = sum(e[:, j].sum() for e in eps) / n
         s0 = sum(((e[:, j] - mu) ** 2).sum() for e in eps)
@@ -91,9 +96,10 @@ def hand_statistics(model, data):
                     num += c[t] * c[t - k]
                     pairs += 1
             q += (num / s0) ** 2 / pairs
+            R[j, k - 1] = num / s0
         Q.append(n * (n + 2) * q)
     Uall = np.concatenate(data.U)
-    S = np.zeros((ny, m))
+    S, RHO = np.zeros((ny, m)), np.zeros((ny, m, h + 1))
     for j in range(ny):
         for l in range(m):
             mu_e = sum(e[:, j].sum() for e in eps) / n
@@ -110,11 +116,15 @@ def hand_statistics(model, data):
                         ru[k] += (u[t, l] - mu_u) * (u[t - k, l] - mu_u)
                         pairs[k] += 1
             rho /= math.sqrt(se * su)
+            RHO[j, l] = rho
             ru /= su
             Ru = np.array([[ru[abs(a - b)] for b in range(h + 1)] for a in range(h + 1)])
             s = n * rho / np.sqrt(pairs)
             S[j, l] = s @ np.linalg.inv(Ru) @ s
-    return dict(nrmse=nrmse, sim_fit=np.array(sim_fit), h=h, Q=np.array(Q), S=S, n=n)
+    return dict(
+        nrmse=nrmse, sim_fit=np.array(sim_fit), pooled=pooled, h=h, Q=np.array(Q), r=R, S=S,
+        rho=RHO, n=n,
+    )  # fmt: skip
 
 
 @pytest.mark.parametrize("coloured", [False, True])
@@ -126,6 +136,9 @@ def test_statistics_equal_a_hand_computation(coloured):
     np.testing.assert_allclose(v.one_step_nrmse, ref["nrmse"], rtol=1e-12)
     np.testing.assert_allclose(v.one_step_fit, 100 * (1 - np.array(ref["nrmse"])), rtol=1e-12)
     np.testing.assert_allclose(v.simulation_fit, ref["sim_fit"], rtol=1e-10)
+    np.testing.assert_allclose(v.simulation_fit_pooled, ref["pooled"], rtol=1e-10)
+    np.testing.assert_allclose(v.autocorrelation, ref["r"], rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(v.cross_correlation, ref["rho"], rtol=1e-10, atol=1e-14)
     assert v.lags == ref["h"]
     np.testing.assert_allclose(v.ljung_box_Q, ref["Q"], rtol=1e-10)
     np.testing.assert_allclose(v.ljung_box_p, chi2.sf(ref["Q"], ref["h"]), rtol=1e-10)
