@@ -67,7 +67,9 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
     """All stages for one (system, sigma_w, N) and a range of reps.
 
     -> (fields, notes, N0, gain state for ``reuse_gain`` or None)."""
-    return run_datasets([spec], si=si, wi=wi, N=N, reps=reps, axis=axis, prev_gains=[prev_gain])[0]
+    return run_dataset_variants(
+        [spec], si=si, wi=wi, N=N, reps=reps, axis=axis, prev_gains=[prev_gain]
+    )[0]
 
 
 # The fields in which specs that share their data and estimates may differ
@@ -88,7 +90,7 @@ def shares_data(parent: ExperimentSpec, other: ExperimentSpec) -> bool:
     return set(b["N"]) <= set(a["N"])
 
 
-def run_datasets(specs, *, si, wi, N, reps, axis, prev_gains=None, timings=None):
+def run_dataset_variants(specs, *, si, wi, N, reps, axis, prev_gains=None, timings=None):
     """:func:`run_dataset` for specs that share their data and estimates
     (:func:`shares_data` with ``specs[0]``): the rollouts are simulated, the
     Gram matrices factorised and the estimates computed once; then each spec's
@@ -204,7 +206,7 @@ def run_datasets(specs, *, si, wi, N, reps, axis, prev_gains=None, timings=None)
 
 
 def _tag(exc: BaseException, stage: str, index: int) -> None:
-    """Name the stage (and which spec of :func:`run_datasets`) on an exception
+    """Name the stage (and which spec of :func:`run_dataset_variants`) on an exception
     passing through, without changing it (its type is what callers act on)."""
     if not hasattr(exc, "svrobs_stage"):
         exc.svrobs_stage = (stage, index)
@@ -212,7 +214,7 @@ def _tag(exc: BaseException, stage: str, index: int) -> None:
 
 
 def failed_stage(exc: BaseException) -> tuple[str, int] | None:
-    """(stage, index of the spec in :func:`run_datasets`) an exception was raised in."""
+    """(stage, index of the spec in :func:`run_dataset_variants`) an exception was raised in."""
     return getattr(exc, "svrobs_stage", None)
 
 

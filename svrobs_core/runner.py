@@ -14,7 +14,7 @@ from dataclasses import replace
 from typing import Any
 
 from .parallel import open_pool, run_ordered
-from .pipeline import run_datasets, shares_data
+from .pipeline import run_dataset_variants, shares_data
 from .planning import estimator_axis, plan_units
 from .spec import ExperimentSpec
 from .threads import blas_single_thread
@@ -61,7 +61,7 @@ def run_unit_results(
             which = [i for i, s in enumerate(specs) if N in s.N]
             if not which:
                 continue
-            results = run_datasets(
+            results = run_dataset_variants(
                 [specs[i] for i in which],
                 si=si,
                 wi=wi,
