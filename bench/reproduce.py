@@ -382,7 +382,7 @@ def main():
     )
     print(
         f"\n  {'experiment':<12}{'rng':>6}{'normals':>15}{'floor s':>9}"
-        f"{'worker CPU s':>14}{'ratio':>8}   group wall s"
+        f"{'CPU s':>14}{'ratio':>8}   (worker CPU of its units; group wall s)"
     )
     floor_total = 0.0
     for name in specs:
@@ -400,9 +400,11 @@ def main():
         elif name in prov["run_seconds"]:
             how = f"{prov['run_seconds'][name]:.1f}"
         print(f"  {name:<12}{prov['rng'][name]:>6}{k:>15,}{floor:>9.2f}{spent:>14.2f}{ratio} {how}")
+    rep_cpu = prov.get("report_cpu_seconds", {})
     print(
-        f"  {'report':<12}{'':>6}{0:>15,}{0:>9.2f}{prov['report_seconds']:>14.2f}      -  "
-        "(after the last run, this process; the rest overlaps the runs)"
+        f"  {'report':<12}{'':>6}{0:>15,}{0:>9.2f}{sum(rep_cpu.values()):>14.2f}      -  "
+        f"(CPU in this process: {', '.join(f'{k} {v:.1f}' for k, v in rep_cpu.items())}; "
+        f"{prov['report_seconds']:.1f} s wall after the last run)"
     )
     cpu = cpu_parent + cpu_children
     print(

@@ -514,11 +514,18 @@ def reproduce(
         background = stack.enter_context(ThreadPoolExecutor(max_workers=1))
         report_parts = []
 
+        report_cpu: dict[str, float] = {}
+
+        def add(name, e):  # in the background thread: its CPU seconds per experiment
+            t = time.thread_time()
+            builder.add(name, e)
+            report_cpu[name] = time.thread_time() - t
+
         def on_group(run):
             group = _results(run, specs, out)
             results.update(group)
             for n in group:
-                report_parts.append(background.submit(builder.add, n, _report_input(n, group[n])))
+                report_parts.append(background.submit(add, n, _report_input(n, group[n])))
 
         # the group with the most records first: its report part (findings,
         # figures) is then made while the others run
@@ -545,6 +552,7 @@ def reproduce(
             builder,
             console,
             quiet,
+            report_cpu,
         )
 
 
@@ -571,6 +579,7 @@ def _write_report(
     builder,
     console,
     quiet,
+    report_cpu,
 ) -> dict:
     """Provenance, tables, figures, report (``builder`` holds every experiment)."""
     provenance = {
@@ -607,7 +616,7 @@ def _write_report(
         },
         "monte_carlo_decision": MC_DECISION,
     }
-    t_rep = time.perf_counter()
+    t_rep, c_rep = time.perf_counter(), time.thread_time()
     report = builder.finish()
     files = []
 
@@ -630,6 +639,11 @@ def _write_report(
         write(f"{fg.name}.csv", fg.csv())
     # the part of the report made after the last run (the rest overlaps the runs)
     provenance["report_seconds"] = round(time.perf_counter() - t_rep, 3)
+    # CPU of this process's report work: per experiment as it arrived, then the rest
+    provenance["report_cpu_seconds"] = {
+        **{n: round(report_cpu[n], 3) for n in specs},
+        "finish": round(time.thread_time() - c_rep, 3),
+    }
     provenance["run_total_seconds"] = round(t_run, 3)
     report.provenance = provenance
     write("report.md", rpt.render_markdown(report))
