@@ -178,7 +178,7 @@ def _work(specs, unit, outputs, out: Path, ui: int):
     for o in outputs[: len(specs)]:
         cpu[o.name] += timings.get(o.source, 0.0)
         # the Monte Carlo J counts for the experiment that asks for the most of it
-        need = [x for x in outputs if x.source == o.source and res_has(results, x)]
+        need = [x for x in outputs if x.source == o.source and _has(results, x)]
         top = max(need or [o], key=lambda x: (_mc_of(x, specs), x is o))
         cpu[top.name] += timings.get(("mc", o.source), 0.0)
     encoded, cache = {}, {}
@@ -203,7 +203,7 @@ def _work(specs, unit, outputs, out: Path, ui: int):
     return encoded, cpu
 
 
-def res_has(results, o: _Output) -> bool:
+def _has(results, o: _Output) -> bool:
     return results[o.source].system in o.systems
 
 
@@ -538,22 +538,21 @@ def reproduce(
         t_run = time.perf_counter() - t_start
         for f in report_parts:
             f.result()
-        return _write_report(
-            out,
-            out_dir,
-            scale,
-            specs,
-            groups,
-            results,
-            started,
-            t_start,
-            t_run,
-            n_jobs,
-            builder,
-            console,
-            quiet,
-            report_cpu,
+        run = _Finished(
+            out=out,
+            command=f"svrobs reproduce --out {out_dir}"
+            + ("" if scale == "full" else f" --scale {scale}"),
+            scale=scale,
+            specs=specs,
+            groups=groups,
+            results=results,
+            started=started,
+            t_start=t_start,
+            t_run=t_run,
+            n_jobs=n_jobs,
+            report_cpu=report_cpu,
         )
+        return _write_report(run, builder, console, quiet)
 
 
 def _report_input(name: str, result: dict) -> dict:
@@ -565,35 +564,38 @@ def _report_input(name: str, result: dict) -> dict:
     }
 
 
-def _write_report(
-    out,
-    out_dir,
-    scale,
-    specs,
-    groups,
-    results,
-    started,
-    t_start,
-    t_run,
-    n_jobs,
-    builder,
-    console,
-    quiet,
-    report_cpu,
-) -> dict:
+@dataclass
+class _Finished:
+    """What the report's provenance says about a finished run."""
+
+    out: Path
+    command: str
+    scale: str
+    specs: dict
+    groups: list
+    results: dict
+    started: _dt.datetime
+    t_start: float
+    t_run: float
+    n_jobs: int
+    report_cpu: dict
+
+
+def _write_report(run: _Finished, builder, console, quiet) -> dict:
     """Provenance, tables, figures, report (``builder`` holds every experiment)."""
+    out, specs, results, groups = run.out, run.specs, run.results, run.groups
+    t_start, t_run, report_cpu = run.t_start, run.t_run, run.report_cpu
     provenance = {
         "preset": PRESET_NAME,
-        "scale": scale,
+        "scale": run.scale,
         "experiments": list(specs),
-        "command": f"svrobs reproduce --out {out_dir}"
-        + ("" if scale == "full" else f" --scale {scale}"),
+        "command": run.command,
         "svrobs_version": __version__,
         "git_commit": git_commit(),
         **_versions(),
         "platform": platform.platform(),
         "cpus": os.cpu_count(),
-        "started_utc": started.isoformat(timespec="seconds"),
+        "started_utc": run.started.isoformat(timespec="seconds"),
         "records": {n: results[n]["n_records"] for n in specs},
         "derived_from": {
             n: results[n]["derived_from"] for n in specs if results[n]["derived_from"]
@@ -605,7 +607,7 @@ def _write_report(
         "worker_cpu_seconds": {n: round(results[n]["cpu_seconds"], 3) for n in specs},
         "normals": normals_drawn(specs, groups),
         "rng": {n: parse_spec(specs[n]).rng for n in specs},
-        "n_jobs": n_jobs,
+        "n_jobs": run.n_jobs,
         "monte_carlo": {
             n: {
                 "mc_reps": parse_spec(results[n]["spec"]).mc_reps,
