@@ -333,6 +333,15 @@ def collect(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0, rng=D
     return Z, F
 
 
+def _draw(g, x0b, draw, x0_std) -> bool:
+    """One key's draws in the documented order: x0 into ``x0b`` if x0_std > 0
+    (-> True), then u and w into ``draw`` (m+n, T0, N)."""
+    if x0_std > 0:
+        g.standard_normal(out=x0b)
+    g.standard_normal(out=draw)
+    return x0_std > 0
+
+
 # Working-set size of one chunk of repetitions in :func:`gram_data` (cache-sized).
 CHUNK_BYTES = 2 * 2**20
 
@@ -378,11 +387,8 @@ def gram_data(
         e = min(R, s + c)
         h = e - s
         for i in range(h):
-            g = next(gens)
-            if x0_std > 0:
-                g.standard_normal(out=x0b)
+            if _draw(next(gens), x0b, draw, x0_std):
                 np.multiply(x0b, x0_std, out=Y[i, :n, 0])
-            g.standard_normal(out=draw)
             Y[i, n:, :T0] = draw
         Yh = Y[:h]
         Yh[:, n:d, :T0] *= system.sigma_u
@@ -452,11 +458,8 @@ def resampled_grams(
         e_ = min(D, s + c)
         h = e_ - s
         for i in range(h):
-            g = next(gens)
-            if x0_std > 0:
-                g.standard_normal(out=x0b)
+            if _draw(next(gens), x0b, draw, x0_std):
                 Y[i, :, :n, 0] = x0b * x0_std
-            g.standard_normal(out=draw)
             draw[:m] *= sigma_u
             Y[i, :, n:, :T0] = draw
         Yh = Y[:h]
