@@ -67,8 +67,9 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
     sigma_w = spec.sigma_w[wi]
     n = system.n
     keys = [seed_key(si, wi, N, r) for r in reps]
+    # the sound boxes factorise the data themselves (svrobs_core.data_factor)
     need_data = any(e in ("ols", "shrunk-ols") for e in spec.estimators) or (
-        spec.bounds_method == "bootstrap" and spec.boot_sigma_w == "estimate"
+        spec.has("bounds") and spec.bounds_method != "paper"
     )
     G, P, Z, F = gram_data(
         system,

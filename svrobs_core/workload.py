@@ -138,6 +138,12 @@ def _dataset(
             cpu += (0.0 if kept_data else data_cpu) + R * (
                 QR_REP + LONG_DOUBLE * N0 * (d + n) * (2 + G)
             )
+    if spec.has("bounds") and spec.bounds_method != "paper":
+        # data_factor keeps Z, F and takes an R-only QR of [Z^T F^T] per repetition
+        if not kept_data:
+            kept_data = R * rep_data
+            mem = max(mem, 2 * kept_data)
+        cpu += FLOP * R * N0 * 2 * (d + n) ** 2
     if spec.has("bounds") and spec.bounds_method == "bootstrap":
         c_boot, m_boot = _bootstrap(spec, n=n, m=m, N=N, R=R, E=E, N0=N0)
         cpu += c_boot
