@@ -455,7 +455,12 @@ def _sls_stage(c: _Cells, b):
     J_opt = np.full((R, E), np.nan)
     status = np.empty((R, E), dtype=object)
     undefined = ~np.isfinite(np.broadcast_to(F, (R, E)))
-    notes.add(undefined, "J_opt: F undefined (true system unstable: H-infinity norms infinite)")
+    norms_ok = np.isfinite(norms.hinf_PhiA_B) & np.isfinite(norms.hinf_PhiA_K)
+    notes.add(
+        undefined & ~norms_ok,
+        "J_opt: F undefined (true system unstable: H-infinity norms infinite)",
+    )
+    notes.add(undefined & norms_ok, "J_opt: F undefined (eps_A or eps_B is null)")
     for ri, ei in np.ndindex(R, E):
         if undefined[ri, ei]:
             status[ri, ei] = "not_run"
