@@ -103,7 +103,9 @@ def data_factor(Z, F) -> GramFactor:
     R = np.where(fin[..., None, None], R, 0.0)
     R11 = R[..., :d, :d]
     _, s, Wt = np.linalg.svd(R11)  # R11 = P diag(s) Wt: Z Z^T = W diag(s^2) W^T
-    lam = (s * s)[..., ::-1]
+    with np.errstate(over="ignore"):  # squares beyond the double range: inf, noted downstream
+        lam = (s * s)[..., ::-1]
+        r22 = np.sqrt(np.sum(R[..., d:, d:] ** 2, axis=-2))
     U = np.swapaxes(Wt, -1, -2)[..., ::-1]
     nan = ~fin
 
@@ -118,7 +120,7 @@ def data_factor(Z, F) -> GramFactor:
         fnorm=mask(fnorm, 1),
         R11=mask(R11, 2),
         R12=mask(R[..., :d, d:], 2),
-        r22=mask(np.sqrt(np.sum(R[..., d:, d:] ** 2, axis=-2)), 1),
+        r22=mask(r22, 1),
     )
 
 

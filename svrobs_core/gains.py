@@ -275,22 +275,21 @@ class _CvxpyDesign:
         cp = self.cp
         self.Ct.value, self.C.value, self.K.value = Ct, C, K_hat
         self.rho.value = budget
-        self.main.solve(solver=cp.CLARABEL)
-        if self.main.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        ok = (cp.OPTIMAL, cp.OPTIMAL_INACCURATE)
+        status = self._solve(self.main)
+        if status in ok:
             return self.L.value, True
         nan = np.full(self.L.shape, np.nan)
-        if self.main.status not in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
-            return nan, False
+        if status not in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
+            return nan, False  # solver failure: NaN gain, not certified
         offset = budget.max() - budget  # shifts that keep the row order of the budgets
         self.offset.value = offset
-        self.min_g.solve(solver=cp.CLARABEL)
-        if self.min_g.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        if self._solve(self.min_g) not in ok:
             return nan, False
         L1 = self.L.value
         top = float((np.abs(Ct - L1 @ C).sum(axis=-1) + offset).max())
         self.rho.value = top - offset
-        self.main.solve(solver=cp.CLARABEL)
-        if self.main.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        if self._solve(self.main) in ok:
             L2 = self.L.value
             if (np.abs(Ct - L2 @ C).sum(axis=-1) + offset).max() <= top + 1e-9:
                 return L2, False

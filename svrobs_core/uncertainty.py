@@ -163,7 +163,7 @@ def self_normalized_box(
     log_n_delta = 2.0 * np.log(n / float(delta))
     rank_tol = d * U_ROUND if fac.formed else (d * U_ROUND) ** 2
     err, cond = (np.broadcast_to(x, batch) for x in relative_error(fac, lam))
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         lam_min, lam_max = g[..., 0], g[..., -1]
         singular = ols & ~(lam_min > rank_tol * lam_max)
         lv = g + np.where(ols, 0.0, lam)[..., None]  # eigenvalues of V
@@ -191,11 +191,12 @@ def self_normalized_box(
     eps_B = root_n * beta * np.sqrt(np.maximum(lmax_B, 0.0))
     th = np.broadcast_to(theta, batch + (n, d))
     if np.any(shrink != 0):
-        R = R + shrink[..., None, None] * np.abs(th)
-        safe_th = np.where(np.isfinite(th), th, 0.0)
-        eps_A = eps_A + shrink * np.linalg.norm(safe_th[..., :n], ord=2, axis=(-2, -1))
-        if d > n:
-            eps_B = eps_B + shrink * np.linalg.norm(safe_th[..., n:], ord=2, axis=(-2, -1))
+        with np.errstate(over="ignore", invalid="ignore"):  # non-finite cells: NaN below
+            R = R + shrink[..., None, None] * np.abs(th)
+            safe_th = np.where(np.isfinite(th), th, 0.0)
+            eps_A = eps_A + shrink * np.linalg.norm(safe_th[..., :n], ord=2, axis=(-2, -1))
+            if d > n:
+                eps_B = eps_B + shrink * np.linalg.norm(safe_th[..., n:], ord=2, axis=(-2, -1))
     nan = bad[..., None, None]
     R = np.where(nan, np.nan, R)
     eps_A, eps_B, beta = (np.where(bad, np.nan, x) for x in (eps_A, eps_B, beta))
