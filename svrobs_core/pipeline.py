@@ -111,7 +111,11 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
     }
     notes = Notes((R, E))
     finite = np.isfinite(theta).all(axis=(-2, -1))
-    notes.add(~finite, "estimate: not finite (the simulated data leave the double range)")
+    notes.add(
+        ~finite,
+        "estimate: not finite (the simulated data leave the double range, or the"
+        " regularised problem is numerically singular)",
+    )
     unreliable = finite & ~(cond <= ESTIMATE_COND_LIMIT)
     notes.add(
         unreliable,

@@ -26,10 +26,11 @@ from . import estimators as _est
 from .data_factor import (
     U_ROUND,
     GramFactor,
+    VParts,
     data_factor,
     estimate_margin,
     gram_factor,
-    relative_error,
+    v_parts,
 )
 from .linalg import perron_upper_bound, up
 from .rollouts import draw_noise, regression_data
@@ -82,7 +83,8 @@ class BoxResult:
     sigma_w (...): the noise level used; reason (...) object: why a cell is
     NaN (None where defined); notes (...) object: caveats of a defined cell;
     rel_err, cond (...): the estimated relative error of the radii and
-    cond(Z Z^T + g I) (self-normalized only).
+    cond(Z Z^T + g I), parts: the :class:`~svrobs_core.data_factor.VParts`
+    they come from (self-normalized only).
     """
 
     R_A: np.ndarray
@@ -95,6 +97,7 @@ class BoxResult:
     beta: np.ndarray | None = None
     rel_err: np.ndarray | None = None
     cond: np.ndarray | None = None
+    parts: VParts | None = None
 
     @property
     def ok(self) -> np.ndarray:
@@ -156,33 +159,26 @@ def self_normalized_box(
     batch = np.broadcast_shapes(
         fac.lam.shape[:-1], theta.shape[:-2], lam.shape, sw.shape, shrink.shape
     )
-    g = np.broadcast_to(fac.lam, batch + (d,))
-    U = np.broadcast_to(fac.U, batch + (d, d))
     lam = np.broadcast_to(lam, batch)
     ols = lam == 0
     log_n_delta = 2.0 * np.log(n / float(delta))
     rank_tol = d * U_ROUND if fac.formed else (d * U_ROUND) ** 2
-    err, cond = (np.broadcast_to(x, batch) for x in relative_error(fac, lam))
+    parts = v_parts(fac, lam, lambda0=lambda0, n=n)
+    err, cond = (np.broadcast_to(x, batch) for x in (parts.err, parts.cond))
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        lam_min, lam_max = g[..., 0], g[..., -1]
+        lam_min, lam_max = parts.lam_min, parts.lam_max
         singular = ols & ~(lam_min > rank_tol * lam_max)
-        lv = g + np.where(ols, 0.0, lam)[..., None]  # eigenvalues of V
-        scale = np.where(ols, lambda0, lam)[..., None]
-        logdet = np.sum(np.log1p(g / scale), axis=-1)
+        logdet = parts.logdet
         beta_ridge = sw * np.sqrt(logdet + log_n_delta) + np.sqrt(lam) * S
         beta_ols = sw * np.sqrt((1.0 + lambda0 / lam_min) * (logdet + log_n_delta))
         beta = np.where(ols, beta_ols, beta_ridge)
-        inv = np.where(singular[..., None], np.nan, 1.0 / lv)  # eigenvalues of V^-1
-        diag = np.einsum("...jk,...jk,...k->...j", U, U, inv)  # diag(V^-1)
-        UA, UB = U[..., :n, :], U[..., n:, :]
-        WA = np.matmul(UA * inv[..., None, :], np.swapaxes(UA, -1, -2))  # (V^-1)_AA
-        WB = np.matmul(UB * inv[..., None, :], np.swapaxes(UB, -1, -2))
+        diag = np.where(singular[..., None], np.nan, parts.diag)  # diag(V^-1)
     bad = singular | ~np.isfinite(beta) | ~np.isfinite(theta).all(axis=(-2, -1))
+    bad = bad | ~np.isfinite(parts.lmax_A)
     inaccurate = ~bad & ~(err <= RADIUS_RTOL)
     bad = bad | inaccurate
-    safe = np.where(bad[..., None, None], 0.0, WA), np.where(bad[..., None, None], 0.0, WB)
-    lmax_A = np.linalg.eigvalsh(safe[0])[..., -1]
-    lmax_B = np.linalg.eigvalsh(safe[1])[..., -1] if d > n else np.zeros(batch)
+    lmax_A = np.where(bad, 0.0, parts.lmax_A)
+    lmax_B = np.where(bad, 0.0, parts.lmax_B)
     root_n = np.sqrt(n)
     beta = np.where(bad, 0.0, beta)  # NaN again below; keeps the arithmetic quiet
     R = beta[..., None, None] * np.sqrt(np.maximum(diag, 0.0))[..., None, :]
@@ -222,6 +218,7 @@ def self_normalized_box(
         beta=beta,
         rel_err=np.where(bad & ~inaccurate, np.nan, err),
         cond=cond,
+        parts=parts,
     )
 
 
@@ -243,15 +240,15 @@ def certificate_radii(box: BoxResult, fac: GramFactor, theta_hat, *, lam, shrink
     R = np.concatenate([box.R_A, box.R_B], axis=-1)
     lam = np.asarray(lam, dtype=float)
     shrink = np.asarray(shrink, dtype=float)
-    err, _ = relative_error(fac, lam)
+    parts = box.parts if box.parts is not None else v_parts(fac, lam, n=n)
+    err = parts.err
     if box.rel_err is not None:
         err = np.fmax(err, box.rel_err)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        inv = 1.0 / (fac.lam + lam[..., None])
-        diag = np.einsum("...jk,...jk,...k->...j", fac.U, fac.U, inv)
-        margin = estimate_margin(fac, theta, lam=lam, shrink=shrink)
+        margin = estimate_margin(fac, theta, lam=lam, shrink=shrink, parts=parts)
         e = (1.0 + err)[..., None, None]
-        floor = margin[..., :, None] * np.sqrt(np.maximum(diag, 0.0))[..., None, :] * e
+        diag = np.sqrt(np.maximum(parts.diag, 0.0))[..., None, :]
+        floor = margin[..., :, None] * diag * e
         floor = (1.0 + shrink)[..., None, None] * (floor + 4 * U_ROUND * np.abs(theta))
         R_up = up((R * e + floor) * (1.0 + 8 * U_ROUND))
     R_up = np.where((err <= RADIUS_RTOL)[..., None, None], R_up, np.nan)

@@ -70,7 +70,9 @@ def _strict(text: str):
 # ---------------------------------------------------------------------------
 # strategies
 # ---------------------------------------------------------------------------
-SCALES = [1e-12, 1e-6, 1e-3, 1.0, 1e3]
+BOUNDS = ["estimate", "bounds"]
+GAIN = [*BOUNDS, "gain"]
+STAGE_CHAINS = [BOUNDS, BOUNDS, GAIN, GAIN, GAIN, [*GAIN, "cost", "cost_bound"]]
 
 
 @st.composite
@@ -94,7 +96,7 @@ def systems(draw):
         B[0][0] = 1.0
     sigma_v = draw(st.sampled_from([0.1, 0.1, 1e-6, 100.0]))
     C = None
-    if n == 2 and draw(st.booleans()):
+    if n == 2 and draw(st.integers(0, 3)) == 0:
         eps = draw(st.sampled_from([1e-8, 1e-12]))
         C = draw(st.sampled_from([[[1.0, 0.0], [0.0, eps]], [[1.0, eps]]]))
     elif draw(st.integers(0, 5)) == 0:
@@ -117,7 +119,7 @@ def specs(draw):
         "systems": [system],
         "sigma_w": [draw(st.sampled_from([0.0, 0.0, 1e-18, 1e-3, 1.0, 1e3, 1e100]))],
         "N": [draw(st.sampled_from([1, d, d + 1, 5]))],
-        "T0": draw(st.sampled_from([300, 2000])) if long_run else draw(st.sampled_from([2, 3, 11])),
+        "T0": draw(st.sampled_from([300, 1000])) if long_run else draw(st.sampled_from([2, 3, 11])),
         "reps": draw(st.integers(1, 2)),
         "estimators": draw(
             st.lists(
@@ -137,21 +139,15 @@ def specs(draw):
         "M": draw(st.sampled_from([1e-3, 1.1, 1e6, 1e300])),
         "delta": draw(st.sampled_from([1e-9, 0.05, 0.5])),
         "bounds_method": method,
-        "stages": draw(
-            st.sampled_from(
-                [
-                    ["estimate", "bounds"],
-                    ["estimate", "bounds", "gain"],
-                    ["estimate", "bounds", "gain", "cost", "cost_bound"],
-                ]
-            )
-        ),  # fmt: skip
+        "stages": draw(st.sampled_from(STAGE_CHAINS)),
         "horizon": draw(st.sampled_from([1, 5])),
         "mc_reps": 0,
         "margin": draw(st.sampled_from([0.0, 0.01, 0.99])),
         "x0_std": draw(st.sampled_from([0.0, 0.0, 1.0, 1e100])),
         "seed": draw(st.integers(0, 2**63 - 1)),
     }
+    if "C" in system:  # a general C: the gain design solves a cone program per cell
+        spec["reps"] = 1
     if method == "self-normalized":
         spec["S"] = draw(st.sampled_from([None, 1e-6, 1e6]))
         spec["lambda0"] = draw(st.sampled_from([1e-6, 1.0, 1e6]))
@@ -222,7 +218,11 @@ def _check_record(r, spec, system):
 def test_extreme_valid_specs_run_and_their_certificates_hold(spec):
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
-        res = run_local(spec, out, quiet=True)  # raises (a traceback: exit 1) on any failure
+        try:
+            res = run_local(spec, out, quiet=True)  # raises (a traceback: exit 1) on any failure
+        except Exception as exc:
+            exc.add_note(f"spec: {json.dumps(spec)}")
+            raise
         lines = (out / "records.jsonl").read_text().splitlines()
         assert res["records"] == len(lines) > 0
         _strict((out / "summary.json").read_text())
