@@ -50,6 +50,9 @@ __all__ = [
 
 BOOT_STREAM = (2,)  # resample b of a cell's key uses the stream key + (2, b)
 RADIUS_RTOL = 1e-6  # radii whose estimated relative error exceeds this are null
+# lambda_min(G) <= this * lambda_max(G) of a formed Gram matrix: treated as singular
+# (svrobs_core.measured.noise; the box itself decides from its error estimate)
+SINGULAR_RTOL = 1e-12
 BOOT_CHUNK_BYTES = 16 * 2**20  # working set of one chunk of resampled datasets
 REASON_SINGULAR = "Z Z^T is singular (OLS self-normalized bound undefined)"
 REASON_NONFINITE = "non-finite estimate or noise level"
@@ -84,7 +87,8 @@ class BoxResult:
     NaN (None where defined); notes (...) object: caveats of a defined cell;
     rel_err, cond (...): the estimated relative error of the radii and
     cond(Z Z^T + g I), parts: the :class:`~svrobs_core.data_factor.VParts`
-    they come from (self-normalized only).
+    they come from (self-normalized only); R_A_up, R_B_up: the radii the
+    certificates use (:func:`certificate_radii`), when computed.
     """
 
     R_A: np.ndarray
@@ -98,6 +102,8 @@ class BoxResult:
     rel_err: np.ndarray | None = None
     cond: np.ndarray | None = None
     parts: VParts | None = None
+    R_A_up: np.ndarray | None = None
+    R_B_up: np.ndarray | None = None
 
     @property
     def ok(self) -> np.ndarray:
@@ -233,7 +239,8 @@ def certificate_radii(box: BoxResult, fac: GramFactor, theta_hat, *, lam, shrink
     distance of the computed estimate from the exact estimator on the exact
     data, and the final rounding (docs/uncertainty.md#certificates-on-the-boxes).
     NaN where the box is NaN or its error estimate exceeds RADIUS_RTOL, inf where
-    the margin is unbounded (a singular V).
+    the margin is unbounded (a singular V). From a formed Gram matrix
+    (:func:`gram_factor`, no data) the margin is taken as 0.
     """
     theta = np.asarray(theta_hat, dtype=float)
     n, d = theta.shape[-2:]
@@ -245,7 +252,10 @@ def certificate_radii(box: BoxResult, fac: GramFactor, theta_hat, *, lam, shrink
     if box.rel_err is not None:
         err = np.fmax(err, box.rel_err)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        margin = estimate_margin(fac, theta, lam=lam, shrink=shrink, parts=parts)
+        if fac.formed:  # no data: the estimate's rounding is not bounded (margin 0)
+            margin = np.zeros(parts.diag.shape[:-1] + (n,))
+        else:
+            margin = estimate_margin(fac, theta, lam=lam, shrink=shrink, parts=parts)
         e = (1.0 + err)[..., None, None]
         diag = np.sqrt(np.maximum(parts.diag, 0.0))[..., None, :]
         floor = margin[..., :, None] * diag * e

@@ -66,14 +66,25 @@ def sound_bounds(c, *, G, Z, F, N: int, N0: int) -> SoundBounds:
 
     ``c``: the pipeline's cell context (spec, system, sigma_w, keys, axis,
     A_hat, B_hat, notes); Z, F the data (R, d, N0), (R, n, N0), factorised
-    here (:func:`svrobs_core.uncertainty.data_factor`); G (the Gram
-    matrices) is not used: the radii come from the data themselves.
+    by :func:`sound_box`; G (the Gram matrices) only where there are no data.
     """
+    return bounds_from_box(c, sound_box(c, G=G, Z=Z, F=F, N=N, N0=N0))
+
+
+def sound_box(c, *, G, Z, F, N: int, N0: int) -> _unc.BoxResult:
+    """The box of the spec's ``bounds_method`` for one dataset's cells
+    (:func:`sound_bounds`), with the radii its certificates use (``R_A_up``,
+    ``R_B_up``, :func:`svrobs_core.uncertainty.certificate_radii`).
+
+    The radii come from the data's own factor (:func:`svrobs_core.uncertainty.data_factor`);
+    with ``Z`` None (a caller with only the Gram matrices G) from the formed
+    G, whose error estimate is larger and whose certificate radii cannot
+    include the estimate's rounding margin."""
     spec, system = c.spec, c.system
     theta = np.concatenate([c.A_hat, c.B_hat], axis=-1)
-    R, E = theta.shape[:2]
     lam, shrink = _ridge_axis(c.axis, N0, spec.loss_scale)
-    fac = _unc.data_factor(Z, F).expand(1)  # (R, 1, ...): shared by the E cells
+    # (R, 1, ...): one factor per dataset, shared by its E cells
+    fac = (_unc.data_factor(Z, F) if Z is not None else _unc.gram_factor(G)).expand(1)
     if spec.bounds_method == "self-normalized":
         box = _unc.self_normalized_box(
             fac,
@@ -108,21 +119,36 @@ def sound_bounds(c, *, G, Z, F, N: int, N0: int) -> SoundBounds:
             loss_scale=spec.loss_scale,
         )
         c.notes.add(True, HEURISTIC_NOTE)
+    R_A_up, R_B_up = _unc.certificate_radii(box, fac, theta, lam=lam, shrink=shrink)
+    return replace(box, R_A_up=R_A_up, R_B_up=R_B_up)
+
+
+def bounds_from_box(c, box: _unc.BoxResult) -> SoundBounds:
+    """Record fields and BoundsResult of the cells of ``c`` on ``box`` (:func:`sound_bounds`).
+
+    The certificates use ``box.R_A_up`` (``box.R_A`` where the box has none).
+    Without a true system (``c.system.A`` None: measured data) the coverage
+    fields are left out."""
+    spec, system = c.spec, c.system
+    R, E = c.A_hat.shape[:2]
     c.notes.add_reasons(box.reason, "bounds")
     c.notes.add_reasons(box.notes, "bounds")
     c.notes.add(True, PAPER_ONLY_NOTE)
-    R_A_up, R_B_up = _unc.certificate_radii(box, fac, theta, lam=lam, shrink=shrink)
+    R_A_up = box.R_A if box.R_A_up is None else box.R_A_up
+    R_B_up = box.R_B if box.R_B_up is None else box.R_B_up
     unbounded = box.ok & ~np.isfinite(R_A_up).all(axis=(-2, -1))
     c.notes.add(unbounded, MARGIN_NOTE)
-    rho = _unc.rho_upper_bound(c.A_hat, np.where(unbounded[..., None, None], np.nan, R_A_up))
+    R_A_up = np.where(unbounded[..., None, None], np.nan, R_A_up)
+    rho = _unc.rho_upper_bound(c.A_hat, R_A_up)
     with np.errstate(invalid="ignore"):  # null, not false, where rho or eps is undefined
         certified = nullable(rho < 1.0, np.isfinite(rho) & np.isfinite(box.eps_A))
-    cov_A = _coverage(system.A, c.A_hat, box.R_A)
-    cov_B = _coverage(system.B, c.B_hat, box.R_B)
+    truth = system.A is not None
+    cov_A = _coverage(system.A, c.A_hat, box.R_A) if truth else None
+    cov_B = _coverage(system.B, c.B_hat, box.R_B) if truth else None
     fields = {
         "bounds_method": np.broadcast_to(np.array(spec.bounds_method, dtype=object), (R, E)),
         "r_A": box.r_A,
-        "r_B": box.r_B,
+        "r_B": box.r_B if box.R_B.shape[-1] else np.full((R, E), np.nan),  # m = 0: no B
         "radii_A": box.R_A,
         "radii_B": box.R_B,
         "eps_A": box.eps_A,
@@ -140,5 +166,5 @@ def sound_bounds(c, *, G, Z, F, N: int, N0: int) -> SoundBounds:
         coverage_A=cov_A,
         coverage_B=cov_B,
     )
-    cert_box = replace(box, R_A=np.where(unbounded[..., None, None], np.nan, R_A_up), R_B=R_B_up)
+    cert_box = replace(box, R_A=R_A_up, R_B=R_B_up)
     return SoundBounds(box=cert_box, fields=fields, result=result)
