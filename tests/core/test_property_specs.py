@@ -7,6 +7,8 @@ dimension, final data, nearly singular C, marginal systems (rho(A) = 1), huge
 x0_std, every bounds_method and stage chain.
 
 Oracles, in exact rational arithmetic (fractions) on the record's own numbers:
+a self-normalized box that certifies is first recomputed in 60-digit mpmath
+from the simulated data (up to 200 samples) and must agree to 1e-6;
 ``stable_certified`` true needs rho(M) < 1 for the nonnegative M = |A_hat| + R
 (paper: |(1+gamma) A~| + r_A), decided by the leading principal minors of
 I - M (all positive iff rho(M) < 1 for M >= 0); ``certified`` true needs
@@ -29,6 +31,10 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from svrobs_cli.local import run_local
+from svrobs_core import estimators as est
+from svrobs_core.rollouts import gram_data, seed_key
+from svrobs_core.systems import resolve_system
+from tests.core.exact_boxes import exact_box
 
 EXAMPLES = 2000
 
@@ -174,9 +180,39 @@ def _centre_and_radius(r, spec):
     return centre, R
 
 
+def _check_radii_with_mpmath(r, spec, system):
+    if r["N0"] > 200:
+        return
+    event("a certifying self-normalized box recomputed in mpmath")
+    _, _, Z, _ = gram_data(
+        resolve_system(system),
+        r["sigma_w"],
+        r["N"],
+        spec["T0"],
+        seed=spec["seed"],
+        keys=[seed_key(0, 0, r["N"], r["rep"])],
+        data=spec["data"],
+        x0_std=spec["x0_std"],
+        keep_data=True,
+    )
+    lam, shrink = 0.0, 0.0
+    if r["estimator"] == "svr":
+        lam = float(est.ridge_parameters([r["gamma"]], r["N0"], spec["loss_scale"])[0])
+    elif r["estimator"] == "shrunk-ols":
+        shrink = r["gamma"]
+    theta = np.concatenate([np.array(r["A_hat"]), np.array(r["B_hat"])], axis=1)
+    S = spec.get("S") or math.sqrt(2) * spec["M"]
+    ex = exact_box(Z[0], theta, sigma_w=r["sigma_w"], delta=spec["delta"], lam=lam, S=S,
+                   lambda0=spec.get("lambda0", 1.0), shrink=shrink)  # fmt: skip
+    R = np.concatenate([np.array(r["radii_A"]), np.array(r["radii_B"])], axis=1)
+    assert np.allclose(R, ex.R, rtol=1e-6, atol=0), (R, ex.R)
+
+
 def _check_record(r, spec, system):
     n = len(system["A"])
     C = system.get("C") or np.eye(n).tolist()
+    if (r["stable_certified"] or r.get("certified")) and spec["bounds_method"] == "self-normalized":
+        _check_radii_with_mpmath(r, spec, system)
     if r["stable_certified"]:
         event(f"stable_certified true ({spec['bounds_method']})")
         centre, R = _centre_and_radius(r, spec)
