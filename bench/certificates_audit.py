@@ -29,74 +29,33 @@ from svrobs_core.runner import run_spec
 from svrobs_core.spec import parse_spec
 
 sys.path.append(str(Path(__file__).resolve().parents[1]))
-from tests.core.exact_boxes import exact_box  # noqa: E402
+from tests.core.exact_boxes import FASTSLOW, PAPER_T900, exact_box  # noqa: E402
 
+INTEGRATOR = {
+    "systems": [{"name": "integrator", "A": [[1.0]], "B": [[1.0]], "sigma_v": 0.1}],
+    "sigma_w": [0.0, 1e-18],
+    "N": [2, 5],
+    "T0": 5,
+    "reps": 20,
+    "estimators": ["ols", "shrunk-ols"],
+    "gamma": [1e-12],
+    "bounds_method": "self-normalized",
+    "delta": 0.05,
+    "stages": ["estimate", "bounds"],
+    "seed": 0,
+}
 SPECS = {
-    # an unstable fast/slow system: cond(Z Z^T + g I) 1e17-1e19
-    "fastslow": {
-        "systems": [
-            {
-                "name": "fastslow_unst",
-                "A": [[1.02515, 0.02485], [0.02485, 1.02515]],
-                "B": [[1.0], [1.0]],
-                "sigma_v": 100.0,
-            }
-        ],
-        "sigma_w": [0.001],
-        "N": [20],
-        "T0": 365,
-        "reps": 300,
-        "estimators": ["svr"],
-        "gamma": [1e-06],
-        "bounds_method": "self-normalized",
-        "delta": 0.05,
-        "margin": 1e-06,
-        "stages": ["estimate", "bounds", "gain"],
-        "seed": 0,
-    },
-    # the paper's unstable system over a long rollout
-    "paper-unstable-T900": {
-        "systems": ["paper-unstable"],
-        "sigma_w": [1.0],
-        "N": [20],
-        "T0": 900,
-        "reps": 4,
-        "estimators": ["ols", "svr"],
-        "gamma": [0.05, 1.0],
-        "bounds_method": "self-normalized",
-        "delta": 0.05,
-        "stages": ["estimate", "bounds", "gain"],
-        "seed": 0,
-    },
-    # a marginal system (rho(A) = 1) without noise: zero-width boxes
-    "integrator": {
-        "systems": [{"name": "integrator", "A": [[1.0]], "B": [[1.0]], "sigma_v": 0.1}],
-        "sigma_w": [0.0, 1e-18],
-        "N": [2, 5],
-        "T0": 5,
-        "reps": 20,
-        "estimators": ["ols", "shrunk-ols"],
-        "gamma": [1e-12],
-        "bounds_method": "self-normalized",
-        "delta": 0.05,
-        "stages": ["estimate", "bounds"],
-        "seed": 0,
-    },
-    "integrator-bootstrap": {
-        "systems": [{"name": "integrator", "A": [[1.0]], "B": [[1.0]], "sigma_v": 0.1}],
-        "sigma_w": [0.0],
-        "N": [2, 5],
-        "T0": 5,
-        "reps": 20,
-        "estimators": ["ols", "svr"],
-        "gamma": [1e-12],
-        "bounds_method": "bootstrap",
-        "boot_sigma_w": "spec",
-        "boot_reps": 20,
-        "delta": 0.05,
-        "stages": ["estimate", "bounds"],
-        "seed": 0,
-    },
+    "fastslow": FASTSLOW,  # an unstable fast/slow system: cond(Z Z^T + g I) 6e18-1.4e19
+    "paper-unstable-T900": PAPER_T900,  # the paper's unstable system over a long rollout
+    "integrator": INTEGRATOR,  # a marginal system (rho(A) = 1) without noise: zero-width boxes
+    "integrator-bootstrap": dict(
+        INTEGRATOR,
+        sigma_w=[0.0],
+        estimators=["ols", "svr"],
+        bounds_method="bootstrap",
+        boot_sigma_w="spec",
+        boot_reps=20,
+    ),
 }
 
 

@@ -14,6 +14,44 @@ import numpy as np
 
 DPS = 60
 
+# Ill-conditioned specs (cond(Z Z^T + g I) 1e18-1e19): an unstable fast/slow
+# system whose slow direction only the noise excites, and the paper's unstable
+# system over a long rollout (bench/certificates_audit.py; the tests trim reps).
+FASTSLOW = {
+    "systems": [
+        {
+            "name": "fastslow_unst",
+            "A": [[1.02515, 0.02485], [0.02485, 1.02515]],
+            "B": [[1.0], [1.0]],
+            "sigma_v": 100.0,
+        }
+    ],
+    "sigma_w": [0.001],
+    "N": [20],
+    "T0": 365,
+    "reps": 300,
+    "estimators": ["svr"],
+    "gamma": [1e-06],
+    "bounds_method": "self-normalized",
+    "delta": 0.05,
+    "margin": 1e-06,
+    "stages": ["estimate", "bounds", "gain"],
+    "seed": 0,
+}
+PAPER_T900 = {
+    "systems": ["paper-unstable"],
+    "sigma_w": [1.0],
+    "N": [20],
+    "T0": 900,
+    "reps": 4,
+    "estimators": ["ols", "svr"],
+    "gamma": [0.05, 1.0],
+    "bounds_method": "self-normalized",
+    "delta": 0.05,
+    "stages": ["estimate", "bounds", "gain"],
+    "seed": 0,
+}
+
 
 @dataclass
 class ExactBox:

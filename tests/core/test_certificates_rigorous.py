@@ -21,7 +21,7 @@ from svrobs_core import uncertainty as unc
 from svrobs_core.data_factor import U_EXT
 from svrobs_core.linalg import perron_upper_bound
 from svrobs_core.rollouts import gram_data, seed_key
-from tests.core.exact_boxes import exact_box
+from tests.core.exact_boxes import FASTSLOW, PAPER_T900, exact_box
 
 TOL = unc.RADIUS_RTOL
 
@@ -101,43 +101,9 @@ def test_a_formed_gram_loses_the_radii_where_the_data_keep_them():
     assert np.isfinite(R).all() and _rel(R, ex.R) <= 1e-6
 
 
-FASTSLOW = {
-    "systems": [
-        {
-            "name": "fastslow_unst",
-            "A": [[1.02515, 0.02485], [0.02485, 1.02515]],
-            "B": [[1.0], [1.0]],
-            "sigma_v": 100.0,
-        }
-    ],
-    "sigma_w": [0.001],
-    "N": [20],
-    "T0": 365,
-    "reps": 6,
-    "estimators": ["svr"],
-    "gamma": [1e-06],
-    "bounds_method": "self-normalized",
-    "delta": 0.05,
-    "margin": 1e-06,
-    "stages": ["estimate", "bounds", "gain"],
-    "seed": 0,
-}
-PAPER_T900 = {
-    "systems": ["paper-unstable"],
-    "sigma_w": [1.0],
-    "N": [20],
-    "T0": 900,
-    "reps": 1,
-    "estimators": ["ols", "svr"],
-    "gamma": [0.05, 1.0],
-    "bounds_method": "self-normalized",
-    "delta": 0.05,
-    "stages": ["estimate", "bounds", "gain"],
-    "seed": 0,
-}
-
-
-@pytest.mark.parametrize("spec_obj", [FASTSLOW, PAPER_T900], ids=["fastslow", "paper-T900"])
+@pytest.mark.parametrize(
+    "spec_obj", [dict(FASTSLOW, reps=6), dict(PAPER_T900, reps=1)], ids=["fastslow", "paper-T900"]
+)
 def test_ill_conditioned_specs_give_mpmath_radii_or_nulls_and_no_false_certificate(spec_obj):
     spec = parse_spec(spec_obj)
     system = spec.systems[0]
