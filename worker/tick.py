@@ -60,8 +60,11 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
     from service.db.clock import db_now
     from service.db.session import session_scope
 
-    if celery is None:
-        from worker.celery_app import celery_app as celery
+    if celery is None:  # a tick run outside a worker or beat: a publisher of its own
+        from service.broker import make_celery
+        from service.config import get_settings
+
+        celery = make_celery(get_settings())
     with session_scope(write=False) as s:
         start = db_now(s)
     # raises if the broker is unreachable: retried next tick
