@@ -5,6 +5,7 @@ ENV PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PYTHONPATH=/app \
 WORKDIR /app
 COPY pyproject.toml ./
 COPY svrobs_core ./svrobs_core
+COPY svrobs_lab ./svrobs_lab
 COPY service ./service
 COPY worker ./worker
 COPY migrations ./migrations
@@ -12,4 +13,4 @@ RUN pip install . && useradd --create-home svrobs && mkdir -p /var/lib/svrobs \
     && chown svrobs /var/lib/svrobs
 USER svrobs
 EXPOSE 8000
-CMD ["uvicorn", "service.api.main:app", "--host", "0.0.0.0", "--port", "8000"]
+CMD ["uvicorn", "service.app:app", "--host", "0.0.0.0", "--port", "8000"]

@@ -16,7 +16,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # before bench/
 
 from fastapi.testclient import TestClient
 
-from service.api.main import create_app
+from service.app import create_app
 from service.config import Settings
 from service.db import accounts, jobs, units
 from service.db.migrate import upgrade

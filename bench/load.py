@@ -3,7 +3,7 @@
     .venv/bin/python bench/load.py                 # 20 clients, 60 s
     .venv/bin/python bench/load.py --seconds 10 --clients 5
 
-It starts ``uvicorn service.api.main:app`` on a free loopback port (SQLite and
+It starts ``uvicorn service.app:app`` on a free loopback port (SQLite and
 the filesystem broker in a temporary folder, no worker: submitted jobs stay
 queued), stores one finished job of 10,000 result rows (synthetic records with
 every record field, written through ``units.complete_unit`` as a worker would),
@@ -187,7 +187,7 @@ def start_server(tmp: Path, db_url: str, port: int, workers: int = 1) -> subproc
         sys.executable,
         "-m",
         "uvicorn",
-        "service.api.main:app",
+        "service.app:app",
         "--host",
         HOST,
         "--port",

@@ -44,7 +44,7 @@ from sqlalchemy import create_engine, text
 from sqlalchemy.orm import Session
 
 from bench.pg_private import bench_pg_url, private_database
-from service.api.main import create_app
+from service.app import create_app
 from service.config import Settings
 from service.db import accounts
 from service.db.jobs import create_job

@@ -21,10 +21,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from . import planning
 from .errors import SpecError
 from .estimators import FALLBACK_CHUNK_BYTES, SVR_COND_LIMIT
 from .gains import is_orthogonal
-from .planning import plan_units
 from .spec import ExperimentSpec
 from .uncertainty import BOOT_CHUNK_BYTES
 
@@ -243,7 +243,7 @@ def plan_under_memory(spec: ExperimentSpec, *, max_unit_bytes: int | None = None
     repetition (which may still be above the cap: the caller compares
     ``estimate_job(spec, units).peak_unit_bytes`` with it). None: no cap. The
     records do not depend on the split."""
-    units = plan_units(spec)
+    units = planning.plan_units(spec)
     if max_unit_bytes is None:
         return units
     return [v for u in units for v in _fit_memory(spec, u, max_unit_bytes)]
@@ -270,7 +270,7 @@ def estimate_job(spec: ExperimentSpec, units: list[dict] | None = None) -> JobCo
     """Total CPU seconds of ``units`` (default: ``plan_units(spec)``), the largest
     unit's peak bytes and the unit count."""
     if units is None:
-        units = plan_units(spec)
+        units = planning.plan_units(spec)
     seen: dict[tuple, UnitCost] = {}  # units differing only in sigma_w cost the same
     costs = []
     limit = spec.reps if spec.mc_reps is None else spec.mc_reps

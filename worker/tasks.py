@@ -167,15 +167,10 @@ def _dispatch_team(unit_id: int) -> None:
     """Publish the next units of the unit's team (its slot is free); best effort: the
     tick's relay publishes whatever this misses."""
     from service.broker import publish_units
-    from service.db import outbox
+    from svrobs_lab.dispatch import dispatch_team_of_unit
 
     try:
-        with session_scope(write=False) as s:
-            team_id = outbox.team_of_unit(s, unit_id)
-        if team_id is not None:
-            outbox.dispatch(
-                session_scope, lambda ids: publish_units(current_app, ids), team_id=team_id
-            )
+        dispatch_team_of_unit(session_scope, lambda ids: publish_units(current_app, ids), unit_id)
     except Exception as exc:  # noqa: BLE001 - the unit's own outcome is stored already
         log.warning("unit %s: publishing its team's next units failed: %s", unit_id, exc)
 

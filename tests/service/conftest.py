@@ -13,10 +13,10 @@ from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session
 
-from service.api.deps import get_broker_check
 from service.db import accounts
 from service.db.migrate import upgrade
 from service.db.session import create_db_engine
+from service.http.deps import get_broker_check
 from tests.service.svc_helpers import Account, RecordingPublisher, make_settings, no_broker_check
 
 PG_ENV = "SVROBS_TEST_DATABASE_URL"
@@ -118,7 +118,7 @@ def settings(db_url):
 @pytest.fixture
 def build_client(session_factory, db_url):
     """build_client(**settings_overrides) -> (TestClient, publisher)."""
-    from service.api.main import create_app
+    from service.app import create_app
 
     def build(**kw):
         app = create_app(make_settings(db_url, **kw))
