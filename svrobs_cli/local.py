@@ -55,9 +55,7 @@ def run_local(
 
     settings = get_settings()
     overrides = {"MAX_JOB_CPU_SECONDS": max_cpu_seconds, "MAX_UNIT_MEMORY_MB": max_memory_mb}
-    settings = settings.model_copy(
-        update={k: v for k, v in overrides.items() if v is not None}
-    )
+    settings = settings.model_copy(update={k: v for k, v in overrides.items() if v is not None})
     spec = parse_spec(spec_obj)
     units = admit_spec(spec, settings)
     out = Path(out)

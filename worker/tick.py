@@ -142,7 +142,7 @@ def start_report_builds() -> bool:
     def run():
         try:
             build_reports()
-        except Exception:  # noqa: BLE001 - retried next tick
+        except Exception:  # retried next tick (logged with its traceback)
             log.exception("tick: building reports failed; will retry next tick")
 
     if _report_thread is None:  # the first build of this process
@@ -176,12 +176,12 @@ def run_tick(now: datetime | None = None, celery=None, *, reports: bool = True) 
         out["errors"].append(f"schedules: {type(exc).__name__}: {exc}")
     try:
         out["relayed"] = relay(celery)
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - the broker or the DB may be down: the next tick retries
         log.warning("tick: relay failed (%s: %s); will retry next tick", type(exc).__name__, exc)
         out["errors"].append(f"relay: {type(exc).__name__}: {exc}")
     try:
         out["pruned"] = prune_expired()
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # logged with its traceback; the next tick retries
         log.exception("tick: retention failed; will retry next tick")
         out["errors"].append(f"retention: {type(exc).__name__}: {exc}")
     if reports:

@@ -145,7 +145,7 @@ def create_due_schedule_jobs(
     for sched in schedules:
         try:
             due = latest_due(sched.cron, sched.timezone, now)
-        except Exception:  # an invalid cron in the DB must not stop the others
+        except Exception:  # noqa: BLE001 - an invalid cron or zone in the DB must not stop the others
             continue
         created = sched.created_at.replace(microsecond=0) if sched.created_at else None
         if created is not None and due < created:

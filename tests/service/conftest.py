@@ -11,6 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session
 
 from service.db import accounts
@@ -30,7 +31,7 @@ def _pg_private_db(base_url: str):
     try:
         with admin_engine.connect() as c:
             c.execute(text(f'CREATE DATABASE "{name}"'))
-    except Exception:
+    except DBAPIError:
         admin_engine.dispose()
         return base_url, None  # no CREATEDB right: use the given database as is
     return url.set(database=name).render_as_string(hide_password=False), (admin_engine, name)

@@ -39,7 +39,7 @@ def _parallel(fns):
         try:
             barrier.wait(5)
             fn()
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:  # noqa: BLE001 - every thread's error is asserted on below
             errors.append(exc)
 
     threads = [threading.Thread(target=wrap, args=(f,)) for f in fns]
