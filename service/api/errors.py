@@ -1,7 +1,7 @@
 """Every error the API answers, mapped to a response once (``install_error_handlers``).
 
 The body is always JSON ``{"detail": ..., "field": ...}``. An application error
-(:class:`svrobs_lab.errors.LabError`) is answered by its kind (:data:`STATUS`): 422
+(:class:`svrobs_lab.errors.LabError`) is answered by its kind (``service.http.errors``): 422
 for a bad value (naming the field; a bad spec is a
 :class:`~svrobs_core.errors.SpecError`, also 422), 404 not found, 409 a conflict
 (an Idempotency-Key reused with another spec, deleting a job that is queued or
@@ -25,6 +25,7 @@ from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service.http.errors import status_of
 from svrobs_core.errors import SpecError
 from svrobs_lab.errors import LabError, RateLimited
 from svrobs_lab.schemas import ErrorOut
@@ -41,18 +42,6 @@ def error_docs(*statuses: int) -> dict:
 
 ERRORS = error_docs(401, 404, 422, 429, 503)
 BODY_ERRORS = {**ERRORS, **error_docs(413)}  # routes with a body: SVROBS_MAX_BODY_BYTES
-
-
-# the HTTP status of each kind of application error (svrobs_lab.errors)
-STATUS = {
-    "invalid": 422,
-    "not_found": 404,
-    "conflict": 409,
-    "gone": 410,
-    "forbidden": 403,
-    "quota": 429,
-    "too_large": 413,
-}
 
 
 class _ErrorJSONResponse(JSONResponse):
@@ -91,10 +80,8 @@ def _loc_to_field(loc) -> str | None:
 
 def lab_error_response(exc: LabError | SpecError) -> JSONResponse:
     """The JSON answer of an application error (or a bad spec)."""
-    if not isinstance(exc, LabError):  # a SpecError of the core
-        return error_response(422, exc.message, exc.field)
     headers = {"Retry-After": str(exc.retry_after)} if isinstance(exc, RateLimited) else None
-    return error_response(STATUS.get(exc.kind, 400), exc.message, exc.field, headers=headers)
+    return error_response(status_of(exc), exc.message, exc.field, headers=headers)
 
 
 async def _lab_error(request: Request, exc: LabError | SpecError):

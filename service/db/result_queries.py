@@ -14,10 +14,10 @@ import math
 import re
 from collections.abc import Iterable, Iterator, Sequence
 
-from sqlalchemy import Select, func, select
+from sqlalchemy import JSON, Select, String, column, func, select, true
 from sqlalchemy.orm import Session
 
-from svrobs_core.records import BOOL_FIELDS, NUMERIC_FIELDS
+from svrobs_core.records import BOOL_FIELDS, NUMERIC_FIELDS, SUMMARY_FIELDS
 from svrobs_lab.errors import Invalid
 
 from .models import Result, Summary
@@ -150,3 +150,45 @@ def grid_choices(session: Session, job_id: int) -> dict[str, list]:
         out[f] = list(session.scalars(q))
     out["gamma"] = ["null" if g < 0 else repr(g) for g in out.pop("gamma_key")]
     return out
+
+
+def summary_stats(session: Session, job_id: int, fields: Sequence[str]) -> list[dict]:
+    """The job's summary groups with the stats of ``fields`` only: the database takes
+    those fields out of each row's stats (the rest is never decoded)."""
+    rows = session.execute(
+        select(
+            Summary.system,
+            Summary.sigma_w,
+            Summary.N,
+            Summary.estimator,
+            Summary.gamma,
+            *(Summary.stats[f] for f in fields),
+        ).where(Summary.job_id == job_id)
+    ).all()
+    return [
+        dict(
+            system=r[0],
+            sigma_w=r[1],
+            N=r[2],
+            estimator=r[3],
+            gamma=r[4],
+            stats=dict(zip(fields, r[5:])),
+        )
+        for r in rows
+    ]
+
+
+def summary_metrics(session: Session, job_id: int) -> list[str]:
+    """Summary fields with a non-null mean in at least one of the job's groups, in
+    record order (json_each: each row's stats parsed once, on either dialect)."""
+    each = func.json_each(Summary.stats).table_valued(column("key", String), column("value", JSON))
+    seen = set(
+        session.scalars(
+            select(each.c.key)
+            .select_from(Summary)
+            .join(each, true())
+            .where(Summary.job_id == job_id, each.c.value["mean"].as_float().is_not(None))
+            .distinct()
+        )
+    )
+    return [f for f in SUMMARY_FIELDS if f in seen]

@@ -1,26 +1,18 @@
 """Application errors on a page: :func:`lab_error_page` maps each
-:class:`svrobs_lab.errors.LabError` kind (and a bad spec, a
-:class:`~svrobs_core.errors.SpecError`) to the web UI's error page, once."""
+:class:`svrobs_lab.errors.LabError` (and a bad spec, a
+:class:`~svrobs_core.errors.SpecError`) to the web UI's error page, once, with the
+status of its kind (:mod:`service.http.errors`)."""
 
 from __future__ import annotations
 
 from fastapi import Request
 from fastapi.responses import HTMLResponse
 
+from service.http.errors import status_of
 from svrobs_core.errors import SpecError
 from svrobs_lab.errors import LabError
 
 from .render import WebError, render
-
-STATUS = {
-    "invalid": 422,
-    "not_found": 404,
-    "conflict": 409,
-    "gone": 410,
-    "forbidden": 403,
-    "quota": 429,
-    "too_large": 413,
-}
 
 
 def plain(exc: LabError | SpecError) -> str:
@@ -32,8 +24,7 @@ def plain(exc: LabError | SpecError) -> str:
 
 
 def web_error(exc: LabError | SpecError) -> WebError:
-    status = STATUS.get(exc.kind, 400) if isinstance(exc, LabError) else 422
-    return WebError(status, plain(exc))
+    return WebError(status_of(exc), plain(exc))
 
 
 def lab_error_page(request: Request, exc: LabError | SpecError) -> HTMLResponse:
