@@ -42,8 +42,8 @@ SPEC = {
 # to FIELDS_V1. Taken on commit 369bee5, before the restructure of issue 9;
 # updated for issue 10 item 4 (every SLS solve takes cvxpy's cached-parameter
 # path: J_opt changed in the last bits, 34 of 120 records, at most 3.3e-15
-# relative) and for issue 19 (rho_upper_bound and g_L are upper bounds
-# evaluated with outward rounding, a Collatz-Wielandt bound and rounded-up sums:
+# relative) and for the outward-rounded certificates (rho_upper_bound and g_L
+# are upper bounds: a Collatz-Wielandt bound and rounded-up sums;
 # rho_upper_bound differs from the eigenvalue it replaced in 119 of 120
 # records by at most 2.3e-15 relative, g_L in 120 of 120 by at most 1.7e-15;
 # every other field is bit-identical, checked by comparing the records field
