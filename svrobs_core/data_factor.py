@@ -8,8 +8,9 @@ R-only Householder QR of ``[Z^T F^T]`` (backward stable: the exact QR of data
 off by ~u ||Z_j|| per regressor row) and the SVD of the small triangle
 ``R11`` (``Z^T = Q R11``), so ``Z Z^T = U diag(s^2) U^T`` with ``s`` accurate to
 ~u ||Z|| absolutely. Datasets where that is not accurate enough (the error
-estimate of :func:`v_parts` above EXTEND_K) are factorised again in extended
-precision (``np.longdouble``, u ~ 5e-20 on x86-64): the same Householder QR,
+estimate of :func:`v_parts` above EXTEND_K, and at most EXT_MAX_WORK big)
+are factorised again in extended precision (``np.longdouble``, u ~ 5e-20 on
+x86-64): the same Householder QR,
 then the triangle of ``[R11; sqrt(lam) I]`` and its inverse per cell. See
 docs/uncertainty.md#numerical-accuracy-of-the-radii.
 
@@ -31,6 +32,9 @@ U_ROUND = np.finfo(float).eps / 2  # unit roundoff of a double
 U_EXT = float(np.finfo(np.longdouble).eps) / 2  # of np.longdouble (= U_ROUND where no wider type)
 EXTEND_K = 1e-10  # u ||Z||_F / sigma_min(Z) above this: the dataset is factorised again, extended
 EXT_CHUNK_BYTES = 32 * 2**20  # extended-precision data held at once (at least one dataset)
+# N0 (d + n)^2 above this: no extended pass (~2e-8 s per unit: 2 s a dataset); the
+# double factor's estimate decides (null radii with the note where it is too large)
+EXT_MAX_WORK = 1e8
 
 
 @dataclass
@@ -169,7 +173,7 @@ def data_factor(Z, F) -> GramFactor:
 
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         k64 = U_ROUND * np.sqrt(np.sum(col * col, axis=-1)) / s[..., -1]
-    ext = fin & ~(k64 <= EXTEND_K) & (U_EXT < U_ROUND)
+    ext = fin & ~(k64 <= EXTEND_K) & (U_EXT < U_ROUND) & (Z.shape[-1] * k * k <= EXT_MAX_WORK)
     R11x = np.zeros(R11.shape, dtype=np.longdouble)
     R12x = np.zeros(R[..., :d, d:].shape, dtype=np.longdouble)
     r22x = np.zeros(r22.shape, dtype=np.longdouble)
