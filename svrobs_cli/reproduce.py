@@ -45,8 +45,7 @@ import numpy as np
 from rich.console import Console
 
 from service.db.provenance import git_commit
-from service.progress import progress_bar
-from service.reports.html import render_html
+from svrobs_cli.progress import progress_bar
 from svrobs_core import __version__, parse_spec, plan_units
 from svrobs_core import report as rpt
 from svrobs_core.paper import EXPERIMENTS, MC_DECISION, PRESET_NAME, paper_specs
@@ -54,6 +53,7 @@ from svrobs_core.parallel import open_pool
 from svrobs_core.pipeline import failed_stage, shares_data
 from svrobs_core.runner import run_unit_results
 from svrobs_core.threads import blas_single_thread
+from svrobs_lab.report_html import render_html
 
 # Above this many cells an experiment keeps no A_hat/B_hat in memory for the
 # report (only E1/E2-sized grids draw the figures that need them).

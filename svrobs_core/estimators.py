@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import DimensionError, check_matrix
+from .linalg import solve as _solve
 
 LOSS_SCALES = ("sum", "mean")
 
@@ -190,7 +191,6 @@ def svr_from_gram(
     loss_scale: str = "sum",
     data=None,
     return_cond: bool = False,
-    factor=None,
 ):
     """:func:`fit_svr` from the sufficient statistics ``G = Z Z^T`` (..., d, d)
     and ``FZt = F Z^T`` (..., n, d) of datasets with ``N0`` samples each.
@@ -204,18 +204,13 @@ def svr_from_gram(
     error grows like cond(G + g I) * eps). -> (..., G, n, d); with
     ``return_cond`` also cond(Z Z^T + g I) (..., G), from the QR factor for
     the QR cells (the eigenvalues of G cannot resolve it above ~1/eps).
-    ``factor``: ``(lam, V)`` of :func:`svrobs_core.uncertainty.gram_factor` (G),
-    when the caller has it already.
     """
     G = np.asarray(G, dtype=float)
     FZt = np.asarray(FZt, dtype=float)
     g = ridge_parameters(gammas, N0, loss_scale)
     ok = np.isfinite(G).all(axis=(-1, -2)) & np.isfinite(FZt).all(axis=(-1, -2))
-    if factor is None:
-        lam, V = np.linalg.eigh(np.where(ok[..., None, None], G, 0.0))  # (..., d), (..., d, d)
-        lam = np.maximum(lam, 0.0)
-    else:  # the same eigh, done by the caller (NaN where G is not finite: masked below)
-        lam, V = factor
+    lam, V = np.linalg.eigh(np.where(ok[..., None, None], G, 0.0))  # (..., d), (..., d, d)
+    lam = np.maximum(lam, 0.0)
     with np.errstate(over="ignore", invalid="ignore"):  # huge data: inf/NaN, noted downstream
         P = np.matmul(FZt, V)  # (..., n, d)
         denom = lam[..., None, None, :] + g[:, None, None]  # (..., G, 1, d)
@@ -272,10 +267,10 @@ def ridge_qr(Z: np.ndarray, F: np.ndarray, g, *, return_cond: bool = False):
     )
     Q, Rg = np.linalg.qr(aug)  # (b, G, 2d, d), (b, G, d, d)
     rhs = np.matmul(np.swapaxes(Q[..., :d, :], -1, -2), R12)  # Q^T [R12; 0]
-    Xt = np.linalg.solve(Rg, rhs)  # Theta^T: (b, G, d, n)
+    Xt = _solve(Rg, rhs)  # Theta^T: (b, G, d, n); NaN where R_g is numerically singular
     # refinement: R_g^T R_g dX = S^T with the extended-precision residual S
     S = _normal_residual(Z[:, None], F[:, None], np.swapaxes(Xt, -1, -2), g)
-    dX = np.linalg.solve(Rg, np.linalg.solve(np.swapaxes(Rg, -1, -2), np.swapaxes(S, -1, -2)))
+    dX = _solve(Rg, _solve(np.swapaxes(Rg, -1, -2), np.swapaxes(S, -1, -2)))
     theta = np.swapaxes(Xt + dX, -1, -2)
     if not return_cond:
         return theta

@@ -94,7 +94,8 @@ def run_dataset_variants(specs, *, si, wi, N, reps, axis, prev_gains=None, timin
     """:func:`run_dataset` for specs that share their data and estimates
     (:func:`shares_data` with ``specs[0]``): the rollouts are simulated, the
     Gram matrices factorised and the estimates computed once; then each spec's
-    stages run on them. -> one (fields, notes, N0, gain state) per spec; its
+    stages run on them (the sound boxes on one factor of the data,
+    :func:`svrobs_core.uncertainty.data_factor`). -> one (fields, notes, N0, gain state) per spec; its
     records are the ones the spec gives on its own (the same arithmetic).
     ``timings``: a dict that gets each spec's CPU seconds added under its index
     (the shared part counts for the first), those of its Monte Carlo J under
@@ -106,8 +107,9 @@ def run_dataset_variants(specs, *, si, wi, N, reps, axis, prev_gains=None, timin
     sigma_w = spec.sigma_w[wi]
     n = system.n
     keys = [seed_key(si, wi, N, r) for r in reps]
+    # the sound boxes factorise the data themselves (svrobs_core.data_factor)
     need_data = any(e in ("ols", "shrunk-ols") for e in spec.estimators) or any(
-        s.bounds_method == "bootstrap" and s.boot_sigma_w == "estimate" for s in specs
+        s.has("bounds") and s.bounds_method != "paper" for s in specs
     )
     G, P, Z, F = gram_data(
         system,
@@ -140,10 +142,8 @@ def run_dataset_variants(specs, *, si, wi, N, reps, axis, prev_gains=None, timin
         )
         return Zr, Fr
 
-    # one eigendecomposition of Z Z^T per dataset, for SVR and the self-normalized box
     try:
-        factor = _unc.gram_factor(G) if "svr" in spec.estimators else None
-        theta, cond = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0, data=rows_data, factor=factor)
+        theta, cond = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0, data=rows_data)
     except Exception as exc:
         _tag(exc, "estimate", 0)
         raise
@@ -158,13 +158,18 @@ def run_dataset_variants(specs, *, si, wi, N, reps, axis, prev_gains=None, timin
         "rmse_B": _rmse(B_hat, system.B),
     }
     results = []
+    shared: dict = {}  # the data's factor, made by the first spec with a sound box
     if timings is not None:
         timings[0] = timings.get(0, 0.0) + time.process_time() - clock
     for s, prev_gain in zip(specs, prev_gains):
         clock = time.process_time()
         out: dict[str, np.ndarray] = dict(estimate)
         notes = Notes((R, E))
-        notes.add(~finite, "estimate: not finite (the simulated data leave the double range)")
+        notes.add(
+            ~finite,
+            "estimate: not finite (the simulated data leave the double range, or the"
+            " regularised problem is numerically singular)",
+        )
         notes.add(
             unreliable,
             f"estimate: data too ill-conditioned (cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g}):"
@@ -185,9 +190,7 @@ def run_dataset_variants(specs, *, si, wi, N, reps, axis, prev_gains=None, timin
             notes=notes,
         )
         try:
-            state = _run_stages(
-                cells, N=N, N0=N0, prev_gain=prev_gain, data=(G if factor is None else factor, Z, F)
-            )
+            state = _run_stages(cells, N=N, N0=N0, prev_gain=prev_gain, data=(G, Z, F, shared))
         except Exception as exc:
             _tag(exc, cells.stage, len(results))
             raise
@@ -218,7 +221,7 @@ def failed_stage(exc: BaseException) -> tuple[str, int] | None:
     return getattr(exc, "svrobs_stage", None)
 
 
-def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data, factor=None):
+def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data):
     """Theta for every (rep, estimator/gamma): (R, E, n, d), and cond(Z Z^T + g I)
     of each cell (R, E); SPEC section 2.
 
@@ -237,14 +240,7 @@ def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data, factor=None):
             conds.append(ols[1][:, None])
         elif e == "svr":
             theta, cond = _est.svr_from_gram(
-                G,
-                P,
-                N0,
-                spec.gamma,
-                loss_scale=spec.loss_scale,
-                data=data,
-                return_cond=True,
-                factor=None if factor is None else (factor.lam, factor.U),
+                G, P, N0, spec.gamma, loss_scale=spec.loss_scale, data=data, return_cond=True
             )
             parts.append(theta)
             conds.append(cond)
@@ -271,8 +267,10 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain, data):
     if spec.bounds_method == "paper":
         b, gamma, radius = _paper_bounds(c, N=N, N0=N0)
     else:
-        G, Z, F = data
-        sound = sound_bounds(c, G=G, Z=Z, F=F, N=N, N0=N0)
+        G, Z, F, shared = data
+        if "factor" not in shared and Z is not None:  # one factor of the data for every box
+            shared["factor"] = _unc.data_factor(Z, F)
+        sound = sound_bounds(c, G=G, Z=Z, F=F, N=N, N0=N0, factor=shared.get("factor"))
         out.update(sound.fields)
         b, gamma, radius = sound.result, np.zeros(len(c.axis.names)), sound.box.R_A
     state = _gain_stages(c, b, gamma, radius, prev_gain) if spec.has("gain") else None
@@ -545,7 +543,12 @@ def _sls_stage(c: _Cells, b):
     J_opt = np.full((R, E), np.nan)
     status = np.empty((R, E), dtype=object)
     undefined = ~np.isfinite(np.broadcast_to(F, (R, E)))
-    notes.add(undefined, "J_opt: F undefined (true system unstable: H-infinity norms infinite)")
+    norms_ok = np.isfinite(norms.hinf_PhiA_B) & np.isfinite(norms.hinf_PhiA_K)
+    notes.add(
+        undefined & ~norms_ok,
+        "J_opt: F undefined (true system unstable: H-infinity norms infinite)",
+    )
+    notes.add(undefined & norms_ok, "J_opt: F undefined (eps_A or eps_B is null)")
     for ri, ei in np.ndindex(R, E):
         if undefined[ri, ei]:
             status[ri, ei] = "not_run"

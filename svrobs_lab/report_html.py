@@ -20,7 +20,7 @@ from svrobs_core.report.columns import fmt_num
 
 @cache
 def report_css() -> str:
-    """The page's stylesheet (``service/reports/report.css``)."""
+    """The page's stylesheet (``svrobs_lab/report.css``)."""
     return files(__package__).joinpath("report.css").read_text(encoding="utf-8")
 
 
