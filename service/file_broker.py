@@ -24,7 +24,7 @@ import logging
 import os
 import uuid
 from queue import Empty
-from time import monotonic
+from time import monotonic_ns
 
 from kombu.exceptions import ChannelError
 from kombu.transport import filesystem
@@ -53,8 +53,9 @@ class Channel(filesystem.Channel):
 
     # ------------------------------------------------------------------ write
     def _put(self, queue, payload, **kwargs):
-        # zero-padded milliseconds: names sort in publishing order across digit counts
-        name = f"{int(round(monotonic() * 1000)):013d}_{uuid.uuid4()}.{queue}.msg"
+        # zero-padded nanoseconds: names sort in publishing order (kombu: milliseconds,
+        # unpadded, so messages of one millisecond and across a digit count were shuffled)
+        name = f"{monotonic_ns():020d}_{uuid.uuid4()}.{queue}.msg"
         final = os.path.join(self.data_folder_out, name)
         tmp = os.path.join(self.data_folder_out, f".{name}.tmp")
         try:
