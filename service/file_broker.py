@@ -113,15 +113,25 @@ class Channel(filesystem.Channel):
             os.makedirs(self.bad_folder, exist_ok=True)
             os.replace(path, target)
         except OSError as exc:
-            log.error("broker message %s (%d bytes) is not a message (%s); removing it: %s",
-                      name, size, reason, exc)
+            log.error(
+                "broker message %s (%d bytes) is not a message (%s); removing it: %s",
+                name,
+                size,
+                reason,
+                exc,
+            )
             try:
                 os.remove(path)
             except OSError:
                 pass
             return
-        log.error("broker message %s (%d bytes) is not a message (%s); moved to %s",
-                  name, size, reason, target)
+        log.error(
+            "broker message %s (%d bytes) is not a message (%s); moved to %s",
+            name,
+            size,
+            reason,
+            target,
+        )
 
     # ------------------------------------------------------------------ bindings
     def _queue_bind(self, exchange, routing_key, pattern, queue):

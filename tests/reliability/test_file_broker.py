@@ -75,8 +75,9 @@ def _folders(tmp_path: Path) -> dict[str, Path]:
 def test_racing_publishers_and_consumers_get_every_message_once(tmp_path):
     _folders(tmp_path)  # make_celery creates the folders
     consumers = [_run("consume", str(tmp_path), "25", wait=False) for _ in range(2)]
-    publishers = [_run("publish", str(tmp_path), f"{k * 300}:{(k + 1) * 300}", wait=False)
-                  for k in range(2)]
+    publishers = [
+        _run("publish", str(tmp_path), f"{k * 300}:{(k + 1) * 300}", wait=False) for k in range(2)
+    ]
     for p in publishers:
         _out, err = p.communicate(timeout=120)
         assert p.returncode == 0, err[-2000:]
