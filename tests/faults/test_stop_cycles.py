@@ -164,7 +164,9 @@ class Cycle:
             time.sleep(0.1)
 
     def pids(self, name: str) -> list[int]:
-        return [int(p) for p in re.findall(rf"(?:started|restarted) {name} \(pid (\d+)", self.text())]
+        return [
+            int(p) for p in re.findall(rf"(?:started|restarted) {name} \(pid (\d+)", self.text())
+        ]
 
     def send_stop(self) -> None:
         self.result["stopped_after_s"] = round(time.monotonic() - self.t_start, 2)
@@ -311,8 +313,6 @@ def test_fifty_stop_cycles_leave_no_process(tmp_path):
     assert not bad, json.dumps(bad, indent=1)
     # a supervisor that got SIGINT or SIGTERM once the stack was up stopped cleanly (0)
     clean = [
-        r
-        for r in results
-        if r["moment"] != "startup" and r["stop"] != "SIGKILL of the supervisor"
+        r for r in results if r["moment"] != "startup" and r["stop"] != "SIGKILL of the supervisor"
     ]
     assert all(r["supervisor_rc"] == 0 for r in clean), json.dumps(clean, indent=1)
