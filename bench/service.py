@@ -6,7 +6,7 @@
 
 The grid (SPEC Section 6: 2 systems x sigma_w {0.1, 1, 10} x N 10..450 step 10
 x gamma {0.005, 0.01, 0.05, 0.1} x {ols, svr} x 45 reps, stages estimate +
-bounds = 60,750 cells in 270 work units) is
+bounds = 60,750 cells; the work units are counted in the first line printed) is
 
 1. run in this process by the core (``svrobs_core.run_spec``): the baseline;
 2. submitted over REST to the embedded stack (SQLite + filesystem broker,
