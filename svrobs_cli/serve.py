@@ -303,12 +303,13 @@ def banner(url: str, key: str | None) -> str:
     """The box ``serve`` prints once the stack is up: where to go and what to run
     (ruled above and below only, so a long line wraps without breaking it)."""
     cli = _svrobs_command()
+    another = f"{cli} admin create-key {ADMIN_EMAIL}"
     lines = [
         f"svrobs is running: open {url}/  (API docs: {url}/docs)",
         (
             f"admin API key (shown once, keep it): {key}"
             if key
-            else f"admin API key: printed on first start (a new one: {cli} admin create-key)"
+            else f"admin API key: printed on first start (another: {another})"
         ),
         "next, in another terminal:",
         f"  export SVROBS_URL={url} SVROBS_API_KEY={key or 'svr_...'}",
