@@ -36,6 +36,7 @@ install: $(TEST_STAMP)
 lint: $(TEST_STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/lint-imports
 
 run: $(RUNTIME_STAMP)
 	$(BIN)/svrobs serve $(if $(HOST),--host $(HOST)) $(if $(PORT),--port $(PORT))

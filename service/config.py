@@ -74,7 +74,7 @@ class Settings(BaseSettings):
     # when set, /readyz is 503 while none of those workers is alive (service.worker_pids).
     WORKER_PID_DIR: str | None = None
 
-    # Web UI sessions (service.web.session): the key that signs the session cookie
+    # Web UI sessions (svrobs_lab.sessions): the key that signs the session cookie
     # (unset: one is generated once and kept in VAR_DIR/secret_key, so restarts keep
     # sessions; set it when API processes on several hosts serve the same users) and
     # how long a sign-in lasts.

@@ -10,13 +10,14 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
-from service.api.deps import get_db
-from service.db.job_delete import delete_job
+from service.db import job_queries as queries
 from service.db.jobs import cancel_job
 from service.db.models import JOB_ACTIVE, Job
-from service.web import charts, figure_charts, job_tables, queries
+from service.http.deps import get_db
+from service.web import charts, figure_charts, job_tables
 from service.web.deps import CSRF, CurrentViewer
 from service.web.render import PAGE_HEADERS, WebError, render
+from svrobs_lab import jobs
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
@@ -133,6 +134,5 @@ def confirm_delete(request: Request, db: DB, viewer: CurrentViewer, job_id: int)
 
 @router.post("/jobs/{job_id:int}/delete", dependencies=[CSRF])
 def delete(db: DB, viewer: CurrentViewer, job_id: int):
-    delete_job(db, _job(db, viewer, job_id))  # JobActive: a 409 page (service.api.errors)
-    db.commit()
+    jobs.delete(db, viewer.caller, job_id)  # JobActive: a 409 page (service.web.errors)
     return RedirectResponse(f"/jobs?deleted={job_id}", status_code=303)
