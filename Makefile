@@ -53,7 +53,8 @@ test-service: $(TEST_STAMP)
 test-integration: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider tests/integration
 
-# worker kills, Redis/PostgreSQL restarts, API kill, two beats, a poison unit: real
+# worker kills, Redis/PostgreSQL restarts, API kill, two beats, a poison unit, 50 stop
+# cycles of `svrobs serve` (tests/faults/test_stop_cycles.py, the embedded stack): real
 # processes on private servers (initdb + redis-server on spare loopback ports)
 test-faults: $(TEST_STAMP)
 	SVROBS_FAULTS_REPORT=var/faults-report.json $(BIN)/python -m pytest -q -p no:cacheprovider \

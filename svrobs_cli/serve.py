@@ -276,13 +276,18 @@ def _browse_host(host: str) -> str:
     return f"[{host}]" if ":" in host else host
 
 
-def _ready(url: str) -> bool:
-    import httpx
+def _ready(host: str, port: int) -> bool:
+    """``GET /readyz`` answers 200 (http.client: no TLS set-up on every poll)."""
+    import http.client
 
+    conn = http.client.HTTPConnection(host.strip("[]"), port, timeout=1.0)
     try:
-        return httpx.get(url + "/readyz", timeout=1.0).status_code == 200
-    except httpx.HTTPError:
+        conn.request("GET", "/readyz")
+        return conn.getresponse().status == 200
+    except (OSError, http.client.HTTPException):
         return False
+    finally:
+        conn.close()
 
 
 def _svrobs_command() -> str:
@@ -355,7 +360,8 @@ def serve(
         pidfile = Path(argv[argv.index("--pidfile") + 1]) if "--pidfile" in argv else None
         children.append(Child(name, guarded(argv, grace), env, pidfile=pidfile))
     supervisor = Supervisor(children, log=lambda line: print(line, file=sys.stderr, flush=True))
-    url = f"http://{_browse_host(settings.API_HOST)}:{settings.API_PORT}"
+    browse = _browse_host(settings.API_HOST)
+    url = f"http://{browse}:{settings.API_PORT}"
 
     stopping: list[int] = []
 
@@ -374,7 +380,7 @@ def serve(
         while not stopping:
             supervisor.poll()
             if not announced:
-                ready = _ready(url)
+                ready = _ready(browse, settings.API_PORT)
                 if ready or time.monotonic() - started > READY_WAIT_SECONDS:
                     if not ready:
                         print(

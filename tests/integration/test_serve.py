@@ -4,6 +4,7 @@ answering throughout); ``--host`` / ``--port``; a port in use is one line."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -95,11 +96,19 @@ def _stop(proc, sig=signal.SIGINT) -> None:
             proc.wait()
 
 
+@contextlib.contextmanager
+def _serving(tmp_path, port, *args: str):
+    """``svrobs serve`` up (its box printed): ``(proc, log, text so far)``; stopped after."""
+    proc, log = _start_serve(tmp_path, port, *args)
+    try:
+        yield proc, log, _wait_ready(proc, log, port)
+    finally:
+        _stop(proc)
+
+
 def test_serve_first_start_prints_key_and_ctrl_c_stops_everything(tmp_path):
     port = free_port()
-    proc, log = _start_serve(tmp_path, port, "--host", "127.0.0.1", "--port", str(port))
-    try:
-        text = _wait_ready(proc, log, port)
+    with _serving(tmp_path, port, "--host", "127.0.0.1", "--port", str(port)) as (proc, log, text):
         key = re.search(r"(svr_[a-z0-9]{8}_\S+)", text).group(1)
         assert f"svrobs is running: open http://127.0.0.1:{port}/" in text
         assert f"export SVROBS_URL=http://127.0.0.1:{port} SVROBS_API_KEY={key}" in text
@@ -113,15 +122,11 @@ def test_serve_first_start_prints_key_and_ctrl_c_stops_everything(tmp_path):
         assert proc.wait(40) == 0, log.read_text()
         time.sleep(0.5)
         assert not [n for n, p in pids.items() if _alive(p)], log.read_text()
-    finally:
-        _stop(proc, signal.SIGKILL)
 
 
 def test_a_killed_worker_is_restarted_and_readyz_says_so(tmp_path):
     port = free_port()
-    proc, log = _start_serve(tmp_path, port)
-    try:
-        text = _wait_ready(proc, log, port)
+    with _serving(tmp_path, port) as (proc, log, text):
         key = re.search(r"(svr_[a-z0-9]{8}_\S+)", text).group(1)
         pids = _child_pids(text)
         pool = [int(p) for p in os.popen(f"pgrep -P {pids['worker1']}").read().split()]
@@ -164,25 +169,15 @@ def test_a_killed_worker_is_restarted_and_readyz_says_so(tmp_path):
         assert proc.wait(40) == 0, log.read_text()[-3000:]
         time.sleep(0.5)
         assert not [p for p in [*pids.values(), new_worker] if _alive(p)], log.read_text()
-    finally:
-        _stop(proc, signal.SIGKILL)
 
 
 def test_second_start_prints_no_new_key(tmp_path):
     port = free_port()
-    proc, log = _start_serve(tmp_path, port)
-    try:
-        first = _wait_ready(proc, log, port)
+    with _serving(tmp_path, port) as (_proc, _log, first):
         assert "svr_" in first
-    finally:
-        _stop(proc)
-    proc, log = _start_serve(tmp_path, port)
-    try:
-        text = _wait_ready(proc, log, port)
+    with _serving(tmp_path, port) as (_proc, _log, text):
         assert "svr_" not in text.replace("svr_...", "")
         assert "admin API key: printed on first start" in text
-    finally:
-        _stop(proc)
 
 
 def test_a_port_in_use_is_one_line_and_starts_nothing(tmp_path):

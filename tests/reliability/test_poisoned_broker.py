@@ -47,15 +47,14 @@ def _envelope(body: bytes, headers: dict) -> bytes:
 
 
 @pytest.fixture
-def stack(tmp_path):
+def stack(tmp_path, request):
+    """The embedded stack's API and one worker (the worker's process is checked below)."""
     st = Stack("embedded", tmp_path)
-    try:
-        st.setup()
-        st.start_api()
-        st.start_worker()
-        yield st
-    finally:
-        st.teardown()
+    request.addfinalizer(st.teardown)
+    st.setup()
+    st.start_api()
+    st.start_worker()
+    return st
 
 
 def test_poisoned_queue_folder_does_not_stop_the_worker(stack):
