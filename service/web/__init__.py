@@ -12,6 +12,7 @@ routes take ``deps.CurrentViewer`` (the signed-in viewer, else a redirect to
 from __future__ import annotations
 
 from fastapi import FastAPI
+from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 from service.web.render import (
@@ -41,6 +42,7 @@ def mount_web(app: FastAPI) -> None:
     settings = app.state.settings
     app.state.web_signer = Signer(load_secret(settings), session_hours=settings.SESSION_HOURS)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    app.add_api_route("/favicon.ico", _favicon, include_in_schema=False)
     for module in (auth, jobs, submit, job):
         app.include_router(module.router)
     for module in (results, compare, schedules, share):  # issue 11's other pages
@@ -48,3 +50,8 @@ def mount_web(app: FastAPI) -> None:
     app.add_exception_handler(WebError, web_error_page)
     app.state.error_page = error_page  # errors mapped in service.api.errors, on a page
     app.add_exception_handler(SignInRequired, sign_in_redirect)
+
+
+def _favicon() -> FileResponse:
+    """The icon browsers ask for at /favicon.ico (pages link /static/favicon.svg)."""
+    return FileResponse(STATIC / "favicon.ico", media_type="image/x-icon")

@@ -93,13 +93,20 @@ def test_compare_two_jobs_plots_the_api_compare(browser, stack, two_jobs):
     page = browser.page(stack.base_url)
     sign_in(page, stack.key)
     page.click("nav a[href='/compare']")
-    page.select_option("#compare-jobs", [str(i) for i in two_jobs])
+    for i in two_jobs:  # a labelled checkbox per job
+        page.get_by_label(re.compile(rf"#{i} sweep seed \d")).check()
     page.select_option("#compare-metric", "rmse_B")
+    assert page.locator("#compare-metric option[value=N]").count() == 0  # not a metric
     page.click("#compare-form button[type=submit]")
     page.wait_for_selector("#compare-card[data-ready=yes]")
     plotted = page.evaluate(
-        """() => window.svrobsCompare.chart.data.datasets.map(d => ({
-          label: d.label, points: d.data.map(p => [p.x, p.y])}))"""
+        """() => window.svrobsCompare.chart.data.datasets.filter(d => d.svrobs.role === "mean")
+          .map(d => ({label: d.label, job: d.svrobs.job, estimator: d.svrobs.group.estimator,
+            gamma: d.svrobs.group.gamma, points: d.data.map(p => [p.x, p.y])}))"""
+    )
+    bands = page.evaluate(
+        """() => window.svrobsCompare.chart.data.datasets.filter(d => d.svrobs.role === "band")
+          .length"""
     )
     with stack.client() as api:
         cmp = api.get(
@@ -110,15 +117,22 @@ def test_compare_two_jobs_plots_the_api_compare(browser, stack, two_jobs):
                 "by": "N,estimator,gamma",
             },
         ).json()
-    want: dict[str, list] = {}
+    want: dict[tuple, list] = {}
     for r in cmp["rows"]:
-        label = f"job {r['job_id']} · estimator={r['estimator']} · gamma={r['gamma'] or '–'}"
-        want.setdefault(label, []).append([r["N"], r["mean"]])
-    assert {p["label"]: sorted(p["points"]) for p in plotted} == {
-        k: sorted(v) for k, v in want.items()
-    }
-    assert len(plotted) == 2 * 3  # two jobs x (ols, svr 0.01, svr 0.1)
+        want.setdefault((r["job_id"], r["estimator"], r["gamma"]), []).append([r["N"], r["mean"]])
+    got = {(p["job"], p["estimator"], p["gamma"]): p["points"] for p in plotted}
+    assert got == {k: sorted(v) for k, v in want.items()}
+    assert len(plotted) == 2 * 3 and bands == 2 * len(plotted)  # a ± std band per line
     assert page.locator("#compare-table tbody tr").count() == len(cmp["rows"])
+    # the legend says what differs: the jobs' seeds, the estimator and γ; nothing else
+    labels = {(p["job"], p["estimator"], p["gamma"]): p["label"] for p in plotted}
+    a, b = two_jobs
+    assert labels[(a, "ols", None)] == "seed=5 · ols"
+    assert labels[(b, "svr", 0.01)] == "seed=6 · svr γ=0.01"
+    heads = page.locator("#spec-diff-table thead th").all_inner_texts()
+    rows = [r.split("\t") for r in page.inner_text("#spec-diff-table tbody").split("\n")]
+    seeds = {f"job {a}": "5", f"job {b}": "6"}
+    assert rows == [["seed", *(seeds[h.split(" · ")[0]] for h in heads[1:])]]
 
 
 def test_create_a_schedule_from_a_job(browser, stack, two_jobs):
@@ -169,6 +183,10 @@ def test_share_link_opens_without_cookies_and_404s_once_revoked(browser, stack, 
 
     page.goto(f"/jobs/{job_id}/share")  # (not a reload: that would post the form again)
     assert page.locator("#share-links button.danger").count() == 1
+    page.once("dialog", lambda d: d.dismiss())  # asked first; declined, nothing changes
+    page.click("#share-links button.danger")
+    assert guest.goto(url).status == 200
+    page.once("dialog", lambda d: d.accept())
     page.click("#share-links button.danger")
     page.wait_for_selector("#share-links td:text('revoked')")
     assert guest.goto(url).status == 404

@@ -7,16 +7,17 @@ import json
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query, Request
-from fastapi.responses import JSONResponse, RedirectResponse
+from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
-from service.api.deps import get_db
+from service.api.deps import SessionFactoryDep, get_db
 from service.db.job_delete import delete_job
 from service.db.jobs import cancel_job
 from service.db.models import JOB_ACTIVE, Job
+from service.reports.stored import job_report
 from service.web import charts, figure_charts, job_tables, queries
 from service.web.deps import CSRF, CurrentViewer
-from service.web.render import PAGE_HEADERS, WebError, render
+from service.web.render import PAGE_HEADERS, REPORT_HEADERS, WebError, render, with_back_link
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
@@ -113,6 +114,15 @@ def chart_data(
     if metrics:
         data["metrics"] = charts.stored_metrics(db, job.id)
     return JSONResponse(data, headers=PAGE_HEADERS)
+
+
+@router.get("/jobs/{job_id:int}/report")
+def report_page(db: DB, viewer: CurrentViewer, job_id: int, session_factory: SessionFactoryDep):
+    """The job's report (as ``GET /api/v1/jobs/{id}/report``) with a link back to its page."""
+    job = _job(db, viewer, job_id)
+    html = job_report(db, job, lambda: session_factory(True))
+    back = with_back_link(html, f"/jobs/{job.id}", f"← Job {job.id} on the dashboard")
+    return HTMLResponse(back, headers=REPORT_HEADERS)
 
 
 @router.post("/jobs/{job_id:int}/cancel", dependencies=[CSRF])

@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Form, Query, Request
-from fastapi.responses import RedirectResponse
+from fastapi.responses import HTMLResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
 from service.api.deps import MAX_ID, Caller, SessionFactoryDep, get_db
@@ -19,7 +19,7 @@ from service.db.models import Job
 from service.web import charts, figure_charts
 from service.web.deps import CSRF, CurrentViewer
 from service.web.pages import job as job_pages
-from service.web.render import PAGE_HEADERS, WebError, render
+from service.web.render import REPORT_HEADERS, WebError, render, with_back_link
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
@@ -124,8 +124,6 @@ def shared_chart_data(
 @router.get("/s/{token}/report")
 def shared_report(db: DB, token: str, session_factory: SessionFactoryDep):
     link, job = _shared(db, token)
-    response = reports.job_report(job.id, db, _reader(link), session_factory)
-    response.headers.update(
-        {k: v for k, v in PAGE_HEADERS.items() if k != "Content-Security-Policy"}
-    )
-    return response
+    report = reports.job_report(job.id, db, _reader(link), session_factory).body.decode()
+    back = with_back_link(report, f"/s/{token}", f"← Job {job.id} (shared)")
+    return HTMLResponse(back, headers={**REPORT_HEADERS, "X-Robots-Tag": "noindex"})
