@@ -1,0 +1,218 @@
+"""Views that live in the URL, in a real chromium against a real server: a filtered,
+sorted results view (two sort keys, a range, a hidden column) survives a reload and
+back/forward, and its CSV and JSONL buttons export the rows shown, in the order shown,
+as the API's own filtered, sorted page; the job page's chart choices are in the URL, a
+late chart response is dropped, and log y follows the data as the job finishes."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import re
+
+import pytest
+
+from tests.integration.stack import submit
+
+from . import test_browser as base
+from .test_browser import sign_in, wait_charts
+
+browser = base.browser
+only_the_server = base.only_the_server
+pytestmark = base.pytestmark
+
+SPEC = {
+    "systems": ["paper-stable", "paper-unstable"],
+    "sigma_w": [0.1, 1.0],
+    "N": [10, 20],
+    "gamma": [0.01, 0.1],
+    "reps": 3,
+    "seed": 8,
+}
+KEY = ("system", "sigma_w", "N", "estimator", "gamma", "rep")
+
+
+@pytest.fixture(scope="module")
+def job_id(stack) -> int:
+    with stack.client() as api:
+        jid = submit(api, SPEC, name="views")["id"]
+        stack.wait_job(api, jid)
+    return jid
+
+
+def grid_column(page, field: str) -> list[str]:
+    return page.eval_on_selector_all(
+        f"#results-grid td[data-field='{field}']", "tds => tds.map(td => td.dataset.value)"
+    )
+
+
+def grid_rows(page) -> list[tuple]:
+    cols = [grid_column(page, f) for f in KEY + ("rmse_A",)]
+    return list(zip(*cols))
+
+
+def api_key_of(item: dict) -> tuple:
+    return tuple("" if item[f] is None else str(item[f]) for f in KEY + ("rmse_A",))
+
+
+def test_results_view_survives_reload_and_exports_what_is_shown(browser, stack, job_id):
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.goto(f"/results?job={job_id}")
+    page.select_option("select[name=system]", "paper-unstable")
+    page.wait_for_selector("#results-grid[data-query*='system=paper-unstable']")
+    page.click("th a[data-sort-field='rmse_A']")
+    page.wait_for_selector("#results-grid[data-sort='rmse_A']")
+    page.click("th a[data-sort-field='rmse_A']")
+    page.wait_for_selector("#results-grid[data-sort='-rmse_A']")
+    page.click("th a[data-sort-field='N']", modifiers=["Shift"])  # the second key
+    page.wait_for_selector("#results-grid[data-sort='-rmse_A,N']")
+    assert page.inner_text("th[data-field='N'] sup") == "2"
+    assert page.get_attribute("th[data-field='rmse_A']", "aria-sort") == "descending"
+    page.click("#results-columns summary")
+    page.uncheck("#results-columns input[value=rmse_B]")
+    assert page.locator("th[data-field='rmse_B']").is_hidden()
+    # a range of a field, as the API's rmse_A_lt
+    values = sorted(float(v) for v in grid_column(page, "rmse_A"))
+    cut = values[len(values) * 2 // 3]
+    page.select_option(".range-field", "rmse_A")
+    page.fill(".range-max", repr(cut))
+    page.click("#results-filters button[type=submit]")
+    page.wait_for_selector(f"#results-grid[data-query*='rmax={cut!r}']")
+    shown = grid_rows(page)
+    assert 0 < len(shown) < len(values)
+    url = page.url
+    assert "sort=-rmse_A%2CN" in url and "system=paper-unstable" in url and "hide=rmse_B" in url
+
+    with stack.client() as api:
+        params = {"system": "paper-unstable", "sort": "-rmse_A,N", "rmse_A_lt": repr(cut)}
+        want = api.get(f"/jobs/{job_id}/results", params={**params, "limit": 1000}).json()
+    assert want["total"] == len(shown)  # (one page of 50 at most holds them all)
+    assert shown == [api_key_of(i) for i in want["items"]]
+
+    page.reload()  # the same view from its URL alone
+    assert grid_rows(page) == shown
+    assert page.input_value("#results-sort") == "-rmse_A,N"
+    assert page.eval_on_selector(
+        "select[name=system]", "s => [...s.selectedOptions].map(o => o.value)"
+    ) == ["paper-unstable"]
+    assert page.input_value(".range-max") == repr(cut)
+    assert page.locator("th[data-field='rmse_B']").is_hidden()
+
+    for fmt in ("csv", "jsonl"):  # the buttons export the view: same rows, same order
+        href = page.get_attribute(f"#results-{fmt}", "href")
+        body = page.request.get(href).text()
+        if fmt == "csv":
+            rows = list(csv.DictReader(io.StringIO(body)))
+        else:
+            rows = [json.loads(line) for line in body.splitlines()]
+        assert [api_key_of(r) for r in rows] == [api_key_of(i) for i in want["items"]], fmt
+
+    back(page, page.go_back)  # the view before the range: reloaded from its URL
+    assert page.get_attribute("#results-grid", "data-sort") == "-rmse_A,N"
+    assert not re.search(r"rmax=[^&]", page.url) and len(grid_rows(page)) == len(values)
+    steps = 1
+    while page.get_attribute("#results-grid", "data-sort") == "-rmse_A,N" and steps < 5:
+        back(page, page.go_back)  # (choosing the range field was a view of its own)
+        steps += 1
+    assert page.get_attribute("#results-grid", "data-sort") == "-rmse_A"  # one sort key
+    assert "sort=-rmse_A&" in page.url + "&"
+    back(page, page.go_forward)
+    assert page.get_attribute("#results-grid", "data-sort") == "-rmse_A,N"
+
+
+def back(page, step) -> None:
+    """Back or forward, then wait for the page the URL names (a fresh document)."""
+    page.evaluate("window.svrobsOld = true")
+    step()
+    page.wait_for_function(
+        "() => window.svrobsOld === undefined && !!document.getElementById('results-grid')"
+    )
+
+
+Y_TITLE = "() => window.svrobsCharts.charts[0].chart.options.scales.y.title.text"
+
+
+def test_job_chart_choices_live_in_the_url_and_a_late_answer_is_dropped(browser, stack, job_id):
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.goto(f"/jobs/{job_id}")
+    wait_charts(page, 1)
+    page.select_option("#chart-x", "sigma_w")
+    wait_charts(page, 2)
+    page.select_option("#chart-metric", "H_A")
+    wait_charts(page, 3)
+    panel = page.eval_on_selector("#chart-panel", "s => s.options[2].value")
+    page.select_option("#chart-panel", panel)
+    page.uncheck("#chart-bands")
+    assert re.search(r"x=sigma_w", page.url) and "metric=H_A" in page.url and "bands=0" in page.url
+    page.reload()
+    wait_charts(page, 1)
+    assert page.input_value("#chart-x") == "sigma_w" and page.input_value("#chart-metric") == "H_A"
+    assert page.input_value("#chart-panel") == panel and not page.is_checked("#chart-bands")
+    assert page.evaluate("window.svrobsCharts.charts.length") == 1
+    assert page.evaluate(Y_TITLE).startswith("H_A")  # the glossary's label and unit
+    assert "Theorem 1" in page.inner_text("#chart-field-help")
+    page.go_back()  # bands on again, then the whole panel list, then rmse_A
+    page.go_back()
+    page.go_back()
+    page.wait_for_function(
+        "() => window.svrobsCharts.data.metric === 'rmse_A'"
+        " && document.getElementById('charts-card').dataset.state === 'ready'"
+    )
+    assert (
+        page.input_value("#chart-metric") == "rmse_A" and page.input_value("#chart-x") == "sigma_w"
+    )
+    loads = int(page.get_attribute("#charts-card", "data-loads"))
+    sent = page.evaluate("window.svrobsCharts.requests")
+
+    held = []  # the answer for eps_A is held back until r_A's has been drawn
+    page.route(re.compile(r"/chart-data\?metric=eps_A"), lambda route: held.append(route))
+    page.select_option("#chart-metric", "eps_A")
+    page.wait_for_function(f"() => window.svrobsCharts.requests === {sent + 1}")
+    page.select_option("#chart-metric", "r_A")
+    wait_charts(page, loads + 1)
+    assert held, "the eps_A request was not sent"
+    held[0].continue_()
+    dropped = page.evaluate("window.svrobsCharts.dropped")
+    page.wait_for_function(f"() => window.svrobsCharts.dropped === {dropped + 1}")
+    assert page.evaluate("window.svrobsCharts.data.metric") == "r_A"
+    assert page.input_value("#chart-metric") == "r_A"
+    assert page.evaluate(Y_TITLE).startswith("r_A")
+    assert page.get_attribute("#charts-card", "data-loads") == str(loads + 1)
+    page.unroute(re.compile(r"/chart-data\?metric=eps_A"))
+
+
+def test_job_page_progress_in_cells_and_log_y_as_the_data_arrive(browser, stack):
+    stack.stop("worker1")
+    try:
+        with stack.client() as api:
+            jid = submit(api, {**SPEC, "seed": 9}, name="arriving")["id"]
+        page = browser.page(stack.base_url)
+        sign_in(page, stack.key)
+        page.goto(f"/jobs/{jid}")
+        wait_charts(page, 1)
+        assert "No summaries yet" in page.inner_text("#chart-status")
+        assert not page.is_checked("#chart-logy")  # nothing to plot: no log axis yet
+        assert page.inner_text("#job-progress-text") == "0 of 72 cells"
+    finally:
+        stack.start_worker()
+    page.wait_for_selector("#job-status:text('succeeded')", timeout=180_000)
+    page.wait_for_function(
+        "() => window.svrobsCharts.data && window.svrobsCharts.data.status === 'succeeded'"
+        " && window.svrobsCharts.data.panels.length === 4"
+    )
+    assert page.is_checked("#chart-logy")  # every mean > 0: the log axis, as on a fresh load
+    assert {
+        c
+        for c in page.evaluate(
+            "() => window.svrobsCharts.charts.map(c => c.chart.options.scales.y.type)"
+        )
+    } == {"logarithmic"}
+    assert page.inner_text("#job-progress-text") == "72 of 72 cells"
+    fresh = browser.page(stack.base_url)
+    sign_in(fresh, stack.key)
+    fresh.goto(f"/jobs/{jid}")
+    wait_charts(fresh, 1)
+    assert fresh.is_checked("#chart-logy")
