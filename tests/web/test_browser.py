@@ -196,14 +196,16 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
     stack.stop("worker1")  # the job waits, so the page sees it run and finish
     try:
         page.click("nav a[href='/jobs/new']")
-        page.select_option("#preset", "system:paper-unstable")  # htmx fills the textarea
+        page.select_option("#preset", "system:paper-unstable")  # the form, filled
         expect(page.locator("#spec")).to_have_value(re.compile("paper-unstable"))
         assert json.loads(page.input_value("#spec"))["systems"] == ["paper-unstable"]
-        page.fill("#spec", json.dumps({**SPEC, "reps": 0}))
+        assert page.input_value("#name") == "paper-unstable sweep"
+        page.fill("#spec", json.dumps({**SPEC, "reps": 0}))  # the fields follow the JSON
+        assert page.input_value("#f-reps") == "0" and page.is_checked("input[value=json]")
         page.fill("#name", "browser sweep")
         page.fill("#tags", "web, tiny")
         page.click("#submit-job")
-        assert page.locator("#spec-error").inner_text() == "reps: must be >= 1"
+        assert page.locator("#err-reps").inner_text() == "reps: must be >= 1"
         assert page.input_value("#name") == "browser sweep"  # the form keeps its values
         upload = {"name": "sweep.json", "mimeType": "application/json"}
         page.set_input_files("#spec_file", files=[{**upload, "buffer": json.dumps(SPEC).encode()}])

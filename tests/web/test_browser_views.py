@@ -216,3 +216,52 @@ def test_job_page_progress_in_cells_and_log_y_as_the_data_arrive(browser, stack)
     fresh.goto(f"/jobs/{jid}")
     wait_charts(fresh, 1)
     assert fresh.is_checked("#chart-logy")
+
+
+def test_spec_form_json_in_sync_and_every_error_at_once(browser, stack):
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.goto("/jobs/new")
+    page.select_option("#preset", "system:paper-stable")
+    page.wait_for_url(re.compile(r"preset=system%3Apaper-stable"))
+    assert page.input_value("#name") == "paper-stable sweep"
+    assert page.input_value("#tags") == "sweep, paper-stable"
+    assert page.is_checked("input[name='m.N'][value=range]")
+    assert page.input_value("input[name='r.N.stop']") == "100"
+    assert page.is_hidden("#field-S")  # an option of another bounds method
+    page.select_option("#f-bounds_method", "self-normalized")
+    assert page.is_visible("#field-S")
+    page.select_option("#f-bounds_method", "paper")
+    # fields -> JSON
+    page.fill("#f-sigma_w", "-1, 1")
+    page.fill("#f-gamma", "0, 0.1")
+    spec = json.loads(page.input_value("#spec"))
+    assert spec["sigma_w"] == [-1, 1] and spec["gamma"] == [0, 0.1] and "S" not in spec
+    assert page.is_checked("input[name=source][value=form]")
+    # JSON -> fields
+    page.fill("#spec", json.dumps({**spec, "reps": 0}))
+    assert page.input_value("#f-reps") == "0"
+    page.fill("#f-M", "1.2")  # the fields again: the JSON keeps reps = 0
+    assert json.loads(page.input_value("#spec"))["reps"] == 0
+    page.click("#submit-job")
+    page.wait_for_selector("#form-errors")
+    beside = {f: page.inner_text(f"#err-{f}") for f in ("sigma_w", "reps", "gamma")}
+    assert beside == {
+        "sigma_w": "sigma_w[0]: must be >= 0",
+        "reps": "reps: must be >= 1",
+        "gamma": "gamma[0]: must be > 0",
+    }
+    assert page.locator("#form-errors li").count() == 3
+    assert page.evaluate("document.activeElement.id") == "form-errors"
+    assert page.input_value("#f-sigma_w") == "-1, 1"  # as typed
+    assert page.locator("#f-reps[aria-invalid=true]").count() == 1
+    page.fill("#f-sigma_w", "0.5")
+    page.fill("#f-gamma", "0.05")
+    page.fill("#f-reps", "2")
+    page.click("#submit-job")
+    page.wait_for_url(re.compile(r"/jobs/\d+$"))
+    with stack.client() as api:
+        job = api.get(f"/jobs/{page.url.rsplit('/', 1)[1]}").json()
+    assert job["name"] == "paper-stable sweep" and job["tags"] == ["sweep", "paper-stable"]
+    assert job["spec"]["sigma_w"] == [0.5] and job["spec"]["M"] == 1.2
+    assert job["spec"]["N"] == list(range(10, 101, 10)) and job["spec"]["reps"] == 2
