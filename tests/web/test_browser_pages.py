@@ -104,6 +104,9 @@ def test_compare_two_jobs_plots_the_api_compare(browser, stack, two_jobs):
           .map(d => ({label: d.label, job: d.svrobs.job, estimator: d.svrobs.group.estimator,
             gamma: d.svrobs.group.gamma, points: d.data.map(p => [p.x, p.y])}))"""
     )
+    assert not page.is_checked("#compare-bands")  # six lines: no bands unless asked
+    page.check("#compare-bands")
+    assert "bands=1" in page.url
     bands = page.evaluate(
         """() => window.svrobsCompare.chart.data.datasets.filter(d => d.svrobs.role === "band")
           .length"""

@@ -95,7 +95,7 @@
     if (xField === "N" && factor > 1 && panel.x.length) {
       // N0 = (T0 − 1)·N on a second x axis at the top, the report's abscissa
       const lo = Math.min(...panel.x), hi = Math.max(...panel.x);
-      const pad = opts.logX ? 0 : (hi - lo) * 0.02;
+      const pad = 0;  // both axes span the data exactly, so their ticks line up
       scales.x.min = lo - pad;
       scales.x.max = hi + pad;
       scales.x2 = kit.axis(scales.x.type, `N0 = (T0 − 1)·N = ${factor}·N [samples]`, {

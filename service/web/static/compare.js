@@ -69,7 +69,8 @@
   const q = new URLSearchParams(location.search);
   const bandsBox = document.getElementById("compare-bands");
   const logBox = document.getElementById("compare-logy");
-  bandsBox.checked = q.get("bands") !== "0";
+  const manyLines = series.size > 4;  // bands of many lines hide each other: off unless asked
+  bandsBox.checked = q.has("bands") ? q.get("bands") === "1" : !manyLines;
   logBox.checked = q.has("logy") ? q.get("logy") === "1" : positive;
   logBox.disabled = !positive;
 
@@ -165,7 +166,7 @@
 
   function remember() {
     const p = new URLSearchParams(location.search);
-    if (bandsBox.checked) p.delete("bands"); else p.set("bands", "0");
+    if (bandsBox.checked === !manyLines) p.delete("bands"); else p.set("bands", bandsBox.checked ? "1" : "0");
     if (logBox.checked === positive) p.delete("logy"); else p.set("logy", logBox.checked ? "1" : "0");
     history.replaceState(null, "", `${location.pathname}?${p.toString()}`);
   }
