@@ -21,6 +21,8 @@ from .spec import (
     BOOT_SIGMA_SOURCES,
     BOUNDS_METHODS,
     BOUNDS_OPTIONS,
+    DATASET_KEYS,
+    DATASET_ONLY_MESSAGE,
     ESTIMATORS,
     MAX_REPS,
     MAX_ROLLOUTS,
@@ -311,12 +313,19 @@ def _top(path: str) -> str:
 
 def spec_errors(obj) -> dict[str, str]:
     """Every error of the spec ``obj`` as ``{field path: message}`` (empty when
-    ``parse_spec(obj)`` accepts it; otherwise it holds the parser's own error)."""
+    ``parse_spec(obj)`` accepts it; otherwise it holds the parser's own error). A spec
+    on measured data (``dataset``, docs/measured.md#spec) gets its parser's first."""
     if not isinstance(obj, dict):
         return {"spec": "must be a JSON object"}
+    if "dataset" in obj:  # a job on measured data (its own parser): its first error
+        try:
+            parse_spec(obj)
+        except SpecError as exc:
+            return {exc.field or "spec": exc.message}
+        return {}
     errors: dict[str, str] = {}
     for key in sorted(set(obj) - SPEC_KEYS):
-        errors[key] = "unknown field"
+        errors[key] = DATASET_ONLY_MESSAGE if key in DATASET_KEYS else "unknown field"
     for key in REQUIRED_KEYS:
         if key not in obj:
             errors[key] = "is required"

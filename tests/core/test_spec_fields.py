@@ -138,3 +138,9 @@ def test_rules_between_fields_and_valid_specs():
         "N": "is required",
     }
     assert spec_errors([1]) == {"spec": "must be a JSON object"}
+    measured = {"dataset": 1, "N": [10], "sigma_w": [1.0]}  # a dataset job: its parser's words
+    first = error_of(measured)
+    assert first is not None and spec_errors(measured) == {first.field: first.message}
+    assert spec_errors({**BASE, "holdout": 2}) == {
+        "holdout": 'is only used with "dataset" (a job on measured data)'
+    }
