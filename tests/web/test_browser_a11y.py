@@ -97,6 +97,11 @@ def test_every_page_has_no_serious_axe_violation_and_no_sideways_scroll(
         assert response.status == (404 if name == "error" else 200), name
         page.wait_for_selector(ready)
         check(page, name, problems)
+        if name == "job":  # and its scatter and certificate views, open
+            page.click("#scatter-view summary")
+            page.click("#certificates-view summary")
+            page.wait_for_selector("#views-card[data-scatter=ready][data-certificates=ready]")
+            check(page, "job views", problems)
     if width < 760:  # the header folds behind its menu button
         page.goto("/jobs")
         assert page.locator("#menu-toggle").is_visible()

@@ -265,3 +265,56 @@ def test_spec_form_json_in_sync_and_every_error_at_once(browser, stack):
     assert job["name"] == "paper-stable sweep" and job["tags"] == ["sweep", "paper-stable"]
     assert job["spec"]["sigma_w"] == [0.5] and job["spec"]["M"] == 1.2
     assert job["spec"]["N"] == list(range(10, 101, 10)) and job["spec"]["reps"] == 2
+
+
+def test_scatter_and_certificates_views(browser, stack, job_id):
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.goto(f"/jobs/{job_id}")
+    page.click("#scatter-view summary")
+    page.wait_for_selector("#views-card[data-scatter=ready]")
+    page.select_option("#scatter-metric", "eps_A")
+    drawn = page.evaluate(
+        """() => window.svrobsViews.scatter.map(s => ({x: s.x, points: s.chart.data.datasets
+          .flatMap(d => d.data.map(p => [p.g.system, p.g.sigma_w, p.g.N, p.g.estimator,
+            p.g.gamma, p.x, p.y]))}))"""
+    )
+    with stack.client() as api:
+        groups = api.get(f"/jobs/{job_id}/summary").json()["groups"]
+        rows = api.get(f"/jobs/{job_id}/results", params={"limit": 1000}).json()["items"]
+    for panel in drawn:
+        want = sorted(
+            [
+                g["system"],
+                g["sigma_w"],
+                g["N"],
+                g["estimator"],
+                g["gamma"],
+                g[panel["x"]],
+                g["stats"]["eps_A"]["mean"],
+            ]
+            for g in groups
+            if g[panel["x"]] is not None
+        )
+        assert sorted(panel["points"]) == want, panel["x"]
+    assert {p["x"] for p in drawn} == {"gamma", "N", "sigma_w"}
+
+    page.click("#certificates-view summary")
+    page.wait_for_selector("#views-card[data-certificates=ready]")
+    cells = page.eval_on_selector_all(
+        "#certificates-table td.cert[data-n]",
+        """tds => tds.map(td => { const r = td.parentElement.cells;
+          return [r[0].textContent, r[1].textContent, r[2].textContent, r[3].textContent,
+            Number(td.dataset.n), Number(td.dataset.stable)]; })""",
+    )
+    got = {tuple(c[:5]): c[5] for c in cells}
+    share: dict = {}  # the oracle: the result rows themselves
+    for r in rows:
+        gamma = "—" if r["gamma"] is None else f"{r['gamma']:g}"
+        k = (r["system"], f"{r['sigma_w']:g}", r["estimator"], gamma, r["N"])
+        share.setdefault(k, []).append(r["stable_certified"])
+    assert "Bounds method: paper" in page.inner_text("#certificates-note")
+    assert set(got) == set(share) and len(got) == 2 * 2 * 3 * 2
+    for k, flags in share.items():
+        known = [f for f in flags if f is not None]
+        assert abs(got[k] - sum(known) / len(known)) < 1e-12, k
