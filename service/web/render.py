@@ -12,6 +12,7 @@ from datetime import UTC, datetime
 from html import escape
 from pathlib import Path
 from urllib.parse import quote, urlsplit
+from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from fastapi import Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
@@ -41,6 +42,19 @@ def _when(value: datetime | None) -> str:
     return value.strftime("%Y-%m-%d %H:%M:%S UTC") if value else "–"
 
 
+def _in_zone(value: datetime | None, zone: str) -> str:
+    """A time in a schedule's own time zone, with UTC beside it."""
+    if value is None:
+        return "–"
+    try:
+        local = value.astimezone(ZoneInfo(zone))
+    except (ZoneInfoNotFoundError, ValueError):
+        return _when(value)
+    if local.utcoffset() == value.utcoffset():
+        return _when(value)
+    return f"{local:%Y-%m-%d %H:%M} {zone} ({value.astimezone(UTC):%H:%M} UTC)"
+
+
 def _seconds(value) -> str:
     if value is None:
         return "–"
@@ -57,6 +71,7 @@ env = Environment(
 env.filters["when"] = _when
 env.filters["num"] = lambda v, digits=4: fmt_num(v, digits)
 env.filters["seconds"] = _seconds
+env.filters["in_zone"] = _in_zone
 env.filters["pretty"] = lambda v: json.dumps(v, indent=2, sort_keys=False, allow_nan=False)
 env.filters["tojson_attr"] = lambda v: json.dumps(v, separators=(",", ":"))
 env.filters["label"] = fields.label
