@@ -318,3 +318,26 @@ def test_scatter_and_certificates_views(browser, stack, job_id):
     for k, flags in share.items():
         known = [f for f in flags if f is not None]
         assert abs(got[k] - sum(known) / len(known)) < 1e-12, k
+
+
+def test_runs_table_ticks_runs_to_compare_and_chooses_columns(browser, stack, job_id):
+    with stack.client() as api:
+        other = submit(api, {**SPEC, "seed": 10}, name="views other")["id"]
+        stack.wait_job(api, other)
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    assert page.is_disabled("#compare-selected")
+    page.check(f"#job-{job_id} .run-pick")
+    page.check(f"#job-{other} .run-pick")
+    assert page.inner_text("#runs-selected").startswith("2 runs ticked")
+    assert page.inner_text(f"#job-{job_id} td[data-col=duration]").endswith(" s")
+    page.click("#runs-columns summary")
+    page.uncheck("#runs-columns input[value=owner]")
+    assert page.locator("#jobs-table th[data-col=owner]").is_hidden()
+    assert "hide=owner" in page.url
+    page.click("#compare-selected")
+    page.wait_for_selector("#compare-card[data-ready=yes]")
+    assert sorted(page.evaluate("window.svrobsCompare.data.jobs")) == sorted([job_id, other])
+    page.go_back()
+    page.wait_for_selector("#jobs-table")
+    assert page.locator("#jobs-table th[data-col=owner]").is_hidden()  # from the URL
