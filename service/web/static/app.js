@@ -358,6 +358,17 @@
     c.logx.addEventListener("change", () => { card.dataset.logxTouched = "yes"; remember(card); draw(card, registry.data); });
     c.panel.addEventListener("change", () => { card.dataset.panelChosen = "yes"; remember(card); draw(card, registry.data); });
     c.bands.addEventListener("change", () => { remember(card); draw(card, registry.data); });
+    [["#chart-panel-prev", -1], ["#chart-panel-next", 1]].forEach(([sel, step]) => {
+      card.querySelector(sel).addEventListener("click", () => {  // one panel after another
+        const n = c.panel.options.length - 1;  // (the first option is "all")
+        if (n < 1) return;
+        const i = c.panel.selectedIndex <= 0 ? (step > 0 ? 1 : n) : ((c.panel.selectedIndex - 1 + step + n) % n) + 1;
+        c.panel.selectedIndex = i;
+        card.dataset.panelChosen = "yes";
+        remember(card);
+        draw(card, registry.data);
+      });
+    });
     window.addEventListener("popstate", () => { restore(card); load(card); });
     document.addEventListener("svrobs:theme", () => draw(card, registry.data));
     document.body.addEventListener("svrobs:job-finished", () => load(card, true));
