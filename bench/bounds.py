@@ -22,8 +22,8 @@ import sys
 import time
 
 from svrobs_core.paper import paper_specs
+from svrobs_core.parsing import parse_spec
 from svrobs_core.runner import run_spec
-from svrobs_core.spec import parse_spec
 
 
 def _discard(result):

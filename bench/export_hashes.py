@@ -16,13 +16,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # before bench/
 
 from fastapi.testclient import TestClient
 
-from service.api.main import create_app
+from service.app import create_app
 from service.config import Settings
 from service.db import accounts, jobs, units
 from service.db.migrate import upgrade
 from service.db.session import session_scope
+from svrobs_core.parsing import parse_spec
 from svrobs_core.runner import run_unit_result
-from svrobs_core.spec import parse_spec
 
 url = sys.argv[1]
 SPEC = {

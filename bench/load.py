@@ -3,7 +3,7 @@
     .venv/bin/python bench/load.py                 # 20 clients, 60 s
     .venv/bin/python bench/load.py --seconds 10 --clients 5
 
-It starts ``uvicorn service.api.main:app`` on a free loopback port (SQLite and
+It starts ``uvicorn service.app:app`` on a free loopback port (SQLite and
 the filesystem broker in a temporary folder, no worker: submitted jobs stay
 queued), stores one finished job of 10,000 result rows (synthetic records with
 every record field, written through ``units.complete_unit`` as a worker would),
@@ -139,7 +139,7 @@ def prepare(
     from service.db.models import Result
     from service.db.session import dispose_all, session_scope
     from service.db.units import complete_unit, start_unit
-    from svrobs_core.spec import parse_spec
+    from svrobs_core.parsing import parse_spec
 
     upgrade(db_url)
     rng = random.Random(0)
@@ -187,7 +187,7 @@ def start_server(tmp: Path, db_url: str, port: int, workers: int = 1) -> subproc
         sys.executable,
         "-m",
         "uvicorn",
-        "service.api.main:app",
+        "service.app:app",
         "--host",
         HOST,
         "--port",

@@ -6,7 +6,7 @@
 For each database it stores one synthetic job of ``--cells`` result rows (the
 paper's full preset has 625,050) through the real write path
 (``bench/load.py``'s ``prepare``: ``units.start_unit`` + ``units.complete_unit``,
-as a worker does; records with every field, random values), starts ``uvicorn service.api.main:app`` (one
+as a worker does; records with every field, random values), starts ``uvicorn service.app:app`` (one
 process, loopback), then measures
 
 * the first ``GET /jobs/{id}/report`` (it builds the report from the rows read

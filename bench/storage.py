@@ -41,8 +41,8 @@ from bench.pg_private import bench_pg_url, private_database
 from service.db import accounts, jobs, units
 from service.db.migrate import downgrade, upgrade
 from service.db.session import dispose_all, session_scope
+from svrobs_core.parsing import parse_spec
 from svrobs_core.runner import run_unit_result
-from svrobs_core.spec import parse_spec
 
 
 def grid(name: str, reps: int, n_values: int) -> dict:

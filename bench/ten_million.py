@@ -44,7 +44,7 @@ from sqlalchemy import create_engine, text
 from sqlalchemy.orm import Session
 
 from bench.pg_private import bench_pg_url, private_database
-from service.api.main import create_app
+from service.app import create_app
 from service.config import Settings
 from service.db import accounts
 from service.db.jobs import create_job
@@ -53,8 +53,8 @@ from service.db.models import OLS_GAMMA_KEY
 from service.db.results_store import note_ids
 from service.db.session import get_engine
 from service.web import charts
+from svrobs_core.parsing import parse_spec
 from svrobs_core.records import SUMMARY_FIELDS
-from svrobs_core.spec import parse_spec
 
 SYSTEMS = ["paper-stable", "paper-unstable"]
 GAMMAS = [0.005, 0.01, 0.05, 0.1]

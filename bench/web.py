@@ -31,7 +31,7 @@ import numpy as np
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from service.api.main import create_app
+from service.app import create_app
 from service.config import Settings
 from service.db import accounts, jobs, units
 from service.db.migrate import upgrade

@@ -71,7 +71,7 @@ class Settings(BaseSettings):
     # Seconds the API waits for the broker when publishing / in /readyz.
     BROKER_TIMEOUT: float = 2.0
 
-    # Web UI sessions (service.web.session): the key that signs the session cookie
+    # Web UI sessions (svrobs_lab.sessions): the key that signs the session cookie
     # (unset: one is generated once and kept in VAR_DIR/secret_key, so restarts keep
     # sessions; set it when API processes on several hosts serve the same users) and
     # how long a sign-in lasts.

@@ -1,19 +1,6 @@
-"""The one progress bar of in-process runs (``svrobs run-local``, ``svrobs reproduce``)."""
+"""The CLI's progress bar, :func:`svrobs_cli.progress.progress_bar`, under the name
+``service.reports.reproduce`` imports."""
 
-from __future__ import annotations
+from svrobs_cli.progress import progress_bar
 
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
-
-def progress_bar(console: Console, *, quiet: bool) -> Progress:
-    """A rich bar with description, count and elapsed time; inert when ``quiet``."""
-    return Progress(
-        "[progress.description]{task.description}",
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=console,
-        disable=quiet,
-        transient=False,
-    )
+__all__ = ["progress_bar"]

@@ -27,8 +27,8 @@ def migrate(
 def _admin_call(fn):
     """``fn(session, accounts)`` in one committed transaction; an AdminError is one line."""
     from service.db import accounts
-    from service.db.errors import AdminError
     from service.db.session import session_scope
+    from svrobs_lab.errors import AdminError
 
     try:
         with session_scope() as session:

@@ -42,18 +42,22 @@ def run_local(
 ) -> dict:
     """Run a spec in process; returns ``{"records": n, "out": str}``.
 
-    The service's job limits apply (:func:`service.db.jobs.admit`; None:
+    The service's job limits apply (:func:`svrobs_lab.jobs.admit_spec`; None:
     SVROBS_MAX_JOB_CPU_SECONDS, SVROBS_MAX_UNIT_MEMORY_MB): a spec over one raises
     its SpecError before anything is written."""
     from rich.console import Console
 
-    from service.db.jobs import admit
-    from service.progress import progress_bar
+    from service.config import get_settings
+    from svrobs_cli.progress import progress_bar
     from svrobs_core import parse_spec, summarize
     from svrobs_core.runner import run_unit_result
+    from svrobs_lab.jobs import admit_spec
 
+    settings = get_settings()
+    overrides = {"MAX_JOB_CPU_SECONDS": max_cpu_seconds, "MAX_UNIT_MEMORY_MB": max_memory_mb}
+    settings = settings.model_copy(update={k: v for k, v in overrides.items() if v is not None})
     spec = parse_spec(spec_obj)
-    units = admit(spec, max_cpu_seconds=max_cpu_seconds, max_unit_mb=max_memory_mb)
+    units = admit_spec(spec, settings)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     records: list[dict] = []

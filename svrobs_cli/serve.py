@@ -3,7 +3,7 @@
 One command starts the whole embedded stack (or any stack the environment
 points at)::
 
-    uvicorn service.api.main:app            the REST API on API_HOST:API_PORT
+    uvicorn service.app:app                 the REST API on API_HOST:API_PORT
     celery -A worker.celery_app worker      one worker (prefork, one pool process per
                                             CPU plus one, at most 5: DEFAULT_CONCURRENCY)
     celery -A worker.celery_app beat        the scheduler (runs the tick)
@@ -96,9 +96,9 @@ def bootstrap_admin(settings: Settings | None = None) -> str | None:
     from sqlalchemy.exc import IntegrityError
 
     from service.db import accounts
-    from service.db.errors import AdminError
     from service.db.models import Team
     from service.db.session import session_scope
+    from svrobs_lab.errors import AdminError
 
     url = (settings or get_settings()).DATABASE_URL
     try:
@@ -150,7 +150,7 @@ def api_command(host: str, port: int) -> list[str]:
         sys.executable,
         "-m",
         "uvicorn",
-        "service.api.main:app",
+        "service.app:app",
         "--host",
         host,
         "--port",
@@ -286,7 +286,7 @@ def _redact(url: str) -> str:
         from sqlalchemy.engine import make_url
 
         return make_url(url).render_as_string(hide_password=True)
-    except Exception:  # noqa: BLE001
+    except Exception:  # noqa: BLE001 - a log line is written whatever the URL holds
         return url
 
 

@@ -36,7 +36,7 @@ _EXPORTS = {
     "run_unit": "runner",
     "run_unit_result": "runner",
     "ExperimentSpec": "spec",
-    "parse_spec": "spec",
+    "parse_spec": "parsing",
     "PRESETS": "systems",
     "SystemSpec": "systems",
     "resolve_system": "systems",
@@ -70,10 +70,11 @@ if TYPE_CHECKING:  # the same names, for linters and type checkers
     from .errors import DimensionError, SpecError, check_matrix
     from .measured import MeasuredData, check_against_data, run_measured_unit
     from .parallel import open_pool
+    from .parsing import parse_spec
     from .planning import plan_units
     from .records import RECORD_FIELDS, summarize
     from .runner import run_spec, run_unit, run_unit_result
-    from .spec import ExperimentSpec, parse_spec
+    from .spec import ExperimentSpec
     from .systems import PRESETS, SystemSpec, resolve_system
     from .unit_result import UnitResult
 

@@ -155,7 +155,8 @@ def table2_grid_note(spec) -> str | None:
     published Table 2 (E1: N = 10..450 step 10, T0 = 11, all data, loss scale sum;
     each row is then matched on system, sigma_w and gamma = 0.05), else one line
     saying why the published values are not shown beside its numbers."""
-    from .spec import ExperimentSpec, parse_spec
+    from .spec import ExperimentSpec
+    from .spec import parse_simulation_spec as parse_spec  # a paper grid is simulated
 
     try:
         parsed = spec if isinstance(spec, ExperimentSpec) else parse_spec(spec)

@@ -21,45 +21,16 @@ def plan_units(
     *,
     max_cells: int = MAX_CELLS_PER_UNIT,
     target_cells: int = TARGET_CELLS_PER_UNIT,
-    max_unit_bytes: int | None = None,
 ) -> list[dict]:
     """Work units ``{"system", "sigma_w", "N": [...], "reps": [start, stop]}``.
 
     Consecutive N values of one (system, sigma_w) are packed into a unit
     while it stays within ``target_cells`` (all N at once when ``reuse_gain``
     couples them); a single N over ``max_cells`` is split by repetitions.
-    ``max_unit_bytes``: a unit whose estimated peak memory
-    (:func:`svrobs_core.workload.estimate_unit`) is above it is split further,
-    first into its N values (unless ``reuse_gain``), then by repetitions, down
-    to one repetition (which may still be above the cap: the caller compares
-    ``estimate_job(spec, units).peak_unit_bytes`` with it). The records do not
-    depend on the split.
+    :func:`svrobs_core.workload.plan_under_memory` splits them further under a
+    memory cap. The records do not depend on the split.
     """
-    units = _plan(spec, max_cells=max_cells, target_cells=target_cells)
-    if max_unit_bytes is None:
-        return units
-    if spec.measured is not None:
-        raise ValueError("a dataset job's memory cap: svrobs_core.measured.plan_measured_units")
-    return [v for u in units for v in _fit_memory(spec, u, max_unit_bytes)]
-
-
-def _fit_memory(spec: ExperimentSpec, unit: dict, cap: int) -> list[dict]:
-    """``unit`` split so that each part's estimated peak bytes stay under ``cap``."""
-    from .workload import estimate_unit
-
-    if estimate_unit(spec, unit).peak_bytes <= cap:
-        return [unit]
-    if len(unit["N"]) > 1 and not spec.reuse_gain:
-        return [v for N in unit["N"] for v in _fit_memory(spec, {**unit, "N": [N]}, cap)]
-    r0, r1 = unit["reps"]
-    lo, hi = 1, r1 - r0  # the largest chunk of repetitions under the cap, by bisection
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        if estimate_unit(spec, {**unit, "reps": [r0, r0 + mid]}).peak_bytes <= cap:
-            lo = mid
-        else:
-            hi = mid - 1
-    return [{**unit, "reps": [s, min(r1, s + lo)]} for s in range(r0, r1, lo)]
+    return _plan(spec, max_cells=max_cells, target_cells=target_cells)
 
 
 def _plan(spec: ExperimentSpec, *, max_cells: int, target_cells: int) -> list[dict]:

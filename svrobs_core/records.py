@@ -221,3 +221,13 @@ def summarize_columns(columns: dict) -> list[dict]:
                 group_stats[f] = {"mean": mean[g], "std": std[g], "count": n[g]}
         out.append({**dict(zip(GROUP_FIELDS, key)), "count": int(sizes[g]), "stats": group_stats})
     return out
+
+
+# Fields the report reads: L, K, the radius matrices (r_A, r_B are their largest
+# entries) and seed_key are never needed.
+REPORT_FIELDS = tuple(
+    f for f in RECORD_FIELDS if f not in ("L", "K", "radii_A", "radii_B", "seed_key")
+)
+# The matrices among them (records' MATRIX_FIELDS without the gains): A_hat, B_hat.
+COLUMN_MATRIX_FIELDS = tuple(f for f in MATRIX_FIELDS if f in REPORT_FIELDS)
+SCALAR_FIELDS = tuple(f for f in REPORT_FIELDS if f not in COLUMN_MATRIX_FIELDS + TEXT_FIELDS)

@@ -249,17 +249,12 @@ def _unique(values: tuple, name: str) -> tuple:
     return values
 
 
-def parse_spec(obj) -> ExperimentSpec:
-    """Validate a section 10 spec (a dict from JSON) and fill the defaults.
+def parse_simulation_spec(obj) -> ExperimentSpec:
+    """Validate a spec of a simulated job (a dict from JSON) and fill the defaults.
 
-    A spec with ``"dataset"`` instead of ``systems`` is a job on measured data
-    (:func:`svrobs_core.measured.spec.parse_dataset_spec`, docs/measured.md#spec)."""
+    :func:`svrobs_core.parsing.parse_spec` takes either kind of job."""
     if not isinstance(obj, dict):
         raise SpecError("spec", "must be a JSON object")
-    if "dataset" in obj:
-        from .measured.spec import parse_dataset_spec
-
-        return parse_dataset_spec(obj)
     unknown = set(obj) - SPEC_KEYS
     if unknown:
         key = sorted(unknown)[0]

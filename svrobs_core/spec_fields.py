@@ -1,7 +1,7 @@
 """The spec's fields as a table (what a form shows: kind, one-line help, unit, bounds,
 default), and every error of a spec at once.
 
-:data:`SPEC_FIELDS` declares each key of :func:`svrobs_core.spec.parse_spec`; the
+:data:`SPEC_FIELDS` declares each key of :func:`svrobs_core.parsing.parse_spec`; the
 defaults are read from :class:`~svrobs_core.spec.ExperimentSpec` and
 ``BOUNDS_OPTIONS`` (written once, there), and the bounds are those the parser
 enforces (``tests/core/test_spec_fields.py`` probes the parser at each bound).
@@ -17,6 +17,7 @@ from dataclasses import MISSING, dataclass
 from dataclasses import fields as dataclass_fields
 
 from .errors import SpecError
+from .parsing import parse_spec
 from .spec import (
     BOOT_SIGMA_SOURCES,
     BOUNDS_METHODS,
@@ -31,7 +32,6 @@ from .spec import (
     SPEC_KEYS,
     STAGES,
     ExperimentSpec,
-    parse_spec,
 )
 from .systems import PRESETS
 

@@ -21,7 +21,15 @@ import numpy as np
 from .notes import Notes
 from .pipeline import mc_note
 from .planning import EstimatorAxis
-from .records import CELL_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, json_value
+from .records import (
+    CELL_FIELDS,
+    COLUMN_MATRIX_FIELDS,
+    MATRIX_FIELDS,
+    RECORD_FIELDS,
+    SCALAR_FIELDS,
+    TEXT_FIELDS,
+    json_value,
+)
 
 
 def _flat(arr, RE: int) -> np.ndarray:
@@ -314,7 +322,6 @@ class UnitResult:
         """{field: array over the unit's records} as :mod:`svrobs_core.report` reads them:
         numbers as float (NaN = null, booleans 0/1), text as object arrays,
         A_hat/B_hat as (k, n, .) floats if ``matrices``."""
-        from .report import COLUMN_MATRIX_FIELDS, SCALAR_FIELDS, TEXT_FIELDS
 
         R, E = len(self.reps), len(self.axis.names)
         RE = R * E

@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from . import planning
 from .errors import SpecError
 from .estimators import FALLBACK_CHUNK_BYTES, SVR_COND_LIMIT
 from .gains import is_orthogonal
@@ -235,13 +236,43 @@ def estimate_unit(spec: ExperimentSpec, unit: dict) -> UnitCost:
     return UnitCost(cpu_seconds=float(cpu), peak_bytes=int(base + peak))
 
 
+def plan_under_memory(spec: ExperimentSpec, *, max_unit_bytes: int | None = None) -> list[dict]:
+    """:func:`~svrobs_core.planning.plan_units`, with a unit whose estimated peak
+    memory (:func:`estimate_unit`) is above ``max_unit_bytes`` split further: first
+    into its N values (unless ``reuse_gain``), then by repetitions, down to one
+    repetition (which may still be above the cap: the caller compares
+    ``estimate_job(spec, units).peak_unit_bytes`` with it). None: no cap. The
+    records do not depend on the split."""
+    units = planning.plan_units(spec)
+    if max_unit_bytes is None:
+        return units
+    if spec.measured is not None:
+        raise ValueError("a dataset job's memory cap: svrobs_core.measured.plan_measured_units")
+    return [v for u in units for v in _fit_memory(spec, u, max_unit_bytes)]
+
+
+def _fit_memory(spec: ExperimentSpec, unit: dict, cap: int) -> list[dict]:
+    """``unit`` split so that each part's estimated peak bytes stay under ``cap``."""
+    if estimate_unit(spec, unit).peak_bytes <= cap:
+        return [unit]
+    if len(unit["N"]) > 1 and not spec.reuse_gain:
+        return [v for N in unit["N"] for v in _fit_memory(spec, {**unit, "N": [N]}, cap)]
+    r0, r1 = unit["reps"]
+    lo, hi = 1, r1 - r0  # the largest chunk of repetitions under the cap, by bisection
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if estimate_unit(spec, {**unit, "reps": [r0, r0 + mid]}).peak_bytes <= cap:
+            lo = mid
+        else:
+            hi = mid - 1
+    return [{**unit, "reps": [s, min(r1, s + lo)]} for s in range(r0, r1, lo)]
+
+
 def estimate_job(spec: ExperimentSpec, units: list[dict] | None = None) -> JobCost:
     """Total CPU seconds of ``units`` (default: ``plan_units(spec)``), the largest
     unit's peak bytes and the unit count."""
     if units is None:
-        from .planning import plan_units
-
-        units = plan_units(spec)
+        units = planning.plan_units(spec)
     seen: dict[tuple, UnitCost] = {}  # units differing only in sigma_w cost the same
     costs = []
     limit = spec.reps if spec.mc_reps is None else spec.mc_reps
@@ -320,8 +351,6 @@ def admit(
     or :class:`WorkloadError` if the smallest unit is over ``max_unit_bytes``
     or the job over ``max_cpu_seconds`` (None: no limit). The message gives the
     estimate and the limit; ``field`` the spec field that weighs most."""
-    from .planning import plan_units
-
     if max_unit_bytes is not None:
         need = smallest_unit_bytes(spec)
         if need > max_unit_bytes:
@@ -343,7 +372,7 @@ def admit(
             estimate=floor,
             limit=max_cpu_seconds,
         )
-    units = plan_units(spec, max_unit_bytes=max_unit_bytes)
+    units = plan_under_memory(spec, max_unit_bytes=max_unit_bytes)
     job = estimate_job(spec, units)
     if max_cpu_seconds is not None and job.cpu_seconds > max_cpu_seconds:
         raise WorkloadError(
@@ -364,5 +393,6 @@ __all__ = [
     "admit",
     "estimate_job",
     "estimate_unit",
+    "plan_under_memory",
     "smallest_unit_bytes",
 ]

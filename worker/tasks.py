@@ -32,15 +32,19 @@ import time
 import traceback
 
 from billiard.exceptions import TimeLimitExceeded, WorkerLostError
+from celery import current_app, shared_task
 from celery.exceptions import Retry
 from celery.signals import worker_process_init
 from celery.worker.request import Request
 
+from service.config import get_settings
 from service.db import units
 from service.db.session import dispose_all, session_scope
 from svrobs_core import parse_spec
 from svrobs_core.runner import run_unit_result
-from worker.celery_app import celery_app, settings
+from worker.tick import run_tick
+
+settings = get_settings()
 
 # (imported here, in the worker's main process, so that every pool child forks
 # with numpy, scipy and the core already loaded)
@@ -163,15 +167,10 @@ def _dispatch_team(unit_id: int) -> None:
     """Publish the next units of the unit's team (its slot is free); best effort: the
     tick's relay publishes whatever this misses."""
     from service.broker import publish_units
-    from service.db import outbox
+    from svrobs_lab.dispatch import dispatch_team_of_unit
 
     try:
-        with session_scope(write=False) as s:
-            team_id = outbox.team_of_unit(s, unit_id)
-        if team_id is not None:
-            outbox.dispatch(
-                session_scope, lambda ids: publish_units(celery_app, ids), team_id=team_id
-            )
+        dispatch_team_of_unit(session_scope, lambda ids: publish_units(current_app, ids), unit_id)
     except Exception as exc:  # noqa: BLE001 - the unit's own outcome is stored already
         log.warning("unit %s: publishing its team's next units failed: %s", unit_id, exc)
 
@@ -288,7 +287,7 @@ def _note_lost(unit_id: int, why: str) -> None:
         engine.dispose()
 
 
-@celery_app.task(
+@shared_task(
     name="svrobs.run_unit",
     bind=True,
     acks_late=True,
@@ -325,9 +324,7 @@ def _backoff(retries: int, base: float = 1.0, cap: float = 120.0) -> float:
     return min(cap, base * 2**retries) * (0.5 + random.random() / 2)
 
 
-@celery_app.task(name="svrobs.tick", ignore_result=True)
-def tick():
+@shared_task(name="svrobs.tick", bind=True, ignore_result=True)
+def tick(self):
     """Normally run inside beat (worker.beat.TickScheduler); a worker can run it too."""
-    from worker.tick import run_tick
-
-    return run_tick(celery=celery_app)
+    return run_tick(celery=self.app)

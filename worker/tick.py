@@ -34,12 +34,13 @@ _report_thread: threading.Thread | None = None
 
 
 def create_due_jobs(now: datetime | None = None) -> list[int]:
-    from service.db import schedules
+    from service.config import get_settings
     from service.db.clock import db_now
     from service.db.session import session_scope
+    from svrobs_lab import schedules
 
     with session_scope() as s:
-        jobs = schedules.create_due_schedule_jobs(s, now or db_now(s))
+        jobs = schedules.create_due_jobs(get_settings(), s, now or db_now(s))
         ids = [getattr(j, "id", j) for j in jobs or ()]
     if ids:
         log.info("tick: created jobs %s for due schedules", ids)
@@ -56,29 +57,26 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
     translated into it), never this host's clock.
     """
     from service.broker import broker_epoch, publish_units
-    from service.db import outbox
     from service.db.clock import db_now
     from service.db.session import session_scope
+    from svrobs_lab import dispatch
 
-    if celery is None:
-        from worker.celery_app import celery_app as celery
+    if celery is None:  # a tick run outside a worker or beat: a publisher of its own
+        from service.broker import make_celery
+        from service.config import get_settings
+
+        celery = make_celery(get_settings())
     with session_scope(write=False) as s:
         start = db_now(s)
     # raises if the broker is unreachable: retried next tick
     epoch = broker_epoch(celery, now=start)
-    sent = 0
-    while sent < limit:
-        batch = min(RELAY_BATCH, limit - sent)
-        n = outbox.dispatch(
-            session_scope,
-            lambda ids: publish_units(celery, ids),
-            republish=True,
-            lost_before=epoch,
-            limit=batch,
-        )
-        sent += n
-        if n < batch:  # nothing more, or the broker took only part: next tick
-            break
+    sent = dispatch.relay(
+        session_scope,
+        lambda ids: publish_units(celery, ids),
+        lost_before=epoch,
+        limit=limit,
+        batch=RELAY_BATCH,
+    )
     if sent:
         log.info("tick: relayed %d work units", sent)
     return sent
@@ -92,7 +90,7 @@ def prune_expired(limit: int = PRUNE_MAX_PER_TICK, scope=None) -> list[int]:
     ``scope(write=...)`` -> a committing session context (default ``session_scope``)."""
     from service.db import retention
     from service.db.session import session_scope
-    from service.reports.stored import store_if_missing
+    from svrobs_lab.reports import store_if_missing
 
     scope = scope or session_scope
     with scope(write=False) as s:
@@ -115,7 +113,7 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
     from service.db.clock import db_now
     from service.db.reports import jobs_without_report
     from service.db.session import session_scope
-    from service.reports.stored import store_if_missing
+    from svrobs_lab.reports import store_if_missing
 
     scope = scope or session_scope
     with scope(write=False) as s:
@@ -144,7 +142,7 @@ def start_report_builds() -> bool:
     def run():
         try:
             build_reports()
-        except Exception:  # noqa: BLE001 - retried next tick
+        except Exception:  # retried next tick (logged with its traceback)
             log.exception("tick: building reports failed; will retry next tick")
 
     if _report_thread is None:  # the first build of this process
@@ -178,12 +176,12 @@ def run_tick(now: datetime | None = None, celery=None, *, reports: bool = True) 
         out["errors"].append(f"schedules: {type(exc).__name__}: {exc}")
     try:
         out["relayed"] = relay(celery)
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - the broker or the DB may be down: the next tick retries
         log.warning("tick: relay failed (%s: %s); will retry next tick", type(exc).__name__, exc)
         out["errors"].append(f"relay: {type(exc).__name__}: {exc}")
     try:
         out["pruned"] = prune_expired()
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # logged with its traceback; the next tick retries
         log.exception("tick: retention failed; will retry next tick")
         out["errors"].append(f"retention: {type(exc).__name__}: {exc}")
     if reports:

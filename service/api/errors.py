@@ -1,12 +1,15 @@
 """Every error the API answers, mapped to a response once (``install_error_handlers``).
 
-The body is always JSON ``{"detail": ..., "field": ...}``: 422 for a bad spec or
-body (naming the field), 409 for an Idempotency-Key reused with another spec or for
-deleting a job that is queued or running (``JobActive``; on a web page, the web
-UI's error page: ``app.state.error_page``), 429
-over the team's job quota, 413 for a body over SVROBS_MAX_BODY_BYTES, 503 when
-the database is unreachable. Anything else is a bug: it is logged with its
-traceback and answered 500 ``{"detail": "internal error"}``, with no internals.
+The body is always JSON ``{"detail": ..., "field": ...}``. An application error
+(:class:`svrobs_lab.errors.LabError`) is answered by its kind (``service.http.errors``): 422
+for a bad value (naming the field; a bad spec is a
+:class:`~svrobs_core.errors.SpecError`, also 422), 404 not found, 409 a conflict
+(an Idempotency-Key reused with another spec, deleting a job that is queued or
+running), 410 gone (pruned rows), 403, 429 over the team's job quota or the key's
+rate, 413 for a body over SVROBS_MAX_BODY_BYTES; 503 when the database is
+unreachable. Anything else is a bug: it is logged with its traceback and answered
+500 ``{"detail": "internal error"}``, with no internals. On a web page (a path out of
+/api), an application error is the web's error page instead (``service.app``).
 """
 
 from __future__ import annotations
@@ -15,17 +18,17 @@ import json
 import logging
 from typing import Any
 
-from fastapi import FastAPI, HTTPException, Request
+from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.api.schemas import ErrorOut
-from service.db.errors import IdempotencyConflict, QuotaExceeded
-from service.db.job_delete import JobActive
+from service.http.errors import status_of
 from svrobs_core.errors import SpecError
+from svrobs_lab.errors import LabError, RateLimited
+from svrobs_lab.schemas import ErrorOut
 
 log = logging.getLogger(__name__)
 
@@ -39,14 +42,6 @@ def error_docs(*statuses: int) -> dict:
 
 ERRORS = error_docs(401, 404, 422, 429, 503)
 BODY_ERRORS = {**ERRORS, **error_docs(413)}  # routes with a body: SVROBS_MAX_BODY_BYTES
-
-
-class FieldHTTPException(HTTPException):
-    """An HTTP error naming the request field it is about."""
-
-    def __init__(self, status: int, detail, field: str | None = None, headers=None):
-        super().__init__(status, detail, headers=headers)
-        self.field = field
 
 
 class _ErrorJSONResponse(JSONResponse):
@@ -83,16 +78,14 @@ def _loc_to_field(loc) -> str | None:
     return out or None
 
 
-async def _spec_error(request: Request, exc: SpecError):
-    return error_response(422, exc.message, exc.field)
+def lab_error_response(exc: LabError | SpecError) -> JSONResponse:
+    """The JSON answer of an application error (or a bad spec)."""
+    headers = {"Retry-After": str(exc.retry_after)} if isinstance(exc, RateLimited) else None
+    return error_response(status_of(exc), exc.message, exc.field, headers=headers)
 
 
-async def _quota_exceeded(request: Request, exc: QuotaExceeded):
-    return error_response(429, str(exc))
-
-
-async def _idempotency_conflict(request: Request, exc: IdempotencyConflict):
-    return error_response(409, str(exc), "Idempotency-Key")
+async def _lab_error(request: Request, exc: LabError | SpecError):
+    return lab_error_response(exc)
 
 
 # pydantic names the member of a union in the location ("N.list[any]"): the kinds
@@ -131,13 +124,6 @@ def plain_errors(errors: list[dict]) -> list[dict]:
     return out
 
 
-async def _job_active(request: Request, exc: JobActive):
-    page = getattr(request.app.state, "error_page", None)
-    if page is not None and not request.url.path.startswith("/api/"):
-        return page(request, 409, f"{str(exc).capitalize()}.")
-    return error_response(409, str(exc))
-
-
 async def _validation_error(request: Request, exc: RequestValidationError):
     errors = plain_errors(exc.errors())
     first = errors[0] if errors else {}
@@ -157,12 +143,11 @@ async def _validation_error(request: Request, exc: RequestValidationError):
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException):
-    field = getattr(exc, "field", None)  # a FieldHTTPException names one
     if exc.status_code == 400 and exc.detail == BODY_PARSE_ERROR:
         # FastAPI's 400 for a body it cannot decode (not UTF-8, nested too deep):
         # a bad body is a 422 naming the body, like malformed JSON.
         return error_response(422, "the request body is not valid JSON (UTF-8)", "body")
-    return error_response(exc.status_code, exc.detail, field, headers=exc.headers)
+    return error_response(exc.status_code, exc.detail, headers=exc.headers)
 
 
 async def _db_down(request: Request, exc: OperationalError):
@@ -190,10 +175,8 @@ async def _internal(request: Request, exc: Exception):
 
 
 HANDLERS = (
-    (SpecError, _spec_error),
-    (QuotaExceeded, _quota_exceeded),
-    (IdempotencyConflict, _idempotency_conflict),
-    (JobActive, _job_active),
+    (LabError, _lab_error),
+    (SpecError, _lab_error),
     (RequestValidationError, _validation_error),
     (StarletteHTTPException, _http_error),
     (OperationalError, _db_down),
@@ -203,7 +186,9 @@ HANDLERS = (
 )
 
 
-def install_error_handlers(app: FastAPI) -> None:
-    """Register every mapping above on ``app`` (the only place errors become responses)."""
+def install_error_handlers(app: FastAPI, *, lab_error=_lab_error) -> None:
+    """Register every mapping above on ``app`` (the only place errors become JSON
+    responses); ``lab_error`` replaces the handler of application errors (the app
+    factory's, which answers a web page with the web's error page)."""
     for exc_class, handler in HANDLERS:
-        app.add_exception_handler(exc_class, handler)
+        app.add_exception_handler(exc_class, lab_error if handler is _lab_error else handler)

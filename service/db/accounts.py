@@ -17,7 +17,8 @@ from datetime import datetime, timedelta
 from sqlalchemy import select
 from sqlalchemy.orm import Session, joinedload
 
-from .errors import AdminError
+from svrobs_lab.errors import AdminError
+
 from .models import ApiKey, Team, User, utcnow
 
 KEY_SCHEME = "svr"
@@ -160,3 +161,12 @@ def list_keys(session: Session, team: int | str | None = None) -> list[ApiKey]:
     if team is not None:
         q = q.where(ApiKey.team_id == get_team(session, team).id)
     return list(session.scalars(q))
+
+
+def active_key(session: Session, key_id: int) -> ApiKey | None:
+    """The API key row with this id if it is still active (not revoked, not expired)."""
+    row = session.scalar(select(ApiKey).where(ApiKey.id == key_id).options(joinedload(ApiKey.user)))
+    now = utcnow()
+    if row is None or any(t is not None and t <= now for t in (row.revoked_at, row.expires_at)):
+        return None
+    return row

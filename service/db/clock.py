@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from datetime import UTC, datetime
 
-from sqlalchemy import func, select
+from sqlalchemy import func, select, text
 from sqlalchemy.orm import Session
 
 from .models import as_utc
@@ -20,3 +20,8 @@ def db_now(session: Session) -> datetime:
         value = session.scalar(select(func.strftime("%Y-%m-%d %H:%M:%f", "now")))
         return datetime.fromisoformat(value).replace(tzinfo=UTC)
     return as_utc(session.scalar(select(func.now())))
+
+
+def ping(session: Session) -> None:
+    """One round trip to the database (raises when it does not answer)."""
+    session.execute(text("SELECT 1"))

@@ -23,24 +23,13 @@ from sqlalchemy import Float, Integer, case, cast, func, literal, select, union_
 from sqlalchemy.orm import Session
 
 from svrobs_core.records import BOOL_FIELDS, GROUP_FIELDS, SUMMARY_FIELDS
+from svrobs_lab.errors import NeedsCellRows
 
 from .models import Job, Result, Summary
 
 COMPARE_BY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep")
 CELL_KEY = frozenset(GROUP_FIELDS + ("rep",))  # one group is one cell: no aggregation
 NULLABLE = frozenset({"gamma", "N0"})
-
-
-class NeedsCellRows(Exception):
-    """The grouping needs cell rows that retention dropped (``job_ids``)."""
-
-    def __init__(self, job_ids: list[int], by: list[str]):
-        self.job_ids = job_ids
-        super().__init__(
-            f"job(s) {', '.join(map(str, job_ids))} were pruned by the team's retention "
-            f"policy: grouping by {', '.join(b for b in by if b not in GROUP_FIELDS)} needs "
-            f"their cell rows; group by {', '.join(GROUP_FIELDS)} (from the stored summaries)"
-        )
 
 
 @dataclass
@@ -110,7 +99,7 @@ def compare_page(
     from_summaries = set(by) <= set(GROUP_FIELDS) and metric in SUMMARY_FIELDS
     pruned = [j.id for j in jobs if j.pruned_at is not None]
     if pruned and not from_summaries:
-        raise NeedsCellRows(pruned, by)
+        raise NeedsCellRows(pruned, by, GROUP_FIELDS)
     if set(by) >= CELL_KEY:
         return _cell_page(session, jobs, metric, by, limit=limit, offset=offset)
     shift = {j.id: _shift(session, j.id, metric) for j in jobs}

@@ -1,4 +1,4 @@
-"""Deleting a job with everything stored for it, in the caller's transaction (issue 11).
+"""Deleting a job with everything stored for it, in the caller's transaction.
 
 A queued or running job is refused (:class:`JobActive`): cancel it first. Units are
 locked before the job, the lock order of the rest of the DB package, so a unit that a
@@ -22,15 +22,7 @@ from service.db.models import (
     Summary,
     WorkUnit,
 )
-
-
-class JobActive(Exception):
-    """The job is queued or running; it can be deleted once cancelled or finished."""
-
-    def __init__(self, job_id: int, status: str):
-        super().__init__(f"job {job_id} is {status}: cancel it before deleting it")
-        self.job_id = job_id
-        self.status = status
+from svrobs_lab.errors import JobActive
 
 
 def delete_job(session: Session, job: Job) -> dict[str, int]:

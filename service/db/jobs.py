@@ -14,12 +14,12 @@ from sqlalchemy import func, insert, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from service.config import get_settings
 from svrobs_core import workload
+from svrobs_core.parsing import parse_spec
 from svrobs_core.planning import unit_cells
-from svrobs_core.spec import ExperimentSpec, parse_spec
+from svrobs_core.spec import ExperimentSpec
+from svrobs_lab.errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
 
-from .errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
 from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
 from .provenance import provenance
 
@@ -42,10 +42,10 @@ def create_job(
     """Validate ``spec`` and insert the job and its work units (not committed).
 
     Raises :class:`SpecError` (naming the field) for a bad spec,
-    :class:`JobTooLarge` over ``max_cells`` (default SVROBS_MAX_JOB_CELLS) or over the
-    work limits of :func:`admit`,
+    :class:`JobTooLarge` over ``max_cells`` or over the work limits of :func:`admit`,
     :class:`QuotaExceeded` when the team has ``max_active_jobs`` queued or
-    running jobs (default SVROBS_MAX_QUEUED_JOBS_PER_TEAM; pass 0 to skip),
+    running jobs. Each limit is passed in by the application layer
+    (``svrobs_lab.jobs.limits``); None or 0: no limit.
     :class:`IdempotencyConflict` when the key was used with another spec.
     With an ``idempotency_key`` already used by the team for the same spec,
     returns that job. Returns ``(job, created)``; ``created`` is False for that job.
@@ -62,7 +62,7 @@ def create_job(
         if existing is not None:
             return _same_or_conflict(existing, normalised)
 
-    cap = get_settings().MAX_QUEUED_JOBS_PER_TEAM if max_active_jobs is None else max_active_jobs
+    cap = max_active_jobs
     if cap:
         active = session.scalar(
             select(func.count(Job.id)).where(Job.team_id == team_id, Job.status.in_(JOB_ACTIVE))
@@ -139,20 +139,19 @@ def admit(
     down to one repetition (naming the spec field that weighs most, under ``field``
     if given: ``spec_template.mc_runs``; the message gives the estimate, the limit
     and the setting), or when the job has more than SVROBS_MAX_JOB_CELLS cells
-    (naming ``field``, default ``spec``). Each limit defaults to its setting.
+    (naming ``field``, default ``spec``). A limit of None: no limit.
     """
-    settings = get_settings()
-    cpu = settings.MAX_JOB_CPU_SECONDS if max_cpu_seconds is None else max_cpu_seconds
-    mb = settings.MAX_UNIT_MEMORY_MB if max_unit_mb is None else max_unit_mb
+    cpu, mb = max_cpu_seconds, max_unit_mb
+    max_bytes = None if mb is None else int(mb * 2**20)
     try:  # (a job too big to plan is refused by the estimate's floor first)
-        units, _cost = workload.admit(spec, max_cpu_seconds=cpu, max_unit_bytes=int(mb * 2**20))
+        units, _cost = workload.admit(spec, max_cpu_seconds=cpu, max_unit_bytes=max_bytes)
     except workload.WorkloadError as exc:
         setting = "SVROBS_MAX_JOB_CPU_SECONDS" if exc.kind == "cpu" else "SVROBS_MAX_UNIT_MEMORY_MB"
         raise JobTooLarge(
             f"{field}.{exc.field}" if field else exc.field, f"{exc.message} ({setting})"
         ) from None
-    cells = settings.MAX_JOB_CELLS if max_cells is None else max_cells
-    if spec.n_cells > cells:
+    cells = max_cells
+    if cells is not None and spec.n_cells > cells:
         raise JobTooLarge(
             field or "spec",
             f"the job has {spec.n_cells:,} cells; the limit is {cells:,} (SVROBS_MAX_JOB_CELLS)",

@@ -25,8 +25,8 @@ from sqlalchemy import Boolean, Float, Integer, LargeBinary, Select, select
 from sqlalchemy.engine import Dialect
 from sqlalchemy.orm import Session
 
+from svrobs_core.parsing import parse_spec
 from svrobs_core.records import BOOL_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, json_value
-from svrobs_core.spec import parse_spec
 from svrobs_core.unit_result import UnitResult
 
 from .models import (

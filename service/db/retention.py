@@ -14,9 +14,10 @@ from datetime import datetime, timedelta
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
+from svrobs_lab.errors import AdminError
+
 from .accounts import get_team
 from .clock import db_now
-from .errors import AdminError
 from .models import Job, Result, ResultConstant, Team, as_utc
 
 MAX_RETENTION_DAYS = 36_500

@@ -12,10 +12,9 @@ from croniter import croniter
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from service.config import get_settings
 from svrobs_core.errors import SpecError
+from svrobs_lab.errors import IdempotencyConflict, QuotaExceeded
 
-from .errors import IdempotencyConflict, QuotaExceeded
 from .jobs import create_job
 from .models import Job, Schedule, ScheduleRun, as_utc, utcnow
 
@@ -115,15 +114,22 @@ def latest_due(cron: str, tz: str, now: datetime) -> datetime:
     return due.astimezone(UTC).replace(microsecond=0)
 
 
-def create_due_schedule_jobs(session: Session, now: datetime) -> list[Job]:
+def create_due_schedule_jobs(
+    session: Session,
+    now: datetime,
+    *,
+    limits: dict | None = None,
+    min_interval_seconds: float = 0,
+) -> list[Job]:
     """Create one job per enabled schedule whose latest due time (<= now, not before
     the schedule was created) has no run yet. A ScheduleRun row is inserted on the
     unique (schedule, due_at) first and the job is made only by the inserter, so a
     doubled or restarted tick never runs one sweep twice. The team's cap on active
-    jobs and every job limit apply as for ``POST /jobs``; a due time that makes no
-    job says why on its run (``skipped_reason`` for the cap or a run less than
-    SVROBS_MIN_SCHEDULE_INTERVAL_SECONDS after the previous job, ``error`` for a spec
-    over a limit). Not committed."""
+    jobs and every job limit (``limits``: the keyword limits of
+    :func:`~service.db.jobs.create_job`) apply as for ``POST /jobs``; a due time that
+    makes no job says why on its run (``skipped_reason`` for the cap or a run less
+    than ``min_interval_seconds`` (SVROBS_MIN_SCHEDULE_INTERVAL_SECONDS) after the
+    previous job, ``error`` for a spec over a limit). Not committed."""
     now = as_utc(now)
     dialect = session.get_bind().dialect.name
     if dialect == "postgresql":
@@ -131,7 +137,7 @@ def create_due_schedule_jobs(session: Session, now: datetime) -> list[Job]:
     else:
         from sqlalchemy.dialects.sqlite import insert as dialect_insert
 
-    min_gap = timedelta(seconds=get_settings().MIN_SCHEDULE_INTERVAL_SECONDS)
+    min_gap = timedelta(seconds=min_interval_seconds)
     jobs: list[Job] = []
     schedules = session.scalars(
         select(Schedule).where(Schedule.enabled.is_(True)).order_by(Schedule.id)
@@ -139,7 +145,7 @@ def create_due_schedule_jobs(session: Session, now: datetime) -> list[Job]:
     for sched in schedules:
         try:
             due = latest_due(sched.cron, sched.timezone, now)
-        except Exception:  # an invalid cron in the DB must not stop the others
+        except Exception:  # noqa: BLE001 - an invalid cron or zone in the DB must not stop the others
             continue
         created = sched.created_at.replace(microsecond=0) if sched.created_at else None
         if created is not None and due < created:
@@ -179,6 +185,7 @@ def create_due_schedule_jobs(session: Session, now: datetime) -> list[Job]:
                     tags=list(sched.tags or []) + [f"schedule:{sched.name}"],
                     idempotency_key=f"schedule:{sched.id}:{stamp}",
                     schedule_id=sched.id,
+                    **(limits or {}),
                 )
         except QuotaExceeded as exc:
             run.skipped_reason = str(exc)
@@ -191,3 +198,34 @@ def create_due_schedule_jobs(session: Session, now: datetime) -> list[Job]:
             jobs.append(job)
     session.flush()
     return jobs
+
+
+def team_schedule(session: Session, team_id: int, schedule_id: int) -> Schedule | None:
+    """One of the team's schedules, or None (another team's is indistinguishable)."""
+    return session.scalar(
+        select(Schedule).where(Schedule.id == schedule_id, Schedule.team_id == team_id)
+    )
+
+
+def count_schedules(session: Session, team_id: int) -> int:
+    return int(
+        session.scalar(select(func.count(Schedule.id)).where(Schedule.team_id == team_id)) or 0
+    )
+
+
+def team_schedules(session: Session, team_id: int) -> list[Schedule]:
+    return list(
+        session.scalars(select(Schedule).where(Schedule.team_id == team_id).order_by(Schedule.id))
+    )
+
+
+def schedule_runs(session: Session, schedule_id: int, limit: int = 100) -> list[ScheduleRun]:
+    """The schedule's due times taken, newest first."""
+    return list(
+        session.scalars(
+            select(ScheduleRun)
+            .where(ScheduleRun.schedule_id == schedule_id)
+            .order_by(ScheduleRun.due_at.desc())
+            .limit(limit)
+        )
+    )

@@ -16,8 +16,8 @@ from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from service.config import get_settings
+from svrobs_core.parsing import parse_spec
 from svrobs_core.records import GROUP_FIELDS, SUMMARY_FIELDS, summarize_columns
-from svrobs_core.spec import parse_spec
 from svrobs_core.unit_result import UnitResult
 
 from .clock import db_now

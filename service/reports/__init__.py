@@ -1,3 +1,3 @@
-"""Reports in the service layer: the HTML page of a report (``html``) and the
-paper reproduction that writes tables, figures and reports to a folder
-(``reproduce``). The content itself comes from :mod:`svrobs_core.report`."""
+"""The paper reproduction that writes tables, figures and reports to a folder
+(``reproduce``), a CLI command (``svrobs reproduce``). The content comes from
+:mod:`svrobs_core.report`; a stored job's HTML report is :mod:`svrobs_lab.reports`."""

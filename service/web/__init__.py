@@ -1,12 +1,13 @@
-"""The web UI (issue 11): server-rendered pages (Jinja2 + htmx + Chart.js, all served
-from ``static/``) behind a sign-in with an API key; see ``session`` for the cookie
-and CSRF rules. ``mount_web(app)`` adds it to the API's app.
+"""The web UI: server-rendered pages (Jinja2 + htmx + Chart.js, all served from
+``static/``) behind a sign-in with an API key; see :mod:`svrobs_lab.sessions` for the
+cookie and CSRF rules. ``mount_web(app)`` adds it to the app of :mod:`service.app`.
 
 A page module under ``pages/`` has a ``router``, included by ``mount_web``. Its
 routes take ``deps.CurrentViewer`` (the signed-in viewer, else a redirect to
 /login), state-changing ones ``dependencies=[deps.CSRF]``; they answer with
 ``render.render(request, template, viewer=viewer, ...)`` (templates extend
-``base.html``) and raise ``render.WebError(404, ...)`` for another team's object.
+``base.html``) and raise ``render.WebError(404, ...)`` for another team's object;
+an application error they let through is a page too (:mod:`service.web.errors`).
 """
 
 from __future__ import annotations
@@ -15,15 +16,8 @@ from fastapi import FastAPI
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
-from service.web.render import (
-    STATIC,
-    SignInRequired,
-    WebError,
-    error_page,
-    sign_in_redirect,
-    web_error_page,
-)
-from service.web.session import Signer, load_secret
+from service.web.render import STATIC, SignInRequired, WebError, sign_in_redirect, web_error_page
+from svrobs_lab.sessions import Signer, load_secret
 
 
 def mount_web(app: FastAPI) -> None:
@@ -43,12 +37,9 @@ def mount_web(app: FastAPI) -> None:
     app.state.web_signer = Signer(load_secret(settings), session_hours=settings.SESSION_HOURS)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.add_api_route("/favicon.ico", _favicon, include_in_schema=False)
-    for module in (auth, jobs, submit, job):
-        app.include_router(module.router)
-    for module in (results, compare, schedules, share):  # issue 11's other pages
+    for module in (auth, jobs, submit, job, results, compare, schedules, share):
         app.include_router(module.router)
     app.add_exception_handler(WebError, web_error_page)
-    app.state.error_page = error_page  # errors mapped in service.api.errors, on a page
     app.add_exception_handler(SignInRequired, sign_in_redirect)
 
 

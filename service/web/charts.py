@@ -12,10 +12,9 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 
-from sqlalchemy import JSON, String, column, func, select, true
 from sqlalchemy.orm import Session
 
-from service.db.models import Summary
+from service.db.result_queries import summary_metrics, summary_stats
 from svrobs_core.records import SUMMARY_FIELDS
 
 X_FIELDS = ("N", "sigma_w", "gamma")
@@ -43,43 +42,12 @@ def stored_groups(session: Session, job_id: int, *fields: str) -> list[dict]:
     those fields out of each row's stats (the rest is never decoded)."""
     for f in fields:
         check(f, "N")
-    rows = session.execute(
-        select(
-            Summary.system,
-            Summary.sigma_w,
-            Summary.N,
-            Summary.estimator,
-            Summary.gamma,
-            *(Summary.stats[f] for f in fields),
-        ).where(Summary.job_id == job_id)
-    ).all()
-    return [
-        dict(
-            system=r[0],
-            sigma_w=r[1],
-            N=r[2],
-            estimator=r[3],
-            gamma=r[4],
-            stats=dict(zip(fields, r[5:])),
-        )
-        for r in rows
-    ]
+    return summary_stats(session, job_id, fields)
 
 
 def stored_metrics(session: Session, job_id: int) -> list[str]:
-    """Summary fields with a non-null mean in at least one of the job's groups, in
-    SPEC section 10 order (json_each: each row's stats parsed once, on either dialect)."""
-    each = func.json_each(Summary.stats).table_valued(column("key", String), column("value", JSON))
-    seen = set(
-        session.scalars(
-            select(each.c.key)
-            .select_from(Summary)
-            .join(each, true())
-            .where(Summary.job_id == job_id, each.c.value["mean"].as_float().is_not(None))
-            .distinct()
-        )
-    )
-    return [f for f in SUMMARY_FIELDS if f in seen]
+    """Summary fields with a non-null mean in at least one of the job's groups."""
+    return summary_metrics(session, job_id)
 
 
 def finite(v) -> float | None:

@@ -1,8 +1,8 @@
 """FastAPI dependencies of the web pages: the signed-in viewer and the CSRF check.
 
-A viewer is the API's :class:`~service.api.deps.Caller` of the session's key, found
-by the same rule as the API (``caller_of``) and rate-limited like it, so pages see
-exactly what the key sees over REST.
+A viewer is the :class:`~svrobs_lab.auth.Caller` of the session's key, found by the
+same rule as the API (:func:`service.http.deps.caller_of`) and rate-limited like it
+(a 429 page), so pages see exactly what the key sees over REST.
 """
 
 from __future__ import annotations
@@ -10,12 +10,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated
 
-from fastapi import Depends, Form, Header, HTTPException, Request
+from fastapi import Depends, Form, Header, Request
 from sqlalchemy.orm import Session
 
-from service.api.deps import Caller, caller_of, get_db, rate_limit
+from service.http.deps import caller_of, get_db, rate_limit
 from service.web.render import SignInRequired, WebError
-from service.web.session import WebSession, request_session, session_key, signer_of
+from svrobs_lab.auth import Caller
+from svrobs_lab.sessions import WebSession, request_session, session_key, signer_of
 
 
 @dataclass(frozen=True)
@@ -41,10 +42,7 @@ def get_viewer(request: Request, db: Annotated[Session, Depends(get_db)]) -> Vie
     caller = caller_of(request, db, find)
     if caller is None:
         raise SignInRequired()
-    try:
-        rate_limit(request, caller)
-    except HTTPException as exc:
-        raise WebError(429, str(exc.detail)) from None
+    rate_limit(request, caller)  # RateLimited: a 429 page (service.web.errors)
     key = found["key"]
     ws = request_session(request)
     return Viewer(

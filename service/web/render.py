@@ -99,7 +99,7 @@ def render(request: Request, template: str, status: int = 200, **context) -> HTM
 
 
 class WebError(Exception):
-    """An error page: 403 (CSRF), 404 (not this team's, or missing), 409, 422, 429."""
+    """An error page: 403 (CSRF), 404 (not this team's, or missing), 409, 410, 413, 422, 429."""
 
     def __init__(self, status: int, message: str, *, title: str | None = None):
         super().__init__(message)
@@ -109,6 +109,8 @@ class WebError(Exception):
             403: "Forbidden",
             404: "Not found",
             409: "Conflict",
+            410: "Gone",
+            413: "Too large",
             422: "Invalid input",
             429: "Too many requests",
         }.get(status, "Error")
@@ -127,13 +129,6 @@ def login_url(request: Request) -> str:
     else:
         path = request.url.path + (f"?{request.url.query}" if request.url.query else "")
     return "/login" if path in ("/", "/login") else f"/login?next={quote(path, safe='')}"
-
-
-def error_page(request: Request, status: int, message: str) -> HTMLResponse:
-    """The error page of ``status`` with ``message``."""
-    return render(
-        request, "error.html", status=status, error=WebError(status, message), viewer=None
-    )
 
 
 async def web_error_page(request: Request, exc: WebError) -> Response:

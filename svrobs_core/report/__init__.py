@@ -3,7 +3,7 @@
 Pure: records (or :class:`Columns` built from them) in; rows, strings,
 matplotlib ``Figure`` objects and bytes out. Nothing here writes files or
 touches the network. Figures are rendered headless with the Agg canvas. The
-HTML page is rendered by the service (``service.reports.html``).
+HTML page is rendered by the service (``svrobs_lab.report_html``).
 
 Every number shown comes from the records (and the spec that produced them).
 The only typed-in numbers are the paper's *published* values of

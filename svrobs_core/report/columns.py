@@ -15,16 +15,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..paper import STABLE, UNSTABLE
-from ..records import BOUND_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, TEXT_FIELDS
-
-# Fields the report reads: L, K, the radius matrices (r_A, r_B are their largest
-# entries) and seed_key are never needed.
-REPORT_FIELDS = tuple(
-    f for f in RECORD_FIELDS if f not in ("L", "K", "radii_A", "radii_B", "seed_key")
+from ..records import (  # noqa: F401 - the report's field lists live with the records
+    BOUND_FIELDS,
+    COLUMN_MATRIX_FIELDS,
+    MATRIX_FIELDS,
+    RECORD_FIELDS,
+    REPORT_FIELDS,
+    SCALAR_FIELDS,
+    TEXT_FIELDS,
 )
-# The matrices among them (records' MATRIX_FIELDS without the gains): A_hat, B_hat.
-COLUMN_MATRIX_FIELDS = tuple(f for f in MATRIX_FIELDS if f in REPORT_FIELDS)
-SCALAR_FIELDS = tuple(f for f in REPORT_FIELDS if f not in COLUMN_MATRIX_FIELDS + TEXT_FIELDS)
 
 # Per stage, the fields that are null in every record when the stage did not run
 # (named in the "no data" messages of the figures and findings).
@@ -174,7 +173,8 @@ class Meta:
 
 
 def spec_meta(spec) -> Meta:
-    from ..spec import ExperimentSpec, parse_spec
+    from ..parsing import parse_spec
+    from ..spec import ExperimentSpec
     from ..systems import PRESETS, resolve_system
 
     if spec is None:

@@ -114,7 +114,7 @@ def test_results_filters_and_records(client, job, http):
 
 
 def test_client_field_lists_are_the_records():
-    from service.api.query_params import RANGE_FIELDS
+    from service.db.result_queries import RANGE_FIELDS
     from svrobs_core.records import NUMERIC_FIELDS
 
     assert svrobs_client.NUMERIC_FIELDS == NUMERIC_FIELDS

@@ -6,6 +6,7 @@ import pytest
 
 from svrobs_core import SpecError, parse_spec, plan_units
 from svrobs_core.measured import SIGMA_W_ESTIMATED, check_against_data, plan_measured_units
+from svrobs_core.workload import plan_under_memory
 
 BASE = {"dataset": 4, "N": [5, 10]}
 
@@ -149,4 +150,4 @@ def test_measured_plan_matches_the_grid_and_splits_by_memory():
     small = plan_measured_units(s, lengths=lengths, n=2, m=1, max_unit_bytes=2 * 8 * 13 * 100)
     assert [u["reps"] for u in small] == [[0, 2], [2, 4], [4, 6]]
     with pytest.raises(ValueError, match="plan_measured_units"):
-        plan_units(s, max_unit_bytes=10**6)
+        plan_under_memory(s, max_unit_bytes=10**6)

@@ -10,7 +10,8 @@ import math
 import pytest
 
 from svrobs_core.errors import SpecError
-from svrobs_core.spec import SPEC_KEYS, parse_spec
+from svrobs_core.parsing import parse_spec
+from svrobs_core.spec import SPEC_KEYS
 from svrobs_core.spec_fields import FIELDS_BY_NAME, REQUIRED, SPEC_FIELDS, spec_errors
 
 BASE = {"systems": ["paper-stable"], "sigma_w": [1.0], "N": [10]}

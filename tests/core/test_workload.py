@@ -10,7 +10,13 @@ import pytest
 
 from svrobs_core import parse_spec, plan_units, run_spec
 from svrobs_core.planning import unit_cells
-from svrobs_core.workload import WorkloadError, admit, estimate_job, estimate_unit
+from svrobs_core.workload import (
+    WorkloadError,
+    admit,
+    estimate_job,
+    estimate_unit,
+    plan_under_memory,
+)
 
 ALL = ["estimate", "bounds", "gain", "cost", "cost_bound", "sls"]
 
@@ -102,7 +108,7 @@ def test_plan_respects_the_memory_cap_and_covers_the_grid(reuse):
     plain = plan_units(spec)
     assert estimate_job(spec, plain).peak_unit_bytes > 400 * 2**20  # the cap below binds
     cap = 400 * 2**20
-    units = plan_units(spec, max_unit_bytes=cap)
+    units = plan_under_memory(spec, max_unit_bytes=cap)
     assert len(units) > len(plain)
     assert all(estimate_unit(spec, u).peak_bytes <= cap for u in units)
     assert _covered(spec, units) == _covered(spec, plain)
@@ -113,7 +119,7 @@ def test_plan_respects_the_memory_cap_and_covers_the_grid(reuse):
 
 def test_a_cap_below_one_repetition_leaves_single_rep_units_over_it():
     spec = parse_spec(_spec(systems=["paper-stable"], N=[5000], T0=200, reps=3))
-    units = plan_units(spec, max_unit_bytes=1)
+    units = plan_under_memory(spec, max_unit_bytes=1)
     assert [u["reps"] for u in units] == [[0, 1], [1, 2], [2, 3]]
     assert estimate_job(spec, units).peak_unit_bytes > 1  # the caller refuses the spec
 
@@ -123,7 +129,7 @@ def test_records_do_not_depend_on_the_memory_split():
     spec = parse_spec(obj)
     units = plan_units(spec)
     one = estimate_unit(spec, {**units[0], "reps": [0, 1], "N": [30]}).peak_bytes
-    split = plan_units(spec, max_unit_bytes=one)
+    split = plan_under_memory(spec, max_unit_bytes=one)
     assert len(split) > len(units)
 
     def key(r):

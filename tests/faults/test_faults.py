@@ -206,7 +206,7 @@ def diagnose(st, job_id: int) -> str:
             f"redis: queue svrobs={r.llen('svrobs')} unacked={r.hlen('unacked')} "
             f"epoch={r.get('svrobs:broker-epoch')!r}"
         )
-    except Exception as exc:  # noqa: BLE001
+    except Exception as exc:  # noqa: BLE001 - Redis may be the server that is down
         lines.append(f"redis: unreadable ({exc!r})")
     names = sorted((n for n in st.children if n != "api"), key=lambda n: n == "beat")
     return "\n".join(lines) + "\n" + st.log_tail(*names, "api", n=80)

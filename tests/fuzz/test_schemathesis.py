@@ -35,14 +35,15 @@ from schemathesis.specs.openapi.checks import (
     status_code_conformance,
 )
 
-from service.api.deps import MAX_ID, get_broker_check
-from service.api.main import create_app
+from service.app import create_app
 from service.config import Settings
 from service.db import accounts, jobs
 from service.db.migrate import upgrade
 from service.db.models import Job, Result, Schedule, utcnow
 from service.db.session import dispose_all, get_sessionmaker
+from service.http.deps import get_broker_check
 from svrobs_core.records import NUMERIC_FIELDS
+from svrobs_lab.auth import MAX_ID
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC, no_broker_check
 

@@ -11,12 +11,13 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 from sqlalchemy.engine import make_url
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session
 
-from service.api.deps import get_broker_check
 from service.db import accounts
 from service.db.migrate import upgrade
 from service.db.session import create_db_engine
+from service.http.deps import get_broker_check
 from tests.service.svc_helpers import Account, RecordingPublisher, make_settings, no_broker_check
 
 PG_ENV = "SVROBS_TEST_DATABASE_URL"
@@ -30,7 +31,7 @@ def _pg_private_db(base_url: str):
     try:
         with admin_engine.connect() as c:
             c.execute(text(f'CREATE DATABASE "{name}"'))
-    except Exception:
+    except DBAPIError:
         admin_engine.dispose()
         return base_url, None  # no CREATEDB right: use the given database as is
     return url.set(database=name).render_as_string(hide_password=False), (admin_engine, name)
@@ -118,7 +119,7 @@ def settings(db_url):
 @pytest.fixture
 def build_client(session_factory, db_url):
     """build_client(**settings_overrides) -> (TestClient, publisher)."""
-    from service.api.main import create_app
+    from service.app import create_app
 
     def build(**kw):
         app = create_app(make_settings(db_url, **kw))

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import random
 
+from svrobs_core.parsing import parse_spec
 from svrobs_core.records import empty_record
-from svrobs_core.spec import parse_spec
 
 
 def fake_records(spec_dict: dict, unit: dict) -> list[dict]:

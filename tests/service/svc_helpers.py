@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from service.config import Settings
+from svrobs_core.parsing import parse_spec
 from svrobs_core.planning import plan_units
-from svrobs_core.spec import parse_spec
 from tests.core.test_workload import ISSUE_MC
 
 

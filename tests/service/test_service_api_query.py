@@ -11,8 +11,10 @@ from datetime import UTC, datetime, timedelta
 import pytest
 from sqlalchemy import select
 
+from service.config import get_settings
 from service.db import schedules
 from service.db.models import Schedule
+from svrobs_lab import schedules as lab_schedules
 from tests.service import test_service_api_results as results_tests
 from tests.service.svc_helpers import SMALL_SPEC
 
@@ -166,7 +168,9 @@ def test_seed_policy_due_time_derives_the_seed_from_the_due_time(client, session
     for d in (0, 1):
         made = {
             j.schedule_id: j
-            for j in schedules.create_due_schedule_jobs(session, day1 + timedelta(days=d))
+            for j in lab_schedules.create_due_jobs(
+                get_settings(), session, day1 + timedelta(days=d)
+            )
         }
         for policy, sid in ids.items():
             seeds[policy].append(made[sid].spec["seed"])

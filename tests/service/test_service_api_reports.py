@@ -7,11 +7,11 @@ import re
 from service.config import Settings
 from service.db import jobs, units
 from service.db import jobs as jobs_db
-from service.reports.html import job_report_html
 from svrobs_core.paper import paper_specs
+from svrobs_core.parsing import parse_spec
 from svrobs_core.report import table2
 from svrobs_core.runner import run_unit
-from svrobs_core.spec import parse_spec
+from svrobs_lab.report_html import job_report_html
 
 API = "/api/v1"
 

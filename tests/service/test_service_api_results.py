@@ -200,8 +200,8 @@ def test_record_json_edge_values():
     stored one kept, quotes and non-ASCII intact, field order of the record."""
     import numpy as np
 
-    from service.api.record_json import encode_lines, encode_page
     from service.db.result_codec import ResultCodec
+    from svrobs_lab.record_json import encode_lines, encode_page
 
     name = 'sys "q" \u00e9\u2603\n\x00'
     system = {"name": name, "A": [[0.5, 0.0], [0.0, 0.5]], "B": [[1.0], [0.0]], "C": [[1.0, 0.0]]}
@@ -269,8 +269,8 @@ def test_exports_of_a_worker_stored_job_are_the_core_records(client, session, ma
     from pydantic_core import to_json
 
     from service.db import jobs, units
+    from svrobs_core.parsing import parse_spec
     from svrobs_core.runner import run_unit_result
-    from svrobs_core.spec import parse_spec
 
     acc = make_account()
     spec = {

@@ -8,8 +8,8 @@ import pytest
 
 from service.db import accounts
 from service.db.accounts import authenticate, hash_key, split_key
-from service.db.errors import AdminError
 from service.db.models import utcnow
+from svrobs_lab.errors import AdminError
 
 API = "/api/v1"
 

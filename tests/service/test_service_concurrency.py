@@ -10,8 +10,10 @@ import pytest
 from sqlalchemy import delete, func, select
 from sqlalchemy.orm import sessionmaker
 
-from service.db import accounts, jobs, schedules, units
+from service.config import get_settings
+from service.db import accounts, jobs, units
 from service.db.models import Job, Result, Schedule, Team
+from svrobs_lab import schedules as lab_schedules
 from tests.service.svc_fakes import fake_records
 from tests.service.svc_helpers import SMALL_SPEC
 
@@ -37,7 +39,7 @@ def _parallel(fns):
         try:
             barrier.wait(5)
             fn()
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:  # noqa: BLE001 - every thread's error is asserted on below
             errors.append(exc)
 
     threads = [threading.Thread(target=wrap, args=(f,)) for f in fns]
@@ -69,7 +71,7 @@ def test_two_ticks_at_once_make_one_job(real_sessions):
 
     def tick():
         with maker() as s:
-            schedules.create_due_schedule_jobs(s, now)
+            lab_schedules.create_due_jobs(get_settings(), s, now)
             s.commit()
 
     _parallel([tick, tick, tick])

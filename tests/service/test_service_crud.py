@@ -7,11 +7,14 @@ from datetime import UTC, datetime, timedelta
 import pytest
 from sqlalchemy import delete, func, select
 
-from service.db import errors, jobs, outbox, results_store, schedules, units
+from service.config import get_settings
+from service.db import jobs, outbox, results_store, schedules, units
 from service.db.models import Job, Result, Schedule, ScheduleRun, Summary, WorkUnit
 from svrobs_core import planning
 from svrobs_core.errors import SpecError
-from svrobs_core.spec import parse_spec
+from svrobs_core.parsing import parse_spec
+from svrobs_lab import errors
+from svrobs_lab import schedules as lab_schedules
 from tests.service.svc_fakes import fake_records, run_job_units
 from tests.service.svc_helpers import SMALL_SPEC, SMALL_UNITS
 
@@ -239,9 +242,9 @@ def test_due_schedule_ticked_twice_gives_one_job(session, make_account):
     s = _schedule(session, acc)
     session.commit()
     now = datetime(2024, 6, 1, 0, 30, tzinfo=UTC)  # 02:30 in Paris (CEST)
-    first = schedules.create_due_schedule_jobs(session, now)
+    first = lab_schedules.create_due_jobs(get_settings(), session, now)
     session.commit()
-    second = schedules.create_due_schedule_jobs(session, now + timedelta(minutes=1))
+    second = lab_schedules.create_due_jobs(get_settings(), session, now + timedelta(minutes=1))
     session.commit()
     mine = [j for j in first if j.team_id == acc.team.id]
     assert len(mine) == 1 and not [j for j in second if j.team_id == acc.team.id]
@@ -252,7 +255,7 @@ def test_due_schedule_ticked_twice_gives_one_job(session, make_account):
     assert runs[0].due_at == datetime(2024, 6, 1, 0, 0, tzinfo=UTC)
     assert _count(session, Job, schedule_id=s.id) == 1
     # the next day is a new run
-    nxt = schedules.create_due_schedule_jobs(session, now + timedelta(days=1))
+    nxt = lab_schedules.create_due_jobs(get_settings(), session, now + timedelta(days=1))
     assert len([j for j in nxt if j.team_id == acc.team.id]) == 1
 
 
@@ -261,14 +264,16 @@ def test_schedule_not_due_before_creation_or_disabled(session, make_account):
     created = datetime(2024, 6, 1, 0, 10, tzinfo=UTC)
     _schedule(session, acc, created_at=created)
     _schedule(session, acc, name="off", enabled=False)
-    made = schedules.create_due_schedule_jobs(session, created + timedelta(minutes=5))
+    made = lab_schedules.create_due_jobs(get_settings(), session, created + timedelta(minutes=5))
     assert not [j for j in made if j.team_id == acc.team.id]
 
 
 def test_schedule_with_broken_template_records_error(session, make_account):
     acc = make_account()
     s = _schedule(session, acc, spec_template={"systems": ["nope"], "sigma_w": [1], "N": [5]})
-    made = schedules.create_due_schedule_jobs(session, datetime(2024, 6, 1, 3, tzinfo=UTC))
+    made = lab_schedules.create_due_jobs(
+        get_settings(), session, datetime(2024, 6, 1, 3, tzinfo=UTC)
+    )
     assert not [j for j in made if j.team_id == acc.team.id]
     run = session.scalar(select(ScheduleRun).where(ScheduleRun.schedule_id == s.id))
     assert run.job_id is None and "systems[0]" in run.error

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from fastapi.testclient import TestClient
 
-from service.api.deps import get_broker_check
-from service.api.main import create_app
+from service.app import create_app
+from service.http.deps import get_broker_check
 from tests.service.svc_helpers import make_settings, no_broker_check
 
 BAD_DB = "postgresql+psycopg://postgres@127.0.0.1:1/nowhere"

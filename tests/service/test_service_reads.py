@@ -17,10 +17,10 @@ from sqlalchemy import delete
 from service.db.models import JobReport, Result
 from service.db.reports import load_columns
 from service.db.results_store import load_records
-from service.reports.html import job_report_html
+from svrobs_core.parsing import parse_spec
 from svrobs_core.report import Columns
 from svrobs_core.runner import run_unit
-from svrobs_core.spec import parse_spec
+from svrobs_lab.report_html import job_report_html
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC, scope_of
 

@@ -13,7 +13,7 @@ from service.db.clock import db_now
 from service.db.models import Job, JobReport, Result, Schedule
 from service.db.results_store import load_records
 from service.db.retention import set_retention
-from service.reports.html import job_report_html
+from svrobs_lab.report_html import job_report_html
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC, scope_of
 from worker.tick import prune_expired

@@ -18,10 +18,10 @@ import sqlalchemy as sa
 from service.db.migrate import downgrade, upgrade
 from service.db.results_store import gamma_key, load_records
 from service.db.session import create_db_engine, dispose_all
+from svrobs_core.parsing import parse_spec
 from svrobs_core.planning import plan_units
 from svrobs_core.records import MATRIX_FIELDS, RECORD_FIELDS, json_value
 from svrobs_core.runner import run_unit_result
-from svrobs_core.spec import parse_spec
 from tests.service.conftest import PG_ENV, _pg_private_db
 
 CUSTOM = {  # n=2, m=1, p=1: every matrix has its own shape

@@ -15,11 +15,12 @@ import pytest
 from sqlalchemy import select, update
 
 from service.config import get_settings
-from service.db import accounts, jobs, outbox, schedules, units
+from service.db import accounts, jobs, outbox, units
 from service.db.models import ApiKey, Job, Schedule, ScheduleRun, WorkUnit
 from svrobs_cli.app import app
-from svrobs_core.spec import parse_spec
+from svrobs_core.parsing import parse_spec
 from svrobs_core.workload import estimate_job, estimate_unit, smallest_unit_bytes
+from svrobs_lab import schedules as lab_schedules
 from tests.service.svc_fakes import fake_records
 from tests.service.svc_helpers import BIG_MEMORY_SPEC as BIG_MEMORY
 from tests.service.svc_helpers import HEAVY_SPEC as HEAVY
@@ -220,7 +221,7 @@ def test_schedule_limits(build_client, make_account):
 def test_validate_template_maps_only_spec_errors(client, make_account, monkeypatch):
     """A bug in validation (a TypeError) is a 500 logged with its traceback, not a 422
     that blames the user's template."""
-    from service.api.routes import schedules as route
+    from svrobs_lab import schedules as route
 
     def broken(spec):
         raise TypeError("a bug")
@@ -259,7 +260,9 @@ def test_tick_applies_the_team_cap_and_records_why(session, make_account, settin
     acc = make_account()
     jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     sched = _schedule(session, acc)
-    made = schedules.create_due_schedule_jobs(session, datetime(2024, 6, 1, 12, 1, tzinfo=UTC))
+    made = lab_schedules.create_due_jobs(
+        get_settings(), session, datetime(2024, 6, 1, 12, 1, tzinfo=UTC)
+    )
     session.commit()
     assert made == []
     (run,) = _runs(session, sched)
@@ -276,7 +279,7 @@ def test_tick_skips_runs_closer_than_the_minimum_interval(session, make_account,
     sched = _schedule(session, acc, cron="* * * * *")
     t = datetime(2024, 6, 1, 12, 0, 30, tzinfo=UTC)
     for k in range(7):
-        schedules.create_due_schedule_jobs(session, t + timedelta(minutes=k))
+        lab_schedules.create_due_jobs(get_settings(), session, t + timedelta(minutes=k))
         session.commit()
     runs = _runs(session, sched)
     assert [r.job_id is not None for r in runs] == [True, False, False, False, False, True, False]
@@ -286,7 +289,7 @@ def test_tick_skips_runs_closer_than_the_minimum_interval(session, make_account,
 def test_tick_refuses_a_template_over_the_work_limit(session, make_account):
     acc = make_account()
     sched = _schedule(session, acc, spec_template=HEAVY)
-    schedules.create_due_schedule_jobs(session, datetime(2024, 6, 1, 12, 1, tzinfo=UTC))
+    lab_schedules.create_due_jobs(get_settings(), session, datetime(2024, 6, 1, 12, 1, tzinfo=UTC))
     session.commit()
     (run,) = _runs(session, sched)
     assert run.job_id is None and "SVROBS_MAX_JOB_CPU_SECONDS" in run.error

@@ -7,6 +7,7 @@ skip link, /favicon.ico, and a chart legend worked from the keyboard."""
 from __future__ import annotations
 
 import re
+from pathlib import Path
 from pprint import pformat
 
 import pytest
@@ -15,6 +16,7 @@ from tests.integration.stack import submit
 
 from . import test_browser as base
 from .a11y import overflow, violations
+from .browser import SCREENSHOTS
 from .test_browser import sign_in
 
 browser = base.browser
@@ -30,6 +32,16 @@ SPEC = {
     "seed": 3,
 }
 VIEWS = [(1400, 900, False), (390, 844, False), (1400, 900, True)]
+# SVROBS_SCREENSHOTS=docs/img: the pictures of docs/web.md, (page, view) -> file
+SHOTS = {
+    ("job", "390-light"): "dashboard-phone-job.png",
+    ("jobs, menu open", "390-light"): "dashboard-phone-menu.png",
+    ("compare", "1400-dark"): "dashboard-dark-compare.png",
+    ("job views", "1400-dark"): "dashboard-dark-views.png",
+    ("results", "1400-light"): "dashboard-results.png",
+    ("submit", "1400-light"): "dashboard-submit.png",
+    ("shared", "390-light"): "dashboard-phone-shared.png",
+}
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +78,11 @@ def pages(site: dict) -> list[tuple[str, str, str | None]]:
 
 
 def check(page, name: str, problems: list) -> None:
+    theme = page.evaluate("window.svrobsTheme ? window.svrobsTheme() : 'light'")
+    view = f"{page.viewport_size['width']}-{theme}"
+    if SCREENSHOTS and (name, view) in SHOTS:
+        full = name not in ("jobs, menu open", "submit")
+        page.screenshot(path=str(Path(SCREENSHOTS) / SHOTS[name, view]), full_page=full)
     found = violations(page)
     if found:
         problems.append((name, "axe", found))

@@ -14,9 +14,10 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
-from service.db import schedules
+from service.config import get_settings
 from service.db.models import Schedule, ShareLink, utcnow
 from service.db.shares import token_hash
+from svrobs_lab import schedules as lab_schedules
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC
 
@@ -106,7 +107,9 @@ def test_schedule_from_a_job(web, done, session):
     row = session.get(Schedule, s["id"])
     row.created_at = datetime(2024, 1, 1, tzinfo=UTC)
     session.commit()
-    (run_job,) = schedules.create_due_schedule_jobs(session, datetime(2024, 6, 1, 4, tzinfo=UTC))
+    (run_job,) = lab_schedules.create_due_jobs(
+        get_settings(), session, datetime(2024, 6, 1, 4, tzinfo=UTC)
+    )
     session.commit()
     page = web.get(made.headers["location"])
     assert f'<a href="/jobs/{run_job.id}">job {run_job.id}</a>' in page.text

@@ -1,4 +1,4 @@
-"""The session cookie and CSRF rules (service.web.session) through the app: a signed
+"""The session cookie and CSRF rules (svrobs_lab.sessions) through the app: a signed
 cookie is a session until it is tampered with, expires or its key is revoked; a
 state-changing form without this session's token is a 403; the key never shows."""
 
@@ -12,7 +12,7 @@ import pytest
 from service.db import accounts
 from service.db.models import utcnow
 from service.web.render import safe_next
-from service.web.session import COOKIE, Signer, load_secret
+from svrobs_lab.sessions import COOKIE, Signer, load_secret
 from tests.service.svc_helpers import make_settings
 
 from .helpers import csrf_of, sign_in

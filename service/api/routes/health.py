@@ -6,9 +6,10 @@ import concurrent.futures
 
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
-from sqlalchemy import text
 
-from service.api.deps import BrokerCheckDep, SessionFactory, SessionFactoryDep, SettingsDep
+from service.db.clock import ping
+from service.http.deps import BrokerCheckDep, SessionFactoryDep, SettingsDep
+from svrobs_lab.dispatch import SessionFactory
 
 router = APIRouter(tags=["health"])
 _pool = concurrent.futures.ThreadPoolExecutor(max_workers=4, thread_name_prefix="readyz")
@@ -22,7 +23,7 @@ def healthz() -> dict:
 def _check_db(session_factory: SessionFactory) -> None:
     session = session_factory(False)
     try:
-        session.execute(text("SELECT 1"))
+        ping(session)
     finally:
         session.close()
 

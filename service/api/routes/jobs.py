@@ -4,18 +4,14 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Header, HTTPException, Query, Response
-from sqlalchemy import func, select
-from sqlalchemy.orm import defer, joinedload
+from fastapi import APIRouter, Header, Query, Response
 
-from service.api.deps import DB, CurrentCaller, JobId, team_job
+from service.api.deps import DB, CurrentCaller, JobId, SubmissionDep
 from service.api.errors import BODY_ERRORS, ERRORS
-from service.api.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
-from service.api.submission import JobRequest, SubmissionDep
-from service.api.views import job_item, job_out
-from service.db.job_delete import delete_job
-from service.db.jobs import cancel_job
-from service.db.models import Job, JobTag, User
+from service.db.job_queries import JobFilter
+from svrobs_lab import jobs
+from svrobs_lab.schemas import SPEC_FIELD_NAMES, ErrorOut, JobOut, JobPage, JobSubmit
+from svrobs_lab.views import job_out
 
 router = APIRouter(tags=["jobs"])
 
@@ -31,13 +27,13 @@ def submit_job(
     submission: SubmissionDep,
     idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
 ):
-    """Validate and queue a job (SPEC section 10 spec plus `name` and `tags`).
+    """Validate and queue a job (a spec, docs/spec.md, plus `name` and `tags`).
 
     A retry with the same `Idempotency-Key` returns the same job. The job and its
     work units are committed before anything is sent to the workers.
     """
     data = body.model_dump(exclude_unset=True)
-    request = JobRequest(
+    request = jobs.JobRequest(
         spec={k: data[k] for k in SPEC_FIELD_NAMES if k in data},
         name=data.get("name"),
         tags=data.get("tags") or (),
@@ -59,60 +55,28 @@ def list_jobs(
 ):
     """The team's jobs, newest first, filtered by status, tag and owner; each with a
     compact `spec_summary` (the full spec is at `GET /jobs/{id}`)."""
-    q = select(Job).where(Job.team_id == caller.team_id)
-    if status:
-        q = q.where(Job.status == status)
-    if tag:
-        q = q.where(Job.id.in_(select(JobTag.job_id).where(JobTag.tag == tag)))
-    if owner:
-        if owner == "me":
-            q = q.where(Job.user_id == caller.user_id)
-        else:
-            q = q.where(
-                Job.user_id.in_(
-                    select(User.id).where(
-                        User.email == owner.strip().lower(), User.team_id == caller.team_id
-                    )
-                )
-            )
-    total = session.scalar(select(func.count()).select_from(q.subquery()))
-    rows = session.scalars(
-        q.options(joinedload(Job.user), defer(Job.spec))
-        .order_by(Job.id.desc())
-        .limit(limit)
-        .offset(offset)
-    ).all()
-    return {"items": [job_item(j) for j in rows], "total": total, "limit": limit, "offset": offset}
+    f = JobFilter(status=status, tag=tag, owner=owner)
+    return jobs.list_jobs(session, caller, f, limit=limit, offset=offset)
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut, responses=ERRORS)
 def get_job(job_id: JobId, session: DB, caller: CurrentCaller):
     """Status, progress done/total, timings, provenance and error of one job."""
-    return job_out(team_job(session, caller.team_id, job_id))
+    return job_out(jobs.team_job(session, caller, job_id))
 
 
 @router.post(
     "/jobs/{job_id}/cancel", response_model=JobOut, responses={**ERRORS, 409: {"model": ErrorOut}}
 )
-def cancel(job_id: JobId, session: DB, caller: CurrentCaller, submission: SubmissionDep):
+def cancel(job_id: JobId, submission: SubmissionDep):
     """Cancel a queued or running job: units not yet started never run, running
     units stop within seconds and store nothing; `cells_done` says what was done."""
-    job = team_job(session, caller.team_id, job_id)
-    if job.status in ("succeeded", "failed"):
-        raise HTTPException(409, f"job {job_id} already {job.status}")
-    job = cancel_job(session, job)
-    session.commit()
-    out = job_out(team_job(session, caller.team_id, job_id))
-    session.close()  # end the transaction (SQLite's write lock) before publishing
-    submission.dispatch_after_response()  # the team's freed slots go to its other jobs
-    return out
+    return jobs.cancel(submission, job_id)
 
 
 @router.delete("/jobs/{job_id}", status_code=204, responses={**ERRORS, 409: {"model": ErrorOut}})
 def delete(job_id: JobId, session: DB, caller: CurrentCaller):
     """Delete a finished or cancelled job with its units, results and summaries (one
     transaction); 409 while it is queued or running (cancel it first)."""
-    job = team_job(session, caller.team_id, job_id)
-    delete_job(session, job)  # JobActive: 409 (service.api.errors)
-    session.commit()
+    jobs.delete(session, caller, job_id)
     return Response(status_code=204)

@@ -1,4 +1,4 @@
-"""GET /jobs/{id}/report (HTML) and POST /presets/paper-section-6/run (issue 4)."""
+"""GET /jobs/{id}/report (HTML) and POST /presets/paper-section-6/run."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ from fastapi import APIRouter, Header
 from fastapi.responses import HTMLResponse
 from pydantic import BaseModel, ConfigDict
 
-from service.api.deps import DB, CurrentCaller, JobId, SessionFactoryDep, team_job
+from service.api.deps import DB, CurrentCaller, JobId, SessionFactoryDep, SubmissionDep
 from service.api.errors import BODY_ERRORS, ERRORS
-from service.api.schemas import ErrorOut, JobOut
-from service.api.submission import JobRequest, SubmissionDep
-from service.reports.stored import job_report as stored_job_report
 from svrobs_core.paper import PRESET_NAME, paper_specs
+from svrobs_lab.jobs import JobRequest
+from svrobs_lab.reports import caller_job_report
+from svrobs_lab.schemas import ErrorOut, JobOut
 
 router = APIRouter(tags=["reports"])
 
@@ -36,8 +36,7 @@ def job_report(
     """The job's report as one HTML page: tables, figures (embedded PNG), the spec,
     provenance and the data-generated findings. Built from the stored records, once
     for a finished job (then served as stored)."""
-    job = team_job(session, caller.team_id, job_id)
-    return HTMLResponse(stored_job_report(session, job, lambda: session_factory(True)))
+    return HTMLResponse(caller_job_report(session, caller, job_id, session_factory))
 
 
 class PresetRun(BaseModel):

@@ -1,5 +1,5 @@
 """``/``, ``/login`` and ``/logout``: signing in with an API key (checked by the same
-``service.db.accounts.authenticate`` as the API) into a signed session cookie."""
+rule as the API, :func:`svrobs_lab.auth.bearer_key`) into a signed session cookie."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import RedirectResponse
 from sqlalchemy.orm import Session
 
-from service.api.deps import caller_of, get_db
-from service.db.accounts import authenticate
+from service.http.deps import caller_of, get_db
 from service.web.deps import CSRF, get_viewer
 from service.web.render import SignInRequired, render, safe_next
-from service.web.session import clear_cookie, request_session, set_cookie, signer_of
+from svrobs_lab.auth import bearer_key
+from svrobs_lab.sessions import clear_cookie, request_session, set_cookie, signer_of
 
 router = APIRouter(include_in_schema=False)
 
@@ -67,7 +67,7 @@ def login(
 ):
     """A valid key starts a new session (a new nonce, so a new CSRF token) holding the
     key's id; the key itself is neither stored nor echoed back."""
-    caller = caller_of(request, db, lambda s: authenticate(s, key.strip()))
+    caller = caller_of(request, db, bearer_key(key.strip()))
     if caller is None:
         return _login_page(
             request, safe_next(next), "Invalid, revoked or expired API key.", status=401

@@ -1,23 +1,23 @@
 """``/compare``: one metric across picked jobs, grouped by grid coordinates, as a
 Chart.js chart (mean per group against one coordinate, a line per job and remaining
 group) and a table. The numbers are those of ``GET /api/v1/compare`` (the same
-function computes them)."""
+function, :func:`svrobs_lab.results.compare`, computes them)."""
 
 from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi import APIRouter, Depends, Query, Request
 from pydantic import Field
 from sqlalchemy.orm import Session
 
-from service.api.deps import MAX_ID, get_db
-from service.api.routes.results import COMPARE_BY
-from service.api.routes.results import compare as api_compare
-from service.web import queries
+from service.db import job_queries as queries
+from service.http.deps import get_db
 from service.web.deps import CurrentViewer
 from service.web.render import WebError, render
 from svrobs_core.records import NUMERIC_FIELDS
+from svrobs_lab import results
+from svrobs_lab.auth import MAX_ID
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
@@ -46,20 +46,9 @@ def compare_page(
     )
     data = None
     if jobs:
-        try:
-            data = api_compare(
-                session=db,
-                caller=viewer.caller,
-                jobs=",".join(map(str, jobs)),
-                metric=metric,
-                by=",".join(by),
-            )
-        except HTTPException as exc:
-            field = getattr(exc, "field", None)
-            status = 404 if exc.status_code == 404 else 422
-            raise WebError(
-                status, f"{field}: {exc.detail}" if field else f"{exc.detail}."
-            ) from None
+        data = results.compare(  # a LabError is a page (service.web.errors)
+            db, viewer.caller, jobs=",".join(map(str, jobs)), metric=metric, by=",".join(by)
+        )
     return render(
         request,
         "compare.html",
@@ -70,7 +59,7 @@ def compare_page(
         metric=metric,
         metrics=NUMERIC_FIELDS,
         by=by,
-        by_choices=COMPARE_BY,
+        by_choices=results.COMPARE_BY,
         x=x,
         x_choices=X_CHOICES,
         data=data,

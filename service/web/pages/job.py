@@ -10,14 +10,15 @@ from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
-from service.api.deps import SessionFactoryDep, get_db
-from service.db.job_delete import delete_job
+from service.db import job_queries as queries
 from service.db.jobs import cancel_job
 from service.db.models import JOB_ACTIVE, Job
-from service.reports.stored import job_report
-from service.web import charts, figure_charts, job_tables, queries
+from service.http.deps import SessionFactoryDep, get_db
+from service.web import charts, figure_charts, job_tables
 from service.web.deps import CSRF, CurrentViewer
 from service.web.render import PAGE_HEADERS, REPORT_HEADERS, WebError, render, with_back_link
+from svrobs_lab import jobs
+from svrobs_lab.reports import caller_job_report
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
@@ -119,9 +120,8 @@ def chart_data(
 @router.get("/jobs/{job_id:int}/report")
 def report_page(db: DB, viewer: CurrentViewer, job_id: int, session_factory: SessionFactoryDep):
     """The job's report (as ``GET /api/v1/jobs/{id}/report``) with a link back to its page."""
-    job = _job(db, viewer, job_id)
-    html = job_report(db, job, lambda: session_factory(True))
-    back = with_back_link(html, f"/jobs/{job.id}", f"← Job {job.id} on the dashboard")
+    html = caller_job_report(db, viewer.caller, job_id, session_factory)
+    back = with_back_link(html, f"/jobs/{job_id}", f"← Job {job_id} on the dashboard")
     return HTMLResponse(back, headers=REPORT_HEADERS)
 
 
@@ -143,6 +143,5 @@ def confirm_delete(request: Request, db: DB, viewer: CurrentViewer, job_id: int)
 
 @router.post("/jobs/{job_id:int}/delete", dependencies=[CSRF])
 def delete(db: DB, viewer: CurrentViewer, job_id: int):
-    delete_job(db, _job(db, viewer, job_id))  # JobActive: a 409 page (service.api.errors)
-    db.commit()
+    jobs.delete(db, viewer.caller, job_id)  # JobActive: a 409 page (service.web.errors)
     return RedirectResponse(f"/jobs?deleted={job_id}", status_code=303)

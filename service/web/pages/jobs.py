@@ -9,9 +9,9 @@ from urllib.parse import urlencode
 from fastapi import APIRouter, Depends, Query, Request
 from sqlalchemy.orm import Session
 
-from service.api.deps import get_db
+from service.db import job_queries as queries
 from service.db.models import JOB_STATUSES
-from service.web import queries
+from service.http.deps import get_db
 from service.web.deps import CurrentViewer
 from service.web.render import WebError, render
 

@@ -1,25 +1,27 @@
 """``/schedules``: the team's schedules; create one from an existing job's spec (cron,
 time zone, seed policy), enable or disable it, and its past runs with links to their
-jobs. Every action goes through the API's own route functions
-(service.api.routes.schedules), so the page validates exactly as REST does."""
+jobs. Every action goes through :mod:`svrobs_lab.schedules`, as REST does, so the
+page validates exactly as REST does."""
 
 from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Form, HTTPException, Query, Request
+from fastapi import APIRouter, Depends, Form, Query, Request
 from fastapi.responses import RedirectResponse
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
-from service.api.deps import MAX_ID, get_db
-from service.api.routes import schedules as api
-from service.api.schemas import ScheduleCreate, ScheduleUpdate
+from service.db import job_queries as queries
 from service.db.schedules import SEED_POLICIES
-from service.web import queries
+from service.http.deps import get_db
 from service.web.deps import CSRF, CurrentViewer
 from service.web.render import WebError, render
 from svrobs_core.errors import SpecError
+from svrobs_lab import schedules as lab
+from svrobs_lab.auth import MAX_ID
+from svrobs_lab.errors import LabError, NotFound
+from svrobs_lab.schemas import ScheduleCreate, ScheduleUpdate
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
@@ -31,17 +33,14 @@ def _settings(request: Request):
 
 
 def _schedule(db: Session, viewer, schedule_id: int) -> dict:
-    try:
-        if not 1 <= schedule_id <= MAX_ID:
-            raise HTTPException(404)
-        return api.get_schedule(schedule_id, db, viewer.caller)
-    except HTTPException:
-        raise WebError(404, f"Schedule {schedule_id} not found.") from None
+    if not 1 <= schedule_id <= MAX_ID:
+        raise NotFound(f"schedule {schedule_id} not found")
+    return lab.get(db, viewer.caller, schedule_id)
 
 
 @router.get("/schedules")
 def schedules_page(request: Request, db: DB, viewer: CurrentViewer):
-    rows = api.list_schedules(db, viewer.caller)
+    rows = lab.list_schedules(db, viewer.caller)
     return render(request, "schedules.html", viewer=viewer, nav="schedules", schedules=rows)
 
 
@@ -104,7 +103,7 @@ def create_schedule(
             spec_template=source.spec,
             tags=[t.strip() for t in tags.split(",") if t.strip()],
         )
-        made = api.create_schedule(body, db, viewer.caller, _settings(request))
+        made = lab.create(db, viewer.caller, _settings(request), body.model_dump())
     except ValidationError as exc:
         first = exc.errors()[0]
         field = str(first["loc"][0]) if first.get("loc") else "form"
@@ -112,16 +111,16 @@ def create_schedule(
     except SpecError as exc:
         field = (exc.field or "form").split(".")[0]
         return _new_form(request, db, viewer, status=422, errors={field: exc.message}, **values)
-    except HTTPException as exc:
-        field = getattr(exc, "field", None) or "form"
-        return _new_form(request, db, viewer, status=422, errors={field: exc.detail}, **values)
+    except LabError as exc:  # the form shows it beside its field
+        field = exc.field or "form"
+        return _new_form(request, db, viewer, status=422, errors={field: exc.message}, **values)
     return RedirectResponse(f"/schedules/{made['id']}", status_code=303)
 
 
 @router.get("/schedules/{schedule_id:int}")
 def schedule_page(request: Request, db: DB, viewer: CurrentViewer, schedule_id: int):
     s = _schedule(db, viewer, schedule_id)
-    runs = api.schedule_runs(schedule_id, db, viewer.caller)
+    runs = lab.runs(db, viewer.caller, schedule_id)
     return render(request, "schedule.html", viewer=viewer, nav="schedules", schedule=s, runs=runs)
 
 
@@ -135,5 +134,7 @@ def set_enabled(
 ):
     _schedule(db, viewer, schedule_id)
     body = ScheduleUpdate(enabled=enabled == "yes")
-    api.update_schedule(schedule_id, body, db, viewer.caller, _settings(request))
+    lab.update(
+        db, viewer.caller, _settings(request), schedule_id, body.model_dump(exclude_unset=True)
+    )
     return RedirectResponse(f"/schedules/{schedule_id}", status_code=303)

@@ -1,8 +1,8 @@
-"""Share links (issue 11): ``/jobs/{id}/share`` makes and revokes them (signed in,
+"""Share links: ``/jobs/{id}/share`` makes and revokes them (signed in,
 CSRF); ``/s/{token}`` is the read-only view of the job's report and charts, opened
 without a key. An unknown, expired or revoked token is a 404 page, like a job of
 another team. The token is shown once, when the link is made (only its hash is
-stored: service.db.shares)."""
+stored: svrobs_lab.shares)."""
 
 from __future__ import annotations
 
@@ -12,14 +12,14 @@ from fastapi import APIRouter, Depends, Form, Query, Request
 from fastapi.responses import HTMLResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
-from service.api.deps import MAX_ID, Caller, SessionFactoryDep, get_db
-from service.api.routes import reports
-from service.db import shares
 from service.db.models import Job
+from service.http.deps import SessionFactoryDep, get_db
 from service.web import charts, figure_charts
 from service.web.deps import CSRF, CurrentViewer
 from service.web.pages import job as job_pages
-from service.web.render import REPORT_HEADERS, WebError, render, with_back_link
+from service.web.render import REPORT_HEADERS, render, with_back_link
+from svrobs_lab import shares
+from svrobs_lab.reports import caller_job_report
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
@@ -34,7 +34,7 @@ def _links_page(request, db, viewer, job: Job, *, new_url: str | None = None, st
         viewer=viewer,
         nav="jobs",
         job=job,
-        links=shares.job_shares(db, viewer.team_id, job.id),
+        links=shares.job_links(db, viewer.caller, job.id),
         live=shares.is_live,
         new_url=new_url,
         default_days=shares.DEFAULT_DAYS,
@@ -56,40 +56,20 @@ def make_link(
     days: Annotated[float, Form(gt=0, le=shares.MAX_DAYS)] = shares.DEFAULT_DAYS,
 ):
     job = job_pages._job(db, viewer, job_id)
-    _, token = shares.create_share(db, job, user_id=viewer.caller.user_id, days=days)
-    db.commit()
+    _, token = shares.create(db, viewer.caller, job.id, days)
     url = str(request.base_url).rstrip("/") + f"/s/{token}"
     return _links_page(request, db, viewer, job, new_url=url, status=201)
 
 
 @router.post("/shares/{share_id:int}/revoke", dependencies=[CSRF])
 def revoke_link(db: DB, viewer: CurrentViewer, share_id: int):
-    link = shares.team_share(db, viewer.team_id, share_id) if share_id <= MAX_ID else None
-    if link is None:
-        raise WebError(404, f"Share link {share_id} not found.")
-    shares.revoke_share(link)
-    db.commit()
+    link = shares.revoke(db, viewer.caller, share_id)  # NotFound: a 404 page
     return RedirectResponse(f"/jobs/{link.job_id}/share", status_code=303)
-
-
-def _shared(db: Session, token: str):
-    """(the link, its job) of a live token, else a 404 page."""
-    link = shares.open_share(db, token)
-    job = db.get(Job, link.job_id) if link is not None else None
-    if job is None or job.team_id != link.team_id:
-        raise WebError(404, "This link does not exist, has expired or was revoked.")
-    return link, job
-
-
-def _reader(link) -> Caller:
-    """Who reads through a link: the job's team, with no key, user or admin right
-    (for the team-scoped lookups only)."""
-    return Caller(key_id=0, team_id=link.team_id, user_id=None, is_admin=False)
 
 
 @router.get("/s/{token}")
 def shared_job(request: Request, db: DB, token: str):
-    link, job = _shared(db, token)
+    link, job = shares.open_link(db, token)
     response = render(
         request,
         "shared.html",
@@ -115,15 +95,15 @@ def shared_chart_data(
     metrics: bool = False,
 ):
     """The job page's chart data (service.web.pages.job.chart_data) for a shared job."""
-    link, job = _shared(db, token)
+    link, job = shares.open_link(db, token)
     return job_pages.chart_data(
-        db, _reader(link), job.id, metric=metric, x=x, preset=preset, metrics=metrics
+        db, shares.reader(link), job.id, metric=metric, x=x, preset=preset, metrics=metrics
     )
 
 
 @router.get("/s/{token}/report")
 def shared_report(db: DB, token: str, session_factory: SessionFactoryDep):
-    link, job = _shared(db, token)
-    report = reports.job_report(job.id, db, _reader(link), session_factory).body.decode()
+    link, job = shares.open_link(db, token)
+    report = caller_job_report(db, shares.reader(link), job.id, session_factory)
     back = with_back_link(report, f"/s/{token}", f"← Job {job.id} (shared)")
     return HTMLResponse(back, headers={**REPORT_HEADERS, "X-Robots-Tag": "noindex"})

@@ -2,7 +2,7 @@
 
 The body is checked exactly as ``POST /api/v1/jobs`` checks it (its ``JobSubmit``
 model, then the core's ``parse_spec``) and created by the API's one submit-and-
-publish step (``service.api.submission.Submission``, under the viewer's caller). The
+publish step (``svrobs_lab.jobs.Submission``, under the viewer's caller). The
 spec comes from the form's fields (service.web.spec_form) or from its JSON view;
 every error is shown at once, each beside its field and naming the spec path
 (``systems[0].A``). A hidden Idempotency-Key per form makes a double submit one job.
@@ -20,10 +20,7 @@ from pydantic import ValidationError
 from sqlalchemy.orm import Session
 from starlette.datastructures import FormData
 
-from service.api.deps import PublisherDep, SessionFactoryDep, SettingsDep, get_db
-from service.api.schemas import SPEC_FIELD_NAMES, JobSubmit
-from service.api.submission import JobRequest, Submission
-from service.db.errors import IdempotencyConflict, QuotaExceeded
+from service.http.deps import get_db, submission_of
 from service.web import spec_form
 from service.web.deps import CSRF, CurrentViewer
 from service.web.render import render
@@ -31,6 +28,9 @@ from svrobs_core.errors import SpecError
 from svrobs_core.paper import PRESET_NAME, paper_specs
 from svrobs_core.spec_fields import spec_errors
 from svrobs_core.systems import PRESETS
+from svrobs_lab.errors import IdempotencyConflict, QuotaExceeded
+from svrobs_lab.jobs import JobRequest
+from svrobs_lab.schemas import SPEC_FIELD_NAMES, JobSubmit
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
@@ -173,9 +173,6 @@ def submit(
     request: Request,
     db: DB,
     viewer: CurrentViewer,
-    settings: SettingsDep,
-    publisher: PublisherDep,
-    session_factory: SessionFactoryDep,
     background: BackgroundTasks,
     posted: Annotated[FormData, Depends(form_data)],
     spec: Annotated[str, Form()] = "",
@@ -232,14 +229,7 @@ def submit(
         tags=data.get("tags") or (),
         idempotency_key=idempotency_key or None,
     )
-    submission = Submission(
-        session=db,
-        caller=viewer.caller,
-        settings=settings,
-        publisher=publisher,
-        session_factory=session_factory,
-        background=background,
-    )
+    submission = submission_of(request, db, viewer.caller, background)
     try:
         (out,) = submission.submit([job])
     except SpecError as exc:  # the service's limits (cells, estimated work)
@@ -247,7 +237,7 @@ def submit(
         found = {exc.field or "spec": exc.message}
     except QuotaExceeded as exc:
         db.rollback()
-        errors = {"form": ("", str(exc))}
+        errors = {"form": ("", exc.message)}
     except IdempotencyConflict:
         db.rollback()
         errors = {"form": ("", "this form was already used for another spec: submit it again")}

@@ -1,13 +1,14 @@
-"""Reads of the web pages, team-scoped like the API's (another team's job is None)."""
+"""Team-scoped reads of jobs: a page of the team's jobs by status, tag, owner and name,
+one job (another team's job is None), the team's owners and tags."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 from sqlalchemy import func, select
-from sqlalchemy.orm import Session, joinedload
+from sqlalchemy.orm import Session, defer, joinedload
 
-from service.db.models import JOB_ACTIVE, Job, JobTag, User
+from .models import JOB_ACTIVE, Job, JobTag, User
 
 
 @dataclass(frozen=True)
@@ -39,13 +40,22 @@ def _where(query, team_id: int, user_id: int | None, f: JobFilter):
 
 
 def job_page(
-    session: Session, team_id: int, user_id: int | None, f: JobFilter, *, limit: int, offset: int
+    session: Session,
+    team_id: int,
+    user_id: int | None,
+    f: JobFilter,
+    *,
+    limit: int,
+    offset: int,
+    with_spec: bool = True,
 ) -> tuple[list[Job], int]:
-    """The team's jobs matching ``f``, newest first, and how many match in all."""
+    """The team's jobs matching ``f``, newest first, and how many match in all
+    (``with_spec=False``: the spec column is not read)."""
     query = _where(select(Job), team_id, user_id, f)
     total = session.scalar(select(func.count()).select_from(query.subquery()))
+    options = [joinedload(Job.user)] + ([] if with_spec else [defer(Job.spec)])
     rows = session.scalars(
-        query.options(joinedload(Job.user)).order_by(Job.id.desc()).limit(limit).offset(offset)
+        query.options(*options).order_by(Job.id.desc()).limit(limit).offset(offset)
     ).all()
     return list(rows), int(total or 0)
 

@@ -23,8 +23,10 @@ from sqlalchemy.orm import Session
 
 from service.db.models import Job
 from service.db.reports import is_final, load_columns, store_report, stored_report
-
-from .html import job_report_html
+from svrobs_lab.auth import Caller
+from svrobs_lab.dispatch import SessionFactory
+from svrobs_lab.jobs import team_job
+from svrobs_lab.report_html import job_report_html
 
 log = logging.getLogger(__name__)
 
@@ -110,3 +112,11 @@ def store_if_missing(read_session: Session, write_session: Session, job_id: int)
     if stored_report(write_session, job_id) is None:
         store_report(write_session, job_id, html, n)
     return True
+
+
+def caller_job_report(
+    session: Session, caller: Caller, job_id: int, session_factory: SessionFactory
+) -> str:
+    """The report of the caller's job (:func:`job_report`; NotFound for another team's)."""
+    job = team_job(session, caller, job_id)
+    return job_report(session, job, lambda: session_factory(True))

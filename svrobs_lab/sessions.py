@@ -21,11 +21,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from sqlalchemy import select
-from sqlalchemy.orm import Session, joinedload
+from sqlalchemy.orm import Session
 
 from service.config import Settings
-from service.db.models import ApiKey, utcnow
+from service.db.accounts import active_key
+from service.db.models import ApiKey
 
 log = logging.getLogger(__name__)
 
@@ -126,17 +126,8 @@ class Signer:
         return s is not None and bool(token) and hmac.compare_digest(token, self.csrf(s))
 
 
-def active_key(session: Session, key_id: int) -> ApiKey | None:
-    """The API key row with this id if it is still active (not revoked, not expired)."""
-    row = session.scalar(select(ApiKey).where(ApiKey.id == key_id).options(joinedload(ApiKey.user)))
-    now = utcnow()
-    if row is None or any(t is not None and t <= now for t in (row.revoked_at, row.expires_at)):
-        return None
-    return row
-
-
 def signer_of(app) -> Signer | None:
-    """The app's signer (set by service.web.mount_web), or None without the web UI."""
+    """The app's signer (set by ``service.app.create_app``), or None without one."""
     return getattr(app.state, "web_signer", None)
 
 

@@ -1,4 +1,4 @@
-"""Stored results rows -> section 10 records as JSON bytes (SPEC section 10).
+"""Stored results rows -> records as JSON bytes (docs/spec.md#record-fields).
 
 The hot read path of the API (a results page, a JSONL stream). Rows come from
 ``results_store.record_select`` and are decoded a batch at a time by
@@ -14,12 +14,8 @@ from collections.abc import Sequence
 
 from pydantic_core import to_json
 
-from service.db.models import Result
 from service.db.result_codec import ResultCodec
 from service.db.results_store import decode_rows
-
-# the order results are listed in (the primary key's, after job_id)
-ORDER = [Result.__table__.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
 
 
 def _json(value) -> bytes:

@@ -1,0 +1,89 @@
+"""The one FastAPI application: the REST API (:mod:`service.api`) and the web UI
+(:mod:`service.web`) mounted side by side. ``app`` for uvicorn
+(``uvicorn service.app:app``), ``create_app(settings)`` for tests.
+
+The app's state is set here, for both: the settings, the DB session factory, the
+unit publisher (the app's Celery app, made on first use; tests replace it), the
+rate limiter. An application error (:class:`svrobs_lab.errors.LabError`) is
+answered once: JSON under /api and for the health routes
+(:func:`service.api.errors.lab_error_response`), the web's error page elsewhere
+(:func:`service.web.errors.lab_error_page`); nothing else becomes a traceback.
+"""
+
+from __future__ import annotations
+
+from fastapi import FastAPI, Request
+from fastapi_offline import FastAPIOffline
+
+from service.api.errors import install_error_handlers, lab_error_response
+from service.api.mount import API_PREFIX, mount_api
+from service.api.ratelimit import RateLimiter
+from service.broker import BrokerPublisher
+from service.config import Settings, get_settings
+from service.logging_config import configure_logging
+from service.web import mount_web
+from service.web.errors import lab_error_page
+
+
+def _default_session_factory(settings: Settings):
+    from service.db.session import get_sessionmaker
+
+    # made now, not on the first request: creating an engine imports its dialect, and
+    # sessions are opened on the event loop (see service.http.deps.get_db)
+    makers = {
+        write: get_sessionmaker(settings.DATABASE_URL, write=write) for write in (True, False)
+    }
+
+    def factory(write: bool = True):
+        return makers[write]()
+
+    return factory
+
+
+def _is_api(request: Request) -> bool:
+    path = request.url.path
+    return path.startswith(API_PREFIX + "/") or path in ("/healthz", "/readyz")
+
+
+async def _lab_error(request: Request, exc):
+    return lab_error_response(exc) if _is_api(request) else lab_error_page(request, exc)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or get_settings()
+    configure_logging(settings)
+    # /docs and /redoc with Swagger UI's and ReDoc's files served from the
+    # fastapi-offline package under /static-offline-docs (closed lab networks)
+    app: FastAPI = FastAPIOffline(
+        title="svrobs",
+        version="0.1.0",
+        description=(
+            "SVR-based observer design experiments as a service: submit a SPEC section 10 "
+            "spec, watch its progress, query, compare and schedule results. "
+            "Authenticate with `Authorization: Bearer <api key>`."
+        ),
+        openapi_url="/openapi.json",
+        docs_url="/docs",
+        redoc_url=None,  # service.api.docs: ReDoc's script without its CDN logo
+        favicon_url="data:,",
+        swagger_ui_parameters={"validatorUrl": None, "persistAuthorization": True},
+    )
+    app.state.settings = settings
+    app.state.session_factory = _default_session_factory(settings)
+    app.state.broker = BrokerPublisher(lambda: app.state.settings)
+    app.state.publisher = app.state.broker
+    app.state.rate_limiter = RateLimiter(settings.RATE_LIMIT_PER_MINUTE)
+
+    install_error_handlers(app, lab_error=_lab_error)
+    mount_api(app)  # /api/v1, /healthz, /readyz, /docs
+    mount_web(app)  # the web UI's pages under /
+    return app
+
+
+def __getattr__(name: str):
+    # `app` is built on first access so that importing this module never reads the env
+    if name == "app":
+        global app
+        app = create_app()
+        return app
+    raise AttributeError(name)

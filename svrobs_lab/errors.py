@@ -1,0 +1,139 @@
+"""The one error hierarchy of the lab: :class:`LabError` and its kinds.
+
+Each error has a ``kind`` (what went wrong, for the front ends' one mapping:
+``service.api.errors`` to an HTTP status, ``service.web.errors`` to a page), an
+optional ``field`` (the request field it is about) and a plain ``message``. The
+module imports nothing of the service, so the store (``service.db``) raises these
+too (docs/architecture.md#layers). A bad spec is the core's
+:class:`~svrobs_core.errors.SpecError`, treated as :class:`Invalid` by both
+mappings.
+"""
+
+from __future__ import annotations
+
+from svrobs_core.errors import SpecError
+
+
+class LabError(Exception):
+    """A request the lab refuses: ``kind``, optional ``field``, plain ``message``."""
+
+    kind = "error"
+
+    def __init__(self, message: str, *, field: str | None = None):
+        Exception.__init__(self, message)
+        self.message = message
+        self.field = field
+
+
+class NotFound(LabError):
+    """No such object for this caller (another team's is indistinguishable from none)."""
+
+    kind = "not_found"
+
+
+class Conflict(LabError):
+    """The request contradicts the object's state."""
+
+    kind = "conflict"
+
+
+class JobActive(Conflict):
+    """The job is queued or running; it can be deleted once cancelled or finished."""
+
+    def __init__(self, job_id: int, status: str):
+        super().__init__(f"job {job_id} is {status}: cancel it before deleting it")
+        self.job_id = job_id
+        self.status = status
+
+
+class IdempotencyConflict(Conflict):
+    """The Idempotency-Key was used before with a different spec."""
+
+    def __init__(self, job):
+        super().__init__(
+            f"Idempotency-Key already used for job {job.id} with a different spec",
+            field="Idempotency-Key",
+        )
+        self.job = job
+
+
+class Invalid(LabError, ValueError):
+    """A bad value in the request, naming its ``field``."""
+
+    kind = "invalid"
+
+
+class JobTooLarge(SpecError, Invalid):
+    """The spec is valid but over a job limit: SVROBS_MAX_JOB_CELLS, the estimated
+    SVROBS_MAX_JOB_CPU_SECONDS or SVROBS_MAX_UNIT_MEMORY_MB. A
+    :class:`~svrobs_core.errors.SpecError` (``str`` is ``"field: message"``)."""
+
+    def __init__(self, field: str, message: str):
+        SpecError.__init__(self, field, message)
+
+
+class AdminError(Invalid):
+    """A bad admin request (unknown team, duplicate name...)."""
+
+
+class Gone(LabError):
+    """What the request needs was dropped (retention pruned the job's cell rows)."""
+
+    kind = "gone"
+
+
+class NeedsCellRows(Gone):
+    """The grouping needs cell rows that retention dropped (``job_ids``)."""
+
+    def __init__(self, job_ids: list[int], by: list[str], group_fields: tuple[str, ...]):
+        self.job_ids = job_ids
+        super().__init__(
+            f"job(s) {', '.join(map(str, job_ids))} were pruned by the team's retention "
+            f"policy: grouping by {', '.join(b for b in by if b not in group_fields)} needs "
+            f"their cell rows; group by {', '.join(group_fields)} (from the stored summaries)",
+            field="by",
+        )
+
+
+class Forbidden(LabError):
+    """The caller may not do this."""
+
+    kind = "forbidden"
+
+
+class QuotaExceeded(LabError):
+    """Over a per-team limit: SVROBS_MAX_QUEUED_JOBS_PER_TEAM active jobs."""
+
+    kind = "quota"
+
+
+class RateLimited(QuotaExceeded):
+    """Over the key's SVROBS_RATE_LIMIT_PER_MINUTE; ``retry_after`` seconds."""
+
+    def __init__(self, message: str, retry_after: int):
+        super().__init__(message)
+        self.retry_after = retry_after
+
+
+class PayloadTooLarge(LabError):
+    """A request body over SVROBS_MAX_BODY_BYTES."""
+
+    kind = "too_large"
+
+
+__all__ = [
+    "AdminError",
+    "Conflict",
+    "Forbidden",
+    "Gone",
+    "IdempotencyConflict",
+    "Invalid",
+    "JobActive",
+    "JobTooLarge",
+    "LabError",
+    "NeedsCellRows",
+    "NotFound",
+    "PayloadTooLarge",
+    "QuotaExceeded",
+    "RateLimited",
+]

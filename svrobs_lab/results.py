@@ -1,0 +1,259 @@
+"""Results: a job's records filtered, sorted, paged or streamed (CSV, JSON lines), its
+summary, and one metric compared across jobs (docs/spec.md#record-fields).
+
+The REST routes (``GET /jobs/{id}/results``, ``/summary``, ``/compare``) and the
+web's results and compare pages select through these functions, so both agree.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+from sqlalchemy.orm import Session
+
+from service.db import result_queries as rq
+from service.db.aggregates import summarize_in_db
+from service.db.compare import COMPARE_BY, compare_page
+from service.db.models import Job
+from service.db.result_codec import ResultCodec
+from service.db.results_store import count_cells, decode_rows, job_codec
+from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
+
+from .auth import MAX_ID, Caller
+from .errors import Gone, Invalid
+from .jobs import team_job
+from .params import is_float_text, is_int_text
+from .record_json import encode_lines, encode_page
+
+STREAM_CHUNK = 1000
+COMPARE_MAX_JOBS = 50
+# a text cell starting with one of these is a formula to a spreadsheet (OWASP, "CSV
+# injection"): it is written with a leading single quote
+FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+@dataclass(frozen=True)
+class Selection:
+    """A job's rows: WHERE conditions, ORDER BY terms, and whether a range filter is
+    among them (then the count is read, not computed from the grid)."""
+
+    job: Job
+    conds: list
+    order: list
+    gamma_keys: list[float] | None
+    has_ranges: bool
+    grid: tuple
+
+
+def gamma_keys(gamma: Iterable[str]) -> list[float]:
+    """``gamma`` filter values as stored keys: a finite decimal, or null/none/ols (-1)."""
+    keys = []
+    for g in gamma:
+        if g.lower() in ("null", "none", "ols"):
+            keys.append(-1.0)
+            continue
+        if not is_float_text(g) or not math.isfinite(float(g)):
+            raise Invalid("must be a finite decimal number or 'null'", field="gamma")
+        keys.append(float(g))
+    return keys
+
+
+def not_pruned(job: Job) -> None:
+    """Gone for a job whose cell rows retention dropped (what is left, and where)."""
+    if job.pruned_at is not None:
+        raise Gone(
+            f"job {job.id}'s cell rows were dropped on {job.pruned_at:%Y-%m-%d %H:%M} UTC by "
+            "the team's retention policy; its summary (GET /jobs/{id}/summary), compare by "
+            "system, sigma_w, N, estimator and gamma, and its report remain"
+        )
+
+
+def select_rows(
+    job: Job,
+    *,
+    system=None,
+    sigma_w=None,
+    N=None,
+    estimator=None,
+    gamma=None,
+    rep=None,
+    ranges: Iterable[tuple[str, str]] = (),
+    sort: str | None = None,
+) -> Selection:
+    """The rows of ``job`` at these grid values (lists; empty or None: all), within
+    the range parameters ``ranges`` (``(name, value)`` pairs), in ``sort`` order."""
+    keys = gamma_keys(gamma) if gamma else None
+    conds = rq.grid_conditions(job.id, system, sigma_w, N, estimator, keys, rep)
+    range_conds = rq.range_terms(ranges)
+    return Selection(
+        job=job,
+        conds=conds + range_conds,
+        order=rq.sort_order(sort),
+        gamma_keys=keys,
+        has_ranges=bool(range_conds),
+        grid=(system, sigma_w, N, estimator, rep),
+    )
+
+
+def count(session: Session, sel: Selection, *, grid: bool = True) -> int:
+    """How many rows the selection has (with ``grid``, computed from the grid for a
+    succeeded job without range filters: every cell is stored)."""
+    if grid and sel.job.status == "succeeded" and not sel.has_ranges:
+        system, sigma_w, N, estimator, rep = sel.grid
+        return count_cells(sel.job.spec, system, sigma_w, N, estimator, sel.gamma_keys, rep)
+    return rq.count_rows(session, sel.conds)
+
+
+def page_json(session: Session, sel: Selection, *, limit: int, offset: int) -> bytes:
+    """One page of the selection as a ``ResultPage`` JSON body."""
+    codec = job_codec(session, sel.job.id, sel.job.spec)
+    total = count(session, sel)
+    rows = rq.page_rows(session, sel.conds, sel.order, limit=limit, offset=offset)
+    return encode_page(rows, codec, total, limit, offset)
+
+
+def page_records(session: Session, sel: Selection, *, limit: int, offset: int) -> list[dict]:
+    """One page of the selection as decoded records."""
+    rows = rq.page_rows(session, sel.conds, sel.order, limit=limit, offset=offset)
+    return decode_rows(rows, job_codec(session, sel.job.id, sel.job.spec))
+
+
+def _csv_value(v):
+    if isinstance(v, str):
+        return "'" + v if v.startswith(FORMULA_START) else v
+    if v is None:
+        return ""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ""
+    if isinstance(v, (list, dict)):
+        return json.dumps(v, allow_nan=False, separators=(",", ":"))
+    return v  # an int
+
+
+def stream(
+    session: Session, session_factory, sel: Selection, fmt: str, *, limit=None, offset: int = 0
+) -> tuple[Iterator, str]:
+    """(chunks, media type) of the selection as CSV (RFC 4180: CRLF line ends, so a
+    cell holding a CR or LF is quoted) or JSON lines, read in chunks by a reading
+    session of its own (``session_factory(False)``) once iterated. ``session``, the
+    request's, is closed first."""
+    codec: ResultCodec = job_codec(session, sel.job.id, sel.job.spec)
+    query = rq.rows_query(sel.conds, sel.order, limit=limit, offset=offset)
+    session.close()
+
+    def gen():
+        own = session_factory(False)
+        try:
+            if fmt == "csv":
+                buf = io.StringIO()
+                csv.writer(buf, lineterminator="\r\n").writerow(RECORD_FIELDS)
+                yield buf.getvalue()
+            for chunk in rq.row_chunks(own, query, STREAM_CHUNK):
+                if fmt == "csv":
+                    buf = io.StringIO()
+                    writer = csv.writer(buf, lineterminator="\r\n")
+                    for rec in decode_rows(chunk, codec):
+                        writer.writerow([_csv_value(rec[f]) for f in RECORD_FIELDS])
+                    yield buf.getvalue()
+                else:
+                    yield encode_lines(chunk, codec)
+        finally:
+            own.close()
+
+    media = "text/csv; charset=utf-8" if fmt == "csv" else "application/x-ndjson"
+    return gen(), media
+
+
+def _group_out(g: dict) -> dict:
+    return {**{k: g[k] for k in GROUP_FIELDS}, "count": g["count"], "stats": g["stats"]}
+
+
+def summary(session: Session, job: Job) -> dict:
+    """Mean, std and count of every numeric field per group: stored when the job
+    succeeded, aggregated in the database from the results so far otherwise."""
+    if job.status != "succeeded":  # units store their groups' summaries as they finish
+        groups = [_group_out(g) for g in summarize_in_db(session, job.id)]
+        return {"job_id": job.id, "partial": True, "groups": groups}
+    groups = [
+        {
+            "system": s.system,
+            "sigma_w": s.sigma_w,
+            "N": s.N,
+            "estimator": s.estimator,
+            "gamma": s.gamma,
+            "count": s.count,
+            "stats": s.stats,
+        }
+        for s in rq.summary_rows(session, job.id)
+    ]
+    return {"job_id": job.id, "partial": False, "groups": groups}
+
+
+def _csv_list(value: str, name: str) -> list[str]:
+    items = [v.strip() for v in value.split(",") if v.strip()]
+    if not items:
+        raise Invalid("must be a non-empty comma-separated list", field=name)
+    return items
+
+
+def compare(
+    session: Session,
+    caller: Caller,
+    *,
+    jobs: str,
+    metric: str,
+    by: str = "N,estimator,gamma",
+    limit: int = 1000,
+    offset: int = 0,
+) -> dict:
+    """One metric across the caller's jobs ``jobs`` (comma-separated ids): count, mean
+    and std per job and per combination of the ``by`` fields (comma-separated), one
+    page of groups (``service.db.compare``)."""
+    items = _csv_list(jobs, "jobs")
+    if not all(is_int_text(j) for j in items):
+        raise Invalid("must be comma-separated job ids (digits 0-9), e.g. 1,2", field="jobs")
+    ids = [int(j) for j in items]
+    if len(ids) > COMPARE_MAX_JOBS or any(i < 1 or i > MAX_ID for i in ids):
+        raise Invalid(f"at most {COMPARE_MAX_JOBS} valid job ids", field="jobs")
+    ids = list(dict.fromkeys(ids))
+    if metric not in NUMERIC_FIELDS:
+        raise Invalid(
+            f"must be a numeric record field, one of {list(NUMERIC_FIELDS)}", field="metric"
+        )
+    by_fields = list(dict.fromkeys(_csv_list(by, "by")))
+    for b in by_fields:
+        if b not in COMPARE_BY:
+            raise Invalid(f"{b!r} is not one of {list(COMPARE_BY)}", field="by")
+    found = [team_job(session, caller, j) for j in ids]
+    page = compare_page(session, found, metric, by_fields, limit=limit, offset=offset)
+    return {
+        "metric": metric,
+        "by": by_fields,
+        "jobs": ids,
+        "rows": page.rows,
+        "total": page.total,
+        "limit": limit,
+        "offset": offset,
+    }
+
+
+__all__ = [
+    "COMPARE_BY",
+    "Selection",
+    "compare",
+    "count",
+    "gamma_keys",
+    "not_pruned",
+    "page_json",
+    "page_records",
+    "select_rows",
+    "stream",
+    "summary",
+]

@@ -1,0 +1,73 @@
+"""Share links of a job: create, list, revoke (signed in), and open one (no key).
+
+Only the token's hash is stored (:mod:`service.db.shares`); the token is shown once,
+when the link is made. An unknown, expired or revoked token is NotFound, like a job
+of another team. Who reads through a link is :func:`reader`: the job's team, with no
+key, user or admin right.
+"""
+
+from __future__ import annotations
+
+from sqlalchemy.orm import Session
+
+from service.db import shares as store
+from service.db.models import Job, ShareLink
+
+from .auth import MAX_ID, Caller
+from .errors import NotFound
+from .jobs import team_job
+
+DEFAULT_DAYS = store.DEFAULT_DAYS
+MAX_DAYS = store.MAX_DAYS
+is_live = store.is_live
+
+
+def share_out(link: ShareLink, url: str | None = None) -> dict:
+    return {
+        "id": link.id,
+        "job_id": link.job_id,
+        "created_at": link.created_at,
+        "expires_at": link.expires_at,
+        "revoked_at": link.revoked_at,
+        "live": store.is_live(link),
+        "url": url,
+    }
+
+
+def create(session: Session, caller: Caller, job_id: int, days: float) -> tuple[ShareLink, str]:
+    """A link to the caller's job, valid ``days``, committed -> (link, token)."""
+    job = team_job(session, caller, job_id)
+    link, token = store.create_share(session, job, user_id=caller.user_id, days=days)
+    session.commit()
+    return link, token
+
+
+def job_links(session: Session, caller: Caller, job_id: int) -> list[ShareLink]:
+    """The job's links, newest first (their tokens are not kept)."""
+    team_job(session, caller, job_id)
+    return store.job_shares(session, caller.team_id, job_id)
+
+
+def revoke(session: Session, caller: Caller, share_id: int) -> ShareLink:
+    """Revoke one of the team's links (committed): opening it is NotFound from now on."""
+    link = store.team_share(session, caller.team_id, share_id) if share_id <= MAX_ID else None
+    if link is None:
+        raise NotFound(f"share link {share_id} not found")
+    store.revoke_share(link)
+    session.commit()
+    return link
+
+
+def open_link(session: Session, token: str) -> tuple[ShareLink, Job]:
+    """(the link, its job) of a live token, else NotFound."""
+    link = store.open_share(session, token)
+    job = session.get(Job, link.job_id) if link is not None else None
+    if job is None or job.team_id != link.team_id:
+        raise NotFound("This link does not exist, has expired or was revoked.")
+    return link, job
+
+
+def reader(link: ShareLink) -> Caller:
+    """Who reads through a link: the job's team, with no key, user or admin right
+    (for the team-scoped lookups only)."""
+    return Caller(key_id=0, team_id=link.team_id, user_id=None, is_admin=False)
