@@ -169,9 +169,24 @@ def test_share_link_opens_without_cookies_and_404s_once_revoked(browser, stack, 
     sign_in(page, stack.key)
     page.goto(f"/jobs/{job_id}")
     page.click("#share-link")
+    page.context.grant_permissions(["clipboard-read", "clipboard-write"])
+    page.fill("#share-label", "for the reviewers")
     page.click("#share-form button[type=submit]")
+    page.wait_for_selector("#share-created")
     url = page.input_value("#new-share-url")
     assert url.startswith(stack.base_url + "/s/") and stack.key not in url
+    assert page.url == f"{stack.base_url}/jobs/{job_id}/share"  # no token left in the URL
+    page.click("#copy-share-url")
+    page.wait_for_selector(".copy-status:text('Copied.')")
+    assert page.evaluate("navigator.clipboard.readText()") == url
+    row = page.locator("#share-links tr.just-made")
+    assert row.locator(".share-label").inner_text() == "for the reviewers"
+    page.reload()  # POST-redirect-GET: a reload posts nothing and shows no token
+    assert page.locator("#share-created").count() == 0
+    assert page.locator("#share-links tbody tr").count() == 1
+    with stack.client() as api:
+        listed = api.get(f"/jobs/{job_id}/shares").json()
+    assert [s["label"] for s in listed] == ["for the reviewers"]
 
     guest = browser.page(stack.base_url)  # a fresh context: no cookie, no key
     assert guest.context.cookies() == []
@@ -184,7 +199,7 @@ def test_share_link_opens_without_cookies_and_404s_once_revoked(browser, stack, 
     assert report.status == 200 and "Table 2" in report.text()
     assert guest.goto(f"/jobs/{job_id}").url.startswith(stack.base_url + "/login")
 
-    page.goto(f"/jobs/{job_id}/share")  # (not a reload: that would post the form again)
+    page.goto(f"/jobs/{job_id}/share")
     assert page.locator("#share-links button.danger").count() == 1
     page.once("dialog", lambda d: d.dismiss())  # asked first; declined, nothing changes
     page.click("#share-links button.danger")

@@ -122,13 +122,19 @@ def test_share_link_lifecycle(web, done, session, make_account):
     acc, (jid, other_job) = done
     page = web.get(f"/jobs/{jid}/share")
     token = csrf_of(page.text)
-    made = web.post(f"/jobs/{jid}/share", data={"csrf_token": token, "days": "7"})
-    assert made.status_code == 201
-    url = re.search(r'id="new-share-url" value="([^"]+)"', made.text).group(1)
-    path = url.split("testserver", 1)[1]
-    secret = path.rsplit("/", 1)[1]
+    form = {"csrf_token": token, "days": "7", "label": " for the reviewers "}
+    made = web.post(f"/jobs/{jid}/share", data=form, follow_redirects=False)
+    assert made.status_code == 303  # POST-redirect-GET, the token in the fragment only
+    where, _, fragment = made.headers["location"].partition("#new=")
+    secret = fragment
     rows = session.scalars(select(ShareLink).where(ShareLink.job_id == jid)).all()
+    assert where == f"/jobs/{jid}/share?created={rows[0].id}"
     assert [r.token_hash for r in rows] == [token_hash(secret)]  # stored hashed only
+    assert rows[0].label == "for the reviewers"
+    shown = web.get(where).text
+    assert 'id="share-created" data-share="%d"' % rows[0].id in shown
+    assert "“for the reviewers”" in shown and secret not in shown
+    path = f"/s/{secret}"
     assert secret not in json.dumps([r.token_hash for r in rows])
     anon = TestClient(web.app)  # no cookie, no key
     opened = anon.get(path)
@@ -173,4 +179,7 @@ def test_share_link_lifecycle(web, done, session, make_account):
     assert anon.get(late).status_code == 404
     listed = web.get(f"{API}/jobs/{jid}/shares", headers=acc.headers).json()
     assert [s["live"] for s in listed] == [False, False] and all(s["url"] is None for s in listed)
+    assert [s["label"] for s in listed] == [None, "for the reviewers"]
+    named = web.post(f"{API}/jobs/{jid}/shares", json={"label": "x" * 201}, headers=acc.headers)
+    assert named.status_code == 422 and named.json()["field"] == "label"
     assert web.delete(f"{API}/shares/{listed[0]['id']}", headers=other.headers).status_code == 404
