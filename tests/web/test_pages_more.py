@@ -118,6 +118,48 @@ def test_schedule_from_a_job(web, done, session):
     assert web.get(f"{API}/schedules/{s['id']}", headers=acc.headers).json()["enabled"] is False
 
 
+def test_schedule_form_errors_at_once_edit_and_run_now(web, done):
+    acc, (jid, _) = done
+    token = csrf_of(web.get(f"/schedules/new?job={jid}").text)
+    data = {"csrf_token": token, "job": jid, "name": "", "cron": "every night"}
+    bad = web.post("/schedules/new", data={**data, "timezone": "Mars/Olympus", "tags": "x" * 101})
+    assert bad.status_code == 422
+    errors = dict(re.findall(r'id="err-(\w+)">\w+: ([^<]*)</p>', bad.text))
+    assert set(errors) == {"name", "cron", "timezone", "tags"}, errors  # all four at once
+    assert "5 fields" in errors["cron"] and "Mars/Olympus" in html.unescape(errors["timezone"])
+    good = {**data, "name": "nightly", "cron": "0 3 * * *", "timezone": "Europe/Paris"}
+    made = web.post("/schedules/new", data=good, follow_redirects=False)
+    assert made.status_code == 303, made.text
+    sid = int(made.headers["location"].rsplit("/", 1)[1])
+    page = web.get(f"/schedules/{sid}").text
+    assert "Europe/Paris (" in page and " UTC)" in page  # the next run in its own zone
+    edit = {"csrf_token": token, "name": "nightly", "cron": "@hourly", "timezone": "Nope"}
+    refused = web.post(f"/schedules/{sid}/edit", data={**edit, "seed_policy": "often"})
+    assert refused.status_code == 422
+    assert set(re.findall(r'id="err-(\w+)"', refused.text)) == {"timezone", "seed_policy"}
+    ok = {**edit, "timezone": "UTC", "seed_policy": "due-time", "tags": "a, b", "name": "hourly"}
+    saved = web.post(f"/schedules/{sid}/edit", data=ok, follow_redirects=False)
+    assert saved.status_code == 303
+    s = web.get(f"{API}/schedules/{sid}", headers=acc.headers).json()
+    assert (s["name"], s["cron"], s["timezone"], s["seed_policy"], s["tags"]) == (
+        "hourly",
+        "@hourly",
+        "UTC",
+        "due-time",
+        ["a", "b"],
+    )
+    ran = web.post(f"/schedules/{sid}/run", data={"csrf_token": token}, follow_redirects=False)
+    assert ran.status_code == 303
+    job = web.get(f"{API}{ran.headers['location']}", headers=acc.headers).json()
+    assert job["schedule_id"] == sid and "schedule:hourly" in job["tags"]
+    assert job["name"].startswith("hourly @ ") and job["name"].endswith("(run now)")
+    assert {k: v for k, v in job["spec"].items() if k != "seed"} == {
+        k: v for k, v in s["spec_template"].items() if k != "seed"
+    }  # due-time: only the seed differs
+    assert web.get(f"{API}/schedules/{sid}/runs", headers=acc.headers).json() == []
+    assert web.post(f"/schedules/{sid}/run", data={}).status_code == 403  # no CSRF
+
+
 def test_share_link_lifecycle(web, done, session, make_account):
     acc, (jid, other_job) = done
     page = web.get(f"/jobs/{jid}/share")
