@@ -342,3 +342,26 @@ def test_runs_table_ticks_runs_to_compare_and_chooses_columns(browser, stack, jo
     page.go_back()
     page.wait_for_selector("#jobs-table")
     assert page.locator("#jobs-table th[data-col=owner]").is_hidden()  # from the URL
+
+
+def test_runs_table_deletes_the_ticked_after_a_confirmation(browser, stack):
+    tiny = {"systems": ["paper-stable"], "sigma_w": [1.0], "N": [10], "reps": 2}
+    with stack.client() as api:
+        ids = [submit(api, {**tiny, "seed": s}, name=f"to delete {s}")["id"] for s in (1, 2)]
+        for i in ids:
+            stack.wait_job(api, i)
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.goto("/jobs?sort=-duration,id&metric=rmse_A&at=10")
+    assert page.locator("#jobs-table th[data-col=metric]").inner_text() == "RMSE Â at N = 10"
+    for i in ids:
+        page.check(f"#job-{i} .run-pick")
+    page.click("#delete-selected")
+    page.wait_for_url(re.compile(r"/jobs/delete\?"))
+    assert page.locator("#delete-list li").count() == 2
+    with stack.client() as api:  # asking is not deleting
+        assert all(api.get(f"/jobs/{i}").status_code == 200 for i in ids)
+    page.click("#confirm-delete-many")
+    page.wait_for_selector("#deleted-flash")
+    with stack.client() as api:
+        assert all(api.get(f"/jobs/{i}").status_code == 404 for i in ids)

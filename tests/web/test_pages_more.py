@@ -85,6 +85,46 @@ def test_compare_page_table_is_the_api_compare(web, done):
     assert page.text.count('<tr><td><a href="/jobs/') == len(api["rows"])
 
 
+def test_runs_table_sorts_shows_a_metric_and_deletes_the_ticked(web, done, session):
+    acc, (a, b) = done
+    noisy = {**SMALL_SPEC, "sigma_w": [4.0], "seed": 3}  # a job whose RMSE differs
+    r = web.post(f"{API}/jobs", json=noisy, headers=acc.headers)
+    run_job_units(session, r.json()["id"])
+    means = {}
+    for jid in (a, b, r.json()["id"]):  # the oracle: the cells' own values at N = 40
+        items = web.get(
+            f"{API}/jobs/{jid}/results", params={"N": 40, "limit": 1000}, headers=acc.headers
+        ).json()["items"]
+        values = [r["rmse_A"] for r in items if r["rmse_A"] is not None]
+        means[jid] = sum(values) / len(values)
+    page = web.get("/jobs?metric=rmse_A&at=40&sort=-metric").text
+    shown = dict(
+        re.findall(r'<tr id="job-(\d+)".*?data-col="metric" data-value="([^"]*)"', page, re.S)
+    )
+    assert {int(k): float(v) for k, v in shown.items()} == pytest.approx(means, rel=1e-12)
+    order = [int(i) for i in re.findall(r'<tr id="job-(\d+)"', page)]
+    assert order == sorted(means, key=lambda j: (means[j], j), reverse=True)  # ties: newest
+    assert len(set(means.values())) == 2
+    assert 'aria-sort="descending"' in page and "RMSE Â at N = 40" in page
+    asc = web.get("/jobs?metric=rmse_A&at=40&sort=metric").text
+    asc_order = [int(i) for i in re.findall(r'<tr id="job-(\d+)"', asc)]
+    assert asc_order == sorted(means, key=lambda j: (means[j], -j))
+    by_name = web.get("/jobs?sort=name,-id").text  # two keys
+    assert "<sup>1</sup>" in by_name and "<sup>2</sup>" in by_name
+    assert web.get("/jobs?sort=owner").status_code == 422
+    assert web.get("/jobs?metric=N&at=10").status_code == 422  # a grid coordinate
+    confirm = web.get(f"/jobs/delete?jobs={a}&jobs={b}")
+    assert confirm.status_code == 200 and "Delete 2 jobs?" in confirm.text
+    token = csrf_of(confirm.text)
+    gone = web.post(
+        "/jobs/delete", data={"csrf_token": token, "jobs": [a, b]}, follow_redirects=False
+    )
+    assert gone.headers["location"] == f"/jobs?deleted={a},{b}"
+    assert f"Jobs {a}, {b} deleted." in web.get(gone.headers["location"]).text
+    assert web.get(f"{API}/jobs/{a}", headers=acc.headers).status_code == 404
+    assert web.post("/jobs/delete", data={"jobs": [a]}).status_code == 403  # no CSRF
+
+
 def test_schedule_from_a_job(web, done, session):
     acc, (jid, _) = done
     form = web.get(f"/schedules/new?job={jid}")

@@ -1,6 +1,7 @@
-/* The jobs list as a runs table: runs ticked to compare stay ticked while the table
- * polls (it is replaced every 2 s while a job runs), and the column chooser hides
- * columns, kept in the URL (?hide=owner,tags). */
+/* The jobs list as a runs table: runs ticked to compare or delete stay ticked while
+ * the table polls (it is replaced every 2 s while a job runs); the column chooser
+ * hides columns, kept in the URL (?hide=owner,tags); Shift+click on a column head
+ * adds it as the next sort key (a click sorts by it alone, the server's link). */
 (function () {
   "use strict";
   const form = document.getElementById("runs-form");
@@ -15,8 +16,18 @@
     document.querySelectorAll("#runs-columns input[type=checkbox]").forEach((b) => { b.checked = !hide.has(b.value); });
     const n = picked.size;
     document.getElementById("compare-selected").disabled = n === 0;
+    document.getElementById("delete-selected").disabled = n === 0;
     document.getElementById("runs-selected").textContent =
       n ? `${n} run${n === 1 ? "" : "s"} ticked: ${[...picked].map((i) => "#" + i).join(", ")}` : "Tick runs to compare them.";
+    // the hidden columns go along with every link and filter of the page
+    const h = [...hide].join(",");
+    const box = document.getElementById("runs-hide");
+    if (box) box.value = h;
+    document.querySelectorAll("#jobs-table th a[data-sort-field], #jobs-table .pager a").forEach((a) => {
+      const u = new URL(a.href, location.href);
+      if (h) u.searchParams.set("hide", h); else u.searchParams.delete("hide");
+      a.href = u.pathname + u.search;
+    });
     // ticked runs not on this page still go to the compare
     form.querySelectorAll("input[type=hidden][name=jobs]").forEach((h) => h.remove());
     const shown = new Set([...document.querySelectorAll("#jobs-table .run-pick")].map((b) => b.value));
@@ -41,6 +52,20 @@
       apply();
     }
   });
+  document.addEventListener("click", (e) => {
+    const a = e.target.closest && e.target.closest("#jobs-table th a[data-sort-field]");
+    if (!a || !e.shiftKey) return;
+    e.preventDefault();
+    const p = new URLSearchParams(location.search);
+    const keys = (p.get("sort") || "").split(",").filter(Boolean);
+    const field = a.dataset.sortField;
+    const at = keys.findIndex((k) => k.replace(/^-/, "") === field);
+    if (at >= 0) keys[at] = keys[at].startsWith("-") ? field : `-${field}`;
+    else keys.push(field);
+    p.set("sort", keys.join(","));
+    p.delete("page");
+    location.assign(`/jobs?${p.toString()}`);
+  }, true);
   document.body.addEventListener("htmx:afterSwap", apply);
   apply();
 })();
