@@ -221,3 +221,30 @@ def test_api_docs_load_nothing_from_another_host(browser, stack):
     page.goto("/redoc")
     page.wait_for_selector("redoc .api-info, [role=navigation], h1")
     assert "svrobs" in page.inner_text("body")
+
+
+def test_api_docs_try_it_out_under_the_web_session(browser, stack, two_jobs):
+    job_id = two_jobs[0]
+    page = browser.page(stack.base_url)
+    page.goto("/docs")
+    page.wait_for_selector(".swagger-ui .info .title")
+    assert page.locator("#docs-session").is_hidden()  # not signed in: the key, as before
+    sign_in(page, stack.key)
+    page.goto("/docs#/shares/create_share_api_v1_jobs__job_id__shares_post")
+    page.wait_for_selector("#docs-session:not([hidden])")
+    assert "Signed in to the dashboard" in page.inner_text("#docs-session")
+    op = page.locator("#operations-shares-create_share_api_v1_jobs__job_id__shares_post")
+    op.locator(".opblock-summary").first.wait_for()
+    if not op.locator(".try-out__btn").is_visible():
+        op.locator(".opblock-summary").first.click()
+    op.locator(".try-out__btn").click()
+    op.locator("input[placeholder='job_id']").fill(str(job_id))
+    op.locator("textarea.body-param__text").fill('{"days": 1, "label": "from the docs"}')
+    with page.expect_response(lambda r: r.url.endswith(f"/jobs/{job_id}/shares")) as made:
+        op.locator("button.execute").click()
+    assert made.value.status == 201  # a write, with no key: the session and its token
+    assert made.value.request.headers.get("x-csrf-token")
+    assert "authorization" not in made.value.request.headers
+    with stack.client() as api:
+        labels = [s["label"] for s in api.get(f"/jobs/{job_id}/shares").json()]
+    assert "from the docs" in labels
