@@ -40,7 +40,6 @@ SHOTS = {
     ("job views", "1400-dark"): "dashboard-dark-views.png",
     ("results", "1400-light"): "dashboard-results.png",
     ("submit", "1400-light"): "dashboard-submit.png",
-    ("shared", "390-light"): "dashboard-phone-shared.png",
 }
 
 
@@ -66,7 +65,7 @@ def pages(site: dict) -> list[tuple[str, str, str | None]]:
     return [
         ("jobs", "/jobs", "#jobs-table"),
         ("job", f"/jobs/{a}", "#charts-card[data-state=ready] canvas"),
-        ("results", f"/results?job={a}", "#results-grid"),
+        ("results", f"/results?job={a}&estimator=svr&sort=-rmse_A,N", "#results-grid"),
         ("compare", f"/compare?jobs={a}&jobs={b}&metric=rmse_A", "#compare-card[data-ready=yes]"),
         ("submit", "/jobs/new", "#submit-form"),
         ("schedules", "/schedules", "#schedules-table"),
