@@ -197,6 +197,20 @@ def submit(
         type_errors = {}
     values.update(spec_text=text, source="json" if uploaded else source)
     found: dict = {}
+
+    def refused(errors: dict, found: dict):
+        """The form again (422) with every error, the values as they were sent."""
+        return _form(
+            request,
+            viewer,
+            status=422,
+            errors=errors,
+            spec_errors=found,
+            spec=body,
+            shown=shown,
+            **values,
+        )
+
     if body is not None:
         found = {**type_errors}
         for path, message in spec_errors(body).items():
@@ -213,16 +227,7 @@ def submit(
                 first = exc.errors()[0]
                 errors["spec"] = (_field(first["loc"]), first["msg"])
     if errors or found:
-        return _form(
-            request,
-            viewer,
-            status=422,
-            errors=errors,
-            spec_errors=found,
-            spec=body,
-            shown=shown,
-            **values,
-        )
+        return refused(errors, found)
     job = JobRequest(
         spec={k: data[k] for k in SPEC_FIELD_NAMES if k in data},
         name=data.get("name"),
@@ -243,14 +248,5 @@ def submit(
         errors = {"form": ("", "this form was already used for another spec: submit it again")}
         values.pop("idempotency_key")
     if errors or found:
-        return _form(
-            request,
-            viewer,
-            status=422,
-            errors=errors,
-            spec_errors=found,
-            spec=body,
-            shown=shown,
-            **values,
-        )
+        return refused(errors, found)
     return RedirectResponse(f"/jobs/{out['id']}", status_code=303)

@@ -10,9 +10,7 @@
   function theme() { return root.dataset.theme || "auto"; }
 
   function effectiveTheme() {
-    const t = theme();
-    if (t !== "auto") return t;
-    return window.matchMedia && window.matchMedia("(prefers-color-scheme: dark)").matches ? "dark" : "light";
+    return root.dataset.scheme || "light";
   }
   window.svrobsTheme = effectiveTheme;
 
@@ -26,6 +24,7 @@
     try {
       if (t === "auto") localStorage.removeItem("svrobs-theme"); else localStorage.setItem("svrobs-theme", t);
     } catch (e) { /* not remembered */ }
+    if (window.svrobsScheme) window.svrobsScheme();
     showTheme(button);
     document.dispatchEvent(new CustomEvent("svrobs:theme", { detail: effectiveTheme() }));
   }
@@ -57,6 +56,7 @@
     });
     if (window.matchMedia) {
       window.matchMedia("(prefers-color-scheme: dark)").addEventListener("change", () => {
+        if (window.svrobsScheme) window.svrobsScheme();
         showTheme(button);
         document.dispatchEvent(new CustomEvent("svrobs:theme", { detail: effectiveTheme() }));
       });
