@@ -63,10 +63,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             "Authenticate with `Authorization: Bearer <api key>`."
         ),
         openapi_url="/openapi.json",
-        docs_url="/docs",
+        docs_url=None,  # service.api.docs: Swagger UI under the web session
         redoc_url=None,  # service.api.docs: ReDoc's script without its CDN logo
         favicon_url="data:,",
-        swagger_ui_parameters={"validatorUrl": None, "persistAuthorization": True},
     )
     app.state.settings = settings
     app.state.session_factory = _default_session_factory(settings)

@@ -51,6 +51,99 @@ NUMERIC_FIELDS = tuple(
 GROUP_FIELDS = ("system", "sigma_w", "N", "estimator", "gamma")
 
 
+# The glossary of the record fields (docs/spec.md#glossary): field -> (label, unit,
+# description). The label is the short head of a column or an axis, the unit "" when
+# the value has none (a name, a flag, a count of its own kind is said in words).
+# A matrix's entries share the unit of the matrix: A is dimensionless, B maps input
+# to state units, L and K output to state units. Booleans are true/false; their summary mean is the share of cells.
+FIELD_GLOSSARY: dict[str, tuple[str, str, str]] = {
+    "system": ("system", "", "The system's name: a preset or a system object of the spec"),
+    "sigma_w": ("σ_w", "state units", "Process-noise standard deviation σ_w of the cell"),
+    "N": ("N", "rollouts", "Number of rollouts of the identification experiment"),
+    "N0": ("N0", "samples", "Regression samples: (T0 − 1)·N with data 'all', N with 'final'"),
+    "estimator": ("estimator", "", "The estimator: ols, svr or shrunk-ols"),
+    "gamma": ("γ", "dimensionless", "The estimator's regularisation γ (OLS has none: —)"),
+    "rep": ("rep", "index", "Repetition of the grid point, 0 … reps − 1"),
+    "seed_key": ("seed key", "", "[system, σ_w index, N, rep]: the cell's random stream"),
+    "A_hat": ("Â", "dimensionless", "The estimate of A (n×n)"),
+    "B_hat": ("B̂", "state per input unit", "The estimate of B (n×m)"),
+    "rmse_A": ("RMSE Â", "dimensionless", "Root mean square of the entries of Â − A"),
+    "rmse_B": ("RMSE B̂", "state per input unit", "Root mean square of the entries of B̂ − B"),
+    "bounds_method": (
+        "bounds method",
+        "",
+        "How the radii were computed: paper, self-normalized or bootstrap",
+    ),
+    "H_A": ("H_A", "dimensionless", "Theorem 1's right-hand side H(θ_A, n): r_A² / (1 + γ)"),
+    "H_B": ("H_B", "(state per input unit)²", "Theorem 1's right-hand side H(θ_B, m)"),
+    "r_A": (
+        "r_A",
+        "dimensionless",
+        "Radius of every entry of A around its estimate (the largest entry radius)",
+    ),
+    "r_B": (
+        "r_B",
+        "state per input unit",
+        "Radius of every entry of B around its estimate (the largest entry radius)",
+    ),
+    "radii_A": ("radii A", "dimensionless", "Per-entry radii of A (n×n)"),
+    "radii_B": ("radii B", "state per input unit", "Per-entry radii of B (n×m)"),
+    "eps_A": ("ε_A", "dimensionless", "Bound on the spectral norm ‖Â − A‖ (Corollary 1)"),
+    "eps_B": ("ε_B", "state per input unit", "Bound on the spectral norm ‖B̂ − B‖"),
+    "coverage_A": (
+        "coverage A",
+        "share (0–1)",
+        "Share of the true entries of A inside their intervals",
+    ),
+    "coverage_B": (
+        "coverage B",
+        "share (0–1)",
+        "Share of the true entries of B inside their intervals",
+    ),
+    "thm1_holds_A": (
+        "Thm 1 holds (A)",
+        "true/false",
+        "Theorem 1's inequality holds for every row of A",
+    ),
+    "thm1_holds_B": (
+        "Thm 1 holds (B)",
+        "true/false",
+        "Theorem 1's inequality holds for every row of B",
+    ),
+    "rho_upper_bound": (
+        "ρ upper bound",
+        "dimensionless",
+        "Upper bound of the spectral radius ρ(A) over the box of A",
+    ),
+    "stable_certified": (
+        "stable certified",
+        "true/false",
+        "A is certified stable: ρ upper bound < 1",
+    ),
+    "L": ("L", "state per output unit", "The observer gain used (n×p)"),
+    "g_L": ("g(L)", "dimensionless", "Certificate g(L) of the observer gain: certified when < 1"),
+    "certified": ("certified", "true/false", "The observer is certified: g(L) < 1"),
+    "rho_true": ("ρ(A − LC)", "dimensionless", "Spectral radius of the true error dynamics A − LC"),
+    "K": ("K", "state per output unit", "Kalman predictor gain of the true system (n×p)"),
+    "J_exact": ("J", "state units²", "Mean squared estimation error over the horizon, exact"),
+    "J_stationary": (
+        "J stationary",
+        "state units²",
+        "Stationary mean squared estimation error (Lyapunov)",
+    ),
+    "J_mc": ("J Monte Carlo", "state units²", "Monte Carlo estimate of J over mc_runs runs"),
+    "J_mc_se": ("J Monte Carlo s.e.", "state units²", "Standard error of the Monte Carlo J"),
+    "J_star": ("J*", "state units²", "J of the true model's Kalman gain (L = K)"),
+    "cost_ratio": ("cost ratio", "dimensionless", "|J_γ − J_ref| / J_ref, reference γ = gamma_ref"),
+    "J_bound": ("J bound", "state units²", "Theorem 3's upper bound J_b on J"),
+    "delta_J": ("ΔJ", "state units²", "J bound − J: the bound holds where > 0"),
+    "J_opt": ("J opt", "state units²", "Optimal value of the FIR SLS program"),
+    "J_opt_bound": ("J opt bound", "state units²", "The paper's upper bound on J opt"),
+    "sls_status": ("SLS status", "", "Solver status of the SLS program"),
+    "notes": ("notes", "", "Why fields of the cell are null, and other remarks"),
+}
+
+
 def json_value(value):
     """numpy scalars/arrays -> plain Python; NaN/inf -> None (never NaN in JSON)."""
     if value is None:

@@ -56,6 +56,7 @@ class JobRequest:
     name: str | None = None
     tags: Iterable[str] = ()
     idempotency_key: str | None = None
+    schedule_id: int | None = None  # a job a schedule made
 
 
 class Submission:
@@ -91,6 +92,7 @@ class Submission:
                 name=r.name,
                 tags=r.tags,
                 idempotency_key=r.idempotency_key,
+                schedule_id=r.schedule_id,
                 **limits(self.settings),
             )
             created_any |= created

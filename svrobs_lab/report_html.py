@@ -17,6 +17,10 @@ from svrobs_core.report import Report, build_report, spec_json, table2_markdown
 from svrobs_core.report.audit import audit_markdown
 from svrobs_core.report.columns import fmt_num
 
+# A table scrolls sideways inside itself on a narrow screen (report.css), so it
+# takes the focus: its overflow can be scrolled with the keyboard.
+TABLE = "<table tabindex='0'>"
+
 
 @cache
 def report_css() -> str:
@@ -45,7 +49,7 @@ def _markdown_table(md: str) -> str:
     """A pipe table (header, rule, rows) as an HTML table."""
     lines = [ln.strip().strip("|") for ln in md.strip().splitlines()]
     rows = [[c.strip() for c in ln.split(" | ")] for ln in lines[:1] + lines[2:]]
-    out = ["<table><tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in rows[0]) + "</tr>"]
+    out = [TABLE + "<tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in rows[0]) + "</tr>"]
     for r in rows[1:]:
         out.append("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>")
     return "".join(out) + "</table>"
@@ -57,13 +61,14 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
     e = html.escape
     H = [
         "<!DOCTYPE html>",
-        "<html><head><meta charset='utf-8'>",
+        "<html lang='en'><head><meta charset='utf-8'>"
+        "<meta name='viewport' content='width=device-width, initial-scale=1'>",
         f"<title>{e(report.title)}</title><style>\n{report_css()}</style></head><body>",
         f"<h1>{e(report.title)}</h1>",
         "<p>Every number below comes from the records of this run (and, for the true system "
         "matrices, from its specs), except the cells marked <span class='pub'>published</span>, "
         "which are the paper's own Table 2 values.</p>",
-        "<table><tr><th>Experiment</th><th>What</th><th>Records</th></tr>",
+        TABLE + "<tr><th>Experiment</th><th>What</th><th>Records</th></tr>",
     ]
     for name, x in report.experiments.items():
         H.append(f"<tr><td>{e(name)}</td><td>{e(x['title'])}</td><td>{x['n_records']}</td></tr>")
@@ -77,7 +82,7 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
     if report.table2:
         H.append(f"<p>Source: experiment {e(str(report.table2_source))}.</p>")
         H.append(
-            "<table><tr><th>System</th><th>σ_w</th><th>Matrix</th><th>OLS (ours)</th>"
+            TABLE + "<tr><th>System</th><th>σ_w</th><th>Matrix</th><th>OLS (ours)</th>"
             "<th>SVR (ours)</th><th class='pub'>OLS (paper, published)</th>"
             "<th class='pub'>\"Ours\" SVR (paper, published)</th><th>OLS ours/paper</th>"
             "<th>SVR ours/paper</th><th>SVR − OLS (ours)</th></tr>"
@@ -113,7 +118,7 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
     H.append("<h2>Specs</h2>")
     for name, x in report.experiments.items():
         H.append(f"<h3>{e(name)}</h3><pre>{e(spec_json(x['spec']))}</pre>")
-    H.append("<h2>Provenance</h2><table><tr><th>Key</th><th>Value</th></tr>")
+    H.append(f"<h2>Provenance</h2>{TABLE}<tr><th>Key</th><th>Value</th></tr>")
     for k, v in report.provenance.items():
         val = v if isinstance(v, str) else json.dumps(v)
         H.append(f"<tr><td>{e(str(k))}</td><td style='text-align:left'>{e(str(val))}</td></tr>")

@@ -1,5 +1,5 @@
 """Schedules: a cron expression in a time zone, a spec template, tags, a seed policy;
-create, read, update, delete, their runs, and the tick's due jobs.
+create, read, update, delete, run now, their runs, and the tick's due jobs.
 
 Validation is the same for REST and the web's forms: the cron expression (and how
 often it fires: SVROBS_MIN_SCHEDULE_INTERVAL_SECONDS), the time zone, the template
@@ -25,7 +25,7 @@ from svrobs_core.parsing import parse_spec
 
 from .auth import Caller
 from .errors import Conflict, Invalid, NotFound
-from .jobs import admit_spec, limits
+from .jobs import JobRequest, Submission, admit_spec, limits
 
 log = logging.getLogger(__name__)
 FIELDS = ("name", "cron", "timezone", "spec_template", "tags", "enabled", "seed_policy")
@@ -150,6 +150,23 @@ def update(
     s.updated_at = utcnow()
     _commit_or_conflict(session, s.name)
     return schedule_out(s)
+
+
+def run_now(submission: Submission, schedule_id: int) -> dict:
+    """A job of the schedule's template now, as a due run makes one (its seed policy at
+    this time, its name and tags, linked to the schedule) but outside the due times:
+    no run is recorded and the next due run is unchanged. -> the job's body."""
+    s = team_schedule(submission.session, submission.caller, schedule_id)
+    now = utcnow().replace(microsecond=0)
+    stamp = now.strftime("%Y-%m-%dT%H:%M:%SZ")
+    job = JobRequest(
+        spec=store.run_spec(s.spec_template, s.seed_policy, now),
+        name=f"{s.name} @ {stamp} (run now)",
+        tags=list(s.tags or []) + [f"schedule:{s.name}"],
+        schedule_id=s.id,
+    )
+    (out,) = submission.submit([job])
+    return out
 
 
 def delete(session: Session, caller: Caller, schedule_id: int) -> None:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from sqlalchemy.orm import Session
 
 from service.db import shares as store
-from service.db.models import Job, ShareLink
+from service.db.models import SHARE_LABEL_MAX, Job, ShareLink
 
 from .auth import MAX_ID, Caller
 from .errors import NotFound
@@ -20,6 +20,7 @@ from .jobs import team_job
 DEFAULT_DAYS = store.DEFAULT_DAYS
 MAX_DAYS = store.MAX_DAYS
 is_live = store.is_live
+LABEL_MAX = SHARE_LABEL_MAX
 
 
 def share_out(link: ShareLink, url: str | None = None) -> dict:
@@ -29,15 +30,19 @@ def share_out(link: ShareLink, url: str | None = None) -> dict:
         "created_at": link.created_at,
         "expires_at": link.expires_at,
         "revoked_at": link.revoked_at,
+        "label": link.label,
         "live": store.is_live(link),
         "url": url,
     }
 
 
-def create(session: Session, caller: Caller, job_id: int, days: float) -> tuple[ShareLink, str]:
-    """A link to the caller's job, valid ``days``, committed -> (link, token)."""
+def create(
+    session: Session, caller: Caller, job_id: int, days: float, label: str | None = None
+) -> tuple[ShareLink, str]:
+    """A link to the caller's job, valid ``days``, named ``label``, committed -> (link,
+    token)."""
     job = team_job(session, caller, job_id)
-    link, token = store.create_share(session, job, user_id=caller.user_id, days=days)
+    link, token = store.create_share(session, job, user_id=caller.user_id, days=days, label=label)
     session.commit()
     return link, token
 

@@ -1,5 +1,6 @@
-"""FastAPI dependencies of the REST API: the caller of a bearer key (or, for a read,
-the web session's), the query-text rules, a submission of the caller. The ones the
+"""FastAPI dependencies of the REST API: the caller of a bearer key (or the web
+session's: for a read, or a write that carries the session's CSRF token, as the API
+docs page sends it), the query-text rules, a submission of the caller. The ones the
 web shares (DB sessions, settings, the publisher) are :mod:`service.http.deps`."""
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from svrobs_lab.auth import MAX_ID, Caller, bearer_key
 from svrobs_lab.errors import Invalid
 from svrobs_lab.jobs import Submission
 from svrobs_lab.params import check_numbers
-from svrobs_lab.sessions import session_key
+from svrobs_lab.sessions import request_session, session_key, signer_of
 
 JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="a job id of the caller's team")]
 
@@ -47,10 +48,12 @@ def get_caller(
 ) -> Caller:
     """The bearer key's caller. A reading request (GET) without an Authorization
     header may instead carry the web UI's session cookie (svrobs_lab.sessions), so
-    that a signed-in browser opens reports and downloads; writes need the key."""
+    that a signed-in browser opens reports and downloads; a write only with the
+    session's CSRF token in ``X-CSRF-Token`` too (what the dashboard's forms need;
+    /docs sends it), so that no other site can make a signed-in browser write."""
     header = request.headers.get("authorization", "")
     scheme, _, token = header.partition(" ")
-    if not header and not is_write(request):
+    if not header and (not is_write(request) or _session_csrf_ok(request)):
         caller = caller_of(request, session, lambda s: session_key(request, s))
         if caller is None:
             raise _unauthorized("missing API key: send 'Authorization: Bearer <key>'")
@@ -62,6 +65,12 @@ def get_caller(
             raise _unauthorized("invalid, revoked or expired API key")
     rate_limit(request, caller)
     return caller
+
+
+def _session_csrf_ok(request: Request) -> bool:
+    signer = signer_of(request.app)
+    token = request.headers.get("x-csrf-token")
+    return signer is not None and signer.csrf_ok(request_session(request), token)
 
 
 async def clean_query_text(request: Request) -> None:

@@ -7,7 +7,7 @@ from __future__ import annotations
 from fastapi import Depends, FastAPI
 
 from service.api.deps import clean_query_text
-from service.api.docs import install_redoc
+from service.api.docs import install_redoc, install_swagger
 from service.api.errors import error_response
 from service.api.query_params import reject_unknown_query
 
@@ -64,6 +64,7 @@ def mount_api(app: FastAPI) -> None:
     from service.api.routes import health, jobs, presets, reports, results, schedules, shares
 
     install_redoc(app)
+    install_swagger(app)
     query_rules = [Depends(clean_query_text), Depends(reject_unknown_query)]
     app.include_router(health.router, dependencies=query_rules[1:])
     for module in (jobs, results, presets, reports, schedules, shares):

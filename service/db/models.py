@@ -33,6 +33,7 @@ JOB_STATUSES = ("queued", "running", "succeeded", "failed", "cancelled")
 JOB_ACTIVE = ("queued", "running")
 UNIT_STATUSES = ("pending", "running", "done", "failed", "cancelled")
 OLS_GAMMA_KEY = -1.0
+SHARE_LABEL_MAX = 200  # characters of a share link's label
 
 
 def utcnow() -> datetime:
@@ -342,3 +343,4 @@ class ShareLink(Base):
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     expires_at: Mapped[datetime]
     revoked_at: Mapped[datetime | None]
+    label: Mapped[str | None] = mapped_column(String(SHARE_LABEL_MAX))  # what it is for

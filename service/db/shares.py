@@ -28,9 +28,15 @@ def token_hash(token: str) -> str:
 
 
 def create_share(
-    session: Session, job: Job, *, user_id: int | None, days: float = DEFAULT_DAYS
+    session: Session,
+    job: Job,
+    *,
+    user_id: int | None,
+    days: float = DEFAULT_DAYS,
+    label: str | None = None,
 ) -> tuple[ShareLink, str]:
-    """A new link to ``job`` valid for ``days`` -> (row, token). Flushes, not committed."""
+    """A new link to ``job`` valid for ``days``, named ``label`` -> (row, token).
+    Flushes, not committed."""
     if not 0 < days <= MAX_DAYS:
         raise ValueError(f"must be more than 0 and at most {MAX_DAYS} days")
     token = secrets.token_urlsafe(32)
@@ -42,6 +48,7 @@ def create_share(
         user_id=user_id,
         created_at=now,
         expires_at=now + timedelta(days=days),
+        label=(label or "").strip() or None,
     )
     session.add(link)
     session.flush()

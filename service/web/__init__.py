@@ -13,6 +13,7 @@ an application error they let through is a page too (:mod:`service.web.errors`).
 from __future__ import annotations
 
 from fastapi import FastAPI
+from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 from service.web.render import STATIC, SignInRequired, WebError, sign_in_redirect, web_error_page
@@ -35,7 +36,13 @@ def mount_web(app: FastAPI) -> None:
     settings = app.state.settings
     app.state.web_signer = Signer(load_secret(settings), session_hours=settings.SESSION_HOURS)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    app.add_api_route("/favicon.ico", _favicon, include_in_schema=False)
     for module in (auth, jobs, submit, job, results, compare, schedules, share):
         app.include_router(module.router)
     app.add_exception_handler(WebError, web_error_page)
     app.add_exception_handler(SignInRequired, sign_in_redirect)
+
+
+def _favicon() -> FileResponse:
+    """The icon browsers ask for at /favicon.ico (pages link /static/favicon.svg)."""
+    return FileResponse(STATIC / "favicon.ico", media_type="image/x-icon")

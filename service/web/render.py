@@ -8,14 +8,17 @@ host, even by mistake.
 from __future__ import annotations
 
 import json
-from datetime import datetime
+from datetime import UTC, datetime
+from html import escape
 from pathlib import Path
 from urllib.parse import quote, urlsplit
+from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from fastapi import Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from jinja2 import Environment, FileSystemLoader, select_autoescape
 
+from service.web import fields
 from svrobs_core.report.columns import fmt_num
 
 HERE = Path(__file__).resolve().parent
@@ -39,6 +42,19 @@ def _when(value: datetime | None) -> str:
     return value.strftime("%Y-%m-%d %H:%M:%S UTC") if value else "–"
 
 
+def _in_zone(value: datetime | None, zone: str) -> str:
+    """A time in a schedule's own time zone, with UTC beside it."""
+    if value is None:
+        return "–"
+    try:
+        local = value.astimezone(ZoneInfo(zone))
+    except (ZoneInfoNotFoundError, ValueError):
+        return _when(value)
+    if local.utcoffset() == value.utcoffset():
+        return _when(value)
+    return f"{local:%Y-%m-%d %H:%M} {zone} ({value.astimezone(UTC):%H:%M} UTC)"
+
+
 def _seconds(value) -> str:
     if value is None:
         return "–"
@@ -55,8 +71,24 @@ env = Environment(
 env.filters["when"] = _when
 env.filters["num"] = lambda v, digits=4: fmt_num(v, digits)
 env.filters["seconds"] = _seconds
+env.filters["in_zone"] = _in_zone
 env.filters["pretty"] = lambda v: json.dumps(v, indent=2, sort_keys=False, allow_nan=False)
 env.filters["tojson_attr"] = lambda v: json.dumps(v, separators=(",", ":"))
+env.filters["label"] = fields.label
+env.filters["field_title"] = fields.title
+env.globals["glossary_json"] = json.dumps(fields.as_json(), separators=(",", ":"))
+env.globals["utcnow"] = lambda: datetime.now(UTC)
+
+
+def with_back_link(report_html: str, href: str, text: str) -> str:
+    """A stored report page with a link back to the dashboard at its top (the report
+    itself is built once and knows nothing of where it is shown)."""
+    link = f'<p><a href="{escape(href)}" id="back-link">{escape(text)}</a></p>'
+    head, sep, rest = report_html.partition("<body>")
+    return head + sep + link + rest if sep else link + report_html
+
+
+REPORT_HEADERS = {k: v for k, v in PAGE_HEADERS.items() if k != "Content-Security-Policy"}
 
 
 def render(request: Request, template: str, status: int = 200, **context) -> HTMLResponse:

@@ -196,14 +196,16 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
     stack.stop("worker1")  # the job waits, so the page sees it run and finish
     try:
         page.click("nav a[href='/jobs/new']")
-        page.select_option("#preset", "system:paper-unstable")  # htmx fills the textarea
+        page.select_option("#preset", "system:paper-unstable")  # the form, filled
         expect(page.locator("#spec")).to_have_value(re.compile("paper-unstable"))
         assert json.loads(page.input_value("#spec"))["systems"] == ["paper-unstable"]
-        page.fill("#spec", json.dumps({**SPEC, "reps": 0}))
+        assert page.input_value("#name") == "paper-unstable sweep"
+        page.fill("#spec", json.dumps({**SPEC, "reps": 0}))  # the fields follow the JSON
+        assert page.input_value("#f-reps") == "0" and page.is_checked("input[value=json]")
         page.fill("#name", "browser sweep")
         page.fill("#tags", "web, tiny")
         page.click("#submit-job")
-        assert page.locator("#spec-error").inner_text() == "reps: must be >= 1"
+        assert page.locator("#err-reps").inner_text() == "reps: must be >= 1"
         assert page.input_value("#name") == "browser sweep"  # the form keeps its values
         upload = {"name": "sweep.json", "mimeType": "application/json"}
         page.set_input_files("#spec_file", files=[{**upload, "buffer": json.dumps(SPEC).encode()}])
@@ -271,10 +273,16 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
             path = f"/api/v1/jobs/{job_id}/results?format={fmt}"
             href = page.get_attribute(f"a[href='{path}']", "href")
             assert page.request.get(href).text() == api.get(path[len("/api/v1") :]).text
-    page.click("#report-link")  # the API's report, opened with the session cookie
+    page.click("#report-link")  # the stored report, with a link back to the job's page
     page.wait_for_load_state()
-    assert page.url.endswith(f"/api/v1/jobs/{job_id}/report") and "<html" in page.content()
-    page.go_back()
+    assert page.url.endswith(f"/jobs/{job_id}/report") and "Table 2" in page.content()
+    with stack.client() as api:  # the API's report under the cookie: the same page
+        api_report = page.request.get(f"/api/v1/jobs/{job_id}/report")
+        assert (
+            api_report.status == 200 and api_report.text() == api.get(f"/jobs/{job_id}/report").text
+        )
+    page.click("#back-link")
+    page.wait_for_url(re.compile(rf"/jobs/{job_id}$"))
     page.click("form[action='/logout'] button")
     page.wait_for_url(re.compile(r"/login$"))
     page.goto(f"/jobs/{job_id}")
@@ -303,6 +311,13 @@ def test_cancel_then_delete_with_confirmation(browser, stack):
         sign_in(page, stack.key)
         page.goto(f"/jobs/{job_id}")
         assert page.locator("#delete-job").count() == 0  # a queued job is cancelled first
+        asked = []
+        page.once("dialog", lambda d: (asked.append(d.message), d.dismiss()))
+        page.click("#cancel-job")  # asked, and declined: nothing happens
+        assert asked and f"Cancel job {job_id}?" in asked[0]
+        with stack.client() as api:
+            assert api.get(f"/jobs/{job_id}").json()["status"] == "queued"
+        page.once("dialog", lambda d: d.accept())
         page.click("#cancel-job")
         page.wait_for_selector("#job-status:text('cancelled')")
         page.click("#delete-job")

@@ -93,13 +93,23 @@ def test_compare_two_jobs_plots_the_api_compare(browser, stack, two_jobs):
     page = browser.page(stack.base_url)
     sign_in(page, stack.key)
     page.click("nav a[href='/compare']")
-    page.select_option("#compare-jobs", [str(i) for i in two_jobs])
+    for i in two_jobs:  # a labelled checkbox per job
+        page.get_by_label(re.compile(rf"#{i} sweep seed \d")).check()
     page.select_option("#compare-metric", "rmse_B")
+    assert page.locator("#compare-metric option[value=N]").count() == 0  # not a metric
     page.click("#compare-form button[type=submit]")
     page.wait_for_selector("#compare-card[data-ready=yes]")
     plotted = page.evaluate(
-        """() => window.svrobsCompare.chart.data.datasets.map(d => ({
-          label: d.label, points: d.data.map(p => [p.x, p.y])}))"""
+        """() => window.svrobsCompare.chart.data.datasets.filter(d => d.svrobs.role === "mean")
+          .map(d => ({label: d.label, job: d.svrobs.job, estimator: d.svrobs.group.estimator,
+            gamma: d.svrobs.group.gamma, points: d.data.map(p => [p.x, p.y])}))"""
+    )
+    assert not page.is_checked("#compare-bands")  # six lines: no bands unless asked
+    page.check("#compare-bands")
+    assert "bands=1" in page.url
+    bands = page.evaluate(
+        """() => window.svrobsCompare.chart.data.datasets.filter(d => d.svrobs.role === "band")
+          .length"""
     )
     with stack.client() as api:
         cmp = api.get(
@@ -110,15 +120,22 @@ def test_compare_two_jobs_plots_the_api_compare(browser, stack, two_jobs):
                 "by": "N,estimator,gamma",
             },
         ).json()
-    want: dict[str, list] = {}
+    want: dict[tuple, list] = {}
     for r in cmp["rows"]:
-        label = f"job {r['job_id']} · estimator={r['estimator']} · gamma={r['gamma'] or '–'}"
-        want.setdefault(label, []).append([r["N"], r["mean"]])
-    assert {p["label"]: sorted(p["points"]) for p in plotted} == {
-        k: sorted(v) for k, v in want.items()
-    }
-    assert len(plotted) == 2 * 3  # two jobs x (ols, svr 0.01, svr 0.1)
+        want.setdefault((r["job_id"], r["estimator"], r["gamma"]), []).append([r["N"], r["mean"]])
+    got = {(p["job"], p["estimator"], p["gamma"]): p["points"] for p in plotted}
+    assert got == {k: sorted(v) for k, v in want.items()}
+    assert len(plotted) == 2 * 3 and bands == 2 * len(plotted)  # a ± std band per line
     assert page.locator("#compare-table tbody tr").count() == len(cmp["rows"])
+    # the legend says what differs: the jobs' seeds, the estimator and γ; nothing else
+    labels = {(p["job"], p["estimator"], p["gamma"]): p["label"] for p in plotted}
+    a, b = two_jobs
+    assert labels[(a, "ols", None)] == "seed=5 · ols"
+    assert labels[(b, "svr", 0.01)] == "seed=6 · svr γ=0.01"
+    heads = page.locator("#spec-diff-table thead th").all_inner_texts()
+    rows = [r.split("\t") for r in page.inner_text("#spec-diff-table tbody").split("\n")]
+    seeds = {f"job {a}": "5", f"job {b}": "6"}
+    assert rows == [["seed", *(seeds[h.split(" · ")[0]] for h in heads[1:])]]
 
 
 def test_create_a_schedule_from_a_job(browser, stack, two_jobs):
@@ -152,9 +169,24 @@ def test_share_link_opens_without_cookies_and_404s_once_revoked(browser, stack, 
     sign_in(page, stack.key)
     page.goto(f"/jobs/{job_id}")
     page.click("#share-link")
+    page.context.grant_permissions(["clipboard-read", "clipboard-write"])
+    page.fill("#share-label", "for the reviewers")
     page.click("#share-form button[type=submit]")
+    page.wait_for_selector("#share-created")
     url = page.input_value("#new-share-url")
     assert url.startswith(stack.base_url + "/s/") and stack.key not in url
+    assert page.url == f"{stack.base_url}/jobs/{job_id}/share"  # no token left in the URL
+    page.click("#copy-share-url")
+    page.wait_for_selector(".copy-status:text('Copied.')")
+    assert page.evaluate("navigator.clipboard.readText()") == url
+    row = page.locator("#share-links tr.just-made")
+    assert row.locator(".share-label").inner_text() == "for the reviewers"
+    page.reload()  # POST-redirect-GET: a reload posts nothing and shows no token
+    assert page.locator("#share-created").count() == 0
+    assert page.locator("#share-links tbody tr").count() == 1
+    with stack.client() as api:
+        listed = api.get(f"/jobs/{job_id}/shares").json()
+    assert [s["label"] for s in listed] == ["for the reviewers"]
 
     guest = browser.page(stack.base_url)  # a fresh context: no cookie, no key
     assert guest.context.cookies() == []
@@ -167,8 +199,12 @@ def test_share_link_opens_without_cookies_and_404s_once_revoked(browser, stack, 
     assert report.status == 200 and "Table 2" in report.text()
     assert guest.goto(f"/jobs/{job_id}").url.startswith(stack.base_url + "/login")
 
-    page.goto(f"/jobs/{job_id}/share")  # (not a reload: that would post the form again)
+    page.goto(f"/jobs/{job_id}/share")
     assert page.locator("#share-links button.danger").count() == 1
+    page.once("dialog", lambda d: d.dismiss())  # asked first; declined, nothing changes
+    page.click("#share-links button.danger")
+    assert guest.goto(url).status == 200
+    page.once("dialog", lambda d: d.accept())
     page.click("#share-links button.danger")
     page.wait_for_selector("#share-links td:text('revoked')")
     assert guest.goto(url).status == 404
@@ -185,3 +221,30 @@ def test_api_docs_load_nothing_from_another_host(browser, stack):
     page.goto("/redoc")
     page.wait_for_selector("redoc .api-info, [role=navigation], h1")
     assert "svrobs" in page.inner_text("body")
+
+
+def test_api_docs_try_it_out_under_the_web_session(browser, stack, two_jobs):
+    job_id = two_jobs[0]
+    page = browser.page(stack.base_url)
+    page.goto("/docs")
+    page.wait_for_selector(".swagger-ui .info .title")
+    assert page.locator("#docs-session").is_hidden()  # not signed in: the key, as before
+    sign_in(page, stack.key)
+    page.goto("/docs#/shares/create_share_api_v1_jobs__job_id__shares_post")
+    page.wait_for_selector("#docs-session:not([hidden])")
+    assert "Signed in to the dashboard" in page.inner_text("#docs-session")
+    op = page.locator("#operations-shares-create_share_api_v1_jobs__job_id__shares_post")
+    op.locator(".opblock-summary").first.wait_for()
+    if not op.locator(".try-out__btn").is_visible():
+        op.locator(".opblock-summary").first.click()
+    op.locator(".try-out__btn").click()
+    op.locator("input[placeholder='job_id']").fill(str(job_id))
+    op.locator("textarea.body-param__text").fill('{"days": 1, "label": "from the docs"}')
+    with page.expect_response(lambda r: r.url.endswith(f"/jobs/{job_id}/shares")) as made:
+        op.locator("button.execute").click()
+    assert made.value.status == 201  # a write, with no key: the session and its token
+    assert made.value.request.headers.get("x-csrf-token")
+    assert "authorization" not in made.value.request.headers
+    with stack.client() as api:
+        labels = [s["label"] for s in api.get(f"/jobs/{job_id}/shares").json()]
+    assert "from the docs" in labels

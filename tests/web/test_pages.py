@@ -10,7 +10,8 @@ import re
 
 import pytest
 
-from service.web import charts, figure_charts
+from service.web import charts, figure_charts, spec_form
+from svrobs_core import parse_spec
 from svrobs_core import report as rpt
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC
@@ -230,11 +231,11 @@ def _post_spec(web, token: str, spec_text: str, **fields):
         (
             {"systems": [{"name": "x", "A": [[1, 2]], "B": [[1]]}], "sigma_w": [1], "N": [10]},
             {},
-            "spec-error",
+            "err-systems",
             "<code>systems[0].A</code>: must be square, got 1x2",
         ),
-        ({**SMALL_SPEC, "N": "100"}, {}, "spec-error", "<code>N</code>: must be a non-empty list"),
-        ({**SMALL_SPEC, "bogus": 1}, {}, "spec-error", "<code>bogus</code>: unknown field"),
+        ({**SMALL_SPEC, "N": "100"}, {}, "err-N", "<code>N</code>: must be a non-empty list"),
+        ({**SMALL_SPEC, "bogus": 1}, {}, "form-errors", "<code>bogus</code></a>: unknown field"),
         (SMALL_SPEC, {"name": "n" * 201}, "name-error", "<code>name</code>:"),
         (SMALL_SPEC, {"tags": "ok, " + "t" * 101}, "tags-error", "<code>tags[1]</code>:"),
         ("{not json", {}, "spec-error", "<code>spec</code>: not valid JSON"),
@@ -249,14 +250,63 @@ def test_submit_errors_are_shown_beside_their_field(
     sign_in(web, acc.key)
     token = csrf_of(web.get("/jobs/new").text)
     text = spec if isinstance(spec, str) else json.dumps(spec)
-    r = _post_spec(web, token, text, **fields)
+    r = _post_spec(web, token, text, **fields)  # no "source": the JSON text, as before
     assert r.status_code == 422
-    error = re.search(rf'<p id="{where}" class="field-error" role="alert">(.*?)</p>', r.text, re.S)
-    assert error is not None and shown in error.group(1), r.text[-3000:]
+    error = re.search(rf'<(p|div)[^>]* id="{where}"[^>]*>(.*?)</(p|div)>', r.text, re.S)
+    assert error is not None and shown in error.group(2), r.text[-3000:]
+    summary = re.search(r'<div class="card error-summary" role="alert".*?</div>', r.text, re.S)
+    assert summary is not None and len(re.findall("<li>", summary.group(0))) == 1
     kept = re.search(r"<textarea[^>]*>(.*?)</textarea>", r.text, re.S).group(1)
     assert html.unescape(kept) == text  # kept for correcting it
     assert sent.published == []
     assert web.get(f"{API}/jobs", headers=acc.headers).json()["total"] == 0
+
+
+def _posted(spec: dict, **edits) -> dict:
+    """The spec form as the browser posts it ({name: [values]}), filled with ``spec``,
+    then ``edits`` ({input name: text}) typed in."""
+    form, lists = spec_form.as_posted(spec_form.values_of(spec))
+    form.update(edits)
+    return {**{k: [v] for k, v in form.items()}, **lists}
+
+
+def test_the_form_fields_submit_the_spec_they_show(web, sent, make_account):
+    acc = make_account()
+    sign_in(web, acc.key)
+    page = web.get("/jobs/new?preset=system:paper-unstable").text
+    token = csrf_of(page)
+    assert 'name="name" value="paper-unstable sweep"' in page  # a preset names and tags
+    assert 'name="tags" value="sweep, paper-unstable"' in page
+    assert 'name="r.N.stop" value="100"' in page and 'value="range" checked' in page
+    spec = {**SMALL_SPEC, "sigma_w": [0.5, 1.0], "stages": ["estimate", "bounds", "gain"]}
+    data = _posted(spec, **{"f.reps": "3"})
+    data.update(csrf_token=token, source="form", name="by fields")
+    r = web.post("/jobs/new", data=data, follow_redirects=False)
+    assert r.status_code == 303, r.text[-2000:]
+    job = web.get(f"{API}{r.headers['location']}", headers=acc.headers).json()
+    assert job["spec"] == parse_spec({**spec, "reps": 3}).to_dict() and job["name"] == "by fields"
+
+
+def test_the_form_shows_every_error_at_once_beside_its_field(web, sent, make_account):
+    acc = make_account()
+    sign_in(web, acc.key)
+    token = csrf_of(web.get("/jobs/new").text)
+    data = _posted(
+        SMALL_SPEC,
+        **{"f.sigma_w": "-1, 1", "f.reps": "ten", "f.gamma": "0", "f.delta": "2"},
+    )
+    r = web.post("/jobs/new", data={**data, "csrf_token": token, "source": "form"})
+    assert r.status_code == 422
+    beside = dict(re.findall(r'id="err-([\w.-]+)"><p><code>[^<]*</code>: ([^<]*)</p>', r.text))
+    assert beside == {
+        "sigma_w": "must be &gt;= 0",
+        "reps": "&#39;ten&#39; is not an integer",
+        "gamma": "must be &gt; 0",
+        "delta": "must be &lt; 1",
+    }
+    assert r.text.count("<li><a href=") == 4 and "4 errors to fix" in r.text
+    assert 'value="-1, 1"' in r.text and 'value="ten"' in r.text  # as typed
+    assert sent.published == []
 
 
 def test_submit_text_upload_and_preset_create_jobs_once(web, sent, make_account):
@@ -281,11 +331,16 @@ def test_submit_text_upload_and_preset_create_jobs_once(web, sent, make_account)
     uploaded = web.get(f"{API}{r.url.path}", headers=acc.headers).json()
     assert uploaded["spec"]["seed"] == 9
 
-    preset = web.get("/jobs/new/preset?preset=paper-section-6:E1:reduced").text
+    preset = web.get("/jobs/new?preset=paper-section-6:E1:reduced").text
     text = html.unescape(re.search(r"<textarea[^>]*>(.*?)</textarea>", preset, re.S).group(1))
-    r = _post_spec(web, token, text)
+    name = html.unescape(re.search(r'name="name" value="([^"]*)"', preset).group(1))
+    r = _post_spec(web, token, text, name=name, tags="paper-section-6, E1")
     job = web.get(f"{API}{r.headers['location']}", headers=acc.headers).json()
     from svrobs_core.paper import paper_specs
 
-    assert job["spec"]["sigma_w"] == paper_specs("reduced")["E1"]["sigma_w"]
+    assert job["spec"] == parse_spec(paper_specs("reduced")["E1"]).to_dict()
+    assert job["name"] == "paper-section-6 E1 (reduced)" and job["tags"] == [
+        "paper-section-6",
+        "E1",
+    ]
     assert web.post("/jobs/new", data={"spec": text}).status_code == 403  # no token

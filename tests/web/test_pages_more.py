@@ -85,6 +85,46 @@ def test_compare_page_table_is_the_api_compare(web, done):
     assert page.text.count('<tr><td><a href="/jobs/') == len(api["rows"])
 
 
+def test_runs_table_sorts_shows_a_metric_and_deletes_the_ticked(web, done, session):
+    acc, (a, b) = done
+    noisy = {**SMALL_SPEC, "sigma_w": [4.0], "seed": 3}  # a job whose RMSE differs
+    r = web.post(f"{API}/jobs", json=noisy, headers=acc.headers)
+    run_job_units(session, r.json()["id"])
+    means = {}
+    for jid in (a, b, r.json()["id"]):  # the oracle: the cells' own values at N = 40
+        items = web.get(
+            f"{API}/jobs/{jid}/results", params={"N": 40, "limit": 1000}, headers=acc.headers
+        ).json()["items"]
+        values = [r["rmse_A"] for r in items if r["rmse_A"] is not None]
+        means[jid] = sum(values) / len(values)
+    page = web.get("/jobs?metric=rmse_A&at=40&sort=-metric").text
+    shown = dict(
+        re.findall(r'<tr id="job-(\d+)".*?data-col="metric" data-value="([^"]*)"', page, re.S)
+    )
+    assert {int(k): float(v) for k, v in shown.items()} == pytest.approx(means, rel=1e-12)
+    order = [int(i) for i in re.findall(r'<tr id="job-(\d+)"', page)]
+    assert order == sorted(means, key=lambda j: (means[j], j), reverse=True)  # ties: newest
+    assert len(set(means.values())) == 2
+    assert 'aria-sort="descending"' in page and "RMSE Â at N = 40" in page
+    asc = web.get("/jobs?metric=rmse_A&at=40&sort=metric").text
+    asc_order = [int(i) for i in re.findall(r'<tr id="job-(\d+)"', asc)]
+    assert asc_order == sorted(means, key=lambda j: (means[j], -j))
+    by_name = web.get("/jobs?sort=name,-id").text  # two keys
+    assert "<sup>1</sup>" in by_name and "<sup>2</sup>" in by_name
+    assert web.get("/jobs?sort=owner").status_code == 422
+    assert web.get("/jobs?metric=N&at=10").status_code == 422  # a grid coordinate
+    confirm = web.get(f"/jobs/delete?jobs={a}&jobs={b}")
+    assert confirm.status_code == 200 and "Delete 2 jobs?" in confirm.text
+    token = csrf_of(confirm.text)
+    gone = web.post(
+        "/jobs/delete", data={"csrf_token": token, "jobs": [a, b]}, follow_redirects=False
+    )
+    assert gone.headers["location"] == f"/jobs?deleted={a},{b}"
+    assert f"Jobs {a}, {b} deleted." in web.get(gone.headers["location"]).text
+    assert web.get(f"{API}/jobs/{a}", headers=acc.headers).status_code == 404
+    assert web.post("/jobs/delete", data={"jobs": [a]}).status_code == 403  # no CSRF
+
+
 def test_schedule_from_a_job(web, done, session):
     acc, (jid, _) = done
     form = web.get(f"/schedules/new?job={jid}")
@@ -118,17 +158,65 @@ def test_schedule_from_a_job(web, done, session):
     assert web.get(f"{API}/schedules/{s['id']}", headers=acc.headers).json()["enabled"] is False
 
 
+def test_schedule_form_errors_at_once_edit_and_run_now(web, done):
+    acc, (jid, _) = done
+    token = csrf_of(web.get(f"/schedules/new?job={jid}").text)
+    data = {"csrf_token": token, "job": jid, "name": "", "cron": "every night"}
+    bad = web.post("/schedules/new", data={**data, "timezone": "Mars/Olympus", "tags": "x" * 101})
+    assert bad.status_code == 422
+    errors = dict(re.findall(r'id="err-(\w+)">\w+: ([^<]*)</p>', bad.text))
+    assert set(errors) == {"name", "cron", "timezone", "tags"}, errors  # all four at once
+    assert "5 fields" in errors["cron"] and "Mars/Olympus" in html.unescape(errors["timezone"])
+    good = {**data, "name": "nightly", "cron": "0 3 * * *", "timezone": "Europe/Paris"}
+    made = web.post("/schedules/new", data=good, follow_redirects=False)
+    assert made.status_code == 303, made.text
+    sid = int(made.headers["location"].rsplit("/", 1)[1])
+    page = web.get(f"/schedules/{sid}").text
+    assert "Europe/Paris (" in page and " UTC)" in page  # the next run in its own zone
+    edit = {"csrf_token": token, "name": "nightly", "cron": "@hourly", "timezone": "Nope"}
+    refused = web.post(f"/schedules/{sid}/edit", data={**edit, "seed_policy": "often"})
+    assert refused.status_code == 422
+    assert set(re.findall(r'id="err-(\w+)"', refused.text)) == {"timezone", "seed_policy"}
+    ok = {**edit, "timezone": "UTC", "seed_policy": "due-time", "tags": "a, b", "name": "hourly"}
+    saved = web.post(f"/schedules/{sid}/edit", data=ok, follow_redirects=False)
+    assert saved.status_code == 303
+    s = web.get(f"{API}/schedules/{sid}", headers=acc.headers).json()
+    assert (s["name"], s["cron"], s["timezone"], s["seed_policy"], s["tags"]) == (
+        "hourly",
+        "@hourly",
+        "UTC",
+        "due-time",
+        ["a", "b"],
+    )
+    ran = web.post(f"/schedules/{sid}/run", data={"csrf_token": token}, follow_redirects=False)
+    assert ran.status_code == 303
+    job = web.get(f"{API}{ran.headers['location']}", headers=acc.headers).json()
+    assert job["schedule_id"] == sid and "schedule:hourly" in job["tags"]
+    assert job["name"].startswith("hourly @ ") and job["name"].endswith("(run now)")
+    assert {k: v for k, v in job["spec"].items() if k != "seed"} == {
+        k: v for k, v in s["spec_template"].items() if k != "seed"
+    }  # due-time: only the seed differs
+    assert web.get(f"{API}/schedules/{sid}/runs", headers=acc.headers).json() == []
+    assert web.post(f"/schedules/{sid}/run", data={}).status_code == 403  # no CSRF
+
+
 def test_share_link_lifecycle(web, done, session, make_account):
     acc, (jid, other_job) = done
     page = web.get(f"/jobs/{jid}/share")
     token = csrf_of(page.text)
-    made = web.post(f"/jobs/{jid}/share", data={"csrf_token": token, "days": "7"})
-    assert made.status_code == 201
-    url = re.search(r'id="new-share-url" value="([^"]+)"', made.text).group(1)
-    path = url.split("testserver", 1)[1]
-    secret = path.rsplit("/", 1)[1]
+    form = {"csrf_token": token, "days": "7", "label": " for the reviewers "}
+    made = web.post(f"/jobs/{jid}/share", data=form, follow_redirects=False)
+    assert made.status_code == 303  # POST-redirect-GET, the token in the fragment only
+    where, _, fragment = made.headers["location"].partition("#new=")
+    secret = fragment
     rows = session.scalars(select(ShareLink).where(ShareLink.job_id == jid)).all()
+    assert where == f"/jobs/{jid}/share?created={rows[0].id}"
     assert [r.token_hash for r in rows] == [token_hash(secret)]  # stored hashed only
+    assert rows[0].label == "for the reviewers"
+    shown = web.get(where).text
+    assert 'id="share-created" data-share="%d"' % rows[0].id in shown
+    assert "“for the reviewers”" in shown and secret not in shown
+    path = f"/s/{secret}"
     assert secret not in json.dumps([r.token_hash for r in rows])
     anon = TestClient(web.app)  # no cookie, no key
     opened = anon.get(path)
@@ -173,4 +261,7 @@ def test_share_link_lifecycle(web, done, session, make_account):
     assert anon.get(late).status_code == 404
     listed = web.get(f"{API}/jobs/{jid}/shares", headers=acc.headers).json()
     assert [s["live"] for s in listed] == [False, False] and all(s["url"] is None for s in listed)
+    assert [s["label"] for s in listed] == [None, "for the reviewers"]
+    named = web.post(f"{API}/jobs/{jid}/shares", json={"label": "x" * 201}, headers=acc.headers)
+    assert named.status_code == 422 and named.json()["field"] == "label"
     assert web.delete(f"{API}/shares/{listed[0]['id']}", headers=other.headers).status_code == 404

@@ -8,6 +8,7 @@ import time
 from datetime import timedelta
 
 import pytest
+from fastapi.testclient import TestClient
 
 from service.db import accounts
 from service.db.models import utcnow
@@ -107,11 +108,28 @@ def test_revoking_or_expiring_the_key_ends_its_sessions(web, make_account, sessi
     assert web.get("/api/v1/jobs").status_code == 401
 
 
-def test_cookie_never_authorises_an_api_write(web, make_account):
+def test_cookie_authorises_an_api_write_only_with_the_sessions_csrf_token(web, make_account):
     acc = make_account()
+    assert web.get("/session").json() == {"signed_in": False}
     sign_in(web, acc.key)
-    r = web.post("/api/v1/jobs", json={"systems": ["paper-stable"], "sigma_w": [1], "N": [10]})
-    assert r.status_code == 401
+    spec = {"systems": ["paper-stable"], "sigma_w": [1], "N": [10]}
+    assert web.post("/api/v1/jobs", json=spec).status_code == 401  # the cookie alone
+    forged = web.post("/api/v1/jobs", json=spec, headers={"X-CSRF-Token": "x" * 43})
+    assert forged.status_code == 401
+    other = TestClient(web.app)  # another browser's session and token
+    sign_in(other, make_account().key)
+    theirs = other.get("/session").json()["csrf"]
+    assert web.post("/api/v1/jobs", json=spec, headers={"X-CSRF-Token": theirs}).status_code == 401
+    mine = web.get("/session").json()
+    assert mine["signed_in"] and mine["email"] == acc.user.email
+    assert mine["csrf"] == csrf_of(web.get("/jobs").text)  # the pages' token
+    r = web.post("/api/v1/jobs", json=spec, headers={"X-CSRF-Token": mine["csrf"]})
+    assert r.status_code == 202 and r.json()["owner"] == acc.user.email
+    web.post("/logout", data={"csrf_token": mine["csrf"]})
+    assert (
+        web.post("/api/v1/jobs", json=spec, headers={"X-CSRF-Token": mine["csrf"]}).status_code
+        == 401
+    )
 
 
 def test_state_changing_posts_need_this_sessions_csrf_token(web, make_account):

@@ -23,6 +23,9 @@ class ShareCreate(BaseModel):
     days: float = Field(
         shares.DEFAULT_DAYS, gt=0, le=shares.MAX_DAYS, description="valid for this many days"
     )
+    label: str | None = Field(
+        None, max_length=shares.LABEL_MAX, description="what the link is for (shown in lists)"
+    )
 
 
 class ShareOut(BaseModel):
@@ -31,6 +34,7 @@ class ShareOut(BaseModel):
     created_at: datetime
     expires_at: datetime
     revoked_at: datetime | None
+    label: str | None = None
     live: bool
     url: str | None = Field(None, description="the link (only in the answer that creates it)")
 
@@ -46,7 +50,8 @@ def create_share(
     """A read-only link to the job's report and charts, opened without a key; it expires
     after `days` (default 7) and can be revoked. The token is shown once (only its hash
     is stored)."""
-    link, token = shares.create(session, caller, job_id, (body or ShareCreate()).days)
+    body = body or ShareCreate()
+    link, token = shares.create(session, caller, job_id, body.days, body.label)
     return shares.share_out(link, share_url(request, token))
 
 

@@ -1,17 +1,18 @@
 """``/``, ``/login`` and ``/logout``: signing in with an API key (checked by the same
-rule as the API, :func:`svrobs_lab.auth.bearer_key`) into a signed session cookie."""
+rule as the API, :func:`svrobs_lab.auth.bearer_key`) into a signed session cookie;
+``/session``: who is signed in and the session's CSRF token (for the API docs page)."""
 
 from __future__ import annotations
 
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Form, Request
-from fastapi.responses import RedirectResponse
+from fastapi.responses import JSONResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
 from service.http.deps import caller_of, get_db
 from service.web.deps import CSRF, get_viewer
-from service.web.render import SignInRequired, render, safe_next
+from service.web.render import PAGE_HEADERS, SignInRequired, render, safe_next
 from svrobs_lab.auth import bearer_key
 from svrobs_lab.sessions import clear_cookie, request_session, set_cookie, signer_of
 
@@ -24,6 +25,18 @@ def _signed_in(request: Request, db: Session) -> bool:
     except SignInRequired:
         return False
     return True
+
+
+@router.get("/session")
+def session_info(request: Request, db: Annotated[Session, Depends(get_db)]):
+    """``{signed_in, email, csrf}`` of the browser's session (``signed_in: false``
+    without one). Same-origin pages read it: /docs sends the token with its writes."""
+    try:
+        viewer = get_viewer(request, db)
+    except SignInRequired:
+        return JSONResponse({"signed_in": False}, headers=PAGE_HEADERS)
+    body = {"signed_in": True, "email": viewer.email, "csrf": viewer.csrf}
+    return JSONResponse(body, headers=PAGE_HEADERS)
 
 
 @router.get("/")

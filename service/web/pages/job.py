@@ -7,17 +7,18 @@ import json
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query, Request
-from fastapi.responses import JSONResponse, RedirectResponse
+from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
 from service.db import job_queries as queries
 from service.db.jobs import cancel_job
 from service.db.models import JOB_ACTIVE, Job
-from service.http.deps import get_db
+from service.http.deps import SessionFactoryDep, get_db
 from service.web import charts, figure_charts, job_tables
 from service.web.deps import CSRF, CurrentViewer
-from service.web.render import PAGE_HEADERS, WebError, render
+from service.web.render import PAGE_HEADERS, REPORT_HEADERS, WebError, render, with_back_link
 from svrobs_lab import jobs
+from svrobs_lab.reports import caller_job_report
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
@@ -114,6 +115,14 @@ def chart_data(
     if metrics:
         data["metrics"] = charts.stored_metrics(db, job.id)
     return JSONResponse(data, headers=PAGE_HEADERS)
+
+
+@router.get("/jobs/{job_id:int}/report")
+def report_page(db: DB, viewer: CurrentViewer, job_id: int, session_factory: SessionFactoryDep):
+    """The job's report (as ``GET /api/v1/jobs/{id}/report``) with a link back to its page."""
+    html = caller_job_report(db, viewer.caller, job_id, session_factory)
+    back = with_back_link(html, f"/jobs/{job_id}", f"← Job {job_id} on the dashboard")
+    return HTMLResponse(back, headers=REPORT_HEADERS)
 
 
 @router.post("/jobs/{job_id:int}/cancel", dependencies=[CSRF])

@@ -1,20 +1,22 @@
 """``/schedules``: the team's schedules; create one from an existing job's spec (cron,
-time zone, seed policy), enable or disable it, and its past runs with links to their
-jobs. Every action goes through :mod:`svrobs_lab.schedules`, as REST does, so the
-page validates exactly as REST does."""
+time zone, seed policy), edit it, enable or disable it, run it now, and its past runs
+with links to their jobs. Every action goes through :mod:`svrobs_lab.schedules`, as
+REST does, so the page validates exactly as REST does; the form checks each field
+first, so that every error is shown at once (a bad time zone does not hide a bad
+cron)."""
 
 from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Form, Query, Request
+from fastapi import APIRouter, BackgroundTasks, Depends, Form, Query, Request
 from fastapi.responses import RedirectResponse
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
 from service.db import job_queries as queries
-from service.db.schedules import SEED_POLICIES
-from service.http.deps import get_db
+from service.db.schedules import SEED_POLICIES, check_interval, validate_cron, validate_timezone
+from service.http.deps import get_db, submission_of
 from service.web.deps import CSRF, CurrentViewer
 from service.web.render import WebError, render
 from svrobs_core.errors import SpecError
@@ -42,6 +44,52 @@ def _schedule(db: Session, viewer, schedule_id: int) -> dict:
 def schedules_page(request: Request, db: DB, viewer: CurrentViewer):
     rows = lab.list_schedules(db, viewer.caller)
     return render(request, "schedules.html", viewer=viewer, nav="schedules", schedules=rows)
+
+
+def _tags(text: str) -> list[str]:
+    return [t.strip() for t in text.split(",") if t.strip()]
+
+
+def field_errors(request: Request, values: dict) -> dict[str, str]:
+    """Every error of the schedule form's fields (name, cron, timezone, seed_policy,
+    tags), each checked on its own: ``{field: message}``."""
+    errors: dict[str, str] = {}
+    try:
+        ScheduleUpdate(
+            name=values["name"],
+            cron=values["cron"],
+            timezone=values["timezone"],
+            seed_policy=values["seed_policy"],
+            tags=_tags(values["tags"]),
+        )
+    except ValidationError as exc:
+        for e in exc.errors():
+            errors.setdefault(str(e["loc"][0]) if e.get("loc") else "form", e["msg"])
+    for field, check in (("cron", validate_cron), ("timezone", validate_timezone)):
+        if field not in errors:
+            try:
+                check(values[field])
+            except SpecError as exc:
+                errors[field] = exc.message
+    if "cron" not in errors and "timezone" not in errors:
+        try:
+            check_interval(
+                validate_cron(values["cron"]),
+                values["timezone"],
+                _settings(request).MIN_SCHEDULE_INTERVAL_SECONDS,
+            )
+        except SpecError as exc:
+            errors["cron"] = exc.message
+    return errors
+
+
+def _lab_error(exc: Exception) -> dict[str, str]:
+    """A refusal of svrobs_lab.schedules as ``{field: message}`` (a spec template's
+    error under spec_template)."""
+    if isinstance(exc, SpecError):
+        field = (exc.field or "form").split(".")[0]
+        return {field: exc.message}
+    return {getattr(exc, "field", None) or "form": exc.message}
 
 
 def _new_form(request, db, viewer, *, status=200, errors=None, **values):
@@ -94,34 +142,90 @@ def create_schedule(
     source = queries.team_job(db, viewer.team_id, job)
     if source is None:
         raise WebError(404, f"Job {job} not found.")
-    try:
-        body = ScheduleCreate(
-            name=name,
-            cron=cron,
-            timezone=timezone,
-            seed_policy=seed_policy,
-            spec_template=source.spec,
-            tags=[t.strip() for t in tags.split(",") if t.strip()],
-        )
-        made = lab.create(db, viewer.caller, _settings(request), body.model_dump())
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        field = str(first["loc"][0]) if first.get("loc") else "form"
-        return _new_form(request, db, viewer, status=422, errors={field: first["msg"]}, **values)
-    except SpecError as exc:
-        field = (exc.field or "form").split(".")[0]
-        return _new_form(request, db, viewer, status=422, errors={field: exc.message}, **values)
-    except LabError as exc:  # the form shows it beside its field
-        field = exc.field or "form"
-        return _new_form(request, db, viewer, status=422, errors={field: exc.message}, **values)
+    errors = field_errors(request, values)
+    if not errors:
+        try:
+            body = ScheduleCreate(
+                name=name,
+                cron=cron,
+                timezone=timezone,
+                seed_policy=seed_policy,
+                spec_template=source.spec,
+                tags=_tags(tags),
+            )
+            made = lab.create(db, viewer.caller, _settings(request), body.model_dump())
+        except (SpecError, LabError) as exc:  # the form shows it beside its field
+            errors = _lab_error(exc)
+    if errors:
+        return _new_form(request, db, viewer, status=422, errors=errors, **values)
     return RedirectResponse(f"/schedules/{made['id']}", status_code=303)
+
+
+def _schedule_page(request, db, viewer, schedule_id: int, *, status=200, errors=None, form=None):
+    s = _schedule(db, viewer, schedule_id)
+    runs = lab.runs(db, viewer.caller, schedule_id)
+    fields = {k: s[k] for k in ("name", "cron", "timezone", "seed_policy")}
+    return render(
+        request,
+        "schedule.html",
+        status=status,
+        viewer=viewer,
+        nav="schedules",
+        schedule=s,
+        runs=runs,
+        errors=errors or {},
+        form=form or {**fields, "tags": ", ".join(s["tags"])},
+    )
 
 
 @router.get("/schedules/{schedule_id:int}")
 def schedule_page(request: Request, db: DB, viewer: CurrentViewer, schedule_id: int):
-    s = _schedule(db, viewer, schedule_id)
-    runs = lab.runs(db, viewer.caller, schedule_id)
-    return render(request, "schedule.html", viewer=viewer, nav="schedules", schedule=s, runs=runs)
+    return _schedule_page(request, db, viewer, schedule_id)
+
+
+@router.post("/schedules/{schedule_id:int}/edit", dependencies=[CSRF])
+def edit_schedule(
+    request: Request,
+    db: DB,
+    viewer: CurrentViewer,
+    schedule_id: int,
+    name: Text = "",
+    cron: Text = "",
+    timezone: Text = "UTC",
+    seed_policy: Text = "fixed",
+    tags: Text = "",
+):
+    """Change the name, cron, time zone, seed policy and tags (every error at once)."""
+    _schedule(db, viewer, schedule_id)
+    form = dict(name=name, cron=cron, timezone=timezone, seed_policy=seed_policy, tags=tags)
+    errors = field_errors(request, form)
+    if not errors:
+        data = {**{k: v for k, v in form.items() if k != "tags"}, "tags": _tags(tags)}
+        try:
+            lab.update(db, viewer.caller, _settings(request), schedule_id, data)
+        except (SpecError, LabError) as exc:
+            errors = _lab_error(exc)
+    if errors:
+        return _schedule_page(
+            request, db, viewer, schedule_id, status=422, errors=errors, form=form
+        )
+    return RedirectResponse(f"/schedules/{schedule_id}?saved=1", status_code=303)
+
+
+@router.post("/schedules/{schedule_id:int}/run", dependencies=[CSRF])
+def run_now(
+    request: Request, db: DB, viewer: CurrentViewer, schedule_id: int, background: BackgroundTasks
+):
+    """A job of the schedule's spec now (its seed policy at this time), tagged and
+    linked to the schedule like its due runs; the due runs are not changed."""
+    _schedule(db, viewer, schedule_id)
+    submission = submission_of(request, db, viewer.caller, background)
+    try:
+        job = lab.run_now(submission, schedule_id)
+    except (SpecError, LabError) as exc:
+        message = "; ".join(f"{k}: {v}" for k, v in _lab_error(exc).items())
+        raise WebError(422, f"The schedule's spec was refused: {message}") from None
+    return RedirectResponse(f"/jobs/{job['id']}", status_code=303)
 
 
 @router.post("/schedules/{schedule_id:int}/enabled", dependencies=[CSRF])

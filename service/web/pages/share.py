@@ -17,7 +17,7 @@ from service.http.deps import SessionFactoryDep, get_db
 from service.web import charts, figure_charts
 from service.web.deps import CSRF, CurrentViewer
 from service.web.pages import job as job_pages
-from service.web.render import PAGE_HEADERS, render
+from service.web.render import REPORT_HEADERS, render, with_back_link
 from svrobs_lab import shares
 from svrobs_lab.reports import caller_job_report
 
@@ -26,7 +26,11 @@ DB = Annotated[Session, Depends(get_db)]
 Token = Annotated[str, Query(max_length=200)]
 
 
-def _links_page(request, db, viewer, job: Job, *, new_url: str | None = None, status=200):
+def _links_page(request, db, viewer, job: Job, *, created: int | None = None, status=200):
+    """The job's links; ``created``: the id of the link just made (its URL is in the
+    page's fragment, ``#new=<token>``, put there by the redirect and read by the
+    page's script: it reaches neither the server's logs nor a reload)."""
+    links = shares.job_links(db, viewer.caller, job.id)
     return render(
         request,
         "share.html",
@@ -34,31 +38,39 @@ def _links_page(request, db, viewer, job: Job, *, new_url: str | None = None, st
         viewer=viewer,
         nav="jobs",
         job=job,
-        links=shares.job_links(db, viewer.caller, job.id),
+        links=links,
         live=shares.is_live,
-        new_url=new_url,
+        created=next((link for link in links if link.id == created), None),
+        label_max=shares.LABEL_MAX,
         default_days=shares.DEFAULT_DAYS,
         max_days=shares.MAX_DAYS,
     )
 
 
 @router.get("/jobs/{job_id:int}/share")
-def share_page(request: Request, db: DB, viewer: CurrentViewer, job_id: int):
-    return _links_page(request, db, viewer, job_pages._job(db, viewer, job_id))
-
-
-@router.post("/jobs/{job_id:int}/share", dependencies=[CSRF])
-def make_link(
+def share_page(
     request: Request,
     db: DB,
     viewer: CurrentViewer,
     job_id: int,
-    days: Annotated[float, Form(gt=0, le=shares.MAX_DAYS)] = shares.DEFAULT_DAYS,
+    created: Annotated[int | None, Query(ge=1)] = None,
 ):
     job = job_pages._job(db, viewer, job_id)
-    _, token = shares.create(db, viewer.caller, job.id, days)
-    url = str(request.base_url).rstrip("/") + f"/s/{token}"
-    return _links_page(request, db, viewer, job, new_url=url, status=201)
+    return _links_page(request, db, viewer, job, created=created)
+
+
+@router.post("/jobs/{job_id:int}/share", dependencies=[CSRF])
+def make_link(
+    db: DB,
+    viewer: CurrentViewer,
+    job_id: int,
+    days: Annotated[float, Form(gt=0, le=shares.MAX_DAYS)] = shares.DEFAULT_DAYS,
+    label: Annotated[str, Form(max_length=shares.LABEL_MAX)] = "",
+):
+    """Make a link, then redirect (POST-redirect-GET: a reload makes no second link)."""
+    job = job_pages._job(db, viewer, job_id)
+    link, token = shares.create(db, viewer.caller, job.id, days, label)
+    return RedirectResponse(f"/jobs/{job.id}/share?created={link.id}#new={token}", 303)
 
 
 @router.post("/shares/{share_id:int}/revoke", dependencies=[CSRF])
@@ -104,8 +116,6 @@ def shared_chart_data(
 @router.get("/s/{token}/report")
 def shared_report(db: DB, token: str, session_factory: SessionFactoryDep):
     link, job = shares.open_link(db, token)
-    response = HTMLResponse(caller_job_report(db, shares.reader(link), job.id, session_factory))
-    response.headers.update(
-        {k: v for k, v in PAGE_HEADERS.items() if k != "Content-Security-Policy"}
-    )
-    return response
+    report = caller_job_report(db, shares.reader(link), job.id, session_factory)
+    back = with_back_link(report, f"/s/{token}", f"← Job {job.id} (shared)")
+    return HTMLResponse(back, headers={**REPORT_HEADERS, "X-Robots-Tag": "noindex"})

@@ -2,7 +2,9 @@
 
 The body is checked exactly as ``POST /api/v1/jobs`` checks it (its ``JobSubmit``
 model, then the core's ``parse_spec``) and created by the API's one submit-and-
-publish step (``svrobs_lab.jobs.Submission``, under the viewer's caller); each error is shown beside its field, naming the spec path
+publish step (``svrobs_lab.jobs.Submission``, under the viewer's caller). The
+spec comes from the form's fields (service.web.spec_form) or from its JSON view;
+every error is shown at once, each beside its field and naming the spec path
 (``systems[0].A``). A hidden Idempotency-Key per form makes a double submit one job.
 """
 
@@ -10,19 +12,21 @@ from __future__ import annotations
 
 import json
 import secrets
-from typing import Annotated
+from typing import Annotated, NamedTuple
 
 from fastapi import APIRouter, BackgroundTasks, Depends, File, Form, Request, UploadFile
 from fastapi.responses import RedirectResponse
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
+from starlette.datastructures import FormData
 
 from service.http.deps import get_db, submission_of
+from service.web import spec_form
 from service.web.deps import CSRF, CurrentViewer
 from service.web.render import render
-from svrobs_core import parse_spec
 from svrobs_core.errors import SpecError
 from svrobs_core.paper import PRESET_NAME, paper_specs
+from svrobs_core.spec_fields import spec_errors
 from svrobs_core.systems import PRESETS
 from svrobs_lab.errors import IdempotencyConflict, QuotaExceeded
 from svrobs_lab.jobs import JobRequest
@@ -31,6 +35,13 @@ from svrobs_lab.schemas import SPEC_FIELD_NAMES, JobSubmit
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
 FORM_FIELDS = ("name", "tags")  # shown beside their own inputs; anything else is the spec's
+
+
+class Preset(NamedTuple):
+    label: str
+    spec: dict
+    name: str
+    tags: tuple[str, ...]
 
 
 def _starter(system: str) -> dict:
@@ -46,13 +57,20 @@ def _starter(system: str) -> dict:
     }
 
 
-def presets() -> dict[str, tuple[str, dict]]:
-    """``id -> (label, spec)``: a starter sweep per system preset (GET /api/v1/presets)
-    and the paper's Section 6 experiments (POST /api/v1/presets/paper-section-6/run)."""
-    out = {f"system:{n}": (f"{n}: a sweep of N, σ_w and γ", _starter(n)) for n in sorted(PRESETS)}
+def presets() -> dict[str, Preset]:
+    """``id -> Preset``: a starter sweep per system preset (GET /api/v1/presets) and the
+    paper's Section 6 experiments, named and tagged as POST
+    /api/v1/presets/paper-section-6/run names and tags them."""
+    out = {
+        f"system:{n}": Preset(
+            f"{n}: a sweep of N, σ_w and γ", _starter(n), f"{n} sweep", ("sweep", n)
+        )
+        for n in sorted(PRESETS)
+    }
     for scale in ("reduced", "full"):
         for exp, spec in sorted(paper_specs(scale).items()):
-            out[f"{PRESET_NAME}:{exp}:{scale}"] = (f"{PRESET_NAME} {exp} ({scale})", spec)
+            label = f"{PRESET_NAME} {exp} ({scale})"
+            out[f"{PRESET_NAME}:{exp}:{scale}"] = Preset(label, spec, label, (PRESET_NAME, exp))
     return out
 
 
@@ -63,35 +81,57 @@ def _field(loc) -> str:
     return out or "spec"
 
 
-def _form(request, viewer, *, status=200, errors=None, **values):
+def _form(
+    request, viewer, *, status=200, errors=None, spec_errors=None, spec=None, shown=None, **values
+):
+    """The form: its fields show ``spec`` (else the defaults), each error of
+    ``spec_errors`` ({path: message}) beside its field and all of them in a list at the
+    top; ``errors``: those of the name, tags, file, JSON text and the form as a whole;
+    ``shown``: the fields' values as posted (instead of ``spec``'s)."""
     if not values.get("idempotency_key"):
         values["idempotency_key"] = secrets.token_urlsafe(16)
-    catalogue = presets()
+    errors, spec_errors = errors or {}, spec_errors or {}
+    listed = [(spec_form.field_of(p), p, m) for p, m in spec_errors.items()]
+    listed += [(k, path or k, m) for k, (path, m) in errors.items() if k != "form"]
     return render(
         request,
         "submit.html",
         status=status,
         viewer=viewer,
         nav="submit",
-        presets=[(k, label) for k, (label, _) in catalogue.items()],
-        errors=errors or {},
-        form={"spec": "", "name": "", "tags": "", "preset": "", **values},
+        presets=[(k, p.label) for k, p in presets().items()],
+        errors=errors,
+        errors_list=listed,
+        field_errors=spec_form.errors_by_field(spec_errors),
+        groups=spec_form.groups(),
+        values=shown or spec_form.values_of(spec or {}),
+        form={
+            "spec": values.pop("spec_text", ""),
+            **{"name": "", "tags": "", "preset": "", "source": "form", **values},
+        },
     )
+
+
+def _json(spec: dict) -> str:
+    return json.dumps(spec, indent=2)
 
 
 @router.get("/jobs/new")
 def submit_form(request: Request, viewer: CurrentViewer, preset: str = ""):
-    spec = presets().get(preset)
-    text = json.dumps(spec[1], indent=2) if spec else ""
-    return _form(request, viewer, spec=text, preset=preset if spec else "")
-
-
-@router.get("/jobs/new/preset")
-def preset_spec(request: Request, viewer: CurrentViewer, preset: str = ""):
-    """The spec textarea filled with a preset (htmx swaps it in)."""
-    spec = presets().get(preset)
-    text = json.dumps(spec[1], indent=2) if spec else ""
-    return render(request, "_spec_field.html", form={"spec": text}, errors={})
+    """The form, empty (the defaults) or filled by a preset: every field, name and tags."""
+    chosen = presets().get(preset)
+    spec = spec_form.complete(chosen.spec if chosen else {})
+    if chosen is None:
+        return _form(request, viewer, spec=spec, spec_text=_json(spec))
+    return _form(
+        request,
+        viewer,
+        spec=spec,
+        spec_text=_json(spec),
+        preset=preset,
+        name=chosen.name,
+        tags=", ".join(chosen.tags),
+    )
 
 
 def _read_spec(text: str, upload: UploadFile | None) -> tuple[str, dict | None, dict]:
@@ -113,21 +153,19 @@ def _read_spec(text: str, upload: UploadFile | None) -> tuple[str, dict | None, 
     return text, body, {}
 
 
-def _body_error(exc: ValidationError, body: dict) -> dict:
-    """The first error of the request model as ``{input: (field, message)}``. A spec
-    value of the wrong type is reported by the core's parser, in its plain words
-    (``N: must be a non-empty list``), not by the model's union internals."""
-    first = exc.errors()[0]
-    loc = first["loc"]
-    if first["type"] == "extra_forbidden":
-        return {"spec": (_field(loc), "unknown field")}
-    if loc and loc[0] in FORM_FIELDS:
-        return {loc[0]: (_field(loc), first["msg"])}
-    try:
-        parse_spec({k: v for k, v in body.items() if k not in FORM_FIELDS})
-    except SpecError as err:
-        return {"spec": (err.field or "spec", err.message)}
-    return {"spec": (str(loc[0]), first["msg"])}
+def _name_tag_errors(exc: ValidationError) -> dict:
+    """The errors of the name and tags (the spec's are spec_errors')."""
+    out = {}
+    for e in exc.errors():
+        loc = e["loc"]
+        if loc and loc[0] in FORM_FIELDS and loc[0] not in out:
+            out[loc[0]] = (_field(loc), e["msg"])
+    return out
+
+
+async def form_data(request: Request):
+    """Every field of the posted form (the spec's inputs are named per field)."""
+    return await request.form()
 
 
 @router.post("/jobs/new", dependencies=[CSRF])
@@ -136,26 +174,60 @@ def submit(
     db: DB,
     viewer: CurrentViewer,
     background: BackgroundTasks,
+    posted: Annotated[FormData, Depends(form_data)],
     spec: Annotated[str, Form()] = "",
     spec_file: Annotated[UploadFile | None, File()] = None,
     name: Annotated[str, Form()] = "",
     tags: Annotated[str, Form()] = "",
     preset: Annotated[str, Form()] = "",
+    source: Annotated[str, Form(pattern="^(form|json)$")] = "json",
     idempotency_key: Annotated[str, Form(max_length=200)] = "",
 ):
+    """The spec of the fields (``source=form``) or of the JSON text or file
+    (``source=json``, also when the field is not sent); every error at once."""
     values = dict(name=name, tags=tags, preset=preset, idempotency_key=idempotency_key)
-    text, body, errors = _read_spec(spec, spec_file)
-    values["spec"] = text
+    uploaded = spec_file is not None and spec_file.filename
+    shown = None
+    if source == "form" and not uploaded:
+        body, type_errors = spec_form.spec_of(posted, posted.getlist)
+        text, errors = _json(body), {}
+        shown = spec_form.posted_values(posted, posted.getlist)
+    else:
+        text, body, errors = _read_spec(spec, spec_file)
+        type_errors = {}
+    values.update(spec_text=text, source="json" if uploaded else source)
+    found: dict = {}
+
+    def refused(errors: dict, found: dict):
+        """The form again (422) with every error, the values as they were sent."""
+        return _form(
+            request,
+            viewer,
+            status=422,
+            errors=errors,
+            spec_errors=found,
+            spec=body,
+            shown=shown,
+            **values,
+        )
+
     if body is not None:
+        found = {**type_errors}
+        for path, message in spec_errors(body).items():
+            if spec_form.field_of(path) not in {spec_form.field_of(p) for p in type_errors}:
+                found.setdefault(path, message)
         tag_list = [t.strip() for t in tags.split(",") if t.strip()]
-        body = {**body, **({"name": name.strip()} if name.strip() else {})}
-        body = {**body, **({"tags": tag_list} if tag_list else {})}
+        full = {**body, **({"name": name.strip()} if name.strip() else {})}
+        full = {**full, **({"tags": tag_list} if tag_list else {})}
         try:
-            data = JobSubmit.model_validate(body).model_dump(exclude_unset=True)
+            data = JobSubmit.model_validate(full).model_dump(exclude_unset=True)
         except ValidationError as exc:
-            errors = _body_error(exc, body)
-    if errors:
-        return _form(request, viewer, status=422, errors=errors, **values)
+            errors.update(_name_tag_errors(exc))
+            if not found and not errors:  # the model refused what the parser accepts
+                first = exc.errors()[0]
+                errors["spec"] = (_field(first["loc"]), first["msg"])
+    if errors or found:
+        return refused(errors, found)
     job = JobRequest(
         spec={k: data[k] for k in SPEC_FIELD_NAMES if k in data},
         name=data.get("name"),
@@ -165,9 +237,9 @@ def submit(
     submission = submission_of(request, db, viewer.caller, background)
     try:
         (out,) = submission.submit([job])
-    except SpecError as exc:
+    except SpecError as exc:  # the service's limits (cells, estimated work)
         db.rollback()
-        errors = {"spec": (exc.field or "spec", exc.message)}
+        found = {exc.field or "spec": exc.message}
     except QuotaExceeded as exc:
         db.rollback()
         errors = {"form": ("", exc.message)}
@@ -175,6 +247,6 @@ def submit(
         db.rollback()
         errors = {"form": ("", "this form was already used for another spec: submit it again")}
         values.pop("idempotency_key")
-    if errors:
-        return _form(request, viewer, status=422, errors=errors, **values)
+    if errors or found:
+        return refused(errors, found)
     return RedirectResponse(f"/jobs/{out['id']}", status_code=303)

@@ -2,26 +2,18 @@
  * one panel per remaining grid coordinate, one line per estimator/γ with a mean ± std
  * band; or one of the report's figure series (a preset: its panels, lines, band and
  * log/symlog/linear scale, as the figure). The data come from /jobs/{id}/chart-data
- * (the stored summaries). Every plotted chart is kept in window.svrobsCharts so that
- * tests can read what is drawn. */
+ * (the stored summaries), reloaded while the job runs as its cells complete; a
+ * response that arrives after a newer request was sent is dropped. The choices are
+ * kept in the page's URL (?metric=…&x=…&panel=…), so a reload or a copied link shows
+ * the same view and back/forward step through the views. Every plotted chart is kept
+ * in window.svrobsCharts so that tests can read what is drawn. */
 (function () {
   "use strict";
 
-  const PALETTE = ["#1f5fa8", "#c0392b", "#2e8b57", "#8e44ad", "#d68910", "#17a2b8",
-    "#6c757d", "#e83e8c", "#5d4037", "#20c997"];
-  const registry = { charts: [], data: null, loads: 0, errors: [] };
+  const kit = window.svrobsChartKit;
+  const fmt = kit.fmt;
+  const registry = { charts: [], data: null, loads: 0, errors: [], requests: 0, dropped: 0 };
   window.svrobsCharts = registry;
-
-  function alpha(hex, a) {
-    const n = parseInt(hex.slice(1), 16);
-    return `rgba(${(n >> 16) & 255}, ${(n >> 8) & 255}, ${n & 255}, ${a})`;
-  }
-
-  function fmt(v) {
-    if (v === null || v === undefined) return "–";
-    const a = Math.abs(v);
-    return a !== 0 && (a < 1e-3 || a >= 1e5) ? v.toExponential(3) : Number(v.toPrecision(4)).toString();
-  }
 
   /* A symmetric log axis (as matplotlib's symlog): linear within ± linthresh, logarithmic
    * beyond; ticks at 0 and at the decades linthresh·10^k each side reaches. */
@@ -68,65 +60,70 @@
   }
 
   function datasets(panel, logY, bands) {
-    const out = [];
+    const out = [], colours = kit.palette();
     panel.series.forEach((s, i) => {
-      const color = PALETTE[(s.colour ?? i) % PALETTE.length];
-      const hi = s.mean.map((m, j) => (m === null || s.std[j] === null ? null : m + s.std[j]));
-      const lo = s.mean.map((m, j) => {
-        if (m === null || s.std[j] === null) return null;
-        const v = m - s.std[j];
-        return logY && v <= 0 ? null : v; // a log axis has no room for mean - std <= 0
-      });
+      const color = colours[(s.colour ?? i) % colours.length];
       const meta = { series: i, estimator: s.estimator, gamma: s.gamma, line: s.line, mean: s.mean, std: s.std, count: s.count };
+      const data = points(panel.x, s.mean);
       out.push({
-        label: s.label, data: points(panel.x, s.mean), borderColor: color,
+        label: s.label, data: data, borderColor: color,
         backgroundColor: color, borderWidth: 2, pointRadius: 3, borderDash: s.flat ? [6, 4] : (s.dash ? [3, 3] : []),
         svrobs: Object.assign({ role: "mean" }, meta), spanGaps: false,
       });
-      if (!bands || s.std.every((v) => v === null)) return;
-      out.push({
-        label: s.label + " + std", data: points(panel.x, hi), borderWidth: 0, pointRadius: 0,
-        pointHitRadius: 0, fill: false, borderColor: "transparent", svrobs: { role: "band", series: i },
-      });
-      out.push({
-        label: s.label + " − std", data: points(panel.x, lo), borderWidth: 0, pointRadius: 0,
-        pointHitRadius: 0, fill: "-1", backgroundColor: alpha(color, 0.1),
-        borderColor: "transparent", svrobs: { role: "band", series: i },
-      });
+      if (bands && !s.std.every((v) => v === null)) out.push(...kit.band(s.label, data, s.mean, s.std, color, i, logY));
     });
     return out;
   }
 
+  /* Chart.js's own legend click (its legend is hidden: the page shows kit.legend's buttons). */
   function toggleSeries(e, item, legend) {
     const chart = legend.chart;
     const series = chart.data.datasets[item.datasetIndex].svrobs.series;
-    const show = !chart.isDatasetVisible(item.datasetIndex);
-    chart.data.datasets.forEach((d, k) => {
-      if (d.svrobs.series === series) chart.setDatasetVisibility(k, show);
-    });
-    chart.update();
+    kit.setSeries(chart, series, !chart.isDatasetVisible(item.datasetIndex));
+    const button = chart.canvas.closest("figure").querySelector(`.legend button[data-series="${series}"]`);
+    if (button) button.setAttribute("aria-pressed", String(chart.isDatasetVisible(item.datasetIndex)));
   }
 
   function makeChart(canvas, panel, data, opts) {
-    return new Chart(canvas, {
+    const glossary = opts.glossary;
+    const xField = data.x === "N" || data.preset ? "N" : data.x;
+    const scales = {
+      x: kit.axis(opts.logX ? "logarithmic" : "linear", kit.axisTitle(glossary, xField, data.x_label)),
+      y: kit.axis(opts.yType, kit.axisTitle(glossary, data.metric), { linthresh: data.linthresh }),
+    };
+    const factor = opts.n0Factor;
+    if (xField === "N" && factor > 1 && panel.x.length) {
+      // N0 = (T0 − 1)·N on a second x axis at the top, the report's abscissa
+      const lo = Math.min(...panel.x), hi = Math.max(...panel.x);
+      const pad = 0;  // both axes span the data exactly, so their ticks line up
+      scales.x.min = lo - pad;
+      scales.x.max = hi + pad;
+      scales.x2 = kit.axis(scales.x.type, `N0 = (T0 − 1)·N = ${factor}·N [samples]`, {
+        position: "top", min: (lo - pad) * factor, max: (hi + pad) * factor, grid: { display: false },
+      });
+    }
+    const chart = new Chart(canvas, {
       type: "line",
       data: { datasets: datasets(panel, opts.logY, opts.bands) },
       options: {
         animation: false, responsive: true, maintainAspectRatio: false, parsing: true,
         interaction: { mode: "nearest", axis: "x", intersect: false },
-        scales: {
-          x: { type: opts.logX ? "logarithmic" : "linear", title: { display: true, text: data.x_label } },
-          y: { type: opts.yType, linthresh: data.linthresh, title: { display: true, text: data.metric } },
-        },
+        scales: scales,
         plugins: {
           legend: {
+            display: false,
             labels: { filter: (item, cd) => cd.datasets[item.datasetIndex].svrobs.role === "mean" },
             onClick: toggleSeries,
           },
           tooltip: {
             filter: (item) => item.dataset.svrobs.role === "mean",
             callbacks: {
-              title: (items) => items.length ? `${data.x_label} = ${fmt(items[0].parsed.x)}` : "",
+              title: (items) => {
+                if (!items.length) return "";
+                const v = items[0].parsed.x;
+                const n0 = xField === "N" && factor > 1 ? ` · N0 = ${fmt(v * factor)}` : "";
+                return `${data.x_label} = ${fmt(v)}${n0}`;
+              },
               label: (item) => {
                 const m = item.dataset.svrobs, j = item.dataIndex;
                 return `${item.dataset.label}: ${fmt(m.mean[j])} ± ${fmt(m.std[j])} (n = ${m.count[j]})`;
@@ -136,39 +133,57 @@
         },
       },
     });
+    kit.axisTooltips(canvas, chart, {
+      x: kit.describe(glossary, xField),
+      x2: kit.describe(glossary, "N0"),
+      y: kit.describe(glossary, data.metric),
+    });
+    return chart;
   }
 
-  function setOptions(select, values, current, labels) {
+  function setOptions(select, values, current, labels, titles) {
     const keep = values.includes(current) ? current : values[0];
     select.replaceChildren(...values.map((v) => {
       const o = document.createElement("option");
       o.value = v;
       o.textContent = labels ? labels(v) : v;
+      if (titles) o.title = titles(v);
       o.selected = v === keep;
       return o;
     }));
   }
 
+  function controls(card) {
+    const q = (sel) => card.querySelector(sel);
+    return {
+      preset: q("#chart-preset"), metric: q("#chart-metric"), x: q("#chart-x"), panel: q("#chart-panel"),
+      logy: q("#chart-logy"), logx: q("#chart-logx"), bands: q("#chart-bands"),
+    };
+  }
+
   function draw(card, data) {
+    if (!data) return;
+    const c = controls(card), glossary = kit.glossaryOf(card);
     const box = card.querySelector("#charts");
-    registry.charts.forEach((c) => c.chart.destroy());
+    registry.charts.forEach((ch) => ch.chart.destroy());
     registry.charts = [];
     box.replaceChildren();
-    const panelSel = card.querySelector("#chart-panel");
-    const want = panelSel.value;
+    const want = card.dataset.wantPanel !== undefined ? card.dataset.wantPanel : c.panel.value;
+    delete card.dataset.wantPanel;
     const keys = data.panels.map((p) => p.key);
     const titles = Object.fromEntries(data.panels.map((p) => [p.key, p.title]));
-    setOptions(panelSel, [""].concat(keys), want || (keys.length > 6 ? keys[0] : ""),
-      (k) => (k === "" ? `all (${keys.length})` : titles[k]));
-    const logY = card.querySelector("#chart-logy").checked && data.positive;
+    // a panel the user chose (or "all"); else all of up to 6 panels, or the first
+    const pick = keys.includes(want) || (want === "" && card.dataset.panelChosen) ? want :
+      (keys.length > 6 ? keys[0] : "");
+    setOptions(c.panel, [""].concat(keys), pick, (k) => (k === "" ? `all (${keys.length})` : titles[k]));
+    const logY = c.logy.checked && data.positive;
     const yType = data.preset ? AXIS[data.scale] : (logY ? "logarithmic" : "linear");
     const opts = {
-      bands: card.querySelector("#chart-bands").checked,
-      yType: yType,
-      logY: yType === "logarithmic",
-      logX: card.querySelector("#chart-logx").checked && data.panels.every((p) => p.x.every((v) => v > 0)),
+      bands: c.bands.checked, yType: yType, logY: yType === "logarithmic", glossary: glossary,
+      logX: c.logx.checked && data.panels.every((p) => p.x.every((v) => v > 0)),
+      n0Factor: Number(card.dataset.n0Factor || 1),
     };
-    data.panels.filter((p) => !panelSel.value || p.key === panelSel.value).forEach((panel) => {
+    data.panels.filter((p) => !c.panel.value || p.key === c.panel.value).forEach((panel) => {
       const fig = document.createElement("figure");
       fig.className = "chart-panel";
       fig.dataset.panel = panel.key;
@@ -178,18 +193,20 @@
       wrap.className = "chart-box";
       const canvas = document.createElement("canvas");
       canvas.setAttribute("role", "img");
-      canvas.setAttribute("aria-label", `${data.metric} against ${data.x_label}, ${panel.title}`);
+      const metric = kit.label(glossary, data.metric);
+      canvas.setAttribute("aria-label", `${metric} (${data.metric}) against ${data.x_label}, ${panel.title}`);
       wrap.appendChild(canvas);
       fig.append(h, wrap);
       box.appendChild(fig);
-      registry.charts.push({ panel: panel.key, chart: makeChart(canvas, panel, data, opts) });
+      const chart = makeChart(canvas, panel, data, opts);
+      fig.appendChild(kit.legend(chart));
+      registry.charts.push({ panel: panel.key, chart: chart });
     });
   }
 
   function presetMode(card) {
-    const preset = card.querySelector("#chart-preset").value;
-    ["#chart-metric", "#chart-x", "#chart-logy"].forEach((sel) => {
-      const el = card.querySelector(sel);
+    const c = controls(card), preset = c.preset ? c.preset.value : "";
+    [c.metric, c.x, c.logy].forEach((el) => {
       el.disabled = Boolean(preset);
       el.closest("label").classList.toggle("disabled", Boolean(preset));
     });
@@ -208,37 +225,109 @@
     return ` ${data.scale} y axis, as the figure.${band}`;
   }
 
-  async function load(card, resetLog, withMetrics) {
-    const metric = card.querySelector("#chart-metric");
-    const x = card.querySelector("#chart-x");
+  /* The view in the page's URL: what differs from the defaults. */
+  function viewQuery(card) {
+    const c = controls(card), q = new URLSearchParams(location.search);
+    ["preset", "metric", "x", "panel", "logy", "logx", "bands"].forEach((k) => q.delete(k));
+    if (c.preset && c.preset.value) q.set("preset", c.preset.value);
+    else {
+      if (c.metric.value && c.metric.value !== "rmse_A") q.set("metric", c.metric.value);
+      if (c.x.value !== "N") q.set("x", c.x.value);
+      if (card.dataset.logyTouched) q.set("logy", c.logy.checked ? "1" : "0");
+    }
+    if (card.dataset.panelChosen) q.set("panel", c.panel.value);
+    if (card.dataset.logxTouched) q.set("logx", c.logx.checked ? "1" : "0");
+    if (!c.bands.checked) q.set("bands", "0");
+    const s = q.toString();
+    return location.pathname + (s ? `?${s}` : "");
+  }
+
+  function remember(card) {
+    const url = viewQuery(card);
+    if (url !== location.pathname + location.search) history.pushState({ svrobsChart: true }, "", url);
+  }
+
+  /* Set the controls from the URL (on load and on back/forward). */
+  function restore(card) {
+    const c = controls(card), q = new URLSearchParams(location.search);
+    if (c.preset) c.preset.value = q.get("preset") || "";
+    if (c.preset && c.preset.value !== (q.get("preset") || "")) c.preset.value = "";
+    const metric = q.get("metric") || "rmse_A";
+    if (![...c.metric.options].some((o) => o.value === metric)) {
+      const o = document.createElement("option");
+      o.value = metric;
+      o.textContent = metric;
+      c.metric.appendChild(o);
+    }
+    c.metric.value = metric;
+    c.x.value = q.get("x") || "N";
+    if (!c.x.value) c.x.value = "N";
+    delete card.dataset.logyTouched;
+    delete card.dataset.logxTouched;
+    delete card.dataset.panelChosen;
+    if (q.has("logy")) { c.logy.checked = q.get("logy") === "1"; card.dataset.logyTouched = "yes"; }
+    if (q.has("logx")) { c.logx.checked = q.get("logx") === "1"; card.dataset.logxTouched = "yes"; }
+    else c.logx.checked = c.x.value !== "N" && !c.preset?.value;
+    c.bands.checked = q.get("bands") !== "0";
+    if (q.has("panel")) { card.dataset.wantPanel = q.get("panel"); card.dataset.panelChosen = "yes"; }
+    else card.dataset.wantPanel = "";
+  }
+
+  let sequence = 0;
+
+  async function load(card, withMetrics) {
+    const c = controls(card);
     const status = card.querySelector("#chart-status");
+    const box = card.querySelector("#charts");
+    const glossary = kit.glossaryOf(card);
     const preset = presetMode(card);
     const query = preset ? `preset=${encodeURIComponent(preset)}` :
-      `metric=${encodeURIComponent(metric.value)}&x=${encodeURIComponent(x.value)}`;
+      `metric=${encodeURIComponent(c.metric.value)}&x=${encodeURIComponent(c.x.value)}`;
     const url = `${card.dataset.chartUrl}?${query}` + (withMetrics ? "&metrics=1" : "");
-    const r = await fetch(url, { credentials: "same-origin", headers: { Accept: "application/json" } });
+    const mine = ++sequence;
+    registry.requests += 1;
+    status.dataset.state = "loading";
+    status.textContent = "Loading the chart data…";
+    box.setAttribute("aria-busy", "true");
+    card.dataset.state = "loading";
+    let r, data;
+    try {
+      r = await fetch(url, { credentials: "same-origin", headers: { Accept: "application/json" } });
+      data = r.ok ? await r.json() : null;
+    } catch (e) {
+      r = { ok: false, status: "network error" };
+    }
+    if (mine !== sequence) {  // a newer request was sent meanwhile: its answer is the one shown
+      registry.dropped += 1;
+      return;
+    }
+    box.setAttribute("aria-busy", "false");
+    card.dataset.state = "ready";
+    status.dataset.state = "ready";
     if (!r.ok) {
+      status.dataset.state = "error";
       status.textContent = `Could not load the chart data (HTTP ${r.status}).`;
       registry.errors.push(r.status);
       return;
     }
-    const data = await r.json();
-    if (data.metrics && data.metrics.length && !data.preset) setOptions(metric, data.metrics, data.metric);
-    if (data.metrics) {  // presets of fields without data are hidden
-      card.querySelectorAll("#chart-preset option[data-field]").forEach((o) => {
+    if (data.metrics && data.metrics.length && !data.preset) {
+      const shown = data.metrics.includes(data.metric) ? data.metrics : [data.metric].concat(data.metrics);
+      setOptions(c.metric, shown, data.metric,
+        (f) => `${kit.label(glossary, f)} · ${f}`, (f) => kit.describe(glossary, f));
+    }
+    if (data.metrics && c.preset) {  // presets of fields without data are hidden
+      c.preset.querySelectorAll("option[data-field]").forEach((o) => {
         o.hidden = !data.metrics.includes(o.dataset.field);
       });
     }
-    if (resetLog && data.preset) card.querySelector("#chart-logx").checked = false;
-    if (resetLog && !data.preset) {
-      card.querySelector("#chart-logy").checked = data.positive;
-      card.querySelector("#chart-logx").checked = data.x !== "N";
-    }
+    if (!data.preset && !card.dataset.logyTouched) c.logy.checked = data.positive;
+    card.querySelector("#chart-field-help").textContent = kit.describe(glossary, data.metric);
     registry.data = data;
     if (!data.panels.length) {
       describe(data);
-      status.textContent = data.preset ? "This figure series has no data in the job's summaries." : data.status === "succeeded" ? "No summaries stored." :
-        "No summaries yet: they appear as work units finish.";
+      status.textContent = data.preset ? "This figure series has no data in the job's summaries." :
+        data.status === "succeeded" ? "No summaries stored." :
+        "No summaries yet: a group appears when the cells of all its repetitions are done.";
     } else {
       const partial = data.status === "succeeded" ? "" : ` (job ${data.status}: the groups stored so far)`;
       status.textContent = `${data.groups} summary groups, ${data.panels.length} panel(s)${partial}.` +
@@ -252,21 +341,49 @@
   function init() {
     const card = document.getElementById("charts-card");
     if (!card || typeof Chart === "undefined") return;
-    const form = card.querySelector("#chart-controls");
-    form.addEventListener("submit", (e) => e.preventDefault());
-    card.querySelector("#chart-metric").addEventListener("change", () => load(card, true));
-    card.querySelector("#chart-preset").addEventListener("change", () => {
-      card.querySelector("#chart-panel").value = "";
-      load(card, true);
+    const c = controls(card);
+    card.querySelector("#chart-controls").addEventListener("submit", (e) => e.preventDefault());
+    const fresh = () => {  // a new field or axis: log scales follow the data again
+      delete card.dataset.logyTouched;
+      delete card.dataset.logxTouched;
+      delete card.dataset.panelChosen;
+      c.panel.value = "";
+      card.dataset.wantPanel = "";
+      c.logx.checked = c.x.value !== "N" && !(c.preset && c.preset.value);
+    };
+    c.metric.addEventListener("change", () => { delete card.dataset.logyTouched; remember(card); load(card); });
+    if (c.preset) c.preset.addEventListener("change", () => { fresh(); remember(card); load(card); });
+    c.x.addEventListener("change", () => { fresh(); remember(card); load(card); });
+    c.logy.addEventListener("change", () => { card.dataset.logyTouched = "yes"; remember(card); draw(card, registry.data); });
+    c.logx.addEventListener("change", () => { card.dataset.logxTouched = "yes"; remember(card); draw(card, registry.data); });
+    c.panel.addEventListener("change", () => { card.dataset.panelChosen = "yes"; remember(card); draw(card, registry.data); });
+    c.bands.addEventListener("change", () => { remember(card); draw(card, registry.data); });
+    [["#chart-panel-prev", -1], ["#chart-panel-next", 1]].forEach(([sel, step]) => {
+      card.querySelector(sel).addEventListener("click", () => {  // one panel after another
+        const n = c.panel.options.length - 1;  // (the first option is "all")
+        if (n < 1) return;
+        const i = c.panel.selectedIndex <= 0 ? (step > 0 ? 1 : n) : ((c.panel.selectedIndex - 1 + step + n) % n) + 1;
+        c.panel.selectedIndex = i;
+        card.dataset.panelChosen = "yes";
+        remember(card);
+        draw(card, registry.data);
+      });
     });
-    card.querySelector("#chart-x").addEventListener("change", () => {
-      card.querySelector("#chart-panel").value = "";
-      load(card, true);
+    window.addEventListener("popstate", () => { restore(card); load(card); });
+    document.addEventListener("svrobs:theme", () => draw(card, registry.data));
+    document.body.addEventListener("svrobs:job-finished", () => load(card, true));
+    // while the job runs: reload when the progress card says more cells are done
+    let cells = null;
+    document.body.addEventListener("htmx:afterSwap", (e) => {
+      const p = document.getElementById("job-progress");
+      if (!p || e.detail.target.id !== "job-progress") return;
+      if (cells !== null && p.dataset.cellsDone !== cells && p.dataset.status !== "succeeded") load(card, true);
+      cells = p.dataset.cellsDone;
     });
-    ["#chart-panel", "#chart-logy", "#chart-logx", "#chart-bands"].forEach((sel) =>
-      card.querySelector(sel).addEventListener("change", () => draw(card, registry.data)));
-    document.body.addEventListener("svrobs:job-finished", () => load(card, false, true));
-    load(card, true, true);
+    const p = document.getElementById("job-progress");
+    if (p) cells = p.dataset.cellsDone;
+    restore(card);
+    load(card, true);
   }
 
   if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", init);

@@ -1,56 +1,181 @@
 /* The compare page's chart: the rows of GET /api/v1/compare (embedded in
- * #compare-card's data-compare) as one line per job and remaining group field, the
- * mean against the chosen x field. Points with a null mean are left out. */
+ * #compare-card's data-compare) as one line per job and remaining group, the mean
+ * against the chosen x field with a ± std band. Labels say only what differs: the
+ * spec fields that differ between the chosen jobs (data-jobs holds their specs) and
+ * the group fields that take more than one value; what every line shares is said
+ * once above the chart. Points with a null mean are left out. The bands and log-y
+ * choices are kept in the URL beside the form's own fields. */
 (function () {
   "use strict";
+  const kit = window.svrobsChartKit;
   const card = document.getElementById("compare-card");
-  if (!card || !window.Chart) return;
+  if (!card || !window.Chart || !kit) return;
   const data = JSON.parse(card.dataset.compare);
+  const jobs = JSON.parse(card.dataset.jobs || "[]")
+    .sort((a, b) => data.jobs.indexOf(a.id) - data.jobs.indexOf(b.id));  // the compare's order
+  const glossary = kit.glossaryOf(card);
   const rest = data.by.filter((b) => b !== data.x);
+  const show = (v) => (v === null || v === undefined ? "—" : typeof v === "number" ? kit.fmt(v) : String(v));
+
+  /* A spec as {path: JSON text}: nested objects by dotted path, lists whole. */
+  function flatten(spec, prefix, out) {
+    Object.entries(spec || {}).forEach(([k, v]) => {
+      const path = prefix ? `${prefix}.${k}` : k;
+      if (v && typeof v === "object" && !Array.isArray(v)) flatten(v, path, out);
+      else out[path] = JSON.stringify(v);
+    });
+    return out;
+  }
+
+  const flat = Object.fromEntries(jobs.map((j) => [j.id, flatten(j.spec, "", {})]));
+  const keys = [...new Set(jobs.flatMap((j) => Object.keys(flat[j.id])))];
+  const differs = keys.filter((k) => new Set(jobs.map((j) => flat[j.id][k])).size > 1);
+
+  function jobLabel(id) {
+    if (data.jobs.length < 2) return "";
+    if (!differs.length || !flat[id]) return `job ${id}`;
+    const parts = differs.slice(0, 3).map((k) => {
+      const v = flat[id][k];
+      const text = v === undefined ? "unset" : v.length > 24 ? v.slice(0, 22) + "…" : v;
+      return `${k}=${text.replace(/^"|"$/g, "")}`;
+    });
+    return parts.join(", ") + (differs.length > 3 ? ", …" : "");
+  }
+
+  const varies = rest.filter((b) => new Set(data.rows.map((r) => JSON.stringify(r[b]))).size > 1);
+  const same = rest.filter((b) => !varies.includes(b) && data.rows.length);
+
+  function groupLabel(r) {
+    return varies.filter((b) => !(b === "gamma" && r.gamma === null && varies.includes("estimator")))
+      .map((b) => (b === "estimator" ? String(r[b]) : `${kit.label(glossary, b)}=${show(r[b])}`))
+      .join(" ");
+  }
+
   const series = new Map();
   for (const r of data.rows) {
     if (r.mean === null || r[data.x] === null) continue;
-    const label = [`job ${r.job_id}`].concat(rest.map((b) => `${b}=${r[b] === null ? "–" : r[b]}`)).join(" · ");
-    if (!series.has(label)) series.set(label, { job: r.job_id, points: [], rows: [] });
-    series.get(label).points.push({ x: r[data.x], y: r.mean });
-    series.get(label).rows.push(r);
+    const key = JSON.stringify([r.job_id].concat(rest.map((b) => r[b])));
+    if (!series.has(key)) {
+      const label = [jobLabel(r.job_id), groupLabel(r)].filter(Boolean).join(" · ") || kit.label(glossary, data.metric);
+      series.set(key, { label, job: r.job_id, group: Object.fromEntries(rest.map((b) => [b, r[b]])), rows: [] });
+    }
+    series.get(key).rows.push(r);
   }
-  const palette = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf"];
-  const datasets = Array.from(series, ([label, s], i) => {
-    const order = s.points.map((p, k) => k).sort((a, b) => s.points[a].x - s.points[b].x);
-    return {
-      label,
-      data: order.map((k) => s.points[k]),
-      svrobs: { job: s.job, rows: order.map((k) => s.rows[k]) },
-      borderColor: palette[i % palette.length],
-      backgroundColor: palette[i % palette.length],
-      borderDash: s.job === data.jobs[0] ? [] : [6, 3],
-      tension: 0,
-    };
-  });
-  const positive = datasets.every((d) => d.data.every((p) => p.y > 0));
-  const chart = new window.Chart(document.getElementById("compare-chart"), {
-    type: "line",
-    data: { datasets },
-    options: {
-      animation: false,
-      parsing: false,
-      scales: {
-        x: { type: "linear", title: { display: true, text: data.x } },
-        y: { type: positive ? "logarithmic" : "linear", title: { display: true, text: data.metric } },
-      },
-      plugins: {
-        tooltip: {
-          callbacks: {
-            label: (item) => {
-              const r = item.dataset.svrobs.rows[item.dataIndex];
-              return `${item.dataset.label}: ${r.mean.toPrecision(4)} ± ${r.std.toPrecision(3)} (n = ${r.count})`;
+  const groupKeys = [...new Set([...series.values()].map((s) => JSON.stringify(s.group)))];
+  const jobIndex = (id) => Math.max(0, data.jobs.indexOf(id));
+  const DASHES = [[], [6, 3], [2, 3], [10, 3, 2, 3]];
+  const positive = [...series.values()].every((s) => s.rows.every((r) => r.mean > 0));
+
+  const q = new URLSearchParams(location.search);
+  const bandsBox = document.getElementById("compare-bands");
+  const logBox = document.getElementById("compare-logy");
+  const manyLines = series.size > 4;  // bands of many lines hide each other: off unless asked
+  bandsBox.checked = q.has("bands") ? q.get("bands") === "1" : !manyLines;
+  logBox.checked = q.has("logy") ? q.get("logy") === "1" : positive;
+  logBox.disabled = !positive;
+
+  function datasets(logY, bands) {
+    const colours = kit.palette(), out = [];
+    [...series.values()].forEach((s, i) => {
+      s.rows.sort((a, b) => a[data.x] - b[data.x]);
+      const byGroup = groupKeys.length > 1;
+      const colour = colours[(byGroup ? groupKeys.indexOf(JSON.stringify(s.group)) : jobIndex(s.job)) % colours.length];
+      const pts = s.rows.map((r) => ({ x: r[data.x], y: r.mean }));
+      out.push({
+        label: s.label, data: pts, borderColor: colour, backgroundColor: colour, borderWidth: 2, pointRadius: 3,
+        borderDash: byGroup ? DASHES[jobIndex(s.job) % DASHES.length] : [], tension: 0,
+        svrobs: { role: "mean", series: i, job: s.job, group: s.group, rows: s.rows },
+      });
+      if (bands) out.push(...kit.band(s.label, pts, s.rows.map((r) => r.mean), s.rows.map((r) => r.std), colour, i, logY));
+    });
+    return out;
+  }
+
+  let chart = null;
+  function draw() {
+    if (chart) chart.destroy();
+    const logY = logBox.checked && positive;
+    chart = new window.Chart(document.getElementById("compare-chart"), {
+      type: "line",
+      data: { datasets: datasets(logY, bandsBox.checked) },
+      options: {
+        animation: false, parsing: false, responsive: true, maintainAspectRatio: false,
+        interaction: { mode: "nearest", intersect: false },
+        scales: {
+          x: kit.axis("linear", kit.axisTitle(glossary, data.x)),
+          y: kit.axis(logY ? "logarithmic" : "linear", kit.axisTitle(glossary, data.metric)),
+        },
+        plugins: {
+          legend: { display: false },
+          tooltip: {
+            filter: (item) => item.dataset.svrobs.role === "mean",
+            callbacks: {
+              label: (item) => {
+                const r = item.dataset.svrobs.rows[item.dataIndex];
+                return `${item.dataset.label}: ${kit.fmt(r.mean)} ± ${kit.fmt(r.std)} (n = ${r.count})`;
+              },
             },
           },
         },
       },
-    },
-  });
-  window.svrobsCompare = { chart, data };
+    });
+    kit.axisTooltips(chart.canvas, chart, { x: kit.describe(glossary, data.x), y: kit.describe(glossary, data.metric) });
+    document.getElementById("compare-legend").replaceChildren(kit.legend(chart));
+    window.svrobsCompare = { chart, data };
+  }
+
+  function note() {
+    const shared = same.map((b) => `${kit.label(glossary, b)}=${show(data.rows[0][b])}`);
+    if (data.jobs.length > 1 && !differs.length) shared.push("the same spec in every job");
+    document.getElementById("compare-legend-note").textContent = shared.length ? `Every line: ${shared.join(", ")}.` : "";
+  }
+
+  function specDiff() {
+    const box = document.getElementById("spec-diff");
+    if (jobs.length < 2) {
+      box.replaceChildren(Object.assign(document.createElement("p"), { className: "chart-note", textContent: "Pick two or more jobs to see what differs between their specs." }));
+      return;
+    }
+    if (!differs.length) {
+      box.replaceChildren(Object.assign(document.createElement("p"), { className: "chart-note", textContent: "The chosen jobs have the same spec." }));
+      return;
+    }
+    const table = document.createElement("table");
+    table.className = "spec-diff";
+    table.id = "spec-diff-table";
+    const head = table.createTHead().insertRow();
+    ["field"].concat(jobs.map((j) => `job ${j.id}${j.name ? " · " + j.name : ""}`)).forEach((t) => {
+      const th = document.createElement("th");
+      th.scope = "col";
+      th.textContent = t;
+      head.appendChild(th);
+    });
+    const body = table.createTBody();
+    differs.forEach((k) => {
+      const row = body.insertRow();
+      row.dataset.field = k;
+      row.insertCell().textContent = k;
+      jobs.forEach((j) => { row.insertCell().textContent = flat[j.id][k] === undefined ? "(not set)" : flat[j.id][k]; });
+    });
+    const wrap = document.createElement("div");
+    wrap.className = "table-wrap";
+    wrap.tabIndex = 0;
+    wrap.appendChild(table);
+    box.replaceChildren(wrap);
+  }
+
+  function remember() {
+    const p = new URLSearchParams(location.search);
+    if (bandsBox.checked === !manyLines) p.delete("bands"); else p.set("bands", bandsBox.checked ? "1" : "0");
+    if (logBox.checked === positive) p.delete("logy"); else p.set("logy", logBox.checked ? "1" : "0");
+    history.replaceState(null, "", `${location.pathname}?${p.toString()}`);
+  }
+
+  bandsBox.addEventListener("change", () => { remember(); draw(); });
+  logBox.addEventListener("change", () => { remember(); draw(); });
+  document.addEventListener("svrobs:theme", draw);
+  note();
+  specDiff();
+  draw();
   card.dataset.ready = "yes";
 })();

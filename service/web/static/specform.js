@@ -1,0 +1,165 @@
+/* The spec form of /jobs/new: the JSON view and the fields kept in sync both ways
+ * (the rules of service/web/spec_form.py: lists of numbers, start/stop/step, the
+ * options of a bounds method only with it, empty optional fields null). Editing the
+ * fields rewrites the JSON and sets "Submit: the fields"; editing valid JSON fills
+ * the fields and sets "Submit: the JSON". Picking a preset opens the form it fills. */
+(function () {
+  "use strict";
+  const form = document.getElementById("submit-form");
+  if (!form) return;
+  const textarea = document.getElementById("spec");
+  const status = document.getElementById("spec-json-status");
+  const INT = /^[+-]?\d+$/;
+
+  const blocks = () => [...form.querySelectorAll(".spec-field[data-kind]")];
+  const named = (name) => form.querySelectorAll(`[name="${CSS.escape(name)}"]`);
+  const one = (name) => named(name)[0];
+
+  function number(token, integer) {
+    if (INT.test(token)) return parseInt(token, 10);
+    const v = Number(token);
+    return integer || token === "" || !Number.isFinite(v) ? token : v;
+  }
+
+  function tokens(text) { return text.trim().split(/[,\s;]+/).filter(Boolean); }
+
+  function method() { return (one("f.bounds_method") || {}).value || "paper"; }
+
+  function put(spec, name, value) {
+    if (name.startsWith("sls.")) (spec.sls = spec.sls || {})[name.slice(4)] = value;
+    else spec[name] = value;
+  }
+
+  function gridValue(name, kind) {
+    const mode = form.querySelector(`[name="m.${name}"]:checked`);
+    if (mode && mode.value === "range") {
+      const p = {};
+      for (const part of ["start", "stop", "step"]) {
+        const t = one(`r.${name}.${part}`).value.trim() || (part === "step" ? "1" : "");
+        if (!t) return undefined;
+        p[part] = number(t, kind === "grid");
+      }
+      if (kind === "grid") return p;
+      if (![p.start, p.stop, p.step].every((v) => typeof v === "number") || p.step <= 0 || p.stop < p.start) return undefined;
+      const n = Math.floor((p.stop - p.start) / p.step + 1e-9) + 1;
+      return Array.from({ length: Math.min(n, 100000) }, (_, i) => Number((p.start + i * p.step).toPrecision(12)));
+    }
+    const text = one(`f.${name}`).value;
+    return text.trim() ? tokens(text).map((t) => number(t, kind === "grid")) : undefined;
+  }
+
+  /* The spec the fields describe. */
+  function fieldsToSpec() {
+    const spec = {}, m = method();
+    for (const b of blocks()) {
+      const name = b.dataset.field, kind = b.dataset.kind;
+      if (b.dataset.onlyWith && b.dataset.onlyWith !== m) continue;
+      let value;
+      if (kind === "systems") {
+        value = [...named("f.systems")].filter((c) => c.checked).map((c) => c.value);
+        const custom = one("f.systems_custom").value.trim();
+        if (custom) { try { value = value.concat(JSON.parse(custom)); } catch (e) { /* the server says so */ } }
+        if (!value.length) value = undefined;
+      } else if (kind === "numbers" || kind === "grid") {
+        value = gridValue(name, kind);
+      } else if (kind === "choices") {
+        value = [...named(`f.${name}`)].filter((c) => c.checked).map((c) => c.value);
+      } else if (kind === "bool") {
+        value = one(`f.${name}`).checked;
+      } else {
+        const t = one(`f.${name}`).value.trim();
+        if (!t) { if (b.dataset.optional) put(spec, name, null); continue; }
+        value = kind === "choice" ? t : number(t, kind === "int");
+      }
+      if (value !== undefined) put(spec, name, value);
+    }
+    return spec;
+  }
+
+  function text(v) { return v === null || v === undefined ? "" : String(v); }
+
+  /* Fill the fields from a spec (a field it lacks keeps its value). */
+  function specToFields(spec) {
+    for (const b of blocks()) {
+      const name = b.dataset.field, kind = b.dataset.kind;
+      const v = name.startsWith("sls.") ? (spec.sls || {})[name.slice(4)] : spec[name];
+      if (v === undefined) continue;
+      if (kind === "systems") {
+        const list = Array.isArray(v) ? v : [];
+        named("f.systems").forEach((c) => { c.checked = list.includes(c.value); });
+        const custom = list.filter((s) => typeof s !== "string");
+        one("f.systems_custom").value = custom.length ? JSON.stringify(custom) : "";
+        document.getElementById("systems-custom-note").textContent =
+          custom.length ? `+ ${custom.length} custom system(s) of the JSON view` : "";
+      } else if (kind === "numbers" || kind === "grid") {
+        const range = v && typeof v === "object" && !Array.isArray(v);
+        form.querySelector(`[name="m.${name}"][value="${range ? "range" : "list"}"]`).checked = true;
+        if (range) ["start", "stop", "step"].forEach((p) => { one(`r.${name}.${p}`).value = text(v[p]); });
+        else one(`f.${name}`).value = Array.isArray(v) ? v.join(", ") : text(v);
+      } else if (kind === "choices") {
+        const list = Array.isArray(v) ? v : [];
+        named(`f.${name}`).forEach((c) => { c.checked = list.includes(c.value); });
+      } else if (kind === "bool") {
+        one(`f.${name}`).checked = v === true;
+      } else {
+        one(`f.${name}`).value = text(v);
+      }
+    }
+    modes();
+  }
+
+  /* Show what applies: list or range inputs, the options of the chosen bounds method. */
+  function modes() {
+    const m = method();
+    for (const b of blocks()) {
+      if (b.dataset.onlyWith) b.hidden = b.dataset.onlyWith !== m;
+      const mode = b.querySelector("[name^='m.']:checked");
+      if (mode) {
+        b.querySelector(".grid-list").hidden = mode.value === "range";
+        b.querySelector(".grid-range").hidden = mode.value !== "range";
+      }
+    }
+  }
+
+  function source(which) {
+    const r = form.querySelector(`[name=source][value=${which}]`);
+    if (r) r.checked = true;
+  }
+
+  function fromFields() {
+    textarea.value = JSON.stringify(fieldsToSpec(), null, 2);
+    status.textContent = "The JSON follows the fields.";
+    source("form");
+  }
+
+  form.addEventListener("input", (e) => {
+    if (e.target === textarea) {
+      let spec;
+      try { spec = JSON.parse(textarea.value); } catch (err) {
+        status.textContent = `Not valid JSON yet (${err.message}); the fields keep their values.`;
+        source("json");
+        return;
+      }
+      if (!spec || typeof spec !== "object" || Array.isArray(spec)) {
+        status.textContent = "The spec must be a JSON object.";
+        return;
+      }
+      specToFields(spec);
+      status.textContent = "The fields follow the JSON.";
+      source("json");
+    } else if (e.target.closest(".spec-field[data-kind]")) {
+      fromFields();
+    }
+  });
+  form.addEventListener("change", (e) => {
+    if (e.target.closest(".spec-field[data-kind]")) { modes(); fromFields(); }
+  });
+  document.getElementById("spec_file").addEventListener("change", () => source("json"));
+  const preset = document.getElementById("preset");
+  if (preset) preset.addEventListener("change", () => document.getElementById("preset-form").requestSubmit());
+  modes();
+  if (!textarea.value.trim()) fromFields();
+  const summary = document.getElementById("form-errors");
+  if (summary) summary.focus();
+  window.svrobsSpecForm = { fieldsToSpec, specToFields };
+})();

@@ -1,0 +1,118 @@
+/* Behaviour every page shares: the header's menu button (narrow screens), the theme
+ * toggle (auto -> dark -> light, remembered in localStorage), copy buttons
+ * ([data-copy] copies the value of the element it names) and confirmations
+ * (form[data-confirm] asks before it is sent); boxes that scroll take the focus. */
+(function () {
+  "use strict";
+  const root = document.documentElement;
+  const THEMES = ["auto", "dark", "light"];
+
+  function theme() { return root.dataset.theme || "auto"; }
+
+  function effectiveTheme() {
+    return root.dataset.scheme || "light";
+  }
+  window.svrobsTheme = effectiveTheme;
+
+  function showTheme(button) {
+    button.textContent = `Theme: ${theme()}`;
+    button.setAttribute("aria-label", `Colour theme: ${theme()} (${effectiveTheme()}); change`);
+  }
+
+  function setTheme(t, button) {
+    if (t === "auto") delete root.dataset.theme; else root.dataset.theme = t;
+    try {
+      if (t === "auto") localStorage.removeItem("svrobs-theme"); else localStorage.setItem("svrobs-theme", t);
+    } catch (e) { /* not remembered */ }
+    if (window.svrobsScheme) window.svrobsScheme();
+    showTheme(button);
+    document.dispatchEvent(new CustomEvent("svrobs:theme", { detail: effectiveTheme() }));
+  }
+
+  function initMenu() {
+    const bar = document.querySelector("header.bar");
+    const toggle = document.getElementById("menu-toggle");
+    if (!bar || !toggle) return;
+    toggle.addEventListener("click", () => {
+      const open = !bar.classList.contains("open");
+      bar.classList.toggle("open", open);
+      toggle.setAttribute("aria-expanded", String(open));
+    });
+    document.addEventListener("keydown", (e) => {
+      if (e.key === "Escape" && bar.classList.contains("open")) {
+        bar.classList.remove("open");
+        toggle.setAttribute("aria-expanded", "false");
+        toggle.focus();
+      }
+    });
+  }
+
+  function initTheme() {
+    const button = document.getElementById("theme-toggle");
+    if (!button) return;
+    showTheme(button);
+    button.addEventListener("click", () => {
+      setTheme(THEMES[(THEMES.indexOf(theme()) + 1) % THEMES.length], button);
+    });
+    if (window.matchMedia) {
+      window.matchMedia("(prefers-color-scheme: dark)").addEventListener("change", () => {
+        if (window.svrobsScheme) window.svrobsScheme();
+        showTheme(button);
+        document.dispatchEvent(new CustomEvent("svrobs:theme", { detail: effectiveTheme() }));
+      });
+    }
+  }
+
+  function initCopy(scope) {
+    scope.querySelectorAll("[data-copy]").forEach((button) => {
+      if (button.dataset.copyReady) return;
+      button.dataset.copyReady = "yes";
+      button.addEventListener("click", async () => {
+        const source = document.getElementById(button.dataset.copy);
+        const status = button.parentElement.querySelector(".copy-status");
+        const text = source.value || source.textContent;
+        let ok = false;
+        try {
+          await navigator.clipboard.writeText(text);
+          ok = true;
+        } catch (e) {
+          source.select && source.select();
+          ok = document.execCommand && document.execCommand("copy");
+        }
+        if (status) status.textContent = ok ? "Copied." : "Select the text and copy it.";
+      });
+    });
+  }
+
+  function initConfirm() {
+    document.addEventListener("submit", (e) => {
+      const form = e.target;
+      if (form.dataset && form.dataset.confirm && !window.confirm(form.dataset.confirm)) {
+        e.preventDefault();
+        e.stopImmediatePropagation();
+      }
+    }, true);
+  }
+
+  /* A box that scrolls (a wide table, a long spec) can be scrolled with the keyboard. */
+  function focusableScrollers(scope) {
+    scope.querySelectorAll(".table-wrap, .scroll-x, pre.json").forEach((el) => {
+      if (!el.hasAttribute("tabindex")) el.setAttribute("tabindex", "0");
+    });
+  }
+
+  function init() {
+    focusableScrollers(document);
+    initMenu();
+    initTheme();
+    initCopy(document);
+    initConfirm();
+    document.body.addEventListener("htmx:afterSwap", (e) => {
+      initCopy(e.detail.target);
+      focusableScrollers(document);
+    });
+  }
+
+  if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", init);
+  else init();
+})();

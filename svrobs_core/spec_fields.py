@@ -1,0 +1,350 @@
+"""The spec's fields as a table (what a form shows: kind, one-line help, unit, bounds,
+default), and every error of a spec at once.
+
+:data:`SPEC_FIELDS` declares each key of :func:`svrobs_core.parsing.parse_spec`; the
+defaults are read from :class:`~svrobs_core.spec.ExperimentSpec` and
+``BOUNDS_OPTIONS`` (written once, there), and the bounds are those the parser
+enforces (``tests/core/test_spec_fields.py`` probes the parser at each bound).
+:func:`spec_errors` collects the errors of every field: the parser stops at the
+first, so each field is checked alone on a spec that is otherwise valid, and the
+whole spec is checked last for the rules between fields (T0·N, the stages' needs,
+mc_runs·horizon, options of another bounds method). See docs/spec.md#spec-fields.
+"""
+
+from __future__ import annotations
+
+from dataclasses import MISSING, dataclass
+from dataclasses import fields as dataclass_fields
+
+from .errors import SpecError
+from .parsing import parse_spec
+from .spec import (
+    BOOT_SIGMA_SOURCES,
+    BOUNDS_METHODS,
+    BOUNDS_OPTIONS,
+    DATASET_KEYS,
+    DATASET_ONLY_MESSAGE,
+    ESTIMATORS,
+    MAX_REPS,
+    MAX_ROLLOUTS,
+    MAX_T0,
+    MAX_T_FIR,
+    SPEC_KEYS,
+    STAGES,
+    ExperimentSpec,
+)
+from .systems import PRESETS
+
+REQUIRED = object()  # the default of a field the spec must give
+
+
+@dataclass(frozen=True)
+class SpecField:
+    """One spec key. ``kind``: ``systems``, ``numbers`` (a list of numbers), ``grid``
+    (N: a list of integers or start/stop/step), ``int``, ``number``, ``choice``,
+    ``choices`` (a subset, in order), ``bool``; ``optional``: null (empty) allowed.
+    ``lo``/``hi`` bound the value (``lo_open``: > instead of ≥, ``hi_open``: <);
+    ``only_with``: the bounds_method the option belongs to."""
+
+    name: str
+    kind: str
+    help: str
+    unit: str = ""
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: tuple = ()
+    optional: bool = False
+    only_with: str | None = None
+    group: str = "grid"
+
+    @property
+    def default(self):
+        """The parser's default (lists as lists), or REQUIRED."""
+        if self.name in ("systems", "sigma_w", "N"):
+            return REQUIRED
+        if self.only_with:
+            return BOUNDS_OPTIONS[self.only_with][self.name]
+        if self.name == "bounds_method":
+            return "paper"
+        attr = {"sls.T_fir": "sls_T_fir", "sls.C_bound": "sls_C_bound"}.get(self.name, self.name)
+        value = _DEFAULTS[attr]
+        return list(value) if isinstance(value, tuple) else value
+
+    def bounds_text(self) -> str:
+        """The bounds in words: ``1 … 1000000``, ``> 0``, ``0 ≤ x < 1``."""
+        if self.lo is None and self.hi is None:
+            return ""
+        lo = "" if self.lo is None else f"{_num(self.lo)} {'<' if self.lo_open else '≤'} "
+        hi = "" if self.hi is None else f" {'<' if self.hi_open else '≤'} {_num(self.hi)}"
+        if self.lo is not None and self.hi is None:
+            return f"{'>' if self.lo_open else '≥'} {_num(self.lo)}"
+        if self.lo is None:
+            return f"{'<' if self.hi_open else '≤'} {_num(self.hi)}"
+        if self.kind in ("int", "grid") and not (self.lo_open or self.hi_open):
+            return f"{_num(self.lo)} … {_num(self.hi)}"
+        return f"{lo}x{hi}"
+
+
+def _num(v: float) -> str:
+    return f"{int(v):,}" if float(v).is_integer() else f"{v:g}"
+
+
+_DEFAULTS = {
+    f.name: f.default for f in dataclass_fields(ExperimentSpec) if f.default is not MISSING
+}
+_DEFAULTS.update(
+    {
+        f.name: f.default_factory()
+        for f in dataclass_fields(ExperimentSpec)
+        if f.default_factory is not MISSING
+    }
+)
+
+SPEC_FIELDS: tuple[SpecField, ...] = (
+    SpecField(
+        "systems",
+        "systems",
+        "Systems to identify: presets, or system objects (JSON view)",
+        choices=tuple(sorted(PRESETS)),
+    ),
+    SpecField(
+        "sigma_w",
+        "numbers",
+        "Process-noise standard deviations σ_w (a grid axis)",
+        "state units",
+        lo=0,
+    ),
+    SpecField(
+        "N", "grid", "Numbers of rollouts N (a grid axis)", "rollouts", lo=1, hi=MAX_ROLLOUTS
+    ),
+    SpecField(
+        "gamma",
+        "numbers",
+        "Regularisation values γ of svr and shrunk-ols (a grid axis)",
+        "dimensionless",
+        lo=0,
+        lo_open=True,
+    ),
+    SpecField("estimators", "choices", "Estimators to run", choices=ESTIMATORS, group="estimate"),
+    SpecField(
+        "reps",
+        "int",
+        "Repetitions per grid point",
+        "repetitions",
+        lo=1,
+        hi=MAX_REPS,
+        group="estimate",
+    ),
+    SpecField(
+        "T0",
+        "int",
+        "Rollout length T0 (T0 · max N ≤ 10,000,000)",
+        "steps",
+        lo=2,
+        hi=MAX_T0,
+        group="estimate",
+    ),
+    SpecField(
+        "data",
+        "choice",
+        "all: N0 = (T0 − 1)·N regression samples; final: N0 = N",
+        choices=("all", "final"),
+        group="estimate",
+    ),
+    SpecField(
+        "loss_scale",
+        "choice",
+        "sum: the ridge parameter is γ; mean: it is γ·N0",
+        choices=("sum", "mean"),
+        group="estimate",
+    ),
+    SpecField(
+        "x0_std",
+        "number",
+        "Standard deviation of the initial state (0: x0 = 0)",
+        "state units",
+        lo=0,
+        group="estimate",
+    ),
+    SpecField("seed", "int", "Seed of every random stream", lo=0, hi=2**63 - 1, group="estimate"),
+    SpecField(
+        "stages",
+        "choices",
+        "Stages to run (each needs the ones before it)",
+        choices=STAGES,
+        group="stages",
+    ),
+    SpecField(
+        "bounds_method",
+        "choice",
+        "How the uncertainty radii are computed",
+        choices=BOUNDS_METHODS,
+        group="bounds",
+    ),
+    SpecField(
+        "M", "number", "Assumption 1's bound M", "dimensionless", lo=0, lo_open=True, group="bounds"
+    ),
+    SpecField(
+        "delta",
+        "number",
+        "The bounds hold with probability 1 − δ",
+        lo=0,
+        hi=1,
+        lo_open=True,
+        hi_open=True,
+        group="bounds",
+    ),
+    SpecField(
+        "S",
+        "number",
+        "Bound on ‖θ_i‖ (empty: √2·M)",
+        lo=0,
+        lo_open=True,
+        optional=True,
+        only_with="self-normalized",
+        group="bounds",
+    ),
+    SpecField(
+        "lambda0",
+        "number",
+        "Prior of OLS: V0 = λ0·I",
+        lo=0,
+        lo_open=True,
+        only_with="self-normalized",
+        group="bounds",
+    ),
+    SpecField(
+        "boot_reps",
+        "int",
+        "Resampled datasets per cell",
+        "datasets",
+        lo=2,
+        hi=100_000,
+        only_with="bootstrap",
+        group="bounds",
+    ),
+    SpecField(
+        "boot_sigma_w",
+        "choice",
+        "Noise of the resamples: the residuals' or the cell's",
+        choices=BOOT_SIGMA_SOURCES,
+        only_with="bootstrap",
+        group="bounds",
+    ),
+    SpecField(
+        "margin",
+        "number",
+        "Design margin of the gain: g(L) ≤ 1 − margin",
+        lo=0,
+        hi=1,
+        hi_open=True,
+        group="gain",
+    ),
+    SpecField(
+        "reuse_gain", "bool", "Keep the previous N's gain while it is certified", group="gain"
+    ),
+    SpecField(
+        "mc_runs",
+        "int",
+        "Monte Carlo runs per cell (mc_runs · horizon ≤ 10⁸)",
+        "runs",
+        lo=2,
+        hi=1_000_000,
+        group="cost",
+    ),
+    SpecField(
+        "horizon",
+        "int",
+        "Horizon T of the exact and Monte Carlo cost",
+        "steps",
+        lo=1,
+        hi=100_000,
+        group="cost",
+    ),
+    SpecField(
+        "mc_reps",
+        "int",
+        "Monte Carlo cost only for rep < mc_reps (empty: every rep)",
+        "repetitions",
+        lo=0,
+        optional=True,
+        group="cost",
+    ),
+    SpecField(
+        "gamma_ref",
+        "number",
+        "Reference γ of the cost ratio",
+        "dimensionless",
+        lo=0,
+        lo_open=True,
+        group="cost",
+    ),
+    SpecField(
+        "sls.T_fir",
+        "int",
+        "FIR length of the SLS program",
+        "steps",
+        lo=2,
+        hi=MAX_T_FIR,
+        group="sls",
+    ),
+    SpecField(
+        "sls.C_bound",
+        "number",
+        "Bound on ‖Φ_w‖_H2 (empty: from the true system)",
+        lo=0,
+        lo_open=True,
+        optional=True,
+        group="sls",
+    ),
+)
+FIELDS_BY_NAME = {f.name: f for f in SPEC_FIELDS}
+REQUIRED_KEYS = ("systems", "sigma_w", "N")
+_OPTION_OF = {key: method for method, opts in BOUNDS_OPTIONS.items() for key in opts}
+_BASE = {"systems": ["paper-stable"], "sigma_w": [1.0], "N": [10]}
+
+
+def _top(path: str) -> str:
+    """The spec key an error path belongs to: ``systems[0].A`` -> ``systems``."""
+    return path.split("[", 1)[0].split(".", 1)[0]
+
+
+def spec_errors(obj) -> dict[str, str]:
+    """Every error of the spec ``obj`` as ``{field path: message}`` (empty when
+    ``parse_spec(obj)`` accepts it; otherwise it holds the parser's own error). A spec
+    on measured data (``dataset``, docs/measured.md#spec) gets its parser's first."""
+    if not isinstance(obj, dict):
+        return {"spec": "must be a JSON object"}
+    if "dataset" in obj:  # a job on measured data (its own parser): its first error
+        try:
+            parse_spec(obj)
+        except SpecError as exc:
+            return {exc.field or "spec": exc.message}
+        return {}
+    errors: dict[str, str] = {}
+    for key in sorted(set(obj) - SPEC_KEYS):
+        errors[key] = DATASET_ONLY_MESSAGE if key in DATASET_KEYS else "unknown field"
+    for key in REQUIRED_KEYS:
+        if key not in obj:
+            errors[key] = "is required"
+    for key in SPEC_KEYS & set(obj):
+        probe = {**_BASE, key: obj[key]}
+        if key in _OPTION_OF:
+            probe["bounds_method"] = _OPTION_OF[key]
+        if key == "N":  # T0 · N is checked on N (the parser names the N entry)
+            t0 = obj.get("T0", _DEFAULTS["T0"])
+            valid = isinstance(t0, int) and not isinstance(t0, bool) and 2 <= t0 <= MAX_T0
+            probe["T0"] = t0 if valid else 2
+        try:
+            parse_spec(probe)
+        except SpecError as exc:
+            errors.setdefault(exc.field or key, exc.message)
+    try:
+        parse_spec(obj)
+    except SpecError as exc:  # a rule between fields, or the first error found again
+        field = exc.field or "spec"
+        if not any(_top(p) == _top(field) for p in errors):
+            errors[field] = exc.message
+    return errors

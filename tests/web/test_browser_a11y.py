@@ -1,0 +1,177 @@
+"""Every page in a real chromium at 1400×900 and 390×844 (and dark at 1400): no
+horizontal scroll (scrollWidth <= innerWidth) and no axe-core violation of serious or
+critical impact (axe injected into each page as it is served, under its CSP); the
+header collapses behind a menu button on a phone; the theme toggle is remembered; a
+skip link, /favicon.ico, and a chart legend worked from the keyboard."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from pprint import pformat
+
+import pytest
+
+from tests.integration.stack import submit
+
+from . import test_browser as base
+from .a11y import overflow, violations
+from .browser import SCREENSHOTS
+from .test_browser import sign_in
+
+browser = base.browser
+only_the_server = base.only_the_server
+pytestmark = base.pytestmark
+
+SPEC = {
+    "systems": ["paper-stable"],
+    "sigma_w": [0.1, 1.0],
+    "N": [10, 20],
+    "gamma": [0.01, 0.1],
+    "reps": 2,
+    "seed": 3,
+}
+VIEWS = [(1400, 900, False), (390, 844, False), (1400, 900, True)]
+# SVROBS_SCREENSHOTS=docs/img: the pictures of docs/web.md, (page, view) -> file
+SHOTS = {
+    ("job", "390-light"): "dashboard-phone-job.png",
+    ("jobs, menu open", "390-light"): "dashboard-phone-menu.png",
+    ("compare", "1400-dark"): "dashboard-dark-compare.png",
+    ("job views", "1400-dark"): "dashboard-dark-views.png",
+    ("results", "1400-light"): "dashboard-results.png",
+    ("submit", "1400-light"): "dashboard-submit.png",
+}
+
+
+@pytest.fixture(scope="module")
+def site(stack) -> dict:
+    """Two finished jobs, a schedule and a share link of the first."""
+    with stack.client() as api:
+        ids = [submit(api, {**SPEC, "seed": s}, name=f"a11y seed {s}")["id"] for s in (3, 4)]
+        for i in ids:
+            stack.wait_job(api, i)
+        r = api.post(
+            "/schedules",
+            json={"name": "a11y nightly", "cron": "0 2 * * *", "spec_template": SPEC},
+        )
+        assert r.status_code == 201, r.text
+        share = api.post(f"/jobs/{ids[0]}/shares", json={}).json()
+    return {"jobs": ids, "schedule": r.json()["id"], "share": share["url"]}
+
+
+def pages(site: dict) -> list[tuple[str, str, str | None]]:
+    """(name, path, a selector to wait for) of every signed-in page."""
+    a, b = site["jobs"]
+    return [
+        ("jobs", "/jobs", "#jobs-table"),
+        ("job", f"/jobs/{a}", "#charts-card[data-state=ready] canvas"),
+        ("results", f"/results?job={a}&estimator=svr&sort=-rmse_A,N", "#results-grid"),
+        ("compare", f"/compare?jobs={a}&jobs={b}&metric=rmse_A", "#compare-card[data-ready=yes]"),
+        ("submit", "/jobs/new", "#submit-form"),
+        ("schedules", "/schedules", "#schedules-table"),
+        ("schedule", f"/schedules/{site['schedule']}", "#schedule-runs, .empty"),
+        ("share", f"/jobs/{a}/share", "#share-links"),
+        ("report", f"/jobs/{a}/report", "#back-link"),
+        ("error", "/jobs/2147483000", "h1"),
+    ]
+
+
+def check(page, name: str, problems: list) -> None:
+    theme = page.evaluate("window.svrobsTheme ? window.svrobsTheme() : 'light'")
+    view = f"{page.viewport_size['width']}-{theme}"
+    if SCREENSHOTS and (name, view) in SHOTS:
+        full = name not in ("jobs, menu open", "submit")
+        page.screenshot(path=str(Path(SCREENSHOTS) / SHOTS[name, view]), full_page=full)
+    found = violations(page)
+    if found:
+        problems.append((name, "axe", found))
+    box = overflow(page)
+    if box["scroll"] > box["width"]:
+        problems.append((name, "overflow", box))
+
+
+@pytest.mark.parametrize(("width", "height", "dark"), VIEWS)
+def test_every_page_has_no_serious_axe_violation_and_no_sideways_scroll(
+    browser, stack, site, width, height, dark
+):
+    problems: list = []
+    guest = browser.page(stack.base_url, width=width, height=height, dark=dark)
+    guest.goto("/login")
+    check(guest, "sign-in", problems)
+    guest.goto(site["share"])
+    guest.wait_for_selector("#charts-card[data-state=ready] canvas")
+    assert guest.locator("header nav a[href='/jobs']").count() == 0  # no app navigation
+    check(guest, "shared", problems)
+    guest.click("#shared-report")
+    guest.wait_for_selector("#back-link")
+    check(guest, "shared report", problems)
+
+    page = browser.page(stack.base_url, width=width, height=height, dark=dark)
+    sign_in(page, stack.key)
+    for name, path, ready in pages(site):
+        response = page.goto(path)
+        assert response.status == (404 if name == "error" else 200), name
+        page.wait_for_selector(ready)
+        check(page, name, problems)
+        if name == "job":  # and its scatter and certificate views, open
+            page.click("#scatter-view summary")
+            page.click("#certificates-view summary")
+            page.wait_for_selector("#views-card[data-scatter=ready][data-certificates=ready]")
+            check(page, "job views", problems)
+    if width < 760:  # the header folds behind its menu button
+        page.goto("/jobs")
+        assert page.locator("#menu-toggle").is_visible()
+        assert not page.locator("header nav a[href='/compare']").is_visible()
+        page.click("#menu-toggle")
+        assert page.get_attribute("#menu-toggle", "aria-expanded") == "true"
+        assert page.locator("header nav a[href='/compare']").is_visible()
+        assert page.locator("form[action='/logout'] button").is_visible()
+        check(page, "jobs, menu open", problems)
+    else:
+        page.goto("/jobs")
+        assert not page.locator("#menu-toggle").is_visible()
+        assert page.locator("header nav a[href='/compare']").is_visible()
+    assert not problems, pformat(problems, width=120)
+
+
+def test_skip_link_theme_toggle_favicon_and_keyboard_legend(browser, stack, site):
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    icon = page.request.get("/favicon.ico")
+    assert icon.status == 200 and icon.headers["content-type"] == "image/x-icon"
+    assert icon.body()[:4] == b"\x00\x00\x01\x00"  # an ICO header
+    page.goto(f"/jobs/{site['jobs'][0]}")
+    page.wait_for_selector("#charts-card[data-state=ready] canvas")
+
+    page.keyboard.press("Tab")  # the first stop is the skip link, shown when focused
+    assert page.evaluate("document.activeElement.className") == "skip-link"
+    assert page.locator(".skip-link").is_visible()
+    page.keyboard.press("Enter")
+    assert page.evaluate("document.activeElement.id") == "main"
+
+    # the legend: a button per line, toggled with the keyboard, the band with its line
+    first = page.locator("#charts figure").first.locator(".legend button").first
+    first.focus()
+    page.keyboard.press("Space")
+    assert first.get_attribute("aria-pressed") == "false"
+    hidden = page.evaluate(
+        """() => { const c = window.svrobsCharts.charts[0].chart;
+        return c.data.datasets.map((d, i) => [d.svrobs.series, c.isDatasetVisible(i)]); }"""
+    )
+    assert {v for s, v in hidden if s == 0} == {False}
+    assert {v for s, v in hidden if s != 0} == {True}
+    page.keyboard.press("Enter")
+    assert first.get_attribute("aria-pressed") == "true"
+
+    # the theme: auto (light here) -> dark, remembered across a reload
+    assert page.evaluate("document.documentElement.dataset.theme || 'auto'") == "auto"
+    bg = page.evaluate("getComputedStyle(document.documentElement).backgroundColor")
+    page.click("#theme-toggle")
+    assert page.evaluate("document.documentElement.dataset.theme") == "dark"
+    page.reload()
+    assert page.evaluate("document.documentElement.dataset.theme") == "dark"
+    assert page.evaluate("getComputedStyle(document.documentElement).backgroundColor") != bg
+    assert re.search(r"dark", page.inner_text("#theme-toggle"))
+    page.click("#theme-toggle")  # dark -> light
+    page.click("#theme-toggle")  # light -> auto
+    assert page.evaluate("localStorage.getItem('svrobs-theme')") is None
