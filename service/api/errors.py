@@ -23,6 +23,7 @@ from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.api.schemas import ErrorOut
+from service.db.datasets import DatasetInUse
 from service.db.errors import IdempotencyConflict, QuotaExceeded
 from service.db.job_delete import JobActive
 from svrobs_core.errors import SpecError
@@ -194,6 +195,7 @@ HANDLERS = (
     (QuotaExceeded, _quota_exceeded),
     (IdempotencyConflict, _idempotency_conflict),
     (JobActive, _job_active),
+    (DatasetInUse, _job_active),  # a 409 with its message, as for an active job
     (RequestValidationError, _validation_error),
     (StarletteHTTPException, _http_error),
     (OperationalError, _db_down),

@@ -32,6 +32,8 @@ class BodyLimitMiddleware:
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS", "DELETE"):
             return await self.app(scope, receive, send)
+        if scope["path"] == API_PREFIX + "/datasets":  # streamed, under its own limit
+            return await self.app(scope, receive, send)
         too_big = error_response(
             413, f"request body over {self.max_bytes} bytes (SVROBS_MAX_BODY_BYTES)"
         )
@@ -112,11 +114,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
 
     from service.api.routes import health, jobs, presets, reports, results, schedules, shares
+    from service.api.routes.datasets import router as datasets_router
 
     query_rules = [Depends(clean_query_text), Depends(reject_unknown_query)]
     app.include_router(health.router, dependencies=query_rules[1:])
     for module in (jobs, results, presets, reports, schedules, shares):
         app.include_router(module.router, prefix=API_PREFIX, dependencies=query_rules)
+    app.include_router(datasets_router, prefix=API_PREFIX, dependencies=query_rules)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.MAX_BODY_BYTES)
     mount_web(app)  # the web UI's pages under /
     return app

@@ -19,6 +19,7 @@ from svrobs_core import workload
 from svrobs_core.planning import unit_cells
 from svrobs_core.spec import ExperimentSpec, parse_spec
 
+from .datasets import linked_dataset
 from .errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
 from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
 from .provenance import provenance
@@ -46,7 +47,9 @@ def create_job(
     work limits of :func:`admit`,
     :class:`QuotaExceeded` when the team has ``max_active_jobs`` queued or
     running jobs (default SVROBS_MAX_QUEUED_JOBS_PER_TEAM; pass 0 to skip),
-    :class:`IdempotencyConflict` when the key was used with another spec.
+    :class:`IdempotencyConflict` when the key was used with another spec,
+    :class:`~service.db.datasets.DatasetNotFound` when the spec's ``dataset`` is not
+    one of the team's (the job is linked to it: ``jobs.dataset_id``).
     With an ``idempotency_key`` already used by the team for the same spec,
     returns that job. Returns ``(job, created)``; ``created`` is False for that job.
     """
@@ -56,6 +59,7 @@ def create_job(
         parsed, max_cells=max_cells, max_cpu_seconds=max_cpu_seconds, max_unit_mb=max_unit_mb
     )
     tags = list(dict.fromkeys(str(t) for t in tags))
+    dataset_id = linked_dataset(session, team_id, spec)  # DatasetNotFound: 422 naming it
 
     if idempotency_key is not None:
         existing = _job_by_key(session, team_id, idempotency_key)
@@ -81,6 +85,7 @@ def create_job(
         tags=tags,
         spec=normalised,
         spec_summary=spec_summary(normalised, parsed.n_cells),
+        dataset_id=dataset_id,
         status="queued",
         progress_done=0,
         progress_total=len(units),
