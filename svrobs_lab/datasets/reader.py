@@ -89,15 +89,14 @@ def _accepted() -> str:
 
 
 def _text_start(head: bytes) -> str | None:
-    """``head`` decoded as UTF-8 (a character cut at the end is fine), or None when
-    it is not text (invalid UTF-8, or control bytes other than tab and line ends)."""
-    try:
-        text = codecs.getincrementaldecoder("utf-8")().decode(head, final=False)
-    except UnicodeDecodeError:
-        return None
+    """``head`` decoded as UTF-8, or None when it is not text: control bytes other
+    than tab and line ends, or more than 1 in 50 bytes that are not UTF-8 (a few such
+    bytes are text in another encoding: the CSV reader names the row and column)."""
+    text = codecs.getincrementaldecoder("utf-8")("surrogateescape").decode(head, final=False)
     if any(ord(c) < 32 and c not in "\t\r\n" for c in text):
         return None
-    return text
+    invalid = sum(1 for c in text if "\udc80" <= c <= "\udcff")
+    return None if invalid * 50 > max(len(text), 1) else text
 
 
 def check_options(fmt: str, options: DatasetOptions) -> None:

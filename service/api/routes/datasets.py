@@ -14,10 +14,10 @@ from functools import partial
 from typing import Annotated, Any, Literal
 
 import anyio
-from fastapi import APIRouter, File, Form, HTTPException, Path, Query, Request, Response
+from fastapi import APIRouter, File, Form, HTTPException, Path, Query, Request, Response, UploadFile
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel
-from starlette.datastructures import UploadFile
+from starlette.datastructures import UploadFile as FormFile
 from starlette.formparsers import MultiPartException, MultiPartParser
 
 from service.api.deps import (
@@ -141,11 +141,11 @@ async def _form(request: Request, limit: int):
         ) from None
 
 
-def _fields(form) -> tuple[UploadFile, dict[str, str]]:
+def _fields(form) -> tuple[FormFile, dict[str, str]]:
     upload, fields = None, {}
     for key, value in form.multi_items():
         if key == "file":
-            if not isinstance(value, UploadFile):
+            if not isinstance(value, FormFile):
                 raise FieldHTTPException(422, "must be a file, not text", "file")
             upload = value
         elif not isinstance(value, str):
@@ -159,7 +159,7 @@ def _fields(form) -> tuple[UploadFile, dict[str, str]]:
     return upload, fields
 
 
-def _store(session, caller, upload: UploadFile, fields: dict, limit: int) -> dict:
+def _store(session, caller, upload: FormFile, fields: dict, limit: int) -> dict:
     row = create_dataset(
         session,
         team_id=caller.team_id,
