@@ -1,7 +1,8 @@
 """The svrobs REST client: one :class:`httpx.Client` per :class:`Client`.
 
 Covers the routes of ``/api/v1`` (README, "API"): jobs, results, summaries,
-comparisons, reports, share links, presets and schedules. HTTP errors are raised as the typed
+comparisons, reports, share links, presets and schedules; datasets, model exports
+and system files in :mod:`svrobs_client.datasets`. HTTP errors are raised as the typed
 exceptions of :mod:`svrobs_client.errors`; results come as pandas DataFrames (the
 ``dataframe`` extra) or as plain dicts.
 """
@@ -22,6 +23,7 @@ import httpx
 
 from . import frames
 from .config import resolve
+from .datasets import DatasetCalls
 from .errors import ConnectionFailed, Unavailable, WaitTimeout, error_from_response
 from .models import Job, JobPage, Report, Schedule, ScheduleRun, Share
 from .params import RESULT_FILTERS, results_params
@@ -79,7 +81,7 @@ def _write_atomic(path: Path, write) -> None:
         raise
 
 
-class Client:
+class Client(DatasetCalls):
     """A client of one svrobs server.
 
     ``url`` and ``key`` default to ``SVROBS_URL`` / ``SVROBS_API_KEY``, then to the
