@@ -79,14 +79,12 @@ def main() -> None:
             cells[var][0, i] = a
     scipy.io.savemat(HERE / "rollouts_v5.mat", {**cells, "sample_time": SAMPLE_TIME})
     write_mat73(HERE / "rollouts_v73.mat", {**per_rollout, "sample_time": [[SAMPLE_TIME]]})
-    body = {
-        "sample_time": SAMPLE_TIME,
-        "state_names": ["x1", "x2"],
-        "input_names": ["u1"],
-        "X": [x.tolist() for x in X],
-        "U": [u.tolist() for u in U],
-    }
-    (HERE / "rollouts.json").write_text(json.dumps(body, indent=1) + "\n")
+    head = {"sample_time": SAMPLE_TIME, "state_names": ["x1", "x2"], "input_names": ["u1"]}
+    lines = [json.dumps(head)[:-1] + ","]  # one rollout a line
+    for key, arrays in (("X", X), ("U", U)):
+        rows = ",\n  ".join(json.dumps(a.tolist()) for a in arrays)
+        lines.append(f' "{key}": [\n  {rows}\n ]' + ("," if key == "X" else ""))
+    (HERE / "rollouts.json").write_text("\n".join(lines) + "\n}\n")
     np.savez(HERE / "system.npz", A=A, B=B, C=C)
 
 
