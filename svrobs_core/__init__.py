@@ -11,6 +11,7 @@ Modules, by stage of a run: spec, systems -> planning (work units) ->
 runner (units -> records) -> pipeline (the stage chain: estimators, bounds,
 kalman, gains, cost, cost_mc, cost_bound, sls) -> unit_result, notes,
 records; parallel and threads for execution; errors for the typed errors.
+Jobs on measured rollouts: measured (docs/measured.md).
 """
 
 from __future__ import annotations
@@ -24,6 +25,9 @@ _EXPORTS = {
     "DimensionError": "errors",
     "SpecError": "errors",
     "check_matrix": "errors",
+    "MeasuredData": "measured",
+    "check_against_data": "measured",
+    "run_measured_unit": "measured",
     "open_pool": "parallel",
     "plan_units": "planning",
     "RECORD_FIELDS": "records",
@@ -42,17 +46,20 @@ _EXPORTS = {
 __all__ = [
     "DimensionError",
     "ExperimentSpec",
+    "MeasuredData",
     "PRESETS",
     "RECORD_FIELDS",
     "SpecError",
     "SystemSpec",
     "UnitResult",
     "__version__",
+    "check_against_data",
     "check_matrix",
     "open_pool",
     "parse_spec",
     "plan_units",
     "resolve_system",
+    "run_measured_unit",
     "run_spec",
     "run_unit",
     "run_unit_result",
@@ -61,6 +68,7 @@ __all__ = [
 
 if TYPE_CHECKING:  # the same names, for linters and type checkers
     from .errors import DimensionError, SpecError, check_matrix
+    from .measured import MeasuredData, check_against_data, run_measured_unit
     from .parallel import open_pool
     from .planning import plan_units
     from .records import RECORD_FIELDS, summarize

@@ -41,6 +41,13 @@ class Notes:
         )
         return new
 
+    def embed(self, other: Notes, rows) -> None:
+        """Append the entries of ``other``, the notes of the rows ``rows`` of this grid."""
+        for text, m in other._entries:
+            full = np.zeros(self.shape, dtype=bool)
+            full[rows] = m
+            self._entries.append((text, full))
+
     def add_reasons(self, reasons, prefix: str | None):
         """One entry per distinct reason of an object array (or a scalar)
         broadcasting to the grid; empty / None reasons are skipped."""

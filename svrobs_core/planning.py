@@ -38,6 +38,8 @@ def plan_units(
     units = _plan(spec, max_cells=max_cells, target_cells=target_cells)
     if max_unit_bytes is None:
         return units
+    if spec.measured is not None:
+        raise ValueError("a dataset job's memory cap: svrobs_core.measured.plan_measured_units")
     return [v for u in units for v in _fit_memory(spec, u, max_unit_bytes)]
 
 
@@ -73,21 +75,27 @@ def _plan(spec: ExperimentSpec, *, max_cells: int, target_cells: int) -> list[di
             group.append(N)
         n_groups.append(group)
     units = []
-    for si in range(len(spec.systems)):
-        for wi in range(len(spec.sigma_w)):
-            for Ns in n_groups:
-                per_rep = spec.cells_per_rep * len(Ns)
-                chunk = max(1, min(spec.reps, max_cells // per_rep))
-                for r0 in range(0, spec.reps, chunk):
-                    units.append(
-                        {
-                            "system": si,
-                            "sigma_w": wi,
-                            "N": list(Ns),
-                            "reps": [r0, min(spec.reps, r0 + chunk)],
-                        }
-                    )
+    for si, wi in _pairs(spec):
+        for Ns in n_groups:
+            per_rep = spec.cells_per_rep * len(Ns)
+            chunk = max(1, min(spec.reps, max_cells // per_rep))
+            for r0 in range(0, spec.reps, chunk):
+                units.append(
+                    {
+                        "system": si,
+                        "sigma_w": wi,
+                        "N": list(Ns),
+                        "reps": [r0, min(spec.reps, r0 + chunk)],
+                    }
+                )
     return units
+
+
+def _pairs(spec: ExperimentSpec) -> list[tuple[int, int]]:
+    """The (system, sigma_w) indices of the grid; a dataset job has the one pair (0, 0)."""
+    if spec.measured is not None:
+        return [(0, 0)]
+    return [(si, wi) for si in range(len(spec.systems)) for wi in range(len(spec.sigma_w))]
 
 
 def unit_cells(spec: ExperimentSpec, unit: dict) -> int:

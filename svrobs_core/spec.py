@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 from .errors import SpecError
 from .systems import MAX_DIM, SystemSpec, resolve_system
@@ -61,6 +62,10 @@ SPEC_KEYS = {
     "boot_reps",
     "boot_sigma_w",
 }
+# The fields of a job on measured data that a simulated job does not have
+# (docs/measured.md#spec).
+DATASET_KEYS = {"dataset", "holdout", "C", "sigma_v", "sigma_u", "state"}
+DATASET_ONLY_MESSAGE = 'is only used with "dataset" (a job on measured data)'
 MAX_GRID = 100_000  # any single list longer than this is surely a mistake
 # Hard caps on the sizes one cell may ask for (issue 10): beyond them a single
 # cell needs more memory or time than any worker has; the cost model
@@ -106,6 +111,14 @@ class ExperimentSpec:
     boot_reps: int = 100
     boot_sigma_w: str = "estimate"  # bootstrap noise level: residual estimate or the spec's
     raw_systems: tuple = field(default=(), compare=False)
+    # A job on measured data: its options (svrobs_core.measured.spec.DatasetOptions);
+    # then systems and sigma_w are empty (docs/measured.md#spec).
+    measured: Any = None
+
+    @property
+    def dataset(self) -> int | None:
+        """The dataset id of a job on measured data, else None."""
+        return None if self.measured is None else self.measured.dataset
 
     def has(self, stage: str) -> bool:
         return stage in self.stages
@@ -117,9 +130,12 @@ class ExperimentSpec:
 
     @property
     def n_cells(self) -> int:
-        return len(self.systems) * len(self.sigma_w) * len(self.N) * self.reps * self.cells_per_rep
+        pairs = 1 if self.measured is not None else len(self.systems) * len(self.sigma_w)
+        return pairs * len(self.N) * self.reps * self.cells_per_rep
 
     def to_dict(self) -> dict:
+        if self.measured is not None:
+            return self.measured.spec_dict(self)
         return {
             "systems": [s if isinstance(s, str) else s for s in self.raw_systems],
             "sigma_w": list(self.sigma_w),
@@ -217,6 +233,16 @@ def _n_grid(value) -> tuple[int, ...]:
     return _unique(out, "N")
 
 
+def _object(value, name: str, keys: tuple[str, ...]) -> dict:
+    """A JSON object whose fields are among ``keys`` (an unknown one is named)."""
+    if not isinstance(value, dict):
+        raise SpecError(name, f"must be an object {{{', '.join(keys)}}}")
+    unknown = set(value) - set(keys)
+    if unknown:
+        raise SpecError(f"{name}.{sorted(unknown)[0]}", "unknown field")
+    return value
+
+
 def _unique(values: tuple, name: str) -> tuple:
     if len(set(values)) != len(values):
         raise SpecError(name, "has duplicate entries")
@@ -224,12 +250,20 @@ def _unique(values: tuple, name: str) -> tuple:
 
 
 def parse_spec(obj) -> ExperimentSpec:
-    """Validate a section 10 spec (a dict from JSON) and fill the defaults."""
+    """Validate a section 10 spec (a dict from JSON) and fill the defaults.
+
+    A spec with ``"dataset"`` instead of ``systems`` is a job on measured data
+    (:func:`svrobs_core.measured.spec.parse_dataset_spec`, docs/measured.md#spec)."""
     if not isinstance(obj, dict):
         raise SpecError("spec", "must be a JSON object")
+    if "dataset" in obj:
+        from .measured.spec import parse_dataset_spec
+
+        return parse_dataset_spec(obj)
     unknown = set(obj) - SPEC_KEYS
     if unknown:
-        raise SpecError(sorted(unknown)[0], "unknown field")
+        key = sorted(unknown)[0]
+        raise SpecError(key, DATASET_ONLY_MESSAGE if key in DATASET_KEYS else "unknown field")
     for key in ("systems", "sigma_w", "N"):
         if key not in obj:
             raise SpecError(key, "is required")
@@ -248,6 +282,39 @@ def parse_spec(obj) -> ExperimentSpec:
         i = "N" if isinstance(obj["N"], dict) else f"N[{list(obj['N']).index(max(N))}]"
         raise SpecError(i, f"T0 * N = {T0 * max(N)} samples per repetition is over {MAX_SAMPLES}")
 
+    shared = shared_options(obj)
+    mc_reps = obj.get("mc_reps")
+    reuse = obj.get("reuse_gain", False)
+    if not isinstance(reuse, bool):
+        raise SpecError("reuse_gain", "must be true or false")
+    mc_runs = _int(obj.get("mc_runs", 1000), "mc_runs", lo=2, hi=1_000_000)
+    if "cost" in shared["stages"] and mc_runs * shared["horizon"] > MAX_MC_STEPS:
+        raise SpecError(
+            "mc_runs",
+            f"mc_runs * horizon = {mc_runs * shared['horizon']} is over {MAX_MC_STEPS} per cell",
+        )
+    bounds = _bounds_options(obj)
+
+    return ExperimentSpec(
+        systems=systems,
+        sigma_w=sigma_w,
+        N=N,
+        T0=T0,
+        data=_choice(obj.get("data", "all"), "data", ("all", "final")),
+        mc_runs=mc_runs,
+        mc_reps=None if mc_reps is None else _int(mc_reps, "mc_reps", lo=0),
+        reuse_gain=reuse,
+        x0_std=_float(obj.get("x0_std", 0.0), "x0_std", nonneg=True),
+        **shared,
+        **bounds,
+        raw_systems=tuple(raw_systems),
+    )
+
+
+def shared_options(obj: dict) -> dict:
+    """The options a simulated and a dataset job share (estimators, gamma, stages,
+    sls, delta, margin, seed, horizon, loss_scale, reps, M, gamma_ref), checked
+    and with their defaults: ExperimentSpec keyword arguments."""
     estimators = tuple(
         _choice(e, f"estimators[{i}]", ESTIMATORS)
         for i, e in enumerate(_list(obj.get("estimators", ["ols", "svr"]), "estimators"))
@@ -270,59 +337,30 @@ def parse_spec(obj) -> ExperimentSpec:
                 raise SpecError("stages", f"stage {s!r} needs stage {need!r}")
     stages = tuple(s for s in STAGES if s in stages)
 
-    sls = obj.get("sls") or {}
-    if not isinstance(sls, dict):
-        raise SpecError("sls", "must be an object {T_fir, C_bound}")
-    unknown = set(sls) - {"T_fir", "C_bound"}
-    if unknown:
-        raise SpecError(f"sls.{sorted(unknown)[0]}", "unknown field")
+    sls = _object(obj.get("sls") or {}, "sls", ("T_fir", "C_bound"))
     c_bound = sls.get("C_bound")
 
-    mc_reps = obj.get("mc_reps")
-    reuse = obj.get("reuse_gain", False)
-    if not isinstance(reuse, bool):
-        raise SpecError("reuse_gain", "must be true or false")
     delta = _float(obj.get("delta", 0.01), "delta", positive=True)
     if delta >= 1:
         raise SpecError("delta", "must be < 1")
     margin = _float(obj.get("margin", 0.01), "margin", nonneg=True)
     if margin >= 1:
         raise SpecError("margin", "must be < 1")
-    seed = _int(obj.get("seed", 0), "seed", lo=0, hi=2**63 - 1)
-    mc_runs = _int(obj.get("mc_runs", 1000), "mc_runs", lo=2, hi=1_000_000)
-    horizon = _int(obj.get("horizon", 200), "horizon", lo=1, hi=100_000)
-    if "cost" in stages and mc_runs * horizon > MAX_MC_STEPS:
-        raise SpecError(
-            "mc_runs", f"mc_runs * horizon = {mc_runs * horizon} is over {MAX_MC_STEPS} per cell"
-        )
-    bounds = _bounds_options(obj)
-
-    return ExperimentSpec(
-        systems=systems,
-        sigma_w=sigma_w,
-        N=N,
-        T0=T0,
-        gamma=gamma,
-        estimators=estimators,
-        loss_scale=_choice(obj.get("loss_scale", "sum"), "loss_scale", ("sum", "mean")),
-        data=_choice(obj.get("data", "all"), "data", ("all", "final")),
-        reps=_int(obj.get("reps", 45), "reps", lo=1, hi=MAX_REPS),
-        M=_float(obj.get("M", 1.1), "M", positive=True),
-        delta=delta,
-        stages=stages,
-        mc_runs=mc_runs,
-        horizon=horizon,
-        mc_reps=None if mc_reps is None else _int(mc_reps, "mc_reps", lo=0),
-        margin=margin,
-        reuse_gain=reuse,
-        gamma_ref=_float(obj.get("gamma_ref", 0.1), "gamma_ref", positive=True),
-        sls_T_fir=_int(sls.get("T_fir", 30), "sls.T_fir", lo=2, hi=MAX_T_FIR),
-        sls_C_bound=None if c_bound is None else _float(c_bound, "sls.C_bound", positive=True),
-        seed=seed,
-        x0_std=_float(obj.get("x0_std", 0.0), "x0_std", nonneg=True),
-        **bounds,
-        raw_systems=tuple(raw_systems),
-    )
+    return {
+        "estimators": estimators,
+        "gamma": gamma,
+        "stages": stages,
+        "delta": delta,
+        "margin": margin,
+        "seed": _int(obj.get("seed", 0), "seed", lo=0, hi=2**63 - 1),
+        "horizon": _int(obj.get("horizon", 200), "horizon", lo=1, hi=100_000),
+        "loss_scale": _choice(obj.get("loss_scale", "sum"), "loss_scale", ("sum", "mean")),
+        "reps": _int(obj.get("reps", 45), "reps", lo=1, hi=MAX_REPS),
+        "M": _float(obj.get("M", 1.1), "M", positive=True),
+        "gamma_ref": _float(obj.get("gamma_ref", 0.1), "gamma_ref", positive=True),
+        "sls_T_fir": _int(sls.get("T_fir", 30), "sls.T_fir", lo=2, hi=MAX_T_FIR),
+        "sls_C_bound": None if c_bound is None else _float(c_bound, "sls.C_bound", positive=True),
+    }
 
 
 def _bounds_options(obj: dict) -> dict:

@@ -54,6 +54,11 @@ def sound_bounds(c, *, G, Z, F, N: int, N0: int) -> SoundBounds:
     A_hat, B_hat, notes); G the Gram matrices (R, d, d); Z, F the data (only
     needed for the bootstrap's residual noise estimate).
     """
+    return bounds_from_box(c, sound_box(c, G=G, Z=Z, F=F, N=N, N0=N0))
+
+
+def sound_box(c, *, G, Z, F, N: int, N0: int) -> _unc.BoxResult:
+    """The box of the spec's ``bounds_method`` for one dataset's cells (:func:`sound_bounds`)."""
     spec, system = c.spec, c.system
     theta = np.concatenate([c.A_hat, c.B_hat], axis=-1)
     R, E = theta.shape[:2]
@@ -92,18 +97,29 @@ def sound_bounds(c, *, G, Z, F, N: int, N0: int) -> SoundBounds:
             x0_std=spec.x0_std,
             loss_scale=spec.loss_scale,
         )
+    return box
+
+
+def bounds_from_box(c, box: _unc.BoxResult) -> SoundBounds:
+    """Record fields and BoundsResult of the cells of ``c`` on ``box`` (:func:`sound_bounds`).
+
+    Without a true system (``c.system.A`` None: measured data) the coverage
+    fields are left out."""
+    spec, system = c.spec, c.system
+    R, E = c.A_hat.shape[:2]
     c.notes.add_reasons(box.reason, "bounds")
     c.notes.add_reasons(box.notes, "bounds")
     c.notes.add(True, PAPER_ONLY_NOTE)
     rho = _unc.rho_upper_bound(c.A_hat, box.R_A)
     with np.errstate(invalid="ignore"):  # null, not false, where rho or eps is undefined
         certified = nullable(rho < 1.0, np.isfinite(rho) & np.isfinite(box.eps_A))
-    cov_A = _coverage(system.A, c.A_hat, box.R_A)
-    cov_B = _coverage(system.B, c.B_hat, box.R_B)
+    truth = system.A is not None
+    cov_A = _coverage(system.A, c.A_hat, box.R_A) if truth else None
+    cov_B = _coverage(system.B, c.B_hat, box.R_B) if truth else None
     fields = {
         "bounds_method": np.broadcast_to(np.array(spec.bounds_method, dtype=object), (R, E)),
         "r_A": box.r_A,
-        "r_B": box.r_B,
+        "r_B": box.r_B if box.R_B.shape[-1] else np.full((R, E), np.nan),  # m = 0: no B
         "radii_A": box.R_A,
         "radii_B": box.R_B,
         "eps_A": box.eps_A,

@@ -11,6 +11,7 @@ so a large run never has to go through one dict per cell.
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import repeat
 from typing import Any
@@ -87,15 +88,24 @@ def _json_strings(arr, RE: int) -> list[str]:
 
 @dataclass
 class Dataset:
-    """One N of a unit: the fields over (reps, E) and their notes."""
+    """One N of a unit: the fields over (reps, E) and their notes.
+
+    ``N0``: the sample count, or one per repetition (measured rollouts of
+    different lengths, docs/measured.md#data-model)."""
 
     N: int
-    N0: int
+    N0: int | Sequence[int]
     fields: dict[str, np.ndarray]
     note_entries: Notes
 
     def __post_init__(self):
         self.notes = self.note_entries.strings()  # object (R, E): str or None
+
+    def n0_column(self, E: int) -> list[int] | None:
+        """N0 of every record (repetition-major) when it varies by repetition, else None."""
+        if np.ndim(self.N0) == 0:
+            return None
+        return [int(v) for v in self.N0 for _ in range(E)]
 
 
 class UnitResult:
@@ -181,7 +191,7 @@ class UnitResult:
             "system": repeat(self.system, RE),
             "sigma_w": repeat(self.sigma_w, RE),
             "N": repeat(ds.N, RE),
-            "N0": repeat(ds.N0, RE),
+            "N0": ds.n0_column(E) or repeat(ds.N0, RE),
             "estimator": self.axis.names * R,
             "gamma": self.axis.gammas * R,
             "rep": [r for r in self.reps for _ in range(E)],
@@ -263,7 +273,6 @@ class UnitResult:
                 "system": json.dumps(self.system),
                 "sigma_w": repr(float(self.sigma_w)),
                 "N": str(int(ds.N)),
-                "N0": str(int(ds.N0)),
             }
             var: dict[str, list[str]] = {
                 "estimator": [json.dumps(x) for x in self.axis.names] * R,
@@ -271,6 +280,11 @@ class UnitResult:
                 "rep": [str(r) for r in self.reps for _ in range(E)],
                 "seed_key": self._seed_key_strings(ds),
             }
+            n0 = ds.n0_column(E)
+            if n0 is None:
+                const["N0"] = str(int(ds.N0))
+            else:
+                var["N0"] = [str(v) for v in n0]
             for f in CELL_FIELDS:
                 v = ds.fields.get(f)
                 if v is None:
@@ -314,7 +328,7 @@ class UnitResult:
             keys = {
                 "sigma_w": np.full(RE, float(self.sigma_w)),
                 "N": np.full(RE, float(ds.N)),
-                "N0": np.full(RE, float(ds.N0)),
+                "N0": np.asarray(ds.n0_column(E) or np.full(RE, ds.N0), dtype=float),
                 "gamma": np.tile(gam, R),
                 "rep": np.repeat(np.asarray(self.reps, dtype=float), E),
             }

@@ -1,12 +1,22 @@
 """Suite-wide: under pytest-xdist (``make test`` runs ``-n 2``) each worker gets a
 Redis database number of its own, so that two real-process stacks never flush or
 consume each other's queues. PostgreSQL needs nothing: every fixture creates a
-private database or schema named after its process."""
+private database or schema named after its process.
+
+Property tests are derandomized and keep no example database, so a run's outcome
+depends on the code alone, never on which examples a previous run happened to find.
+Set ``HYPOTHESIS_PROFILE=explore`` to draw fresh examples while hunting for bugs."""
 
 from __future__ import annotations
 
 import os
 from urllib.parse import urlsplit, urlunsplit
+
+from hypothesis import settings
+
+settings.register_profile("repeatable", derandomize=True, database=None)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
 
 
 def _worker_redis_url(url: str, worker: str) -> str:

@@ -1,6 +1,11 @@
-"""The preset paper-section-6 equals SPEC section 9; the published Table 2 is transcribed right."""
+"""The preset paper-section-6 is the paper's Section 6 (docs/science.md#91-the-preset-paper-section-6),
+and svrobs_core.paper's published numbers are the paper's.
 
-import re
+The paper's numbers are in paper_facts.json beside this file, typed in from the paper
+(cited by title and authors in docs/science.md) with the table, figure or section each
+comes from; nothing is read from outside the repository."""
+
+import json
 from pathlib import Path
 
 import numpy as np
@@ -16,9 +21,14 @@ from svrobs_core.paper import (
 )
 
 S, U = "paper-stable", "paper-unstable"
-GAMMAS = (0.005, 0.01, 0.05, 0.1)
-N_GRID = tuple(range(10, 451, 10))
-PAPER_TEX = Path("/work/shared/seed/svr-observer-paper.tex")
+FACTS = json.loads((Path(__file__).with_name("paper_facts.json")).read_text())
+SYSTEMS, SETUP = FACTS["systems"], FACTS["setup"]
+GAMMAS = tuple(SETUP["gamma"])
+SIGMA_W = tuple(float(s) for s in SYSTEMS["sigma_w"])
+ROLLOUTS = SETUP["rollouts"]
+# the paper varies the number of rollouts "from 10 to 450"; the preset steps by 10
+N_GRID = tuple(range(ROLLOUTS["from"], ROLLOUTS["to"] + 1, 10))
+PAPER_C = np.eye(3) if SYSTEMS["C"] == "identity" else np.array(SYSTEMS["C"])
 
 
 @pytest.fixture(scope="module")
@@ -47,40 +57,41 @@ def test_audit_experiments_are_e2_with_another_bounds_method(full):
     }
 
 
-def test_common_grid_is_section_9(full):
+def test_common_grid_is_the_papers(full):
+    lengths = FACTS["section_6_1"]["sample_length"]
     for spec in full.values():
-        assert spec.T0 == 11
+        assert spec.T0 == SETUP["rollout_length_T0"]
         if spec.bounds_method != "bootstrap":  # A2 re-simulates every cell: 5 N values
             assert spec.N == N_GRID and len(spec.N) == 45
-        assert spec.M == 1.1 and spec.delta == 0.01
+        assert spec.M == SETUP["M"] and spec.delta == SETUP["delta"]
         assert spec.loss_scale == "sum" and spec.data == "all" and spec.seed == 0
         # sample length N0 = (T0 - 1) N runs over the paper's 100 .. 4500
-        assert (spec.T0 - 1) * spec.N[0] == 100 and (spec.T0 - 1) * spec.N[-1] == 4500
+        assert (spec.T0 - 1) * spec.N[0] == lengths["from"]
+        assert (spec.T0 - 1) * spec.N[-1] == lengths["to"]
         for system in spec.systems:
-            assert system.sigma_u == 1.0 and system.sigma_v == 0.1
-            np.testing.assert_array_equal(system.C, np.eye(3))
-            np.testing.assert_array_equal(system.B, [[1.0], [1.5], [2.0]])
-            diag = 0.9 if system.name == S else 1.01
-            np.testing.assert_array_equal(
-                system.A, [[diag, 0.01, 0], [0.01, diag, 0.01], [0, 0.01, diag]]
-            )
+            # sigma_v = 0.1: the paper gives none (docs/science.md#91-the-preset-paper-section-6)
+            assert system.sigma_u == SYSTEMS["sigma_u"] and system.sigma_v == 0.1
+            np.testing.assert_array_equal(system.C, PAPER_C)
+            paper = SYSTEMS["stable" if system.name == S else "unstable"]
+            np.testing.assert_array_equal(system.B, paper["B"])
+            np.testing.assert_array_equal(system.A, paper["A"])
 
 
 def test_e1_table2(full):
     e1 = full["E1"]
     assert names(e1) == (S, U)
-    assert e1.sigma_w == (0.1, 1.0, 10.0)
-    assert e1.gamma == (0.05,)
+    assert e1.sigma_w == SIGMA_W
+    assert e1.gamma == (FACTS["section_6_1"]["gamma"],)
     assert e1.estimators == ("ols", "svr")
-    assert e1.reps == 45
+    assert e1.reps == FACTS["section_6_1"]["repetitions"]
     assert e1.stages == ("estimate", "bounds")
 
 
 def test_e2_figs_2_3(full):
     e2 = full["E2"]
-    assert names(e2) == (S, U) and e2.sigma_w == (0.1, 1.0, 10.0)
+    assert names(e2) == (S, U) and e2.sigma_w == SIGMA_W
     assert e2.gamma == GAMMAS
-    assert e2.reps == 45 and e2.stages == ("estimate", "bounds")
+    assert e2.reps == FACTS["section_6_1"]["repetitions"] and e2.stages == ("estimate", "bounds")
     assert "svr" in e2.estimators
 
 
@@ -91,7 +102,9 @@ def test_e3_e4_cost(full, name, systems):
     assert e.sigma_w == (1.0,)
     assert e.gamma == GAMMAS
     assert e.estimators == ("svr",)
-    assert e.reps == 1000
+    # "1000 Monte Carlo simulations": 1000 repetitions of the whole pipeline
+    # (docs/science.md#91-the-preset-paper-section-6)
+    assert e.reps == FACTS["section_6_3"]["monte_carlo_simulations"]
     assert e.stages == ("estimate", "bounds", "gain", "cost", "cost_bound")
     assert e.horizon == 200 and e.mc_runs == 1000
     # Monte Carlo J on the first 10 repetitions where J is reported (E3, S);
@@ -100,10 +113,11 @@ def test_e3_e4_cost(full, name, systems):
     assert e.gamma_ref == 0.1
 
 
-def test_e4_size_is_section_9(full):
-    # "E3 + E4 are 2 x 4 x 45 x 1000 = 360,000 pipeline cells" (E3's cells are E4's S cells)
-    assert full["E4"].n_cells == 2 * 4 * 45 * 1000
-    assert full["E3"].n_cells == 4 * 45 * 1000
+def test_e4_size(full):
+    # E4: 2 systems x 4 gammas x 45 N x 1000 repetitions (E3's cells are E4's S cells)
+    reps = FACTS["section_6_3"]["monte_carlo_simulations"]
+    assert full["E4"].n_cells == 2 * len(GAMMAS) * len(N_GRID) * reps
+    assert full["E3"].n_cells == len(GAMMAS) * len(N_GRID) * reps
 
 
 def test_reduced_has_the_same_structure():
@@ -132,30 +146,25 @@ def test_unknown_scale():
         paper_specs("huge")
 
 
-def test_published_table2_spot_checks():
-    assert len(PUBLISHED_TABLE2) == 12
-    assert published_table2(S, 0.1, "A") == {"ols": 0.0261, "ours": 0.0265}
-    assert published_table2(S, 1, "B") == {"ols": 0.0211, "ours": 0.0315}
-    assert published_table2(S, 10.0, "B") == {"ols": 0.4278, "ours": 0.2695}
-    assert published_table2(U, 0.1, "B") == {"ols": 0.0019, "ours": 0.0036}
-    assert published_table2(U, 1.0, "A") == {"ols": 0.0166, "ours": 0.0165}
-    assert published_table2(U, 10.0, "B") == {"ols": 0.3774, "ours": 0.2506}
+TABLE2_SYSTEMS = {"open-loop stable": S, "open-loop unstable": U}
+
+
+def test_published_table2_is_the_papers():
+    table = FACTS["table_2"]
+    seen = 0
+    for row in table["rows"]:
+        system = TABLE2_SYSTEMS[row["system"]]
+        by_sigma: dict[float, dict[str, float]] = {}
+        for (sigma_w, method), value in zip(table["columns"], row["values"], strict=True):
+            by_sigma.setdefault(float(sigma_w), {})[{"OLS": "ols", "Ours": "ours"}[method]] = value
+        for sigma_w, entry in by_sigma.items():
+            assert published_table2(system, sigma_w, row["matrix"]) == entry
+            seen += 1
+    assert seen == len(PUBLISHED_TABLE2) == 12
     assert published_table2("other", 1.0, "A") is None
-    assert PUBLISHED_CLAIMS["stable_after_sample_length"]["sample_length"] == 1800
 
 
-@pytest.mark.skipif(not PAPER_TEX.exists(), reason="paper source not available")
-def test_published_table2_matches_the_paper_source():
-    tex = PAPER_TEX.read_text()
-    start = tex.index(r"\label{Tabel:2}")
-    table = tex[start : tex.index(r"\end{table*}", start)]
-    rows = [line for line in table.splitlines() if r"\tilde{\bm{" in line]
-    assert len(rows) == 4  # S: A, B; U: A, B
-    for line, (system, mat) in zip(rows, [(S, "A"), (S, "B"), (U, "A"), (U, "B")]):
-        nums = [float(x) for x in re.findall(r"\d+\.\d+", line.split(r"}}$", 1)[1])]
-        assert len(nums) == 6
-        for k, sigma_w in enumerate((0.1, 1.0, 10.0)):
-            assert published_table2(system, sigma_w, mat) == {
-                "ols": nums[2 * k],
-                "ours": nums[2 * k + 1],
-            }
+def test_published_claims_are_the_papers():
+    claim = PUBLISHED_CLAIMS["stable_after_sample_length"]
+    assert claim["system"] == S
+    assert claim["sample_length"] == FACTS["section_6_2"]["stable_after_sample_length"]

@@ -34,10 +34,27 @@ API = "/api/v1"
 READY_TIMEOUT = 90.0
 
 
+# Ports for test servers come from a block of their own per pytest-xdist worker, below
+# the kernel's ephemeral range (32768-60999), so that neither the other worker nor an
+# outgoing connection's source port can take a port between this check and the
+# server's bind (a port asked of the kernel with bind(0) could be handed out again).
+_PORT_BLOCK = 3000
+_PORT_BASE = 20000 + _PORT_BLOCK * int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0)
+_next_port = [_PORT_BASE + os.getpid() % _PORT_BLOCK]
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A loopback port that nothing listens on, from this worker's block."""
+    for _ in range(_PORT_BLOCK):
+        port = _next_port[0]
+        _next_port[0] = _PORT_BASE + (port + 1 - _PORT_BASE) % _PORT_BLOCK
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError(f"no free port in {_PORT_BASE}-{_PORT_BASE + _PORT_BLOCK - 1}")
 
 
 def _with_search_path(url: str, schema: str) -> str:

@@ -120,9 +120,7 @@ def test_relay_publishes_what_the_api_could_not(stack, tmp_path):
     url = stack.start_api("api-nobroker", env=dead, wait="/healthz")
     try:
         with stack.client(url) as c:
-            t = time.monotonic()
-            job = submit(c, TINY_SPEC, name="relayed")
-            assert time.monotonic() - t < 15
+            job = submit(c, TINY_SPEC, name="relayed")  # 202 within the client's timeout
             time.sleep(3)  # the worker is up: it would have run a published unit by now
             assert c.get(f"/jobs/{job['id']}").json()["status"] == "queued"
         stack.start_beat("beat", tick_seconds=1)

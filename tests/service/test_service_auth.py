@@ -57,3 +57,16 @@ def test_admin_errors(session):
     assert row.revoked_at is not None
     with pytest.raises(AdminError):
         accounts.revoke_key(session, "nope")
+
+
+@pytest.mark.parametrize("secret_head", ["_", "__", "-", "_-"])
+def test_key_whose_secret_starts_with_a_separator(session, make_account, monkeypatch, secret_head):
+    """``token_urlsafe`` starts a secret with ``_`` about once in 64 keys: such a key
+    is drawn on purpose here, and it works like any other."""
+    real = accounts.secrets.token_urlsafe
+    monkeypatch.setattr(accounts.secrets, "token_urlsafe", lambda n: secret_head + real(n)[1:])
+    acc = make_account()
+    prefix, secret = acc.key.split("_", 2)[1:]
+    assert secret.startswith(secret_head) and split_key(acc.key) == prefix
+    assert authenticate(session, acc.key).id == acc.key_row.id
+    assert authenticate(session, acc.key[: -len(secret)] + secret[1:]) is None

@@ -1,0 +1,282 @@
+"""The stage chain on a batch of measured datasets (docs/measured.md#records).
+
+``run_cells`` takes the regression data of R datasets with the same sample
+count, stacked (Z (R, d, N0), F (R, n_rows, N0)), and fills the record fields
+over the (dataset, estimator/gamma) grid (R, E), vectorised over it, with the
+stage functions a simulated job uses (estimation, the self-normalized box,
+the gain design, the Kalman gain, the costs, Theorem 3, SLS) called with the
+estimate where a simulated job passes its true system. Fields that need the
+true system are left out (null in the records) with the note ``NO_TRUTH``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .. import bounds as _bounds
+from .. import cost as _cost
+from .. import cost_bound as _cb
+from .. import kalman as _kalman
+from ..estimators import fit_ols
+from ..norms import spectral_radius
+from ..notes import Notes
+from ..pipeline import CERTIFICATES, ESTIMATE_COND_LIMIT, _estimate, design
+from ..pipeline import _Cells as Cells  # the context the stage functions read
+from ..spec import STAGES
+from ..uncertainty_stage import bounds_from_box, sound_box
+from .data import StateModel
+from .noise import noise_level, residual_sum
+
+NO_TRUTH = "measured data: no true system"
+# The fields each stage fills on a simulated job that need the true system.
+TRUTH_FIELDS = {
+    "estimate": ("rmse_A", "rmse_B"),
+    "bounds": ("coverage_A", "coverage_B"),
+    "gain": ("rho_true",),
+    "cost": ("J_exact", "J_stationary", "J_mc", "J_mc_se", "cost_ratio"),
+    "cost_bound": ("delta_J",),
+}
+PLUG_IN = (
+    "measured data: K and J_star are the estimated system's; J_bound and J_opt use its"
+    " norms and K in place of the true system's (no guarantee)"
+)
+
+
+@dataclass(frozen=True)
+class Observer:
+    """What stands where a simulated job has its true system: C and the noise
+    levels of the observer model, and no A, B."""
+
+    C: np.ndarray
+    sigma_u: float
+    sigma_v: float
+    A: None = None
+    B: None = None
+
+
+def run_cells(spec, *, Z, F, model: StateModel, N: int, keys, axis, observer) -> tuple:
+    """All stages for R datasets of one N with the same N0 -> (fields, notes)."""
+    R, _, N0 = Z.shape
+    Zt = np.swapaxes(Z, -1, -2)
+    G, P = Z @ Zt, F @ Zt
+    rows, cond = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0, data=lambda r: (Z[r], F[r]))
+    theta = model.full(rows)
+    n = model.n
+    notes = Notes(theta.shape[:2])
+    c = Cells(
+        spec=spec,
+        system=observer,
+        sigma_w=None,
+        keys=keys,
+        axis=axis,
+        A_hat=theta[..., :n],
+        B_hat=theta[..., n:],
+        out={"A_hat": theta[..., :n], "B_hat": theta[..., n:]},
+        notes=notes,
+    )
+    ran = [st for st in STAGES if spec.has(st)]
+    truth = [f for st in ran for f in TRUTH_FIELDS.get(st, ())]
+    notes.add(True, f"{NO_TRUTH} (null: {', '.join(truth)})")
+    withheld = ~(cond <= ESTIMATE_COND_LIMIT) | ~np.isfinite(theta).all(axis=(-2, -1))
+    notes.add(
+        withheld,
+        f"estimate: not finite or cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g} (the data do not"
+        " excite every direction): certificates withheld",
+    )
+    if len(ran) < len(STAGES):
+        notes.add(True, "stages not run: " + ", ".join(st for st in STAGES if st not in ran))
+    sigma_box, sigma_model = _noise(c, G=G, Z=Z, F=F, rows=rows, n_rows=F.shape[1], N0=N0)
+    if spec.has("bounds"):
+        _bounds_and_observer(c, sigma_box, sigma_model, model=model, G=G, N=N, N0=N0)
+    for f in CERTIFICATES:
+        if f in c.out and withheld.any():
+            c.out[f] = np.where(withheld, None, np.asarray(c.out[f], dtype=object))
+    return c.out, notes
+
+
+def _noise(c: Cells, *, G, Z, F, rows, n_rows: int, N0: int):
+    """(sigma of the box, sigma of the observer model), each (R, 1) or a number;
+    the notes say what was estimated (docs/measured.md#sigma-w-estimate)."""
+    spec, notes = c.spec, c.notes
+    if "ols" in c.axis.names:
+        theta_ols = rows[:, c.axis.names.index("ols")]
+    else:
+        theta_ols = fit_ols(Z, F)
+    q = spec.delta / 4
+    lvl = noise_level(
+        G, residual_sum(Z, F, theta_ols), n=n_rows, N0=N0, delta1=q, delta2=q, lambda0=spec.lambda0
+    )
+    given = spec.measured.sigma_w
+    if given is not None:
+        with np.errstate(invalid="ignore"):
+            below = lvl.sigma_low > given
+        texts = np.array(
+            [
+                f"noise: the data contradict the given sigma_w = {given:g}: its lower confidence"
+                f" bound is {s:.4g} (1 - delta/4); the set assumes the noise level is at most"
+                " the given one"
+                if a
+                else None
+                for s, a in zip(lvl.sigma_low.tolist(), below.tolist())
+            ],
+            dtype=object,
+        )
+        notes.add_reasons(texts[:, None], None)
+        return given, given
+    texts = np.array(
+        [
+            f"noise: sigma_w estimated: sigma_hat_w = {s:.4g} (residual, for K and the costs),"
+            f" sigma_bar_w = {b:.4g} (upper bound at 1 - delta/2, for the set)"
+            for s, b in zip(lvl.sigma_hat.tolist(), lvl.sigma_bar.tolist())
+        ],
+        dtype=object,
+    )
+    notes.add_reasons(np.where(np.isfinite(lvl.sigma_bar), texts, None)[:, None], None)
+    notes.add_reasons(lvl.reason[:, None], "noise")
+    return lvl.sigma_bar[:, None], lvl.sigma_hat[:, None]
+
+
+def _bounds_and_observer(c: Cells, sigma_box, sigma_model, *, model, G, N, N0):
+    """The box (known rows of the ARX state with radius 0), its certificates,
+    then the observer stages on the estimate."""
+    spec, out, notes, C = c.spec, c.out, c.notes, c.system.C
+    estimate = spec.measured.sigma_w is None
+    boxed = replace(c, spec=replace(spec, delta=spec.delta / 2) if estimate else spec)
+    boxed.sigma_w = sigma_box
+    box = sound_box(boxed, G=G, Z=None, F=None, N=N, N0=N0)
+    if model.lags is not None:
+        known = ~model.estimated[:, None]
+        box = replace(box, R_A=np.where(known, 0.0, box.R_A), R_B=np.where(known, 0.0, box.R_B))
+    sound = bounds_from_box(c, box)
+    out.update(sound.fields)
+    b = sound.result
+    c.sigma_w = sigma_model
+    unmeasured = ~(C != 0).any(axis=0)  # state columns that no row of C reads
+    if unmeasured.any():
+        with np.errstate(invalid="ignore"):
+            floor = (np.abs(c.A_hat) + box.R_A)[..., unmeasured].sum(axis=-1).max(axis=-1)
+        notes.add(
+            floor >= 1.0,
+            "gain: no L is certified: in the columns C does not measure, a row of"
+            " |A_hat| + R_A sums to >= 1 already (docs/measured.md#arx)",
+        )
+    kal = _kalman.kalman_predictor(c.A_hat, C, sigma_model, c.system.sigma_v)
+    if not kal.ok.all():
+        notes.add_reasons(kal.reasons(), "K")
+    K = kal.K
+    L = None
+    if spec.has("gain"):
+        L = _gain(c, box.R_A, K)
+    norms = None
+    if spec.has("cost") or spec.has("sls"):
+        notes.add(True, PLUG_IN)
+        norms = _estimate_norms(c.A_hat, c.B_hat, C, K)
+    if spec.has("cost"):
+        out["J_star"] = _cost.optimal_cost(
+            c.A_hat,
+            c.B_hat,
+            K,
+            C,
+            sigma_u=c.system.sigma_u,
+            sigma_w=sigma_model,
+            sigma_v=c.system.sigma_v,
+            horizon=spec.horizon,
+        )
+    if spec.has("cost_bound"):
+        t3 = _cb.theorem3_bound(
+            c.A_hat,
+            L,
+            C,
+            K,
+            eps_A=b.eps_A,
+            eps_B=b.eps_B,
+            sigma_u=c.system.sigma_u,
+            sigma_v=c.system.sigma_v,
+            norms=norms,
+            rho_F=spectral_radius(c.A_hat - L @ C),
+        )
+        notes.add_reasons(t3.reason, "J_bound")
+        out["J_bound"] = t3.J_b
+    if spec.has("sls"):
+        _sls(c, b, K, norms)
+
+
+def _gain(c: Cells, R_A, K) -> np.ndarray:
+    """The certified gain on the box (centre A_hat, from the Kalman gain of A_hat)."""
+    out, notes = c.out, c.notes
+    designed, k_hat_reasons = design(c, np.zeros(len(c.axis.names)), R_A, matrix=True)
+    if k_hat_reasons is not None:
+        notes.add_reasons(k_hat_reasons, "K_hat")
+    g = designed.g_L
+    notes.add(~np.isfinite(g), "certified: undefined (no finite gain L or radius)")
+    with np.errstate(invalid="ignore"):
+        notes.add(
+            ~designed.feasible & np.isfinite(g), "gain: margin not reachable, L minimises g(L)"
+        )
+    out.update(
+        L=designed.L,
+        g_L=g,
+        certified=_bounds.nullable(designed.certified, np.isfinite(g)),
+        K=K,
+    )
+    return designed.L
+
+
+def _estimate_norms(A_hat, B_hat, C, K) -> _cb.TrueSystemNorms:
+    """The norms Theorem 3 and SLS take from the true system, of the estimate
+    (per cell); with m = 0 the input term's norm is 0 (there is no input)."""
+    if B_hat.shape[-1]:
+        return _cb.true_system_norms(A_hat, B_hat, C, K)
+    norms = _cb.true_system_norms(A_hat, np.zeros(A_hat.shape[:-1] + (1,)), C, K)
+    h = np.asarray(norms.hinf_PhiA_B)
+    return replace(norms, hinf_PhiA_B=np.where(np.isfinite(h), 0.0, h))
+
+
+def _sls(c: Cells, b, K, norms):
+    """J_opt by SLS on the estimate (cvxpy + Clarabel, one program per cell) and
+    the paper's bound on it, with the estimate's K and norms (SPEC section 8)."""
+    from .. import sls as _sls
+
+    spec, sys_ = c.spec, c.system
+    R, E = c.shape
+    eps1 = np.fmax(b.eps_A, b.eps_B)
+    F = np.broadcast_to(
+        _sls.sls_F(
+            eps1, norms.hinf_PhiA_B, norms.hinf_PhiA_K, sigma_u=sys_.sigma_u, sigma_v=sys_.sigma_v
+        ),
+        (R, E),
+    )
+    if spec.sls_C_bound is None:
+        with np.errstate(invalid="ignore"):
+            C_bound = np.broadcast_to(_sls.default_C_bound(K, norms.h2_closed), (R, E))
+    else:
+        C_bound = np.full((R, E), spec.sls_C_bound)
+    run = np.isfinite(F) & np.isfinite(C_bound) & np.isfinite(K).all(axis=(-2, -1))
+    c.notes.add(~run, "J_opt: not run (F or C_bound undefined: a norm of the estimate is infinite)")
+    J_opt = np.full((R, E), np.nan)
+    status = np.full((R, E), "not_run", dtype=object)
+    for ri, ei in zip(*np.nonzero(run)):  # a convex program per cell
+        res = _sls.sls_observer(
+            c.A_hat[ri, ei],
+            sys_.C,
+            K[ri, ei],
+            F[ri, ei],
+            C_bound=C_bound[ri, ei],
+            T_fir=spec.sls_T_fir,
+        )
+        J_opt[ri, ei], status[ri, ei] = res.J_opt, res.status
+    bound, reason = _sls.jopt_upper_bound(
+        b.eps_A,
+        eps1,
+        C_bound,
+        hinf_AB=norms.hinf_PhiA_B,
+        hinf_AK=norms.hinf_PhiA_K,
+        sigma_u=sys_.sigma_u,
+        sigma_v=sys_.sigma_v,
+        h2_cl_inv=norms.h2_closed,
+        hinf_cl_inv=norms.hinf_closed,
+    )
+    c.notes.add_reasons(reason, None)
+    c.out.update(J_opt=J_opt, sls_status=status, J_opt_bound=bound)

@@ -1,0 +1,313 @@
+"""Validation of an identified model on held-out rollouts, and the excitation
+check of the training data (docs/measured.md#validation).
+
+``validate(model, holdout) -> ValidationResult``: one-step prediction NRMSE
+and fit %, open-loop simulation fit %, Ljung-Box whiteness of the residuals
+and the input-residual cross-correlation test, per measured channel, pooled
+over the held-out rollouts. ``excitation(data)``: the eigenvalues of the
+regressors' mean Gram. ``validation_summary(spec, data)``: both, for each
+estimator and gamma of a dataset spec, as JSON for the application layer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import chi2
+
+from .. import estimators as _est
+from ..records import json_value
+from ..spec import ExperimentSpec
+from .data import MeasuredData, StateModel, regression
+
+MAX_LAGS = 20
+BAND_Z = 2.5758293035489004  # two-sided 99 % normal quantile: the autocorrelation band
+NOT_EXCITED_RTOL = 1e-10  # lambda_min <= this lambda_max: a direction without data
+WEAK_COND = 1e8  # above this condition number: weakly excited
+
+
+def plain(value):
+    """dicts, lists and arrays -> JSON-able Python values (NaN/inf -> None)."""
+    if isinstance(value, dict):
+        return {k: plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    return json_value(value)
+
+
+@dataclass(frozen=True)
+class Model:
+    """An identified model in its state coordinates: x+ = A x + B u (the ARX
+    state when ``lags`` is (p, q)); ``estimator``, ``gamma``: how it was fitted."""
+
+    A: np.ndarray
+    B: np.ndarray
+    lags: tuple[int, int] | None = None
+    estimator: str = "ols"
+    gamma: float | None = None
+
+
+@dataclass
+class Excitation:
+    """Persistency of excitation of the regressors z = [x; u] of a dataset.
+
+    eigenvalues (d,) of the mean Gram Z Z^T / N0, ascending; direction: the
+    unit eigenvector of the smallest (over ``names``); notes: what they mean."""
+
+    names: tuple[str, ...]
+    N0: int
+    eigenvalues: np.ndarray
+    direction: np.ndarray
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def lambda_min(self) -> float:
+        return float(self.eigenvalues[0])
+
+    @property
+    def lambda_max(self) -> float:
+        return float(self.eigenvalues[-1])
+
+    @property
+    def cond(self) -> float:
+        return self.lambda_max / self.lambda_min if self.lambda_min > 0 else float("inf")
+
+    def to_dict(self) -> dict:
+        return plain(
+            {
+                "names": list(self.names),
+                "N0": self.N0,
+                "eigenvalues": self.eigenvalues,
+                "lambda_min": self.lambda_min,
+                "lambda_max": self.lambda_max,
+                "cond": self.cond,
+                "direction": self.direction,
+                "notes": self.notes,
+            }
+        )
+
+
+def excitation(data: MeasuredData, lags: tuple[int, int] | None = None) -> Excitation:
+    """The excitation check of ``data``'s regressors (in the ARX state with ``lags``)."""
+    sm = StateModel(ny=data.n, m=data.m, lags=lags)
+    lifted = sm.lift(data)
+    Z, _ = regression(lifted)
+    N0 = Z.shape[1]
+    lam, V = np.linalg.eigh(Z @ Z.T / N0)
+    lam = np.maximum(lam, 0.0)
+    names = tuple(lifted.state_names) + tuple(lifted.input_names)
+    ex = Excitation(names=names, N0=N0, eigenvalues=lam, direction=V[:, 0])
+    top = int(np.argmax(np.abs(V[:, 0])))
+    if not lam[0] > NOT_EXCITED_RTOL * lam[-1]:
+        ex.notes.append(
+            f"the data do not excite every direction: lambda_min/lambda_max = "
+            f"{lam[0] / lam[-1]:.3g} (mostly along {names[top]}); the estimate along it is set "
+            "by the regulariser or undefined, and the OLS sound set is null"
+        )
+    elif ex.cond > WEAK_COND:
+        ex.notes.append(
+            f"weakly excited: condition number {ex.cond:.3g} (smallest direction mostly along "
+            f"{names[top]}): wide intervals along it"
+        )
+    if N0 < Z.shape[0]:
+        ex.notes.append(f"fewer samples ({N0}) than regressors ({Z.shape[0]})")
+    return ex
+
+
+@dataclass
+class ValidationResult:
+    """Validation statistics of one model on held-out rollouts (per channel j,
+    input l): see docs/measured.md#validation for every definition."""
+
+    channels: tuple[str, ...]
+    inputs: tuple[str, ...]
+    lags: int  # h of the whiteness and cross-correlation tests
+    one_step_nrmse: np.ndarray  # (ny,)
+    one_step_fit: np.ndarray  # (ny,) percent
+    simulation_fit: np.ndarray  # (rollouts, ny) percent
+    simulation_fit_pooled: np.ndarray  # (ny,)
+    autocorrelation: np.ndarray  # (ny, h): r_1 .. r_h
+    band: float  # 99 % band of r_k under whiteness
+    ljung_box_Q: np.ndarray  # (ny,)
+    ljung_box_p: np.ndarray  # (ny,)
+    cross_correlation: np.ndarray  # (ny, m, h + 1): rho_0 .. rho_h
+    cross_S: np.ndarray  # (ny, m)
+    cross_p: np.ndarray  # (ny, m)
+    predicted: list  # one-step predictions per rollout (T_i, ny)
+    simulated: list  # open-loop simulations per rollout (T_i + 1, ny)
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """JSON-able (NaN/inf -> None)."""
+        return plain({k: getattr(self, k) for k in self.__dataclass_fields__})
+
+
+def _fit(y, yhat) -> np.ndarray:
+    """100 (1 - ||y - yhat|| / ||y - mean y||) per column (MATLAB's compare)."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        return 100.0 * (1.0 - _nrmse(y, yhat))
+
+
+def _nrmse(y, yhat) -> np.ndarray:
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        return np.linalg.norm(y - yhat, axis=0) / np.linalg.norm(y - y.mean(axis=0), axis=0)
+
+
+def _lagged(a: list, b: list, k: int) -> np.ndarray:
+    """sum over rollouts and t of a_t b_{t-k} (rows of a, b per rollout), per column pair."""
+    return sum((x[k:].T @ y[: y.shape[0] - k] for x, y in zip(a, b) if x.shape[0] > k), 0.0)
+
+
+def _simulate(model: Model, X: list, U: list, ny: int) -> list:
+    """Open-loop simulation of every rollout from its first state with its inputs,
+    in lockstep over time (rollouts padded to the longest)."""
+    R, T = len(X), max(u.shape[0] for u in U)
+    n, m = model.A.shape[0], model.B.shape[1]
+    u = np.zeros((R, T, m))
+    for i, ui in enumerate(U):
+        u[i, : ui.shape[0]] = ui
+    x = np.empty((R, T + 1, n))
+    x[:, 0] = np.stack([xi[0] for xi in X])
+    with np.errstate(over="ignore", invalid="ignore"):
+        for k in range(T):
+            x[:, k + 1] = x[:, k] @ model.A.T + u[:, k] @ model.B.T
+    return [x[i, : X[i].shape[0], :ny] for i in range(R)]
+
+
+def _whiteness(eps: list) -> tuple:
+    """Ljung-Box per channel on residuals pooled within rollouts -> (h, r (ny, h), Q, n)."""
+    E = np.concatenate(eps)
+    n_res = E.shape[0]
+    h = min(MAX_LAGS, max(1, max(e.shape[0] for e in eps) // 4))
+    mu = E.mean(axis=0)
+    ec = [e - mu for e in eps]
+    s0 = np.sum((E - mu) ** 2, axis=0)
+    P = np.array([sum(max(e.shape[0] - k, 0) for e in eps) for k in range(1, h + 1)])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.stack([np.diag(_lagged(ec, ec, k)) for k in range(1, h + 1)], axis=1) / s0[:, None]
+    Q = n_res * (n_res + 2) * np.sum(r * r / P, axis=1)
+    return h, r, Q, n_res
+
+
+def _cross(eps: list, U: list, h: int, names) -> tuple:
+    """Residual-input cross-correlations rho (ny, m, h + 1) and the statistic
+    S = s^T R_u^-1 s per (channel, input), s_k = n rho_k / sqrt(P_k) (P_k pairs at
+    lag k inside the rollouts), R_u the input's autocorrelation Toeplitz matrix;
+    -> (rho, S, notes)."""
+    E, Uall = np.concatenate(eps), np.concatenate(U)
+    ny, m = E.shape[1], Uall.shape[1]
+    ec = [e - E.mean(axis=0) for e in eps]
+    uc = [u - Uall.mean(axis=0) for u in U]
+    s_e = np.sum(np.concatenate(ec) ** 2, axis=0)
+    s_u = np.sum(np.concatenate(uc) ** 2, axis=0)
+    rho = np.zeros((ny, m, h + 1))
+    S = np.full((ny, m), np.nan)
+    notes = []
+    if not m:
+        return rho, S, notes
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.stack([_lagged(ec, uc, k) for k in range(h + 1)], axis=-1)
+        rho = rho / np.sqrt(s_e[:, None, None] * s_u[None, :, None])
+        ru = np.stack([np.diag(_lagged(uc, uc, k)) for k in range(h + 1)], axis=1) / s_u[:, None]
+    lag = np.abs(np.subtract.outer(np.arange(h + 1), np.arange(h + 1)))
+    n_res = E.shape[0]
+    pairs = np.array([sum(max(e.shape[0] - k, 0) for e in eps) for k in range(h + 1)])
+    std = rho * (n_res / np.sqrt(pairs))  # Var ~ 1 per lag for a white input (P_k pairs)
+    for j in range(m):  # one (h + 1) x (h + 1) solve per input
+        Ru = ru[j][lag]
+        if np.isfinite(Ru).all() and np.linalg.cond(Ru) < 1e12:
+            S[:, j] = np.sum(std[:, j] * np.linalg.solve(Ru, std[:, j].T).T, axis=1)
+        else:
+            notes.append(f"cross-correlation: input {names[j]} is not excited (null)")
+    return rho, S, notes
+
+
+def validate(model: Model, holdout: MeasuredData) -> ValidationResult:
+    """The validation statistics of ``model`` on the rollouts ``holdout``."""
+    data = StateModel(ny=holdout.n, m=holdout.m, lags=model.lags).lift(holdout)
+    ny = holdout.n
+    predicted = [(x[:-1] @ model.A.T + u @ model.B.T)[:, :ny] for x, u in zip(data.X, data.U)]
+    eps = [x[1:, :ny] - p for x, p in zip(data.X, predicted)]
+    Y = np.concatenate([x[1:, :ny] for x in data.X])
+    simulated = _simulate(model, data.X, data.U, ny)
+    sim_fit = np.stack([_fit(x[1:, :ny], s[1:]) for x, s in zip(data.X, simulated)])
+    notes = []
+    if not np.isfinite(sim_fit).all():
+        notes.append("open-loop simulation: left the double range or a constant channel (null)")
+    h, r, Q, n_res = _whiteness(eps)
+    rho, S, cross_notes = _cross(eps, data.U, h, data.input_names)
+    return ValidationResult(
+        channels=tuple(holdout.state_names),
+        inputs=tuple(holdout.input_names),
+        lags=h,
+        one_step_nrmse=_nrmse(Y, np.concatenate(predicted)),
+        one_step_fit=_fit(Y, np.concatenate(predicted)),
+        simulation_fit=sim_fit,
+        simulation_fit_pooled=_fit(Y, np.concatenate([s[1:] for s in simulated])),
+        autocorrelation=r,
+        band=BAND_Z / np.sqrt(n_res),
+        ljung_box_Q=Q,
+        ljung_box_p=chi2.sf(Q, h),
+        cross_correlation=rho,
+        cross_S=S,
+        cross_p=chi2.sf(S, h + 1),
+        predicted=predicted,
+        simulated=simulated,
+        notes=notes + cross_notes,
+    )
+
+
+def fit_model(
+    spec: ExperimentSpec, data: MeasuredData, *, estimator: str, gamma: float | None = None, N=None
+) -> Model:
+    """The model of one (estimator, gamma) of a dataset spec, fitted on the first N
+    rollouts of the training pool (default: the spec's largest N), as its cells' rep 0."""
+    opts = spec.measured
+    train, _ = data.split(opts.holdout)
+    N = max(spec.N) if N is None else N
+    sm = StateModel(ny=data.n, m=data.m, lags=opts.lags)
+    Z, F = regression(sm.lift(train.take(range(N))))
+    F = F[sm.estimated]
+    if estimator == "ols":
+        rows = _est.fit_ols(Z, F)
+    elif estimator == "svr":
+        rows = _est.fit_svr(Z, F, [gamma], loss_scale=spec.loss_scale)[0]
+    elif estimator == "shrunk-ols":
+        rows = _est.shrunk_ols(_est.fit_ols(Z, F), [gamma])[0]
+    else:
+        raise ValueError(f"unknown estimator {estimator!r}")
+    theta = sm.full(rows)
+    n = sm.n
+    return Model(A=theta[:, :n], B=theta[:, n:], lags=opts.lags, estimator=estimator, gamma=gamma)
+
+
+def validation_summary(spec: ExperimentSpec, data: MeasuredData) -> dict:
+    """JSON for a dataset job: the excitation of the training rollouts used at the
+    largest N, and each (estimator, gamma)'s model and its validation on the
+    held-out rollouts (None without held-out rollouts)."""
+    from ..planning import estimator_axis
+
+    opts = spec.measured
+    train, held = data.split(opts.holdout)
+    N = max(spec.N)
+    axis = estimator_axis(spec)
+    models = []
+    for name, gamma in zip(axis.names, axis.gammas):
+        model = fit_model(spec, data, estimator=name, gamma=gamma, N=N)
+        models.append(
+            {
+                "estimator": name,
+                "gamma": gamma,
+                "A_hat": plain(model.A),
+                "B_hat": plain(model.B),
+                "validation": None if held is None else validate(model, held).to_dict(),
+            }
+        )
+    return {
+        "N": N,
+        "holdout": opts.holdout,
+        "excitation": excitation(train.take(range(N)), opts.lags).to_dict(),
+        "models": models,
+        "notes": [] if held is not None else ["no held-out rollouts (holdout = 0)"],
+    }
