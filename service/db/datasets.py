@@ -65,19 +65,28 @@ def spec_dataset_id(spec: dict) -> int | None:
     return value if isinstance(value, int) and not isinstance(value, bool) else None
 
 
-def linked_dataset(
-    session: Session, team_id: int, spec: dict, field: str = "dataset"
-) -> int | None:
+def linked_dataset(session: Session, team_id: int, spec, field: str = "dataset") -> int | None:
     """The id of the team's dataset a job spec runs on (None for a simulated spec);
-    DatasetNotFound naming ``field`` when the team has no such dataset."""
-    dataset_id = spec_dataset_id(spec)
+    DatasetNotFound naming ``field`` when the team has no such dataset. ``spec``: the
+    spec dict, or the parsed :class:`~svrobs_core.spec.ExperimentSpec`, whose checks
+    that need the data's shape (N and holdout against the rollouts, the ARX lags
+    against their lengths: ``svrobs_core.measured.check_against_data``) then run too,
+    raising SpecError naming the spec field."""
+    parsed = None if isinstance(spec, dict) else spec
+    dataset_id = spec_dataset_id(spec) if parsed is None else parsed.dataset
     if dataset_id is None:
         return None
-    exists = session.scalar(
-        select(Dataset.id).where(Dataset.id == dataset_id, Dataset.team_id == team_id)
-    )
-    if exists is None:
+    row = session.execute(
+        select(Dataset.n, Dataset.m, Dataset.rollouts, Dataset.lengths).where(
+            Dataset.id == dataset_id, Dataset.team_id == team_id
+        )
+    ).first()
+    if row is None:
         raise DatasetNotFound(dataset_id, field)
+    if parsed is not None:
+        from svrobs_core.measured import check_against_data
+
+        check_against_data(parsed, row.n, row.m, row.rollouts, lengths=list(row.lengths))
     return dataset_id
 
 

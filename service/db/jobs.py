@@ -55,11 +55,12 @@ def create_job(
     """
     parsed = parse_spec(spec)
     normalised = parsed.to_dict()
+    # the team's dataset, checked against the spec (DatasetNotFound / SpecError: 422)
+    dataset_id = linked_dataset(session, team_id, parsed)
     units = admit(
         parsed, max_cells=max_cells, max_cpu_seconds=max_cpu_seconds, max_unit_mb=max_unit_mb
     )
     tags = list(dict.fromkeys(str(t) for t in tags))
-    dataset_id = linked_dataset(session, team_id, spec)  # DatasetNotFound: 422 naming it
 
     if idempotency_key is not None:
         existing = _job_by_key(session, team_id, idempotency_key)
@@ -240,7 +241,10 @@ def spec_summary(spec: dict, n_cells: int) -> dict:
     names, the size of each grid axis (and the N range), estimators, stages, cells."""
     Ns = spec.get("N") or []
     return {
-        "systems": [s if isinstance(s, str) else s.get("name", "custom") for s in spec["systems"]],
+        "systems": [
+            s if isinstance(s, str) else s.get("name", "custom") for s in spec.get("systems") or []
+        ]
+        or ([f"dataset-{spec['dataset']}"] if "dataset" in spec else []),
         "grid": {k: len(spec.get(k) or []) for k in ("sigma_w", "N", "gamma")}
         | {"reps": spec.get("reps")},
         "N_range": [min(Ns), max(Ns)] if Ns else None,

@@ -23,7 +23,9 @@ from sqlalchemy.orm import Session
 from service.db import cells
 from service.db import datasets as dataset_store
 from service.db.models import Job
+from svrobs_core import parse_spec
 from svrobs_core.errors import SpecError
+from svrobs_core.measured import SIGMA_W_ESTIMATED
 from svrobs_core.records import json_value
 from svrobs_core.systems import resolve_system
 
@@ -35,7 +37,7 @@ MEDIA_TYPES = {
 }
 MATRICES = ("A_hat", "B_hat", "C", "radii_A", "radii_B", "L", "K")
 SCALARS = ("r_A", "r_B", "eps_A", "eps_B", "g_L", "delta", "sigma_w", "rho_upper_bound")
-FLAGS = ("stable_certified", "certified")
+FLAGS = ("stable_certified", "certified", "sigma_w_estimated")
 TEXTS = ("system", "estimator", "bounds_method", "notes")
 COORDINATES = cells.CELL_COORDINATES
 AMBIGUOUS_SHOWN = 1000  # cells looked at to say which coordinates still vary
@@ -118,15 +120,17 @@ def find_cell(session: Session, job: Job, cell: str | dict | None) -> dict:
     return record
 
 
-def _output_matrix(spec: dict, system: str, n: int):
-    """C of the cell's system: from the spec's system (a simulated job) or the spec's
-    ``C`` (a job on a dataset), else the identity (every state measured)."""
+def _output_matrix(spec: dict, system: str, n: int, dataset: dict | None):
+    """C of the cell: the spec's system's (a simulated job), or for a job on a dataset
+    the spec's ``C`` or its default (I, or the rows that pick y_k of the ARX state),
+    else the identity (every state measured)."""
     for i, s in enumerate(spec.get("systems") or []):
         resolved = resolve_system(s, f"systems[{i}]")
         if resolved.name == system:
             return resolved.C.tolist()
-    if spec.get("C") is not None:
-        return spec["C"]
+    if spec.get("dataset") is not None and dataset is not None:
+        measured = parse_spec(spec).measured
+        return measured.C_matrix(dataset["n"], dataset["m"]).tolist()
     return np.eye(n).tolist()
 
 
@@ -145,10 +149,17 @@ def model_payload(record: dict, *, job: Job, dataset: dict | None) -> dict:
     out = {"format": "svrobs-model", "format_version": 1}
     out.update({c: record.get(c) for c in COORDINATES})
     for f in MATRICES:
-        out[f] = _output_matrix(spec, record["system"], n) if f == "C" else record.get(f)
+        out[f] = _output_matrix(spec, record["system"], n, dataset) if f == "C" else record.get(f)
     out.update({f: record.get(f) for f in SCALARS if f != "delta"})
     out["delta"] = spec.get("delta")
     out.update({f: record.get(f) for f in FLAGS + TEXTS[2:]})
+    # a dataset job's sigma_w "estimate": the key -1 is no level (the note has the
+    # estimate and its upper bound, docs/measured.md#records)
+    out["sigma_w_estimated"] = bool(
+        spec.get("dataset") is not None and record.get("sigma_w") == SIGMA_W_ESTIMATED
+    )
+    if out["sigma_w_estimated"]:
+        out["sigma_w"] = None
     out["sample_time"] = dataset["sample_time"] if dataset else None
     prov = job.provenance or {}
     out["provenance"] = {

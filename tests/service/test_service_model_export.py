@@ -87,6 +87,7 @@ def test_each_format_opens_back_to_the_record(client, computed):
     for f in MATRICES + SCALARS + ("system", "N", "estimator", "gamma", "rep", "certified"):
         assert body[f] == rec[f], f
     assert body["C"] == C.tolist() and body["delta"] == 0.05 and body["sample_time"] is None
+    assert body["sigma_w_estimated"] is False
     prov = body["provenance"]
     assert prov["job_id"] == jid and prov["dataset"] is None
     assert prov["spec"] == client.get(f"{API}/jobs/{jid}", headers=acc.headers).json()["spec"]
@@ -237,3 +238,28 @@ def test_system_from_file(client, make_account, tmp_path):
         f"{API}/systems/from-file", files={"file": ("b.npz", nob.getvalue())}, headers=acc.headers
     )
     assert r.status_code == 422 and r.json()["detail"].startswith("no variable 'B'")
+
+
+def test_a_dataset_specs_output_matrix_and_estimated_noise():
+    """C of a dataset job: the spec's, else I for the full state, else the rows of the
+    ARX state x_k = [y_k, y_(k-1), u_(k-1)] that pick y_k; sigma_w "estimate" (the
+    record's key -1) is exported as null with sigma_w_estimated."""
+    from svrobs_lab.datasets.model_export import model_payload
+
+    record = {"system": "dataset-5", "sigma_w": -1.0, "N": 4, "estimator": "ols", "gamma": None}
+    record.update(rep=0, A_hat=np.eye(3).tolist(), B_hat=[[1.0], [0.0], [0.0]])
+    dataset = {"id": 5, "name": "d", "sha256": "s", "arrays_sha256": "a", "sample_time": 0.5}
+    dataset.update(n=1, m=1, state_names=["y1"], input_names=["u1"])
+    arx = {"dataset": 5, "N": [4], "state": {"lags": {"y": 2, "u": 1}}, "reps": 1}
+    job = Job(id=9, team_id=1, spec=parse_spec(arx).to_dict(), provenance={})
+    body = model_payload(record, job=job, dataset=dataset)
+    assert body["C"] == [[1.0, 0.0, 0.0]] and body["sample_time"] == 0.5
+    assert body["sigma_w"] is None and body["sigma_w_estimated"] is True
+    full = {"dataset": 5, "N": [4], "reps": 1, "sigma_w": 0.2}
+    job = Job(id=9, team_id=1, spec=parse_spec(full).to_dict(), provenance={})
+    body = model_payload({**record, "sigma_w": 0.2}, job=job, dataset={**dataset, "n": 3, "m": 1})
+    assert body["C"] == np.eye(3).tolist() and body["sigma_w"] == 0.2
+    assert body["sigma_w_estimated"] is False
+    given = {**full, "C": [[0.0, 1.0, 0.0]]}
+    job = Job(id=9, team_id=1, spec=parse_spec(given).to_dict(), provenance={})
+    assert model_payload(record, job=job, dataset={**dataset, "n": 3})["C"] == [[0.0, 1.0, 0.0]]
