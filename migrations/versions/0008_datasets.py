@@ -39,6 +39,8 @@ def upgrade() -> None:
         sa.Column("m", sa.Integer(), nullable=False),
         sa.Column("rollouts", sa.Integer(), nullable=False),
         sa.Column("samples", sa.BigInteger(), nullable=False),
+        sa.Column("t_min", sa.Integer(), nullable=False),
+        sa.Column("t_max", sa.Integer(), nullable=False),
         sa.Column("lengths", sa.JSON(), nullable=False),
         sa.Column("sample_time", sa.Float(), nullable=True),
         sa.Column("state_names", sa.JSON(), nullable=False),

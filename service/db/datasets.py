@@ -16,7 +16,7 @@ from collections.abc import Iterable, Iterator
 import numpy as np
 from sqlalchemy import delete, func, insert, select
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, defer, joinedload
 
 from svrobs_core.errors import SpecError
 
@@ -93,10 +93,12 @@ def linked_dataset(session: Session, team_id: int, spec, field: str = "dataset")
 def list_datasets(
     session: Session, team_id: int, *, limit: int, offset: int
 ) -> tuple[list[Dataset], int]:
-    """The team's datasets, newest first, and how many it has."""
+    """The team's datasets, newest first (without their lengths and statistics), and
+    how many the team has."""
     q = select(Dataset).where(Dataset.team_id == team_id)
     total = session.scalar(select(func.count()).select_from(q.subquery())) or 0
-    rows = session.scalars(q.order_by(Dataset.id.desc()).limit(limit).offset(offset)).all()
+    page = q.options(defer(Dataset.lengths), defer(Dataset.stats), joinedload(Dataset.user))
+    rows = session.scalars(page.order_by(Dataset.id.desc()).limit(limit).offset(offset)).all()
     return list(rows), total
 
 

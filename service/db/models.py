@@ -369,6 +369,8 @@ class Dataset(Base):
     m: Mapped[int]
     rollouts: Mapped[int]
     samples: Mapped[int] = mapped_column(BigInteger)  # sum of the rollouts' steps T_i
+    t_min: Mapped[int]  # the shortest and longest T_i (a listing reads no lengths)
+    t_max: Mapped[int]
     lengths: Mapped[list[Any]]  # T_i of each rollout (it has T_i + 1 states)
     sample_time: Mapped[float | None] = mapped_column(Float)
     state_names: Mapped[list[Any]]

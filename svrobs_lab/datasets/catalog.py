@@ -168,6 +168,8 @@ def create_dataset(
         m=parsed.m,
         rollouts=parsed.rollouts,
         samples=sum(parsed.lengths),
+        t_min=min(parsed.lengths),
+        t_max=max(parsed.lengths),
         lengths=parsed.lengths,
         sample_time=parsed.sample_time,
         state_names=parsed.state_names,
@@ -208,7 +210,6 @@ def download_name(row: Dataset) -> str:
 def dataset_view(row: Dataset, *, full: bool = True) -> dict:
     """A dataset as the API answers it; ``full`` adds every rollout's length and the
     per-channel statistics (the list leaves them out)."""
-    lengths = list(row.lengths)
     out = {
         "id": row.id,
         "name": row.name,
@@ -223,8 +224,8 @@ def dataset_view(row: Dataset, *, full: bool = True) -> dict:
         "m": row.m,
         "rollouts": row.rollouts,
         "samples": row.samples,
-        "T_min": min(lengths),
-        "T_max": max(lengths),
+        "T_min": row.t_min,
+        "T_max": row.t_max,
         "sample_time": row.sample_time,
         "state_names": list(row.state_names),
         "input_names": list(row.input_names),
@@ -232,6 +233,6 @@ def dataset_view(row: Dataset, *, full: bool = True) -> dict:
         "created_at": row.created_at,
     }
     if full:
-        out["lengths"] = lengths
+        out["lengths"] = list(row.lengths)
         out["stats"] = row.stats
     return out

@@ -47,8 +47,9 @@ def test_0008_keeps_the_jobs_and_goes_back(url):  # noqa: F811 - the fixture
         c.execute(
             sa.text(
                 "INSERT INTO datasets (id, team_id, name, format, sha256, arrays_sha256, "
-                "size_bytes, n, m, rollouts, samples, lengths, state_names, input_names, "
-                "stats, created_at) VALUES (5, 1, 'd', 'csv', 'a', 'b', 3, 1, 0, 1, 2, '[2]', "
+                "size_bytes, n, m, rollouts, samples, t_min, t_max, lengths, state_names, "
+                "input_names, stats, created_at) VALUES (5, 1, 'd', 'csv', 'a', 'b', 3, 1, 0, 1, "
+                "2, 2, 2, '[2]', "
                 "'[\"x1\"]', '[]', '{}', :t)"
             ),
             {"t": NOW},
