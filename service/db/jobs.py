@@ -20,6 +20,7 @@ from svrobs_core.planning import unit_cells
 from svrobs_core.spec import ExperimentSpec
 from svrobs_lab.errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
 
+from .datasets import linked_dataset
 from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
 from .provenance import provenance
 
@@ -46,12 +47,16 @@ def create_job(
     :class:`QuotaExceeded` when the team has ``max_active_jobs`` queued or
     running jobs. Each limit is passed in by the application layer
     (``svrobs_lab.jobs.limits``); None or 0: no limit.
-    :class:`IdempotencyConflict` when the key was used with another spec.
+    :class:`IdempotencyConflict` when the key was used with another spec,
+    :class:`~svrobs_lab.errors.NotFound` (422 naming ``dataset``) when the spec's
+    ``dataset`` is not one of the team's (the job is linked to it: ``jobs.dataset_id``).
     With an ``idempotency_key`` already used by the team for the same spec,
     returns that job. Returns ``(job, created)``; ``created`` is False for that job.
     """
     parsed = parse_spec(spec)
     normalised = parsed.to_dict()
+    # the team's dataset, checked against the spec (DatasetNotFound / SpecError: 422)
+    dataset_id = linked_dataset(session, team_id, parsed)
     units = admit(
         parsed, max_cells=max_cells, max_cpu_seconds=max_cpu_seconds, max_unit_mb=max_unit_mb
     )
@@ -81,6 +86,7 @@ def create_job(
         tags=tags,
         spec=normalised,
         spec_summary=spec_summary(normalised, parsed.n_cells),
+        dataset_id=dataset_id,
         status="queued",
         progress_done=0,
         progress_total=len(units),
@@ -234,7 +240,10 @@ def spec_summary(spec: dict, n_cells: int) -> dict:
     names, the size of each grid axis (and the N range), estimators, stages, cells."""
     Ns = spec.get("N") or []
     return {
-        "systems": [s if isinstance(s, str) else s.get("name", "custom") for s in spec["systems"]],
+        "systems": [
+            s if isinstance(s, str) else s.get("name", "custom") for s in spec.get("systems") or []
+        ]
+        or ([f"dataset-{spec['dataset']}"] if "dataset" in spec else []),
         "grid": {k: len(spec.get(k) or []) for k in ("sigma_w", "N", "gamma")}
         | {"reps": spec.get("reps")},
         "N_range": [min(Ns), max(Ns)] if Ns else None,
