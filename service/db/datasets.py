@@ -18,6 +18,8 @@ from sqlalchemy import delete, func, insert, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, defer, joinedload
 
+from svrobs_core.measured import check_against_data
+from svrobs_core.workload import DataShape
 from svrobs_lab.errors import DatasetInUse, DatasetNotFound
 
 from .models import Dataset, DatasetChunk, Job
@@ -46,28 +48,47 @@ def spec_dataset_id(spec: dict) -> int | None:
 
 
 def linked_dataset(session: Session, team_id: int, spec, field: str = "dataset") -> int | None:
-    """The id of the team's dataset a job spec runs on (None for a simulated spec);
-    DatasetNotFound naming ``field`` when the team has no such dataset. ``spec``: the
-    spec dict, or the parsed :class:`~svrobs_core.spec.ExperimentSpec`, whose checks
-    that need the data's shape (N and holdout against the rollouts, the ARX lags
-    against their lengths: ``svrobs_core.measured.check_against_data``) then run too,
-    raising SpecError naming the spec field."""
+    """The id of the team's dataset a job spec runs on (None for a simulated spec):
+    :func:`spec_data`'s id."""
+    return spec_data(session, team_id, spec, field)[0]
+
+
+def spec_data(
+    session: Session, team_id: int, spec, field: str = "dataset"
+) -> tuple[int | None, DataShape | None]:
+    """(id, shape) of the team's dataset a job spec runs on ((None, None) for a
+    simulated spec); DatasetNotFound naming ``field`` when the team has no such
+    dataset. ``spec``: the spec dict, or the parsed
+    :class:`~svrobs_core.spec.ExperimentSpec`, whose checks that need the data's
+    shape (N and holdout against the rollouts, the ARX lags against their lengths:
+    ``svrobs_core.measured.check_against_data``) then run too, raising SpecError
+    naming the spec field."""
     parsed = None if isinstance(spec, dict) else spec
     dataset_id = spec_dataset_id(spec) if parsed is None else parsed.dataset
     if dataset_id is None:
-        return None
-    row = session.execute(
-        select(Dataset.n, Dataset.m, Dataset.rollouts, Dataset.lengths).where(
-            Dataset.id == dataset_id, Dataset.team_id == team_id
-        )
-    ).first()
-    if row is None:
+        return None, None
+    shape = dataset_shape(session, dataset_id, team_id)
+    if shape is None:
         raise DatasetNotFound(dataset_id, field)
     if parsed is not None:
-        from svrobs_core.measured import check_against_data
+        check_against_data(
+            parsed, shape.n, shape.m, len(shape.lengths), lengths=list(shape.lengths)
+        )
+    return dataset_id, shape
 
-        check_against_data(parsed, row.n, row.m, row.rollouts, lengths=list(row.lengths))
-    return dataset_id
+
+def dataset_shape(
+    session: Session, dataset_id: int, team_id: int | None = None
+) -> DataShape | None:
+    """n, m and every rollout's length of a stored dataset (of ``team_id``'s when
+    given), or None."""
+    q = select(Dataset.n, Dataset.m, Dataset.lengths).where(Dataset.id == dataset_id)
+    if team_id is not None:
+        q = q.where(Dataset.team_id == team_id)
+    row = session.execute(q).first()
+    if row is None:
+        return None
+    return DataShape(n=row.n, m=row.m, lengths=tuple(int(t) for t in row.lengths))
 
 
 def list_datasets(

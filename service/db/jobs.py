@@ -20,7 +20,7 @@ from svrobs_core.planning import unit_cells
 from svrobs_core.spec import ExperimentSpec
 from svrobs_lab.errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
 
-from .datasets import linked_dataset
+from .datasets import spec_data
 from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
 from .provenance import provenance
 
@@ -56,9 +56,13 @@ def create_job(
     parsed = parse_spec(spec)
     normalised = parsed.to_dict()
     # the team's dataset, checked against the spec (DatasetNotFound / SpecError: 422)
-    dataset_id = linked_dataset(session, team_id, parsed)
+    dataset_id, data = spec_data(session, team_id, parsed)
     units = admit(
-        parsed, max_cells=max_cells, max_cpu_seconds=max_cpu_seconds, max_unit_mb=max_unit_mb
+        parsed,
+        max_cells=max_cells,
+        max_cpu_seconds=max_cpu_seconds,
+        max_unit_mb=max_unit_mb,
+        data=data,
     )
     tags = list(dict.fromkeys(str(t) for t in tags))
 
@@ -136,9 +140,11 @@ def admit(
     max_cells: int | None = None,
     max_cpu_seconds: float | None = None,
     max_unit_mb: float | None = None,
+    data: workload.DataShape | None = None,
 ) -> list[dict]:
     """The spec's work units, planned to stay under SVROBS_MAX_UNIT_MEMORY_MB, if the
-    job is admissible (:func:`svrobs_core.workload.admit`).
+    job is admissible (:func:`svrobs_core.workload.admit`; a dataset job with its
+    dataset's shape ``data``: :func:`service.db.datasets.spec_data`).
 
     Raises :class:`JobTooLarge` when the job's estimated CPU time is over
     SVROBS_MAX_JOB_CPU_SECONDS or a unit needs more memory than the cap even split
@@ -150,7 +156,9 @@ def admit(
     cpu, mb = max_cpu_seconds, max_unit_mb
     max_bytes = None if mb is None else int(mb * 2**20)
     try:  # (a job too big to plan is refused by the estimate's floor first)
-        units, _cost = workload.admit(spec, max_cpu_seconds=cpu, max_unit_bytes=max_bytes)
+        units, _cost = workload.admit(
+            spec, max_cpu_seconds=cpu, max_unit_bytes=max_bytes, data=data
+        )
     except workload.WorkloadError as exc:
         setting = "SVROBS_MAX_JOB_CPU_SECONDS" if exc.kind == "cpu" else "SVROBS_MAX_UNIT_MEMORY_MB"
         raise JobTooLarge(
@@ -237,14 +245,18 @@ def lock_job(session: Session, job_id: int) -> Job:
 
 def spec_summary(spec: dict, n_cells: int) -> dict:
     """A normalised spec in a few hundred bytes, whatever its grid sizes: system
-    names, the size of each grid axis (and the N range), estimators, stages, cells."""
+    names (a dataset job's: ``dataset-ID``), the size of each grid axis (and the N
+    range), estimators, stages, cells."""
     Ns = spec.get("N") or []
+    if "dataset" in spec:  # one system (the dataset) and one sigma_w (a level or "estimate")
+        systems, sizes = [f"dataset-{spec['dataset']}"], {"sigma_w": 1}
+    else:
+        systems = [s if isinstance(s, str) else s.get("name", "custom") for s in spec["systems"]]
+        sizes = {"sigma_w": len(spec.get("sigma_w") or [])}
     return {
-        "systems": [
-            s if isinstance(s, str) else s.get("name", "custom") for s in spec.get("systems") or []
-        ]
-        or ([f"dataset-{spec['dataset']}"] if "dataset" in spec else []),
-        "grid": {k: len(spec.get(k) or []) for k in ("sigma_w", "N", "gamma")}
+        "systems": systems,
+        "grid": sizes
+        | {k: len(spec.get(k) or []) for k in ("N", "gamma")}
         | {"reps": spec.get("reps")},
         "N_range": [min(Ns), max(Ns)] if Ns else None,
         "estimators": list(spec.get("estimators") or []),

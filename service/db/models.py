@@ -302,6 +302,16 @@ class JobReport(Base):
     built_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
+class JobValidation(Base):
+    """A dataset job's validation on its held-out rollouts and the excitation check
+    of its training data (``svrobs_core.measured.validation_summary``), computed once."""
+
+    __tablename__ = "job_validations"
+    job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
+    summary: Mapped[dict[str, Any]]
+    built_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
 class Schedule(Base):
     __tablename__ = "schedules"
     __table_args__ = (UniqueConstraint("team_id", "name", name="uq_schedules_team_name"),)

@@ -15,13 +15,22 @@ def rollouts(seed: int = 3, *, lengths=(7, 4, 5), n: int = 3, m: int = 2):
     rng = np.random.default_rng(seed)
     A = 0.8 * np.eye(n) + 0.02 * rng.standard_normal((n, n))  # stable: long rollouts stay O(1)
     B = rng.standard_normal((n, m))
+    return simulate(A, B, rng, lengths=lengths)
+
+
+def simulate(A, B, rng, *, lengths, sigma_w: float = 0.1):
+    """Rollouts of x+ = A x + B u + w: Gaussian x_0, inputs and noise N(0, sigma_w^2)
+    drawn from ``rng`` (a seed or a Generator), one rollout of T steps per length."""
+    rng = np.random.default_rng(rng)
+    A, B = np.asarray(A, dtype=float), np.asarray(B, dtype=float).reshape(len(A), -1)
+    n, m = B.shape
     X, U = [], []
     for T in lengths:
         u = rng.standard_normal((T, m))
         x = np.zeros((T + 1, n))
         x[0] = rng.standard_normal(n)
         for k in range(T):
-            x[k + 1] = A @ x[k] + B @ u[k] + 0.1 * rng.standard_normal(n)
+            x[k + 1] = A @ x[k] + B @ u[k] + sigma_w * rng.standard_normal(n)
         X.append(x)
         U.append(u)
     return X, U

@@ -245,9 +245,6 @@ def test_a_spec_names_the_teams_dataset(client, session, make_account):
         job_store.create_job(
             session, team_id=a.team.id, user_id=None, spec={**spec, "dataset": theirs}
         )
-    try:
-        job_store.admit(parse_spec(spec))
-    except ValueError:
-        pytest.skip("dataset jobs are not planned into work units yet (svrobs_core.workload)")
     job, _ = job_store.create_job(session, team_id=a.team.id, user_id=None, spec=spec)
     assert job.dataset_id == mine and job.spec_summary["systems"] == [f"dataset-{mine}"]
+    assert job.n_cells == parse_spec(spec).n_cells == 2 * 1 * 2  # N x reps x (ols, svr)

@@ -1,5 +1,6 @@
 """Datasets of measured rollouts (docs/datasets.md#rest): upload, list, show, delete,
-download; a job cell's model file; a system object from a system file.
+download; a job cell's model file; a dataset job's validation; a system object from
+a system file.
 
 The upload streams: the multipart body is read chunk by chunk into a spooled
 temporary file (at most SVROBS_MAX_DATASET_MB, else 413 as soon as it is over),
@@ -44,6 +45,7 @@ from svrobs_lab.datasets.model_export import export_model
 from svrobs_lab.datasets.system_file import read_system
 from svrobs_lab.errors import Invalid, PayloadTooLarge
 from svrobs_lab.jobs import team_job
+from svrobs_lab.validation import job_validation
 
 router = APIRouter(tags=["datasets"])
 UPLOAD_PATH = "/datasets"
@@ -287,6 +289,20 @@ def get_model(
     job = team_job(session, caller, job_id)
     content, media, name = export_model(session, job, cell=cell, fmt=format)
     return Response(content, media_type=media, headers={"Content-Disposition": _attachment(name)})
+
+
+@router.get("/jobs/{job_id}/validation", tags=["models"], responses=ERRORS)
+def get_validation(
+    job_id: JobId, session: DB, caller: CurrentCaller, session_factory: SessionFactoryDep
+) -> dict:
+    """A dataset job's validation on its held-out rollouts (docs/measured.md#validation):
+    per estimator and gamma, the model fitted on the largest N's training rollouts,
+    one-step and simulation fit per channel, Ljung-Box and input-residual
+    cross-correlation tests with their p-values, the residual autocorrelation with its
+    band; the excitation check of those rollouts; the measured and predicted series of
+    the first held-out rollouts (for plots). Computed once and stored; 404 for a job
+    that is not on a dataset."""
+    return job_validation(session, caller, job_id, session_factory)
 
 
 @router.post("/systems/from-file", tags=["presets"], responses={**ERRORS, **error_docs(413)})
