@@ -7,7 +7,8 @@
     svrobs schedules list|show|create|enable|disable|delete|runs
     svrobs presets list|run                REST commands (svrobs_cli.schedules)
     svrobs share create|list|revoke        share links (svrobs_cli.shares)
-    svrobs datasets upload|list|show|delete|download, svrobs model, svrobs systems from-file
+    svrobs datasets upload|list|show|delete|download, svrobs model, svrobs validation,
+    svrobs systems from-file
                                            measured data (svrobs_cli.datasets)
     svrobs run-local|reproduce             the core in process (svrobs_cli.local)
     svrobs serve                           API + worker + beat (svrobs_cli.serve)
@@ -101,6 +102,7 @@ COMMANDS = (
     (datasets_app, "delete", datasets.delete),
     (datasets_app, "download", datasets.download),
     (app, "model", datasets.model),
+    (app, "validation", datasets.validation),
     (systems_app, "from-file", datasets.system_from_file),
     (app, "run-local", local.run_local_command),
     (app, "reproduce", local.reproduce_command),

@@ -18,6 +18,7 @@ A file given by ``--out`` is written whole or not at all; errors are one line.
 from __future__ import annotations
 
 import hashlib
+import json
 import sys
 from pathlib import Path
 
@@ -178,6 +179,44 @@ def model(
         except ValidationError as exc:
             raise CliError(plain_message(exc)) from None
     typer.echo(f"wrote {path}")
+
+
+def validation(
+    job: int = typer.Argument(...),
+    out: Path | None = typer.Option(None, "--out", help="write the JSON to this file"),
+) -> None:
+    """A dataset job's validation: each estimator's fit on the held-out rollouts, the
+    whiteness and cross-correlation tests, the excitation of the training data."""
+    with client(timeout=120) as c:
+        body = c.validation(job)
+    if out is not None:
+        out.write_text(json.dumps(body, indent=1))
+        return typer.echo(f"wrote {out}")
+    for m in body["models"]:
+        gamma = "" if m["gamma"] is None else f" gamma={m['gamma']:g}"
+        v = m["validation"]
+        if v is None:
+            typer.echo(f"{m['estimator']}{gamma}: no held-out rollouts")
+            continue
+        fits = ", ".join(f"{ch} {_pct(f)}" for ch, f in zip(v["channels"], v["one_step_fit"]))
+        lb = ", ".join(_p(p) for p in v["ljung_box_p"])
+        typer.echo(f"{m['estimator']}{gamma}: one-step fit {fits}; Ljung-Box p {lb}")
+    ex = body["excitation"]
+    typer.echo(f"excitation: lambda_min {ex['lambda_min']:.3g}, condition number {_g(ex['cond'])}")
+    for note in ex["notes"] + body["notes"]:
+        typer.echo(f"note: {note}")
+
+
+def _pct(v) -> str:
+    return "null" if v is None else f"{v:.1f} %"
+
+
+def _p(v) -> str:
+    return "null" if v is None else f"{v:.3g}"
+
+
+def _g(v) -> str:
+    return "inf" if v is None else f"{v:.3g}"
 
 
 def system_from_file(

@@ -247,6 +247,12 @@ class DatasetCalls:
             return data
         return data.to_statespace()
 
+    def validation(self, job) -> dict[str, Any]:
+        """A dataset job's validation on its held-out rollouts, as the API sends it
+        (``GET /jobs/{id}/validation``): per estimator and gamma the fitted model, the
+        fit, whiteness and cross-correlation statistics; the excitation check."""
+        return self.request("GET", f"/jobs/{_ident(job)}/validation").json()
+
     # ------------------------------------------------------------------ systems
     def system_from_file(self, path: str | os.PathLike, *, name: str | None = None) -> dict:
         """A spec's custom system (``{name, A, B, C, sigma_u, sigma_v}``) from an NPZ,

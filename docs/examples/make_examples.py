@@ -1,6 +1,8 @@
 """Write the example files of docs/datasets.md: one small dataset (3 rollouts of 5, 3
 and 4 steps, n = 2 states, m = 1 input, values with 4 decimals) as CSV, NPZ, MATLAB
-v5, MATLAB v7.3 and JSON, and a system file (A, B, C) as NPZ.
+v5, MATLAB v7.3 and JSON, a system file (A, B, C) as NPZ, and ``plant.csv``, runs of
+the same system long enough to fit and validate a model on (24 rollouts of 40 steps:
+the README's measured-data tour).
 
     python docs/examples/make_examples.py        # rewrites the files beside it
 
@@ -25,11 +27,14 @@ B = np.array([[0.0], [0.5]])
 C = np.array([[1.0, 0.0]])
 
 
-def rollouts(seed: int = 7):
+PLANT_RUNS = (40,) * 24
+
+
+def rollouts(seed: int = 7, lengths=LENGTHS):
     """X_i (T_i+1, 2) and U_i (T_i, 1) of x+ = A x + B u + w, rounded to 4 decimals."""
     rng = np.random.default_rng(seed)
     X, U = [], []
-    for T in LENGTHS:
+    for T in lengths:
         u = np.round(rng.uniform(-1, 1, (T, 1)), 4)
         x = np.zeros((T + 1, 2))
         x[0] = rng.uniform(-1, 1, 2)
@@ -86,6 +91,7 @@ def main() -> None:
         lines.append(f' "{key}": [\n  {rows}\n ]' + ("," if key == "X" else ""))
     (HERE / "rollouts.json").write_text("\n".join(lines) + "\n}\n")
     np.savez(HERE / "system.npz", A=A, B=B, C=C)
+    write_csv(HERE / "plant.csv", *rollouts(seed=11, lengths=PLANT_RUNS))
 
 
 if __name__ == "__main__":

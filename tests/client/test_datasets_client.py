@@ -232,3 +232,34 @@ def test_uploads_stream_from_a_file_object(client, examples):
     d = client.upload_dataset(io.BytesIO(raw), name="stream", filename="s.npz")
     assert d.sha256 == examples["rollouts.npz"].sha256 and d.filename == "s.npz"
     assert Path(EXAMPLES / "rollouts.npz").stat().st_size == d.size_bytes
+
+
+def test_a_dataset_job_and_its_validation_through_the_client_and_the_cli(
+    client, http, run, tmp_path
+):
+    """The committed plant runs uploaded, a job on them: the client's and the CLI's
+    validation are the API's; the model export's matrices are the job's record."""
+    d = client.upload_dataset(EXAMPLES / "plant.csv", name="plant", sample_time=0.1)
+    assert (d.rollouts, d.n, d.m) == (24, 2, 1)
+    spec = {"dataset": d.id, "N": [10, 20], "holdout": 4, "reps": 2, "gamma": [0.05]}
+    job = client.submit(spec, name="measured", timeout=150)
+    assert job.status == "succeeded", job
+    body = client.validation(job)
+    assert body == http.get(f"/jobs/{job.id}/validation").json()
+    assert [m["estimator"] for m in body["models"]] == ["ols", "svr"]
+    code, out, _ = run("validation", str(job.id))
+    assert code == 0 and out.startswith("ols: one-step fit x1 ")
+    fit = body["models"][0]["validation"]["one_step_fit"][0]
+    assert f"x1 {fit:.1f} %" in out and "excitation: lambda_min " in out
+    code, out, _ = run("validation", str(job.id), "--out", str(tmp_path / "v.json"))
+    assert code == 0 and json.loads((tmp_path / "v.json").read_text()) == body
+    code, _, err = run("validation", "999999")
+    assert code == 2 and "not found" in err
+    rec = next(
+        r
+        for r in http.get(f"/jobs/{job.id}/results", params={"limit": 100}).json()["items"]
+        if (r["N"], r["estimator"], r["rep"]) == (20, "ols", 0)
+    )
+    model = client.model_data(job, "N=20,estimator=ols,rep=0")
+    assert np.array_equal(model["A_hat"], np.array(rec["A_hat"]))
+    assert model.sample_time == 0.1
