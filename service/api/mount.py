@@ -10,15 +10,15 @@ from service.api.deps import clean_query_text
 from service.api.docs import install_redoc
 from service.api.errors import error_response
 from service.api.query_params import reject_unknown_query
+from service.http.uploads import STREAMED
 
 API_PREFIX = "/api/v1"
-DATASET_UPLOAD = API_PREFIX + "/datasets"  # POST: service.api.routes.datasets streams it
 
 
 class BodyLimitMiddleware:
     """413 for a request body over ``max_bytes`` (declared Content-Length or streamed).
-    A dataset upload (``POST /api/v1/datasets``) is streamed by its route under its own
-    limit, SVROBS_MAX_DATASET_MB (service.api.routes.datasets), so it passes here."""
+    A dataset upload (the API's and the web's) is streamed by its route under its own
+    limit, SVROBS_MAX_DATASET_MB (:mod:`service.http.uploads`), so it passes here."""
 
     def __init__(self, app, max_bytes: int):
         self.app = app
@@ -27,7 +27,7 @@ class BodyLimitMiddleware:
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS", "DELETE"):
             return await self.app(scope, receive, send)
-        if scope["path"] == DATASET_UPLOAD:  # streamed by its route, under its own limit
+        if scope["path"] in STREAMED:  # streamed by its route, under its own limit
             return await self.app(scope, receive, send)
         too_big = error_response(
             413, f"request body over {self.max_bytes} bytes (SVROBS_MAX_BODY_BYTES)"

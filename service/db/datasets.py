@@ -213,6 +213,46 @@ def load_arrays(
     return X, U, dataset_meta(row)
 
 
+def _byte_range(session: Session, dataset_id: int, start: int, stop: int) -> bytes:
+    """Bytes ``start:stop`` of a dataset's stored arrays, reading only the chunks they
+    fall in."""
+    c = CHUNKS.c
+    first, last = start // CHUNK_BYTES, max(start, stop - 1) // CHUNK_BYTES
+    rows = session.execute(
+        select(c.seq, c.data)
+        .where(c.dataset_id == dataset_id, c.part == "arrays", c.seq.between(first, last))
+        .order_by(c.seq)
+    ).all()
+    data = b"".join(bytes(d) for _, d in rows)
+    return data[start - first * CHUNK_BYTES : stop - first * CHUNK_BYTES]
+
+
+def load_rollouts(
+    session: Session, dataset_id: int, count: int
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The first ``count`` rollouts of a stored dataset, ``(X_list, U_list)`` as
+    :func:`load_arrays` gives them, reading only the chunks that hold them (a page's
+    plot of a large dataset). DatasetNotFound when it does not exist."""
+    row = session.execute(
+        select(Dataset.n, Dataset.m, Dataset.lengths).where(Dataset.id == dataset_id)
+    ).first()
+    if row is None:
+        raise DatasetNotFound(dataset_id)
+    lengths = np.asarray(row.lengths, dtype=np.int64)
+    n, m, k = row.n, row.m, max(0, min(int(count), len(lengths)))
+    size = DTYPE.itemsize
+    x_at = int((lengths + 1).sum()) * n * size  # the U part starts after every X_i
+    nx, nu = int((lengths[:k] + 1).sum()) * n, int(lengths[:k].sum()) * m
+    X_all = np.frombuffer(_byte_range(session, dataset_id, 0, nx * size), dtype=DTYPE)
+    U_all = np.frombuffer(
+        _byte_range(session, dataset_id, x_at, x_at + nu * size) if nu else b"", dtype=DTYPE
+    )
+    X = np.split(X_all.reshape(-1, n), np.cumsum(lengths[:k] + 1)[:-1]) if k else []
+    U_all = U_all.reshape(-1, m) if m else np.zeros((int(lengths[:k].sum()), 0))
+    U = np.split(U_all, np.cumsum(lengths[:k])[:-1]) if k else []
+    return X, U
+
+
 def jobs_using(session: Session, dataset_id: int) -> tuple[list[int], int]:
     """(the first NAMED_JOBS ids of the jobs on the dataset, how many there are)."""
     ids = session.scalars(

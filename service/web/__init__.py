@@ -24,6 +24,7 @@ def mount_web(app: FastAPI) -> None:
     from service.web.pages import (  # a new page module: add it here
         auth,
         compare,
+        datasets,
         job,
         jobs,
         results,
@@ -35,7 +36,7 @@ def mount_web(app: FastAPI) -> None:
     settings = app.state.settings
     app.state.web_signer = Signer(load_secret(settings), session_hours=settings.SESSION_HOURS)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
-    for module in (auth, jobs, submit, job, results, compare, schedules, share):
+    for module in (auth, jobs, submit, job, results, compare, schedules, share, datasets):
         app.include_router(module.router)
     app.add_exception_handler(WebError, web_error_page)
     app.add_exception_handler(SignInRequired, sign_in_redirect)

@@ -185,6 +185,29 @@ def create_dataset(
     return row
 
 
+def upload(
+    session: Session,
+    caller: Caller,
+    stream: BinaryIO,
+    filename: str | None,
+    fields: Mapping[str, str | None],
+    max_bytes: int,
+) -> dict:
+    """:func:`create_dataset` for the caller, committed -> the dataset as the API
+    answers it."""
+    row = create_dataset(
+        session,
+        team_id=caller.team_id,
+        user_id=caller.user_id,
+        stream=stream,
+        filename=filename,
+        fields=fields,
+        max_bytes=max_bytes,
+    )
+    session.commit()
+    return dataset_view(team_dataset(session, caller, row.id))
+
+
 def resolve_dataset(session: Session, team_id: int, dataset_id: int) -> Dataset:
     """The team's dataset ``dataset_id``; DatasetNotFound naming the spec field
     ``dataset`` when the team has none of that id (another team's included)."""

@@ -2,24 +2,19 @@
 download; a job cell's model file; a dataset job's validation; a system object from
 a system file.
 
-The upload streams: the multipart body is read chunk by chunk into a spooled
-temporary file (at most SVROBS_MAX_DATASET_MB, else 413 as soon as it is over),
-then parsed and stored in a worker thread. The upload path is left out of the
-app's in-memory body limit (service.api.mount).
+The upload streams (:mod:`service.http.uploads`): the multipart body is read chunk
+by chunk into a spooled temporary file (at most SVROBS_MAX_DATASET_MB, else 413 as
+soon as it is over), then parsed and stored in a worker thread.
 """
 
 from __future__ import annotations
 
 from datetime import datetime
-from functools import partial
 from typing import Annotated, Any, Literal
 
-import anyio
 from fastapi import APIRouter, File, Form, Path, Query, Request, Response, UploadFile
 from fastapi.responses import StreamingResponse
 from pydantic import BaseModel
-from starlette.datastructures import UploadFile as FormFile
-from starlette.formparsers import MultiPartException, MultiPartParser
 
 from service.api.deps import (
     DB,
@@ -30,10 +25,9 @@ from service.api.deps import (
     SettingsDep,
 )
 from service.api.errors import error_docs
+from service.http.uploads import store_upload
 from svrobs_lab.datasets.catalog import (
-    FIELDS,
     MEDIA_TYPES,
-    create_dataset,
     dataset_view,
     download_name,
     file_chunks,
@@ -43,12 +37,11 @@ from svrobs_lab.datasets.catalog import (
 )
 from svrobs_lab.datasets.model_export import export_model
 from svrobs_lab.datasets.system_file import read_system
-from svrobs_lab.errors import Invalid, PayloadTooLarge
 from svrobs_lab.jobs import team_job
 from svrobs_lab.validation import job_validation
 
 router = APIRouter(tags=["datasets"])
-UPLOAD_PATH = "/datasets"
+UPLOAD_PATH = "/datasets"  # under /api/v1: service.http.uploads.API_UPLOAD
 ERRORS = error_docs(401, 404, 422, 429, 503)
 DatasetId = Annotated[int, Path(ge=1, le=MAX_ID, description="a dataset id of the caller's team")]
 
@@ -113,65 +106,6 @@ class DatasetPage(BaseModel):
     offset: int
 
 
-async def _form(request: Request, limit: int):
-    """The multipart form, its file spooled to disk past 1 MiB; 413 once the body is
-    over ``limit`` bytes (declared or streamed)."""
-    too_big = PayloadTooLarge(
-        f"the upload is over {limit // 2**20} MB (SVROBS_MAX_DATASET_MB)", field="file"
-    )
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise too_big
-    if not request.headers.get("content-type", "").startswith("multipart/form-data"):
-        raise Invalid("send the file as multipart/form-data, in the field 'file'", field="file")
-
-    async def counted():
-        size = 0
-        async for chunk in request.stream():
-            size += len(chunk)
-            if size > limit:
-                raise too_big
-            yield chunk
-
-    parser = MultiPartParser(request.headers, counted(), max_files=1, max_fields=len(FIELDS))
-    try:
-        return await parser.parse()
-    except MultiPartException as exc:
-        raise Invalid(f"not valid multipart/form-data: {exc.message}", field="file") from None
-
-
-def _fields(form) -> tuple[FormFile, dict[str, str]]:
-    upload, fields = None, {}
-    for key, value in form.multi_items():
-        if key == "file":
-            if not isinstance(value, FormFile):
-                raise Invalid("must be a file, not text", field="file")
-            upload = value
-        elif not isinstance(value, str):
-            raise Invalid("must be text, not a file", field=key)
-        elif key in fields:
-            raise Invalid("given twice", field=key)
-        else:
-            fields[key] = value
-    if upload is None:
-        raise Invalid("is required (the dataset file)", field="file")
-    return upload, fields
-
-
-def _store(session, caller, upload: FormFile, fields: dict, limit: int) -> dict:
-    row = create_dataset(
-        session,
-        team_id=caller.team_id,
-        user_id=caller.user_id,
-        stream=upload.file,
-        filename=upload.filename,
-        fields=fields,
-        max_bytes=limit,
-    )
-    session.commit()
-    return dataset_view(team_dataset(session, caller, row.id))
-
-
 @router.post(
     UPLOAD_PATH,
     status_code=201,
@@ -187,15 +121,7 @@ async def upload_dataset(
     `sample_time`, `state_columns` / `input_columns` (CSV) or `state_names` /
     `input_names`. A bad file is one 422 naming the row, column or variable, and
     nothing is stored; over SVROBS_MAX_DATASET_MB is a 413."""
-    limit = settings.MAX_DATASET_MB * 2**20
-    form = await _form(request, limit)
-    try:
-        upload, fields = _fields(form)
-        body = await anyio.to_thread.run_sync(
-            partial(_store, session, caller, upload, fields, limit)
-        )
-    finally:
-        await form.close()
+    body = await store_upload(request, session, caller, settings.MAX_DATASET_MB * 2**20)
     return Response(
         DatasetOut(**body).model_dump_json(),
         status_code=201,

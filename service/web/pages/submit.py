@@ -24,6 +24,7 @@ from svrobs_core import parse_spec
 from svrobs_core.errors import SpecError
 from svrobs_core.paper import PRESET_NAME, paper_specs
 from svrobs_core.systems import PRESETS
+from svrobs_lab.datasets.overview import starter_spec
 from svrobs_lab.errors import IdempotencyConflict, QuotaExceeded
 from svrobs_lab.jobs import JobRequest
 from svrobs_lab.schemas import SPEC_FIELD_NAMES, JobSubmit
@@ -80,7 +81,14 @@ def _form(request, viewer, *, status=200, errors=None, **values):
 
 
 @router.get("/jobs/new")
-def submit_form(request: Request, viewer: CurrentViewer, preset: str = ""):
+def submit_form(
+    request: Request, db: DB, viewer: CurrentViewer, preset: str = "", dataset: int | None = None
+):
+    """The form, filled with a preset, or with a first job on one of the team's
+    datasets (``?dataset=ID``, the dataset page's "new job on this dataset")."""
+    if dataset is not None:
+        spec = starter_spec(db, viewer.caller, dataset)  # NotFound: a 404 page
+        return _form(request, viewer, spec=json.dumps(spec, indent=2))
     spec = presets().get(preset)
     text = json.dumps(spec[1], indent=2) if spec else ""
     return _form(request, viewer, spec=text, preset=preset if spec else "")
