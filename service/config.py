@@ -49,6 +49,9 @@ class Settings(BaseSettings):
     # A schedule's cron must not fire more often than this (seconds between runs).
     MIN_SCHEDULE_INTERVAL_SECONDS: int = 300
     MAX_BODY_BYTES: int = 1_048_576
+    # A dataset upload (POST /datasets, streamed to a temporary file) may be at most
+    # this many MB (2^20 bytes): 413 beyond (docs/datasets.md#limits).
+    MAX_DATASET_MB: int = 256
     MAX_QUEUED_JOBS_PER_TEAM: int = 100
     RATE_LIMIT_PER_MINUTE: int = 600
 

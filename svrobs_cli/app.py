@@ -7,6 +7,9 @@
     svrobs schedules list|show|create|enable|disable|delete|runs
     svrobs presets list|run                REST commands (svrobs_cli.schedules)
     svrobs share create|list|revoke        share links (svrobs_cli.shares)
+    svrobs datasets upload|list|show|delete|download, svrobs model, svrobs validation,
+    svrobs systems from-file
+                                           measured data (svrobs_cli.datasets)
     svrobs run-local|reproduce             the core in process (svrobs_cli.local)
     svrobs serve                           API + worker + beat (svrobs_cli.serve)
 
@@ -16,7 +19,7 @@ Every error prints one line and exits with status 2, never a traceback
 
 from __future__ import annotations
 
-from svrobs_cli import admin, local, rest, schedules, serve, shares
+from svrobs_cli import admin, datasets, local, rest, schedules, serve, shares
 from svrobs_cli.errors import SvrobsTyper
 
 __all__ = ["app"]
@@ -52,6 +55,18 @@ share_app = SvrobsTyper(
     pretty_exceptions_enable=False,
 )
 app.add_typer(share_app, name="share")
+datasets_app = SvrobsTyper(
+    help="Datasets of measured rollouts: upload, list, show, delete, download.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+)
+app.add_typer(datasets_app, name="datasets")
+systems_app = SvrobsTyper(
+    help="Custom systems for a spec, read from files.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+)
+app.add_typer(systems_app, name="systems")
 
 COMMANDS = (
     (app, "migrate", admin.migrate),
@@ -81,6 +96,14 @@ COMMANDS = (
     (share_app, "create", shares.create),
     (share_app, "list", shares.list_shares),
     (share_app, "revoke", shares.revoke),
+    (datasets_app, "upload", datasets.upload),
+    (datasets_app, "list", datasets.list_datasets),
+    (datasets_app, "show", datasets.show),
+    (datasets_app, "delete", datasets.delete),
+    (datasets_app, "download", datasets.download),
+    (app, "model", datasets.model),
+    (app, "validation", datasets.validation),
+    (systems_app, "from-file", datasets.system_from_file),
     (app, "run-local", local.run_local_command),
     (app, "reproduce", local.reproduce_command),
     (app, "serve", serve.serve_command),

@@ -26,6 +26,7 @@ from pathlib import Path
 import typer
 
 from svrobs_cli.errors import CliError, plain_message
+from svrobs_cli.system_files import resolve_system_files
 from svrobs_client import RESULT_FILTERS, Client, Job, ValidationError
 from svrobs_client.params import results_params
 
@@ -106,7 +107,9 @@ def finish(c: Client, job: Job) -> None:
 
 def submit(
     spec_file: Path = typer.Argument(
-        ..., help="a SPEC section 10 JSON (or YAML) file; - for stdin"
+        ...,
+        help="a SPEC section 10 JSON (or YAML) file; - for stdin. A system may be "
+        '{"file": "plant.mat"} (A, B, optionally C in an NPZ, .mat or JSON file)',
     ),
     wait: bool = typer.Option(False, "--wait", help="show progress until the job finishes"),
     name: str | None = typer.Option(None, help="job name"),
@@ -118,6 +121,8 @@ def submit(
     """Submit an experiment spec as a job."""
     spec = load_spec(spec_file)
     with client() as c:
+        base = Path.cwd() if str(spec_file) == "-" else spec_file.parent
+        spec = resolve_system_files(c, spec, base)
         try:
             job = c.submit(spec, name=name, tags=tag, idempotency_key=idempotency_key, wait=False)
         except ValidationError as exc:

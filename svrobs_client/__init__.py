@@ -7,6 +7,8 @@
         df = c.results(job, estimator="svr", N=[50, 100])  # a DataFrame; matrices as arrays
         c.summary(job)                                     # mean/std/count per group
         c.report(job, "report/")                           # report.html + figures/
+        ds = c.upload_dataset("runs.csv", name="plant runs")  # measured rollouts
+        c.model(job, "system=plant,N=50,estimator=svr,gamma=0.05,rep=0")  # StateSpace
 
 Errors are :class:`SvrobsError` subclasses carrying ``status``, ``field`` and
 ``message`` (see :mod:`svrobs_client.errors`).
@@ -14,6 +16,7 @@ Errors are :class:`SvrobsError` subclasses carrying ``status``, ``field`` and
 
 from .client import RESULT_FILTERS, SEED_POLICIES, Client
 from .config import DEFAULT_URL, config_path, resolve
+from .datasets import Model
 from .errors import (
     AuthError,
     BadRequest,
@@ -31,7 +34,18 @@ from .errors import (
     WaitTimeout,
 )
 from .frames import MATRIX_FIELDS
-from .models import TERMINAL, Job, JobPage, Progress, Report, Schedule, ScheduleRun, Share
+from .models import (
+    TERMINAL,
+    Dataset,
+    DatasetPage,
+    Job,
+    JobPage,
+    Progress,
+    Report,
+    Schedule,
+    ScheduleRun,
+    Share,
+)
 from .params import NUMERIC_FIELDS, RANGE_FIELDS
 
 __all__ = [
@@ -42,10 +56,13 @@ __all__ = [
     "Conflict",
     "ConnectionFailed",
     "DEFAULT_URL",
+    "Dataset",
+    "DatasetPage",
     "Job",
     "JobPage",
     "MATRIX_FIELDS",
     "MethodNotAllowed",
+    "Model",
     "NUMERIC_FIELDS",
     "NotFound",
     "Progress",

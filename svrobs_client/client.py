@@ -1,7 +1,8 @@
 """The svrobs REST client: one :class:`httpx.Client` per :class:`Client`.
 
 Covers the routes of ``/api/v1`` (README, "API"): jobs, results, summaries,
-comparisons, reports, share links, presets and schedules. HTTP errors are raised as the typed
+comparisons, reports, share links, presets and schedules; datasets, model exports
+and system files in :mod:`svrobs_client.datasets`. HTTP errors are raised as the typed
 exceptions of :mod:`svrobs_client.errors`; results come as pandas DataFrames (the
 ``dataframe`` extra) or as plain dicts.
 """
@@ -22,7 +23,9 @@ import httpx
 
 from . import frames
 from .config import resolve
+from .datasets import DatasetCalls
 from .errors import ConnectionFailed, Unavailable, WaitTimeout, error_from_response
+from .files import write_atomic
 from .models import Job, JobPage, Report, Schedule, ScheduleRun, Share
 from .params import RESULT_FILTERS, results_params
 from .progress import make_bar
@@ -63,23 +66,7 @@ def _check_seed_policy(policy) -> None:
         raise ValueError(f"seed_policy must be 'fixed' or 'due-time', got {policy!r}")
 
 
-def _write_atomic(path: Path, write) -> None:
-    """Write through ``write(file)`` into a temporary file beside ``path``, then rename it:
-    ``path`` appears complete or not at all."""
-    import tempfile
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-class Client:
+class Client(DatasetCalls):
     """A client of one svrobs server.
 
     ``url`` and ``key`` default to ``SVROBS_URL`` / ``SVROBS_API_KEY``, then to the
@@ -306,7 +293,7 @@ class Client:
             for chunk in chunks():
                 out.write(chunk)
             return
-        _write_atomic(Path(out), lambda f: [f.write(c.encode("utf-8")) for c in chunks()])
+        write_atomic(Path(out), lambda f: [f.write(c.encode("utf-8")) for c in chunks()])
 
     def summary_json(self, job: Job | int) -> dict[str, Any]:
         """``GET /jobs/{id}/summary`` as the API sends it."""
@@ -350,7 +337,7 @@ class Client:
         folder = Path(folder)
         text = self.report_html(job)
         page = folder / "report.html"
-        _write_atomic(page, lambda f: f.write(text.encode("utf-8")))
+        write_atomic(page, lambda f: f.write(text.encode("utf-8")))
         written = []
         if figures:
             import base64
@@ -359,7 +346,7 @@ class Client:
                 slug = re.sub(r"[^A-Za-z0-9]+", "-", html.unescape(alt)).strip("-").lower()
                 path = folder / "figures" / f"{i:02d}-{slug[:60] or 'figure'}.png"
                 png = base64.b64decode(data)
-                _write_atomic(path, lambda f, png=png: f.write(png))
+                write_atomic(path, lambda f, png=png: f.write(png))
                 written.append(path)
         return Report(html=page, figures=written)
 

@@ -1,5 +1,5 @@
 """Result objects of the client: a job, its progress, a page of jobs, a schedule and its
-runs, a share link. Built from the API's JSON; ``raw`` keeps that JSON as received."""
+runs, a share link, a dataset. Built from the API's JSON; ``raw`` keeps that JSON as received."""
 
 from __future__ import annotations
 
@@ -167,3 +167,47 @@ class Report:
 
     html: Path
     figures: list[Path]
+
+
+@dataclass(frozen=True)
+class Dataset(_FromJSON):
+    """An uploaded dataset of measured rollouts (``GET /api/v1/datasets/{id}``):
+    shapes, channel names, sha256 of the upload and of its arrays; ``lengths`` and
+    ``stats`` (per channel mean, std, min, max) are empty in a listed one."""
+
+    id: int
+    name: str
+    format: str
+    n: int
+    m: int
+    rollouts: int
+    samples: int
+    sha256: str
+    arrays_sha256: str = field(repr=False)
+    size_bytes: int = field(repr=False)
+    sample_time: float | None = None
+    state_names: list[str] = field(default_factory=list)
+    input_names: list[str] = field(default_factory=list)
+    lengths: list[int] = field(default_factory=list, repr=False)
+    stats: dict[str, Any] = field(default_factory=dict, repr=False)
+    description: str | None = field(default=None, repr=False)
+    filename: str | None = None
+    owner: str | None = field(default=None, repr=False)
+    created_at: datetime | None = None
+    raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class DatasetPage:
+    """A page of ``GET /api/v1/datasets``; ``total`` counts the team's datasets."""
+
+    items: list[Dataset]
+    total: int
+    limit: int
+    offset: int
+
+    def __iter__(self) -> Iterator[Dataset]:
+        return iter(self.items)
+
+    def __len__(self) -> int:
+        return len(self.items)

@@ -132,8 +132,24 @@ class ExperimentSpec:
         return sum(1 if e == "ols" else len(self.gamma) for e in self.estimators)
 
     @property
+    def grid_systems(self) -> tuple[str, ...]:
+        """The records' ``system`` keys: the systems' names, or a dataset job's one
+        (``dataset-ID``)."""
+        if self.measured is not None:
+            return (self.measured.system_name,)
+        return tuple(s.name for s in self.systems)
+
+    @property
+    def grid_sigma_w(self) -> tuple[float, ...]:
+        """The records' ``sigma_w`` keys: the spec's levels, or a dataset job's one
+        (its given level, or -1 for "estimate": docs/measured.md#records)."""
+        if self.measured is not None:
+            return (self.measured.record_sigma_w,)
+        return tuple(self.sigma_w)
+
+    @property
     def n_cells(self) -> int:
-        pairs = 1 if self.measured is not None else len(self.systems) * len(self.sigma_w)
+        pairs = len(self.grid_systems) * len(self.grid_sigma_w)
         return pairs * len(self.N) * self.reps * self.cells_per_rep
 
     def to_dict(self) -> dict:

@@ -13,6 +13,12 @@ a factor of 3, and it is monotone in every size parameter.
 ``peak_bytes`` is the resident size of a worker process running the unit:
 the interpreter with the core imported (cvxpy too when the unit needs it)
 plus the unit's largest working set and the records it keeps.
+
+A job on a dataset (``spec.measured``) is costed from the dataset's shape
+(:class:`DataShape`: n, m and every rollout's length), passed as ``data=``:
+the same per-operation constants applied to the measured path's operations
+(docs/measured.md#workload), its units planned by
+:func:`svrobs_core.measured.plan_measured_units` under the memory cap.
 """
 
 from __future__ import annotations
@@ -26,6 +32,9 @@ from .data_factor import EXT_MAX_WORK
 from .errors import SpecError
 from .estimators import FALLBACK_CHUNK_BYTES, SVR_COND_LIMIT
 from .gains import is_orthogonal
+from .measured.data import StateModel
+from .measured.runner import plan_measured_units
+from .measured.spec import data_layout
 from .spec import ExperimentSpec
 from .uncertainty import BOOT_CHUNK_BYTES
 
@@ -75,6 +84,16 @@ class UnitCost:
 
     cpu_seconds: float
     peak_bytes: int
+
+
+@dataclass(frozen=True)
+class DataShape:
+    """The shape of the dataset a job runs on: n measured channels (states, or
+    outputs for the ARX state), m inputs, and T_i, the transitions of each rollout."""
+
+    n: int
+    m: int
+    lengths: tuple[int, ...]
 
 
 @dataclass(frozen=True)
@@ -219,8 +238,65 @@ def _monte_carlo_bytes(spec, *, n, m, p, rows, E) -> float:
     return 8.0 * (Xz + Ev + D + acc + draw)
 
 
-def estimate_unit(spec: ExperimentSpec, unit: dict) -> UnitCost:
-    """CPU seconds and peak resident bytes of one unit of ``plan_units(spec)``."""
+def _measured_sizes(spec: ExperimentSpec, data: DataShape) -> tuple:
+    """(model, C, the training rollouts' transitions in the model's state, longest
+    first) of a dataset job."""
+    if data is None:
+        raise ValueError("a dataset job's cost needs its dataset's shape (data=DataShape)")
+    model = StateModel(ny=data.n, m=data.m, lags=spec.measured.lags)
+    pool = np.asarray(data.lengths[: len(data.lengths) - spec.measured.holdout], dtype=np.int64)
+    steps = np.sort(np.maximum(pool - model.k0, 0))[::-1]
+    return model, data_layout(spec, data.n, data.m).C, steps
+
+
+def measured_fixed_bytes(spec: ExperimentSpec, data: DataShape) -> int:
+    """Bytes a worker holds for every unit of a dataset job: the interpreter (with
+    cvxpy, and the compiled SLS program, when needed), the dataset's arrays and the
+    training pool's regression columns (docs/measured.md#workload)."""
+    model, C, steps = _measured_sizes(spec, data)
+    n, d, total = model.n, model.n + data.m, int(np.sum(data.lengths))
+    arrays = 8 * (data.n * (total + len(data.lengths)) + data.m * total)
+    base = BASE_BYTES + (CVXPY_BYTES if _needs_cvxpy(spec, bool(is_orthogonal(C))) else 0)
+    if spec.has("sls"):
+        base += SLS_VAR_BYTES * spec.sls_T_fir * n * (n + C.shape[0])
+    return int(base + arrays + 8 * (d + n) * int(steps.sum()))
+
+
+def _measured_unit(spec: ExperimentSpec, unit: dict, data: DataShape) -> UnitCost:
+    """A dataset job's unit: per N (R repetitions, E cells each, N0 the transitions of
+    the N longest training rollouts, an upper bound for every subsample) the regression
+    data (copy, Gram, OLS residual) and the stages' per-cell work."""
+    model, C, steps = _measured_sizes(spec, data)
+    n, m, p, ny = model.n, data.m, C.shape[0], data.n
+    d, E = n + m, spec.cells_per_rep
+    orth = bool(is_orthogonal(C))
+    R = unit["reps"][1] - unit["reps"][0]
+    cpu, peak, kept = KEY, 0.0, 0.0
+    for N in unit["N"]:
+        N0, cells = int(steps[:N].sum()), R * E
+        cpu += DATASET + KEY * R + FLOP * R * N0 * (d + ny + 2 * d * (d + ny) + 6 * ny * d)
+        cpu += cells * sum(_cell(st, max(n, p)) for st in CELL_COST if spec.has(st))
+        if spec.has("cost") or spec.has("sls"):  # K, J* and the norms of each cell's estimate
+            cpu += cells * (TRUTH[0] + TRUTH[1] * n**3)
+        transient = 3 * 8.0 * R * (d + ny) * N0
+        if spec.has("gain"):
+            transient = max(transient, 3 * 8.0 * cells * n**4)
+            if not orth:
+                cpu += CVX_SOLVE * cells * (1 + n * p / 50.0)
+        if spec.has("sls"):
+            cpu += cells * (SLS_SOLVE + SLS_VAR * spec.sls_T_fir * n * (n + p))
+        peak = max(peak, kept + transient)
+        kept += cells * (RECORD_BYTES + RECORD_ENTRY_BYTES * (2 * n * n + n * m + 2 * n * p))
+    if spec.has("sls"):
+        cpu += SLS_COMPILE + SLS_COMPILE_VAR * spec.sls_T_fir * n * (n + p)
+    return UnitCost(cpu_seconds=float(cpu), peak_bytes=int(measured_fixed_bytes(spec, data) + peak))
+
+
+def estimate_unit(spec: ExperimentSpec, unit: dict, *, data: DataShape | None = None) -> UnitCost:
+    """CPU seconds and peak resident bytes of one unit of ``plan_units(spec)`` (of a
+    dataset job: of ``plan_measured_units``, with its dataset's shape ``data``)."""
+    if spec.measured is not None:
+        return _measured_unit(spec, unit, data)
     si = unit["system"]
     n, m, p, orth = _dims(spec, si)
     r0, r1 = unit["reps"]
@@ -264,26 +340,28 @@ def plan_under_memory(spec: ExperimentSpec, *, max_unit_bytes: int | None = None
     return [v for u in units for v in _fit_memory(spec, u, max_unit_bytes)]
 
 
-def _fit_memory(spec: ExperimentSpec, unit: dict, cap: int) -> list[dict]:
+def _fit_memory(spec: ExperimentSpec, unit: dict, cap: int, data=None) -> list[dict]:
     """``unit`` split so that each part's estimated peak bytes stay under ``cap``."""
-    if estimate_unit(spec, unit).peak_bytes <= cap:
+    if estimate_unit(spec, unit, data=data).peak_bytes <= cap:
         return [unit]
     if len(unit["N"]) > 1 and not spec.reuse_gain:
-        return [v for N in unit["N"] for v in _fit_memory(spec, {**unit, "N": [N]}, cap)]
+        return [v for N in unit["N"] for v in _fit_memory(spec, {**unit, "N": [N]}, cap, data)]
     r0, r1 = unit["reps"]
     lo, hi = 1, r1 - r0  # the largest chunk of repetitions under the cap, by bisection
     while lo < hi:
         mid = (lo + hi + 1) // 2
-        if estimate_unit(spec, {**unit, "reps": [r0, r0 + mid]}).peak_bytes <= cap:
+        if estimate_unit(spec, {**unit, "reps": [r0, r0 + mid]}, data=data).peak_bytes <= cap:
             lo = mid
         else:
             hi = mid - 1
     return [{**unit, "reps": [s, min(r1, s + lo)]} for s in range(r0, r1, lo)]
 
 
-def estimate_job(spec: ExperimentSpec, units: list[dict] | None = None) -> JobCost:
+def estimate_job(
+    spec: ExperimentSpec, units: list[dict] | None = None, *, data: DataShape | None = None
+) -> JobCost:
     """Total CPU seconds of ``units`` (default: ``plan_units(spec)``), the largest
-    unit's peak bytes and the unit count."""
+    unit's peak bytes and the unit count (``data``: a dataset job's shape)."""
     if units is None:
         units = planning.plan_units(spec)
     seen: dict[tuple, UnitCost] = {}  # units differing only in sigma_w cost the same
@@ -293,7 +371,7 @@ def estimate_job(spec: ExperimentSpec, units: list[dict] | None = None) -> JobCo
         r0, r1 = u["reps"]
         key = (u["system"], tuple(u["N"]), r1 - r0, max(0, min(r1, limit) - r0))
         if key not in seen:
-            seen[key] = estimate_unit(spec, u)
+            seen[key] = estimate_unit(spec, u, data=data)
         costs.append(seen[key])
     return JobCost(
         cpu_seconds=float(sum(c.cpu_seconds for c in costs)),
@@ -316,18 +394,30 @@ class WorkloadError(SpecError):
         self.limit = limit
 
 
-def smallest_unit_bytes(spec: ExperimentSpec) -> int:
+def smallest_unit_bytes(spec: ExperimentSpec, *, data: DataShape | None = None) -> int:
     """Peak bytes of the smallest unit the plan can make: one repetition of the
     largest N (all N together under ``reuse_gain``), for the largest system."""
     Ns = list(spec.N) if spec.reuse_gain else [max(spec.N)]
     return max(
-        estimate_unit(spec, {"system": si, "sigma_w": 0, "N": Ns, "reps": [0, 1]}).peak_bytes
-        for si in range(len(spec.systems))
+        estimate_unit(
+            spec, {"system": si, "sigma_w": 0, "N": Ns, "reps": [0, 1]}, data=data
+        ).peak_bytes
+        for si in range(len(spec.grid_systems))
     )
 
 
 def _reductions(spec: ExperimentSpec, kind: str) -> dict[str, ExperimentSpec]:
     """The spec with one size field at its smallest, per field (for naming the culprit)."""
+    if spec.measured is not None:  # a dataset job: no simulation fields
+        out = {
+            "N": replace(spec, N=(min(spec.N),)),
+            "gamma": replace(spec, gamma=spec.gamma[:1]),
+            "sls.T_fir": replace(spec, sls_T_fir=2),
+            "estimators": replace(spec, estimators=spec.estimators[:1]),
+        }
+        if kind == "cpu":
+            out["reps"] = replace(spec, reps=1)
+        return out
     out = {
         "N": replace(spec, N=(1,)),
         "T0": replace(spec, T0=2),
@@ -346,9 +436,27 @@ def _reductions(spec: ExperimentSpec, kind: str) -> dict[str, ExperimentSpec]:
     return out
 
 
-def _culprit(spec: ExperimentSpec, kind: str) -> str:
+def _plan(spec: ExperimentSpec, max_unit_bytes: int | None, data: DataShape | None) -> list:
+    """The units under the memory cap: :func:`plan_under_memory`, or for a dataset job
+    :func:`~svrobs_core.measured.plan_measured_units` with what the cap leaves beside
+    the bytes every unit holds, a unit still over the cap by this estimate split as
+    :func:`plan_under_memory` splits one."""
+    if spec.measured is None:
+        return plan_under_memory(spec, max_unit_bytes=max_unit_bytes)
+    if max_unit_bytes is None:
+        return plan_measured_units(spec)
+    budget = max(1, max_unit_bytes - measured_fixed_bytes(spec, data))
+    units = plan_measured_units(
+        spec, lengths=list(data.lengths), n=data.n, m=data.m, max_unit_bytes=budget
+    )
+    return [v for u in units for v in _fit_memory(spec, u, max_unit_bytes, data)]
+
+
+def _culprit(spec: ExperimentSpec, kind: str, data: DataShape | None = None) -> str:
     def size(s):
-        return estimate_job(s).cpu_seconds if kind == "cpu" else smallest_unit_bytes(s)
+        if kind == "cpu":
+            return estimate_job(s, _plan(s, None, data), data=data).cpu_seconds
+        return smallest_unit_bytes(s, data=data)
 
     sizes = {f: size(s) for f, s in _reductions(spec, kind).items()}
     return min(sizes, key=sizes.get)
@@ -359,16 +467,20 @@ def admit(
     *,
     max_cpu_seconds: float | None = None,
     max_unit_bytes: int | None = None,
+    data: DataShape | None = None,
 ) -> tuple[list[dict], JobCost]:
     """The work units of ``spec`` planned under the memory cap, and their cost,
     or :class:`WorkloadError` if the smallest unit is over ``max_unit_bytes``
     or the job over ``max_cpu_seconds`` (None: no limit). The message gives the
-    estimate and the limit; ``field`` the spec field that weighs most."""
+    estimate and the limit; ``field`` the spec field that weighs most. A dataset
+    job needs its dataset's shape ``data``."""
+    if spec.measured is not None and data is None:
+        raise ValueError("a dataset job's admission needs its dataset's shape (data=DataShape)")
     if max_unit_bytes is not None:
-        need = smallest_unit_bytes(spec)
+        need = smallest_unit_bytes(spec, data=data)
         if need > max_unit_bytes:
             raise WorkloadError(
-                _culprit(spec, "memory"),
+                _culprit(spec, "memory", data),
                 f"one work unit (a single repetition) needs an estimated {need / 2**20:.0f} MB,"
                 f" over the limit of {max_unit_bytes / 2**20:.0f} MB",
                 kind="memory",
@@ -385,11 +497,11 @@ def admit(
             estimate=floor,
             limit=max_cpu_seconds,
         )
-    units = plan_under_memory(spec, max_unit_bytes=max_unit_bytes)
-    job = estimate_job(spec, units)
+    units = _plan(spec, max_unit_bytes, data)
+    job = estimate_job(spec, units, data=data)
     if max_cpu_seconds is not None and job.cpu_seconds > max_cpu_seconds:
         raise WorkloadError(
-            _culprit(spec, "cpu"),
+            _culprit(spec, "cpu", data),
             f"the job needs an estimated {job.cpu_seconds:.0f} CPU seconds,"
             f" over the limit of {max_cpu_seconds:.0f} s",
             kind="cpu",
@@ -400,6 +512,7 @@ def admit(
 
 
 __all__ = [
+    "DataShape",
     "JobCost",
     "UnitCost",
     "WorkloadError",

@@ -46,6 +46,17 @@ class JobActive(Conflict):
         self.status = status
 
 
+class DatasetInUse(Conflict):
+    """Jobs run on the dataset: it can be deleted once they are (their ids named)."""
+
+    def __init__(self, dataset_id: int, job_ids: list[int], total: int):
+        named = ", ".join(map(str, job_ids))
+        more = f" and {total - len(job_ids)} more" if total > len(job_ids) else ""
+        jobs = "job" if total == 1 else "jobs"
+        super().__init__(f"dataset {dataset_id} is used by {jobs} {named}{more}: delete them first")
+        self.dataset_id, self.job_ids, self.total = dataset_id, job_ids, total
+
+
 class IdempotencyConflict(Conflict):
     """The Idempotency-Key was used before with a different spec."""
 
@@ -69,6 +80,24 @@ class JobTooLarge(SpecError, Invalid):
     :class:`~svrobs_core.errors.SpecError` (``str`` is ``"field: message"``)."""
 
     def __init__(self, field: str, message: str):
+        SpecError.__init__(self, field, message)
+
+
+class DatasetNotFound(SpecError, Invalid):
+    """A spec names a dataset the caller's team does not have (another team's is the
+    same as none): invalid, naming the spec field that refers to it. A
+    :class:`~svrobs_core.errors.SpecError` (``str`` is ``"field: message"``)."""
+
+    def __init__(self, dataset_id, field: str = "dataset"):
+        SpecError.__init__(self, field, f"no dataset {dataset_id} in your team")
+        self.dataset_id = dataset_id
+
+
+class BadDatasetFile(SpecError, Invalid):
+    """An uploaded file cannot be read as a dataset (or a system); the message names
+    the row, column or variable. Invalid, naming the field ``file``."""
+
+    def __init__(self, message: str, field: str = "file"):
         SpecError.__init__(self, field, message)
 
 
@@ -123,7 +152,10 @@ class PayloadTooLarge(LabError):
 
 __all__ = [
     "AdminError",
+    "BadDatasetFile",
     "Conflict",
+    "DatasetInUse",
+    "DatasetNotFound",
     "Forbidden",
     "Gone",
     "IdempotencyConflict",

@@ -23,6 +23,7 @@ from service.db.job_delete import delete_job
 from service.db.jobs import admit, cancel_job, create_job
 from service.db.models import Job
 from svrobs_core.spec import ExperimentSpec
+from svrobs_core.workload import DataShape
 
 from .auth import Caller
 from .dispatch import Publisher, SessionFactory, dispatch_after_commit
@@ -40,12 +41,19 @@ def limits(settings: Settings) -> dict:
     }
 
 
-def admit_spec(spec: ExperimentSpec, settings: Settings, *, field: str | None = None) -> list:
+def admit_spec(
+    spec: ExperimentSpec,
+    settings: Settings,
+    *,
+    field: str | None = None,
+    data: DataShape | None = None,
+) -> list:
     """The spec's work units if it is within the job limits of ``settings`` (else
-    ``JobTooLarge`` naming the field, under ``field`` if given)."""
+    ``JobTooLarge`` naming the field, under ``field`` if given); a dataset job's with
+    its dataset's shape ``data``."""
     lim = limits(settings)
     lim.pop("max_active_jobs")
-    return admit(spec, field=field, **lim)
+    return admit(spec, field=field, data=data, **lim)
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ INT_TEXT = re.compile(r"-?[0-9]+", re.ASCII)
 FLOAT_TEXT = re.compile(r"-?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]+)?", re.ASCII)
 
 # the integer and number parameters of the API's routes, by name
-INT_PARAMS = frozenset({"limit", "offset", "N", "rep", "job_id", "schedule_id"})
+INT_PARAMS = frozenset({"limit", "offset", "N", "rep", "job_id", "schedule_id", "dataset_id"})
 FLOAT_PARAMS = frozenset({"sigma_w"})
 
 

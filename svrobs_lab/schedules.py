@@ -19,6 +19,7 @@ from sqlalchemy.orm import Session
 
 from service.config import Settings
 from service.db import schedules as store
+from service.db.datasets import spec_data
 from service.db.models import Job, Schedule, utcnow
 from svrobs_core.errors import SpecError
 from svrobs_core.parsing import parse_spec
@@ -31,14 +32,16 @@ log = logging.getLogger(__name__)
 FIELDS = ("name", "cron", "timezone", "spec_template", "tags", "enabled", "seed_policy")
 
 
-def validate_template(spec: dict, settings: Settings) -> dict:
-    """``spec`` if it is a valid spec within the job limits (a SpecError naming
-    ``spec_template.<field>`` otherwise; anything else is a bug, not a 422)."""
+def validate_template(spec: dict, settings: Settings, session: Session, team_id: int) -> dict:
+    """``spec`` if it is a valid spec within the job limits, on one of the team's
+    datasets if it names one (checked against its shape), else a SpecError naming
+    ``spec_template.<field>`` (anything else is a bug, not a 422)."""
     try:
         parsed = parse_spec(spec)
+        _, data = spec_data(session, team_id, parsed)
     except SpecError as exc:
         raise SpecError(f"spec_template.{exc.field}", exc.message) from None
-    admit_spec(parsed, settings, field="spec_template")
+    admit_spec(parsed, settings, field="spec_template", data=data)
     return spec
 
 
@@ -107,7 +110,7 @@ def create(session: Session, caller: Caller, settings: Settings, data: dict) -> 
         name=data["name"],
         cron=_checked_cron(data["cron"], timezone, settings),
         timezone=timezone,
-        spec_template=validate_template(data["spec_template"], settings),
+        spec_template=validate_template(data["spec_template"], settings, session, caller.team_id),
         tags=list(dict.fromkeys(data["tags"])),
         enabled=data["enabled"],
         seed_policy=data["seed_policy"],
@@ -142,7 +145,7 @@ def update(
             data.get("cron", s.cron), data.get("timezone", s.timezone), settings
         )
     if "spec_template" in data:
-        validate_template(data["spec_template"], settings)
+        validate_template(data["spec_template"], settings, session, caller.team_id)
     if "tags" in data:
         data["tags"] = list(dict.fromkeys(data["tags"] or []))
     for key, value in data.items():

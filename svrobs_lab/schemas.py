@@ -9,12 +9,17 @@ from typing import Annotated, Any, Literal, Optional
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, create_model, model_validator
 from pydantic_core import InitErrorDetails, PydanticCustomError, ValidationError
 
-from svrobs_core.spec import SPEC_KEYS
+from svrobs_core.spec import DATASET_KEYS, SPEC_KEYS
+
+SPEC_FIELDS = SPEC_KEYS | DATASET_KEYS  # a simulated job's fields and a dataset job's
 
 # Loose types: svrobs_core.parse_spec does the real validation with field-named errors.
+# A spec has systems and sigma_w (a list), or a dataset (and sigma_w a number or
+# "estimate": docs/measured.md#spec).
 _SPEC_HINTS: dict[str, Any] = {
-    "systems": (list[Any], ...),
-    "sigma_w": (list[Any], ...),
+    "systems": (Optional[list[Any]], None),
+    "sigma_w": (Any, None),
+    "dataset": (Optional[int], None),
     "N": (list[Any] | dict[str, Any], ...),
     "gamma": (Optional[list[Any]], None),
     "estimators": (Optional[list[Any]], None),
@@ -80,7 +85,7 @@ class _Strict(BaseModel):
 
 
 def _spec_fields() -> dict[str, Any]:
-    return {k: _SPEC_HINTS.get(k, (Any, None)) for k in sorted(SPEC_KEYS)}
+    return {k: _SPEC_HINTS.get(k, (Any, None)) for k in sorted(SPEC_FIELDS)}
 
 
 TagStr = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=100)]
@@ -89,13 +94,14 @@ Tag = Field(default_factory=list, max_length=50)
 JobSubmit = create_model(
     "JobSubmit",
     __base__=_Strict,
-    __doc__="A SPEC section 10 experiment spec plus an optional name and tags.",
+    __doc__="An experiment spec (docs/spec.md: systems and sigma_w; or a dataset,"
+    " docs/measured.md#spec) plus an optional name and tags.",
     name=(Optional[str], Field(None, min_length=1, max_length=200)),
     tags=(list[TagStr], Tag),
     **_spec_fields(),
 )
 
-SPEC_FIELD_NAMES = tuple(sorted(SPEC_KEYS))
+SPEC_FIELD_NAMES = tuple(sorted(SPEC_FIELDS))
 
 
 class Progress(BaseModel):

@@ -7,9 +7,12 @@
    nothing to do (already done or cancelled; a duplicate delivery of a unit that
    is still running claims it again, which only costs an attempt: the results
    are upserted on the cell key);
-2. ``svrobs_core.run_unit_result`` computes the records as columns (pure, no I/O);
+2. ``svrobs_lab.units.compute_unit`` computes the records as columns (the core's
+   ``run_unit_result``, or for a dataset job ``run_measured_unit`` on the arrays
+   read from the database);
 3. ``units.complete_unit`` upserts them on the cell key and updates progress;
-   the job finishes when the DB says every unit is done.
+   the job finishes when the DB says every unit is done. A dataset job's
+   validation is stored after its first unit (``svrobs_lab.units.after_unit``).
 
 A redelivered or duplicated message is therefore harmless. Only transient
 errors (the DB or the broker unreachable: ``is_transient``) retry the task, with
@@ -40,8 +43,7 @@ from celery.worker.request import Request
 from service.config import get_settings
 from service.db import units
 from service.db.session import dispose_all, session_scope
-from svrobs_core import parse_spec
-from svrobs_core.runner import run_unit_result
+from svrobs_lab.units import after_unit, compute_unit
 from worker.tick import run_tick
 
 settings = get_settings()
@@ -129,10 +131,12 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
     try:
         with _Watch(unit_id, lease_seconds(), settings.CANCEL_CHECK_SECONDS):
             _test_crash_hook(unit_id)
-            records = run_unit_result(parse_spec(spec_dict), payload)
+            records, data = compute_unit(session_scope, spec_dict, payload)
         t2 = time.perf_counter()
         with session_scope() as s:
             stored = units.complete_unit(s, unit_id, records)
+        if stored:
+            after_unit(session_scope, unit_id, spec_dict, data)
     except UnitCancelled:
         log.info("unit %s: cancelled while running; stopped after %.2f s", unit_id, _since(t1))
         _dispatch_team(unit_id)

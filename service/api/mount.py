@@ -10,12 +10,15 @@ from service.api.deps import clean_query_text
 from service.api.docs import install_redoc, install_swagger
 from service.api.errors import error_response
 from service.api.query_params import reject_unknown_query
+from service.http.uploads import STREAMED
 
 API_PREFIX = "/api/v1"
 
 
 class BodyLimitMiddleware:
-    """413 for a request body over ``max_bytes`` (declared Content-Length or streamed)."""
+    """413 for a request body over ``max_bytes`` (declared Content-Length or streamed).
+    A dataset upload (the API's and the web's) is streamed by its route under its own
+    limit, SVROBS_MAX_DATASET_MB (:mod:`service.http.uploads`), so it passes here."""
 
     def __init__(self, app, max_bytes: int):
         self.app = app
@@ -23,6 +26,8 @@ class BodyLimitMiddleware:
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS", "DELETE"):
+            return await self.app(scope, receive, send)
+        if scope["path"] in STREAMED:  # streamed by its route, under its own limit
             return await self.app(scope, receive, send)
         too_big = error_response(
             413, f"request body over {self.max_bytes} bytes (SVROBS_MAX_BODY_BYTES)"
@@ -61,12 +66,21 @@ class BodyLimitMiddleware:
 
 def mount_api(app: FastAPI) -> None:
     """Serve the API's routes on ``app`` (its settings set), with ReDoc and the body limit."""
-    from service.api.routes import health, jobs, presets, reports, results, schedules, shares
+    from service.api.routes import (
+        datasets,
+        health,
+        jobs,
+        presets,
+        reports,
+        results,
+        schedules,
+        shares,
+    )
 
     install_redoc(app)
     install_swagger(app)
     query_rules = [Depends(clean_query_text), Depends(reject_unknown_query)]
     app.include_router(health.router, dependencies=query_rules[1:])
-    for module in (jobs, results, presets, reports, schedules, shares):
+    for module in (jobs, results, presets, reports, schedules, shares, datasets):
         app.include_router(module.router, prefix=API_PREFIX, dependencies=query_rules)
     app.add_middleware(BodyLimitMiddleware, max_bytes=app.state.settings.MAX_BODY_BYTES)

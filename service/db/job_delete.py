@@ -15,6 +15,7 @@ from service.db.models import (
     JOB_ACTIVE,
     Job,
     JobTag,
+    JobValidation,
     Result,
     ResultConstant,
     ScheduleRun,
@@ -26,7 +27,8 @@ from svrobs_lab.errors import JobActive
 
 
 def delete_job(session: Session, job: Job) -> dict[str, int]:
-    """Delete ``job``, its work units, results (and their shared matrices), summaries and tags (a schedule run that
+    """Delete ``job``, its work units, results (and their shared matrices), summaries,
+    tags and validation (a schedule run that
     made it keeps its due time, without the job) -> the number of rows per table.
     Flushes; the caller commits. Raises :class:`JobActive` for a queued/running job."""
     job_id = job.id
@@ -44,7 +46,7 @@ def delete_job(session: Session, job: Job) -> dict[str, int]:
     if locked.status in JOB_ACTIVE:
         raise JobActive(job_id, locked.status)
     counts = {}
-    for model in (Result, ResultConstant, Summary, WorkUnit, JobTag, ShareLink):
+    for model in (Result, ResultConstant, Summary, WorkUnit, JobTag, ShareLink, JobValidation):
         counts[model.__tablename__] = session.execute(
             delete(model).where(model.job_id == job_id)
         ).rowcount

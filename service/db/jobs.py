@@ -20,6 +20,7 @@ from svrobs_core.planning import unit_cells
 from svrobs_core.spec import ExperimentSpec
 from svrobs_lab.errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
 
+from .datasets import spec_data
 from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
 from .provenance import provenance
 
@@ -46,14 +47,22 @@ def create_job(
     :class:`QuotaExceeded` when the team has ``max_active_jobs`` queued or
     running jobs. Each limit is passed in by the application layer
     (``svrobs_lab.jobs.limits``); None or 0: no limit.
-    :class:`IdempotencyConflict` when the key was used with another spec.
+    :class:`IdempotencyConflict` when the key was used with another spec,
+    :class:`~svrobs_lab.errors.NotFound` (422 naming ``dataset``) when the spec's
+    ``dataset`` is not one of the team's (the job is linked to it: ``jobs.dataset_id``).
     With an ``idempotency_key`` already used by the team for the same spec,
     returns that job. Returns ``(job, created)``; ``created`` is False for that job.
     """
     parsed = parse_spec(spec)
     normalised = parsed.to_dict()
+    # the team's dataset, checked against the spec (DatasetNotFound / SpecError: 422)
+    dataset_id, data = spec_data(session, team_id, parsed)
     units = admit(
-        parsed, max_cells=max_cells, max_cpu_seconds=max_cpu_seconds, max_unit_mb=max_unit_mb
+        parsed,
+        max_cells=max_cells,
+        max_cpu_seconds=max_cpu_seconds,
+        max_unit_mb=max_unit_mb,
+        data=data,
     )
     tags = list(dict.fromkeys(str(t) for t in tags))
 
@@ -81,6 +90,7 @@ def create_job(
         tags=tags,
         spec=normalised,
         spec_summary=spec_summary(normalised, parsed.n_cells),
+        dataset_id=dataset_id,
         status="queued",
         progress_done=0,
         progress_total=len(units),
@@ -130,9 +140,11 @@ def admit(
     max_cells: int | None = None,
     max_cpu_seconds: float | None = None,
     max_unit_mb: float | None = None,
+    data: workload.DataShape | None = None,
 ) -> list[dict]:
     """The spec's work units, planned to stay under SVROBS_MAX_UNIT_MEMORY_MB, if the
-    job is admissible (:func:`svrobs_core.workload.admit`).
+    job is admissible (:func:`svrobs_core.workload.admit`; a dataset job with its
+    dataset's shape ``data``: :func:`service.db.datasets.spec_data`).
 
     Raises :class:`JobTooLarge` when the job's estimated CPU time is over
     SVROBS_MAX_JOB_CPU_SECONDS or a unit needs more memory than the cap even split
@@ -144,7 +156,9 @@ def admit(
     cpu, mb = max_cpu_seconds, max_unit_mb
     max_bytes = None if mb is None else int(mb * 2**20)
     try:  # (a job too big to plan is refused by the estimate's floor first)
-        units, _cost = workload.admit(spec, max_cpu_seconds=cpu, max_unit_bytes=max_bytes)
+        units, _cost = workload.admit(
+            spec, max_cpu_seconds=cpu, max_unit_bytes=max_bytes, data=data
+        )
     except workload.WorkloadError as exc:
         setting = "SVROBS_MAX_JOB_CPU_SECONDS" if exc.kind == "cpu" else "SVROBS_MAX_UNIT_MEMORY_MB"
         raise JobTooLarge(
@@ -231,11 +245,18 @@ def lock_job(session: Session, job_id: int) -> Job:
 
 def spec_summary(spec: dict, n_cells: int) -> dict:
     """A normalised spec in a few hundred bytes, whatever its grid sizes: system
-    names, the size of each grid axis (and the N range), estimators, stages, cells."""
+    names (a dataset job's: ``dataset-ID``), the size of each grid axis (and the N
+    range), estimators, stages, cells."""
     Ns = spec.get("N") or []
+    if "dataset" in spec:  # one system (the dataset) and one sigma_w (a level or "estimate")
+        systems, sizes = [f"dataset-{spec['dataset']}"], {"sigma_w": 1}
+    else:
+        systems = [s if isinstance(s, str) else s.get("name", "custom") for s in spec["systems"]]
+        sizes = {"sigma_w": len(spec.get("sigma_w") or [])}
     return {
-        "systems": [s if isinstance(s, str) else s.get("name", "custom") for s in spec["systems"]],
-        "grid": {k: len(spec.get(k) or []) for k in ("sigma_w", "N", "gamma")}
+        "systems": systems,
+        "grid": sizes
+        | {k: len(spec.get(k) or []) for k in ("N", "gamma")}
         | {"reps": spec.get("reps")},
         "N_range": [min(Ns), max(Ns)] if Ns else None,
         "estimators": list(spec.get("estimators") or []),

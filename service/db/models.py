@@ -13,6 +13,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     DateTime,
     Float,
@@ -141,6 +142,9 @@ class Job(Base):
     started_at: Mapped[datetime | None]
     finished_at: Mapped[datetime | None]
     pruned_at: Mapped[datetime | None]  # when retention dropped its cell rows
+    # the dataset of a job on measured data (its spec's "dataset"); a dataset that
+    # jobs use cannot be deleted (service.db.datasets)
+    dataset_id: Mapped[int | None] = mapped_column(ForeignKey("datasets.id"), index=True)
 
     user: Mapped[User | None] = relationship()
     tag_rows: Mapped[list[JobTag]] = relationship(
@@ -299,6 +303,16 @@ class JobReport(Base):
     built_at: Mapped[datetime] = mapped_column(default=utcnow)
 
 
+class JobValidation(Base):
+    """A dataset job's validation on its held-out rollouts and the excitation check
+    of its training data (``svrobs_core.measured.validation_summary``), computed once."""
+
+    __tablename__ = "job_validations"
+    job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
+    summary: Mapped[dict[str, Any]]
+    built_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
 class Schedule(Base):
     __tablename__ = "schedules"
     __table_args__ = (UniqueConstraint("team_id", "name", name="uq_schedules_team_name"),)
@@ -344,3 +358,49 @@ class ShareLink(Base):
     expires_at: Mapped[datetime]
     revoked_at: Mapped[datetime | None]
     label: Mapped[str | None] = mapped_column(String(SHARE_LABEL_MAX))  # what it is for
+
+
+class Dataset(Base):
+    """An uploaded file of measured rollouts (docs/datasets.md#the-data-model), team-scoped
+    like jobs: its shapes, channel names and statistics here; the original bytes and
+    the arrays (float64) in ``dataset_chunks``."""
+
+    __tablename__ = "datasets"
+    __table_args__ = (Index("ix_datasets_team_created", "team_id", "created_at"),)
+    id: Mapped[int] = mapped_column(primary_key=True)
+    team_id: Mapped[int] = mapped_column(ForeignKey("teams.id", ondelete="CASCADE"))
+    user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id", ondelete="SET NULL"))
+    name: Mapped[str] = mapped_column(String(200))
+    description: Mapped[str | None] = mapped_column(Text)
+    filename: Mapped[str | None] = mapped_column(String(255))
+    format: Mapped[str] = mapped_column(String(16))  # csv, npz, mat, mat73, json
+    sha256: Mapped[str] = mapped_column(String(64))  # of the original bytes
+    arrays_sha256: Mapped[str] = mapped_column(String(64))  # of the stored float64 arrays
+    size_bytes: Mapped[int] = mapped_column(BigInteger)
+    n: Mapped[int]
+    m: Mapped[int]
+    rollouts: Mapped[int]
+    samples: Mapped[int] = mapped_column(BigInteger)  # sum of the rollouts' steps T_i
+    t_min: Mapped[int]  # the shortest and longest T_i (a listing reads no lengths)
+    t_max: Mapped[int]
+    lengths: Mapped[list[Any]]  # T_i of each rollout (it has T_i + 1 states)
+    sample_time: Mapped[float | None] = mapped_column(Float)
+    state_names: Mapped[list[Any]]
+    input_names: Mapped[list[Any]]
+    stats: Mapped[dict[str, Any]]  # {"states"|"inputs": {name: {mean, std, min, max, count}}}
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    user: Mapped[User | None] = relationship()
+
+
+class DatasetChunk(Base):
+    """A dataset's bytes in pieces of at most 1 MiB: ``part`` "file" (the upload as
+    sent) or "arrays" (every X_i, then every U_i, little-endian float64, row-major),
+    in ``seq`` order."""
+
+    __tablename__ = "dataset_chunks"
+    dataset_id: Mapped[int] = mapped_column(
+        ForeignKey("datasets.id", ondelete="CASCADE"), primary_key=True
+    )
+    part: Mapped[str] = mapped_column(String(8), primary_key=True)
+    seq: Mapped[int] = mapped_column(primary_key=True)
+    data: Mapped[bytes] = mapped_column(LargeBinary)

@@ -11,7 +11,8 @@ entry is its row's scalar radius (radii_A = r_A, radii_B = r_B: the paper's
 bounds, SPEC section 3) is stored as zero bytes too (migration 0007). ``seed_key`` is stored
 only when it differs from the one the spec gives a cell: ``[system index,
 sigma_w index, N, rep]``. Reads decode a batch of rows at once (one
-``numpy.frombuffer`` per field and system).
+``numpy.frombuffer`` per field and system). A dataset job's shapes come from its
+dataset's n and m (an n x 0 matrix, when there are no inputs, is zero bytes).
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from dataclasses import field as dc_field
 
 import numpy as np
 
-from svrobs_core import resolve_system
+from svrobs_core import parse_spec, resolve_system
+from svrobs_core.measured import data_layout
 from svrobs_core.records import json_value
 
 DTYPE = np.dtype("<f8")
@@ -45,8 +47,14 @@ class ResultCodec:
     constants: dict[tuple[str, float, str], bytes] = dc_field(default_factory=dict)
 
     @classmethod
-    def of(cls, spec: dict) -> ResultCodec:
-        """The codec of a job's (validated) spec dict; cached on its systems and sigma_w."""
+    def of(cls, spec: dict, data: tuple[int, int] | None = None) -> ResultCodec:
+        """The codec of a job's (validated) spec dict; cached on its systems and
+        sigma_w. A dataset job's needs ``data``, its dataset's (n, m): the shapes
+        follow from them and the spec (:func:`svrobs_core.measured.data_layout`)."""
+        if "dataset" in spec:
+            if data is None:
+                raise ValueError("a dataset job's codec needs the dataset's (n, m)")
+            return _dataset_codec(json.dumps([spec, list(data)], sort_keys=True))
         return _codec(json.dumps([spec["systems"], spec["sigma_w"]], sort_keys=True))
 
     def shape(self, system: str, field: str) -> tuple[int, int]:
@@ -78,6 +86,8 @@ class ResultCodec:
         k = a.shape[0]
         if not k:
             return []
+        if not a[0].size:  # matrices without entries (n x 0: no inputs)
+            return [b""] * k
         flat = a.reshape(k, -1)
         out = flat.view(np.dtype((np.void, flat.shape[1] * 8))).ravel().tolist()
         bits = flat.view(np.int64)
@@ -110,6 +120,10 @@ class ResultCodec:
                 by_system.setdefault(s, []).append(i)
         for system, idx in by_system.items():
             r, c = self.shape(system, field)
+            if r * c == 0:  # n x 0 (no inputs: B_hat, radii_B), stored as zero bytes
+                for i in idx:
+                    out[i] = [[] for _ in range(r)]
+                continue
             parts = [bytes(blobs[i]) for i in idx]
             if SHARED in parts and field in RADIUS_SCALAR:
                 if scalars is None:
@@ -154,6 +168,17 @@ class ResultCodec:
             self.derived_seed_key(s, w, n, r) if t is None else json.loads(t)
             for s, w, n, r, t in zip(systems, sigmas, Ns, reps, texts)
         ]
+
+
+@functools.lru_cache(maxsize=256)
+def _dataset_codec(key: str) -> ResultCodec:
+    spec, (n, m) = json.loads(key)
+    layout = data_layout(parse_spec(spec), n, m)
+    return ResultCodec(
+        shapes={layout.system: layout.matrix_shapes},
+        system_index={layout.system: 0},
+        sigma_index={float(layout.sigma_w): 0},
+    )
 
 
 @functools.lru_cache(maxsize=256)

@@ -29,6 +29,7 @@ from svrobs_core.parsing import parse_spec
 from svrobs_core.records import BOOL_FIELDS, MATRIX_FIELDS, RECORD_FIELDS, json_value
 from svrobs_core.unit_result import UnitResult
 
+from .datasets import dataset_shape
 from .models import (
     OLS_GAMMA_KEY,
     RESULT_KEY,
@@ -63,7 +64,13 @@ def job_codec(session: Session, job_id: int, spec: dict | None = None) -> Result
         select(c.system, c.sigma_w, c.field, c.value).where(c.job_id == job_id)
     ).all()
     constants = {(s, float(w), f): bytes(v) for s, w, f, v in rows}
-    return replace(ResultCodec.of(spec), constants=constants)
+    data = None
+    if "dataset" in spec:  # its shapes follow from the dataset's n and m
+        shape = dataset_shape(session, spec["dataset"])
+        if shape is None:
+            raise ValueError(f"job {job_id}: its dataset {spec['dataset']} is not stored")
+        data = (shape.n, shape.m)
+    return replace(ResultCodec.of(spec, data), constants=constants)
 
 
 def _shared(session: Session, codec: ResultCodec, job_id: int, key: tuple, value: bytes) -> bool:
@@ -72,7 +79,7 @@ def _shared(session: Session, codec: ResultCodec, job_id: int, key: tuple, value
     if key not in codec.constants:
         system, sigma_w, field = key
         row = {"job_id": job_id, "system": system, "sigma_w": sigma_w, "field": field}
-        session.execute(_insert_ignore(session, CONSTANTS, list(row)), [{**row, "value": value}])
+        session.execute(insert_ignore(session, CONSTANTS, list(row)), [{**row, "value": value}])
         stored = session.scalar(
             select(CONSTANTS.c.value).where(*(CONSTANTS.c[k] == v for k, v in row.items()))
         )
@@ -80,7 +87,8 @@ def _shared(session: Session, codec: ResultCodec, job_id: int, key: tuple, value
     return codec.constants[key] == value
 
 
-def _insert_ignore(session: Session, table, key: list[str]):
+def insert_ignore(session: Session, table, key: list[str]):
+    """``INSERT .. ON CONFLICT (key) DO NOTHING`` of ``table`` in the session's dialect."""
     if session.get_bind().dialect.name == "postgresql":
         from sqlalchemy.dialects.postgresql import insert as upsert
     else:
@@ -105,7 +113,7 @@ def note_ids(session: Session, texts: Iterable[str | None]) -> dict[str | None, 
     missing = sorted(set(wanted) - set(found))
     if missing:
         session.execute(
-            _insert_ignore(session, NOTES, ["digest"]),
+            insert_ignore(session, NOTES, ["digest"]),
             [{"digest": d, "text": wanted[d]} for d in missing],
         )
         found.update(session.execute(q).all())
@@ -164,8 +172,8 @@ def count_cells(spec: dict, system, sigma_w, N, estimator, gamma_key, rep) -> in
     est, gk = set(estimator or ()), set(gamma_key or ())
     n_axis = sum(1 for e, g in axis if (not est or e in est) and (not gk or g in gk))
     return (
-        n([x.name for x in s.systems], system or None)
-        * n(s.sigma_w, sigma_w or None)
+        n(s.grid_systems, system or None)
+        * n(s.grid_sigma_w, sigma_w or None)
         * n(s.N, N or None)
         * n_axis
         * (s.reps if not rep else len({r for r in rep if 0 <= r < s.reps}))

@@ -163,7 +163,7 @@ def _stored_summaries(session: Session, job_id: int) -> int:
 
 def _expected_groups(job: Job) -> int:
     spec = parse_spec(job.spec)
-    return len(spec.systems) * len(spec.sigma_w) * len(spec.N) * spec.cells_per_rep
+    return spec.n_cells // spec.reps  # one group per (system, sigma_w, N, estimator, gamma)
 
 
 def _write_summaries(
@@ -200,8 +200,20 @@ def _write_summaries(
 
 def _cells_label(job: Job, unit: WorkUnit) -> str:
     p = unit.payload or {}
-    systems = (job.spec or {}).get("systems", [])
-    sigmas = (job.spec or {}).get("sigma_w", [])
+    system, sigma = _unit_pair(job.spec or {}, p)
+    r0, r1 = (p.get("reps") or [None, None])[:2]
+    return (
+        f"unit {unit.index} (system={system}, sigma_w={sigma}, N={p.get('N')}, "
+        f"reps {r0}..{None if r1 is None else r1 - 1})"
+    )
+
+
+def _unit_pair(spec: dict, p: dict) -> tuple:
+    """The (system, sigma_w) a unit's payload points at in the job's spec (a dataset
+    job has one: its dataset and its sigma_w)."""
+    if "dataset" in spec:
+        return f"dataset-{spec['dataset']}", spec.get("sigma_w")
+    systems, sigmas = spec.get("systems", []), spec.get("sigma_w", [])
     try:
         s = systems[p["system"]]
         system = s if isinstance(s, str) else s.get("name", f"#{p['system']}")
@@ -211,11 +223,7 @@ def _cells_label(job: Job, unit: WorkUnit) -> str:
         sigma = sigmas[p["sigma_w"]]
     except (IndexError, KeyError, TypeError):
         sigma = p.get("sigma_w")
-    r0, r1 = (p.get("reps") or [None, None])[:2]
-    return (
-        f"unit {unit.index} (system={system}, sigma_w={sigma}, N={p.get('N')}, "
-        f"reps {r0}..{None if r1 is None else r1 - 1})"
-    )
+    return system, sigma
 
 
 def _fail(session: Session, unit: WorkUnit, job: Job, error: str) -> None:

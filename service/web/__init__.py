@@ -25,6 +25,7 @@ def mount_web(app: FastAPI) -> None:
     from service.web.pages import (  # a new page module: add it here
         auth,
         compare,
+        datasets,
         job,
         jobs,
         results,
@@ -37,7 +38,7 @@ def mount_web(app: FastAPI) -> None:
     app.state.web_signer = Signer(load_secret(settings), session_hours=settings.SESSION_HOURS)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.add_api_route("/favicon.ico", _favicon, include_in_schema=False)
-    for module in (auth, jobs, submit, job, results, compare, schedules, share):
+    for module in (auth, jobs, submit, job, results, compare, schedules, share, datasets):
         app.include_router(module.router)
     app.add_exception_handler(WebError, web_error_page)
     app.add_exception_handler(SignInRequired, sign_in_redirect)

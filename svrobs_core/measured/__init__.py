@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from .data import MeasuredData, StateModel
 from .runner import plan_measured_units, run_datasets, run_measured_unit
-from .spec import SIGMA_W_ESTIMATED, DataLayout, DatasetOptions, check_against_data
+from .spec import SIGMA_W_ESTIMATED, DataLayout, DatasetOptions, check_against_data, data_layout
 from .validation import (
     Excitation,
     Model,
@@ -33,6 +33,7 @@ __all__ = [
     "StateModel",
     "ValidationResult",
     "check_against_data",
+    "data_layout",
     "excitation",
     "fit_model",
     "plan_measured_units",

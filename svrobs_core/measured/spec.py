@@ -269,13 +269,28 @@ def check_against_data(
     if dim > MAX_STATE_DIM:
         field = "dataset" if opts.lags is None else "state.lags"
         raise SpecError(field, f"the state has {dim} entries, at most {MAX_STATE_DIM}")
-    C = opts.C_matrix(n, m)
+    layout = data_layout(spec, n, m)
+    C = layout.C
     if C.shape[1] != dim:
         raise SpecError("C", f"must have {dim} columns (the state dimension), got {C.shape[1]}")
     if opts.sigma_v == 0.0 and not (C.shape[0] == dim and np.linalg.cond(C) <= SIGMA_V0_COND_LIMIT):
         raise SpecError(
             "sigma_v", "sigma_v = 0 needs a square invertible C (the Kalman gain is A C^-1)"
         )
+    return layout
+
+
+def data_layout(spec: ExperimentSpec, n: int, m: int) -> DataLayout:
+    """The DataLayout of a dataset spec on data with n measured channels and m
+    inputs, without the checks of :func:`check_against_data` (for reading the
+    records of a job that passed them)."""
+    opts = spec.measured
+    C = opts.C_matrix(n, m)
     return DataLayout(
-        system=opts.system_name, sigma_w=opts.record_sigma_w, n=dim, m=m, p=C.shape[0], C=C
+        system=opts.system_name,
+        sigma_w=opts.record_sigma_w,
+        n=opts.state_dim(n, m),
+        m=m,
+        p=C.shape[0],
+        C=C,
     )

@@ -11,10 +11,12 @@ import pytest
 from svrobs_core import parse_spec, plan_units, run_spec
 from svrobs_core.planning import unit_cells
 from svrobs_core.workload import (
+    DataShape,
     WorkloadError,
     admit,
     estimate_job,
     estimate_unit,
+    measured_fixed_bytes,
     plan_under_memory,
 )
 
@@ -180,3 +182,53 @@ def test_admit_plans_under_the_memory_cap():
     cap = 300 * 2**20
     units, job = admit(spec, max_unit_bytes=cap, max_cpu_seconds=1e6)
     assert len(units) > 1 and job.peak_unit_bytes <= cap
+
+
+# -- dataset jobs: the cost from the dataset's shape --------------------------------------
+def _measured(**over):
+    base = {"dataset": 1, "N": [10, 20], "holdout": 2, "reps": 4, "stages": ALL, "sigma_w": 0.1}
+    return parse_spec({**base, **over})
+
+
+DATA = DataShape(n=3, m=1, lengths=(40,) * 24)
+
+
+@pytest.mark.parametrize(
+    "over,data",
+    [
+        ({"reps": 8}, DATA),
+        ({"N": [10, 22]}, DATA),
+        ({"gamma": [0.01, 0.05, 0.1]}, DATA),
+        ({}, DataShape(n=3, m=1, lengths=(80,) * 24)),
+        ({}, DataShape(n=4, m=2, lengths=(40,) * 24)),
+        ({"state": {"lags": {"y": 2, "u": 1}}}, DATA),
+    ],
+)
+def test_measured_estimate_grows_with_the_data_and_the_grid(over, data):
+    unit = {"system": 0, "sigma_w": 0, "N": [10, 20], "reps": [0, 4]}
+    small = estimate_unit(_measured(), unit, data=DATA)
+    spec = _measured(**over)
+    bigger = estimate_unit(spec, {**unit, "N": list(spec.N), "reps": [0, spec.reps]}, data=data)
+    assert bigger.cpu_seconds > small.cpu_seconds
+    assert bigger.peak_bytes >= small.peak_bytes
+
+
+def test_measured_admission_needs_the_shape_and_plans_under_the_cap():
+    spec = _measured(reps=40)
+    with pytest.raises(ValueError, match="dataset's shape"):
+        admit(spec)
+    whole, cost = admit(spec, data=DATA)
+    assert whole == [{"system": 0, "sigma_w": 0, "N": [10, 20], "reps": [0, 40]}]
+    fixed = measured_fixed_bytes(spec, DATA)
+    cap = fixed + 3 * 8 * (4 + 3) * 20 * 40 * 10  # about ten repetitions of N = 20
+    units, split = admit(spec, data=DATA, max_unit_bytes=cap)
+    assert len(units) > 1 and split.peak_unit_bytes <= cap
+    cells = sorted((N, r) for u in units for N in u["N"] for r in range(*u["reps"]))
+    assert cells == [(N, r) for N in (10, 20) for r in range(40)]  # each once
+    assert split.cpu_seconds >= cost.cpu_seconds  # each unit pays its fixed part
+    with pytest.raises(WorkloadError) as err:
+        admit(spec, data=DATA, max_unit_bytes=fixed // 2)
+    assert err.value.kind == "memory" and err.value.field == "sls.T_fir"  # its program
+    with pytest.raises(WorkloadError) as err:
+        admit(spec, data=DATA, max_cpu_seconds=cost.cpu_seconds / 2)
+    assert err.value.kind == "cpu" and err.value.field == "reps"

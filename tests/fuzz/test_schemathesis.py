@@ -39,11 +39,12 @@ from service.app import create_app
 from service.config import Settings
 from service.db import accounts, jobs
 from service.db.migrate import upgrade
-from service.db.models import Job, Result, Schedule, utcnow
+from service.db.models import Dataset, Job, Result, Schedule, utcnow
 from service.db.session import dispose_all, get_sessionmaker
 from service.http.deps import get_broker_check
 from svrobs_core.records import NUMERIC_FIELDS
 from svrobs_lab.auth import MAX_ID
+from svrobs_lab.datasets.catalog import create_dataset
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC, no_broker_check
 
@@ -53,7 +54,7 @@ MAX_EXAMPLES_AUTHZ = 30  # per id-taking operation, with team B's key on A's ids
 MIN_GENERATED_REQUESTS = 1000
 MISSING_ID = MAX_ID  # an id that never exists in this database
 
-ID_PARAMS = {"job_id": "job", "schedule_id": "schedule"}
+ID_PARAMS = {"job_id": "job", "schedule_id": "schedule", "dataset_id": "dataset"}
 ID_QUERY_PARAMS = {"jobs": "job"}  # /compare?jobs=1,2
 # Valid values for parameters the schema leaves as free strings, so that requests reach
 # the id lookup rather than stopping at validation.
@@ -176,6 +177,26 @@ def _make_schedule(session, acc) -> int:
     return s.id
 
 
+EXAMPLE_CSV = os.path.join(
+    os.path.dirname(__file__), "..", "..", "docs", "examples", "rollouts.csv"
+)
+
+
+def _make_dataset(session, acc) -> int:
+    with open(EXAMPLE_CSV, "rb") as f:
+        row = create_dataset(
+            session,
+            team_id=acc.team_id,
+            user_id=acc.user_id,
+            stream=f,
+            filename="rollouts.csv",
+            fields={"name": "fuzz"},
+            max_bytes=2**20,
+        )
+    session.commit()
+    return row.id
+
+
 @contextlib.contextmanager
 def fuzz_env(url: str):
     """The app on a migrated database at ``url``, teams A and B, A's objects, a schema
@@ -191,8 +212,10 @@ def fuzz_env(url: str):
             _make_job(session, a, cancel=True),
         ]
         a_schedules = [_make_schedule(session, a)]
+        a_datasets = [_make_dataset(session, a)]
         _make_job(session, b, run=True)
         _make_schedule(session, b)
+        _make_dataset(session, b)
         app = create_app(_settings(url))
         app.state.publisher = FakePublisher()
         app.dependency_overrides[get_broker_check] = lambda: no_broker_check
@@ -206,7 +229,7 @@ def fuzz_env(url: str):
                 session=session,
                 a=a,
                 b=b,
-                ids={"job": a_jobs, "schedule": a_schedules},
+                ids={"job": a_jobs, "schedule": a_schedules, "dataset": a_datasets},
             )
     finally:
         session.close()
@@ -274,11 +297,12 @@ def test_fuzz_operation(env, method, path, mode):
 def victims(env) -> dict[str, list[int]]:
     """Fresh objects of team A for one cross-team test (the fuzzer may have cancelled or
     deleted the module's own): a finished job with results, a queued one, a cancelled
-    one, and a schedule."""
+    one, a schedule and a dataset."""
     s, a = env.session, env.a
     return {
         "job": [_make_job(s, a, run=True), _make_job(s, a), _make_job(s, a, cancel=True)],
         "schedule": [_make_schedule(s, a)],
+        "dataset": [_make_dataset(s, a)],
     }
 
 
@@ -297,8 +321,12 @@ def _snapshot(env, ids) -> dict:
         else (x.name, x.cron, x.enabled, x.spec_template, x.tags, x.team_id)
         for i in ids["schedule"]
     }
+    datasets = {
+        i: None if (d := s.get(Dataset, i)) is None else (d.name, d.sha256, d.team_id)
+        for i in ids["dataset"]
+    }
     s.rollback()
-    return {"jobs": jobs, "results": results, "schedules": scheds}
+    return {"jobs": jobs, "results": results, "schedules": scheds, "datasets": datasets}
 
 
 def _without_id(text: str, id_: int) -> str:
@@ -314,6 +342,7 @@ def test_other_team_cannot_reach_ids(env, victims, method, path, target):
     op = env.schema[path][method]
     before = _snapshot(env, victims)
     assert all(v is not None for v in before["schedules"].values())
+    assert all(v is not None for v in before["datasets"].values())
     assert (
         before["jobs"][victims["job"][0]][0] == "succeeded"
         and before["results"][victims["job"][0]] > 0

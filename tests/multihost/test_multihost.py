@@ -5,13 +5,16 @@ Nothing is shared but the two servers: no filesystem (each host's folders are
 its own), no local clock (leases, publication times and the broker epoch are
 the servers'). A sweep completes with records identical to the core run in
 this process (what ``svrobs run-local`` writes), both workers ran units, and
-the report beat stored in the database is what the API serves.
+the report beat stored in the database is what the API serves. A job on an
+uploaded dataset runs too: the workers read its arrays from the database alone,
+and its records and validation equal the core's on the same arrays.
 
 Skipped, saying why, without root or ``ip netns``, PostgreSQL's binaries or
 redis-server."""
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from pathlib import Path
@@ -22,6 +25,10 @@ from sqlalchemy import select
 
 from svrobs_cli.processes import Child, stop_all
 from svrobs_cli.serve import api_command, beat_command, child_env, worker_command
+from svrobs_core import parse_spec
+from svrobs_core.measured import MeasuredData, run_measured_unit
+from svrobs_lab.validation import summarize
+from tests.datasets import files
 from tests.integration.servers import PG_BINDIR, REDIS_SERVER, PrivatePostgres, PrivateRedis
 from tests.integration.stack import cell_key, fetch_jsonl, in_process_records, same
 from tests.multihost import netns
@@ -38,6 +45,7 @@ SPEC = {
     "seed": 13,
 }
 WAIT = 45.0
+DATASET_SPEC = {"N": [4, 8, 12], "holdout": 3, "reps": 400, "gamma": [0.05], "seed": 5}
 
 _why = netns.unavailable()
 pytestmark = pytest.mark.skipif(
@@ -57,6 +65,21 @@ def _wait(pred, timeout: float, what: str, logs=()):
         time.sleep(0.2)
     tails = "\n".join(f"--- {p} ---\n{p.read_text(errors='replace')[-3000:]}" for p in logs)
     raise AssertionError(f"{what} not reached in {timeout}s\n{tails}")
+
+
+def _run_job(c: httpx.Client, spec: dict, logs) -> int:
+    """Submit ``spec``, wait until the job finished, check it succeeded -> its id."""
+    r = c.post("/jobs", json=spec)
+    assert r.status_code == 202, r.text
+    jid, state = r.json()["id"], {}
+
+    def finished():
+        state.update(c.get(f"/jobs/{jid}").json())
+        return state["status"] in ("succeeded", "failed", "cancelled")
+
+    _wait(finished, WAIT, f"job {jid} finished", logs)
+    assert state["status"] == "succeeded", state
+    return jid
 
 
 def _host_env(folder: Path, gateway: str, pg_port: int, redis_port: int) -> dict:
@@ -127,17 +150,7 @@ def test_api_and_two_workers_on_separate_hosts(tmp_path):
 
         headers = {"Authorization": f"Bearer {key}"}
         with httpx.Client(base_url=base + "/api/v1", headers=headers, timeout=30) as c:
-            r = c.post("/jobs", json={**SPEC, "name": "multihost"})
-            assert r.status_code == 202, r.text
-            jid = r.json()["id"]
-            state = {}
-
-            def finished():
-                state.update(c.get(f"/jobs/{jid}").json())
-                return state["status"] in ("succeeded", "failed", "cancelled")
-
-            _wait(finished, WAIT, f"job {jid} finished", logs)
-            assert state["status"] == "succeeded", state
+            jid = _run_job(c, {**SPEC, "name": "multihost"}, logs)
             got = fetch_jsonl(c, jid)
 
         want = in_process_records(SPEC)
@@ -162,6 +175,33 @@ def test_api_and_two_workers_on_separate_hosts(tmp_path):
         dispose_all()
         r = httpx.get(f"{base}/api/v1/jobs/{jid}/report", headers=headers, timeout=30)
         assert r.status_code == 200 and r.text == html
+
+        # a job on a dataset: the workers read its arrays from the database alone
+        X, U = files.rollouts(seed=31, lengths=(15,) * 16, n=2, m=1)
+        with httpx.Client(base_url=base + "/api/v1", headers=headers, timeout=30) as c:
+            r = c.post(
+                "/datasets", files={"file": ("d.csv", files.csv_bytes(X, U))}, data={"name": "d"}
+            )
+            assert r.status_code == 201, r.text
+            spec = {**DATASET_SPEC, "dataset": r.json()["id"]}
+            did = _run_job(c, spec, logs)
+            got = fetch_jsonl(c, did)
+            validation = c.get(f"/jobs/{did}/validation")
+        parsed = parse_spec(spec)
+        unit = {"system": 0, "sigma_w": 0, "N": list(parsed.N), "reps": [0, parsed.reps]}
+        data = MeasuredData(X=X, U=U)
+        want = {
+            cell_key(r): json.loads(json.dumps(r, allow_nan=False))
+            for r in run_measured_unit(parsed, unit, data).records()
+        }
+        assert len(got) == len(want) == parsed.n_cells
+        diffs = [m for r in got for m in same(r, want[cell_key(r)], str(cell_key(r)))]
+        assert not diffs, diffs[:5]
+        assert validation.status_code == 200, validation.text
+        expected = json.loads(json.dumps(summarize(spec, data), allow_nan=False))
+        assert {k: v for k, v in validation.json().items() if k not in ("job_id", "dataset")} == (
+            expected
+        )
     finally:
         stop_all(children, grace=5)
         hosts.close()

@@ -28,6 +28,7 @@ from svrobs_core.errors import SpecError
 from svrobs_core.paper import PRESET_NAME, paper_specs
 from svrobs_core.spec_fields import spec_errors
 from svrobs_core.systems import PRESETS
+from svrobs_lab.datasets.overview import starter_spec
 from svrobs_lab.errors import IdempotencyConflict, QuotaExceeded
 from svrobs_lab.jobs import JobRequest
 from svrobs_lab.schemas import SPEC_FIELD_NAMES, JobSubmit
@@ -117,8 +118,15 @@ def _json(spec: dict) -> str:
 
 
 @router.get("/jobs/new")
-def submit_form(request: Request, viewer: CurrentViewer, preset: str = ""):
-    """The form, empty (the defaults) or filled by a preset: every field, name and tags."""
+def submit_form(
+    request: Request, db: DB, viewer: CurrentViewer, preset: str = "", dataset: int | None = None
+):
+    """The form, empty (the defaults), filled by a preset (every field, name and tags),
+    or with a first job on one of the team's datasets (``?dataset=ID``, the dataset
+    page's "new job on this dataset")."""
+    if dataset is not None:
+        spec = starter_spec(db, viewer.caller, dataset)  # NotFound: a 404 page
+        return _form(request, viewer, spec=spec, spec_text=_json(spec))
     chosen = presets().get(preset)
     spec = spec_form.complete(chosen.spec if chosen else {})
     if chosen is None:

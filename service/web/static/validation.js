@@ -1,0 +1,184 @@
+/* A dataset job's validation card (the job page): GET /api/v1/jobs/{id}/validation
+ * (the session's cookie), a table of each model's fit and test p-values per channel,
+ * and for the chosen model and held-out rollout one chart per channel of the measured
+ * values with the one-step predictions and the open-loop simulation, and one chart per
+ * channel of the residual autocorrelation r_1..r_h with its ±band. What is drawn is
+ * kept in window.svrobsValidation for the tests. */
+(function () {
+  "use strict";
+
+  const registry = { data: null, predictions: [], autocorrelation: [], loads: 0 };
+  window.svrobsValidation = registry;
+  const COLORS = { measured: "#1d232b", predicted: "#1f5fa8", simulated: "#c0392b", band: "#a15c00" };
+
+  function fmt(v, digits) {
+    if (v === null || v === undefined) return "–";
+    return Number(v).toFixed(digits);
+  }
+
+  function pval(v) {
+    if (v === null || v === undefined) return "–";
+    const a = Math.abs(v);
+    return a !== 0 && a < 1e-3 ? v.toExponential(1) : v.toFixed(3);
+  }
+
+  function label(m) {
+    return m.gamma === null ? m.estimator : `${m.estimator} γ=${m.gamma}`;
+  }
+
+  function cell(tr, text, cls) {
+    const td = document.createElement("td");
+    td.textContent = text;
+    if (cls) td.className = cls;
+    tr.appendChild(td);
+  }
+
+  function table(el, data) {
+    const channels = data.plots.channels;
+    const head = ["model"].concat(...channels.map((c) => [`${c} one-step fit %`, `${c} simulation fit %`, `${c} Ljung-Box p`]));
+    head.push("cross-correlation p (min)");
+    const thead = document.createElement("thead");
+    const hr = document.createElement("tr");
+    head.forEach((h, i) => {
+      const th = document.createElement("th");
+      th.textContent = h;
+      if (i) th.className = "num";
+      hr.appendChild(th);
+    });
+    thead.appendChild(hr);
+    const tbody = document.createElement("tbody");
+    data.models.forEach((m) => {
+      const v = m.validation;
+      const tr = document.createElement("tr");
+      tr.dataset.model = label(m);
+      cell(tr, label(m));
+      channels.forEach((_, j) => {
+        cell(tr, v ? fmt(v.one_step_fit[j], 1) : "–", "num");
+        cell(tr, v ? fmt(v.simulation_fit_pooled[j], 1) : "–", "num");
+        const p = v ? v.ljung_box_p[j] : null;
+        cell(tr, pval(p), "num" + (p !== null && p < 0.01 ? " p-low" : ""));
+      });
+      const cross = v ? v.cross_p.flat().filter((p) => p !== null) : [];
+      cell(tr, cross.length ? pval(Math.min(...cross)) : "–", "num");
+      tbody.appendChild(tr);
+    });
+    el.replaceChildren(thead, tbody);
+  }
+
+  function panel(box, title) {
+    const fig = document.createElement("figure");
+    fig.className = "chart-panel";
+    fig.dataset.channel = title;
+    const h = document.createElement("h3");
+    h.textContent = title;
+    const wrap = document.createElement("div");
+    wrap.className = "chart-box";
+    const canvas = document.createElement("canvas");
+    canvas.setAttribute("role", "img");
+    canvas.setAttribute("aria-label", title);
+    wrap.appendChild(canvas);
+    fig.append(h, wrap);
+    box.appendChild(fig);
+    return canvas;
+  }
+
+  function line(name, points, extra) {
+    return Object.assign({ label: name, data: points, borderColor: COLORS[name], backgroundColor: COLORS[name],
+      borderWidth: 1.5, pointRadius: 0, svrobs: { role: name } }, extra || {});
+  }
+
+  function draw(card) {
+    const data = registry.data;
+    registry.predictions.forEach((c) => c.chart.destroy());
+    registry.autocorrelation.forEach((c) => c.chart.destroy());
+    registry.predictions = [];
+    registry.autocorrelation = [];
+    const pbox = card.querySelector("#prediction-charts");
+    const abox = card.querySelector("#autocorrelation-charts");
+    pbox.replaceChildren();
+    abox.replaceChildren();
+    const m = data.models[Number(card.querySelector("#val-model").value) || 0];
+    const v = m && m.validation;
+    if (!v) return;
+    const r = Number(card.querySelector("#val-rollout").value) || 0;
+    const dt = data.plots.sample_time;
+    const at = (k) => (dt ? k * dt : k);
+    const xLabel = dt ? "time (s)" : "step k";
+    const measured = data.plots.measured[r] || [];
+    data.plots.channels.forEach((ch, j) => {
+      const series = {
+        measured: measured.map((row, k) => ({ x: at(k), y: row[j] })),
+        predicted: (v.predicted[r] || []).map((row, k) => ({ x: at(k + 1), y: row[j] })),
+        simulated: (v.simulated[r] || []).map((row, k) => ({ x: at(k), y: row[j] })),
+      };
+      const chart = new Chart(panel(pbox, `${ch}: held-out rollout ${data.plots.rollouts[r]}`), {
+        type: "line",
+        data: { datasets: [line("measured", series.measured, { borderWidth: 2 }),
+          line("predicted", series.predicted, { borderDash: [4, 3] }), line("simulated", series.simulated)] },
+        options: { animation: false, responsive: true, maintainAspectRatio: false,
+          interaction: { mode: "nearest", axis: "x", intersect: false },
+          scales: { x: { type: "linear", title: { display: true, text: xLabel } }, y: { title: { display: true, text: ch } } } },
+      });
+      const points = {};
+      Object.keys(series).forEach((k) => { points[k] = series[k].map((p) => [p.x, p.y]); });
+      registry.predictions.push({ channel: ch, rollout: data.plots.rollouts[r], model: label(m), chart, points });
+      const lags = v.autocorrelation[j].map((_, i) => i + 1);
+      const band = v.band;
+      const ac = new Chart(panel(abox, `${ch}: residual autocorrelation (Ljung-Box p = ${pval(v.ljung_box_p[j])})`), {
+        type: "bar",
+        data: { datasets: [
+          { type: "bar", label: "r_k", data: lags.map((k, i) => ({ x: k, y: v.autocorrelation[j][i] })),
+            backgroundColor: COLORS.predicted, svrobs: { role: "r" } },
+          line("band", lags.map((k) => ({ x: k, y: band })), { type: "line", label: "+99 % band", borderDash: [5, 4], svrobs: { role: "band" } }),
+          line("band", lags.map((k) => ({ x: k, y: -band })), { type: "line", label: "−99 % band", borderDash: [5, 4], svrobs: { role: "band" } }),
+        ] },
+        options: { animation: false, responsive: true, maintainAspectRatio: false,
+          scales: { x: { type: "linear", min: 0, max: lags.length + 1, ticks: { stepSize: 1 }, title: { display: true, text: "lag k" } },
+            y: { title: { display: true, text: "r_k" } } } },
+      });
+      registry.autocorrelation.push({ channel: ch, model: label(m), chart: ac, r: v.autocorrelation[j], band });
+    });
+  }
+
+  function options(select, labels) {
+    select.replaceChildren(...labels.map((text, i) => {
+      const o = document.createElement("option");
+      o.value = String(i);
+      o.textContent = text;
+      return o;
+    }));
+  }
+
+  async function init() {
+    const card = document.getElementById("validation-card");
+    if (!card || typeof Chart === "undefined") return;
+    const note = card.querySelector("#validation-note");
+    card.querySelector("#validation-controls").addEventListener("submit", (e) => e.preventDefault());
+    const r = await fetch(card.dataset.validationUrl, { credentials: "same-origin", headers: { Accept: "application/json" } });
+    if (!r.ok) {
+      note.textContent = `Could not load the validation (HTTP ${r.status}).`;
+      return;
+    }
+    const data = await r.json();
+    registry.data = data;
+    options(card.querySelector("#val-model"), data.models.map(label));
+    options(card.querySelector("#val-rollout"), data.plots.rollouts.map((k) => `rollout ${k}`));
+    table(card.querySelector("#validation-table"), data);
+    ["#val-model", "#val-rollout"].forEach((sel) => card.querySelector(sel).addEventListener("change", () => draw(card)));
+    const ex = data.excitation;
+    card.querySelector("#validation-excitation").textContent = ex
+      ? `Excitation of the ${ex.N0} training transitions: λ_min = ${Number(ex.lambda_min).toPrecision(3)}, condition number ${ex.cond === null ? "∞" : Number(ex.cond).toPrecision(3)}.`
+      : "";
+    const notes = card.querySelector("#validation-notes");
+    const all = data.notes.concat(ex ? ex.notes : [], ...data.models.map((m) => (m.validation ? m.validation.notes : [])));
+    notes.replaceChildren(...[...new Set(all)].map((t) => { const li = document.createElement("li"); li.textContent = t; return li; }));
+    const held = data.plots.of;
+    note.textContent = held ? `(N = ${data.N}; ${held} held-out rollouts, the first ${data.plots.rollouts.length} plotted)` : "(no held-out rollouts: holdout = 0)";
+    draw(card);
+    registry.loads += 1;
+    card.dataset.loads = String(registry.loads);
+  }
+
+  if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", init);
+  else init();
+})();

@@ -1,0 +1,2 @@
+"""Datasets of measured rollouts: file formats, storage, model export
+(docs/datasets.md)."""

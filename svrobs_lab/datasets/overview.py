@@ -1,0 +1,87 @@
+"""What the web's dataset pages show (docs/web.md#datasets): a dataset with the jobs
+that run on it and the excitation check of all its rollouts, the first rollouts'
+series for the plots, and a first spec for a job on it."""
+
+from __future__ import annotations
+
+from sqlalchemy.orm import Session
+
+from service.db import datasets as store
+from svrobs_core.measured import excitation
+from svrobs_core.measured.validation import plain
+
+from ..auth import Caller
+from .catalog import dataset_view, list_datasets_page, team_dataset
+from .loaded import measured_data
+
+PLOTTED_ROLLOUTS = 5
+# a page computes the excitation check of datasets up to this many numbers (about 40 MB
+# of float64 arrays, and their regression copies); a job's validation has it for any
+EXCITATION_MAX_VALUES = 5_000_000
+
+
+def datasets_page(session: Session, caller: Caller, *, limit: int = 100) -> dict:
+    """The team's newest datasets (a page of ``limit``) and how many it has."""
+    return list_datasets_page(session, caller, limit=limit, offset=0)
+
+
+def dataset_overview(session: Session, caller: Caller, dataset_id: int) -> dict:
+    """The caller's dataset (NotFound otherwise): its view, the jobs that run on it,
+    and the excitation check of the regressors of all its rollouts (None, with a
+    note, for a dataset of more than EXCITATION_MAX_VALUES numbers)."""
+    row = team_dataset(session, caller, dataset_id)
+    jobs, total = store.jobs_using(session, row.id)
+    values = row.samples * (row.n + row.m) + row.rollouts * row.n
+    ex, note = None, None
+    if values <= EXCITATION_MAX_VALUES:
+        ex = excitation(measured_data(session, row.id)).to_dict()
+    else:
+        note = (
+            f"not computed here: {values:,} numbers (more than {EXCITATION_MAX_VALUES:,}); "
+            "the validation of a job on this dataset has it for its training rollouts"
+        )
+    return {
+        "dataset": dataset_view(row),
+        "jobs": jobs,
+        "jobs_total": total,
+        "excitation": ex,
+        "excitation_note": note,
+    }
+
+
+def plot_data(session: Session, caller: Caller, dataset_id: int) -> dict:
+    """The first PLOTTED_ROLLOUTS rollouts of the caller's dataset for a plot: X_i
+    (T_i + 1, n) and U_i (T_i, m) as lists, the channel names and the sample time."""
+    row = team_dataset(session, caller, dataset_id)
+    X, U = store.load_rollouts(session, row.id, PLOTTED_ROLLOUTS)
+    return {
+        "id": row.id,
+        "rollouts": row.rollouts,
+        "shown": len(X),
+        "sample_time": row.sample_time,
+        "state_names": list(row.state_names),
+        "input_names": list(row.input_names),
+        "X": plain(X),
+        "U": plain(U),
+    }
+
+
+def starter_spec(session: Session, caller: Caller, dataset_id: int) -> dict:
+    """A first job on the caller's dataset (NotFound otherwise): a fifth held out for
+    validation (at least one when there are two or more), a learning curve over a
+    quarter, half and all of the rest, OLS and SVR, σ_w estimated, the certified
+    gain (docs/measured.md#spec)."""
+    rollouts = team_dataset(session, caller, dataset_id).rollouts
+    holdout = max(1, rollouts // 5) if rollouts >= 2 else 0
+    pool = rollouts - holdout
+    return {
+        "dataset": dataset_id,
+        "N": sorted({max(1, pool // 4), max(1, pool // 2), pool}),
+        "holdout": holdout,
+        "reps": 5,
+        "sigma_w": "estimate",
+        "estimators": ["ols", "svr"],
+        "gamma": [0.05],
+        "stages": ["estimate", "bounds", "gain"],
+        "seed": 0,
+    }

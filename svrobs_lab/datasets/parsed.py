@@ -1,0 +1,235 @@
+"""A parsed dataset: rollouts as float64 arrays, channel names, shapes and per-channel
+statistics (docs/datasets.md#the-data-model), and the checks every format shares.
+
+Every format's parser ends in :func:`build`, which checks what all formats must hold
+(at least one rollout, each with at least 2 states, every value finite, the names
+of the right count) and computes the statistics. A bad file raises
+:class:`~svrobs_lab.errors.BadDatasetFile` (an invalid request naming the form
+field ``file``), whose message names the row, column or variable.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from svrobs_core.errors import SpecError
+
+from ..errors import BadDatasetFile
+
+MAX_CHANNELS = 50  # n and m: the state dimension the core accepts (svrobs_core.spec)
+MAX_ROLLOUTS = 1_000_000
+MAX_NAME = 64  # characters of a channel name
+FORMATS = ("csv", "npz", "mat", "mat73", "json")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DatasetOptions:
+    """What the upload declares beside the file (docs/datasets.md#upload-fields):
+    the CSV columns of the states and inputs, channel names for the array formats,
+    the sample time."""
+
+    state_columns: tuple[str, ...] | None = None
+    input_columns: tuple[str, ...] | None = None
+    state_names: tuple[str, ...] | None = None
+    input_names: tuple[str, ...] | None = None
+    sample_time: float | None = None
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class ParsedDataset:
+    """Rollouts ``X[i]`` of shape (T_i + 1, n) and inputs ``U[i]`` of shape (T_i, m)
+    (m may be 0), float64 and finite; the sha256 and size of the original bytes."""
+
+    X: list[np.ndarray]
+    U: list[np.ndarray]
+    state_names: list[str]
+    input_names: list[str]
+    sample_time: float | None
+    format: str
+    sha256: str
+    size_bytes: int
+    stats: dict
+
+    @property
+    def n(self) -> int:
+        return self.X[0].shape[1]
+
+    @property
+    def m(self) -> int:
+        return self.U[0].shape[1]
+
+    @property
+    def rollouts(self) -> int:
+        return len(self.X)
+
+    @property
+    def lengths(self) -> list[int]:
+        """T_i of every rollout: its number of steps (it has T_i + 1 states)."""
+        return [u.shape[0] for u in self.U]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Rollouts:
+    """What a format's reader returns: the arrays and whatever names the file holds."""
+
+    X: list[np.ndarray]
+    U: list[np.ndarray]
+    state_names: Sequence[str] | None = None
+    input_names: Sequence[str] | None = None
+    sample_time: float | None = None
+    # how a rollout is called in messages: its CSV label, else its index
+    labels: Sequence[str] | None = None
+    # the k of each rollout's first state (CSV), else 0
+    first_k: Sequence[int] | None = None
+
+
+def default_names(prefix: str, count: int) -> list[str]:
+    return [f"{prefix}{i + 1}" for i in range(count)]
+
+
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+
+
+def check_names(names: Sequence[str], field: str, count: int | None = None) -> list[str]:
+    """Channel names: ``count`` of them if given, unique, 1-64 printable characters.
+    ``field``: the upload field, or ``"file: <where>"`` for names read from the file."""
+
+    def error(message: str) -> SpecError:
+        if field.startswith("file: "):
+            return BadDatasetFile(f"{field[6:]}: {message}")
+        return SpecError(field, message)
+
+    names = [str(v).strip() for v in names]
+    if count is not None and len(names) != count:
+        raise error(f"{len(names)} names for {count} channels")
+    for v in names:
+        if not v or len(v) > MAX_NAME or _CONTROL.search(v):
+            raise error(f"{v!r}: a name is 1 to {MAX_NAME} printable characters")
+    dup = next((v for i, v in enumerate(names) if v in names[:i]), None)
+    if dup is not None:
+        raise error(f"{dup!r} appears twice")
+    return names
+
+
+def _where(labels, first_k, i: int, row: int) -> str:
+    rollout = labels[i] if labels is not None else str(i)
+    k = (first_k[i] if first_k is not None else 0) + row
+    return f"rollout {rollout}, k {k}"
+
+
+def check_finite(arrays: list[np.ndarray], names: list[str], labels, first_k) -> None:
+    """BadDatasetFile naming the first NaN or inf (rollout, k, column)."""
+    for i, a in enumerate(arrays):
+        ok = np.isfinite(a)
+        if not ok.all():
+            r, c = np.argwhere(~ok)[0]
+            what = "NaN" if math.isnan(a[r, c]) else "inf"
+            raise BadDatasetFile(f"{what} at {_where(labels, first_k, i, r)}, column {names[c]}")
+
+
+def build(
+    rollouts: Rollouts,
+    options: DatasetOptions,
+    *,
+    fmt: str,
+    sha256: str,
+    size_bytes: int,
+    names_in_file: bool = False,
+) -> ParsedDataset:
+    """Check the arrays every format yields and compute the statistics. Names: the
+    upload's ``state_names`` / ``input_names``, else the file's, else x1..xn, u1..um
+    (``names_in_file``: the names are the CSV columns, already checked)."""
+    X, U = rollouts.X, rollouts.U
+    if not X:
+        raise BadDatasetFile("no rollouts")
+    if len(X) > MAX_ROLLOUTS:
+        raise BadDatasetFile(f"{len(X):,} rollouts; at most {MAX_ROLLOUTS:,}")
+    n, m = X[0].shape[1], U[0].shape[1]
+    if n < 1:
+        raise BadDatasetFile("no state columns (n = 0)")
+    if n > MAX_CHANNELS or m > MAX_CHANNELS:
+        raise BadDatasetFile(f"n = {n}, m = {m}: at most {MAX_CHANNELS} states and inputs")
+    labels, first_k = rollouts.labels, rollouts.first_k
+    for i, (x, u) in enumerate(zip(X, U)):
+        name = labels[i] if labels is not None else str(i)
+        if x.shape[0] < 2:
+            raise BadDatasetFile(
+                f"rollout {name}: {x.shape[0]} state; a rollout needs at least 2 states"
+            )
+        if x.shape[1] != n or u.shape[1] != m or u.shape[0] != x.shape[0] - 1:
+            raise BadDatasetFile(
+                f"rollout {name}: states {x.shape} and inputs {u.shape} do not make "
+                f"(T + 1, {n}) and (T, {m})"
+            )
+    if names_in_file:
+        state_names, input_names = list(rollouts.state_names), list(rollouts.input_names)
+    else:
+        state_names = _names(options.state_names, rollouts.state_names, "state_names", "x", n)
+        input_names = _names(options.input_names, rollouts.input_names, "input_names", "u", m)
+    check_finite(X, state_names, labels, first_k)
+    check_finite(U, input_names, labels, first_k)
+    sample_time = options.sample_time if options.sample_time is not None else rollouts.sample_time
+    return ParsedDataset(
+        X=X,
+        U=U,
+        state_names=state_names,
+        input_names=input_names,
+        sample_time=sample_time,
+        format=fmt,
+        sha256=sha256,
+        size_bytes=size_bytes,
+        stats={"states": channel_stats(X, state_names), "inputs": channel_stats(U, input_names)},
+    )
+
+
+def _names(given, in_file, field: str, prefix: str, count: int) -> list[str]:
+    if given is not None:
+        return check_names(given, field, count)
+    if in_file is not None:
+        return check_names(in_file, f"file: {field}", count)
+    return default_names(prefix, count)
+
+
+def channel_stats(arrays: list[np.ndarray], names: list[str]) -> dict:
+    """{name: {mean, std (ddof 0), min, max, count}} over every sample of every rollout
+    (two passes: the sum, then the squared deviations about the mean)."""
+    width = arrays[0].shape[1]
+    count = sum(a.shape[0] for a in arrays)
+    if width == 0:
+        return {}
+    if count == 0:
+        return {n: {"mean": None, "std": None, "min": None, "max": None, "count": 0} for n in names}
+    total = np.zeros(width)
+    lo, hi = np.full(width, np.inf), np.full(width, -np.inf)
+    with np.errstate(over="ignore", invalid="ignore"):
+        for a in arrays:
+            total += a.sum(axis=0)
+            if len(a):
+                lo, hi = np.minimum(lo, a.min(axis=0)), np.maximum(hi, a.max(axis=0))
+        mean = total / count
+        dev = np.zeros(width)
+        for a in arrays:
+            dev += ((a - mean) ** 2).sum(axis=0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        std = np.sqrt(dev / count)
+    return {
+        name: {
+            "mean": _finite(mean[j]),
+            "std": _finite(std[j]),
+            "min": _finite(lo[j]),
+            "max": _finite(hi[j]),
+            "count": int(count),
+        }
+        for j, name in enumerate(names)
+    }
+
+
+def _finite(v) -> float | None:
+    """A statistic, or None when it overflows (values near 1e308 summed)."""
+    v = float(v)
+    return v if math.isfinite(v) else None

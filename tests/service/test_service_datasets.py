@@ -1,0 +1,250 @@
+"""REST datasets (service/api/routes/datasets.py) on SQLite and PostgreSQL: the same
+rollouts uploaded in five formats are stored as the same float64 arrays (bit for
+bit); every kind of bad file is one named 422 leaving no row and no chunk; the size
+limit is a 413 whether declared or streamed; team scoping, pagination, delete and
+its 409 while jobs use the dataset, the download's bytes."""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import uuid
+
+import numpy as np
+import pytest
+from sqlalchemy import func, select, update
+
+from service.db import datasets as store
+from service.db import jobs as job_store
+from service.db.models import Dataset, DatasetChunk, Job
+from svrobs_core import parse_spec
+from svrobs_core.errors import SpecError
+from svrobs_lab.datasets.catalog import resolve_dataset
+from svrobs_lab.errors import DatasetNotFound
+from tests.datasets import bad_files, files
+from tests.service.svc_helpers import SMALL_SPEC
+
+API = "/api/v1"
+
+
+def upload(client, acc, filename: str, data: bytes, **fields):
+    form = {"name": f"ds-{uuid.uuid4().hex[:6]}", **fields}
+    return client.post(
+        f"{API}/datasets", files={"file": (filename, data)}, data=form, headers=acc.headers
+    )
+
+
+def counts(session) -> tuple[int, int]:
+    session.expire_all()
+    return (
+        session.scalar(select(func.count()).select_from(Dataset)),
+        session.scalar(select(func.count()).select_from(DatasetChunk)),
+    )
+
+
+def test_five_formats_store_the_same_arrays_and_the_original_bytes(
+    client, session, make_account, tmp_path
+):
+    acc = make_account()
+    X, U = files.rollouts(lengths=(6, 2, 9), n=3, m=2)
+    bodies = {}
+    for fmt, (name, data) in files.all_formats(X, U, tmp_path).items():
+        r = upload(client, acc, name, data, sample_time="0.25", description="bench run")
+        assert r.status_code == 201, r.text
+        body = bodies[fmt] = r.json()
+        assert r.headers["location"] == f"{API}/datasets/{body['id']}"
+        assert body["format"] == fmt and body["sha256"] == hashlib.sha256(data).hexdigest()
+        assert (body["n"], body["m"], body["rollouts"], body["lengths"]) == (3, 2, 3, [6, 2, 9])
+        assert (body["samples"], body["T_min"], body["T_max"]) == (17, 2, 9)
+        assert body["sample_time"] == 0.25 and body["size_bytes"] == len(data)
+        assert body["filename"] == name and body["owner"] == acc.user.email
+        # the arrays a worker loads: the file's numbers, bit for bit, without parsing it
+        Xs, Us, meta = store.load_arrays(session, body["id"])
+        assert [x.tobytes() for x in Xs] == [x.tobytes() for x in X]
+        assert [u.tobytes() for u in Us] == [u.tobytes() for u in U]
+        assert meta["lengths"] == [6, 2, 9] and meta["sha256"] == body["sha256"]
+        # the download is the upload, byte for byte, with its media type and name
+        d = client.get(f"{API}/datasets/{body['id']}/file", headers=acc.headers)
+        assert d.status_code == 200 and d.content == data
+        assert d.headers["content-type"].startswith(body["media_type"])
+        assert f'filename="{name}"' in d.headers["content-disposition"]
+        assert d.headers["etag"] == f'"{body["sha256"]}"'
+    assert len({b["arrays_sha256"] for b in bodies.values()}) == 1
+    assert len({b["sha256"] for b in bodies.values()}) == 5
+    stacked = np.vstack(U)
+    stats = bodies["csv"]["stats"]["inputs"]["u2"]
+    assert stats["mean"] == pytest.approx(stacked[:, 1].mean(), rel=1e-14)
+    assert (stats["min"], stats["max"]) == (stacked[:, 1].min(), stacked[:, 1].max())
+
+
+def test_no_inputs_end_to_end(client, session, make_account):
+    acc = make_account()
+    X, U = files.rollouts(lengths=(5, 8), n=2, m=0)
+    r = upload(client, acc, "auto.csv", files.csv_bytes(X, U))
+    assert r.status_code == 201, r.text
+    assert (
+        r.json()["m"] == 0 and r.json()["input_names"] == [] and r.json()["stats"]["inputs"] == {}
+    )
+    Xs, Us, _ = store.load_arrays(session, r.json()["id"])
+    assert [u.shape for u in Us] == [(5, 0), (8, 0)]
+    assert [x.tobytes() for x in Xs] == [x.tobytes() for x in X]
+
+
+BAD = bad_files.cases()
+
+
+@pytest.mark.parametrize("case", BAD, ids=[c[0] for c in BAD])
+def test_each_bad_file_is_one_named_422_and_stores_nothing(client, session, make_account, case):
+    cid, name, data, fields, field, pattern = case
+    acc = make_account()
+    before = counts(session)
+    r = upload(client, acc, name, data, **fields)
+    body = r.json()
+    assert r.status_code == 422, (cid, r.text)
+    assert body["field"] == field, (cid, body)
+    assert re.search(pattern, body["detail"]), (cid, body["detail"])
+    assert "Traceback" not in r.text
+    assert counts(session) == before, cid  # no dataset row, no chunk
+
+
+def test_bad_file_kinds_are_at_least_fifteen():
+    kinds = {c[0] for c in BAD if c[4] == "file"}
+    assert len(kinds) >= 15
+
+
+def test_size_limit_is_a_413_declared_or_streamed(build_client, session, make_account):
+    client, _ = build_client(MAX_DATASET_MB=1)
+    acc = make_account()
+    X, U = files.rollouts(lengths=(12000,), n=3, m=2)
+    data = files.csv_bytes(X, U)
+    assert len(data) > 2**20
+    before = counts(session)
+    r = upload(client, acc, "big.csv", data)
+    assert r.status_code == 413 and r.json()["field"] == "file"
+    assert "SVROBS_MAX_DATASET_MB" in r.json()["detail"]
+    # without a Content-Length: the body is counted as it streams
+    boundary = "b0undary"
+    head = (
+        f'--{boundary}\r\nContent-Disposition: form-data; name="name"\r\n\r\nbig\r\n'
+        f'--{boundary}\r\nContent-Disposition: form-data; name="file"; filename="big.csv"\r\n'
+        "Content-Type: text/csv\r\n\r\n"
+    ).encode()
+    tail = f"\r\n--{boundary}--\r\n".encode()
+
+    def body():
+        yield head
+        for i in range(0, len(data), 65536):
+            yield data[i : i + 65536]
+        yield tail
+
+    r = client.post(
+        f"{API}/datasets",
+        content=body(),
+        headers={**acc.headers, "Content-Type": f"multipart/form-data; boundary={boundary}"},
+    )
+    assert r.status_code == 413 and r.json()["field"] == "file"
+    assert counts(session) == before
+    # under the limit the same streamed encoding is stored
+    small = files.csv_bytes(*files.rollouts(lengths=(5,)))
+    data = small
+    r = client.post(
+        f"{API}/datasets",
+        content=body(),
+        headers={**acc.headers, "Content-Type": f"multipart/form-data; boundary={boundary}"},
+    )
+    assert r.status_code == 201, r.text
+    assert r.json()["sha256"] == hashlib.sha256(small).hexdigest()
+
+
+def test_not_multipart_and_no_file(client, make_account):
+    acc = make_account()
+    r = client.post(f"{API}/datasets", json={"name": "x"}, headers=acc.headers)
+    assert r.status_code == 422 and r.json()["field"] == "file"
+    r = client.post(
+        f"{API}/datasets", data={"name": "x"}, files={"other": ("a", b"1")}, headers=acc.headers
+    )
+    assert r.status_code == 422
+    r = client.post(
+        f"{API}/datasets", files={"name": (None, "x"), "file": (None, "text")}, headers=acc.headers
+    )
+    assert r.status_code == 422 and r.json()["field"] == "file"
+    assert client.post(f"{API}/datasets", files={"file": ("a.csv", b"x")}).status_code == 401
+
+
+def test_team_scoping_listing_and_delete(client, session, make_account):
+    a, b = make_account(), make_account()
+    data = files.csv_bytes(*files.rollouts(lengths=(3, 4)))
+    ids = [upload(client, a, "a.csv", data, name=f"a{i}").json()["id"] for i in range(3)]
+    other = upload(client, b, "b.csv", data).json()["id"]
+    page = client.get(f"{API}/datasets", params={"limit": 2}, headers=a.headers).json()
+    assert page["total"] == 3 and [d["id"] for d in page["items"]] == ids[::-1][:2]
+    assert "lengths" not in page["items"][0] and "stats" not in page["items"][0]
+    rest = client.get(f"{API}/datasets", params={"limit": 2, "offset": 2}, headers=a.headers)
+    assert [d["id"] for d in rest.json()["items"]] == [ids[0]]
+    for path in (f"/datasets/{other}", f"/datasets/{other}/file"):
+        r = client.get(f"{API}{path}", headers=a.headers)
+        assert r.status_code == 404 and r.json()["detail"] == f"dataset {other} not found"
+    assert client.delete(f"{API}/datasets/{other}", headers=a.headers).status_code == 404
+    assert client.get(f"{API}/datasets/{other}", headers=b.headers).status_code == 200
+    assert (
+        client.get(f"{API}/datasets/+{ids[0]}", headers=a.headers).json()["field"] == "dataset_id"
+    )
+    r = client.delete(f"{API}/datasets/{ids[0]}", headers=a.headers)
+    assert r.status_code == 204
+    session.expire_all()
+    chunks = select(func.count()).select_from(DatasetChunk).where(DatasetChunk.dataset_id == ids[0])
+    assert session.scalar(chunks) == 0
+    assert client.get(f"{API}/datasets/{ids[0]}", headers=a.headers).status_code == 404
+    with pytest.raises(DatasetNotFound) as err:
+        resolve_dataset(session, a.team.id, other)
+    assert err.value.field == "dataset"
+    assert resolve_dataset(session, b.team.id, other).id == other
+
+
+def test_delete_is_a_409_naming_the_jobs_that_use_it(client, session, make_account):
+    acc = make_account()
+    ds = upload(client, acc, "a.csv", files.csv_bytes(*files.rollouts(lengths=(3, 4)))).json()
+    jobs = [
+        client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+        for _ in range(2)
+    ]
+    session.execute(update(Job).where(Job.id.in_(jobs)).values(dataset_id=ds["id"]))
+    session.commit()
+    r = client.delete(f"{API}/datasets/{ds['id']}", headers=acc.headers)
+    assert r.status_code == 409
+    assert (
+        r.json()["detail"]
+        == f"dataset {ds['id']} is used by jobs {jobs[0]}, {jobs[1]}: delete them first"
+    )
+    assert counts(session)[0] >= 1 and store.team_dataset(session, acc.team.id, ds["id"])
+    for j in jobs:
+        assert client.post(f"{API}/jobs/{j}/cancel", headers=acc.headers).status_code == 200
+        assert client.delete(f"{API}/jobs/{j}", headers=acc.headers).status_code == 204
+    assert client.delete(f"{API}/datasets/{ds['id']}", headers=acc.headers).status_code == 204
+
+
+def test_a_spec_names_the_teams_dataset(client, session, make_account):
+    """create_job links a job to its spec's dataset, refuses another team's and checks
+    the spec against the dataset's shape (the store check every path to create_job
+    goes through)."""
+    a, b = make_account(), make_account()
+    data = files.csv_bytes(*files.rollouts(lengths=(3, 4)))
+    mine = upload(client, a, "a.csv", data).json()["id"]
+    theirs = upload(client, b, "b.csv", data).json()["id"]
+    assert store.linked_dataset(session, a.team.id, {"dataset": mine}) == mine
+    assert store.linked_dataset(session, a.team.id, {"systems": ["paper-stable"]}) is None
+    with pytest.raises(DatasetNotFound) as err:
+        store.linked_dataset(session, a.team.id, {"dataset": theirs})
+    assert err.value.field == "dataset" and err.value.message == f"no dataset {theirs} in your team"
+    spec = {"dataset": mine, "N": [1, 2], "reps": 1, "sigma_w": 0.1}
+    assert store.linked_dataset(session, a.team.id, parse_spec(spec)) == mine
+    with pytest.raises(SpecError) as err:  # 2 rollouts, 1 held out: N = 2 is too many
+        store.linked_dataset(session, a.team.id, parse_spec({**spec, "holdout": 1}))
+    assert err.value.field == "N" and "the dataset has 1 for training" in err.value.message
+    with pytest.raises(DatasetNotFound):
+        job_store.create_job(
+            session, team_id=a.team.id, user_id=None, spec={**spec, "dataset": theirs}
+        )
+    job, _ = job_store.create_job(session, team_id=a.team.id, user_id=None, spec=spec)
+    assert job.dataset_id == mine and job.spec_summary["systems"] == [f"dataset-{mine}"]
+    assert job.n_cells == parse_spec(spec).n_cells == 2 * 1 * 2  # N x reps x (ols, svr)
