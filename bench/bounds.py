@@ -1,4 +1,4 @@
-"""Benchmark: the cost of the sound uncertainty sets (SPEC section 3.1, issue 12).
+"""Benchmark: the cost of the sound uncertainty sets (docs/uncertainty.md, issue 12).
 
 Run: PYTHONPATH=. .venv/bin/python bench/bounds.py [--quick]
 

@@ -106,7 +106,7 @@ def finish(c: Client, job: Job) -> None:
 
 def submit(
     spec_file: Path = typer.Argument(
-        ..., help="a SPEC section 10 JSON (or YAML) file; - for stdin"
+        ..., help="a spec (docs/spec.md#spec-fields) as a JSON (or YAML) file; - for stdin"
     ),
     wait: bool = typer.Option(False, "--wait", help="show progress until the job finishes"),
     name: str | None = typer.Option(None, help="job name"),

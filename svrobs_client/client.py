@@ -154,7 +154,7 @@ class Client:
         progress: bool = True,
         timeout: float | None = None,
     ) -> Job:
-        """Submit a SPEC section 10 spec (a dict or a JSON file) as a job.
+        """Submit a spec (docs/spec.md#spec-fields; a dict or a JSON file) as a job.
 
         ``tags`` are added to any ``tags`` in the spec; a retry with the same
         ``idempotency_key`` returns the same job. With ``wait`` (the default) this
@@ -251,7 +251,7 @@ class Client:
     def iter_results(
         self, job: Job | int, *, sort: str | Sequence[str] | None = None, **filters
     ) -> Iterator[dict[str, Any]]:
-        """The job's records one by one, streamed as JSON lines (SPEC section 10 fields;
+        """The job's records one by one, streamed as JSON lines (docs/spec.md#record-fields;
         matrices as nested lists, null never NaN), in grid order or by ``sort``
         (``"-rmse_A,N"``: numeric fields, ``-`` descending, nulls last).
 

@@ -1,6 +1,6 @@
 """JSON from the API -> pandas DataFrames (pandas is the optional ``dataframe`` extra).
 
-Records keep the SPEC section 10 field order; the matrix fields become 2-D float
+Records keep the field order of docs/spec.md#record-fields; the matrix fields become 2-D float
 numpy arrays (a ``null`` entry becomes NaN, a ``null`` matrix stays ``None``).
 """
 
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-# SPEC section 10: the record fields holding matrices (svrobs_core.records.MATRIX_FIELDS;
+# docs/spec.md#record-fields: the record fields holding matrices (svrobs_core.records.MATRIX_FIELDS;
 # a test keeps the two equal, without making the client import the core).
 MATRIX_FIELDS = ("A_hat", "B_hat", "radii_A", "radii_B", "L", "K")
 GROUP_FIELDS = ("system", "sigma_w", "N", "estimator", "gamma")

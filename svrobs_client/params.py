@@ -18,7 +18,7 @@ from typing import Any
 __all__ = ["NUMERIC_FIELDS", "RANGE_FIELDS", "RESULT_FILTERS", "results_params", "sort_param"]
 
 RESULT_FILTERS = ("system", "sigma_w", "N", "estimator", "gamma", "rep")
-# SPEC section 10: the scalar numeric record fields (svrobs_core.records.NUMERIC_FIELDS;
+# docs/spec.md#record-fields: the scalar numeric record fields (svrobs_core.records.NUMERIC_FIELDS;
 # a test keeps the two equal without making the client import the core). Booleans sort
 # but take no range.
 BOOL_FIELDS = ("thm1_holds_A", "thm1_holds_B", "stable_certified", "certified")

@@ -4,7 +4,7 @@
 matrix of it is singular or holds a NaN, which deep in a solver would turn
 one degenerate cell (an overflowing iteration, a singular C) into a failed
 unit. :func:`solve` gives NaN for those cells and the exact numpy result,
-bit for bit, for the others (SPEC section 10: nulls with a reason, not
+bit for bit, for the others (docs/spec.md#notes-why-a-field-is-null: nulls with a reason, not
 exceptions).
 """
 

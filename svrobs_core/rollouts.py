@@ -1,4 +1,4 @@
-"""Multi-rollout data collection and seeding (SPEC section 1).
+"""Multi-rollout data collection and seeding (docs/science.md#1-system-and-data).
 
 Every random draw comes from ``Generator(PCG64(SeedSequence(seed,
 spawn_key=key)))`` with ``key = (system index, sigma_w index, N, rep)``:
@@ -31,7 +31,7 @@ def seed_key(system_idx: int, sigma_w_idx: int, N: int, rep: int) -> tuple[int, 
 
 
 def rng_for(seed: int, key: tuple, stream: tuple = DATA_STREAM) -> np.random.Generator:
-    """The generator of one (key, stream); SPEC section 1 Decision (randomness)."""
+    """The generator of one (key, stream) (docs/science.md#14-randomness-and-reproducibility)."""
     return np.random.Generator(
         np.random.PCG64(np.random.SeedSequence(seed, spawn_key=key + stream))
     )
@@ -259,7 +259,7 @@ def regression_data(x, u, data: str = "all"):
 
 
 def collect(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0):
-    """Simulate the rollouts of every key and return (Z, F); SPEC section 1.
+    """Simulate the rollouts of every key and return (Z, F); docs/science.md#1-system-and-data.
 
     The same numbers as the experiment runner uses (it calls :func:`gram_data`)."""
     _, _, Z, F = gram_data(

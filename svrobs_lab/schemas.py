@@ -89,7 +89,7 @@ Tag = Field(default_factory=list, max_length=50)
 JobSubmit = create_model(
     "JobSubmit",
     __base__=_Strict,
-    __doc__="A SPEC section 10 experiment spec plus an optional name and tags.",
+    __doc__="An experiment spec (docs/spec.md#spec-fields) plus an optional name and tags.",
     name=(Optional[str], Field(None, min_length=1, max_length=200)),
     tags=(list[TagStr], Tag),
     **_spec_fields(),

@@ -3,7 +3,7 @@
 Runs E1..E4 of ``svrobs_core.paper.paper_specs(scale)`` with ``run_spec`` and
 writes::
 
-    DIR/<experiment>/records.jsonl   one section 10 record per line (null, never NaN)
+    DIR/<experiment>/records.jsonl   one record per line (null, never NaN)
     DIR/<experiment>/spec.json       the spec that ran
     DIR/table2.md, DIR/table2.csv    Table 2, ours beside the published values
     DIR/<figure>.png, .svg, .pdf     Figs. 2-5 and the figures beyond the paper
@@ -14,7 +14,7 @@ writes::
 Sub-grids are not recomputed: when an experiment's spec equals another's
 restricted to some systems / gammas / estimators at the same seed-key
 indices (E1 inside E2, E3 inside E4), its records are the other run's
-records for those cells (SPEC section 1: a cell's numbers depend only on the
+records for those cells (docs/science.md#1-system-and-data: a cell's numbers depend only on the
 seed and its key). Pass ``derive=False`` to run every spec on its own.
 
 If a pipeline stage is not available in this build (it raises

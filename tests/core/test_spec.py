@@ -1,4 +1,4 @@
-"""Spec and system validation (SPEC section 10): every bad input names its field."""
+"""Spec and system validation (docs/spec.md#validation-errors): every bad input names its field."""
 
 import math
 

@@ -1,4 +1,4 @@
-"""Tests of svrobs_core.uncertainty (SPEC section 3.1, docs/uncertainty.md).
+"""Tests of svrobs_core.uncertainty (docs/uncertainty.md).
 
 Oracles: the formulas re-written here with explicit inverses, slogdet and
 loops; Monte Carlo coverage on a 2-state system used nowhere else; the

@@ -56,7 +56,8 @@ def run_paper_preset(
     body: PresetRun | None = None,
     idempotency_key: Annotated[str | None, Header(max_length=180)] = None,
 ):
-    """Queue the paper's Section 6 (SPEC section 9): one job per experiment E1-E4,
+    """Queue the paper's Section 6 (docs/science.md#9-the-papers-section-6-as-a-preset): one
+    job per experiment E1-E4,
     tagged `paper-section-6` and the experiment name."""
     body = body or PresetRun()
     specs = paper_specs(body.scale)
