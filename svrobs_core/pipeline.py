@@ -31,7 +31,7 @@ from .uncertainty_stage import sound_bounds
 
 # Above this cond(Z Z^T + g I) the solve is not trusted to ~1e-9 relative
 # (tests/core/test_accuracy.py: 6e-12 at 1e18): the cell keeps its estimate
-# but its certificates are null, with a note (issue 10: a certificate rests on
+# but its certificates are null, with a note (a certificate rests on
 # a successful computation).
 ESTIMATE_COND_LIMIT = 1e20
 CERTIFICATES = ("stable_certified", "thm1_holds_A", "thm1_holds_B", "certified")

@@ -20,7 +20,7 @@ The paper's SLS program writes the affine constraint with ``- Phi_v C``;
 expanding it in z^-t gives the recursion
 ``Phi_w[t+1] = Phi_w[t] A_tilde + Phi_v[t] C``. Under that literal reading
 the feasible ``Phi_v`` of a static gain L is ``-Phi_w L``, so the objective
-term becomes ``Phi_w (K + L)``: it no longer vanishes at ``L = K`` and is
+term becomes ``Phi_w (K + L)``: it does not vanish at ``L = K`` and is
 inconsistent with Theorem 3 (the impulse response of the paper's own
 ``(Phi_w, Phi_w L)`` violates the literal constraints; see the tests).
 
@@ -157,7 +157,7 @@ def _warm(pr: _Compiled, n: int, p: int) -> _Compiled:
     values in place; later solves map the parameters through the cached
     reduction. The two give problem data that differ in the last bits, so
     without this the J_opt of a cell would depend on whether it was the first
-    solve of its process (issue 10, item 4): after it every cell takes the
+    solve of its process: after it every cell takes the
     cached path, and its J_opt is the same however the grid is split."""
     pr.A.value = 0.5 * np.eye(n)
     pr.C.value = np.eye(p, n)

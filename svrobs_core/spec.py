@@ -67,7 +67,7 @@ SPEC_KEYS = {
 DATASET_KEYS = {"dataset", "holdout", "C", "sigma_v", "sigma_u", "state"}
 DATASET_ONLY_MESSAGE = 'is only used with "dataset" (a job on measured data)'
 MAX_GRID = 100_000  # any single list longer than this is surely a mistake
-# Hard caps on the sizes one cell may ask for (issue 10): beyond them a single
+# Hard caps on the sizes one cell may ask for: beyond them a single
 # cell needs more memory or time than any worker has; the cost model
 # (svrobs_core.workload) limits the whole job below them.
 MAX_STATE_DIM = MAX_DIM  # n, m, p: the Kalman step solves an (n^2 x n^2) system per cell

@@ -1,4 +1,4 @@
-"""``GET /compare`` aggregated inside the database (issue 13, bounded reads).
+"""``GET /compare`` aggregated inside the database (bounded reads).
 
 One metric of several jobs: count, mean and std (ddof 0) of its non-null values
 per job and per combination of the ``by`` fields, one page of groups at a time

@@ -125,7 +125,8 @@ class Job(Base):
     name: Mapped[str | None] = mapped_column(String(200))
     tags: Mapped[list[Any]] = mapped_column(default=list)
     spec: Mapped[dict[str, Any]]
-    # what GET /jobs lists instead of the spec (jobs.spec_summary); None before issue 13
+    # what GET /jobs lists instead of the spec (jobs.spec_summary; None for a
+    # job stored before the column existed)
     spec_summary: Mapped[dict[str, Any] | None]
     status: Mapped[str] = mapped_column(String(16), default="queued")
     progress_done: Mapped[int] = mapped_column(default=0)

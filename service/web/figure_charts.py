@@ -1,4 +1,4 @@
-"""The report's figure series as chart presets of the job page (issue 14: the dashboard
+"""The report's figure series as chart presets of the job page (the dashboard
 and the figures share their choice of what to plot).
 
 A preset is a row of :data:`svrobs_core.report.FIGURE_SERIES` that the stored

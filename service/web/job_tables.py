@@ -1,4 +1,4 @@
-"""Table 2 and the RMSE findings of the job page, from the stored summaries (issue 11),
+"""Table 2 and the RMSE findings of the job page, from the stored summaries,
 never from the result rows.
 
 Table 2 (docs/science.md#9-the-papers-section-6-as-a-preset) is, per system, σ_w and matrix,

@@ -177,7 +177,7 @@ FIGURE_SERIES: tuple[FigureSeries, ...] = (
         where=(("estimator", "svr"),),
         lines=("gamma", "sigma_w"),
     ),
-    # the uncertainty-set audit (issue 12): one set of these lines per bounds_method,
+    # the uncertainty-set audit: one set of these lines per bounds_method,
     # each from its own experiment (a job has one bounds_method)
     _fs(
         "fig_bounds_audit",

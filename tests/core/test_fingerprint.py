@@ -1,11 +1,10 @@
-"""Pins the records of a fixed multi-system spec with every stage (issue 9: a
-restructure must not change a bit). The hash was taken before the restructure;
-a change that alters records on purpose updates it and says why in its commit.
+"""Pins the records of a fixed multi-system spec with every stage: a change of
+structure must not change a bit, and a change that alters records on purpose
+updates the hash and says why in its commit.
 
-Issue 12 added record fields (bounds_method, R_A, R_B): the hash of the
-records restricted to the fields that existed before (``FIELDS_V1``, in their
-order) is still the one taken before the restructure, so no pre-existing value
-changed; ``FINGERPRINT`` pins the full records."""
+``FINGERPRINT_V1`` hashes the records restricted to ``FIELDS_V1`` (every field
+but bounds_method, radii_A and radii_B, in their order), so a change that only
+adds record fields leaves it as it is; ``FINGERPRINT`` pins the full records."""
 
 import hashlib
 import json
@@ -39,17 +38,12 @@ SPEC = {
 }
 
 # sha256 of the records (one JSON line each, keys in contract order) restricted
-# to FIELDS_V1, taken on commit 369bee5, before the restructure of issue 9, and
-# updated for issue 10 item 4: every SLS solve now takes cvxpy's cached-parameter
-# path (the program is solved once when compiled), which changed J_opt in the
-# last bits (34 of 120 records, at most 3.3e-15 relative); no other field changed
-# (with that warm-up disabled both hashes are the previous ones,
-# 4c7fb61d... and 42c60be8...).
+# to FIELDS_V1; the commit that changes it says which fields changed and by how much.
 FINGERPRINT_V1 = "7f05da1057be8dfe894d408eafac7df128cd3546837f822f9c44eb6335effacc"
-# sha256 of the full records since issue 12 (bounds_method, R_A, R_B added).
+# sha256 of the full records.
 FINGERPRINT = "06f30bb837cc714b14d39209e6b9ddb7506b7549fd11d50525ca6c3f7333249d"
 
-# The record fields before issue 12, in contract order.
+# The record fields but bounds_method, radii_A, radii_B, in contract order.
 FIELDS_V1 = (
     "system sigma_w N N0 estimator gamma rep seed_key A_hat B_hat rmse_A rmse_B "
     "H_A H_B r_A r_B eps_A eps_B coverage_A coverage_B thm1_holds_A thm1_holds_B "

@@ -1,4 +1,4 @@
-"""The certificate invariant over random extreme-but-valid specs (issue 10, item 2).
+"""The certificate invariant over random extreme-but-valid specs.
 
 A property test (hypothesis, derandomized, 400 specs in ~25 s)
 drives specs with tiny to huge M, sigma_w including 0, T0 from 1 up, small N,

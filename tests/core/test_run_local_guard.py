@@ -1,4 +1,4 @@
-"""`svrobs run-local` refuses what it cannot run, before running (issue 10, item 5).
+"""`svrobs run-local` refuses what it cannot run, before running.
 
 Each case is the issue's reproduction, run as a user runs it (a subprocess):
 one line on stderr naming the field, exit status 2, no traceback, and no
