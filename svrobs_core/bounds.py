@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .norms import spectral_radius
+from .linalg import perron_upper_bound, up
 
 
 @dataclass
@@ -206,7 +206,9 @@ def evaluate_bounds(A_tilde, B_tilde, gamma, r: Radii, *, A_true=None, B_true=No
     A_tilde (..., n, n), B_tilde (..., n, m); gamma and the radii broadcast
     against the batch shape (...); docs/science.md#34-corollary-1-spectral-norm-bounds:
     eps_A = sqrt(sum_ij (|gamma A~_ij| + r_A)^2) (B: j <= m),
-    rho_upper_bound = rho(|(1+gamma) A~| + r_A 11^T), stable_certified = rho_ub < 1,
+    rho_upper_bound = rho(|(1+gamma) A~| + r_A 11^T) (an upper bound of it, never
+    below: the matrix rounded up and the Collatz-Wielandt bound of
+    :func:`svrobs_core.linalg.perron_upper_bound`), stable_certified = rho_ub < 1,
     coverage = fraction of entries with |true - (1+gamma) est| <= r,
     thm1_holds = every row has ||gamma est_i - (true_i - est_i)|| / (1+gamma) <= H.
     """
@@ -218,7 +220,8 @@ def evaluate_bounds(A_tilde, B_tilde, gamma, r: Radii, *, A_true=None, B_true=No
     with np.errstate(over="ignore", invalid="ignore"):
         eps_A = np.sqrt(np.sum((np.abs(g * A) + rA) ** 2, axis=(-2, -1)))
         eps_B = np.sqrt(np.sum((np.abs(g * B) + rB) ** 2, axis=(-2, -1)))
-        rho = spectral_radius(np.abs((1 + g) * A) + rA)
+        # |(1+gamma) A~| + r_A rounded up (1 + gamma and the product: one ulp each)
+        rho = perron_upper_bound(up(up(up(np.abs((1 + g) * A))) + rA))
     eps_A, eps_B = (np.where(np.isfinite(e), e, np.nan) for e in (eps_A, eps_B))
     with np.errstate(invalid="ignore"):
         stable = nullable(rho < 1, np.isfinite(rho) & np.isfinite(eps_A))

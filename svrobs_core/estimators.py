@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import DimensionError, check_matrix
+from .linalg import solve as _solve
 
 LOSS_SCALES = ("sum", "mean")
 
@@ -267,10 +268,10 @@ def ridge_qr(Z: np.ndarray, F: np.ndarray, g, *, return_cond: bool = False):
     )
     Q, Rg = np.linalg.qr(aug)  # (b, G, 2d, d), (b, G, d, d)
     rhs = np.matmul(np.swapaxes(Q[..., :d, :], -1, -2), R12)  # Q^T [R12; 0]
-    Xt = np.linalg.solve(Rg, rhs)  # Theta^T: (b, G, d, n)
+    Xt = _solve(Rg, rhs)  # Theta^T: (b, G, d, n); NaN where R_g is numerically singular
     # refinement: R_g^T R_g dX = S^T with the extended-precision residual S
     S = _normal_residual(Z[:, None], F[:, None], np.swapaxes(Xt, -1, -2), g)
-    dX = np.linalg.solve(Rg, np.linalg.solve(np.swapaxes(Rg, -1, -2), np.swapaxes(S, -1, -2)))
+    dX = _solve(Rg, _solve(np.swapaxes(Rg, -1, -2), np.swapaxes(S, -1, -2)))
     theta = np.swapaxes(Xt + dX, -1, -2)
     if not return_cond:
         return theta

@@ -5,7 +5,8 @@ g(L), the certified design and the reuse_gain policy (the Kalman gain K_hat they
 Everything here is pure and vectorised over leading batch dimensions ``...``:
 
 * ``certificate``: ``g(L) = max_i sum_j |c_ij| + n r_A``,
-  ``c = (1+gamma) A_tilde - L C`` (docs/science.md#42-the-certificate-gl).
+  ``c = (1+gamma) A_tilde - L C`` (docs/science.md#42-the-certificate-gl), evaluated
+  with outward rounding (never below the exact value).
 * ``design_gain``: ``min ||L - K_hat||_F`` s.t. every row sum
   ``sum_j |c_ij| + n r_A <= 1 - margin``. For orthogonal ``C`` (in particular
   ``C = I``) this is an exact, vectorised Euclidean projection of every row of
@@ -27,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import check_matrix
+from .linalg import down, sum_up, up
 
 __all__ = [
     "GainResult",
@@ -78,13 +80,29 @@ def certificate(L, A_tilde, gamma, r_A, *, C, R_A=None) -> np.ndarray:
     broadcast against the batch shape (use gamma = 0 for OLS). With a radius
     matrix ``R_A`` (..., n, n) instead (r_A ignored):
     g(L) = max_i sum_j (|c_ij| + (R_A)_ij).
+
+    Evaluated with outward rounding, so the value is never below the exact g
+    of these numbers (``certified = g < 1`` then implies the exact inequality):
+    c is enclosed in an interval (the centre and every product of L C rounded
+    outward by :func:`svrobs_core.linalg.up` / ``down``), |c| is bounded by the
+    larger end, and the row sums are rounded up (docs/uncertainty.md#certificates-on-the-boxes).
+    NaN where an input is NaN.
     """
     Ct = _scaled_center(A_tilde, gamma)
     n = Ct.shape[-1]
-    c = Ct - np.asarray(L, dtype=float) @ np.asarray(C, dtype=float)
-    if R_A is not None:
-        return (np.abs(c) + np.asarray(R_A, dtype=float)).sum(axis=-1).max(axis=-1)
-    return np.abs(c).sum(axis=-1).max(axis=-1) + n * np.asarray(r_A, dtype=float)
+    L = np.asarray(L, dtype=float)
+    C = np.asarray(C, dtype=float)
+    with np.errstate(over="ignore", invalid="ignore"):
+        # (1 + gamma) A_tilde: two roundings (1 + gamma, the product), one ulp each
+        lo, hi = down(down(Ct)), up(up(Ct))
+        for k in range(C.shape[-2]):
+            prod = L[..., :, k, None] * C[..., k, None, :]
+            lo, hi = down(lo - up(prod)), up(hi - down(prod))
+        absc = np.maximum(np.abs(lo), np.abs(hi))
+        if R_A is not None:
+            return sum_up(up(absc + np.asarray(R_A, dtype=float)), axis=-1).max(axis=-1)
+        radius = up(n * np.asarray(r_A, dtype=float))
+        return up(sum_up(absc, axis=-1).max(axis=-1) + radius)
 
 
 def project_l1_ball(V, radius) -> np.ndarray:
@@ -257,22 +275,21 @@ class _CvxpyDesign:
         cp = self.cp
         self.Ct.value, self.C.value, self.K.value = Ct, C, K_hat
         self.rho.value = budget
-        self.main.solve(solver=cp.CLARABEL)
-        if self.main.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        ok = (cp.OPTIMAL, cp.OPTIMAL_INACCURATE)
+        status = self._solve(self.main)
+        if status in ok:
             return self.L.value, True
         nan = np.full(self.L.shape, np.nan)
-        if self.main.status not in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
-            return nan, False
+        if status not in (cp.INFEASIBLE, cp.INFEASIBLE_INACCURATE):
+            return nan, False  # solver failure: NaN gain, not certified
         offset = budget.max() - budget  # shifts that keep the row order of the budgets
         self.offset.value = offset
-        self.min_g.solve(solver=cp.CLARABEL)
-        if self.min_g.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        if self._solve(self.min_g) not in ok:
             return nan, False
         L1 = self.L.value
         top = float((np.abs(Ct - L1 @ C).sum(axis=-1) + offset).max())
         self.rho.value = top - offset
-        self.main.solve(solver=cp.CLARABEL)
-        if self.main.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        if self._solve(self.main) in ok:
             L2 = self.L.value
             if (np.abs(Ct - L2 @ C).sum(axis=-1) + offset).max() <= top + 1e-9:
                 return L2, False

@@ -1,4 +1,10 @@
-"""Batched linear solves that never raise: NaN for the cells that cannot be solved.
+"""Batched linear algebra that never raises, and upper bounds rounded outward.
+
+:func:`solve`: batched linear solves, NaN for the cells that cannot be solved.
+:func:`up`, :func:`sum_up`, :func:`matvec_up`, :func:`perron_upper_bound`:
+bounds evaluated with upward rounding (every operation's result moved one
+ulp towards +inf), so that a computed bound is never below the exact value
+(docs/uncertainty.md#certificates-on-the-boxes).
 
 ``numpy.linalg.solve`` raises ``LinAlgError`` for a whole batch as soon as one
 matrix of it is singular or holds a NaN, which deep in a solver would turn
@@ -50,3 +56,70 @@ def solve(M, B) -> np.ndarray:
             except np.linalg.LinAlgError:
                 ok[idx] = False
     return np.where(ok[..., None, None], X, np.nan)
+
+
+def up(x) -> np.ndarray:
+    """The next double above x: an upper bound of the exact result of the one
+    rounded-to-nearest operation that gave x (NaN stays NaN, inf stays inf)."""
+    return np.nextafter(x, np.inf)
+
+
+def down(x) -> np.ndarray:
+    """The next double below x (the lower end of an interval, as :func:`up`)."""
+    return np.nextafter(x, -np.inf)
+
+
+def sum_up(X, axis: int = -1) -> np.ndarray:
+    """An upper bound of the exact sum of X along ``axis``: one rounded-up
+    addition per term (a loop over that axis, vectorised over the rest)."""
+    X = np.moveaxis(np.asarray(X, dtype=float), axis, -1)
+    acc = X[..., 0].copy()
+    for j in range(1, X.shape[-1]):
+        acc = up(acc + X[..., j])
+    return acc
+
+
+def matvec_up(M, x) -> np.ndarray:
+    """An upper bound of the exact M x for M >= 0, x >= 0 (..., k, k) @ (..., k):
+    every product and every partial sum rounded up. -> (..., k)"""
+    M = np.asarray(M, dtype=float)
+    x = np.asarray(x, dtype=float)
+    acc = up(M[..., :, 0] * x[..., None, 0])
+    for j in range(1, M.shape[-1]):
+        acc = up(acc + up(M[..., :, j] * x[..., None, j]))
+    return acc
+
+
+PERRON_FLOOR = 1e-15  # Perron-vector entries below this share of the largest are raised to it
+
+
+def perron_upper_bound(M) -> np.ndarray:
+    """An upper bound of rho(M) for entrywise nonnegative M (..., k, k), never below it.
+
+    Collatz-Wielandt: rho(M) <= max_i (M x)_i / x_i for every x > 0. The
+    bound is the smallest of three such vectors (the computed Perron vector
+    with its entries floored at PERRON_FLOOR times the largest, one power
+    step from it, and the ones vector, which gives the largest row sum),
+    each evaluated with upward rounding (:func:`matvec_up`, then the quotient
+    rounded up). Inf where M is not finite or the bound overflows.
+    """
+    M = np.asarray(M, dtype=float)
+    if M.shape[-1] == 0:
+        return np.zeros(M.shape[:-2])
+    fin = np.isfinite(M).all(axis=(-2, -1))
+    Ms = np.where(fin[..., None, None], M, 0.0)
+    w, v = np.linalg.eig(Ms)
+    top = np.argmax(w.real, axis=-1)
+    x = np.abs(np.take_along_axis(v, top[..., None, None], axis=-1)[..., 0])
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        big = x.max(axis=-1, keepdims=True)
+        x = np.where(big > 0, x / np.where(big > 0, big, 1.0), 1.0)
+        x = np.maximum(x, PERRON_FLOOR)
+        step = Ms @ x[..., None]
+        step = step[..., 0] / np.maximum(step[..., 0].max(axis=-1, keepdims=True), 1e-300)
+        step = np.where(np.isfinite(step), np.maximum(step, PERRON_FLOOR), 1.0)
+        best = np.full(M.shape[:-2], np.inf)
+        for cand in (x, step, np.ones_like(x)):
+            ratio = up(matvec_up(Ms, cand) / cand).max(axis=-1)
+            best = np.minimum(best, np.where(np.isnan(ratio), np.inf, ratio))
+    return np.where(fin, best, np.inf)

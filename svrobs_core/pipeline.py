@@ -67,8 +67,9 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
     sigma_w = spec.sigma_w[wi]
     n = system.n
     keys = [seed_key(si, wi, N, r) for r in reps]
+    # the sound boxes factorise the data themselves (svrobs_core.data_factor)
     need_data = any(e in ("ols", "shrunk-ols") for e in spec.estimators) or (
-        spec.bounds_method == "bootstrap" and spec.boot_sigma_w == "estimate"
+        spec.has("bounds") and spec.bounds_method != "paper"
     )
     G, P, Z, F = gram_data(
         system,
@@ -110,7 +111,11 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
     }
     notes = Notes((R, E))
     finite = np.isfinite(theta).all(axis=(-2, -1))
-    notes.add(~finite, "estimate: not finite (the simulated data leave the double range)")
+    notes.add(
+        ~finite,
+        "estimate: not finite (the simulated data leave the double range, or the"
+        " regularised problem is numerically singular)",
+    )
     unreliable = finite & ~(cond <= ESTIMATE_COND_LIMIT)
     notes.add(
         unreliable,
@@ -458,7 +463,12 @@ def _sls_stage(c: _Cells, b):
     J_opt = np.full((R, E), np.nan)
     status = np.empty((R, E), dtype=object)
     undefined = ~np.isfinite(np.broadcast_to(F, (R, E)))
-    notes.add(undefined, "J_opt: F undefined (true system unstable: H-infinity norms infinite)")
+    norms_ok = np.isfinite(norms.hinf_PhiA_B) & np.isfinite(norms.hinf_PhiA_K)
+    notes.add(
+        undefined & ~norms_ok,
+        "J_opt: F undefined (true system unstable: H-infinity norms infinite)",
+    )
+    notes.add(undefined & norms_ok, "J_opt: F undefined (eps_A or eps_B is null)")
     for ri, ei in np.ndindex(R, E):
         if undefined[ri, ei]:
             status[ri, ei] = "not_run"

@@ -78,11 +78,41 @@ def empty_record() -> dict:
 SUMMARY_FIELDS = tuple(f for f in NUMERIC_FIELDS if f not in ("N", "N0", "rep", "sigma_w", "gamma"))
 
 
+OVERFLOW_NOTE = "out of the double range (above 1.8e308)"
+
+
+def stat_entry(mean: float, std: float, count: int) -> dict:
+    """One field's summary of a group; a mean or std that is not a finite double is
+    null, with a note (docs/spec.md#summaries)."""
+    entry = {"mean": mean, "std": std, "count": count}
+    bad = [k for k in ("mean", "std") if not math.isfinite(entry[k])]
+    if bad:
+        for k in bad:
+            entry[k] = None
+        entry["note"] = f"{' and '.join(bad)} {OVERFLOW_NOTE}"
+    return entry
+
+
+def _scaled_stats(x, ok, starts, sizes, n, mean, std, over):
+    """mean and std of the groups ``over`` (whose plain sums overflowed) computed on
+    x / max|x| and scaled back; the other groups keep their plain values."""
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        scale = np.maximum.reduceat(np.where(ok, np.abs(x), 0.0), starts)
+        scale = np.where(over & (scale > 0), scale, 1.0)
+        y = np.where(ok, x / np.repeat(scale, sizes), 0.0)
+        m = np.add.reduceat(y, starts) / n
+        dev = np.where(ok, y - np.repeat(m, sizes), 0.0)
+        sd = np.sqrt(np.add.reduceat(dev * dev, starts) / n)
+        return np.where(over, m * scale, mean), np.where(over, sd * scale, std)
+
+
 def summarize(records) -> list[dict]:
     """Mean, std (ddof=0) and count of every numeric field per group (GROUP_FIELDS).
 
     Booleans count as 0/1, nulls are skipped. Returns one dict per group:
-    ``{system, sigma_w, N, estimator, gamma, count, stats: {field: {mean, std, count}}}``.
+    ``{system, sigma_w, N, estimator, gamma, count, stats: {field: {mean, std, count}}}``;
+    a mean or std beyond the double range is null and the field's entry has a
+    ``note`` (:func:`stat_entry`).
     """
     records = list(records)
     cols = {f: [r.get(f) for r in records] for f in GROUP_FIELDS + SUMMARY_FIELDS}
@@ -111,10 +141,13 @@ def summarize_columns(columns: dict) -> list[dict]:
         x = np.asarray(col, dtype=float)[order]  # None -> nan, booleans -> 0/1
         ok = ~np.isnan(x)
         n = np.add.reduceat(ok.astype(np.int64), starts)
-        with np.errstate(invalid="ignore", divide="ignore"):
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             mean = np.add.reduceat(np.where(ok, x, 0.0), starts) / n
             dev = np.where(ok, x - np.repeat(mean, sizes), 0.0)
             std = np.sqrt(np.add.reduceat(dev * dev, starts) / n)
+        over = (n > 0) & ~(np.isfinite(mean) & np.isfinite(std))
+        if over.any():
+            mean, std = _scaled_stats(x, ok, starts, sizes, n, mean, std, over)
         stats[f] = (mean.tolist(), std.tolist(), n.tolist())
     out = []
     for key in sorted(index, key=lambda k: tuple((v is None, v) for v in k)):
@@ -125,7 +158,7 @@ def summarize_columns(columns: dict) -> list[dict]:
                 group_stats[f] = {"mean": None, "std": None, "count": 0}
             else:
                 mean, std, n = stats[f]
-                group_stats[f] = {"mean": mean[g], "std": std[g], "count": n[g]}
+                group_stats[f] = stat_entry(mean[g], std[g], n[g])
         out.append({**dict(zip(GROUP_FIELDS, key)), "count": int(sizes[g]), "stats": group_stats})
     return out
 

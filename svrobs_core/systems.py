@@ -56,7 +56,7 @@ class SystemSpec:
         }
 
 
-MAX_ENTRY = 1e100  # |entries| of A, B, C and the noise levels: squares and products stay finite
+MAX_ENTRY = 1e100  # |entries| of A, B, C and the noise levels: the square of one entry is finite
 MAX_DIM = 50  # n, m, p (svrobs_core.spec.MAX_STATE_DIM)
 # sigma_v = 0 needs cond(C) below this (K = A C^-1, docs/science.md#5-the-optimal-gain-k)
 SIGMA_V0_COND_LIMIT = 1e12

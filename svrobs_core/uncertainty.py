@@ -23,7 +23,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import estimators as _est
-from .norms import spectral_radius
+from .data_factor import (
+    U_ROUND,
+    GramFactor,
+    VParts,
+    data_factor,
+    estimate_margin,
+    gram_factor,
+    v_parts,
+)
+from .linalg import perron_upper_bound, up
 from .rollouts import draw_noise, regression_data
 
 __all__ = [
@@ -31,6 +40,8 @@ __all__ = [
     "BoxResult",
     "GramFactor",
     "bootstrap_box",
+    "certificate_radii",
+    "data_factor",
     "gram_factor",
     "noise_level",
     "rho_upper_bound",
@@ -38,10 +49,31 @@ __all__ = [
 ]
 
 BOOT_STREAM = (2,)  # resample b of a cell's key uses the stream key + (2, b)
-SINGULAR_RTOL = 1e-12  # lambda_min(G) <= this * lambda_max(G): Z Z^T treated as singular
+RADIUS_RTOL = 1e-6  # radii whose estimated relative error exceeds this are null
+# lambda_min(G) <= this * lambda_max(G) of a formed Gram matrix: treated as singular
+# (svrobs_core.measured.noise; the box itself decides from its error estimate)
+SINGULAR_RTOL = 1e-12
 BOOT_CHUNK_BYTES = 16 * 2**20  # working set of one chunk of resampled datasets
 REASON_SINGULAR = "Z Z^T is singular (OLS self-normalized bound undefined)"
 REASON_NONFINITE = "non-finite estimate or noise level"
+
+
+def _one_digit(x) -> np.ndarray:
+    """x rounded to one significant digit (the numbers of :func:`reason_inaccurate`)."""
+    x = np.asarray(x, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        e = np.floor(np.log10(np.where(x > 0, x, 1.0)))
+        out = np.round(x / 10.0**e) * 10.0**e
+    return np.where(np.isfinite(out), out, x)
+
+
+def reason_inaccurate(cond: float, err: float) -> str:
+    """Why a radius is null: its estimated error (1 significant digit, so that the
+    cells of a dataset share a few texts)."""
+    return (
+        f"radii and certificates null: relative error of the radii could exceed"
+        f" {RADIUS_RTOL:g} (estimate {err:.0e}, cond(Z Z^T + g I) = {cond:.0e})"
+    )
 
 
 @dataclass
@@ -52,7 +84,11 @@ class BoxResult:
     eps_A, eps_B (...): bounds on ||A - A_hat||, ||B - B_hat|| (spectral);
     beta (...): the V-norm radius of every row (self-normalized only);
     sigma_w (...): the noise level used; reason (...) object: why a cell is
-    NaN (None where defined); notes (...) object: caveats of a defined cell.
+    NaN (None where defined); notes (...) object: caveats of a defined cell;
+    rel_err, cond (...): the estimated relative error of the radii and
+    cond(Z Z^T + g I), parts: the :class:`~svrobs_core.data_factor.VParts`
+    they come from (self-normalized only); R_A_up, R_B_up: the radii the
+    certificates use (:func:`certificate_radii`), when computed.
     """
 
     R_A: np.ndarray
@@ -63,6 +99,11 @@ class BoxResult:
     notes: np.ndarray
     sigma_w: np.ndarray
     beta: np.ndarray | None = None
+    rel_err: np.ndarray | None = None
+    cond: np.ndarray | None = None
+    parts: VParts | None = None
+    R_A_up: np.ndarray | None = None
+    R_B_up: np.ndarray | None = None
 
     @property
     def ok(self) -> np.ndarray:
@@ -76,25 +117,6 @@ class BoxResult:
     @property
     def r_B(self) -> np.ndarray:
         return np.max(self.R_B, axis=(-2, -1))
-
-
-@dataclass
-class GramFactor:
-    """Z Z^T = U diag(lam) U^T, the eigendecomposition SVR uses
-    (docs/science.md#22-the-papers-l2-loss-svr-and-its-closed-form)."""
-
-    lam: np.ndarray  # (..., d), ascending, floored at 0
-    U: np.ndarray  # (..., d, d)
-
-
-def gram_factor(G) -> GramFactor:
-    """Eigendecomposition of the Gram matrices G = Z Z^T (..., d, d), once per dataset
-    (NaN for a non-finite G, e.g. data that left the double range)."""
-    G = np.asarray(G, dtype=float)
-    ok = np.isfinite(G).all(axis=(-2, -1))
-    lam, U = np.linalg.eigh(np.where(ok[..., None, None], G, np.eye(G.shape[-1])))
-    lam = np.where(ok[..., None], np.maximum(lam, 0.0), np.nan)
-    return GramFactor(lam=lam, U=np.where(ok[..., None, None], U, np.nan))
 
 
 def _spectral_norm(X) -> np.ndarray:
@@ -126,6 +148,13 @@ def self_normalized_box(
     OLS: beta = sigma_w sqrt((1 + lambda0/lambda_min(G)) (log det(I + G/lambda0)
     + 2 log(n/delta))), V = G. R_ij = beta sqrt((V^-1)_jj) (+ shrink |Theta_hat_ij|);
     eps_A = sqrt(n) beta sqrt(lambda_max((V^-1)_AA)) (+ shrink ||A_hat||), B alike.
+
+    Accuracy (docs/uncertainty.md#numerical-accuracy-of-the-radii): ``rel_err``
+    estimates the relative error of the radii from the factor's backward
+    error; where it exceeds RADIUS_RTOL the cell is null with a reason that
+    gives cond(V). OLS is singular (null) when Z is numerically rank
+    deficient (lambda_min(G) <= (d u)^2 lambda_max(G) from the data, d u
+    lambda_max(G) from a formed G).
     """
     fac = gram if isinstance(gram, GramFactor) else gram_factor(gram)
     theta = np.asarray(theta_hat, dtype=float)
@@ -136,29 +165,26 @@ def self_normalized_box(
     batch = np.broadcast_shapes(
         fac.lam.shape[:-1], theta.shape[:-2], lam.shape, sw.shape, shrink.shape
     )
-    g = np.broadcast_to(fac.lam, batch + (d,))
-    U = np.broadcast_to(fac.U, batch + (d, d))
     lam = np.broadcast_to(lam, batch)
     ols = lam == 0
     log_n_delta = 2.0 * np.log(n / float(delta))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam_min, lam_max = g[..., 0], g[..., -1]
-        singular = ols & ~(lam_min > SINGULAR_RTOL * lam_max)
-        lv = g + np.where(ols, 0.0, lam)[..., None]  # eigenvalues of V
-        scale = np.where(ols, lambda0, lam)[..., None]
-        logdet = np.sum(np.log1p(g / scale), axis=-1)
+    rank_tol = d * U_ROUND if fac.formed else (d * U_ROUND) ** 2
+    parts = v_parts(fac, lam, lambda0=lambda0, n=n)
+    err, cond = (np.broadcast_to(x, batch) for x in (parts.err, parts.cond))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        lam_min, lam_max = parts.lam_min, parts.lam_max
+        singular = ols & ~(lam_min > rank_tol * lam_max)
+        logdet = parts.logdet
         beta_ridge = sw * np.sqrt(logdet + log_n_delta) + np.sqrt(lam) * S
         beta_ols = sw * np.sqrt((1.0 + lambda0 / lam_min) * (logdet + log_n_delta))
         beta = np.where(ols, beta_ols, beta_ridge)
-        inv = np.where(singular[..., None], np.nan, 1.0 / lv)  # eigenvalues of V^-1
-        diag = np.einsum("...jk,...jk,...k->...j", U, U, inv)  # diag(V^-1)
-        UA, UB = U[..., :n, :], U[..., n:, :]
-        WA = np.matmul(UA * inv[..., None, :], np.swapaxes(UA, -1, -2))  # (V^-1)_AA
-        WB = np.matmul(UB * inv[..., None, :], np.swapaxes(UB, -1, -2))
+        diag = np.where(singular[..., None], np.nan, parts.diag)  # diag(V^-1)
     bad = singular | ~np.isfinite(beta) | ~np.isfinite(theta).all(axis=(-2, -1))
-    safe = np.where(bad[..., None, None], 0.0, WA), np.where(bad[..., None, None], 0.0, WB)
-    lmax_A = np.linalg.eigvalsh(safe[0])[..., -1]
-    lmax_B = np.linalg.eigvalsh(safe[1])[..., -1] if d > n else np.zeros(batch)
+    bad = bad | ~np.isfinite(parts.lmax_A)
+    inaccurate = ~bad & ~(err <= RADIUS_RTOL)
+    bad = bad | inaccurate
+    lmax_A = np.where(bad, 0.0, parts.lmax_A)
+    lmax_B = np.where(bad, 0.0, parts.lmax_B)
     root_n = np.sqrt(n)
     beta = np.where(bad, 0.0, beta)  # NaN again below; keeps the arithmetic quiet
     R = beta[..., None, None] * np.sqrt(np.maximum(diag, 0.0))[..., None, :]
@@ -167,16 +193,23 @@ def self_normalized_box(
     eps_B = root_n * beta * np.sqrt(np.maximum(lmax_B, 0.0))
     th = np.broadcast_to(theta, batch + (n, d))
     if np.any(shrink != 0):
-        R = R + shrink[..., None, None] * np.abs(th)
-        safe_th = np.where(np.isfinite(th), th, 0.0)
-        eps_A = eps_A + shrink * np.linalg.norm(safe_th[..., :n], ord=2, axis=(-2, -1))
-        if d > n:
-            eps_B = eps_B + shrink * np.linalg.norm(safe_th[..., n:], ord=2, axis=(-2, -1))
+        with np.errstate(over="ignore", invalid="ignore"):  # non-finite cells: NaN below
+            R = R + shrink[..., None, None] * np.abs(th)
+            safe_th = np.where(np.isfinite(th), th, 0.0)
+            eps_A = eps_A + shrink * np.linalg.norm(safe_th[..., :n], ord=2, axis=(-2, -1))
+            if d > n:
+                eps_B = eps_B + shrink * np.linalg.norm(safe_th[..., n:], ord=2, axis=(-2, -1))
     nan = bad[..., None, None]
     R = np.where(nan, np.nan, R)
     eps_A, eps_B, beta = (np.where(bad, np.nan, x) for x in (eps_A, eps_B, beta))
     reason = _objects(batch, singular, REASON_SINGULAR)
-    reason[(bad & ~singular)] = REASON_NONFINITE
+    reason[(bad & ~singular & ~inaccurate)] = REASON_NONFINITE
+    if inaccurate.any():  # one text per (cond, err) to one significant digit
+        pairs = np.stack([_one_digit(cond[inaccurate]), _one_digit(err[inaccurate])], axis=-1)
+        uniq, inverse = np.unique(pairs, axis=0, return_inverse=True)
+        texts = np.empty(len(uniq), dtype=object)
+        texts[:] = [reason_inaccurate(c, e) for c, e in uniq.tolist()]
+        reason[inaccurate] = texts[inverse.reshape(-1)]
     with np.errstate(invalid="ignore"):
         over = ~ols & (np.linalg.norm(th, axis=-1).max(axis=-1) > S)
     notes = _objects(batch, over & ~bad, f"some row of Theta_hat has norm > S = {S:g}")
@@ -189,15 +222,56 @@ def self_normalized_box(
         notes=notes,
         sigma_w=np.broadcast_to(sw, batch).astype(float),
         beta=beta,
+        rel_err=np.where(bad & ~inaccurate, np.nan, err),
+        cond=cond,
+        parts=parts,
     )
 
 
+def certificate_radii(box: BoxResult, fac: GramFactor, theta_hat, *, lam, shrink=0.0):
+    """Radius matrices that the certificates use: (R_A_up, R_B_up), never below the
+    exact radii of the box around the exact estimate. -> (..., n, n), (..., n, m)
+
+    R_up = up((R (1 + e) + (1 + shrink) (m_i sqrt((V^-1)_jj) (1 + e) + 4 u |Theta_hat_ij|))
+    (1 + 8 u)) with e = ``box.rel_err`` (0 for a box without one, the bootstrap),
+    m_i the estimate's rounding margin (:func:`svrobs_core.data_factor.estimate_margin`)
+    and V = Z Z^T + lam I of the cell's estimator: the radius's own rounding, the
+    distance of the computed estimate from the exact estimator on the exact
+    data, and the final rounding (docs/uncertainty.md#certificates-on-the-boxes).
+    NaN where the box is NaN or its error estimate exceeds RADIUS_RTOL, inf where
+    the margin is unbounded (a singular V). From a formed Gram matrix
+    (:func:`gram_factor`, no data) the margin is taken as 0.
+    """
+    theta = np.asarray(theta_hat, dtype=float)
+    n, d = theta.shape[-2:]
+    R = np.concatenate([box.R_A, box.R_B], axis=-1)
+    lam = np.asarray(lam, dtype=float)
+    shrink = np.asarray(shrink, dtype=float)
+    parts = box.parts if box.parts is not None else v_parts(fac, lam, n=n)
+    err = parts.err
+    if box.rel_err is not None:
+        err = np.fmax(err, box.rel_err)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if fac.formed:  # no data: the estimate's rounding is not bounded (margin 0)
+            margin = np.zeros(parts.diag.shape[:-1] + (n,))
+        else:
+            margin = estimate_margin(fac, theta, lam=lam, shrink=shrink, parts=parts)
+        e = (1.0 + err)[..., None, None]
+        diag = np.sqrt(np.maximum(parts.diag, 0.0))[..., None, :]
+        floor = margin[..., :, None] * diag * e
+        floor = (1.0 + shrink)[..., None, None] * (floor + 4 * U_ROUND * np.abs(theta))
+        R_up = up((R * e + floor) * (1.0 + 8 * U_ROUND))
+    R_up = np.where((err <= RADIUS_RTOL)[..., None, None], R_up, np.nan)
+    return R_up[..., :n], R_up[..., n:]
+
+
 def rho_upper_bound(A_hat, R_A) -> np.ndarray:
-    """rho(|A_hat| + R_A) >= rho(A) for every A in the box; inf where non-finite. -> (...)"""
-    M = np.abs(np.asarray(A_hat, dtype=float)) + np.asarray(R_A, dtype=float)
-    fin = np.isfinite(M).all(axis=(-2, -1))
-    rho = spectral_radius(np.where(fin[..., None, None], M, 0.0))
-    return np.where(fin, rho, np.inf)
+    """An upper bound of rho(|A_hat| + R_A) >= rho(A) for every A in the box, never
+    below the exact value: |A_hat| + R_A rounded up, then the Collatz-Wielandt
+    bound of :func:`svrobs_core.linalg.perron_upper_bound`; inf where non-finite. -> (...)"""
+    with np.errstate(invalid="ignore", over="ignore"):
+        M = up(np.abs(np.asarray(A_hat, dtype=float)) + np.asarray(R_A, dtype=float))
+    return perron_upper_bound(M)
 
 
 # ---------------------------------------------------------------------------

@@ -3,12 +3,16 @@
 Called by :mod:`svrobs_core.pipeline` for one dataset over the (rep,
 estimator/gamma) grid (R, E): builds the box of :mod:`svrobs_core.uncertainty`
 centred at the estimate, and turns it into the record's bound fields and the
-quantities the observer stages use (eps_A, eps_B; R_A for the gain).
+quantities the observer stages use (eps_A, eps_B; R_A for the gain). The
+certificates (``stable_certified`` here, ``certified`` in the gain stage) use
+the box's radii rounded up to cover every rounding error
+(:func:`svrobs_core.uncertainty.certificate_radii`,
+docs/uncertainty.md#certificates-on-the-boxes).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -17,11 +21,21 @@ from . import uncertainty as _unc
 from .bounds import BoundsResult, nullable
 
 PAPER_ONLY_NOTE = "bounds: H_A, H_B, thm1_holds_A/B belong to the paper's method (null here)"
+HEURISTIC_NOTE = (
+    "bounds: the bootstrap box is a heuristic (no finite-sample guarantee;"
+    " measured coverage below 1 - delta, docs/uncertainty.md (e))"
+)
+MARGIN_NOTE = (
+    "bounds: certificates null: the rounding error of the estimate is not bounded"
+    " (Z Z^T singular or too ill-conditioned)"
+)
 
 
 @dataclass
 class SoundBounds:
-    """The box of every cell, its record fields and the BoundsResult for later stages."""
+    """The box the certificates use (the record's box with its radii rounded up
+    by :func:`svrobs_core.uncertainty.certificate_radii`), the record fields
+    (the box itself) and the BoundsResult for later stages."""
 
     box: _unc.BoxResult
     fields: dict
@@ -51,22 +65,29 @@ def sound_bounds(c, *, G, Z, F, N: int, N0: int) -> SoundBounds:
     """Box, record fields and BoundsResult of one dataset's cells (docs/uncertainty.md).
 
     ``c``: the pipeline's cell context (spec, system, sigma_w, keys, axis,
-    A_hat, B_hat, notes); G the Gram matrices (R, d, d); Z, F the data (only
-    needed for the bootstrap's residual noise estimate).
+    A_hat, B_hat, notes); Z, F the data (R, d, N0), (R, n, N0), factorised
+    by :func:`sound_box`; G (the Gram matrices) only where there are no data.
     """
     return bounds_from_box(c, sound_box(c, G=G, Z=Z, F=F, N=N, N0=N0))
 
 
 def sound_box(c, *, G, Z, F, N: int, N0: int) -> _unc.BoxResult:
-    """The box of the spec's ``bounds_method`` for one dataset's cells (:func:`sound_bounds`)."""
+    """The box of the spec's ``bounds_method`` for one dataset's cells
+    (:func:`sound_bounds`), with the radii its certificates use (``R_A_up``,
+    ``R_B_up``, :func:`svrobs_core.uncertainty.certificate_radii`).
+
+    The radii come from the data's own factor (:func:`svrobs_core.uncertainty.data_factor`);
+    with ``Z`` None (a caller with only the Gram matrices G) from the formed
+    G, whose error estimate is larger and whose certificate radii cannot
+    include the estimate's rounding margin."""
     spec, system = c.spec, c.system
     theta = np.concatenate([c.A_hat, c.B_hat], axis=-1)
-    R, E = theta.shape[:2]
+    lam, shrink = _ridge_axis(c.axis, N0, spec.loss_scale)
+    # (R, 1, ...): one factor per dataset, shared by its E cells
+    fac = (_unc.data_factor(Z, F) if Z is not None else _unc.gram_factor(G)).expand(1)
     if spec.bounds_method == "self-normalized":
-        lam, shrink = _ridge_axis(c.axis, N0, spec.loss_scale)
-        fac = _unc.gram_factor(G)
         box = _unc.self_normalized_box(
-            _unc.GramFactor(lam=fac.lam[:, None], U=fac.U[:, None]),
+            fac,
             theta,
             sigma_w=c.sigma_w,
             delta=spec.delta,
@@ -97,12 +118,15 @@ def sound_box(c, *, G, Z, F, N: int, N0: int) -> _unc.BoxResult:
             x0_std=spec.x0_std,
             loss_scale=spec.loss_scale,
         )
-    return box
+        c.notes.add(True, HEURISTIC_NOTE)
+    R_A_up, R_B_up = _unc.certificate_radii(box, fac, theta, lam=lam, shrink=shrink)
+    return replace(box, R_A_up=R_A_up, R_B_up=R_B_up)
 
 
 def bounds_from_box(c, box: _unc.BoxResult) -> SoundBounds:
     """Record fields and BoundsResult of the cells of ``c`` on ``box`` (:func:`sound_bounds`).
 
+    The certificates use ``box.R_A_up`` (``box.R_A`` where the box has none).
     Without a true system (``c.system.A`` None: measured data) the coverage
     fields are left out."""
     spec, system = c.spec, c.system
@@ -110,7 +134,12 @@ def bounds_from_box(c, box: _unc.BoxResult) -> SoundBounds:
     c.notes.add_reasons(box.reason, "bounds")
     c.notes.add_reasons(box.notes, "bounds")
     c.notes.add(True, PAPER_ONLY_NOTE)
-    rho = _unc.rho_upper_bound(c.A_hat, box.R_A)
+    R_A_up = box.R_A if box.R_A_up is None else box.R_A_up
+    R_B_up = box.R_B if box.R_B_up is None else box.R_B_up
+    unbounded = box.ok & ~np.isfinite(R_A_up).all(axis=(-2, -1))
+    c.notes.add(unbounded, MARGIN_NOTE)
+    R_A_up = np.where(unbounded[..., None, None], np.nan, R_A_up)
+    rho = _unc.rho_upper_bound(c.A_hat, R_A_up)
     with np.errstate(invalid="ignore"):  # null, not false, where rho or eps is undefined
         certified = nullable(rho < 1.0, np.isfinite(rho) & np.isfinite(box.eps_A))
     truth = system.A is not None
@@ -137,4 +166,5 @@ def bounds_from_box(c, box: _unc.BoxResult) -> SoundBounds:
         coverage_A=cov_A,
         coverage_B=cov_B,
     )
-    return SoundBounds(box=box, fields=fields, result=result)
+    cert_box = replace(box, R_A=R_A_up, R_B=R_B_up)
+    return SoundBounds(box=cert_box, fields=fields, result=result)

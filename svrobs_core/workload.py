@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from . import planning
+from .data_factor import EXT_MAX_WORK
 from .errors import SpecError
 from .estimators import FALLBACK_CHUNK_BYTES, SVR_COND_LIMIT
 from .gains import is_orthogonal
@@ -108,9 +109,10 @@ def _ill_conditioned(spec: ExperimentSpec, si: int) -> bool:
 
 
 def _dataset(
-    spec: ExperimentSpec, *, n, m, p, orth, N, R, mc_rows, ill=False
+    spec: ExperimentSpec, *, n, m, p, orth, N, R, mc_rows, ill=False, ill_data=False
 ) -> tuple[float, float, float]:
     """(cpu seconds, transient bytes, kept bytes) of one N of a unit with R reps;
+    ``ill_data``: the data are likely ill-conditioned (:func:`_ill_conditioned`);
     ``ill``: SVR's cells take the QR path (:func:`_ill_conditioned`)."""
     T0, E = spec.T0, spec.cells_per_rep
     d, q = n + m, 2 * n + m
@@ -139,6 +141,16 @@ def _dataset(
             cpu += (0.0 if kept_data else data_cpu) + R * (
                 QR_REP + LONG_DOUBLE * N0 * (d + n) * (2 + G)
             )
+    if spec.has("bounds") and spec.bounds_method != "paper":
+        # data_factor keeps Z, F and takes an R-only QR of [Z^T F^T] per repetition,
+        # again in long double where the data are ill-conditioned (capped per dataset)
+        if not kept_data:
+            kept_data = R * rep_data
+            mem = max(mem, 2 * kept_data)
+        work = N0 * (d + n) ** 2
+        cpu += FLOP * R * 2 * work
+        if ill_data:
+            cpu += LONG_DOUBLE * R * min(work, EXT_MAX_WORK)
     if spec.has("bounds") and spec.bounds_method == "bootstrap":
         c_boot, m_boot = _bootstrap(spec, n=n, m=m, N=N, R=R, E=E, N0=N0)
         cpu += c_boot
@@ -216,10 +228,11 @@ def estimate_unit(spec: ExperimentSpec, unit: dict) -> UnitCost:
     limit = spec.reps if spec.mc_reps is None else spec.mc_reps
     mc_rows = max(0, min(r1, limit) - r0)
     cpu, peak, kept = 0.0, 0.0, 0.0
-    ill = "svr" in spec.estimators and _ill_conditioned(spec, si)
+    ill_data = _ill_conditioned(spec, si)
+    ill = "svr" in spec.estimators and ill_data
     for N in unit["N"]:
         c, transient, k = _dataset(
-            spec, n=n, m=m, p=p, orth=orth, N=N, R=R, mc_rows=mc_rows, ill=ill
+            spec, n=n, m=m, p=p, orth=orth, N=N, R=R, mc_rows=mc_rows, ill=ill, ill_data=ill_data
         )
         cpu += c
         peak = max(peak, kept + transient)

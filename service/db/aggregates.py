@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import math
 
-from sqlalchemy import Float, Integer, and_, cast, func, select
+from sqlalchemy import Float, Integer, and_, case, cast, func, select
 from sqlalchemy.orm import Session
 
-from svrobs_core.records import BOOL_FIELDS, GROUP_FIELDS, SUMMARY_FIELDS
+from svrobs_core.records import BOOL_FIELDS, GROUP_FIELDS, SUMMARY_FIELDS, stat_entry
 
 from .models import Result
 
@@ -27,25 +27,52 @@ def _value(f: str):
     return cast(cast(col, Integer) if f in BOOL_FIELDS else col, Float)
 
 
+# Groups whose largest |value| is above BIG are summed as value * TINY (squares
+# stay below ~1e217), then scaled back: a plain sum of squares would overflow,
+# which PostgreSQL reports as an error. PostgreSQL also refuses a product that
+# underflows to 0: terms below NEGLIGIBLE are taken as 0 (against a group
+# maximum above BIG, or as a squared deviation below 1e-300).
+BIG, TINY, NEGLIGIBLE = 1e150, 1e-200, 1e-100
+
+
+def _scaled(v):
+    return case((func.abs(v) < NEGLIGIBLE, 0.0), else_=v * TINY)
+
+
+def _square(x):
+    return case((func.abs(x) < 1e-150, 0.0), else_=x * x)
+
+
 def summarize_in_db(session: Session, job_id: int) -> list[dict]:
-    """The job's groups as ``summarize_columns`` gives them, ordered by group."""
+    """The job's groups as ``summarize_columns`` gives them, ordered by group
+    (a mean or std beyond the double range is null with a note, ``stat_entry``)."""
     t = Result.__table__
+    aggs = []
+    for i, f in enumerate(SUMMARY_FIELDS):
+        v = _value(f)
+        aggs += [
+            func.avg(case((func.abs(v) > BIG, 0.0), else_=v)).label(f"w_m{i}"),
+            func.avg(_scaled(v)).label(f"w_t{i}"),
+            func.max(func.abs(v)).label(f"w_x{i}"),
+        ]
     means = (
-        select(
-            *[t.c[k] for k in KEY],
-            *[func.avg(_value(f)).label(f"w_m{i}") for i, f in enumerate(SUMMARY_FIELDS)],
-        )
+        select(*[t.c[k] for k in KEY], *aggs)
         .where(t.c.job_id == job_id)
         .group_by(*[t.c[k] for k in KEY])
         .subquery("means")
     )
     cols = []
     for i, f in enumerate(SUMMARY_FIELDS):
-        dev = _value(f) - means.c[f"w_m{i}"]
+        big = means.c[f"w_x{i}"] > BIG
+        dev = case(
+            (big, _scaled(_value(f)) - means.c[f"w_t{i}"]), else_=_value(f) - means.c[f"w_m{i}"]
+        )
         cols += [
             func.count(t.c[f]).label(f"w_n{i}"),
             func.max(means.c[f"w_m{i}"]).label(f"w_a{i}"),
-            func.sum(dev * dev).label(f"w_q{i}"),
+            func.max(means.c[f"w_t{i}"]).label(f"w_b{i}"),
+            func.max(means.c[f"w_x{i}"]).label(f"w_x{i}"),
+            func.sum(_square(dev)).label(f"w_q{i}"),
         ]
     q = (
         select(*[t.c[g] for g in GROUP_FIELDS], func.count().label("w_c"), *cols)
@@ -62,8 +89,10 @@ def summarize_in_db(session: Session, job_id: int) -> list[dict]:
             n = int(r[f"w_n{i}"])
             if n == 0:
                 stats[f] = {"mean": None, "std": None, "count": 0}
-            else:
-                std = math.sqrt(max(float(r[f"w_q{i}"]), 0.0) / n)
-                stats[f] = {"mean": float(r[f"w_a{i}"]), "std": std, "count": n}
+                continue
+            scale = 1.0 / TINY if float(r[f"w_x{i}"]) > BIG else 1.0
+            mean = float(r[f"w_b{i}"] if scale != 1.0 else r[f"w_a{i}"]) * scale
+            std = math.sqrt(max(float(r[f"w_q{i}"]), 0.0) / n) * scale
+            stats[f] = stat_entry(mean, std, n)
         out.append({**{g: r[g] for g in GROUP_FIELDS}, "count": int(r["w_c"]), "stats": stats})
     return out

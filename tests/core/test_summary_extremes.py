@@ -1,0 +1,66 @@
+"""summarize_columns near the ends of the double range (docs/spec.md#summaries).
+
+Oracle: mean and population std in exact rational arithmetic (fractions)."""
+
+from __future__ import annotations
+
+import json
+import math
+from fractions import Fraction
+
+import pytest
+
+from svrobs_core.records import OVERFLOW_NOTE, summarize_columns
+
+
+def _exact(values):
+    xs = [Fraction(v) for v in values]
+    m = sum(xs) / len(xs)
+    var = sum((x - m) ** 2 for x in xs) / len(xs)
+    k = 1024 if var > 1 else -1024
+    return float(m), math.sqrt(float(var / Fraction(2) ** k)) * 2.0 ** (k // 2)
+
+
+def _summary(values):
+    cols = {
+        "system": ["s"] * len(values),
+        "sigma_w": [1.0] * len(values),
+        "N": [5] * len(values),
+        "estimator": ["ols"] * len(values),
+        "gamma": [None] * len(values),
+        "J_exact": list(values),
+    }
+    (group,) = summarize_columns(cols)
+    json.dumps(group, allow_nan=False)  # always valid JSON
+    return group["stats"]["J_exact"]
+
+
+@pytest.mark.parametrize(
+    "values",
+    [
+        [3e200, 3.2e200, 2.9e200, 3.1e200],  # squared deviations ~1e396
+        [1.7e308, -1.7e308],  # the sum of squares ~6e616
+        [1.7e308, 1.7e308, 1.6e308],  # the sum itself overflows
+        [1e300, -1e-300, 5.0, 1e299],
+    ],
+)
+def test_huge_values_give_the_exact_mean_and_std(values):
+    st = _summary(values)
+    mean, std = _exact(values)
+    assert st["count"] == len(values) and "note" not in st
+    assert st["mean"] == pytest.approx(mean, rel=1e-12)
+    assert st["std"] == pytest.approx(std, rel=1e-12)
+
+
+def test_ordinary_values_keep_the_plain_sums_bit_for_bit():
+    values = [0.1, 0.7, 1e-3, 2.5]
+    st = _summary(values)
+    m = sum(values) / 4
+    assert st["mean"] == m
+    assert st["std"] == math.sqrt(sum((v - m) * (v - m) for v in values) / 4)
+
+
+def test_a_statistic_beyond_the_double_range_is_null_with_a_note():
+    st = _summary([math.inf, 1.0])  # only a non-finite input gets here
+    assert st["mean"] is None and st["std"] is None and st["count"] == 2
+    assert st["note"] == f"mean and std {OVERFLOW_NOTE}"
