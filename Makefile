@@ -24,6 +24,8 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/lint-imports
+	$(BIN)/mypy --strict svrobs_client
+	$(BIN)/mypy
 
 run: $(STAMP)
 	$(BIN)/svrobs serve
@@ -51,4 +53,4 @@ bench: $(STAMP)
 	$(BIN)/python bench/cost.py
 
 clean:
-	rm -rf var .pytest_cache .hypothesis
+	rm -rf var .pytest_cache .hypothesis .mypy_cache

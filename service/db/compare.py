@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 from sqlalchemy import Float, Integer, case, cast, func, literal, select, union_all
 from sqlalchemy.orm import Session
@@ -107,7 +108,8 @@ def compare_page(
     for j in jobs:
         source = _from_summaries if from_summaries and j.status == "succeeded" else _from_results
         parts.append(source(j.id, metric, by, shift[j.id]))
-    src = (parts[0] if len(parts) == 1 else union_all(*parts)).subquery("src")
+    both: Any = parts[0] if len(parts) == 1 else union_all(*parts)  # mypy cannot join them
+    src = both.subquery("src")
     keys = [src.c.job_id] + [src.c[b] for b in by]
     grouped = select(
         *keys,
