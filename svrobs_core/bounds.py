@@ -85,8 +85,8 @@ def _range_reason(theta, H, r, log_theta, name: str, *, M, T0) -> np.ndarray:
     power = np.broadcast_to(
         (2 * np.asarray(T0, dtype=float) - 1) * _log(M) / np.log(10.0), ok.shape
     )
-    for idx in np.argwhere(~ok):
-        idx = tuple(idx)
+    for where in np.argwhere(~ok):
+        idx = tuple(where)
         if not np.isfinite(theta[idx]) or theta[idx] < tiny:
             why = f"theta_{name} = 1e{ten[idx]:.0f} with M^(2T0-1) = 1e{power[idx]:.0f}"
         else:

@@ -49,8 +49,8 @@ def solve(M, B) -> np.ndarray:
             X = np.linalg.solve(Ms, Bs)
     except np.linalg.LinAlgError:  # an exact zero pivot the SVD did not flag
         X = np.full(np.broadcast_shapes(Ms.shape, Bs.shape), np.nan, dtype=np.result_type(Ms, Bs))
-        for idx in np.argwhere(ok):
-            idx = tuple(idx)
+        for where in np.argwhere(ok):
+            idx = tuple(where)
             try:
                 X[idx] = np.linalg.solve(Ms[idx], Bs[idx])
             except np.linalg.LinAlgError:

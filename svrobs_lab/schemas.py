@@ -84,7 +84,7 @@ def _spec_fields() -> dict[str, Any]:
 
 
 TagStr = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=100)]
-Tag = Field(default_factory=list, max_length=50)
+Tag: Any = Field(default_factory=list, max_length=50)
 
 JobSubmit = create_model(
     "JobSubmit",

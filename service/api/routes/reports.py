@@ -63,7 +63,7 @@ def run_paper_preset(
     experiment name."""
     body = body or PresetRun()
     specs = paper_specs(body.scale)
-    names = body.experiments or sorted(specs)
+    names: list[str] = list(body.experiments or []) or sorted(specs)
     requests = [
         JobRequest(
             spec=specs[name],
