@@ -37,6 +37,8 @@ lint: $(TEST_STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/lint-imports
+	$(BIN)/mypy --strict svrobs_client
+	$(BIN)/mypy
 
 run: $(RUNTIME_STAMP)
 	$(BIN)/svrobs serve $(if $(HOST),--host $(HOST)) $(if $(PORT),--port $(PORT))
@@ -65,4 +67,4 @@ bench: $(TEST_STAMP)
 	$(BIN)/python bench/cost.py
 
 clean:
-	rm -rf var .pytest_cache .hypothesis
+	rm -rf var .pytest_cache .hypothesis .mypy_cache

@@ -1,11 +1,11 @@
-"""Benchmark: the cost of the sound uncertainty sets (SPEC section 3.1, issue 12).
+"""Benchmark: the cost of the sound uncertainty sets (docs/uncertainty.md).
 
 Run: PYTHONPATH=. .venv/bin/python bench/bounds.py [--quick]
 
 1. The Section 6 estimation grid (the paper preset's E2: both systems, sigma_w in
    {0.1, 1, 10}, N = 10..450, 45 repetitions, OLS and SVR at four gammas, stages
    estimate + bounds) with bounds_method "paper" and "self-normalized": CPU
-   seconds each (best of a few runs, one process) and the ratio. The target of issue 12
+   seconds each (best of a few runs, one process) and the ratio. The target
    is a ratio under 1.10: the self-normalized box uses one eigendecomposition of
    Z Z^T per dataset, shared by every gamma.
 2. bounds_method "bootstrap" with 100 resamples: seconds per cell (one cell =

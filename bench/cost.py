@@ -1,4 +1,4 @@
-"""Benchmark of the observer-cost evaluators (SPEC section 6) and Theorem 3.
+"""Benchmark of the observer-cost evaluators (docs/science.md#6-observer-cost-j) and Theorem 3.
 
     .venv/bin/python bench/cost.py [--cells 4000] [--mc-cells 5] [--runs 1000]
 

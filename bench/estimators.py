@@ -2,13 +2,13 @@
 
 Run: .venv/bin/python bench/estimators.py   (about a minute on 2 cores)
 
-Data as in the paper's E1 (SPEC sections 1 and 9): the stable system S, n = 3, m = 1,
-sigma_u = sigma_w = 1, T0 = 11, N = 10..450 rollouts, N0 = (T0-1) N samples, 45 repetitions,
+Data as in the paper's E1 (docs/science.md#91-the-preset-paper-section-6): the stable
+system S, n = 3, m = 1, sigma_u = sigma_w = 1, T0 = 11, N = 10..450 rollouts, N0 = (T0-1) N samples, 45 repetitions,
 gamma in {0.005, 0.01, 0.05, 0.1}. The data are drawn here with numpy directly (one set of
 450 rollouts per repetition; size N uses the first N of them).
 
 Baseline: LinearSVR(loss="squared_epsilon_insensitive", epsilon=0, C=1/(2 gamma),
-fit_intercept=False), one fit per row of [A B] (SPEC section 2), on one dataset per
+fit_intercept=False), one fit per row of [A B] (docs/science.md#2-estimators), on one dataset per
 (size, gamma), since a full-grid liblinear run would take hours. Two liblinear solvers:
   * dual coordinate descent (dual=True, tol=1e-10): the solver that can reach the 1e-8
     relative accuracy asked for, but its iteration count grows with the condition number
@@ -40,7 +40,7 @@ T0, SIGMA_U, SIGMA_W = 11, 1.0, 1.0
 N_GRID = np.arange(10, 451, 10)
 REPS = 45
 GAMMAS = np.array([0.005, 0.01, 0.05, 0.1])
-TARGET = 1e-8  # relative accuracy to match (SPEC section 2)
+TARGET = 1e-8  # relative accuracy to match (docs/science.md#2-estimators)
 CD_BUDGET_S = 4.0  # time cap of one liblinear dual-CD fit (3 rows)
 BASELINE_N = (10, 100, 450)  # N0 = 100, 1000, 4500
 BASELINE_GAMMAS = (0.1, 0.005)

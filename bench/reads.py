@@ -1,4 +1,4 @@
-"""Bounded reads (issue 13, item 3): report and compare of a 625,050-cell job.
+"""Bounded reads: report and compare of a 625,050-cell job.
 
     .venv/bin/python bench/reads.py                       # SQLite and PostgreSQL
     .venv/bin/python bench/reads.py --stacks sqlite --cells 100000
@@ -17,8 +17,8 @@ process, loopback), then measures
   database, one page of 1,000 groups): target each < 2 s;
 * ``GET /jobs`` (spec summaries) body size;
 
-and the API process's resident memory from ``/proc/<pid>/status`` (VmRSS now
-and VmHWM, its peak): target < 500 MB. PostgreSQL: a database
+and the API process's resident memory from ``/proc/<pid>/status`` (VmRSS, the
+current value, and VmHWM, its peak): target < 500 MB. PostgreSQL: a database
 ``svrobs_bench_reads`` on ``--pg`` (dropped at the end).
 """
 

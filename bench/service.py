@@ -17,7 +17,7 @@ bounds = 60,750 cells; the work units are counted in the first line printed) is
    schema, dropped afterwards, and the Redis DB of the URL flushed).
 
 It prints each wall time and the ratio service / in-process, against the core in
-one process and against the core with ``n_jobs=2`` (the same two cores; issue 13's
+one process and against the core with ``n_jobs=2`` (the same two cores; the
 target is 1.3x of that). The worker runs ``svrobs serve``'s default pool (one
 process per CPU plus one: 3 here) unless ``--concurrency`` says otherwise.
 Then, per stack, it stores a synthetic job of 100,000 cells (bulk-inserted rows,

@@ -1,4 +1,4 @@
-"""Web UI pages and chart data for a job of 625,050 cells (issue 11: < 300 ms each).
+"""Web UI pages and chart data for a job of 625,050 cells (target: < 300 ms each).
 
     .venv/bin/python bench/web.py                       # SQLite in a temporary folder
     .venv/bin/python bench/web.py --database-url postgresql+psycopg://postgres@127.0.0.1/bench

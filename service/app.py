@@ -58,8 +58,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title="svrobs",
         version="0.1.0",
         description=(
-            "SVR-based observer design experiments as a service: submit a SPEC section 10 "
-            "spec, watch its progress, query, compare and schedule results. "
+            "SVR-based observer design experiments as a service: submit a spec "
+            "(docs/spec.md#spec-fields), watch its progress, query, compare and schedule results. "
             "Authenticate with `Authorization: Bearer <api key>`."
         ),
         openapi_url="/openapi.json",

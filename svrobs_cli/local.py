@@ -1,7 +1,7 @@
 """The in-process commands: ``svrobs run-local`` and ``svrobs reproduce``.
 
 ``svrobs run-local SPEC.json --out DIR`` runs the core in process and writes
-``DIR/records.jsonl`` (one section 10 record per line, null never NaN) and
+``DIR/records.jsonl`` (one record per line, docs/spec.md#record-fields; null never NaN) and
 ``DIR/summary.json`` (mean/std/count per group), with a progress bar on stderr.
 A dataset spec runs on a file (``--dataset FILE``, or the spec's ``"dataset"`` given
 as a path, relative to the spec's folder; its records' system is then
@@ -131,7 +131,7 @@ def run_local(
 
 
 def run_local_command(
-    spec_path: Path = typer.Argument(..., help="section 10 spec (JSON)"),
+    spec_path: Path = typer.Argument(..., help="a spec (JSON, docs/spec.md#spec-fields)"),
     out: Path = typer.Option(Path("out"), "--out", help="output folder"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     max_cpu_seconds: float | None = typer.Option(

@@ -3,7 +3,7 @@
 Runs the experiments of ``svrobs_core.paper.paper_specs(scale)`` (E1-E4 and
 the audits A1, A2; ``only`` picks some) and writes::
 
-    DIR/<experiment>/records.jsonl   one section 10 record per line (null, never NaN)
+    DIR/<experiment>/records.jsonl   one record per line (null, never NaN)
     DIR/<experiment>/spec.json       the spec that ran
     DIR/table2.md, DIR/table2.csv    Table 2, ours beside the published values
     DIR/<figure>.png, .svg, .pdf     Figs. 2-5 and the figures beyond the paper

@@ -1,11 +1,11 @@
 """The REST commands of ``svrobs`` on jobs and results, through :mod:`svrobs_client`.
 
-    svrobs submit SPEC.json [--wait] [--name N] [--tag T]... [--idempotency-key K]
+    svrobs submit SPEC.json [--wait] [--name N] [--tag T]... [--idempotency-key K] [--print-id]
     svrobs status [JOB] [--status S] [--tag T] [--owner me|EMAIL] [--json]
     svrobs results JOB --format csv|jsonl|json [--out FILE] [filters]
                    [--sort -rmse_A,N] [--where rmse_A_lt=0.01]...
     svrobs summary JOB [--field rmse_A]... [--json]
-    svrobs compare --jobs 1,2 --metric rmse_A --by N,estimator [--json]
+    svrobs compare --jobs J1,J2 --metric rmse_A --by N,estimator [--json]
     svrobs report JOB [--out FOLDER]
     svrobs cancel JOB
     svrobs delete JOB [--yes]
@@ -96,11 +96,11 @@ def progress_line(job: Job) -> str:
     return f"job {job.id} {job.status} {job.progress.done}/{job.progress.total} units"
 
 
-def finish(c: Client, job: Job) -> None:
-    """Wait for ``job`` with a progress bar, print its last state; an error unless it
-    succeeded."""
+def finish(c: Client, job: Job, *, err: bool = False) -> None:
+    """Wait for ``job`` with a progress bar, print its last state (on stderr with
+    ``err``); an error unless it succeeded."""
     job = c.wait(job)
-    typer.echo(progress_line(job))
+    typer.echo(progress_line(job), err=err)
     if job.status != "succeeded":
         raise CliError(f"job {job.id} {job.status}: {job.error or ''}".strip())
 
@@ -108,14 +108,19 @@ def finish(c: Client, job: Job) -> None:
 def submit(
     spec_file: Path = typer.Argument(
         ...,
-        help="a SPEC section 10 JSON (or YAML) file; - for stdin. A system may be "
-        '{"file": "plant.mat"} (A, B, optionally C in an NPZ, .mat or JSON file)',
+        help="a spec (docs/spec.md#spec-fields) as a JSON (or YAML) file; - for stdin. A system "
+        'may be {"file": "plant.mat"} (A, B, optionally C in an NPZ, .mat or JSON file)',
     ),
     wait: bool = typer.Option(False, "--wait", help="show progress until the job finishes"),
     name: str | None = typer.Option(None, help="job name"),
     tag: list[str] = typer.Option([], "--tag", help="a tag (repeatable)"),
     idempotency_key: str | None = typer.Option(
         None, help="retrying with the same key returns the same job"
+    ),
+    print_id: bool = typer.Option(
+        False,
+        "--print-id",
+        help="print only the job id on stdout (the rest on stderr): job=$(svrobs submit ...)",
     ),
 ) -> None:
     """Submit an experiment spec as a job."""
@@ -127,9 +132,12 @@ def submit(
             job = c.submit(spec, name=name, tags=tag, idempotency_key=idempotency_key, wait=False)
         except ValidationError as exc:
             raise CliError(f"invalid spec: {plain_message(exc)}") from None
-        typer.echo(f"job {job.id} {job.status} ({job.n_cells} cells, {job.progress.total} units)")
+        line = f"job {job.id} {job.status} ({job.n_cells} cells, {job.progress.total} units)"
+        typer.echo(line, err=print_id)
         if wait:
-            finish(c, job)
+            finish(c, job, err=print_id)
+        if print_id:
+            typer.echo(job.id)
 
 
 def status(

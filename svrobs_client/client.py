@@ -14,7 +14,7 @@ import json
 import os
 import re
 import time
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any
@@ -39,7 +39,7 @@ SEED_POLICIES = ("fixed", "due-time")
 _FIGURE = re.compile(r"<img[^>]*?alt='([^']*)'[^>]*?src='data:image/png;base64,([^']+)'")
 
 
-def _id(obj) -> int:
+def _id(obj: object) -> int:
     """The id of a Job / Schedule / Share or an id given as int (or a digit string)."""
     value = getattr(obj, "id", obj)
     if isinstance(value, bool) or not isinstance(value, (int, str)):
@@ -47,7 +47,7 @@ def _id(obj) -> int:
     return int(value)
 
 
-def _load_json(spec) -> dict:
+def _load_json(spec: object) -> dict[str, Any]:
     """A spec given as a mapping, a Job (its spec), or a path to a JSON file."""
     if isinstance(spec, Job):
         return dict(spec.spec)
@@ -61,7 +61,13 @@ def _load_json(spec) -> dict:
     raise TypeError(f"a spec is a dict or a path to a JSON file, got {type(spec).__name__}")
 
 
-def _check_seed_policy(policy) -> None:
+def _object(r: httpx.Response) -> dict[str, Any]:
+    """The JSON object of a response (the API's answers are objects where it says so)."""
+    data: dict[str, Any] = r.json()
+    return data
+
+
+def _check_seed_policy(policy: object) -> None:
     if policy not in SEED_POLICIES:
         raise ValueError(f"seed_policy must be 'fixed' or 'due-time', got {policy!r}")
 
@@ -103,11 +109,11 @@ class Client(DatasetCalls):
     def __enter__(self) -> Client:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ------------------------------------------------------------------ HTTP
-    def request(self, method: str, path: str, **kw) -> httpx.Response:
+    def request(self, method: str, path: str, **kw: Any) -> httpx.Response:
         """One request under ``/api/v1``; a typed :class:`SvrobsError` for any HTTP error
         status, :class:`ConnectionFailed` when the server cannot be reached."""
         try:
@@ -119,7 +125,7 @@ class Client(DatasetCalls):
         return r
 
     @contextmanager
-    def _stream(self, path: str, params) -> Iterator[httpx.Response]:
+    def _stream(self, path: str, params: dict[str, Any]) -> Iterator[httpx.Response]:
         try:
             with self._http.stream("GET", path, params=params) as r:
                 if r.status_code >= 400:
@@ -132,7 +138,7 @@ class Client(DatasetCalls):
     # ------------------------------------------------------------------ jobs
     def submit(
         self,
-        spec: Mapping[str, Any] | str | os.PathLike,
+        spec: Mapping[str, Any] | str | os.PathLike[str],
         *,
         name: str | None = None,
         tags: Sequence[str] = (),
@@ -141,7 +147,7 @@ class Client(DatasetCalls):
         progress: bool = True,
         timeout: float | None = None,
     ) -> Job:
-        """Submit a SPEC section 10 spec (a dict or a JSON file) as a job.
+        """Submit a spec (docs/spec.md#spec-fields; a dict or a JSON file) as a job.
 
         ``tags`` are added to any ``tags`` in the spec; a retry with the same
         ``idempotency_key`` returns the same job. With ``wait`` (the default) this
@@ -236,9 +242,9 @@ class Client(DatasetCalls):
 
     # ------------------------------------------------------------------ results
     def iter_results(
-        self, job: Job | int, *, sort: str | Sequence[str] | None = None, **filters
+        self, job: Job | int, *, sort: str | Sequence[str] | None = None, **filters: Any
     ) -> Iterator[dict[str, Any]]:
-        """The job's records one by one, streamed as JSON lines (SPEC section 10 fields;
+        """The job's records one by one, streamed as JSON lines (docs/spec.md#record-fields;
         matrices as nested lists, null never NaN), in grid order or by ``sort``
         (``"-rmse_A,N"``: numeric fields, ``-`` descending, nulls last).
 
@@ -254,12 +260,14 @@ class Client(DatasetCalls):
                     yield json.loads(line)
 
     def results_records(
-        self, job: Job | int, *, sort: str | Sequence[str] | None = None, **filters
+        self, job: Job | int, *, sort: str | Sequence[str] | None = None, **filters: Any
     ) -> list[dict[str, Any]]:
         """:meth:`iter_results` as a list of plain dicts (no pandas needed)."""
         return list(self.iter_results(job, sort=sort, **filters))
 
-    def results(self, job: Job | int, *, sort: str | Sequence[str] | None = None, **filters):
+    def results(
+        self, job: Job | int, *, sort: str | Sequence[str] | None = None, **filters: Any
+    ) -> Any:
         """The job's records as a pandas DataFrame, one row per cell, columns in record
         order; ``A_hat``, ``B_hat``, ``L`` and ``K`` hold 2-D numpy arrays (or None).
         ``sort`` and filters as in :meth:`iter_results`."""
@@ -268,11 +276,11 @@ class Client(DatasetCalls):
     def download_results(
         self,
         job: Job | int,
-        out: str | os.PathLike | IO[str],
+        out: str | os.PathLike[str] | IO[str],
         *,
         format: str = "csv",
         sort: str | Sequence[str] | None = None,
-        **filters,
+        **filters: Any,
     ) -> None:
         """Write the job's records as ``csv``, ``jsonl`` (both streamed) or ``json`` (one
         array) to a path or a text stream; ``sort`` and filters as in
@@ -297,32 +305,32 @@ class Client(DatasetCalls):
 
     def summary_json(self, job: Job | int) -> dict[str, Any]:
         """``GET /jobs/{id}/summary`` as the API sends it."""
-        return self.request("GET", f"/jobs/{_id(job)}/summary").json()
+        return _object(self.request("GET", f"/jobs/{_id(job)}/summary"))
 
-    def summary(self, job: Job | int, *, long: bool = False):
+    def summary(self, job: Job | int, *, long: bool = False) -> Any:
         """Mean, std and count of every numeric field per (system, sigma_w, N, estimator,
         gamma) as a DataFrame (see :func:`svrobs_client.frames.summary_frame`)."""
         return frames.summary_frame(self.summary_json(job), long=long)
 
     def compare_json(
         self,
-        jobs: Iterable[Job | int],
+        jobs: Iterable[Job | int | str],
         metric: str,
         by: Sequence[str] | str = ("N", "estimator", "gamma"),
     ) -> dict[str, Any]:
         """``GET /compare`` as the API sends it."""
         by = by if isinstance(by, str) else ",".join(by)
         ids = ",".join(str(_id(j)) for j in jobs)
-        return self.request(
-            "GET", "/compare", params={"jobs": ids, "metric": metric, "by": by}
-        ).json()
+        return _object(
+            self.request("GET", "/compare", params={"jobs": ids, "metric": metric, "by": by})
+        )
 
     def compare(
         self,
-        jobs: Iterable[Job | int],
+        jobs: Iterable[Job | int | str],
         metric: str,
         by: Sequence[str] | str = ("N", "estimator", "gamma"),
-    ):
+    ) -> Any:
         """One numeric field across jobs: mean, std (ddof 0) and count per job and per
         combination of the ``by`` grid fields, as a DataFrame."""
         return frames.compare_frame(self.compare_json(jobs, metric, by))
@@ -331,7 +339,9 @@ class Client(DatasetCalls):
         """The job's HTML report (tables, embedded figures, spec, provenance, findings)."""
         return self.request("GET", f"/jobs/{_id(job)}/report", timeout=300).text
 
-    def report(self, job: Job | int, folder: str | os.PathLike, *, figures: bool = True) -> Report:
+    def report(
+        self, job: Job | int, folder: str | os.PathLike[str], *, figures: bool = True
+    ) -> Report:
         """Write ``report.html`` into ``folder`` (created if needed) and, with
         ``figures``, each embedded figure as ``figures/NN-title.png``."""
         folder = Path(folder)
@@ -368,7 +378,8 @@ class Client(DatasetCalls):
     # ------------------------------------------------------------------ presets
     def presets(self) -> list[dict[str, Any]]:
         """The system presets (name, matrices, noise levels) a spec may name."""
-        return self.request("GET", "/presets").json()
+        presets: list[dict[str, Any]] = self.request("GET", "/presets").json()
+        return presets
 
     def run_paper_preset(
         self,
@@ -404,7 +415,7 @@ class Client(DatasetCalls):
         self,
         name: str,
         cron: str,
-        spec_template: Mapping[str, Any] | Job | str | os.PathLike,
+        spec_template: Mapping[str, Any] | Job | str | os.PathLike[str],
         *,
         timezone: str = "UTC",
         tags: Sequence[str] = (),

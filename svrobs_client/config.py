@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 from .errors import ConfigError
 
@@ -21,7 +22,7 @@ def config_path() -> Path:
 def resolve(url: str | None = None, key: str | None = None) -> tuple[str, str]:
     """``(base URL without a trailing slash, API key)``; :class:`ConfigError` when no
     key is given anywhere or the config file cannot be read."""
-    cfg: dict = {}
+    cfg: dict[str, Any] = {}
     path = config_path()
     if (url is None or key is None) and path.is_file():
         try:

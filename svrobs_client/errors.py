@@ -8,6 +8,7 @@ Every error the client raises is a :class:`SvrobsError`; an HTTP error carries t
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 
@@ -20,7 +21,7 @@ class SvrobsError(Exception):
         *,
         status: int | None = None,
         field: str | None = None,
-        errors: list[dict] | None = None,
+        errors: list[dict[str, Any]] | None = None,
     ):
         super().__init__(message)
         self.message = message
@@ -85,7 +86,7 @@ class RateLimited(SvrobsError):
     """HTTP 429: the key's rate limit or the team's queued-jobs cap.
     ``retry_after`` is the server's Retry-After in seconds, if it sent one."""
 
-    def __init__(self, message: str, *, retry_after: float | None = None, **kw):
+    def __init__(self, message: str, *, retry_after: float | None = None, **kw: Any):
         super().__init__(message, **kw)
         self.retry_after = retry_after
 
@@ -120,7 +121,7 @@ def _message(detail: Any) -> str:
     return "" if detail is None else str(detail)
 
 
-def error_from_response(status: int, body: bytes, headers) -> SvrobsError:
+def error_from_response(status: int, body: bytes, headers: Mapping[str, str]) -> SvrobsError:
     """The typed error of an HTTP error response (JSON ``{"detail", "field"}`` when the
     API sent it; the start of the body otherwise)."""
     import json
@@ -141,7 +142,7 @@ def error_from_response(status: int, body: bytes, headers) -> SvrobsError:
     kw: dict[str, Any] = {"status": status, "field": field, "errors": errors}
     if cls is RateLimited:
         try:
-            kw["retry_after"] = float(headers.get("retry-after"))
+            kw["retry_after"] = float(headers.get("retry-after", ""))
         except (TypeError, ValueError):
             kw["retry_after"] = None
     return cls(message, **kw)

@@ -1,6 +1,6 @@
 """JSON from the API -> pandas DataFrames (pandas is the optional ``dataframe`` extra).
 
-Records keep the SPEC section 10 field order; the matrix fields become 2-D float
+Records keep the field order of docs/spec.md#record-fields; the matrix fields become 2-D float
 numpy arrays (a ``null`` entry becomes NaN, a ``null`` matrix stays ``None``).
 """
 
@@ -8,13 +8,13 @@ from __future__ import annotations
 
 from typing import Any
 
-# SPEC section 10: the record fields holding matrices (svrobs_core.records.MATRIX_FIELDS;
+# docs/spec.md#record-fields: the record fields holding matrices (svrobs_core.records.MATRIX_FIELDS;
 # a test keeps the two equal, without making the client import the core).
 MATRIX_FIELDS = ("A_hat", "B_hat", "radii_A", "radii_B", "L", "K")
 GROUP_FIELDS = ("system", "sigma_w", "N", "estimator", "gamma")
 
 
-def _pandas():
+def _pandas() -> Any:
     try:
         import pandas as pd
     except ImportError:
@@ -25,13 +25,13 @@ def _pandas():
     return pd
 
 
-def _matrix(value):
+def _matrix(value: Any) -> Any:
     import numpy as np
 
     return None if value is None else np.asarray(value, dtype=float)
 
 
-def records_frame(records: list[dict[str, Any]], *, columns=None):
+def records_frame(records: list[dict[str, Any]], *, columns: list[str] | None = None) -> Any:
     """One row per record, columns in record order, matrices as numpy arrays."""
     pd = _pandas()
     if columns is None:
@@ -43,7 +43,7 @@ def records_frame(records: list[dict[str, Any]], *, columns=None):
     return df
 
 
-def summary_frame(body: dict[str, Any], *, long: bool = False):
+def summary_frame(body: dict[str, Any], *, long: bool = False) -> Any:
     """``GET /jobs/{id}/summary`` as a DataFrame.
 
     Wide (default): one row per group (system, sigma_w, N, estimator, gamma) with
@@ -70,11 +70,11 @@ def summary_frame(body: dict[str, Any], *, long: bool = False):
     return df
 
 
-def _stat(s: dict) -> dict:
+def _stat(s: dict[str, Any]) -> dict[str, Any]:
     return {"mean": s.get("mean"), "std": s.get("std"), "count": s.get("count")}
 
 
-def compare_frame(body: dict[str, Any]):
+def compare_frame(body: dict[str, Any]) -> Any:
     """``GET /compare`` as a DataFrame: ``job_id``, the ``by`` fields, ``mean``, ``std``,
     ``count``; ``attrs`` holds ``metric``, ``by`` and ``jobs``."""
     pd = _pandas()

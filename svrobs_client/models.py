@@ -7,7 +7,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field, fields
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Self, TypeVar
+
+_T = TypeVar("_T")
 
 TERMINAL = ("succeeded", "failed", "cancelled")
 
@@ -18,11 +20,12 @@ def _time(value: str | None) -> datetime | None:
     return datetime.fromisoformat(value.replace("Z", "+00:00"))
 
 
-def _build(cls, data: dict[str, Any], **given):
+def _build(cls: type[_T], data: dict[str, Any], **given: Any) -> _T:
     """``cls`` from the API's JSON: each field from the key of its name (``*_at`` parsed
     as a datetime, a missing list or dict empty), unless ``given``; ``raw`` = ``data``."""
+    dataclass_: Any = cls  # every caller is a dataclass
     kw: dict[str, Any] = {}
-    for f in fields(cls):
+    for f in fields(dataclass_):
         if f.name == "raw":
             continue
         if f.name in given:
@@ -34,12 +37,13 @@ def _build(cls, data: dict[str, Any], **given):
             kw[f.name] = list(value) if f.type.startswith("list") else dict(value)
         else:
             kw[f.name] = data.get(f.name)
-    return cls(**kw, raw=data)
+    built: _T = dataclass_(**kw, raw=data)
+    return built
 
 
 class _FromJSON:
     @classmethod
-    def from_json(cls, data: dict[str, Any]):
+    def from_json(cls, data: dict[str, Any]) -> Self:
         """Built from the API's JSON body."""
         return _build(cls, data)
 

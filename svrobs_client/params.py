@@ -18,7 +18,7 @@ from typing import Any
 __all__ = ["NUMERIC_FIELDS", "RANGE_FIELDS", "RESULT_FILTERS", "results_params", "sort_param"]
 
 RESULT_FILTERS = ("system", "sigma_w", "N", "estimator", "gamma", "rep")
-# SPEC section 10: the scalar numeric record fields (svrobs_core.records.NUMERIC_FIELDS;
+# docs/spec.md#record-fields: the scalar numeric record fields (svrobs_core.records.NUMERIC_FIELDS;
 # a test keeps the two equal without making the client import the core). Booleans sort
 # but take no range.
 BOOL_FIELDS = ("thm1_holds_A", "thm1_holds_B", "stable_certified", "certified")
@@ -35,7 +35,7 @@ MAX_SORT_KEYS = 5
 _RANGE = re.compile(r"^(?P<field>\w+?)_(?P<op>lt|lte|gt|gte)$")
 
 
-def _values(value) -> list:
+def _values(value: Any) -> list[Any]:
     return list(value) if isinstance(value, Iterable) and not isinstance(value, str) else [value]
 
 
@@ -55,7 +55,7 @@ def sort_param(sort: str | Iterable[str]) -> str:
     return ",".join(keys)
 
 
-def _range_value(name: str, value) -> str:
+def _range_value(name: str, value: Any) -> str:
     m = _RANGE.match(name)
     field = m.group("field") if m else None
     if field in BOOL_FIELDS:
@@ -74,7 +74,7 @@ def _range_value(name: str, value) -> str:
         raise TypeError(f"{name} must be a number, got {type(value).__name__}")
     if not math.isfinite(value):
         raise ValueError(f"{name} must be finite, got {value!r}")
-    return repr(float(value)) if isinstance(value, float) else str(int(value))
+    return repr(float(value)) if isinstance(value, float) else str(math.trunc(value))
 
 
 def results_params(

@@ -5,7 +5,7 @@ are optional; without them the client waits silently."""
 from __future__ import annotations
 
 import sys
-from typing import Protocol
+from typing import Any, Protocol
 
 
 class Bar(Protocol):
@@ -24,7 +24,7 @@ class NoBar:
 class RichBar:
     """A rich progress bar (renders in a terminal and, through IPython, in Jupyter)."""
 
-    def __init__(self, job_id: int, total: int, status: str, *, console=None):
+    def __init__(self, job_id: int, total: int, status: str, *, console: Any = None):
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
         self._bar = Progress(
@@ -47,7 +47,7 @@ class RichBar:
 class TqdmBar:
     """A ``tqdm.auto`` bar: an ipywidgets bar in a notebook, text in a terminal."""
 
-    def __init__(self, job_id: int, total: int, status: str, *, file=None):
+    def __init__(self, job_id: int, total: int, status: str, *, file: Any = None):
         from tqdm.auto import tqdm
 
         self._job = job_id

@@ -1,4 +1,4 @@
-"""svrobs_core: the science of SPEC.md as pure, vectorised functions (no I/O).
+"""svrobs_core: the science of docs/science.md as pure, vectorised functions (no I/O).
 
 from svrobs_core import parse_spec, run_spec
 spec = parse_spec({"systems": ["paper-stable"], "sigma_w": [1.0], "N": [50]})

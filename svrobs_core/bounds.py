@@ -1,4 +1,5 @@
-"""Finite-sample error bounds of SPEC section 3 (Theorem 1, Lemma 2, Corollary 1).
+"""Finite-sample error bounds: Theorem 1, Lemma 2, Corollary 1
+(docs/science.md#3-error-bounds-theorem-1-lemma-2-corollary-1).
 
 Everything is elementwise / batched: parameters broadcast like numpy arrays,
 estimates carry leading batch dims (...). Nothing is clipped: a violated bound
@@ -41,7 +42,7 @@ def _log(x):
 
 
 def log_thetas(*, n, m, N, T0, sigma_u, sigma_w, M):
-    """log theta_A, log theta_B of Theorem 1 (SPEC section 3), without overflow.
+    """log theta_A, log theta_B of Theorem 1 (docs/science.md#31-the-constants), without overflow.
 
     theta_A = 4n (m M su^2 + sw^2) / (N (n M^(2T0-1) su^2 + M^(2T0-2) sw^2)),
     theta_B = 4m (n M^(2T0-1) su^2 + (M^(2T0-2) + 1) sw^2) / (N su^2); sums
@@ -58,7 +59,7 @@ def log_thetas(*, n, m, N, T0, sigma_u, sigma_w, M):
 
 
 def thetas(*, n, m, N, T0, sigma_u, sigma_w, M):
-    """theta_A, theta_B of Theorem 1 (SPEC section 3).
+    """theta_A, theta_B of Theorem 1 (docs/science.md#31-the-constants).
 
     The formula as written where its powers stay in range (so the numbers do
     not change), else the exp of :func:`log_thetas` (inf / 0 where the value
@@ -84,8 +85,8 @@ def _range_reason(theta, H, r, log_theta, name: str, *, M, T0) -> np.ndarray:
     power = np.broadcast_to(
         (2 * np.asarray(T0, dtype=float) - 1) * _log(M) / np.log(10.0), ok.shape
     )
-    for idx in np.argwhere(~ok):
-        idx = tuple(idx)
+    for where in np.argwhere(~ok):
+        idx = tuple(where)
         if not np.isfinite(theta[idx]) or theta[idx] < tiny:
             why = f"theta_{name} = 1e{ten[idx]:.0f} with M^(2T0-1) = 1e{power[idx]:.0f}"
         else:
@@ -95,7 +96,7 @@ def _range_reason(theta, H, r, log_theta, name: str, *, M, T0) -> np.ndarray:
 
 
 def H(theta, dim, *, gamma, N0, M, delta):
-    """H(theta, d) of Theorem 1 (SPEC section 3)."""
+    """H(theta, d) of Theorem 1 (docs/science.md#32-theorem-1)."""
     q = (theta + dim * gamma * M**2) / ((1 + gamma) * N0)
     return np.sqrt(q) + np.sqrt(2 * q * np.log(1 / delta))
 
@@ -103,7 +104,8 @@ def H(theta, dim, *, gamma, N0, M, delta):
 def radii(*, n, m, N, N0, T0, sigma_u, sigma_w, gamma, M, delta) -> Radii:
     """Theorem 1 / Lemma 2 radii; ``gamma`` may be an array (0 for ols).
 
-    SPEC section 3: H_A = H(theta_A, n), H_B = H(theta_B, m), r = sqrt((1+gamma) H).
+    H_A = H(theta_A, n), H_B = H(theta_B, m), r = sqrt((1+gamma) H)
+    (docs/science.md#33-lemma-2-entrywise-intervals).
     N is the rollout count, N0 the sample count (N0 = (T0-1) N for all-data,
     N for final-data). All arguments broadcast; outputs have the broadcast shape.
     """
@@ -202,7 +204,7 @@ def evaluate_bounds(A_tilde, B_tilde, gamma, r: Radii, *, A_true=None, B_true=No
     """Corollary 1 eps, the Perron-Frobenius certificate, and (with truth) coverage.
 
     A_tilde (..., n, n), B_tilde (..., n, m); gamma and the radii broadcast
-    against the batch shape (...). SPEC section 3:
+    against the batch shape (...); docs/science.md#34-corollary-1-spectral-norm-bounds:
     eps_A = sqrt(sum_ij (|gamma A~_ij| + r_A)^2) (B: j <= m),
     rho_upper_bound = rho(|(1+gamma) A~| + r_A 11^T) (an upper bound of it, never
     below: the matrix rounded up and the Collatz-Wielandt bound of

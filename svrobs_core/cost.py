@@ -1,6 +1,6 @@
-"""Observer cost J of SPEC section 6: exact finite horizon and stationary.
+"""Observer cost J (docs/science.md#6-observer-cost-j): exact finite horizon and stationary.
 
-Model (SPEC section 6). True system and observer on the estimates:
+Model (docs/science.md#6-observer-cost-j). True system and observer on the estimates:
 
     x_{k+1}  = A x_k + B u_k + w_k,              y_k = C x_k + v_k
     x~_{k+1} = A~ x~_k + B~ u_k + L (y_k - C x~_k)
@@ -273,7 +273,7 @@ def exact_cost(A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v, horiz
 
 
 def optimal_cost(A, B, K, C, *, sigma_u, sigma_w, sigma_v, horizon=200):
-    """J* of SPEC section 6: exact_cost with A~ = A, B~ = B, L = K. -> (...)
+    """J* (docs/science.md#6-observer-cost-j): exact_cost with A~ = A, B~ = B, L = K. -> (...)
 
     (With the true model the error is the Kalman predictor error, decoupled
     from x; its stationary value is trace(P), P the DARE solution.)"""

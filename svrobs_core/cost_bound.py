@@ -1,4 +1,4 @@
-"""Theorem 3 cost bound J_b of SPEC section 7.
+"""Theorem 3 cost bound J_b (docs/science.md#7-cost-bound-theorem-3).
 
     J_b = ||Phi~_w K - Phi~_v||_H2 sigma_v
         + sqrt(2) eps1 ||Phi~_w||_H2 ||[Phi_A B; I_m]||_Hinf sigma_u
@@ -8,7 +8,8 @@ with ``Phi~_w = (zI - A~ + LC)^-1``, ``Phi~_v = Phi~_w L`` (so
 ``Phi~_w K - Phi~_v = (zI - F)^-1 (K - L)``, ``F = A~ - L C``),
 ``Phi_A = (zI - A)^-1`` (true A), ``eps_L = ||K - L||`` (spectral norm),
 ``eps1 = max(eps_A, eps_B)``, ``eps2 = max(eps_A, eps_L)``. Implemented exactly
-as stated (SPEC Decision: H2 norms, not squared, compared with the mean-square
+as stated (docs/science.md#101-where-the-paper-is-ambiguous-or-wrong-what-svrobs-does, item 13:
+H2 norms, not squared, compared with the mean-square
 J; the data show where it holds).
 
 The H-infinity factors depend only on the true system: compute them once per

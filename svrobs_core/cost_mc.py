@@ -1,4 +1,4 @@
-"""Monte Carlo estimate of the observer cost J of SPEC section 6.
+"""Monte Carlo estimate of the observer cost J (docs/science.md#6-observer-cost-j).
 
 The model and batching conventions are those of :mod:`svrobs_core.cost`.
 :func:`mc_cost` simulates one batch of cells with one noise

@@ -39,8 +39,9 @@ EXT_MAX_WORK = 1e8
 
 @dataclass
 class GramFactor:
-    """Z Z^T = U diag(lam) U^T per dataset (SPEC section 2), with what the error
-    estimates need.
+    """Z Z^T = U diag(lam) U^T per dataset
+    (docs/science.md#22-the-papers-l2-loss-svr-and-its-closed-form), with what the
+    error estimates need.
 
     lam (..., d) ascending, >= 0; U (..., d, d). ``formed``: from a formed Gram
     matrix (:func:`gram_factor`; its error grows like u cond(V)) rather than

@@ -1,4 +1,4 @@
-"""Typed errors of the core and the one shape check (SPEC section 10).
+"""Typed errors of the core and the one shape check (docs/spec.md#validation-errors).
 
 * :class:`SpecError`: a bad experiment or system spec, naming the field; the
   service answers it with HTTP 422, the CLI prints it on one line.

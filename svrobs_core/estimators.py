@@ -1,4 +1,4 @@
-"""Estimators of SPEC section 2: OLS, L2-loss SVR (closed form), shrunk OLS.
+"""Estimators (docs/science.md#2-estimators): OLS, L2-loss SVR (closed form), shrunk OLS.
 
 Shapes: Z is (..., d, N0) with d = n + m (columns are [x_k; u_k]), F is
 (..., n, N0). Estimates Theta = [A_hat B_hat] are (..., n, d). Batch dims
@@ -37,7 +37,7 @@ def _gammas(gammas, *, allow_zero: bool) -> np.ndarray:
 
 
 def ridge_parameters(gammas, N0: int, loss_scale: str = "sum") -> np.ndarray:
-    """Ridge parameter g of Theta = F Z^T (Z Z^T + g I)^-1 (SPEC section 2).
+    """Ridge parameter g of Theta = F Z^T (Z Z^T + g I)^-1 (docs/science.md#2-estimators).
 
     "sum": g = gamma (the paper as written); "mean": the loss term divided by
     N0, i.e. g = gamma * N0. gamma > 0 (the 1/(2 gamma) of eq:SVR). -> (G,)
@@ -55,7 +55,7 @@ REFINE_COND_LIMIT = 1e8  # above this cond(Z Z^T) one refinement step is not eno
 
 
 def fit_ols(Z: np.ndarray, F: np.ndarray, *, return_cond: bool = False):
-    """OLS Theta = F Z^T (Z Z^T)^-1 (SPEC section 2), batched. -> (..., n, d)
+    """OLS Theta = F Z^T (Z Z^T)^-1 (docs/science.md#21-ols), batched. -> (..., n, d)
 
     Normal equations by Cholesky of Z Z^T plus ``REFINE_STEPS`` steps of
     iterative refinement on the residual (F - Theta Z) Z^T, which restores
@@ -140,8 +140,8 @@ def _fit_ols_qr(Z: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def fit_svr(Z: np.ndarray, F: np.ndarray, gammas, loss_scale: str = "sum") -> np.ndarray:
     """SVR closed form Theta = F Z^T (Z Z^T + g I)^-1 for every gamma at once.
 
-    SPEC section 2 (eq:SVR_all): ``g = gamma`` for loss_scale "sum",
-    ``g = gamma * N0`` for "mean". Solved as :func:`svr_from_gram` does, with
+    ``g = gamma`` for loss_scale "sum", ``g = gamma * N0`` for "mean"
+    (docs/science.md#22-the-papers-l2-loss-svr-and-its-closed-form). Solved as :func:`svr_from_gram` does, with
     the data at hand for the ill-conditioned cells. ``gammas`` scalar or 1-D
     (G,), all > 0. -> (..., G, n, d)
     """
@@ -241,7 +241,8 @@ def svr_from_gram(
 def ridge_qr(Z: np.ndarray, F: np.ndarray, g, *, return_cond: bool = False):
     """Ridge Theta = F Z^T (Z Z^T + g I)^-1 by a backward-stable solve, batched.
 
-    SPEC section 2. The ridge problem is the least-squares problem
+    docs/science.md#22-the-papers-l2-loss-svr-and-its-closed-form. The ridge problem is the
+    least-squares problem
     ``[Z^T; sqrt(g) I] Theta^T ~ [F^T; 0]``: an R-only QR of ``[Z^T F^T]``
     reduces the data to ``[[R11, R12], [0, R22]]`` (d + n columns), then per
     g a QR of the small ``[R11; sqrt(g) I]`` gives R_g (R_g^T R_g = Z Z^T +
@@ -280,7 +281,7 @@ def ridge_qr(Z: np.ndarray, F: np.ndarray, g, *, return_cond: bool = False):
 
 
 def shrunk_ols(theta_ols: np.ndarray, gammas) -> np.ndarray:
-    """Theta_OLS / (1 + gamma) for each gamma (SPEC section 2, Lemma 1's model).
+    """Theta_OLS / (1 + gamma) for each gamma (docs/science.md#23-shrunk-ols, Lemma 1's model).
 
     (..., n, d) -> (..., G, n, d)
     """
@@ -290,7 +291,7 @@ def shrunk_ols(theta_ols: np.ndarray, gammas) -> np.ndarray:
 
 
 class SVRIdentifier:
-    """scikit-learn-style wrapper of :func:`fit_svr` for one gamma (SPEC section 2).
+    """scikit-learn-style wrapper of :func:`fit_svr` for one gamma (docs/science.md#2-estimators).
 
     ``SVRIdentifier(gamma, loss_scale).fit(Z, F).coef_`` is Theta (..., n, d).
     """
@@ -309,7 +310,7 @@ class SVRIdentifier:
 
 
 class OLSIdentifier:
-    """scikit-learn-style wrapper of :func:`fit_ols` (SPEC section 2)."""
+    """scikit-learn-style wrapper of :func:`fit_ols` (docs/science.md#21-ols)."""
 
     def fit(self, Z, F):
         self.coef_ = fit_ols(Z, F)

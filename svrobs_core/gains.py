@@ -1,11 +1,11 @@
-"""Observer gains of SPEC section 4: the certificate g(L), the certified design
-and the reuse_gain policy (the Kalman gain K_hat they start from:
+"""Observer gains (docs/science.md#4-stable-observer-gain-theorem-2): the certificate
+g(L), the certified design and the reuse_gain policy (the Kalman gain K_hat they start from:
 :mod:`svrobs_core.kalman`).
 
 Everything here is pure and vectorised over leading batch dimensions ``...``:
 
 * ``certificate``: ``g(L) = max_i sum_j |c_ij| + n r_A``,
-  ``c = (1+gamma) A_tilde - L C`` (SPEC section 4, **Decision**), evaluated
+  ``c = (1+gamma) A_tilde - L C`` (docs/science.md#42-the-certificate-gl), evaluated
   with outward rounding (never below the exact value).
 * ``design_gain``: ``min ||L - K_hat||_F`` s.t. every row sum
   ``sum_j |c_ij| + n r_A <= 1 - margin``. For orthogonal ``C`` (in particular
@@ -16,7 +16,7 @@ Everything here is pure and vectorised over leading batch dimensions ``...``:
 
 Each takes either the paper's scalar radius ``r_A`` (every entry of A within
 ``r_A`` of the centre) or, keyword ``R_A``, a per-entry radius matrix
-(SPEC section 3.1): then ``g(L) = max_i sum_j (|c_ij| + (R_A)_ij)`` and row
+(docs/uncertainty.md): then ``g(L) = max_i sum_j (|c_ij| + (R_A)_ij)`` and row
 ``i`` of the design has the budget ``1 - margin - sum_j (R_A)_ij``.
 """
 
@@ -45,7 +45,7 @@ def _mT(X):
 
 
 # ---------------------------------------------------------------------------
-# Certificate and design (SPEC section 4)
+# Certificate and design (docs/science.md#4-stable-observer-gain-theorem-2)
 # ---------------------------------------------------------------------------
 
 
@@ -54,7 +54,7 @@ class GainResult:
     """Observer gains for a batch of cells.
 
     L (..., n, p); g_L (...) = certificate(L); certified (...) bool = g_L < 1
-    (the SPEC section 4 **Decision**; NaN g gives False); feasible (...) bool:
+    (docs/science.md#102-decisions-beyond-the-paper; NaN g gives False); feasible (...) bool:
     the design's margin constraint could be met (False means the fallback
     min g(L) was used). Cells with a non-finite input (e.g. a NaN K_hat) have
     NaN L and g, certified and feasible False (general-C path: also a cell
@@ -297,7 +297,7 @@ class _CvxpyDesign:
 
 
 # ---------------------------------------------------------------------------
-# reuse_gain (SPEC section 4)
+# reuse_gain (docs/science.md#44-reuse_gain)
 # ---------------------------------------------------------------------------
 
 
@@ -318,7 +318,7 @@ class ReuseResult:
 
 
 def reuse_gains(L, A_tilde, gamma, r_A, *, C, R_A=None) -> ReuseResult:
-    """reuse_gain policy along increasing N (SPEC section 4).
+    """reuse_gain policy along increasing N (docs/science.md#44-reuse_gain).
 
     L (nN, ..., n, p): the gain designed at each N (axis 0 sorted by
     increasing N, same system, sigma_w, estimator, gamma, rep along the rest);

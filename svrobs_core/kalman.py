@@ -1,4 +1,4 @@
-"""Steady-state Kalman predictor gain of SPEC section 5, batched.
+"""Steady-state Kalman predictor gain (docs/science.md#5-the-optimal-gain-k), batched.
 
 ``kalman_predictor`` / ``kalman_gain``: ``K = A P C^T (C P C^T + sigma_v^2 I)^-1``
 with ``P`` the stabilising solution of
@@ -34,7 +34,7 @@ __all__ = [
 ]
 
 # ---------------------------------------------------------------------------
-# Kalman predictor gain (SPEC section 5)
+# Kalman predictor gain (docs/science.md#5-the-optimal-gain-k)
 # ---------------------------------------------------------------------------
 
 KALMAN_OK = 0
@@ -236,7 +236,8 @@ def _broadcast_system(A, C, sigma_w, sigma_v):
 
 
 def kalman_predictor(A, C, sigma_w, sigma_v) -> KalmanResult:
-    """Steady-state Kalman predictor of x+ = A x + w, y = C x + v (SPEC section 5).
+    """Steady-state Kalman predictor of x+ = A x + w, y = C x + v
+    (docs/science.md#5-the-optimal-gain-k).
 
     A (..., n, n); C (p, n) or (..., p, n); sigma_w, sigma_v scalars or arrays
     broadcasting against the batch shape (...). Q = sigma_w^2 I, R = sigma_v^2 I.

@@ -10,7 +10,7 @@ ulp towards +inf), so that a computed bound is never below the exact value
 matrix of it is singular or holds a NaN, which deep in a solver would turn
 one degenerate cell (an overflowing iteration, a singular C) into a failed
 unit. :func:`solve` gives NaN for those cells and the exact numpy result,
-bit for bit, for the others (SPEC section 10: nulls with a reason, not
+bit for bit, for the others (docs/spec.md#notes-why-a-field-is-null: nulls with a reason, not
 exceptions).
 """
 
@@ -49,8 +49,8 @@ def solve(M, B) -> np.ndarray:
             X = np.linalg.solve(Ms, Bs)
     except np.linalg.LinAlgError:  # an exact zero pivot the SVD did not flag
         X = np.full(np.broadcast_shapes(Ms.shape, Bs.shape), np.nan, dtype=np.result_type(Ms, Bs))
-        for idx in np.argwhere(ok):
-            idx = tuple(idx)
+        for where in np.argwhere(ok):
+            idx = tuple(where)
             try:
                 X[idx] = np.linalg.solve(Ms[idx], Bs[idx])
             except np.linalg.LinAlgError:

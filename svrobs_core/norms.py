@@ -1,5 +1,5 @@
 """H2 and H-infinity norms of discrete transfer matrices H (zI - F)^-1 G (+ D),
-batched; unstable F gives NaN (SPEC section 7).
+batched; unstable F gives NaN (docs/science.md#7-cost-bound-theorem-3).
 
 Every function takes leading batch dimensions ``...`` (numpy broadcasting
 between the arguments) and returns an array of the broadcast batch shape (a

@@ -1,4 +1,4 @@
-"""Per-cell notes: the reasons a record field is null (SPEC section 10)."""
+"""Per-cell notes: the reasons a record field is null (docs/spec.md#notes-why-a-field-is-null)."""
 
 from __future__ import annotations
 

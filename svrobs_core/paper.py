@@ -1,4 +1,5 @@
-"""The preset ``paper-section-6``: the paper's Section 6 as section 10 specs (SPEC section 9).
+"""The preset ``paper-section-6``: the paper's Section 6 as specs
+(docs/science.md#91-the-preset-paper-section-6).
 
 ``paper_specs(scale)`` returns one plain-JSON spec per experiment:
 
@@ -10,14 +11,14 @@
   Monte Carlo J (1000 runs) on the first 10 repetitions.
 * **E4** (Fig. 5): as E3 on S and U; cost ratio against gamma_ref = 0.1,
   computed from the exact J, so without Monte Carlo (``mc_reps = 0``).
-  **Decision** (reading of SPEC section 9): the Monte Carlo J is there "to
-  show that it agrees", and E3 is where J itself is reported (Fig. 4); E4
+  **Decision** (docs/science.md#102-decisions-beyond-the-paper): the Monte
+  Carlo J is there "to show that it agrees", and E3 is where J itself is reported (Fig. 4); E4
   reports only the cost ratio of the exact J. E3's records are E4's records
   of S except for J_mc, J_mc_se and the note saying where they are null, so
   ``svrobs reproduce`` computes the Monte Carlo J of S's first 10
   repetitions once and writes both (``UnitResult.with_mc_reps``).
 
-Beyond the paper (SPEC section 3.1), the audit of the uncertainty sets on
+Beyond the paper (docs/uncertainty.md#in-the-service), the audit of the uncertainty sets on
 E2's grid: how often a set that claims probability 1 - delta holds every
 entry of A and B (coverage), how large it is and whether it certifies
 stability (docs/uncertainty.md):
@@ -97,8 +98,9 @@ EXPERIMENTS: dict[str, dict] = {
 AUDIT_N = [10, 50, 100, 200, 450]  # A2's N grid (the bootstrap re-simulates every cell)
 
 # ---------------------------------------------------------------------------
-# The paper's PUBLISHED numbers (Table 2), transcribed from SPEC section 9 and
-# the paper's LaTeX source. Key: (system, sigma_w, matrix) -> {"ols", "ours"}.
+# The paper's PUBLISHED numbers (Table 2), transcribed from the paper's LaTeX
+# source (docs/table2.md sets them beside ours). Key: (system, sigma_w, matrix)
+# -> {"ols", "ours"}.
 # "ours" is the paper's name for its SVR estimator. These are NOT our results.
 # ---------------------------------------------------------------------------
 PUBLISHED_TABLE2: dict[tuple[str, float, str], dict[str, float]] = {
@@ -156,7 +158,7 @@ def _span(values) -> str:
 
 
 def table2_grid_note(spec) -> str | None:
-    """None when ``spec`` (a section 10 spec, raw or parsed) has the grid behind the
+    """None when ``spec`` (a spec, raw or parsed) has the grid behind the
     published Table 2 (E1: N = 10..450 step 10, T0 = 11, all data, loss scale sum;
     each row is then matched on system, sigma_w and gamma = 0.05), else one line
     saying why the published values are not shown beside its numbers."""
@@ -223,10 +225,10 @@ def _full_specs() -> dict[str, dict]:
 
 
 def paper_specs(scale: str = "full") -> dict[str, dict]:
-    """The section 10 spec of each experiment E1..E4 (fresh dicts, JSON-able).
+    """The spec of each experiment E1..E4, A1, A2 (fresh dicts, JSON-able).
 
-    ``scale="full"`` is SPEC section 9 exactly; ``"reduced"`` is the same
-    structure on a tiny grid (N in {10, 30, 50}, 3 repetitions, horizon 50;
+    ``scale="full"`` is docs/science.md#91-the-preset-paper-section-6 exactly;
+    ``"reduced"`` is the same structure on a tiny grid (N in {10, 30, 50}, 3 repetitions, horizon 50;
     E3: 2 Monte Carlo repetitions of 50 runs) for tests and smoke runs.
     """
     specs = _full_specs()

@@ -2,8 +2,8 @@
 
 One dataset is one (system, sigma_w, N) over a range of repetitions; every
 stage is vectorised over the (rep, estimator/gamma) grid (R, E) and fills
-record fields and per-cell notes (SPEC sections 2-8, 10). What depends only
-on the true system (K, J*, its transfer-matrix norms) is computed once and
+record fields and per-cell notes (docs/science.md sections 2-8,
+docs/spec.md#record-fields). What depends only on the true system (K, J*, its transfer-matrix norms) is computed once and
 cached (:func:`truth`).
 """
 
@@ -33,7 +33,7 @@ from .uncertainty_stage import sound_bounds
 
 # Above this cond(Z Z^T + g I) the solve is not trusted to ~1e-9 relative
 # (tests/core/test_accuracy.py: 6e-12 at 1e18): the cell keeps its estimate
-# but its certificates are null, with a note (issue 10: a certificate rests on
+# but its certificates are null, with a note (a certificate rests on
 # a successful computation).
 ESTIMATE_COND_LIMIT = 1e20
 CERTIFICATES = ("stable_certified", "thm1_holds_A", "thm1_holds_B", "certified")
@@ -223,7 +223,7 @@ def failed_stage(exc: BaseException) -> tuple[str, int] | None:
 
 def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data):
     """Theta for every (rep, estimator/gamma): (R, E, n, d), and cond(Z Z^T + g I)
-    of each cell (R, E); SPEC section 2.
+    of each cell (R, E); docs/science.md#2-estimators.
 
     SVR needs only the sufficient statistics G = Z Z^T, P = F Z^T, and the
     data of its ill-conditioned cells (``data(rows)``); OLS (and shrunk OLS)
@@ -258,8 +258,8 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain, data):
     """bounds, then the observer stages; -> the gain state for ``reuse_gain``.
 
     The gain is designed on the chosen method's box: the paper's (centre
-    (1+gamma) A_tilde, scalar radius r_A) or, for the sound methods of SPEC
-    section 3.1, centre A_hat and the radius matrix R_A."""
+    (1+gamma) A_tilde, scalar radius r_A) or, for the sound methods of
+    docs/uncertainty.md, centre A_hat and the radius matrix R_A."""
     spec, out = c.spec, c.out
     if not spec.has("bounds"):
         return None
@@ -291,7 +291,8 @@ def _gain_stages(c: _Cells, b, gamma, radius, prev_gain):
     shape = c.shape
     radius = np.broadcast_to(radius, shape + (radius.shape[-2:] if matrix else ()))
     state = (designed.L, c.A_hat, radius)
-    if prev_gain is not None:  # reuse_gain: keep the previous L while certified (SPEC 4)
+    # reuse_gain: keep the previous L while certified (docs/science.md#44-reuse_gain)
+    if prev_gain is not None:
         L_prev, A_prev, r_prev = prev_gain
         radii = np.stack([r_prev, radius])
         reuse = _gains.reuse_gains(
@@ -312,7 +313,8 @@ def _gain_stages(c: _Cells, b, gamma, radius, prev_gain):
 
 
 def _paper_bounds(c: _Cells, *, N, N0):
-    """SPEC section 3's bounds -> (BoundsResult, gamma of the centre, r_A per estimator)."""
+    """The paper's bounds (docs/science.md#3-error-bounds-theorem-1-lemma-2-corollary-1) ->
+    (BoundsResult, gamma of the centre, r_A per estimator)."""
     spec, system, out, notes = c.spec, c.system, c.out, c.notes
     gamma = c.axis.gamma_array
     rad = _bounds.radii(
@@ -355,7 +357,7 @@ def _paper_bounds(c: _Cells, *, N, N0):
 
 
 # ---------------------------------------------------------------------------
-# observer stages: gain, cost, cost_bound, sls (SPEC sections 4-8)
+# observer stages: gain, cost, cost_bound, sls (docs/science.md sections 4-8)
 # ---------------------------------------------------------------------------
 @lru_cache(maxsize=64)
 def _truth_cached(matrices, shapes, sigmas, horizon):
@@ -501,7 +503,8 @@ def _monte_carlo(c: _Cells, L):
 
 
 def _cost_ratio(c: _Cells, J):
-    """r = |J_gamma - J_ref| / J_ref against gamma_ref of the same estimator (SPEC 6)."""
+    """r = |J_gamma - J_ref| / J_ref against gamma_ref of the same estimator
+    (docs/science.md#64-j-and-the-cost-ratio)."""
     axis = c.axis
     ratio = np.full(J.shape, np.nan)
     names = np.array(axis.names)
@@ -523,7 +526,8 @@ def _cost_ratio(c: _Cells, J):
 
 
 def _sls_stage(c: _Cells, b):
-    """J_opt by SLS per cell (cvxpy + Clarabel) and the paper's bound on it (SPEC 8).
+    """J_opt by SLS per cell (cvxpy + Clarabel) and the paper's bound on it
+    (docs/science.md#8-sls-sub-optimal-observer-j_opt).
 
     Needs the estimate, the bounds' eps and the true system's K and norms
     (:func:`truth`, computed here when the gain stage did not): not the gain."""

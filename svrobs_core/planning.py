@@ -1,7 +1,8 @@
-"""Work units of a grid and the estimator axis of a dataset (SPEC sections 1 and 10).
+"""Work units of a grid and the estimator axis of a dataset
+(docs/science.md#12-multi-rollout-collection, docs/spec.md#grid-size).
 
 ``plan_units(spec)`` splits the grid into JSON-able work units; the records
-do not depend on how the grid is split (SPEC section 1).
+do not depend on how the grid is split (docs/science.md#14-randomness-and-reproducibility).
 """
 
 from __future__ import annotations

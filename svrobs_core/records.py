@@ -1,4 +1,4 @@
-"""The result record of SPEC section 10: field names, JSON-safe values, summary."""
+"""The result record (docs/spec.md#record-fields): field names, JSON-safe values, summary."""
 
 from __future__ import annotations
 

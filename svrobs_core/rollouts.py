@@ -1,4 +1,5 @@
-"""Multi-rollout data collection and seeding (SPEC section 1, docs/performance.md#generators).
+"""Multi-rollout data collection and seeding (docs/science.md#1-system-and-data,
+docs/performance.md#generators).
 
 Every random draw comes from ``Generator(BitGen(SeedSequence(seed,
 spawn_key=key)))`` with ``key = (system index, sigma_w index, N, rep)``:
@@ -47,7 +48,7 @@ def _bit_generator(rng: str):
 def rng_for(
     seed: int, key: tuple, stream: tuple = DATA_STREAM, rng: str = DEFAULT_RNG
 ) -> np.random.Generator:
-    """The generator of one (key, stream); SPEC section 1 Decision (randomness)."""
+    """The generator of one (key, stream) (docs/science.md#14-randomness-and-reproducibility)."""
     return np.random.Generator(
         _bit_generator(rng)(np.random.SeedSequence(seed, spawn_key=key + stream))
     )
@@ -315,7 +316,7 @@ def regression_data(x, u, data: str = "all"):
 
 
 def collect(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0, rng=DEFAULT_RNG):
-    """Simulate the rollouts of every key and return (Z, F); SPEC section 1.
+    """Simulate the rollouts of every key and return (Z, F); docs/science.md#1-system-and-data.
 
     The same numbers as the experiment runner uses (it calls :func:`gram_data`)."""
     _, _, Z, F = gram_data(

@@ -1,10 +1,11 @@
-"""Run work units -> section 10 records (SPEC sections 1-10).
+"""Run work units -> records (docs/spec.md#record-fields).
 
 ``run_unit_result(spec, unit)`` is the one pure function a worker calls (one
 unit of :func:`svrobs_core.planning.plan_units` -> a :class:`UnitResult`);
 ``run_unit`` gives the same unit's record dicts; ``run_spec`` runs every
 unit in process (or in ``n_jobs`` processes). Records do not depend on how
-the grid is split nor on where the units run (SPEC section 1).
+the grid is split nor on where the units run
+(docs/science.md#14-randomness-and-reproducibility).
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ def run_unit_results(
             which = [i for i, s in enumerate(specs) if N in s.N]
             if not which:
                 continue
+            t: dict[Any, float] = {}
             results = run_dataset_variants(
                 [specs[i] for i in which],
                 si=si,
@@ -69,7 +71,7 @@ def run_unit_results(
                 reps=reps,
                 axis=axis,
                 prev_gains=[prev_gains[i] for i in which],
-                timings=None if timings is None else (t := {}),
+                timings=None if timings is None else t,
             )
             if timings is not None:
                 for key, sec in t.items():
@@ -97,7 +99,7 @@ def run_unit_results(
 
 
 def run_unit(spec: ExperimentSpec, unit: dict) -> list[dict]:
-    """Run one work unit of ``plan_units`` -> its section 10 records."""
+    """Run one work unit of ``plan_units`` -> its records."""
     return run_unit_result(spec, unit).records()
 
 

@@ -1,4 +1,4 @@
-"""SLS sub-optimal observer J_opt of SPEC section 8.
+"""SLS sub-optimal observer J_opt (docs/science.md#8-sls-sub-optimal-observer-j_opt).
 
 The program (paper, section 5, "Results on Sub-Optimal Observer Analysis")::
 
@@ -10,17 +10,17 @@ The program (paper, section 5, "Results on Sub-Optimal Observer Analysis")::
 with the FIR truncation ``Phi(z) = sum_{t=1..T_fir} Phi[t] z^-t`` and
 ``||Phi||_H2 = sqrt(sum_t ||Phi[t]||_F^2)``.
 
-Sign convention (a Decision taken here; read before comparing with SPEC 8)
----------------------------------------------------------------------------
+Sign convention (docs/science.md#8-sls-sub-optimal-observer-j_opt)
+-----------------------------------------------------------------
 The paper defines ``Phi_w = (zI - A_tilde + LC)^-1`` and ``Phi_v = Phi_w L``
 (used in Lemma 3 / Theorem 3, whose cost term is ``Phi_w K - Phi_v =
 Phi_w (K - L)``, zero at ``L = K``). Those definitions satisfy
 ``Phi_w (zI - A_tilde + LC) = I``, i.e. ``Phi_w (zI - A_tilde) + Phi_v C = I``.
-The paper's SLS program (and SPEC section 8, literally) writes the affine
-constraint with ``- Phi_v C``; expanding it in z^-t gives SPEC's recursion
+The paper's SLS program writes the affine constraint with ``- Phi_v C``;
+expanding it in z^-t gives the recursion
 ``Phi_w[t+1] = Phi_w[t] A_tilde + Phi_v[t] C``. Under that literal reading
 the feasible ``Phi_v`` of a static gain L is ``-Phi_w L``, so the objective
-term becomes ``Phi_w (K + L)``: it no longer vanishes at ``L = K`` and is
+term becomes ``Phi_w (K + L)``: it does not vanish at ``L = K`` and is
 inconsistent with Theorem 3 (the impulse response of the paper's own
 ``(Phi_w, Phi_w L)`` violates the literal constraints; see the tests).
 
@@ -33,7 +33,7 @@ We therefore implement the reading consistent with the paper's definitions::
 so a static gain L with nilpotent ``A_tilde - LC`` gives exactly
 ``Phi_w[t] = (A_tilde - LC)^(t-1)``, ``Phi_v[t] = (A_tilde - LC)^(t-1) L``, and
 the objective equals ``F ||Phi_w||_H2 + ||Phi_w (K - L)||_H2`` (Theorem 3's
-terms). Equivalently: SPEC's literal program with ``Phi_v`` replaced by
+terms). Equivalently: the paper's literal program with ``Phi_v`` replaced by
 ``-Phi_v``; only the sign of the ``Phi_v`` term in the objective differs.
 
 Feasibility: the terminal condition forces the error dynamics to be
@@ -157,7 +157,7 @@ def _warm(pr: _Compiled, n: int, p: int) -> _Compiled:
     values in place; later solves map the parameters through the cached
     reduction. The two give problem data that differ in the last bits, so
     without this the J_opt of a cell would depend on whether it was the first
-    solve of its process (issue 10, item 4): after it every cell takes the
+    solve of its process: after it every cell takes the
     cached path, and its J_opt is the same however the grid is split."""
     pr.A.value = 0.5 * np.eye(n)
     pr.C.value = np.eye(p, n)
@@ -178,7 +178,7 @@ def clear_cache() -> None:
 
 
 def sls_observer(A_tilde, C, K, F, *, C_bound, T_fir: int = 30) -> SLSResult:
-    """Solve the FIR SLS program of SPEC section 8 (sign convention: module doc).
+    """Solve the FIR SLS program (docs/science.md#8-sls-sub-optimal-observer-j_opt).
 
     A_tilde (n, n) estimated A; C (p, n); K (n, p) optimal (Kalman predictor)
     gain; F >= 0 the scalar of :func:`sls_F`; C_bound the bound on
@@ -245,7 +245,7 @@ def _out(x):
 
 
 def default_C_bound(K, h2_closed_loop_inv):
-    """SPEC default ``C_bound = 2 (1 + ||K||) ||(zI - A + KC)^-1||_H2``.
+    """The default ``C_bound = 2 (1 + ||K||) ||(zI - A + KC)^-1||_H2``.
 
     K (..., n, p) (spectral norm over the last two axes); the caller passes
     the H2 norm of the true closed loop ``(zI - A + KC)^-1`` (NaN propagates).
@@ -276,7 +276,8 @@ def jopt_upper_bound(
 
     ``eps1 (sqrt(2) C_bound (||[Phi_A B; I]||_Hinf sigma_u + ||[Phi_A K; I]||_Hinf sigma_v)
     + 2 ||(zI - A + KC)^-1||_H2 sigma_v)`` when
-    ``eps_A ||(zI - A + KC)^-1||_Hinf <= 1/2`` (SPEC 8 Decision: the paper's
+    ``eps_A ||(zI - A + KC)^-1||_Hinf <= 1/2``
+    (docs/science.md#8-sls-sub-optimal-observer-j_opt: the paper's
     ``||zI - A + KC||`` read as the norm of the inverse). The paper states it
     for ``C_bound >= 2 (1 + ||K||) ||(zI - A + KC)^-1||_H2``; this function
     evaluates the formula at the C_bound given and does not check that.

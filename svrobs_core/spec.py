@@ -1,4 +1,4 @@
-"""The experiment spec of SPEC section 10: parse, validate, normalise.
+"""The experiment spec (docs/spec.md#spec-fields): parse, validate, normalise.
 
 ``parse_spec(dict) -> ExperimentSpec`` is the one entry point used by the
 CLI, the REST API and the scheduler; every error is a :class:`SpecError`
@@ -19,7 +19,7 @@ from .systems import MAX_DIM, SystemSpec, resolve_system
 ESTIMATORS = ("ols", "svr", "shrunk-ols")
 BOUNDS_METHODS = ("paper", "self-normalized", "bootstrap")
 BOOT_SIGMA_SOURCES = ("estimate", "spec")
-# Options of each non-paper bounds method (SPEC section 3.1), with their defaults.
+# Options of each non-paper bounds method (docs/uncertainty.md), with their defaults.
 BOUNDS_OPTIONS = {
     "self-normalized": {"S": None, "lambda0": 1.0},
     "bootstrap": {"boot_reps": 100, "boot_sigma_w": "estimate"},
@@ -69,7 +69,7 @@ SPEC_KEYS = {
 DATASET_KEYS = {"dataset", "holdout", "C", "sigma_v", "sigma_u", "state"}
 DATASET_ONLY_MESSAGE = 'is only used with "dataset" (a job on measured data)'
 MAX_GRID = 100_000  # any single list longer than this is surely a mistake
-# Hard caps on the sizes one cell may ask for (issue 10): beyond them a single
+# Hard caps on the sizes one cell may ask for: beyond them a single
 # cell needs more memory or time than any worker has; the cost model
 # (svrobs_core.workload) limits the whole job below them.
 MAX_STATE_DIM = MAX_DIM  # n, m, p: the Kalman step solves an (n^2 x n^2) system per cell
@@ -83,7 +83,7 @@ MAX_REPS = 1_000_000
 
 @dataclass(frozen=True, kw_only=True)
 class ExperimentSpec:
-    """A validated section 10 spec. ``to_dict()`` gives the normalised JSON."""
+    """A validated spec (docs/spec.md#spec-fields). ``to_dict()`` gives the normalised JSON."""
 
     systems: tuple[SystemSpec, ...]
     sigma_w: tuple[float, ...]
@@ -192,7 +192,8 @@ class ExperimentSpec:
 
     @property
     def S_bound(self) -> float:
-        """S of the self-normalized method: the spec's, else sqrt(2) M (SPEC section 3.1)."""
+        """S of the self-normalized method: the spec's, else sqrt(2) M
+        (docs/uncertainty.md#b-the-self-normalized-confidence-ellipsoid)."""
         return math.sqrt(2.0) * self.M if self.S is None else self.S
 
 
@@ -381,7 +382,7 @@ def shared_options(obj: dict) -> dict:
 
 
 def _bounds_options(obj: dict) -> dict:
-    """bounds_method and the options of that method (SPEC section 3.1); an option
+    """bounds_method and the options of that method (docs/uncertainty.md); an option
     of another method is an error naming it."""
     method = _choice(obj.get("bounds_method", "paper"), "bounds_method", BOUNDS_METHODS)
     own = BOUNDS_OPTIONS.get(method, {})

@@ -1,4 +1,5 @@
-"""System specs and the paper's presets (SPEC sections 1 and 9)."""
+"""System specs and the paper's presets (docs/science.md#11-the-system,
+docs/science.md#91-the-preset-paper-section-6)."""
 
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ PRESETS: dict[str, dict] = {
 
 @dataclass(frozen=True, kw_only=True)
 class SystemSpec:
-    """One true system: x+ = A x + B u + w, y = C x + v (SPEC section 1)."""
+    """One true system: x+ = A x + B u + w, y = C x + v (docs/science.md#11-the-system)."""
 
     name: str
     A: np.ndarray
@@ -57,7 +58,8 @@ class SystemSpec:
 
 MAX_ENTRY = 1e100  # |entries| of A, B, C and the noise levels: the square of one entry is finite
 MAX_DIM = 50  # n, m, p (svrobs_core.spec.MAX_STATE_DIM)
-SIGMA_V0_COND_LIMIT = 1e12  # sigma_v = 0 needs cond(C) below this (K = A C^-1, SPEC section 5)
+# sigma_v = 0 needs cond(C) below this (K = A C^-1, docs/science.md#5-the-optimal-gain-k)
+SIGMA_V0_COND_LIMIT = 1e12
 
 
 def _numbers(value) -> bool:
@@ -138,7 +140,7 @@ def resolve_system(obj, field: str = "systems[0]") -> SystemSpec:
             raise SpecError(
                 f"{field}.sigma_v",
                 "sigma_v = 0 needs a square invertible C with cond(C) <= "
-                f"{SIGMA_V0_COND_LIMIT:g} (SPEC section 5)",
+                f"{SIGMA_V0_COND_LIMIT:g} (docs/science.md#5-the-optimal-gain-k)",
             )
     for arr in (A, B, C):
         arr.setflags(write=False)

@@ -1,4 +1,4 @@
-"""Sound uncertainty sets for Theta = [A B] (SPEC section 3.1, docs/uncertainty.md).
+"""Sound uncertainty sets for Theta = [A B] (docs/uncertainty.md).
 
 * :func:`self_normalized_box`: the confidence ellipsoid of Abbasi-Yadkori,
   Pal, Szepesvari (2011, Thms 1-2) per row of Theta, union bound over the n
@@ -135,7 +135,7 @@ def _objects(shape, mask, text) -> np.ndarray:
 def self_normalized_box(
     gram, theta_hat, *, sigma_w, delta, lam, S, lambda0=1.0, shrink=0.0
 ) -> BoxResult:
-    """Self-normalized box of SPEC section 3.1 (docs/uncertainty.md (b)-(d)).
+    """Self-normalized box (docs/uncertainty.md, (b)-(d)).
 
     gram: Gram matrices Z Z^T (..., d, d) or their :class:`GramFactor`;
     theta_hat (..., n, d) the estimate (the centre); lam (...) the ridge
@@ -295,7 +295,7 @@ def noise_level(Z, F, theta_hat):
 
 
 def _refit(name: str, gamma, Z, F, G, loss_scale: str) -> np.ndarray:
-    """Re-estimate with the cell's own estimator from the data (SPEC section 2). -> (h, n, d)"""
+    """Re-estimate with the cell's own estimator from the data (docs/science.md#2-estimators). -> (h, n, d)"""
     if name == "ols":
         return _est.fit_ols(Z, F)
     if name == "svr":
@@ -355,14 +355,15 @@ def bootstrap_box(
     joint: bool = True,
     rng: str = "pcg64",
 ) -> BoxResult:
-    """Parametric bootstrap box of SPEC section 3.1 (docs/uncertainty.md (e)).
+    """Parametric bootstrap box
+    (docs/uncertainty.md#e-the-parametric-bootstrap-dean-mania-matni-recht-tu-2020-alg-2).
 
     theta_hat (R, E, n, d): the estimate of each (repetition, estimator) cell;
     estimators: the E (name, gamma) pairs; sigma_w (R, E) (or broadcasting):
     the noise level to re-simulate with; keys: the R seed keys. Resample b of
     repetition r draws from the stream keys[r] + (2, b) in the data order of
-    SPEC section 1, shared by the E cells of the repetition. eps_A, eps_B:
-    (1 - delta) quantiles of ||A_b - A_hat||, ||B_b - B_hat||. Radii: with
+    docs/science.md#14-randomness-and-reproducibility, shared by the E cells of
+    the repetition. eps_A, eps_B: (1 - delta) quantiles of ||A_b - A_hat||, ||B_b - B_hat||. Radii: with
     ``joint`` the studentised max-statistic box R = c s (s the RMS of
     Theta_b - Theta_hat per entry, c the (1 - delta) quantile of
     max_ij |Theta_b - Theta_hat|_ij / s_ij), else the (1 - delta) quantile

@@ -1,4 +1,4 @@
-"""The bounds stage for ``bounds_method`` "self-normalized" and "bootstrap" (SPEC 3.1).
+"""The bounds stage for ``bounds_method`` "self-normalized" and "bootstrap" (docs/uncertainty.md).
 
 Called by :mod:`svrobs_core.pipeline` for one dataset over the (rep,
 estimator/gamma) grid (R, E): builds the box of :mod:`svrobs_core.uncertainty`
@@ -62,7 +62,7 @@ def _coverage(true, est, R) -> np.ndarray:
 
 
 def sound_bounds(c, *, G, Z, F, N: int, N0: int, factor=None) -> SoundBounds:
-    """Box, record fields and BoundsResult of one dataset's cells (SPEC section 3.1).
+    """Box, record fields and BoundsResult of one dataset's cells (docs/uncertainty.md).
 
     ``c``: the pipeline's cell context (spec, system, sigma_w, keys, axis,
     A_hat, B_hat, notes); Z, F the data (R, d, N0), (R, n, N0), factorised

@@ -1,8 +1,8 @@
-"""The records of one work unit as column arrays (SPEC section 10).
+"""The records of one work unit as column arrays (docs/spec.md#record-fields).
 
 A unit's results are kept as column arrays (:class:`UnitResult`), one array
 per record field over the (repetition, estimator/gamma) grid of each N.
-From them ``records()`` builds the section 10 dicts, ``json_lines()`` the
+From them ``records()`` builds the record dicts, ``json_lines()`` the
 same records as JSON text (identical to ``json.dumps(record)``, built per
 field rather than per record) and ``columns()`` the arrays a report reads,
 so a large run never has to go through one dict per cell.
@@ -127,7 +127,7 @@ class Dataset:
 class UnitResult:
     """The records of one work unit as column arrays.
 
-    ``records()`` -> section 10 dicts; ``json_lines()`` -> the same records as
+    ``records()`` -> record dicts; ``json_lines()`` -> the same records as
     JSON text, one string per record (``json.dumps(record)`` to the byte);
     ``columns(matrices)`` -> {field: array} for :class:`svrobs_core.report.Columns`.
     Record order: N ascending, then repetition, then estimator/gamma.
@@ -221,7 +221,7 @@ class UnitResult:
         as_json: frozenset[str] | set[str] = frozenset(),
         omit: frozenset[str] | set[str] = frozenset(),
     ) -> dict[str, list]:
-        """{field: one value per record, in record order} for every section 10 field
+        """{field: one value per record, in record order} for every record field
         not in ``omit``: plain Python values (NaN/inf -> None), and for the fields in
         ``as_json`` their JSON text (as ``json.dumps`` writes it) instead. The
         columnar form the DB layer stores without building a dict per record."""

@@ -1,7 +1,7 @@
 """Cost model of a work unit: CPU seconds and peak memory before running it.
 
 ``estimate_unit(spec, unit)`` -> :class:`UnitCost`, ``estimate_job(spec)`` ->
-:class:`JobCost`: operation counts of the pipeline's stages (SPEC sections
+:class:`JobCost`: operation counts of the pipeline's stages (docs/science.md sections
 1-8, in the order of :mod:`svrobs_core.pipeline`) times per-operation
 constants calibrated on the development machine (``bench/workload.py``
 prints the estimate against the measured CPU time and peak RSS), and the

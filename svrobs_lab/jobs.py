@@ -58,7 +58,7 @@ def admit_spec(
 
 @dataclass(frozen=True)
 class JobRequest:
-    """One job to create: a spec (docs/spec.md) and its labels."""
+    """One job to create: a spec (docs/spec.md#spec-fields) and its labels."""
 
     spec: dict
     name: str | None = None

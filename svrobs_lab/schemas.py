@@ -89,12 +89,12 @@ def _spec_fields() -> dict[str, Any]:
 
 
 TagStr = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=100)]
-Tag = Field(default_factory=list, max_length=50)
+Tag: Any = Field(default_factory=list, max_length=50)
 
 JobSubmit = create_model(
     "JobSubmit",
     __base__=_Strict,
-    __doc__="An experiment spec (docs/spec.md: systems and sigma_w; or a dataset,"
+    __doc__="An experiment spec (docs/spec.md#spec-fields: systems and sigma_w; or a dataset,"
     " docs/measured.md#spec) plus an optional name and tags.",
     name=(Optional[str], Field(None, min_length=1, max_length=200)),
     tags=(list[TagStr], Tag),

@@ -41,7 +41,7 @@ def create_due_jobs(now: datetime | None = None) -> list[int]:
 
     with session_scope() as s:
         jobs = schedules.create_due_jobs(get_settings(), s, now or db_now(s))
-        ids = [getattr(j, "id", j) for j in jobs or ()]
+        ids = [j if isinstance(j, int) else j.id for j in jobs or ()]
     if ids:
         log.info("tick: created jobs %s for due schedules", ids)
     return ids

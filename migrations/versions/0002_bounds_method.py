@@ -1,4 +1,4 @@
-"""results: bounds_method and the radius matrices radii_A, radii_B (issue 12, SPEC section 3.1)
+"""results: bounds_method and the radius matrices radii_A, radii_B (docs/uncertainty.md)
 
 Revision ID: 0002
 Revises: 0001

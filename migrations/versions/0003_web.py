@@ -1,4 +1,4 @@
-"""web dashboard: schedules' seed policy, share links (issue 11)
+"""web dashboard: schedules' seed policy, share links
 
 Revision ID: 0003
 Revises: 0002

@@ -1,4 +1,4 @@
-"""reads: team retention, pruned jobs, stored reports, spec summaries (issue 13)
+"""reads: team retention, pruned jobs, stored reports, spec summaries
 
 Revision ID: 0004
 Revises: 0003

@@ -1,6 +1,7 @@
 """results: a radius matrix equal to its row's scalar radius stored as zero bytes
 
-With the paper's bounds (SPEC section 3) every entry of ``radii_A`` is ``r_A``
+With the paper's bounds (docs/science.md#3-error-bounds-theorem-1-lemma-2-corollary-1) every
+entry of ``radii_A`` is ``r_A``
 and every entry of ``radii_B`` is ``r_B``: 0006 stored each as that float's 8
 bytes (rows it converted from the JSON format: every entry); from here such a matrix is stored as zero bytes and read back from the
 row's ``r_A`` / ``r_B`` (``service.db.result_codec``), 16 bytes less per cell.

@@ -28,7 +28,8 @@ def _declared(route) -> frozenset[str]:
     """The query parameter names of a route and its dependencies (cached on it)."""
     names = getattr(route, "_declared_query", None)
     if names is None:
-        found, todo = set(), [route.dependant]
+        found: set[str] = set()
+        todo = [route.dependant]
         while todo:
             dep = todo.pop()
             found.update(p.alias for p in dep.query_params)

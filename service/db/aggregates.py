@@ -1,4 +1,4 @@
-"""A running job's summary aggregated inside the database (issue 13, bounded reads).
+"""A running job's summary aggregated inside the database (bounded reads).
 
 What :func:`svrobs_core.records.summarize_columns` computes from the rows (count,
 mean and std with ddof 0 of every summary field per (system, sigma_w, N,

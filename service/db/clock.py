@@ -18,7 +18,7 @@ def db_now(session: Session) -> datetime:
     """The database server's current time (UTC; on SQLite, the local file's host)."""
     if session.get_bind().dialect.name == "sqlite":
         value = session.scalar(select(func.strftime("%Y-%m-%d %H:%M:%f", "now")))
-        return datetime.fromisoformat(value).replace(tzinfo=UTC)
+        return datetime.fromisoformat(str(value)).replace(tzinfo=UTC)
     return as_utc(session.scalar(select(func.now())))
 
 

@@ -1,4 +1,4 @@
-"""``GET /compare`` aggregated inside the database (issue 13, bounded reads).
+"""``GET /compare`` aggregated inside the database (bounded reads).
 
 One metric of several jobs: count, mean and std (ddof 0) of its non-null values
 per job and per combination of the ``by`` fields, one page of groups at a time
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 from sqlalchemy import Float, Integer, case, cast, func, literal, select, union_all
 from sqlalchemy.orm import Session
@@ -107,7 +108,8 @@ def compare_page(
     for j in jobs:
         source = _from_summaries if from_summaries and j.status == "succeeded" else _from_results
         parts.append(source(j.id, metric, by, shift[j.id]))
-    src = (parts[0] if len(parts) == 1 else union_all(*parts)).subquery("src")
+    both: Any = parts[0] if len(parts) == 1 else union_all(*parts)  # mypy cannot join them
+    src = both.subquery("src")
     keys = [src.c.job_id] + [src.c[b] for b in by]
     grouped = select(
         *keys,

@@ -1,6 +1,7 @@
 """SQLAlchemy 2 ORM models. Tables are created only by Alembic (migrations/).
 
-Result rows carry one SQL column per scalar of SPEC section 10 (booleans as
+Result rows carry one SQL column per scalar record field
+(docs/spec.md#record-fields; booleans as
 Boolean, the rest Float/Integer) and the matrices as binary, keyed on (job,
 system, sigma_w, N, estimator, gamma_key, rep) where ``gamma_key`` is gamma,
 or -1 for ols (NULLs are never equal in a key).
@@ -126,7 +127,8 @@ class Job(Base):
     name: Mapped[str | None] = mapped_column(String(200))
     tags: Mapped[list[Any]] = mapped_column(default=list)
     spec: Mapped[dict[str, Any]]
-    # what GET /jobs lists instead of the spec (jobs.spec_summary); None before issue 13
+    # what GET /jobs lists instead of the spec (jobs.spec_summary; None for a
+    # job stored before the column existed)
     spec_summary: Mapped[dict[str, Any] | None]
     status: Mapped[str] = mapped_column(String(16), default="queued")
     progress_done: Mapped[int] = mapped_column(default=0)
@@ -191,7 +193,7 @@ def _numeric_type(field: str):
     return Float
 
 
-# Columns of `results` that hold record fields, in SPEC section 10 order.
+# Columns of `results` that hold record fields, in the order of docs/spec.md#record-fields.
 RESULT_SCALAR_FIELDS = tuple(NUMERIC_FIELDS)
 RESULT_MATRIX_FIELDS = tuple(MATRIX_FIELDS)
 RESULT_KEY = ("job_id", "system", "sigma_w", "N", "estimator", "gamma_key", "rep")
@@ -249,7 +251,7 @@ class ResultConstant(Base):
 
 
 class Result(Base):
-    """One cell (SPEC section 10), keyed by its grid coordinates (the primary key;
+    """One cell (docs/spec.md#record-fields), keyed by its grid coordinates (the primary key;
     ``gamma_key`` is gamma, or -1 for ols). The compact format of migration 0005
     (``service.db.result_codec``): matrices as little-endian float64 bytes, their
     shapes from the job's spec; ``notes`` as an id into ``result_notes``;
@@ -266,7 +268,8 @@ class Result(Base):
     __tablename__ = "results"
     __table_args__ = {"sqlite_with_rowid": False}
 
-    # One column per numeric field and per matrix field, named exactly as in SPEC section 10
+    # One column per numeric field and per matrix field, named exactly as in
+    # docs/spec.md#record-fields
     # (a class body's namespace is a plain dict, so the loop can add them).
     _ns = locals()
     for _f in RESULT_COLUMN_ORDER:

@@ -36,6 +36,7 @@ def git_commit() -> str | None:
 
 @lru_cache
 def _static_provenance() -> dict:
+    version: str | None
     try:
         version = importlib.metadata.version("svrobs")
     except importlib.metadata.PackageNotFoundError:  # pragma: no cover

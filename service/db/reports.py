@@ -10,6 +10,8 @@ record dicts, and no ``A_hat``/``B_hat`` above ``MATRIX_CELLS_LIMIT`` cells
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
@@ -107,7 +109,7 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
         k = len(part)
         columns = list(zip(*part))
         for i, f in enumerate(SCALAR_FIELDS):
-            col = columns[i]
+            col: Any = columns[i]
             if f in BOOL_FIELDS:
                 col = [None if v is None else float(v) for v in col]
             data[f][at : at + k] = np.array(col, dtype=float)  # None -> nan

@@ -1,14 +1,15 @@
-"""The compact storage of section 10 records in ``results`` (SPEC section 10).
+"""The compact storage of records (docs/spec.md#record-fields) in ``results``.
 
 A job's rows are decoded with its spec (:class:`ResultCodec`): each matrix field
 is stored as its entries, row-major little-endian float64, with no shape (the
 shape follows from the system's n, m, p: A_hat and radii_A n x n, B_hat and
 radii_B n x m, L and K n x p), or as 8 bytes when every entry is the same
 float; a non-finite entry (the records' null) is read back as None. A matrix that is the same in every cell of a (system, sigma_w) of the
-job (K, the true system's Kalman gain: SPEC section 5) is stored once in
+job (K, the true system's Kalman gain: docs/science.md#5-the-optimal-gain-k) is stored once in
 ``result_constants`` and as zero bytes in its rows; a radius matrix whose every
 entry is its row's scalar radius (radii_A = r_A, radii_B = r_B: the paper's
-bounds, SPEC section 3) is stored as zero bytes too (migration 0007). ``seed_key`` is stored
+bounds, docs/science.md#33-lemma-2-entrywise-intervals) is stored as zero bytes too (migration
+0007). ``seed_key`` is stored
 only when it differs from the one the spec gives a cell: ``[system index,
 sigma_w index, N, rep]``. Reads decode a batch of rows at once (one
 ``numpy.frombuffer`` per field and system). A dataset job's shapes come from its

@@ -119,7 +119,7 @@ def rows_query(conds: Sequence, order: Sequence, *, limit=None, offset: int = 0)
 
 
 def page_rows(session: Session, conds, order, *, limit: int, offset: int) -> list:
-    return session.execute(rows_query(conds, order, limit=limit, offset=offset)).all()
+    return list(session.execute(rows_query(conds, order, limit=limit, offset=offset)).all())
 
 
 def row_chunks(session: Session, query: Select, size: int) -> Iterator[Sequence]:

@@ -1,4 +1,4 @@
-"""Section 10 records <-> ``results`` rows (SPEC section 10): one upsert on the
+"""Records (docs/spec.md#record-fields) <-> ``results`` rows: one upsert on the
 cell key, from record dicts or straight from a unit's column arrays; and stored
 rows back to records (:func:`record_select`, :func:`decode_rows`).
 
@@ -135,7 +135,7 @@ _IDX = {f: i for i, f in enumerate(RECORD_FIELDS)}
 
 
 def decode_rows(rows: Sequence[Sequence], codec: ResultCodec) -> list[dict]:
-    """Rows of :func:`record_select` -> section 10 records (a batch at a time)."""
+    """Rows of :func:`record_select` -> records (a batch at a time)."""
     if not rows:
         return []
     cols = list(zip(*rows))
@@ -159,7 +159,7 @@ def load_records(session: Session, job_id: int, *conds, ordered: bool = True) ->
 
 
 def count_cells(spec: dict, system, sigma_w, N, estimator, gamma_key, rep) -> int:
-    """How many cells of the job's grid (SPEC section 10) match the filters (each a list
+    """How many cells of the job's grid (docs/spec.md#grid-size) match the filters (each a list
     of values, or None for all): the row count of a selection of a job whose every
     cell is stored (a succeeded job), without counting rows."""
     s = parse_spec(spec)
@@ -216,7 +216,7 @@ def _clean_matrix(v):
 
 
 def record_to_row(job_id: int, record: dict) -> dict:
-    """A section 10 record -> a ``results`` row (NaN/inf -> NULL, numpy -> Python)."""
+    """A record -> a ``results`` row (NaN/inf -> NULL, numpy -> Python)."""
     row = {"job_id": job_id}
     get = record.get
     for f in RESULT_SCALAR_FIELDS:

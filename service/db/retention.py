@@ -1,4 +1,4 @@
-"""Retention (issue 13, item 2): a team may have the cell rows of its scheduled jobs
+"""Retention: a team may have the cell rows of its scheduled jobs
 dropped K days after they finished, keeping the job, its summaries and its stored
 report. Off by default (``teams.retention_days`` NULL).
 

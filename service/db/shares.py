@@ -1,4 +1,4 @@
-"""Share links (issue 11): a read-only link to one job's report and charts.
+"""Share links: a read-only link to one job's report and charts.
 
 The link carries a random token (``secrets.token_urlsafe(32)``, 256 bits); only its
 SHA-256 is stored, and a lookup compares the digests in constant time

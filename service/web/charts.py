@@ -1,7 +1,7 @@
 """Chart data of the job page, from the stored summaries (never the result rows).
 
 A summary group is one (system, σ_w, N, estimator, γ) with ``stats[field] = {mean,
-std, count}`` (std with ddof 0, SPEC section 10). A chart puts one grid coordinate
+std, count}`` (std with ddof 0, docs/spec.md#summaries). A chart puts one grid coordinate
 on the x axis (N, σ_w or γ); each remaining combination of system, σ_w and N is a
 panel, and each (estimator, γ) a line of a panel. OLS has no γ: against γ it is a
 flat reference line at its value for that panel.

@@ -1,4 +1,4 @@
-"""The report's figure series as chart presets of the job page (issue 14: the dashboard
+"""The report's figure series as chart presets of the job page (the dashboard
 and the figures share their choice of what to plot).
 
 A preset is a row of :data:`svrobs_core.report.FIGURE_SERIES` that the stored
@@ -109,7 +109,8 @@ def preset_chart(groups: list[dict], spec: dict | None, s: FigureSeries) -> dict
     out, values = [], []
     for pkey, p in panels.items():
         xs = sorted({n for ln in p["lines"] for n in ln["N"]})
-        series, colours = [], {}
+        series: list[dict] = []
+        colours: dict[tuple, int] = {}
         for ln in p["lines"]:
             # estimator lines of one other key share a colour, SVR dashed (as the figures)
             rest = tuple(v for f, v in ln["line"].items() if f != "estimator")

@@ -1,7 +1,8 @@
-"""Table 2 and the RMSE findings of the job page, from the stored summaries (issue 11),
+"""Table 2 and the RMSE findings of the job page, from the stored summaries,
 never from the result rows.
 
-Table 2 (SPEC section 9) is, per system, σ_w and matrix, the mean over the N grid of
+Table 2 (docs/science.md#9-the-papers-section-6-as-a-preset) is, per system, σ_w and matrix,
+the mean over the N grid of
 the mean over the repetitions at each N. A summary group is one (system, σ_w, N,
 estimator, γ) and its ``mean`` is that mean over the repetitions, so a group taken
 as one record carrying its means gives the report's own :func:`table2` and finding

@@ -236,7 +236,8 @@ def _estimate_norms(A_hat, B_hat, C, K) -> _cb.TrueSystemNorms:
 
 def _sls(c: Cells, b, K, norms):
     """J_opt by SLS on the estimate (cvxpy + Clarabel, one program per cell) and
-    the paper's bound on it, with the estimate's K and norms (SPEC section 8)."""
+    the paper's bound on it, with the estimate's K and norms
+    (docs/science.md#8-sls-sub-optimal-observer-j_opt)."""
     from .. import sls as _sls
 
     spec, sys_ = c.spec, c.system

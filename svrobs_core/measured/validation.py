@@ -203,7 +203,7 @@ def _cross(eps: list, U: list, h: int, names) -> tuple:
     s_u = np.sum(np.concatenate(uc) ** 2, axis=0)
     rho = np.zeros((ny, m, h + 1))
     S = np.full((ny, m), np.nan)
-    notes = []
+    notes: list[str] = []
     if not m:
         return rho, S, notes
     with np.errstate(divide="ignore", invalid="ignore"):

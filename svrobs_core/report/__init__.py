@@ -1,4 +1,4 @@
-"""Tables, figures, findings and the Markdown report, from section 10 records.
+"""Tables, figures, findings and the Markdown report, from records (docs/spec.md#record-fields).
 
 Pure: records (or :class:`Columns` built from them) in; rows, strings,
 matplotlib ``Figure`` objects and bytes out. Nothing here writes files or

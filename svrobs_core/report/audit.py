@@ -1,4 +1,4 @@
-"""The audit of the uncertainty sets (issue 12, SPEC section 3.1): per
+"""The audit of the uncertainty sets (docs/uncertainty.md#in-the-service): per
 bounds_method, how often the box covers the truth, how wide it is, and from
 which N it certifies the paper's systems stable.
 
@@ -242,7 +242,7 @@ def fig_bounds_audit(
     One colour and marker per bounds_method; SVR at the table's γ solid with filled
     markers, OLS dashed with open markers. A method whose share is 1 at every N0
     of a system is a caption note there, not a flat line; identical curves are
-    drawn once (SPEC section 3.1, issue 12)."""
+    drawn once (docs/uncertainty.md#in-the-service)."""
     srcs = {m: as_columns(c) for m, c in sources.items()}
     meta = Meta(delta=delta, seed=seed)
     level = 1 - delta

@@ -92,7 +92,7 @@ class Report:
     table2_source: str | None
     figures: list[ReportFigure]
     provenance: dict
-    # the uncertainty-set audit (issue 12): rows of audit.audit_rows, its findings,
+    # the uncertainty-set audit: rows of audit.audit_rows, its findings,
     # and bounds_method -> the experiment it was computed from
     audit: list[dict] = field(default_factory=list)
     audit_findings: list[str] = field(default_factory=list)
@@ -305,7 +305,7 @@ class ReportBuilder:
         )
 
     def _audit(self, experiments, figs):
-        """The uncertainty-set audit when two or more bounds_methods ran (issue 12)."""
+        """The uncertainty-set audit when two or more bounds_methods ran."""
         sources = audit_sources(experiments, self.cols)
         if len(sources) < 2:
             return [], [], {}

@@ -1,6 +1,6 @@
 """The records as column arrays, and the helpers every table, figure and finding uses.
 
-:class:`Columns` holds the section 10 record fields the report reads as numpy
+:class:`Columns` holds the record fields the report reads as numpy
 arrays; :func:`spec_meta` the parts of the spec it needs (δ, seed, γ_ref,
 stages, the true system matrices). Then selection (:func:`select`), grouping
 (:func:`group_indices`, :func:`by_N`) and number formatting (:func:`fmt_num`).

@@ -202,7 +202,7 @@ def fig5(records, spec=None, *, experiment: str | None = "E4"):
         label_panel(axd, f"r − r({names[0]})", None, n0_ratio(cols, pm))
         gaps.append((big[0], f"{system}, {big[1]}, N0={big[2]:g}", names[0]))
     kinds = [
-        legend_line(ls="-", label="r of the mean exact costs (SPEC 9)"),
+        legend_line(ls="-", label="r of the mean exact costs"),
         legend_line(ls="--", lw=0.8, label="mean of per-repetition cost_ratio"),
     ]
     grid_legend(fig, [[series_handle(n, st) for n, st in styles.items()], kinds])

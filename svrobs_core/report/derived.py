@@ -1,6 +1,6 @@
 """Per-record quantities derived from several fields: entry errors and Lemma 2
-interval ends (SPEC section 3), SVR minus OLS on the same data, and the first N
-at which the stability certificate holds."""
+interval ends (docs/science.md#33-lemma-2-entrywise-intervals), SVR minus OLS on
+the same data, and the first N at which the stability certificate holds."""
 
 from __future__ import annotations
 
@@ -123,7 +123,8 @@ def ratio_to_reference(cols: Columns, m, mr, values):
 
 
 def cost_ratio_of_means(cols: Columns, system: str, gamma: float, gamma_ref: float):
-    """r(N) = |mean J_γ − mean J_ref| / mean J_ref with J the exact cost (SPEC 9)."""
+    """r(N) = |mean J_γ − mean J_ref| / mean J_ref with J the exact cost
+    (docs/science.md#92-how-the-tables-and-figures-aggregate)."""
     m = select(cols, system=system, estimator="svr", gamma=gamma)
     mr = select(cols, system=system, estimator="svr", gamma=gamma_ref)
     x, Ns, r, _ = ratio_to_reference(cols, m, mr, cols["J_exact"])

@@ -2,7 +2,8 @@
 coverage and SVR minus OLS (the cost figures are in ``cost_figures``).
 
 Each is ``f(records, spec=None, *, experiment=...) -> matplotlib.figure.Figure``;
-records are section 10 dicts or :class:`~svrobs_core.report.columns.Columns`.
+records are record dicts (docs/spec.md#record-fields) or
+:class:`~svrobs_core.report.columns.Columns`.
 What is plotted comes from :data:`~svrobs_core.report.series.FIGURE_SERIES`;
 the look from :mod:`~svrobs_core.report.style`. Curves that coincide get a
 difference panel and a caption note with the largest gap (``fig.svrobs_notes``).

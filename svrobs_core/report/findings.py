@@ -1,5 +1,6 @@
 """Findings: statements generated from the records on where the paper's claims
-hold here and where not, with counts (SPEC sections 3-7, 9)."""
+hold here and where not, with counts (docs/science.md sections 3-7 and
+#93-what-the-reproduction-shows)."""
 
 from __future__ import annotations
 
@@ -155,7 +156,7 @@ def _f_coverage(cols: Columns, meta: Meta) -> list[str]:
 
 
 def _f_box_coverage(cols: Columns, meta: Meta) -> list[str]:
-    """A sound method's box (SPEC section 3.1) must hold for every entry of A and
+    """A sound method's box (docs/uncertainty.md) must hold for every entry of A and
     of B at once with probability >= 1 - delta: check that share per group."""
     level = 1 - meta.delta
     ok = np.isfinite(cols["coverage_A"]) & np.isfinite(cols["coverage_B"])
@@ -220,9 +221,9 @@ def _f_stable_certified(cols: Columns, meta: Meta) -> list[str]:
         return out
     claim = PUBLISHED_CLAIMS["stable_after_sample_length"]
     box_name = (
-        "of SPEC section 3"
+        "of the paper's bounds (docs/science.md#35-stability-certificate-of-a)"
         if meta.bounds_method == "paper"
-        else f"on the {meta.bounds_method} box (SPEC section 3.1)"
+        else f"on the {meta.bounds_method} box (docs/uncertainty.md)"
     )
     first = first_stable_certified(cols)
     by_sys: dict[str, list[str]] = {}

@@ -12,7 +12,8 @@ Symbolic values in ``where``: ``"table"`` (γ of Table 2, 0.05, for SVR; OLS
 has no γ), ``"sigma_ref"`` (σ_w = 1 if present), ``"gamma_ref"`` (the spec's
 γ_ref), ``"system_S"`` (the stable system). ``stat``: ``mean`` (over the
 repetitions at one N), ``share_negative`` (share of repetitions < 0),
-``ratio_of_means`` (|mean_γ − mean_ref| / mean_ref, SPEC section 9; computable
+``ratio_of_means`` (|mean_γ − mean_ref| / mean_ref,
+docs/science.md#92-how-the-tables-and-figures-aggregate; computable
 from summaries' means). ``derived`` rows need the records (matrices), not the
 summaries.
 """
@@ -176,7 +177,7 @@ FIGURE_SERIES: tuple[FigureSeries, ...] = (
         where=(("estimator", "svr"),),
         lines=("gamma", "sigma_w"),
     ),
-    # the uncertainty-set audit (issue 12): one set of these lines per bounds_method,
+    # the uncertainty-set audit: one set of these lines per bounds_method,
     # each from its own experiment (a job has one bounds_method)
     _fs(
         "fig_bounds_audit",
@@ -353,7 +354,8 @@ def series_lines(cols: Columns, meta: Meta, s: FigureSeries, panel_mask, ctx: di
 
 
 def _ratio_lines(cols: Columns, s: FigureSeries, m, ctx) -> list[Line]:
-    """|mean_γ − mean_ref| / mean_ref per N (SPEC section 9), γ ≠ γ_ref."""
+    """|mean_γ − mean_ref| / mean_ref per N
+    (docs/science.md#92-how-the-tables-and-figures-aggregate), γ ≠ γ_ref."""
     from .derived import ratio_to_reference
 
     vals = cols[s.field]

@@ -1,4 +1,5 @@
-"""Table 2 (SPEC section 9): our OLS and SVR RMSE beside the paper's published values.
+"""Table 2: our OLS and SVR RMSE beside the paper's published values
+(docs/science.md#92-how-the-tables-and-figures-aggregate).
 
 :func:`table2` -> rows; :func:`table2_markdown` and :func:`table2_csv` render them.
 """
@@ -39,7 +40,8 @@ def table_gamma(cols: Columns, gamma) -> float | None:
 
 
 def mean_over_reps_then_N(cols: Columns, mask, f: str) -> tuple[float | None, int, int]:
-    """Mean over repetitions per N, then mean over N (SPEC section 9 Decision)."""
+    """Mean over repetitions per N, then mean over N
+    (docs/science.md#92-how-the-tables-and-figures-aggregate)."""
     _, _, means, counts = by_N(cols, mask, cols[f], mean_of)
     ok = np.isfinite(means)
     if not ok.any():
@@ -144,7 +146,8 @@ def table2_markdown(rows: list[dict]) -> str:
         lines.append(
             f"RMSE = sqrt(mean of squared entry errors) of one estimate, averaged over the "
             f"{reps} repetitions at each N and then over the {n_N} values of N "
-            f"(SPEC section 9); SVR with γ = {fmt_num(g)}. The paper columns are the paper's "
+            "(docs/science.md#92-how-the-tables-and-figures-aggregate); "
+            f"SVR with γ = {fmt_num(g)}. The paper columns are the paper's "
             f"published Table 2 values, not results of this run."
             + (f" {rows[0]['paper_note']}" if rows[0].get("paper_note") else "")
         )

@@ -61,6 +61,21 @@ def job_id(stack, spec_file):
     return jid
 
 
+def test_submit_print_id(stack, spec_file, http):
+    """``--print-id``: stdout is the job id alone (for ``job=$(svrobs submit ...)``); the
+    submit and final lines go to stderr."""
+    proc = run_process(stack, "submit", spec_file, "--name", "pid", "--wait", "--print-id")
+    assert proc.returncode == 0, proc.stderr
+    jid = int(proc.stdout)
+    assert proc.stdout == f"{jid}\n"
+    job = http.get(f"/jobs/{jid}").json()
+    assert job["name"] == "pid" and job["status"] == "succeeded"
+    lines = proc.stderr.splitlines()
+    assert lines[0].startswith(f"job {jid} queued") and lines[-1].startswith(f"job {jid} succeeded")
+    proc = run_process(stack, "submit", spec_file, "--print-id")  # without --wait
+    assert proc.returncode == 0 and http.get(f"/jobs/{int(proc.stdout)}").json()["spec"]
+
+
 def test_status(run, job_id, http):
     code, out, err = run("status", job_id)
     assert code == 0, err

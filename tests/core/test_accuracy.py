@@ -1,4 +1,4 @@
-"""Accuracy of the estimators against an extended-precision oracle (issue 10, item 1).
+"""Accuracy of the estimators against an extended-precision oracle.
 
 The oracle is the ridge / least-squares solution of the same float64 data in
 60-digit arithmetic (mpmath): Theta = F Z^T (Z Z^T + g I)^-1. SVR (both loss
@@ -103,7 +103,7 @@ def test_well_conditioned_svr_is_the_eigh_formula_bit_for_bit():
 
 
 def test_issue_spec_gives_a_small_error_and_no_false_certificate():
-    """Issue 10 item 1: paper-unstable, T0 = 1000, N = 3 (cond(Z Z^T) ~ 1e17)."""
+    """paper-unstable, T0 = 1000, N = 3 (cond(Z Z^T) ~ 1e17)."""
     spec = parse_spec(
         {
             "systems": ["paper-unstable"],

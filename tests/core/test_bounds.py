@@ -1,4 +1,4 @@
-"""Tests of svrobs_core.bounds (SPEC section 3).
+"""Tests of svrobs_core.bounds (docs/science.md#3-error-bounds-theorem-1-lemma-2-corollary-1).
 
 The formulas are re-written here independently (scalar math, loops) and compared
 with the vectorised implementation; coverage and Theorem 1 on hand-made cases.

@@ -1,5 +1,5 @@
 """bounds_method in the spec, the gain design on a radius matrix and the pipeline
-(SPEC section 3.1, issue 12).
+(docs/uncertainty.md).
 
 Oracles: a loop for g(L) with a radius matrix; SLSQP on the design problem;
 the scalar design (R_A = r 11^T must give the same gain); the uncertainty

@@ -1,4 +1,4 @@
-"""Observer cost J (SPEC section 6): exact finite horizon vs an independent
+"""Observer cost J (docs/science.md#6-observer-cost-j): exact finite horizon vs an independent
 naive 2n covariance propagation and vs Monte Carlo; stationary vs scipy's
 Lyapunov solver on the full augmented system and vs the long-horizon limit."""
 

@@ -1,4 +1,4 @@
-"""Theorem 3 cost bound (SPEC section 7), recomputed inside the test from
+"""Theorem 3 cost bound (docs/science.md#7-cost-bound-theorem-3), recomputed inside the test from
 python-control / scipy norms."""
 
 from __future__ import annotations
@@ -184,7 +184,7 @@ def test_theorem3_unstable_observer_and_missing_gain():
 
 def test_theorem3_paper_cell_sanity():
     """On the paper's S system, a bound for a model near the truth: J_b is
-    finite and positive, and the SPEC's Delta J = J_b - J can be formed."""
+    finite and positive, and Delta J = J_b - J can be formed."""
     K = kalman(A_S, np.eye(3), SW, SV)
     tn = true_system_norms(A_S, B_P, np.eye(3), K)
     assert isinstance(tn, TrueSystemNorms)

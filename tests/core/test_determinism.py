@@ -1,5 +1,5 @@
 """Every field, J_opt included, is bit-identical however the grid is split and
-whichever process runs it (issue 10, item 4; SPEC section 1).
+whichever process runs it (docs/science.md#14-randomness-and-reproducibility).
 
 cvxpy's first solve of a freshly compiled SLS program gave J_opt in other last
 bits than later solves, so a cell's J_opt depended on the cells solved before

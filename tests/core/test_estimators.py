@@ -1,4 +1,4 @@
-"""Tests of svrobs_core.estimators against independent oracles (SPEC section 2).
+"""Tests of svrobs_core.estimators against independent oracles (docs/science.md#2-estimators).
 
 Oracles: the constrained primal QP of eq:SVR (cvxpy + Clarabel, tight tolerances),
 the Appendix A dual (alpha = (Z^T Z + gamma I)^-1 f_i^T, theta = alpha^T Z^T),
@@ -25,7 +25,7 @@ from svrobs_core.estimators import (
     svr_from_gram,
 )
 
-RTOL = 1e-8  # the agreement SPEC section 2 asks for
+RTOL = 1e-8  # the agreement docs/science.md#2-estimators asks for
 GAMMAS = (0.3, 3.0)  # large enough that SVR differs from OLS by >> RTOL on this data
 
 
@@ -183,8 +183,8 @@ def test_ols_is_accurate_on_ill_conditioned_data():
 
 
 def paper_noise_free_data(N, T0=11, seed=13):
-    """The paper's stable system with sigma_w = 0 (allowed by SPEC section 1): x_k lies near
-    the Krylov directions of (A, B), kappa(Z) ~ 6e3, the hardest realistic case."""
+    """The paper's stable system with sigma_w = 0 (allowed: docs/science.md#11-the-system):
+    x_k lies near the Krylov directions of (A, B), kappa(Z) ~ 6e3, the hardest realistic case."""
     rng = np.random.default_rng(seed)
     A = np.array([[0.9, 0.01, 0], [0.01, 0.9, 0.01], [0, 0.01, 0.9]])
     B = np.array([[1.0], [1.5], [2.0]])

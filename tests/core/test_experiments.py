@@ -1,4 +1,4 @@
-"""The runner (SPEC section 10): records contract and bit-identical reproducibility."""
+"""The runner (docs/spec.md#record-fields): records contract and bit-identical reproducibility."""
 
 import json
 import subprocess
@@ -104,7 +104,8 @@ def test_null_fields_have_notes(small):
         if r["rep"] >= 1:
             assert r["J_mc"] is None and "J_mc" in r["notes"]
         if r["J_mc"] is not None:
-            # exact and Monte Carlo agree within 4 standard errors (SPEC 6)
+            # exact and Monte Carlo agree within 4 standard errors
+            # (docs/science.md#6-observer-cost-j)
             assert abs(r["J_mc"] - r["J_exact"]) < 4 * r["J_mc_se"] + 1e-12
     est_only = records(parse_spec({**SMALL, "stages": ["estimate"], "reps": 1}))
     assert all(r["L"] is None and "stages not run: bounds, gain" in r["notes"] for r in est_only)

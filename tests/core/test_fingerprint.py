@@ -1,11 +1,10 @@
-"""Pins the records of a fixed multi-system spec with every stage (issue 9: a
-restructure must not change a bit). The hash was taken before the restructure;
-a change that alters records on purpose updates it and says why in its commit.
+"""Pins the records of a fixed multi-system spec with every stage: a change of
+structure must not change a bit, and a change that alters records on purpose
+updates the hash and says why in its commit.
 
-Issue 12 added record fields (bounds_method, R_A, R_B): the hash of the
-records restricted to the fields that existed before (``FIELDS_V1``, in their
-order) is still the one taken before the restructure, so no pre-existing value
-changed; ``FINGERPRINT`` pins the full records."""
+``FINGERPRINT_V1`` hashes the records restricted to ``FIELDS_V1`` (every field
+but bounds_method, radii_A and radii_B, in their order), so a change that only
+adds record fields leaves it as it is; ``FINGERPRINT`` pins the full records."""
 
 import hashlib
 import json
@@ -39,20 +38,12 @@ SPEC = {
 }
 
 # sha256 of the records (one JSON line each, keys in contract order) restricted
-# to FIELDS_V1. Taken on commit 369bee5, before the restructure of issue 9;
-# updated for issue 10 item 4 (every SLS solve takes cvxpy's cached-parameter
-# path: J_opt changed in the last bits, 34 of 120 records, at most 3.3e-15
-# relative) and for the outward-rounded certificates (rho_upper_bound and g_L
-# are upper bounds: a Collatz-Wielandt bound and rounded-up sums;
-# rho_upper_bound differs from the eigenvalue it replaced in 119 of 120
-# records by at most 2.3e-15 relative, g_L in 120 of 120 by at most 1.7e-15;
-# every other field is bit-identical, checked by comparing the records field
-# by field).
+# to FIELDS_V1; the commit that changes it says which fields changed and by how much.
 FINGERPRINT_V1 = "c1b6b4e7e96d6dc9e1adbd41e5d578864577a374ff3147c6ca0c2c961656f0e6"
-# sha256 of the full records since issue 12 (bounds_method, R_A, R_B added).
+# sha256 of the full records.
 FINGERPRINT = "bd1932b0877a5a7f5b16170c575af0d286e6430b4c3686f3217c641e5cf7eb25"
 
-# The record fields before issue 12, in contract order.
+# The record fields but bounds_method, radii_A, radii_B, in contract order.
 FIELDS_V1 = (
     "system sigma_w N N0 estimator gamma rep seed_key A_hat B_hat rmse_A rmse_B "
     "H_A H_B r_A r_B eps_A eps_B coverage_A coverage_B thm1_holds_A thm1_holds_B "

@@ -1,4 +1,5 @@
-"""Observer gains (SPEC sections 4 and 5) against independent oracles:
+"""Observer gains (docs/science.md#4-stable-observer-gain-theorem-2, #5-the-optimal-gain-k)
+against independent oracles:
 python-control's dlqe, scipy's solve_discrete_are, cvxpy + Clarabel, scipy's
 SLSQP, hand-written loops, and Monte Carlo sampling of the Lemma 2 box."""
 
@@ -27,7 +28,8 @@ from svrobs_core.kalman import (
     kalman_predictor,
 )
 
-# SPEC section 9, written out here so that these tests do not depend on systems.py
+# docs/science.md#9-the-papers-section-6-as-a-preset, written out here so that these tests do
+# not depend on systems.py
 A_S = np.array([[0.9, 0.01, 0.0], [0.01, 0.9, 0.01], [0.0, 0.01, 0.9]])
 A_U = A_S + 0.11 * np.eye(3)
 I3 = np.eye(3)
@@ -56,8 +58,8 @@ def spectral_radius(M):
 def test_kalman_gain_is_dlqe_predictor_form(A, sw):
     """python-control 0.10.2's dlqe(A, G, C, QN, RN) calls dare(A^T, C^T, G QN G^T, RN)
     and returns the transpose of dare's gain (C P C^T + R)^-1 C P A^T, i.e. the
-    *predictor* gain A P C^T (C P C^T + R)^-1 (as SPEC section 5 says), not the
-    filter gain P C^T (C P C^T + R)^-1. We check both that it equals ours and that
+    *predictor* gain A P C^T (C P C^T + R)^-1 (docs/science.md#5-the-optimal-gain-k), not
+    the filter gain P C^T (C P C^T + R)^-1. We check both that it equals ours and that
     the filter gain is measurably different here, so the comparison can tell them apart."""
     L_dlqe, P_dlqe, E = control.dlqe(A, I3, I3, sw**2 * I3, SIGMA_V**2 * I3)
     res = kalman_predictor(A, I3, sw, SIGMA_V)
@@ -355,7 +357,8 @@ def test_nan_K_hat_gives_nan_uncertified_gain():
 
 
 def test_single_cell_and_margin_band():
-    # infeasible with the margin yet g(L) = n r_A < 1: certified is g < 1 (SPEC Decision)
+    # infeasible with the margin yet g(L) = n r_A < 1: certified is g < 1
+    # (docs/science.md#102-decisions-beyond-the-paper)
     res = design_gain(A_S, 0.05, 0.996 / 3, I3, K_hat=np.zeros((3, 3)), margin=0.01)
     assert res.L.shape == (3, 3) and not res.feasible
     assert res.g_L == pytest.approx(0.996) and res.certified

@@ -1,4 +1,4 @@
-"""The certificate invariant over random extreme-but-valid specs (issue 10, item 2).
+"""The certificate invariant over random extreme-but-valid specs.
 
 A property test (hypothesis, derandomized, 400 specs in ~25 s)
 drives specs with tiny to huge M, sigma_w including 0, T0 from 1 up, small N,
@@ -13,7 +13,7 @@ exception and every record
   bound's eps, rho_upper_bound < 1 / g(L) < 1 and the gain L;
 * has a note whenever a certificate of a stage that ran is null.
 
-Plus the two reproductions of the issue: ``"M": 1e20`` and ``"T0": 10000`` on
+Plus two specs whose radii leave the double range: ``"M": 1e20`` and ``"T0": 10000`` on
 paper-unstable give null radii with a note, never 0 and a certificate.
 """
 
@@ -217,7 +217,7 @@ def test_certificates_rest_on_finite_quantities_for_random_extreme_specs(capsys)
     assert COUNTS["ran"] >= COUNTS["generated"] // 2  # mostly valid specs, not rejections
 
 
-# -- the issue's reproductions -------------------------------------------------
+# -- radii out of the double range ---------------------------------------------
 @pytest.mark.parametrize(
     "extra",
     [{"systems": ["paper-stable"], "M": 1e20}, {"systems": ["paper-unstable"], "T0": 10_000}],

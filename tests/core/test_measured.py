@@ -181,7 +181,8 @@ def test_records_equal_the_simulated_jobs_on_the_same_data():
 
 
 def theorem3(A, B, C, K, L, *, eps_A, eps_B, sigma_u, sigma_v):
-    """Theorem 3 (SPEC section 7) with scipy's Lyapunov solver and a dense grid for H-inf."""
+    """Theorem 3 (docs/science.md#7-cost-bound-theorem-3) with scipy's Lyapunov solver and a
+    dense grid for H-inf."""
     F = A - L @ C
 
     def h2(G):

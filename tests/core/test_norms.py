@@ -1,5 +1,5 @@
-"""H2 / H-infinity norms (SPEC section 7) against independent oracles:
-truncated impulse-response sums, python-control's norm(), scipy."""
+"""H2 / H-infinity norms (docs/science.md#7-cost-bound-theorem-3) against independent
+oracles: truncated impulse-response sums, python-control's norm(), scipy."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The uncertainty-set audit of the report (issue 12): rows recomputed here with
+"""The uncertainty-set audit of the report: rows recomputed here with
 plain loops over hand-made records; sources, findings and the report section."""
 
 from __future__ import annotations

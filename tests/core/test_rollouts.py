@@ -1,4 +1,5 @@
-"""Multi-rollout collection and seeding (SPEC section 1) against a naive simulator."""
+"""Multi-rollout collection and seeding (docs/science.md#1-system-and-data) against
+a naive simulator."""
 
 import numpy as np
 

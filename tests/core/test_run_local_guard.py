@@ -1,6 +1,6 @@
-"""`svrobs run-local` refuses what it cannot run, before running (issue 10, item 5).
+"""`svrobs run-local` refuses what it cannot run, before running.
 
-Each case is the issue's reproduction, run as a user runs it (a subprocess):
+Each case is a spec it refuses, run as a user runs it (a subprocess):
 one line on stderr naming the field, exit status 2, no traceback, and no
 records file left behind.
 """

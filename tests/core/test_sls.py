@@ -1,5 +1,5 @@
-"""Tests of svrobs_core.sls (SPEC section 8) against independent oracles:
-impulse responses of static-gain observers, H2 norms from Lyapunov Gramians
+"""Tests of svrobs_core.sls (docs/science.md#8-sls-sub-optimal-observer-j_opt)
+against independent oracles: impulse responses of static-gain observers, H2 norms from Lyapunov Gramians
 (scipy), a least-norm solve of the affine constraints (numpy), and the
 deadbeat solution available when C = I."""
 
@@ -76,7 +76,8 @@ def residuals(A, C, Pw, Pv, sign=-1.0):
     """(init, recursion, terminal) residuals of Phi_w[t+1] = Phi_w[t] A + sign Phi_v[t] C.
 
     sign = -1 is the convention implemented (Phi_v = Phi_w L); sign = +1 is
-    SPEC section 8 read literally.
+    the paper's printed program read literally
+    (docs/science.md#8-sls-sub-optimal-observer-j_opt).
     """
     S = Pw @ A + sign * (Pv @ C)
     init = np.abs(Pw[0] - np.eye(A.shape[0])).max()
@@ -145,7 +146,7 @@ def test_static_gain_impulse_response_is_feasible_in_implemented_convention(A, C
     # terminal condition holds up to the truncation tail Phi_w[T] (A - LC) = M^T
     tail = np.abs(np.linalg.matrix_power(A - L @ C, T)).max()
     assert term == pytest.approx(tail, abs=1e-14) and term < 1e-12
-    # SPEC section 8 read literally (+Phi_v C) rejects the paper's own Phi_v = Phi_w L ...
+    # the paper's program read literally (+Phi_v C) rejects the paper's own Phi_v = Phi_w L ...
     _, rec_lit, _ = residuals(A, C, Pw, Pv, sign=+1.0)
     assert rec_lit > 0.1
     # ... and accepts Phi_v = -Phi_w L instead, making its objective Phi_w (K + L).

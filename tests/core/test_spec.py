@@ -1,4 +1,4 @@
-"""Spec and system validation (SPEC section 10): every bad input names its field."""
+"""Spec and system validation (docs/spec.md#validation-errors): every bad input names its field."""
 
 import math
 
@@ -96,7 +96,7 @@ def test_custom_system_and_flat_B_column():
         ({"sls": {"T_fir": 1}}, "sls.T_fir"),
         ({"sls": {"horizon": 3}}, "sls.horizon"),
         ({"colour": "red"}, "colour"),
-        # issue 10, item 5: strict types, hard caps, field paths
+        # strict types, hard caps, field paths
         ({"reps": 3.0}, "reps"),
         ({"reps": True}, "reps"),
         ({"T0": "11"}, "T0"),

@@ -1,9 +1,8 @@
-"""A stage brings what it needs (issue 10, item 3; docs/spec.md "Stages and what they need").
+"""A stage brings what it needs (docs/spec.md#stages-and-what-they-need).
 
-`sls` used to run only inside the cost stage: with `["estimate", "bounds", "sls"]`
-or `["estimate", "bounds", "gain", "sls"]` its fields stayed null without a
-note. It now computes the true system's K and norms itself; its values are
-the ones the full chain gives for the same cells.
+`sls` computes the true system's K and norms itself, so with
+`["estimate", "bounds", "sls"]` or `["estimate", "bounds", "gain", "sls"]` its
+values are the ones the full chain gives for the same cells.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""summarize / summarize_columns (SPEC section 10 summary.json) against a per-group
+"""summarize / summarize_columns (summary.json, docs/spec.md#summaries) against a per-group
 loop written here: mean and std (ddof 0) of the non-null values, booleans as 0/1."""
 
 from __future__ import annotations

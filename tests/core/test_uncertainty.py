@@ -1,4 +1,4 @@
-"""Tests of svrobs_core.uncertainty (SPEC section 3.1, docs/uncertainty.md).
+"""Tests of svrobs_core.uncertainty (docs/uncertainty.md).
 
 Oracles: the formulas re-written here with explicit inverses, slogdet and
 loops; Monte Carlo coverage on a 2-state system used nowhere else; the
@@ -98,7 +98,7 @@ def test_self_normalized_radii_match_the_formula(n, m):
 def test_spectral_bound_is_attained_and_below_the_issue_bound():
     """eps_A is the max of ||Delta_A|| over {||Delta_i||_V <= beta}: the worst Delta
     built in the proof reaches it, random Deltas on the set stay below it, and it
-    is below the issue's sqrt(n) beta / sqrt(lambda_min(V))."""
+    is below the simpler sqrt(n) beta / sqrt(lambda_min(V))."""
     rng = np.random.default_rng(3)
     n, m = 3, 1
     d = n + m

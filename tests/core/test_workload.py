@@ -142,7 +142,7 @@ def test_records_do_not_depend_on_the_memory_split():
     assert a == b
 
 
-# -- admission (issue 10, items 5 and 6) -----------------------------------------
+# -- admission -----------------------------------------
 ISSUE_MC = {
     "systems": ["paper-stable"],
     "sigma_w": [0.1],

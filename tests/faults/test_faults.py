@@ -72,7 +72,7 @@ TINY = {
     "stages": ["estimate", "bounds"],
     "seed": 3,
 }
-N_KILLS = 20  # fixed by the issue
+N_KILLS = 20  # twenty kills of a worker child mid-unit
 
 
 # --------------------------------------------------------------------------- helpers

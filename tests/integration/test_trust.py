@@ -1,4 +1,4 @@
-"""Issue 10, service side, through real processes (embedded stack, and PostgreSQL +
+"""Trust, service side, through real processes (embedded stack, and PostgreSQL +
 Redis when the SVROBS_TEST_* URLs are set): fair share between teams, cancel that
 stops running work, leases that end the units of a dead worker, permanent failures
 failed at once, admission by estimated work.
@@ -330,7 +330,7 @@ def test_permanent_failure_fails_at_once(stack, db):
 def test_heavy_spec_is_refused_by_its_estimated_work(stack):
     """A spec within the core's hard caps but ~2.6 h of CPU is a 422 naming the field
     that weighs most, the estimate and the limit, on POST /jobs and as a schedule's
-    template; issue 10 item 6's spec is over a hard cap (`mc_runs`); nothing is queued."""
+    template; a cell of ~11 h (`mc_runs` = 10^6, `horizon` = 10^5) is over a hard cap (`mc_runs`); nothing is queued."""
     with stack.client() as c:
         before = c.get("/jobs").json()["total"]
         r = c.post("/jobs", json=HEAVY)

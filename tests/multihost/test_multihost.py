@@ -1,4 +1,4 @@
-"""Several hosts (issue 13, item 5): the API (with beat) and two workers, each in its
+"""Several hosts: the API (with beat) and two workers, each in its
 own network namespace with its own hostname, working folder and HOME, against a
 PostgreSQL and a Redis this test starts on this machine's ends of the veth pairs.
 Nothing is shared but the two servers: no filesystem (each host's folders are

@@ -1,15 +1,15 @@
-"""Regression tests for bugs the fault tests (tests/faults) found.
+"""Two failures the fault tests (tests/faults) exercise, checked in process.
 
-A unit that keeps killing its worker was failed after K attempts with "last
-error: none": the job did not say what killed the worker. The worker's main
-process now records it on the unit (``units.note_unit_error``).
+A unit that keeps killing its worker fails after K attempts, and the job says
+what killed the worker: the worker's main process records it on the unit
+(``units.note_unit_error``).
 
-A Redis restarted without persistence has lost its queue. The relay used to
-re-publish the lost work units only PUBLISH_RETRY_SECONDS (10 min by default)
-after their last publication, so a sweep stalled for up to ten minutes. Now the
-relay keeps a marker key in the broker's Redis database (``broker_epoch``): the
-marker and the queue live and die together, and units published before the
-marker's time are re-published at the next tick.
+A Redis restarted without persistence has lost its queue. Waiting for
+PUBLISH_RETRY_SECONDS (10 min by default) after the units' last publication
+would stall a sweep that long, so the relay keeps a marker key in the broker's
+Redis database (``broker_epoch``): the marker and the queue live and die
+together, and units published before the marker's time are re-published at the
+next tick.
 """
 
 from __future__ import annotations

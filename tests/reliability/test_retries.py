@@ -1,4 +1,4 @@
-"""Issue 10, item 9: only transient failures are retried.
+"""Only transient failures are retried.
 
 A unit whose computation raises MemoryError or a ValueError/SpecError of the core
 fails at once (attempt 1) with the reason, and its job with it; a database or broker

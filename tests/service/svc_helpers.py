@@ -74,8 +74,7 @@ def scope_of(session_factory):
     return scope
 
 
-# issue 10, item 6: one cell of about 11 h of CPU (now over the core's hard cap on
-# mc_runs * horizon); the core's admission tests use the same cell at 10^4 x 10^4
+# one cell of about 11 h of CPU (over the core's hard cap on mc_runs * horizon); the core's admission tests use the same cell at 10^4 x 10^4
 ITEM6_SPEC = {**ISSUE_MC, "mc_runs": 1_000_000, "horizon": 100_000}
 # one small unit
 TINY_SPEC = {

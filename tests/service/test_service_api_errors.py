@@ -1,5 +1,5 @@
 """Only validation errors are 4xx: a fault inside the core during a submission is a
-JSON 500 that carries no internals, and its traceback is in the log (issue 9)."""
+JSON 500 that carries no internals, and its traceback is in the log."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""REST (issue 11, item 4): unknown query parameters, results sort and range filters
+"""REST: unknown query parameters, results sort and range filters
 (against an independent sort/filter of the JSONL export), the bearer scheme and the
 offline docs, plain-words union errors, and the schedules' seed policy."""
 

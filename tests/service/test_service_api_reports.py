@@ -1,4 +1,4 @@
-"""REST: the paper preset run and the HTML job report (issue 4)."""
+"""REST: the paper preset run and the HTML job report."""
 
 from __future__ import annotations
 

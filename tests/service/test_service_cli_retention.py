@@ -1,4 +1,4 @@
-"""``svrobs admin set-retention`` on a real database (issue 13, item 2)."""
+"""``svrobs admin set-retention`` on a real database."""
 
 from __future__ import annotations
 

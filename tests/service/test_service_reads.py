@@ -1,4 +1,4 @@
-"""Bounded reads (issue 13, item 3): the report read as columns and stored once,
+"""Bounded reads: the report read as columns and stored once,
 compare aggregated in the database and paginated, GET /jobs with a spec summary.
 
 Oracles: the report built from the records decoded row by row

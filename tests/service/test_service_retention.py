@@ -1,4 +1,4 @@
-"""Retention (issue 13, item 2): a team's scheduled jobs lose their cell rows K days
+"""Retention: a team's scheduled jobs lose their cell rows K days
 after they finished; summary, compare by group fields and the report keep working,
 the results routes answer 410. Oracles: the summary, compare and report of the
 same job before pruning (the report from its records decoded row by row)."""

@@ -1,4 +1,4 @@
-"""Security checks not covered elsewhere (issue 5, item 4): the constant-time key
+"""Security checks not covered elsewhere: the constant-time key
 compare behind the prefix lookup, the expiry boundary, mass assignment on every body,
 and the queued-jobs cap on the preset route. (Revocation, expiry, per-key rate limit,
 body limit, the jobs cap, cross-team 404s and JSON-only Celery are tested in

@@ -1,4 +1,4 @@
-"""Issue 10, service side, in process (SQLite, and PostgreSQL when SVROBS_TEST_DATABASE_URL
+"""Trust, service side, in process (SQLite, and PostgreSQL when SVROBS_TEST_DATABASE_URL
 is set): admission by estimated work, the per-team fair share of units in flight,
 schedule limits and skipped runs, strict input, CSV formula escaping, revoke-key.
 The real-process side (latencies, cancel, leases, a MemoryError) is
@@ -48,7 +48,7 @@ def settings_env(monkeypatch):
 
 
 def test_item6_spec_is_refused(client, make_account):
-    """Issue 10 item 6 (about 11 h of CPU in one cell): over the core's hard cap."""
+    """A cell of about 11 h of CPU: over the core's hard cap."""
     acc = make_account()
     r = client.post(f"{API}/jobs", json=ITEM6, headers=acc.headers)
     assert r.status_code == 422 and r.json()["field"] == "mc_runs", r.text

@@ -27,7 +27,7 @@ def submit_job(
     submission: SubmissionDep,
     idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
 ):
-    """Validate and queue a job (a spec, docs/spec.md, plus `name` and `tags`).
+    """Validate and queue a job (a spec, docs/spec.md#spec-fields, plus `name` and `tags`).
 
     A retry with the same `Idempotency-Key` returns the same job. The job and its
     work units are committed before anything is sent to the workers.

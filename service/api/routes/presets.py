@@ -12,7 +12,8 @@ router = APIRouter(tags=["presets"])
 
 @router.get("/presets")
 def list_presets(caller: CurrentCaller) -> list[dict]:
-    """System presets (SPEC section 9) with their matrices and noise levels."""
+    """System presets (docs/science.md#9-the-papers-section-6-as-a-preset) with their matrices
+    and noise levels."""
     out = []
     for name in sorted(PRESETS):
         s = resolve_system(name, "systems[0]")

@@ -56,13 +56,14 @@ def run_paper_preset(
     body: PresetRun | None = None,
     idempotency_key: Annotated[str | None, Header(max_length=180)] = None,
 ):
-    """Queue the paper's Section 6 (SPEC section 9): one job per experiment, the
+    """Queue the paper's Section 6
+    (docs/science.md#91-the-preset-paper-section-6): one job per experiment, the
     paper's E1-E4 and the audits of the uncertainty sets A1 (self-normalized
     box) and A2 (bootstrap box) on E2's grid, tagged `paper-section-6` and the
     experiment name."""
     body = body or PresetRun()
     specs = paper_specs(body.scale)
-    names = body.experiments or sorted(specs)
+    names: list[str] = list(body.experiments or []) or sorted(specs)
     requests = [
         JobRequest(
             spec=specs[name],

@@ -59,7 +59,7 @@ def get_results(
     limit: Annotated[int | None, Query(ge=1, le=10_000)] = None,
     offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
 ):
-    """The job's records (docs/spec.md field names; matrices as nested lists; null,
+    """The job's records (field names of docs/spec.md#record-fields; matrices as nested lists; null,
     never NaN), filtered by any grid coordinate (repeat a parameter for several
     values). JSON is paginated (default limit 100); CSV and JSONL stream the whole
     selection (or `limit`/`offset` if given).
