@@ -2,9 +2,14 @@
 PY ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed
+# what running needs (`make run`), and the test extras on top (`make test`, `make lint`)
+RUNTIME_STAMP := $(VENV)/.installed-runtime
+TEST_STAMP := $(VENV)/.installed-test
+# `make run PORT=8010 HOST=0.0.0.0` (default: SVROBS_API_PORT / SVROBS_API_HOST, 127.0.0.1:8000)
+PORT ?=
+HOST ?=
 
-.PHONY: install lint run test test-core test-service test-integration test-faults bench clean
+.PHONY: install install-runtime lint run test test-core test-service test-integration test-faults bench clean
 
 # The integration and PostgreSQL tests use the machine's PostgreSQL and Redis (as
 # .ci/run does); `make test SVROBS_TEST_DATABASE_URL= SVROBS_TEST_BROKER_URL=` skips them.
@@ -12,41 +17,50 @@ SVROBS_TEST_DATABASE_URL ?= postgresql+psycopg://postgres@127.0.0.1:5432/test
 SVROBS_TEST_BROKER_URL ?= redis://127.0.0.1:6379/5
 export SVROBS_TEST_DATABASE_URL SVROBS_TEST_BROKER_URL
 
-$(STAMP): pyproject.toml
-	test -x $(BIN)/python || $(PY) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[test]'
-	touch $(STAMP)
+$(RUNTIME_STAMP): pyproject.toml
+	@echo "svrobs: [1/2] creating the virtual environment $(VENV)"
+	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	@echo "svrobs: [2/2] installing svrobs and what it needs to run (pip's progress below)"
+	$(BIN)/python -m pip install --disable-pip-version-check --progress-bar on -e .
+	@touch $(RUNTIME_STAMP)
 
-install: $(STAMP)
+$(TEST_STAMP): $(RUNTIME_STAMP)
+	@echo "svrobs: installing the test extras (pytest, playwright, scikit-learn, ...)"
+	$(BIN)/python -m pip install --disable-pip-version-check --progress-bar on -e '.[test]'
+	@touch $(TEST_STAMP)
 
-lint: $(STAMP)
+install-runtime: $(RUNTIME_STAMP)
+
+install: $(TEST_STAMP)
+
+lint: $(TEST_STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/lint-imports
 
-run: $(STAMP)
-	$(BIN)/svrobs serve
+run: $(RUNTIME_STAMP)
+	$(BIN)/svrobs serve $(if $(HOST),--host $(HOST)) $(if $(PORT),--port $(PORT))
 
-test: $(STAMP)
+test: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider -n 2 --dist loadscope --ignore=tests/faults
 
-test-core: $(STAMP)
+test-core: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider tests/core
 
-test-service: $(STAMP)
+test-service: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider tests/service tests/fuzz
 
-test-integration: $(STAMP)
+test-integration: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider tests/integration
 
-# worker kills, Redis/PostgreSQL restarts, API kill, two beats, a poison unit: real
+# worker kills, Redis/PostgreSQL restarts, API kill, two beats, a poison unit, 50 stop
+# cycles of `svrobs serve` (tests/faults/test_stop_cycles.py, the embedded stack): real
 # processes on private servers (initdb + redis-server on spare loopback ports)
-test-faults: $(STAMP)
+test-faults: $(TEST_STAMP)
 	SVROBS_FAULTS_REPORT=var/faults-report.json $(BIN)/python -m pytest -q -p no:cacheprovider \
 		-m faults --durations=0 tests/faults
 
-bench: $(STAMP)
+bench: $(TEST_STAMP)
 	$(BIN)/python bench/estimators.py
 	$(BIN)/python bench/cost.py
 

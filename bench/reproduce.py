@@ -1,26 +1,29 @@
-"""Benchmark: the paper preset E1-E4 (``svrobs reproduce``) in process, against a naive baseline.
+"""Benchmark: the paper preset (``svrobs reproduce``) in process, against its floor.
 
     .venv/bin/python bench/reproduce.py [--scale full|reduced] [--jobs N] [--out DIR]
-                                        [--naive-reps 2] [--naive-runs 10]
+                                        [--only E1,E2] [--rng pcg64|sfc64]
+                                        [--naive] [--naive-reps 2] [--naive-runs 10]
 
-1. Runs ``service.reports.reproduce.reproduce(DIR, scale)`` exactly as ``svrobs
-   reproduce`` does (all records written, tables, figures, report) and prints
-   the wall time, the CPU time of this process and of its worker processes,
-   the time per experiment group (E2 with E1 taken from its records, E4 with
-   E3, the report) and the cost per cell.
-2. Times a naive baseline that loops in Python over cells, repetitions and
-   Monte Carlo runs (one repetition's data at a time, one cell's estimate,
-   bounds, Kalman gain by scipy's DARE, gain design row by row, exact cost by
-   a 200-step covariance loop, stationary cost and Theorem 3 by scipy's
-   Lyapunov solver, one ``json.dumps`` per record; Monte Carlo one run and one
-   step at a time). It is MEASURED on a small sub-grid (both systems,
-   N in {10, 230, 450} whose mean is the grid's mean N, ``--naive-reps``
-   repetitions; ``--naive-runs`` Monte Carlo runs of one cell) and
-   EXTRAPOLATED per cell (per run for the Monte Carlo) to the preset's size;
-   the output says which numbers are extrapolated.
+1. Measures this machine's rate of normal random numbers (numpy's
+   ``standard_normal`` into a large array, one core, for both generators),
+   in this run, before the reproduction starts.
+2. Runs ``svrobs_cli.reproduce.reproduce(DIR, scale)`` exactly as ``svrobs
+   reproduce`` does (all records written, tables, figures, report) and prints,
+   per experiment, the normals it draws (none for one that takes or shares
+   another's data), their time at the measured rate (its floor), the CPU
+   seconds its units took in the worker processes, and the ratio; then the
+   whole run: wall time, CPU of this process and of the workers
+   (``resource.getrusage``), and both against the floor on ``--jobs`` cores.
+3. With ``--naive``: times a naive baseline that loops in Python over cells,
+   repetitions and Monte Carlo runs (one repetition's data at a time, one
+   cell's estimate, bounds, Kalman gain by scipy's DARE, gain design row by
+   row, exact cost by a 200-step covariance loop, stationary cost and Theorem 3
+   by scipy's Lyapunov solver, one ``json.dumps`` per record; Monte Carlo one
+   run and one step at a time), MEASURED on a small sub-grid and EXTRAPOLATED
+   per cell (per run for the Monte Carlo) to the preset's size.
 
 The machine may be shared: the load average is printed, and CPU times are
-given beside wall times.
+given beside wall times (docs/performance.md#reproduce).
 """
 
 from __future__ import annotations
@@ -39,11 +42,11 @@ import scipy.linalg as sla
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from service.reports.reproduce import reproduce
+from svrobs_cli.reproduce import reproduce
 from svrobs_core import parse_spec
 from svrobs_core.paper import paper_specs
 from svrobs_core.pipeline import truth
-from svrobs_core.rollouts import MC_STREAM, rng_for, seed_key
+from svrobs_core.rollouts import MC_STREAM, RNGS, rng_for, seed_key
 
 
 # ---------------------------------------------------------------------------
@@ -320,20 +323,39 @@ def time_naive(scale: str, reps: int, runs: int):
 
 
 # ---------------------------------------------------------------------------
+def normal_rate(rng: str, total: int = 24_000_000, block: int = 2_000_000) -> float:
+    """Normals per CPU second of one core (the best of the blocks: the least disturbed)."""
+    g = np.random.Generator(RNGS[rng](12345))
+    buf = np.empty(block)
+    g.standard_normal(out=buf)
+    best = float("inf")
+    for _ in range(total // block):
+        t = time.process_time()
+        g.standard_normal(out=buf)
+        best = min(best, time.process_time() - t)
+    return block / best
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scale", default="full", choices=["full", "reduced"])
     ap.add_argument("--jobs", type=int, default=None, help="worker processes (default: CPUs)")
     ap.add_argument("--out", default=None, help="output folder (default: a temporary one)")
+    ap.add_argument("--only", default=None, help="experiments, e.g. E1,E2 (default: all)")
+    ap.add_argument("--rng", default=None, choices=sorted(RNGS), help="default: the preset's")
+    ap.add_argument("--naive", action="store_true", help="also time the naive baseline")
     ap.add_argument("--naive-reps", type=int, default=2)
     ap.add_argument("--naive-runs", type=int, default=10)
-    ap.add_argument("--skip-naive", action="store_true")
     args = ap.parse_args()
 
-    specs = {k: parse_spec(v) for k, v in paper_specs(args.scale).items()}
     print(
         f"svrobs reproduce, preset paper-section-6, scale {args.scale}; "
         f"{os.cpu_count()} cpus, load average {os.getloadavg()[0]:.2f} (before)"
+    )
+    rates = {name: normal_rate(name) for name in sorted(RNGS)}
+    print(
+        "normal random numbers, one core: "
+        + ", ".join(f"{k} {v / 1e6:.1f} M/s" for k, v in rates.items())
     )
     tmp = None
     out = args.out
@@ -341,7 +363,7 @@ def main():
         tmp = tempfile.TemporaryDirectory(prefix="svrobs-bench-")
         out = tmp.name
     t0, c0 = time.perf_counter(), time.process_time()
-    reproduce(out, scale=args.scale, quiet=True, n_jobs=args.jobs)
+    reproduce(out, scale=args.scale, quiet=True, n_jobs=args.jobs, only=args.only, rng=args.rng)
     wall = time.perf_counter() - t0
     cpu_parent = time.process_time() - c0
     ch = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -350,10 +372,60 @@ def main():
     size = sum(f.stat().st_size for f in Path(out).rglob("*") if f.is_file())
     if tmp is not None:
         tmp.cleanup()
+    specs = {k: parse_spec(v) for k, v in paper_specs(args.scale).items() if k in prov["records"]}
+    jobs = prov["n_jobs"]
 
-    computed = sum(specs[n].n_cells for n in prov["run_seconds"])
+    print(
+        f"\nreproduce(scale={args.scale!r}): {wall:.1f} s wall "
+        f"(CPU {cpu_parent:.1f} s in this process + {cpu_children:.1f} s in "
+        f"{jobs} worker processes), load average {os.getloadavg()[0]:.2f} (after)"
+    )
+    print(
+        f"\n  {'experiment':<12}{'rng':>6}{'normals':>15}{'floor s':>9}"
+        f"{'CPU s':>14}{'ratio':>8}   (worker CPU of its units; group wall s)"
+    )
+    floor_total = 0.0
+    for name in specs:
+        k = prov["normals"][name]
+        rate = rates[prov["rng"][name]]
+        floor = k / rate
+        floor_total += floor
+        spent = prov["worker_cpu_seconds"][name]
+        ratio = f"{spent / floor:7.2f}x" if floor > 0 else "      - "
+        how = ""
+        if name in prov["derived_from"]:
+            how = f"(records of {prov['derived_from'][name]})"
+        elif name in prov.get("shares_data_of", {}):
+            how = f"(in {prov['shares_data_of'][name]}'s pass)"
+        elif name in prov["run_seconds"]:
+            how = f"{prov['run_seconds'][name]:.1f}"
+        print(f"  {name:<12}{prov['rng'][name]:>6}{k:>15,}{floor:>9.2f}{spent:>14.2f}{ratio} {how}")
+    rep_cpu = prov.get("report_cpu_seconds", {})
+    print(
+        f"  {'report':<12}{'':>6}{0:>15,}{0:>9.2f}{sum(rep_cpu.values()):>14.2f}      -  "
+        f"(CPU in this process: {', '.join(f'{k} {v:.1f}' for k, v in rep_cpu.items())}; "
+        f"{prov['report_seconds']:.1f} s wall after the last run)"
+    )
+    cpu = cpu_parent + cpu_children
+    print(
+        f"  {'total':<12}{'':>6}{sum(prov['normals'].values()):>15,}{floor_total:>9.2f}"
+        f"{cpu:>14.2f}{cpu / floor_total:7.2f}x  (CPU of every process / floor)"
+    )
+    floor_wall = floor_total / jobs
+    print(
+        f"\n  wall {wall:.1f} s on {jobs} cores; floor {floor_wall:.1f} s "
+        f"(the normals at the measured rate, {jobs} cores): {wall / floor_wall:.2f}x"
+    )
     written = sum(prov["records"].values())
-    # Monte Carlo cells computed: per system, the largest mc_reps of the cost experiments
+    print(f"  {written:,} records written ({size / 1e6:.0f} MB)")
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(
+        f"  peak memory (max RSS): {rss:.0f} MB in this process, "
+        f"{ch.ru_maxrss / 1024:.0f} MB in the largest worker"
+    )
+    if not args.naive:
+        return
+    computed = sum(specs[n].n_cells for n in prov["run_seconds"])
     mc_per_system: dict[str, int] = {}
     for s in specs.values():
         if s.has("cost"):
@@ -362,40 +434,6 @@ def main():
             for x in s.systems:
                 mc_per_system[x.name] = max(mc_per_system.get(x.name, 0), k)
     mc_cells = sum(mc_per_system.values())
-    print(
-        f"\nreproduce(scale={args.scale!r}): {wall:.1f} s wall "
-        f"(CPU {cpu_parent:.1f} s in this process + {cpu_children:.1f} s in "
-        f"{prov['n_jobs']} worker processes), load average {os.getloadavg()[0]:.2f} (after)"
-    )
-    for name, sec in prov["run_seconds"].items():
-        kids = [c for c, p in prov["derived_from"].items() if p == name]
-        extra = f" (+ {', '.join(kids)} from its records)" if kids else ""
-        print(
-            f"  {name}{extra}: {specs[name].n_cells:,} cells in {sec:.1f} s "
-            f"= {sec / specs[name].n_cells * 1e6:.0f} us/cell wall"
-        )
-    print(
-        f"  report (tables, {len(paper_specs(args.scale))} experiments, figures, "
-        f"markdown, html): {prov['report_seconds']:.1f} s"
-    )
-    print(
-        f"  {computed:,} pipeline cells computed, {written:,} records written "
-        f"({size / 1e6:.0f} MB); Monte Carlo J on {mc_cells:,} cells "
-        f"({specs['E3'].mc_runs} runs, horizon {specs['E3'].horizon})"
-    )
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(
-        f"  peak memory (max RSS): {rss:.0f} MB in this process, "
-        f"{ch.ru_maxrss / 1024:.0f} MB in the largest worker"
-    )
-    print(
-        f"  per computed cell: {wall / computed * 1e6:.0f} us wall, "
-        f"{(cpu_parent + cpu_children) / computed * 1e6:.0f} us CPU "
-        f"(everything included: data, pipeline, Monte Carlo, JSON, report)"
-    )
-
-    if args.skip_naive:
-        return
     print(
         "\nnaive baseline (Python loops over cells, repetitions and Monte Carlo runs), "
         "MEASURED on a sub-grid:"

@@ -2,10 +2,11 @@
 
     .venv/bin/python bench/service.py                      # embedded, and pg if configured
     .venv/bin/python bench/service.py --stacks embedded --quick
+    .venv/bin/python bench/service.py --stacks postgres --quick   # pg, postgres, postgresql
 
 The grid (SPEC Section 6: 2 systems x sigma_w {0.1, 1, 10} x N 10..450 step 10
 x gamma {0.005, 0.01, 0.05, 0.1} x {ols, svr} x 45 reps, stages estimate +
-bounds = 60,750 cells in 270 work units) is
+bounds = 60,750 cells; the work units are counted in the first line printed) is
 
 1. run in this process by the core (``svrobs_core.run_spec``): the baseline;
 2. submitted over REST to the embedded stack (SQLite + filesystem broker,
@@ -319,7 +320,10 @@ def unit_breakdown(logs: Path) -> dict:
                 km = re.search(rf"'{k}': ([0-9.]+)", m.group(2))
                 if km:
                     sums[k].append(float(km.group(1)))
-    return {k: sum(v) / len(v) for k, v in sums.items() if v}
+    out = {k: sum(v) / len(v) for k, v in sums.items() if v}
+    if out:
+        out["units"] = len(sums["task_s"])
+    return out
 
 
 def in_process(spec: dict, n_jobs: int = 1) -> tuple[float, int]:
@@ -330,9 +334,39 @@ def in_process(spec: dict, n_jobs: int = 1) -> tuple[float, int]:
     return time.perf_counter() - t0, n
 
 
+# the names --stacks takes, and the stack each means
+STACK_NAMES = {
+    "embedded": "embedded",
+    "sqlite": "embedded",
+    "pg": "pg",
+    "postgres": "pg",
+    "postgresql": "pg",
+}
+
+
+def parse_stacks(text: str) -> list[str]:
+    """``--stacks`` as stack kinds (``embedded``, ``pg``), in order, each once."""
+    kinds: list[str] = []
+    for name in (n.strip().lower() for n in text.split(",")):
+        if not name:
+            continue
+        if name not in STACK_NAMES:
+            raise argparse.ArgumentTypeError(
+                f"unknown stack {name!r}: use {', '.join(STACK_NAMES)} (comma-separated)"
+            )
+        if STACK_NAMES[name] not in kinds:
+            kinds.append(STACK_NAMES[name])
+    return kinds
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--stacks", default="embedded,pg")
+    p.add_argument(
+        "--stacks",
+        type=parse_stacks,
+        default="embedded,pg",
+        help="embedded (sqlite) and/or pg (postgres, postgresql), comma-separated",
+    )
     p.add_argument("--quick", action="store_true", help="a 7-N grid instead of 45 (smoke run)")
     p.add_argument("--embedded-workers", type=int, default=1)
     p.add_argument("--pg-workers", type=int, default=2)
@@ -352,7 +386,7 @@ def main() -> None:
     redis_url = os.environ.get("SVROBS_BENCH_BROKER_URL") or os.environ.get(
         "SVROBS_TEST_BROKER_URL"
     )
-    stacks = [s for s in args.stacks.split(",") if s]
+    stacks = args.stacks
 
     from svrobs_core import parse_spec, plan_units
 
@@ -413,10 +447,24 @@ def main() -> None:
                 breakdown = unit_breakdown(root / "logs")
                 if breakdown:
                     print(
-                        "  per unit (worker log): "
-                        + ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in breakdown.items()),
+                        f"  per unit (mean of {breakdown['units']} units, worker log): "
+                        + ", ".join(
+                            f"{label} {breakdown[k] * 1000:.0f} ms"
+                            for label, k in (
+                                ("claim", "claim_s"),
+                                ("compute", "compute_s"),
+                                ("store", "store_s"),
+                                ("whole task", "task_s"),
+                            )
+                            if k in breakdown
+                        ),
                         flush=True,
                     )
+                    row["per_unit_ms"] = {
+                        k: round(v * 1000, 1) for k, v in breakdown.items() if k != "units"
+                    }
+                else:
+                    print("  per unit: no 'succeeded' lines in the worker log", flush=True)
         finally:
             if args.keep:
                 print(f"  logs kept in {root}/logs")

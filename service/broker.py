@@ -15,6 +15,7 @@ from collections.abc import Callable, Iterable
 from celery import Celery
 
 from service.config import Settings
+from service.file_broker import TRANSPORT as FILE_TRANSPORT
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +41,8 @@ def filesystem_folders(settings: Settings) -> dict[str, str]:
         "data_folder_out": os.path.join(base, "queue"),
         "processed_folder": os.path.join(base, "processed"),
         "control_folder": os.path.join(base, "control"),
+        # messages that cannot be decoded are moved here (service.file_broker)
+        "bad_folder": os.path.join(base, "bad"),
     }
 
 
@@ -79,6 +82,8 @@ def make_celery(settings: Settings, name: str = "svrobs") -> Celery:
         enable_utc=True,
     )
     if is_filesystem(settings.BROKER_URL):
+        # kombu's filesystem transport with atomic writes and claims (service.file_broker)
+        conf["broker_transport"] = FILE_TRANSPORT
         conf["broker_transport_options"] = {
             **_ensure_folders(settings),
             "store_processed": False,

@@ -70,6 +70,9 @@ class Settings(BaseSettings):
 
     # Seconds the API waits for the broker when publishing / in /readyz.
     BROKER_TIMEOUT: float = 2.0
+    # The folder of this host's worker pid files (`svrobs serve` sets it for its API):
+    # when set, /readyz is 503 while none of those workers is alive (service.worker_pids).
+    WORKER_PID_DIR: str | None = None
 
     # Web UI sessions (svrobs_lab.sessions): the key that signs the session cookie
     # (unset: one is generated once and kept in VAR_DIR/secret_key, so restarts keep

@@ -9,7 +9,7 @@ cost model :func:`svrobs_core.workload.admit`) refuses a spec over
 unit is over ``--max-memory-mb`` (SVROBS_MAX_UNIT_MEMORY_MB), and plans the units
 under that memory cap; the records
 file appears only once every unit has run.
-``svrobs reproduce`` runs the paper's Section 6 (:mod:`service.reports.reproduce`).
+``svrobs reproduce`` runs the paper's Section 6 (:mod:`svrobs_cli.reproduce`).
 """
 
 from __future__ import annotations
@@ -122,12 +122,27 @@ def run_local_command(
 def reproduce_command(
     out: Path = typer.Option(Path("paper-section-6"), "--out", help="output folder"),
     scale: str = typer.Option("full", "--scale", help="full | reduced"),
+    only: str = typer.Option(
+        None, "--only", help="experiments to run, e.g. E1,E2 (default: E1-E4, A1, A2)"
+    ),
+    rng: str = typer.Option(
+        None, "--rng", help="generator of every draw: pcg64 (the preset's) or sfc64 (faster)"
+    ),
+    jobs: int = typer.Option(None, "--jobs", help="worker processes (default: CPUs)"),
     quiet: bool = typer.Option(False, "--quiet"),
 ) -> None:
-    """The paper's Section 6 (E1-E4) in process: tables, figures, report.md."""
-    from service.reports.reproduce import reproduce
+    """The paper's Section 6 (E1-E4) and the audits A1, A2 in process: tables, figures, report.md."""
+    from svrobs_cli.reproduce import ReproduceError, reproduce
+    from svrobs_core.rollouts import RNGS
 
     if scale not in ("full", "reduced"):
         raise CliError("--scale must be 'full' or 'reduced'")
-    reproduce(out, scale=scale, quiet=quiet)
+    if rng is not None and rng not in RNGS:
+        raise CliError(f"--rng must be one of {', '.join(sorted(RNGS))}")
+    if jobs is not None and jobs < 1:
+        raise CliError("--jobs must be >= 1")
+    try:
+        reproduce(out, scale=scale, quiet=quiet, only=only, rng=rng, n_jobs=jobs)
+    except ReproduceError as exc:
+        raise CliError(f"reproduce: {exc}") from None
     typer.echo(f"report -> {out}/report.md")

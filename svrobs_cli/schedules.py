@@ -145,11 +145,13 @@ def list_presets(as_json: bool = typer.Option(False, "--json", help="print JSON"
 
 def run_preset(
     scale: str = typer.Option("full", help="full or reduced"),
-    experiment: list[str] = typer.Option([], "--experiment", help="E1-E4 (repeatable; all)"),
+    experiment: list[str] = typer.Option(
+        [], "--experiment", help="E1-E4, A1, A2 (repeatable; default all)"
+    ),
     wait: bool = typer.Option(False, "--wait", help="show progress until every job finishes"),
     idempotency_key: str | None = typer.Option(None, help="a retry returns the same jobs"),
 ) -> None:
-    """Queue the paper's Section 6 (E1-E4), one job each."""
+    """Queue the paper's Section 6 (E1-E4 and the audits A1, A2), one job each."""
     with client() as c:
         jobs = c.run_paper_preset(
             scale=scale, experiments=experiment or None, idempotency_key=idempotency_key

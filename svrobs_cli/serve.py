@@ -8,13 +8,19 @@ points at)::
                                             CPU plus one, at most 5: DEFAULT_CONCURRENCY)
     celery -A worker.celery_app beat        the scheduler (runs the tick)
 
+``svrobs serve --host H --port P`` picks the API's address (a port in use is one
+line naming it, before anything starts). Once ``/readyz`` answers, a box says
+which URL to open, the admin key (first start only) and a first command to run.
+
 Each child is a :class:`svrobs_cli.processes.Child`: its own process group (so a
-terminal Ctrl-C reaches only this supervisor, which then stops the children in
-order) and a parent-death signal (so a SIGKILLed supervisor leaves no orphans).
-Ctrl-C or SIGTERM is forwarded to every child as SIGTERM; a child still running
-after ``grace`` seconds gets SIGKILL (its whole group: the prefork pool too). A
-second Ctrl-C kills at once. If any child exits on its own, the others are
-stopped and ``serve`` returns non-zero.
+terminal Ctrl-C reaches only this supervisor, which then stops the children)
+and a parent-death signal, run under :mod:`svrobs_cli.guard` (so a SIGKILLed
+supervisor leaves nothing running ``grace`` seconds later). A child that exits
+is restarted after an exponential backoff (:class:`~svrobs_cli.processes.Supervisor`,
+logged); while no worker runs, ``/readyz`` answers 503 (the workers' pid files,
+:mod:`service.worker_pids`). Ctrl-C or SIGTERM is forwarded to every child as
+SIGTERM; a child still running after ``grace`` seconds gets SIGKILL (its whole
+group: the prefork pool too). A second Ctrl-C kills at once.
 
 The helpers (:func:`prepare_dirs`, :func:`migrate`, :func:`child_commands`) are
 what the integration tests and ``bench/service.py`` use, so they start exactly
@@ -23,16 +29,20 @@ the processes ``serve`` starts.
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
+import socket
 import sys
 import time
 from pathlib import Path
 
 import typer
 
+from service import worker_pids
 from service.config import Settings, get_settings
-from svrobs_cli.processes import Child, stop_all
+from svrobs_cli.errors import CliError
+from svrobs_cli.processes import Child, Supervisor, guarded
 from svrobs_core.threads import THREAD_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -174,7 +184,10 @@ def _celery(*argv: str) -> list[str]:
 
 
 def worker_command(
-    name: str = "worker1", concurrency: int = 1, loglevel: str = "info"
+    name: str = "worker1",
+    concurrency: int = 1,
+    loglevel: str = "info",
+    pidfile: Path | None = None,
 ) -> list[str]:
     return _celery(
         "worker",
@@ -188,6 +201,7 @@ def worker_command(
         f"{name}@%h",
         "--without-gossip",
         "--without-mingle",
+        *(["--pidfile", str(pidfile)] if pidfile else []),
     )
 
 
@@ -203,19 +217,117 @@ def beat_command(schedule_file: Path, loglevel: str = "info") -> list[str]:
     )
 
 
+def pid_dir(settings: Settings) -> Path:
+    """Where ``serve``'s workers keep their pid files (read by ``/readyz``)."""
+    return var_dir(settings).resolve() / "run"
+
+
 def child_commands(
-    settings: Settings, *, workers: int = 1, concurrency: int = 1, beat: bool = True
+    settings: Settings,
+    *,
+    workers: int = 1,
+    concurrency: int = 1,
+    beat: bool = True,
+    pid_files: bool = False,
 ) -> list[tuple[str, list[str]]]:
+    """``(name, argv)`` of the API, the workers (with ``pid_files``: each writes
+    ``pid_dir(settings)/<name>.pid``) and beat."""
     cmds = [("api", api_command(settings.API_HOST, settings.API_PORT))]
-    cmds += [
-        (f"worker{i + 1}", worker_command(f"worker{i + 1}", concurrency)) for i in range(workers)
-    ]
+    for i in range(workers):
+        name = f"worker{i + 1}"
+        pidfile = worker_pids.pidfile(pid_dir(settings), name) if pid_files else None
+        cmds.append((name, worker_command(name, concurrency, pidfile=pidfile)))
     if beat:
         cmds.append(("beat", beat_command(beat_schedule_file(settings))))
     return cmds
 
 
 # --------------------------------------------------------------------------- serve
+def check_port(host: str, port: int) -> None:
+    """Raise :class:`CliError` (one line naming the port and the option) unless the API
+    can listen on ``host:port``; nothing has been started when it does."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+            sock.bind((host, port))
+    except OSError as exc:
+        if exc.errno == errno.EADDRINUSE:
+            raise CliError(
+                f"port {port} is in use; pick another with --port (make run PORT=...)"
+            ) from None
+        if exc.errno == errno.EACCES:
+            raise CliError(
+                f"port {port} needs privileges; pick one above 1023 with --port (make run PORT=...)"
+            ) from None
+        reason = exc.strerror or str(exc)
+        raise CliError(
+            f"cannot listen on {host}:{port} ({reason}); pick another with --host / --port "
+            "(make run HOST=... PORT=...)"
+        ) from None
+
+
+def _browse_host(host: str) -> str:
+    """The address to open for an API listening on ``host`` (a wildcard: this host)."""
+    if host in ("0.0.0.0", ""):
+        return "127.0.0.1"
+    if host == "::":
+        return "[::1]"
+    return f"[{host}]" if ":" in host else host
+
+
+def _ready(host: str, port: int) -> bool:
+    """``GET /readyz`` answers 200 (http.client: no TLS set-up on every poll)."""
+    import http.client
+
+    conn = http.client.HTTPConnection(host.strip("[]"), port, timeout=1.0)
+    try:
+        conn.request("GET", "/readyz")
+        return conn.getresponse().status == 200
+    except (OSError, http.client.HTTPException):
+        return False
+    finally:
+        conn.close()
+
+
+def _svrobs_command() -> str:
+    """How to call this ``svrobs`` from the working folder (``.venv/bin/svrobs``)."""
+    exe = Path(sys.executable).parent / "svrobs"
+    if not exe.exists():
+        return "svrobs"
+    try:
+        return str(exe.relative_to(Path.cwd()))
+    except ValueError:
+        return str(exe)
+
+
+FIRST_SPEC = '{"systems": ["paper-stable"], "sigma_w": [0.1], "N": [10, 50], "reps": 5}'
+
+
+def banner(url: str, key: str | None) -> str:
+    """The box ``serve`` prints once the stack is up: where to go and what to run
+    (ruled above and below only, so a long line wraps without breaking it)."""
+    cli = _svrobs_command()
+    another = f"{cli} admin create-key {ADMIN_EMAIL}"
+    lines = [
+        f"svrobs is running: open {url}/  (API docs: {url}/docs)",
+        (
+            f"admin API key (shown once, keep it): {key}"
+            if key
+            else f"admin API key: printed on first start (another: {another})"
+        ),
+        "next, in another terminal:",
+        f"  export SVROBS_URL={url} SVROBS_API_KEY={key or 'svr_...'}",
+        f"  echo '{FIRST_SPEC}' | {cli} submit - --wait",
+        "Ctrl-C here stops everything.",
+    ]
+    rule = "=" * min(78, max(len(line) for line in lines) + 2)
+    return "\n".join([rule, *(f"  {line}" for line in lines), rule])
+
+
+READY_WAIT_SECONDS = 120.0  # then the box is printed anyway, saying the stack is not ready
+
+
 def serve(
     settings: Settings | None = None,
     *,
@@ -224,23 +336,32 @@ def serve(
     beat: bool = True,
     grace: float = 10.0,
 ) -> int:
-    """Run the stack in the foreground until Ctrl-C/SIGTERM or a child dies."""
+    """Run the stack in the foreground until Ctrl-C or SIGTERM; a child that exits is
+    restarted (svrobs_cli.processes.Supervisor). Returns the exit status."""
     settings = settings or get_settings()
+    check_port(settings.API_HOST, settings.API_PORT)
     prepare_dirs(settings)
     print(f"svrobs: migrating {_redact(settings.DATABASE_URL)}", flush=True)
     migrate(settings)
     key = bootstrap_admin(settings)
     if key:
-        print("svrobs: first start - created team 'admin'. Admin API key (shown once):", flush=True)
-        print(f"\n    {key}\n", flush=True)
+        print("svrobs: first start - created team 'admin' and its admin API key", flush=True)
 
-    env = child_env(settings)
-    children = [
-        Child(name, argv, env)
-        for name, argv in child_commands(
-            settings, workers=workers, concurrency=concurrency, beat=beat
-        )
-    ]
+    extra = {}
+    if workers > 0:
+        pids = pid_dir(settings)
+        pids.mkdir(parents=True, exist_ok=True)
+        extra["SVROBS_WORKER_PID_DIR"] = str(pids)
+    env = child_env(settings, extra)
+    children = []
+    for name, argv in child_commands(
+        settings, workers=workers, concurrency=concurrency, beat=beat, pid_files=workers > 0
+    ):
+        pidfile = Path(argv[argv.index("--pidfile") + 1]) if "--pidfile" in argv else None
+        children.append(Child(name, guarded(argv, grace), env, pidfile=pidfile))
+    supervisor = Supervisor(children, log=lambda line: print(line, file=sys.stderr, flush=True))
+    browse = _browse_host(settings.API_HOST)
+    url = f"http://{browse}:{settings.API_PORT}"
 
     stopping: list[int] = []
 
@@ -251,34 +372,31 @@ def serve(
                 c.signal(signal.SIGKILL, group=True)
 
     old = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    rc = 0
+    announced = False
     try:
-        for c in children:
-            c.start()
-            print(f"svrobs: started {c.name} (pid {c.pid})", flush=True)
-        print(
-            f"svrobs: API on http://{settings.API_HOST}:{settings.API_PORT} "
-            f"(docs at /docs); Ctrl-C stops everything",
-            flush=True,
-        )
+        supervisor.start()
+        print(f"svrobs: API on {url} - waiting for it and the worker to be ready", flush=True)
+        started = time.monotonic()
         while not stopping:
-            dead = [c for c in children if c.poll() is not None]
-            if dead:
-                for c in dead:
-                    print(
-                        f"svrobs: {c.name} exited with code {c.poll()}; stopping",
-                        file=sys.stderr,
-                        flush=True,
-                    )
-                rc = 1
-                break
+            supervisor.poll()
+            if not announced:
+                ready = _ready(browse, settings.API_PORT)
+                if ready or time.monotonic() - started > READY_WAIT_SECONDS:
+                    if not ready:
+                        print(
+                            f"svrobs: not ready after {READY_WAIT_SECONDS:g} s; see the log above"
+                        )
+                    print("\n" + banner(url, key) + "\n", flush=True)
+                    announced = True
             time.sleep(0.3)
     finally:
         print("svrobs: stopping", flush=True)
-        stop_all(children, grace=grace)
+        if key and not announced:  # the key is shown once: before it is lost
+            print(f"svrobs: admin API key (shown once): {key}", flush=True)
+        supervisor.stop(grace)
         for s, h in old.items():
             signal.signal(s, h)
-    return rc
+    return 0
 
 
 def _redact(url: str) -> str:
@@ -291,18 +409,34 @@ def _redact(url: str) -> str:
 
 
 def serve_command(
-    workers: int = typer.Option(1, "--workers", help="worker processes"),
+    host: str = typer.Option(
+        None, "--host", help="the API's address (default: SVROBS_API_HOST, 127.0.0.1)"
+    ),
+    port: int = typer.Option(
+        None, "--port", min=1, max=65535, help="the API's port (default: SVROBS_API_PORT, 8000)"
+    ),
+    workers: int = typer.Option(1, "--workers", min=0, help="worker processes"),
     concurrency: int = typer.Option(
         DEFAULT_CONCURRENCY,
         "--concurrency",
+        min=1,
         help="pool processes per worker (default: one per CPU plus one, at most 5)",
     ),
     no_beat: bool = typer.Option(False, "--no-beat", help="do not start the scheduler"),
+    grace: float = typer.Option(
+        10.0,
+        "--grace",
+        min=0.0,
+        help="seconds the processes get to stop (then they are killed), also when this one dies",
+    ),
 ) -> None:
     """Migrate, then run API + worker + scheduler (embedded default: SQLite + filesystem broker)."""
     from service.logging_config import configure_logging
 
     settings = get_settings()
+    update = {k: v for k, v in (("API_HOST", host), ("API_PORT", port)) if v is not None}
+    if update:
+        settings = settings.model_copy(update=update)
     configure_logging(settings)
-    rc = serve(settings, workers=workers, concurrency=concurrency, beat=not no_beat)
+    rc = serve(settings, workers=workers, concurrency=concurrency, beat=not no_beat, grace=grace)
     raise typer.Exit(rc)

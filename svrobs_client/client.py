@@ -392,8 +392,9 @@ class Client:
         wait: bool = False,
         progress: bool = True,
     ) -> list[Job]:
-        """Queue the paper's Section 6 (E1-E4, or ``experiments``), one job each, at
-        ``scale`` ``"full"`` or ``"reduced"``; with ``wait``, return them finished."""
+        """Queue the paper's Section 6 (E1-E4 and the audits A1, A2, or ``experiments``),
+        one job each, at ``scale`` ``"full"`` or ``"reduced"``; with ``wait``, return
+        them finished."""
         body: dict[str, Any] = {"scale": scale}
         if experiments is not None:
             body["experiments"] = list(experiments)

@@ -17,13 +17,18 @@
   ``svrobs reproduce`` computes the Monte Carlo J of S's first 10
   repetitions once and writes both (``UnitResult.with_mc_reps``).
 
-Beyond the paper (issue 12, SPEC section 3.1), the audit of the uncertainty
-sets on E2's grid:
+Beyond the paper (SPEC section 3.1), the audit of the uncertainty sets on
+E2's grid: how often a set that claims probability 1 - delta holds every
+entry of A and B (coverage), how large it is and whether it certifies
+stability (docs/uncertainty.md):
 
 * **A1**: E2 with ``bounds_method = "self-normalized"`` (same data: the seed
   key does not depend on the method).
 * **A2**: E2 with ``bounds_method = "bootstrap"`` (100 resamples) on
   N in {10, 50, 100, 200, 450}: the bootstrap re-simulates every cell.
+
+A1 and A2 share E2's data, so ``svrobs reproduce`` computes them in E2's
+pass over the data (docs/performance.md#one-pass).
 
 ``scale="reduced"`` keeps exactly this structure (systems, sigma_w, gammas,
 estimators, stages) on a tiny grid, for tests and smoke runs.

@@ -9,6 +9,7 @@ cached (:func:`truth`).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -21,6 +22,7 @@ from . import cost_mc as _mc
 from . import estimators as _est
 from . import gains as _gains
 from . import kalman as _kalman
+from . import uncertainty as _unc
 from .norms import spectral_radius
 from .notes import Notes
 from .planning import EstimatorAxis
@@ -50,6 +52,8 @@ class _Cells:
     B_hat: np.ndarray
     out: dict
     notes: Notes
+    stage: str = "bounds"  # the stage running (named on an exception, :func:`failed_stage`)
+    mc_seconds: float = 0.0  # CPU seconds of the Monte Carlo J
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -63,13 +67,49 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
     """All stages for one (system, sigma_w, N) and a range of reps.
 
     -> (fields, notes, N0, gain state for ``reuse_gain`` or None)."""
+    return run_dataset_variants(
+        [spec], si=si, wi=wi, N=N, reps=reps, axis=axis, prev_gains=[prev_gain]
+    )[0]
+
+
+# The fields in which specs that share their data and estimates may differ
+# (:func:`shares_data`): the bounds method and its options.
+BOUNDS_KEYS = frozenset({"bounds_method", "S", "lambda0", "boot_reps", "boot_sigma_w"})
+
+
+def shares_data(parent: ExperimentSpec, other: ExperimentSpec) -> bool:
+    """True when ``other``'s data and estimates on each of its N are ``parent``'s:
+    the same spec up to the bounds method and its options, with N a subset of
+    the parent's (the whole N grid when ``reuse_gain`` couples them)."""
+    a, b = parent.to_dict(), other.to_dict()
+    for k in (a.keys() | b.keys()) - BOUNDS_KEYS - {"N"}:
+        if a.get(k) != b.get(k):
+            return False
+    if parent.reuse_gain:
+        return list(a["N"]) == list(b["N"])
+    return set(b["N"]) <= set(a["N"])
+
+
+def run_dataset_variants(specs, *, si, wi, N, reps, axis, prev_gains=None, timings=None):
+    """:func:`run_dataset` for specs that share their data and estimates
+    (:func:`shares_data` with ``specs[0]``): the rollouts are simulated, the
+    Gram matrices factorised and the estimates computed once; then each spec's
+    stages run on them (the sound boxes on one factor of the data,
+    :func:`svrobs_core.uncertainty.data_factor`). -> one (fields, notes, N0, gain state) per spec; its
+    records are the ones the spec gives on its own (the same arithmetic).
+    ``timings``: a dict that gets each spec's CPU seconds added under its index
+    (the shared part counts for the first), those of its Monte Carlo J under
+    ``("mc", index)``."""
+    clock = time.process_time()
+    spec = specs[0]
+    prev_gains = [None] * len(specs) if prev_gains is None else list(prev_gains)
     system = spec.systems[si]
     sigma_w = spec.sigma_w[wi]
     n = system.n
     keys = [seed_key(si, wi, N, r) for r in reps]
     # the sound boxes factorise the data themselves (svrobs_core.data_factor)
-    need_data = any(e in ("ols", "shrunk-ols") for e in spec.estimators) or (
-        spec.has("bounds") and spec.bounds_method != "paper"
+    need_data = any(e in ("ols", "shrunk-ols") for e in spec.estimators) or any(
+        s.has("bounds") and s.bounds_method != "paper" for s in specs
     )
     G, P, Z, F = gram_data(
         system,
@@ -81,6 +121,7 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
         data=spec.data,
         x0_std=spec.x0_std,
         keep_data=need_data,
+        rng=spec.rng,
     )
     N0 = (spec.T0 - 1) * N if spec.data == "all" else N
 
@@ -97,53 +138,87 @@ def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
             data=spec.data,
             x0_std=spec.x0_std,
             keep_data=True,
+            rng=spec.rng,
         )
         return Zr, Fr
 
-    theta, cond = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0, data=rows_data)
+    try:
+        theta, cond = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0, data=rows_data)
+    except Exception as exc:
+        _tag(exc, "estimate", 0)
+        raise
     A_hat, B_hat = theta[..., :n], theta[..., n:]
     R, E = theta.shape[:2]
-    out: dict[str, np.ndarray] = {
+    finite = np.isfinite(theta).all(axis=(-2, -1))
+    unreliable = finite & ~(cond <= ESTIMATE_COND_LIMIT)
+    estimate = {
         "A_hat": A_hat,
         "B_hat": B_hat,
         "rmse_A": _rmse(A_hat, system.A),
         "rmse_B": _rmse(B_hat, system.B),
     }
-    notes = Notes((R, E))
-    finite = np.isfinite(theta).all(axis=(-2, -1))
-    notes.add(
-        ~finite,
-        "estimate: not finite (the simulated data leave the double range, or the"
-        " regularised problem is numerically singular)",
-    )
-    unreliable = finite & ~(cond <= ESTIMATE_COND_LIMIT)
-    notes.add(
-        unreliable,
-        f"estimate: data too ill-conditioned (cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g}):"
-        " certificates withheld",
-    )
-    skipped = [st for st in STAGES if not spec.has(st)]
-    if skipped:
-        notes.add(True, "stages not run: " + ", ".join(skipped))
-    cells = _Cells(
-        spec=spec,
-        system=system,
-        sigma_w=sigma_w,
-        keys=keys,
-        axis=axis,
-        A_hat=A_hat,
-        B_hat=B_hat,
-        out=out,
-        notes=notes,
-    )
-    state = _run_stages(cells, N=N, N0=N0, prev_gain=prev_gain, data=(G, Z, F))
-    if unreliable.any():
-        for f in CERTIFICATES:
-            if f in out:
-                withheld = np.array(out[f], dtype=object)
-                withheld[unreliable] = None
-                out[f] = withheld
-    return out, notes, N0, state
+    results = []
+    shared: dict = {}  # the data's factor, made by the first spec with a sound box
+    if timings is not None:
+        timings[0] = timings.get(0, 0.0) + time.process_time() - clock
+    for s, prev_gain in zip(specs, prev_gains):
+        clock = time.process_time()
+        out: dict[str, np.ndarray] = dict(estimate)
+        notes = Notes((R, E))
+        notes.add(
+            ~finite,
+            "estimate: not finite (the simulated data leave the double range, or the"
+            " regularised problem is numerically singular)",
+        )
+        notes.add(
+            unreliable,
+            f"estimate: data too ill-conditioned (cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g}):"
+            " certificates withheld",
+        )
+        skipped = [st for st in STAGES if not s.has(st)]
+        if skipped:
+            notes.add(True, "stages not run: " + ", ".join(skipped))
+        cells = _Cells(
+            spec=s,
+            system=system,
+            sigma_w=sigma_w,
+            keys=keys,
+            axis=axis,
+            A_hat=A_hat,
+            B_hat=B_hat,
+            out=out,
+            notes=notes,
+        )
+        try:
+            state = _run_stages(cells, N=N, N0=N0, prev_gain=prev_gain, data=(G, Z, F, shared))
+        except Exception as exc:
+            _tag(exc, cells.stage, len(results))
+            raise
+        if unreliable.any():
+            for f in CERTIFICATES:
+                if f in out:
+                    withheld = np.array(out[f], dtype=object)
+                    withheld[unreliable] = None
+                    out[f] = withheld
+        results.append((out, notes, N0, state))
+        if timings is not None:
+            i = len(results) - 1
+            timings[i] = timings.get(i, 0.0) + time.process_time() - clock - cells.mc_seconds
+            timings["mc", i] = timings.get(("mc", i), 0.0) + cells.mc_seconds
+    return results
+
+
+def _tag(exc: BaseException, stage: str, index: int) -> None:
+    """Name the stage (and which spec of :func:`run_dataset_variants`) on an exception
+    passing through, without changing it (its type is what callers act on)."""
+    if not hasattr(exc, "svrobs_stage"):
+        exc.svrobs_stage = (stage, index)
+        exc.add_note(f"svrobs: raised in stage {stage!r}")
+
+
+def failed_stage(exc: BaseException) -> tuple[str, int] | None:
+    """(stage, index of the spec in :func:`run_dataset_variants`) an exception was raised in."""
+    return getattr(exc, "svrobs_stage", None)
 
 
 def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data):
@@ -188,15 +263,19 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain, data):
     spec, out = c.spec, c.out
     if not spec.has("bounds"):
         return None
+    c.stage = "bounds"
     if spec.bounds_method == "paper":
         b, gamma, radius = _paper_bounds(c, N=N, N0=N0)
     else:
-        G, Z, F = data
-        sound = sound_bounds(c, G=G, Z=Z, F=F, N=N, N0=N0)
+        G, Z, F, shared = data
+        if "factor" not in shared and Z is not None:  # one factor of the data for every box
+            shared["factor"] = _unc.data_factor(Z, F)
+        sound = sound_bounds(c, G=G, Z=Z, F=F, N=N, N0=N0, factor=shared.get("factor"))
         out.update(sound.fields)
         b, gamma, radius = sound.result, np.zeros(len(c.axis.names)), sound.box.R_A
     state = _gain_stages(c, b, gamma, radius, prev_gain) if spec.has("gain") else None
     if spec.has("sls"):
+        c.stage = "sls"
         _sls_stage(c, b)
     return state
 
@@ -204,6 +283,7 @@ def _run_stages(c: _Cells, *, N, N0, prev_gain, data):
 def _gain_stages(c: _Cells, b, gamma, radius, prev_gain):
     """gain (with the reuse policy), cost, cost_bound; -> the gain state for ``reuse_gain``."""
     spec, system, notes = c.spec, c.system, c.notes
+    c.stage = "gain"
     matrix = spec.bounds_method != "paper"
     designed, k_hat_reasons = design(c, gamma, radius, matrix=matrix)
     if k_hat_reasons is not None:
@@ -349,6 +429,7 @@ def _observer_stages(c: _Cells, b, designed):
         )
     if not spec.has("cost"):
         return
+    c.stage = "cost"
     noise = dict(sigma_u=system.sigma_u, sigma_w=c.sigma_w, sigma_v=system.sigma_v)
     J = _cost.exact_cost(A, B, A_hat, B_hat, L=L, C=C, **noise, horizon=spec.horizon)
     J_stat, stat_reason = _cost.stationary_cost(
@@ -360,6 +441,7 @@ def _observer_stages(c: _Cells, b, designed):
     _monte_carlo(c, L)
     _cost_ratio(c, J)
     if spec.has("cost_bound"):
+        c.stage = "cost_bound"
         t3 = _cb.theorem3_bound(
             A_hat,
             L,
@@ -389,6 +471,7 @@ def _monte_carlo(c: _Cells, L):
     estimator and gamma of a repetition sees the same noise: it is drawn once
     per repetition and drives all the repetition's cells (common random
     numbers, :func:`svrobs_core.cost_mc.mc_cost_shared`)."""
+    clock = time.process_time()
     spec, system, keys = c.spec, c.system, c.keys
     R, E = c.shape
     J_mc = np.full((R, E), np.nan)
@@ -398,7 +481,7 @@ def _monte_carlo(c: _Cells, L):
     c.notes.add(~rows[:, None], mc_note(limit), tag="mc")
     idx = np.flatnonzero(rows)
     if idx.size:
-        gens = generators(spec.seed, [keys[i] for i in idx], MC_STREAM, fresh=True)
+        gens = generators(spec.seed, [keys[i] for i in idx], MC_STREAM, fresh=True, rng=spec.rng)
         J_mc[idx], J_se[idx] = _mc.mc_cost_shared(
             system.A,
             system.B,
@@ -414,6 +497,7 @@ def _monte_carlo(c: _Cells, L):
             runs=spec.mc_runs,
         )
     c.out["J_mc"], c.out["J_mc_se"] = J_mc, J_se
+    c.mc_seconds += time.process_time() - clock
 
 
 def _cost_ratio(c: _Cells, J):

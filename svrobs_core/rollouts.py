@@ -1,19 +1,22 @@
-"""Multi-rollout data collection and seeding (SPEC section 1).
+"""Multi-rollout data collection and seeding (SPEC section 1, docs/performance.md#generators).
 
-Every random draw comes from ``Generator(PCG64(SeedSequence(seed,
+Every random draw comes from ``Generator(BitGen(SeedSequence(seed,
 spawn_key=key)))`` with ``key = (system index, sigma_w index, N, rep)``:
 estimators and gammas never enter the key, so they all see the same data,
 and a repetition's numbers do not depend on how the grid is batched.
+``BitGen`` is the spec's ``rng`` (:data:`RNGS`): ``"pcg64"`` (the default,
+numpy's PCG64) or ``"sfc64"`` (numpy's SFC64, about a fifth faster per
+normal draw); the seeding and the order of draws are the same for both.
 
 Speed. Building one such generator through numpy's Python-level
 ``SeedSequence`` costs ~45 us, which is a noticeable share of the paper
-preset (~100,000 keys). :func:`generators` computes the same PCG64 states for
-many keys at once (numpy's SeedSequence hash, vectorised over the keys, and
-PCG64's seeding step in exact integer arithmetic) and hands out one
-generator per key by setting the state of a reused bit generator. The
-result is checked against numpy's own construction at first use (and in the
-tests); on any mismatch, e.g. a future numpy with a different seeding, the
-slow path is used.
+preset (~100,000 keys). :func:`generators` computes the same bit-generator
+states for many keys at once (numpy's SeedSequence hash, vectorised over the
+keys, then PCG64's seeding step in exact integer arithmetic or SFC64's
+twelve warm-up rounds in uint64 arithmetic) and hands out one generator per
+key by setting the state of a reused bit generator. The result is checked
+against numpy's own construction at first use (and in the tests); on any
+mismatch, e.g. a future numpy with a different seeding, the slow path is used.
 """
 
 from __future__ import annotations
@@ -24,16 +27,29 @@ import numpy as np
 
 DATA_STREAM = ()  # the data generator uses the key itself
 MC_STREAM = (1,)  # Monte Carlo cost noise: key + (1,), shared by all estimators
+DEFAULT_RNG = "pcg64"
+# The spec's ``rng`` -> numpy bit generator. A name fixes the draws for good:
+# a generator with other draws would get a new name.
+RNGS = {"pcg64": np.random.PCG64, "sfc64": np.random.SFC64}
 
 
 def seed_key(system_idx: int, sigma_w_idx: int, N: int, rep: int) -> tuple[int, int, int, int]:
     return (int(system_idx), int(sigma_w_idx), int(N), int(rep))
 
 
-def rng_for(seed: int, key: tuple, stream: tuple = DATA_STREAM) -> np.random.Generator:
+def _bit_generator(rng: str):
+    try:
+        return RNGS[rng]
+    except KeyError:
+        raise ValueError(f"rng must be one of {sorted(RNGS)}, got {rng!r}") from None
+
+
+def rng_for(
+    seed: int, key: tuple, stream: tuple = DATA_STREAM, rng: str = DEFAULT_RNG
+) -> np.random.Generator:
     """The generator of one (key, stream); SPEC section 1 Decision (randomness)."""
     return np.random.Generator(
-        np.random.PCG64(np.random.SeedSequence(seed, spawn_key=key + stream))
+        _bit_generator(rng)(np.random.SeedSequence(seed, spawn_key=key + stream))
     )
 
 
@@ -97,16 +113,21 @@ def _pools(entropy: np.ndarray) -> np.ndarray:
     return np.stack(mixer, axis=1)
 
 
-def _pcg64_states(pools: np.ndarray) -> list[tuple[int, int]]:
-    """generate_state(4, uint64) of each pool, then PCG64's srandom -> [(state, inc)]."""
+def _state_words(pools: np.ndarray, n64: int) -> np.ndarray:
+    """SeedSequence.generate_state(n64, uint64) of each pool -> (K, n64) uint64."""
     c = _INIT_B
     words = []
-    for i in range(8):
+    for i in range(2 * n64):
         v = pools[:, i % _POOL] ^ np.uint32(c)
         c = (c * _MULT_B) & _M32
         v = v * np.uint32(c)
         words.append(v ^ (v >> np.uint32(16)))
-    w = np.stack(words, axis=1).astype("<u4").view("<u8").astype(np.uint64)  # (K, 4)
+    return np.stack(words, axis=1).astype("<u4").view("<u8").astype(np.uint64)
+
+
+def _pcg64_states(pools: np.ndarray) -> list[tuple[int, int]]:
+    """generate_state(4, uint64) of each pool, then PCG64's srandom -> [(state, inc)]."""
+    w = _state_words(pools, 4)  # (K, 4)
     out = []
     for s_hi, s_lo, i_hi, i_lo in w.tolist():
         initstate = (s_hi << 64) | s_lo
@@ -118,7 +139,28 @@ def _pcg64_states(pools: np.ndarray) -> list[tuple[int, int]]:
     return out
 
 
-def _fast_states(seed: int, keys: Sequence[tuple]) -> list[tuple[int, int]]:
+def _sfc64_states(pools: np.ndarray) -> np.ndarray:
+    """generate_state(3, uint64) of each pool, then SFC64's seeding (counter 1,
+    twelve rounds) -> (K, 4) uint64 states [a, b, c, counter]."""
+    w = _state_words(pools, 3)
+    a, b, c = (np.ascontiguousarray(w[:, i]) for i in range(3))
+    d = np.ones_like(a)
+    s11, s3, s24, s40 = (np.uint64(v) for v in (11, 3, 24, 40))
+    for _ in range(12):
+        tmp = a + b + d
+        d = d + np.uint64(1)
+        a = b ^ (b >> s11)
+        b = c + (c << s3)
+        c = ((c << s24) | (c >> s40)) + tmp
+    return np.stack([a, b, c, d], axis=1)
+
+
+_STATES = {"pcg64": _pcg64_states, "sfc64": _sfc64_states}
+
+
+def _fast_states(seed: int, keys: Sequence[tuple], rng: str = DEFAULT_RNG) -> list:
+    """The bit-generator state of every key (PCG64: (state, inc); SFC64: uint64 (4,))."""
+    states = _STATES[rng]
     run = _words(seed)
     if len(run) < _POOL:
         run = run + [0] * (_POOL - len(run))
@@ -129,7 +171,7 @@ def _fast_states(seed: int, keys: Sequence[tuple]) -> list[tuple[int, int]]:
         ent_arr[:, : len(run)] = run
         ent_arr[:, len(run) :] = np.asarray(keys, dtype=np.int64)
         with np.errstate(over="ignore"):
-            return _pcg64_states(_pools(ent_arr))
+            return list(states(_pools(ent_arr)))
     ent = [run + [w for k in key for w in _words(k)] for key in keys]
     out: list = [None] * len(ent)
     by_len: dict[int, list[int]] = {}
@@ -138,33 +180,51 @@ def _fast_states(seed: int, keys: Sequence[tuple]) -> list[tuple[int, int]]:
     for idx in by_len.values():
         arr = np.array([ent[i] for i in idx], dtype=np.uint32)
         with np.errstate(over="ignore"):
-            for i, st in zip(idx, _pcg64_states(_pools(arr))):
+            for i, st in zip(idx, states(_pools(arr))):
                 out[i] = st
     return out
 
 
-_FAST_OK: bool | None = None
+def _state_dict(rng: str, st) -> dict:
+    if rng == "pcg64":
+        return {
+            "bit_generator": "PCG64",
+            "state": {"state": st[0], "inc": st[1]},
+            "has_uint32": 0,
+            "uinteger": 0,
+        }
+    return {"bit_generator": "SFC64", "state": {"state": st}, "has_uint32": 0, "uinteger": 0}
 
 
-def _fast_ok() -> bool:
+_FAST_OK: dict[str, bool] = {}
+
+
+def _fast_ok(rng: str = DEFAULT_RNG) -> bool:
     """True when the vectorised seeding reproduces numpy's SeedSequence here."""
-    global _FAST_OK
-    if _FAST_OK is None:
+    if rng not in _FAST_OK:
+        bitgen = _bit_generator(rng)
         try:
             probe = [(0, 1, 450, 3), (1, 0, 10, 999, 1), (2**40, 7)]
             for seed in (0, 12345, 2**63 - 1):
-                for key, (st, inc) in zip(probe, _fast_states(seed, probe)):
-                    ref = np.random.PCG64(np.random.SeedSequence(seed, spawn_key=key)).state
-                    if ref["state"] != {"state": st, "inc": inc}:
+                for key, st in zip(probe, _fast_states(seed, probe, rng)):
+                    ref = bitgen(np.random.SeedSequence(seed, spawn_key=key))
+                    mine = bitgen(0)
+                    mine.state = _state_dict(rng, st)
+                    if ref.random_raw(3).tolist() != mine.random_raw(3).tolist():
                         raise ValueError("mismatch")
-            _FAST_OK = True
+            _FAST_OK[rng] = True
         except Exception:  # noqa: BLE001  # pragma: no cover - a numpy with another seeding
-            _FAST_OK = False
-    return _FAST_OK
+            _FAST_OK[rng] = False
+    return _FAST_OK[rng]
 
 
 def generators(
-    seed: int, keys: Sequence[tuple], stream: tuple = DATA_STREAM, *, fresh: bool = False
+    seed: int,
+    keys: Sequence[tuple],
+    stream: tuple = DATA_STREAM,
+    *,
+    fresh: bool = False,
+    rng: str = DEFAULT_RNG,
 ) -> Iterator[np.random.Generator]:
     """Yield the generator of each key (the same streams as :func:`rng_for`), fast.
 
@@ -172,31 +232,27 @@ def generators(
     yielded generator is only valid until the next one is requested (draw
     from it, then move on); ``fresh=True`` gives independent generators.
     """
+    bitgen = _bit_generator(rng)
     keys = [tuple(int(v) for v in k) + tuple(stream) for k in keys]
     if not keys:
         return
-    if not _fast_ok():
+    if not _fast_ok(rng):
         for k in keys:
-            yield np.random.Generator(np.random.PCG64(np.random.SeedSequence(seed, spawn_key=k)))
+            yield np.random.Generator(bitgen(np.random.SeedSequence(seed, spawn_key=k)))
         return
     bg = gen = None
-    for st, inc in _fast_states(seed, keys):
+    for st in _fast_states(seed, keys, rng):
         if fresh or bg is None:
-            bg = np.random.PCG64(0)
+            bg = bitgen(0)
             gen = np.random.Generator(bg)
-        bg.state = {
-            "bit_generator": "PCG64",
-            "state": {"state": st, "inc": inc},
-            "has_uint32": 0,
-            "uinteger": 0,
-        }
+        bg.state = _state_dict(rng, st)
         yield gen
 
 
 # ---------------------------------------------------------------------------
 # draws, simulation, regression data
 # ---------------------------------------------------------------------------
-def draw_noise(seed, keys, *, N, T0, n, m, sigma_u, sigma_w, x0_std=0.0):
+def draw_noise(seed, keys, *, N, T0, n, m, sigma_u, sigma_w, x0_std=0.0, rng=DEFAULT_RNG):
     """Draw (x0, u, w) for every key, in the layout the simulation uses.
 
     Order of draws per key (the reproducibility contract): x0 of shape
@@ -210,7 +266,7 @@ def draw_noise(seed, keys, *, N, T0, n, m, sigma_u, sigma_w, x0_std=0.0):
     x0 = np.zeros((R, n, N))
     u = np.empty((R, m, T0, N))
     w = np.empty((R, n, T0, N))
-    for i, g in enumerate(generators(seed, keys)):
+    for i, g in enumerate(generators(seed, keys, rng=rng)):
         if x0_std > 0:
             g.standard_normal(out=x0[i])
         g.standard_normal(out=u[i])
@@ -258,21 +314,41 @@ def regression_data(x, u, data: str = "all"):
     return Z, F
 
 
-def collect(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0):
+def collect(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0, rng=DEFAULT_RNG):
     """Simulate the rollouts of every key and return (Z, F); SPEC section 1.
 
     The same numbers as the experiment runner uses (it calls :func:`gram_data`)."""
     _, _, Z, F = gram_data(
-        system, sigma_w, N, T0, seed=seed, keys=keys, data=data, x0_std=x0_std, keep_data=True
+        system,
+        sigma_w,
+        N,
+        T0,
+        seed=seed,
+        keys=keys,
+        data=data,
+        x0_std=x0_std,
+        keep_data=True,
+        rng=rng,
     )
     return Z, F
+
+
+def _draw(g, x0b, draw, x0_std) -> bool:
+    """One key's draws in the documented order: x0 into ``x0b`` if x0_std > 0
+    (-> True), then u and w into ``draw`` (m+n, T0, N)."""
+    if x0_std > 0:
+        g.standard_normal(out=x0b)
+    g.standard_normal(out=draw)
+    return x0_std > 0
 
 
 # Working-set size of one chunk of repetitions in :func:`gram_data` (cache-sized).
 CHUNK_BYTES = 2 * 2**20
 
 
-def gram_data(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0, keep_data=False):
+def gram_data(
+    system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0, keep_data=False, rng=DEFAULT_RNG
+):
     """Sufficient statistics of every key's regression data, without forming Z.
 
     Draws in the documented order (:func:`draw_noise`; u and w of a key come
@@ -306,16 +382,13 @@ def gram_data(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0, kee
     Y = np.zeros((c, q, T0 + 1, N))
     draw = np.empty((m + n, T0, N))  # u then w of one key: one contiguous stream block
     x0b = np.empty((n, N))
-    gens = generators(seed, keys)
+    gens = generators(seed, keys, rng=rng)
     for s in range(0, R, c):
         e = min(R, s + c)
         h = e - s
         for i in range(h):
-            g = next(gens)
-            if x0_std > 0:
-                g.standard_normal(out=x0b)
+            if _draw(next(gens), x0b, draw, x0_std):
                 np.multiply(x0b, x0_std, out=Y[i, :n, 0])
-            g.standard_normal(out=draw)
             Y[i, n:, :T0] = draw
         Yh = Y[:h]
         Yh[:, n:d, :T0] *= system.sigma_u
@@ -333,3 +406,71 @@ def gram_data(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0, kee
             Z[s:e] = Zv
             F[s:e] = Fv
     return G, P, Z, F
+
+
+def resampled_grams(
+    seed,
+    keys,
+    systems,
+    owner,
+    *,
+    sigma_u,
+    N,
+    T0,
+    data="all",
+    x0_std=0.0,
+    rng=DEFAULT_RNG,
+    chunk_bytes=CHUNK_BYTES,
+):
+    """Datasets of several systems on shared noise, as sufficient statistics, by chunks.
+
+    Dataset i draws from ``keys[i]`` in the documented order (:func:`draw_noise`:
+    x0 if ``x0_std > 0``, then u and w of shape (m+n, T0, N) as one stream) and
+    drives each of the E systems ``systems[owner[i], e] = [A_e B_e s_e I]``
+    (n, 2n+m) with it: ``x_{k+1} = A_e x_k + B_e sigma_u u_k + s_e w_k``, u, w
+    standard normal. Layout and arithmetic are those of :func:`gram_data`
+    (one stacked BLAS product per step, every (dataset, system) its own call of
+    the same shape, so a dataset's bits do not depend on the chunk).
+
+    Yields ``(idx, G, W, Z, F)`` per chunk of datasets ``idx``: ``G = Z Z^T``
+    (h, E, d, d), ``W = sum_k w_k z_k^T`` (h, E, n, d) over the regression
+    columns (so that ``F Z^T = [A_e B_e] G + s_e W``) and the regression data
+    ``Z`` (h, E, d, K N), ``F`` (h, E, n, K N) as views into the chunk's buffer
+    (valid until the next chunk is requested).
+    """
+    systems = np.asarray(systems, dtype=float)
+    owner = np.asarray(owner, dtype=np.intp)
+    E, n, q = systems.shape[1:]
+    m = q - 2 * n
+    d = n + m
+    D = len(keys)
+    k0 = 1 if data == "all" else T0 - 1
+    K = T0 - k0
+    per_set = 8 * N * (E * q * (T0 + 1) + 2 * E * d * d)
+    c = int(max(1, min(D, chunk_bytes // per_set)))
+    Y = np.zeros((c, E, q, T0 + 1, N))
+    draw = np.empty((m + n, T0, N))
+    x0b = np.empty((n, N))
+    G = np.empty((c, E, d, d))
+    W = np.empty((c, E, n, d))
+    gens = generators(seed, keys, rng=rng)
+    for s in range(0, D, c):
+        e_ = min(D, s + c)
+        h = e_ - s
+        for i in range(h):
+            if _draw(next(gens), x0b, draw, x0_std):
+                Y[i, :, :n, 0] = x0b * x0_std
+            draw[:m] *= sigma_u
+            Y[i, :, n:, :T0] = draw
+        Yh = Y[:h]
+        Mh = systems[owner[s:e_]]  # (h, E, n, q)
+        Zv = Yh[:, :, :d, k0:T0].reshape(h, E, d, K * N)
+        Fv = Yh[:, :, :n, k0 + 1 : T0 + 1].reshape(h, E, n, K * N)
+        Wv = Yh[:, :, d:, k0:T0].reshape(h, E, n, K * N)
+        Zt = np.swapaxes(Zv, -1, -2)
+        with np.errstate(over="ignore", invalid="ignore"):
+            for k in range(T0):
+                np.matmul(Mh, Yh[:, :, :, k], out=Yh[:, :, :n, k + 1])
+            np.matmul(Zv, Zt, out=G[:h])
+            np.matmul(Wv, Zt, out=W[:h])
+        yield np.arange(s, e_), G[:h], W[:h], Zv, Fv

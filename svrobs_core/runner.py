@@ -14,7 +14,7 @@ from dataclasses import replace
 from typing import Any
 
 from .parallel import open_pool, run_ordered
-from .pipeline import run_dataset
+from .pipeline import run_dataset_variants, shares_data
 from .planning import estimator_axis, plan_units
 from .spec import ExperimentSpec
 from .threads import blas_single_thread
@@ -27,32 +27,73 @@ def run_unit_result(spec: ExperimentSpec, unit: dict) -> UnitResult:
     A unit may carry ``"mc_reps"``: it overrides the spec's for this unit
     (used to compute the Monte Carlo J once for several specs that differ
     only there; see :meth:`UnitResult.with_mc_reps`)."""
-    if "mc_reps" in unit and unit["mc_reps"] != spec.mc_reps:
-        spec = replace(spec, mc_reps=unit["mc_reps"])
+    return run_unit_results([spec], unit)[0]
+
+
+def run_unit_results(
+    specs: list[ExperimentSpec], unit: dict, *, timings: dict | None = None
+) -> list[UnitResult]:
+    """One work unit of ``specs[0]``'s plan for specs that share its data and
+    estimates (:func:`svrobs_core.pipeline.shares_data`, e.g. the same grid with
+    other bounds methods): every dataset is simulated and estimated once, each
+    spec's stages run on it. -> one :class:`UnitResult` per spec, holding the
+    unit's N values that are in that spec (its records are the ones the spec
+    gives on its own). ``timings``: CPU seconds are added to it per spec index
+    (the shared simulation and estimates count for ``specs[0]``), those of the
+    Monte Carlo J under ``("mc", index)``."""
+    specs = [
+        replace(s, mc_reps=unit["mc_reps"])
+        if "mc_reps" in unit and unit["mc_reps"] != s.mc_reps
+        else s
+        for s in specs
+    ]
+    for s in specs[1:]:
+        if not shares_data(specs[0], s):
+            raise ValueError("run_unit_results: the specs do not share their data")
+    spec = specs[0]
     si, wi = unit["system"], unit["sigma_w"]
     reps = list(range(*unit["reps"]))
     axis = estimator_axis(spec)
-    datasets = []
-    prev_gain = None
+    datasets: list[list[Dataset]] = [[] for _ in specs]
+    prev_gains: list = [None] * len(specs)
     with blas_single_thread():
         for N in sorted(unit["N"]):
-            fields, notes, N0, gain = run_dataset(
-                spec, si=si, wi=wi, N=N, reps=reps, axis=axis, prev_gain=prev_gain
+            which = [i for i, s in enumerate(specs) if N in s.N]
+            if not which:
+                continue
+            results = run_dataset_variants(
+                [specs[i] for i in which],
+                si=si,
+                wi=wi,
+                N=N,
+                reps=reps,
+                axis=axis,
+                prev_gains=[prev_gains[i] for i in which],
+                timings=None if timings is None else (t := {}),
             )
-            if spec.reuse_gain:
-                prev_gain = gain
-            datasets.append(Dataset(N=int(N), N0=int(N0), fields=fields, note_entries=notes))
-    return UnitResult(
-        system=spec.systems[si].name,
-        system_idx=si,
-        sigma_w=spec.sigma_w[wi],
-        sigma_w_idx=wi,
-        reps=reps,
-        axis=axis,
-        datasets=datasets,
-        mc_reps=spec.mc_reps,
-        n_reps=spec.reps,
-    )
+            if timings is not None:
+                for key, sec in t.items():
+                    i = which[key[1]] if isinstance(key, tuple) else which[key]
+                    k = ("mc", i) if isinstance(key, tuple) else i
+                    timings[k] = timings.get(k, 0.0) + sec
+            for i, (fields, notes, N0, gain) in zip(which, results):
+                if specs[i].reuse_gain:
+                    prev_gains[i] = gain
+                datasets[i].append(Dataset(N=int(N), N0=int(N0), fields=fields, note_entries=notes))
+    return [
+        UnitResult(
+            system=s.systems[si].name,
+            system_idx=si,
+            sigma_w=s.sigma_w[wi],
+            sigma_w_idx=wi,
+            reps=reps,
+            axis=axis,
+            datasets=ds,
+            mc_reps=s.mc_reps,
+            n_reps=s.reps,
+        )
+        for s, ds in zip(specs, datasets)
+    ]
 
 
 def run_unit(spec: ExperimentSpec, unit: dict) -> list[dict]:

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .errors import SpecError
+from .rollouts import DEFAULT_RNG, RNGS
 from .systems import MAX_DIM, SystemSpec, resolve_system
 
 ESTIMATORS = ("ols", "svr", "shrunk-ols")
@@ -61,6 +62,7 @@ SPEC_KEYS = {
     "lambda0",
     "boot_reps",
     "boot_sigma_w",
+    "rng",
 }
 # The fields of a job on measured data that a simulated job does not have
 # (docs/measured.md#spec).
@@ -110,6 +112,7 @@ class ExperimentSpec:
     lambda0: float = 1.0  # self-normalized OLS: V0 = lambda0 I
     boot_reps: int = 100
     boot_sigma_w: str = "estimate"  # bootstrap noise level: residual estimate or the spec's
+    rng: str = DEFAULT_RNG  # bit generator of every draw (docs/performance.md#generators)
     raw_systems: tuple = field(default=(), compare=False)
     # A job on measured data: its options (svrobs_core.measured.spec.DatasetOptions);
     # then systems and sigma_w are empty (docs/measured.md#spec).
@@ -159,6 +162,8 @@ class ExperimentSpec:
             "seed": self.seed,
             "x0_std": self.x0_std,
             **self._bounds_dict(),
+            # only a non-default generator: the normalised JSON of older specs is unchanged
+            **({} if self.rng == DEFAULT_RNG else {"rng": self.rng}),
         }
 
     def _bounds_dict(self) -> dict:
@@ -302,6 +307,7 @@ def parse_simulation_spec(obj) -> ExperimentSpec:
         x0_std=_float(obj.get("x0_std", 0.0), "x0_std", nonneg=True),
         **shared,
         **bounds,
+        rng=_choice(obj.get("rng", DEFAULT_RNG), "rng", tuple(RNGS)),
         raw_systems=tuple(raw_systems),
     )
 

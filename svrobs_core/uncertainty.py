@@ -33,7 +33,7 @@ from .data_factor import (
     v_parts,
 )
 from .linalg import perron_upper_bound, up
-from .rollouts import draw_noise, regression_data
+from .rollouts import resampled_grams
 
 __all__ = [
     "BOOT_STREAM",
@@ -294,42 +294,47 @@ def noise_level(Z, F, theta_hat):
     return np.sqrt(rss / (n * (N0 - d))), None
 
 
-def _refit(name: str, gamma, Z, F, loss_scale: str) -> np.ndarray:
-    """Re-estimate with the cell's own estimator (SPEC section 2). -> (..., n, d)"""
+def _refit(name: str, gamma, Z, F, G, loss_scale: str) -> np.ndarray:
+    """Re-estimate with the cell's own estimator from the data (SPEC section 2). -> (h, n, d)"""
     if name == "ols":
         return _est.fit_ols(Z, F)
     if name == "svr":
-        return _est.fit_svr(Z, F, [gamma], loss_scale=loss_scale)[..., 0, :, :]
+        P = np.matmul(F, np.swapaxes(Z, -1, -2))
+        return _est.svr_from_gram(
+            G, P, Z.shape[-1], [gamma], loss_scale=loss_scale, data=lambda rows: (Z[rows], F[rows])
+        )[:, 0]
     if name == "shrunk-ols":
-        return _est.shrunk_ols(_est.fit_ols(Z, F), [gamma])[..., 0, :, :]
+        return _est.shrunk_ols(_est.fit_ols(Z, F), [gamma])[:, 0]
     raise ValueError(f"unknown estimator {name!r}")
 
 
-def _simulate(A, B, x0, u, w, sigma_w) -> np.ndarray:
-    """x_{k+1} = A x_k + B u_k + sigma_w w_k with a system per (dataset, cell).
+def _deviations(name: str, gamma, centre, s, G, W, Z, F, loss_scale: str) -> np.ndarray:
+    """Theta_b - Theta for one estimator column of a chunk of resampled datasets.
 
-    A (D, E, n, n), B (D, E, n, m), x0 (D, n, N), u (D, m, T0, N), w (D, n, T0, N)
-    (standard normal), sigma_w (D, E). -> x (D, E, n, T0+1, N). Elementwise
-    multiply-adds over the n + m columns (n, m are small; a stacked matmul on
-    these strided slices would not use BLAS).
-    """
-    D, E, n = A.shape[:3]
-    m = B.shape[-1]
-    T0, N = u.shape[-2:]
-    x = np.empty((D, E, n, T0 + 1, N))
-    x[:, :, :, 0] = x0[:, None]
-    s = sigma_w[..., None, None]
-    Ac = A[..., None]  # (D, E, n, n, 1): column j is Ac[..., j, :]
-    Bc = B[..., None]
-    xn = np.empty((D, E, n, N))
-    for k in range(T0):
-        np.multiply(s, w[:, None, :, k], out=xn)
-        for j in range(n):
-            xn += Ac[:, :, :, j] * x[:, :, j, None, k]
-        for j in range(m):
-            xn += Bc[:, :, :, j] * u[:, None, j, None, k]
-        x[:, :, :, k + 1] = xn
-    return x
+    The data were simulated from ``centre`` Theta (h, n, d) with noise level s
+    (h,), so ``F Z^T = Theta G + s W`` and the estimator's deviation is, for the
+    ridge parameter g (0 for OLS), ``(s W - g Theta) (G + g I)^-1`` (shrunk OLS:
+    the OLS one shrunk, ``(s W G^-1 - gamma Theta) / (1 + gamma)``): solved with
+    the eigendecomposition of G, without the cancellation of ``Theta_b - Theta``.
+    Datasets with cond(G + g I) above the estimator's limit (or non-finite)
+    are re-estimated from their data (:func:`_refit`) instead."""
+    N0 = Z.shape[-1]
+    d = G.shape[-1]
+    g = _est.ridge_parameters([gamma], N0, loss_scale)[0] if name == "svr" else 0.0
+    limit = _est.SVR_COND_LIMIT if name == "svr" else _est.REFINE_COND_LIMIT
+    ok = np.isfinite(G).all(axis=(-2, -1)) & np.isfinite(W).all(axis=(-2, -1))
+    lam, V = np.linalg.eigh(np.where(ok[:, None, None], G, np.eye(d)))
+    lam = np.maximum(lam, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        fine = ok & ((lam[:, -1] + g) <= limit * (lam[:, 0] + g)) & (lam[:, 0] + g > 0)
+        rhs = s[:, None, None] * W - g * centre
+        dev = np.matmul(np.matmul(rhs, V) / (lam + g)[:, None, :], np.swapaxes(V, -1, -2))
+    if name == "shrunk-ols":
+        dev = (dev - gamma * centre) / (1.0 + gamma)
+    if not fine.all():
+        rows = np.flatnonzero(~fine)
+        dev[rows] = _refit(name, gamma, Z[rows], F[rows], G[rows], loss_scale) - centre[rows]
+    return dev
 
 
 def bootstrap_box(
@@ -348,6 +353,7 @@ def bootstrap_box(
     x0_std: float = 0.0,
     loss_scale: str = "sum",
     joint: bool = True,
+    rng: str = "pcg64",
 ) -> BoxResult:
     """Parametric bootstrap box of SPEC section 3.1 (docs/uncertainty.md (e)).
 
@@ -361,10 +367,14 @@ def bootstrap_box(
     Theta_b - Theta_hat per entry, c the (1 - delta) quantile of
     max_ij |Theta_b - Theta_hat|_ij / s_ij), else the (1 - delta) quantile
     of |Theta_b - Theta_hat| per entry. numpy's default (linear) quantiles.
+
+    Batched: all R x boot_reps resampled datasets go through one chunked
+    simulation of every cell's system (:func:`svrobs_core.rollouts.resampled_grams`)
+    and one re-estimation per estimator column and chunk (:func:`_deviations`);
+    a cell's numbers do not depend on the chunking (docs/performance.md#bootstrap).
     """
     theta = np.asarray(theta_hat, dtype=float)
     R, E, n, d = theta.shape
-    m = d - n
     if len(estimators) != E or len(keys) != R:
         raise ValueError("estimators and keys must match theta_hat's (R, E) axes")
     Bn = int(boot_reps)
@@ -372,27 +382,38 @@ def bootstrap_box(
     good = np.isfinite(theta).all(axis=(-2, -1)) & np.isfinite(sw) & (sw >= 0)
     th = np.where(good[..., None, None], theta, 0.0)
     s_ok = np.where(good, sw, 0.0)
-    K = T0 - 1 if data == "all" else 1
-    per_set = 8 * N * (E * (n * (T0 + 1) + (d + n) * K + m * T0) + (n + m) * T0 + n)
-    c = int(max(1, BOOT_CHUNK_BYTES // per_set))
+    systems = np.concatenate([th, s_ok[..., None, None] * np.eye(n)], axis=-1)  # (R, E, n, d+n)
     D = R * Bn
-    theta_b = np.empty((D, E, n, d))
-    for s in range(0, D, c):
-        q = np.arange(s, min(D, s + c))
-        r = q // Bn
-        bkeys = [tuple(keys[ri]) + BOOT_STREAM + (int(b),) for ri, b in zip(r, q % Bn)]
-        x0, u, w = draw_noise(
-            seed, bkeys, N=N, T0=T0, n=n, m=m, sigma_u=sigma_u, sigma_w=1.0, x0_std=x0_std
-        )
-        x = _simulate(th[r, :, :, :n], th[r, :, :, n:], x0, u, w, s_ok[r])
-        h = q.size
-        ub = np.broadcast_to(u[:, None], (h, E) + u.shape[1:]).reshape((h * E,) + u.shape[1:])
-        Z, F = regression_data(x.reshape((h * E,) + x.shape[2:]), ub, data)
-        Z = Z.reshape(h, E, d, -1)
-        F = F.reshape(h, E, n, -1)
+    owner = np.arange(D) // Bn
+    bkeys = [tuple(keys[r]) + BOOT_STREAM + (b,) for r in range(R) for b in range(Bn)]
+    dev_b = np.empty((D, E, n, d))
+    for idx, G, W, Z, F in resampled_grams(
+        seed,
+        bkeys,
+        systems,
+        owner,
+        sigma_u=sigma_u,
+        N=N,
+        T0=T0,
+        data=data,
+        x0_std=x0_std,
+        rng=rng,
+        chunk_bytes=BOOT_CHUNK_BYTES,
+    ):
+        r = owner[idx]
         for ei, (name, gamma) in enumerate(estimators):
-            theta_b[q, ei] = _refit(name, gamma, Z[:, ei], F[:, ei], loss_scale)
-    dev = theta_b.reshape(R, Bn, E, n, d).transpose(0, 2, 1, 3, 4) - th[:, :, None]
+            dev_b[idx, ei] = _deviations(
+                name,
+                gamma,
+                th[r, ei],
+                s_ok[r, ei],
+                G[:, ei],
+                W[:, ei],
+                Z[:, ei],
+                F[:, ei],
+                loss_scale,
+            )
+    dev = dev_b.reshape(R, Bn, E, n, d).transpose(0, 2, 1, 3, 4)
     level = 1.0 - float(delta)
     eps_A = np.quantile(_spectral_norm(dev[..., :n]), level, axis=-1)
     eps_B = np.quantile(_spectral_norm(dev[..., n:]), level, axis=-1)

@@ -61,17 +61,17 @@ def _coverage(true, est, R) -> np.ndarray:
     return np.where(np.isfinite(R).all(axis=(-2, -1)), inside, np.nan)
 
 
-def sound_bounds(c, *, G, Z, F, N: int, N0: int) -> SoundBounds:
+def sound_bounds(c, *, G, Z, F, N: int, N0: int, factor=None) -> SoundBounds:
     """Box, record fields and BoundsResult of one dataset's cells (SPEC section 3.1).
 
     ``c``: the pipeline's cell context (spec, system, sigma_w, keys, axis,
     A_hat, B_hat, notes); Z, F the data (R, d, N0), (R, n, N0), factorised
     by :func:`sound_box`; G (the Gram matrices) only where there are no data.
     """
-    return bounds_from_box(c, sound_box(c, G=G, Z=Z, F=F, N=N, N0=N0))
+    return bounds_from_box(c, sound_box(c, G=G, Z=Z, F=F, N=N, N0=N0, factor=factor))
 
 
-def sound_box(c, *, G, Z, F, N: int, N0: int) -> _unc.BoxResult:
+def sound_box(c, *, G, Z, F, N: int, N0: int, factor=None) -> _unc.BoxResult:
     """The box of the spec's ``bounds_method`` for one dataset's cells
     (:func:`sound_bounds`), with the radii its certificates use (``R_A_up``,
     ``R_B_up``, :func:`svrobs_core.uncertainty.certificate_radii`).
@@ -84,7 +84,9 @@ def sound_box(c, *, G, Z, F, N: int, N0: int) -> _unc.BoxResult:
     theta = np.concatenate([c.A_hat, c.B_hat], axis=-1)
     lam, shrink = _ridge_axis(c.axis, N0, spec.loss_scale)
     # (R, 1, ...): one factor per dataset, shared by its E cells
-    fac = (_unc.data_factor(Z, F) if Z is not None else _unc.gram_factor(G)).expand(1)
+    if factor is None:  # ``factor``: data_factor(Z, F), when the caller has it already
+        factor = _unc.data_factor(Z, F) if Z is not None else _unc.gram_factor(G)
+    fac = factor.expand(1)
     if spec.bounds_method == "self-normalized":
         box = _unc.self_normalized_box(
             fac,
@@ -117,6 +119,7 @@ def sound_box(c, *, G, Z, F, N: int, N0: int) -> _unc.BoxResult:
             data=spec.data,
             x0_std=spec.x0_std,
             loss_scale=spec.loss_scale,
+            rng=spec.rng,
         )
         c.notes.add(True, HEURISTIC_NOTE)
     R_A_up, R_B_up = _unc.certificate_radii(box, fac, theta, lam=lam, shrink=shrink)

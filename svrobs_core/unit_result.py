@@ -86,8 +86,16 @@ def _json_strings(arr, RE: int) -> list[str]:
         for i in np.flatnonzero(~finite).tolist():
             out[i] = "null"
         return out
-    # a matrix per cell: repr of nested lists of floats is the JSON text
-    out = list(map(repr, np.where(finite, arr, 0.0).tolist()))
+    # a matrix per cell: the JSON text is repr of its nested lists of floats,
+    # assembled from the entries' reprs by one template (the same text, faster)
+    if arr.ndim == 3 and arr.shape[1] * arr.shape[2] > 0:
+        rows, cols = arr.shape[1:]
+        row = "[" + ", ".join(["%s"] * cols) + "]"
+        template = "[" + ", ".join([row] * rows) + "]"
+        entries = map(repr, np.where(finite, arr, 0.0).ravel().tolist())
+        out = [template % t for t in zip(*[entries] * (rows * cols))]
+    else:
+        out = list(map(repr, np.where(finite, arr, 0.0).tolist()))
     bad = ~finite.reshape(RE, -1).all(axis=1)
     for i in np.flatnonzero(bad).tolist():
         out[i] = json.dumps(json_value(arr[i]), allow_nan=False)

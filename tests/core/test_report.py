@@ -15,7 +15,7 @@ import re
 import numpy as np
 import pytest
 
-from service.reports import reproduce as rep_mod
+from svrobs_cli import reproduce as rep_mod
 from svrobs_core import RECORD_FIELDS, parse_spec, run_spec
 from svrobs_core import report as rpt
 from svrobs_core.paper import PUBLISHED_TABLE2, paper_specs
@@ -413,16 +413,15 @@ def test_svr_ols_difference_uses_the_same_repetition():
 # ---------------------------------------------------------------------------
 
 
-def test_plan_takes_sub_grids_from_their_parents():
+def test_plan_takes_sub_grids_from_their_parents_and_shares_their_data():
     specs = paper_specs("reduced")
-    # A1 (self-normalized) has E2's grid and data but not its bounds: neither is the other's
-    assert rep_mod._plan(specs, derive=True) == [
-        ("E2", ["E1"]),
-        ("E4", ["E3"]),
-        ("A1", []),
-        ("A2", []),
-    ]
-    assert rep_mod._plan(specs, derive=False) == [(n, []) for n in specs]
+    # A1 (self-normalized) and A2 (bootstrap) have E2's grid and data but not its
+    # bounds: they run in E2's pass; E1 and E3 are selections of E2's and E4's records
+    plan = [(g.parent, g.variants, g.children) for g in rep_mod.plan(specs, derive=True)]
+    assert plan == [("E2", ["A1", "A2"], ["E1"]), ("E4", [], ["E3"])]
+    full = [(g.parent, g.variants, g.children) for g in rep_mod.plan(paper_specs("full"))]
+    assert full == plan  # A2 on five of E2's N values
+    assert [g.names for g in rep_mod.plan(specs, derive=False)] == [[n] for n in specs]
     assert not rep_mod._derivable(specs["E2"], specs["A1"])
     assert not rep_mod._derivable(specs["A1"], specs["E2"])
     other_seed = dict(specs["E1"], seed=1)
@@ -431,30 +430,32 @@ def test_plan_takes_sub_grids_from_their_parents():
     assert not rep_mod._derivable(swapped, specs["E4"])
     fewer = dict(specs["E3"], gamma=[0.05, 0.1])  # the cost ratio couples the gammas
     assert not rep_mod._derivable(fewer, specs["E4"])
+    only = rep_mod.select_experiments(specs, "E1, A2")
+    assert [(g.parent, g.variants, g.children) for g in rep_mod.plan(only)] == [
+        ("E1", [], []),
+        ("A2", [], []),
+    ]
+    with pytest.raises(rep_mod.ReproduceError, match="unknown experiment E9"):
+        rep_mod.select_experiments(specs, "E1,E9")
 
 
-def test_missing_stage_is_dropped_and_reported(tmp_path, monkeypatch):
-    specs = {
-        "P": {**tiny_spec(reps=2, N=[10, 20]), "stages": ["estimate", "bounds", "gain", "cost"]}
-    }
-    calls = []
+def test_a_failing_stage_stops_the_reproduction_naming_it(tmp_path, monkeypatch):
+    """No stage is dropped: the run stops, naming the experiment, the stage and why."""
+    from svrobs_core import pipeline, uncertainty
 
-    def fake_run_spec(spec, progress=None, units=None, **kwargs):
-        calls.append(spec.stages)
-        if spec.has("gain"):
-            raise NotImplementedError("observer pipeline not yet written")
-        yield make_records(spec.to_dict(), cost=False)
+    def missing(*args, **kwargs):
+        raise NotImplementedError("observer pipeline not yet written")
 
-    monkeypatch.setattr(rep_mod, "run_spec", fake_run_spec)
-    res = rep_mod._run_group("P", [], specs, tmp_path, None)["P"]
-    assert calls[-1] == ("estimate", "bounds")
-    assert res["spec"]["stages"] == ["estimate", "bounds"]
-    assert set(res["stages_unavailable"]) == {"gain", "cost"}
-    assert "observer pipeline not yet written" in res["stages_unavailable"]["gain"]
-    lines = (tmp_path / "P" / "records.jsonl").read_text().splitlines()
-    assert len(lines) == res["n_records"] == len(res["records"]) == 2 * 2 * 2 * 2 * 3
-    meta = json.loads((tmp_path / "P" / "spec.json").read_text())
-    assert meta["stages_unavailable"]["cost"].startswith("NotImplementedError")
+    monkeypatch.setattr(pipeline, "design", missing)
+    with pytest.raises(rep_mod.ReproduceError) as exc:
+        rep_mod.reproduce(tmp_path, scale="reduced", quiet=True, n_jobs=1, only="E3")
+    assert str(exc.value) == (
+        "E3: stage 'gain' failed: NotImplementedError: observer pipeline not yet written"
+    )
+    assert not (tmp_path / "report.md").exists()
+    monkeypatch.setattr(uncertainty, "bootstrap_box", missing)
+    with pytest.raises(rep_mod.ReproduceError, match="^A2: stage 'bounds' failed: NotImpl"):
+        rep_mod.reproduce(tmp_path, scale="reduced", quiet=True, n_jobs=1, only="E2,A1,A2")
 
 
 # ---------------------------------------------------------------------------
@@ -464,11 +465,6 @@ def test_missing_stage_is_dropped_and_reported(tmp_path, monkeypatch):
 
 @pytest.fixture(scope="module")
 def reproduced(tmp_path_factory):
-    probe = parse_spec({"systems": ["paper-stable"], "sigma_w": [1.0], "N": [10], "reps": 1})
-    try:
-        list(run_spec(probe))
-    except NotImplementedError as exc:  # the core's estimate/bounds stages are not in yet
-        pytest.skip(f"estimate/bounds pipeline not available: {exc}")
     out = tmp_path_factory.mktemp("reproduce")
     result = rep_mod.reproduce(out, scale="reduced", quiet=True)
     return out, result
@@ -564,10 +560,11 @@ def test_derived_e1_equals_a_direct_run(reproduced):
 
 
 def test_derived_e3_and_parallel_run_equal_a_direct_run(reproduced):
-    """E3's records (taken from E4's, computed in worker processes) are, as JSON
-    text, the records of E3 run on its own in this process."""
+    """E3's records (taken from E4's, computed in worker processes) and A1's, A2's
+    (computed in E2's pass over the data) are, as JSON text, the records of each
+    run on its own in this process."""
     out, _ = reproduced
-    for exp in ("E3", "E4"):  # E4 has no Monte Carlo J: its S records are E3's without it
+    for exp in ("E3", "E4", "A1", "A2"):  # E4 has no Monte Carlo J: its S records are E3's
         derived = (out / exp / "records.jsonl").read_text().splitlines()
         direct = [
             json.dumps(r, allow_nan=False)
@@ -602,3 +599,33 @@ def test_report_contents(reproduced):
     prov = json.loads((out / "provenance.json").read_text())
     assert prov["preset"] == "paper-section-6" and prov["scale"] == "reduced"
     assert prov["derived_from"] == {"E1": "E2", "E3": "E4"}
+    assert prov["shares_data_of"] == {"A1": "E2", "A2": "E2"}
+    assert set(prov["normals"]) == set(paper_specs("reduced")) and prov["normals"]["E1"] == 0
+
+
+def test_cli_reproduce_runs_a_subset_and_refuses_unknown_names(tmp_path):
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "svrobs_cli", "reproduce", "--scale", "reduced", "--quiet"]
+    done = subprocess.run(
+        [*cmd, "--only", "E1", "--jobs", "1", "--out", str(tmp_path / "t2")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in (tmp_path / "t2").iterdir() if p.is_dir()) == ["E1"]
+    prov = json.loads((tmp_path / "t2" / "provenance.json").read_text())
+    assert prov["experiments"] == ["E1"] and prov["records"]["E1"] == 2 * 3 * 3 * 3 * 2
+    assert not list((tmp_path / "t2" / "E1").glob(".parts*"))
+    bad = subprocess.run(
+        [*cmd, "--only", "E1,E9", "--out", str(tmp_path / "bad")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert bad.returncode == 2
+    assert bad.stderr.strip().splitlines() == [
+        "error: reproduce: --only: unknown experiment E9; the preset has E1, E2, E3, E4, A1, A2"
+    ]

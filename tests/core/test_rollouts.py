@@ -86,6 +86,36 @@ def test_fast_generators_are_numpys_seedsequence_streams():
     assert firsts[0] == rng_for(3, keys[0]).standard_normal()
 
 
+def test_fast_sfc64_generators_are_numpys_seedsequence_streams():
+    """rng = "sfc64": the vectorised seeding gives numpy's SFC64(SeedSequence) streams."""
+    keys = [seed_key(s, w, N, r) for s in (0, 1) for w in (0, 2) for N in (10, 450) for r in (0, 7)]
+    keys.append((2**40, 3))  # a key entry of more than one 32-bit word: the per-key path
+    for seed in (0, 2**63 - 1):
+        for stream in ((), MC_STREAM, (2, 17)):
+            got = [g.standard_normal(5) for g in generators(seed, keys, stream, rng="sfc64")]
+            for k, a in zip(keys, got):
+                ref = np.random.Generator(
+                    np.random.SFC64(np.random.SeedSequence(seed, spawn_key=k + stream))
+                ).standard_normal(5)
+                assert np.array_equal(a, ref), (seed, k, stream)
+                assert np.array_equal(a, rng_for(seed, k, stream, "sfc64").standard_normal(5))
+
+
+def test_the_rng_choice_is_deterministic_and_changes_every_draw():
+    keys = [seed_key(0, 0, 12, r) for r in range(3)]
+    runs = {
+        rng: [gram_data(S, 1.0, 12, 11, seed=4, keys=keys, keep_data=True, rng=rng) for _ in "ab"]
+        for rng in ("pcg64", "sfc64")
+    }
+    for (G1, P1, Z1, F1), (G2, P2, Z2, F2) in runs.values():
+        assert np.array_equal(Z1, Z2) and np.array_equal(F1, F2)
+        assert np.array_equal(G1, G2) and np.array_equal(P1, P2)
+    Zp, Zs = runs["pcg64"][0][2], runs["sfc64"][0][2]
+    assert not np.isclose(Zp[:, :, 1:], Zs[:, :, 1:]).any()  # every simulated value differs
+    Zn, _ = naive(S, 1.0, 12, 11, 4, keys[1], "all")
+    np.testing.assert_allclose(Zp[1], Zn, rtol=1e-12, atol=1e-12)  # the default is PCG64
+
+
 def test_gram_data_is_z_zt_and_f_zt_of_the_rollouts():
     for data, x0_std in (("all", 0.0), ("final", 1.5)):
         keys = [seed_key(1, 0, 13, r) for r in range(5)]

@@ -124,6 +124,7 @@ def test_custom_system_and_flat_B_column():
             "mc_runs",
         ),
         ({"sls": {"T_fir": 1001}}, "sls.T_fir"),
+        ({"rng": "mt19937"}, "rng"),
     ],
 )
 def test_bad_input_names_the_field(changes, field):
@@ -168,3 +169,10 @@ def test_to_dict_round_trips():
     again = parse_spec(s.to_dict())
     assert again.to_dict() == s.to_dict()
     assert s.stages == ("estimate", "bounds", "gain")  # canonical order
+
+
+def test_rng_is_normalised_only_when_not_the_default():
+    assert "rng" not in parse_spec(spec_with()).to_dict()
+    assert parse_spec(spec_with(rng="pcg64")).to_dict() == parse_spec(spec_with()).to_dict()
+    fast = parse_spec(spec_with(rng="sfc64"))
+    assert fast.rng == "sfc64" and parse_spec(fast.to_dict()).to_dict()["rng"] == "sfc64"

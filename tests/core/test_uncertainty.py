@@ -258,10 +258,10 @@ def test_bootstrap_matches_an_independent_resimulation(joint, x0_std):
         **kw,
     )
     R_ref, eA, eB = _ref_bootstrap(theta, ["ols", "svr"], [None, 0.3], keys, B=B, joint=joint, **kw)
-    np.testing.assert_allclose(box.R_A, R_ref[..., :2], rtol=1e-8)
-    np.testing.assert_allclose(box.R_B, R_ref[..., 2:], rtol=1e-8)
-    np.testing.assert_allclose(box.eps_A, eA, rtol=1e-8)
-    np.testing.assert_allclose(box.eps_B, eB, rtol=1e-8)
+    np.testing.assert_allclose(box.R_A, R_ref[..., :2], rtol=1e-12)
+    np.testing.assert_allclose(box.R_B, R_ref[..., 2:], rtol=1e-12)
+    np.testing.assert_allclose(box.eps_A, eA, rtol=1e-12)
+    np.testing.assert_allclose(box.eps_B, eB, rtol=1e-12)
 
 
 def test_bootstrap_is_bit_reproducible_and_batch_independent(monkeypatch):

@@ -1,10 +1,14 @@
-"""`svrobs serve` (svrobs_cli.serve) as a user runs it: one command, Ctrl-C stops all."""
+"""`svrobs serve` (svrobs_cli.serve) as a user runs it: one command, Ctrl-C stops all;
+a worker killed with SIGKILL is restarted (``/readyz`` 503 until it is back, the API
+answering throughout); ``--host`` / ``--port``; a port in use is one line."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -29,18 +33,24 @@ def _alive(pid: int) -> bool:
         return False
 
 
-def _start_serve(tmp_path, port):
+def _serve_env(tmp_path, **extra) -> dict:
     env = {k: v for k, v in os.environ.items() if not k.startswith("SVROBS_")}
     env.update(
         SVROBS_DATABASE_URL=f"sqlite:///{tmp_path / 'var' / 'svrobs.db'}",
         SVROBS_BROKER_DIR=str(tmp_path / "var" / "broker"),
         SVROBS_VAR_DIR=str(tmp_path / "var"),
-        SVROBS_API_PORT=str(port),
         PYTHONUNBUFFERED="1",
+        **extra,
     )
+    return env
+
+
+def _start_serve(tmp_path, port, *args: str):
+    """``svrobs serve`` with its API on ``port`` (SVROBS_API_PORT, or ``--port`` in args)."""
+    env = _serve_env(tmp_path, **({} if "--port" in args else {"SVROBS_API_PORT": str(port)}))
     log = open(tmp_path / "serve.log", "wb")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "svrobs_cli", "serve"],
+        [sys.executable, "-m", "svrobs_cli", "serve", *args],
         cwd=str(ROOT),
         env=env,
         stdout=log,
@@ -57,7 +67,7 @@ def _wait_ready(proc, log, port, timeout=90):
         try:
             if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
                 text = log.read_text()
-                if "worker1" in text and "beat" in text:
+                if "svrobs is running" in text:  # the box, printed once it is up
                     return text
         except httpx.HTTPError:
             pass
@@ -69,12 +79,39 @@ def _child_pids(text: str) -> dict[str, int]:
     return {m[0]: int(m[1]) for m in re.findall(r"started (\w+) \(pid (\d+)\)", text)}
 
 
+def _readyz(port: int) -> int:
+    try:
+        return httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=5).status_code
+    except httpx.HTTPError:
+        return 0
+
+
+def _stop(proc, sig=signal.SIGINT) -> None:
+    if proc.poll() is None:
+        os.kill(proc.pid, sig)
+        try:
+            proc.wait(40)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
+@contextlib.contextmanager
+def _serving(tmp_path, port, *args: str):
+    """``svrobs serve`` up (its box printed): ``(proc, log, text so far)``; stopped after."""
+    proc, log = _start_serve(tmp_path, port, *args)
+    try:
+        yield proc, log, _wait_ready(proc, log, port)
+    finally:
+        _stop(proc)
+
+
 def test_serve_first_start_prints_key_and_ctrl_c_stops_everything(tmp_path):
     port = free_port()
-    proc, log = _start_serve(tmp_path, port)
-    try:
-        text = _wait_ready(proc, log, port)
+    with _serving(tmp_path, port, "--host", "127.0.0.1", "--port", str(port)) as (proc, log, text):
         key = re.search(r"(svr_[a-z0-9]{8}_\S+)", text).group(1)
+        assert f"svrobs is running: open http://127.0.0.1:{port}/" in text
+        assert f"export SVROBS_URL=http://127.0.0.1:{port} SVROBS_API_KEY={key}" in text
         r = httpx.get(
             f"http://127.0.0.1:{port}/api/v1/jobs", headers={"Authorization": f"Bearer {key}"}
         )
@@ -85,24 +122,80 @@ def test_serve_first_start_prints_key_and_ctrl_c_stops_everything(tmp_path):
         assert proc.wait(40) == 0, log.read_text()
         time.sleep(0.5)
         assert not [n for n, p in pids.items() if _alive(p)], log.read_text()
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
 
-    # second start: same DB, no new key printed
-    proc, log = _start_serve(tmp_path, port)
-    try:
-        text = _wait_ready(proc, log, port)
-        assert "svr_" not in text
+
+def test_a_killed_worker_is_restarted_and_readyz_says_so(tmp_path):
+    port = free_port()
+    with _serving(tmp_path, port) as (proc, log, text):
+        key = re.search(r"(svr_[a-z0-9]{8}_\S+)", text).group(1)
         pids = _child_pids(text)
-        # a child dying takes the whole stack down, non-zero
-        os.killpg(pids["worker1"], signal.SIGKILL)
-        assert proc.wait(40) != 0
-        assert "worker1 exited" in log.read_text()
+        pool = [int(p) for p in os.popen(f"pgrep -P {pids['worker1']}").read().split()]
+        assert pool  # the prefork pool
+
+        os.kill(pids["worker1"], signal.SIGKILL)
+        seen, api_codes = [], []
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline and not (503 in seen and seen[-1] == 200):
+            seen.append(_readyz(port))
+            api_codes.append(httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=5).status_code)
+            time.sleep(0.1)
+        assert 503 in seen and seen[-1] == 200, (seen, log.read_text()[-3000:])
+        assert seen[: seen.index(503)] == [200] * seen.index(503)  # 200 only until it saw the death
+        assert set(api_codes) == {200}  # the API answered throughout
+        out = log.read_text()
+        assert re.search(r"worker1 \(pid \d+\) exited \(killed by SIGKILL\).*restarting in", out)
+        restarted = re.search(r"restarted worker1 \(pid (\d+); restart 1\)", out)
+        assert restarted, out[-3000:]
+        assert proc.poll() is None
+        assert not [p for p in pool if _alive(p)]  # the old pool went with its worker
+
+        # a job through the restarted worker
+        headers = {"Authorization": f"Bearer {key}"}
+        spec = {"systems": ["paper-stable"], "sigma_w": [0.1], "N": [10, 20], "reps": 2}
+        r = httpx.post(f"http://127.0.0.1:{port}/api/v1/jobs", json=spec, headers=headers)
+        assert r.status_code == 202, r.text
+        job = r.json()
+        deadline = time.monotonic() + 120
+        while job["status"] not in ("succeeded", "failed", "cancelled"):
+            assert time.monotonic() < deadline, job
+            time.sleep(0.3)
+            job = httpx.get(
+                f"http://127.0.0.1:{port}/api/v1/jobs/{job['id']}", headers=headers
+            ).json()
+        assert job["status"] == "succeeded", job
+
+        new_worker = int(restarted.group(1))
+        os.kill(proc.pid, signal.SIGTERM)
+        assert proc.wait(40) == 0, log.read_text()[-3000:]
         time.sleep(0.5)
-        assert not [n for n, p in pids.items() if _alive(p)], log.read_text()
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        assert not [p for p in [*pids.values(), new_worker] if _alive(p)], log.read_text()
+
+
+def test_second_start_prints_no_new_key(tmp_path):
+    port = free_port()
+    with _serving(tmp_path, port) as (_proc, _log, first):
+        assert "svr_" in first
+    with _serving(tmp_path, port) as (_proc, _log, text):
+        assert "svr_" not in text.replace("svr_...", "")
+        assert "admin API key: printed on first start" in text
+
+
+def test_a_port_in_use_is_one_line_and_starts_nothing(tmp_path):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        run = subprocess.run(
+            [sys.executable, "-m", "svrobs_cli", "serve", "--port", str(port)],
+            cwd=str(ROOT),
+            env=_serve_env(tmp_path),
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    assert run.returncode == 2
+    assert run.stderr.strip() == (
+        f"error: port {port} is in use; pick another with --port (make run PORT=...)"
+    )
+    assert run.stdout == ""  # nothing migrated, nothing started
+    assert not (tmp_path / "var").exists()

@@ -1,4 +1,5 @@
-"""/healthz (the process is up) and /readyz (the DB and the broker answer)."""
+"""/healthz (the process is up) and /readyz (the DB and the broker answer, and a worker
+runs when the API knows where its workers are: SVROBS_WORKER_PID_DIR)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from fastapi.responses import JSONResponse
 
 from service.db.clock import ping
 from service.http.deps import BrokerCheckDep, SessionFactoryDep, SettingsDep
+from service.worker_pids import check_workers
 from svrobs_lab.dispatch import SessionFactory
 
 router = APIRouter(tags=["health"])
@@ -28,14 +30,16 @@ def _check_db(session_factory: SessionFactory) -> None:
         session.close()
 
 
-@router.get("/readyz", responses={503: {"description": "DB or broker unreachable"}})
+@router.get(
+    "/readyz", responses={503: {"description": "DB or broker unreachable, or no worker running"}}
+)
 def readyz(session_factory: SessionFactoryDep, broker_check: BrokerCheckDep, settings: SettingsDep):
     timeout = settings.BROKER_TIMEOUT + 3
     checks: dict[str, str] = {}
-    for name, fn, args in (
-        ("database", _check_db, (session_factory,)),
-        ("broker", broker_check, ()),
-    ):
+    todo = [("database", _check_db, (session_factory,)), ("broker", broker_check, ())]
+    if settings.WORKER_PID_DIR:
+        todo.append(("worker", check_workers, (settings.WORKER_PID_DIR,)))
+    for name, fn, args in todo:
         try:
             _pool.submit(fn, *args).result(timeout=timeout)
             checks[name] = "ok"

@@ -42,7 +42,7 @@ def job_report(
 class PresetRun(BaseModel):
     model_config = ConfigDict(extra="forbid")
     scale: Literal["full", "reduced"] = "full"
-    experiments: list[Literal["E1", "E2", "E3", "E4"]] | None = None
+    experiments: list[Literal["E1", "E2", "E3", "E4", "A1", "A2"]] | None = None
 
 
 @router.post(
@@ -56,8 +56,10 @@ def run_paper_preset(
     body: PresetRun | None = None,
     idempotency_key: Annotated[str | None, Header(max_length=180)] = None,
 ):
-    """Queue the paper's Section 6 (SPEC section 9): one job per experiment E1-E4,
-    tagged `paper-section-6` and the experiment name."""
+    """Queue the paper's Section 6 (SPEC section 9): one job per experiment, the
+    paper's E1-E4 and the audits of the uncertainty sets A1 (self-normalized
+    box) and A2 (bootstrap box) on E2's grid, tagged `paper-section-6` and the
+    experiment name."""
     body = body or PresetRun()
     specs = paper_specs(body.scale)
     names = body.experiments or sorted(specs)

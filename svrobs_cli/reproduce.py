@@ -1,0 +1,664 @@
+"""`svrobs reproduce --out DIR`: the paper's Section 6 (preset ``paper-section-6``) in process.
+
+Runs the experiments of ``svrobs_core.paper.paper_specs(scale)`` (E1-E4 and
+the audits A1, A2; ``only`` picks some) and writes::
+
+    DIR/<experiment>/records.jsonl   one section 10 record per line (null, never NaN)
+    DIR/<experiment>/spec.json       the spec that ran
+    DIR/table2.md, DIR/table2.csv    Table 2, ours beside the published values
+    DIR/<figure>.png, .svg, .pdf     Figs. 2-5 and the figures beyond the paper
+    DIR/<figure>.csv                 each figure's plotted data
+    DIR/report.md, DIR/report.html   the whole report (HTML self-contained)
+    DIR/provenance.json
+
+One pass over the data (docs/performance.md#one-pass): the experiments are
+run in groups around the largest grid, and nothing is simulated twice.
+
+* An experiment whose spec equals another's restricted to some systems /
+  gammas / estimators at the same seed-key indices (E1 inside E2, E3 inside
+  E4, up to ``mc_reps``) takes its records from that run (a cell's numbers
+  depend only on the seed and its key).
+* An experiment that differs from another only in the bounds method (and on
+  a subset of its N values: A1 and A2 of E2) runs in the same pass: the same
+  data, factorisation and estimates, its own bounds and later stages
+  (:func:`svrobs_core.runner.run_unit_results`).
+
+Pass ``derive=False`` to run every spec on its own. Every stage of every
+experiment runs, or the reproduction stops with a :class:`ReproduceError`
+naming the experiment, the stage and why.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import functools
+import json
+import os
+import platform
+import time
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+
+from service.db.provenance import git_commit
+from svrobs_cli.progress import progress_bar
+from svrobs_core import __version__, parse_spec, plan_units
+from svrobs_core import report as rpt
+from svrobs_core.paper import EXPERIMENTS, MC_DECISION, PRESET_NAME, paper_specs
+from svrobs_core.parallel import open_pool
+from svrobs_core.pipeline import failed_stage, shares_data
+from svrobs_core.runner import run_unit_results
+from svrobs_core.threads import blas_single_thread
+from svrobs_lab.report_html import render_html
+
+# Above this many cells an experiment keeps no A_hat/B_hat in memory for the
+# report (only E1/E2-sized grids draw the figures that need them).
+MATRIX_CELLS_LIMIT = 200_000
+
+
+class ReproduceError(Exception):
+    """A stage of an experiment failed: the reproduction is not complete."""
+
+
+# ---------------------------------------------------------------------------
+# planning: which experiments run together
+# ---------------------------------------------------------------------------
+def _derivable(child: dict, parent: dict) -> bool:
+    """True when every record of ``child`` is a record of ``parent`` (same keys),
+    up to ``mc_reps``: the parent's run then computes the Monte Carlo J as far
+    as the child needs it and writes each spec's own records
+    (``UnitResult.with_mc_reps``)."""
+    c, p = parse_spec(child), parse_spec(parent)
+    cd, pd = c.to_dict(), p.to_dict()
+    for k in cd.keys() | pd.keys():  # both ways: e.g. bounds_method is in only one of them
+        if k in ("systems", "gamma", "estimators", "mc_reps"):
+            continue
+        if cd.get(k) != pd.get(k):
+            return False
+    # the seed key holds the system index: it must be the same in both
+    for i, s in enumerate(cd["systems"]):
+        if i >= len(pd["systems"]) or pd["systems"][i] != s:
+            return False
+    if not set(c.estimators) <= set(p.estimators):
+        return False
+    if "cost" in c.stages:  # the cost ratio couples the gammas of a repetition
+        return c.gamma == p.gamma
+    return set(c.gamma) <= set(p.gamma)
+
+
+@dataclass
+class Group:
+    """One pass: ``parent``'s units; ``variants`` share its data (other bounds
+    methods, computed in the same pass); ``children`` take their records from it."""
+
+    parent: str
+    variants: list[str] = field(default_factory=list)
+    children: list[str] = field(default_factory=list)
+
+    @property
+    def names(self) -> list[str]:
+        return [self.parent, *self.variants, *self.children]
+
+
+def plan(specs: dict[str, dict], derive: bool = True) -> list[Group]:
+    """The groups, in the order of their parents in ``specs``; the largest grids
+    are parents."""
+    if not derive:
+        return [Group(name) for name in specs]
+    parsed = {n: parse_spec(s) for n, s in specs.items()}
+    order = sorted(specs, key=lambda n: -parsed[n].n_cells)  # stable: ties keep spec order
+    groups: dict[str, Group] = {}
+    taken: set[str] = set()
+    for parent in order:
+        if parent in taken:
+            continue
+        g = groups[parent] = Group(parent)
+        taken.add(parent)
+        for other in order:
+            if other in taken:
+                continue
+            if _derivable(specs[other], specs[parent]):
+                g.children.append(other)
+            elif shares_data(parsed[parent], parsed[other]):
+                g.variants.append(other)
+            else:
+                continue
+            taken.add(other)
+    return [groups[n] for n in specs if n in groups]
+
+
+class _Selector:
+    """The cells of a child experiment among its parent's (report columns)."""
+
+    def __init__(self, spec_obj: dict):
+        s = parse_spec(spec_obj)
+        self.systems = {x.name for x in s.systems}
+        self.estimators = set(s.estimators)
+        self.gammas = list(s.gamma)
+
+    def mask(self, cols: rpt.Columns) -> np.ndarray:
+        m = np.isin(cols["system"], list(self.systems)) & np.isin(
+            cols["estimator"], list(self.estimators)
+        )
+        g = cols["gamma"]
+        ok = np.isnan(g)
+        for x in self.gammas:
+            ok |= np.abs(g - x) <= 1e-12 * max(1.0, abs(x))
+        return m & ok
+
+
+@dataclass(frozen=True)
+class _Output:
+    """What a worker writes for one experiment of a group, from one unit."""
+
+    name: str
+    source: int  # index of the spec (parent, variants...) whose UnitResult it reads
+    mc_reps: int | None
+    systems: tuple[str, ...]
+    matrices: bool
+    select: dict | None  # the child's spec when it is a selection of the source's cells
+
+
+def _part(out: Path, name: str, ui: int) -> Path:
+    return out / name / ".parts" / f"{ui:06d}.jsonl"
+
+
+def _work(specs, unit, outputs, out: Path, ui: int):
+    """Worker side: one unit of a group; writes each experiment's JSON lines of
+    the unit to its part file (:func:`_part`) -> ({name: (record count, report
+    columns)}, {name: CPU seconds}): the parent's share of the pass and each
+    experiment's own stages and encoding."""
+    timings: dict = {}
+    results = run_unit_results(list(specs), unit, timings=timings)
+    cpu = {o.name: 0.0 for o in outputs}
+    for o in outputs[: len(specs)]:
+        cpu[o.name] += timings.get(o.source, 0.0)
+        # the Monte Carlo J counts for the experiment that asks for the most of it
+        need = [x for x in outputs if x.source == o.source and _has(results, x)]
+        top = max(need or [o], key=lambda x: (_mc_of(x, specs), x is o))
+        cpu[top.name] += timings.get(("mc", o.source), 0.0)
+    encoded, cache = {}, {}
+    for o in outputs:
+        t = time.process_time()
+        res = results[o.source]
+        if res.system in o.systems and res.datasets:
+            key = (o.source, o.mc_reps)
+            if key not in cache:
+                r = res.with_mc_reps(o.mc_reps)
+                cache[key] = (r.json_lines(), r.columns(matrices=o.matrices))
+            lines, data = cache[key]
+            if o.select is not None:
+                mask = _Selector(o.select).mask(rpt.Columns(data, len(lines)))
+                if not mask.all():
+                    keep = np.flatnonzero(mask)
+                    lines = [lines[i] for i in keep.tolist()]
+                    data = {f: v[keep] for f, v in data.items()}
+            _part(out, o.name, ui).write_text("".join(line + "\n" for line in lines))
+            encoded[o.name] = (len(lines), data)
+        cpu[o.name] += time.process_time() - t
+    return encoded, cpu
+
+
+def _has(results, o: _Output) -> bool:
+    return results[o.source].system in o.systems
+
+
+def _mc_of(o: _Output, specs) -> float:
+    s = specs[o.source]
+    return s.reps if o.mc_reps is None else o.mc_reps
+
+
+def _mc_limit(spec) -> float:
+    return spec.reps if spec.mc_reps is None else spec.mc_reps
+
+
+def _unit_weight(specs, unit) -> float:
+    """Rough relative cost of a unit (normals drawn), to start the heaviest first."""
+    s0 = specs[0]
+    system = s0.systems[unit["system"]]
+    n, m, p = system.n, system.m, system.p
+    r0, r1 = unit["reps"]
+    w = 0.0
+    for N in unit["N"]:
+        w += (r1 - r0) * (m + n) * s0.T0 * N
+        for s in specs:
+            if s.bounds_method == "bootstrap" and N in s.N:
+                w += 3.0 * (r1 - r0) * s.boot_reps * (m + n) * s0.T0 * N
+    if s0.has("cost"):
+        limit = unit.get("mc_reps", s0.mc_reps)
+        rows = max(0, min(r1, s0.reps if limit is None else limit) - r0)
+        w += 2.0 * rows * len(unit["N"]) * s0.mc_runs * s0.horizon * (m + n + p)
+    return w
+
+
+# ---------------------------------------------------------------------------
+# running
+# ---------------------------------------------------------------------------
+@dataclass
+class _GroupRun:
+    group: Group
+    specs: tuple  # parsed: parent, then variants
+    units: list[dict]
+    outputs: list[_Output]
+    parts: dict = field(default_factory=dict)
+    counts: dict = field(default_factory=dict)
+    cpu: dict = field(default_factory=dict)
+    t0: float = 0.0
+    seconds: float = 0.0
+
+
+def _prepare(group: Group, specs: dict[str, dict]) -> _GroupRun:
+    parsed = {n: parse_spec(specs[n]) for n in group.names}
+    parent = parsed[group.parent]
+    run_specs = tuple(parsed[n] for n in [group.parent, *group.variants])
+    keep = parent.n_cells <= MATRIX_CELLS_LIMIT
+    outputs = [
+        _Output(n, i, parsed[n].mc_reps, tuple(x.name for x in parsed[n].systems), keep, None)
+        for i, n in enumerate([group.parent, *group.variants])
+    ]
+    for c in group.children:
+        outputs.append(
+            _Output(
+                c, 0, parsed[c].mc_reps, tuple(x.name for x in parsed[c].systems), keep, specs[c]
+            )
+        )
+    units = plan_units(parent)
+    for u in units:  # the Monte Carlo J as far as any spec using the unit needs it
+        name = parent.systems[u["system"]].name
+        need = [parsed[o.name] for o in outputs if name in o.systems]
+        top = max(need, key=_mc_limit)
+        if top.mc_reps != parent.mc_reps:
+            u["mc_reps"] = top.mc_reps
+    return _GroupRun(group=group, specs=run_specs, units=units, outputs=outputs)
+
+
+def _error(run: _GroupRun, exc: BaseException) -> ReproduceError:
+    stage, index = failed_stage(exc) or ("estimate", 0)
+    names = [run.group.parent, *run.group.variants]
+    name = names[index] if index < len(names) else run.group.parent
+    why = f"{type(exc).__name__}: {exc}".strip()
+    return ReproduceError(f"{name}: stage '{stage}' failed: {why}")
+
+
+def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int = 4) -> None:
+    """Every unit of every group, ``window`` at a time in the pool (groups in
+    order, the heaviest units of a group first), written as they finish: each
+    experiment's unit texts go to part files, and its records.jsonl is
+    assembled in unit order when its group is complete; ``on_group(run)`` then."""
+    tasks = {}
+    pending = {}
+    for gi, run in enumerate(runs):
+        label = run.group.parent
+        if run.group.variants or run.group.children:
+            label += f" (+{', '.join(run.group.variants + run.group.children)})"
+        if bar is not None:
+            tasks[gi] = bar.add_task(label, total=len(run.units))
+        for n in run.group.names:
+            (out / n / ".parts").mkdir(parents=True, exist_ok=True)
+            run.parts[n], run.counts[n], run.cpu[n] = {}, 0, 0.0
+        pending[gi] = len(run.units)
+        run.t0 = time.perf_counter()
+    calls = [(gi, ui) for gi, run in enumerate(runs) for ui in range(len(run.units))]
+
+    def args(gi, ui):
+        run = runs[gi]
+        return run.specs, run.units[ui], tuple(run.outputs), out, ui
+
+    def take(gi, ui, produce):
+        run = runs[gi]
+        try:
+            encoded, cpu = produce()
+        except Exception as exc:
+            raise _error(run, exc) from exc
+        for n, (k, data) in encoded.items():
+            run.counts[n] += k
+            run.parts[n][ui] = rpt.Columns(data, k)
+        for n, c in cpu.items():
+            run.cpu[n] += c
+        pending[gi] -= 1
+        if bar is not None:
+            bar.update(tasks[gi], completed=len(run.units) - pending[gi])
+        if pending[gi] == 0:
+            _assemble(run, out)
+            run.seconds = time.perf_counter() - run.t0
+            on_group(run)
+
+    try:
+        if pool is None:
+            for gi, ui in calls:
+                with blas_single_thread():
+                    take(gi, ui, lambda gi=gi, ui=ui: _work(*args(gi, ui)))
+            return
+        weight = {c: _unit_weight(*args(*c)[:2]) for c in calls}
+        queue = sorted(calls, key=lambda c: (c[0], -weight[c]), reverse=True)
+        futures: dict = {}
+        try:
+            while queue or futures:
+                # a few units ahead of the workers, so the report's figure renders
+                # (submitted to the same pool as groups finish) do not wait for all
+                while queue and len(futures) < window:
+                    c = queue.pop()
+                    futures[pool.submit(_work, *args(*c))] = c
+                done, _ = wait(futures, return_when=FIRST_COMPLETED)
+                for f in done:
+                    take(*futures.pop(f), f.result)
+        finally:
+            for f in futures:
+                f.cancel()
+    finally:
+        for run in runs:
+            for n in run.group.names:
+                for part in (out / n / ".parts").glob("*.jsonl"):
+                    part.unlink()
+                (out / n / ".parts").rmdir()
+
+
+def _assemble(run: _GroupRun, out: Path) -> None:
+    """records.jsonl of each experiment of a finished group: its part files in
+    unit order (copied within the kernel where it can)."""
+    for n in run.group.names:
+        with open(out / n / "records.jsonl", "wb", buffering=0) as dst:
+            for ui in sorted(run.parts[n]):
+                part = _part(out, n, ui)
+                with open(part, "rb", buffering=0) as src:
+                    _copy_file(src, dst, os.fstat(src.fileno()).st_size)
+                part.unlink()
+        parts = run.parts[n]
+        run.parts[n] = [parts[ui] for ui in sorted(parts)]
+
+
+def _copy_file(src, dst, length: int) -> None:
+    done = 0
+    if hasattr(os, "copy_file_range"):
+        try:
+            while done < length:
+                k = os.copy_file_range(src.fileno(), dst.fileno(), length - done)
+                if k == 0:
+                    break
+                done += k
+        except OSError:  # e.g. another file system: copy through memory
+            pass
+    while done < length:
+        chunk = src.read(min(1 << 24, length - done))
+        dst.write(chunk)
+        done += len(chunk)
+
+
+def _results(run: _GroupRun, specs: dict[str, dict], out: Path) -> dict[str, dict]:
+    g = run.group
+    results = {}
+    for n in g.names:
+        derived = g.parent if n in g.children else None
+        shared = g.parent if n in g.variants else None
+        (out / n / "spec.json").write_text(
+            json.dumps(
+                {
+                    "spec": specs[n],
+                    "normalised": parse_spec(specs[n]).to_dict(),
+                    "derived_from": derived,
+                    "shares_data_of": shared,
+                },
+                indent=1,
+            )
+        )
+        results[n] = {
+            "spec": specs[n],
+            "records": rpt.Columns.concat(run.parts[n]),
+            "n_records": run.counts[n],
+            "derived_from": derived,
+            "shares_data_of": shared,
+            "seconds": run.seconds if n == g.parent else 0.0,
+            "cpu_seconds": run.cpu[n],
+        }
+    return results
+
+
+def normals_drawn(specs: dict[str, dict], groups: list[Group]) -> dict[str, int]:
+    """Normal random numbers each experiment draws in this plan: its data (none when
+    it takes or shares another's), its Monte Carlo runs beyond its parent's, its
+    bootstrap resamples."""
+    out = {}
+    for g in groups:
+        parent = parse_spec(specs[g.parent])
+        for name in g.names:
+            s = parse_spec(specs[name])
+            total = 0
+            for x in s.systems:
+                n, m, p = x.n, x.m, x.p
+                per_N = (m + n) * s.T0 + (n if s.x0_std > 0 else 0)
+                sumN = sum(s.N)
+                if name == g.parent:
+                    total += len(s.sigma_w) * s.reps * per_N * sumN
+                if s.bounds_method == "bootstrap":
+                    total += len(s.sigma_w) * s.reps * s.boot_reps * per_N * sumN
+                if s.has("cost"):
+                    mc = min(s.reps, _mc_limit(s))
+                    if name != g.parent:
+                        mc -= min(mc, min(parent.reps, _mc_limit(parent)))
+                    total += len(s.sigma_w) * len(s.N) * mc * s.mc_runs * s.horizon * (m + n + p)
+            out[name] = int(total)
+    return out
+
+
+def _versions() -> dict:
+    import matplotlib
+    import scipy
+
+    return {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "matplotlib": matplotlib.__version__,
+    }
+
+
+def select_experiments(specs: dict[str, dict], only) -> dict[str, dict]:
+    """The specs of the experiments named in ``only`` (None: all), in preset order."""
+    if only is None:
+        return specs
+    names = [x.strip() for x in (only.split(",") if isinstance(only, str) else only)]
+    names = [x for x in names if x]
+    unknown = [x for x in names if x not in specs]
+    if unknown or not names:
+        raise ReproduceError(
+            f"--only: unknown experiment {', '.join(unknown) or '(none given)'}; "
+            f"the preset has {', '.join(specs)}"
+        )
+    return {n: s for n, s in specs.items() if n in names}
+
+
+def reproduce(
+    out_dir,
+    scale: str = "full",
+    quiet: bool = False,
+    *,
+    derive: bool = True,
+    n_jobs: int | None = None,
+    only=None,
+    rng: str | None = None,
+) -> dict:
+    """Run the preset ``paper-section-6`` in process and write tables, figures, report.
+
+    ``only``: experiment names (list or "E1,E2") to run, default all;
+    ``rng``: the generator of every experiment (default the preset's);
+    ``n_jobs``: worker processes for the pipeline (default: the machine's CPU
+    count); the records are the same to the bit for any value.
+    Returns ``{"out", "records": {exp: n}, "files": [...], "seconds"}``.
+    """
+    out = Path(out_dir)
+    specs = select_experiments(paper_specs(scale), only)
+    if rng is not None:
+        specs = {n: {**s, "rng": rng} for n, s in specs.items()}
+    out.mkdir(parents=True, exist_ok=True)
+    groups = plan(specs, derive)
+    console = Console(stderr=True)
+    started = _dt.datetime.now(_dt.UTC)
+    t_start = time.perf_counter()
+    results: dict[str, dict] = {}
+    n_jobs = max(1, os.cpu_count() or 1) if n_jobs is None else max(1, int(n_jobs))
+    with contextlib.ExitStack() as stack:
+        # the worker processes start before the progress bar's thread does
+        pool = stack.enter_context(open_pool(n_jobs))
+        # The report is made as the groups finish: the findings and figures of a
+        # group are computed in a background thread while the next group runs,
+        # and the figures are rendered in the worker processes.
+        builder = rpt.ReportBuilder(
+            list(specs),
+            {"preset": PRESET_NAME},
+            render=None if pool is None else functools.partial(pool.submit, rpt.render_figure),
+        )
+        background = stack.enter_context(ThreadPoolExecutor(max_workers=1))
+        report_parts = []
+
+        report_cpu: dict[str, float] = {}
+
+        def add(name, e):  # in the background thread: its CPU seconds per experiment
+            t = time.thread_time()
+            builder.add(name, e)
+            report_cpu[name] = time.thread_time() - t
+
+        def on_group(run):
+            group = _results(run, specs, out)
+            results.update(group)
+            for n in group:
+                report_parts.append(background.submit(add, n, _report_input(n, group[n])))
+
+        # the group with the most records first: its report part (findings,
+        # figures) is then made while the others run
+        runs = sorted(
+            (_prepare(g, specs) for g in groups),
+            key=lambda r: -sum(parse_spec(specs[n]).n_cells for n in r.group.names),
+        )
+        with progress_bar(console, quiet=quiet) as bar:
+            _run_all(runs, out, None if quiet else bar, pool, on_group, window=2 * n_jobs)
+        t_run = time.perf_counter() - t_start
+        for f in report_parts:
+            f.result()
+        run = _Finished(
+            out=out,
+            command=f"svrobs reproduce --out {out_dir}"
+            + ("" if scale == "full" else f" --scale {scale}"),
+            scale=scale,
+            specs=specs,
+            groups=groups,
+            results=results,
+            started=started,
+            t_start=t_start,
+            t_run=t_run,
+            n_jobs=n_jobs,
+            report_cpu=report_cpu,
+        )
+        return _write_report(run, builder, console, quiet)
+
+
+def _report_input(name: str, result: dict) -> dict:
+    return {
+        "spec": result["spec"],
+        "records": result["records"],
+        "title": EXPERIMENTS[name]["title"],
+        "notes": [],
+    }
+
+
+@dataclass
+class _Finished:
+    """What the report's provenance says about a finished run."""
+
+    out: Path
+    command: str
+    scale: str
+    specs: dict
+    groups: list
+    results: dict
+    started: _dt.datetime
+    t_start: float
+    t_run: float
+    n_jobs: int
+    report_cpu: dict
+
+
+def _write_report(run: _Finished, builder, console, quiet) -> dict:
+    """Provenance, tables, figures, report (``builder`` holds every experiment)."""
+    out, specs, results, groups = run.out, run.specs, run.results, run.groups
+    t_start, t_run, report_cpu = run.t_start, run.t_run, run.report_cpu
+    provenance = {
+        "preset": PRESET_NAME,
+        "scale": run.scale,
+        "experiments": list(specs),
+        "command": run.command,
+        "svrobs_version": __version__,
+        "git_commit": git_commit(),
+        **_versions(),
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "started_utc": run.started.isoformat(timespec="seconds"),
+        "records": {n: results[n]["n_records"] for n in specs},
+        "derived_from": {
+            n: results[n]["derived_from"] for n in specs if results[n]["derived_from"]
+        },
+        "shares_data_of": {
+            n: results[n]["shares_data_of"] for n in specs if results[n]["shares_data_of"]
+        },
+        "run_seconds": {g.parent: round(results[g.parent]["seconds"], 3) for g in groups},
+        "worker_cpu_seconds": {n: round(results[n]["cpu_seconds"], 3) for n in specs},
+        "normals": normals_drawn(specs, groups),
+        "rng": {n: parse_spec(specs[n]).rng for n in specs},
+        "n_jobs": run.n_jobs,
+        "monte_carlo": {
+            n: {
+                "mc_reps": parse_spec(results[n]["spec"]).mc_reps,
+                "mc_runs": parse_spec(results[n]["spec"]).mc_runs,
+            }
+            for n in specs
+            if "cost" in results[n]["spec"].get("stages", [])
+        },
+        "monte_carlo_decision": MC_DECISION,
+    }
+    t_rep, c_rep = time.perf_counter(), time.thread_time()
+    report = builder.finish()
+    files = []
+
+    def write(name: str, data):
+        p = out / name
+        if isinstance(data, bytes):
+            p.write_bytes(data)
+        else:
+            p.write_text(data)
+        files.append(str(p))
+
+    write("table2.md", rpt.table2_markdown(report.table2))
+    write("table2.csv", rpt.table2_csv(report.table2))
+    for fg in report.figures:
+        if fg.empty:  # nothing to plot: the report carries the note instead
+            continue
+        write(f"{fg.name}.png", fg.png())
+        write(f"{fg.name}.svg", fg.svg())
+        write(f"{fg.name}.pdf", fg.pdf())
+        write(f"{fg.name}.csv", fg.csv())
+    # the part of the report made after the last run (the rest overlaps the runs)
+    provenance["report_seconds"] = round(time.perf_counter() - t_rep, 3)
+    # CPU of this process's report work: per experiment as it arrived, then the rest
+    provenance["report_cpu_seconds"] = {
+        **{n: round(report_cpu[n], 3) for n in specs},
+        "finish": round(time.thread_time() - c_rep, 3),
+    }
+    provenance["run_total_seconds"] = round(t_run, 3)
+    report.provenance = provenance
+    write("report.md", rpt.render_markdown(report))
+    write("report.html", render_html(report))
+    write("provenance.json", json.dumps(provenance, indent=1))
+    if not quiet:
+        console.print(
+            f"[green]wrote {len(files)} files to {out}[/] "
+            f"(runs {t_run:.1f} s, report {provenance['report_seconds']:.1f} s)"
+        )
+    return {
+        "out": str(out),
+        "records": provenance["records"],
+        "files": files,
+        "seconds": round(time.perf_counter() - t_start, 3),
+    }

@@ -1,0 +1,157 @@
+"""The supervisor's restarts and the guard's bound, with real processes.
+
+- :class:`svrobs_cli.processes.Supervisor` (on a clock the test moves) restarts a
+  child that exits after 1, 2, 4, ... s, back to 1 s once a run lasted a minute, and
+  kills what the exited child left in its process group first.
+- :mod:`svrobs_cli.guard`: a child that ignores SIGTERM and hangs in a lock wait
+  (what an orphaned worker did) is gone, with the process it started, ``grace`` s
+  after its parent is SIGKILLed; the same child started without the guard is not.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from svrobs_cli.processes import Child, Supervisor
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+class Clock:
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_restarts_back_off_and_reset_after_a_stable_run(tmp_path):
+    lines: list[str] = []
+    clock = Clock()
+    child = Child("flaky", [sys.executable, "-c", "import sys; sys.exit(3)"], dict(os.environ))
+    sup = Supervisor([child], log=lines.append, first=1.0, longest=4.0, stable=60.0, clock=clock)
+    sup.start()
+    restarts_at = []
+    for _ in range(5):
+        child.proc.wait(30)
+        sup.poll()  # sees the exit, schedules the restart
+        pid = child.pid
+        waited = 0.0
+        while child.pid == pid:
+            clock.now += 0.25
+            waited += 0.25
+            sup.poll()
+        restarts_at.append(waited)
+    assert restarts_at == [1.0, 2.0, 4.0, 4.0, 4.0]  # doubling, capped at `longest`
+    assert "flaky (pid" in lines[1] and "exited (code 3)" in lines[1]
+    assert lines[-1].endswith("restart 5)")
+
+    child.proc.wait(30)
+    clock.now += 61.0  # this run lasted over `stable` seconds: the next delay is the first
+    sup.poll()
+    assert lines[-1].endswith("restarting in 1 s"), lines[-1]
+    sup.stop(grace=5)
+
+
+def test_an_exited_childs_group_is_killed_before_the_restart(tmp_path):
+    pidfile = tmp_path / "grandchild"
+    code = (
+        "import subprocess, sys\n"
+        "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(300)'])\n"
+        f"open({str(pidfile)!r}, 'w').write(str(p.pid))\n"
+        "sys.exit(1)\n"
+    )
+    child = Child("leaver", [sys.executable, "-c", code], dict(os.environ))
+    sup = Supervisor([child], log=lambda _line: None, clock=Clock())
+    sup.start()
+    child.proc.wait(30)
+    grandchild = int(pidfile.read_text())
+    assert _alive(grandchild)  # left behind in the child's process group
+    sup.poll()
+    deadline = time.monotonic() + 10
+    while _alive(grandchild) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(grandchild)
+    sup.stop(grace=5)
+
+
+HANG = """
+import signal, subprocess, sys, threading
+signal.signal(signal.SIGTERM, signal.SIG_IGN)
+helper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(300)"])
+print(helper.pid, flush=True)
+lock = threading.Lock()
+lock.acquire()
+lock.acquire()  # waits forever (a futex wait)
+"""
+
+# a parent that starts the hanging module as serve starts its children (own group,
+# parent-death SIGTERM), with or without the guard, prints the child's pid and sleeps
+PARENT = """
+import os, sys, time
+from pathlib import Path
+from svrobs_cli.processes import Child, guarded
+argv = [sys.executable, "-m", "hang"]
+if sys.argv[1] == "guarded":
+    argv = guarded(argv, 2.0)
+child = Child("hang", argv, dict(os.environ), log=Path(sys.argv[2])).start()
+print(child.pid, flush=True)
+time.sleep(300)
+"""
+
+
+def _start_parent(folder: Path, mode: str) -> tuple[subprocess.Popen, int, int]:
+    folder.mkdir()
+    (folder / "hang.py").write_text(HANG)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(folder), str(ROOT)])}
+    out = folder / "child.out"
+    parent = subprocess.Popen(
+        [sys.executable, "-c", PARENT, mode, str(out)],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    child = int(parent.stdout.readline())
+    deadline = time.monotonic() + 60
+    while not out.exists() or not out.read_text().strip():
+        assert time.monotonic() < deadline, "the hanging child did not start"
+        time.sleep(0.05)
+    helper = int(out.read_text().split()[0])
+    return parent, child, helper
+
+
+def test_the_guard_kills_a_hung_child_after_its_parent_dies(tmp_path):
+    guarded = _start_parent(tmp_path / "guarded", "guarded")
+    bare = _start_parent(tmp_path / "bare", "bare")
+    try:
+        for parent, _child, _helper in (guarded, bare):
+            os.kill(parent.pid, signal.SIGKILL)
+            parent.wait(10)
+        deadline = time.monotonic() + 15
+        while (_alive(guarded[1]) or _alive(guarded[2])) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _alive(guarded[1]) and not _alive(guarded[2])
+        # the same hung child without the guard ignores the parent-death SIGTERM
+        assert _alive(bare[1]) and _alive(bare[2])
+        assert "still running after 2 s" in (tmp_path / "guarded" / "child.out").read_text()
+    finally:
+        for pid in (*guarded[1:], *bare[1:]):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
