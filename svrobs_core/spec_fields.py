@@ -18,6 +18,7 @@ from dataclasses import fields as dataclass_fields
 
 from .errors import SpecError
 from .parsing import parse_spec
+from .rollouts import RNGS
 from .spec import (
     BOOT_SIGMA_SOURCES,
     BOUNDS_METHODS,
@@ -169,6 +170,9 @@ SPEC_FIELDS: tuple[SpecField, ...] = (
         group="estimate",
     ),
     SpecField("seed", "int", "Seed of every random stream", lo=0, hi=2**63 - 1, group="estimate"),
+    SpecField(
+        "rng", "choice", "Bit generator of every random draw", choices=tuple(RNGS), group="estimate"
+    ),
     SpecField(
         "stages",
         "choices",
