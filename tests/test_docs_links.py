@@ -4,10 +4,11 @@
   ``CONTRIBUTING.md`` and ``docs/**/*.md`` points at a file of the repository, and
   its ``#anchor`` at a heading of that file (GitHub's anchors: lower case,
   punctuation dropped, spaces to hyphens, ``-1``, ``-2`` for repeated headings) or
-  at an explicit ``<a id="...">``.
+  at an explicit ``<a id="...">``; every repository path they name in backticks
+  (```svrobs_core/spec.py```) exists.
 * Every ``docs/<file>.md#anchor`` written in code (Python, templates, scripts,
   styles, configuration) names an existing file and anchor.
-* No file cites the shared specification the docs replace (``SPEC.md``,
+* No file cites the shared texts the docs replace (``SPEC.md``, ``DESIGN.md``,
   "SPEC section N"), and no file tells history instead of what is (the words of
   ``HISTORY``), outside the short allow-list below.
 
@@ -32,7 +33,7 @@ TEXT_SUFFIXES = {".py", ".md", ".html", ".js", ".css", ".toml", ".yml", ".yaml",
 TEXT_NAMES = {"Makefile", "Dockerfile", "run"}
 
 SPEC_CITATION = re.compile(
-    r"SPEC\.md"
+    r"SPEC\.md|DESIGN\.md"
     r"|\bSPEC(?:'s)?\s+(?:sections?|§|\d|[Dd]ecision|literally|default)"
     r"|\b(?:[Tt]he|a|our|of) SPEC\b"
     r"|\bsections? 10(?![.\d])"
@@ -53,6 +54,11 @@ MD_LINK = re.compile(r"!?\[(?:[^\]\[]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[
 CODE_DOC_REF = re.compile(r"(?<![\w/.-])docs/([\w./-]+?\.md)(#[\w-]+)?")
 EXPLICIT_ANCHOR = re.compile(r"<a\s+(?:id|name)=\"([^\"]+)\"")
 FENCE = re.compile(r"^\s*(```|~~~)")
+# a path of the repository written in backticks: `svrobs_core/spec.py`, `tests/faults/`
+REPO_PATH = re.compile(
+    r"`((?:service|svrobs_core|svrobs_lab|svrobs_cli|svrobs_client|worker|tests|bench|"
+    r"migrations|docs)/[\w./-]*?(?:\.(?:py|md|js|css|html|png|toml)|/))`"
+)
 
 
 def tracked_files() -> list[Path]:
@@ -170,6 +176,11 @@ def test_the_checker_finds_a_broken_link(tmp_path):
     assert not SPEC_CITATION.search("SMALL_SPEC = {} and section 10.2")
     assert HISTORY.search("measured in this session")
     assert HISTORY.search("as issue 12 asked")
+    assert SPEC_CITATION.search("changes from DESIGN.md")
+    assert REPO_PATH.findall("see `svrobs_core/spec.py` and `tests/faults/`") == [
+        "svrobs_core/spec.py",
+        "tests/faults/",
+    ]
 
 
 @pytest.mark.parametrize("md", markdown_files(), ids=lambda p: str(p.relative_to(ROOT)))
@@ -181,6 +192,16 @@ def test_markdown_links_resolve(md):
             if why:
                 broken.append(f"{md.relative_to(ROOT)}:{lineno}: {why}")
     assert not broken, "\n".join(broken)
+
+
+@pytest.mark.parametrize("md", markdown_files(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_paths_named_in_docs_exist(md):
+    missing = []
+    for lineno, line in enumerate(md.read_text(encoding="utf-8").splitlines(), 1):
+        for path in REPO_PATH.findall(line):
+            if not (ROOT / path).exists():
+                missing.append(f"{md.relative_to(ROOT)}:{lineno}: {path}")
+    assert not missing, "\n".join(missing)
 
 
 def test_docs_references_in_code_resolve():
