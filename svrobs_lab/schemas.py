@@ -6,16 +6,27 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, create_model, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    WithJsonSchema,
+    create_model,
+    model_validator,
+)
 from pydantic_core import InitErrorDetails, PydanticCustomError, ValidationError
 
 from svrobs_core.spec import DATASET_KEYS, SPEC_KEYS
+
+from .spec_schema import spec_properties
 
 SPEC_FIELDS = SPEC_KEYS | DATASET_KEYS  # a simulated job's fields and a dataset job's
 
 # Loose types: svrobs_core.parse_spec does the real validation with field-named errors.
 # A spec has systems and sigma_w (a list), or a dataset (and sigma_w a number or
-# "estimate": docs/measured.md#spec).
+# "estimate": docs/measured.md#spec). The schema shown for each field (OpenAPI) is
+# the declared table's (spec_schema).
 _SPEC_HINTS: dict[str, Any] = {
     "systems": (Optional[list[Any]], None),
     "sigma_w": (Any, None),
@@ -84,8 +95,23 @@ class _Strict(BaseModel):
         return data
 
 
+def _no_default(schema: dict[str, Any]) -> None:
+    schema.pop("default", None)  # a key without a default (systems, sigma_w, dataset)
+
+
 def _spec_fields() -> dict[str, Any]:
-    return {k: _SPEC_HINTS.get(k, (Any, None)) for k in sorted(SPEC_FIELDS)}
+    schemas = spec_properties()
+    out = {}
+    for key in sorted(SPEC_FIELDS):
+        hint, default = _SPEC_HINTS.get(key, (Any, None))
+        schema = schemas[key]
+        # absent stays absent (None) for the parser; the schema shows the spec's default
+        extra = {"default": schema["default"]} if "default" in schema else _no_default
+        out[key] = (
+            Annotated[hint, WithJsonSchema(schema)],
+            Field(default, json_schema_extra=extra),
+        )
+    return out
 
 
 TagStr = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=100)]
