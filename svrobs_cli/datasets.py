@@ -151,6 +151,7 @@ def download(
     with client(timeout=600) as c:
         d = c.dataset(dataset)
         path = c.download_dataset(d, out if out is not None else Path.cwd())
+    assert isinstance(path, Path)  # written to a file: its path
     digest = hashlib.sha256()
     with Path(path).open("rb") as f:
         while chunk := f.read(1 << 20):
@@ -176,6 +177,7 @@ def model(
     with client(timeout=120) as c:
         try:
             path = c.download_model(job, cell, format=format, out=out or Path.cwd())
+            assert isinstance(path, Path)  # written to a file: its path
         except ValidationError as exc:
             raise CliError(plain_message(exc)) from None
     typer.echo(f"wrote {path}")

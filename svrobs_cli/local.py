@@ -48,7 +48,7 @@ def _local_dataset(spec_obj: dict, dataset: Path | None, base: Path, max_bytes: 
     named = spec_obj.get("dataset") if isinstance(spec_obj, dict) else None
     if dataset is None and not isinstance(named, str):
         return spec_obj, None
-    path = Path(dataset) if dataset is not None else base / named
+    path = Path(dataset) if dataset is not None else base / str(named)
     if not path.is_file():
         raise SpecError("dataset", f"{path}: no such file")
     ident = named if isinstance(named, int) and not isinstance(named, bool) else LOCAL_DATASET_ID

@@ -25,7 +25,7 @@ from . import frames
 from .config import resolve
 from .datasets import DatasetCalls
 from .errors import ConnectionFailed, Unavailable, WaitTimeout, error_from_response
-from .files import write_atomic
+from .files import write_atomic, writer
 from .models import Job, JobPage, Report, Schedule, ScheduleRun, Share
 from .params import RESULT_FILTERS, results_params
 from .progress import make_bar
@@ -356,7 +356,7 @@ class Client(DatasetCalls):
                 slug = re.sub(r"[^A-Za-z0-9]+", "-", html.unescape(alt)).strip("-").lower()
                 path = folder / "figures" / f"{i:02d}-{slug[:60] or 'figure'}.png"
                 png = base64.b64decode(data)
-                write_atomic(path, lambda f, png=png: f.write(png))
+                write_atomic(path, writer(png))
                 written.append(path)
         return Report(html=page, figures=written)
 

@@ -25,7 +25,7 @@ MODEL_FORMATS = ("json", "npz", "mat")
 _MATRICES = ("A_hat", "B_hat", "C", "radii_A", "radii_B", "L", "K")
 
 
-def _ident(obj) -> int:
+def _ident(obj: object) -> int:
     value = getattr(obj, "id", obj)
     if isinstance(value, bool) or not isinstance(value, (int, str)):
         raise TypeError(f"expected a dataset/job or its id, got {type(obj).__name__}")
@@ -40,12 +40,12 @@ def _names(value: str | Sequence[str] | None) -> str | None:
     return json.dumps(names) if any("," in v for v in names) else ",".join(names)
 
 
-def _npz_of_arrays(X, U) -> bytes:
+def _npz_of_arrays(X: Any, U: Any) -> bytes:
     """(X, U) as an NPZ of X_0, U_0, ... (rollouts may differ in length; U None: m = 0)."""
     import numpy as np
 
     xs = list(X) if not hasattr(X, "ndim") or X.ndim == 3 else [X]
-    arrays = {f"X_{i}": np.asarray(x, dtype=np.float64) for i, x in enumerate(xs)}
+    arrays: dict[str, Any] = {f"X_{i}": np.asarray(x, dtype=np.float64) for i, x in enumerate(xs)}
     if U is not None:
         us = list(U) if not hasattr(U, "ndim") or U.ndim == 3 else [U]
         if len(us) != len(xs):
@@ -56,7 +56,7 @@ def _npz_of_arrays(X, U) -> bytes:
     return buf.getvalue()
 
 
-def _is_frame(obj) -> bool:
+def _is_frame(obj: object) -> bool:
     return type(obj).__name__ == "DataFrame" and hasattr(obj, "to_csv")
 
 
@@ -71,14 +71,15 @@ class Model:
     values: dict[str, Any]
     provenance: dict[str, Any] = field(repr=False)
 
-    def __getitem__(self, name: str):
+    def __getitem__(self, name: str) -> Any:
         return self.arrays[name] if name in self.arrays else self.values[name]
 
     @property
     def sample_time(self) -> float | None:
-        return self.values.get("sample_time")
+        value: float | None = self.values.get("sample_time")
+        return value
 
-    def to_statespace(self):
+    def to_statespace(self) -> Any:
         """``control.StateSpace(A_hat, B_hat, C, 0, dt)``: dt the dataset's sample time
         (``True``, a discrete system of unknown step, when there is none), states and
         inputs named after the dataset's channels. Needs python-control."""
@@ -87,7 +88,7 @@ class Model:
 
         A, B, C = self.arrays["A_hat"], self.arrays["B_hat"], self.arrays["C"]
         dataset = self.provenance.get("dataset") or {}
-        names = {}
+        names: dict[str, list[str]] = {}
         if dataset.get("state_names") and len(dataset["state_names"]) == A.shape[0]:
             names["states"] = list(dataset["state_names"])
         if dataset.get("input_names") and len(dataset["input_names"]) == B.shape[1]:
@@ -105,7 +106,7 @@ class DatasetCalls:
     # ------------------------------------------------------------------ datasets
     def upload_dataset(
         self,
-        source,
+        source: Any,
         *,
         name: str,
         description: str | None = None,
@@ -174,17 +175,20 @@ class DatasetCalls:
         self.request("DELETE", f"/datasets/{_ident(dataset)}")
 
     def download_dataset(
-        self, dataset: Dataset | int, out: str | os.PathLike | IO[bytes] | None = None
-    ) -> bytes | Path:
+        self, dataset: Dataset | int, out: str | os.PathLike[str] | IO[bytes] | None = None
+    ) -> bytes | Path | IO[bytes]:
         """The file as uploaded: its bytes, or written to ``out`` (a path, written whole
         or not at all; a folder: the upload's file name in it; a binary stream)."""
         return self._download(f"/datasets/{_ident(dataset)}/file", {}, out)
 
-    def _download(self, path: str, params: dict, out) -> bytes | Path:
+    def _download(
+        self, path: str, params: dict[str, Any], out: str | os.PathLike[str] | IO[bytes] | None
+    ) -> bytes | Path | IO[bytes]:
         with self._stream(path, params) as r:
             if out is None:
-                return r.read()
-            if hasattr(out, "write"):
+                data: bytes = r.read()
+                return data
+            if not isinstance(out, (str, os.PathLike)):  # a binary stream
                 for chunk in r.iter_bytes():
                     out.write(chunk)
                 return out
@@ -197,28 +201,31 @@ class DatasetCalls:
     # ------------------------------------------------------------------ models
     def download_model(
         self,
-        job,
+        job: object,
         cell: str | Mapping[str, Any] | None = None,
         *,
         format: str = "npz",
-        out: str | os.PathLike | IO[bytes] | None = None,
-    ) -> bytes | Path:
+        out: str | os.PathLike[str] | IO[bytes] | None = None,
+    ) -> bytes | Path | IO[bytes]:
         """One job cell's model file (``json``, ``npz`` or ``mat``): its bytes, or
         written to ``out``. ``cell``: coordinates that pick one cell,
         ``"system=S,N=50,estimator=svr,gamma=0.05,rep=0"`` or a dict (gamma None: ols)."""
         if format not in MODEL_FORMATS:
             raise ValueError(f"format must be one of {list(MODEL_FORMATS)}, got {format!r}")
-        params = {"format": format}
+        params: dict[str, Any] = {"format": format}
         if cell is not None:
             params["cell"] = cell if isinstance(cell, str) else json.dumps(dict(cell))
         return self._download(f"/jobs/{_ident(job)}/model", params, out)
 
-    def model_data(self, job, cell: str | Mapping[str, Any] | None = None) -> Model:
+    def model_data(self, job: object, cell: str | Mapping[str, Any] | None = None) -> Model:
         """One job cell's model as numpy arrays (read from its NPZ export)."""
         import numpy as np
 
-        npz = np.load(io.BytesIO(self.download_model(job, cell, format="npz")), allow_pickle=False)
-        arrays, values = {}, {}
+        raw = self.download_model(job, cell, format="npz")
+        assert isinstance(raw, bytes)  # out=None: the bytes
+        npz = np.load(io.BytesIO(raw), allow_pickle=False)
+        arrays: dict[str, Any] = {}
+        values: dict[str, Any] = {}
         for key in npz.files:
             a = npz[key]
             if key in _MATRICES:
@@ -235,7 +242,7 @@ class DatasetCalls:
                 values[key] = int(values[key])
         return Model(arrays=arrays, values=values, provenance=provenance)
 
-    def model(self, job, cell: str | Mapping[str, Any] | None = None):
+    def model(self, job: object, cell: str | Mapping[str, Any] | None = None) -> Any:
         """One job cell's identified model: a ``control.StateSpace`` (A_hat, B_hat, C,
         D = 0, dt = the dataset's sample time) when python-control is installed, else
         the :class:`Model` of numpy arrays (radii, eps, L, K... are in
@@ -247,14 +254,17 @@ class DatasetCalls:
             return data
         return data.to_statespace()
 
-    def validation(self, job) -> dict[str, Any]:
+    def validation(self, job: object) -> dict[str, Any]:
         """A dataset job's validation on its held-out rollouts, as the API sends it
         (``GET /jobs/{id}/validation``): per estimator and gamma the fitted model, the
         fit, whiteness and cross-correlation statistics; the excitation check."""
-        return self.request("GET", f"/jobs/{_ident(job)}/validation").json()
+        body: dict[str, Any] = self.request("GET", f"/jobs/{_ident(job)}/validation").json()
+        return body
 
     # ------------------------------------------------------------------ systems
-    def system_from_file(self, path: str | os.PathLike, *, name: str | None = None) -> dict:
+    def system_from_file(
+        self, path: str | os.PathLike[str], *, name: str | None = None
+    ) -> dict[str, Any]:
         """A spec's custom system (``{name, A, B, C, sigma_u, sigma_v}``) from an NPZ,
         .mat or JSON file holding A, B and optionally C, sigma_u, sigma_v; checked by
         the server as a spec's system is."""
@@ -262,7 +272,10 @@ class DatasetCalls:
         with path.open("rb") as fh:
             files = {"file": (path.name, fh, "application/octet-stream")}
             data = {"name": name} if name else {}
-            return self.request("POST", "/systems/from-file", files=files, data=data).json()
+            system: dict[str, Any] = self.request(
+                "POST", "/systems/from-file", files=files, data=data
+            ).json()
+            return system
 
 
 def _filename(disposition: str, path: str) -> str:

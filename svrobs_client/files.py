@@ -3,10 +3,17 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import IO
 
 
-def write_atomic(path: Path, write) -> None:
+def writer(data: bytes) -> Callable[[IO[bytes]], object]:
+    """``write`` for :func:`write_atomic`: the file gets ``data``."""
+    return lambda f: f.write(data)
+
+
+def write_atomic(path: Path, write: Callable[[IO[bytes]], object]) -> None:
     """Write through ``write(file)`` into a temporary file beside ``path``, then rename it:
     ``path`` appears complete or not at all."""
     import tempfile

@@ -20,7 +20,7 @@ ESTIMATORS = ("ols", "svr", "shrunk-ols")
 BOUNDS_METHODS = ("paper", "self-normalized", "bootstrap")
 BOOT_SIGMA_SOURCES = ("estimate", "spec")
 # Options of each non-paper bounds method (docs/uncertainty.md), with their defaults.
-BOUNDS_OPTIONS = {
+BOUNDS_OPTIONS: dict[str, dict[str, Any]] = {
     "self-normalized": {"S": None, "lambda0": 1.0},
     "bootstrap": {"boot_reps": 100, "boot_sigma_w": "estimate"},
 }

@@ -81,6 +81,7 @@ class SpecField:
         hi = "" if self.hi is None else f" {'<' if self.hi_open else '≤'} {_num(self.hi)}"
         if self.lo is not None and self.hi is None:
             return f"{'>' if self.lo_open else '≥'} {_num(self.lo)}"
+        assert self.hi is not None  # both bounds None returned above
         if self.lo is None:
             return f"{'<' if self.hi_open else '≤'} {_num(self.hi)}"
         if self.kind in ("int", "grid") and not (self.lo_open or self.hi_open):

@@ -24,7 +24,7 @@ from svrobs_core.systems import MAX_DIM, MAX_ENTRY
 __all__ = ["field_schema", "spec_properties"]
 
 _NULL = {"type": "null"}
-_MATRIX = {
+_MATRIX: dict[str, Any] = {
     "type": "array",
     "minItems": 1,
     "maxItems": MAX_DIM,
