@@ -244,7 +244,7 @@ def env(tmp_path_factory):
 
 def _send(env, case, test_id: str):
     GENERATED[test_id] += 1
-    return case.call(session=env.client)
+    return case.call(session=env.client, timeout=60)  # a report build on a loaded host
 
 
 FUZZ_CHECKS = [
