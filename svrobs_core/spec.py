@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
 from typing import Any
 
 from .errors import SpecError
@@ -108,10 +108,12 @@ class ExperimentSpec:
     seed: int = 0
     x0_std: float = 0.0
     bounds_method: str = "paper"
-    S: float | None = None  # self-normalized: bound on ||theta_i|| (None: sqrt(2) M)
-    lambda0: float = 1.0  # self-normalized OLS: V0 = lambda0 I
-    boot_reps: int = 100
-    boot_sigma_w: str = "estimate"  # bootstrap noise level: residual estimate or the spec's
+    # self-normalized: bound on ||theta_i|| (None: sqrt(2) M), and V0 = lambda0 I of OLS
+    S: float | None = BOUNDS_OPTIONS["self-normalized"]["S"]
+    lambda0: float = BOUNDS_OPTIONS["self-normalized"]["lambda0"]
+    boot_reps: int = BOUNDS_OPTIONS["bootstrap"]["boot_reps"]
+    # bootstrap noise level: the residuals' estimate or the spec's
+    boot_sigma_w: str = BOUNDS_OPTIONS["bootstrap"]["boot_sigma_w"]
     rng: str = DEFAULT_RNG  # bit generator of every draw (docs/performance.md#generators)
     raw_systems: tuple = field(default=(), compare=False)
     # A job on measured data: its options (svrobs_core.measured.spec.DatasetOptions);
@@ -195,6 +197,15 @@ class ExperimentSpec:
         """S of the self-normalized method: the spec's, else sqrt(2) M
         (docs/uncertainty.md#b-the-self-normalized-confidence-ellipsoid)."""
         return math.sqrt(2.0) * self.M if self.S is None else self.S
+
+
+# The default of every spec key, written once (the fields of ExperimentSpec above, the
+# bounds options in BOUNDS_OPTIONS); a tuple as the list a JSON spec gives.
+DEFAULTS: dict[str, Any] = {
+    f.name: list(f.default) if isinstance(f.default, tuple) else f.default
+    for f in fields(ExperimentSpec)
+    if f.default is not MISSING
+}
 
 
 def _int(value, name: str, *, lo: int, hi: int | None = None) -> int:
@@ -294,17 +305,17 @@ def parse_simulation_spec(obj) -> ExperimentSpec:
     )
     _unique(sigma_w, "sigma_w")
     N = _n_grid(obj["N"])
-    T0 = _int(obj.get("T0", 11), "T0", lo=2, hi=MAX_T0)
+    T0 = _int(obj.get("T0", DEFAULTS["T0"]), "T0", lo=2, hi=MAX_T0)
     if T0 * max(N) > MAX_SAMPLES:
         i = "N" if isinstance(obj["N"], dict) else f"N[{list(obj['N']).index(max(N))}]"
         raise SpecError(i, f"T0 * N = {T0 * max(N)} samples per repetition is over {MAX_SAMPLES}")
 
     shared = shared_options(obj)
     mc_reps = obj.get("mc_reps")
-    reuse = obj.get("reuse_gain", False)
+    reuse = obj.get("reuse_gain", DEFAULTS["reuse_gain"])
     if not isinstance(reuse, bool):
         raise SpecError("reuse_gain", "must be true or false")
-    mc_runs = _int(obj.get("mc_runs", 1000), "mc_runs", lo=2, hi=1_000_000)
+    mc_runs = _int(obj.get("mc_runs", DEFAULTS["mc_runs"]), "mc_runs", lo=2, hi=1_000_000)
     if "cost" in shared["stages"] and mc_runs * shared["horizon"] > MAX_MC_STEPS:
         raise SpecError(
             "mc_runs",
@@ -317,14 +328,14 @@ def parse_simulation_spec(obj) -> ExperimentSpec:
         sigma_w=sigma_w,
         N=N,
         T0=T0,
-        data=_choice(obj.get("data", "all"), "data", ("all", "final")),
+        data=_choice(obj.get("data", DEFAULTS["data"]), "data", ("all", "final")),
         mc_runs=mc_runs,
         mc_reps=None if mc_reps is None else _int(mc_reps, "mc_reps", lo=0),
         reuse_gain=reuse,
-        x0_std=_float(obj.get("x0_std", 0.0), "x0_std", nonneg=True),
+        x0_std=_float(obj.get("x0_std", DEFAULTS["x0_std"]), "x0_std", nonneg=True),
         **shared,
         **bounds,
-        rng=_choice(obj.get("rng", DEFAULT_RNG), "rng", tuple(RNGS)),
+        rng=_choice(obj.get("rng", DEFAULTS["rng"]), "rng", tuple(RNGS)),
         raw_systems=tuple(raw_systems),
     )
 
@@ -335,18 +346,18 @@ def shared_options(obj: dict) -> dict:
     and with their defaults: ExperimentSpec keyword arguments."""
     estimators = tuple(
         _choice(e, f"estimators[{i}]", ESTIMATORS)
-        for i, e in enumerate(_list(obj.get("estimators", ["ols", "svr"]), "estimators"))
+        for i, e in enumerate(_list(obj.get("estimators", DEFAULTS["estimators"]), "estimators"))
     )
     _unique(estimators, "estimators")
     gamma = tuple(
         _float(g, f"gamma[{i}]", positive=True)
-        for i, g in enumerate(_list(obj.get("gamma", [0.05]), "gamma"))
+        for i, g in enumerate(_list(obj.get("gamma", DEFAULTS["gamma"]), "gamma"))
     )
     _unique(gamma, "gamma")
 
     stages = tuple(
         _choice(s, f"stages[{i}]", STAGES)
-        for i, s in enumerate(_list(obj.get("stages", ["estimate", "bounds"]), "stages"))
+        for i, s in enumerate(_list(obj.get("stages", DEFAULTS["stages"]), "stages"))
     )
     _unique(stages, "stages")
     for s in stages:
@@ -358,10 +369,10 @@ def shared_options(obj: dict) -> dict:
     sls = _object(obj.get("sls") or {}, "sls", ("T_fir", "C_bound"))
     c_bound = sls.get("C_bound")
 
-    delta = _float(obj.get("delta", 0.01), "delta", positive=True)
+    delta = _float(obj.get("delta", DEFAULTS["delta"]), "delta", positive=True)
     if delta >= 1:
         raise SpecError("delta", "must be < 1")
-    margin = _float(obj.get("margin", 0.01), "margin", nonneg=True)
+    margin = _float(obj.get("margin", DEFAULTS["margin"]), "margin", nonneg=True)
     if margin >= 1:
         raise SpecError("margin", "must be < 1")
     return {
@@ -370,13 +381,17 @@ def shared_options(obj: dict) -> dict:
         "stages": stages,
         "delta": delta,
         "margin": margin,
-        "seed": _int(obj.get("seed", 0), "seed", lo=0, hi=2**63 - 1),
-        "horizon": _int(obj.get("horizon", 200), "horizon", lo=1, hi=100_000),
-        "loss_scale": _choice(obj.get("loss_scale", "sum"), "loss_scale", ("sum", "mean")),
-        "reps": _int(obj.get("reps", 45), "reps", lo=1, hi=MAX_REPS),
-        "M": _float(obj.get("M", 1.1), "M", positive=True),
-        "gamma_ref": _float(obj.get("gamma_ref", 0.1), "gamma_ref", positive=True),
-        "sls_T_fir": _int(sls.get("T_fir", 30), "sls.T_fir", lo=2, hi=MAX_T_FIR),
+        "seed": _int(obj.get("seed", DEFAULTS["seed"]), "seed", lo=0, hi=2**63 - 1),
+        "horizon": _int(obj.get("horizon", DEFAULTS["horizon"]), "horizon", lo=1, hi=100_000),
+        "loss_scale": _choice(
+            obj.get("loss_scale", DEFAULTS["loss_scale"]), "loss_scale", ("sum", "mean")
+        ),
+        "reps": _int(obj.get("reps", DEFAULTS["reps"]), "reps", lo=1, hi=MAX_REPS),
+        "M": _float(obj.get("M", DEFAULTS["M"]), "M", positive=True),
+        "gamma_ref": _float(
+            obj.get("gamma_ref", DEFAULTS["gamma_ref"]), "gamma_ref", positive=True
+        ),
+        "sls_T_fir": _int(sls.get("T_fir", DEFAULTS["sls_T_fir"]), "sls.T_fir", lo=2, hi=MAX_T_FIR),
         "sls_C_bound": None if c_bound is None else _float(c_bound, "sls.C_bound", positive=True),
     }
 
@@ -384,7 +399,9 @@ def shared_options(obj: dict) -> dict:
 def _bounds_options(obj: dict) -> dict:
     """bounds_method and the options of that method (docs/uncertainty.md); an option
     of another method is an error naming it."""
-    method = _choice(obj.get("bounds_method", "paper"), "bounds_method", BOUNDS_METHODS)
+    method = _choice(
+        obj.get("bounds_method", DEFAULTS["bounds_method"]), "bounds_method", BOUNDS_METHODS
+    )
     own = BOUNDS_OPTIONS.get(method, {})
     for opts in BOUNDS_OPTIONS.values():
         for key in opts:
@@ -395,10 +412,12 @@ def _bounds_options(obj: dict) -> dict:
     if method == "self-normalized":
         S = obj.get("S")
         out["S"] = None if S is None else _float(S, "S", positive=True)
-        out["lambda0"] = _float(obj.get("lambda0", 1.0), "lambda0", positive=True)
+        out["lambda0"] = _float(obj.get("lambda0", DEFAULTS["lambda0"]), "lambda0", positive=True)
     elif method == "bootstrap":
-        out["boot_reps"] = _int(obj.get("boot_reps", 100), "boot_reps", lo=2, hi=100_000)
+        out["boot_reps"] = _int(
+            obj.get("boot_reps", DEFAULTS["boot_reps"]), "boot_reps", lo=2, hi=100_000
+        )
         out["boot_sigma_w"] = _choice(
-            obj.get("boot_sigma_w", "estimate"), "boot_sigma_w", BOOT_SIGMA_SOURCES
+            obj.get("boot_sigma_w", DEFAULTS["boot_sigma_w"]), "boot_sigma_w", BOOT_SIGMA_SOURCES
         )
     return out

@@ -2,8 +2,8 @@
 default), and every error of a spec at once.
 
 :data:`SPEC_FIELDS` declares each key of :func:`svrobs_core.parsing.parse_spec`; the
-defaults are read from :class:`~svrobs_core.spec.ExperimentSpec` and
-``BOUNDS_OPTIONS`` (written once, there), and the bounds are those the parser
+defaults are :data:`svrobs_core.spec.DEFAULTS` (those of ExperimentSpec and
+``BOUNDS_OPTIONS``, written once, there, and read by the parser), and the bounds are those the parser
 enforces (``tests/core/test_spec_fields.py`` probes the parser at each bound).
 :func:`spec_errors` collects the errors of every field: the parser stops at the
 first, so each field is checked alone on a spec that is otherwise valid, and the
@@ -13,8 +13,7 @@ mc_runs·horizon, options of another bounds method). See docs/spec.md#spec-field
 
 from __future__ import annotations
 
-from dataclasses import MISSING, dataclass
-from dataclasses import fields as dataclass_fields
+from dataclasses import dataclass
 
 from .errors import SpecError
 from .parsing import parse_spec
@@ -25,6 +24,7 @@ from .spec import (
     BOUNDS_OPTIONS,
     DATASET_KEYS,
     DATASET_ONLY_MESSAGE,
+    DEFAULTS,
     ESTIMATORS,
     MAX_REPS,
     MAX_ROLLOUTS,
@@ -32,7 +32,6 @@ from .spec import (
     MAX_T_FIR,
     SPEC_KEYS,
     STAGES,
-    ExperimentSpec,
 )
 from .systems import PRESETS
 
@@ -67,10 +66,8 @@ class SpecField:
             return REQUIRED
         if self.only_with:
             return BOUNDS_OPTIONS[self.only_with][self.name]
-        if self.name == "bounds_method":
-            return "paper"
         attr = {"sls.T_fir": "sls_T_fir", "sls.C_bound": "sls_C_bound"}.get(self.name, self.name)
-        value = _DEFAULTS[attr]
+        value = DEFAULTS[attr]
         return list(value) if isinstance(value, tuple) else value
 
     def bounds_text(self) -> str:
@@ -92,17 +89,6 @@ class SpecField:
 def _num(v: float) -> str:
     return f"{int(v):,}" if float(v).is_integer() else f"{v:g}"
 
-
-_DEFAULTS = {
-    f.name: f.default for f in dataclass_fields(ExperimentSpec) if f.default is not MISSING
-}
-_DEFAULTS.update(
-    {
-        f.name: f.default_factory()
-        for f in dataclass_fields(ExperimentSpec)
-        if f.default_factory is not MISSING
-    }
-)
 
 SPEC_FIELDS: tuple[SpecField, ...] = (
     SpecField(
@@ -339,7 +325,7 @@ def spec_errors(obj) -> dict[str, str]:
         if key in _OPTION_OF:
             probe["bounds_method"] = _OPTION_OF[key]
         if key == "N":  # T0 · N is checked on N (the parser names the N entry)
-            t0 = obj.get("T0", _DEFAULTS["T0"])
+            t0 = obj.get("T0", DEFAULTS["T0"])
             valid = isinstance(t0, int) and not isinstance(t0, bool) and 2 <= t0 <= MAX_T0
             probe["T0"] = t0 if valid else 2
         try:

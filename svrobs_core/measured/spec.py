@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -129,6 +129,9 @@ class DatasetOptions:
         return {k: out[k] for k in SPEC_FIELDS}
 
 
+_DEFAULTS = {f.name: f.default for f in fields(DatasetOptions)}  # written once, there
+
+
 def _sigma_w(value) -> float | None:
     if value == "estimate":
         return None
@@ -181,10 +184,12 @@ def parse_dataset_spec(obj: dict) -> ExperimentSpec:
         sigma_u = _positive_number(sigma_u, "sigma_u", allow_zero=False)
     options = DatasetOptions(
         dataset=dataset,
-        holdout=_int(obj.get("holdout", 0), "holdout", lo=0, hi=2**31 - 1),
+        holdout=_int(obj.get("holdout", _DEFAULTS["holdout"]), "holdout", lo=0, hi=2**31 - 1),
         sigma_w=_sigma_w(obj.get("sigma_w", "estimate")),
         C=C,
-        sigma_v=_positive_number(obj.get("sigma_v", 0.1), "sigma_v", allow_zero=True),
+        sigma_v=_positive_number(
+            obj.get("sigma_v", _DEFAULTS["sigma_v"]), "sigma_v", allow_zero=True
+        ),
         sigma_u=sigma_u,
         lags=_lags(obj.get("state")),
     )
