@@ -147,6 +147,11 @@ async def _http_error(request: Request, exc: StarletteHTTPException):
         # FastAPI's 400 for a body it cannot decode (not UTF-8, nested too deep):
         # a bad body is a 422 naming the body, like malformed JSON.
         return error_response(422, "the request body is not valid JSON (UTF-8)", "body")
+    if exc.status_code == 400 and request.headers.get("content-type", "").startswith(
+        "multipart/form-data"
+    ):
+        # Starlette's 400 for a multipart body it cannot parse (a form with a file)
+        return error_response(422, f"not valid multipart/form-data: {exc.detail}", "body")
     return error_response(exc.status_code, exc.detail, headers=exc.headers)
 
 

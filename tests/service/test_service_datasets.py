@@ -248,3 +248,16 @@ def test_a_spec_names_the_teams_dataset(client, session, make_account):
     job, _ = job_store.create_job(session, team_id=a.team.id, user_id=None, spec=spec)
     assert job.dataset_id == mine and job.spec_summary["systems"] == [f"dataset-{mine}"]
     assert job.n_cells == parse_spec(spec).n_cells == 2 * 1 * 2  # N x reps x (ols, svr)
+
+
+def test_a_malformed_multipart_body_is_a_422_naming_the_body(client, make_account):
+    """A system file's form (parsed by FastAPI) and a dataset upload (streamed) both
+    answer a multipart body that does not parse with one 422."""
+    acc = make_account()
+    bad = b"--b0\r\nK\xc2\x97--b0--\r\n"
+    headers = {**acc.headers, "Content-Type": "multipart/form-data; boundary=b0"}
+    r = client.post(f"{API}/systems/from-file", content=bad, headers=headers)
+    assert r.status_code == 422 and r.json()["field"] == "body", r.text
+    assert r.json()["detail"].startswith("not valid multipart/form-data: ")
+    r = client.post(f"{API}/datasets", content=bad, headers=headers)
+    assert r.status_code == 422 and r.json()["field"] == "file", r.text
