@@ -16,6 +16,7 @@ import redis.exceptions
 import sqlalchemy.exc
 from sqlalchemy import select
 
+import svrobs_lab.units
 from service.config import get_settings
 from service.db import accounts, jobs
 from service.db.migrate import upgrade
@@ -79,7 +80,7 @@ def _raising(exc):
 )
 def test_permanent_failures_fail_the_unit_at_once(tasks, monkeypatch, exc):
     uid = _unit()
-    monkeypatch.setattr(tasks, "run_unit_result", _raising(exc))
+    monkeypatch.setattr(svrobs_lab.units, "run_unit_result", _raising(exc))
     out = tasks.execute_unit(uid, "w")
     status, attempts, error, job_status, job_error = _state(uid)
     assert out["status"] == "failed"
