@@ -4,7 +4,8 @@
 
 The app's state is set here, for both: the settings, the DB session factory, the
 unit publisher (the app's Celery app, made on first use; tests replace it), the
-rate limiter. An application error (:class:`svrobs_lab.errors.LabError`) is
+rate limiter, the throttle of failed authentications, the report builds; the
+security headers of every response (:mod:`service.http.security`). An application error (:class:`svrobs_lab.errors.LabError`) is
 answered once: JSON under /api and for the health routes
 (:func:`service.api.errors.lab_error_response`), the web's error page elsewhere
 (:func:`service.web.errors.lab_error_page`); nothing else becomes a traceback.
@@ -20,9 +21,12 @@ from service.api.mount import API_PREFIX, mount_api
 from service.api.ratelimit import RateLimiter
 from service.broker import BrokerPublisher
 from service.config import Settings, get_settings
+from service.http.auth_throttle import AuthThrottle
+from service.http.security import SecurityHeaders
 from service.logging_config import configure_logging
 from service.web import mount_web
 from service.web.errors import lab_error_page
+from svrobs_lab.report_builds import ReportBuilds
 
 
 def _default_session_factory(settings: Settings):
@@ -72,6 +76,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.broker = BrokerPublisher(lambda: app.state.settings)
     app.state.publisher = app.state.broker
     app.state.rate_limiter = RateLimiter(settings.RATE_LIMIT_PER_MINUTE)
+    app.state.auth_throttle = AuthThrottle(settings.AUTH_FAILURES_PER_MINUTE)
+    app.state.report_builds = ReportBuilds(
+        per_team=settings.REPORT_BUILDS_PER_TEAM,
+        waiters_per_team=settings.REPORT_WAITERS_PER_TEAM,
+    )
+    # nosniff, Referrer-Policy and (HTML) the CSP on every response (service.http.security)
+    app.add_middleware(SecurityHeaders)
 
     install_error_handlers(app, lab_error=_lab_error)
     mount_api(app)  # /api/v1, /healthz, /readyz, /docs

@@ -54,6 +54,14 @@ class Settings(BaseSettings):
     MAX_DATASET_MB: int = 256
     MAX_QUEUED_JOBS_PER_TEAM: int = 100
     RATE_LIMIT_PER_MINUTE: int = 600
+    # Failed authentications (a bad sign-in, a bad bearer key) per client address per
+    # minute, in each API process: beyond, 429 with Retry-After (0: no limit).
+    AUTH_FAILURES_PER_MINUTE: int = 10
+    # Report builds (svrobs_lab.report_builds), in each API process: at most this many
+    # builds of one team at once, and this many of its requests waiting for a build of
+    # the same job; beyond, 429 with Retry-After.
+    REPORT_BUILDS_PER_TEAM: int = 2
+    REPORT_WAITERS_PER_TEAM: int = 8
 
     API_HOST: str = "127.0.0.1"
     API_PORT: int = 8000

@@ -58,14 +58,16 @@ class DatasetInUse(Conflict):
 
 
 class IdempotencyConflict(Conflict):
-    """The Idempotency-Key was used before with a different spec."""
+    """The Idempotency-Key was used before with a different spec, name or tags
+    (``differs``: which of them)."""
 
-    def __init__(self, job):
+    def __init__(self, job, differs: str = "spec"):
         super().__init__(
-            f"Idempotency-Key already used for job {job.id} with a different spec",
+            f"Idempotency-Key already used for job {job.id} with a different {differs}",
             field="Idempotency-Key",
         )
         self.job = job
+        self.differs = differs
 
 
 class Invalid(LabError, ValueError):

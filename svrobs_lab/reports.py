@@ -1,11 +1,15 @@
 """A job's HTML report, built once per finished job and then served as stored.
 
-A running job's report is built on each request (it changes); a finished job's
-is built at its first request (or beforehand, by the retention tick before it
-prunes the job's rows: :func:`store_if_missing`) and stored in ``job_reports``.
-Concurrent requests for the same job wait for one build; at most ``BUILD_SLOTS``
-builds run at once in a process, so memory stays bounded however many reports
-are asked for. The build reads the rows as columns (``service.db.reports``).
+A finished job's report is built at its first request (or beforehand, by the
+retention tick before it prunes the job's rows: :func:`store_if_missing`) and
+stored in ``job_reports``; a running job's is built again only when its progress
+changed (docs/security.md#reports-of-running-jobs). A request reads the job, closes its
+database session, and then waits for or runs the one build of that job
+(:class:`~svrobs_lab.report_builds.ReportBuilds`: single-flight, bounded per team);
+the build reads the rows in a short session of its own (as columns:
+``service.db.reports``), renders with no connection held, and stores a finished
+job's page through a new session. At most ``BUILD_SLOTS`` builds render at once in
+a process, so memory stays bounded however many reports are asked for.
 """
 
 from __future__ import annotations
@@ -14,30 +18,65 @@ import ctypes
 import gc
 import logging
 import threading
-from collections import defaultdict
-from collections.abc import Callable
 from contextlib import closing
+from dataclasses import dataclass
+from typing import Any
 
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from service.db.models import Job
+from service.db.models import JOB_ACTIVE, Job
 from service.db.reports import is_final, load_columns, store_report, stored_report
+from svrobs_core.report.columns import Columns
 from svrobs_lab.auth import Caller
 from svrobs_lab.dispatch import SessionFactory
 from svrobs_lab.jobs import team_job
+from svrobs_lab.report_builds import ReportBuilds
 from svrobs_lab.report_html import job_report_html
 
 log = logging.getLogger(__name__)
 
 BUILD_SLOTS = threading.BoundedSemaphore(1)
-_job_locks: defaultdict[int, threading.Lock] = defaultdict(threading.Lock)
-_locks_guard = threading.Lock()
+# the builds of callers that pass none (the CLI, tests); the API passes its app's
+DEFAULT_BUILDS = ReportBuilds(per_team=2, waiters_per_team=8)
 
 
-def _job_lock(job_id: int) -> threading.Lock:
-    with _locks_guard:
-        return _job_locks[job_id]
+@dataclass(frozen=True)
+class JobSnapshot:
+    """What a report is built from, read before the request's session is closed."""
+
+    id: int
+    team_id: int
+    status: str
+    progress_done: int
+    progress_total: int
+    cells_done: int
+    spec: dict[str, Any]
+    provenance: dict[str, Any]
+    name: str
+
+    @classmethod
+    def of(cls, job: Job) -> JobSnapshot:
+        return cls(
+            id=job.id,
+            team_id=job.team_id,
+            status=job.status,
+            progress_done=job.progress_done,
+            progress_total=job.progress_total,
+            cells_done=job.cells_done or 0,
+            spec=dict(job.spec),
+            provenance=dict(job.provenance or {}),
+            name=job.name or f"job-{job.id}",
+        )
+
+    @property
+    def version(self) -> tuple:
+        """The report changes only when one of these does."""
+        return (self.status, self.progress_done, self.progress_total, self.cells_done)
+
+    @property
+    def final(self) -> bool:
+        return self.status not in JOB_ACTIVE
 
 
 def _release_memory() -> None:
@@ -50,54 +89,78 @@ def _release_memory() -> None:
         pass
 
 
-def build_job_report(session: Session, job: Job) -> tuple[str, int]:
-    """(HTML, number of records) of a job, from its stored records read as columns."""
-    try:
-        return _build(session, job)
-    finally:
-        _release_memory()
-
-
-def _build(session: Session, job: Job) -> tuple[str, int]:
-    cols = load_columns(session, job.id)
+def _render(job: JobSnapshot, cols: Columns) -> str:
     provenance = {
-        **(job.provenance or {}),
+        **job.provenance,
         "job_id": job.id,
         "status": job.status,
         "progress": f"{job.progress_done}/{job.progress_total} units",
     }
-    html = job_report_html(job.spec, cols, provenance, name=job.name or f"job-{job.id}")
-    return html, len(cols)
+    return job_report_html(job.spec, cols, provenance, name=job.name)
 
 
-def job_report(session: Session, job: Job, write_session: Callable[[], Session]) -> str:
-    """The job's report: stored if the job is finished (built from ``session``, a
-    reading one, and stored through a ``write_session()`` on first use)."""
-    if not is_final(job):
-        with BUILD_SLOTS:
-            return build_job_report(session, job)[0]
-    job_id = job.id
-    row = stored_report(session, job_id)
-    if row is not None:
-        return row.html
-    with _job_lock(job_id):
-        session.rollback()  # a fresh snapshot: another request may have stored it meanwhile
-        row = stored_report(session, job_id)
+def build_job_report(session: Session, job: Job) -> tuple[str, int]:
+    """(HTML, number of records) of a job, from its stored records read as columns."""
+    try:
+        cols = load_columns(session, job.id)
+        return _render(JobSnapshot.of(job), cols), len(cols)
+    finally:
+        _release_memory()
+
+
+def _build(job: JobSnapshot, session_factory: SessionFactory) -> tuple[str, int]:
+    """Read the columns in a reading session of its own (closed before rendering),
+    then render with no connection held."""
+    with BUILD_SLOTS:
+        try:
+            with closing(session_factory(False)) as s:
+                cols = load_columns(s, job.id)
+            return _render(job, cols), len(cols)
+        finally:
+            _release_memory()
+
+
+def _build_and_store(job: JobSnapshot, session_factory: SessionFactory) -> str:
+    """A finished job's report: stored by another process meanwhile, else built and
+    stored through a new writing session."""
+    with closing(session_factory(False)) as s:
+        row = stored_report(s, job.id)
         if row is not None:
             return row.html
-        with BUILD_SLOTS:
-            html, n = build_job_report(session, session.get(Job, job_id))
-        session.rollback()  # the read is over (and a test's shared connection is released)
-        with closing(write_session()) as w:
-            try:
-                store_report(w, job_id, html, n)
-                w.commit()
-                log.info("stored the report of job %s (%d records)", job_id, n)
-            except IntegrityError:  # another process stored it first: the same page
-                w.rollback()
-    with _locks_guard:  # stored: later requests never wait on this lock
-        _job_locks.pop(job_id, None)
+    html, n = _build(job, session_factory)
+    with closing(session_factory(True)) as w:
+        try:
+            store_report(w, job.id, html, n)
+            w.commit()
+            log.info("stored the report of job %s (%d records)", job.id, n)
+        except IntegrityError:  # another process stored it first: the same page
+            w.rollback()
     return html
+
+
+def job_report(
+    session: Session,
+    job: Job,
+    session_factory: SessionFactory,
+    *,
+    builds: ReportBuilds | None = None,
+) -> str:
+    """The job's report: stored if the job is finished, else the one kept for its
+    progress or built. ``session`` (the request's) is closed before any build."""
+    builds = builds or DEFAULT_BUILDS
+    snap = JobSnapshot.of(job)
+    if snap.final:
+        row = stored_report(session, snap.id)
+        if row is not None:
+            return row.html
+    session.close()  # no connection is held while building or waiting for a build
+    if snap.final:
+        html = builds.get(
+            snap.id, snap.team_id, snap.version, lambda: _build_and_store(snap, session_factory)
+        )
+        builds.forget(snap.id)  # stored: served from the database from now on
+        return html
+    return builds.get(snap.id, snap.team_id, snap.version, lambda: _build(snap, session_factory)[0])
 
 
 def store_if_missing(read_session: Session, write_session: Session, job_id: int) -> bool:
@@ -115,8 +178,13 @@ def store_if_missing(read_session: Session, write_session: Session, job_id: int)
 
 
 def caller_job_report(
-    session: Session, caller: Caller, job_id: int, session_factory: SessionFactory
+    session: Session,
+    caller: Caller,
+    job_id: int,
+    session_factory: SessionFactory,
+    *,
+    builds: ReportBuilds | None = None,
 ) -> str:
     """The report of the caller's job (:func:`job_report`; NotFound for another team's)."""
     job = team_job(session, caller, job_id)
-    return job_report(session, job, lambda: session_factory(True))
+    return job_report(session, job, session_factory, builds=builds)

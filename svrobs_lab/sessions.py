@@ -3,8 +3,10 @@
 The cookie holds ``{"s": nonce, "e": expiry}`` and, once signed in, ``"k"``: the id
 of the API key used to sign in, never the key itself. It is signed with HMAC-SHA256
 under the settings' secret key; a tampered, expired or unsigned cookie is no session.
-Every request re-reads the key row, so revoking or expiring the key ends its
-sessions at once. The CSRF token is an HMAC of the session's nonce: it changes at
+A signed-in cookie is a session only while the server keeps its sign-in
+(:mod:`service.db.sign_ins`, by the nonce's hash): signing out deletes it, so a
+copied cookie stops working at once. Every request re-reads the key row, so
+revoking or expiring the key ends its sessions at once. The CSRF token is an HMAC of the session's nonce: it changes at
 every sign-in and cannot be derived without the secret.
 """
 
@@ -19,11 +21,13 @@ import os
 import secrets
 import time
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 
 from sqlalchemy.orm import Session
 
 from service.config import Settings
+from service.db import sign_ins
 from service.db.accounts import active_key
 from service.db.models import ApiKey
 
@@ -138,9 +142,29 @@ def request_session(request) -> WebSession | None:
 
 
 def session_key(request, session: Session) -> ApiKey | None:
-    """The active API key a request's session cookie was signed in with, or None."""
+    """The active API key a request's session cookie was signed in with, or None (also
+    when the sign-in was ended: :func:`sign_out`)."""
     s = request_session(request)
-    return active_key(session, s.key_id) if s is not None and s.signed_in else None
+    if s is None or not s.signed_in or not sign_ins.is_live(session, s.nonce, s.key_id):
+        return None
+    return active_key(session, s.key_id)
+
+
+def sign_in(session: Session, signer: Signer, key_id: int) -> WebSession:
+    """A new signed-in session of ``key_id``, kept on the server (committed)."""
+    s = signer.new(key_id)
+    sign_ins.start(session, s.nonce, key_id, datetime.fromtimestamp(s.expires, UTC))
+    session.commit()
+    return s
+
+
+def sign_out(session: Session, request) -> None:
+    """End the request's signed-in session on the server (committed): its cookie, or
+    any copy of it, is no session from now on."""
+    s = request_session(request)
+    if s is not None and s.signed_in:
+        sign_ins.end(session, s.nonce)
+        session.commit()
 
 
 def set_cookie(response, request, s: WebSession, signer: Signer) -> None:

@@ -19,6 +19,7 @@ from .jobs import team_job
 
 DEFAULT_DAYS = store.DEFAULT_DAYS
 MAX_DAYS = store.MAX_DAYS
+MIN_DAYS = store.MIN_DAYS
 is_live = store.is_live
 LABEL_MAX = SHARE_LABEL_MAX
 

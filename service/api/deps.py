@@ -15,9 +15,12 @@ from service.http.deps import (
     DB,
     BrokerCheckDep,
     PublisherDep,
+    ReportBuildsDep,
     SessionFactoryDep,
     SettingsDep,
+    auth_failed,
     caller_of,
+    check_auth_throttle,
     get_db,
     is_write,
     rate_limit,
@@ -50,7 +53,8 @@ def get_caller(
     header may instead carry the web UI's session cookie (svrobs_lab.sessions), so
     that a signed-in browser opens reports and downloads; a write only with the
     session's CSRF token in ``X-CSRF-Token`` too (what the dashboard's forms need;
-    /docs sends it), so that no other site can make a signed-in browser write."""
+    /docs sends it), so that no other site can make a signed-in browser write. A bad
+    bearer key counts against the client's address (service.http.auth_throttle)."""
     header = request.headers.get("authorization", "")
     scheme, _, token = header.partition(" ")
     if not header and (not is_write(request) or _session_csrf_ok(request)):
@@ -60,8 +64,10 @@ def get_caller(
     elif scheme.lower() != "bearer" or not token.strip():
         raise _unauthorized("missing API key: send 'Authorization: Bearer <key>'")
     else:
+        check_auth_throttle(request)  # 429 after too many bad keys from this address
         caller = caller_of(request, session, bearer_key(token.strip()))
         if caller is None:
+            auth_failed(request)
             raise _unauthorized("invalid, revoked or expired API key")
     rate_limit(request, caller)
     return caller
@@ -109,6 +115,7 @@ __all__ = [
     "CurrentCaller",
     "JobId",
     "PublisherDep",
+    "ReportBuildsDep",
     "SessionFactoryDep",
     "SettingsDep",
     "SubmissionDep",

@@ -20,6 +20,8 @@ from fastapi import FastAPI, Request
 from fastapi.openapi.docs import get_redoc_html
 from fastapi.responses import HTMLResponse, Response
 
+from service.http.security import INLINE_STYLE_CSP
+
 REDOC_JS = Path(fastapi_offline.__file__).resolve().parent / "static" / "redoc.standalone.js"
 CDN_LOGO = "https://cdn.redoc.ly/redoc/logo-mini.svg"
 EMPTY_SVG = "data:image/svg+xml,%3Csvg xmlns='http://www.w3.org/2000/svg'/%3E"
@@ -63,7 +65,7 @@ def install_swagger(app: FastAPI, path: str = "/docs") -> None:
             openapi=app.openapi_url,
             init=SWAGGER_INIT_URL,
         )
-        return HTMLResponse(page)
+        return HTMLResponse(page, headers={"Content-Security-Policy": INLINE_STYLE_CSP})
 
     @app.get(SWAGGER_INIT_URL, include_in_schema=False)
     async def swagger_init() -> Response:
@@ -74,13 +76,16 @@ def install_redoc(app: FastAPI, path: str = "/redoc") -> None:
     @app.get(path, include_in_schema=False)
     async def redoc_html(request: Request) -> HTMLResponse:
         root = request.scope.get("root_path", "")
-        return get_redoc_html(
+        page = get_redoc_html(
             openapi_url=f"{root}{app.openapi_url}",
             title=f"{app.title} - ReDoc",
             redoc_js_url=f"{root}{SCRIPT_URL}",
             redoc_favicon_url="data:,",
             with_google_fonts=False,
         )
+        # ReDoc inserts its styles and runs a web worker from a blob: URL
+        page.headers["Content-Security-Policy"] = INLINE_STYLE_CSP + "; worker-src 'self' blob:"
+        return page
 
     @app.get(SCRIPT_URL, include_in_schema=False)
     async def redoc_js() -> Response:

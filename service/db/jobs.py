@@ -47,10 +47,10 @@ def create_job(
     :class:`QuotaExceeded` when the team has ``max_active_jobs`` queued or
     running jobs. Each limit is passed in by the application layer
     (``svrobs_lab.jobs.limits``); None or 0: no limit.
-    :class:`IdempotencyConflict` when the key was used with another spec,
+    :class:`IdempotencyConflict` when the key was used with another spec, name or tags,
     :class:`~svrobs_lab.errors.NotFound` (422 naming ``dataset``) when the spec's
     ``dataset`` is not one of the team's (the job is linked to it: ``jobs.dataset_id``).
-    With an ``idempotency_key`` already used by the team for the same spec,
+    With an ``idempotency_key`` already used by the team for the same spec, name and tags,
     returns that job. Returns ``(job, created)``; ``created`` is False for that job.
     """
     parsed = parse_spec(spec)
@@ -69,7 +69,7 @@ def create_job(
     if idempotency_key is not None:
         existing = _job_by_key(session, team_id, idempotency_key)
         if existing is not None:
-            return _same_or_conflict(existing, normalised)
+            return _same_or_conflict(existing, normalised, name, tags)
 
     cap = max_active_jobs
     if cap:
@@ -109,7 +109,7 @@ def create_job(
         existing = _job_by_key(session, team_id, idempotency_key) if idempotency_key else None
         if existing is None:
             raise
-        return _same_or_conflict(existing, normalised)
+        return _same_or_conflict(existing, normalised, name, tags)
 
     for t in tags:
         session.add(JobTag(job_id=job.id, tag=t))
@@ -177,9 +177,15 @@ def _job_by_key(session: Session, team_id: int, key: str) -> Job | None:
     return session.scalar(select(Job).where(Job.team_id == team_id, Job.idempotency_key == key))
 
 
-def _same_or_conflict(job: Job, normalised: dict) -> tuple[Job, bool]:
+def _same_or_conflict(job: Job, normalised: dict, name, tags: list[str]) -> tuple[Job, bool]:
+    """The job of a reused Idempotency-Key if the request is the same (spec, name and
+    the set of tags), else IdempotencyConflict naming what differs."""
     if job.spec != normalised:
-        raise IdempotencyConflict(job)
+        raise IdempotencyConflict(job, "spec")
+    if (job.name or None) != (name or None):
+        raise IdempotencyConflict(job, "name")
+    if set(job.tags or ()) != set(tags):
+        raise IdempotencyConflict(job, "tags")
     return job, False
 
 

@@ -3,7 +3,7 @@
 The link carries a random token (``secrets.token_urlsafe(32)``, 256 bits); only its
 SHA-256 is stored, and a lookup compares the digests in constant time
 (``hmac.compare_digest``), so neither the table nor the timing gives a token away.
-A link expires (default 7 days, at most 90) and can be revoked; an expired or
+A link lasts at least an hour, expires (default 7 days, at most 90) and can be revoked; an expired or
 revoked link finds nothing (the pages answer 404).
 """
 
@@ -21,6 +21,7 @@ from .models import Job, ShareLink, as_utc, utcnow
 
 DEFAULT_DAYS = 7
 MAX_DAYS = 90
+MIN_DAYS = 1 / 24  # one hour
 
 
 def token_hash(token: str) -> str:
@@ -37,8 +38,10 @@ def create_share(
 ) -> tuple[ShareLink, str]:
     """A new link to ``job`` valid for ``days``, named ``label`` -> (row, token).
     Flushes, not committed."""
-    if not 0 < days <= MAX_DAYS:
-        raise ValueError(f"must be more than 0 and at most {MAX_DAYS} days")
+    if not MIN_DAYS <= days <= MAX_DAYS:
+        raise ValueError(
+            f"must be at least 1 hour ({MIN_DAYS:.4f} days) and at most {MAX_DAYS} days"
+        )
     token = secrets.token_urlsafe(32)
     now = utcnow()
     link = ShareLink(

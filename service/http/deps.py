@@ -1,6 +1,6 @@
 """FastAPI dependencies of both HTTP front ends: settings, DB sessions, the unit
-publisher, the broker check, the caller of a request and its rate limit, a
-submission. Tests replace ``app.state.session_factory`` and ``app.state.publisher``,
+publisher, the broker check, the caller of a request and its rate limit, the
+throttle of failed authentications, the report builds, a submission. Tests replace ``app.state.session_factory`` and ``app.state.publisher``,
 and override :func:`get_broker_check` with ``app.dependency_overrides``."""
 
 from __future__ import annotations
@@ -14,10 +14,12 @@ from sqlalchemy.orm import Session
 
 from service.config import Settings
 from service.db.models import ApiKey
+from service.http.auth_throttle import client_address
 from svrobs_lab.auth import Caller, resolve_caller
 from svrobs_lab.dispatch import Publisher, SessionFactory
 from svrobs_lab.errors import RateLimited
 from svrobs_lab.jobs import Submission
+from svrobs_lab.report_builds import ReportBuilds
 
 BrokerCheck = Callable[[], None]  # raises when the broker does not answer
 
@@ -81,6 +83,21 @@ def rate_limit(request: Request, caller: Caller) -> None:
         )
 
 
+def check_auth_throttle(request: Request) -> None:
+    """RateLimited while the client's address has used up its failed authentications
+    (:mod:`service.http.auth_throttle`)."""
+    request.app.state.auth_throttle.check(client_address(request))
+
+
+def auth_failed(request: Request) -> None:
+    """Count a failed authentication (a bad key) of the client's address."""
+    request.app.state.auth_throttle.failed(client_address(request))
+
+
+async def get_report_builds(request: Request) -> ReportBuilds:
+    return request.app.state.report_builds
+
+
 def submission_of(
     request: Request, session: Session, caller: Caller, background: BackgroundTasks
 ) -> Submission:
@@ -101,3 +118,4 @@ SettingsDep = Annotated[Settings, Depends(get_settings_dep)]
 PublisherDep = Annotated[Publisher, Depends(get_publisher)]
 BrokerCheckDep = Annotated[BrokerCheck, Depends(get_broker_check)]
 SessionFactoryDep = Annotated[SessionFactory, Depends(get_session_factory)]
+ReportBuildsDep = Annotated[ReportBuilds, Depends(get_report_builds)]

@@ -10,7 +10,7 @@ from fastapi.responses import HTMLResponse
 
 from service.http.errors import status_of
 from svrobs_core.errors import SpecError
-from svrobs_lab.errors import LabError
+from svrobs_lab.errors import LabError, RateLimited
 
 from .render import WebError, render
 
@@ -30,4 +30,7 @@ def web_error(exc: LabError | SpecError) -> WebError:
 def lab_error_page(request: Request, exc: LabError | SpecError) -> HTMLResponse:
     """The error page of an application error."""
     error = web_error(exc)
-    return render(request, "error.html", status=error.status, error=error, viewer=None)
+    page = render(request, "error.html", status=error.status, error=error, viewer=None)
+    if isinstance(exc, RateLimited):
+        page.headers["Retry-After"] = str(exc.retry_after)
+    return page

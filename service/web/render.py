@@ -18,6 +18,7 @@ from fastapi import Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from jinja2 import Environment, FileSystemLoader, select_autoescape
 
+from service.http.security import CSP, INLINE_STYLE_CSP
 from service.web import fields
 from svrobs_core.report.columns import fmt_num
 
@@ -25,11 +26,6 @@ HERE = Path(__file__).resolve().parent
 TEMPLATES = HERE / "templates"
 STATIC = HERE / "static"
 
-CSP = (
-    "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; "
-    "connect-src 'self'; font-src 'self'; object-src 'none'; base-uri 'none'; "
-    "form-action 'self'; frame-ancestors 'none'"
-)
 PAGE_HEADERS = {
     "Content-Security-Policy": CSP,
     "X-Content-Type-Options": "nosniff",
@@ -88,7 +84,8 @@ def with_back_link(report_html: str, href: str, text: str) -> str:
     return head + sep + link + rest if sep else link + report_html
 
 
-REPORT_HEADERS = {k: v for k, v in PAGE_HEADERS.items() if k != "Content-Security-Policy"}
+# a stored report carries its stylesheet inline (service.http.security)
+REPORT_HEADERS = {**PAGE_HEADERS, "Content-Security-Policy": INLINE_STYLE_CSP}
 
 
 def render(request: Request, template: str, status: int = 200, **context) -> HTMLResponse:

@@ -13,6 +13,7 @@ from fastapi.testclient import TestClient
 from service.db import accounts
 from service.db.models import utcnow
 from service.web.render import safe_next
+from svrobs_lab import sessions
 from svrobs_lab.sessions import COOKIE, Signer, load_secret
 from tests.service.svc_helpers import make_settings
 
@@ -81,7 +82,7 @@ def test_another_secret_or_an_expired_session_is_signed_out():
     assert signer.loads(Signer(b"two", session_hours=100).dumps(forged), now=5000.0) is None
 
 
-def test_expired_cookie_through_the_app(build_client, make_account):
+def test_expired_cookie_through_the_app(build_client, make_account, session):
     client, _ = build_client(SECRET_KEY="k" * 20, SESSION_HOURS=1.0)
     acc = make_account()
     signer = Signer(b"k" * 20, session_hours=1.0)
@@ -89,7 +90,10 @@ def test_expired_cookie_through_the_app(build_client, make_account):
     client.cookies.set(COOKIE, signer.dumps(old))
     assert client.get("/jobs", follow_redirects=False).status_code == 303
     fresh = signer.new(key_id=acc.key_row.id)
-    client.cookies.set(COOKIE, signer.dumps(fresh))
+    client.cookies.set(COOKIE, signer.dumps(fresh))  # signed, but never signed in
+    assert client.get("/jobs", follow_redirects=False).status_code == 303
+    kept = sessions.sign_in(session, signer, acc.key_row.id)
+    client.cookies.set(COOKIE, signer.dumps(kept))
     assert client.get("/jobs", follow_redirects=False).status_code == 200
 
 

@@ -8,8 +8,16 @@ from fastapi import APIRouter, Header
 from fastapi.responses import HTMLResponse
 from pydantic import BaseModel, ConfigDict
 
-from service.api.deps import DB, CurrentCaller, JobId, SessionFactoryDep, SubmissionDep
+from service.api.deps import (
+    DB,
+    CurrentCaller,
+    JobId,
+    ReportBuildsDep,
+    SessionFactoryDep,
+    SubmissionDep,
+)
 from service.api.errors import BODY_ERRORS, ERRORS
+from service.http.security import INLINE_STYLE_CSP
 from svrobs_core.paper import PRESET_NAME, paper_specs
 from svrobs_lab.jobs import JobRequest
 from svrobs_lab.reports import caller_job_report
@@ -31,12 +39,18 @@ JSON_ERRORS = {
 
 @router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses=JSON_ERRORS)
 def job_report(
-    job_id: JobId, session: DB, caller: CurrentCaller, session_factory: SessionFactoryDep
+    job_id: JobId,
+    session: DB,
+    caller: CurrentCaller,
+    session_factory: SessionFactoryDep,
+    builds: ReportBuildsDep,
 ) -> HTMLResponse:
     """The job's report as one HTML page: tables, figures (embedded PNG), the spec,
     provenance and the data-generated findings. Built from the stored records, once
-    for a finished job (then served as stored)."""
-    return HTMLResponse(caller_job_report(session, caller, job_id, session_factory))
+    for a finished job (then served as stored), and for a running job again only when
+    its progress changed; 429 with Retry-After while the team builds too many."""
+    html = caller_job_report(session, caller, job_id, session_factory, builds=builds)
+    return HTMLResponse(html, headers={"Content-Security-Policy": INLINE_STYLE_CSP})
 
 
 class PresetRun(BaseModel):

@@ -21,7 +21,10 @@ ShareId = Annotated[int, Path(ge=1, le=MAX_ID)]
 class ShareCreate(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)
     days: float = Field(
-        shares.DEFAULT_DAYS, gt=0, le=shares.MAX_DAYS, description="valid for this many days"
+        shares.DEFAULT_DAYS,
+        ge=shares.MIN_DAYS,
+        le=shares.MAX_DAYS,
+        description="valid for this many days (at least one hour: 1/24)",
     )
     label: str | None = Field(
         None, max_length=shares.LABEL_MAX, description="what the link is for (shown in lists)"

@@ -10,11 +10,18 @@ from fastapi import APIRouter, Depends, Form, Request
 from fastapi.responses import JSONResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
-from service.http.deps import caller_of, get_db
+from service.http.deps import auth_failed, caller_of, check_auth_throttle, get_db
 from service.web.deps import CSRF, get_viewer
 from service.web.render import PAGE_HEADERS, SignInRequired, render, safe_next
 from svrobs_lab.auth import bearer_key
-from svrobs_lab.sessions import clear_cookie, request_session, set_cookie, signer_of
+from svrobs_lab.sessions import (
+    clear_cookie,
+    request_session,
+    set_cookie,
+    sign_in,
+    sign_out,
+    signer_of,
+)
 
 router = APIRouter(include_in_schema=False)
 
@@ -79,20 +86,26 @@ def login(
     next: Annotated[str, Form(max_length=2000)] = "/jobs",
 ):
     """A valid key starts a new session (a new nonce, so a new CSRF token) holding the
-    key's id; the key itself is neither stored nor echoed back."""
+    key's id; the key itself is neither stored nor echoed back. The sign-in is kept on
+    the server until /logout. Too many bad keys from one address: 429
+    (service.http.auth_throttle)."""
+    check_auth_throttle(request)
     caller = caller_of(request, db, bearer_key(key.strip()))
     if caller is None:
+        auth_failed(request)
         return _login_page(
             request, safe_next(next), "Invalid, revoked or expired API key.", status=401
         )
     signer = signer_of(request.app)
     response = RedirectResponse(safe_next(next), status_code=303)
-    set_cookie(response, request, signer.new(caller.key_id), signer)
+    set_cookie(response, request, sign_in(db, signer, caller.key_id), signer)
     return response
 
 
 @router.post("/logout", dependencies=[CSRF])
-def logout(request: Request):
+def logout(request: Request, db: Annotated[Session, Depends(get_db)]):
+    """End the session on the server (a copy of the cookie stops working too)."""
+    sign_out(db, request)
     response = RedirectResponse("/login", status_code=303)
     clear_cookie(response, request)
     return response

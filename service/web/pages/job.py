@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 from service.db import job_queries as queries
 from service.db.jobs import cancel_job
 from service.db.models import JOB_ACTIVE, Job
-from service.http.deps import SessionFactoryDep, get_db
+from service.http.deps import ReportBuildsDep, SessionFactoryDep, get_db
 from service.web import charts, figure_charts, job_tables
 from service.web.deps import CSRF, CurrentViewer
 from service.web.render import PAGE_HEADERS, REPORT_HEADERS, WebError, render, with_back_link
@@ -118,9 +118,15 @@ def chart_data(
 
 
 @router.get("/jobs/{job_id:int}/report")
-def report_page(db: DB, viewer: CurrentViewer, job_id: int, session_factory: SessionFactoryDep):
+def report_page(
+    db: DB,
+    viewer: CurrentViewer,
+    job_id: int,
+    session_factory: SessionFactoryDep,
+    builds: ReportBuildsDep,
+):
     """The job's report (as ``GET /api/v1/jobs/{id}/report``) with a link back to its page."""
-    html = caller_job_report(db, viewer.caller, job_id, session_factory)
+    html = caller_job_report(db, viewer.caller, job_id, session_factory, builds=builds)
     back = with_back_link(html, f"/jobs/{job_id}", f"← Job {job_id} on the dashboard")
     return HTMLResponse(back, headers=REPORT_HEADERS)
 

@@ -13,7 +13,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
 from service.db.models import Job
-from service.http.deps import SessionFactoryDep, get_db
+from service.http.deps import ReportBuildsDep, SessionFactoryDep, get_db
 from service.web import charts, figure_charts
 from service.web.deps import CSRF, CurrentViewer
 from service.web.pages import job as job_pages
@@ -44,6 +44,7 @@ def _links_page(request, db, viewer, job: Job, *, created: int | None = None, st
         label_max=shares.LABEL_MAX,
         default_days=shares.DEFAULT_DAYS,
         max_days=shares.MAX_DAYS,
+        min_days=round(shares.MIN_DAYS, 4),  # 0.0417: not under an hour
     )
 
 
@@ -64,7 +65,7 @@ def make_link(
     db: DB,
     viewer: CurrentViewer,
     job_id: int,
-    days: Annotated[float, Form(gt=0, le=shares.MAX_DAYS)] = shares.DEFAULT_DAYS,
+    days: Annotated[float, Form(ge=shares.MIN_DAYS, le=shares.MAX_DAYS)] = shares.DEFAULT_DAYS,
     label: Annotated[str, Form(max_length=shares.LABEL_MAX)] = "",
 ):
     """Make a link, then redirect (POST-redirect-GET: a reload makes no second link)."""
@@ -114,8 +115,8 @@ def shared_chart_data(
 
 
 @router.get("/s/{token}/report")
-def shared_report(db: DB, token: str, session_factory: SessionFactoryDep):
+def shared_report(db: DB, token: str, session_factory: SessionFactoryDep, builds: ReportBuildsDep):
     link, job = shares.open_link(db, token)
-    report = caller_job_report(db, shares.reader(link), job.id, session_factory)
+    report = caller_job_report(db, shares.reader(link), job.id, session_factory, builds=builds)
     back = with_back_link(report, f"/s/{token}", f"← Job {job.id} (shared)")
     return HTMLResponse(back, headers={**REPORT_HEADERS, "X-Robots-Tag": "noindex"})

@@ -1,0 +1,50 @@
+"""The security headers of every response (docs/security.md#security-headers), set once
+for the whole app by :class:`SecurityHeaders`, an ASGI middleware
+(``service.app.create_app`` adds it).
+
+Every response gets ``X-Content-Type-Options: nosniff`` and
+``Referrer-Policy: same-origin``; every HTML response the dashboard's
+Content-Security-Policy (:data:`CSP`: scripts, styles, images and requests from
+this server only, no framing) unless its route set one. The report pages and the
+API docs set :data:`INLINE_STYLE_CSP`: the same policy, with the inline
+stylesheet a self-contained report carries allowed (still no inline script).
+"""
+
+from __future__ import annotations
+
+CSP = (
+    "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; "
+    "connect-src 'self'; font-src 'self'; object-src 'none'; base-uri 'none'; "
+    "form-action 'self'; frame-ancestors 'none'"
+)
+INLINE_STYLE_CSP = CSP.replace("style-src 'self';", "style-src 'self' 'unsafe-inline';")
+ALWAYS = {"x-content-type-options": "nosniff", "referrer-policy": "same-origin"}
+CSP_HEADER = "content-security-policy"
+
+
+class SecurityHeaders:
+    """Adds :data:`ALWAYS` to every HTTP response and :data:`CSP` to HTML ones, where
+    the route did not set them."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def send_with_headers(message):
+            if message["type"] == "http.response.start":
+                headers = list(message.get("headers", []))
+                have = {k.decode("latin-1").lower(): v for k, v in headers}
+                extra = {k: v for k, v in ALWAYS.items() if k not in have}
+                ctype = have.get("content-type", b"").decode("latin-1").lower()
+                if ctype.startswith("text/html") and CSP_HEADER not in have:
+                    extra[CSP_HEADER] = CSP
+                if extra:
+                    headers += [(k.encode(), v.encode()) for k, v in extra.items()]
+                    message = {**message, "headers": headers}
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)

@@ -1,0 +1,168 @@
+"""Report builds, sign-out and failed-authentication throttling through real API
+processes (embedded stack, and PostgreSQL when the SVROBS_TEST_* URLs are set), with
+no worker: submitted jobs stay queued, so their reports are rebuilt as a running
+job's would be.
+
+* Twenty concurrent report requests of one team for one job build it once; the
+  ones over the team's waiting bound get 429 with Retry-After; another team's
+  GET /jobs meanwhile all answer 200. A third job's build while the team builds two
+  is a 429.
+* Signing out through one API process ends the session for a copied cookie at
+  another process too (the sign-in is kept in the database).
+* 300 bad bearer keys from one address: the first 10 are 401, the rest 429 (but
+  for the tokens that come back while they are sent), and a valid key from that
+  address is refused too until Retry-After has passed.
+
+Run with ``-s`` to see the figures.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import httpx
+import pytest
+
+from tests.service.svc_helpers import TINY_SPEC
+
+from .conftest import _stack_params
+from .stack import API, Stack, submit
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(600)]
+
+BUILT = "built the report of job"
+
+
+@pytest.fixture(scope="module", params=_stack_params())
+def lab(request, tmp_path_factory):
+    """A migrated stack with the API and no worker; ``lab.other_key``: another team's."""
+    st = Stack(request.param, tmp_path_factory.mktemp(f"hard-{request.param}"))
+    try:
+        st.setup()
+        out = st.python(
+            "import json\n"
+            "from service.db.session import session_scope\n"
+            "from service.db import accounts\n"
+            "with session_scope() as db:\n"
+            "    accounts.create_team(db, 'other')\n"
+            "    accounts.create_user(db, 'other', 'b@other.example')\n"
+            "    _, key = accounts.create_key(db, 'b@other.example')\n"
+            "print(json.dumps({'key': key}))\n"
+        )
+        st.other_key = json.loads(out.strip().splitlines()[-1])["key"]
+        st.start_api(env={"SVROBS_SECRET_KEY": "it-secret-0123456789abcdef"})
+        yield st
+    finally:
+        st.teardown()
+
+
+def _builds(st: Stack, name: str = "api") -> int:
+    return (st.logs / f"{name}.log").read_text(errors="replace").count(BUILT)
+
+
+def test_concurrent_reports_build_once_and_leave_other_teams_alone(lab):
+    a = lab.client()
+    b = lab.client()
+    b.headers["Authorization"] = f"Bearer {lab.other_key}"
+    jid = submit(a, TINY_SPEC, name="report-load")["id"]
+    before = _builds(lab)
+
+    def report(_):
+        r = a.get(f"/jobs/{jid}/report", timeout=120)
+        return r.status_code, r.headers.get("retry-after"), r.text
+
+    def jobs(_):
+        t0 = time.monotonic()
+        r = b.get("/jobs", timeout=60)
+        return r.status_code, time.monotonic() - t0
+
+    with ThreadPoolExecutor(30) as pool:
+        reports = pool.map(report, range(20))
+        time.sleep(0.5)  # the team's requests are in: the build is running
+        other = list(pool.map(jobs, range(10)))
+        reports = list(reports)
+    codes = [c for c, _, _ in reports]
+    pages = {t for c, _, t in reports if c == 200}
+    print(
+        f"\n[{lab.kind}] 20 report requests: {codes.count(200)} x 200, {codes.count(429)} x 429; "
+        f"builds {_builds(lab) - before}; other team's GET /jobs: "
+        f"{[c for c, _ in other]}, slowest {max(s for _, s in other):.2f} s"
+    )
+    assert set(codes) <= {200, 429}, codes
+    assert codes.count(200) >= 1 and len(pages) == 1  # everyone got the one page
+    assert all(int(ra) >= 1 for c, ra, _ in reports if c == 429)
+    assert codes.count(200) <= 1 + 8  # the leader and SVROBS_REPORT_WAITERS_PER_TEAM
+    assert _builds(lab) - before == 1
+    assert [c for c, _ in other] == [200] * 10
+    # the same progress: kept, no build
+    assert a.get(f"/jobs/{jid}/report", timeout=60).text in pages
+    assert _builds(lab) - before == 1
+    # two other jobs build at once; a third of the same team is refused meanwhile
+    more = [submit(a, {**TINY_SPEC, "seed": s})["id"] for s in (11, 12, 13)]
+    with ThreadPoolExecutor(3) as pool:
+        first = [pool.submit(a.get, f"/jobs/{j}/report", timeout=120) for j in more[:2]]
+        time.sleep(1.0)
+        third = a.get(f"/jobs/{more[2]}/report", timeout=120)
+        done = [f.result() for f in first]
+    assert [r.status_code for r in done] == [200, 200]
+    assert third.status_code == 429 and int(third.headers["retry-after"]) >= 1, third.text
+    assert "REPORT_BUILDS_PER_TEAM" in third.json()["detail"]
+
+
+def _sign_in(base: str, key: str) -> httpx.Client:
+    c = httpx.Client(base_url=base, timeout=30)
+    page = c.get("/login")
+    token = re.search(r'name="csrf_token" value="([^"]+)"', page.text).group(1)
+    r = c.post("/login", data={"key": key, "csrf_token": token, "next": "/jobs"})
+    assert r.status_code == 303, r.text
+    return c
+
+
+def test_sign_out_at_one_api_process_ends_a_copied_cookie_at_another(lab):
+    second = lab.start_api("api-2", env={"SVROBS_SECRET_KEY": "it-secret-0123456789abcdef"})
+    try:
+        browser = _sign_in(lab.base_url, lab.key)
+        copied = httpx.Client(base_url=second, cookies=dict(browser.cookies), timeout=30)
+        assert copied.get("/jobs").status_code == 200
+        assert copied.get(f"{API}/jobs").status_code == 200
+        token = re.search(r'name="csrf_token" value="([^"]+)"', browser.get("/jobs").text)
+        assert browser.post("/logout", data={"csrf_token": token.group(1)}).status_code == 303
+        r = copied.get("/jobs")
+        assert r.status_code == 303 and r.headers["location"].startswith("/login")
+        assert copied.get(f"{API}/jobs").status_code == 401
+    finally:
+        lab.stop("api-2")
+
+
+def test_300_bad_keys_from_one_address_are_mostly_429(lab):
+    base = lab.start_api("api-auth", env={"SVROBS_AUTH_FAILURES_PER_MINUTE": "10"})
+    try:
+        bad = httpx.Client(
+            base_url=base + API, timeout=30, headers={"Authorization": "Bearer svr_bad_" + "x" * 32}
+        )
+        t0 = time.monotonic()
+        codes = [bad.get("/jobs").status_code for _ in range(300)]
+        elapsed = time.monotonic() - t0
+        refused = bad.get("/jobs")
+        good = httpx.Client(
+            base_url=base + API, timeout=30, headers={"Authorization": f"Bearer {lab.key}"}
+        ).get("/jobs")
+        print(
+            f"\n[{lab.kind}] 300 bad keys in {elapsed:.1f} s: {codes.count(401)} x 401, "
+            f"{codes.count(429)} x 429; Retry-After {refused.headers.get('retry-after')} s; "
+            f"a valid key from that address then: {good.status_code}"
+        )
+        assert set(codes) == {401, 429}
+        assert codes[:10] == [401] * 10
+        # a token comes back every 6 s: at most that many more 401s
+        assert codes.count(401) <= 10 + math.ceil(elapsed / 6) + 1
+        assert refused.status_code == 429 and 1 <= int(refused.headers["retry-after"]) <= 6
+        assert good.status_code == 429
+        time.sleep(int(refused.headers["retry-after"]) + 0.5)
+        assert bad.get("/jobs").status_code == 401  # one token back
+    finally:
+        lab.stop("api-auth")
