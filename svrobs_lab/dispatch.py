@@ -20,10 +20,15 @@ Publisher = Callable[[Sequence[int]], list[int]]
 
 
 def dispatch_after_commit(
-    publisher: Publisher, session_factory: SessionFactory, team_id: int, cap: int
+    publisher: Publisher,
+    session_factory: SessionFactory,
+    team_id: int,
+    cap: int,
+    shared_cap: int | None = None,
 ) -> None:
-    """Send the team's next units to the broker (within its fair share ``cap``) and
-    mark them published; what fails is left to the relay."""
+    """Send the team's next units to the broker (within its fair share: ``cap``, or
+    ``shared_cap`` while another team has work; ``Settings.fair_share``) and mark them
+    published; what fails is left to the relay."""
 
     @contextmanager
     def begin():
@@ -35,7 +40,7 @@ def dispatch_after_commit(
             session.close()
 
     try:
-        outbox.dispatch(begin, publisher, team_id=team_id, cap=cap)
+        outbox.dispatch(begin, publisher, team_id=team_id, cap=cap, shared_cap=shared_cap)
     except Exception as exc:  # noqa: BLE001 - best effort after the response: the relay retries
         log.warning("publishing the units of team %s failed: %s", team_id, exc)
 
