@@ -46,12 +46,12 @@ def dispatch_after_commit(
 
 
 def dispatch_team_of_unit(scope, publisher: Publisher, unit_id: int) -> None:
-    """Publish the next units of the team of ``unit_id`` (its slot is free); ``scope``
-    is :func:`service.db.session.session_scope`. Raises what the DB or broker raise."""
-    with scope(write=False) as s:
-        team_id = outbox.team_of_unit(s, unit_id)
-    if team_id is not None:
-        outbox.dispatch(scope, publisher, team_id=team_id)
+    """Publish the next units now that ``unit_id``'s pool process is free: of every
+    team with units waiting, round-robin, each within its fair share (its own team's,
+    and another's whose cap was one less while this team had work); ``scope`` is
+    :func:`service.db.session.session_scope`; ``unit_id`` is the unit that ended (any
+    waiting team may take its slot). Raises what the DB or broker raise."""
+    outbox.dispatch(scope, publisher)
 
 
 def relay(scope, publisher: Publisher, *, lost_before, limit: int, batch: int) -> int:
