@@ -7,16 +7,22 @@ made: a malformed one fails at start-up with an error naming its variable.
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from typing import Literal
 
-from pydantic import field_validator
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError
 
 # The Celery transports the service is run with (filesystem: the embedded default).
 BROKER_SCHEMES = ("filesystem", "redis", "rediss", "memory", "amqp")
+
+
+def default_pool_processes() -> int:
+    """One pool process per CPU plus one, at most 5: what ``svrobs serve`` starts."""
+    return max(1, min((os.cpu_count() or 1) + 1, 5))
 
 
 class Settings(BaseSettings):
@@ -42,9 +48,15 @@ class Settings(BaseSettings):
     # split down to one repetition, gets 422; units are planned to stay under the cap.
     MAX_JOB_CPU_SECONDS: float = 3_600.0
     MAX_UNIT_MEMORY_MB: int = 2048
+    # The pool processes that run units, all workers together (`svrobs serve` sets it
+    # to its workers x --concurrency; default what it starts: one worker with one
+    # process per CPU plus one, at most 5). The fair share follows it.
+    WORKER_POOL_PROCESSES: int = Field(default_factory=default_pool_processes, ge=1)
     # Fair share: at most this many units of one team are published and not finished
-    # at once; the rest are published as they finish, round-robin over teams (0: no cap).
-    MAX_UNITS_IN_FLIGHT_PER_TEAM: int = 4
+    # at once; the rest are published as they finish, round-robin over teams (0: no
+    # cap). Unset: the pool's size, one less while another team has units queued or
+    # running, so that another team's unit always finds a free process (fair_share).
+    MAX_UNITS_IN_FLIGHT_PER_TEAM: int | None = Field(default=None, ge=0)
     MAX_SCHEDULES_PER_TEAM: int = 20
     # A schedule's cron must not fire more often than this (seconds between runs).
     MIN_SCHEDULE_INTERVAL_SECONDS: int = 300
@@ -101,6 +113,16 @@ class Settings(BaseSettings):
     # kills its worker process; the consumer stops consuming after its first message.
     TEST_CRASH_UNIT: int | None = None
     TEST_STALL_CONSUMER: bool = False
+
+    def fair_share(self) -> tuple[int, int]:
+        """``(alone, shared)``: the cap on a team's units in flight while no other team
+        has units queued or running, and while one has (0: no cap); see
+        docs/architecture.md#one-job."""
+        k = self.MAX_UNITS_IN_FLIGHT_PER_TEAM
+        if k is not None:
+            return k, k
+        pool = self.WORKER_POOL_PROCESSES
+        return pool, max(1, pool - 1)
 
     @field_validator("LOG_LEVEL", mode="before")
     @classmethod

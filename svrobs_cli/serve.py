@@ -40,7 +40,7 @@ from pathlib import Path
 import typer
 
 from service import worker_pids
-from service.config import Settings, get_settings
+from service.config import Settings, default_pool_processes, get_settings
 from svrobs_cli.errors import CliError
 from svrobs_cli.processes import Child, Supervisor, guarded
 from svrobs_core.threads import THREAD_ENV
@@ -176,7 +176,7 @@ def api_command(host: str, port: int) -> list[str]:
 # computes meanwhile (bench/service.py, 2 CPUs: 2 -> 3 processes took the Section 6
 # grid from 1.66-1.70x to 1.31-1.49x, median 1.39, the core with n_jobs=2 on SQLite). Capped so that
 # a big shared machine does not get dozens of ~200 MB numpy/cvxpy processes by surprise.
-DEFAULT_CONCURRENCY = max(1, min((os.cpu_count() or 1) + 1, 5))
+DEFAULT_CONCURRENCY = default_pool_processes()
 
 
 def _celery(*argv: str) -> list[str]:
@@ -352,6 +352,10 @@ def serve(
         pids = pid_dir(settings)
         pids.mkdir(parents=True, exist_ok=True)
         extra["SVROBS_WORKER_PID_DIR"] = str(pids)
+    if "SVROBS_WORKER_POOL_PROCESSES" not in os.environ and workers > 0:
+        # the fair share follows the pool these workers make (unless set for a
+        # pool that spans other hosts too)
+        extra["SVROBS_WORKER_POOL_PROCESSES"] = str(workers * concurrency)
     env = child_env(settings, extra)
     children = []
     for name, argv in child_commands(

@@ -20,10 +20,15 @@ Publisher = Callable[[Sequence[int]], list[int]]
 
 
 def dispatch_after_commit(
-    publisher: Publisher, session_factory: SessionFactory, team_id: int, cap: int
+    publisher: Publisher,
+    session_factory: SessionFactory,
+    team_id: int,
+    cap: int,
+    shared_cap: int | None = None,
 ) -> None:
-    """Send the team's next units to the broker (within its fair share ``cap``) and
-    mark them published; what fails is left to the relay."""
+    """Send the team's next units to the broker (within its fair share: ``cap``, or
+    ``shared_cap`` while another team has work; ``Settings.fair_share``) and mark them
+    published; what fails is left to the relay."""
 
     @contextmanager
     def begin():
@@ -35,18 +40,18 @@ def dispatch_after_commit(
             session.close()
 
     try:
-        outbox.dispatch(begin, publisher, team_id=team_id, cap=cap)
+        outbox.dispatch(begin, publisher, team_id=team_id, cap=cap, shared_cap=shared_cap)
     except Exception as exc:  # noqa: BLE001 - best effort after the response: the relay retries
         log.warning("publishing the units of team %s failed: %s", team_id, exc)
 
 
 def dispatch_team_of_unit(scope, publisher: Publisher, unit_id: int) -> None:
-    """Publish the next units of the team of ``unit_id`` (its slot is free); ``scope``
-    is :func:`service.db.session.session_scope`. Raises what the DB or broker raise."""
-    with scope(write=False) as s:
-        team_id = outbox.team_of_unit(s, unit_id)
-    if team_id is not None:
-        outbox.dispatch(scope, publisher, team_id=team_id)
+    """Publish the next units now that ``unit_id``'s pool process is free: of every
+    team with units waiting, round-robin, each within its fair share (its own team's,
+    and another's whose cap was one less while this team had work); ``scope`` is
+    :func:`service.db.session.session_scope`; ``unit_id`` is the unit that ended (any
+    waiting team may take its slot). Raises what the DB or broker raise."""
+    outbox.dispatch(scope, publisher)
 
 
 def relay(scope, publisher: Publisher, *, lost_before, limit: int, batch: int) -> int:

@@ -120,7 +120,7 @@ class Submission:
             self.publisher,
             self.session_factory,
             self.caller.team_id,
-            self.settings.MAX_UNITS_IN_FLIGHT_PER_TEAM,
+            *self.settings.fair_share(),
         )
 
 

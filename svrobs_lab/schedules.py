@@ -21,6 +21,7 @@ from service.config import Settings
 from service.db import schedules as store
 from service.db.datasets import spec_data
 from service.db.models import Job, Schedule, utcnow
+from service.db.quota import lock_team_quota
 from svrobs_core.errors import SpecError
 from svrobs_core.parsing import parse_spec
 
@@ -94,7 +95,9 @@ def _commit_or_conflict(session: Session, name: str) -> None:
 
 
 def create(session: Session, caller: Caller, settings: Settings, data: dict) -> dict:
-    """Create a schedule from ``data`` (a validated ``ScheduleCreate`` as a dict)."""
+    """Create a schedule from ``data`` (a validated ``ScheduleCreate`` as a dict); the
+    team's schedules are counted under its quota lock, held until the commit."""
+    lock_team_quota(session, caller.team_id)
     count = store.count_schedules(session, caller.team_id)
     if count >= settings.MAX_SCHEDULES_PER_TEAM:
         raise Invalid(

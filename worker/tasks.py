@@ -21,7 +21,8 @@ returned, and rejected - so redelivered - if the worker process is lost; a unit
 that keeps killing its worker is failed after ``MAX_UNIT_ATTEMPTS`` starts). Any
 other error (MemoryError, a ValueError of the core...) would fail again: it fails
 the unit and its job at once, with the reason (``units.fail_unit``). A unit
-cancelled while it runs stops within ``CANCEL_CHECK_SECONDS`` (``_Watch``).
+cancelled (or deleted) while it runs stops within about ``CANCEL_CHECK_SECONDS``
+(``_Watch``), even inside a long solver call: its pool process is then ended.
 """
 
 from __future__ import annotations
@@ -83,9 +84,14 @@ def lease_seconds() -> int:
     return settings.UNIT_LEASE_SECONDS
 
 
+_IN_POOL_CHILD = False  # set in a prefork pool process: it may end itself (_Watch)
+
+
 @worker_process_init.connect
 def _fresh_connections_after_fork(**_kw):
     """Pool children must not share the parent's DB sockets."""
+    global _IN_POOL_CHILD
+    _IN_POOL_CHILD = True
     dispose_all()
 
 
@@ -129,7 +135,7 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
     spec_dict, payload = claimed
     t1 = time.perf_counter()
     try:
-        with _Watch(unit_id, lease_seconds(), settings.CANCEL_CHECK_SECONDS):
+        with _Watch(unit_id, lease_seconds(), settings.CANCEL_CHECK_SECONDS, kill=_IN_POOL_CHILD):
             _test_crash_hook(unit_id)
             records, data = compute_unit(session_scope, spec_dict, payload)
         t2 = time.perf_counter()
@@ -192,17 +198,23 @@ class _Watch:
     The lease is what lets the relay re-queue a unit whose worker vanished without
     the broker redelivering it; the heartbeat keeps a long unit that is still alive
     from being re-queued. When the unit's status became ``cancelled`` (its job was
-    cancelled or failed), the thread interrupts the computation: a signal to the
-    unit's (main) thread, whose handler raises :class:`UnitCancelled` between two
-    Python-level steps of the core (a numpy call is never cut in half; the core's
-    stages are short calls in loops). A stuck computation is bounded by the Celery
-    time limit, which kills the process (and so the thread).
+    cancelled or failed) or its row is gone (the job was deleted after a cancel), the
+    thread interrupts the computation: a signal to the unit's (main) thread, whose
+    handler raises :class:`UnitCancelled` between two Python-level steps of the core.
+    A computation still running ``GRACE`` seconds later is inside one long native call
+    (a cvxpy/Clarabel solve): with ``kill`` (a prefork pool process) the thread then
+    SIGKILLs its own process, having stored nothing; the pool starts a new process,
+    and the message, rejected as the worker was lost (acks_late), is redelivered and
+    skipped (its unit is cancelled or gone). Otherwise a stuck computation is bounded
+    by the Celery time limit.
     """
 
     SIGNAL = signal.SIGUSR2
+    GRACE = 0.3  # seconds a cancelled computation gets to stop before its process ends
 
-    def __init__(self, unit_id: int, lease: int, check: float = 1.0):
+    def __init__(self, unit_id: int, lease: int, check: float = 1.0, *, kill: bool = False):
         self.unit_id = unit_id
+        self.kill = kill
         self.lease = lease
         self.beat = max(1.0, min(300.0, lease / 3))
         self.check = max(0.05, min(check, self.beat)) if check > 0 else self.beat
@@ -238,11 +250,13 @@ class _Watch:
             try:
                 with session_scope(write=False) as s:
                     status = units.unit_status(s, self.unit_id)
-                if status == "cancelled":
+                if status in ("cancelled", None):  # None: deleted with its job
                     log.info("unit %s: cancelled; stopping it", self.unit_id)
                     self._cancelled = True
                     if self._can_signal:
                         signal.pthread_kill(self._target, self.SIGNAL)
+                    if self.kill and not self._stop.wait(self.GRACE):
+                        self._end_process()
                     return
                 if next_beat is not None and time.monotonic() >= next_beat:
                     next_beat = time.monotonic() + self.beat
@@ -253,6 +267,18 @@ class _Watch:
                             next_beat = None
             except Exception as exc:  # noqa: BLE001 - the DB may be restarting
                 log.warning("unit %s: heartbeat failed: %s", self.unit_id, exc)
+
+    def _end_process(self) -> None:
+        log.warning(
+            "unit %s: still computing %.1f s after its cancel (a native call); "
+            "ending pool process %s",
+            self.unit_id,
+            self.GRACE,
+            os.getpid(),
+        )
+        for h in logging.getLogger().handlers:
+            h.flush()
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 class UnitRequest(Request):

@@ -23,6 +23,7 @@ from svrobs_lab.errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
 from .datasets import spec_data
 from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
 from .provenance import provenance
+from .quota import lock_team_quota
 
 
 def create_job(
@@ -45,7 +46,8 @@ def create_job(
     Raises :class:`SpecError` (naming the field) for a bad spec,
     :class:`JobTooLarge` over ``max_cells`` or over the work limits of :func:`admit`,
     :class:`QuotaExceeded` when the team has ``max_active_jobs`` queued or
-    running jobs. Each limit is passed in by the application layer
+    running jobs (counted under the team's quota lock, held until the caller's
+    transaction ends: :func:`service.db.quota.lock_team_quota`). Each limit is passed in by the application layer
     (``svrobs_lab.jobs.limits``); None or 0: no limit.
     :class:`IdempotencyConflict` when the key was used with another spec, name or tags,
     :class:`~svrobs_lab.errors.NotFound` (422 naming ``dataset``) when the spec's
@@ -73,6 +75,7 @@ def create_job(
 
     cap = max_active_jobs
     if cap:
+        lock_team_quota(session, team_id)  # count-then-insert: one at a time per team
         active = session.scalar(
             select(func.count(Job.id)).where(Job.team_id == team_id, Job.status.in_(JOB_ACTIVE))
         )

@@ -1,11 +1,14 @@
 """The outbox: work units that need (re)publishing to the broker, marking them sent,
 and the fair share between teams.
 
-Fair share (SVROBS_MAX_UNITS_IN_FLIGHT_PER_TEAM = K): at most K units of a team are
-*in flight* (published and not finished) at once. :func:`dispatch` publishes a team's
-next units (oldest job first) as its units finish, round-robin over teams, so a
-team's long job never fills the broker's queue ahead of another team's small job: the
-small job's first unit waits for about one unit's run time, not for the long job.
+Fair share (``Settings.fair_share``): at most K units of a team are *in flight*
+(published and not finished) at once, and at most K' while another team has units
+queued or running. By default K is the pool's size (SVROBS_WORKER_POOL_PROCESSES) and
+K' one less, so that one team never holds every pool process while another waits, and
+no unit of a team is queued in the broker ahead of another team's: a small job's
+first unit finds a free process, or waits at most for one running unit.
+:func:`dispatch` publishes a team's next units (oldest job first) as its units
+finish, round-robin over teams.
 It is called after a submission commits (the API), when a unit finishes (the worker,
 for its team) and by beat's tick (``worker.tick.relay``, every team, also
 re-publishing lost units). It reserves the units (marks them published) in one
@@ -58,6 +61,7 @@ def units_to_publish(
     retry_seconds: int | None = None,
     lost_before: datetime | None = None,
     cap: int | None = None,
+    shared_cap: int | None = None,
     team_id: int | None = None,
     republish: bool = True,
 ) -> list[int]:
@@ -70,8 +74,9 @@ def units_to_publish(
     running with an expired lease (the worker died). These are in flight already.
 
     New (pending, never published): with ``cap`` (K), at most K minus the team's units
-    in flight per team, oldest job first, interleaved round-robin over the teams;
-    ``cap`` None or 0: all of them. ``team_id``: that team's units only. ``now``:
+    in flight per team (``shared_cap`` instead, default K, while another team has units
+    of active jobs pending or running), oldest job first, interleaved round-robin over
+    the teams; ``cap`` None or 0: all of them. ``team_id``: that team's units only. ``now``:
     default the database's clock (leases are the DB's too).
     """
     now = as_utc(now or db_now(session))
@@ -92,10 +97,13 @@ def units_to_publish(
         out = list(session.scalars(q.order_by(WorkUnit.id).limit(limit)))
     if len(out) >= limit:
         return out
-    return out + _new_units(session, limit - len(out), cap=cap, team_id=team_id)
+    new = _new_units(session, limit - len(out), cap=cap, shared_cap=shared_cap, team_id=team_id)
+    return out + new
 
 
-def _new_units(session: Session, limit: int, *, cap: int | None, team_id: int | None) -> list[int]:
+def _new_units(
+    session: Session, limit: int, *, cap: int | None, shared_cap: int | None, team_id: int | None
+) -> list[int]:
     q = _active_units().where(_NEW)
     if not cap:
         if team_id is not None:
@@ -103,9 +111,12 @@ def _new_units(session: Session, limit: int, *, cap: int | None, team_id: int | 
         return list(session.scalars(q.order_by(WorkUnit.job_id, WorkUnit.index).limit(limit)))
     teams = [team_id] if team_id is not None else waiting_teams(session)
     busy = in_flight(session, teams)
+    shared = cap if shared_cap is None else shared_cap
+    working = busy_teams(session) if shared != cap else set()
     per_team = []
     for t in teams:
-        free = min(limit, cap - busy.get(t, 0))
+        team_cap = shared if working - {t} else cap
+        free = min(limit, team_cap - busy.get(t, 0))
         if free > 0:
             rows = q.where(Job.team_id == t).order_by(WorkUnit.job_id, WorkUnit.index).limit(free)
             per_team.append(list(session.scalars(rows)))
@@ -123,6 +134,17 @@ def waiting_teams(session: Session) -> list[int]:
         .order_by(Job.team_id)
     )
     return list(session.scalars(q))
+
+
+def busy_teams(session: Session) -> set[int]:
+    """Teams with units of active jobs pending (published or not) or running."""
+    q = (
+        select(Job.team_id)
+        .distinct()
+        .join(WorkUnit, WorkUnit.job_id == Job.id)
+        .where(Job.status.in_(JOB_ACTIVE), WorkUnit.status.in_(("pending", "running")))
+    )
+    return {int(t) for t in session.scalars(q)}
 
 
 def in_flight(session: Session, team_ids: Sequence[int]) -> dict[int, int]:
@@ -215,15 +237,17 @@ def dispatch(
     *,
     team_id: int | None = None,
     cap: int | None = None,
+    shared_cap: int | None = None,
     republish: bool = False,
     lost_before: datetime | None = None,
     limit: int = 500,
 ) -> int:
-    """Reserve the units to publish now (:func:`units_to_publish` under the team cap
-    ``cap``, default SVROBS_MAX_UNITS_IN_FLIGHT_PER_TEAM), publish them and un-mark
+    """Reserve the units to publish now (:func:`units_to_publish` under the team caps
+    ``cap`` and ``shared_cap``, default ``Settings.fair_share``), publish them and un-mark
     those the broker did not take; returns how many were sent. ``publish`` may raise
     (the broker is down): the reservation is undone and the error re-raised."""
-    cap = get_settings().MAX_UNITS_IN_FLIGHT_PER_TEAM if cap is None else cap
+    if cap is None:
+        cap, shared_cap = get_settings().fair_share()
     with begin() as s:
         now = db_now(s)  # leases and publication times are the database's clock
         if republish:
@@ -235,6 +259,7 @@ def dispatch(
             now=now,
             lost_before=lost_before,
             cap=cap,
+            shared_cap=shared_cap,
             team_id=team_id,
             republish=republish,
         )

@@ -1,14 +1,21 @@
 """The running unit's watch (``worker.tasks._Watch``): a cancel stops the unit's
 computation, including a cancel that lands between the watch's status check and
 its heartbeat (the heartbeat then finds the unit no longer running; the watch must
-keep checking rather than give up, or the unit would run to its end)."""
+keep checking rather than give up, or the unit would run to its end); a deleted unit
+counts as cancelled; in a pool process, a computation that does not stop at the
+interrupt (one long native call) ends its process."""
 
 from __future__ import annotations
 
+import multiprocessing
+import signal
 import time
 
 import pytest
 
+from service.db import jobs
+from service.db.job_delete import delete_job
+from service.db.models import Job, WorkUnit
 from tests.reliability.test_retries import _unit, tasks  # noqa: F401 - the fixture
 
 
@@ -57,3 +64,55 @@ def test_cancel_between_check_and_heartbeat_still_stops_it(tasks, monkeypatch): 
     monkeypatch.setattr(tasks.units, "heartbeat_unit", heartbeat)
     took = _compute_until_cancelled(tasks, uid, lease=3)
     assert beats and took < 8.0
+
+
+def test_a_deleted_unit_counts_as_cancelled(tasks):  # noqa: F811
+    """Cancel then delete: the unit's row is gone; the watch stops the computation."""
+    uid = _unit()
+    with tasks.session_scope() as s:
+        tasks.units.start_unit(s, uid, "w", 360)
+        job = s.get(Job, s.get(WorkUnit, uid).job_id)
+        jobs.cancel_job(s, job)
+        delete_job(s, job)
+    with tasks.session_scope(write=False) as s:
+        assert tasks.units.unit_status(s, uid) is None
+    assert _compute_until_cancelled(tasks, uid, lease=360) < 8.0
+
+
+def _swallowing_child(tasks, uid: int, out) -> None:  # noqa: F811
+    """A pool process whose computation swallows the interrupt (as a native call that
+    does not return to Python would ignore it): only ending the process stops it."""
+    tasks.dispose_all()  # the parent's connections stay the parent's
+    out.put("started")
+    with tasks._Watch(uid, 360, check=0.05, kill=True):
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 30:
+            try:
+                time.sleep(0.01)
+            except tasks.UnitCancelled:
+                out.put("interrupted")
+    out.put("ran to its end")
+
+
+def test_a_computation_that_ignores_the_interrupt_ends_its_process(tasks):  # noqa: F811
+    uid = _unit()
+    with tasks.session_scope() as s:
+        tasks.units.start_unit(s, uid, "w", 360)
+    ctx = multiprocessing.get_context("fork")
+    out = ctx.Queue()
+    child = ctx.Process(target=_swallowing_child, args=(tasks, uid, out))
+    child.start()
+    try:
+        assert out.get(timeout=30) == "started"
+        with tasks.session_scope() as s:
+            jobs.cancel_job(s, s.get(Job, s.get(WorkUnit, uid).job_id))
+        child.join(timeout=30)
+        assert child.exitcode == -signal.SIGKILL
+        seen = []
+        while not out.empty():
+            seen.append(out.get())
+        assert seen == ["interrupted"]  # the signal came first, then the kill
+    finally:
+        if child.is_alive():
+            child.kill()
+            child.join()

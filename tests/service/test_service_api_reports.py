@@ -45,7 +45,7 @@ def test_preset_run_queues_one_job_per_experiment(client, publisher, session, ma
     # the team's fair share is published at once (oldest job first), the rest as units finish
     total = sum(j["progress"]["total"] for j in jobs)
     first = sorted(u for j in jobs for u in jobs_db.unit_ids_of_job(session, j["id"]))
-    assert publisher.published == first[: min(total, Settings().MAX_UNITS_IN_FLIGHT_PER_TEAM)]
+    assert publisher.published == first[: min(total, Settings().fair_share()[0])]
     listed = client.get(f"{API}/jobs", params={"tag": "paper-section-6"}, headers=acc.headers)
     assert listed.json()["total"] == len(specs)
 

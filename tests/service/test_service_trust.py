@@ -163,6 +163,34 @@ def test_dispatch_keeps_k_units_per_team_in_flight(session, session_factory, mak
     assert teams == "ababa"  # team a (made first) leads
 
 
+def test_dispatch_leaves_a_pool_process_to_another_team(session, session_factory, make_account):
+    """Alone, a team fills the pool (cap 3); while another team has units queued or
+    running it gets one process less (shared cap 2), the other team too."""
+    a, b = make_account(), make_account()
+    _, a_units = _team_job(session, a, MANY_UNITS)
+    pub = RecordingPublisher()
+    caps = {"cap": 3, "shared_cap": 2}
+    assert _dispatch(session_factory, pub, team_id=a.team.id, **caps) == 3
+    _, b_units = _team_job(session, b, MANY_UNITS)
+    assert _dispatch(session_factory, pub, team_id=b.team.id, **caps) == 2
+    assert pub.published == a_units[:3] + b_units[:2]
+
+    def finish(uid):
+        claimed = units.start_unit(session, uid, "w", 60)
+        units.complete_unit(session, uid, fake_records(*claimed))
+        session.commit()
+
+    finish(a_units[0])  # A: 2 in flight, B has work: A's next waits
+    assert _dispatch(session_factory, pub, team_id=a.team.id, **caps) == 0
+    finish(a_units[1])
+    assert _dispatch(session_factory, pub, team_id=a.team.id, **caps) == 1
+    assert pub.published[-1] == a_units[3]
+    jobs.cancel_job(session, session.get(Job, session.get(WorkUnit, b_units[0]).job_id))
+    session.commit()  # B has no work left: A fills the pool again
+    assert _dispatch(session_factory, pub, team_id=a.team.id, **caps) == 1
+    assert pub.published[-1] == a_units[4]
+
+
 def test_units_the_broker_did_not_take_are_not_counted_in_flight(
     session, session_factory, make_account
 ):
