@@ -18,7 +18,7 @@ import functools
 import hashlib
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 from sqlalchemy import Boolean, Float, Integer, LargeBinary, Select, select
 from sqlalchemy.engine import Dialect
@@ -269,13 +269,31 @@ def _clean_column(f: str, col: list) -> list:
     return col if ok else [_clean_scalar(f, v) for v in col]
 
 
-def _unit_columns(
-    job_id: int, result: UnitResult, codec: ResultCodec, session: Session
-) -> dict[str, list]:
-    """A unit's rows as columns ({column: values}, table order), in the stored format."""
+@dataclass
+class UnitColumns:
+    """A unit's rows as columns ({column: values}, table order), computed from its
+    :class:`UnitResult` alone (:func:`unit_columns`): what storing it costs in CPU,
+    done before the write transaction. ``notes_id`` holds the notes' texts, the
+    shared matrices (``SHARED_FIELDS``) their blobs, and ``seed_key`` is not set
+    until the job's dictionary, constants and spec are read (:func:`_finish`)."""
+
+    result: UnitResult
+    columns: dict[str, list]
+    # per shared field, its (start, stop) row ranges whose blobs are all the same
+    uniform: dict[str, list[tuple[int, int]]]
+
+    @property
+    def whole_groups(self) -> bool | None:
+        """Whether the unit holds every repetition of its groups (None: unknown)."""
+        n = self.result.n_reps
+        return None if n is None else self.result.reps == list(range(n))
+
+
+def unit_columns(result: UnitResult) -> UnitColumns:
+    """The pure part of storing a unit (no database access)."""
     cols = result.value_columns(omit=frozenset(MATRIX_FIELDS) | {"seed_key"})
     n = len(cols["system"])
-    out: dict[str, list] = {"job_id": [job_id] * n}
+    out: dict[str, list] = {"job_id": [None] * n}
     for f in RESULT_SCALAR_FIELDS:
         out[f] = _clean_column(f, cols[f])
     for f in TEXT_COLUMNS:
@@ -286,36 +304,51 @@ def _unit_columns(
             else [None if v is None else str(v) for v in col]
         )
     out["gamma_key"] = [gamma_key(g) for g in out["gamma"]]
-    notes = note_ids(session, cols["notes"])
-    out["notes_id"] = [notes[t] for t in cols["notes"]]
+    out["notes_id"] = cols["notes"]
+    out["seed_key"] = [None] * n
+    uniform: dict[str, list[tuple[int, int]]] = {f: [] for f in SHARED_FIELDS}
     for f in MATRIX_FIELDS:
         out[f] = []
-    sigma_w = float(result.sigma_w)
     start = 0
+    k = len(result.reps) * len(result.axis.names)
     for block in result.matrix_blocks():
-        k = len(result.reps) * len(result.axis.names)
         for f in MATRIX_FIELDS:
             b = block[f]
             scalars = out[RADIUS_SCALAR[f]][start : start + k] if f in RADIUS_SCALAR else None
-            blobs = [None] * k if b is None else codec.encode_block(b, scalars)
+            blobs = [None] * k if b is None else ResultCodec.encode_block(b, scalars)
             if f in SHARED_FIELDS and b is not None and len(set(blobs)) == 1:
-                if _shared(session, codec, job_id, (result.system, sigma_w, f), blobs[0]):
-                    blobs = [SHARED] * k
+                uniform[f].append((start, start + k))
             out[f] += blobs
         start += k
+    return UnitColumns(result, {c: out[c] for c in COLUMNS}, uniform)
+
+
+def _finish(job_id: int, unit: UnitColumns, codec: ResultCodec, session: Session) -> dict:
+    """:func:`unit_columns` completed with what the database holds: the notes' ids,
+    the job's shared matrices (stored once: the rows' blobs become ``SHARED``) and
+    the seed keys the spec does not give."""
+    result, out = unit.result, dict(unit.columns)
+    n = len(out["system"])
+    out["job_id"] = [job_id] * n
+    notes = note_ids(session, out["notes_id"])
+    out["notes_id"] = [notes[t] for t in out["notes_id"]]
+    sigma_w = float(result.sigma_w)
+    for f, ranges in unit.uniform.items():
+        col = out[f] = list(out[f])
+        for start, stop in ranges:
+            if _shared(session, codec, job_id, (result.system, sigma_w, f), col[start]):
+                col[start:stop] = [SHARED] * (stop - start)
     derived = (
         codec.system_index.get(result.system) == result.system_idx
         and codec.sigma_index.get(float(result.sigma_w)) == result.sigma_w_idx
     )
-    if derived:  # the spec gives every seed_key: stored as NULL
-        out["seed_key"] = [None] * n
-    else:
+    if not derived:  # else the spec gives every seed_key: stored as NULL
         keys = result.value_columns(omit=frozenset(RECORD_FIELDS) - {"seed_key"})["seed_key"]
         out["seed_key"] = [
             codec.encode_seed_key(result.system, result.sigma_w, N, r, v)
             for N, r, v in zip(out["N"], out["rep"], keys)
         ]
-    return {c: out[c] for c in COLUMNS}
+    return out
 
 
 # -- the statement --------------------------------------------------------------------
@@ -400,15 +433,18 @@ def _executemany(conn, columns: dict[str, Sequence]) -> None:
 
 
 def upsert_results(
-    session: Session, job_id: int, records: Sequence[dict] | UnitResult
+    session: Session, job_id: int, records: Sequence[dict] | UnitResult | UnitColumns
 ) -> dict[str, Sequence]:
-    """Store records (dicts, or a unit's :class:`UnitResult`) of one job; a cell
+    """Store records (dicts, or a unit's :class:`UnitResult` or its
+    :func:`unit_columns`) of one job; a cell
     already stored is overwritten. The records must hold each cell once (a unit's
     do; on PostgreSQL a repeated cell is an error). Returns the stored values as
     columns ({column: values}, in the stored format)."""
     codec = job_codec(session, job_id)
     if isinstance(records, UnitResult):
-        columns: dict[str, Sequence] = _unit_columns(job_id, records, codec, session)
+        records = unit_columns(records)
+    if isinstance(records, UnitColumns):
+        columns: dict[str, Sequence] = _finish(job_id, records, codec, session)
     else:
         dicts = [record_to_row(job_id, r) for r in records]
         notes = note_ids(session, (d["notes"] for d in dicts))
