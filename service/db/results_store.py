@@ -18,11 +18,11 @@ import functools
 import hashlib
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
-import numpy as np
 from sqlalchemy import Boolean, Float, Integer, LargeBinary, Select, select
 from sqlalchemy.engine import Dialect
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from svrobs_core.parsing import parse_spec
@@ -261,54 +261,94 @@ def _clean_column(f: str, col: list) -> list:
     elif f in INT_FIELDS:
         ok = types <= {int}
     elif types <= {float, type(None)}:
-        a = np.array(col, dtype=float)  # None -> nan
-        ok = not np.isinf(a).any() and int(np.isnan(a).sum()) == col.count(None)
+        # every float finite: their sum is (a NaN or an infinity makes it NaN or
+        # infinite; a sum that overflows only sends the column the slow way)
+        ok = math.isfinite(sum(filter(None, col)))  # filter drops None (and zeros)
     else:
         ok = False
     return col if ok else [_clean_scalar(f, v) for v in col]
 
 
-def _unit_tuples(
-    job_id: int, result: UnitResult, codec: ResultCodec, session: Session
-) -> list[tuple]:
+@dataclass
+class UnitColumns:
+    """A unit's rows as columns ({column: values}, table order), computed from its
+    :class:`UnitResult` alone (:func:`unit_columns`): what storing it costs in CPU,
+    done before the write transaction. ``notes_id`` holds the notes' texts, the
+    shared matrices (``SHARED_FIELDS``) their blobs, and ``seed_key`` is not set
+    until the job's dictionary, constants and spec are read (:func:`_finish`)."""
+
+    result: UnitResult
+    columns: dict[str, list]
+    # per shared field, its (start, stop) row ranges whose blobs are all the same
+    uniform: dict[str, list[tuple[int, int]]]
+
+    @property
+    def whole_groups(self) -> bool | None:
+        """Whether the unit holds every repetition of its groups (None: unknown)."""
+        n = self.result.n_reps
+        return None if n is None else self.result.reps == list(range(n))
+
+
+def unit_columns(result: UnitResult) -> UnitColumns:
+    """The pure part of storing a unit (no database access)."""
     cols = result.value_columns(omit=frozenset(MATRIX_FIELDS) | {"seed_key"})
     n = len(cols["system"])
-    out: dict[str, list] = {"job_id": [job_id] * n}
+    out: dict[str, list] = {"job_id": [None] * n}
     for f in RESULT_SCALAR_FIELDS:
         out[f] = _clean_column(f, cols[f])
     for f in TEXT_COLUMNS:
-        out[f] = [None if v is None else str(v) for v in cols[f]]
+        col = cols[f]
+        out[f] = (
+            col
+            if set(map(type, col)) <= {str, type(None)}
+            else [None if v is None else str(v) for v in col]
+        )
     out["gamma_key"] = [gamma_key(g) for g in out["gamma"]]
-    notes = note_ids(session, cols["notes"])
-    out["notes_id"] = [notes[t] for t in cols["notes"]]
+    out["notes_id"] = cols["notes"]
+    out["seed_key"] = [None] * n
+    uniform: dict[str, list[tuple[int, int]]] = {f: [] for f in SHARED_FIELDS}
     for f in MATRIX_FIELDS:
         out[f] = []
-    sigma_w = float(result.sigma_w)
     start = 0
+    k = len(result.reps) * len(result.axis.names)
     for block in result.matrix_blocks():
-        k = len(result.reps) * len(result.axis.names)
         for f in MATRIX_FIELDS:
             b = block[f]
             scalars = out[RADIUS_SCALAR[f]][start : start + k] if f in RADIUS_SCALAR else None
-            blobs = [None] * k if b is None else codec.encode_block(b, scalars)
+            blobs = [None] * k if b is None else ResultCodec.encode_block(b, scalars)
             if f in SHARED_FIELDS and b is not None and len(set(blobs)) == 1:
-                if _shared(session, codec, job_id, (result.system, sigma_w, f), blobs[0]):
-                    blobs = [SHARED] * k
+                uniform[f].append((start, start + k))
             out[f] += blobs
         start += k
+    return UnitColumns(result, {c: out[c] for c in COLUMNS}, uniform)
+
+
+def _finish(job_id: int, unit: UnitColumns, codec: ResultCodec, session: Session) -> dict:
+    """:func:`unit_columns` completed with what the database holds: the notes' ids,
+    the job's shared matrices (stored once: the rows' blobs become ``SHARED``) and
+    the seed keys the spec does not give."""
+    result, out = unit.result, dict(unit.columns)
+    n = len(out["system"])
+    out["job_id"] = [job_id] * n
+    notes = note_ids(session, out["notes_id"])
+    out["notes_id"] = [notes[t] for t in out["notes_id"]]
+    sigma_w = float(result.sigma_w)
+    for f, ranges in unit.uniform.items():
+        col = out[f] = list(out[f])
+        for start, stop in ranges:
+            if _shared(session, codec, job_id, (result.system, sigma_w, f), col[start]):
+                col[start:stop] = [SHARED] * (stop - start)
     derived = (
         codec.system_index.get(result.system) == result.system_idx
         and codec.sigma_index.get(float(result.sigma_w)) == result.sigma_w_idx
     )
-    if derived:  # the spec gives every seed_key: stored as NULL
-        out["seed_key"] = [None] * n
-    else:
+    if not derived:  # else the spec gives every seed_key: stored as NULL
         keys = result.value_columns(omit=frozenset(RECORD_FIELDS) - {"seed_key"})["seed_key"]
         out["seed_key"] = [
             codec.encode_seed_key(result.system, result.sigma_w, N, r, v)
             for N, r, v in zip(out["N"], out["rep"], keys)
         ]
-    return list(zip(*(out[c] for c in COLUMNS)))
+    return out
 
 
 # -- the statement --------------------------------------------------------------------
@@ -319,67 +359,130 @@ def _on_conflict(quote) -> str:
     return f"ON CONFLICT ({', '.join(quote(c) for c in KEY_COLUMNS)}) DO UPDATE SET {updates}"
 
 
-@functools.lru_cache(maxsize=8)
-def _upsert_sql(dialect: Dialect) -> str:
-    """``INSERT .. ON CONFLICT (cell key) DO UPDATE`` with positional parameters, for
-    one ``executemany``: SQLite, and PostgreSQL through a driver other than psycopg 3
-    (with psycopg, COPY is used: faster than a pipelined executemany, which itself
-    measured 2-5x faster than multi-row VALUES of 50-500 rows)."""
+@functools.lru_cache(maxsize=64)
+def _insert_sql(dialect: Dialect, columns: tuple[str, ...] = COLUMNS) -> str:
+    """``INSERT`` of ``columns`` (the others take their default, NULL) with positional
+    parameters, for one ``executemany``."""
     quote = dialect.identifier_preparer.quote
     if dialect.name == "postgresql":
-        marks = ["%s"] * len(COLUMNS)
+        marks = ["%s"] * len(columns)
     elif dialect.name == "sqlite":
-        marks = ["?"] * len(COLUMNS)
+        marks = ["?"] * len(columns)
     else:  # pragma: no cover - the service runs on SQLite or PostgreSQL
         raise NotImplementedError(f"results upsert on {dialect.name}")
     return (
-        f"INSERT INTO {quote(Result.__tablename__)} ({', '.join(map(quote, COLUMNS))}) "
-        f"VALUES ({', '.join(marks)}) {_on_conflict(quote)}"
+        f"INSERT INTO {quote(Result.__tablename__)} ({', '.join(map(quote, columns))}) "
+        f"VALUES ({', '.join(marks)})"
     )
 
 
+@functools.lru_cache(maxsize=64)
+def _upsert_sql(dialect: Dialect, columns: tuple[str, ...] = COLUMNS) -> str:
+    """:func:`_insert_sql` ``ON CONFLICT (cell key) DO UPDATE`` (a column not sent is
+    updated to NULL too: ``excluded`` holds the defaults): SQLite, and PostgreSQL
+    through a driver other than psycopg 3 (with psycopg, COPY is used: faster than a
+    pipelined executemany, which itself measured 2-5x faster than multi-row VALUES of
+    50-500 rows)."""
+    return f"{_insert_sql(dialect, columns)} {_on_conflict(dialect.identifier_preparer.quote)}"
+
+
+_KEY = frozenset(KEY_COLUMNS)
+_BLOB_COLUMNS = frozenset(MATRIX_FIELDS)
+_BOOL_COLUMNS = frozenset(BOOL_FIELDS)
+_BOOL_INT = {True: 1, False: 0, None: None}
+
+
+def _bound_columns(columns: dict[str, Sequence]) -> tuple[str, ...]:
+    """The columns to send: the key and every column with a value in some row (a
+    column that is NULL in every row is left to its default, NULL)."""
+    return tuple(
+        c
+        for c in COLUMNS
+        if c in _KEY or any(v is not None for v in columns[c])  # any() stops at the first
+    )
+
+
+def _sqlite_column(c: str, values: Sequence) -> Sequence:
+    """Values of one column as pysqlite binds them without its adaptation protocol
+    (which it tries, raising and catching two AttributeErrors, for every value that is
+    not exactly int, float, str or bytearray: None, bool, bytes). The stored values
+    are the same: a bool is stored as the integer 0/1 either way, a bytearray as the
+    blob of its bytes; the NULLs of a column are left to its default where possible."""
+    if c in _BOOL_COLUMNS:
+        return [_BOOL_INT[v] for v in values]
+    if c in _BLOB_COLUMNS:
+        return [None if v is None else bytearray(v) for v in values]
+    return values
+
+
+def _executemany(conn, columns: dict[str, Sequence]) -> None:
+    """SQLite: one ``executemany`` of a plain INSERT (a unit's first store: no cell of
+    it is there yet; ~20 % less time than the upsert), and when a cell is there (a
+    redelivered unit), back to the savepoint and one of the upsert."""
+    used = _bound_columns(columns)
+    rows = list(zip(*(_sqlite_column(c, columns[c]) for c in used)))
+    conn.exec_driver_sql("SAVEPOINT results_insert")
+    try:
+        conn.exec_driver_sql(_insert_sql(conn.dialect, used), rows)
+    except IntegrityError:
+        conn.exec_driver_sql("ROLLBACK TO SAVEPOINT results_insert")
+        conn.exec_driver_sql("RELEASE SAVEPOINT results_insert")
+        conn.exec_driver_sql(_upsert_sql(conn.dialect, used), rows)
+    else:
+        conn.exec_driver_sql("RELEASE SAVEPOINT results_insert")
+
+
 def upsert_results(
-    session: Session, job_id: int, records: Sequence[dict] | UnitResult
-) -> dict[str, tuple]:
-    """Store records (dicts, or a unit's :class:`UnitResult`) of one job; a cell
+    session: Session, job_id: int, records: Sequence[dict] | UnitResult | UnitColumns
+) -> dict[str, Sequence]:
+    """Store records (dicts, or a unit's :class:`UnitResult` or its
+    :func:`unit_columns`) of one job; a cell
     already stored is overwritten. The records must hold each cell once (a unit's
     do; on PostgreSQL a repeated cell is an error). Returns the stored values as
     columns ({column: values}, in the stored format)."""
     codec = job_codec(session, job_id)
     if isinstance(records, UnitResult):
-        rows = _unit_tuples(job_id, records, codec, session)
+        records = unit_columns(records)
+    if isinstance(records, UnitColumns):
+        columns: dict[str, Sequence] = _finish(job_id, records, codec, session)
     else:
         dicts = [record_to_row(job_id, r) for r in records]
         notes = note_ids(session, (d["notes"] for d in dicts))
         rows = [_row_tuple(d, codec, notes) for d in dicts]
-    if not rows:
+        columns = dict(zip(COLUMNS, zip(*rows))) if rows else {c: () for c in COLUMNS}
+    if not columns["job_id"]:
         return {c: () for c in COLUMNS}
     conn = session.connection()
     if conn.dialect.name == "postgresql" and conn.dialect.driver == "psycopg":
-        _copy_upsert(conn.connection.driver_connection, conn.dialect, rows)
+        _copy_upsert(conn.connection.driver_connection, conn.dialect, columns)
+    elif conn.dialect.name == "sqlite":
+        _executemany(conn, columns)
     else:
-        conn.exec_driver_sql(_upsert_sql(conn.dialect), rows)
-    return dict(zip(COLUMNS, zip(*rows)))
+        conn.exec_driver_sql(_upsert_sql(conn.dialect), list(zip(*columns.values())))
+    return columns
 
 
 STAGE = "results_stage"
 
 
-@functools.lru_cache(maxsize=8)
-def _copy_sql(dialect: Dialect) -> dict[str, str]:
-    """COPY straight into ``results``; else the session's staging table (create, COPY
-    into it, upsert from it)."""
+@functools.lru_cache(maxsize=64)
+def _copy_sql(dialect: Dialect, columns: tuple[str, ...] = COLUMNS) -> dict[str, str]:
+    """COPY of ``columns`` straight into ``results``; else the session's staging table
+    (create, COPY into it, upsert from it: every column, the others NULL)."""
     quote = dialect.identifier_preparer.quote
-    cols = ", ".join(quote(c) for c in COLUMNS)
+    every = ", ".join(quote(c) for c in COLUMNS)
+    cols = ", ".join(quote(c) for c in columns)
     table = quote(Result.__tablename__)
     return {
         "direct": f"COPY {table} ({cols}) FROM STDIN (FORMAT BINARY)",
         "create": (
             f"CREATE TEMP TABLE IF NOT EXISTS {STAGE} ON COMMIT DELETE ROWS AS "
-            f"SELECT {cols} FROM {table} WITH NO DATA"
+            f"SELECT {every} FROM {table} WITH NO DATA"
         ),
         "stage": f"COPY {STAGE} ({cols}) FROM STDIN (FORMAT BINARY)",
-        "upsert": f"INSERT INTO {table} ({cols}) SELECT {cols} FROM {STAGE} {_on_conflict(quote)}",
+        "upsert": (
+            f"INSERT INTO {table} ({every}) SELECT {every} FROM {STAGE} {_on_conflict(quote)}"
+        ),
     }
 
 
@@ -391,30 +494,34 @@ def _pg_type(column) -> str:
     return "bytea" if isinstance(t, LargeBinary) else "text"
 
 
-PG_TYPES = tuple(_pg_type(c) for c in Result.__table__.columns)
+PG_TYPES = {c.name: _pg_type(c) for c in Result.__table__.columns}
 
 
-def _copy(cur, sql: str, rows: list[tuple]) -> None:
+def _copy(cur, sql: str, types: list[str], rows: Iterable[tuple]) -> None:
     """Binary COPY (the values dumped by type: ~4x less time than the text format)."""
     with cur.copy(sql) as cp:
-        cp.set_types(PG_TYPES)
+        cp.set_types(types)
         for row in rows:
             cp.write_row(row)
 
 
-def _copy_upsert(pg, dialect: Dialect, rows: list[tuple]) -> None:
+def _copy_upsert(pg, dialect: Dialect, columns: dict[str, Sequence]) -> None:
     """PostgreSQL: COPY the rows straight into ``results`` (a unit's first store: no
     cell of it is there yet); when a cell is (a redelivered unit: unique violation),
     back to the savepoint, COPY into a per-connection temporary table (emptied at
     COMMIT) and one INSERT .. SELECT .. ON CONFLICT DO UPDATE. The direct COPY costs
-    the server about half of the staged upsert."""
+    the server about half of the staged upsert. Columns NULL in every row are not
+    sent (their default is NULL)."""
     import psycopg
 
-    sql = _copy_sql(dialect)
+    used = _bound_columns(columns)
+    sql = _copy_sql(dialect, used)
+    types = [PG_TYPES[c] for c in used]
+    rows = list(zip(*(columns[c] for c in used)))
     with pg.cursor() as cur:
         cur.execute("SAVEPOINT results_copy")
         try:
-            _copy(cur, sql["direct"], rows)
+            _copy(cur, sql["direct"], types, rows)
         except psycopg.errors.UniqueViolation:
             cur.execute("ROLLBACK TO SAVEPOINT results_copy")
         else:
@@ -422,5 +529,5 @@ def _copy_upsert(pg, dialect: Dialect, rows: list[tuple]) -> None:
             return
         cur.execute(sql["create"])
         cur.execute(f"TRUNCATE {STAGE}")  # a unit upserted twice in one transaction
-        _copy(cur, sql["stage"], rows)
+        _copy(cur, sql["stage"], types, rows)
         cur.execute(sql["upsert"])

@@ -23,7 +23,7 @@ from svrobs_core.unit_result import UnitResult
 from .clock import db_now
 from .jobs import lock_job, set_timing
 from .models import JOB_ACTIVE, Job, Result, Summary, WorkUnit, utcnow
-from .results_store import gamma_key, upsert_results
+from .results_store import gamma_key, unit_columns, upsert_results
 
 
 def _lock_unit(session: Session, unit_id: int) -> WorkUnit | None:
@@ -103,14 +103,25 @@ def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | Unit
     """Upsert the unit's records (and its groups' summaries when it holds every
     repetition of them), mark it done, update progress; finish the job when the DB
     says every unit is done (summarising the stored results if a group has none).
-    False (nothing stored) when the unit was cancelled or failed meanwhile."""
+    False (nothing stored) when the unit was cancelled or failed meanwhile. A
+    :class:`UnitResult`'s rows and summaries are computed before the first statement
+    (:func:`~service.db.results_store.unit_columns`), so that on SQLite the write
+    lock is held only for the statements."""
+    # the CPU work first: on SQLite the first statement takes the one write lock
+    groups = None
+    if isinstance(records, UnitResult):
+        records = unit_columns(records)
+        if records.whole_groups:
+            groups = summarize_columns(records.columns)
     unit = _lock_unit(session, unit_id)
     if unit is None or unit.status in ("cancelled", "failed"):
         return False  # cancelled while it ran (its job cancelled or failed)
     stored = upsert_results(session, unit.job_id, records)
     if stored["system"] and _whole_groups(session, unit):  # every repetition of its groups
         scope = (stored["system"][0], stored["sigma_w"][0], sorted(set(stored["N"])))
-        _write_summaries(session, unit.job_id, summarize_columns(stored), scope)
+        if groups is None:
+            groups = summarize_columns(stored)
+        _write_summaries(session, unit.job_id, groups, scope)
     now = utcnow()
     if unit.status != "done":
         unit.status = "done"
