@@ -17,7 +17,7 @@ Jobs on measured rollouts: measured (docs/measured.md).
 from __future__ import annotations
 
 import importlib
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
@@ -79,7 +79,7 @@ if TYPE_CHECKING:  # the same names, for linters and type checkers
     from .unit_result import UnitResult
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     module = _EXPORTS.get(name)
     if module is None:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -17,9 +17,12 @@ booleans), never a certificate.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from .array_types import Array, FloatArray
 from .linalg import perron_upper_bound, up
 
 
@@ -28,20 +31,30 @@ class Radii:
     """H_A, H_B, r_A, r_B broadcast over the gamma array given (NaN where
     undefined); reason_A/reason_B: object arrays of None / why it is undefined."""
 
-    H_A: np.ndarray
-    H_B: np.ndarray
-    r_A: np.ndarray
-    r_B: np.ndarray
-    reason_A: np.ndarray | None = None
-    reason_B: np.ndarray | None = None
+    H_A: Array
+    H_B: Array
+    r_A: Array
+    r_B: Array
+    reason_A: Array | None = None
+    reason_B: Array | None = None
 
 
-def _log(x):
+def _log(x: ArrayLike) -> FloatArray:
     with np.errstate(divide="ignore"):
-        return np.log(np.asarray(x, dtype=float))
+        out: FloatArray = np.log(np.asarray(x, dtype=float))
+    return out
 
 
-def log_thetas(*, n, m, N, T0, sigma_u, sigma_w, M):
+def log_thetas(
+    *,
+    n: int,
+    m: int,
+    N: ArrayLike,
+    T0: ArrayLike,
+    sigma_u: ArrayLike,
+    sigma_w: ArrayLike,
+    M: ArrayLike,
+) -> tuple[FloatArray, FloatArray]:
     """log theta_A, log theta_B of Theorem 1 (docs/science.md#31-the-constants), without overflow.
 
     theta_A = 4n (m M su^2 + sw^2) / (N (n M^(2T0-1) su^2 + M^(2T0-2) sw^2)),
@@ -58,7 +71,9 @@ def log_thetas(*, n, m, N, T0, sigma_u, sigma_w, M):
     return l_num_A - l_den_A, l_num_B - lN - lsu2
 
 
-def thetas(*, n, m, N, T0, sigma_u, sigma_w, M):
+def thetas(
+    *, n: int, m: int, N: Any, T0: Any, sigma_u: Any, sigma_w: Any, M: Any
+) -> tuple[Any, Any]:
     """theta_A, theta_B of Theorem 1 (docs/science.md#31-the-constants).
 
     The formula as written where its powers stay in range (so the numbers do
@@ -76,7 +91,9 @@ def thetas(*, n, m, N, T0, sigma_u, sigma_w, M):
         return np.where(direct, theta_A, np.exp(la)), np.where(direct, theta_B, np.exp(lb))
 
 
-def _range_reason(theta, H, r, log_theta, name: str, *, M, T0) -> np.ndarray:
+def _range_reason(
+    theta: Array, H: Array, r: Array, log_theta: Array, name: str, *, M: ArrayLike, T0: Any
+) -> Array:
     """None where theta is a normal positive double and H, r are finite, else why not."""
     tiny = np.finfo(float).tiny
     ok = np.isfinite(theta) & (theta >= tiny) & np.isfinite(H) & np.isfinite(r)
@@ -95,13 +112,25 @@ def _range_reason(theta, H, r, log_theta, name: str, *, M, T0) -> np.ndarray:
     return out
 
 
-def H(theta, dim, *, gamma, N0, M, delta):
+def H(theta: Any, dim: int, *, gamma: Any, N0: Any, M: Any, delta: Any) -> Any:
     """H(theta, d) of Theorem 1 (docs/science.md#32-theorem-1)."""
     q = (theta + dim * gamma * M**2) / ((1 + gamma) * N0)
     return np.sqrt(q) + np.sqrt(2 * q * np.log(1 / delta))
 
 
-def radii(*, n, m, N, N0, T0, sigma_u, sigma_w, gamma, M, delta) -> Radii:
+def radii(
+    *,
+    n: int,
+    m: int,
+    N: ArrayLike,
+    N0: ArrayLike,
+    T0: ArrayLike,
+    sigma_u: ArrayLike,
+    sigma_w: ArrayLike,
+    gamma: ArrayLike,
+    M: ArrayLike,
+    delta: ArrayLike,
+) -> Radii:
     """Theorem 1 / Lemma 2 radii; ``gamma`` may be an array (0 for ols).
 
     H_A = H(theta_A, n), H_B = H(theta_B, m), r = sqrt((1+gamma) H)
@@ -159,17 +188,17 @@ def radii(*, n, m, N, N0, T0, sigma_u, sigma_w, gamma, M, delta) -> Radii:
 class BoundsResult:
     """Per-estimate bound quantities; every array has the batch shape (...)."""
 
-    eps_A: np.ndarray
-    eps_B: np.ndarray
-    rho_upper_bound: np.ndarray
-    stable_certified: np.ndarray  # bool; None (object array) where rho_upper_bound is NaN
-    coverage_A: np.ndarray | None = None  # fraction of entries of A inside the interval
-    coverage_B: np.ndarray | None = None
-    thm1_holds_A: np.ndarray | None = None  # bool: Theorem 1 held for every row (None: undefined)
-    thm1_holds_B: np.ndarray | None = None
+    eps_A: Array
+    eps_B: Array
+    rho_upper_bound: Array
+    stable_certified: Array  # bool; None (object array) where rho_upper_bound is NaN
+    coverage_A: Array | None = None  # fraction of entries of A inside the interval
+    coverage_B: Array | None = None
+    thm1_holds_A: Array | None = None  # bool: Theorem 1 held for every row (None: undefined)
+    thm1_holds_B: Array | None = None
 
 
-def nullable(values, defined) -> np.ndarray:
+def nullable(values: ArrayLike, defined: ArrayLike) -> Array:
     """A boolean array, or an object array with None where not ``defined``."""
     values = np.asarray(values, dtype=bool)
     defined = np.broadcast_to(np.asarray(defined, dtype=bool), values.shape)
@@ -180,11 +209,11 @@ def nullable(values, defined) -> np.ndarray:
     return out
 
 
-def _finite(X) -> np.ndarray:
-    return np.isfinite(X).all(axis=(-2, -1))
+def _finite(X: Array) -> Array:
+    return cast(Array, np.isfinite(X).all(axis=(-2, -1)))
 
 
-def _coverage(true, est, g, r):
+def _coverage(true: FloatArray, est: FloatArray, g: FloatArray, r: FloatArray) -> Array:
     c = (1 + g) * est  # Lemma 2 centre of the interval of the true entry
     with np.errstate(invalid="ignore"):
         inside = np.abs(true - c) <= r
@@ -192,7 +221,7 @@ def _coverage(true, est, g, r):
     return np.where(_finite(c) & np.isfinite(r[..., 0, 0]), cov, np.nan)
 
 
-def _thm1(true, est, g, H_):
+def _thm1(true: FloatArray, est: FloatArray, g: FloatArray, H_: FloatArray) -> Array:
     delta = true - est
     lhs = np.linalg.norm(g * est - delta, axis=-1) / (1 + g[..., 0])  # (..., n)
     with np.errstate(invalid="ignore"):
@@ -200,7 +229,15 @@ def _thm1(true, est, g, H_):
     return nullable(holds, np.isfinite(lhs).all(axis=-1) & np.isfinite(H_))
 
 
-def evaluate_bounds(A_tilde, B_tilde, gamma, r: Radii, *, A_true=None, B_true=None) -> BoundsResult:
+def evaluate_bounds(
+    A_tilde: ArrayLike,
+    B_tilde: ArrayLike,
+    gamma: ArrayLike,
+    r: Radii,
+    *,
+    A_true: ArrayLike | None = None,
+    B_true: ArrayLike | None = None,
+) -> BoundsResult:
     """Corollary 1 eps, the Perron-Frobenius certificate, and (with truth) coverage.
 
     A_tilde (..., n, n), B_tilde (..., n, m); gamma and the radii broadcast

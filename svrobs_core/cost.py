@@ -42,8 +42,12 @@ Monte Carlo estimates of the same J: :mod:`svrobs_core.cost_mc`.
 
 from __future__ import annotations
 
-import numpy as np
+from typing import Any, Literal, TypeAlias, overload
 
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .array_types import Array, FloatArray
 from .errors import check_matrix
 from .norms import REASON_UNSTABLE, spectral_radius, stability_reason, stein_solve
 
@@ -58,7 +62,29 @@ _SOA_MAX_N = 12
 class CostCells:
     """Validated, broadcast arguments of one cost call."""
 
-    def __init__(self, A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v):
+    A: FloatArray
+    B: FloatArray
+    At: FloatArray
+    Bt: FloatArray
+    L: FloatArray
+    C: FloatArray
+    su: FloatArray
+    sw: FloatArray
+    sv: FloatArray
+
+    def __init__(
+        self,
+        A: ArrayLike,
+        B: ArrayLike,
+        A_tilde: ArrayLike,
+        B_tilde: ArrayLike,
+        *,
+        L: ArrayLike,
+        C: ArrayLike | None,
+        sigma_u: ArrayLike,
+        sigma_w: ArrayLike,
+        sigma_v: ArrayLike,
+    ) -> None:
         A = np.asarray(A, dtype=float)
         B = np.asarray(B, dtype=float)
         At = np.asarray(A_tilde, dtype=float)
@@ -99,16 +125,19 @@ class CostCells:
         )
 
     # derived per-cell matrices (numpy broadcasting, AoS layout)
-    def F(self):
-        return self.At - self.L @ self.C
+    def F(self) -> FloatArray:
+        F: FloatArray = self.At - self.L @ self.C
+        return F
 
-    def dA(self):
-        return self.A - self.At
+    def dA(self) -> FloatArray:
+        dA: FloatArray = self.A - self.At
+        return dA
 
-    def dB(self):
-        return self.B - self.Bt
+    def dB(self) -> FloatArray:
+        dB: FloatArray = self.B - self.Bt
+        return dB
 
-    def Q_blocks(self):
+    def Q_blocks(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Noise covariance of s = [x; e] per step, blocks (xx, xe, ee)."""
         B, dB, L, n = self.B, self.dB(), self.L, self.n
         su2 = (self.su**2)[..., None, None]
@@ -125,6 +154,10 @@ class CostCells:
 # --------------------------------------------------------------------------
 # batched small products in two layouts
 # --------------------------------------------------------------------------
+# blocks (xx, xe, ee) of a 2n x 2n matrix; xe is None where it is not needed
+_Blocks: TypeAlias = tuple[Any, ...]
+
+
 class _Layout:
     """Batched small matrices in one of two layouts.
 
@@ -133,14 +166,14 @@ class _Layout:
     per matrix). S is a stack axis (Sigma and W of a segment).
     """
 
-    def __init__(self, batch, soa: bool):
+    def __init__(self, batch: tuple[int, ...], soa: bool) -> None:
         self.batch = batch
         self.N = int(np.prod(batch, dtype=np.int64))
         self.soa = soa
         self._mat = (0, 1) if soa else (-2, -1)  # the matrix axes
         self._lead = (slice(None),) * 2 if soa else ()  # index prefix up to the stack axis
 
-    def put(self, X):
+    def put(self, X: ArrayLike) -> Array:
         """(..., r, c) with batch broadcastable to self.batch -> the layout, batch N or 1."""
         X = np.asarray(X, dtype=float)
         r, c = X.shape[-2:]
@@ -151,31 +184,33 @@ class _Layout:
             return np.ascontiguousarray(np.moveaxis(X, 0, -1))[:, :, None, :]
         return X.reshape(1, self.N, r, c)
 
-    def mm(self, a, b):
-        return np.einsum("ik...,kj...->ij...", a, b) if self.soa else a @ b
+    def mm(self, a: Array, b: Array) -> Array:
+        out: Array = np.einsum("ik...,kj...->ij...", a, b) if self.soa else a @ b
+        return out
 
-    def t(self, a):
+    def t(self, a: Array) -> Array:
         return np.swapaxes(a, *self._mat)
 
-    def stack(self, x, y):
+    def stack(self, x: Array, y: Array) -> Array:
         x, y = np.broadcast_arrays(x, y)
         return np.concatenate([x, y], axis=len(self._lead))
 
-    def part(self, x, i):
+    def part(self, x: Array, i: int) -> Array:
         return x[self._lead + (slice(i, i + 1),)]
 
-    def addto_w(self, new, t, Ma):
+    def addto_w(self, new: Array, t: int, Ma: Array) -> None:
         new[self._lead + (1,)] += t * Ma[self._lead + (0,)]
 
-    def trace(self, x):
-        return np.trace(x, axis1=self._mat[0], axis2=self._mat[1])  # -> (S, N)
+    def trace(self, x: Array) -> Array:
+        tr: Array = np.trace(x, axis1=self._mat[0], axis2=self._mat[1])  # -> (S, N)
+        return tr
 
-    def get(self, v):
+    def get(self, v: Array) -> Array:
         """(S=1, N|1) -> batch shape."""
         return np.broadcast_to(v[0], (self.N,)).reshape(self.batch)
 
 
-def horizon_steps(horizon) -> int:
+def horizon_steps(horizon: float) -> int:
     """The horizon T as an int; ValueError unless it is a positive integer."""
     T = int(horizon)
     if T < 1 or T != horizon:
@@ -183,11 +218,11 @@ def horizon_steps(horizon) -> int:
     return T
 
 
-def _layout(n, batch):
+def _layout(n: int, batch: tuple[int, ...]) -> _Layout:
     return _Layout(batch, soa=n <= _SOA_MAX_N)
 
 
-def _congruence(ops, P, M, need_xe=True):
+def _congruence(ops: _Layout, P: _Blocks, M: _Blocks, need_xe: bool = True) -> _Blocks:
     """Blocks (xx, xe, ee) of P M P^T, P = [[Pa, 0], [Pr, Pf]], M = [[Mx, Mxe], [Mxe^T, Me]]."""
     Pa, Pr, Pf = P
     Mx, Mxe, Me = M
@@ -202,11 +237,13 @@ def _congruence(ops, P, M, need_xe=True):
     return xx, xe, ee
 
 
-def _join(ops, P_a, M_a, M_b, *, t_b, need_xe=True):
+def _join(
+    ops: _Layout, P_a: _Blocks, M_a: _Blocks, M_b: _Blocks, *, t_b: int, need_xe: bool = True
+) -> _Blocks:
     """Stacked (Sigma, W) of the concatenation of segment a (power P_a, stacked
     M_a = (Sigma_a, W_a) blocks) followed by segment b (M_b, length t_b)."""
     C = _congruence(ops, P_a, M_b, need_xe)
-    out = []
+    out: list[Array | None] = []
     for Ma, Cb in zip(M_a, C):
         if Cb is None:
             out.append(None)
@@ -217,7 +254,7 @@ def _join(ops, P_a, M_a, M_b, *, t_b, need_xe=True):
     return tuple(out)
 
 
-def _square(ops, P):
+def _square(ops: _Layout, P: _Blocks) -> _Blocks:
     Pa, Pr, Pf = P
     mm = ops.mm
     return mm(Pa, Pa), mm(Pr, Pa) + mm(Pf, Pr), mm(Pf, Pf)
@@ -226,7 +263,19 @@ def _square(ops, P):
 # --------------------------------------------------------------------------
 # exact finite-horizon cost
 # --------------------------------------------------------------------------
-def exact_cost(A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v, horizon=200):
+def exact_cost(
+    A: ArrayLike,
+    B: ArrayLike,
+    A_tilde: ArrayLike,
+    B_tilde: ArrayLike,
+    *,
+    L: ArrayLike,
+    C: ArrayLike | None,
+    sigma_u: ArrayLike,
+    sigma_w: ArrayLike,
+    sigma_v: ArrayLike,
+    horizon: int = 200,
+) -> FloatArray:
     """Mean over k=1..T of E||e_k||^2 by covariance propagation. -> (...)
 
     Deterministic and exact up to rounding (binary doubling of the augmented
@@ -253,7 +302,7 @@ def exact_cost(A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v, horiz
     # block of length 1: Sigma_1 = W_1 = Q   (stacked: index 0 Sigma, 1 W)
     blk = tuple(ops.stack(q, q) for q in Q)
     t_blk = 1
-    acc = None
+    acc: _Blocks | None = None
     t_acc = 0
     bits = bin(T)[2:][::-1]
     top = len(bits) - 1
@@ -268,11 +317,23 @@ def exact_cost(A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v, horiz
             blk = _join(ops, P, blk, blk, t_b=t_blk)
             t_blk *= 2
             P = _square(ops, P)
+    assert acc is not None  # T >= 1 has a 1 bit
     tr = ops.trace(ops.part(acc[2], 1))
-    return ops.get(tr) / T
+    J: FloatArray = ops.get(tr) / T
+    return J
 
 
-def optimal_cost(A, B, K, C, *, sigma_u, sigma_w, sigma_v, horizon=200):
+def optimal_cost(
+    A: ArrayLike,
+    B: ArrayLike,
+    K: ArrayLike,
+    C: ArrayLike | None,
+    *,
+    sigma_u: ArrayLike,
+    sigma_w: ArrayLike,
+    sigma_v: ArrayLike,
+    horizon: int = 200,
+) -> FloatArray:
     """J* (docs/science.md#6-observer-cost-j): exact_cost with A~ = A, B~ = B, L = K. -> (...)
 
     (With the true model the error is the Kalman predictor error, decoupled
@@ -288,9 +349,50 @@ j_star = optimal_cost
 # --------------------------------------------------------------------------
 # stationary cost
 # --------------------------------------------------------------------------
+@overload
 def stationary_cost(
-    A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v, rho_F=None, return_reason=False
-):
+    A: ArrayLike,
+    B: ArrayLike,
+    A_tilde: ArrayLike,
+    B_tilde: ArrayLike,
+    *,
+    L: ArrayLike,
+    C: ArrayLike | None,
+    sigma_u: ArrayLike,
+    sigma_w: ArrayLike,
+    sigma_v: ArrayLike,
+    rho_F: ArrayLike | None = ...,
+    return_reason: Literal[False] = ...,
+) -> FloatArray: ...
+@overload
+def stationary_cost(
+    A: ArrayLike,
+    B: ArrayLike,
+    A_tilde: ArrayLike,
+    B_tilde: ArrayLike,
+    *,
+    L: ArrayLike,
+    C: ArrayLike | None,
+    sigma_u: ArrayLike,
+    sigma_w: ArrayLike,
+    sigma_v: ArrayLike,
+    rho_F: ArrayLike | None = ...,
+    return_reason: Literal[True],
+) -> tuple[FloatArray, Any]: ...
+def stationary_cost(
+    A: ArrayLike,
+    B: ArrayLike,
+    A_tilde: ArrayLike,
+    B_tilde: ArrayLike,
+    *,
+    L: ArrayLike,
+    C: ArrayLike | None,
+    sigma_u: ArrayLike,
+    sigma_w: ArrayLike,
+    sigma_v: ArrayLike,
+    rho_F: ArrayLike | None = None,
+    return_reason: bool = False,
+) -> FloatArray | tuple[FloatArray, Any]:
     """Stationary E||e||^2 by discrete Lyapunov; NaN where the augmented system
     is not Schur stable. -> (...)
 
@@ -309,7 +411,10 @@ def stationary_cost(
         A, B, A_tilde, B_tilde, L=L, C=C, sigma_u=sigma_u, sigma_w=sigma_w, sigma_v=sigma_v
     )
     batch = c.batch
-    tp = lambda M: np.swapaxes(M, -1, -2)
+
+    def tp(M: Array) -> Array:
+        return np.swapaxes(M, -1, -2)
+
     F = c.F()
     rho_A = spectral_radius(c.A)  # A's own batch (usually one system)
     if rho_F is None:

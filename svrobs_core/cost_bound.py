@@ -34,9 +34,12 @@ When several apply, the first in this list is reported.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from .array_types import Array, FloatArray
 from .norms import REASON_NONFINITE, h2_norm, hinf_norm, spectral_radius, stein_solve
 
 REASON_A_UNSTABLE = "unstable: rho(A) >= 1, H-inf of [Phi_A B; I] undefined"
@@ -53,24 +56,26 @@ class TrueSystemNorms:
     ``*_reason`` field (None when defined).
     """
 
-    hinf_PhiA_B: float  # ||[(zI - A)^-1 B; I_m]||_Hinf
-    hinf_PhiA_K: float  # ||[(zI - A)^-1 K; I_p]||_Hinf
-    h2_closed: float  # ||(zI - A + K C)^-1||_H2   (SLS, section 8)
-    hinf_closed: float  # ||(zI - A + K C)^-1||_Hinf (SLS, section 8)
-    rho_A: float
-    rho_closed: float  # rho(A - K C)
-    open_reason: str | None  # reason for the two [Phi_A .; I] norms
-    closed_reason: str | None  # reason for the two closed-loop norms
+    hinf_PhiA_B: float | FloatArray  # ||[(zI - A)^-1 B; I_m]||_Hinf
+    hinf_PhiA_K: float | FloatArray  # ||[(zI - A)^-1 K; I_p]||_Hinf
+    h2_closed: float | FloatArray  # ||(zI - A + K C)^-1||_H2   (SLS, section 8)
+    hinf_closed: float | FloatArray  # ||(zI - A + K C)^-1||_Hinf (SLS, section 8)
+    rho_A: float | FloatArray
+    rho_closed: float | FloatArray  # rho(A - K C)
+    open_reason: str | Array | None  # reason for the two [Phi_A .; I] norms
+    closed_reason: str | Array | None  # reason for the two closed-loop norms
 
 
-def _scalar(x):
+def _scalar(x: ArrayLike) -> Any:
     x = np.asarray(x)
     if x.ndim == 0:
         return x.item()
     return x
 
 
-def true_system_norms(A, B, C, K, *, grid=1024) -> TrueSystemNorms:
+def true_system_norms(
+    A: ArrayLike, B: ArrayLike, C: ArrayLike, K: ArrayLike, *, grid: int = 1024
+) -> TrueSystemNorms:
     """H-infinity / H2 norms of the true system used by Theorem 3 and SLS.
 
     A (..., n, n), B (..., n, m), C (..., p, n), K (..., n, p). ``[Phi_A B; I]``
@@ -86,7 +91,7 @@ def true_system_norms(A, B, C, K, *, grid=1024) -> TrueSystemNorms:
     n, m, p = A.shape[-1], B.shape[-1], C.shape[-2]
     rho_A = spectral_radius(A)
 
-    def stacked(G, q):
+    def stacked(G: FloatArray, q: int) -> FloatArray:
         H = np.concatenate([np.eye(n), np.zeros((q, n))], axis=0)
         D = np.concatenate([np.zeros((n, q)), np.eye(q)], axis=0)
         return hinf_norm(A, G, H, D, rho=rho_A, grid=grid)
@@ -99,7 +104,7 @@ def true_system_norms(A, B, C, K, *, grid=1024) -> TrueSystemNorms:
     h2c = h2_norm(Fk, I, I, rho=rho_k)
     hic = hinf_norm(Fk, I, I, rho=rho_k, grid=grid)
 
-    def reason(rho, text):
+    def reason(rho: ArrayLike, text: str) -> Any:
         rho = np.asarray(rho, dtype=float)
         out = np.full(rho.shape, None, dtype=object)
         out[np.isnan(rho)] = REASON_NONFINITE
@@ -123,20 +128,22 @@ def true_system_norms(A, B, C, K, *, grid=1024) -> TrueSystemNorms:
 class Theorem3Result:
     """Per-cell Theorem 3 quantities, arrays of the batch shape."""
 
-    J_b: np.ndarray  # the bound (NaN where undefined)
+    J_b: FloatArray  # the bound (NaN where undefined)
     reason: object  # object array of None / str (plain object for one cell)
-    term_v: np.ndarray  # ||Phi~_w K - Phi~_v||_H2 sigma_v
-    term_u: np.ndarray  # sqrt2 eps1 ||Phi~_w||_H2 ||[Phi_A B; I]||_Hinf sigma_u
-    term_K: np.ndarray  # sqrt2 eps2 ||Phi~_w||_H2 ||[Phi_A K; I]||_Hinf sigma_v
-    h2_Phi_w: np.ndarray  # ||Phi~_w||_H2
-    h2_Phi_dK: np.ndarray  # ||Phi~_w K - Phi~_v||_H2 = ||(zI - F)^-1 (K - L)||_H2
-    eps_L: np.ndarray
-    eps1: np.ndarray
-    eps2: np.ndarray
-    rho_F: np.ndarray
+    term_v: FloatArray  # ||Phi~_w K - Phi~_v||_H2 sigma_v
+    term_u: FloatArray  # sqrt2 eps1 ||Phi~_w||_H2 ||[Phi_A B; I]||_Hinf sigma_u
+    term_K: FloatArray  # sqrt2 eps2 ||Phi~_w||_H2 ||[Phi_A K; I]||_Hinf sigma_v
+    h2_Phi_w: FloatArray  # ||Phi~_w||_H2
+    h2_Phi_dK: FloatArray  # ||Phi~_w K - Phi~_v||_H2 = ||(zI - F)^-1 (K - L)||_H2
+    eps_L: FloatArray
+    eps1: FloatArray
+    eps2: FloatArray
+    rho_F: FloatArray
 
 
-def phi_w_h2_norms(A_tilde, L, C, K, *, rho_F=None):
+def phi_w_h2_norms(
+    A_tilde: ArrayLike, L: ArrayLike, C: ArrayLike, K: ArrayLike, *, rho_F: ArrayLike | None = None
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """(||Phi~_w||_H2, ||Phi~_w (K - L)||_H2, rho_F), batched, one shared solve.
 
     NaN where F = A~ - L C is not Schur stable or non-finite."""
@@ -170,7 +177,17 @@ def phi_w_h2_norms(A_tilde, L, C, K, *, rho_F=None):
 
 
 def theorem3_bound(
-    A_tilde, L, C, K, *, eps_A, eps_B, sigma_u, sigma_v, norms: TrueSystemNorms, rho_F=None
+    A_tilde: ArrayLike,
+    L: ArrayLike,
+    C: ArrayLike,
+    K: ArrayLike,
+    *,
+    eps_A: ArrayLike,
+    eps_B: ArrayLike,
+    sigma_u: ArrayLike,
+    sigma_v: ArrayLike,
+    norms: TrueSystemNorms,
+    rho_F: ArrayLike | None = None,
 ) -> Theorem3Result:
     """J_b of Theorem 3 per cell. -> Theorem3Result (arrays of the batch shape)
 
@@ -218,7 +235,10 @@ def theorem3_bound(
         reason[...] = open_reason
     J_b = np.where(reason == None, J_b, np.nan)
     rb = reason.item() if reason.ndim == 0 else reason
-    bc = lambda x: np.broadcast_to(x, batch)
+
+    def bc(x: ArrayLike) -> FloatArray:
+        return np.broadcast_to(x, batch)
+
     return Theorem3Result(
         J_b=J_b,
         reason=rb,

@@ -9,13 +9,17 @@ experiment runner's case), drawing it once and simulating the plant once.
 
 from __future__ import annotations
 
-import numpy as np
+from collections.abc import Sequence
 
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .array_types import FloatArray
 from .cost import CostCells, horizon_steps
 from .errors import DimensionError
 
 
-def _steps(horizon, runs) -> tuple[int, int]:
+def _steps(horizon: int, runs: int) -> tuple[int, int]:
     """(T, runs) checked: a positive integer horizon and at least 2 runs."""
     T, runs = horizon_steps(horizon), int(runs)
     if runs < 2:
@@ -23,7 +27,21 @@ def _steps(horizon, runs) -> tuple[int, int]:
     return T, runs
 
 
-def mc_cost(A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v, horizon, rng, runs):
+def mc_cost(
+    A: ArrayLike,
+    B: ArrayLike,
+    A_tilde: ArrayLike,
+    B_tilde: ArrayLike,
+    *,
+    L: ArrayLike,
+    C: ArrayLike | None,
+    sigma_u: ArrayLike,
+    sigma_w: ArrayLike,
+    sigma_v: ArrayLike,
+    horizon: int,
+    rng: np.random.Generator,
+    runs: int,
+) -> tuple[FloatArray, FloatArray]:
     """Monte Carlo mean and standard error of (1/T) sum_k ||e_k||^2 over ``runs``
     simulations, vectorised across runs. -> (mean, se), each (...)
 
@@ -48,7 +66,10 @@ def mc_cost(A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v, horizon,
     )
     n, m, p, batch = c.n, c.m, c.p, c.batch
     q = m + n + p
-    tp = lambda M: np.swapaxes(M, -1, -2)
+
+    def tp(M: FloatArray) -> FloatArray:
+        return np.swapaxes(M, -1, -2)
+
     LC = c.L @ c.C
     zero = np.zeros(batch + (n, n))
     # augmented transition and input matrices, batch + (2n, 2n) / (q, 2n)
@@ -102,7 +123,21 @@ def mc_cost(A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v, horizon,
     return mean, se
 
 
-def mc_cost_shared(A, B, A_tilde, B_tilde, *, L, C, sigma_u, sigma_w, sigma_v, horizon, rngs, runs):
+def mc_cost_shared(
+    A: ArrayLike,
+    B: ArrayLike,
+    A_tilde: ArrayLike,
+    B_tilde: ArrayLike,
+    *,
+    L: ArrayLike,
+    C: ArrayLike | None,
+    sigma_u: ArrayLike,
+    sigma_w: ArrayLike,
+    sigma_v: ArrayLike,
+    horizon: int,
+    rngs: Sequence[np.random.Generator],
+    runs: int,
+) -> tuple[FloatArray, FloatArray]:
     """:func:`mc_cost` for a grid of cells (R, E) where the E cells of row r share
     the noise of ``rngs[r]`` (common random numbers). -> (mean, se), each (R, E)
 

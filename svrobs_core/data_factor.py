@@ -25,6 +25,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+from .array_types import Array, FloatArray
 
 __all__ = ["GramFactor", "VParts", "data_factor", "estimate_margin", "gram_factor", "v_parts"]
 
@@ -54,24 +57,24 @@ class GramFactor:
     whose triangle is ``R11x``, ``R12x``, ``r22x`` (np.longdouble, zeros elsewhere).
     """
 
-    lam: np.ndarray
-    U: np.ndarray
+    lam: Array
+    U: Array
     formed: bool = True
-    col: np.ndarray | None = None
-    fnorm: np.ndarray | None = None
-    R11: np.ndarray | None = None
-    R12: np.ndarray | None = None
-    r22: np.ndarray | None = None
-    ext: np.ndarray | None = None
-    R11x: np.ndarray | None = None
-    R12x: np.ndarray | None = None
-    r22x: np.ndarray | None = None
+    col: Array | None = None
+    fnorm: Array | None = None
+    R11: Array | None = None
+    R12: Array | None = None
+    r22: Array | None = None
+    ext: Array | None = None
+    R11x: Array | None = None
+    R12x: Array | None = None
+    r22x: Array | None = None
 
     def expand(self, axis: int) -> GramFactor:
         """The same factor with a new batch axis at ``axis`` (counted from the front
         of the batch dims), e.g. (R, ...) -> (R, 1, ...) to broadcast over cells."""
 
-        def ins(x, core):
+        def ins(x: Array | None, core: int) -> Array | None:
             if x is None:
                 return None
             return np.expand_dims(x, axis if axis >= 0 else x.ndim - core + axis + 1)
@@ -92,7 +95,7 @@ class GramFactor:
         )
 
 
-def gram_factor(G) -> GramFactor:
+def gram_factor(G: ArrayLike) -> GramFactor:
     """Eigendecomposition of formed Gram matrices G = Z Z^T (..., d, d) (NaN for a
     non-finite G). Kept for callers that have only G; the pipeline uses
     :func:`data_factor`."""
@@ -103,7 +106,7 @@ def gram_factor(G) -> GramFactor:
     return GramFactor(lam=lam, U=np.where(ok[..., None, None], U, np.nan))
 
 
-def _householder_r(X) -> np.ndarray:
+def _householder_r(X: Array) -> Array:
     """R of the Householder QR of every X (b, m, k), in X's own precision (the
     extended path; float64 data go through LAPACK). -> (b, k, k), zero rows below
     min(m, k)."""
@@ -125,7 +128,7 @@ def _householder_r(X) -> np.ndarray:
     return R
 
 
-def _extended(Z, F):
+def _extended(Z: Array, F: Array) -> tuple[Array, Array, Array]:
     """(R11x, R12x, r22x) of [Z^T F^T] in np.longdouble, in chunks of datasets."""
     b, d, N0 = Z.shape
     n = F.shape[-2]
@@ -139,7 +142,7 @@ def _extended(Z, F):
     return R[:, :d, :d], R[:, :d, d:], r22
 
 
-def data_factor(Z, F) -> GramFactor:
+def data_factor(Z: ArrayLike, F: ArrayLike) -> GramFactor:
     """The factor of Z Z^T from the data: QR of [Z^T F^T], then the SVD of R11;
     again in extended precision where the double factor is not accurate enough.
 
@@ -169,7 +172,7 @@ def data_factor(Z, F) -> GramFactor:
         r22 = np.sqrt(np.sum(R[..., d:, d:] ** 2, axis=-2))
     nan = ~fin
 
-    def mask(x, core):
+    def mask(x: Array, core: int) -> Array:
         return np.where(nan.reshape(nan.shape + (1,) * core), np.nan, x)
 
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -208,20 +211,20 @@ class VParts:
     Rinv Rinv^T), in the (C) order of ``ext``.
     """
 
-    diag: np.ndarray
-    logdet: np.ndarray
-    lam_min: np.ndarray
-    lam_max: np.ndarray
-    lmax_A: np.ndarray
-    lmax_B: np.ndarray
-    lv_min: np.ndarray
-    err: np.ndarray
-    cond: np.ndarray
-    ext: np.ndarray
-    Rinv: np.ndarray | None = None
+    diag: Array
+    logdet: Array
+    lam_min: Array
+    lam_max: Array
+    lmax_A: Array
+    lmax_B: Array
+    lv_min: Array
+    err: Array
+    cond: Array
+    ext: Array
+    Rinv: Array | None = None
 
 
-def _tri_inv(R) -> np.ndarray:
+def _tri_inv(R: Array) -> Array:
     """Inverse of upper triangular R (c, d, d), back substitution in R's precision."""
     d = R.shape[-1]
     X = np.zeros_like(R)
@@ -232,7 +235,7 @@ def _tri_inv(R) -> np.ndarray:
     return X
 
 
-def _sigma_max(X) -> np.ndarray:
+def _sigma_max(X: Array) -> Array:
     """Largest singular value of each (c, a, b), from the double rounding of X
     (NaN where X is not finite, e.g. the inverse of a singular triangle)."""
     with np.errstate(over="ignore", invalid="ignore"):
@@ -242,13 +245,13 @@ def _sigma_max(X) -> np.ndarray:
     return np.where(ok, s, np.nan)
 
 
-def _ext_parts(R11x, lam, lambda0: float, n: int):
+def _ext_parts(R11x: Array, lam: Array, lambda0: float, n: int) -> tuple[Array, ...]:
     """VParts' fields of the extended cells: R11x (c, d, d) longdouble, lam (c,)."""
     c, d, _ = R11x.shape
     ld = np.longdouble
     eye = np.eye(d, dtype=ld)
 
-    def stacked_r(scale):  # R of [R11; sqrt(scale) I]
+    def stacked_r(scale: Array) -> Array:  # R of [R11; sqrt(scale) I]
         aug = np.concatenate([R11x, np.sqrt(scale.astype(ld))[:, None, None] * eye], axis=-2)
         return _householder_r(aug)
 
@@ -281,7 +284,7 @@ def _ext_parts(R11x, lam, lambda0: float, n: int):
     )
 
 
-def v_parts(fac: GramFactor, lam, *, lambda0: float = 1.0, n: int) -> VParts:
+def v_parts(fac: GramFactor, lam: ArrayLike, *, lambda0: float = 1.0, n: int) -> VParts:
     """diag(V^-1), log det, the eigenvalues the box needs, and their error estimate.
 
     A perturbation E of the data moves (V^-1)_jj, and every Rayleigh quotient of
@@ -356,7 +359,14 @@ def v_parts(fac: GramFactor, lam, *, lambda0: float = 1.0, n: int) -> VParts:
     )
 
 
-def estimate_margin(fac: GramFactor, theta, *, lam, shrink=0.0, parts: VParts | None = None):
+def estimate_margin(
+    fac: GramFactor,
+    theta: ArrayLike,
+    *,
+    lam: ArrayLike,
+    shrink: ArrayLike = 0.0,
+    parts: VParts | None = None,
+) -> FloatArray:
     """Per row i a bound m_i on ||theta_i - theta*_i||_V, where theta is the
     computed estimate and theta* the exact estimator on the exactly simulated
     data; then |theta_ij - theta*_ij| <= m_i sqrt((V^-1)_jj). -> (..., n)

@@ -13,6 +13,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+from .array_types import FloatArray
 
 
 class SpecError(ValueError):
@@ -37,7 +40,9 @@ class DimensionError(ValueError):
         self.message = message
 
 
-def check_matrix(name: str, array, shape: Sequence[int | str | None], *, batch: bool = True):
+def check_matrix(
+    name: str, array: ArrayLike, shape: Sequence[int | str | None], *, batch: bool = True
+) -> FloatArray:
     """``array`` as a float ndarray whose trailing axes have ``shape``, else DimensionError.
 
     ``shape`` entries: an int (that size), a str (any size, equal for equal

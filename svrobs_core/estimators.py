@@ -9,15 +9,20 @@ depend on the batch it was computed in, bit for bit.
 
 from __future__ import annotations
 
-import numpy as np
+from collections.abc import Callable
+from typing import Literal, cast, overload
 
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .array_types import Array, FloatArray, IntArray
 from .errors import DimensionError, check_matrix
 from .linalg import solve as _solve
 
 LOSS_SCALES = ("sum", "mean")
 
 
-def _check(Z, F):
+def _check(Z: ArrayLike, F: ArrayLike) -> tuple[FloatArray, FloatArray]:
     Z = check_matrix("Z", Z, ("d", "N0"))
     F = check_matrix("F", F, ("n", Z.shape[-1]))
     if Z.shape[-1] < 1:
@@ -25,7 +30,7 @@ def _check(Z, F):
     return Z, F
 
 
-def _gammas(gammas, *, allow_zero: bool) -> np.ndarray:
+def _gammas(gammas: ArrayLike, *, allow_zero: bool) -> FloatArray:
     g = np.asarray(gammas, dtype=float)
     if g.ndim > 1:
         raise DimensionError("gammas", f"must be a scalar or a 1-D array, got shape {g.shape}")
@@ -36,7 +41,7 @@ def _gammas(gammas, *, allow_zero: bool) -> np.ndarray:
     return g
 
 
-def ridge_parameters(gammas, N0: int, loss_scale: str = "sum") -> np.ndarray:
+def ridge_parameters(gammas: ArrayLike, N0: int, loss_scale: str = "sum") -> FloatArray:
     """Ridge parameter g of Theta = F Z^T (Z Z^T + g I)^-1 (docs/science.md#2-estimators).
 
     "sum": g = gamma (the paper as written); "mean": the loss term divided by
@@ -54,7 +59,15 @@ REFINE_STEPS = 1
 REFINE_COND_LIMIT = 1e8  # above this cond(Z Z^T) one refinement step is not enough: use QR
 
 
-def fit_ols(Z: np.ndarray, F: np.ndarray, *, return_cond: bool = False):
+@overload
+def fit_ols(Z: ArrayLike, F: ArrayLike, *, return_cond: Literal[False] = ...) -> FloatArray: ...
+@overload
+def fit_ols(
+    Z: ArrayLike, F: ArrayLike, *, return_cond: Literal[True]
+) -> tuple[FloatArray, FloatArray]: ...
+def fit_ols(
+    Z: ArrayLike, F: ArrayLike, *, return_cond: bool = False
+) -> FloatArray | tuple[FloatArray, FloatArray]:
     """OLS Theta = F Z^T (Z Z^T)^-1 (docs/science.md#21-ols), batched. -> (..., n, d)
 
     Normal equations by Cholesky of Z Z^T plus ``REFINE_STEPS`` steps of
@@ -80,9 +93,10 @@ def fit_ols(Z: np.ndarray, F: np.ndarray, *, return_cond: bool = False):
     Gs = np.where(ok[..., None, None], G, eye)
     Lc = np.linalg.cholesky(Gs)
 
-    def solve(rhs):  # (Z Z^T)^-1 rhs^T, transposed back: rows of Theta
+    def solve(rhs: FloatArray) -> FloatArray:  # (Z Z^T)^-1 rhs^T, transposed back: rows of Theta
         y = np.linalg.solve(Lc, np.swapaxes(rhs, -1, -2))
-        return np.swapaxes(np.linalg.solve(np.swapaxes(Lc, -1, -2), y), -1, -2)
+        x: FloatArray = np.swapaxes(np.linalg.solve(np.swapaxes(Lc, -1, -2), y), -1, -2)
+        return x
 
     with np.errstate(all="ignore"):  # the other cells are overwritten below
         theta = solve(np.matmul(F, Zt))
@@ -97,7 +111,7 @@ def fit_ols(Z: np.ndarray, F: np.ndarray, *, return_cond: bool = False):
     return (theta, cond) if return_cond else theta
 
 
-def _normal_residual(Z, F, theta, g) -> np.ndarray:
+def _normal_residual(Z: Array, F: Array, theta: Array, g: ArrayLike) -> FloatArray:
     """(F - Theta Z) Z^T - g Theta accumulated in extended precision (np.longdouble).
 
     The residual of the (ridge) normal equations for one refinement step:
@@ -108,10 +122,11 @@ def _normal_residual(Z, F, theta, g) -> np.ndarray:
     Tl = theta.astype(np.longdouble)
     r = F.astype(np.longdouble) - np.matmul(Tl, Zl)
     S = np.matmul(r, np.swapaxes(Zl, -1, -2)) - np.asarray(g, dtype=float)[:, None, None] * Tl
-    return S.astype(float)
+    out: FloatArray = S.astype(float)
+    return out
 
 
-def _fit_ols_qr(Z: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _fit_ols_qr(Z: FloatArray, F: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Least squares as numpy.linalg.lstsq does, batched, for ill-conditioned Z.
 
     R-only QR of the augmented [Z^T F^T] = Q [[R11, R12], [0, R22]] reduces it
@@ -122,7 +137,9 @@ def _fit_ols_qr(Z: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     V diag(1/s^2) V^T. -> (Theta, cond(Z Z^T) = (s_max / s_min)^2, inf if rank deficient)
     """
     d, N0 = Z.shape[-2:]
-    R = np.linalg.qr(np.swapaxes(np.concatenate([Z, F], axis=-2), -1, -2), mode="r")
+    R = cast(
+        FloatArray, np.linalg.qr(np.swapaxes(np.concatenate([Z, F], axis=-2), -1, -2), mode="r")
+    )
     U, s, Vh = np.linalg.svd(R[..., :d, :d], full_matrices=False)  # R11 = U diag(s) Vh
     cutoff = np.finfo(float).eps * max(d, N0) * s[..., :1]
     s_inv = np.divide(1.0, s, out=np.zeros_like(s), where=s > cutoff)
@@ -137,7 +154,7 @@ def _fit_ols_qr(Z: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return theta + dT, cond
 
 
-def fit_svr(Z: np.ndarray, F: np.ndarray, gammas, loss_scale: str = "sum") -> np.ndarray:
+def fit_svr(Z: ArrayLike, F: ArrayLike, gammas: ArrayLike, loss_scale: str = "sum") -> FloatArray:
     """SVR closed form Theta = F Z^T (Z Z^T + g I)^-1 for every gamma at once.
 
     ``g = gamma`` for loss_scale "sum", ``g = gamma * N0`` for "mean"
@@ -166,7 +183,7 @@ SVR_COND_LIMIT = 1e6  # above this cond(Z Z^T + g I) the eigh solution loses > ~
 FALLBACK_CHUNK_BYTES = 4 * 2**20  # data of the QR path held at once (at least one dataset)
 
 
-def ridge_condition(G: np.ndarray, g) -> np.ndarray:
+def ridge_condition(G: ArrayLike, g: ArrayLike) -> FloatArray:
     """cond(Z Z^T + g I) = (lam_max + g) / (lam_min + g) from ``G = Z Z^T``. -> (..., len(g))
 
     Eigenvalues of the PSD G are floored at 0 (rounding only); inf where
@@ -182,16 +199,38 @@ def ridge_condition(G: np.ndarray, g) -> np.ndarray:
     return np.where(ok[..., None], kappa, np.nan)
 
 
+@overload
 def svr_from_gram(
-    G: np.ndarray,
-    FZt: np.ndarray,
+    G: ArrayLike,
+    FZt: ArrayLike,
     N0: int,
-    gammas,
+    gammas: ArrayLike,
+    *,
+    loss_scale: str = ...,
+    data: Callable[[IntArray], tuple[FloatArray, FloatArray]] | None = ...,
+    return_cond: Literal[False] = ...,
+) -> FloatArray: ...
+@overload
+def svr_from_gram(
+    G: ArrayLike,
+    FZt: ArrayLike,
+    N0: int,
+    gammas: ArrayLike,
+    *,
+    loss_scale: str = ...,
+    data: Callable[[IntArray], tuple[FloatArray, FloatArray]] | None = ...,
+    return_cond: Literal[True],
+) -> tuple[FloatArray, FloatArray]: ...
+def svr_from_gram(
+    G: ArrayLike,
+    FZt: ArrayLike,
+    N0: int,
+    gammas: ArrayLike,
     *,
     loss_scale: str = "sum",
-    data=None,
+    data: Callable[[IntArray], tuple[FloatArray, FloatArray]] | None = None,
     return_cond: bool = False,
-):
+) -> FloatArray | tuple[FloatArray, FloatArray]:
     """:func:`fit_svr` from the sufficient statistics ``G = Z Z^T`` (..., d, d)
     and ``FZt = F Z^T`` (..., n, d) of datasets with ``N0`` samples each.
 
@@ -238,7 +277,17 @@ def svr_from_gram(
     return (theta, kflat.reshape(kappa.shape)) if return_cond else theta
 
 
-def ridge_qr(Z: np.ndarray, F: np.ndarray, g, *, return_cond: bool = False):
+@overload
+def ridge_qr(
+    Z: ArrayLike, F: ArrayLike, g: ArrayLike, *, return_cond: Literal[False] = ...
+) -> FloatArray: ...
+@overload
+def ridge_qr(
+    Z: ArrayLike, F: ArrayLike, g: ArrayLike, *, return_cond: Literal[True]
+) -> tuple[FloatArray, FloatArray]: ...
+def ridge_qr(
+    Z: ArrayLike, F: ArrayLike, g: ArrayLike, *, return_cond: bool = False
+) -> FloatArray | tuple[FloatArray, FloatArray]:
     """Ridge Theta = F Z^T (Z Z^T + g I)^-1 by a backward-stable solve, batched.
 
     docs/science.md#22-the-papers-l2-loss-svr-and-its-closed-form. The ridge problem is the
@@ -258,7 +307,9 @@ def ridge_qr(Z: np.ndarray, F: np.ndarray, g, *, return_cond: bool = False):
     b, d, N0 = Z.shape
     n = F.shape[-2]
     k = d + n
-    R = np.linalg.qr(np.swapaxes(np.concatenate([Z, F], axis=-2), -1, -2), mode="r")
+    R = cast(
+        FloatArray, np.linalg.qr(np.swapaxes(np.concatenate([Z, F], axis=-2), -1, -2), mode="r")
+    )
     if R.shape[-2] < k:  # N0 < d + n: pad the triangle with zero rows
         R = np.concatenate([R, np.zeros((b, k - R.shape[-2], k))], axis=-2)
     R11, R12 = R[:, None, :d, :d], R[:, None, :d, d:]
@@ -280,7 +331,7 @@ def ridge_qr(Z: np.ndarray, F: np.ndarray, g, *, return_cond: bool = False):
         return theta, (s[..., 0] / s[..., -1]) ** 2
 
 
-def shrunk_ols(theta_ols: np.ndarray, gammas) -> np.ndarray:
+def shrunk_ols(theta_ols: ArrayLike, gammas: ArrayLike) -> FloatArray:
     """Theta_OLS / (1 + gamma) for each gamma (docs/science.md#23-shrunk-ols, Lemma 1's model).
 
     (..., n, d) -> (..., G, n, d)
@@ -296,26 +347,28 @@ class SVRIdentifier:
     ``SVRIdentifier(gamma, loss_scale).fit(Z, F).coef_`` is Theta (..., n, d).
     """
 
-    def __init__(self, gamma: float = 0.05, loss_scale: str = "sum"):
+    def __init__(self, gamma: float = 0.05, loss_scale: str = "sum") -> None:
         self.gamma = gamma
         self.loss_scale = loss_scale
 
-    def fit(self, Z, F):
+    def fit(self, Z: ArrayLike, F: ArrayLike) -> SVRIdentifier:
         self.coef_ = fit_svr(Z, F, [self.gamma], self.loss_scale)[..., 0, :, :]
         return self
 
-    def predict(self, Z):
+    def predict(self, Z: ArrayLike) -> FloatArray:
         """Theta Z: (..., d, N) -> (..., n, N)."""
-        return np.matmul(self.coef_, np.asarray(Z, dtype=float))
+        out: FloatArray = np.matmul(self.coef_, np.asarray(Z, dtype=float))
+        return out
 
 
 class OLSIdentifier:
     """scikit-learn-style wrapper of :func:`fit_ols` (docs/science.md#21-ols)."""
 
-    def fit(self, Z, F):
+    def fit(self, Z: ArrayLike, F: ArrayLike) -> OLSIdentifier:
         self.coef_ = fit_ols(Z, F)
         return self
 
-    def predict(self, Z):
+    def predict(self, Z: ArrayLike) -> FloatArray:
         """Theta Z: (..., d, N) -> (..., n, N)."""
-        return np.matmul(self.coef_, np.asarray(Z, dtype=float))
+        out: FloatArray = np.matmul(self.coef_, np.asarray(Z, dtype=float))
+        return out

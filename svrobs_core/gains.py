@@ -24,9 +24,12 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from .array_types import Array, FloatArray
 from .errors import check_matrix
 from .linalg import down, sum_up, up
 
@@ -40,7 +43,7 @@ __all__ = [
 ]
 
 
-def _mT(X):
+def _mT(X: Array) -> Array:
     return np.swapaxes(X, -1, -2)
 
 
@@ -61,19 +64,28 @@ class GainResult:
     where Clarabel fails outright).
     """
 
-    L: np.ndarray
-    g_L: np.ndarray
-    certified: np.ndarray
-    feasible: np.ndarray | None = None
+    L: Array
+    g_L: Array
+    certified: Array
+    feasible: Array | None = None
 
 
-def _scaled_center(A_tilde, gamma):
+def _scaled_center(A_tilde: ArrayLike, gamma: ArrayLike) -> FloatArray:
     A_tilde = np.asarray(A_tilde, dtype=float)
     gamma = np.asarray(gamma, dtype=float)
-    return (1.0 + gamma)[..., None, None] * A_tilde
+    Ct: FloatArray = (1.0 + gamma)[..., None, None] * A_tilde
+    return Ct
 
 
-def certificate(L, A_tilde, gamma, r_A, *, C, R_A=None) -> np.ndarray:
+def certificate(
+    L: ArrayLike,
+    A_tilde: ArrayLike,
+    gamma: ArrayLike,
+    r_A: ArrayLike | None,
+    *,
+    C: ArrayLike,
+    R_A: ArrayLike | None = None,
+) -> FloatArray:
     """g(L) = max_i sum_j |c_ij| + n r_A with c = (1+gamma) A_tilde - L C. -> (...)
 
     L (..., n, p), A_tilde (..., n, n), C (p, n) or (..., p, n); gamma and r_A
@@ -100,12 +112,13 @@ def certificate(L, A_tilde, gamma, r_A, *, C, R_A=None) -> np.ndarray:
             lo, hi = down(lo - up(prod)), up(hi - down(prod))
         absc = np.maximum(np.abs(lo), np.abs(hi))
         if R_A is not None:
-            return sum_up(up(absc + np.asarray(R_A, dtype=float)), axis=-1).max(axis=-1)
+            g: FloatArray = sum_up(up(absc + np.asarray(R_A, dtype=float)), axis=-1).max(axis=-1)
+            return g
         radius = up(n * np.asarray(r_A, dtype=float))
         return up(sum_up(absc, axis=-1).max(axis=-1) + radius)
 
 
-def project_l1_ball(V, radius) -> np.ndarray:
+def project_l1_ball(V: ArrayLike, radius: ArrayLike) -> FloatArray:
     """Euclidean projection of every vector V[..., :] onto {w : ||w||_1 <= radius}.
 
     Exact sort-based algorithm (Duchi, Shalev-Shwartz, Singer & Chandra 2008),
@@ -127,7 +140,7 @@ def project_l1_ball(V, radius) -> np.ndarray:
     return np.where(inside[..., None], V, W)
 
 
-def is_orthogonal(C) -> bool:
+def is_orthogonal(C: ArrayLike) -> bool:
     """True when C is square with C^T C = I (to 1e-12): the closed-form design applies."""
     C = np.asarray(C, dtype=float)
     if C.shape[-1] != C.shape[-2]:
@@ -137,7 +150,15 @@ def is_orthogonal(C) -> bool:
 
 
 def design_gain(
-    A_tilde, gamma, r_A, C, *, K_hat, margin=0.01, method="auto", R_A=None
+    A_tilde: ArrayLike,
+    gamma: ArrayLike,
+    r_A: ArrayLike | None,
+    C: ArrayLike,
+    *,
+    K_hat: ArrayLike,
+    margin: ArrayLike = 0.01,
+    method: str = "auto",
+    R_A: ArrayLike | None = None,
 ) -> GainResult:
     """min ||L - K_hat||_F s.t. sum_j |c_ij(L)| + n r_A <= 1 - margin for all i.
 
@@ -218,10 +239,12 @@ class _CvxpyDesign:
     ``per_row``: one budget per row (a radius matrix); else one scalar budget
     (the paper's scalar radius, the problem exactly as it always was)."""
 
-    def __init__(self, n, p, per_row=False):
-        import cvxpy as cp
+    def __init__(self, n: int, p: int, per_row: bool = False) -> None:
+        import cvxpy
 
-        self.cp = cp
+        cp: Any = cvxpy
+
+        self.cp: Any = cp
         self.per_row = per_row
         self.L = cp.Variable((n, p))
         self.Ct = cp.Parameter((n, n))
@@ -237,7 +260,7 @@ class _CvxpyDesign:
         else:
             self.min_g = cp.Problem(cp.Minimize(self.t), [rows <= self.t])
 
-    def _solve(self, problem) -> str:
+    def _solve(self, problem: Any) -> str:
         """The problem's status, or "solver_error" when Clarabel fails outright."""
         try:
             with warnings.catch_warnings():  # "Solution may be inaccurate": see the status
@@ -245,9 +268,10 @@ class _CvxpyDesign:
                 problem.solve(solver=self.cp.CLARABEL)
         except (self.cp.error.SolverError, ValueError, ArithmeticError):
             return "solver_error"
-        return problem.status
+        status: str = problem.status
+        return status
 
-    def solve(self, Ct, C, K_hat, rho):
+    def solve(self, Ct: Array, C: Array, K_hat: Array, rho: float | Array) -> tuple[Array, bool]:
         if self.per_row:
             return self._solve_rows(Ct, C, K_hat, np.asarray(rho, dtype=float))
         cp = self.cp
@@ -270,7 +294,9 @@ class _CvxpyDesign:
                 return L2, False
         return L1, False
 
-    def _solve_rows(self, Ct, C, K_hat, budget):
+    def _solve_rows(
+        self, Ct: Array, C: Array, K_hat: Array, budget: FloatArray
+    ) -> tuple[Array, bool]:
         """Per-row budgets; the fallback minimises max_i (row_i(L) + offset_i)."""
         cp = self.cp
         self.Ct.value, self.C.value, self.K.value = Ct, C, K_hat
@@ -310,14 +336,22 @@ class ReuseResult:
     N's gain was kept, source (nN, ...) int: index along N of the design used.
     """
 
-    L: np.ndarray
-    g_L: np.ndarray
-    certified: np.ndarray
-    reused: np.ndarray
-    source: np.ndarray
+    L: Array
+    g_L: Array
+    certified: Array
+    reused: Array
+    source: Array
 
 
-def reuse_gains(L, A_tilde, gamma, r_A, *, C, R_A=None) -> ReuseResult:
+def reuse_gains(
+    L: ArrayLike,
+    A_tilde: ArrayLike,
+    gamma: ArrayLike,
+    r_A: ArrayLike,
+    *,
+    C: ArrayLike,
+    R_A: ArrayLike | None = None,
+) -> ReuseResult:
     """reuse_gain policy along increasing N (docs/science.md#44-reuse_gain).
 
     L (nN, ..., n, p): the gain designed at each N (axis 0 sorted by
@@ -339,9 +373,9 @@ def reuse_gains(L, A_tilde, gamma, r_A, *, C, R_A=None) -> ReuseResult:
     Ct = np.broadcast_to(Ct, batch + (n, n))
     if R_A is None:
         r_A = np.broadcast_to(np.asarray(r_A, dtype=float), batch)
-        R_A = [None] * batch[0]
+        R_rows: Any = [None] * batch[0]
     else:
-        R_A = np.broadcast_to(np.asarray(R_A, dtype=float), batch + (n, n))
+        R_rows = np.broadcast_to(np.asarray(R_A, dtype=float), batch + (n, n))
         r_A = np.zeros(batch)
     nN = batch[0]
 
@@ -351,12 +385,12 @@ def reuse_gains(L, A_tilde, gamma, r_A, *, C, R_A=None) -> ReuseResult:
     source = np.empty(batch, dtype=np.intp)
     with np.errstate(invalid="ignore"):
         for k in range(nN):
-            g_new = certificate(L[k], Ct[k], 0.0, r_A[k], C=C, R_A=R_A[k])
+            g_new = certificate(L[k], Ct[k], 0.0, r_A[k], C=C, R_A=R_rows[k])
             if k == 0:
                 keep = np.zeros(batch[1:], dtype=bool)
                 g_prev = np.zeros(batch[1:])
             else:
-                g_prev = certificate(out_L[k - 1], Ct[k], 0.0, r_A[k], C=C, R_A=R_A[k])
+                g_prev = certificate(out_L[k - 1], Ct[k], 0.0, r_A[k], C=C, R_A=R_rows[k])
                 keep = (g[k - 1] < 1.0) & (g_prev < 1.0)
             out_L[k] = np.where(keep[..., None, None], out_L[k - 1] if k else L[k], L[k])
             g[k] = np.where(keep, g_prev, g_new)

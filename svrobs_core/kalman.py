@@ -12,9 +12,12 @@ per cell (:class:`KalmanResult`), never an exception.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from .array_types import Array, BoolArray, FloatArray
 from .errors import SpecError, check_matrix
 from .linalg import solve as _solve
 from .norms import spectral_radius
@@ -81,15 +84,16 @@ class KalmanResult:
     have vanished, for sigma_w = 0 (Newton) rho(A - K C) < 1 is checked.
     """
 
-    K: np.ndarray
-    P: np.ndarray
-    status: np.ndarray
+    K: FloatArray
+    P: FloatArray
+    status: Array
 
     @property
-    def ok(self) -> np.ndarray:
-        return self.status == KALMAN_OK
+    def ok(self) -> BoolArray:
+        ok: BoolArray = self.status == KALMAN_OK
+        return ok
 
-    def reasons(self) -> np.ndarray:
+    def reasons(self) -> Array:
         """Object array (...) of reason strings ('' where ok)."""
         out = np.empty(self.status.shape, dtype=object)
         for code, text in KALMAN_REASONS.items():
@@ -97,23 +101,24 @@ class KalmanResult:
         return out
 
 
-def _mT(X):
+def _mT(X: Array) -> Array:
     return np.swapaxes(X, -1, -2)
 
 
-def _sym(X):
+def _sym(X: Array) -> Array:
     return 0.5 * (X + _mT(X))
 
 
-def _fro(X):
-    return np.sqrt(np.einsum("...ij,...ij->...", X, X))
+def _fro(X: Array) -> FloatArray:
+    out: FloatArray = np.sqrt(np.einsum("...ij,...ij->...", X, X))
+    return out
 
 
-def _spectral_radius(F):
+def _spectral_radius(F: Array) -> FloatArray:
     return spectral_radius(F)  # NaN for a non-finite F
 
 
-def _stein(F, W):
+def _stein(F: Array, W: Array) -> Array:
     """Solve X = F X F^T + W for a batch (b, n, n) by a Kronecker linear solve."""
     b, n, _ = F.shape
     kron = np.einsum("bij,bkl->bikjl", F, F).reshape(b, n * n, n * n)
@@ -122,14 +127,14 @@ def _stein(F, W):
     return _sym(x.reshape(b, n, n))
 
 
-def _gain_from_X(A, C, X):
+def _gain_from_X(A: Array, C: Array, X: Array) -> Array:
     """K = A X C^T (C X C^T + I)^-1 (scaled form, X = P / sigma_v^2)."""
     p = C.shape[-2]
     S = C @ X @ _mT(C) + np.eye(p)
     return _mT(_solve(S, C @ X @ _mT(A)))
 
 
-def _sda(A, C, q):
+def _sda(A: Array, C: Array, q: Array) -> tuple[Array, BoolArray]:
     """Doubling for X = A X (I + C^T C X)^-1 A^T + q I on a batch (b, ...).
 
     In the control-DARE form X = Ac^T X (I + G X)^-1 Ac + H with Ac = A^T,
@@ -174,7 +179,7 @@ def _sda(A, C, q):
     return Hk, converged & ~failed
 
 
-def _newton(A, C, q, K0):
+def _newton(A: Array, C: Array, q: Array, K0: Array) -> tuple[Array, BoolArray]:
     """Newton-Hewer for the scaled DARE from stabilising gains K0 (b, n, p)."""
     b, n, _ = A.shape
     K = K0
@@ -205,7 +210,7 @@ def _newton(A, C, q, K0):
     return X, converged
 
 
-def _undetectable(A, C):
+def _undetectable(A: Array, C: Array) -> BoolArray:
     """PBH test: True where some eigenvalue |lambda| >= 1 has rank [A - lambda I; C] < n."""
     b, n, _ = A.shape
     lam = np.linalg.eigvals(A)  # (b, n)
@@ -213,10 +218,15 @@ def _undetectable(A, C):
     Cc = np.broadcast_to(C[:, None].astype(complex), (b, n) + C.shape[1:])
     smin = np.linalg.svd(np.concatenate([M, Cc], axis=-2), compute_uv=False)[..., -1]
     scale = np.maximum(1.0, _fro(A) + _fro(C))[:, None]
-    return ((np.abs(lam) >= 1.0 - _UNIT_CIRCLE_TOL) & (smin <= _PBH_TOL * scale)).any(axis=-1)
+    return cast(
+        BoolArray,
+        ((np.abs(lam) >= 1.0 - _UNIT_CIRCLE_TOL) & (smin <= _PBH_TOL * scale)).any(axis=-1),
+    )
 
 
-def _broadcast_system(A, C, sigma_w, sigma_v):
+def _broadcast_system(
+    A: ArrayLike, C: ArrayLike, sigma_w: ArrayLike, sigma_v: ArrayLike
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, tuple[int, ...], int, int]:
     A = check_matrix("A", A, ("n", "n"))
     n = A.shape[-1]
     C = check_matrix("C", C, ("p", n))
@@ -235,7 +245,9 @@ def _broadcast_system(A, C, sigma_w, sigma_v):
     return A, C, sw, sv, batch, n, p
 
 
-def kalman_predictor(A, C, sigma_w, sigma_v) -> KalmanResult:
+def kalman_predictor(
+    A: ArrayLike, C: ArrayLike, sigma_w: ArrayLike, sigma_v: ArrayLike
+) -> KalmanResult:
     """Steady-state Kalman predictor of x+ = A x + w, y = C x + v
     (docs/science.md#5-the-optimal-gain-k).
 
@@ -328,7 +340,7 @@ def kalman_predictor(A, C, sigma_w, sigma_v) -> KalmanResult:
     )
 
 
-def kalman_gain(A, C, sigma_w, sigma_v) -> np.ndarray:
+def kalman_gain(A: ArrayLike, C: ArrayLike, sigma_w: ArrayLike, sigma_v: ArrayLike) -> FloatArray:
     """Steady-state Kalman predictor gain K = A P C^T (C P C^T + sigma_v^2 I)^-1.
 
     Batched over leading dims of A (..., n, n); C (p, n) shared or batched.
@@ -339,7 +351,9 @@ def kalman_gain(A, C, sigma_w, sigma_v) -> np.ndarray:
     return kalman_predictor(A, C, sigma_w, sigma_v).K
 
 
-def dare_residual(A, C, sigma_w, sigma_v, *, P) -> np.ndarray:
+def dare_residual(
+    A: ArrayLike, C: ArrayLike, sigma_w: ArrayLike, sigma_v: ArrayLike, *, P: ArrayLike
+) -> FloatArray:
     """Relative residual of the filter DARE at P, batched -> (...)."""
     A = np.asarray(A, float)
     C = np.asarray(C, float)

@@ -17,9 +17,12 @@ exceptions).
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+from .array_types import Array, FloatArray
 
 
-def solve(M, B) -> np.ndarray:
+def solve(M: ArrayLike, B: ArrayLike) -> Array:
     """``numpy.linalg.solve(M, B)`` batched; NaN where M is singular or M, B are not finite.
 
     M (..., k, k), B (..., k, r) (a stack of right-hand sides, as numpy's
@@ -31,7 +34,8 @@ def solve(M, B) -> np.ndarray:
     B = np.asarray(B)
     try:
         with np.errstate(all="ignore"):
-            return np.linalg.solve(M, B)
+            out: Array = np.linalg.solve(M, B)
+            return out
     except np.linalg.LinAlgError:
         pass
     batch = np.broadcast_shapes(M.shape[:-2], B.shape[:-2])
@@ -58,18 +62,20 @@ def solve(M, B) -> np.ndarray:
     return np.where(ok[..., None, None], X, np.nan)
 
 
-def up(x) -> np.ndarray:
+def up(x: ArrayLike) -> FloatArray:
     """The next double above x: an upper bound of the exact result of the one
     rounded-to-nearest operation that gave x (NaN stays NaN, inf stays inf)."""
-    return np.nextafter(x, np.inf)
+    out: FloatArray = np.nextafter(x, np.inf)
+    return out
 
 
-def down(x) -> np.ndarray:
+def down(x: ArrayLike) -> FloatArray:
     """The next double below x (the lower end of an interval, as :func:`up`)."""
-    return np.nextafter(x, -np.inf)
+    out: FloatArray = np.nextafter(x, -np.inf)
+    return out
 
 
-def sum_up(X, axis: int = -1) -> np.ndarray:
+def sum_up(X: ArrayLike, axis: int = -1) -> FloatArray:
     """An upper bound of the exact sum of X along ``axis``: one rounded-up
     addition per term (a loop over that axis, vectorised over the rest)."""
     X = np.moveaxis(np.asarray(X, dtype=float), axis, -1)
@@ -79,7 +85,7 @@ def sum_up(X, axis: int = -1) -> np.ndarray:
     return acc
 
 
-def matvec_up(M, x) -> np.ndarray:
+def matvec_up(M: ArrayLike, x: ArrayLike) -> FloatArray:
     """An upper bound of the exact M x for M >= 0, x >= 0 (..., k, k) @ (..., k):
     every product and every partial sum rounded up. -> (..., k)"""
     M = np.asarray(M, dtype=float)
@@ -93,7 +99,7 @@ def matvec_up(M, x) -> np.ndarray:
 PERRON_FLOOR = 1e-15  # Perron-vector entries below this share of the largest are raised to it
 
 
-def perron_upper_bound(M) -> np.ndarray:
+def perron_upper_bound(M: ArrayLike) -> FloatArray:
     """An upper bound of rho(M) for entrywise nonnegative M (..., k, k), never below it.
 
     Collatz-Wielandt: rho(M) <= max_i (M x)_i / x_i for every x > 0. The

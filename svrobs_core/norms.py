@@ -17,8 +17,12 @@ object, not an array, for a single system).
 
 from __future__ import annotations
 
-import numpy as np
+from typing import Any, Literal, overload
 
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .array_types import Array, BoolArray, FloatArray
 from .errors import check_matrix
 from .linalg import solve as _solve
 
@@ -35,7 +39,7 @@ _CHUNK_BYTES = 64 * 2**20
 # --------------------------------------------------------------------------
 # spectral radius / Schur stability
 # --------------------------------------------------------------------------
-def spectral_radius(F) -> np.ndarray:
+def spectral_radius(F: ArrayLike) -> FloatArray:
     """max |eig(F)| over the last two axes, batched; NaN where F has a non-finite
     entry. -> (...)"""
     F = np.asarray(F, dtype=float)
@@ -47,17 +51,19 @@ def spectral_radius(F) -> np.ndarray:
     return np.where(finite, rho, np.nan)
 
 
-def is_schur(F) -> np.ndarray:
+def is_schur(F: ArrayLike) -> BoolArray:
     """rho(F) < 1 (False for non-finite F). -> (...) bool"""
     with np.errstate(invalid="ignore"):
-        return spectral_radius(F) < 1.0
+        schur: BoolArray = spectral_radius(F) < 1.0
+        return schur
 
 
-def stability_reason(F, rho=None) -> np.ndarray:
+def stability_reason(F: ArrayLike | None, rho: ArrayLike | None = None) -> Any:
     """Reason array for F: None if Schur stable, else REASON_UNSTABLE or
     REASON_NONFINITE. ``rho`` may be a precomputed spectral radius. -> (...)
     object (Python object for a single system)."""
     if rho is None:
+        assert F is not None, "stability_reason needs F or rho"
         rho = spectral_radius(F)
     rho = np.asarray(rho, dtype=float)
     out = np.full(rho.shape, None, dtype=object)
@@ -67,7 +73,7 @@ def stability_reason(F, rho=None) -> np.ndarray:
     return _unwrap0(out)
 
 
-def _unwrap0(a):
+def _unwrap0(a: Any) -> Any:
     """0-d object array -> the Python object it holds."""
     if isinstance(a, np.ndarray) and a.ndim == 0 and a.dtype == object:
         return a.item()
@@ -77,7 +83,9 @@ def _unwrap0(a):
 # --------------------------------------------------------------------------
 # Stein (discrete Lyapunov / Sylvester) equation, batched
 # --------------------------------------------------------------------------
-def stein_solve(F, Q, Fr=None, *, multi_rhs=False) -> np.ndarray:
+def stein_solve(
+    F: ArrayLike, Q: ArrayLike, Fr: ArrayLike | None = None, *, multi_rhs: bool = False
+) -> FloatArray:
     """Solve X = F X Fr^T + Q (Fr defaults to F), batched over leading dims.
 
     F (..., n, n), Fr (..., r, r), Q (..., n, r) -> X (..., n, r); with
@@ -95,7 +103,7 @@ def stein_solve(F, Q, Fr=None, *, multi_rhs=False) -> np.ndarray:
     return _stein_multi(F, Fr, Q[..., None])[..., 0]
 
 
-def _stein_multi(F, Fr, Q):
+def _stein_multi(F: FloatArray, Fr: FloatArray, Q: FloatArray) -> FloatArray:
     n, r = F.shape[-1], Fr.shape[-1]
     k = Q.shape[-1]
     batch = np.broadcast_shapes(F.shape[:-2], Fr.shape[:-2], Q.shape[:-3])
@@ -104,7 +112,16 @@ def _stein_multi(F, Fr, Q):
     return _stein_smith(F, Fr, Q, batch)
 
 
-def _stein_kron(F, Fr, Q, batch, *, n, r, k):
+def _stein_kron(
+    F: FloatArray,
+    Fr: FloatArray,
+    Q: FloatArray,
+    batch: tuple[int, ...],
+    *,
+    n: int,
+    r: int,
+    k: int,
+) -> FloatArray:
     nr = n * r
     Nb = int(np.prod(batch, dtype=np.int64))
     Ff = F.reshape(-1, n, n)
@@ -130,7 +147,9 @@ def _stein_kron(F, Fr, Q, batch, *, n, r, k):
     return out.reshape(batch + (n, r, k))
 
 
-def _stein_smith(F, Fr, Q, batch, *, max_iter=64):
+def _stein_smith(
+    F: FloatArray, Fr: FloatArray, Q: FloatArray, batch: tuple[int, ...], *, max_iter: int = 64
+) -> FloatArray:
     """X = sum_i F^i Q Fr^iT by X <- X + P X Pr^T, P <- P^2 (squared Smith)."""
     X = np.array(np.broadcast_to(np.moveaxis(Q, -1, -3), batch + Q.shape[-1:] + Q.shape[-3:-1]))
     P = np.broadcast_to(F, batch + F.shape[-2:])[..., None, :, :]
@@ -148,7 +167,9 @@ def _stein_smith(F, Fr, Q, batch, *, max_iter=64):
 # --------------------------------------------------------------------------
 # H2
 # --------------------------------------------------------------------------
-def _broadcast_sys(F, G, H, D=None):
+def _broadcast_sys(
+    F: ArrayLike, G: ArrayLike, H: ArrayLike, D: ArrayLike | None = None
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray | None, tuple[int, ...], int, int, int]:
     F = check_matrix("F", F, ("n", "n"))
     n = F.shape[-1]
     G = check_matrix("G", G, (n, "m"))
@@ -162,7 +183,9 @@ def _broadcast_sys(F, G, H, D=None):
     return F, G, H, D, batch, n, m, p
 
 
-def _finish(value, rho, return_reason):
+def _finish(
+    value: FloatArray, rho: FloatArray, return_reason: bool
+) -> FloatArray | tuple[FloatArray, Any]:
     with np.errstate(invalid="ignore"):
         value = np.where(rho < 1.0, value, np.nan)
     if return_reason:
@@ -172,7 +195,32 @@ def _finish(value, rho, return_reason):
     return value
 
 
-def h2_norm(F, G, H, *, rho=None, return_reason=False):
+@overload
+def h2_norm(
+    F: ArrayLike,
+    G: ArrayLike,
+    H: ArrayLike,
+    *,
+    rho: ArrayLike | None = ...,
+    return_reason: Literal[False] = ...,
+) -> FloatArray: ...
+@overload
+def h2_norm(
+    F: ArrayLike,
+    G: ArrayLike,
+    H: ArrayLike,
+    *,
+    rho: ArrayLike | None = ...,
+    return_reason: Literal[True],
+) -> tuple[FloatArray, Any]: ...
+def h2_norm(
+    F: ArrayLike,
+    G: ArrayLike,
+    H: ArrayLike,
+    *,
+    rho: ArrayLike | None = None,
+    return_reason: bool = False,
+) -> FloatArray | tuple[FloatArray, Any]:
     """||H (zI-F)^-1 G||_H2 via the discrete Lyapunov Gramian; NaN if rho(F) >= 1.
 
     ``||.||_H2^2 = trace(H W H^T)``, ``W = F W F^T + G G^T``. F (..., n, n),
@@ -205,7 +253,7 @@ def h2_norm(F, G, H, *, rho=None, return_reason=False):
 _GOLD = (np.sqrt(5.0) - 1.0) / 2.0
 
 
-def _sigma_max(F, G, H, D, *, w):
+def _sigma_max(F: Array, G: Array, H: Array, D: Array, *, w: Array) -> FloatArray:
     """sigma_max(H (e^{jw} I - F)^-1 G + D) for F (c,n,n) ... and w (c, k). -> (c, k)"""
     n = F.shape[-1]
     z = np.exp(1j * w)[..., None, None]
@@ -215,7 +263,44 @@ def _sigma_max(F, G, H, D, *, w):
     return np.linalg.svd(T, compute_uv=False)[..., 0]
 
 
-def hinf_norm(F, G, H, D=None, *, grid=1024, peaks=4, iters=48, rho=None, return_reason=False):
+@overload
+def hinf_norm(
+    F: ArrayLike,
+    G: ArrayLike,
+    H: ArrayLike,
+    D: ArrayLike | None = ...,
+    *,
+    grid: int = ...,
+    peaks: int = ...,
+    iters: int = ...,
+    rho: ArrayLike | None = ...,
+    return_reason: Literal[False] = ...,
+) -> FloatArray: ...
+@overload
+def hinf_norm(
+    F: ArrayLike,
+    G: ArrayLike,
+    H: ArrayLike,
+    D: ArrayLike | None = ...,
+    *,
+    grid: int = ...,
+    peaks: int = ...,
+    iters: int = ...,
+    rho: ArrayLike | None = ...,
+    return_reason: Literal[True],
+) -> tuple[FloatArray, Any]: ...
+def hinf_norm(
+    F: ArrayLike,
+    G: ArrayLike,
+    H: ArrayLike,
+    D: ArrayLike | None = None,
+    *,
+    grid: int = 1024,
+    peaks: int = 4,
+    iters: int = 48,
+    rho: ArrayLike | None = None,
+    return_reason: bool = False,
+) -> FloatArray | tuple[FloatArray, Any]:
     """sup_w sigma_max(H (e^jw I - F)^-1 G + D) on a refined grid; NaN if unstable.
 
     F (..., n, n), G (..., n, m), H (..., p, n), D (..., p, m) or None (zero)
@@ -263,7 +348,9 @@ def hinf_norm(F, G, H, D=None, *, grid=1024, peaks=4, iters=48, rho=None, return
     return _finish(out, rho, return_reason)
 
 
-def _hinf_chunk(F, G, H, D, *, grid, peaks, iters):
+def _hinf_chunk(
+    F: Array, G: Array, H: Array, D: Array, *, grid: int, peaks: int, iters: int
+) -> FloatArray:
     c, n = F.shape[0], F.shape[-1]
     base = np.linspace(0.0, np.pi, grid)
     poles = np.abs(np.angle(np.linalg.eigvals(F))) if n else np.zeros((c, 0))
@@ -297,4 +384,5 @@ def _hinf_chunk(F, G, H, D, *, grid, peaks, iters):
         x2 = np.where(go_left, keep_x, new_x)
         f2 = np.where(go_left, keep_f, new_f)
     refined = np.where(valid, np.maximum(f1, f2), -np.inf).max(axis=1)
-    return np.maximum(best, refined)
+    top: FloatArray = np.maximum(best, refined)
+    return top

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+from .array_types import Array
 
 
 class Notes:
@@ -15,12 +19,12 @@ class Notes:
     added, each text once, joined by "; " (None when there is none).
     """
 
-    def __init__(self, shape):
+    def __init__(self, shape: Iterable[int]) -> None:
         self.shape = tuple(shape)
-        self._entries: list[tuple[str, np.ndarray]] = []
+        self._entries: list[tuple[str, Array]] = []
         self.tags: dict[str, int] = {}
 
-    def add(self, mask, text: str, tag: str | None = None):
+    def add(self, mask: ArrayLike, text: str, tag: str | None = None) -> None:
         """``tag``: name the entry (kept even when its mask is empty) so that
         :meth:`replace` can change it later."""
         m = np.broadcast_to(np.asarray(mask, dtype=bool), self.shape)
@@ -30,7 +34,7 @@ class Notes:
         elif m.any():
             self._entries.append((text, m))
 
-    def replace(self, tag: str, mask, text: str) -> Notes:
+    def replace(self, tag: str, mask: ArrayLike, text: str) -> Notes:
         """A copy with the tagged entry's mask and text replaced (same position)."""
         new = Notes(self.shape)
         new._entries = list(self._entries)
@@ -41,14 +45,14 @@ class Notes:
         )
         return new
 
-    def embed(self, other: Notes, rows) -> None:
+    def embed(self, other: Notes, rows: Any) -> None:
         """Append the entries of ``other``, the notes of the rows ``rows`` of this grid."""
         for text, m in other._entries:
             full = np.zeros(self.shape, dtype=bool)
             full[rows] = m
             self._entries.append((text, full))
 
-    def add_reasons(self, reasons, prefix: str | None):
+    def add_reasons(self, reasons: Any, prefix: str | None) -> None:
         """One entry per distinct reason of an object array (or a scalar)
         broadcasting to the grid; empty / None reasons are skipped."""
         r = np.broadcast_to(np.asarray(reasons, dtype=object), self.shape)
@@ -56,7 +60,7 @@ class Notes:
             text = value if prefix is None else f"{prefix}: {value}"
             self.add(r == value, text)
 
-    def strings(self) -> np.ndarray:
+    def strings(self) -> Array:
         """Object array (R, E) of the joined notes (None where there are none)."""
         out = np.full(self.shape, None, dtype=object)
         if not self._entries:

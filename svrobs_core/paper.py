@@ -42,6 +42,11 @@ beside ours in reports and never in place of them.
 from __future__ import annotations
 
 import copy
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .spec import ExperimentSpec
 
 PRESET_NAME = "paper-section-6"
 
@@ -67,7 +72,7 @@ DELTA = 0.01
 GAMMA_REF = 0.1
 SEED = 0
 
-EXPERIMENTS: dict[str, dict] = {
+EXPERIMENTS: dict[str, dict[str, Any]] = {
     "E1": {
         "title": "Table 2: RMSE of OLS and SVR (gamma = 0.05) for varying process noise",
         "paper": "Section 6.1, Table 2 (and the per-N curves behind it)",
@@ -120,7 +125,7 @@ PUBLISHED_TABLE2: dict[tuple[str, float, str], dict[str, float]] = {
 
 # The paper's other PUBLISHED statements that reports check against the data
 # (quoted from Section 6; numbers are the paper's, not ours).
-PUBLISHED_CLAIMS: dict[str, dict] = {
+PUBLISHED_CLAIMS: dict[str, dict[str, Any]] = {
     "svr_beats_ols_large_noise": {
         "quote": "RMSE of the estimation of the proposed method is smaller than that of OLS "
         "when the process noise becomes larger",
@@ -152,12 +157,12 @@ def published_table2(system: str, sigma_w: float, matrix: str) -> dict[str, floa
     return PUBLISHED_TABLE2.get((system, float(sigma_w), matrix))
 
 
-def _span(values) -> str:
+def _span(values: Sequence[float]) -> str:
     values = list(values)
     return f"{len(values)} values {values[0]}..{values[-1]}" if len(values) > 1 else str(values)
 
 
-def table2_grid_note(spec) -> str | None:
+def table2_grid_note(spec: ExperimentSpec | dict[str, Any]) -> str | None:
     """None when ``spec`` (a spec, raw or parsed) has the grid behind the
     published Table 2 (E1: N = 10..450 step 10, T0 = 11, all data, loss scale sum;
     each row is then matched on system, sigma_w and gamma = 0.05), else one line
@@ -185,7 +190,7 @@ def table2_grid_note(spec) -> str | None:
     )
 
 
-def _full_specs() -> dict[str, dict]:
+def _full_specs() -> dict[str, dict[str, Any]]:
     common = {
         "N": dict(N_GRID),
         "T0": T0,
@@ -224,7 +229,7 @@ def _full_specs() -> dict[str, dict]:
     return {"E1": e1, "E2": e2, "E3": e3, "E4": e4, "A1": a1, "A2": a2}
 
 
-def paper_specs(scale: str = "full") -> dict[str, dict]:
+def paper_specs(scale: str = "full") -> dict[str, dict[str, Any]]:
     """The spec of each experiment E1..E4, A1, A2 (fresh dicts, JSON-able).
 
     ``scale="full"`` is docs/science.md#91-the-preset-paper-section-6 exactly;

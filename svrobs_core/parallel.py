@@ -3,22 +3,23 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Executor
 from contextlib import contextmanager
 from typing import Any
 
 from .threads import blas_single_thread
 
 
-def _worker_init():
+def _worker_init() -> None:
     blas_single_thread.limit_process()
 
 
-def _noop():
+def _noop() -> None:
     return None
 
 
 @contextmanager
-def open_pool(n_jobs: int):
+def open_pool(n_jobs: int) -> Iterator[Executor | None]:
     """A process pool of ``n_jobs`` workers for :func:`svrobs_core.run_spec` (None
     for n_jobs <= 1).
 
@@ -39,9 +40,9 @@ def open_pool(n_jobs: int):
 
 
 def run_ordered(
-    pool,
+    pool: Executor,
     fn: Callable[..., Any],
-    calls: Sequence[tuple],
+    calls: Sequence[tuple[Any, ...]],
     progress: Callable[[int, int], None] | None = None,
 ) -> Iterator[Any]:
     """Yield ``fn(*args)`` for every ``args`` of ``calls``, in order, computed in ``pool``.

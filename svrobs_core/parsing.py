@@ -13,7 +13,7 @@ from .measured.spec import parse_dataset_spec
 from .spec import ExperimentSpec, parse_simulation_spec
 
 
-def parse_spec(obj) -> ExperimentSpec:
+def parse_spec(obj: object) -> ExperimentSpec:
     """Validate a spec (a dict from JSON) and fill the defaults; errors name the field."""
     if not isinstance(obj, dict):
         raise SpecError("spec", "must be a JSON object")

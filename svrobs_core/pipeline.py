@@ -10,8 +10,10 @@ cached (:func:`truth`).
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -90,7 +92,17 @@ def shares_data(parent: ExperimentSpec, other: ExperimentSpec) -> bool:
     return set(b["N"]) <= set(a["N"])
 
 
-def run_dataset_variants(specs, *, si, wi, N, reps, axis, prev_gains=None, timings=None):
+def run_dataset_variants(
+    specs: Sequence[ExperimentSpec],
+    *,
+    si: int,
+    wi: int,
+    N: int,
+    reps: Sequence[int],
+    axis: EstimatorAxis,
+    prev_gains: Sequence[Any] | None = None,
+    timings: dict[Any, float] | None = None,
+) -> list[tuple[Any, ...]]:
     """:func:`run_dataset` for specs that share their data and estimates
     (:func:`shares_data` with ``specs[0]``): the rollouts are simulated, the
     Gram matrices factorised and the estimates computed once; then each spec's

@@ -22,23 +22,28 @@ mismatch, e.g. a future numpy with a different seeding, the slow path is used.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+from .array_types import Array, FloatArray, IntArray
+from .systems import SystemSpec
 
 DATA_STREAM = ()  # the data generator uses the key itself
 MC_STREAM = (1,)  # Monte Carlo cost noise: key + (1,), shared by all estimators
 DEFAULT_RNG = "pcg64"
 # The spec's ``rng`` -> numpy bit generator. A name fixes the draws for good:
 # a generator with other draws would get a new name.
-RNGS = {"pcg64": np.random.PCG64, "sfc64": np.random.SFC64}
+RNGS: dict[str, type[np.random.BitGenerator]] = {"pcg64": np.random.PCG64, "sfc64": np.random.SFC64}
 
 
 def seed_key(system_idx: int, sigma_w_idx: int, N: int, rep: int) -> tuple[int, int, int, int]:
     return (int(system_idx), int(sigma_w_idx), int(N), int(rep))
 
 
-def _bit_generator(rng: str):
+def _bit_generator(rng: str) -> type[np.random.BitGenerator]:
     try:
         return RNGS[rng]
     except KeyError:
@@ -46,7 +51,7 @@ def _bit_generator(rng: str):
 
 
 def rng_for(
-    seed: int, key: tuple, stream: tuple = DATA_STREAM, rng: str = DEFAULT_RNG
+    seed: int, key: tuple[int, ...], stream: tuple[int, ...] = DATA_STREAM, rng: str = DEFAULT_RNG
 ) -> np.random.Generator:
     """The generator of one (key, stream) (docs/science.md#14-randomness-and-reproducibility)."""
     return np.random.Generator(
@@ -83,22 +88,23 @@ def _words(x: int) -> list[int]:
 class _Hash:
     """The running hash constant of SeedSequence.mix_entropy (same for every key)."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.c = _INIT_A
 
-    def mix(self, value: np.ndarray) -> np.ndarray:
+    def mix(self, value: Array) -> Array:
         value = value ^ np.uint32(self.c)
         self.c = (self.c * _MULT_A) & _M32
         value = value * np.uint32(self.c)
         return value ^ (value >> np.uint32(16))
 
 
-def _mix(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    r = np.uint32(_MIX_L) * x - np.uint32(_MIX_R) * y
-    return r ^ (r >> np.uint32(16))
+def _mix(x: Array, y: Array) -> Array:
+    r: Array = np.uint32(_MIX_L) * x - np.uint32(_MIX_R) * y
+    mixed: Array = r ^ (r >> np.uint32(16))
+    return mixed
 
 
-def _pools(entropy: np.ndarray) -> np.ndarray:
+def _pools(entropy: Array) -> Array:
     """SeedSequence pools for entropy arrays (K, L) uint32 -> (K, 4) uint32."""
     K, L = entropy.shape
     h = _Hash()
@@ -114,7 +120,7 @@ def _pools(entropy: np.ndarray) -> np.ndarray:
     return np.stack(mixer, axis=1)
 
 
-def _state_words(pools: np.ndarray, n64: int) -> np.ndarray:
+def _state_words(pools: Array, n64: int) -> Array:
     """SeedSequence.generate_state(n64, uint64) of each pool -> (K, n64) uint64."""
     c = _INIT_B
     words = []
@@ -126,7 +132,7 @@ def _state_words(pools: np.ndarray, n64: int) -> np.ndarray:
     return np.stack(words, axis=1).astype("<u4").view("<u8").astype(np.uint64)
 
 
-def _pcg64_states(pools: np.ndarray) -> list[tuple[int, int]]:
+def _pcg64_states(pools: Array) -> list[tuple[int, int]]:
     """generate_state(4, uint64) of each pool, then PCG64's srandom -> [(state, inc)]."""
     w = _state_words(pools, 4)  # (K, 4)
     out = []
@@ -140,7 +146,7 @@ def _pcg64_states(pools: np.ndarray) -> list[tuple[int, int]]:
     return out
 
 
-def _sfc64_states(pools: np.ndarray) -> np.ndarray:
+def _sfc64_states(pools: Array) -> Array:
     """generate_state(3, uint64) of each pool, then SFC64's seeding (counter 1,
     twelve rounds) -> (K, 4) uint64 states [a, b, c, counter]."""
     w = _state_words(pools, 3)
@@ -156,10 +162,10 @@ def _sfc64_states(pools: np.ndarray) -> np.ndarray:
     return np.stack([a, b, c, d], axis=1)
 
 
-_STATES = {"pcg64": _pcg64_states, "sfc64": _sfc64_states}
+_STATES: dict[str, Callable[[Array], Any]] = {"pcg64": _pcg64_states, "sfc64": _sfc64_states}
 
 
-def _fast_states(seed: int, keys: Sequence[tuple], rng: str = DEFAULT_RNG) -> list:
+def _fast_states(seed: int, keys: Sequence[tuple[int, ...]], rng: str = DEFAULT_RNG) -> list[Any]:
     """The bit-generator state of every key (PCG64: (state, inc); SFC64: uint64 (4,))."""
     states = _STATES[rng]
     run = _words(seed)
@@ -174,7 +180,7 @@ def _fast_states(seed: int, keys: Sequence[tuple], rng: str = DEFAULT_RNG) -> li
         with np.errstate(over="ignore"):
             return list(states(_pools(ent_arr)))
     ent = [run + [w for k in key for w in _words(k)] for key in keys]
-    out: list = [None] * len(ent)
+    out: list[Any] = [None] * len(ent)
     by_len: dict[int, list[int]] = {}
     for i, e in enumerate(ent):
         by_len.setdefault(len(e), []).append(i)
@@ -186,7 +192,7 @@ def _fast_states(seed: int, keys: Sequence[tuple], rng: str = DEFAULT_RNG) -> li
     return out
 
 
-def _state_dict(rng: str, st) -> dict:
+def _state_dict(rng: str, st: Any) -> dict[str, Any]:
     if rng == "pcg64":
         return {
             "bit_generator": "PCG64",
@@ -221,8 +227,8 @@ def _fast_ok(rng: str = DEFAULT_RNG) -> bool:
 
 def generators(
     seed: int,
-    keys: Sequence[tuple],
-    stream: tuple = DATA_STREAM,
+    keys: Sequence[tuple[int, ...]],
+    stream: tuple[int, ...] = DATA_STREAM,
     *,
     fresh: bool = False,
     rng: str = DEFAULT_RNG,
@@ -241,7 +247,8 @@ def generators(
         for k in keys:
             yield np.random.Generator(bitgen(np.random.SeedSequence(seed, spawn_key=k)))
         return
-    bg = gen = None
+    bg: Any = None
+    gen: Any = None
     for st in _fast_states(seed, keys, rng):
         if fresh or bg is None:
             bg = bitgen(0)
@@ -253,7 +260,19 @@ def generators(
 # ---------------------------------------------------------------------------
 # draws, simulation, regression data
 # ---------------------------------------------------------------------------
-def draw_noise(seed, keys, *, N, T0, n, m, sigma_u, sigma_w, x0_std=0.0, rng=DEFAULT_RNG):
+def draw_noise(
+    seed: int,
+    keys: Sequence[tuple[int, ...]],
+    *,
+    N: int,
+    T0: int,
+    n: int,
+    m: int,
+    sigma_u: float,
+    sigma_w: float,
+    x0_std: float = 0.0,
+    rng: str = DEFAULT_RNG,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Draw (x0, u, w) for every key, in the layout the simulation uses.
 
     Order of draws per key (the reproducibility contract): x0 of shape
@@ -279,7 +298,7 @@ def draw_noise(seed, keys, *, N, T0, n, m, sigma_u, sigma_w, x0_std=0.0, rng=DEF
     return x0, u, w
 
 
-def simulate(A, B, *, x0, u, w) -> np.ndarray:
+def simulate(A: Array, B: Array, *, x0: Array, u: Array, w: Array) -> FloatArray:
     """x_{k+1} = A x_k + B u_k + w_k for all rollouts at once -> x (R, n, T0+1, N).
 
     A plain reference (elementwise multiply-adds); the runner simulates in
@@ -299,7 +318,7 @@ def simulate(A, B, *, x0, u, w) -> np.ndarray:
     return x
 
 
-def regression_data(x, u, data: str = "all"):
+def regression_data(x: Array, u: Array, data: str = "all") -> tuple[FloatArray, FloatArray]:
     """Regressors Z = [x_k; u_k] (R, n+m, N0) and targets F = x_{k+1} (R, n, N0).
 
     ``data="all"``: k = 1..T0-1 of every rollout, N0 = (T0-1) N;
@@ -315,7 +334,18 @@ def regression_data(x, u, data: str = "all"):
     return Z, F
 
 
-def collect(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0, rng=DEFAULT_RNG):
+def collect(
+    system: SystemSpec,
+    sigma_w: float,
+    N: int,
+    T0: int,
+    *,
+    seed: int,
+    keys: Sequence[tuple[int, ...]],
+    data: str = "all",
+    x0_std: float = 0.0,
+    rng: str = DEFAULT_RNG,
+) -> tuple[FloatArray | None, FloatArray | None]:
     """Simulate the rollouts of every key and return (Z, F); docs/science.md#1-system-and-data.
 
     The same numbers as the experiment runner uses (it calls :func:`gram_data`)."""
@@ -334,7 +364,7 @@ def collect(system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0, rng=D
     return Z, F
 
 
-def _draw(g, x0b, draw, x0_std) -> bool:
+def _draw(g: np.random.Generator, x0b: FloatArray, draw: FloatArray, x0_std: float) -> bool:
     """One key's draws in the documented order: x0 into ``x0b`` if x0_std > 0
     (-> True), then u and w into ``draw`` (m+n, T0, N)."""
     if x0_std > 0:
@@ -348,8 +378,18 @@ CHUNK_BYTES = 2 * 2**20
 
 
 def gram_data(
-    system, sigma_w, N, T0, *, seed, keys, data="all", x0_std=0.0, keep_data=False, rng=DEFAULT_RNG
-):
+    system: SystemSpec,
+    sigma_w: float,
+    N: int,
+    T0: int,
+    *,
+    seed: int,
+    keys: Sequence[tuple[int, ...]],
+    data: str = "all",
+    x0_std: float = 0.0,
+    keep_data: bool = False,
+    rng: str = DEFAULT_RNG,
+) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray | None]:
     """Sufficient statistics of every key's regression data, without forming Z.
 
     Draws in the documented order (:func:`draw_noise`; u and w of a key come
@@ -404,25 +444,26 @@ def gram_data(
             np.matmul(Zv, Zt, out=G[s:e])
             np.matmul(Fv, Zt, out=P[s:e])
         if keep_data:
+            assert Z is not None and F is not None
             Z[s:e] = Zv
             F[s:e] = Fv
     return G, P, Z, F
 
 
 def resampled_grams(
-    seed,
-    keys,
-    systems,
-    owner,
+    seed: int,
+    keys: Sequence[tuple[int, ...]],
+    systems: ArrayLike,
+    owner: ArrayLike,
     *,
-    sigma_u,
-    N,
-    T0,
-    data="all",
-    x0_std=0.0,
-    rng=DEFAULT_RNG,
-    chunk_bytes=CHUNK_BYTES,
-):
+    sigma_u: float,
+    N: int,
+    T0: int,
+    data: str = "all",
+    x0_std: float = 0.0,
+    rng: str = DEFAULT_RNG,
+    chunk_bytes: int = CHUNK_BYTES,
+) -> Iterator[tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray]]:
     """Datasets of several systems on shared noise, as sufficient statistics, by chunks.
 
     Dataset i draws from ``keys[i]`` in the documented order (:func:`draw_noise`:

@@ -11,6 +11,7 @@ the grid is split nor on where the units run
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from concurrent.futures import Executor
 from dataclasses import replace
 from typing import Any
 
@@ -22,7 +23,7 @@ from .threads import blas_single_thread
 from .unit_result import Dataset, UnitResult
 
 
-def run_unit_result(spec: ExperimentSpec, unit: dict) -> UnitResult:
+def run_unit_result(spec: ExperimentSpec, unit: dict[str, Any]) -> UnitResult:
     """Run one work unit of ``plan_units`` -> its records as a :class:`UnitResult`.
 
     A unit may carry ``"mc_reps"``: it overrides the spec's for this unit
@@ -32,7 +33,7 @@ def run_unit_result(spec: ExperimentSpec, unit: dict) -> UnitResult:
 
 
 def run_unit_results(
-    specs: list[ExperimentSpec], unit: dict, *, timings: dict | None = None
+    specs: list[ExperimentSpec], unit: dict[str, Any], *, timings: dict[Any, float] | None = None
 ) -> list[UnitResult]:
     """One work unit of ``specs[0]``'s plan for specs that share its data and
     estimates (:func:`svrobs_core.pipeline.shares_data`, e.g. the same grid with
@@ -56,7 +57,7 @@ def run_unit_results(
     reps = list(range(*unit["reps"]))
     axis = estimator_axis(spec)
     datasets: list[list[Dataset]] = [[] for _ in specs]
-    prev_gains: list = [None] * len(specs)
+    prev_gains: list[Any] = [None] * len(specs)
     with blas_single_thread():
         for N in sorted(unit["N"]):
             which = [i for i, s in enumerate(specs) if N in s.N]
@@ -98,16 +99,16 @@ def run_unit_results(
     ]
 
 
-def run_unit(spec: ExperimentSpec, unit: dict) -> list[dict]:
+def run_unit(spec: ExperimentSpec, unit: dict[str, Any]) -> list[dict[str, Any]]:
     """Run one work unit of ``plan_units`` -> its records."""
     return run_unit_result(spec, unit).records()
 
 
-def _records_of(result: UnitResult) -> list[dict]:
+def _records_of(result: UnitResult) -> list[dict[str, Any]]:
     return result.records()
 
 
-def _work(spec, unit, post):
+def _work(spec: ExperimentSpec, unit: dict[str, Any], post: Callable[[UnitResult], Any]) -> Any:
     return post(run_unit_result(spec, unit))
 
 
@@ -115,10 +116,10 @@ def run_spec(
     spec: ExperimentSpec,
     *,
     progress: Callable[[int, int], None] | None = None,
-    units: list[dict] | None = None,
+    units: list[dict[str, Any]] | None = None,
     n_jobs: int = 1,
     post: Callable[[UnitResult], Any] | None = None,
-    pool=None,
+    pool: Executor | None = None,
 ) -> Iterator[Any]:
     """Run every unit, yielding each unit's records in unit order.
 
@@ -137,6 +138,7 @@ def run_spec(
             yield from run_ordered(pool, _work, calls, progress)
         else:
             with open_pool(n_jobs) as own:
+                assert own is not None  # n_jobs > 1
                 yield from run_ordered(own, _work, calls, progress)
         return
     for i, unit in enumerate(units):

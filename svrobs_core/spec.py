@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterable
 from dataclasses import MISSING, dataclass, field, fields
-from typing import Any
+from typing import Any, cast
 
 from .errors import SpecError
 from .rollouts import DEFAULT_RNG, RNGS
@@ -115,7 +116,7 @@ class ExperimentSpec:
     # bootstrap noise level: the residuals' estimate or the spec's
     boot_sigma_w: str = BOUNDS_OPTIONS["bootstrap"]["boot_sigma_w"]
     rng: str = DEFAULT_RNG  # bit generator of every draw (docs/performance.md#generators)
-    raw_systems: tuple = field(default=(), compare=False)
+    raw_systems: tuple[Any, ...] = field(default=(), compare=False)
     # A job on measured data: its options (svrobs_core.measured.spec.DatasetOptions);
     # then systems and sigma_w are empty (docs/measured.md#spec).
     measured: Any = None
@@ -154,9 +155,10 @@ class ExperimentSpec:
         pairs = len(self.grid_systems) * len(self.grid_sigma_w)
         return pairs * len(self.N) * self.reps * self.cells_per_rep
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         if self.measured is not None:
-            return self.measured.spec_dict(self)
+            out: dict[str, Any] = self.measured.spec_dict(self)
+            return out
         return {
             "systems": [s if isinstance(s, str) else s for s in self.raw_systems],
             "sigma_w": list(self.sigma_w),
@@ -184,7 +186,7 @@ class ExperimentSpec:
             **({} if self.rng == DEFAULT_RNG else {"rng": self.rng}),
         }
 
-    def _bounds_dict(self) -> dict:
+    def _bounds_dict(self) -> dict[str, Any]:
         """The bounds options, only for a non-paper method (so that the normalised
         JSON of every spec written before ``bounds_method`` existed is unchanged)."""
         if self.bounds_method == "paper":
@@ -208,7 +210,7 @@ DEFAULTS: dict[str, Any] = {
 }
 
 
-def _int(value, name: str, *, lo: int, hi: int | None = None) -> int:
+def _int(value: object, name: str, *, lo: int, hi: int | None = None) -> int:
     """A JSON integer: booleans, floats (3.0 too) and strings are refused."""
     if isinstance(value, bool) or not isinstance(value, int):
         raise SpecError(name, f"must be an integer, got {json.dumps(value, default=str)}")
@@ -219,7 +221,7 @@ def _int(value, name: str, *, lo: int, hi: int | None = None) -> int:
     return value
 
 
-def _float(value, name: str, *, positive: bool = False, nonneg: bool = False) -> float:
+def _float(value: object, name: str, *, positive: bool = False, nonneg: bool = False) -> float:
     """A JSON number: booleans and numeric strings ("0.5") are refused."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise SpecError(name, f"must be a number, got {json.dumps(value, default=str)}")
@@ -233,7 +235,7 @@ def _float(value, name: str, *, positive: bool = False, nonneg: bool = False) ->
     return v
 
 
-def _list(value, name: str) -> list:
+def _list(value: object, name: str) -> list[Any]:
     if not isinstance(value, list) or not value:
         raise SpecError(name, "must be a non-empty list")
     if len(value) > MAX_GRID:
@@ -241,13 +243,13 @@ def _list(value, name: str) -> list:
     return value
 
 
-def _choice(value, name: str, options) -> str:
+def _choice(value: Any, name: str, options: Iterable[str]) -> str:
     if value not in options:
         raise SpecError(name, f"must be one of {list(options)}, got {value!r}")
-    return value
+    return cast(str, value)
 
 
-def _n_grid(value) -> tuple[int, ...]:
+def _n_grid(value: object) -> tuple[int, ...]:
     if isinstance(value, dict):
         unknown = set(value) - {"start", "stop", "step"}
         if unknown:
@@ -266,7 +268,7 @@ def _n_grid(value) -> tuple[int, ...]:
     return _unique(out, "N")
 
 
-def _object(value, name: str, keys: tuple[str, ...]) -> dict:
+def _object(value: object, name: str, keys: tuple[str, ...]) -> dict[str, Any]:
     """A JSON object whose fields are among ``keys`` (an unknown one is named)."""
     if not isinstance(value, dict):
         raise SpecError(name, f"must be an object {{{', '.join(keys)}}}")
@@ -276,13 +278,13 @@ def _object(value, name: str, keys: tuple[str, ...]) -> dict:
     return value
 
 
-def _unique(values: tuple, name: str) -> tuple:
+def _unique(values: tuple[Any, ...], name: str) -> tuple[Any, ...]:
     if len(set(values)) != len(values):
         raise SpecError(name, "has duplicate entries")
     return values
 
 
-def parse_simulation_spec(obj) -> ExperimentSpec:
+def parse_simulation_spec(obj: dict[str, Any]) -> ExperimentSpec:
     """Validate a spec of a simulated job (a dict from JSON) and fill the defaults.
 
     :func:`svrobs_core.parsing.parse_spec` takes either kind of job."""
@@ -340,7 +342,7 @@ def parse_simulation_spec(obj) -> ExperimentSpec:
     )
 
 
-def shared_options(obj: dict) -> dict:
+def shared_options(obj: dict[str, Any]) -> dict[str, Any]:
     """The options a simulated and a dataset job share (estimators, gamma, stages,
     sls, delta, margin, seed, horizon, loss_scale, reps, M, gamma_ref), checked
     and with their defaults: ExperimentSpec keyword arguments."""
@@ -396,7 +398,7 @@ def shared_options(obj: dict) -> dict:
     }
 
 
-def _bounds_options(obj: dict) -> dict:
+def _bounds_options(obj: dict[str, Any]) -> dict[str, Any]:
     """bounds_method and the options of that method (docs/uncertainty.md); an option
     of another method is an error naming it."""
     method = _choice(
@@ -408,7 +410,7 @@ def _bounds_options(obj: dict) -> dict:
             if key in obj and key not in own:
                 users = [m for m, o in BOUNDS_OPTIONS.items() if key in o]
                 raise SpecError(key, f"is only used with bounds_method {users[0]!r}")
-    out: dict = {"bounds_method": method}
+    out: dict[str, Any] = {"bounds_method": method}
     if method == "self-normalized":
         S = obj.get("S")
         out["S"] = None if S is None else _float(S, "S", positive=True)

@@ -14,6 +14,7 @@ mc_runs·horizon, options of another bounds method). See docs/spec.md#spec-field
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from .errors import SpecError
 from .parsing import parse_spec
@@ -54,13 +55,13 @@ class SpecField:
     hi: float | None = None
     lo_open: bool = False
     hi_open: bool = False
-    choices: tuple = ()
+    choices: tuple[Any, ...] = ()
     optional: bool = False
     only_with: str | None = None
     group: str = "grid"
 
     @property
-    def default(self):
+    def default(self) -> Any:
         """The parser's default (lists as lists), or REQUIRED."""
         if self.name in ("systems", "sigma_w", "N"):
             return REQUIRED
@@ -302,7 +303,7 @@ def _top(path: str) -> str:
     return path.split("[", 1)[0].split(".", 1)[0]
 
 
-def spec_errors(obj) -> dict[str, str]:
+def spec_errors(obj: object) -> dict[str, str]:
     """Every error of the spec ``obj`` as ``{field path: message}`` (empty when
     ``parse_spec(obj)`` accepts it; otherwise it holds the parser's own error). A spec
     on measured data (``dataset``, docs/measured.md#spec) gets its parser's first."""

@@ -4,9 +4,11 @@ docs/science.md#91-the-preset-paper-section-6)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from .array_types import FloatArray
 from .errors import SpecError
 
 _PAPER_B = [[1.0], [1.5], [2.0]]
@@ -16,7 +18,7 @@ def _paper_A(diag: float) -> list[list[float]]:
     return [[diag, 0.01, 0.0], [0.01, diag, 0.01], [0.0, 0.01, diag]]
 
 
-PRESETS: dict[str, dict] = {
+PRESETS: dict[str, dict[str, Any]] = {
     "paper-stable": {"A": _paper_A(0.9), "B": _PAPER_B, "sigma_u": 1.0, "sigma_v": 0.1},
     "paper-unstable": {"A": _paper_A(1.01), "B": _PAPER_B, "sigma_u": 1.0, "sigma_v": 0.1},
 }
@@ -27,25 +29,25 @@ class SystemSpec:
     """One true system: x+ = A x + B u + w, y = C x + v (docs/science.md#11-the-system)."""
 
     name: str
-    A: np.ndarray
-    B: np.ndarray
-    C: np.ndarray
+    A: FloatArray
+    B: FloatArray
+    C: FloatArray
     sigma_u: float = 1.0
     sigma_v: float = 0.1
 
     @property
     def n(self) -> int:
-        return self.A.shape[0]
+        return int(self.A.shape[0])
 
     @property
     def m(self) -> int:
-        return self.B.shape[1]
+        return int(self.B.shape[1])
 
     @property
     def p(self) -> int:
-        return self.C.shape[0]
+        return int(self.C.shape[0])
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {
             "name": self.name,
             "A": self.A.tolist(),
@@ -62,14 +64,14 @@ MAX_DIM = 50  # n, m, p (svrobs_core.spec.MAX_STATE_DIM)
 SIGMA_V0_COND_LIMIT = 1e12
 
 
-def _numbers(value) -> bool:
+def _numbers(value: object) -> bool:
     """True for a (nested) list of JSON numbers: no booleans, no strings like "0.5"."""
     if isinstance(value, list):
         return all(_numbers(v) for v in value)
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def _matrix(value, field: str) -> np.ndarray:
+def _matrix(value: object, field: str) -> FloatArray:
     if not isinstance(value, list) or not _numbers(value):
         raise SpecError(field, "must be a matrix of numbers (a list of rows of numbers)")
     try:
@@ -89,7 +91,7 @@ def _matrix(value, field: str) -> np.ndarray:
     return arr
 
 
-def _positive_number(value, field: str, *, allow_zero: bool) -> float:
+def _positive_number(value: object, field: str, *, allow_zero: bool) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise SpecError(field, "must be a number")
     v = float(value)
@@ -105,7 +107,7 @@ def _positive_number(value, field: str, *, allow_zero: bool) -> float:
 _SYSTEM_KEYS = {"name", "A", "B", "C", "sigma_u", "sigma_v"}
 
 
-def resolve_system(obj, field: str = "systems[0]") -> SystemSpec:
+def resolve_system(obj: object, field: str = "systems[0]") -> SystemSpec:
     """A preset name or a ``{name, A, B, C, sigma_u, sigma_v}`` object -> SystemSpec."""
     if isinstance(obj, str):
         if obj not in PRESETS:

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import os
 from collections.abc import MutableMapping
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
+from typing import Any
 
 THREAD_ENV = {
     "OPENBLAS_NUM_THREADS": "1",
@@ -38,11 +39,11 @@ def single_thread_env(environ: MutableMapping[str, str] | None = None) -> Mutabl
 class _BlasSingleThread:
     """Context: BLAS limited to one thread (when threadpoolctl is installed)."""
 
-    def __init__(self):
-        self._controller = None
+    def __init__(self) -> None:
+        self._controller: Any = None
         self._tried = False
 
-    def _get(self):
+    def _get(self) -> Any:
         if not self._tried:
             self._tried = True
             try:
@@ -53,13 +54,14 @@ class _BlasSingleThread:
                 self._controller = None
         return self._controller
 
-    def __call__(self):
+    def __call__(self) -> AbstractContextManager[Any]:
         c = self._get()
         if c is None:
             return nullcontext()
-        return c.limit(limits=1, user_api="blas")
+        ctx: AbstractContextManager[Any] = c.limit(limits=1, user_api="blas")
+        return ctx
 
-    def limit_process(self):
+    def limit_process(self) -> None:
         c = self._get()
         if c is not None:
             c.limit(limits=1, user_api="blas")

@@ -19,10 +19,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from . import estimators as _est
+from .array_types import Array, BoolArray, FloatArray
 from .data_factor import (
     U_ROUND,
     GramFactor,
@@ -58,13 +61,14 @@ REASON_SINGULAR = "Z Z^T is singular (OLS self-normalized bound undefined)"
 REASON_NONFINITE = "non-finite estimate or noise level"
 
 
-def _one_digit(x) -> np.ndarray:
+def _one_digit(x: ArrayLike) -> FloatArray:
     """x rounded to one significant digit (the numbers of :func:`reason_inaccurate`)."""
     x = np.asarray(x, dtype=float)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         e = np.floor(np.log10(np.where(x > 0, x, 1.0)))
         out = np.round(x / 10.0**e) * 10.0**e
-    return np.where(np.isfinite(out), out, x)
+    digit: FloatArray = np.where(np.isfinite(out), out, x)
+    return digit
 
 
 def reason_inaccurate(cond: float, err: float) -> str:
@@ -91,49 +95,60 @@ class BoxResult:
     certificates use (:func:`certificate_radii`), when computed.
     """
 
-    R_A: np.ndarray
-    R_B: np.ndarray
-    eps_A: np.ndarray
-    eps_B: np.ndarray
-    reason: np.ndarray
-    notes: np.ndarray
-    sigma_w: np.ndarray
-    beta: np.ndarray | None = None
-    rel_err: np.ndarray | None = None
-    cond: np.ndarray | None = None
+    R_A: Array
+    R_B: Array
+    eps_A: Array
+    eps_B: Array
+    reason: Array
+    notes: Array
+    sigma_w: Array
+    beta: Array | None = None
+    rel_err: Array | None = None
+    cond: Array | None = None
     parts: VParts | None = None
-    R_A_up: np.ndarray | None = None
-    R_B_up: np.ndarray | None = None
+    R_A_up: Array | None = None
+    R_B_up: Array | None = None
 
     @property
-    def ok(self) -> np.ndarray:
-        return np.vectorize(lambda r: r is None, otypes=[bool])(self.reason)
+    def ok(self) -> BoolArray:
+        ok: BoolArray = np.vectorize(lambda r: r is None, otypes=[bool])(self.reason)
+        return ok
 
     @property
-    def r_A(self) -> np.ndarray:
+    def r_A(self) -> FloatArray:
         """The largest entry of R_A (the record's scalar r_A)."""
-        return np.max(self.R_A, axis=(-2, -1))
+        r: FloatArray = np.max(self.R_A, axis=(-2, -1))
+        return r
 
     @property
-    def r_B(self) -> np.ndarray:
-        return np.max(self.R_B, axis=(-2, -1))
+    def r_B(self) -> FloatArray:
+        r: FloatArray = np.max(self.R_B, axis=(-2, -1))
+        return r
 
 
-def _spectral_norm(X) -> np.ndarray:
+def _spectral_norm(X: Array) -> FloatArray:
     """||X||_2 over the last two axes; NaN where X has a non-finite entry."""
-    ok = np.isfinite(X).all(axis=(-2, -1))
+    ok = cast(BoolArray, np.isfinite(X).all(axis=(-2, -1)))
     norm = np.linalg.norm(np.where(ok[..., None, None], X, 0.0), ord=2, axis=(-2, -1))
     return np.where(ok, norm, np.nan)
 
 
-def _objects(shape, mask, text) -> np.ndarray:
+def _objects(shape: tuple[int, ...], mask: ArrayLike, text: str) -> Array:
     out = np.full(shape, None, dtype=object)
     out[np.broadcast_to(mask, shape)] = text
     return out
 
 
 def self_normalized_box(
-    gram, theta_hat, *, sigma_w, delta, lam, S, lambda0=1.0, shrink=0.0
+    gram: ArrayLike | GramFactor,
+    theta_hat: ArrayLike,
+    *,
+    sigma_w: ArrayLike,
+    delta: float,
+    lam: ArrayLike,
+    S: float | FloatArray,
+    lambda0: float = 1.0,
+    shrink: ArrayLike = 0.0,
 ) -> BoxResult:
     """Self-normalized box (docs/uncertainty.md, (b)-(d)).
 
@@ -228,7 +243,14 @@ def self_normalized_box(
     )
 
 
-def certificate_radii(box: BoxResult, fac: GramFactor, theta_hat, *, lam, shrink=0.0):
+def certificate_radii(
+    box: BoxResult,
+    fac: GramFactor,
+    theta_hat: ArrayLike,
+    *,
+    lam: ArrayLike,
+    shrink: ArrayLike = 0.0,
+) -> tuple[FloatArray, FloatArray]:
     """Radius matrices that the certificates use: (R_A_up, R_B_up), never below the
     exact radii of the box around the exact estimate. -> (..., n, n), (..., n, m)
 
@@ -265,7 +287,7 @@ def certificate_radii(box: BoxResult, fac: GramFactor, theta_hat, *, lam, shrink
     return R_up[..., :n], R_up[..., n:]
 
 
-def rho_upper_bound(A_hat, R_A) -> np.ndarray:
+def rho_upper_bound(A_hat: ArrayLike, R_A: ArrayLike) -> FloatArray:
     """An upper bound of rho(|A_hat| + R_A) >= rho(A) for every A in the box, never
     below the exact value: |A_hat| + R_A rounded up, then the Collatz-Wielandt
     bound of :func:`svrobs_core.linalg.perron_upper_bound`; inf where non-finite. -> (...)"""
@@ -277,7 +299,7 @@ def rho_upper_bound(A_hat, R_A) -> np.ndarray:
 # ---------------------------------------------------------------------------
 # parametric bootstrap (Dean et al. 2020, Algorithm 2)
 # ---------------------------------------------------------------------------
-def noise_level(Z, F, theta_hat):
+def noise_level(Z: ArrayLike, F: ArrayLike, theta_hat: ArrayLike) -> tuple[FloatArray, str | None]:
     """sigma_hat_w^2 = ||F - Theta_hat Z||_F^2 / (n (N0 - d)); -> (sigma_hat (...), reason).
 
     Z (..., d, N0), F (..., n, N0), theta_hat (..., n, d), batch dims broadcast.
@@ -294,7 +316,7 @@ def noise_level(Z, F, theta_hat):
     return np.sqrt(rss / (n * (N0 - d))), None
 
 
-def _refit(name: str, gamma, Z, F, G, loss_scale: str) -> np.ndarray:
+def _refit(name: str, gamma: Any, Z: Array, F: Array, G: Array, loss_scale: str) -> Array:
     """Re-estimate with the cell's own estimator from the data (docs/science.md#2-estimators). -> (h, n, d)"""
     if name == "ols":
         return _est.fit_ols(Z, F)
@@ -308,7 +330,17 @@ def _refit(name: str, gamma, Z, F, G, loss_scale: str) -> np.ndarray:
     raise ValueError(f"unknown estimator {name!r}")
 
 
-def _deviations(name: str, gamma, centre, s, G, W, Z, F, loss_scale: str) -> np.ndarray:
+def _deviations(
+    name: str,
+    gamma: Any,
+    centre: Array,
+    s: Array,
+    G: Array,
+    W: Array,
+    Z: Array,
+    F: Array,
+    loss_scale: str,
+) -> Array:
     """Theta_b - Theta for one estimator column of a chunk of resampled datasets.
 
     The data were simulated from ``centre`` Theta (h, n, d) with noise level s
@@ -322,13 +354,13 @@ def _deviations(name: str, gamma, centre, s, G, W, Z, F, loss_scale: str) -> np.
     d = G.shape[-1]
     g = _est.ridge_parameters([gamma], N0, loss_scale)[0] if name == "svr" else 0.0
     limit = _est.SVR_COND_LIMIT if name == "svr" else _est.REFINE_COND_LIMIT
-    ok = np.isfinite(G).all(axis=(-2, -1)) & np.isfinite(W).all(axis=(-2, -1))
+    ok = cast(BoolArray, np.isfinite(G).all(axis=(-2, -1)) & np.isfinite(W).all(axis=(-2, -1)))
     lam, V = np.linalg.eigh(np.where(ok[:, None, None], G, np.eye(d)))
     lam = np.maximum(lam, 0.0)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         fine = ok & ((lam[:, -1] + g) <= limit * (lam[:, 0] + g)) & (lam[:, 0] + g > 0)
         rhs = s[:, None, None] * W - g * centre
-        dev = np.matmul(np.matmul(rhs, V) / (lam + g)[:, None, :], np.swapaxes(V, -1, -2))
+        dev: Array = np.matmul(np.matmul(rhs, V) / (lam + g)[:, None, :], np.swapaxes(V, -1, -2))
     if name == "shrunk-ols":
         dev = (dev - gamma * centre) / (1.0 + gamma)
     if not fine.all():
@@ -338,15 +370,15 @@ def _deviations(name: str, gamma, centre, s, G, W, Z, F, loss_scale: str) -> np.
 
 
 def bootstrap_box(
-    theta_hat,
+    theta_hat: ArrayLike,
     *,
     estimators: Sequence[tuple[str, float | None]],
-    sigma_w,
+    sigma_w: ArrayLike,
     sigma_u: float,
     N: int,
     T0: int,
     seed: int,
-    keys: Sequence[tuple],
+    keys: Sequence[tuple[int, ...]],
     delta: float,
     boot_reps: int = 100,
     data: str = "all",

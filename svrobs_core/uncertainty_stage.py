@@ -13,12 +13,16 @@ docs/uncertainty.md#certificates-on-the-boxes).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any, cast
 
 import numpy as np
 
 from . import estimators as _est
 from . import uncertainty as _unc
+from .array_types import Array, FloatArray
 from .bounds import BoundsResult, nullable
+from .data_factor import GramFactor
+from .planning import EstimatorAxis
 
 PAPER_ONLY_NOTE = "bounds: H_A, H_B, thm1_holds_A/B belong to the paper's method (null here)"
 HEURISTIC_NOTE = (
@@ -38,30 +42,39 @@ class SoundBounds:
     (the box itself) and the BoundsResult for later stages."""
 
     box: _unc.BoxResult
-    fields: dict
+    fields: dict[str, Any]
     result: BoundsResult
 
 
-def _ridge_axis(axis, N0: int, loss_scale: str):
+def _ridge_axis(axis: EstimatorAxis, N0: int, loss_scale: str) -> tuple[FloatArray, FloatArray]:
     """lam and shrink per estimator cell: svr -> ridge lam; ols -> 0; shrunk-ols -> shrink."""
     E = len(axis.names)
     lam = np.zeros(E)
     shrink = np.zeros(E)
     for e, (name, g) in enumerate(zip(axis.names, axis.gammas)):
         if name == "svr":
-            lam[e] = _est.ridge_parameters([g], N0, loss_scale)[0]
+            lam[e] = _est.ridge_parameters([cast(float, g)], N0, loss_scale)[0]
         elif name == "shrunk-ols":
             shrink[e] = g
     return lam, shrink
 
 
-def _coverage(true, est, R) -> np.ndarray:
+def _coverage(true: Array, est: Array, R: Array) -> FloatArray:
     """Fraction of entries with |true - est| <= R; NaN where the box is undefined."""
     inside = np.mean(np.abs(true - est) <= R, axis=(-2, -1))
     return np.where(np.isfinite(R).all(axis=(-2, -1)), inside, np.nan)
 
 
-def sound_bounds(c, *, G, Z, F, N: int, N0: int, factor=None) -> SoundBounds:
+def sound_bounds(
+    c: Any,
+    *,
+    G: Array | None,
+    Z: Array | None,
+    F: Array | None,
+    N: int,
+    N0: int,
+    factor: GramFactor | None = None,
+) -> SoundBounds:
     """Box, record fields and BoundsResult of one dataset's cells (docs/uncertainty.md).
 
     ``c``: the pipeline's cell context (spec, system, sigma_w, keys, axis,
@@ -71,7 +84,16 @@ def sound_bounds(c, *, G, Z, F, N: int, N0: int, factor=None) -> SoundBounds:
     return bounds_from_box(c, sound_box(c, G=G, Z=Z, F=F, N=N, N0=N0, factor=factor))
 
 
-def sound_box(c, *, G, Z, F, N: int, N0: int, factor=None) -> _unc.BoxResult:
+def sound_box(
+    c: Any,
+    *,
+    G: Array | None,
+    Z: Array | None,
+    F: Array | None,
+    N: int,
+    N0: int,
+    factor: GramFactor | None = None,
+) -> _unc.BoxResult:
     """The box of the spec's ``bounds_method`` for one dataset's cells
     (:func:`sound_bounds`), with the radii its certificates use (``R_A_up``,
     ``R_B_up``, :func:`svrobs_core.uncertainty.certificate_radii`).
@@ -85,7 +107,11 @@ def sound_box(c, *, G, Z, F, N: int, N0: int, factor=None) -> _unc.BoxResult:
     lam, shrink = _ridge_axis(c.axis, N0, spec.loss_scale)
     # (R, 1, ...): one factor per dataset, shared by its E cells
     if factor is None:  # ``factor``: data_factor(Z, F), when the caller has it already
-        factor = _unc.data_factor(Z, F) if Z is not None else _unc.gram_factor(G)
+        factor = (
+            _unc.data_factor(Z, cast(Array, F))
+            if Z is not None
+            else _unc.gram_factor(cast(Array, G))
+        )
     fac = factor.expand(1)
     if spec.bounds_method == "self-normalized":
         box = _unc.self_normalized_box(
@@ -102,6 +128,7 @@ def sound_box(c, *, G, Z, F, N: int, N0: int, factor=None) -> _unc.BoxResult:
         if spec.boot_sigma_w == "spec":
             sigma = c.sigma_w
         else:
+            assert Z is not None and F is not None  # the bootstrap's noise level needs the data
             sigma, reason = _unc.noise_level(Z[:, None], F[:, None], theta)
             if reason is not None:
                 c.notes.add(True, f"bounds: {reason}")
@@ -126,7 +153,7 @@ def sound_box(c, *, G, Z, F, N: int, N0: int, factor=None) -> _unc.BoxResult:
     return replace(box, R_A_up=R_A_up, R_B_up=R_B_up)
 
 
-def bounds_from_box(c, box: _unc.BoxResult) -> SoundBounds:
+def bounds_from_box(c: Any, box: _unc.BoxResult) -> SoundBounds:
     """Record fields and BoundsResult of the cells of ``c`` on ``box`` (:func:`sound_bounds`).
 
     The certificates use ``box.R_A_up`` (``box.R_A`` where the box has none).
