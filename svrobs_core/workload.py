@@ -53,7 +53,9 @@ CELL_COST = {
     "cost": (1.0e-5, 3.0e-7, 0.0),  # exact (doubling) and stationary cost
     "cost_bound": (5.0e-6, 2.5e-8, 0.0),
 }
-TRUTH = (0.015, 1.9e-5)  # per unit with gain: K, J*, norms of the true system (c0 + c n^3)
+# per unit with gain: K, J*, norms of the true system (c0 + c1 n + c3 n^3)
+TRUTH = (0.05, 0.0104, 1.6e-5)
+CELL_TRUTH = (0.015, 1.9e-5)  # a dataset job: the same per cell's estimate (c0 + c3 n^3)
 MC_DRAW = 1.2e-8  # Monte Carlo: per (row, step, run) and noise entry (draw + plant)
 MC_CELL = 2.5e-10  # Monte Carlo: per (cell, step, run) and n (W + n) multiply-add
 MC_STEP = 5.0e-6  # Monte Carlo: per step, the Python loop's calls
@@ -63,10 +65,12 @@ BOOT_ELEM = 1.0e-9  # bootstrap: one elementwise multiply-add of its simulation
 BOOT_SET = 1.0e-4  # bootstrap: per resampled dataset (its generator, draws, quantiles)
 BOOT_REFIT = 1.0e-3  # bootstrap: per chunk of datasets and estimator column (the refit call)
 CVX_SOLVE = 3.0e-3  # one small cvxpy + Clarabel solve (general-C gain design)
-SLS_SOLVE = 1.5e-3  # one SLS solve: fixed part
-SLS_VAR = 8.0e-6  # one SLS solve: per scalar variable T_fir n (n + p)
+# SLS (bench/cost_model.py): T_fir n (n + p) scalar variables, each row of the
+# affine constraint coupling n of them: solve and compile grow as T_fir n^2 (n + p)
+SLS_SOLVE = 6.0e-3  # one SLS solve: fixed part
+SLS_VAR = 3.2e-6  # one SLS solve: per scalar variable and state
 SLS_COMPILE = 1.0e-2  # compiling the SLS program (once per unit): fixed part
-SLS_COMPILE_VAR = 6.0e-6  # compiling: per scalar variable
+SLS_COMPILE_VAR = 1.2e-5  # compiling: per scalar variable and state
 
 # -- memory (bytes) ------------------------------------------------------------
 BASE_BYTES = 50 * 2**20  # interpreter + numpy + scipy + svrobs_core
@@ -120,14 +124,19 @@ def _cell(stage: str, n: int) -> float:
     return c0 + c3 * n**3 + c6 * n**6
 
 
+def truth_seconds(n: int) -> float:
+    """K, J* and the norms of one n-state system (the true system's, once per unit)."""
+    return TRUTH[0] + TRUTH[1] * n + TRUTH[2] * n**3
+
+
 def sls_solve_seconds(T_fir: int, n: int, p: int) -> float:
     """One SLS solve (:mod:`svrobs_core.sls`) of a cell, for an n-state, p-output system."""
-    return SLS_SOLVE + SLS_VAR * T_fir * n * (n + p)
+    return SLS_SOLVE + SLS_VAR * T_fir * n * (n + p) * n
 
 
 def sls_compile_seconds(T_fir: int, n: int, p: int) -> float:
     """Compiling the SLS program, once per unit."""
-    return SLS_COMPILE + SLS_COMPILE_VAR * T_fir * n * (n + p)
+    return SLS_COMPILE + SLS_COMPILE_VAR * T_fir * n * (n + p) * n
 
 
 def _ill_conditioned(spec: ExperimentSpec, si: int) -> bool:
@@ -303,7 +312,7 @@ def _measured_unit(spec: ExperimentSpec, unit: dict, data: DataShape) -> UnitCos
         cpu += DATASET + KEY * R + FLOP * R * N0 * (d + ny + 2 * d * (d + ny) + 6 * ny * d)
         cpu += cells * sum(_cell(st, max(n, p)) for st in CELL_COST if spec.has(st))
         if spec.has("cost") or spec.has("sls"):  # K, J* and the norms of each cell's estimate
-            cpu += cells * (TRUTH[0] + TRUTH[1] * n**3)
+            cpu += cells * (CELL_TRUTH[0] + CELL_TRUTH[1] * n**3)
         transient = 3 * 8.0 * R * (d + ny) * N0
         if spec.has("gain"):
             transient = max(transient, 3 * 8.0 * cells * n**4)
@@ -348,7 +357,7 @@ def unit_fixed_seconds(spec: ExperimentSpec, *, n: int, p: int) -> float:
     norms, and compiling the SLS program."""
     cpu = 0.0
     if spec.has("gain") or spec.has("sls"):
-        cpu += TRUTH[0] + TRUTH[1] * n**3
+        cpu += truth_seconds(n)
     if spec.has("sls"):
         cpu += sls_compile_seconds(spec.sls_T_fir, n, p)
     return cpu
