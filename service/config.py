@@ -43,11 +43,20 @@ class Settings(BaseSettings):
     TICK_SECONDS: float = 60.0
 
     MAX_JOB_CELLS: int = 2_000_000
+    # Admission (svrobs_core.admission, docs/deploy.md#admission): a job whose records
+    # would take more than this many MB in the store (cells x their matrix entries,
+    # from the grid's axis lengths) gets 422 before anything is planned.
+    MAX_JOB_STORED_MB: float = 10_240.0
     # Admission by work (svrobs_core.workload): a job whose estimated CPU time is over
-    # this, or one of whose units would need more memory than MAX_UNIT_MEMORY_MB even
-    # split down to one repetition, gets 422; units are planned to stay under the cap.
+    # this, or one of whose units would need more memory than MAX_UNIT_MEMORY_MB or
+    # more CPU seconds than MAX_UNIT_CPU_SECONDS even split down to one repetition,
+    # gets 422; units are planned to stay under both caps.
     MAX_JOB_CPU_SECONDS: float = 3_600.0
     MAX_UNIT_MEMORY_MB: int = 2048
+    MAX_UNIT_CPU_SECONDS: float = 600.0
+    # A JSON page of results holds at most this many matrix entries (A_hat, B_hat,
+    # radii, gains): a longer page is shortened and says where the next one starts.
+    MAX_PAGE_MATRIX_ENTRIES: int = 1_000_000
     # The pool processes that run units, all workers together (`svrobs serve` sets it
     # to its workers x --concurrency; default what it starts: one worker with one
     # process per CPU plus one, at most 5). The fair share follows it.

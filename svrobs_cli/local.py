@@ -7,7 +7,7 @@ A dataset spec runs on a file (``--dataset FILE``, or the spec's ``"dataset"`` g
 as a path, relative to the spec's folder; its records' system is then
 ``dataset-1``) and also writes ``DIR/validation.json`` (docs/datasets.md#run-local).
 Before anything runs, the service's admission (:func:`service.db.jobs.admit`, the
-cost model :func:`svrobs_core.workload.admit`) refuses a spec over
+cost model :func:`svrobs_core.admission.admit`) refuses a spec over
 ``--max-cpu-seconds`` (default SVROBS_MAX_JOB_CPU_SECONDS) or whose smallest work
 unit is over ``--max-memory-mb`` (SVROBS_MAX_UNIT_MEMORY_MB), and plans the units
 under that memory cap; the records

@@ -37,6 +37,8 @@ def limits(settings: Settings) -> dict:
         "max_cells": settings.MAX_JOB_CELLS,
         "max_cpu_seconds": settings.MAX_JOB_CPU_SECONDS,
         "max_unit_mb": settings.MAX_UNIT_MEMORY_MB,
+        "max_stored_mb": settings.MAX_JOB_STORED_MB,
+        "max_unit_cpu_seconds": settings.MAX_UNIT_CPU_SECONDS,
         "max_active_jobs": settings.MAX_QUEUED_JOBS_PER_TEAM,
     }
 

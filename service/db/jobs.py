@@ -14,7 +14,7 @@ from sqlalchemy import func, insert, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from svrobs_core import workload
+from svrobs_core import admission, workload
 from svrobs_core.parsing import parse_spec
 from svrobs_core.planning import unit_cells
 from svrobs_core.spec import ExperimentSpec
@@ -40,6 +40,8 @@ def create_job(
     max_unit_mb: int | None = None,
     max_active_jobs: int | None = None,
     schedule_id: int | None = None,
+    max_stored_mb: float | None = None,
+    max_unit_cpu_seconds: float | None = None,
 ) -> tuple[Job, bool]:
     """Validate ``spec`` and insert the job and its work units (not committed).
 
@@ -64,6 +66,8 @@ def create_job(
         max_cells=max_cells,
         max_cpu_seconds=max_cpu_seconds,
         max_unit_mb=max_unit_mb,
+        max_stored_mb=max_stored_mb,
+        max_unit_cpu_seconds=max_unit_cpu_seconds,
         data=data,
     )
     tags = list(dict.fromkeys(str(t) for t in tags))
@@ -136,6 +140,16 @@ def create_job(
     return job, True
 
 
+# the setting of each limit of svrobs_core.admission (WorkloadError.kind)
+LIMIT_SETTINGS = {
+    "cells": "SVROBS_MAX_JOB_CELLS",
+    "stored": "SVROBS_MAX_JOB_STORED_MB",
+    "cpu": "SVROBS_MAX_JOB_CPU_SECONDS",
+    "unit_cpu": "SVROBS_MAX_UNIT_CPU_SECONDS",
+    "memory": "SVROBS_MAX_UNIT_MEMORY_MB",
+}
+
+
 def admit(
     spec: ExperimentSpec,
     *,
@@ -143,36 +157,39 @@ def admit(
     max_cells: int | None = None,
     max_cpu_seconds: float | None = None,
     max_unit_mb: float | None = None,
+    max_stored_mb: float | None = None,
+    max_unit_cpu_seconds: float | None = None,
     data: workload.DataShape | None = None,
 ) -> list[dict]:
-    """The spec's work units, planned to stay under SVROBS_MAX_UNIT_MEMORY_MB, if the
-    job is admissible (:func:`svrobs_core.workload.admit`; a dataset job with its
-    dataset's shape ``data``: :func:`service.db.datasets.spec_data`).
+    """The spec's work units, planned to stay under SVROBS_MAX_UNIT_MEMORY_MB and
+    SVROBS_MAX_UNIT_CPU_SECONDS, if the job is admissible
+    (:func:`svrobs_core.admission.admit`, docs/deploy.md#admission; a dataset job with
+    its dataset's shape ``data``: :func:`service.db.datasets.spec_data`).
 
-    Raises :class:`JobTooLarge` when the job's estimated CPU time is over
-    SVROBS_MAX_JOB_CPU_SECONDS or a unit needs more memory than the cap even split
-    down to one repetition (naming the spec field that weighs most, under ``field``
-    if given: ``spec_template.mc_runs``; the message gives the estimate, the limit
-    and the setting), or when the job has more than SVROBS_MAX_JOB_CELLS cells
-    (naming ``field``, default ``spec``). A limit of None: no limit.
+    Raises :class:`JobTooLarge` naming the spec field that weighs most (under
+    ``field`` if given: ``spec_template.mc_runs``; the message gives the estimate,
+    the limit and its setting) when the job has more cells than SVROBS_MAX_JOB_CELLS
+    or would store more than SVROBS_MAX_JOB_STORED_MB (checked first, from the axis
+    lengths), when its estimated CPU time is over SVROBS_MAX_JOB_CPU_SECONDS, or when
+    a unit split down to one repetition is over a per-unit cap. None or 0: no limit.
     """
-    cpu, mb = max_cpu_seconds, max_unit_mb
-    max_bytes = None if mb is None else int(mb * 2**20)
-    try:  # (a job too big to plan is refused by the estimate's floor first)
-        units, _cost = workload.admit(
-            spec, max_cpu_seconds=cpu, max_unit_bytes=max_bytes, data=data
+    mb, smb = max_unit_mb or None, max_stored_mb or None
+    try:
+        units, _cost = admission.admit(
+            spec,
+            max_cells=max_cells or None,
+            max_stored_bytes=None if smb is None else smb * 2**20,
+            max_cpu_seconds=max_cpu_seconds or None,
+            max_unit_bytes=None if mb is None else int(mb * 2**20),
+            max_unit_seconds=max_unit_cpu_seconds or None,
+            data=data,
         )
     except workload.WorkloadError as exc:
-        setting = "SVROBS_MAX_JOB_CPU_SECONDS" if exc.kind == "cpu" else "SVROBS_MAX_UNIT_MEMORY_MB"
-        raise JobTooLarge(
-            f"{field}.{exc.field}" if field else exc.field, f"{exc.message} ({setting})"
-        ) from None
-    cells = max_cells
-    if cells is not None and spec.n_cells > cells:
-        raise JobTooLarge(
-            field or "spec",
-            f"the job has {spec.n_cells:,} cells; the limit is {cells:,} (SVROBS_MAX_JOB_CELLS)",
-        )
+        if exc.kind == "cells":  # the grid as a whole
+            where = field or "spec"
+        else:
+            where = f"{field}.{exc.field}" if field else exc.field
+        raise JobTooLarge(where, f"{exc.message} ({LIMIT_SETTINGS[exc.kind]})") from None
     return units
 
 

@@ -33,7 +33,13 @@ def run_local(tmp_path, spec: dict, *extra: str) -> subprocess.CompletedProcess:
 
 CASES = [
     # the work of the whole job, refused by the cost model (was 4.6 GB after 40 s)
-    ({"N": {"start": 1, "stop": 100_000}, "reps": 1_000_000}, "CPU seconds", "error: "),
+    ({"N": {"start": 1, "stop": 100_000}, "estimators": ["ols"]}, "CPU seconds", "error: "),
+    # 10^11 records: refused by the cell cap from the axis lengths, before the cost model
+    (
+        {"N": {"start": 1, "stop": 100_000}, "reps": 1_000_000},
+        "SVROBS_MAX_JOB_CELLS",
+        "error: invalid spec: spec",
+    ),
     # a hard cap (was "Unable to allocate 29.8 GiB")
     ({"N": [100_000_000]}, "N[0]: must be <= 1000000", "error: invalid spec: N[0]"),
     # was "SVD did not converge"

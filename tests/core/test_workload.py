@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from svrobs_core import parse_spec, plan_units, run_spec
+from svrobs_core.admission import admit
 from svrobs_core.planning import unit_cells
 from svrobs_core.workload import (
     DataShape,
     WorkloadError,
-    admit,
     estimate_job,
     estimate_unit,
     measured_fixed_bytes,

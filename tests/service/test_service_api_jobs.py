@@ -70,6 +70,15 @@ def test_idempotency_key_same_job_one_set_of_units(client, publisher, session, m
     assert c.status_code == 409 and c.json()["field"] == "Idempotency-Key"
 
 
+# 100,000 cells of an hour or more of CPU (the N axis up to 100,000 samples)
+CPU_HEAVY = {
+    "systems": ["paper-stable"],
+    "sigma_w": [1.0],
+    "N": {"start": 1, "stop": 100_000},
+    "estimators": ["ols"],
+}
+
+
 def _assert_422(r, field):
     assert r.status_code == 422, r.text
     body = r.json()
@@ -92,10 +101,14 @@ def test_bad_input_422_names_field_and_writes_nothing(client, publisher, session
     _assert_422(submit(client, acc, {**SMALL_SPEC, "sls": {"T_fir": 5, "bogus": 1}}), "sls.bogus")
     _assert_422(submit(client, acc, {"sigma_w": [1], "N": [5]}), "systems")
     _assert_422(submit(client, acc, {**SMALL_SPEC, "tags": "notalist"}), "tags")
+    # 600 million records: refused by the cell cap, from the axis lengths alone
+    r = submit(client, acc, {**SMALL_SPEC, "reps": 10**6, "N": list(range(10, 60))})
+    _assert_422(r, "spec")
+    assert "SVROBS_MAX_JOB_CELLS" in r.json()["detail"]
     _assert_422(
-        # refused by its estimated work (600 million records), naming the field that weighs most
-        submit(client, acc, {**SMALL_SPEC, "reps": 10**6, "N": list(range(10, 60))}),
-        "reps",
+        # under the cell cap, refused by its estimated work, naming the field that weighs most
+        submit(client, acc, {**CPU_HEAVY, "reps": 1}),
+        "N",
     )
     r = client.post(
         f"{API}/jobs",

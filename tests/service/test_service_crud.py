@@ -398,7 +398,7 @@ def test_stored_summaries_equal_a_summary_of_all_results(
     from svrobs_core.records import summarize
 
     if split_reps is True:  # 1 repetition per unit: every group spans three units
-        # (service.db.jobs.admit plans through svrobs_core.workload.admit)
+        # (service.db.jobs.admit plans through svrobs_core.admission.admit)
         split = functools.partial(planning.plan_units, max_cells=6)
         monkeypatch.setattr(planning, "plan_units", split)
     acc = make_account()
