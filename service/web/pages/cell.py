@@ -1,6 +1,6 @@
 """``/results/cell``: one cell of a job (a row of ``/results``) with its matrices
 (Â, B̂, the radii, L, K: whatever the record holds) as small tables under the
-glossary's names and units, and its other fields (docs/web.md#cell-page). The
+glossary's names and units, and its other fields (docs/web.md#a-cells-matrices). The
 record is :func:`svrobs_lab.results.page_records` of the cell's grid coordinates,
 as ``GET /api/v1/jobs/{id}/results`` selects it."""
 
@@ -17,7 +17,7 @@ from service.http.deps import get_db
 from service.web.deps import CurrentViewer
 from service.web.fields import unit
 from service.web.render import WebError, render
-from svrobs_core.records import MATRIX_FIELDS, RECORD_FIELDS, json_value
+from svrobs_core.records import FIELD_GLOSSARY, MATRIX_FIELDS, RECORD_FIELDS, json_value
 from svrobs_lab import results
 from svrobs_lab.auth import MAX_ID
 
@@ -50,7 +50,14 @@ def _matrix(field: str, value) -> dict | None:
     if not rows:
         return None
     rows = [r if isinstance(r, list) else [r] for r in rows]
-    return {"field": field, "unit": unit(field), "rows": rows, "cols": max(map(len, rows))}
+    meaning = FIELD_GLOSSARY[field][2]
+    return {
+        "field": field,
+        "unit": unit(field),
+        "meaning": meaning,
+        "rows": rows,
+        "cols": max(map(len, rows)),
+    }
 
 
 @router.get("/results/cell")
