@@ -361,10 +361,14 @@ class Client(DatasetCalls):
         return Report(html=page, figures=written)
 
     # ------------------------------------------------------------------ share links
-    def share(self, job: Job | int, *, days: float = 7) -> Share:
+    def share(self, job: Job | int, *, days: float = 7, label: str | None = None) -> Share:
         """A read-only link to the job's report and charts that opens without a key and
-        expires after ``days``; ``share.url`` (with its token) is returned only now."""
-        r = self.request("POST", f"/jobs/{_id(job)}/shares", json={"days": days})
+        expires after ``days``; ``label`` says what it is for (shown in the lists).
+        ``share.url`` (with its token) is returned only now."""
+        body: dict[str, Any] = {"days": days}
+        if label is not None:
+            body["label"] = label
+        r = self.request("POST", f"/jobs/{_id(job)}/shares", json=body)
         return Share.from_json(r.json())
 
     def shares(self, job: Job | int) -> list[Share]:

@@ -148,10 +148,12 @@ class ScheduleRun(_FromJSON):
 @dataclass(frozen=True)
 class Share(_FromJSON):
     """A read-only link to one job's report and charts, opened without a key until it
-    expires or is revoked. ``url`` is only known in the answer that created it."""
+    expires or is revoked. ``label`` says what it is for (None: no label); ``url`` is
+    only known in the answer that created it."""
 
     id: int
     job_id: int
+    label: str | None
     created_at: datetime | None
     expires_at: datetime | None
     revoked_at: datetime | None

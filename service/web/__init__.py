@@ -24,6 +24,7 @@ def mount_web(app: FastAPI) -> None:
     """Serve the pages, ``/static`` and the error pages on ``app`` (its settings set)."""
     from service.web.pages import (  # a new page module: add it here
         auth,
+        cell,
         compare,
         datasets,
         job,
@@ -38,7 +39,7 @@ def mount_web(app: FastAPI) -> None:
     app.state.web_signer = Signer(load_secret(settings), session_hours=settings.SESSION_HOURS)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.add_api_route("/favicon.ico", _favicon, include_in_schema=False)
-    for module in (auth, jobs, submit, job, results, compare, schedules, share, datasets):
+    for module in (auth, jobs, submit, job, results, cell, compare, schedules, share, datasets):
         app.include_router(module.router)
     app.add_exception_handler(WebError, web_error_page)
     app.add_exception_handler(SignInRequired, sign_in_redirect)

@@ -11,7 +11,7 @@ import base64
 import io
 import json
 import re
-from datetime import timedelta
+from datetime import datetime, timedelta
 
 import httpx
 import numpy as np
@@ -220,6 +220,28 @@ def test_share_links(client, job, http):
     with pytest.raises(ValidationError) as err:
         client.share(job, days=0)
     assert (err.value.status, err.value.field) == (422, "days")
+
+
+def test_share_label_and_creation_time_are_the_apis(client, job, http):
+    """``Share.label`` and ``created_at`` as the API returns them, in the creating
+    answer and in the list; no label is None; a label over 200 characters is a 422."""
+    named = client.share(job, label="for the review · Q3")
+    plain = client.share(job)
+    try:
+        assert (named.label, plain.label) == ("for the review · Q3", None)
+        listed = {s.id: s for s in client.shares(job)}
+        raw = {s["id"]: s for s in http.get(f"/jobs/{job.id}/shares").json()}
+        for made in (named, plain):
+            got = listed[made.id]
+            assert got.label == made.label == raw[made.id]["label"]
+            assert got.created_at == made.created_at
+            assert got.created_at == datetime.fromisoformat(raw[made.id]["created_at"])
+        with pytest.raises(ValidationError) as err:
+            client.share(job, label="x" * 201)
+        assert (err.value.status, err.value.field) == (422, "label")
+    finally:
+        client.revoke_share(named)
+        client.revoke_share(plain)
 
 
 def test_download_results_matches_the_export(client, job, http, tmp_path):

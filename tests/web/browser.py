@@ -7,7 +7,6 @@ another host.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -23,8 +22,6 @@ ARGS = [
     "--no-first-run",
     "--disable-quic",
 ]
-# SVROBS_SCREENSHOTS=docs/img writes the dashboard screenshots of the README there.
-SCREENSHOTS = os.environ.get("SVROBS_SCREENSHOTS")
 
 needs_chromium = pytest.mark.skipif(
     not CHROMIUM.exists(), reason=f"{CHROMIUM} missing (Debian package 'chromium')"

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +15,7 @@ from playwright.sync_api import expect
 from svrobs_cli.serve import api_command
 from tests.integration.stack import free_port, submit
 
-from .browser import SCREENSHOTS, Browser, needs_chromium
+from .browser import Browser, needs_chromium
 
 pytestmark = [
     pytest.mark.integration,
@@ -173,9 +172,6 @@ def check_presets(page, summary: dict) -> None:
             np.testing.assert_allclose(np.array(got[k]), np.array(want[k]), rtol=1e-12)
         note = page.locator("#chart-band-note").inner_text()
         assert note.startswith(f"(the report's {figure}")
-        if SCREENSHOTS and n == 1:
-            path = Path(SCREENSHOTS) / "dashboard-preset.png"
-            page.locator("#charts-card").screenshot(path=str(path))
     page.select_option("#chart-preset", "")
     wait_charts(page, loads + 3)
     assert not page.is_disabled("#chart-metric")
@@ -237,8 +233,6 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
     plotted = wait_charts(page, 1)
     assert len(plotted) == 4 and all(c["y"] == "logarithmic" for c in plotted)
     assert_charts_equal_summary(plotted, summary, "N", "rmse_A")
-    if SCREENSHOTS:
-        page.screenshot(path=str(Path(SCREENSHOTS) / "dashboard-job.png"), full_page=True)
     page.select_option("#chart-x", "sigma_w")
     wait_charts(page, 2)
     page.select_option("#chart-metric", "H_A")
@@ -359,28 +353,3 @@ def test_other_team_gets_404_and_posts_need_the_csrf_token(browser, stack, team_
     )
     assert own == 403
     assert page.goto("/jobs").url.endswith("/jobs")  # still signed in
-
-
-@pytest.mark.skipif(not SCREENSHOTS, reason="SVROBS_SCREENSHOTS (a folder) not set")
-def test_dashboard_screenshot_of_jobs_in_every_state(browser, stack):
-    """Not a check: the README's picture of the jobs page with queued, running,
-    cancelled and finished jobs (runs after the other tests of this module)."""
-    import time
-
-    with stack.client() as api:
-        big = submit(api, {**SPEC, "N": list(range(10, 410, 10)), "reps": 5}, name="N sweep")
-        cancelled = submit(api, TINY, name="cancelled sweep", tags=["demo"])
-        api.post(f"/jobs/{cancelled['id']}/cancel")
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            job = api.get(f"/jobs/{big['id']}").json()
-            if job["progress"]["done"] >= 2 or job["status"] != "queued":
-                break
-            time.sleep(0.2)
-        submit(api, TINY, name="queued sweep", tags=["nightly"])
-    page = browser.page(stack.base_url)
-    sign_in(page, stack.key)
-    page.set_viewport_size({"width": 1280, "height": 440})  # full_page: as high as the page
-    page.screenshot(path=str(Path(SCREENSHOTS) / "dashboard-jobs.png"), full_page=True)
-    with stack.client() as api:
-        api.post(f"/jobs/{big['id']}/cancel")

@@ -19,6 +19,7 @@ from service.db.result_queries import RANGE_FIELDS, grid_choices
 from service.http.deps import get_db
 from service.web.deps import CurrentViewer
 from service.web.errors import plain
+from service.web.pages.cell import cell_query
 from service.web.render import WebError, render
 from svrobs_core.records import NUMERIC_FIELDS
 from svrobs_lab import results
@@ -94,6 +95,12 @@ def _grid(request: Request, db: Session, viewer, job: Job, page: int) -> dict:
         "sort": sort,
         "sort_query": lambda f: link(sort=("-" + f) if sort == f else f),
         "page_query": lambda p: link(sort=sort, page=p),
+        "cell_link": lambda r: (
+            "/results/cell?"
+            + cell_query(job.id, r)
+            + "&"
+            + urlencode({"back": urlencode(q.multi_items())})
+        ),
     }
 
 
