@@ -3,7 +3,7 @@
 
     svrobs datasets upload FILE --name N [--description D] [--sample-time DT]
                            [--state-columns x1,x2] [--input-columns u1]
-                           [--state-names a,b] [--input-names u] [--json]
+                           [--state-names a,b] [--input-names u] [--json] [--print-id]
     svrobs datasets list [--limit 20] [--offset 0] [--json]
     svrobs datasets show ID [--json]
     svrobs datasets delete ID [--yes]
@@ -48,6 +48,12 @@ def upload(
     state_names: str | None = typer.Option(None, help="NPZ/MAT/JSON: the states' names"),
     input_names: str | None = typer.Option(None, help="NPZ/MAT/JSON: the inputs' names"),
     as_json: bool = typer.Option(False, "--json", help="print the API's JSON"),
+    print_id: bool = typer.Option(
+        False,
+        "--print-id",
+        help="print only the dataset id on stdout (the summary on stderr): "
+        "ds=$(svrobs datasets upload ...)",
+    ),
 ) -> None:
     """Upload a file of measured rollouts as a dataset."""
     if not file.is_file():
@@ -66,6 +72,9 @@ def upload(
             )
         except ValidationError as exc:
             raise CliError(f"{file.name}: {plain_message(exc)}") from None
+    if print_id:
+        typer.echo(_summary(d), err=True)
+        return typer.echo(d.id)
     if as_json:
         return print_json(d.raw)
     typer.echo(_summary(d))

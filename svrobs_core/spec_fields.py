@@ -9,14 +9,19 @@ enforces (``tests/core/test_spec_fields.py`` probes the parser at each bound).
 first, so each field is checked alone on a spec that is otherwise valid, and the
 whole spec is checked last for the rules between fields (T0·N, the stages' needs,
 mc_runs·horizon, options of another bounds method). See docs/spec.md#spec-fields.
+:data:`DATASET_FIELDS` declares the keys only a job on measured data has, and
+:func:`for_datasets` says which fields such a job takes (docs/measured.md#spec).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 from .errors import SpecError
+from .measured.spec import BOUNDS_METHOD as DATASET_BOUNDS_METHOD
+from .measured.spec import SPEC_FIELDS as DATASET_SPEC_KEYS
+from .measured.spec import DatasetOptions
 from .parsing import parse_spec
 from .rollouts import RNGS
 from .spec import (
@@ -45,7 +50,11 @@ class SpecField:
     (N: a list of integers or start/stop/step), ``int``, ``number``, ``choice``,
     ``choices`` (a subset, in order), ``bool``; ``optional``: null (empty) allowed.
     ``lo``/``hi`` bound the value (``lo_open``: > instead of ≥, ``hi_open``: <);
-    ``only_with``: the bounds_method the option belongs to."""
+    ``only_with``: the bounds_method the option belongs to. A field of
+    :data:`DATASET_FIELDS` has ``dataset_only`` (kinds ``dataset``: a dataset's id,
+    ``level``: a number or ``"estimate"``, ``json``: a JSON value) and ``key``, the
+    name a form gives it where it differs from the spec key's (σ_w is a list in a
+    simulated job, one level in a dataset job)."""
 
     name: str
     kind: str
@@ -59,10 +68,19 @@ class SpecField:
     optional: bool = False
     only_with: str | None = None
     group: str = "grid"
+    dataset_only: bool = False
+    key: str = ""
+
+    @property
+    def form_key(self) -> str:
+        """The field's name in a form (the spec key unless ``key`` says otherwise)."""
+        return self.key or self.name
 
     @property
     def default(self) -> Any:
         """The parser's default (lists as lists), or REQUIRED."""
+        if self.dataset_only:
+            return _DATASET_DEFAULTS[self.name]
         if self.name in ("systems", "sigma_w", "N"):
             return REQUIRED
         if self.only_with:
@@ -293,9 +311,92 @@ SPEC_FIELDS: tuple[SpecField, ...] = (
     ),
 )
 FIELDS_BY_NAME = {f.name: f for f in SPEC_FIELDS}
+_DATASET_DEFAULTS = {
+    "dataset": REQUIRED,
+    "sigma_w": "estimate",
+    **{f.name: f.default for f in fields(DatasetOptions) if f.name not in ("dataset", "sigma_w")},
+}
+_DATASET_DEFAULTS["state"] = _DATASET_DEFAULTS.pop("lags")
+# the keys of a job on measured data that a simulated job does not have, or has
+# otherwise (sigma_w: one level, not a grid axis); docs/measured.md#spec
+DATASET_FIELDS: tuple[SpecField, ...] = (
+    SpecField(
+        "dataset",
+        "dataset",
+        "The team's dataset the job runs on (its rollouts instead of simulated systems)",
+        dataset_only=True,
+    ),
+    SpecField(
+        "sigma_w",
+        "level",
+        "Process-noise σ_w: a level you vouch for, or estimate (an upper confidence bound "
+        "from the data)",
+        "state units",
+        lo=0,
+        dataset_only=True,
+        key="dataset_sigma_w",
+    ),
+    SpecField(
+        "holdout",
+        "int",
+        "Rollouts set aside for validation (the dataset's last ones)",
+        "rollouts",
+        lo=0,
+        hi=2**31 - 1,
+        dataset_only=True,
+    ),
+    SpecField(
+        "state",
+        "json",
+        'Input-output data: the ARX state {"lags": {"y": p, "u": q}} (empty: the measured state)',
+        optional=True,
+        group="estimate",
+        dataset_only=True,
+    ),
+    SpecField(
+        "C",
+        "json",
+        "Output matrix of the observer model, p × n, as JSON (empty: I, or the rows that "
+        "pick y_k of the ARX state)",
+        optional=True,
+        group="gain",
+        dataset_only=True,
+    ),
+    SpecField(
+        "sigma_v",
+        "number",
+        "Measurement-noise standard deviation of the observer model",
+        lo=0,
+        group="gain",
+        dataset_only=True,
+    ),
+    SpecField(
+        "sigma_u",
+        "number",
+        "Input standard deviation of the cost model (empty: the RMS of the training inputs)",
+        lo=0,
+        lo_open=True,
+        optional=True,
+        group="cost",
+        dataset_only=True,
+    ),
+)
+
+
+def for_datasets(f: SpecField) -> bool:
+    """Whether a job on measured data takes the field (its bounds method is always
+    DATASET_BOUNDS_METHOD, so only that method's options)."""
+    if f.dataset_only:
+        return True
+    if f.name == "sigma_w" or f.name.split(".", 1)[0] not in DATASET_SPEC_KEYS:
+        return False
+    return f.only_with in (None, DATASET_BOUNDS_METHOD)
+
+
 REQUIRED_KEYS = ("systems", "sigma_w", "N")
 _OPTION_OF = {key: method for method, opts in BOUNDS_OPTIONS.items() for key in opts}
 _BASE = {"systems": ["paper-stable"], "sigma_w": [1.0], "N": [10]}
+_DATASET_BASE = {"dataset": 1, "N": [1]}
 
 
 def _top(path: str) -> str:
@@ -306,16 +407,21 @@ def _top(path: str) -> str:
 def spec_errors(obj: object) -> dict[str, str]:
     """Every error of the spec ``obj`` as ``{field path: message}`` (empty when
     ``parse_spec(obj)`` accepts it; otherwise it holds the parser's own error). A spec
-    on measured data (``dataset``, docs/measured.md#spec) gets its parser's first."""
+    on measured data (``dataset``, docs/measured.md#spec) is checked by its own parser,
+    field by field in the same way (the checks against the dataset's shape come at
+    submit)."""
     if not isinstance(obj, dict):
         return {"spec": "must be a JSON object"}
-    if "dataset" in obj:  # a job on measured data (its own parser): its first error
-        try:
-            parse_spec(obj)
-        except SpecError as exc:
-            return {exc.field or "spec": exc.message}
-        return {}
     errors: dict[str, str] = {}
+    if "dataset" in obj:  # a job on measured data: each field alone, then the whole
+        for key in obj:
+            try:
+                parse_spec({**_DATASET_BASE, key: obj[key]})
+            except SpecError as exc:
+                errors.setdefault(exc.field or key, exc.message)
+        if "N" not in obj:
+            errors["N"] = "is required"
+        return _whole(obj, errors)
     for key in sorted(set(obj) - SPEC_KEYS):
         errors[key] = DATASET_ONLY_MESSAGE if key in DATASET_KEYS else "unknown field"
     for key in REQUIRED_KEYS:
@@ -333,6 +439,11 @@ def spec_errors(obj: object) -> dict[str, str]:
             parse_spec(probe)
         except SpecError as exc:
             errors.setdefault(exc.field or key, exc.message)
+    return _whole(obj, errors)
+
+
+def _whole(obj: dict, errors: dict[str, str]) -> dict[str, str]:
+    """``errors`` and the whole spec's error, unless it is one of them again."""
     try:
         parse_spec(obj)
     except SpecError as exc:  # a rule between fields, or the first error found again

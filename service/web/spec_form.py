@@ -4,8 +4,11 @@ spec, and every error beside its field.
 Inputs are named ``f.<field>`` (``f.sls.T_fir``); a grid field (σ_w, N, γ) is a list
 (``f.N``: ``10, 20, 40``) or, with ``m.<field>`` = ``range``, start/stop/step
 (``r.N.start`` …: N stays ``{start, stop, step}``, σ_w and γ are expanded to their
-values). The fields come from :data:`svrobs_core.spec_fields.SPEC_FIELDS`; an option
-of a bounds method is sent only with that method. ``static/specform.js`` applies the
+values). The fields come from :data:`svrobs_core.spec_fields.SPEC_FIELDS` and
+``DATASET_FIELDS``; an option of a bounds method is sent only with that method. A
+dataset chosen in ``f.dataset`` makes the spec a job on measured data
+(docs/measured.md#spec): the fields such a job takes are sent (σ_w as one level,
+``f.dataset_sigma_w``), the simulation's are not. ``static/specform.js`` applies the
 same rules in the browser to keep the JSON view and the fields in sync.
 """
 
@@ -17,7 +20,14 @@ import re
 from collections.abc import Mapping
 
 from svrobs_core.spec import MAX_GRID
-from svrobs_core.spec_fields import REQUIRED, SPEC_FIELDS, SpecField
+from svrobs_core.spec_fields import (
+    DATASET_BOUNDS_METHOD,
+    DATASET_FIELDS,
+    REQUIRED,
+    SPEC_FIELDS,
+    SpecField,
+    for_datasets,
+)
 
 GROUPS = (
     ("grid", "The grid"),
@@ -32,6 +42,45 @@ RANGED = ("sigma_w", "N", "gamma")
 _INT = re.compile(r"[+-]?\d+")
 
 
+def _ordered() -> tuple[SpecField, ...]:
+    """The form's fields: the table's, the dataset before the systems, its σ_w level
+    after the grid's σ_w, holdout after N, the other dataset fields last in their group."""
+    extra = {f.form_key: f for f in DATASET_FIELDS}
+    after = {"sigma_w": "dataset_sigma_w", "N": "holdout"}
+    out: list[SpecField] = []
+    for f in SPEC_FIELDS:
+        if f.name == "systems":
+            out.append(extra.pop("dataset"))
+        out.append(f)
+        if f.name in after:
+            out.append(extra.pop(after[f.name]))
+    return (*out, *extra.values())
+
+
+FORM_FIELDS = _ordered()
+_BY_KEY = {f.form_key: f for f in FORM_FIELDS}
+
+
+def job_of(f: SpecField) -> str:
+    """Which job shows the field: ``simulated``, ``dataset``, or "" for both (the
+    dataset choice itself is always shown)."""
+    if f.kind == "dataset" or (for_datasets(f) and not f.dataset_only):
+        return ""
+    return "dataset" if f.dataset_only else "simulated"
+
+
+def applies(f: SpecField, dataset: bool) -> bool:
+    """Whether a job on a dataset (``dataset``) or a simulated job takes the field."""
+    return job_of(f) in ("", "dataset" if dataset else "simulated")
+
+
+def default_of(f: SpecField, dataset: bool):
+    """The field's default in a job of that kind."""
+    if dataset and f.name == "bounds_method":
+        return DATASET_BOUNDS_METHOD
+    return f.default
+
+
 class FormError(ValueError):
     def __init__(self, field: str, message: str):
         super().__init__(f"{field}: {message}")
@@ -41,7 +90,7 @@ class FormError(ValueError):
 
 def groups() -> list[tuple[str, list[SpecField]]]:
     """(title, fields) of the form's sections, in the table's order."""
-    return [(title, [f for f in SPEC_FIELDS if f.group == key]) for key, title in GROUPS]
+    return [(title, [f for f in FORM_FIELDS if f.group == key]) for key, title in GROUPS]
 
 
 def _text(v) -> str:
@@ -59,16 +108,20 @@ def _get(spec: dict, name: str):
 
 
 def values_of(spec: dict) -> dict[str, object]:
-    """The form's values of ``spec`` (a field it lacks shows its default): text for
-    numbers and lists, lists for checkbox groups, True/False for a flag; grid fields
-    also ``m.<f>`` and ``r.<f>.start/stop/step``; ``systems_custom``: the JSON of the
-    system objects (edited in the JSON view)."""
+    """The form's values of ``spec`` (a field it lacks, or that its kind of job does
+    not take, shows its default), keyed by the fields' form keys: text for numbers
+    and lists, lists for checkbox groups, True/False for a flag; grid fields also
+    ``m.<f>`` and ``r.<f>.start/stop/step``; ``systems_custom``: the JSON of the
+    system objects (edited in the JSON view); JSON fields as JSON text."""
     out: dict[str, object] = {}
-    for f in SPEC_FIELDS:
-        v = _get(spec, f.name)
+    dataset = "dataset" in spec
+    for f in FORM_FIELDS:
+        v = _get(spec, f.name) if applies(f, dataset) else REQUIRED
         if v is REQUIRED:
-            v = f.default
-        if f.kind == "systems":
+            v = default_of(f, dataset)
+        if f.kind == "json":
+            out[f.form_key] = "" if v is None or v is REQUIRED else json.dumps(v)
+        elif f.kind == "systems":
             chosen = v if isinstance(v, list) else []
             out[f.name] = [s for s in chosen if isinstance(s, str)]
             custom = [s for s in chosen if not isinstance(s, str)]
@@ -87,7 +140,7 @@ def values_of(spec: dict) -> dict[str, object]:
         elif f.kind == "bool":
             out[f.name] = v is True
         else:
-            out[f.name] = "" if v is REQUIRED else _text(v)
+            out[f.form_key] = "" if v is REQUIRED else _text(v)
     return out
 
 
@@ -164,13 +217,25 @@ def spec_of(form: Mapping, getlist) -> tuple[dict, dict[str, str]]:
     field is null; an empty required one is left out (the parser says so)."""
     errors: dict[str, str] = {}
     spec: dict = {}
-    method = str(form.get("f.bounds_method", "") or "paper")
-    for f in SPEC_FIELDS:
-        if f.only_with and f.only_with != method:
+    dataset = bool(str(form.get("f.dataset", "") or "").strip())
+    fallback = DATASET_BOUNDS_METHOD if dataset else "paper"
+    method = str(form.get("f.bounds_method", "") or fallback)
+    for f in FORM_FIELDS:
+        if not applies(f, dataset) or (f.only_with and f.only_with != method):
             continue
-        key = f"f.{f.name}"
+        key = f"f.{f.form_key}"
         value = None
-        if f.kind == "systems":
+        if f.kind == "json":
+            text = str(form.get(key, "") or "").strip()
+            if not text:
+                _put(spec, f.name, None)
+                continue
+            try:
+                value = json.loads(text)
+            except json.JSONDecodeError as exc:
+                errors[f.name] = f"not valid JSON: {exc}"
+                continue
+        elif f.kind == "systems":
             value = [s for s in getlist(key) if s]
             custom = str(form.get("f.systems_custom", "")).strip()
             if custom:
@@ -193,11 +258,11 @@ def spec_of(form: Mapping, getlist) -> tuple[dict, dict[str, str]]:
                 if f.optional:
                     _put(spec, f.name, None)
                 continue
-            if f.kind == "choice":
+            if f.kind == "choice" or (f.kind == "level" and text == "estimate"):
                 value = text
             else:
                 try:
-                    value = _number(text, f.name, integer=f.kind == "int")
+                    value = _number(text, f.name, integer=f.kind in ("int", "dataset"))
                 except FormError as exc:
                     errors[exc.field] = exc.message
                     continue
@@ -213,20 +278,27 @@ def _put(spec: dict, name: str, value) -> None:
         spec[name] = value
 
 
-def field_of(path: str) -> str:
-    """The form field an error path belongs to: ``N[2]`` -> ``N``, ``sls.T_fir`` ->
-    ``sls.T_fir``, ``systems[0].A`` -> ``systems``; else ``spec``."""
+def field_of(path: str, *, dataset: bool = False) -> str:
+    """The form field (its form key) an error path belongs to in a simulated job or,
+    with ``dataset``, in a job on a dataset: ``N[2]`` -> ``N``, ``sls.T_fir`` ->
+    ``sls.T_fir``, ``systems[0].A`` -> ``systems``, ``sigma_w`` of a dataset job ->
+    ``dataset_sigma_w``; ``spec`` for a field the form does not show for that job."""
     if path == "sls" or path.startswith("sls."):
         return path if path in ("sls.T_fir", "sls.C_bound") else "sls.T_fir"
     top = path.split("[", 1)[0].split(".", 1)[0]
-    return top if any(f.name == top for f in SPEC_FIELDS) else "spec"
+    if dataset and top == "sigma_w":
+        top = "dataset_sigma_w"
+    f = _BY_KEY.get(top)
+    return top if f is not None and applies(f, dataset) else "spec"
 
 
-def errors_by_field(errors: Mapping[str, str]) -> dict[str, list[tuple[str, str]]]:
+def errors_by_field(
+    errors: Mapping[str, str], *, dataset: bool = False
+) -> dict[str, list[tuple[str, str]]]:
     """``{field: [(path, message), …]}`` of a flat ``{path: message}``."""
     out: dict[str, list[tuple[str, str]]] = {}
     for path, message in errors.items():
-        out.setdefault(field_of(path), []).append((path, message))
+        out.setdefault(field_of(path, dataset=dataset), []).append((path, message))
     return out
 
 
@@ -255,14 +327,14 @@ def complete(spec: dict) -> dict:
 def posted_values(form: Mapping, getlist) -> dict[str, object]:
     """The form's values as posted (what was typed, right or wrong), to show again."""
     out: dict[str, object] = {"systems_custom": str(form.get("f.systems_custom", "") or "")}
-    for f in SPEC_FIELDS:
-        key = f"f.{f.name}"
+    for f in FORM_FIELDS:
+        key = f"f.{f.form_key}"
         if f.kind in ("systems", "choices"):
             out[f.name] = [v for v in getlist(key) if v]
         elif f.kind == "bool":
             out[f.name] = form.get(key) in ("on", "true", "yes", "1")
         else:
-            out[f.name] = str(form.get(key, "") or "")
+            out[f.form_key] = str(form.get(key, "") or "")
         if f.kind in ("numbers", "grid"):
             out[f"m.{f.name}"] = "range" if form.get(f"m.{f.name}") == "range" else "list"
             for part in ("start", "stop", "step"):

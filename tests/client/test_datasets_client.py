@@ -168,6 +168,14 @@ def test_cli_round_trip(run, client, http, job, tmp_path):
     assert out.strip() == (
         f"dataset {ds_id} 'cli': 3 rollouts (T 3..5), n=2, m=1, mat73, sha256 {api['sha256'][:12]}"
     )
+    # --print-id: only the new id on stdout, the summary on stderr
+    code, out, err = run(
+        "datasets", "upload", EXAMPLES / "rollouts.csv", "--name", "id", "--print-id"
+    )
+    assert code == 0, err
+    printed = int(out)
+    assert out == f"{printed}\n" and printed > ds_id and err.startswith(f"dataset {printed} 'id':")
+    assert http.get(f"/datasets/{printed}").json()["name"] == "id"
     code, out, _ = run("datasets", "show", ds_id, "--json")
     assert code == 0 and json.loads(out) == api
     code, out, _ = run("datasets", "show", ds_id)

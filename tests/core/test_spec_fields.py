@@ -145,6 +145,14 @@ def test_rules_between_fields_and_valid_specs():
     measured = {"dataset": 1, "N": [10], "sigma_w": [1.0]}  # a dataset job: its parser's words
     first = error_of(measured)
     assert first is not None and spec_errors(measured) == {first.field: first.message}
+    many = {"dataset": "one", "sigma_w": -1, "bounds_method": "bootstrap", "T0": 5, "C": "x"}
+    found = spec_errors(many)
+    assert set(found) == {"dataset", "sigma_w", "bounds_method", "T0", "C", "N"}, found
+    for key in set(many) - {"dataset"}:  # each the parser's own, on a spec otherwise valid
+        alone = error_of({"dataset": 1, "N": [1], key: many[key]})
+        assert alone is not None and found[alone.field] == alone.message
+    assert found["N"] == "is required" and "self-normalized" in found["bounds_method"]
+    assert spec_errors({"dataset": 1, "N": [3], "sigma_w": "estimate", "holdout": 2}) == {}
     assert spec_errors({**BASE, "holdout": 2}) == {
         "holdout": 'is only used with "dataset" (a job on measured data)'
     }

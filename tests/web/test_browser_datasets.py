@@ -3,7 +3,8 @@ real server (the stack and browser of test_browser): a file uploaded through the
 with its progress bar (XMLHttpRequest progress events up to the whole file), a bad
 file's error beside its field with nothing stored, the dataset page's facts,
 statistics, excitation check and rollout charts (points equal to the file's numbers),
-"new job on this dataset" prefilling the submit form, and the job page's measured
+"new job on this dataset" prefilling the submit form with the dataset chosen (a
+dataset spec kept on submit), and the job page's measured
 against predicted charts and residual autocorrelation with its band, equal to
 ``GET /api/v1/jobs/{id}/validation`` (checked after every test, as in test_browser:
 no request to another host, no console error)."""
@@ -14,7 +15,6 @@ import json
 import re
 
 import numpy as np
-import pytest
 from playwright.sync_api import expect
 
 from svrobs_core.measured import MeasuredData, excitation
@@ -41,10 +41,6 @@ VALIDATION = """() => ({
 })"""
 
 
-@pytest.mark.xfail(
-    reason="the spec form's submit rewrites a dataset spec on submit; known open",
-    strict=False,
-)
 def test_upload_with_progress_then_the_dataset_page_and_a_job_on_it(browser, stack, tmp_path):
     X, U = files.simulate(A_TRUE, B_TRUE, 41, lengths=(30,) * 20)
     path = tmp_path / "bench-runs.csv"
@@ -106,6 +102,23 @@ def test_upload_with_progress_then_the_dataset_page_and_a_job_on_it(browser, sta
     page.wait_for_url(re.compile(rf"/jobs/new\?dataset={dataset_id}$"))
     spec = json.loads(page.input_value("#spec"))
     assert spec["dataset"] == dataset_id and spec["holdout"] == 4 and spec["N"] == [4, 8, 16]
+    # the dataset is chosen in the form's list of the team's datasets; the fields are a
+    # dataset job's (no systems, σ_w one level), and choosing none shows a simulation's
+    expect(page.locator("#f-dataset")).to_have_value(str(dataset_id))
+    expect(page.locator("#f-dataset option")).to_have_count(2)  # none, and this one
+    expect(page.locator("#field-systems")).to_be_hidden()
+    expect(page.locator("#field-T0")).to_be_hidden()
+    expect(page.locator("#f-holdout")).to_have_value("4")
+    expect(page.locator("#f-dataset_sigma_w")).to_have_value("estimate")
+    page.select_option("#f-dataset", "")
+    expect(page.locator("#field-systems")).to_be_visible()
+    expect(page.locator("#field-holdout")).to_be_hidden()
+    simulated = json.loads(page.input_value("#spec"))
+    assert "dataset" not in simulated and "holdout" not in simulated and "T0" in simulated
+    page.select_option("#f-dataset", str(dataset_id))
+    expect(page.locator("#field-systems")).to_be_hidden()
+    again = json.loads(page.input_value("#spec"))
+    assert again == spec  # the JSON the fields give is the one the server wrote
     page.fill("#name", "measured from the page")
     page.click("#submit-job")
     page.wait_for_url(re.compile(r"/jobs/\d+$"))
@@ -113,6 +126,8 @@ def test_upload_with_progress_then_the_dataset_page_and_a_job_on_it(browser, sta
     with stack.client() as api:
         done = stack.wait_job(api, job_id, timeout=200)
         assert done["status"] == "succeeded", done
+        assert done["spec"]["dataset"] == dataset_id and done["spec"]["holdout"] == 4
+        assert done["spec"]["N"] == [4, 8, 16] and "systems" not in done["spec"]
         validation = api.get(f"/jobs/{job_id}/validation").json()
 
     # the job page: measured vs predicted and the residual autocorrelation, as served

@@ -3,8 +3,9 @@ upload stores what the API's upload stores (past SVROBS_MAX_BODY_BYTES, under
 SVROBS_MAX_DATASET_MB: a 413 naming the file beyond), needs the session's CSRF token,
 answers a bad file's error as JSON naming its field with nothing stored; the pages
 and the plot data are team-scoped (another team's dataset is a 404); the plot data
-are the first rollouts, read without the others; "new job on this dataset" and a
-dataset job's page."""
+are the first rollouts, read without the others; "new job on this dataset", the spec
+form on a dataset (the team's datasets listed, a dataset spec kept on submit, errors
+beside their fields) and a dataset job's page."""
 
 from __future__ import annotations
 
@@ -16,6 +17,8 @@ import numpy as np
 import pytest
 
 from service.db.datasets import load_arrays, load_rollouts
+from service.web import spec_form
+from svrobs_core import parse_spec
 from tests.datasets import files
 from tests.service.test_service_datasets import counts
 
@@ -126,3 +129,66 @@ def test_a_dataset_jobs_page_has_the_validation_card(web, make_account):
         headers={"Authorization": f"Bearer {acc.key}"},
     ).json()
     assert "validation-card" not in web.get(f"/jobs/{sim['id']}").text
+
+
+def _posted(values: dict, **edits) -> dict:
+    """The spec form as the browser posts it ({name: [values]}) from its values, then
+    ``edits`` ({input name: text}) typed in."""
+    form, lists = spec_form.as_posted(values)
+    form.update(edits)
+    return {**{k: [v] for k, v in form.items()}, **lists}
+
+
+def test_the_spec_form_on_a_dataset_keeps_a_dataset_spec(web, build_client, make_account):
+    """The form's dataset field lists the team's datasets (not another team's), "new
+    job on this dataset" chooses it, and its fields submit a dataset spec; the fields
+    a dataset job does not take are not sent; every error is beside its field."""
+    acc, other = make_account(), make_account()
+    csrf = _signed_in(web, acc)
+    X, U = files.rollouts(seed=9, lengths=(12,) * 10, n=2, m=1)
+    first = _upload(web, csrf, "a.csv", files.csv_bytes(X, U)).json()
+    ds = _upload(web, csrf, "b.csv", files.csv_bytes(X, U)).json()
+    theirs, _ = build_client(SECRET_KEY="pages-secret-0123456789")
+    other_csrf = (sign_in(theirs, other.key), csrf_of(theirs.get("/datasets").text))[1]
+    foreign = _upload(theirs, other_csrf, "c.csv", files.csv_bytes(X, U)).json()
+
+    page = web.get(f"/jobs/new?dataset={ds['id']}").text
+    select = re.search(r'<select name="f.dataset"[^>]*>(.*?)</select>', page, re.S).group(1)
+    options = dict(re.findall(r'<option value="(\d*)"[^>]*>([^<]*)</option>', select))
+    assert set(options) == {"", str(first["id"]), str(ds["id"])}  # not the other team's
+    assert f'<option value="{ds["id"]}" selected>' in select and str(foreign["id"]) not in options
+    assert re.search(r'id="field-systems"[^>]* hidden', page)  # a simulated job's field
+    assert not re.search(r'id="field-holdout"[^>]* hidden', page)
+
+    starter = json.loads(
+        html.unescape(re.search(r'<textarea[^>]*id="spec"[^>]*>([^<]*)<', page).group(1))
+    )
+    data = _posted(spec_form.values_of(starter), **{"f.reps": "2"})
+    data.update(csrf_token=csrf, source="form", name="on b")
+    r = web.post("/jobs/new", data=data, follow_redirects=False)
+    assert r.status_code == 303, r.text[-2000:]
+    job = web.get(f"{API}{r.headers['location']}").json()
+    assert job["spec"] == parse_spec({**starter, "reps": 2}).to_dict()
+    assert job["spec"]["dataset"] == ds["id"] and "systems" not in job["spec"]
+
+    # errors of a dataset spec, each beside its field (σ_w is the dataset's level field)
+    bad = _posted(
+        spec_form.values_of(starter),
+        **{"f.dataset_sigma_w": "-1", "f.C": "[[1, 0", "f.bounds_method": "bootstrap"},
+    )
+    bad.update(csrf_token=csrf, source="form")
+    r = web.post("/jobs/new", data=bad)
+    assert r.status_code == 422
+    beside = dict(re.findall(r'id="err-([\w.-]+)"><p><code>[^<]*</code>: ([^<]*)</p>', r.text))
+    assert set(beside) == {"dataset_sigma_w", "C", "bounds_method"}, beside
+    assert (
+        beside["C"].startswith("not valid JSON") and beside["dataset_sigma_w"] == "must be &gt;= 0"
+    )
+    assert "self-normalized" in html.unescape(beside["bounds_method"])
+    assert "3 errors to fix" in r.text and 'value="-1"' in r.text  # as typed
+    # a dataset the team does not have: named on the dataset field
+    bad = _posted(spec_form.values_of({**starter, "dataset": foreign["id"]}))
+    bad.update(csrf_token=csrf, source="form")
+    r = web.post("/jobs/new", data=bad)
+    assert r.status_code == 422 and f"no dataset {foreign['id']} in your team" in r.text
+    assert re.search(r'id="err-dataset"', r.text)

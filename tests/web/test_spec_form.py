@@ -1,6 +1,7 @@
 """The spec form's two directions (service.web.spec_form): every preset, a custom
-system and each bounds method survive values -> posted form -> spec unchanged (the
-parser's normalised spec is the oracle); ranges, empty and mistyped fields."""
+system, each bounds method and jobs on a dataset survive values -> posted form -> spec
+unchanged (the parser's normalised spec is the oracle); ranges, empty and mistyped
+fields; a dataset job sends only the fields it takes."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ import pytest
 from service.web import spec_form
 from service.web.pages.submit import presets
 from svrobs_core import parse_spec
+from svrobs_core.spec import SPEC_KEYS
+from svrobs_core.spec_fields import SPEC_FIELDS, for_datasets
 
 CUSTOM = {
     "systems": ["paper-stable", {"name": "mine", "A": [[0.5, 0.1], [0, 0.4]], "B": [[1], [0]]}],
@@ -29,6 +32,25 @@ OTHERS = [
 ]
 
 
+ON_DATASET = {"dataset": 3, "N": [4, 8], "holdout": 2}
+DATASET_SPECS = [
+    ON_DATASET,
+    {**ON_DATASET, "sigma_w": 0.3, "reps": 4, "gamma": [0.05, 0.1], "estimators": ["svr"]},
+    {
+        **ON_DATASET,
+        "sigma_w": "estimate",
+        "C": [[1, 0, 0, 0]],
+        "state": {"lags": {"y": 2, "u": 1}},
+        "sigma_u": 0.5,
+        "sigma_v": 0.2,
+        "S": 3.0,
+        "lambda0": 0.5,
+        "stages": ["estimate", "bounds", "gain", "cost", "sls"],
+        "sls": {"T_fir": 10, "C_bound": None},
+    },
+]
+
+
 def post(values: dict, **edits) -> tuple[dict, dict]:
     form, lists = spec_form.as_posted(values)
     form.update(edits)
@@ -36,7 +58,9 @@ def post(values: dict, **edits) -> tuple[dict, dict]:
 
 
 @pytest.mark.parametrize(
-    "spec", [p.spec for p in presets().values()] + OTHERS, ids=lambda s: str(s.get("seed", "x"))
+    "spec",
+    [p.spec for p in presets().values()] + OTHERS + DATASET_SPECS,
+    ids=lambda s: str(s.get("seed", "x")),
 )
 def test_every_spec_survives_the_form(spec):
     back, errors = post(spec_form.values_of(spec))
@@ -104,4 +128,48 @@ def test_error_paths_belong_to_their_fields():
         "N": [("N[2]", "b"), ("N.start", "f")],
         "sls.T_fir": [("sls.T_fir", "c"), ("sls", "d")],
         "spec": [("nope", "e")],
+    }
+
+
+def test_a_dataset_job_sends_the_fields_it_takes():
+    """A chosen dataset: the simulation's fields (systems, the σ_w grid, T0, ...) are
+    not sent even when typed, σ_w is the one level of its own field, the bounds
+    method's default is the dataset's; choosing none gives a simulated spec again."""
+    values = spec_form.values_of(ON_DATASET)
+    assert values["dataset"] == "3" and values["bounds_method"] == "self-normalized"
+    assert values["dataset_sigma_w"] == "estimate" and values["sigma_w"] == ""
+    typed = {"f.T0": "7", "f.sigma_w": "0.5, 1", "f.mc_runs": "5", "f.dataset_sigma_w": "0.25"}
+    spec, errors = post(values, **typed)
+    assert errors == {}
+    taken = {f.name.split(".")[0] for f in SPEC_FIELDS if for_datasets(f)}
+    assert set(spec) <= taken | {
+        "dataset",
+        "sigma_w",
+        "holdout",
+        "C",
+        "state",
+        "sigma_v",
+        "sigma_u",
+    }
+    assert spec["sigma_w"] == 0.25 and "T0" not in spec and "systems" not in spec
+    assert parse_spec(spec).measured.sigma_w == 0.25
+    spec, errors = post(values, **{"f.C": "[[1, 0]", "f.state": ""})
+    assert errors["C"].startswith("not valid JSON") and spec["state"] is None
+    simulated, errors = post(values, **{"f.dataset": "", "f.systems": "paper-stable"})
+    assert "dataset" not in simulated and not set(simulated) - SPEC_KEYS
+    assert simulated["bounds_method"] == "self-normalized"  # as it was chosen
+
+
+def test_dataset_error_paths_belong_to_the_dataset_fields():
+    errors = {"sigma_w": "a", "holdout": "b", "C[0][1]": "c", "T0": "d", "dataset": "e"}
+    assert spec_form.errors_by_field(errors, dataset=True) == {
+        "dataset_sigma_w": [("sigma_w", "a")],
+        "holdout": [("holdout", "b")],
+        "C": [("C[0][1]", "c")],
+        "spec": [("T0", "d")],  # a field a dataset job does not show
+        "dataset": [("dataset", "e")],
+    }
+    assert spec_form.errors_by_field({"sigma_w": "a", "holdout": "b"}) == {
+        "sigma_w": [("sigma_w", "a")],
+        "spec": [("holdout", "b")],
     }

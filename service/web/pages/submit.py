@@ -28,7 +28,7 @@ from svrobs_core.errors import SpecError
 from svrobs_core.paper import PRESET_NAME, paper_specs
 from svrobs_core.spec_fields import spec_errors
 from svrobs_core.systems import PRESETS
-from svrobs_lab.datasets.overview import starter_spec
+from svrobs_lab.datasets.overview import datasets_page, starter_spec
 from svrobs_lab.errors import IdempotencyConflict, QuotaExceeded
 from svrobs_lab.jobs import JobRequest
 from svrobs_lab.schemas import SPEC_FIELD_NAMES, JobSubmit
@@ -82,17 +82,43 @@ def _field(loc) -> str:
     return out or "spec"
 
 
+def _dataset_choices(db: Session, viewer, chosen: str) -> list[tuple[str, str]]:
+    """(id, label) of the team's newest datasets for the dataset field, and the chosen
+    id if it is not among them (the server then says whether the team has it)."""
+    items = datasets_page(db, viewer.caller)["items"]
+    out = [
+        (str(d["id"]), f"{d['id']}: {d['name']} ({d['rollouts']} rollouts, n={d['n']}, m={d['m']})")
+        for d in items
+    ]
+    if chosen and chosen not in {k for k, _ in out}:
+        out.append((chosen, f"{chosen}"))
+    return out
+
+
 def _form(
-    request, viewer, *, status=200, errors=None, spec_errors=None, spec=None, shown=None, **values
+    request,
+    db,
+    viewer,
+    *,
+    status=200,
+    errors=None,
+    spec_errors=None,
+    spec=None,
+    shown=None,
+    **values,
 ):
     """The form: its fields show ``spec`` (else the defaults), each error of
     ``spec_errors`` ({path: message}) beside its field and all of them in a list at the
     top; ``errors``: those of the name, tags, file, JSON text and the form as a whole;
-    ``shown``: the fields' values as posted (instead of ``spec``'s)."""
+    ``shown``: the fields' values as posted (instead of ``spec``'s). The dataset field
+    lists the team's datasets."""
     if not values.get("idempotency_key"):
         values["idempotency_key"] = secrets.token_urlsafe(16)
     errors, spec_errors = errors or {}, spec_errors or {}
-    listed = [(spec_form.field_of(p), p, m) for p, m in spec_errors.items()]
+    fields = shown or spec_form.values_of(spec or {})
+    chosen = str(fields.get("dataset") or "")
+    on_dataset = bool(chosen)
+    listed = [(spec_form.field_of(p, dataset=on_dataset), p, m) for p, m in spec_errors.items()]
     listed += [(k, path or k, m) for k, (path, m) in errors.items() if k != "form"]
     return render(
         request,
@@ -103,9 +129,11 @@ def _form(
         presets=[(k, p.label) for k, p in presets().items()],
         errors=errors,
         errors_list=listed,
-        field_errors=spec_form.errors_by_field(spec_errors),
+        field_errors=spec_form.errors_by_field(spec_errors, dataset=on_dataset),
         groups=spec_form.groups(),
-        values=shown or spec_form.values_of(spec or {}),
+        job_of=spec_form.job_of,
+        datasets=_dataset_choices(db, viewer, chosen),
+        values=fields,
         form={
             "spec": values.pop("spec_text", ""),
             **{"name": "", "tags": "", "preset": "", "source": "form", **values},
@@ -126,13 +154,14 @@ def submit_form(
     page's "new job on this dataset")."""
     if dataset is not None:
         spec = starter_spec(db, viewer.caller, dataset)  # NotFound: a 404 page
-        return _form(request, viewer, spec=spec, spec_text=_json(spec))
+        return _form(request, db, viewer, spec=spec, spec_text=_json(spec_form.complete(spec)))
     chosen = presets().get(preset)
     spec = spec_form.complete(chosen.spec if chosen else {})
     if chosen is None:
-        return _form(request, viewer, spec=spec, spec_text=_json(spec))
+        return _form(request, db, viewer, spec=spec, spec_text=_json(spec))
     return _form(
         request,
+        db,
         viewer,
         spec=spec,
         spec_text=_json(spec),
@@ -210,6 +239,7 @@ def submit(
         """The form again (422) with every error, the values as they were sent."""
         return _form(
             request,
+            db,
             viewer,
             status=422,
             errors=errors,
@@ -221,8 +251,10 @@ def submit(
 
     if body is not None:
         found = {**type_errors}
+        on_dataset = "dataset" in body
+        typed = {spec_form.field_of(p, dataset=on_dataset) for p in type_errors}
         for path, message in spec_errors(body).items():
-            if spec_form.field_of(path) not in {spec_form.field_of(p) for p in type_errors}:
+            if spec_form.field_of(path, dataset=on_dataset) not in typed:
                 found.setdefault(path, message)
         tag_list = [t.strip() for t in tags.split(",") if t.strip()]
         full = {**body, **({"name": name.strip()} if name.strip() else {})}

@@ -1,6 +1,7 @@
 /* The spec form of /jobs/new: the JSON view and the fields kept in sync both ways
  * (the rules of service/web/spec_form.py: lists of numbers, start/stop/step, the
- * options of a bounds method only with it, empty optional fields null). Editing the
+ * options of a bounds method only with it, empty optional fields null; a dataset chosen
+ * makes it a job on measured data: the fields of that kind of job only). Editing the
  * fields rewrites the JSON and sets "Submit: the fields"; editing valid JSON fills
  * the fields and sets "Submit: the JSON". Picking a preset opens the form it fills. */
 (function () {
@@ -23,7 +24,12 @@
 
   function tokens(text) { return text.trim().split(/[,\s;]+/).filter(Boolean); }
 
-  function method() { return (one("f.bounds_method") || {}).value || "paper"; }
+  /* "dataset" when a dataset is chosen (a job on measured data), else "simulated". */
+  function job() { const d = one("f.dataset"); return d && d.value ? "dataset" : "simulated"; }
+  function applies(b) { return !b.dataset.job || b.dataset.job === job(); }
+  function method() {
+    return (one("f.bounds_method") || {}).value || (job() === "dataset" ? "self-normalized" : "paper");
+  }
 
   function put(spec, name, value) {
     if (name.startsWith("sls.")) (spec.sls = spec.sls || {})[name.slice(4)] = value;
@@ -52,10 +58,13 @@
   function fieldsToSpec() {
     const spec = {}, m = method();
     for (const b of blocks()) {
-      const name = b.dataset.field, kind = b.dataset.kind;
-      if (b.dataset.onlyWith && b.dataset.onlyWith !== m) continue;
+      const name = b.dataset.field, kind = b.dataset.kind, key = b.dataset.key;
+      if (!applies(b) || (b.dataset.onlyWith && b.dataset.onlyWith !== m)) continue;
       let value;
-      if (kind === "systems") {
+      if (kind === "json") {
+        const t = one(`f.${key}`).value.trim();
+        try { value = t ? JSON.parse(t) : null; } catch (e) { value = t; /* the server says so */ }
+      } else if (kind === "systems") {
         value = [...named("f.systems")].filter((c) => c.checked).map((c) => c.value);
         const custom = one("f.systems_custom").value.trim();
         if (custom) { try { value = value.concat(JSON.parse(custom)); } catch (e) { /* the server says so */ } }
@@ -67,9 +76,9 @@
       } else if (kind === "bool") {
         value = one(`f.${name}`).checked;
       } else {
-        const t = one(`f.${name}`).value.trim();
+        const t = one(`f.${key}`).value.trim();
         if (!t) { if (b.dataset.optional) put(spec, name, null); continue; }
-        value = kind === "choice" ? t : number(t, kind === "int");
+        value = kind === "choice" || (kind === "level" && t === "estimate") ? t : number(t, kind === "int" || kind === "dataset");
       }
       if (value !== undefined) put(spec, name, value);
     }
@@ -78,13 +87,25 @@
 
   function text(v) { return v === null || v === undefined ? "" : String(v); }
 
-  /* Fill the fields from a spec (a field it lacks keeps its value). */
+  /* Fill the fields from a spec (a field it lacks keeps its value); a spec with
+   * "dataset" chooses that dataset (an option is added for an id not listed). */
   function specToFields(spec) {
+    const ds = one("f.dataset");
+    if (ds) {
+      const id = spec.dataset === undefined || spec.dataset === null ? "" : String(spec.dataset);
+      if (id && ![...ds.options].some((o) => o.value === id)) ds.add(new Option(id, id));
+      ds.value = id;
+      const bm = one("f.bounds_method");
+      if (id && bm && spec.bounds_method === undefined) bm.value = "self-normalized";
+    }
     for (const b of blocks()) {
-      const name = b.dataset.field, kind = b.dataset.kind;
+      const name = b.dataset.field, kind = b.dataset.kind, key = b.dataset.key;
+      if (kind === "dataset" || !applies(b)) continue;
       const v = name.startsWith("sls.") ? (spec.sls || {})[name.slice(4)] : spec[name];
       if (v === undefined) continue;
-      if (kind === "systems") {
+      if (kind === "json") {
+        one(`f.${key}`).value = v === null ? "" : JSON.stringify(v);
+      } else if (kind === "systems") {
         const list = Array.isArray(v) ? v : [];
         named("f.systems").forEach((c) => { c.checked = list.includes(c.value); });
         const custom = list.filter((s) => typeof s !== "string");
@@ -102,17 +123,18 @@
       } else if (kind === "bool") {
         one(`f.${name}`).checked = v === true;
       } else {
-        one(`f.${name}`).value = text(v);
+        one(`f.${key}`).value = text(v);
       }
     }
     modes();
   }
 
-  /* Show what applies: list or range inputs, the options of the chosen bounds method. */
+  /* Show what applies: the fields of the kind of job, list or range inputs, the
+   * options of the chosen bounds method. */
   function modes() {
     const m = method();
     for (const b of blocks()) {
-      if (b.dataset.onlyWith) b.hidden = b.dataset.onlyWith !== m;
+      b.hidden = !applies(b) || (!!b.dataset.onlyWith && b.dataset.onlyWith !== m);
       const mode = b.querySelector("[name^='m.']:checked");
       if (mode) {
         b.querySelector(".grid-list").hidden = mode.value === "range";
@@ -152,6 +174,10 @@
     }
   });
   form.addEventListener("change", (e) => {
+    if (e.target.name === "f.dataset" && job() === "dataset") {
+      const bm = one("f.bounds_method");  // the one bounds method sound on measured data
+      if (bm) bm.value = "self-normalized";
+    }
     if (e.target.closest(".spec-field[data-kind]")) { modes(); fromFields(); }
   });
   document.getElementById("spec_file").addEventListener("change", () => source("json"));
