@@ -16,6 +16,7 @@ import csv
 import io
 import math
 import sys
+from typing import Any
 
 import numpy as np
 
@@ -157,7 +158,9 @@ def ref_line(ax, y: float, **style):
     return ln
 
 
-def legend_line(color=NEUTRAL, ls="-", label="", marker=None, **kw):
+def legend_line(
+    color: Any = NEUTRAL, ls: str = "-", label: str = "", marker: str | None = None, **kw: Any
+) -> Any:
     """A legend proxy: a series (its colour and marker) or a quantity (its line
     style, in the neutral colour)."""
     from matplotlib.lines import Line2D
