@@ -174,7 +174,7 @@ def series_handle(label: str, style: dict):
     return legend_line(ls="-", label=label, **{k: style[k] for k in keep if k in style})
 
 
-def figure_legend(fig, handles, ncol=4):
+def figure_legend(fig: Any, handles: list[Any], ncol: int = 4) -> None:
     if handles:
         fig.legend(handles=handles, loc="outside lower center", ncol=ncol)
 
