@@ -29,8 +29,8 @@ from tests.web.browser import Browser  # noqa: E402
 
 log = logging.getLogger(__name__)
 MAX_BYTES = 300_000
-DESKTOP = {"width": 1400, "height": 900}
-PHONE = {"width": 390, "height": 844}
+DESKTOP = (1400, 900)
+PHONE = (390, 844)
 SPEC = {
     "systems": ["paper-stable", "paper-unstable"],
     "sigma_w": [0.1, 1.0],
@@ -98,7 +98,7 @@ def shoot(stack: Stack, site: dict, out: Path) -> None:
     a, b = site["jobs"]
     browser = Browser()
     try:
-        page = browser.page(stack.base_url, **DESKTOP)
+        page = browser.page(stack.base_url, width=DESKTOP[0], height=DESKTOP[1])
         sign_in(page, stack.key)
         save(page, out / "dashboard-jobs.png")
 
@@ -131,7 +131,7 @@ def shoot(stack: Stack, site: dict, out: Path) -> None:
         page.wait_for_selector("#share-created")
         save(page, out / "dashboard-share.png")
 
-        dark = browser.page(stack.base_url, **DESKTOP, dark=True)
+        dark = browser.page(stack.base_url, width=DESKTOP[0], height=DESKTOP[1], dark=True)
         sign_in(dark, stack.key)
         dark.goto(f"/compare?jobs={a}&jobs={b}&metric=rmse_A")
         dark.wait_for_selector("#compare-card[data-ready=yes]")
@@ -143,7 +143,7 @@ def shoot(stack: Stack, site: dict, out: Path) -> None:
         dark.wait_for_selector("#views-card[data-scatter=ready][data-certificates=ready]")
         save(dark.locator("#views-card"), out / "dashboard-dark-views.png")
 
-        phone = browser.page(stack.base_url, **PHONE)
+        phone = browser.page(stack.base_url, width=PHONE[0], height=PHONE[1])
         sign_in(phone, stack.key)
         phone.goto(f"/jobs/{a}")
         phone.wait_for_selector("#charts-card[data-state=ready] canvas")

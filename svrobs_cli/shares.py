@@ -19,12 +19,13 @@ from svrobs_client import ValidationError
 def create(
     job: int = typer.Argument(...),
     days: float = typer.Option(7.0, help="the link expires after this many days"),
+    label: str | None = typer.Option(None, help="what the link is for (shown in the list)"),
 ) -> None:
     """Create a read-only link to the job's report and charts (opened without a key);
     its URL is printed only now."""
     with client() as c:
         try:
-            share = c.share(job, days=days)
+            share = c.share(job, days=days, label=label)
         except ValidationError as exc:
             raise CliError(plain_message(exc)) from None
     typer.echo(share.url)
@@ -44,10 +45,11 @@ def list_shares(
     if as_json:
         return print_json([s.raw for s in items])
     print_table(
-        ["id", "created", "expires", "revoked", "live"],
+        ["id", "label", "created", "expires", "revoked", "live"],
         [
             [
                 s.id,
+                s.label,
                 s.raw.get("created_at"),
                 s.raw.get("expires_at"),
                 s.raw.get("revoked_at"),

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
+from typing import Any
 
 import numpy as np
+
+from .array_types import Array
 
 KEY_FIELDS = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep", "seed_key")
 ESTIMATE_FIELDS = ("A_hat", "B_hat", "rmse_A", "rmse_B")
@@ -144,7 +148,7 @@ FIELD_GLOSSARY: dict[str, tuple[str, str, str]] = {
 }
 
 
-def json_value(value):
+def json_value(value: Any) -> Any:
     """numpy scalars/arrays -> plain Python; NaN/inf -> None (never NaN in JSON)."""
     if value is None:
         return None
@@ -164,7 +168,7 @@ def json_value(value):
     return value
 
 
-def empty_record() -> dict:
+def empty_record() -> dict[str, Any]:
     return {f: None for f in RECORD_FIELDS}
 
 
@@ -174,10 +178,10 @@ SUMMARY_FIELDS = tuple(f for f in NUMERIC_FIELDS if f not in ("N", "N0", "rep", 
 OVERFLOW_NOTE = "out of the double range (above 1.8e308)"
 
 
-def stat_entry(mean: float, std: float, count: int) -> dict:
+def stat_entry(mean: float, std: float, count: int) -> dict[str, Any]:
     """One field's summary of a group; a mean or std that is not a finite double is
     null, with a note (docs/spec.md#summaries)."""
-    entry = {"mean": mean, "std": std, "count": count}
+    entry: dict[str, Any] = {"mean": mean, "std": std, "count": count}
     bad = [k for k in ("mean", "std") if not math.isfinite(entry[k])]
     if bad:
         for k in bad:
@@ -186,7 +190,16 @@ def stat_entry(mean: float, std: float, count: int) -> dict:
     return entry
 
 
-def _scaled_stats(x, ok, starts, sizes, n, mean, std, over):
+def _scaled_stats(
+    x: Array,
+    ok: Array,
+    starts: Array,
+    sizes: Array,
+    n: Array,
+    mean: Array,
+    std: Array,
+    over: Array,
+) -> tuple[Array, Array]:
     """mean and std of the groups ``over`` (whose plain sums overflowed) computed on
     x / max|x| and scaled back; the other groups keep their plain values."""
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -199,7 +212,7 @@ def _scaled_stats(x, ok, starts, sizes, n, mean, std, over):
         return np.where(over, m * scale, mean), np.where(over, sd * scale, std)
 
 
-def summarize(records) -> list[dict]:
+def summarize(records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
     """Mean, std (ddof=0) and count of every numeric field per group (GROUP_FIELDS).
 
     Booleans count as 0/1, nulls are skipped. Returns one dict per group:
@@ -212,21 +225,21 @@ def summarize(records) -> list[dict]:
     return summarize_columns(cols)
 
 
-def summarize_columns(columns: dict) -> list[dict]:
+def summarize_columns(columns: dict[str, Any]) -> list[dict[str, Any]]:
     """:func:`summarize` of records given as columns ({field: sequence}, one value per
     record, None = null), vectorised over groups: one sort, then per field one
     ``np.add.reduceat`` for the sums and one for the squared deviations."""
     keys = list(zip(*(columns[g] for g in GROUP_FIELDS)))
     if not keys:
         return []
-    index: dict[tuple, int] = {}
+    index: dict[tuple[Any, ...], int] = {}
     gid = np.fromiter(
         (index.setdefault(k, len(index)) for k in keys), dtype=np.intp, count=len(keys)
     )
     order = np.argsort(gid, kind="stable")
     sizes = np.bincount(gid, minlength=len(index))
     starts = np.concatenate(([0], np.cumsum(sizes)[:-1]))
-    stats: dict[str, tuple] = {}
+    stats: dict[str, tuple[Any, ...]] = {}
     for f in SUMMARY_FIELDS:
         col = columns.get(f)
         if col is None:

@@ -33,17 +33,10 @@ Modules, in the order a report is made:
 * ``markdown``: ``render_markdown(report)``, ``spec_json(spec)``.
 """
 
+from ..records import COLUMN_MATRIX_FIELDS, REPORT_FIELDS, SCALAR_FIELDS, TEXT_FIELDS
 from .audit import fig_bounds_audit
 from .build import FIGURE_PLAN, Report, ReportBuilder, ReportFigure, build_report, render_figure
-from .columns import (
-    COLUMN_MATRIX_FIELDS,
-    REPORT_FIELDS,
-    SCALAR_FIELDS,
-    STAGE_FIELDS,
-    TEXT_FIELDS,
-    Columns,
-    as_columns,
-)
+from .columns import STAGE_FIELDS, Columns, as_columns
 from .cost_figures import fig4, fig5, fig_certified
 from .derived import cost_ratio_of_means, first_stable_certified, svr_ols_diff
 from .figures import fig2, fig3, fig_coverage, fig_rmse, fig_svr_ols_diff

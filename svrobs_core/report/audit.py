@@ -10,8 +10,12 @@ gamma (present in every source) and, separately, on OLS.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import Any
+
 import numpy as np
 
+from ..array_types import Array
 from ..paper import TABLE2_GAMMA
 from ..spec import BOUNDS_METHODS
 from .columns import (
@@ -51,7 +55,9 @@ from .style import REFERENCE, series_style, size, styled
 AUDIT_SERIES = (("svr", TABLE2_GAMMA), ("ols", None))
 
 
-def audit_sources(experiments: dict[str, dict], cols: dict[str, Columns]) -> dict[str, str]:
+def audit_sources(
+    experiments: dict[str, dict[str, Any]], cols: dict[str, Columns]
+) -> dict[str, str]:
     """bounds_method -> the experiment that represents it (the first one with
     coverage data; for "paper" E2 is preferred, the grid A1 and A2 share)."""
     out: dict[str, str] = {}
@@ -65,12 +71,12 @@ def audit_sources(experiments: dict[str, dict], cols: dict[str, Columns]) -> dic
     return {m: out[m] for m in BOUNDS_METHODS if m in out}
 
 
-def _mean(v: np.ndarray) -> float | None:
+def _mean(v: Array) -> float | None:
     v = v[np.isfinite(v)]
     return float(np.mean(v)) if v.size else None
 
 
-def audit_rows(sources: dict[str, Columns], delta: float) -> list[dict]:
+def audit_rows(sources: dict[str, Columns], delta: float) -> list[dict[str, Any]]:
     """One row per (method, system, sigma_w, estimator): per-entry coverage of A
     and B, simultaneous coverage (every entry of A and of B inside), mean r_A,
     r_B (largest radius) and the first N with stable_certified in >= half the
@@ -108,7 +114,7 @@ def audit_rows(sources: dict[str, Columns], delta: float) -> list[dict]:
     return rows
 
 
-def audit_markdown(rows: list[dict], delta: float) -> str:
+def audit_markdown(rows: list[dict[str, Any]], delta: float) -> str:
     head = (
         "| method | system | σ_w | estimator | records | coverage A | coverage B | "
         f"all inside (vs 1 − δ = {fmt_num(1 - delta)}) | mean r_A | mean r_B | "
@@ -131,7 +137,7 @@ def audit_markdown(rows: list[dict], delta: float) -> str:
     return "\n".join(lines) + "\n"
 
 
-def audit_findings(rows: list[dict], delta: float) -> list[str]:
+def audit_findings(rows: list[dict[str, Any]], delta: float) -> list[str]:
     """Per method: where the simultaneous coverage falls below 1 - delta."""
     level = 1 - delta
     out = []
@@ -161,7 +167,7 @@ def audit_findings(rows: list[dict], delta: float) -> list[str]:
 ESTIMATOR_LOOK = {"svr": ("-", True), "ols": ("--", False)}  # line style, filled markers
 
 
-def _style(i: int, estimator: str) -> dict:
+def _style(i: int, estimator: str) -> dict[str, Any]:
     """Method ``i``'s colour and marker; the estimator's line style and marker:
     SVR small and filled, on top of OLS's larger open one (both stay visible
     where the curves coincide)."""
@@ -174,14 +180,14 @@ def _style(i: int, estimator: str) -> dict:
     return st
 
 
-def _text_panel(ax, title: str, text: str):
+def _text_panel(ax: Any, title: str, text: str) -> None:
     """A panel with nothing to plot: its title and one statement, no axes."""
     ax.set_title(title)
     ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes)
     ax.set_axis_off()
 
 
-def _bottom_note(ax, text: str):
+def _bottom_note(ax: Any, text: str) -> None:
     """``text`` in the lower left corner, on a white box (the axis leaves room
     below the data for it)."""
     ax.text(
@@ -196,7 +202,9 @@ def _bottom_note(ax, text: str):
     )
 
 
-def _audit_lines(srcs: dict[str, Columns], meta: Meta):
+def _audit_lines(
+    srcs: dict[str, Columns], meta: Meta
+) -> tuple[dict[tuple[str, str, str], Any], list[str], float | None]:
     """(quantity, method, system) -> the FIGURE_SERIES lines of that source; the
     systems; the σ_w shown (1 if any source has it)."""
     rows = figure_series("fig_bounds_audit")
@@ -206,7 +214,7 @@ def _audit_lines(srcs: dict[str, Columns], meta: Meta):
         systems += [s for s in systems_of(c) if s not in systems]
         sig |= set(sigmas_of(c))
     sw = 1.0 if 1.0 in sig else (min(sig) if sig else None)
-    lines = {}
+    lines: dict[tuple[str, str, str], Any] = {}
     for m, c in srcs.items():
         ctx = context(c, meta, table=TABLE2_GAMMA, sigma_ref=sw)
         for system in systems:
@@ -216,7 +224,9 @@ def _audit_lines(srcs: dict[str, Columns], meta: Meta):
     return lines, systems or ["(none)"], sw
 
 
-def _pairs(lines, key, methods, system):
+def _pairs(
+    lines: dict[tuple[str, str, str], Any], key: str, methods: list[str], system: str
+) -> list[tuple[str, str, Any]]:
     """(method, series name, Line) of ``methods`` in one panel, SVR before OLS."""
     return [
         (m, f"{m} {gamma_label(ln.key['estimator'], TABLE2_GAMMA)}", ln)
@@ -225,7 +235,16 @@ def _pairs(lines, key, methods, system):
     ]
 
 
-def _merged_items(ax, items, styles, *, panel, quantity, merged: dict, system):
+def _merged_items(
+    ax: Any,
+    items: list[tuple[str, Array, Array]],
+    styles: dict[str, dict[str, Any]],
+    *,
+    panel: str,
+    quantity: str,
+    merged: dict[Any, Any],
+    system: str,
+) -> Any:
     """Draw items with identical ones merged; remember which merged (for the note)."""
     for names, _ in merge_identical(items):
         if len(names) > 1:
@@ -235,8 +254,12 @@ def _merged_items(ax, items, styles, *, panel, quantity, merged: dict, system):
 
 @styled
 def fig_bounds_audit(
-    sources: dict[str, Columns], delta: float, *, experiment: str | None = None, seed="?"
-):
+    sources: dict[str, Columns | Iterable[dict[str, Any]]],
+    delta: float,
+    *,
+    experiment: str | None = None,
+    seed: object = "?",
+) -> Any:
     """Share of records with every entry of A and of B inside the box (linear, with
     the 1 − δ line) and mean r_A (log) against N0, columns the systems at σ_w = 1.
     One colour and marker per bounds_method; SVR at the table's γ solid with filled
@@ -253,22 +276,22 @@ def fig_bounds_audit(
         if key == "all_inside" and ls and all(np.all(ln.y[np.isfinite(ln.y)] == 1) for ln in ls):
             ones.setdefault(m, []).append(system)
 
-    def cover_pairs(system):
+    def cover_pairs(system: str) -> list[tuple[str, str, Any]]:
         drawn = [m for m in srcs if system not in ones.get(m, [])]
         return _pairs(lines, "all_inside", drawn, system)
 
     with_cover = any(cover_pairs(s) for s in systems)
     nr = 2 if with_cover else 1
     fig, axes = new_figure(nr, len(systems), size("two", 12.5 if with_cover else 7.5), sharex=True)
-    styles: dict[str, dict] = {}
+    styles: dict[str, dict[str, Any]] = {}
 
-    def items_of(pairs):
+    def items_of(pairs: list[tuple[str, str, Any]]) -> list[tuple[str, Array, Array]]:
         for m, name, ln in pairs:
             styles.setdefault(name, _style(order[m], ln.key["estimator"]))
         return [(name, ln.x, ln.y) for _, name, ln in pairs]
 
     ratio = next((n0_ratio(c) for c in srcs.values() if c.n), None)
-    merged: dict = {}
+    merged: dict[Any, Any] = {}
     title_sw = f"σ_w={fmt_num(sw)}"
     lows, counts, corner = [level], [], []
     for c, system in enumerate(systems):
@@ -348,10 +371,20 @@ def fig_bounds_audit(
     return fig
 
 
-def _audit_notes(fig, srcs, lines, systems, ones, merged, counts, level, title_sw):
+def _audit_notes(
+    fig: Any,
+    srcs: dict[str, Columns],
+    lines: dict[tuple[str, str, str], Any],
+    systems: list[str],
+    ones: dict[str, Any],
+    merged: dict[Any, Any],
+    counts: list[Any],
+    level: float,
+    title_sw: str,
+) -> None:
     """Caption notes: shares of 1 not drawn, identical curves, SVR ≈ OLS radii,
     how many records each share counts."""
-    by_where: dict[tuple, list[str]] = {}
+    by_where: dict[tuple[Any, ...], list[str]] = {}
     for m, where in ones.items():
         by_where.setdefault(tuple(where), []).append(m)
     for where, methods in by_where.items():

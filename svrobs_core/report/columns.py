@@ -9,11 +9,13 @@ stages, the true system matrices). Then selection (:func:`select`), grouping
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from ..array_types import Array, BoolArray, FloatArray
 from ..paper import STABLE, UNSTABLE
 from ..records import (  # noqa: F401 - the report's field lists live with the records
     BOUND_FIELDS,
@@ -44,11 +46,11 @@ GAMMA_RTOL = 1e-9
 # ---------------------------------------------------------------------------
 
 
-def _float_array(values) -> np.ndarray:
+def _float_array(values: Iterable[Any]) -> FloatArray:
     return np.array([np.nan if v is None else float(v) for v in values], dtype=float)
 
 
-def _matrix_array(values) -> np.ndarray:
+def _matrix_array(values: Sequence[Any]) -> FloatArray:
     """A list of matrices (lists) or None -> float (k, a, b) with NaN where missing."""
     shape = None
     for v in values:
@@ -68,36 +70,39 @@ class Columns:
     """Record fields as arrays: floats (NaN = null; booleans as 0/1), text as
     object arrays, ``A_hat``/``B_hat`` as (k, n, .) float arrays if kept."""
 
-    def __init__(self, data: dict[str, np.ndarray], n: int):
+    def __init__(self, data: dict[str, Array], n: int) -> None:
         self.data = data
         self.n = n
-        self._cache: dict = {}  # derived arrays (factorised text columns, ...)
+        self._cache: dict[Any, Any] = {}  # derived arrays (factorised text columns, ...)
 
-    def codes(self, f: str) -> tuple[np.ndarray, list]:
+    def codes(self, f: str) -> tuple[Array, list[Any]]:
         """Field ``f`` factorised: integer codes and the value of each code
         (cached; floats as float, NaN as None)."""
         cache = self.cache
         key = ("codes", f)
         if key not in cache:
             cache[key] = _codes(self.data[f])
-        return cache[key]
+        codes: tuple[Array, list[Any]] = cache[key]
+        return codes
 
     @property
-    def cache(self) -> dict:
-        return self.__dict__.setdefault("_cache", {})
+    def cache(self) -> dict[Any, Any]:
+        cache: dict[Any, Any] = self.__dict__.setdefault("_cache", {})
+        return cache
 
-    def equals(self, f: str, value) -> np.ndarray:
+    def equals(self, f: str, value: object) -> BoolArray:
         """Boolean mask ``self[f] == value`` for a text field (via the cached codes)."""
         codes, values = self.codes(f)
         hit = [i for i, v in enumerate(values) if v == value]
         if not hit:
             return np.zeros(self.n, dtype=bool)
-        return codes == hit[0]
+        eq: BoolArray = codes == hit[0]
+        return eq
 
     @classmethod
-    def from_records(cls, records: Iterable[dict], matrices: bool = True) -> Columns:
+    def from_records(cls, records: Iterable[dict[str, Any]], matrices: bool = True) -> Columns:
         records = list(records)
-        data: dict[str, np.ndarray] = {}
+        data: dict[str, Array] = {}
         for f in SCALAR_FIELDS:
             data[f] = _float_array([r.get(f) for r in records])
         for f in TEXT_FIELDS:
@@ -126,10 +131,10 @@ class Columns:
     def __len__(self) -> int:
         return self.n
 
-    def __getitem__(self, f: str) -> np.ndarray:
+    def __getitem__(self, f: str) -> Array:
         return self.data[f]
 
-    def has(self, f: str, mask=None) -> bool:
+    def has(self, f: str, mask: Array | None = None) -> bool:
         """True when field ``f`` has at least one non-null value (under ``mask``)."""
         a = self.data.get(f)
         if a is None or self.n == 0:
@@ -142,12 +147,12 @@ class Columns:
             return a.shape[1] > 0 and bool(np.isfinite(a).all(axis=(1, 2)).any())
         return bool(np.isfinite(a).any())
 
-    def subset(self, mask) -> Columns:
+    def subset(self, mask: Array) -> Columns:
         idx = np.nonzero(mask)[0]
         return Columns({k: v[idx] for k, v in self.data.items()}, int(idx.size))
 
 
-def as_columns(records) -> Columns:
+def as_columns(records: Columns | Iterable[dict[str, Any]]) -> Columns:
     """Records (an iterable of dicts) or Columns -> Columns."""
     if isinstance(records, Columns):
         return records
@@ -166,13 +171,13 @@ class Meta:
     delta: float = 0.01
     seed: object = "?"
     gamma_ref: float = 0.1
-    stages: tuple = ()
-    truth: dict = field(default_factory=dict)  # system name -> (A, B)
-    spec_dict: dict | None = None
+    stages: tuple[Any, ...] = ()
+    truth: dict[str, Any] = field(default_factory=dict)  # system name -> (A, B)
+    spec_dict: dict[str, Any] | None = None
     bounds_method: str = "paper"
 
 
-def spec_meta(spec) -> Meta:
+def spec_meta(spec: Any) -> Meta:
     from ..parsing import parse_spec
     from ..spec import ExperimentSpec
     from ..systems import PRESETS, resolve_system
@@ -206,7 +211,14 @@ def spec_meta(spec) -> Meta:
 # ---------------------------------------------------------------------------
 
 
-def select(cols: Columns, *, system=None, estimator=None, gamma="any", sigma_w=None) -> np.ndarray:
+def select(
+    cols: Columns,
+    *,
+    system: str | None = None,
+    estimator: str | None = None,
+    gamma: float | str | None = "any",
+    sigma_w: float | None = None,
+) -> BoolArray:
     m = np.ones(cols.n, dtype=bool)
     if system is not None:
         m &= cols.equals("system", system)
@@ -221,41 +233,41 @@ def select(cols: Columns, *, system=None, estimator=None, gamma="any", sigma_w=N
     return m
 
 
-def systems_of(cols: Columns, mask=None) -> list[str]:
+def systems_of(cols: Columns, mask: Array | None = None) -> list[str]:
     vals = cols["system"] if mask is None else cols["system"][mask]
     names = {v for v in vals if v is not None}
     known = [s for s in (STABLE, UNSTABLE) if s in names]
     return known + sorted(names - set(known))
 
 
-def _uniq_float(a: np.ndarray) -> list[float]:
+def _uniq_float(a: Array) -> list[float]:
     a = a[np.isfinite(a)]
     return [float(v) for v in np.unique(a)]
 
 
-def gammas_of(cols: Columns, mask=None, estimator="svr") -> list[float]:
+def gammas_of(cols: Columns, mask: Array | None = None, estimator: str = "svr") -> list[float]:
     m = select(cols, estimator=estimator)
     if mask is not None:
         m &= mask
     return _uniq_float(cols["gamma"][m])
 
 
-def sigmas_of(cols: Columns, mask=None) -> list[float]:
+def sigmas_of(cols: Columns, mask: Array | None = None) -> list[float]:
     a = cols["sigma_w"] if mask is None else cols["sigma_w"][mask]
     return _uniq_float(a)
 
 
-def _key(v):
+def _key(v: Any) -> Any:
     if isinstance(v, (float, np.floating)):
         return None if math.isnan(v) else float(v)
     return v
 
 
-def _codes(col: np.ndarray) -> tuple[np.ndarray, list]:
+def _codes(col: Array) -> tuple[Array, list[Any]]:
     """Factorise a column: integer codes and the key value of each code
     (floats as float, NaN as None; objects as themselves)."""
     if col.dtype == object:
-        lut: dict = {}
+        lut: dict[Any, int] = {}
         setdefault = lut.setdefault
         codes = np.array([setdefault(v, len(lut)) for v in col.tolist()], dtype=np.int64)
         return codes, list(lut)
@@ -263,7 +275,9 @@ def _codes(col: np.ndarray) -> tuple[np.ndarray, list]:
     return inv.reshape(-1).astype(np.int64), [_key(v) for v in u.tolist()]
 
 
-def group_indices(cols: Columns, keys: tuple[str, ...], mask=None) -> dict[tuple, np.ndarray]:
+def group_indices(
+    cols: Columns, keys: tuple[str, ...], mask: Array | None = None
+) -> dict[tuple[Any, ...], Array]:
     """key tuple -> indices (ascending); NaN keys (gamma of ols) become None.
     Groups are ordered by their keys (None last)."""
     idx = np.arange(cols.n) if mask is None else np.nonzero(mask)[0]
@@ -280,7 +294,7 @@ def group_indices(cols: Columns, keys: tuple[str, ...], mask=None) -> dict[tuple
     order = np.argsort(inv, kind="stable")
     bounds = np.flatnonzero(np.diff(inv[order])) + 1
     groups = np.split(idx[order], bounds)
-    out: dict[tuple, np.ndarray] = {}
+    out: dict[tuple[Any, ...], Array] = {}
     for code, members in zip(uc.tolist(), groups):
         key = []
         for u in reversed(values):
@@ -291,7 +305,9 @@ def group_indices(cols: Columns, keys: tuple[str, ...], mask=None) -> dict[tuple
     return {k: out[k] for k in order_k}
 
 
-def by_N(cols: Columns, mask, values: np.ndarray, fn: Callable[[np.ndarray], float]):
+def by_N(
+    cols: Columns, mask: Array, values: Array, fn: Callable[[Array], float]
+) -> tuple[FloatArray, FloatArray, FloatArray, Array]:
     """Group ``values`` (full-length array) by N under ``mask``; NaNs dropped.
 
     -> (N0 array, N array, stat array, count array)
@@ -324,11 +340,11 @@ def by_N(cols: Columns, mask, values: np.ndarray, fn: Callable[[np.ndarray], flo
     return x0.astype(float), uN.astype(float), ys.astype(float), cnt
 
 
-def mean_of(v: np.ndarray) -> float:
+def mean_of(v: Array) -> float:
     return float(np.mean(v))
 
 
-def n0_ratio(cols: Columns, mask=None) -> float | None:
+def n0_ratio(cols: Columns, mask: Array | None = None) -> float | None:
     m = np.ones(cols.n, bool) if mask is None else mask
     N, N0 = cols["N"][m], cols["N0"][m]
     ok = np.isfinite(N) & np.isfinite(N0) & (N > 0)
@@ -338,7 +354,7 @@ def n0_ratio(cols: Columns, mask=None) -> float | None:
     return float(r[0]) if np.allclose(r, r[0]) else None
 
 
-def fmt_num(v, digits: int = 4) -> str:
+def fmt_num(v: Any, digits: int = 4) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "n/a"
     if isinstance(v, (bool, np.bool_)):
@@ -348,7 +364,7 @@ def fmt_num(v, digits: int = 4) -> str:
     return f"{float(v):.{digits}g}"
 
 
-def gamma_label(estimator: str, gamma) -> str:
+def gamma_label(estimator: str, gamma: float | None) -> str:
     if estimator == "ols" or gamma is None:
         return "OLS"
     name = "SVR" if estimator == "svr" else estimator

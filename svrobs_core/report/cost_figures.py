@@ -3,6 +3,9 @@ share of certified gains. Same conventions as :mod:`.figures`."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import Any, TypeAlias
+
 import numpy as np
 
 from ..paper import STABLE
@@ -29,8 +32,10 @@ from .plotting import (
 from .series import context, figure_series, series_lines
 from .style import NEUTRAL, series_style, size, styled
 
+Records: TypeAlias = Columns | Iterable[dict[str, Any]]
 
-def _pick_system(cols: Columns, prefer: str, field_: str) -> str | None:
+
+def _pick_system(cols: Columns, prefer: str | None, field_: str) -> str | None:
     systems = systems_of(cols)
     if prefer in systems:
         return prefer
@@ -45,7 +50,13 @@ def _count(n: int) -> str:
 
 
 @styled
-def fig4(records, spec=None, *, experiment: str | None = "E3", system: str = STABLE):
+def fig4(
+    records: Records,
+    spec: Any = None,
+    *,
+    experiment: str | None = "E3",
+    system: str | None = STABLE,
+) -> Any:
     """Fig. 4 (one column): ΔJ = J_b − J vs N0 for each γ on S, mean over the
     repetitions with the 5-95 % band; below, each γ's mean minus that of γ_ref;
     the share of repetitions with ΔJ < 0 as a third panel only if there is one."""
@@ -78,7 +89,8 @@ def fig4(records, spec=None, *, experiment: str | None = "E3", system: str = STA
             a.set_visible(False)
         figure_title(fig, title, experiment, meta)
         return fig
-    styles, drawn = {}, {}
+    styles: dict[str, dict[str, Any]] = {}
+    drawn: dict[Any, Any] = {}
     for i, ln in enumerate(lines):
         name = series_name(ln.key)
         st = styles.setdefault(name, series_style(i))
@@ -133,7 +145,7 @@ def fig4(records, spec=None, *, experiment: str | None = "E3", system: str = STA
     return fig
 
 
-def _band_note(fig, lines, band):
+def _band_note(fig: Any, lines: list[Any], band: tuple[Any, ...] | None) -> None:
     """Say how wide the band is when it is too narrow to see beside the mean."""
     rel = [
         np.nanmax((ln.hi - ln.lo) / np.abs(ln.y))
@@ -141,6 +153,7 @@ def _band_note(fig, lines, band):
         if ln.hi is not None and np.isfinite((ln.hi - ln.lo) / np.abs(ln.y)).any()
     ]
     if rel and max(rel) < 0.03:
+        assert band is not None  # the lines have a band
         lo, hi = (round(100 * b) for b in band)
         note(
             fig,
@@ -150,7 +163,7 @@ def _band_note(fig, lines, band):
 
 
 @styled
-def fig5(records, spec=None, *, experiment: str | None = "E4"):
+def fig5(records: Records, spec: Any = None, *, experiment: str | None = "E4") -> Any:
     """Fig. 5: cost ratio r = |mean J_γ − mean J_ref| / mean J_ref vs N0, S and U
     (solid); the mean of the per-repetition ``cost_ratio`` dashed; below, each γ's
     r minus that of the smallest γ."""
@@ -159,7 +172,8 @@ def fig5(records, spec=None, *, experiment: str | None = "E4"):
     rows = figure_series("fig5")
     panels = _panels(cols)
     fig, axes = new_figure(2, len(panels), size("two", 12), sharex=True, height_ratios=[2, 1])
-    styles, gaps = {}, []
+    styles: dict[str, dict[str, Any]] = {}
+    gaps: list[Any] = []
     for c, (system, pm) in enumerate(panels):
         ax, axd = axes[0, c], axes[1, c]
         lines = series_lines(cols, meta, rows["ratio"], pm, ctx)
@@ -223,7 +237,7 @@ def fig5(records, spec=None, *, experiment: str | None = "E4"):
 
 
 @styled
-def fig_certified(records, spec=None, *, experiment: str | None = "E4"):
+def fig_certified(records: Records, spec: Any = None, *, experiment: str | None = "E4") -> Any:
     """Share of repetitions whose observer gain L is certified (g(L) < 1), and
     the share with ρ(A − LC) < 1 for the true A, vs N0 per γ (identical lines
     drawn once; a share that is 1 everywhere is a caption note, not a line)."""
@@ -236,7 +250,7 @@ def fig_certified(records, spec=None, *, experiment: str | None = "E4"):
     for key in ("certified", "stable_true"):
         ys = [ln.y for _, pm in panels for ln in series_lines(cols, meta, rows[key], pm, ctx)]
         all_ones[key] = bool(ys) and all(np.all(y[np.isfinite(y)] == 1.0) for y in ys)
-    styles = {}
+    styles: dict[str, dict[str, Any]] = {}
     for c, (system, pm) in enumerate(panels):
         ax = axes[0, c]
         if not cols.has("certified", pm):

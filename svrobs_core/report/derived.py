@@ -4,12 +4,18 @@ the same data, and the first N at which the stability certificate holds."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import Any, cast
+
 import numpy as np
 
+from ..array_types import Array, FloatArray
 from .columns import Columns, Meta, as_columns, by_N, group_indices, mean_of, select, systems_of
 
 
-def entry_quantities(cols: Columns, meta: Meta, mat: str):
+def entry_quantities(
+    cols: Columns, meta: Meta, mat: str
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Per record: max_ij |ΔX_ij|, and the Lemma 2 interval-end envelope
     max_ij(γX̃_ij) + r_X and min_ij(γX̃_ij) − r_X (γ = 0 for OLS), X = A or B.
     NaN where the estimate, the radius or the true system is unknown."""
@@ -38,15 +44,16 @@ def entry_quantities(cols: Columns, meta: Meta, mat: str):
     return err, lo, hi
 
 
-def svr_ols_diff(cols: Columns) -> np.ndarray:
+def svr_ols_diff(cols: Columns) -> Array:
     """Per SVR record: max_ij |Ã_svr − Ã_ols| against the OLS estimate of the
     same (system, sigma_w, N, rep), i.e. the same data. NaN elsewhere."""
     if "svr_ols_diff" not in cols.cache:
         cols.cache["svr_ols_diff"] = _svr_ols_diff_calc(cols)
-    return cols.cache["svr_ols_diff"].copy()
+    diff: Array = cols.cache["svr_ols_diff"].copy()
+    return diff
 
 
-def _svr_ols_diff_calc(cols: Columns) -> np.ndarray:
+def _svr_ols_diff_calc(cols: Columns) -> Array:
     out = np.full(cols.n, np.nan)
     X = cols.data.get("A_hat")
     if X is None or X.ndim != 3 or X.shape[1] == 0:
@@ -64,7 +71,7 @@ def _svr_ols_diff_calc(cols: Columns) -> np.ndarray:
     return out
 
 
-def all_inside(cols: Columns) -> np.ndarray:
+def all_inside(cols: Columns) -> Array:
     """Per record: 1 where every entry of A and of B is inside its interval
     (coverage_A = coverage_B = 1), 0 where not, NaN where either is null."""
     a, b = cols["coverage_A"], cols["coverage_B"]
@@ -72,12 +79,14 @@ def all_inside(cols: Columns) -> np.ndarray:
     return np.where(ok, ((a == 1) & (b == 1)).astype(float), np.nan)
 
 
-def first_stable_certified(records, share: float = 0.5) -> dict[tuple, dict | None]:
+def first_stable_certified(
+    records: Columns | Iterable[dict[str, Any]], share: float = 0.5
+) -> dict[tuple[Any, ...], dict[str, Any]]:
     """(system, sigma_w, estimator, gamma) -> {"N", "N0", "share"} of the first N
     at which stable_certified holds in at least ``share`` of the repetitions,
     or None ("never in the grid"); only groups with stable_certified data."""
     cols = as_columns(records)
-    out: dict[tuple, dict | None] = {}
+    out: dict[tuple[Any, ...], dict[str, Any] | None] = {}
     sc = cols["stable_certified"]
     for key, idx in group_indices(
         cols, ("system", "sigma_w", "estimator", "gamma"), np.isfinite(sc)
@@ -105,10 +114,12 @@ def first_stable_certified(records, share: float = 0.5) -> dict[tuple, dict | No
                 "N_max": int(Ns.max()),
                 "N0_max": int(round(x0.max())),
             }
-    return out
+    return cast(dict[tuple[Any, ...], dict[str, Any]], out)  # every None was replaced
 
 
-def ratio_to_reference(cols: Columns, m, mr, values):
+def ratio_to_reference(
+    cols: Columns, m: Array, mr: Array, values: Array
+) -> tuple[FloatArray, FloatArray, FloatArray, Array]:
     """Per N: |mean(values[m]) − mean(values[mr])| / mean(values[mr]) -> (N0, N, r, count)."""
     x, Ns, mean, cnt = by_N(cols, m, values, mean_of)
     _, Nr, mean_r, _ = by_N(cols, mr, values, mean_of)
@@ -122,7 +133,9 @@ def ratio_to_reference(cols: Columns, m, mr, values):
     return x, Ns, r, cnt
 
 
-def cost_ratio_of_means(cols: Columns, system: str, gamma: float, gamma_ref: float):
+def cost_ratio_of_means(
+    cols: Columns, system: str, gamma: float, gamma_ref: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """r(N) = |mean J_γ − mean J_ref| / mean J_ref with J the exact cost
     (docs/science.md#92-how-the-tables-and-figures-aggregate)."""
     m = select(cols, system=system, estimator="svr", gamma=gamma)

@@ -11,6 +11,8 @@ difference panel and a caption note with the largest gap (``fig.svrobs_notes``).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from .columns import Columns, as_columns, fmt_num, n0_ratio, select, spec_meta, systems_of
@@ -62,7 +64,15 @@ def _panels(cols: Columns):
     return [(s, select(cols, system=s)) for s in systems]
 
 
-def _diff_panel(ax, fig, panel, lines, ref, styles, what):
+def _diff_panel(
+    ax: Any,
+    fig: Any,
+    panel: str,
+    lines: list[tuple[str, Any]],
+    ref: tuple[str, Any],
+    styles: dict[str, dict[str, Any]],
+    what: str,
+) -> Any:
     """Each line minus ``ref`` in ``ax``; returns the largest gap (value, name, x)."""
     diffs, big = differences([(n, ln.x, ln.y) for n, ln in lines], (ref[0], ref[1].x, ref[1].y))
     for name, x, d in diffs:

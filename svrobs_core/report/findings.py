@@ -4,6 +4,9 @@ hold here and where not, with counts (docs/science.md sections 3-7 and
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import Any
+
 import numpy as np
 
 from ..paper import PUBLISHED_CLAIMS
@@ -46,7 +49,7 @@ def _stage_findings(cols: Columns, meta: Meta) -> list[str]:
 
 
 def _f_svr_vs_ols(cols: Columns) -> list[str]:
-    out = []
+    out: list[str] = []
     if not (
         cols.has("rmse_A")
         and np.any(cols["estimator"] == "ols")
@@ -216,7 +219,7 @@ def _f_theorem1(cols: Columns, meta: Meta) -> list[str]:
 
 
 def _f_stable_certified(cols: Columns, meta: Meta) -> list[str]:
-    out = []
+    out: list[str] = []
     if not cols.has("stable_certified"):
         return out
     claim = PUBLISHED_CLAIMS["stable_after_sample_length"]
@@ -432,7 +435,12 @@ def _f_notes(cols: Columns) -> list[str]:
 FINDING_TOPICS = ("estimate", "bounds", "cost", "notes")
 
 
-def findings(records, spec=None, *, topics=FINDING_TOPICS) -> list[str]:
+def findings(
+    records: Columns | Iterable[dict[str, Any]],
+    spec: Any = None,
+    *,
+    topics: Iterable[str] = FINDING_TOPICS,
+) -> list[str]:
     """Statements generated from the data: where the paper's claims hold here and
     where not, with counts. Each starts with [holds], [does not hold], [partly],
     [no data] or [info]. ``topics``: the subset of FINDING_TOPICS to report

@@ -4,13 +4,14 @@ figures by file name, specs and provenance."""
 from __future__ import annotations
 
 import json
+from typing import Any
 
 from .audit import audit_markdown
 from .build import Report
 from .tables import table2_markdown
 
 
-def spec_json(spec) -> str:
+def spec_json(spec: Any) -> str:
     """A spec as JSON with one top-level field per line (valid JSON)."""
     if not isinstance(spec, dict):
         return json.dumps(spec)

@@ -16,6 +16,7 @@ import csv
 import io
 import math
 import sys
+from typing import Any
 
 import numpy as np
 
@@ -157,7 +158,9 @@ def ref_line(ax, y: float, **style):
     return ln
 
 
-def legend_line(color=NEUTRAL, ls="-", label="", marker=None, **kw):
+def legend_line(
+    color: Any = NEUTRAL, ls: str = "-", label: str = "", marker: str | None = None, **kw: Any
+) -> Any:
     """A legend proxy: a series (its colour and marker) or a quantity (its line
     style, in the neutral colour)."""
     from matplotlib.lines import Line2D
@@ -171,7 +174,7 @@ def series_handle(label: str, style: dict):
     return legend_line(ls="-", label=label, **{k: style[k] for k in keep if k in style})
 
 
-def figure_legend(fig, handles, ncol=4):
+def figure_legend(fig: Any, handles: list[Any], ncol: int = 4) -> None:
     if handles:
         fig.legend(handles=handles, loc="outside lower center", ncol=ncol)
 

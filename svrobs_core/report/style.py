@@ -12,6 +12,13 @@ nothing here changes matplotlib's global state.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from typing import Any, ParamSpec, TypeVar, cast
+
+P = ParamSpec("P")
+R = TypeVar("R")
+
 CM = 1 / 2.54  # inches per cm
 ONE_COLUMN_CM = 8.5
 TWO_COLUMN_CM = 17.5
@@ -58,19 +65,20 @@ RC = {
 }
 
 
-def figure_style():
+def figure_style() -> AbstractContextManager[None]:
     """Context manager: the report's rcParams while a figure is built or saved."""
     import matplotlib
 
-    return matplotlib.rc_context(RC)
+    ctx: AbstractContextManager[None] = matplotlib.rc_context(cast(Any, RC))
+    return ctx
 
 
-def styled(fn):
+def styled(fn: Callable[P, R]) -> Callable[P, R]:
     """Decorator: build the figure inside :func:`figure_style`."""
     import functools
 
     @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         with figure_style():
             return fn(*args, **kwargs)
 
@@ -83,7 +91,7 @@ def size(width: str = "two", height_cm: float = 8.0) -> tuple[float, float]:
     return (w * CM, height_cm * CM)
 
 
-def series_style(i: int, *, line: bool = True, markevery=None) -> dict:
+def series_style(i: int, *, line: bool = True, markevery: Any = None) -> dict[str, Any]:
     """Colour, line style and marker of series ``i`` (each cycles on its own)."""
     st = {
         "color": PALETTE[i % len(PALETTE)],

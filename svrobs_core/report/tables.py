@@ -9,9 +9,12 @@ from __future__ import annotations
 import csv
 import io
 import math
+from collections.abc import Iterable
+from typing import Any
 
 import numpy as np
 
+from ..array_types import Array
 from ..paper import TABLE2_GAMMA, published_table2, table2_grid_note
 from .columns import (
     GAMMA_RTOL,
@@ -27,7 +30,7 @@ from .columns import (
 )
 
 
-def table_gamma(cols: Columns, gamma) -> float | None:
+def table_gamma(cols: Columns, gamma: float | None) -> float | None:
     if gamma is not None:
         return float(gamma)
     gs = gammas_of(cols)
@@ -39,7 +42,7 @@ def table_gamma(cols: Columns, gamma) -> float | None:
     return gs[0]
 
 
-def mean_over_reps_then_N(cols: Columns, mask, f: str) -> tuple[float | None, int, int]:
+def mean_over_reps_then_N(cols: Columns, mask: Array, f: str) -> tuple[float | None, int, int]:
     """Mean over repetitions per N, then mean over N
     (docs/science.md#92-how-the-tables-and-figures-aggregate)."""
     _, _, means, counts = by_N(cols, mask, cols[f], mean_of)
@@ -49,7 +52,9 @@ def mean_over_reps_then_N(cols: Columns, mask, f: str) -> tuple[float | None, in
     return float(means[ok].mean()), int(ok.sum()), int(counts[ok].min())
 
 
-def table2(records, gamma: float | None = None, *, spec=None) -> list[dict]:
+def table2(
+    records: Columns | Iterable[dict[str, Any]], gamma: float | None = None, *, spec: Any = None
+) -> list[dict[str, Any]]:
     """Table 2 rows: our OLS and SVR RMSE (mean over reps, then over the N grid)
     beside the paper's published values, with the ratio ours / paper.
 
@@ -124,7 +129,7 @@ TABLE2_COLUMNS = (
 )
 
 
-def table2_markdown(rows: list[dict]) -> str:
+def table2_markdown(rows: list[dict[str, Any]]) -> str:
     head = (
         "| System | σ_w | Matrix | OLS (ours) | SVR (ours) | OLS (paper, published) "
         '| "Ours" SVR (paper, published) | OLS ours/paper | SVR ours/paper '
@@ -154,7 +159,7 @@ def table2_markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def table2_csv(rows: list[dict]) -> str:
+def table2_csv(rows: list[dict[str, Any]]) -> str:
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=list(TABLE2_COLUMNS), lineterminator="\n")
     w.writeheader()

@@ -161,7 +161,7 @@ def test_results_sort_and_where(run, job_id, http, tmp_path):
 
 def test_share(run, job_id, http):
     """share create prints the link once; it opens without a key until revoked."""
-    code, out, err = run("share", "create", job_id, "--days", 3)
+    code, out, err = run("share", "create", job_id, "--days", 3, "--label", "for the review")
     assert code == 0 and out.count("\n") == 1, err
     url = out.strip()
     listed = http.get(f"/jobs/{job_id}/shares").json()
@@ -172,7 +172,8 @@ def test_share(run, job_id, http):
     code, out, _ = run("share", "list", job_id, "--json")
     assert code == 0 and json.loads(out) == listed
     code, out, _ = run("share", "list", job_id)
-    row = [str(sid), listed[0]["created_at"], listed[0]["expires_at"], "", "True"]
+    assert listed[0]["label"] == "for the review"
+    row = [str(sid), "for the review", listed[0]["created_at"], listed[0]["expires_at"], "", "True"]
     assert code == 0 and row in _table(out) and url not in out
     code, out, _ = run("share", "revoke", sid)
     assert code == 0 and out == f"share {sid} revoked\n"
