@@ -18,8 +18,8 @@ from service.config import get_settings
 from service.db import accounts, jobs, outbox, units
 from service.db.models import ApiKey, Job, Schedule, ScheduleRun, WorkUnit
 from svrobs_cli.app import app
-from svrobs_core.parsing import parse_spec
 from svrobs_core.admission import smallest_unit_bytes
+from svrobs_core.parsing import parse_spec
 from svrobs_core.workload import estimate_job, estimate_unit
 from svrobs_lab import schedules as lab_schedules
 from tests.service.svc_fakes import fake_records
