@@ -23,11 +23,19 @@ def _json(value) -> bytes:
 
 
 def encode_page(
-    rows: Sequence[Sequence], codec: ResultCodec, total: int, limit: int, offset: int
+    rows: Sequence[Sequence],
+    codec: ResultCodec,
+    total: int,
+    limit: int,
+    offset: int,
+    *,
+    next_offset: int | None = None,
 ) -> bytes:
-    """A ``ResultPage`` body: ``{"items": [...], "total", "limit", "offset"}``."""
+    """A ``ResultPage`` body: ``{"items": [...], "total", "limit", "offset",
+    "next_offset"}``."""
     items = decode_rows(rows, codec)
-    return _json({"items": items, "total": total, "limit": limit, "offset": offset})
+    page = {"items": items, "total": total, "limit": limit, "offset": offset}
+    return _json(page | {"next_offset": next_offset})
 
 
 def encode_lines(rows: Sequence[Sequence], codec: ResultCodec) -> bytes:

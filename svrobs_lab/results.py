@@ -30,7 +30,8 @@ from .jobs import team_job
 from .params import is_float_text, is_int_text
 from .record_json import encode_lines, encode_page
 
-STREAM_CHUNK = 1000
+STREAM_CHUNK = 1000  # rows read at a time by a stream, at most
+STREAM_ENTRIES = 250_000  # matrix entries read at a time by a stream, at most
 COMPARE_MAX_JOBS = 50
 # a text cell starting with one of these is a formula to a spreadsheet (OWASP, "CSV
 # injection"): it is written with a leading single quote
@@ -109,12 +110,48 @@ def count(session: Session, sel: Selection, *, grid: bool = True) -> int:
     return rq.count_rows(session, sel.conds)
 
 
-def page_json(session: Session, sel: Selection, *, limit: int, offset: int) -> bytes:
-    """One page of the selection as a ``ResultPage`` JSON body."""
+# the matrices a record holds with each stage (the others are null)
+STAGE_MATRICES = {
+    "estimate": ("A_hat", "B_hat"),
+    "bounds": ("radii_A", "radii_B"),
+    "gain": ("L", "K"),
+}
+
+
+def row_entries(codec: ResultCodec, spec: dict) -> int:
+    """The matrix entries of one record of the job (its largest system's): A_hat and
+    B_hat, radii_A and radii_B with ``bounds``, L and K with ``gain``."""
+    stages = set(spec.get("stages") or ()) | {"estimate"}
+    fields = [f for st in stages for f in STAGE_MATRICES.get(st, ())]
+    return max(
+        (sum(shapes[f][0] * shapes[f][1] for f in fields) for shapes in codec.shapes.values()),
+        default=0,
+    )
+
+
+def rows_within(codec: ResultCodec, spec: dict, max_entries: int | None, rows: int) -> int:
+    """At most ``rows``, and at most as many rows as hold ``max_entries`` matrix
+    entries (at least one; None: no cap)."""
+    per_row = row_entries(codec, spec)
+    if not max_entries or per_row == 0:
+        return rows
+    return max(1, min(rows, max_entries // per_row))
+
+
+def page_json(
+    session: Session, sel: Selection, *, limit: int, offset: int, max_entries: int | None = None
+) -> bytes:
+    """One page of the selection as a ``ResultPage`` JSON body: at most ``limit``
+    rows, fewer when they would hold more than ``max_entries`` matrix entries (its
+    ``limit`` is then the lowered one); ``next_offset`` is where the next page starts
+    (null after the last; docs/deploy.md#bounded-responses)."""
     codec = job_codec(session, sel.job.id, sel.job.spec)
+    limit = rows_within(codec, sel.job.spec, max_entries, limit)
     total = count(session, sel)
     rows = rq.page_rows(session, sel.conds, sel.order, limit=limit, offset=offset)
-    return encode_page(rows, codec, total, limit, offset)
+    after = offset + len(rows)
+    nxt = after if len(rows) == limit and after < total else None
+    return encode_page(rows, codec, total, limit, offset, next_offset=nxt)
 
 
 def page_records(session: Session, sel: Selection, *, limit: int, offset: int) -> list[dict]:
@@ -143,9 +180,13 @@ def stream(
     """(chunks, media type) of the selection as CSV (RFC 4180: CRLF line ends, so a
     cell holding a CR or LF is quoted) or JSON lines, read in chunks by a reading
     session of its own (``session_factory(False)``) once iterated. ``session``, the
-    request's, is closed first."""
+    request's, is closed first. A chunk holds at most STREAM_CHUNK rows and
+    STREAM_ENTRIES matrix entries."""
     codec: ResultCodec = job_codec(session, sel.job.id, sel.job.spec)
     query = rq.rows_query(sel.conds, sel.order, limit=limit, offset=offset)
+    size = rows_within(
+        codec, sel.job.spec, STREAM_ENTRIES, STREAM_CHUNK
+    )  # constant memory whatever n is
     session.close()
 
     def gen():
@@ -155,7 +196,7 @@ def stream(
                 buf = io.StringIO()
                 csv.writer(buf, lineterminator="\r\n").writerow(RECORD_FIELDS)
                 yield buf.getvalue()
-            for chunk in rq.row_chunks(own, query, STREAM_CHUNK):
+            for chunk in rq.row_chunks(own, query, size):
                 if fmt == "csv":
                     buf = io.StringIO()
                     writer = csv.writer(buf, lineterminator="\r\n")
@@ -253,6 +294,8 @@ __all__ = [
     "not_pruned",
     "page_json",
     "page_records",
+    "row_entries",
+    "rows_within",
     "select_rows",
     "stream",
     "summary",

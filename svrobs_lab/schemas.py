@@ -179,6 +179,9 @@ class JobPage(Page):
 
 class ResultPage(Page):
     items: list[dict[str, Any]]
+    # where the next page starts (null after the last); a page holds at most
+    # SVROBS_MAX_PAGE_MATRIX_ENTRIES matrix entries, so its limit may be lower
+    next_offset: int | None = None
 
 
 class SummaryOut(BaseModel):

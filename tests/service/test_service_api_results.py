@@ -255,7 +255,7 @@ def test_record_json_edge_values():
     page = encode_page(rows, codec, total=90, limit=50, offset=4)
     assert b"NaN" not in page and b"Infinity" not in page
     parsed = json.loads(page)
-    assert parsed == {"items": wants, "total": 90, "limit": 50, "offset": 4}
+    assert parsed == {"items": wants, "total": 90, "limit": 50, "offset": 4, "next_offset": None}
     assert all(list(x) == list(RECORD_FIELDS) for x in parsed["items"])
     assert str(parsed["items"][0]["A_hat"][1][1]) == "-0.0"
     assert [json.loads(x) for x in encode_lines(rows, codec).decode().splitlines()] == wants

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 from pydantic import Field
 
-from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep
+from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep, SettingsDep
 from service.api.errors import ERRORS, error_docs
 from service.api.query_params import accepts_query
 from service.db.result_queries import is_range_param
@@ -46,6 +46,7 @@ def get_results(
     session: DB,
     caller: CurrentCaller,
     session_factory: SessionFactoryDep,
+    settings: SettingsDep,
     system: Annotated[list[str] | None, Query()] = None,
     sigma_w: FloatList = None,
     N: IntList = None,
@@ -61,8 +62,11 @@ def get_results(
 ):
     """The job's records (field names of docs/spec.md#record-fields; matrices as nested lists; null,
     never NaN), filtered by any grid coordinate (repeat a parameter for several
-    values). JSON is paginated (default limit 100); CSV and JSONL stream the whole
-    selection (or `limit`/`offset` if given).
+    values). JSON is paginated (default limit 100): a page holds at most
+    SVROBS_MAX_PAGE_MATRIX_ENTRIES matrix entries (1,000,000), so with large
+    systems its `limit` is lowered; `next_offset` is where the next page starts
+    (null after the last). CSV and JSONL stream the whole selection (or
+    `limit`/`offset` if given) at constant memory.
 
     `sort`: comma-separated numeric record fields, `-` for descending
     (`sort=-rmse_A,N`); nulls last; ties in grid order. Range filters on any numeric
@@ -81,7 +85,13 @@ def get_results(
         sort=sort,
     )
     if format == "json":
-        body = results.page_json(session, sel, limit=limit or 100, offset=offset)
+        body = results.page_json(
+            session,
+            sel,
+            limit=limit or 100,
+            offset=offset,
+            max_entries=settings.MAX_PAGE_MATRIX_ENTRIES,
+        )
         return Response(body, media_type="application/json")
     body, media = results.stream(session, session_factory, sel, format, limit=limit, offset=offset)
     ext = "csv" if format == "csv" else "jsonl"
