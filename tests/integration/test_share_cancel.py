@@ -11,7 +11,6 @@ printed; run with ``-s`` to see them.
 
 from __future__ import annotations
 
-import re
 import time
 from datetime import datetime
 
@@ -23,6 +22,7 @@ from tests.service.svc_helpers import TINY_SPEC
 
 from .stack import Stack, submit
 from .test_trust import long_job, n_results, second_team, team_client, unit_rows, wait_for
+from .test_trust import stop_line as trust_stop_line
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(420)]
 
@@ -69,14 +69,7 @@ def worker_log(stack) -> str:
 
 
 def stop_line(stack, uid: int) -> str | None:
-    """How the unit's run ended, from the worker's log: its task's result, or the
-    watch ending its pool process (a computation that did not stop at the interrupt)."""
-    text = worker_log(stack)
-    m = re.search(rf"succeeded in [0-9.]+s: (\{{'unit': {uid}, [^\n]*)", text)
-    if m:
-        return m.group(1)
-    m = re.search(rf"unit {uid}: still computing [^\n]*ending pool process", text)
-    return m.group(0) if m else None
+    return trust_stop_line(stack, "worker1", uid)
 
 
 def ran_to_its_end(line: str) -> bool:
