@@ -111,6 +111,7 @@ class ReportBuilds:
 
     def _lead(self, flight: _Flight, job_id: int, team_id: int, build: Callable[[], str]) -> str:
         started = time.monotonic()
+        log.info("building the report of job %s (team %s)", job_id, team_id)
         try:
             flight.html = build()
         except BaseException as exc:

@@ -41,7 +41,6 @@ def is_live(session: Session, session_id: str, key_id: int) -> bool:
     return expires is not None and as_utc(expires) > utcnow()
 
 
-def end(session: Session, session_id: str) -> int:
-    """Forget the sign-in ``session_id`` (signing out); the number of rows deleted."""
-    result = session.execute(delete(SignIn).where(SignIn.token_hash == _hash(session_id)))
-    return result.rowcount or 0
+def end(session: Session, session_id: str) -> None:
+    """Forget the sign-in ``session_id`` (signing out)."""
+    session.execute(delete(SignIn).where(SignIn.token_hash == _hash(session_id)))

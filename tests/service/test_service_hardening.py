@@ -137,3 +137,18 @@ def test_a_share_link_lasts_at_least_an_hour(client, make_account, days):
     assert r.status_code == 422 and r.json()["field"] == "days", r.text
     ok = client.post(f"{API}/jobs/{jid}/shares", json={"days": 1 / 24}, headers=acc.headers)
     assert ok.status_code == 201, ok.text
+
+
+def test_the_share_form_refuses_less_than_an_hour(web, make_account):
+    acc = make_account()
+    jid = web.post(f"{API}/jobs", json=TINY_SPEC, headers=acc.headers).json()["id"]
+    sign_in(web, acc.key)
+    page = web.get(f"/jobs/{jid}/share")
+    assert 'min="0.0417"' in page.text  # the browser's own check: not under an hour
+    token = csrf_of(page.text)
+    r = web.post(f"/jobs/{jid}/share", data={"csrf_token": token, "days": "1e-300"})
+    assert r.status_code == 422 and "days" in r.text
+    ok = web.post(
+        f"/jobs/{jid}/share", data={"csrf_token": token, "days": "0.0417"}, follow_redirects=False
+    )
+    assert ok.status_code == 303
