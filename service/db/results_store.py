@@ -2,13 +2,17 @@
 cell key, from record dicts or straight from a unit's column arrays; and stored
 rows back to records (:func:`record_select`, :func:`decode_rows`).
 
-The hot write path of the worker. Rows are tuples in table-column order in the
-compact format of :mod:`service.db.result_codec` (matrices as float64 bytes,
-``notes`` as an id into ``result_notes``, ``seed_key`` NULL when derived), with
-no per-row SQLAlchemy parameter processing: on SQLite one DBAPI
-``executemany`` of an ``INSERT .. ON CONFLICT (cell key) DO UPDATE``; on
-PostgreSQL a binary COPY into ``results`` (or, for a unit stored before, into a
-temporary table and one ``INSERT .. SELECT .. ON CONFLICT``). Values are cleaned as the ORM would store them: NaN/inf -> NULL,
+The hot write path of the worker (docs/performance.md#the-store-of-a-unit). A
+unit's rows are built from its column arrays (:func:`unit_columns`, no database
+access: done before the write transaction) as columns in the compact format of
+:mod:`service.db.result_codec` (matrices as float64 bytes, ``notes`` as an id
+into ``result_notes``, ``seed_key`` NULL when derived), with no per-row
+SQLAlchemy parameter processing and without the columns NULL in every row: on
+SQLite one DBAPI ``executemany`` of an ``INSERT`` (of the upsert ``.. ON CONFLICT
+(cell key) DO UPDATE`` for a unit stored before), its values of the types pysqlite
+binds without adapting them; on PostgreSQL a binary COPY into ``results`` (or,
+for a unit stored before, into a temporary table and one ``INSERT .. SELECT .. ON
+CONFLICT``). Values are cleaned as the ORM would store them: NaN/inf -> NULL,
 numpy scalars -> Python.
 """
 
@@ -398,7 +402,7 @@ def _bound_columns(columns: dict[str, Sequence]) -> tuple[str, ...]:
     return tuple(
         c
         for c in COLUMNS
-        if c in _KEY or any(v is not None for v in columns[c])  # any() stops at the first
+        if c in _KEY or columns[c].count(None) != len(columns[c])  # count: C speed
     )
 
 
