@@ -87,7 +87,9 @@ def _chunks(session: Session, q) -> Iterator[Sequence[Sequence]]:
         return
     compiled = q.compile(dialect=conn.dialect)
     params = [compiled.params[name] for name in compiled.positiontup or ()]
-    cur = conn.connection.driver_connection.cursor()
+    driver = conn.connection.driver_connection
+    assert driver is not None  # an open connection (session.connection() began it)
+    cur = driver.cursor()
     try:
         cur.execute(str(compiled), params)
         while part := cur.fetchmany(CHUNK):
