@@ -4,7 +4,7 @@
     .venv/bin/python bench/service.py --stacks embedded --quick
     .venv/bin/python bench/service.py --stacks postgres --quick   # pg, postgres, postgresql
 
-The grid (SPEC Section 6: 2 systems x sigma_w {0.1, 1, 10} x N 10..450 step 10
+The grid (the paper's Section 6: 2 systems x sigma_w {0.1, 1, 10} x N 10..450 step 10
 x gamma {0.005, 0.01, 0.05, 0.1} x {ols, svr} x 45 reps, stages estimate +
 bounds = 60,750 cells; the work units are counted in the first line printed) is
 
@@ -18,7 +18,12 @@ bounds = 60,750 cells; the work units are counted in the first line printed) is
 
 It prints each wall time and the ratio service / in-process, against the core in
 one process and against the core with ``n_jobs=2`` (the same two cores; the
-target is 1.3x of that). The worker runs ``svrobs serve``'s default pool (one
+target is 1.3x of that); the CPU seconds of the stack's processes (API and
+worker, from /proc; not the database server's) against the core's in one
+process, which a machine loaded by other work does not stretch as it does wall
+times; and, from the workers' logs, a unit's mean claim, compute and store
+times (what ``worker.tasks.execute_unit`` returns) with claim + store as a share
+of compute (target at most 25 %). The worker runs ``svrobs serve``'s default pool (one
 process per CPU plus one: 3 here) unless ``--concurrency`` says otherwise.
 Then, per stack, it stores a synthetic job of 100,000 cells (bulk-inserted rows,
 units completed through ``units.complete_unit``) and times a filtered results page
@@ -326,12 +331,49 @@ def unit_breakdown(logs: Path) -> dict:
     return out
 
 
-def in_process(spec: dict, n_jobs: int = 1) -> tuple[float, int]:
+def in_process(spec: dict, n_jobs: int = 1) -> tuple[float, int, float]:
+    """(wall seconds, records, CPU seconds of this process and its children)."""
+    import resource
+
     from svrobs_core import parse_spec, run_spec
 
+    def cpu() -> float:  # this process, its children reaped, and those still alive
+        r = resource.getrusage(resource.RUSAGE_CHILDREN)
+        return time.process_time() + r.ru_utime + r.ru_stime + descendants_cpu()
+
+    c0 = cpu()
     t0 = time.perf_counter()
     n = sum(len(batch) for batch in run_spec(parse_spec(spec), n_jobs=n_jobs))
-    return time.perf_counter() - t0, n
+    wall = time.perf_counter() - t0
+    return wall, n, cpu() - c0
+
+
+def descendants_cpu(root: int | None = None) -> float:
+    """CPU seconds (user + system) used so far by the live descendants of ``root``
+    (default: this process), from /proc: the stack's API and worker processes. A
+    machine shared with other work stretches wall times; CPU seconds compare."""
+    root = os.getpid() if root is None else root
+    tick = os.sysconf("SC_CLK_TCK")
+    parent: dict[int, int] = {}
+    cpu: dict[int, float] = {}
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{d}/stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()  # after "pid (comm) "
+        parent[int(d)] = int(fields[1])
+        cpu[int(d)] = (int(fields[11]) + int(fields[12])) / tick
+    total, todo = 0.0, [root]
+    while todo:
+        p = todo.pop()
+        for child, pp in parent.items():
+            if pp == p:
+                total += cpu[child]
+                todo.append(child)
+    return total
 
 
 # the names --stacks takes, and the stack each means
@@ -394,14 +436,19 @@ def main() -> None:
     print(
         f"grid: {spec.n_cells} cells in {len(plan_units(spec))} work units; {os.cpu_count()} CPUs"
     )
-    base, n = in_process(grid)
-    print(f"{'in process (run_spec, 1 process):':54s}{base:8.1f} s  ({n} records)", flush=True)
-    base2, _ = in_process(grid, n_jobs=2)
+    base, n, base_cpu = in_process(grid)
     print(
-        f"{'in process (run_spec, n_jobs=2):':54s}{base2:8.1f} s  (ratios below: "
-        "against 1 process, against n_jobs=2)",
+        f"{'in process (run_spec, 1 process):':54s}{base:8.1f} s  ({n} records, "
+        f"{base_cpu:.1f} CPU s)",
         flush=True,
     )
+    base2, _, base2_cpu = in_process(grid, n_jobs=2)
+    print(
+        f"{'in process (run_spec, n_jobs=2):':54s}{base2:8.1f} s  ({base2_cpu:.1f} CPU s; "
+        "ratios below: against 1 process, against n_jobs=2)",
+        flush=True,
+    )
+    print(f"load average at the start: {os.getloadavg()[0]:.1f}", flush=True)
 
     rows = []
     for kind in stacks:
@@ -412,7 +459,9 @@ def main() -> None:
         root = Path(tempfile.mkdtemp(prefix=f"svrobs-bench-{kind}-"))
         try:
             with BenchStack(kind, root, workers, args.concurrency, pg_url, redis_url) as st:
+                cpu0 = descendants_cpu()
                 elapsed, job = st.run_job(grid)
+                stack_cpu = descendants_cpu() - cpu0
                 label = (
                     "embedded (SQLite + filesystem)" if kind == "embedded" else "PostgreSQL + Redis"
                 )
@@ -424,6 +473,12 @@ def main() -> None:
                     f"job run {job['timings'].get('run_seconds', float('nan')):.1f} s)",
                     flush=True,
                 )
+                print(
+                    f"  CPU of the stack's processes (API + worker, not the database server): "
+                    f"{stack_cpu:.1f} s, {stack_cpu / base_cpu:.2f}x the core's in one process "
+                    f"(load average {os.getloadavg()[0]:.1f})",
+                    flush=True,
+                )
                 row = {
                     "stack": kind,
                     "workers": workers,
@@ -431,6 +486,8 @@ def main() -> None:
                     "seconds": elapsed,
                     "ratio": elapsed / base,
                     "ratio_2_processes": elapsed / base2,
+                    "stack_cpu_seconds": stack_cpu,
+                    "cpu_ratio": stack_cpu / base_cpu,
                 }
                 if not args.no_page:
                     synth = st.py(SYNTH, json.dumps(BIG))
@@ -460,6 +517,15 @@ def main() -> None:
                         ),
                         flush=True,
                     )
+                    if breakdown.get("compute_s"):
+                        share = (breakdown["claim_s"] + breakdown["store_s"]) / breakdown[
+                            "compute_s"
+                        ]
+                        print(
+                            f"  claim + store = {100 * share:.0f} % of compute (target 25 %)",
+                            flush=True,
+                        )
+                        row["claim_store_share"] = share
                     row["per_unit_ms"] = {
                         k: round(v * 1000, 1) for k, v in breakdown.items() if k != "units"
                     }
@@ -472,7 +538,13 @@ def main() -> None:
                 shutil.rmtree(root, ignore_errors=True)
     print(
         json.dumps(
-            {"in_process_seconds": base, "in_process_2_seconds": base2, "cells": n, "stacks": rows},
+            {
+                "in_process_seconds": base,
+                "in_process_2_seconds": base2,
+                "in_process_cpu_seconds": base_cpu,
+                "cells": n,
+                "stacks": rows,
+            },
             indent=1,
         )
     )

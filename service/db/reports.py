@@ -10,6 +10,7 @@ record dicts, and no ``A_hat``/``B_hat`` above ``MATRIX_CELLS_LIMIT`` cells
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -76,6 +77,27 @@ def _matrix_block(values: list, shape: tuple[int, int] | None) -> tuple[np.ndarr
     return out, shape
 
 
+def _chunks(session: Session, q) -> Iterator[Sequence[Sequence]]:
+    """The rows of ``q`` in chunks of ``CHUNK``. On SQLite straight from the driver's
+    cursor (plain tuples: a third less time than SQLAlchemy's rows; booleans as 0/1);
+    on PostgreSQL through a server-side cursor (``yield_per``)."""
+    conn = session.connection()
+    if conn.dialect.name != "sqlite":
+        yield from session.execute(q.execution_options(yield_per=CHUNK)).partitions(CHUNK)
+        return
+    compiled = q.compile(dialect=conn.dialect)
+    params = [compiled.params[name] for name in compiled.positiontup or ()]
+    driver = conn.connection.driver_connection
+    assert driver is not None  # an open connection (session.connection() began it)
+    cur = driver.cursor()
+    try:
+        cur.execute(str(compiled), params)
+        while part := cur.fetchmany(CHUNK):
+            yield part
+    finally:
+        cur.close()
+
+
 def load_columns(session: Session, job_id: int, *, matrices: bool | None = None) -> Columns:
     """The job's stored records as report :class:`Columns` (the same values as
     ``Columns.from_records`` of its records), read in chunks. ``matrices``: load
@@ -105,7 +127,7 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
     sig = SCALAR_FIELDS.index("sigma_w")
     interned: dict[str, dict] = {f: {} for f in TEXT_FIELDS}
     at = 0
-    for part in session.execute(q.execution_options(yield_per=CHUNK)).partitions(CHUNK):
+    for part in _chunks(session, q):
         k = len(part)
         columns = list(zip(*part))
         for i, f in enumerate(SCALAR_FIELDS):
