@@ -55,6 +55,12 @@ SPEC_FIELDS = (
     "lambda0",
 )
 BOUNDS_METHOD = "self-normalized"  # the one sound on measured data
+_NOT_ON_DATA = {  # why the other bounds methods are refused on a dataset
+    "paper": "the paper's bounds need the simulation design (x0 = 0, Gaussian inputs of a "
+    "known sigma_u, equal T0)",
+    "bootstrap": "the bootstrap re-simulates the simulation design from the estimate, "
+    "not the measured inputs: on logged rollouts there is no such design to resample",
+}
 # The record key sigma_w of a job whose noise level is estimated: a key, not a level.
 SIGMA_W_ESTIMATED = -1.0
 
@@ -171,10 +177,11 @@ def parse_dataset_spec(obj: dict) -> ExperimentSpec:
     dataset = _int(obj["dataset"], "dataset", lo=1, hi=2**63 - 1)
     method = obj.get("bounds_method", BOUNDS_METHOD)
     if method != BOUNDS_METHOD:
+        why = _NOT_ON_DATA.get(method, "it is not a bounds method")
         raise SpecError(
             "bounds_method",
             f'must be "{BOUNDS_METHOD}" for a dataset, got {json.dumps(method, default=str)}: '
-            "the paper's bounds and the bootstrap assume the simulation design",
+            f"{why} (docs/measured.md#spec)",
         )
     C = obj.get("C")
     if C is not None:

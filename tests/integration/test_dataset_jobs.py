@@ -85,3 +85,66 @@ def test_dataset_job_over_rest_equals_the_core_on_the_arrays(stack):
         np.array(want[(f"dataset-{ds['id']}", -1.0, 14, "ols", -1.0, 0)]["A_hat"]),
     )
     print(f"\n[{stack.kind}] {len(got)} dataset records over REST, bit-identical")
+
+
+def test_no_inputs_over_rest_and_a_used_dataset_is_not_deleted(stack):
+    """m = 0 (an autonomous system, a CSV with no input column) through the API and a
+    worker: records equal the core's with n x 0 B matrices, the validation and the
+    model export have them too; deleting the dataset while its job exists is a 409
+    naming the job, and once the job is deleted the dataset goes."""
+    X, U = files.simulate(A_TRUE, np.zeros((2, 0)), 23, lengths=(15,) * 10)
+    assert U[0].shape == (15, 0)
+    spec = {
+        "N": [3, 6],
+        "holdout": 3,
+        "reps": 2,
+        "gamma": [0.05],
+        "stages": ["estimate", "bounds", "gain", "cost"],
+        "sigma_w": 0.1,
+        "seed": 3,
+    }
+    with stack.client() as c:
+        r = c.post(
+            "/datasets",
+            files={"file": ("free.csv", files.csv_bytes(X, U))},
+            data={"name": "free", "input_columns": ""},
+        )
+        assert r.status_code == 201, r.text
+        ds = r.json()
+        assert (ds["n"], ds["m"], ds["input_names"]) == (2, 0, [])
+        spec = {**spec, "dataset": ds["id"]}
+        job = submit(c, spec, name="no inputs")
+        done = stack.wait_job(c, job["id"], timeout=200)
+        assert done["status"] == "succeeded", done
+        got = {cell_key(r): r for r in fetch_jsonl(c, job["id"])}
+        validation = c.get(f"/jobs/{job['id']}/validation").json()
+        cell = "N=6,estimator=svr,rep=1"
+        model = c.get(f"/jobs/{job['id']}/model", params={"cell": cell, "format": "json"})
+        in_use = c.delete(f"/datasets/{ds['id']}")
+        still = c.get(f"/datasets/{ds['id']}").status_code
+        assert c.delete(f"/jobs/{job['id']}").status_code == 204
+        gone = c.delete(f"/datasets/{ds['id']}").status_code
+        after = c.get(f"/datasets/{ds['id']}").status_code
+
+    parsed = parse_spec(spec)
+    unit = {"system": 0, "sigma_w": 0, "N": list(parsed.N), "reps": [0, parsed.reps]}
+    want = {
+        cell_key(r): json.loads(json.dumps(r, allow_nan=False))
+        for r in run_measured_unit(parsed, unit, MeasuredData(X=X, U=U)).records()
+    }
+    assert set(got) == set(want) and len(got) == parsed.n_cells
+    diffs = [d for k, w in want.items() for f in RECORD_FIELDS for d in same(got[k][f], w[f], f)]
+    assert not diffs, diffs[:10]
+    assert all(r["B_hat"] == [[], []] and r["L"] is not None for r in got.values())
+    assert [m["B_hat"] for m in validation["models"]] == [[[], []], [[], []]]
+    assert all(m["validation"]["channels"] == ["x1", "x2"] for m in validation["models"])
+    assert model.status_code == 200, model.text
+    exported = model.json()
+    key = (f"dataset-{ds['id']}", 0.1, 6, "svr", 0.05, 1)
+    assert exported["A_hat"] == want[key]["A_hat"] and exported["B_hat"] == [[], []]
+
+    assert in_use.status_code == 409 and still == 200
+    assert in_use.json()["detail"] == (
+        f"dataset {ds['id']} is used by job {job['id']}: delete them first"
+    )
+    assert (gone, after) == (204, 404)

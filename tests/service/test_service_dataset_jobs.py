@@ -207,6 +207,9 @@ def test_submit_checks_a_dataset_spec_against_the_teams_dataset(client, make_acc
         ({**base, "T0": 5}, "T0", "describes a simulation"),
         ({**base, "sigma_w": "guess"}, "sigma_w", '"estimate"'),
         ({**base, "dataset": True}, "dataset", "integer"),
+        ({**base, "bounds_method": "bootstrap"}, "bounds_method", "the bootstrap re-simulates"),
+        ({**base, "bounds_method": "paper"}, "bounds_method", 'must be "self-normalized"'),
+        ({**base, "boot_reps": 50}, "boot_reps", "is not used with a dataset"),
     ]
     for spec, field, text in cases:
         r = client.post(f"{API}/jobs", json=spec, headers=acc.headers)
