@@ -89,10 +89,13 @@ def test_cancel_stops_pending_units(stack):
             assert r.json()["status"] == "cancelled"
             time.sleep(0.5)  # let the API's after-commit publish reach the broker
             stack.start_worker()
-            # every message of the cancelled job is delivered and skipped
-            stack.wait_log("worker1", "'status': 'skipped'", count=job["progress"]["total"])
+            # the messages published before the cancel (the fair share publishes at
+            # most the pool's size of them) are delivered and skipped
+            stack.wait_log("worker1", "'status': 'skipped'")
             marker = submit(c, TINY_SPEC, name="marker")  # the worker still runs new work
             assert stack.wait_job(c, marker["id"])["status"] == "succeeded"
+            skipped = (stack.logs / "worker1.log").read_text().count("'status': 'skipped'")
+            assert 1 <= skipped <= job["progress"]["total"]
             after = c.get(f"/jobs/{job['id']}").json()
             assert after["status"] == "cancelled"
             assert after["progress"]["done"] == 0
