@@ -67,6 +67,8 @@ test-integration: $(TEST_STAMP)
 test-faults: $(TEST_STAMP)
 	SVROBS_FAULTS_REPORT=var/faults-report.json $(BIN)/python -m pytest -q -p no:cacheprovider \
 		-m faults --durations=0 tests/faults
+	SVROBS_PROPERTY_EXAMPLES=2000 $(BIN)/python -m pytest -q -p no:cacheprovider \
+		tests/core/test_property_specs.py
 
 bench: $(TEST_STAMP)
 	$(BIN)/python bench/estimators.py

@@ -442,7 +442,7 @@ def spec_errors(obj: object) -> dict[str, str]:
     return _whole(obj, errors)
 
 
-def _whole(obj: dict, errors: dict[str, str]) -> dict[str, str]:
+def _whole(obj: dict[str, Any], errors: dict[str, str]) -> dict[str, str]:
     """``errors`` and the whole spec's error, unless it is one of them again."""
     try:
         parse_spec(obj)

@@ -36,10 +36,7 @@ SPEC = {
 VIEWS = [(1400, 900, False), (390, 844, False), (1400, 900, True)]
 # Problems known and owned elsewhere: (page, check) -> why. Found, the test is an
 # expected failure after every other check has passed.
-KNOWN = {
-    ("dataset", "overflow"): "the statistics table of templates/dataset.html has no "
-    "scrolling box around it, so it is wider than a phone",
-}
+KNOWN: dict[tuple[str, str], str] = {}  # (page, problem) -> why it is not fixed yet
 
 
 @pytest.fixture(scope="module")
