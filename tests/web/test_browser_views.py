@@ -175,8 +175,8 @@ def test_job_chart_choices_live_in_the_url_and_a_late_answer_is_dropped(browser,
     page.select_option("#chart-metric", "r_A")
     wait_charts(page, loads + 1)
     assert held, "the eps_A request was not sent"
+    dropped = page.evaluate("window.svrobsCharts.dropped")  # before the late answer can land
     held[0].continue_()
-    dropped = page.evaluate("window.svrobsCharts.dropped")
     page.wait_for_function(f"() => window.svrobsCharts.dropped === {dropped + 1}")
     assert page.evaluate("window.svrobsCharts.data.metric") == "r_A"
     assert page.input_value("#chart-metric") == "r_A"
