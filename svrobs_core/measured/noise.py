@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from ..uncertainty import SINGULAR_RTOL
 
@@ -46,6 +45,8 @@ def noise_level(G, rss, *, n: int, N0: int, delta1: float, delta2: float, lambda
 
     G (R, d, d) the Gram matrices of the regressors, rss (R,) the OLS residual
     sum of squares of the n estimated rows, N0 samples each."""
+    from scipy.stats import chi2  # lazily: scipy.stats takes 1.5 s to import
+
     G = np.asarray(G, dtype=float)
     rss = np.asarray(rss, dtype=float)
     d = G.shape[-1]

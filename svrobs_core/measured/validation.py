@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
 
 from .. import estimators as _est
 from ..records import json_value
@@ -225,6 +224,8 @@ def _cross(eps: list, U: list, h: int, names) -> tuple:
 
 def validate(model: Model, holdout: MeasuredData) -> ValidationResult:
     """The validation statistics of ``model`` on the rollouts ``holdout``."""
+    from scipy.stats import chi2  # lazily: scipy.stats takes 1.5 s to import
+
     data = StateModel(ny=holdout.n, m=holdout.m, lags=model.lags).lift(holdout)
     ny = holdout.n
     predicted = [(x[:-1] @ model.A.T + u @ model.B.T)[:, :ny] for x, u in zip(data.X, data.U)]
