@@ -17,7 +17,8 @@ def run_stored_units(url: str, job_id: int, spec_dict: dict, *, worker: str, lea
         ids = jobs.unit_ids_of_job(s, job_id)
     for uid in ids:
         with session_scope(url) as s:
-            _, payload = units.start_unit(s, uid, worker, lease)
-        result = run_unit_result(spec, payload)
+            started = units.start_unit(s, uid, worker, lease)
+        assert started is not None, f"unit {uid} of a fresh job could not be started"
+        result = run_unit_result(spec, started[1])
         with session_scope(url) as s:
             units.complete_unit(s, uid, result)
