@@ -18,13 +18,12 @@ About 25 CPU seconds with the defaults.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
 import sys
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
+from bench.child import run_child  # noqa: E402
 from svrobs_core import parse_spec  # noqa: E402
 from svrobs_core.workload import estimate_job  # noqa: E402
 
@@ -87,17 +86,7 @@ def _spec(n: int, stages: list[str], reps: int) -> dict:
 
 
 def measure(specs: dict[str, dict]) -> dict[str, float]:
-    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    root = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
-    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
-    out = subprocess.run(
-        [sys.executable, "-c", _CHILD, json.dumps(specs)],
-        capture_output=True,
-        text=True,
-        check=True,
-        env=env,
-    )
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return run_child(_CHILD, specs)
 
 
 def main(argv=None) -> int:

@@ -16,13 +16,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # before bench/
 
 from fastapi.testclient import TestClient
 
+from bench.stored_job import run_stored_units
 from service.app import create_app
 from service.config import Settings
-from service.db import accounts, jobs, units
+from service.db import accounts, jobs
 from service.db.migrate import upgrade
 from service.db.session import session_scope
-from svrobs_core.parsing import parse_spec
-from svrobs_core.runner import run_unit_result
 
 url = sys.argv[1]
 SPEC = {
@@ -49,15 +48,7 @@ with session_scope(url) as s:
     _, key = accounts.create_key(s, user.id)
     job, _ = jobs.create_job(s, team_id=team.id, user_id=None, spec=SPEC)
     jid = job.id
-spec = parse_spec(SPEC)
-with session_scope(url) as s:
-    ids = jobs.unit_ids_of_job(s, jid)
-for uid in ids:
-    with session_scope(url) as s:
-        _, payload = units.start_unit(s, uid, "w", 60)
-    r = run_unit_result(spec, payload)
-    with session_scope(url) as s:
-        units.complete_unit(s, uid, r)
+run_stored_units(url, jid, SPEC, worker="w", lease=60)
 app = create_app(Settings(DATABASE_URL=url, BROKER_URL="memory://", RATE_LIMIT_PER_MINUTE=100000))
 app.state.broker_check = lambda: None
 c = TestClient(app)

@@ -100,6 +100,22 @@ def _h2(F, G):
     return float(np.sqrt(np.trace(sla.solve_discrete_lyapunov(F, G @ G.T))))
 
 
+def _naive_data(spec, si, wi, N, rep):
+    """One repetition's regression data (Z, F) by a step-by-step loop over its
+    documented draws (u then w of key (si, wi, N, rep), data "all")."""
+    system = spec.systems[si]
+    A, B, n, m, T0 = system.A, system.B, system.n, system.m, spec.T0
+    g = rng_for(spec.seed, seed_key(si, wi, N, rep))
+    u = g.standard_normal((m, T0, N)) * system.sigma_u
+    w = g.standard_normal((n, T0, N)) * spec.sigma_w[wi]
+    x = np.zeros((n, T0 + 1, N))
+    for k in range(T0):
+        x[:, k + 1] = A @ x[:, k] + B @ u[:, k] + w[:, k]
+    Z = np.concatenate([x[:, 1:T0], u[:, 1:T0]]).reshape(n + m, -1)
+    F = x[:, 2:].reshape(n, -1)
+    return Z, F
+
+
 def naive_rep(spec, si, N, rep, truth, mc_runs=0):
     """All cells (estimators, gammas) of one repetition, one cell at a time -> JSON lines."""
     system = spec.systems[si]
@@ -107,14 +123,7 @@ def naive_rep(spec, si, N, rep, truth, mc_runs=0):
     n, m = system.n, system.m
     su, sv, sw = system.sigma_u, system.sigma_v, spec.sigma_w[0]
     T0, T = spec.T0, spec.horizon
-    g = rng_for(spec.seed, seed_key(si, 0, N, rep))
-    u = g.standard_normal((m, T0, N)) * su
-    w = g.standard_normal((n, T0, N)) * sw
-    x = np.zeros((n, T0 + 1, N))
-    for k in range(T0):
-        x[:, k + 1] = A @ x[:, k] + B @ u[:, k] + w[:, k]
-    Z = np.concatenate([x[:, 1:T0], u[:, 1:T0]]).reshape(n + m, -1)
-    F = x[:, 2:].reshape(n, -1)
+    Z, F = _naive_data(spec, si, 0, N, rep)
     N0 = Z.shape[1]
     K, J_star, norms = truth
     lines, J_of = [], {}
@@ -234,17 +243,10 @@ def naive_mc(A, B, At, Bt, L, C, su, sw, sv, T, rng, runs):
 def naive_estimate_rep(spec, si, wi, N, rep):
     """E1/E2 cells of one repetition: OLS and SVR per gamma with bounds, one at a time."""
     system = spec.systems[si]
-    A, B = system.A, system.B
+    A = system.A
     n, m, T0 = system.n, system.m, spec.T0
     su, sw = system.sigma_u, spec.sigma_w[wi]
-    g = rng_for(spec.seed, seed_key(si, wi, N, rep))
-    u = g.standard_normal((m, T0, N)) * su
-    w = g.standard_normal((n, T0, N)) * sw
-    x = np.zeros((n, T0 + 1, N))
-    for k in range(T0):
-        x[:, k + 1] = A @ x[:, k] + B @ u[:, k] + w[:, k]
-    Z = np.concatenate([x[:, 1:T0], u[:, 1:T0]]).reshape(n + m, -1)
-    F = x[:, 2:].reshape(n, -1)
+    Z, F = _naive_data(spec, si, wi, N, rep)
     out = []
     for gamma in [0.0] + list(spec.gamma):
         if gamma == 0.0:

@@ -206,16 +206,20 @@ class BenchStack:
             raise RuntimeError(out.stderr[-3000:])
         return json.loads(out.stdout.strip().splitlines()[-1])
 
+    def _pg_reset(self, sql: str) -> None:
+        """Run ``sql`` on the PostgreSQL server, then empty the Redis database."""
+        import redis
+        import sqlalchemy as sa
+
+        eng = sa.create_engine(self.pg_url)
+        with eng.begin() as c:
+            c.exec_driver_sql(sql)
+        eng.dispose()
+        redis.Redis.from_url(self.redis_url).flushdb()
+
     def __enter__(self):
         if self.kind == "pg":
-            import redis
-            import sqlalchemy as sa
-
-            eng = sa.create_engine(self.pg_url)
-            with eng.begin() as c:
-                c.exec_driver_sql(f'CREATE SCHEMA "{self.schema}"')
-            eng.dispose()
-            redis.Redis.from_url(self.redis_url).flushdb()
+            self._pg_reset(f'CREATE SCHEMA "{self.schema}"')
         self.key = self.py(SETUP)["key"]
         port = free_port()
         logs = self.root / "logs"
@@ -252,14 +256,7 @@ class BenchStack:
     def __exit__(self, *exc):
         stop_all(self.children, grace=10)
         if self.kind == "pg":
-            import redis
-            import sqlalchemy as sa
-
-            eng = sa.create_engine(self.pg_url)
-            with eng.begin() as c:
-                c.exec_driver_sql(f'DROP SCHEMA IF EXISTS "{self.schema}" CASCADE')
-            eng.dispose()
-            redis.Redis.from_url(self.redis_url).flushdb()
+            self._pg_reset(f'DROP SCHEMA IF EXISTS "{self.schema}" CASCADE')
 
     def client(self) -> httpx.Client:
         return httpx.Client(

@@ -38,11 +38,11 @@ sys.path.insert(0, str(ROOT))
 from sqlalchemy import create_engine, text
 
 from bench.pg_private import bench_pg_url, private_database
-from service.db import accounts, jobs, units
+from bench.stored_job import run_stored_units
+from service.db import accounts, jobs
 from service.db.migrate import downgrade, upgrade
 from service.db.session import dispose_all, session_scope
 from svrobs_core.parsing import parse_spec
-from svrobs_core.runner import run_unit_result
 
 
 def grid(name: str, reps: int, n_values: int) -> dict:
@@ -74,15 +74,7 @@ def load(url: str, spec_dict: dict) -> int:
             s, team_id=team.id, user_id=None, spec=spec_dict, max_cells=10**7, max_active_jobs=0
         )
         job_id = job.id
-    spec = parse_spec(spec_dict)
-    with session_scope(url) as s:
-        ids = jobs.unit_ids_of_job(s, job_id)
-    for uid in ids:
-        with session_scope(url) as s:
-            spec_json, payload = units.start_unit(s, uid, "bench", 600)
-        result = run_unit_result(spec, payload)
-        with session_scope(url) as s:
-            units.complete_unit(s, uid, result)
+    run_stored_units(url, job_id, spec_dict, worker="bench", lease=600)
     with session_scope(url) as s:
         return s.execute(text("SELECT count(*) FROM results")).scalar()
 

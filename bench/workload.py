@@ -14,13 +14,12 @@ shared, so CPU times vary by some 20 %.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
 import sys
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
+from bench.child import run_child  # noqa: E402
 from svrobs_core import parse_spec  # noqa: E402
 from svrobs_core.workload import estimate_job  # noqa: E402
 
@@ -161,17 +160,7 @@ print(json.dumps({"cpu": cpu, "rss": resource.getrusage(resource.RUSAGE_SELF).ru
 
 
 def measure(obj: dict) -> dict:
-    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    root = os.path.join(os.path.dirname(__file__), "..")
-    env["PYTHONPATH"] = os.path.abspath(root) + os.pathsep + env.get("PYTHONPATH", "")
-    out = subprocess.run(
-        [sys.executable, "-c", _CHILD, json.dumps(obj)],
-        capture_output=True,
-        text=True,
-        check=True,
-        env=env,
-    )
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return run_child(_CHILD, obj)
 
 
 def main(argv=None) -> int:

@@ -31,42 +31,25 @@ app = SvrobsTyper(
     pretty_exceptions_enable=False,
     add_completion=False,
 )
-admin_app = SvrobsTyper(
-    help="Teams, users and API keys (direct database access).",
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
+
+
+def _group(name: str, help: str) -> SvrobsTyper:
+    """A command group ``svrobs <name> ...`` registered on :data:`app`."""
+    group = SvrobsTyper(help=help, no_args_is_help=True, pretty_exceptions_enable=False)
+    app.add_typer(group, name=name)
+    return group
+
+
+admin_app = _group("admin", "Teams, users and API keys (direct database access).")
+schedules_app = _group(
+    "schedules", "Cron schedules that turn a spec template into a job at every due time."
 )
-app.add_typer(admin_app, name="admin")
-schedules_app = SvrobsTyper(
-    help="Cron schedules that turn a spec template into a job at every due time.",
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
+presets_app = _group("presets", "The system presets, and the paper's Section 6 preset.")
+share_app = _group("share", "Read-only links to a job's report and charts, opened without a key.")
+datasets_app = _group(
+    "datasets", "Datasets of measured rollouts: upload, list, show, delete, download."
 )
-app.add_typer(schedules_app, name="schedules")
-presets_app = SvrobsTyper(
-    help="The system presets, and the paper's Section 6 preset.",
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
-)
-app.add_typer(presets_app, name="presets")
-share_app = SvrobsTyper(
-    help="Read-only links to a job's report and charts, opened without a key.",
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
-)
-app.add_typer(share_app, name="share")
-datasets_app = SvrobsTyper(
-    help="Datasets of measured rollouts: upload, list, show, delete, download.",
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
-)
-app.add_typer(datasets_app, name="datasets")
-systems_app = SvrobsTyper(
-    help="Custom systems for a spec, read from files.",
-    no_args_is_help=True,
-    pretty_exceptions_enable=False,
-)
-app.add_typer(systems_app, name="systems")
+systems_app = _group("systems", "Custom systems for a spec, read from files.")
 
 COMMANDS = (
     (app, "migrate", admin.migrate),

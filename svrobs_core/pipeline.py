@@ -573,16 +573,8 @@ def _sls_stage(c: _Cells, b):
             c.A_hat[ri, ei], system.C, K, F[ri, ei], C_bound=C_bound, T_fir=spec.sls_T_fir
         )
         J_opt[ri, ei], status[ri, ei] = res.J_opt, res.status
-    bound, reason = _sls.jopt_upper_bound(
-        b.eps_A,
-        eps1,
-        C_bound,
-        hinf_AB=norms.hinf_PhiA_B,
-        hinf_AK=norms.hinf_PhiA_K,
-        sigma_u=su,
-        sigma_v=sv,
-        h2_cl_inv=norms.h2_closed,
-        hinf_cl_inv=norms.hinf_closed,
+    bound, reason = _sls.jopt_upper_bound_from_norms(
+        b.eps_A, eps1, C_bound, norms, sigma_u=su, sigma_v=sv
     )
     notes.add_reasons(reason, None)
     c.out["J_opt"], c.out["sls_status"], c.out["J_opt_bound"] = (

@@ -307,3 +307,20 @@ def jopt_upper_bound(
     if value.ndim == 0:
         return float(value), reason[()]
     return value, reason
+
+
+def jopt_upper_bound_from_norms(eps_A, eps1, C_bound, norms, *, sigma_u, sigma_v):
+    """:func:`jopt_upper_bound` with the four norms taken from ``norms``, a
+    :class:`~svrobs_core.cost_bound.TrueSystemNorms` (of the true system, or of
+    the estimate per cell). -> ``(value, reason)``"""
+    return jopt_upper_bound(
+        eps_A,
+        eps1,
+        C_bound,
+        hinf_AB=norms.hinf_PhiA_B,
+        hinf_AK=norms.hinf_PhiA_K,
+        sigma_u=sigma_u,
+        sigma_v=sigma_v,
+        h2_cl_inv=norms.h2_closed,
+        hinf_cl_inv=norms.hinf_closed,
+    )

@@ -268,16 +268,8 @@ def _sls(c: Cells, b, K, norms):
             T_fir=spec.sls_T_fir,
         )
         J_opt[ri, ei], status[ri, ei] = res.J_opt, res.status
-    bound, reason = _sls.jopt_upper_bound(
-        b.eps_A,
-        eps1,
-        C_bound,
-        hinf_AB=norms.hinf_PhiA_B,
-        hinf_AK=norms.hinf_PhiA_K,
-        sigma_u=sys_.sigma_u,
-        sigma_v=sys_.sigma_v,
-        h2_cl_inv=norms.h2_closed,
-        hinf_cl_inv=norms.hinf_closed,
+    bound, reason = _sls.jopt_upper_bound_from_norms(
+        b.eps_A, eps1, C_bound, norms, sigma_u=sys_.sigma_u, sigma_v=sys_.sigma_v
     )
     c.notes.add_reasons(reason, None)
     c.out.update(J_opt=J_opt, sls_status=status, J_opt_bound=bound)

@@ -16,12 +16,13 @@ import numpy as np
 
 from ..errors import DimensionError
 from ..rollouts import generators, seed_key
+from .rollout_lists import RolloutLists
 
 SUBSAMPLE_STREAM = (3,)  # repetition r >= 1 draws its rollouts from key (0, 0, N, r) + (3,)
 
 
 @dataclass(frozen=True, eq=False)
-class MeasuredData:
+class MeasuredData(RolloutLists):
     """Rollouts of measured states (or outputs) and inputs.
 
     X[i] (T_i + 1, n) and U[i] (T_i, m) float64, T_i >= 1; ``sample_time`` in
@@ -58,18 +59,6 @@ class MeasuredData:
         object.__setattr__(
             self, "input_names", tuple(self.input_names) or tuple(f"u{j + 1}" for j in range(m))
         )
-
-    @property
-    def n(self) -> int:
-        return self.X[0].shape[1]
-
-    @property
-    def m(self) -> int:
-        return self.U[0].shape[1]
-
-    @property
-    def rollouts(self) -> int:
-        return len(self.X)
 
     @property
     def lengths(self) -> np.ndarray:

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from svrobs_core.errors import SpecError
+from svrobs_core.measured.rollout_lists import RolloutLists
 
 from ..errors import BadDatasetFile
 
@@ -41,7 +42,7 @@ class DatasetOptions:
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
-class ParsedDataset:
+class ParsedDataset(RolloutLists):
     """Rollouts ``X[i]`` of shape (T_i + 1, n) and inputs ``U[i]`` of shape (T_i, m)
     (m may be 0), float64 and finite; the sha256 and size of the original bytes."""
 
@@ -54,18 +55,6 @@ class ParsedDataset:
     sha256: str
     size_bytes: int
     stats: dict
-
-    @property
-    def n(self) -> int:
-        return self.X[0].shape[1]
-
-    @property
-    def m(self) -> int:
-        return self.U[0].shape[1]
-
-    @property
-    def rollouts(self) -> int:
-        return len(self.X)
 
     @property
     def lengths(self) -> list[int]:

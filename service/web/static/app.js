@@ -184,20 +184,9 @@
       n0Factor: Number(card.dataset.n0Factor || 1),
     };
     data.panels.filter((p) => !c.panel.value || p.key === c.panel.value).forEach((panel) => {
-      const fig = document.createElement("figure");
-      fig.className = "chart-panel";
-      fig.dataset.panel = panel.key;
-      const h = document.createElement("h3");
-      h.textContent = panel.title;
-      const wrap = document.createElement("div");
-      wrap.className = "chart-box";
-      const canvas = document.createElement("canvas");
-      canvas.setAttribute("role", "img");
       const metric = kit.label(glossary, data.metric);
-      canvas.setAttribute("aria-label", `${metric} (${data.metric}) against ${data.x_label}, ${panel.title}`);
-      wrap.appendChild(canvas);
-      fig.append(h, wrap);
-      box.appendChild(fig);
+      const { fig, canvas } = window.svrobsUi.chartPanel(box, panel.title,
+        `${metric} (${data.metric}) against ${data.x_label}, ${panel.title}`, { panel: panel.key });
       const chart = makeChart(canvas, panel, data, opts);
       fig.appendChild(kit.legend(chart));
       registry.charts.push({ panel: panel.key, chart: chart });

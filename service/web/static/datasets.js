@@ -85,19 +85,8 @@
   }
 
   function chartFor(box, title, lines, xLabel) {
-    const fig = document.createElement("figure");
-    fig.className = "chart-panel";
-    fig.dataset.channel = title;
-    const h = document.createElement("h3");
-    h.textContent = title;
-    const wrap = document.createElement("div");
-    wrap.className = "chart-box";
-    const canvas = document.createElement("canvas");
-    canvas.setAttribute("role", "img");
-    canvas.setAttribute("aria-label", `${title} against ${xLabel}, ${lines.length} rollouts`);
-    wrap.appendChild(canvas);
-    fig.append(h, wrap);
-    box.appendChild(fig);
+    const { canvas } = window.svrobsUi.chartPanel(
+      box, title, `${title} against ${xLabel}, ${lines.length} rollouts`, { channel: title });
     return new Chart(canvas, {
       type: "line",
       data: {

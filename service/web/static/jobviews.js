@@ -44,19 +44,9 @@
     const colours = kit.palette();
     const positive = groups.every((g) => mean(g, metric) === null || mean(g, metric) > 0);
     ["gamma", "N", "sigma_w"].forEach((x) => {
-      const fig = document.createElement("figure");
-      fig.className = "chart-panel";
-      fig.dataset.x = x;
-      const h = document.createElement("h3");
-      h.textContent = `${kit.label(glossary, metric)} against ${kit.label(glossary, x)}`;
-      const wrap = document.createElement("div");
-      wrap.className = "chart-box";
-      const canvas = document.createElement("canvas");
-      canvas.setAttribute("role", "img");
-      canvas.setAttribute("aria-label", `${metric} of each summary group against ${x}`);
-      wrap.appendChild(canvas);
-      fig.append(h, wrap);
-      box.appendChild(fig);
+      const { fig, canvas } = window.svrobsUi.chartPanel(box,
+        `${kit.label(glossary, metric)} against ${kit.label(glossary, x)}`,
+        `${metric} of each summary group against ${x}`, { x: x });
       const datasets = cats.map((cat, i) => {
         const members = groups.filter((g) => String(g[colourBy]) === cat && g[x] !== null && mean(g, metric) !== null);
         return {

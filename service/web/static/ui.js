@@ -1,7 +1,8 @@
 /* Behaviour every page shares: the header's menu button (narrow screens), the theme
  * toggle (auto -> dark -> light, remembered in localStorage), copy buttons
  * ([data-copy] copies the value of the element it names) and confirmations
- * (form[data-confirm] asks before it is sent); boxes that scroll take the focus. */
+ * (form[data-confirm] asks before it is sent); boxes that scroll take the focus; the
+ * figure of a chart (window.svrobsUi.chartPanel). */
 (function () {
   "use strict";
   const root = document.documentElement;
@@ -100,6 +101,26 @@
       if (!el.hasAttribute("tabindex")) el.setAttribute("tabindex", "0");
     });
   }
+
+  /* A chart's figure, appended to box: a heading and a canvas (role img, aria-label
+   * label) in a .chart-box; data goes into the figure's dataset. -> {fig, canvas} */
+  function chartPanel(box, title, label, data) {
+    const fig = document.createElement("figure");
+    fig.className = "chart-panel";
+    Object.assign(fig.dataset, data || {});
+    const h = document.createElement("h3");
+    h.textContent = title;
+    const wrap = document.createElement("div");
+    wrap.className = "chart-box";
+    const canvas = document.createElement("canvas");
+    canvas.setAttribute("role", "img");
+    canvas.setAttribute("aria-label", label);
+    wrap.appendChild(canvas);
+    fig.append(h, wrap);
+    box.appendChild(fig);
+    return { fig: fig, canvas: canvas };
+  }
+  window.svrobsUi = { chartPanel: chartPanel };
 
   function init() {
     focusableScrollers(document);

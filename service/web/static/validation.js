@@ -66,20 +66,7 @@
   }
 
   function panel(box, title) {
-    const fig = document.createElement("figure");
-    fig.className = "chart-panel";
-    fig.dataset.channel = title;
-    const h = document.createElement("h3");
-    h.textContent = title;
-    const wrap = document.createElement("div");
-    wrap.className = "chart-box";
-    const canvas = document.createElement("canvas");
-    canvas.setAttribute("role", "img");
-    canvas.setAttribute("aria-label", title);
-    wrap.appendChild(canvas);
-    fig.append(h, wrap);
-    box.appendChild(fig);
-    return canvas;
+    return window.svrobsUi.chartPanel(box, title, title, { channel: title }).canvas;
   }
 
   function line(name, points, extra) {
