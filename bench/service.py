@@ -84,7 +84,7 @@ from svrobs_cli.serve import prepare_dirs, migrate
 from service.db.session import session_scope
 from service.db import accounts
 s = get_settings(); prepare_dirs(s); migrate(s)
-with session_scope() as db:
+with session_scope(s.DATABASE_URL) as db:
     accounts.create_team(db, 'bench')
     accounts.create_user(db, 'bench', 'bench@lab.example')
     _, key = accounts.create_key(db, 'bench@lab.example')
@@ -100,16 +100,18 @@ import numpy as np
 from service.db.jobs import create_job
 from service.db.results_store import upsert_results
 from service.db.units import complete_unit
+from service.config import get_settings
 from service.db.models import Team, WorkUnit
 from service.db.session import session_scope
 from sqlalchemy import select
 from svrobs_core import parse_spec
 from svrobs_core.records import empty_record
 
+url = get_settings().DATABASE_URL
 spec_obj = json.loads(sys.argv[1])
 spec = parse_spec(spec_obj)
 rng = np.random.default_rng(0)
-with session_scope() as s:
+with session_scope(url) as s:
     team = s.scalar(select(Team).where(Team.name == 'bench'))
     job, _ = create_job(s, team_id=team.id, user_id=None, spec=spec_obj, name='synthetic-100k',
                           max_cells=10**7, max_active_jobs=0)
@@ -137,10 +139,10 @@ for uid, p in units:
                 r['stable_certified'] = bool(rng.random() < 0.5)
                 rows.append(r)
 for i in range(0, len(rows), 5000):
-    with session_scope() as s:
+    with session_scope(url) as s:
         upsert_results(s, job_id, rows[i:i + 5000])
 for uid, _ in units:
-    with session_scope() as s:
+    with session_scope(url) as s:
         complete_unit(s, uid, [])
 print(json.dumps({'job_id': job_id, 'cells': len(rows), 'store_seconds': time.perf_counter() - t0}))
 """

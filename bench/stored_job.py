@@ -17,7 +17,7 @@ def run_stored_units(url: str, job_id: int, spec_dict: dict, *, worker: str, lea
         ids = jobs.unit_ids_of_job(s, job_id)
     for uid in ids:
         with session_scope(url) as s:
-            started = units.start_unit(s, uid, worker, lease)
+            started = units.start_unit(s, uid, worker, lease, max_attempts=0)
         assert started is not None, f"unit {uid} of a fresh job could not be started"
         result = run_unit_result(spec, started[1])
         with session_scope(url) as s:

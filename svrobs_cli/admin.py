@@ -18,20 +18,22 @@ def migrate(
     url: str | None = typer.Option(None, help="database URL [SVROBS_DATABASE_URL]"),
 ) -> None:
     """Create or upgrade the database tables (alembic upgrade head)."""
+    from service.config import get_settings
     from service.db.migrate import upgrade
 
-    upgrade(url)
+    upgrade(url or get_settings().DATABASE_URL)
     typer.echo("database is at the latest revision")
 
 
 def _admin_call(fn):
     """``fn(session, accounts)`` in one committed transaction; an AdminError is one line."""
+    from service.config import get_settings
     from service.db import accounts
     from service.db.session import session_scope
     from svrobs_lab.errors import AdminError
 
     try:
-        with session_scope() as session:
+        with session_scope(get_settings().DATABASE_URL) as session:
             return fn(session, accounts)
     except AdminError as exc:
         raise CliError(str(exc)) from None

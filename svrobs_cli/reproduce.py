@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
+from service.config import get_settings
 from service.db.provenance import git_commit
 from svrobs_cli.progress import progress_bar
 from svrobs_core import __version__, parse_spec, plan_units
@@ -591,7 +592,7 @@ def _write_report(run: _Finished, builder, console, quiet) -> dict:
         "experiments": list(specs),
         "command": run.command,
         "svrobs_version": __version__,
-        "git_commit": git_commit(),
+        "git_commit": git_commit(get_settings().GIT_COMMIT),
         **_versions(),
         "platform": platform.platform(),
         "cpus": os.cpu_count(),

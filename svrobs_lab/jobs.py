@@ -103,6 +103,7 @@ class Submission:
                 tags=r.tags,
                 idempotency_key=r.idempotency_key,
                 schedule_id=r.schedule_id,
+                git_commit=self.settings.GIT_COMMIT,
                 **limits(self.settings),
             )
             created_any |= created
@@ -119,10 +120,10 @@ class Submission:
         session must be closed first (SQLite: its write lock)."""
         self.later(
             dispatch_after_commit,
+            self.settings,
             self.publisher,
             self.session_factory,
             self.caller.team_id,
-            *self.settings.fair_share(),
         )
 
 

@@ -199,10 +199,12 @@ def runs(session: Session, caller: Caller, schedule_id: int) -> list[dict]:
 
 def create_due_jobs(settings: Settings, session: Session, now: datetime) -> list[Job]:
     """One job per due schedule (:func:`service.db.schedules.create_due_schedule_jobs`)
-    under the job limits and the minimum interval of ``settings``. Not committed."""
+    under the job limits, the minimum interval and the git commit of ``settings``. Not
+    committed."""
     return store.create_due_schedule_jobs(
         session,
         now,
         limits=limits(settings),
         min_interval_seconds=settings.MIN_SCHEDULE_INTERVAL_SECONDS,
+        git_commit=settings.GIT_COMMIT,
     )

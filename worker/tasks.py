@@ -43,9 +43,9 @@ from celery.worker.request import Request
 
 from service.config import get_settings
 from service.db import units
-from service.db.session import dispose_all, session_scope
+from service.db.session import dispose_all
 from svrobs_lab.units import after_unit, compute_unit
-from worker.tick import run_tick
+from worker.tick import run_tick, session_scope
 
 settings = get_settings()
 
@@ -128,7 +128,9 @@ def execute_unit(unit_id: int, worker_name: str | None = None) -> dict:
     worker_name = worker_name or f"{socket.gethostname()}:{os.getpid()}"
     t0 = time.perf_counter()
     with session_scope() as s:
-        claimed = units.start_unit(s, unit_id, worker_name, lease_seconds())
+        claimed = units.start_unit(
+            s, unit_id, worker_name, lease_seconds(), max_attempts=get_settings().MAX_UNIT_ATTEMPTS
+        )
     if claimed is None:  # done, cancelled, or just failed after MAX_UNIT_ATTEMPTS
         _dispatch_team(unit_id)
         return {"unit": unit_id, "status": "skipped"}
@@ -180,7 +182,9 @@ def _dispatch_team(unit_id: int) -> None:
     from svrobs_lab.dispatch import dispatch_team_of_unit
 
     try:
-        dispatch_team_of_unit(session_scope, lambda ids: publish_units(current_app, ids), unit_id)
+        dispatch_team_of_unit(
+            get_settings(), session_scope, lambda ids: publish_units(current_app, ids), unit_id
+        )
     except Exception as exc:  # noqa: BLE001 - the unit's own outcome is stored already
         log.warning("unit %s: publishing its team's next units failed: %s", unit_id, exc)
 

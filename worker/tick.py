@@ -33,10 +33,18 @@ REPORT_EXIT_WAIT_SECONDS = 8.0  # inside the supervisor's 10 s stop grace
 _report_thread: threading.Thread | None = None
 
 
+def session_scope(write: bool = True):
+    """A committing session context (:func:`service.db.session.session_scope`) on
+    SVROBS_DATABASE_URL, read when called."""
+    from service.config import get_settings
+    from service.db import session
+
+    return session.session_scope(get_settings().DATABASE_URL, write=write)
+
+
 def create_due_jobs(now: datetime | None = None) -> list[int]:
     from service.config import get_settings
     from service.db.clock import db_now
-    from service.db.session import session_scope
     from svrobs_lab import schedules
 
     with session_scope() as s:
@@ -57,13 +65,12 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
     translated into it), never this host's clock.
     """
     from service.broker import broker_epoch, publish_units
+    from service.config import get_settings
     from service.db.clock import db_now
-    from service.db.session import session_scope
     from svrobs_lab import dispatch
 
     if celery is None:  # a tick run outside a worker or beat: a publisher of its own
         from service.broker import make_celery
-        from service.config import get_settings
 
         celery = make_celery(get_settings())
     with session_scope(write=False) as s:
@@ -71,6 +78,7 @@ def relay(celery=None, limit: int = RELAY_MAX_PER_TICK) -> int:
     # raises if the broker is unreachable: retried next tick
     epoch = broker_epoch(celery, now=start)
     sent = dispatch.relay(
+        get_settings(),
         session_scope,
         lambda ids: publish_units(celery, ids),
         lost_before=epoch,
@@ -87,9 +95,8 @@ def prune_expired(limit: int = PRUNE_MAX_PER_TICK, scope=None) -> list[int]:
     period (``service.db.retention``), after storing the report if it is not yet;
     returns the pruned jobs. Read, then write: the report is built outside the
     write transaction (on SQLite a writer blocks every other writer). ``scope``:
-    ``scope(write=...)`` -> a committing session context (default ``session_scope``)."""
+    ``scope(write=...)`` -> a committing session context (default :func:`session_scope`)."""
     from service.db import retention
-    from service.db.session import session_scope
     from svrobs_lab.reports import store_if_missing
 
     scope = scope or session_scope
@@ -112,7 +119,6 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
 
     from service.db.clock import db_now
     from service.db.reports import jobs_without_report
-    from service.db.session import session_scope
     from svrobs_lab.reports import store_if_missing
 
     scope = scope or session_scope

@@ -2,7 +2,7 @@
 cancel, look up their units.
 
 Every function takes an open :class:`~sqlalchemy.orm.Session` and never commits:
-the caller owns the transaction (``with session_scope() as s:``). Lock order, to
+the caller owns the transaction (``with session_scope(url) as s:``). Lock order, to
 stay deadlock-free on PostgreSQL: work unit rows, then the job row.
 """
 
@@ -42,6 +42,7 @@ def create_job(
     schedule_id: int | None = None,
     max_stored_mb: float | None = None,
     max_unit_cpu_seconds: float | None = None,
+    git_commit: str | None = None,
 ) -> tuple[Job, bool]:
     """Validate ``spec`` and insert the job and its work units (not committed).
 
@@ -50,7 +51,8 @@ def create_job(
     :class:`QuotaExceeded` when the team has ``max_active_jobs`` queued or
     running jobs (counted under the team's quota lock, held until the caller's
     transaction ends: :func:`service.db.quota.lock_team_quota`). Each limit is passed in by the application layer
-    (``svrobs_lab.jobs.limits``); None or 0: no limit.
+    (``svrobs_lab.jobs.limits``); None or 0: no limit. ``git_commit`` (SVROBS_GIT_COMMIT;
+    None: the checkout's) goes into the job's provenance (:mod:`service.db.provenance`).
     :class:`IdempotencyConflict` when the key was used with another spec, name or tags,
     :class:`~svrobs_lab.errors.NotFound` (422 naming ``dataset``) when the spec's
     ``dataset`` is not one of the team's (the job is linked to it: ``jobs.dataset_id``).
@@ -102,7 +104,7 @@ def create_job(
         progress_done=0,
         progress_total=len(units),
         n_cells=parsed.n_cells,
-        provenance=provenance(parsed.seed),
+        provenance=provenance(parsed.seed, git_commit),
         idempotency_key=idempotency_key,
         timings={},
         created_at=utcnow(),

@@ -10,29 +10,25 @@ from alembic.config import Config
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
-def alembic_config(url: str | None = None) -> Config:
+def alembic_config(url: str) -> Config:
     cfg = Config(os.path.join(ROOT, "alembic.ini"))
     cfg.set_main_option("script_location", os.path.join(ROOT, "migrations"))
     cfg.attributes["configure_logging"] = False
-    if url is None:
-        from service.config import get_settings
-
-        url = get_settings().DATABASE_URL
     # ConfigParser interpolation: a literal % in a password must be doubled
     cfg.set_main_option("sqlalchemy.url", url.replace("%", "%%"))
     return cfg
 
 
-def upgrade(url: str | None = None, revision: str = "head") -> None:
-    """``alembic upgrade head`` against ``url`` (default SVROBS_DATABASE_URL)."""
+def upgrade(url: str, revision: str = "head") -> None:
+    """``alembic upgrade head`` against ``url`` (the caller's SVROBS_DATABASE_URL)."""
     command.upgrade(alembic_config(url), revision)
 
 
-def downgrade(url: str | None = None, revision: str = "base") -> None:
+def downgrade(url: str, revision: str = "base") -> None:
     command.downgrade(alembic_config(url), revision)
 
 
-def current_revision(url: str | None = None) -> str | None:
+def current_revision(url: str) -> str | None:
     from alembic.runtime.migration import MigrationContext
 
     from service.db.session import get_engine

@@ -30,8 +30,6 @@ from itertools import chain, zip_longest
 from sqlalchemy import and_, func, or_, select, update
 from sqlalchemy.orm import Session
 
-from service.config import get_settings
-
 from .clock import db_now
 from .models import JOB_ACTIVE, Job, Team, WorkUnit, as_utc
 
@@ -57,8 +55,8 @@ def units_to_publish(
     session: Session,
     limit: int = 500,
     *,
+    retry_seconds: int,
     now: datetime | None = None,
-    retry_seconds: int | None = None,
     lost_before: datetime | None = None,
     cap: int | None = None,
     shared_cap: int | None = None,
@@ -82,8 +80,7 @@ def units_to_publish(
     now = as_utc(now or db_now(session))
     out: list[int] = []
     if republish:
-        retry = get_settings().PUBLISH_RETRY_SECONDS if retry_seconds is None else retry_seconds
-        stale = now - timedelta(seconds=retry)
+        stale = now - timedelta(seconds=retry_seconds)
         if lost_before is not None:
             stale = max(stale, min(as_utc(lost_before), now))
         q = _active_units().where(
@@ -235,19 +232,19 @@ def dispatch(
     begin: Begin,
     publish: Publish,
     *,
-    team_id: int | None = None,
-    cap: int | None = None,
+    cap: int,
     shared_cap: int | None = None,
+    retry_seconds: int,
+    team_id: int | None = None,
     republish: bool = False,
     lost_before: datetime | None = None,
     limit: int = 500,
 ) -> int:
     """Reserve the units to publish now (:func:`units_to_publish` under the team caps
-    ``cap`` and ``shared_cap``, default ``Settings.fair_share``), publish them and un-mark
-    those the broker did not take; returns how many were sent. ``publish`` may raise
-    (the broker is down): the reservation is undone and the error re-raised."""
-    if cap is None:
-        cap, shared_cap = get_settings().fair_share()
+    ``cap`` and ``shared_cap``, the caller's ``Settings.fair_share``, re-publishing after
+    ``retry_seconds``), publish them and un-mark those the broker did not take; returns
+    how many were sent. ``publish`` may raise (the broker is down): the reservation is
+    undone and the error re-raised."""
     with begin() as s:
         now = db_now(s)  # leases and publication times are the database's clock
         if republish:
@@ -257,6 +254,7 @@ def dispatch(
             s,
             limit,
             now=now,
+            retry_seconds=retry_seconds,
             lost_before=lost_before,
             cap=cap,
             shared_cap=shared_cap,

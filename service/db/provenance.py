@@ -11,16 +11,14 @@ import subprocess
 from functools import lru_cache
 from pathlib import Path
 
-from service.config import get_settings
-
 ROOT = Path(__file__).resolve().parent.parent.parent
 
 
-def git_commit() -> str | None:
-    """SVROBS_GIT_COMMIT, else ``git rev-parse HEAD`` of the checkout, else None."""
-    commit = get_settings().GIT_COMMIT
-    if commit:
-        return commit
+def git_commit(configured: str | None = None) -> str | None:
+    """``configured`` (SVROBS_GIT_COMMIT, passed in by the caller), else ``git rev-parse
+    HEAD`` of the checkout, else None."""
+    if configured:
+        return configured
     try:
         out = subprocess.run(
             ["git", "rev-parse", "HEAD"],
@@ -35,7 +33,7 @@ def git_commit() -> str | None:
 
 
 @lru_cache
-def _static_provenance() -> dict:
+def _static_provenance(configured_commit: str | None) -> dict:
     version: str | None
     try:
         version = importlib.metadata.version("svrobs")
@@ -48,13 +46,14 @@ def _static_provenance() -> dict:
     return {
         "package": "svrobs",
         "version": version,
-        "git_commit": git_commit(),
+        "git_commit": git_commit(configured_commit),
         "python": platform.python_version(),
         "numpy": numpy.__version__,
         "platform": platform.platform(),
     }
 
 
-def provenance(seed: int) -> dict:
-    """The provenance of a job run with ``seed``."""
-    return {**_static_provenance(), "seed": seed}
+def provenance(seed: int, git_commit: str | None = None) -> dict:
+    """The provenance of a job run with ``seed``; ``git_commit``: SVROBS_GIT_COMMIT
+    (None: the checkout's, :func:`git_commit`)."""
+    return {**_static_provenance(git_commit), "seed": seed}

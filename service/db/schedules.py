@@ -120,6 +120,7 @@ def create_due_schedule_jobs(
     *,
     limits: dict | None = None,
     min_interval_seconds: float = 0,
+    git_commit: str | None = None,
 ) -> list[Job]:
     """Create one job per enabled schedule whose latest due time (<= now, not before
     the schedule was created) has no run yet. A ScheduleRun row is inserted on the
@@ -129,7 +130,8 @@ def create_due_schedule_jobs(
     :func:`~service.db.jobs.create_job`) apply as for ``POST /jobs``; a due time that
     makes no job says why on its run (``skipped_reason`` for the cap or a run less
     than ``min_interval_seconds`` (SVROBS_MIN_SCHEDULE_INTERVAL_SECONDS) after the
-    previous job, ``error`` for a spec over a limit). Not committed."""
+    previous job, ``error`` for a spec over a limit). ``git_commit``: as for
+    :func:`~service.db.jobs.create_job`. Not committed."""
     now = as_utc(now)
     dialect = session.get_bind().dialect.name
     if dialect == "postgresql":
@@ -185,6 +187,7 @@ def create_due_schedule_jobs(
                     tags=list(sched.tags or []) + [f"schedule:{sched.name}"],
                     idempotency_key=f"schedule:{sched.id}:{stamp}",
                     schedule_id=sched.id,
+                    git_commit=git_commit,
                     **(limits or {}),
                 )
         except QuotaExceeded as exc:

@@ -74,12 +74,9 @@ def create_db_engine(url: str, *, write: bool = True) -> Engine:
     return create_engine(url, **kwargs)
 
 
-def get_engine(url: str | None = None, *, write: bool = True) -> Engine:
-    """The engine for ``url`` (default: settings.DATABASE_URL), one per (URL, write) per process."""
-    if url is None:
-        from service.config import get_settings
-
-        url = get_settings().DATABASE_URL
+def get_engine(url: str, *, write: bool = True) -> Engine:
+    """The engine for ``url`` (the caller's settings.DATABASE_URL), one per (URL, write)
+    per process."""
     key = (url, write)
     with _lock:
         engine = _engines.get(key)
@@ -88,7 +85,7 @@ def get_engine(url: str | None = None, *, write: bool = True) -> Engine:
         return engine
 
 
-def get_sessionmaker(url: str | None = None, *, write: bool = True) -> sessionmaker:
+def get_sessionmaker(url: str, *, write: bool = True) -> sessionmaker:
     """A sessionmaker bound to :func:`get_engine` (``expire_on_commit=False``)."""
     engine = get_engine(url, write=write)
     key = (str(engine.url.render_as_string(hide_password=False)), write)
@@ -100,8 +97,8 @@ def get_sessionmaker(url: str | None = None, *, write: bool = True) -> sessionma
 
 
 @contextmanager
-def session_scope(url: str | None = None, *, write: bool = True) -> Iterator[Session]:
-    """``with session_scope() as s: ...`` commits on success, rolls back on error."""
+def session_scope(url: str, *, write: bool = True) -> Iterator[Session]:
+    """``with session_scope(url) as s: ...`` commits on success, rolls back on error."""
     session = get_sessionmaker(url, write=write)()
     try:
         yield session

@@ -15,7 +15,6 @@ from datetime import timedelta
 from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
-from service.config import get_settings
 from svrobs_core.parsing import parse_spec
 from svrobs_core.records import GROUP_FIELDS, SUMMARY_FIELDS, summarize_columns
 from svrobs_core.unit_result import UnitResult
@@ -41,15 +40,15 @@ def start_unit(
     worker_name: str,
     lease_seconds: int,
     *,
-    max_attempts: int | None = None,
+    max_attempts: int,
 ) -> tuple[dict, dict] | None:
     """Claim a unit for running -> ``(spec_dict, unit_payload)``, or None to skip it.
 
     None when the unit does not exist, is done/failed/cancelled, or its job is
     finished or cancelled. A unit already ``running`` is claimed again (a
     redelivery after a killed worker; results are upserted so a duplicate run
-    is harmless). A unit started ``max_attempts`` times (default
-    SVROBS_MAX_UNIT_ATTEMPTS) without finishing is failed, with its job.
+    is harmless). A unit started ``max_attempts`` times (SVROBS_MAX_UNIT_ATTEMPTS,
+    passed in by the worker; 0: no limit) without finishing is failed, with its job.
     """
     unit = _lock_unit(session, unit_id)
     if unit is None or unit.status in ("done", "failed", "cancelled"):
@@ -59,8 +58,7 @@ def start_unit(
         if unit.status == "pending":
             unit.status = "cancelled"
         return None
-    limit = get_settings().MAX_UNIT_ATTEMPTS if max_attempts is None else max_attempts
-    if limit and unit.attempts >= limit:
+    if max_attempts and unit.attempts >= max_attempts:
         _fail(
             session,
             unit,

@@ -113,9 +113,10 @@ def test_delete_and_its_conflict(client, stack):
     job = client.submit(SPEC, wait=False)
     stack.python(
         "from sqlalchemy import update\n"
+        "from service.config import get_settings\n"
         "from service.db.session import session_scope\n"
         "from service.db.models import Job\n"
-        "with session_scope() as s:\n"
+        "with session_scope(get_settings().DATABASE_URL) as s:\n"
         f"    s.execute(update(Job).where(Job.id == {job.id}).values(dataset_id={used.id}))\n"
     )
     with pytest.raises(Conflict) as err:

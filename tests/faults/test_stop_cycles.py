@@ -74,7 +74,7 @@ from svrobs_cli.serve import prepare_dirs, migrate
 from service.db.session import session_scope
 from service.db import accounts
 s = get_settings(); prepare_dirs(s); migrate(s)
-with session_scope() as db:
+with session_scope(s.DATABASE_URL) as db:
     accounts.create_team(db, 'lab')
     accounts.create_user(db, 'lab', 'stop@lab.example', is_admin=True)
     _, key = accounts.create_key(db, 'stop@lab.example')

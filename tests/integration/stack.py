@@ -137,7 +137,7 @@ class Stack:
             "from service.db.session import session_scope\n"
             "from service.db import accounts\n"
             "s = get_settings(); prepare_dirs(s); migrate(s)\n"
-            "with session_scope() as db:\n"
+            "with session_scope(s.DATABASE_URL) as db:\n"
             "    accounts.create_team(db, 'lab')\n"
             "    accounts.create_user(db, 'lab', 'it@lab.example')\n"
             "    _, key = accounts.create_key(db, 'it@lab.example')\n"

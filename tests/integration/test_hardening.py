@@ -46,9 +46,10 @@ def lab(request, tmp_path_factory):
         st.setup()
         out = st.python(
             "import json\n"
+            "from service.config import get_settings\n"
             "from service.db.session import session_scope\n"
             "from service.db import accounts\n"
-            "with session_scope() as db:\n"
+            "with session_scope(get_settings().DATABASE_URL) as db:\n"
             "    accounts.create_team(db, 'other')\n"
             "    accounts.create_user(db, 'other', 'b@other.example')\n"
             "    _, key = accounts.create_key(db, 'b@other.example')\n"

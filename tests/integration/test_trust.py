@@ -55,9 +55,10 @@ def second_team(stack, team: str) -> str:
     """A key of a new team (the stack's own key belongs to team 'lab')."""
     out = stack.python(
         "import json\n"
+        "from service.config import get_settings\n"
         "from service.db.session import session_scope\n"
         "from service.db import accounts\n"
-        "with session_scope() as db:\n"
+        "with session_scope(get_settings().DATABASE_URL) as db:\n"
         f"    accounts.create_team(db, {team!r})\n"
         f"    accounts.create_user(db, {team!r}, 'it@{team}.example')\n"
         f"    _, key = accounts.create_key(db, 'it@{team}.example')\n"

@@ -63,20 +63,37 @@ def test_units_published_before_the_broker_epoch_are_republished_at_once(db):
     soon = t_pub + timedelta(seconds=5)
     with session_scope(db) as s:
         # published 5 s ago: nothing to do (the retry time is 600 s) ...
-        assert outbox.units_to_publish(s, now=soon) == []
+        assert outbox.units_to_publish(s, now=soon, retry_seconds=600) == []
         # ... unless the broker's data is younger than the publication: lost, re-publish
-        assert outbox.units_to_publish(s, now=soon, lost_before=t_pub + timedelta(seconds=2)) == ids
+        assert (
+            outbox.units_to_publish(
+                s, now=soon, lost_before=t_pub + timedelta(seconds=2), retry_seconds=600
+            )
+            == ids
+        )
         # an epoch older than the publication (the broker kept its data): nothing
-        assert outbox.units_to_publish(s, now=soon, lost_before=t_pub - timedelta(hours=1)) == []
+        assert (
+            outbox.units_to_publish(
+                s, now=soon, lost_before=t_pub - timedelta(hours=1), retry_seconds=600
+            )
+            == []
+        )
         # once re-published after the epoch they are not selected again in the same tick
         outbox.mark_published(s, ids[:2], now=t_pub + timedelta(seconds=3))
         assert (
-            outbox.units_to_publish(s, now=soon, lost_before=t_pub + timedelta(seconds=2))
+            outbox.units_to_publish(
+                s, now=soon, lost_before=t_pub + timedelta(seconds=2), retry_seconds=600
+            )
             == ids[2:]
         )
         # an epoch in the future (clock skew) never selects units published later than now
         outbox.mark_published(s, ids, now=soon + timedelta(seconds=1))
-        assert outbox.units_to_publish(s, now=soon, lost_before=soon + timedelta(hours=1)) == []
+        assert (
+            outbox.units_to_publish(
+                s, now=soon, lost_before=soon + timedelta(hours=1), retry_seconds=600
+            )
+            == []
+        )
 
 
 def test_broker_epoch_is_none_for_the_filesystem_broker(tmp_path):

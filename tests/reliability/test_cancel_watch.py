@@ -32,7 +32,7 @@ def _compute_until_cancelled(tasks, uid, lease, seconds=8.0):  # noqa: F811
 def test_cancel_stops_the_computation(tasks, monkeypatch):  # noqa: F811
     uid = _unit()
     with tasks.session_scope() as s:
-        tasks.units.start_unit(s, uid, "w", 360)
+        tasks.units.start_unit(s, uid, "w", 360, max_attempts=0)
     real = tasks.units.unit_status
     calls = []
 
@@ -50,7 +50,7 @@ def test_cancel_between_check_and_heartbeat_still_stops_it(tasks, monkeypatch): 
     after the check said running."""
     uid = _unit()
     with tasks.session_scope() as s:
-        tasks.units.start_unit(s, uid, "w", 3)
+        tasks.units.start_unit(s, uid, "w", 3, max_attempts=0)
     beats = []
 
     def status(session, unit_id):
@@ -70,7 +70,7 @@ def test_a_deleted_unit_counts_as_cancelled(tasks):  # noqa: F811
     """Cancel then delete: the unit's row is gone; the watch stops the computation."""
     uid = _unit()
     with tasks.session_scope() as s:
-        tasks.units.start_unit(s, uid, "w", 360)
+        tasks.units.start_unit(s, uid, "w", 360, max_attempts=0)
         job = s.get(Job, s.get(WorkUnit, uid).job_id)
         jobs.cancel_job(s, job)
         delete_job(s, job)
@@ -97,7 +97,7 @@ def _swallowing_child(tasks, uid: int, out) -> None:  # noqa: F811
 def test_a_computation_that_ignores_the_interrupt_ends_its_process(tasks):  # noqa: F811
     uid = _unit()
     with tasks.session_scope() as s:
-        tasks.units.start_unit(s, uid, "w", 360)
+        tasks.units.start_unit(s, uid, "w", 360, max_attempts=0)
     ctx = multiprocessing.get_context("fork")
     out = ctx.Queue()
     child = ctx.Process(target=_swallowing_child, args=(tasks, uid, out))

@@ -34,7 +34,7 @@ def tasks(tmp_path, monkeypatch):
     monkeypatch.setenv("SVROBS_BROKER_URL", "memory://")
     get_settings.cache_clear()
     upgrade(url)
-    with session_scope() as s:
+    with session_scope(url) as s:
         accounts.create_team(s, "lab")
     import worker.tasks as tasks
 
@@ -45,7 +45,7 @@ def tasks(tmp_path, monkeypatch):
 
 
 def _unit() -> int:
-    with session_scope() as s:
+    with session_scope(get_settings().DATABASE_URL) as s:
         team = s.scalar(select(Team).where(Team.name == "lab"))
         job, _ = jobs.create_job(s, team_id=team.id, user_id=None, spec=SPEC)
         s.flush()
@@ -54,7 +54,7 @@ def _unit() -> int:
 
 
 def _state(uid):
-    with session_scope(write=False) as s:
+    with session_scope(get_settings().DATABASE_URL, write=False) as s:
         u = s.get(WorkUnit, uid)
         j = s.get(Job, u.job_id)
         return u.status, u.attempts, u.error, j.status, j.error

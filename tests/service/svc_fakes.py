@@ -46,7 +46,7 @@ def run_job_units(session, job_id: int, worker: str = "w1") -> int:
 
     n = 0
     for uid in jobs.unit_ids_of_job(session, job_id, pending_only=False):
-        claimed = units.start_unit(session, uid, worker, 60)
+        claimed = units.start_unit(session, uid, worker, 60, max_attempts=0)
         if claimed is None:
             continue
         spec, payload = claimed

@@ -40,7 +40,9 @@ def test_submit_publishes_after_commit(client, publisher, session, make_account)
     units = jobs.unit_ids_of_job(session, job["id"], pending_only=False)
     cap = Settings().fair_share()[0]  # the team alone: the pool's size
     assert publisher.published == units[:cap]
-    assert outbox.units_to_publish(session) == units[cap:]  # the rest: as units finish
+    assert (
+        outbox.units_to_publish(session, retry_seconds=600) == units[cap:]
+    )  # the rest: as units finish
 
 
 def test_submit_while_broker_down_still_202_and_relay_sends(build_client, session, make_account):
@@ -50,7 +52,7 @@ def test_submit_while_broker_down_still_202_and_relay_sends(build_client, sessio
     r = submit(client, acc)
     assert r.status_code == 202
     units = jobs.unit_ids_of_job(session, r.json()["id"])
-    assert set(units) <= set(outbox.units_to_publish(session))
+    assert set(units) <= set(outbox.units_to_publish(session, retry_seconds=600))
 
 
 def test_idempotency_key_same_job_one_set_of_units(client, publisher, session, make_account):
@@ -204,8 +206,9 @@ def test_get_and_cancel(client, session, make_account):
     assert r.status_code == 200 and r.json()["id"] == jid
     r = client.post(f"{API}/jobs/{jid}/cancel", headers=acc.headers)
     assert r.status_code == 200 and r.json()["status"] == "cancelled"
-    assert outbox.units_to_publish(session) == [] or all(
-        session.get(WorkUnit, u).job_id != jid for u in outbox.units_to_publish(session)
+    assert outbox.units_to_publish(session, retry_seconds=600) == [] or all(
+        session.get(WorkUnit, u).job_id != jid
+        for u in outbox.units_to_publish(session, retry_seconds=600)
     )
     assert client.post(f"{API}/jobs/{jid}/cancel", headers=acc.headers).status_code == 200
     jid2 = submit(client, acc).json()["id"]

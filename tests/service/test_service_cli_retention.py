@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from sqlalchemy import select
 
+from service.config import get_settings
 from service.db.models import Team
 from service.db.session import session_scope
 from tests.service.test_service_cli import own_db, run  # noqa: F401 - the CLI tests' fixtures
@@ -11,7 +12,7 @@ from tests.service.test_service_cli import own_db, run  # noqa: F401 - the CLI t
 
 def test_admin_set_retention(own_db, run):  # noqa: F811
     def days():
-        with session_scope() as s:
+        with session_scope(get_settings().DATABASE_URL) as s:
             return s.scalar(select(Team.retention_days).where(Team.name == "lab"))
 
     assert run("migrate")[0] == 0

@@ -88,9 +88,9 @@ def test_units_finishing_together_finish_the_job(real_sessions):
         s.commit()
         ids = jobs.unit_ids_of_job(s, job.id)
         for uid in ids:
-            units.start_unit(s, uid, "w", 60)
+            units.start_unit(s, uid, "w", 60, max_attempts=0)
         s.commit()
-        payloads = {uid: units.start_unit(s, uid, "w", 60) for uid in ids}
+        payloads = {uid: units.start_unit(s, uid, "w", 60, max_attempts=0) for uid in ids}
         s.commit()
 
     def finisher(uid):

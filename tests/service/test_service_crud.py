@@ -94,7 +94,7 @@ def test_unit_lifecycle_and_double_completion(session, make_account):
     job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     session.commit()
     ids = jobs.unit_ids_of_job(session, job.id)
-    spec, payload = units.start_unit(session, ids[0], "w1", 60)
+    spec, payload = units.start_unit(session, ids[0], "w1", 60, max_attempts=0)
     session.commit()
     session.refresh(job)
     assert job.status == "running" and job.started_at is not None
@@ -105,7 +105,9 @@ def test_unit_lifecycle_and_double_completion(session, make_account):
     assert _count(session, Result, job_id=job.id) == len(recs)
     session.refresh(job)
     assert job.progress_done == 1 and job.status == "running"
-    assert units.start_unit(session, ids[0], "w2", 60) is None  # done units are skipped
+    assert (
+        units.start_unit(session, ids[0], "w2", 60, max_attempts=0) is None
+    )  # done units are skipped
     run_job_units(session, job.id)
     session.refresh(job)
     assert job.status == "succeeded" and job.progress_done == job.progress_total == SMALL_UNITS
@@ -129,7 +131,7 @@ def test_stored_values_round_trip(session, make_account):
     job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     session.commit()
     uid = jobs.unit_ids_of_job(session, job.id)[0]
-    spec, payload = units.start_unit(session, uid, "w", 60)
+    spec, payload = units.start_unit(session, uid, "w", 60, max_attempts=0)
     recs = fake_records(spec, payload)
     units.complete_unit(session, uid, recs)
     session.commit()
@@ -153,7 +155,7 @@ def test_fail_unit_final_names_cells(session, make_account):
     job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     session.commit()
     ids = jobs.unit_ids_of_job(session, job.id)
-    units.start_unit(session, ids[1], "w", 60)
+    units.start_unit(session, ids[1], "w", 60, max_attempts=0)
     units.fail_unit(session, ids[1], "boom", final=False)
     assert session.get(WorkUnit, ids[1]).status == "pending"
     units.fail_unit(session, ids[1], "boom", final=True)
@@ -162,7 +164,7 @@ def test_fail_unit_final_names_cells(session, make_account):
     assert job.status == "failed"
     assert "boom" in job.error and "system=paper-stable" in job.error and "N=[20, 40]" in job.error
     assert session.get(WorkUnit, ids[2]).status == "cancelled"
-    assert units.start_unit(session, ids[0], "w", 60) is None
+    assert units.start_unit(session, ids[0], "w", 60, max_attempts=0) is None
 
 
 def test_max_attempts_fails_the_unit(session, make_account):
@@ -181,21 +183,23 @@ def test_relay_publishes_unpublished_and_expired(session, make_account):
     job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     session.commit()
     ids = jobs.unit_ids_of_job(session, job.id)
-    assert outbox.units_to_publish(session) == ids
+    assert outbox.units_to_publish(session, retry_seconds=600) == ids
     outbox.mark_published(session, ids[:5])
-    assert outbox.units_to_publish(session) == ids[5:]
+    assert outbox.units_to_publish(session, retry_seconds=600) == ids[5:]
     outbox.mark_published(session, ids[5:])
-    assert outbox.units_to_publish(session) == []
+    assert outbox.units_to_publish(session, retry_seconds=600) == []
     later = datetime.now(UTC) + timedelta(hours=2)
     # published but never started -> re-published after the retry time
     assert outbox.units_to_publish(session, now=later, retry_seconds=600) == ids
-    units.start_unit(session, ids[0], "w", lease_seconds=60)
-    assert ids[0] not in outbox.units_to_publish(session)
-    assert ids[0] in outbox.units_to_publish(session, now=later)  # the lease ran out
+    units.start_unit(session, ids[0], "w", lease_seconds=60, max_attempts=0)
+    assert ids[0] not in outbox.units_to_publish(session, retry_seconds=600)
+    assert ids[0] in outbox.units_to_publish(
+        session, now=later, retry_seconds=600
+    )  # the lease ran out
     outbox.mark_published(session, [ids[0]], now=later)
     assert session.get(WorkUnit, ids[0]).status == "pending"
     jobs.cancel_job(session, job)
-    assert outbox.units_to_publish(session, now=later) == []
+    assert outbox.units_to_publish(session, now=later, retry_seconds=600) == []
 
 
 def test_cancel_job(session, make_account):
@@ -203,7 +207,7 @@ def test_cancel_job(session, make_account):
     job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
     session.commit()
     ids = jobs.unit_ids_of_job(session, job.id)
-    units.start_unit(session, ids[0], "w", 60)
+    units.start_unit(session, ids[0], "w", 60, max_attempts=0)
     job = jobs.cancel_job(session, job)
     session.commit()
     assert job.status == "cancelled" and job.finished_at
@@ -211,7 +215,7 @@ def test_cancel_job(session, make_account):
         u.status for u in session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id))
     }
     assert statuses == {"cancelled"}  # the running one too: its worker stops it
-    assert units.start_unit(session, ids[1], "w", 60) is None
+    assert units.start_unit(session, ids[1], "w", 60, max_attempts=0) is None
     # a running unit that finishes anyway stores nothing; the job stays cancelled
     spec = job.spec
     units.complete_unit(session, ids[0], fake_records(spec, session.get(WorkUnit, ids[0]).payload))
@@ -343,7 +347,7 @@ def test_unit_columns_store_the_same_rows_as_records(session, make_account):
         job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=spec)
         session.commit()
         for uid in jobs.unit_ids_of_job(session, job.id):
-            spec_dict, payload = units.start_unit(session, uid, "w", 60)
+            spec_dict, payload = units.start_unit(session, uid, "w", 60, max_attempts=0)
             result = run_unit_result(parse_spec(spec_dict), payload)
             units.complete_unit(session, uid, result if as_columns else result.records())
         session.commit()
@@ -407,7 +411,7 @@ def test_stored_summaries_equal_a_summary_of_all_results(
     rows = session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id)).all()
     assert any(u.payload["reps"] != [0, 3] for u in rows) == (split_reps is True)
     first = rows[0]
-    spec, payload = units.start_unit(session, first.id, "w", 60)
+    spec, payload = units.start_unit(session, first.id, "w", 60, max_attempts=0)
     units.complete_unit(session, first.id, fake_records(spec, payload))
     units.complete_unit(session, first.id, fake_records(spec, payload))  # redelivered
     if split_reps == "lost":

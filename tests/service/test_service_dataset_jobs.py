@@ -74,7 +74,7 @@ def run_worker_units(session, scope, job_id: int) -> int:
     arrays, store, then the job's validation once."""
     n = 0
     for uid in job_store.unit_ids_of_job(session, job_id, pending_only=False):
-        spec, payload = units.start_unit(session, uid, "w1", 60)
+        spec, payload = units.start_unit(session, uid, "w1", 60, max_attempts=0)
         session.commit()
         result, data = compute_unit(scope, spec, payload)
         assert units.complete_unit(session, uid, result)
@@ -283,7 +283,7 @@ def test_a_dataset_jobs_failed_unit_names_the_dataset(session, make_account, cli
     )
     session.commit()
     (uid,) = job_store.unit_ids_of_job(session, job.id)
-    units.start_unit(session, uid, "w1", 60)
+    units.start_unit(session, uid, "w1", 60, max_attempts=0)
     units.fail_unit(session, uid, "ValueError: boom", True)
     session.commit()
     failed = client.get(f"{API}/jobs/{job.id}", headers=acc.headers).json()

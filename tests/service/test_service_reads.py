@@ -45,7 +45,7 @@ def _run_core(session, job_id):
     from service.db import jobs, units
 
     for uid in jobs.unit_ids_of_job(session, job_id, pending_only=False):
-        spec, payload = units.start_unit(session, uid, "test", 60)
+        spec, payload = units.start_unit(session, uid, "test", 60, max_attempts=0)
         units.complete_unit(session, uid, run_unit(parse_spec(spec), payload))
         session.commit()
 
@@ -96,7 +96,7 @@ def test_load_columns_without_matrices_and_running_job_report_not_stored(
     from tests.service.svc_fakes import fake_records
 
     uid = jobs.unit_ids_of_job(session, jid, pending_only=False)[0]
-    spec, payload = units.start_unit(session, uid, "w", 60)
+    spec, payload = units.start_unit(session, uid, "w", 60, max_attempts=0)
     units.complete_unit(session, uid, fake_records(spec, payload))
     session.commit()
     cols = load_columns(session, jid, matrices=False)
@@ -210,7 +210,7 @@ def test_partial_summary_in_the_database_equals_numpy_over_the_rows(client, sess
     acc = make_account()
     jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
     for uid in jobs.unit_ids_of_job(session, jid, pending_only=False)[:3]:
-        spec, payload = units.start_unit(session, uid, "w", 60)
+        spec, payload = units.start_unit(session, uid, "w", 60, max_attempts=0)
         units.complete_unit(session, uid, fake_records(spec, payload))
     session.commit()
     recs = _records(session, jid)

@@ -34,7 +34,7 @@ MANY_UNITS = {**SMALL_SPEC, "systems": ["paper-stable"], "sigma_w": [0.1 * i for
 
 @pytest.fixture
 def settings_env(monkeypatch):
-    """Set SVROBS_* variables for code that reads get_settings() (the DB package)."""
+    """Set SVROBS_* variables for code that reads get_settings() (the front ends)."""
 
     def setenv(**kw):
         for k, v in kw.items():
@@ -132,7 +132,7 @@ def _dispatch(session_factory, pub, **kw) -> int:
         finally:
             s.close()
 
-    return outbox.dispatch(begin, pub, **kw)
+    return outbox.dispatch(begin, pub, **{"retry_seconds": 600, **kw})
 
 
 def test_dispatch_keeps_k_units_per_team_in_flight(session, session_factory, make_account):
@@ -146,14 +146,14 @@ def test_dispatch_keeps_k_units_per_team_in_flight(session, session_factory, mak
     assert _dispatch(session_factory, pub, team_id=a.team.id, cap=3) == 3  # A is not behind B
     assert pub.published[3:] == a_units[:3]
     # one of B's units finishes: exactly one more of B's is published
-    claimed = units.start_unit(session, b_units[0], "w", 60)
+    claimed = units.start_unit(session, b_units[0], "w", 60, max_attempts=0)
     units.complete_unit(session, b_units[0], fake_records(*claimed))
     session.commit()
     assert _dispatch(session_factory, pub, team_id=b.team.id, cap=3) == 1
     assert pub.published[-1] == b_units[3]
     # the tick: every team, round-robin, oldest first, within the cap
     for uid in b_units[1:3] + a_units[:3]:
-        claimed = units.start_unit(session, uid, "w", 60)
+        claimed = units.start_unit(session, uid, "w", 60, max_attempts=0)
         units.complete_unit(session, uid, fake_records(*claimed))
     session.commit()
     pub.calls.clear()
@@ -177,7 +177,7 @@ def test_dispatch_leaves_a_pool_process_to_another_team(session, session_factory
     assert pub.published == a_units[:3] + b_units[:2]
 
     def finish(uid):
-        claimed = units.start_unit(session, uid, "w", 60)
+        claimed = units.start_unit(session, uid, "w", 60, max_attempts=0)
         units.complete_unit(session, uid, fake_records(*claimed))
         session.commit()
 
@@ -384,7 +384,7 @@ def test_csv_escapes_formulas_in_text_columns_only(client, make_account, session
     job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=spec)
     session.commit()
     (uid,) = jobs.unit_ids_of_job(session, job.id)
-    spec_dict, payload = units.start_unit(session, uid, "w", 60)
+    spec_dict, payload = units.start_unit(session, uid, "w", 60, max_attempts=0)
     recs = fake_records(spec_dict, payload)
     texts = ['=HYPERLINK("http://x","y")', "+1", "-2", "@SUM(A1)", "\tx", "\rx", "plain"]
     for r, t in zip(recs, texts * len(recs)):
@@ -404,14 +404,15 @@ def test_csv_escapes_formulas_in_text_columns_only(client, make_account, session
 
 
 def test_revoke_key_takes_a_prefix_or_an_explicit_id(tmp_path, monkeypatch, capsys):
-    monkeypatch.setenv("SVROBS_DATABASE_URL", f"sqlite:///{tmp_path / 'cli.db'}")
+    url = f"sqlite:///{tmp_path / 'cli.db'}"
+    monkeypatch.setenv("SVROBS_DATABASE_URL", url)
     get_settings.cache_clear()
     from service.db.migrate import upgrade
     from service.db.session import dispose_all, session_scope
 
     try:
-        upgrade()
-        with session_scope() as s:
+        upgrade(url)
+        with session_scope(url) as s:
             accounts.create_team(s, "lab")
             accounts.create_user(s, "lab", "a@lab.org")
             first, _ = accounts.create_key(s, "a@lab.org")  # id 1
@@ -428,7 +429,7 @@ def test_revoke_key_takes_a_prefix_or_an_explicit_id(tmp_path, monkeypatch, caps
                 return e.code or 0
 
         def revoked():
-            with session_scope(write=False) as s:
+            with session_scope(url, write=False) as s:
                 return {k.id for k in s.scalars(select(ApiKey)) if k.revoked_at is not None}
 
         assert run("admin", "revoke-key", digits) == 0
