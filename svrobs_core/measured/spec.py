@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 
@@ -77,7 +78,7 @@ class DatasetOptions:
     dataset: int
     holdout: int = 0
     sigma_w: float | None = None
-    C: tuple | None = None
+    C: tuple[tuple[float, ...], ...] | None = None
     sigma_v: float = 0.1
     sigma_u: float | None = None
     lags: tuple[int, int] | None = None
@@ -105,7 +106,7 @@ class DatasetOptions:
             return np.array(self.C, dtype=float)
         return np.eye(n, self.state_dim(n, m))
 
-    def spec_dict(self, spec: ExperimentSpec) -> dict:
+    def spec_dict(self, spec: ExperimentSpec) -> dict[str, Any]:
         """The normalised JSON of the dataset spec (``parse_spec`` reads it back)."""
         out = {
             "dataset": self.dataset,
@@ -138,7 +139,7 @@ class DatasetOptions:
 _DEFAULTS = {f.name: f.default for f in fields(DatasetOptions)}  # written once, there
 
 
-def _sigma_w(value) -> float | None:
+def _sigma_w(value: object) -> float | None:
     if value == "estimate":
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -148,7 +149,7 @@ def _sigma_w(value) -> float | None:
     return _float(value, "sigma_w", nonneg=True)
 
 
-def _lags(value) -> tuple[int, int] | None:
+def _lags(value: object) -> tuple[int, int] | None:
     """``{"lags": {"y": p, "u": q}}`` -> (p, q); None (or absent) -> the full state."""
     if value is None:
         return None
@@ -162,7 +163,7 @@ def _lags(value) -> tuple[int, int] | None:
     return p, q
 
 
-def parse_dataset_spec(obj: dict) -> ExperimentSpec:
+def parse_dataset_spec(obj: dict[str, Any]) -> ExperimentSpec:
     """Validate a dataset spec (docs/measured.md#spec): the checks that need no data."""
     for key in obj:
         if key in SPEC_FIELDS:
