@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from ..array_types import IntArray
 from ..errors import SpecError
 from ..spec import (
     MAX_STATE_DIM,
@@ -239,7 +240,12 @@ class DataLayout:
 
 
 def check_against_data(
-    spec: ExperimentSpec, n: int, m: int, rollouts: int, *, lengths: Sequence[int] | None = None
+    spec: ExperimentSpec,
+    n: int,
+    m: int,
+    rollouts: int,
+    *,
+    lengths: Sequence[int] | IntArray | None = None,
 ) -> DataLayout:
     """The checks of a dataset spec that need the dataset's shape -> its DataLayout.
 
