@@ -90,6 +90,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     return app
 
 
+app: FastAPI  # declared only: __getattr__ builds it on first access
+
+
 def __getattr__(name: str):
     # `app` is built on first access so that importing this module never reads the env
     if name == "app":

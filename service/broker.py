@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable, Iterable
+from typing import cast
 
 from celery import Celery
 
@@ -224,4 +225,5 @@ def broker_epoch(celery: Celery, timeout: float = 2.0, *, now=None):
         value = value.decode()
     if now is None:
         return datetime.fromtimestamp(float(value), UTC)
-    return now - timedelta(seconds=max(redis_now - float(value), 0.0))
+    # redis_now was read because now is given
+    return now - timedelta(seconds=max(cast(float, redis_now) - float(value), 0.0))

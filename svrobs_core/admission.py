@@ -13,10 +13,12 @@ form equals the sum of :func:`~svrobs_core.workload.estimate_unit` over
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
 from . import planning
+from .array_types import FloatArray
 from .measured.runner import plan_measured_units
 from .records import NUMERIC_FIELDS
 from .spec import ExperimentSpec
@@ -24,6 +26,7 @@ from .workload import (
     CELL_COST,
     DataShape,
     JobCost,
+    UnitCost,
     WorkloadError,
     _dataset,
     _dims,
@@ -126,7 +129,7 @@ def grid_cost(
     *,
     max_cells: int = planning.MAX_CELLS_PER_UNIT,
     target_cells: int = planning.TARGET_CELLS_PER_UNIT,
-    n_axis: np.ndarray | None = None,
+    n_axis: FloatArray | None = None,
 ) -> GridCost:
     """The cost of ``plan_units(spec, max_cells=, target_cells=)`` in closed form: the
     N axis as one numpy array per system and repetition chunk size, each unit's sum
@@ -173,7 +176,7 @@ def grid_cost(
     )
 
 
-def n_axis_of(spec: ExperimentSpec) -> np.ndarray:
+def n_axis_of(spec: ExperimentSpec) -> FloatArray:
     """The N axis in the plan's order (sorted, unless ``reuse_gain``), as floats."""
     Ns = np.fromiter(spec.N, dtype=np.float64, count=len(spec.N))
     return Ns if spec.reuse_gain else np.sort(Ns)
@@ -190,7 +193,7 @@ def smallest_unit_seconds(spec: ExperimentSpec, *, data: DataShape | None = None
     return max(_smallest(spec, si, data).cpu_seconds for si in range(len(spec.grid_systems)))
 
 
-def _smallest(spec: ExperimentSpec, si: int, data: DataShape | None):
+def _smallest(spec: ExperimentSpec, si: int, data: DataShape | None) -> UnitCost:
     Ns = list(spec.N) if spec.reuse_gain else [max(spec.N)]
     return estimate_unit(spec, {"system": si, "sigma_w": 0, "N": Ns, "reps": [0, 1]}, data=data)
 
@@ -226,8 +229,11 @@ def _reductions(spec: ExperimentSpec, kind: str) -> dict[str, ExperimentSpec]:
 
 
 def _plan(
-    spec: ExperimentSpec, max_unit_bytes: int | None, max_unit_seconds, data: DataShape | None
-) -> list:
+    spec: ExperimentSpec,
+    max_unit_bytes: int | None,
+    max_unit_seconds: float | None,
+    data: DataShape | None,
+) -> list[dict[str, Any]]:
     """The units under the memory and per-unit CPU caps: :func:`plan_under_memory`, or
     for a dataset job :func:`~svrobs_core.measured.plan_measured_units` with what the
     memory cap leaves beside the bytes every unit holds, a unit still over a cap by
@@ -250,7 +256,9 @@ def _plan(
     return [v for u in units for v in _fit(spec, u, max_unit_bytes, max_unit_seconds, data)]
 
 
-def _cpu_sizes(spec: ExperimentSpec, data: DataShape | None, grid, Ns) -> dict:
+def _cpu_sizes(
+    spec: ExperimentSpec, data: DataShape | None, grid: GridCost | None, Ns: FloatArray | None
+) -> dict[str, float]:
     """The job's CPU seconds with each size field at its smallest. A simulated job's
     in closed form: one :func:`grid_cost` per reduction that changes the spec, the
     sigma_w and systems reductions read off the whole grid's (units cost the same
@@ -287,7 +295,13 @@ def _cpu_sizes(spec: ExperimentSpec, data: DataShape | None, grid, Ns) -> dict:
     return sizes
 
 
-def _culprit(spec: ExperimentSpec, kind: str, data=None, grid=None, n_axis=None) -> str:
+def _culprit(
+    spec: ExperimentSpec,
+    kind: str,
+    data: DataShape | None = None,
+    grid: GridCost | None = None,
+    n_axis: FloatArray | None = None,
+) -> str:
     """The size field whose reduction lowers the estimate of ``kind`` most (``grid``
     and ``n_axis``: the spec's, if already made)."""
     if kind == "cpu":
@@ -298,7 +312,14 @@ def _culprit(spec: ExperimentSpec, kind: str, data=None, grid=None, n_axis=None)
     return min(sizes, key=lambda f: sizes[f])
 
 
-def _over_cpu(spec, seconds: float, limit: float, data, grid=None, Ns=None) -> WorkloadError:
+def _over_cpu(
+    spec: ExperimentSpec,
+    seconds: float,
+    limit: float,
+    data: DataShape | None,
+    grid: GridCost | None = None,
+    Ns: FloatArray | None = None,
+) -> WorkloadError:
     return WorkloadError(
         _culprit(spec, "cpu", data, grid, Ns),
         f"the job needs an estimated {seconds:.0f} CPU seconds, over the limit of {limit:.0f} s",
@@ -317,7 +338,7 @@ def admit(
     max_unit_bytes: int | None = None,
     max_unit_seconds: float | None = None,
     data: DataShape | None = None,
-) -> tuple[list[dict], JobCost]:
+) -> tuple[list[dict[str, Any]], JobCost]:
     """The work units of ``spec`` planned under the memory and per-unit CPU caps, and
     their cost, or :class:`WorkloadError` if the job is over ``max_cells`` or
     ``max_stored_bytes``, its smallest unit over ``max_unit_bytes`` or

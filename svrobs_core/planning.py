@@ -8,9 +8,11 @@ do not depend on how the grid is split (docs/science.md#14-randomness-and-reprod
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from .array_types import FloatArray
 from .spec import ExperimentSpec
 
 MAX_CELLS_PER_UNIT = 20_000
@@ -22,7 +24,7 @@ def plan_units(
     *,
     max_cells: int = MAX_CELLS_PER_UNIT,
     target_cells: int = TARGET_CELLS_PER_UNIT,
-) -> list[dict]:
+) -> list[dict[str, Any]]:
     """Work units ``{"system", "sigma_w", "N": [...], "reps": [start, stop]}``.
 
     Consecutive N values of one (system, sigma_w) are packed into a unit
@@ -34,19 +36,21 @@ def plan_units(
     return _plan(spec, max_cells=max_cells, target_cells=target_cells)
 
 
-def _plan(spec: ExperimentSpec, *, max_cells: int, target_cells: int) -> list[dict]:
+def _plan(spec: ExperimentSpec, *, max_cells: int, target_cells: int) -> list[dict[str, Any]]:
     per_N = spec.cells_per_rep * spec.reps
+    n_groups: list[list[int]]
     if spec.reuse_gain:
         n_groups = [list(spec.N)]
     else:
-        n_groups, group = [], []
+        n_groups = []
+        group: list[int] = []
         for N in sorted(spec.N):
             if group and per_N * (len(group) + 1) > target_cells:
                 n_groups.append(group)
                 group = []
             group.append(N)
         n_groups.append(group)
-    units = []
+    units: list[dict[str, Any]] = []
     for si, wi in _pairs(spec):
         for Ns in n_groups:
             per_rep = spec.cells_per_rep * len(Ns)
@@ -70,8 +74,10 @@ def _pairs(spec: ExperimentSpec) -> list[tuple[int, int]]:
     return [(si, wi) for si in range(len(spec.systems)) for wi in range(len(spec.sigma_w))]
 
 
-def unit_cells(spec: ExperimentSpec, unit: dict) -> int:
+def unit_cells(spec: ExperimentSpec, unit: dict[str, Any]) -> int:
     """The number of records (cells) a work unit of :func:`plan_units` gives."""
+    r0: int
+    r1: int
     r0, r1 = unit["reps"]
     return len(unit["N"]) * (r1 - r0) * spec.cells_per_rep
 
@@ -84,13 +90,14 @@ class EstimatorAxis:
     gammas: list[float | None]
 
     @property
-    def gamma_array(self) -> np.ndarray:  # 0 for ols: the bounds use gamma = 0
+    def gamma_array(self) -> FloatArray:  # 0 for ols: the bounds use gamma = 0
         return np.array([0.0 if g is None else g for g in self.gammas])
 
 
 def estimator_axis(spec: ExperimentSpec) -> EstimatorAxis:
     """The (estimator, gamma) columns of every dataset: OLS once, the others per gamma."""
-    names, gammas = [], []
+    names: list[str] = []
+    gammas: list[float | None] = []
     for e in spec.estimators:
         if e == "ols":
             names.append(e)

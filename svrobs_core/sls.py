@@ -58,7 +58,9 @@ from dataclasses import dataclass
 
 import cvxpy as cp
 import numpy as np
+from numpy.typing import ArrayLike
 
+from .array_types import Array, FloatArray
 from .errors import check_matrix
 
 SQRT2 = math.sqrt(2.0)
@@ -92,9 +94,9 @@ class SLSResult:
     J_opt: float
     status: str
     solve_time: float
-    Phi_w: np.ndarray | None = None
-    Phi_v: np.ndarray | None = None
-    L: np.ndarray | None = None
+    Phi_w: FloatArray | None = None
+    Phi_v: FloatArray | None = None
+    L: FloatArray | None = None
 
 
 @dataclass(kw_only=True)
@@ -127,13 +129,14 @@ def _build(n: int, p: int, T: int, bounded: bool) -> _Compiled:
     cons = [
         Pw[:n] == np.eye(n),
         S[-n:] == 0,
-        cp.norm(cp.vec(Pw, order="F"), 2) <= s,
+        # cvxpy's stubs lack its atoms' re-exports (norm, vec)
+        cp.norm(cp.vec(Pw, order="F"), 2) <= s,  # type: ignore[attr-defined]
     ]
     if T > 1:
         cons.append(Pw[n:] == S[:-n])
     if bounded:
         cons.append(s <= Cb)
-    obj = F * s + cp.norm(cp.vec(Pw @ K - Pv, order="F"), 2)
+    obj = F * s + cp.norm(cp.vec(Pw @ K - Pv, order="F"), 2)  # type: ignore[attr-defined]  # as above
     prob = cp.Problem(cp.Minimize(obj), cons)
     if not prob.is_dpp():  # pragma: no cover - guards the parameterised fast path
         raise RuntimeError("SLS program is not DPP; re-solves would recompile")
@@ -141,7 +144,7 @@ def _build(n: int, p: int, T: int, bounded: bool) -> _Compiled:
 
 
 def _compiled(n: int, p: int, T: int, bounded: bool) -> _Compiled:
-    cache = getattr(_local, "cache", None)
+    cache: dict[tuple[int, int, int, bool], _Compiled] | None = getattr(_local, "cache", None)
     if cache is None:
         cache = _local.cache = {}
     key = (n, p, T, bounded)
@@ -166,7 +169,7 @@ def _warm(pr: _Compiled, n: int, p: int) -> _Compiled:
     if pr.C_bound is not None:
         pr.C_bound.value = 1e3
     try:
-        pr.problem.solve(solver=cp.CLARABEL)
+        pr.problem.solve(solver=cp.CLARABEL)  # type: ignore[no-untyped-call]  # cvxpy: untyped
     except (cp.error.SolverError, ValueError, ArithmeticError):  # pragma: no cover
         pass
     return pr
@@ -177,7 +180,15 @@ def clear_cache() -> None:
     _local.cache = {}
 
 
-def sls_observer(A_tilde, C, K, F, *, C_bound, T_fir: int = 30) -> SLSResult:
+def sls_observer(
+    A_tilde: ArrayLike,
+    C: ArrayLike,
+    K: ArrayLike,
+    F: float,
+    *,
+    C_bound: float | None,
+    T_fir: int = 30,
+) -> SLSResult:
     """Solve the FIR SLS program (docs/science.md#8-sls-sub-optimal-observer-j_opt).
 
     A_tilde (n, n) estimated A; C (p, n); K (n, p) optimal (Kalman predictor)
@@ -215,12 +226,12 @@ def sls_observer(A_tilde, C, K, F, *, C_bound, T_fir: int = 30) -> SLSResult:
     pr.C.value = C
     pr.K.value = K
     pr.F.value = F
-    if bound is not None:
+    if bound is not None and pr.C_bound is not None:  # a bounded program has the parameter
         pr.C_bound.value = bound
     try:
         with warnings.catch_warnings():  # "Solution may be inaccurate": it is the status
             warnings.filterwarnings("ignore", message="Solution may be inaccurate")
-            pr.problem.solve(solver=cp.CLARABEL)
+            pr.problem.solve(solver=cp.CLARABEL)  # type: ignore[no-untyped-call]  # cvxpy: untyped
         status = str(pr.problem.status)
     except (cp.error.SolverError, ValueError, ArithmeticError):
         status = "solver_error"
@@ -238,13 +249,13 @@ def sls_observer(A_tilde, C, K, F, *, C_bound, T_fir: int = 30) -> SLSResult:
     )
 
 
-def _out(x):
+def _out(x: ArrayLike) -> float | FloatArray:
     """0-d -> Python float, else ndarray."""
     x = np.asarray(x, dtype=float)
     return float(x) if x.ndim == 0 else x
 
 
-def default_C_bound(K, h2_closed_loop_inv):
+def default_C_bound(K: ArrayLike, h2_closed_loop_inv: ArrayLike) -> float | FloatArray:
     """The default ``C_bound = 2 (1 + ||K||) ||(zI - A + KC)^-1||_H2``.
 
     K (..., n, p) (spectral norm over the last two axes); the caller passes
@@ -253,12 +264,21 @@ def default_C_bound(K, h2_closed_loop_inv):
     """
     K = check_matrix("K", K, ("n", "p"))
     finite = np.isfinite(K).all(axis=(-2, -1))
-    k_norm = np.linalg.norm(np.where(finite[..., None, None], K, 0.0), ord=2, axis=(-2, -1))
+    # numpy's stubs: the np.bool_ of a 2-D K indexes as a 0-d array does
+    where = finite[..., None, None]  # type: ignore[index]
+    k_norm = np.linalg.norm(np.where(where, K, 0.0), ord=2, axis=(-2, -1))
     k_norm = np.where(finite, k_norm, np.nan)
     return _out(2.0 * (1.0 + k_norm) * np.asarray(h2_closed_loop_inv, dtype=float))
 
 
-def sls_F(eps1, hinf_AB, hinf_AK, *, sigma_u, sigma_v):
+def sls_F(
+    eps1: ArrayLike,
+    hinf_AB: ArrayLike,
+    hinf_AK: ArrayLike,
+    *,
+    sigma_u: ArrayLike,
+    sigma_v: ArrayLike,
+) -> float | FloatArray:
     """``F = sqrt(2) eps1 (||[Phi_A B; I]||_Hinf sigma_u + ||[Phi_A K; I]||_Hinf sigma_v)``.
 
     Broadcasts over arrays; NaN propagates; a scalar result is a float.
@@ -270,8 +290,17 @@ def sls_F(eps1, hinf_AB, hinf_AK, *, sigma_u, sigma_v):
 
 
 def jopt_upper_bound(
-    eps_A, eps1, C_bound, *, hinf_AB, hinf_AK, sigma_u, sigma_v, h2_cl_inv, hinf_cl_inv
-):
+    eps_A: ArrayLike,
+    eps1: ArrayLike,
+    C_bound: ArrayLike,
+    *,
+    hinf_AB: ArrayLike,
+    hinf_AK: ArrayLike,
+    sigma_u: ArrayLike,
+    sigma_v: ArrayLike,
+    h2_cl_inv: ArrayLike,
+    hinf_cl_inv: ArrayLike,
+) -> tuple[float | FloatArray, str | None | Array]:
     """The paper's bound on J_opt, where its condition holds.
 
     ``eps1 (sqrt(2) C_bound (||[Phi_A B; I]||_Hinf sigma_u + ||[Phi_A K; I]||_Hinf sigma_v)
@@ -287,11 +316,22 @@ def jopt_upper_bound(
     :data:`REASON_UNDEFINED`. Array inputs broadcast: ``value`` an ndarray and
     ``reason`` an object ndarray of the same shape holding None or the reason.
     """
-    args = [
-        np.asarray(v, dtype=float)
-        for v in (eps_A, eps1, C_bound, hinf_AB, hinf_AK, sigma_u, sigma_v, h2_cl_inv, hinf_cl_inv)
-    ]
-    args = np.broadcast_arrays(*args)
+    args = np.broadcast_arrays(
+        *[
+            np.asarray(v, dtype=float)
+            for v in (
+                eps_A,
+                eps1,
+                C_bound,
+                hinf_AB,
+                hinf_AK,
+                sigma_u,
+                sigma_v,
+                h2_cl_inv,
+                hinf_cl_inv,
+            )
+        ]
+    )
     eA, e1, Cb, hAB, hAK, su, sv, h2, hinf = args
     with np.errstate(invalid="ignore", over="ignore"):
         value = e1 * (SQRT2 * Cb * (hAB * su + hAK * sv) + 2.0 * h2 * sv)

@@ -14,10 +14,12 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import repeat
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from .array_types import Array, IntArray
 from .notes import Notes
 from .pipeline import mc_note
 from .planning import EstimatorAxis
@@ -32,16 +34,18 @@ from .records import (
 )
 
 
-def _flat(arr, RE: int) -> np.ndarray:
+def _flat(arr: ArrayLike, RE: int) -> Array:
     arr = np.asarray(arr)
     return arr.reshape((RE,) + arr.shape[2:])
 
 
-def _values(arr, RE: int) -> list:
+def _values(arr: ArrayLike, RE: int) -> list[Any]:
     """An (R, E, ...) field -> one plain value per cell (NaN/inf -> None), cell order."""
     arr = _flat(arr, RE)
+    out: list[Any]
     if arr.dtype == object or arr.dtype == bool:
-        return arr.tolist()
+        out = arr.tolist()
+        return out
     arr = arr.astype(float, copy=False)
     finite = np.isfinite(arr)
     out = np.where(finite, arr, 0.0).tolist()
@@ -51,23 +55,27 @@ def _values(arr, RE: int) -> list:
     return out
 
 
-def _broadcast_row(arr) -> np.ndarray | None:
+def _broadcast_row(arr: ArrayLike) -> Array | None:
     """The (E, ...) row of an (R, E, ...) array that is constant along R (stride 0), else None."""
     arr = np.asarray(arr)
     if arr.ndim >= 1 and arr.shape[0] > 1 and arr.strides[0] == 0:
-        return arr[0]
+        first: Array = arr[0]
+        return first
     return None
 
 
-def _json_strings(arr, RE: int) -> list[str]:
+def _json_strings(arr: ArrayLike, RE: int) -> list[str]:
     """JSON text of each cell's value, exactly as ``json.dumps`` writes it."""
     arr = np.asarray(arr)
     row = _broadcast_row(arr)
     if row is not None:  # constant along the repetitions: encode one row, repeat it
-        return _json_strings(row[None], row.shape[0]) * (RE // row.shape[0])
+        E: int = row.shape[0]
+        return _json_strings(row[None], E) * (RE // E)
     arr = _flat(arr, RE)
+    out: list[str]
     if arr.dtype == bool:
-        return np.where(arr, "true", "false").tolist()
+        out = np.where(arr, "true", "false").tolist()
+        return out
     if arr.dtype == object:
         return [json.dumps(v, allow_nan=False) for v in arr.tolist()]
     arr = arr.astype(float, copy=False)
@@ -90,8 +98,8 @@ def _json_strings(arr, RE: int) -> list[str]:
     # assembled from the entries' reprs by one template (the same text, faster)
     if arr.ndim == 3 and arr.shape[1] * arr.shape[2] > 0:
         rows, cols = arr.shape[1:]
-        row = "[" + ", ".join(["%s"] * cols) + "]"
-        template = "[" + ", ".join([row] * rows) + "]"
+        row_text = "[" + ", ".join(["%s"] * cols) + "]"
+        template = "[" + ", ".join([row_text] * rows) + "]"
         entries = map(repr, np.where(finite, arr, 0.0).ravel().tolist())
         out = [template % t for t in zip(*[entries] * (rows * cols))]
     else:
@@ -110,18 +118,19 @@ class Dataset:
     different lengths, docs/measured.md#data-model)."""
 
     N: int
-    N0: int | Sequence[int]
-    fields: dict[str, np.ndarray]
+    N0: int | Sequence[int] | IntArray
+    fields: dict[str, Array | None]  # None: a field without a value
     note_entries: Notes
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.notes = self.note_entries.strings()  # object (R, E): str or None
 
     def n0_column(self, E: int) -> list[int] | None:
         """N0 of every record (repetition-major) when it varies by repetition, else None."""
         if np.ndim(self.N0) == 0:
             return None
-        return [int(v) for v in self.N0 for _ in range(E)]
+        per_rep = cast("Sequence[int] | IntArray", self.N0)  # not 0-d: one per repetition
+        return [int(v) for v in per_rep for _ in range(E)]
 
 
 class UnitResult:
@@ -155,7 +164,9 @@ class UnitResult:
         self.datasets = datasets
         self.mc_reps = mc_reps  # the Monte Carlo limit these records were computed with
         self.n_reps = n_reps  # the spec's repetition count (mc_reps = None means all)
-        self._strings: dict[tuple, list[str]] = {}  # JSON text per (dataset, field[, limit])
+        self._strings: dict[
+            tuple[Any, ...], list[str]
+        ] = {}  # JSON text per (dataset, field[, limit])
 
     def with_mc_reps(self, mc_reps: int | None) -> UnitResult:
         """The records a spec with this ``mc_reps`` (and otherwise the same) gives.
@@ -165,21 +176,23 @@ class UnitResult:
         limit is not above the one it was computed with.
         """
 
-        def lim(x):
-            return self.n_reps if x is None else x
+        def lim(x: int | None) -> int:
+            # n_reps is None only where neither result limits the Monte Carlo (equal)
+            return cast(int, self.n_reps if x is None else x)
 
         if lim(mc_reps) == lim(self.mc_reps):
             return self
         if lim(mc_reps) > lim(self.mc_reps):
             raise ValueError(f"Monte Carlo was computed for rep < {lim(self.mc_reps)} only")
         rows = np.asarray(self.reps) < lim(mc_reps)
-        datasets = []
+        datasets: list[Dataset] = []
         for ds in self.datasets:
             fields = dict(ds.fields)
             notes = ds.note_entries
             if "mc" in notes.tags:
                 for f in ("J_mc", "J_mc_se"):
-                    fields[f] = np.where(rows[:, None], fields[f], np.nan)
+                    # the Monte Carlo fields hold values wherever its note is
+                    fields[f] = np.where(rows[:, None], cast(Array, fields[f]), np.nan)
                 notes = notes.replace("mc", ~rows[:, None], mc_note(lim(mc_reps)))
             datasets.append(Dataset(N=ds.N, N0=ds.N0, fields=fields, note_entries=notes))
         new = UnitResult(
@@ -220,14 +233,14 @@ class UnitResult:
         self,
         as_json: frozenset[str] | set[str] = frozenset(),
         omit: frozenset[str] | set[str] = frozenset(),
-    ) -> dict[str, list]:
+    ) -> dict[str, list[Any]]:
         """{field: one value per record, in record order} for every record field
         not in ``omit``: plain Python values (NaN/inf -> None), and for the fields in
         ``as_json`` their JSON text (as ``json.dumps`` writes it) instead. The
         columnar form the DB layer stores without building a dict per record."""
         R, E = len(self.reps), len(self.axis.names)
         RE = R * E
-        out: dict[str, list] = {f: [] for f in RECORD_FIELDS if f not in omit}
+        out: dict[str, list[Any]] = {f: [] for f in RECORD_FIELDS if f not in omit}
         for di, ds in enumerate(self.datasets):
             cols = self._key_columns(ds)
             if "seed_key" in as_json:
@@ -247,20 +260,17 @@ class UnitResult:
                 out[f].extend(cols[f])
         return out
 
-    def matrix_blocks(self) -> list[dict[str, np.ndarray | None]]:
+    def matrix_blocks(self) -> list[dict[str, Array | None]]:
         """Per dataset (in :meth:`value_columns` order), each matrix field as one
         (records, rows, cols) float array in record order, or None where it was not
         computed (NaN/inf entries are the records' nulls)."""
         RE = len(self.reps) * len(self.axis.names)
         return [
-            {
-                f: None if ds.fields.get(f) is None else _flat(ds.fields[f], RE)
-                for f in MATRIX_FIELDS
-            }
+            {f: None if (v := ds.fields.get(f)) is None else _flat(v, RE) for f in MATRIX_FIELDS}
             for ds in self.datasets
         ]
 
-    def records(self) -> list[dict]:
+    def records(self) -> list[dict[str, Any]]:
         cols = self.value_columns()
         return [dict(zip(RECORD_FIELDS, vals)) for vals in zip(*(cols[f] for f in RECORD_FIELDS))]
 
@@ -272,7 +282,7 @@ class UnitResult:
             for _ in range(E)
         ]
 
-    def _json_strings(self, di: int, f: str, v, RE: int) -> list[str]:
+    def _json_strings(self, di: int, f: str, v: Array, RE: int) -> list[str]:
         """``_json_strings`` of a field, cached (J_mc and J_mc_se per Monte Carlo limit)."""
         key = (di, f, self.mc_reps) if f in ("J_mc", "J_mc_se") else (di, f)
         if key not in self._strings:
@@ -298,7 +308,7 @@ class UnitResult:
             }
             n0 = ds.n0_column(E)
             if n0 is None:
-                const["N0"] = str(int(ds.N0))
+                const["N0"] = str(int(cast(int, ds.N0)))  # n0_column None: one count
             else:
                 var["N0"] = [str(v) for v in n0]
             for f in CELL_FIELDS:
@@ -308,14 +318,15 @@ class UnitResult:
                 else:
                     var[f] = self._json_strings(di, f, v, RE)
             cache: dict[Any, str] = {}
-            note_col = []
+            note_col: list[str] = []
             for t in ds.notes.reshape(RE).tolist():
                 s = cache.get(t)
                 if s is None:
                     s = cache[t] = json.dumps(t)
                 note_col.append(s)
             var["notes"] = note_col
-            parts, order = [], []
+            parts: list[str] = []
+            order: list[list[str]] = []
             for f in RECORD_FIELDS:
                 if f in var:
                     parts.append(f'"{f}": %s')
@@ -326,16 +337,16 @@ class UnitResult:
             lines += [template % t for t in zip(*order)]
         return lines
 
-    def columns(self, matrices: bool = True) -> dict[str, np.ndarray]:
+    def columns(self, matrices: bool = True) -> dict[str, Array]:
         """{field: array over the unit's records} as :mod:`svrobs_core.report` reads them:
         numbers as float (NaN = null, booleans 0/1), text as object arrays,
         A_hat/B_hat as (k, n, .) floats if ``matrices``."""
 
         R, E = len(self.reps), len(self.axis.names)
         RE = R * E
-        parts: dict[str, list[np.ndarray]] = {}
+        parts: dict[str, list[Array]] = {}
 
-        def put(f, a):
+        def put(f: str, a: Array) -> None:
             parts.setdefault(f, []).append(a)
 
         gam = np.array([np.nan if g is None else g for g in self.axis.gammas], dtype=float)
@@ -379,5 +390,7 @@ class UnitResult:
                     v = ds.fields.get(f)
                     if v is not None:
                         a = _flat(v, RE).astype(float)
-                        put(f, np.where(np.isfinite(a).all(axis=(1, 2))[:, None, None], a, np.nan))
+                        ok = np.isfinite(a).all(axis=(1, 2))  # (k,): a is (k, rows, cols)
+                        # numpy stubs: all(axis=) may be a scalar; here (k,)
+                        put(f, np.where(ok[:, None, None], a, np.nan))  # type: ignore[index]
         return {f: np.concatenate(v) for f, v in parts.items()}

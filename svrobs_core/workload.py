@@ -26,10 +26,12 @@ the same per-operation constants applied to the measured path's operations
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from . import planning
+from .array_types import FloatArray, IntArray
 from .data_factor import EXT_MAX_WORK
 from .errors import SpecError
 from .estimators import FALLBACK_CHUNK_BYTES, SVR_COND_LIMIT
@@ -147,20 +149,30 @@ def _ill_conditioned(spec: ExperimentSpec, si: int) -> bool:
     return rho > 1 and 2 * (spec.T0 - 1) * np.log10(rho) > np.log10(SVR_COND_LIMIT)
 
 
-def _floor(x):
+def _floor(x: FloatArray) -> FloatArray:
     """floor of positive x (np.trunc: several times faster than np.floor on arrays)."""
     return np.trunc(x)
 
 
-def _ceil(x):
+def _ceil(x: FloatArray) -> FloatArray:
     """ceil of positive x."""
     t = np.trunc(x)
     return t + (t < x)
 
 
 def _dataset(
-    spec: ExperimentSpec, *, n, m, p, orth, N, R, mc_rows, ill=False, ill_data=False
-) -> tuple[np.ndarray, np.ndarray, float]:
+    spec: ExperimentSpec,
+    *,
+    n: int,
+    m: int,
+    p: int,
+    orth: bool,
+    N: list[int] | FloatArray,
+    R: int,
+    mc_rows: int,
+    ill: bool = False,
+    ill_data: bool = False,
+) -> tuple[FloatArray, FloatArray, float]:
     """(cpu seconds, transient bytes, kept bytes) of each N of ``N`` (an array) in a
     unit with R reps: the first two are arrays over N, the kept bytes the same for
     every N; ``ill_data``: the data are likely ill-conditioned
@@ -227,7 +239,9 @@ def _dataset(
     return cpu, mem, kept
 
 
-def _bootstrap(spec, *, n, m, N, R, E, N0) -> tuple[float, float]:
+def _bootstrap(
+    spec: ExperimentSpec, *, n: int, m: int, N: FloatArray, R: int, E: int, N0: FloatArray
+) -> tuple[FloatArray, FloatArray]:
     """(cpu, bytes) of uncertainty.bootstrap_box: boot_reps datasets per repetition,
     each simulated for every cell's estimate and refitted by its estimator."""
     T0, d = spec.T0, n + m
@@ -245,14 +259,14 @@ def _bootstrap(spec, *, n, m, N, R, E, N0) -> tuple[float, float]:
     return cpu, np.maximum(per_set, np.minimum(sets * per_set, BOOT_CHUNK_BYTES)) * 1.5
 
 
-def _mc_sizes(spec, *, n, m, p):
+def _mc_sizes(spec: ExperimentSpec, *, n: int, m: int, p: int) -> tuple[int, int, int, int, int]:
     T, runs = spec.horizon, spec.mc_runs
     q = m + n + p
     W = n + q
     return T, runs, q, W, max(1, min(T, MC_BLOCK // (runs * W)))
 
 
-def _monte_carlo_cpu(spec, *, n, m, p, rows, E) -> float:
+def _monte_carlo_cpu(spec: ExperimentSpec, *, n: int, m: int, p: int, rows: int, E: int) -> float:
     """cost_mc.mc_cost_shared over ``rows`` repetitions of E cells each."""
     if rows == 0:
         return 0.0
@@ -261,7 +275,7 @@ def _monte_carlo_cpu(spec, *, n, m, p, rows, E) -> float:
     return steps * (MC_DRAW * q + MC_CELL * E * n * (W + n)) + MC_STEP * T
 
 
-def _monte_carlo_bytes(spec, *, n, m, p, rows, E) -> float:
+def _monte_carlo_bytes(spec: ExperimentSpec, *, n: int, m: int, p: int, rows: int, E: int) -> float:
     if rows == 0:
         return 0.0
     T, runs, q, W, h = _mc_sizes(spec, n=n, m=m, p=p)
@@ -273,11 +287,19 @@ def _monte_carlo_bytes(spec, *, n, m, p, rows, E) -> float:
     return 8.0 * (Xz + Ev + D + acc + draw)
 
 
-def _measured_sizes(spec: ExperimentSpec, data: DataShape) -> tuple:
-    """(model, C, the training rollouts' transitions in the model's state, longest
-    first) of a dataset job."""
+def _need_data(data: DataShape | None) -> DataShape:
+    """``data``, which a dataset job's cost needs."""
     if data is None:
         raise ValueError("a dataset job's cost needs its dataset's shape (data=DataShape)")
+    return data
+
+
+def _measured_sizes(
+    spec: ExperimentSpec, data: DataShape | None
+) -> tuple[StateModel, FloatArray, IntArray]:
+    """(model, C, the training rollouts' transitions in the model's state, longest
+    first) of a dataset job."""
+    data = _need_data(data)
     model = StateModel(ny=data.n, m=data.m, lags=spec.measured.lags)
     pool = np.asarray(data.lengths[: len(data.lengths) - spec.measured.holdout], dtype=np.int64)
     steps = np.sort(np.maximum(pool - model.k0, 0))[::-1]
@@ -297,7 +319,7 @@ def measured_fixed_bytes(spec: ExperimentSpec, data: DataShape) -> int:
     return int(base + arrays + 8 * (d + n) * int(steps.sum()))
 
 
-def _measured_unit(spec: ExperimentSpec, unit: dict, data: DataShape) -> UnitCost:
+def _measured_unit(spec: ExperimentSpec, unit: dict[str, Any], data: DataShape) -> UnitCost:
     """A dataset job's unit: per N (R repetitions, E cells each, N0 the transitions of
     the N longest training rollouts, an upper bound for every subsample) the regression
     data (copy, Gram, OLS residual) and the stages' per-cell work."""
@@ -327,11 +349,13 @@ def _measured_unit(spec: ExperimentSpec, unit: dict, data: DataShape) -> UnitCos
     return UnitCost(cpu_seconds=float(cpu), peak_bytes=int(measured_fixed_bytes(spec, data) + peak))
 
 
-def estimate_unit(spec: ExperimentSpec, unit: dict, *, data: DataShape | None = None) -> UnitCost:
+def estimate_unit(
+    spec: ExperimentSpec, unit: dict[str, Any], *, data: DataShape | None = None
+) -> UnitCost:
     """CPU seconds and peak resident bytes of one unit of ``plan_units(spec)`` (of a
     dataset job: of ``plan_measured_units``, with its dataset's shape ``data``)."""
     if spec.measured is not None:
-        return _measured_unit(spec, unit, data)
+        return _measured_unit(spec, unit, _need_data(data))
     si = unit["system"]
     n, m, p, orth = _dims(spec, si)
     r0, r1 = unit["reps"]
@@ -374,12 +398,16 @@ def unit_base_bytes(spec: ExperimentSpec, *, n: int, p: int, orth: bool) -> floa
     return base
 
 
+# estimates by (system, N, first and last repetition)
+_Memo = dict[tuple[int, tuple[int, ...], int, int], UnitCost]
+
+
 def plan_under_memory(
     spec: ExperimentSpec,
     *,
     max_unit_bytes: int | None = None,
     max_unit_seconds: float | None = None,
-) -> list[dict]:
+) -> list[dict[str, Any]]:
     """:func:`~svrobs_core.planning.plan_units`, with a unit whose estimated peak
     memory (:func:`estimate_unit`) is above ``max_unit_bytes``, or whose CPU seconds
     are above ``max_unit_seconds``, split further: first into its N values (unless
@@ -391,11 +419,18 @@ def plan_under_memory(
         return units
     if spec.measured is not None:
         raise ValueError("a dataset job's memory cap: svrobs_core.measured.plan_measured_units")
-    memo: dict = {}
+    memo: _Memo = {}
     return [v for u in units for v in _fit(spec, u, max_unit_bytes, max_unit_seconds, None, memo)]
 
 
-def _fits(spec, unit, mem_cap, cpu_cap, data, memo) -> bool:
+def _fits(
+    spec: ExperimentSpec,
+    unit: dict[str, Any],
+    mem_cap: float | None,
+    cpu_cap: float | None,
+    data: DataShape | None,
+    memo: _Memo,
+) -> bool:
     r0, r1 = unit["reps"]
     key = (unit["system"], tuple(unit["N"]), r0, r1)  # units differing in sigma_w alone
     if key not in memo:
@@ -406,7 +441,14 @@ def _fits(spec, unit, mem_cap, cpu_cap, data, memo) -> bool:
     )
 
 
-def _fit(spec, unit, mem_cap, cpu_cap, data=None, memo=None) -> list[dict]:
+def _fit(
+    spec: ExperimentSpec,
+    unit: dict[str, Any],
+    mem_cap: float | None,
+    cpu_cap: float | None,
+    data: DataShape | None = None,
+    memo: _Memo | None = None,
+) -> list[dict[str, Any]]:
     """``unit`` split so that each part's estimated peak bytes stay under ``mem_cap``
     and its CPU seconds under ``cpu_cap`` (None: no cap)."""
     memo = {} if memo is None else memo
@@ -430,13 +472,18 @@ def _fit(spec, unit, mem_cap, cpu_cap, data=None, memo=None) -> list[dict]:
 
 
 def estimate_job(
-    spec: ExperimentSpec, units: list[dict] | None = None, *, data: DataShape | None = None
+    spec: ExperimentSpec,
+    units: list[dict[str, Any]] | None = None,
+    *,
+    data: DataShape | None = None,
 ) -> JobCost:
     """Total CPU seconds of ``units`` (default: ``plan_units(spec)``), the largest
     unit's peak bytes and the unit count (``data``: a dataset job's shape)."""
     if units is None:
         units = planning.plan_units(spec)
-    seen: dict[tuple, UnitCost] = {}  # units differing only in sigma_w cost the same
+    seen: dict[
+        tuple[int, tuple[int, ...], int, int], UnitCost
+    ] = {}  # units differing only in sigma_w cost the same
     costs = []
     limit = spec.reps if spec.mc_reps is None else spec.mc_reps
     for u in units:

@@ -127,7 +127,9 @@ class Signer:
         return self._mac("csrf", s.nonce)
 
     def csrf_ok(self, s: WebSession | None, token: str | None) -> bool:
-        return s is not None and bool(token) and hmac.compare_digest(token, self.csrf(s))
+        if s is None or not token:
+            return False
+        return hmac.compare_digest(token, self.csrf(s))
 
 
 def signer_of(app) -> Signer | None:
@@ -145,7 +147,7 @@ def session_key(request, session: Session) -> ApiKey | None:
     """The active API key a request's session cookie was signed in with, or None (also
     when the sign-in was ended: :func:`sign_out`)."""
     s = request_session(request)
-    if s is None or not s.signed_in or not sign_ins.is_live(session, s.nonce, s.key_id):
+    if s is None or s.key_id is None or not sign_ins.is_live(session, s.nonce, s.key_id):
         return None
     return active_key(session, s.key_id)
 

@@ -68,7 +68,7 @@ def open_link(session: Session, token: str) -> tuple[ShareLink, Job]:
     """(the link, its job) of a live token, else NotFound."""
     link = store.open_share(session, token)
     job = session.get(Job, link.job_id) if link is not None else None
-    if job is None or job.team_id != link.team_id:
+    if link is None or job is None or job.team_id != link.team_id:
         raise NotFound("This link does not exist, has expired or was revoked.")
     return link, job
 

@@ -6,6 +6,7 @@ unit, its validation is stored if it is not yet (:mod:`svrobs_lab.validation`)."
 from __future__ import annotations
 
 import logging
+from typing import cast
 
 from svrobs_core.measured import MeasuredData, run_measured_unit
 from svrobs_core.parsing import parse_spec
@@ -25,7 +26,7 @@ def compute_unit(scope, spec_dict: dict, payload: dict) -> tuple[UnitResult, Mea
     if spec.measured is None:
         return run_unit_result(spec, payload), None
     with scope(write=False) as s:
-        data = measured_data(s, spec.dataset, cache=True)
+        data = measured_data(s, cast(int, spec.dataset), cache=True)  # a dataset job's id
     return run_measured_unit(spec, payload, data), data
 
 

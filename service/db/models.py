@@ -204,7 +204,7 @@ _FLOATS = ("sigma_w", "gamma_key") + tuple(
 )
 _INTS = ("job_id", "N", "N0", "rep", "notes_id")
 _BOOLS = tuple(BOOL_FIELDS)
-_VARIABLE = ("system", "estimator", "bounds_method", "sls_status", "seed_key")
+_VARIABLE: tuple[str, ...] = ("system", "estimator", "bounds_method", "sls_status", "seed_key")
 _VARIABLE += RESULT_MATRIX_FIELDS
 RESULT_COLUMN_ORDER = _FLOATS + _INTS + _BOOLS + _VARIABLE
 

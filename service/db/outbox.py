@@ -26,8 +26,9 @@ from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager
 from datetime import datetime, timedelta
 from itertools import chain, zip_longest
+from typing import Any, cast
 
-from sqlalchemy import and_, func, or_, select, update
+from sqlalchemy import CursorResult, and_, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from .clock import db_now
@@ -199,7 +200,7 @@ def end_orphans(session: Session, *, now: datetime | None = None) -> int:
         .values(status="cancelled", finished_at=now, lease_expires_at=None)
         .execution_options(synchronize_session=False)
     )
-    return res.rowcount or 0
+    return cast("CursorResult[Any]", res).rowcount or 0  # an UPDATE's result
 
 
 def unmark_published(session: Session, unit_ids: Sequence[int]) -> None:

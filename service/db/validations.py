@@ -3,6 +3,8 @@ once (a concurrent writer's copy wins; both are the same numbers)."""
 
 from __future__ import annotations
 
+from typing import cast
+
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -30,7 +32,7 @@ def unit_dataset_job(session: Session, unit_id: int) -> tuple[int, int] | None:
         .join(WorkUnit, WorkUnit.job_id == Job.id)
         .where(WorkUnit.id == unit_id, Job.dataset_id.is_not(None))
     ).first()
-    return None if row is None else (row[0], row[1])
+    return None if row is None else (row[0], cast(int, row[1]))  # dataset_id is not None
 
 
 def dataset_digest(session: Session, dataset_id: int) -> str | None:

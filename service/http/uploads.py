@@ -7,6 +7,7 @@ in-memory body limit lets these paths through (``service.api.mount``)."""
 
 from __future__ import annotations
 
+from collections.abc import Set
 from functools import partial
 
 import anyio
@@ -53,7 +54,7 @@ async def _form(request: Request, limit: int, extra_fields: int = 0):
         raise Invalid(f"not valid multipart/form-data: {exc.message}", field="file") from None
 
 
-def _fields(form, ignore: frozenset) -> tuple[FormFile, dict[str, str]]:
+def _fields(form, ignore: Set[str]) -> tuple[FormFile, dict[str, str]]:
     file, fields = None, {}
     for key, value in form.multi_items():
         if key in ignore:
@@ -79,7 +80,7 @@ async def store_upload(
     caller: Caller,
     limit: int,
     *,
-    ignore: frozenset = frozenset(),
+    ignore: Set[str] = frozenset(),
 ) -> dict:
     """Read the request's multipart upload (at most ``limit`` bytes; the form fields in
     ``ignore`` left out, e.g. the web form's CSRF token) and store it as the caller's

@@ -139,10 +139,10 @@ def preset_chart(groups: list[dict], spec: dict | None, s: FigureSeries) -> dict
                     "dash": dashed,
                 }
             )
-        key = "|".join(map(str, pkey))
+        panel_key = "|".join(map(str, pkey))
         out.append(
             {
-                "key": key,
+                "key": panel_key,
                 "title": _title(p["coords"]),
                 "coords": p["coords"],
                 "x": xs,

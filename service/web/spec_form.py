@@ -305,7 +305,8 @@ def errors_by_field(
 def as_posted(values: Mapping[str, object]) -> tuple[dict, dict]:
     """The form :func:`values_of` fills, as the browser would post it: ``(fields,
     checkbox groups)`` for :func:`spec_of`."""
-    form, lists = {}, {}
+    form: dict[str, object] = {}
+    lists: dict[str, list[object]] = {}
     for k, v in values.items():
         key = k if k.startswith(("m.", "r.")) else f"f.{k}"
         if isinstance(v, list):

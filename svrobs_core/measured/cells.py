@@ -19,12 +19,14 @@ from .. import bounds as _bounds
 from .. import cost as _cost
 from .. import cost_bound as _cb
 from .. import kalman as _kalman
+from ..array_types import Array, FloatArray
 from ..estimators import fit_ols
 from ..norms import spectral_radius
 from ..notes import Notes
 from ..pipeline import CERTIFICATES, ESTIMATE_COND_LIMIT, _estimate, design
 from ..pipeline import _Cells as Cells  # the context the stage functions read
-from ..spec import STAGES
+from ..planning import EstimatorAxis
+from ..spec import STAGES, ExperimentSpec
 from ..uncertainty_stage import bounds_from_box, sound_box
 from .data import StateModel
 from .noise import noise_level, residual_sum
@@ -49,14 +51,24 @@ class Observer:
     """What stands where a simulated job has its true system: C and the noise
     levels of the observer model, and no A, B."""
 
-    C: np.ndarray
+    C: FloatArray
     sigma_u: float
     sigma_v: float
     A: None = None
     B: None = None
 
 
-def run_cells(spec, *, Z, F, model: StateModel, N: int, keys, axis, observer) -> tuple:
+def run_cells(
+    spec: ExperimentSpec,
+    *,
+    Z: FloatArray,
+    F: FloatArray,
+    model: StateModel,
+    N: int,
+    keys: list[tuple[int, int, int, int]],
+    axis: EstimatorAxis,
+    observer: Observer,
+) -> tuple[dict[str, Array | None], Notes]:
     """All stages for R datasets of one N with the same N0 -> (fields, notes)."""
     R, _, N0 = Z.shape
     Zt = np.swapaxes(Z, -1, -2)

@@ -9,11 +9,13 @@ are every transition of every rollout, rollout by rollout:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from ..array_types import BoolArray, FloatArray, IntArray
 from ..errors import DimensionError
 from ..rollouts import generators, seed_key
 from .rollout_lists import RolloutLists
@@ -30,13 +32,13 @@ class MeasuredData(RolloutLists):
     (default x1..xn, u1..um).
     """
 
-    X: list
-    U: list
+    X: list[FloatArray]
+    U: list[FloatArray]
     sample_time: float | None = None
-    state_names: tuple = field(default=())
-    input_names: tuple = field(default=())
+    state_names: tuple[str, ...] = field(default=())
+    input_names: tuple[str, ...] = field(default=())
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         X = [np.asarray(x, dtype=float) for x in self.X]
         U = [np.asarray(u, dtype=float) for u in self.U]
         if not X or len(X) != len(U):
@@ -61,11 +63,11 @@ class MeasuredData(RolloutLists):
         )
 
     @property
-    def lengths(self) -> np.ndarray:
+    def lengths(self) -> IntArray:
         """T_i: the transitions of each rollout."""
         return np.array([u.shape[0] for u in self.U], dtype=np.int64)
 
-    def take(self, idx) -> MeasuredData:
+    def take(self, idx: Iterable[int]) -> MeasuredData:
         """The rollouts ``idx`` (in that order)."""
         idx = [int(i) for i in idx]
         return MeasuredData(
@@ -115,13 +117,13 @@ class StateModel:
         return max(p - 1, q)
 
     @property
-    def estimated(self) -> np.ndarray:
+    def estimated(self) -> BoolArray:
         """(n,) bool: the rows of [A B] that are estimated."""
         out = np.zeros(self.n, dtype=bool)
         out[: self.ny] = True
         return out
 
-    def known_rows(self) -> tuple[np.ndarray, np.ndarray]:
+    def known_rows(self) -> tuple[FloatArray, FloatArray]:
         """(A0 (n, n), B0 (n, m)): the known rows (shifts, input injection), 0 on the y rows."""
         n, ny, m = self.n, self.ny, self.m
         A0, B0 = np.zeros((n, n)), np.zeros((n, m))
@@ -137,7 +139,7 @@ class StateModel:
             A0[u0 + j * m : u0 + (j + 1) * m, u0 + (j - 1) * m : u0 + j * m] = np.eye(m)
         return A0, B0
 
-    def full(self, theta_rows: np.ndarray) -> np.ndarray:
+    def full(self, theta_rows: FloatArray) -> FloatArray:
         """The estimated rows (..., ny, n + m) -> the full [A B] (..., n, n + m)."""
         if self.lags is None:
             return theta_rows
@@ -160,7 +162,8 @@ class StateModel:
             return data
         p, q = self.lags
         k0 = self.k0
-        X, U = [], []
+        X: list[FloatArray] = []
+        U: list[FloatArray] = []
         for y, u in zip(data.X, data.U):  # one slice per lag and rollout; arithmetic is copying
             T = u.shape[0]
             if T <= k0:
@@ -178,7 +181,7 @@ class StateModel:
         )
 
 
-def regression(data: MeasuredData) -> tuple[np.ndarray, np.ndarray]:
+def regression(data: MeasuredData) -> tuple[FloatArray, FloatArray]:
     """(Z (d, N0), F (n, N0)) of every transition, rollout by rollout."""
     x0 = np.concatenate([x[:-1] for x in data.X], axis=0)
     x1 = np.concatenate([x[1:] for x in data.X], axis=0)
@@ -186,14 +189,14 @@ def regression(data: MeasuredData) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(np.concatenate([x0, u], axis=1).T), np.ascontiguousarray(x1.T)
 
 
-def rep_rollouts(seed: int, N: int, reps: Sequence[int], pool: int) -> list[np.ndarray]:
+def rep_rollouts(seed: int, N: int, reps: Sequence[int], pool: int) -> list[IntArray]:
     """The rollout indices of each repetition of one N (docs/measured.md#data-model).
 
     Repetition 0: the first N of the pool; r >= 1: N drawn without replacement
     by the generator of key (0, 0, N, r) + SUBSAMPLE_STREAM, sorted."""
     if N > pool:
         raise ValueError(f"N = {N} rollouts requested, the training pool has {pool}")
-    out: list = [None] * len(reps)
+    out: list[Any] = [None] * len(reps)  # every entry an index array below
     drawn = [i for i, r in enumerate(reps) if r > 0]
     keys = [seed_key(0, 0, N, reps[i]) for i in drawn]
     for i, g in zip(drawn, generators(seed, keys, SUBSAMPLE_STREAM)):  # a generator per key
@@ -217,16 +220,19 @@ class Transitions:
         self.lengths = data.lengths
         self.start = np.concatenate([[0], np.cumsum(self.lengths)[:-1]])
 
-    def samples(self, idx: np.ndarray) -> int:
+    def samples(self, idx: IntArray) -> int:
         return int(self.lengths[idx].sum())
 
-    def columns(self, idx: np.ndarray) -> np.ndarray:
+    def columns(self, idx: IntArray) -> IntArray:
         """The sample columns of the rollouts idx, in order."""
         lens = self.lengths[idx]
         offsets = np.repeat(self.start[idx] - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
-        return np.arange(lens.sum()) + offsets
+        cols: IntArray = np.arange(lens.sum()) + offsets
+        return cols
 
-    def batch(self, subsets: Sequence[np.ndarray], rows=slice(None)):
+    def batch(
+        self, subsets: Sequence[IntArray], rows: slice | BoolArray = slice(None)
+    ) -> tuple[FloatArray, FloatArray]:
         """(Z (R, d, N0), F (R, n_rows, N0)) of subsets with the same N0."""
         cols = np.stack([self.columns(s) for s in subsets])  # (R, N0)
         Z = np.moveaxis(self.Z[:, cols], 0, 1)

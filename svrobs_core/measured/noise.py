@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..array_types import Array, FloatArray
 from ..uncertainty import SINGULAR_RTOL
 
 REASON_FEW = "too few transitions to bound sigma_w (N0 <= d or the bound's denominator <= 0)"
@@ -28,19 +29,29 @@ class NoiseLevel:
     sqrt(RSS / chi2_{n N0}^-1(1 - delta1)) (RSS <= ||W||^2: probability >= 1 - delta1),
     and the RSS of OLS."""
 
-    sigma_hat: np.ndarray
-    sigma_bar: np.ndarray
-    sigma_low: np.ndarray
-    rss: np.ndarray
-    reason: np.ndarray
+    sigma_hat: FloatArray
+    sigma_bar: FloatArray
+    sigma_low: FloatArray
+    rss: FloatArray
+    reason: Array  # object: a reason string or None per dataset
 
 
-def residual_sum(Z, F, theta) -> np.ndarray:
+def residual_sum(Z: FloatArray, F: FloatArray, theta: FloatArray) -> FloatArray:
     """||F - Theta Z||_F^2 per dataset: Z (R, d, N0), F (R, n, N0), theta (R, n, d)."""
-    return np.sum((F - theta @ Z) ** 2, axis=(-2, -1))
+    rss: FloatArray = np.sum((F - theta @ Z) ** 2, axis=(-2, -1))
+    return rss
 
 
-def noise_level(G, rss, *, n: int, N0: int, delta1: float, delta2: float, lambda0: float):
+def noise_level(
+    G: FloatArray,
+    rss: FloatArray,
+    *,
+    n: int,
+    N0: int,
+    delta1: float,
+    delta2: float,
+    lambda0: float,
+) -> NoiseLevel:
     """sigma_hat and the upper bound sigma_bar (probability >= 1 - delta1 - delta2).
 
     G (R, d, d) the Gram matrices of the regressors, rss (R,) the OLS residual

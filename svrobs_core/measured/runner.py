@@ -11,9 +11,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
+from ..array_types import Array, IntArray
 from ..notes import Notes
 from ..planning import MAX_CELLS_PER_UNIT, TARGET_CELLS_PER_UNIT, estimator_axis, plan_units
 from ..rollouts import seed_key
@@ -28,7 +30,8 @@ from .spec import check_against_data
 def _sigma_u(spec: ExperimentSpec, train: MeasuredData) -> float:
     """The spec's sigma_u, else the RMS of the training pool's inputs (1 when m = 0)."""
     if spec.measured.sigma_u is not None:
-        return spec.measured.sigma_u
+        sigma_u: float = spec.measured.sigma_u
+        return sigma_u
     if train.m == 0:
         return 1.0
     u = np.concatenate(train.U, axis=0)
@@ -48,16 +51,18 @@ class _Job:
         )
         self.axis = estimator_axis(spec)
 
-    def dataset(self, pool: Transitions, subsets: Sequence[np.ndarray], *, N, reps) -> Dataset:
+    def dataset(
+        self, pool: Transitions, subsets: Sequence[IntArray], *, N: int, reps: list[int]
+    ) -> Dataset:
         """The Dataset of one N over ``reps``: the chain once per distinct sample
         count (once in all when the rollouts have equal lengths)."""
         R, E = len(reps), len(self.axis.names)
         N0 = np.array([pool.samples(s) for s in subsets])
         notes = Notes((R, E))
-        fields: dict = {}
+        fields: dict[str, Array | None] = {}
         for n0 in np.unique(N0):
             rows = np.flatnonzero(N0 == n0)
-            Z, F = pool.batch([subsets[i] for i in rows], rows=self.model.estimated)
+            Z, F = pool.batch([subsets[int(i)] for i in rows], rows=self.model.estimated)
             part, part_notes = run_cells(
                 self.spec,
                 Z=Z,
@@ -76,7 +81,7 @@ class _Job:
         same = np.all(N0 == N0[0])
         return Dataset(N=int(N), N0=int(N0[0]) if same else N0, fields=fields, note_entries=notes)
 
-    def result(self, reps, datasets) -> UnitResult:
+    def result(self, reps: list[int], datasets: list[Dataset]) -> UnitResult:
         return UnitResult(
             system=self.layout.system,
             system_idx=0,
@@ -89,7 +94,9 @@ class _Job:
         )
 
 
-def _merge(fields: dict, part: dict, rows: np.ndarray, R: int) -> None:
+def _merge(
+    fields: dict[str, Array | None], part: dict[str, Array | None], rows: IntArray, R: int
+) -> None:
     """Write the rows ``rows`` of every field of ``part`` into ``fields`` (R, E, ...)."""
     for f, v in part.items():
         if v is None:  # a field without a value (coverage: no true system)
@@ -107,7 +114,7 @@ def _merge(fields: dict, part: dict, rows: np.ndarray, R: int) -> None:
         have[rows] = v
 
 
-def run_measured_unit(spec: ExperimentSpec, unit: dict, data: MeasuredData) -> UnitResult:
+def run_measured_unit(spec: ExperimentSpec, unit: dict[str, Any], data: MeasuredData) -> UnitResult:
     """Run one work unit of a dataset job on its data -> its records (a UnitResult).
 
     ``data``: the whole dataset (training pool and held-out rollouts); the
@@ -154,7 +161,7 @@ def plan_measured_units(
     max_cells: int = MAX_CELLS_PER_UNIT,
     target_cells: int = TARGET_CELLS_PER_UNIT,
     max_unit_bytes: int | None = None,
-) -> list[dict]:
+) -> list[dict[str, Any]]:
     """The work units of a dataset job (the shape of :func:`plan_units`').
 
     ``max_unit_bytes`` (with the dataset's ``lengths``, ``n``, ``m``): units

@@ -12,9 +12,11 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 
+from ..array_types import IntArray
 from ..errors import SpecError
 from ..spec import (
     MAX_STATE_DIM,
@@ -77,7 +79,7 @@ class DatasetOptions:
     dataset: int
     holdout: int = 0
     sigma_w: float | None = None
-    C: tuple | None = None
+    C: tuple[tuple[float, ...], ...] | None = None
     sigma_v: float = 0.1
     sigma_u: float | None = None
     lags: tuple[int, int] | None = None
@@ -105,7 +107,7 @@ class DatasetOptions:
             return np.array(self.C, dtype=float)
         return np.eye(n, self.state_dim(n, m))
 
-    def spec_dict(self, spec: ExperimentSpec) -> dict:
+    def spec_dict(self, spec: ExperimentSpec) -> dict[str, Any]:
         """The normalised JSON of the dataset spec (``parse_spec`` reads it back)."""
         out = {
             "dataset": self.dataset,
@@ -138,7 +140,7 @@ class DatasetOptions:
 _DEFAULTS = {f.name: f.default for f in fields(DatasetOptions)}  # written once, there
 
 
-def _sigma_w(value) -> float | None:
+def _sigma_w(value: object) -> float | None:
     if value == "estimate":
         return None
     if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -148,7 +150,7 @@ def _sigma_w(value) -> float | None:
     return _float(value, "sigma_w", nonneg=True)
 
 
-def _lags(value) -> tuple[int, int] | None:
+def _lags(value: object) -> tuple[int, int] | None:
     """``{"lags": {"y": p, "u": q}}`` -> (p, q); None (or absent) -> the full state."""
     if value is None:
         return None
@@ -162,7 +164,7 @@ def _lags(value) -> tuple[int, int] | None:
     return p, q
 
 
-def parse_dataset_spec(obj: dict) -> ExperimentSpec:
+def parse_dataset_spec(obj: dict[str, Any]) -> ExperimentSpec:
     """Validate a dataset spec (docs/measured.md#spec): the checks that need no data."""
     for key in obj:
         if key in SPEC_FIELDS:
@@ -238,7 +240,12 @@ class DataLayout:
 
 
 def check_against_data(
-    spec: ExperimentSpec, n: int, m: int, rollouts: int, *, lengths: Sequence[int] | None = None
+    spec: ExperimentSpec,
+    n: int,
+    m: int,
+    rollouts: int,
+    *,
+    lengths: Sequence[int] | IntArray | None = None,
 ) -> DataLayout:
     """The checks of a dataset spec that need the dataset's shape -> its DataLayout.
 

@@ -11,11 +11,14 @@ estimator and gamma of a dataset spec, as JSON for the application layer.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any, cast
 
 import numpy as np
 
 from .. import estimators as _est
+from ..array_types import FloatArray
 from ..records import json_value
 from ..spec import ExperimentSpec
 from .data import MeasuredData, StateModel, regression
@@ -26,7 +29,7 @@ NOT_EXCITED_RTOL = 1e-10  # lambda_min <= this lambda_max: a direction without d
 WEAK_COND = 1e8  # above this condition number: weakly excited
 
 
-def plain(value):
+def plain(value: object) -> Any:
     """dicts, lists and arrays -> JSON-able Python values (NaN/inf -> None)."""
     if isinstance(value, dict):
         return {k: plain(v) for k, v in value.items()}
@@ -40,8 +43,8 @@ class Model:
     """An identified model in its state coordinates: x+ = A x + B u (the ARX
     state when ``lags`` is (p, q)); ``estimator``, ``gamma``: how it was fitted."""
 
-    A: np.ndarray
-    B: np.ndarray
+    A: FloatArray
+    B: FloatArray
     lags: tuple[int, int] | None = None
     estimator: str = "ols"
     gamma: float | None = None
@@ -56,8 +59,8 @@ class Excitation:
 
     names: tuple[str, ...]
     N0: int
-    eigenvalues: np.ndarray
-    direction: np.ndarray
+    eigenvalues: FloatArray
+    direction: FloatArray
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -72,8 +75,8 @@ class Excitation:
     def cond(self) -> float:
         return self.lambda_max / self.lambda_min if self.lambda_min > 0 else float("inf")
 
-    def to_dict(self) -> dict:
-        return plain(
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = plain(
             {
                 "names": list(self.names),
                 "N0": self.N0,
@@ -85,6 +88,7 @@ class Excitation:
                 "notes": self.notes,
             }
         )
+        return out
 
 
 def excitation(data: MeasuredData, lags: tuple[int, int] | None = None) -> Excitation:
@@ -122,43 +126,48 @@ class ValidationResult:
     channels: tuple[str, ...]
     inputs: tuple[str, ...]
     lags: int  # h of the whiteness and cross-correlation tests
-    one_step_nrmse: np.ndarray  # (ny,)
-    one_step_fit: np.ndarray  # (ny,) percent
-    simulation_fit: np.ndarray  # (rollouts, ny) percent
-    simulation_fit_pooled: np.ndarray  # (ny,)
-    autocorrelation: np.ndarray  # (ny, h): r_1 .. r_h
+    one_step_nrmse: FloatArray  # (ny,)
+    one_step_fit: FloatArray  # (ny,) percent
+    simulation_fit: FloatArray  # (rollouts, ny) percent
+    simulation_fit_pooled: FloatArray  # (ny,)
+    autocorrelation: FloatArray  # (ny, h): r_1 .. r_h
     band: float  # 99 % band of r_k under whiteness
-    ljung_box_Q: np.ndarray  # (ny,)
-    ljung_box_p: np.ndarray  # (ny,)
-    cross_correlation: np.ndarray  # (ny, m, h + 1): rho_0 .. rho_h
-    cross_S: np.ndarray  # (ny, m)
-    cross_p: np.ndarray  # (ny, m)
-    predicted: list  # one-step predictions per rollout (T_i, ny)
-    simulated: list  # open-loop simulations per rollout (T_i + 1, ny)
+    ljung_box_Q: FloatArray  # (ny,)
+    ljung_box_p: FloatArray  # (ny,)
+    cross_correlation: FloatArray  # (ny, m, h + 1): rho_0 .. rho_h
+    cross_S: FloatArray  # (ny, m)
+    cross_p: FloatArray  # (ny, m)
+    predicted: list[FloatArray]  # one-step predictions per rollout (T_i, ny)
+    simulated: list[FloatArray]  # open-loop simulations per rollout (T_i + 1, ny)
     notes: list[str] = field(default_factory=list)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """JSON-able (NaN/inf -> None)."""
-        return plain({k: getattr(self, k) for k in self.__dataclass_fields__})
+        out: dict[str, Any] = plain({k: getattr(self, k) for k in self.__dataclass_fields__})
+        return out
 
 
-def _fit(y, yhat) -> np.ndarray:
+def _fit(y: FloatArray, yhat: FloatArray) -> FloatArray:
     """100 (1 - ||y - yhat|| / ||y - mean y||) per column (MATLAB's compare)."""
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         return 100.0 * (1.0 - _nrmse(y, yhat))
 
 
-def _nrmse(y, yhat) -> np.ndarray:
+def _nrmse(y: FloatArray, yhat: FloatArray) -> FloatArray:
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        return np.linalg.norm(y - yhat, axis=0) / np.linalg.norm(y - y.mean(axis=0), axis=0)
+        out: FloatArray = np.linalg.norm(y - yhat, axis=0) / np.linalg.norm(
+            y - y.mean(axis=0), axis=0
+        )
+        return out
 
 
-def _lagged(a: list, b: list, k: int) -> np.ndarray:
-    """sum over rollouts and t of a_t b_{t-k} (rows of a, b per rollout), per column pair."""
+def _lagged(a: list[FloatArray], b: list[FloatArray], k: int) -> FloatArray | float:
+    """sum over rollouts and t of a_t b_{t-k} (rows of a, b per rollout), per column pair
+    (0.0 when no rollout is longer than k)."""
     return sum((x[k:].T @ y[: y.shape[0] - k] for x, y in zip(a, b) if x.shape[0] > k), 0.0)
 
 
-def _simulate(model: Model, X: list, U: list, ny: int) -> list:
+def _simulate(model: Model, X: list[FloatArray], U: list[FloatArray], ny: int) -> list[FloatArray]:
     """Open-loop simulation of every rollout from its first state with its inputs,
     in lockstep over time (rollouts padded to the longest)."""
     R, T = len(X), max(u.shape[0] for u in U)
@@ -174,7 +183,7 @@ def _simulate(model: Model, X: list, U: list, ny: int) -> list:
     return [x[i, : X[i].shape[0], :ny] for i in range(R)]
 
 
-def _whiteness(eps: list) -> tuple:
+def _whiteness(eps: list[FloatArray]) -> tuple[int, FloatArray, FloatArray, int]:
     """Ljung-Box per channel on residuals pooled within rollouts -> (h, r (ny, h), Q, n)."""
     E = np.concatenate(eps)
     n_res = E.shape[0]
@@ -189,7 +198,9 @@ def _whiteness(eps: list) -> tuple:
     return h, r, Q, n_res
 
 
-def _cross(eps: list, U: list, h: int, names) -> tuple:
+def _cross(
+    eps: list[FloatArray], U: list[FloatArray], h: int, names: Sequence[str]
+) -> tuple[FloatArray, FloatArray, list[str]]:
     """Residual-input cross-correlations rho (ny, m, h + 1) and the statistic
     S = s^T R_u^-1 s per (channel, input), s_k = n rho_k / sqrt(P_k) (P_k pairs at
     lag k inside the rollouts), R_u the input's autocorrelation Toeplitz matrix;
@@ -233,7 +244,7 @@ def validate(model: Model, holdout: MeasuredData) -> ValidationResult:
     Y = np.concatenate([x[1:, :ny] for x in data.X])
     simulated = _simulate(model, data.X, data.U, ny)
     sim_fit = np.stack([_fit(x[1:, :ny], s[1:]) for x, s in zip(data.X, simulated)])
-    notes = []
+    notes: list[str] = []
     if not np.isfinite(sim_fit).all():
         notes.append("open-loop simulation: left the double range or a constant channel (null)")
     h, r, Q, n_res = _whiteness(eps)
@@ -260,7 +271,12 @@ def validate(model: Model, holdout: MeasuredData) -> ValidationResult:
 
 
 def fit_model(
-    spec: ExperimentSpec, data: MeasuredData, *, estimator: str, gamma: float | None = None, N=None
+    spec: ExperimentSpec,
+    data: MeasuredData,
+    *,
+    estimator: str,
+    gamma: float | None = None,
+    N: int | None = None,
 ) -> Model:
     """The model of one (estimator, gamma) of a dataset spec, fitted on the first N
     rollouts of the training pool (default: the spec's largest N), as its cells' rep 0."""
@@ -272,10 +288,10 @@ def fit_model(
     F = F[sm.estimated]
     if estimator == "ols":
         rows = _est.fit_ols(Z, F)
-    elif estimator == "svr":
-        rows = _est.fit_svr(Z, F, [gamma], loss_scale=spec.loss_scale)[0]
+    elif estimator == "svr":  # svr and shrunk-ols: the axis gives them a gamma
+        rows = _est.fit_svr(Z, F, [cast(float, gamma)], loss_scale=spec.loss_scale)[0]
     elif estimator == "shrunk-ols":
-        rows = _est.shrunk_ols(_est.fit_ols(Z, F), [gamma])[0]
+        rows = _est.shrunk_ols(_est.fit_ols(Z, F), [cast(float, gamma)])[0]
     else:
         raise ValueError(f"unknown estimator {estimator!r}")
     theta = sm.full(rows)
@@ -283,7 +299,7 @@ def fit_model(
     return Model(A=theta[:, :n], B=theta[:, n:], lags=opts.lags, estimator=estimator, gamma=gamma)
 
 
-def validation_summary(spec: ExperimentSpec, data: MeasuredData) -> dict:
+def validation_summary(spec: ExperimentSpec, data: MeasuredData) -> dict[str, Any]:
     """JSON for a dataset job: the excitation of the training rollouts used at the
     largest N, and each (estimator, gamma)'s model and its validation on the
     held-out rollouts (None without held-out rollouts)."""
@@ -293,7 +309,7 @@ def validation_summary(spec: ExperimentSpec, data: MeasuredData) -> dict:
     train, held = data.split(opts.holdout)
     N = max(spec.N)
     axis = estimator_axis(spec)
-    models = []
+    models: list[dict[str, Any]] = []
     for name, gamma in zip(axis.names, axis.gammas):
         model = fit_model(spec, data, estimator=name, gamma=gamma, N=N)
         models.append(

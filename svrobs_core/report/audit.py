@@ -10,7 +10,7 @@ gamma (present in every source) and, separately, on OLS.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
@@ -254,7 +254,7 @@ def _merged_items(
 
 @styled
 def fig_bounds_audit(
-    sources: dict[str, Columns | Iterable[dict[str, Any]]],
+    sources: Mapping[str, Columns | Iterable[dict[str, Any]]],
     delta: float,
     *,
     experiment: str | None = None,

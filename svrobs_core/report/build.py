@@ -4,9 +4,9 @@ experiment and Table 2, assembled into a :class:`Report` (all at once with
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..paper import EXPERIMENTS, PRESET_NAME
 from .audit import audit_findings, audit_rows, audit_sources, fig_bounds_audit
@@ -16,6 +16,12 @@ from .figures import fig2, fig3, fig_coverage, fig_rmse, fig_svr_ols_diff
 from .findings import findings
 from .plotting import figure_bytes, figure_csv
 from .tables import table2
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+# a figure function: (records, spec, *, experiment=) -> Figure
+FigureFn = Callable[..., Any]
 
 
 @dataclass
@@ -29,7 +35,7 @@ class ReportFigure:
     title: str
     caption: str
     experiment: str
-    figure: object  # matplotlib.figure.Figure
+    figure: Figure
     _png: bytes | None = None
     _svg: bytes | None = None
     _pdf: bytes | None = None
@@ -70,12 +76,12 @@ class ReportFigure:
         """The plotted data (:func:`~.plotting.figure_csv`)."""
         return figure_csv(self.figure)
 
-    def set_rendered(self, png: bytes, svg: bytes, pdf: bytes | None = None):
+    def set_rendered(self, png: bytes, svg: bytes, pdf: bytes | None = None) -> None:
         """Bytes rendered elsewhere (e.g. :func:`render_figure` in another process)."""
         self._png, self._svg, self._pdf = png, svg, pdf
 
 
-def render_figure(fig) -> tuple[bytes, bytes, bytes]:
+def render_figure(fig: Figure) -> tuple[bytes, bytes, bytes]:
     """(PNG, SVG, PDF) of a Figure, as ``ReportFigure.png()``/``svg()``/``pdf()``
     give them (picklable: figures can be rendered in worker processes)."""
     rf = ReportFigure("", "", "", "", fig)
@@ -87,20 +93,20 @@ def render_figure(fig) -> tuple[bytes, bytes, bytes]:
 @dataclass
 class Report:
     title: str
-    experiments: dict[str, dict]  # name -> {title, spec, n_records, findings, notes}
-    table2: list[dict]
+    experiments: dict[str, dict[str, Any]]  # name -> {title, spec, n_records, findings, notes}
+    table2: list[dict[str, Any]]
     table2_source: str | None
     figures: list[ReportFigure]
-    provenance: dict
+    provenance: dict[str, Any]
     # the uncertainty-set audit: rows of audit.audit_rows, its findings,
     # and bounds_method -> the experiment it was computed from
-    audit: list[dict] = field(default_factory=list)
+    audit: list[dict[str, Any]] = field(default_factory=list)
     audit_findings: list[str] = field(default_factory=list)
     audit_sources: dict[str, str] = field(default_factory=dict)
 
 
 # name, function, preferred experiments, fields it needs, title, caption
-FIGURE_PLAN = (
+FIGURE_PLAN: tuple[tuple[str, FigureFn, tuple[str, ...], tuple[str, ...], str, str], ...] = (
     (
         "fig_rmse",
         fig_rmse,
@@ -179,11 +185,16 @@ FIGURE_PLAN = (
 )
 
 
-def _records_of(exp: dict) -> Columns:
+def _records_of(exp: dict[str, Any]) -> Columns:
     return as_columns(exp["records"])
 
 
-def _choose_source(experiments: dict[str, dict], cols: dict[str, Columns], prefer, needs):
+def _choose_source(
+    experiments: dict[str, dict[str, Any]],
+    cols: dict[str, Columns],
+    prefer: Sequence[str],
+    needs: Sequence[str],
+) -> str | None:
     for name in prefer:
         if name in experiments:
             return name
@@ -194,8 +205,8 @@ def _choose_source(experiments: dict[str, dict], cols: dict[str, Columns], prefe
 
 
 def build_report(
-    experiments: dict[str, dict],
-    provenance: dict | None = None,
+    experiments: dict[str, dict[str, Any]],
+    provenance: dict[str, Any] | None = None,
     title: str | None = None,
     *,
     render: Callable[[object], Any] | None = None,
@@ -223,22 +234,22 @@ class ReportBuilder:
 
     def __init__(
         self,
-        names,
-        provenance: dict | None = None,
+        names: Iterable[str],
+        provenance: dict[str, Any] | None = None,
         title: str | None = None,
         *,
         render: Callable[[object], Any] | None = None,
-    ):
+    ) -> None:
         self.names = list(names)
         self.provenance = provenance
         self.title = title
         self.render = render
-        self.experiments: dict[str, dict] = {}
+        self.experiments: dict[str, dict[str, Any]] = {}
         self.cols: dict[str, Columns] = {}
-        self.exps: dict[str, dict] = {}
+        self.exps: dict[str, dict[str, Any]] = {}
         self.figs: dict[int, tuple[ReportFigure, Any]] = {}
 
-    def _source(self, prefer, needs, final: bool):
+    def _source(self, prefer: Sequence[str], needs: Sequence[str], final: bool) -> str | None:
         for name in prefer:
             if name in self.names:
                 return name
@@ -247,7 +258,7 @@ class ReportBuilder:
         ordered = {n: self.experiments[n] for n in self.names if n in self.experiments}
         return _choose_source(ordered, self.cols, prefer, needs)
 
-    def _figures(self, final: bool):
+    def _figures(self, final: bool) -> None:
         for i, (name, fn, prefer, needs, ftitle, caption) in enumerate(FIGURE_PLAN):
             if i in self.figs:
                 continue
@@ -262,7 +273,7 @@ class ReportBuilder:
             fut = self.render(fig) if self.render is not None else None
             self.figs[i] = (ReportFigure(name, ftitle, caption, src, fig), fut)
 
-    def add(self, name: str, e: dict):
+    def add(self, name: str, e: dict[str, Any]) -> None:
         self.experiments[name] = e
         self.cols[name] = _records_of(e)
         self._figures(final=False)
@@ -285,7 +296,7 @@ class ReportBuilder:
         experiments = {n: self.experiments[n] for n in self.names if n in self.experiments}
         t_src = _choose_source(experiments, self.cols, ("E1",), ("rmse_A",))
         rows = table2(self.cols[t_src], spec=experiments[t_src].get("spec")) if t_src else []
-        figs = []
+        figs: list[ReportFigure] = []
         for i in sorted(self.figs):
             fg, fut = self.figs[i]
             if fut is not None:
@@ -304,7 +315,9 @@ class ReportBuilder:
             audit_sources=a_sources,
         )
 
-    def _audit(self, experiments, figs):
+    def _audit(
+        self, experiments: dict[str, dict[str, Any]], figs: list[ReportFigure]
+    ) -> tuple[list[dict[str, Any]], list[str], dict[str, str]]:
         """The uncertainty-set audit when two or more bounds_methods ran."""
         sources = audit_sources(experiments, self.cols)
         if len(sources) < 2:
@@ -341,6 +354,6 @@ def _topics(name: str) -> bool:
     return "findings" in EXPERIMENTS.get(name, {})
 
 
-def _exp_label(name: str, provenance: dict | None) -> str:
+def _exp_label(name: str, provenance: dict[str, Any] | None) -> str:
     preset = (provenance or {}).get("preset")
     return f"{preset} / {name}" if preset else name

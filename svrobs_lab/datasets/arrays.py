@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -41,7 +42,9 @@ def _kind(a: np.ndarray) -> str:
 def split_variables(variables: Mapping) -> tuple[dict, dict, dict]:
     """(whole-array variables X/U, per-rollout {index: (X_i, U_i)}, metadata); an
     unknown variable, or both forms at once, is an error naming it."""
-    whole, per, meta = {}, {}, {}
+    whole: dict[str, Any] = {}
+    per: dict[int, dict[str, Any]] = {}
+    meta: dict[str, Any] = {}
     for key, value in variables.items():
         m = _PER_ROLLOUT.fullmatch(key)
         if key in ("X", "U"):
@@ -113,7 +116,8 @@ def per_rollout(per: dict, *, matlab: bool = False, name=_underscore) -> tuple[l
     if with_u and len(with_u) != count:
         i = next(i for i in range(count) if "U" not in per[i])
         raise BadDatasetFile(f"{name('U', i)} is missing ({name('U', with_u[0])} is given)")
-    X, U = [], []
+    X: list[np.ndarray] = []
+    U: list[np.ndarray] = []
     for i in range(count):
         xname, uname = name("X", i), name("U", i)
         x = numeric(xname, per[i]["X"])
@@ -168,6 +172,7 @@ def names_of(name: str, value) -> list[str] | None:
     """A file's channel names: strings (a text array, a MATLAB cell or char matrix)."""
     if value is None:
         return None
+    a: list[Any] | np.ndarray
     if isinstance(value, list):  # a MATLAB cell read from HDF5
         a = value
     else:

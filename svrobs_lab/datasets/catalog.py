@@ -14,7 +14,7 @@ import math
 import os
 import re
 from collections.abc import Iterator, Mapping
-from typing import BinaryIO
+from typing import BinaryIO, cast
 
 from sqlalchemy.orm import Session
 
@@ -120,7 +120,7 @@ def check_fields(fields: Mapping[str, str | None]) -> tuple[str, str | None, Dat
         input_names=_name_list(fields, "input_names"),
         sample_time=_sample_time(fields),
     )
-    return name, description, options
+    return cast(str, name), description, options  # required: a str
 
 
 def clean_filename(filename: str | None) -> str | None:

@@ -48,7 +48,8 @@ def read_json(stream: BinaryIO, *, size: int) -> Rollouts:
     us = obj.get("U")
     if us is not None and (not isinstance(us, list) or len(us) != len(xs)):
         raise BadDatasetFile(f"U: expected a list of {len(xs)} rollouts, like X")
-    X, U = [], []
+    X: list[np.ndarray] = []
+    U: list[np.ndarray] = []
     for i, x in enumerate(xs):
         x = _matrix(f"X[{i}]", x)
         u = _matrix(f"U[{i}]", us[i]) if us is not None else np.zeros((0, 0))

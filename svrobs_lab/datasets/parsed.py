@@ -14,6 +14,7 @@ import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -156,7 +157,9 @@ def build(
                 f"(T + 1, {n}) and (T, {m})"
             )
     if names_in_file:
-        state_names, input_names = list(rollouts.state_names), list(rollouts.input_names)
+        # the CSV's columns: both given
+        state_names = list(cast("Sequence[str]", rollouts.state_names))
+        input_names = list(cast("Sequence[str]", rollouts.input_names))
     else:
         state_names = _names(options.state_names, rollouts.state_names, "state_names", "x", n)
         input_names = _names(options.input_names, rollouts.input_names, "input_names", "u", m)
