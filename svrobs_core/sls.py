@@ -55,6 +55,7 @@ import threading
 import time
 import warnings
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cvxpy as cp
 import numpy as np
@@ -62,6 +63,9 @@ from numpy.typing import ArrayLike
 
 from .array_types import Array, FloatArray
 from .errors import check_matrix
+
+if TYPE_CHECKING:
+    from .cost_bound import TrueSystemNorms
 
 SQRT2 = math.sqrt(2.0)
 
@@ -349,7 +353,15 @@ def jopt_upper_bound(
     return value, reason
 
 
-def jopt_upper_bound_from_norms(eps_A, eps1, C_bound, norms, *, sigma_u, sigma_v):
+def jopt_upper_bound_from_norms(
+    eps_A: ArrayLike,
+    eps1: ArrayLike,
+    C_bound: ArrayLike,
+    norms: TrueSystemNorms,
+    *,
+    sigma_u: ArrayLike,
+    sigma_v: ArrayLike,
+) -> tuple[float | FloatArray, str | None | Array]:
     """:func:`jopt_upper_bound` with the four norms taken from ``norms``, a
     :class:`~svrobs_core.cost_bound.TrueSystemNorms` (of the true system, or of
     the estimate per cell). -> ``(value, reason)``"""
