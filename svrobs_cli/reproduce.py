@@ -32,10 +32,8 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
-import functools
 import json
 import os
-import platform
 import time
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -44,92 +42,27 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from service.config import get_settings
-from service.db.provenance import git_commit
 from svrobs_cli.progress import progress_bar
-from svrobs_core import __version__, parse_spec, plan_units
+from svrobs_cli.reproduce_plan import (
+    Group,
+    ReproduceError,
+    mc_limit,
+    plan,
+    select_experiments,
+    unit_weight,
+)
+from svrobs_cli.reproduce_report import FinishedRun, report_input, write_report
+from svrobs_core import parse_spec, plan_units
 from svrobs_core import report as rpt
-from svrobs_core.paper import EXPERIMENTS, MC_DECISION, PRESET_NAME, paper_specs
+from svrobs_core.paper import PRESET_NAME, paper_specs
 from svrobs_core.parallel import open_pool
-from svrobs_core.pipeline import failed_stage, shares_data
+from svrobs_core.pipeline import failed_stage
 from svrobs_core.runner import run_unit_results
 from svrobs_core.threads import blas_single_thread
-from svrobs_lab.report_html import render_html
 
 # Above this many cells an experiment keeps no A_hat/B_hat in memory for the
 # report (only E1/E2-sized grids draw the figures that need them).
 MATRIX_CELLS_LIMIT = 200_000
-
-
-class ReproduceError(Exception):
-    """A stage of an experiment failed: the reproduction is not complete."""
-
-
-# ---------------------------------------------------------------------------
-# planning: which experiments run together
-# ---------------------------------------------------------------------------
-def _derivable(child: dict, parent: dict) -> bool:
-    """True when every record of ``child`` is a record of ``parent`` (same keys),
-    up to ``mc_reps``: the parent's run then computes the Monte Carlo J as far
-    as the child needs it and writes each spec's own records
-    (``UnitResult.with_mc_reps``)."""
-    c, p = parse_spec(child), parse_spec(parent)
-    cd, pd = c.to_dict(), p.to_dict()
-    for k in cd.keys() | pd.keys():  # both ways: e.g. bounds_method is in only one of them
-        if k in ("systems", "gamma", "estimators", "mc_reps"):
-            continue
-        if cd.get(k) != pd.get(k):
-            return False
-    # the seed key holds the system index: it must be the same in both
-    for i, s in enumerate(cd["systems"]):
-        if i >= len(pd["systems"]) or pd["systems"][i] != s:
-            return False
-    if not set(c.estimators) <= set(p.estimators):
-        return False
-    if "cost" in c.stages:  # the cost ratio couples the gammas of a repetition
-        return c.gamma == p.gamma
-    return set(c.gamma) <= set(p.gamma)
-
-
-@dataclass
-class Group:
-    """One pass: ``parent``'s units; ``variants`` share its data (other bounds
-    methods, computed in the same pass); ``children`` take their records from it."""
-
-    parent: str
-    variants: list[str] = field(default_factory=list)
-    children: list[str] = field(default_factory=list)
-
-    @property
-    def names(self) -> list[str]:
-        return [self.parent, *self.variants, *self.children]
-
-
-def plan(specs: dict[str, dict], derive: bool = True) -> list[Group]:
-    """The groups, in the order of their parents in ``specs``; the largest grids
-    are parents."""
-    if not derive:
-        return [Group(name) for name in specs]
-    parsed = {n: parse_spec(s) for n, s in specs.items()}
-    order = sorted(specs, key=lambda n: -parsed[n].n_cells)  # stable: ties keep spec order
-    groups: dict[str, Group] = {}
-    taken: set[str] = set()
-    for parent in order:
-        if parent in taken:
-            continue
-        g = groups[parent] = Group(parent)
-        taken.add(parent)
-        for other in order:
-            if other in taken:
-                continue
-            if _derivable(specs[other], specs[parent]):
-                g.children.append(other)
-            elif shares_data(parsed[parent], parsed[other]):
-                g.variants.append(other)
-            else:
-                continue
-            taken.add(other)
-    return [groups[n] for n in specs if n in groups]
 
 
 class _Selector:
@@ -213,29 +146,6 @@ def _mc_of(o: _Output, specs) -> float:
     return s.reps if o.mc_reps is None else o.mc_reps
 
 
-def _mc_limit(spec) -> float:
-    return spec.reps if spec.mc_reps is None else spec.mc_reps
-
-
-def _unit_weight(specs, unit) -> float:
-    """Rough relative cost of a unit (normals drawn), to start the heaviest first."""
-    s0 = specs[0]
-    system = s0.systems[unit["system"]]
-    n, m, p = system.n, system.m, system.p
-    r0, r1 = unit["reps"]
-    w = 0.0
-    for N in unit["N"]:
-        w += (r1 - r0) * (m + n) * s0.T0 * N
-        for s in specs:
-            if s.bounds_method == "bootstrap" and N in s.N:
-                w += 3.0 * (r1 - r0) * s.boot_reps * (m + n) * s0.T0 * N
-    if s0.has("cost"):
-        limit = unit.get("mc_reps", s0.mc_reps)
-        rows = max(0, min(r1, s0.reps if limit is None else limit) - r0)
-        w += 2.0 * rows * len(unit["N"]) * s0.mc_runs * s0.horizon * (m + n + p)
-    return w
-
-
 # ---------------------------------------------------------------------------
 # running
 # ---------------------------------------------------------------------------
@@ -271,7 +181,7 @@ def _prepare(group: Group, specs: dict[str, dict]) -> _GroupRun:
     for u in units:  # the Monte Carlo J as far as any spec using the unit needs it
         name = parent.systems[u["system"]].name
         need = [parsed[o.name] for o in outputs if name in o.systems]
-        top = max(need, key=_mc_limit)
+        top = max(need, key=mc_limit)
         if top.mc_reps != parent.mc_reps:
             u["mc_reps"] = top.mc_reps
     return _GroupRun(group=group, specs=run_specs, units=units, outputs=outputs)
@@ -334,7 +244,7 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
                 with blas_single_thread():
                     take(gi, ui, lambda gi=gi, ui=ui: _work(*args(gi, ui)))
             return
-        weight = {c: _unit_weight(*args(*c)[:2]) for c in calls}
+        weight = {c: unit_weight(*args(*c)[:2]) for c in calls}
         queue = sorted(calls, key=lambda c: (c[0], -weight[c]), reverse=True)
         futures: dict = {}
         try:
@@ -346,7 +256,8 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
                     futures[pool.submit(_work, *args(*c))] = c
                 done, _ = wait(futures, return_when=FIRST_COMPLETED)
                 for f in done:
-                    take(*futures.pop(f), f.result)
+                    gi, ui = futures.pop(f)
+                    take(gi, ui, f.result)
         finally:
             for f in futures:
                 f.cancel()
@@ -418,58 +329,13 @@ def _results(run: _GroupRun, specs: dict[str, dict], out: Path) -> dict[str, dic
     return results
 
 
-def normals_drawn(specs: dict[str, dict], groups: list[Group]) -> dict[str, int]:
-    """Normal random numbers each experiment draws in this plan: its data (none when
-    it takes or shares another's), its Monte Carlo runs beyond its parent's, its
-    bootstrap resamples."""
-    out = {}
-    for g in groups:
-        parent = parse_spec(specs[g.parent])
-        for name in g.names:
-            s = parse_spec(specs[name])
-            total = 0
-            for x in s.systems:
-                n, m, p = x.n, x.m, x.p
-                per_N = (m + n) * s.T0 + (n if s.x0_std > 0 else 0)
-                sumN = sum(s.N)
-                if name == g.parent:
-                    total += len(s.sigma_w) * s.reps * per_N * sumN
-                if s.bounds_method == "bootstrap":
-                    total += len(s.sigma_w) * s.reps * s.boot_reps * per_N * sumN
-                if s.has("cost"):
-                    mc = min(s.reps, _mc_limit(s))
-                    if name != g.parent:
-                        mc -= min(mc, min(parent.reps, _mc_limit(parent)))
-                    total += len(s.sigma_w) * len(s.N) * mc * s.mc_runs * s.horizon * (m + n + p)
-            out[name] = int(total)
-    return out
+def _renderer(pool):
+    """Figures rendered in the worker processes (a future per figure)."""
 
+    def render(fig):
+        return pool.submit(rpt.render_figure, fig)
 
-def _versions() -> dict:
-    import matplotlib
-    import scipy
-
-    return {
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
-        "matplotlib": matplotlib.__version__,
-    }
-
-
-def select_experiments(specs: dict[str, dict], only) -> dict[str, dict]:
-    """The specs of the experiments named in ``only`` (None: all), in preset order."""
-    if only is None:
-        return specs
-    names = [x.strip() for x in (only.split(",") if isinstance(only, str) else only)]
-    names = [x for x in names if x]
-    unknown = [x for x in names if x not in specs]
-    if unknown or not names:
-        raise ReproduceError(
-            f"--only: unknown experiment {', '.join(unknown) or '(none given)'}; "
-            f"the preset has {', '.join(specs)}"
-        )
-    return {n: s for n, s in specs.items() if n in names}
+    return render
 
 
 def reproduce(
@@ -510,7 +376,7 @@ def reproduce(
         builder = rpt.ReportBuilder(
             list(specs),
             {"preset": PRESET_NAME},
-            render=None if pool is None else functools.partial(pool.submit, rpt.render_figure),
+            render=None if pool is None else _renderer(pool),
         )
         background = stack.enter_context(ThreadPoolExecutor(max_workers=1))
         report_parts = []
@@ -526,7 +392,7 @@ def reproduce(
             group = _results(run, specs, out)
             results.update(group)
             for n in group:
-                report_parts.append(background.submit(add, n, _report_input(n, group[n])))
+                report_parts.append(background.submit(add, n, report_input(n, group[n])))
 
         # the group with the most records first: its report part (findings,
         # figures) is then made while the others run
@@ -539,7 +405,7 @@ def reproduce(
         t_run = time.perf_counter() - t_start
         for f in report_parts:
             f.result()
-        run = _Finished(
+        run = FinishedRun(
             out=out,
             command=f"svrobs reproduce --out {out_dir}"
             + ("" if scale == "full" else f" --scale {scale}"),
@@ -553,113 +419,4 @@ def reproduce(
             n_jobs=n_jobs,
             report_cpu=report_cpu,
         )
-        return _write_report(run, builder, console, quiet)
-
-
-def _report_input(name: str, result: dict) -> dict:
-    return {
-        "spec": result["spec"],
-        "records": result["records"],
-        "title": EXPERIMENTS[name]["title"],
-        "notes": [],
-    }
-
-
-@dataclass
-class _Finished:
-    """What the report's provenance says about a finished run."""
-
-    out: Path
-    command: str
-    scale: str
-    specs: dict
-    groups: list
-    results: dict
-    started: _dt.datetime
-    t_start: float
-    t_run: float
-    n_jobs: int
-    report_cpu: dict
-
-
-def _write_report(run: _Finished, builder, console, quiet) -> dict:
-    """Provenance, tables, figures, report (``builder`` holds every experiment)."""
-    out, specs, results, groups = run.out, run.specs, run.results, run.groups
-    t_start, t_run, report_cpu = run.t_start, run.t_run, run.report_cpu
-    provenance = {
-        "preset": PRESET_NAME,
-        "scale": run.scale,
-        "experiments": list(specs),
-        "command": run.command,
-        "svrobs_version": __version__,
-        "git_commit": git_commit(get_settings().GIT_COMMIT),
-        **_versions(),
-        "platform": platform.platform(),
-        "cpus": os.cpu_count(),
-        "started_utc": run.started.isoformat(timespec="seconds"),
-        "records": {n: results[n]["n_records"] for n in specs},
-        "derived_from": {
-            n: results[n]["derived_from"] for n in specs if results[n]["derived_from"]
-        },
-        "shares_data_of": {
-            n: results[n]["shares_data_of"] for n in specs if results[n]["shares_data_of"]
-        },
-        "run_seconds": {g.parent: round(results[g.parent]["seconds"], 3) for g in groups},
-        "worker_cpu_seconds": {n: round(results[n]["cpu_seconds"], 3) for n in specs},
-        "normals": normals_drawn(specs, groups),
-        "rng": {n: parse_spec(specs[n]).rng for n in specs},
-        "n_jobs": run.n_jobs,
-        "monte_carlo": {
-            n: {
-                "mc_reps": parse_spec(results[n]["spec"]).mc_reps,
-                "mc_runs": parse_spec(results[n]["spec"]).mc_runs,
-            }
-            for n in specs
-            if "cost" in results[n]["spec"].get("stages", [])
-        },
-        "monte_carlo_decision": MC_DECISION,
-    }
-    t_rep, c_rep = time.perf_counter(), time.thread_time()
-    report = builder.finish()
-    files = []
-
-    def write(name: str, data):
-        p = out / name
-        if isinstance(data, bytes):
-            p.write_bytes(data)
-        else:
-            p.write_text(data)
-        files.append(str(p))
-
-    write("table2.md", rpt.table2_markdown(report.table2))
-    write("table2.csv", rpt.table2_csv(report.table2))
-    for fg in report.figures:
-        if fg.empty:  # nothing to plot: the report carries the note instead
-            continue
-        write(f"{fg.name}.png", fg.png())
-        write(f"{fg.name}.svg", fg.svg())
-        write(f"{fg.name}.pdf", fg.pdf())
-        write(f"{fg.name}.csv", fg.csv())
-    # the part of the report made after the last run (the rest overlaps the runs)
-    provenance["report_seconds"] = round(time.perf_counter() - t_rep, 3)
-    # CPU of this process's report work: per experiment as it arrived, then the rest
-    provenance["report_cpu_seconds"] = {
-        **{n: round(report_cpu[n], 3) for n in specs},
-        "finish": round(time.thread_time() - c_rep, 3),
-    }
-    provenance["run_total_seconds"] = round(t_run, 3)
-    report.provenance = provenance
-    write("report.md", rpt.render_markdown(report))
-    write("report.html", render_html(report))
-    write("provenance.json", json.dumps(provenance, indent=1))
-    if not quiet:
-        console.print(
-            f"[green]wrote {len(files)} files to {out}[/] "
-            f"(runs {t_run:.1f} s, report {provenance['report_seconds']:.1f} s)"
-        )
-    return {
-        "out": str(out),
-        "records": provenance["records"],
-        "files": files,
-        "seconds": round(time.perf_counter() - t_start, 3),
-    }
+        return write_report(run, builder, console, quiet)

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from svrobs_cli import reproduce as rep_mod
+from svrobs_cli import reproduce_plan
 from svrobs_core import RECORD_FIELDS, parse_spec, run_spec
 from svrobs_core import report as rpt
 from svrobs_core.paper import PUBLISHED_TABLE2, paper_specs
@@ -417,26 +418,26 @@ def test_plan_takes_sub_grids_from_their_parents_and_shares_their_data():
     specs = paper_specs("reduced")
     # A1 (self-normalized) and A2 (bootstrap) have E2's grid and data but not its
     # bounds: they run in E2's pass; E1 and E3 are selections of E2's and E4's records
-    plan = [(g.parent, g.variants, g.children) for g in rep_mod.plan(specs, derive=True)]
+    plan = [(g.parent, g.variants, g.children) for g in reproduce_plan.plan(specs, derive=True)]
     assert plan == [("E2", ["A1", "A2"], ["E1"]), ("E4", [], ["E3"])]
-    full = [(g.parent, g.variants, g.children) for g in rep_mod.plan(paper_specs("full"))]
+    full = [(g.parent, g.variants, g.children) for g in reproduce_plan.plan(paper_specs("full"))]
     assert full == plan  # A2 on five of E2's N values
-    assert [g.names for g in rep_mod.plan(specs, derive=False)] == [[n] for n in specs]
-    assert not rep_mod._derivable(specs["E2"], specs["A1"])
-    assert not rep_mod._derivable(specs["A1"], specs["E2"])
+    assert [g.names for g in reproduce_plan.plan(specs, derive=False)] == [[n] for n in specs]
+    assert not reproduce_plan.derivable(specs["E2"], specs["A1"])
+    assert not reproduce_plan.derivable(specs["A1"], specs["E2"])
     other_seed = dict(specs["E1"], seed=1)
-    assert not rep_mod._derivable(other_seed, specs["E2"])
+    assert not reproduce_plan.derivable(other_seed, specs["E2"])
     swapped = dict(specs["E3"], systems=["paper-unstable"])  # index 0 in E3, 1 in E4
-    assert not rep_mod._derivable(swapped, specs["E4"])
+    assert not reproduce_plan.derivable(swapped, specs["E4"])
     fewer = dict(specs["E3"], gamma=[0.05, 0.1])  # the cost ratio couples the gammas
-    assert not rep_mod._derivable(fewer, specs["E4"])
-    only = rep_mod.select_experiments(specs, "E1, A2")
-    assert [(g.parent, g.variants, g.children) for g in rep_mod.plan(only)] == [
+    assert not reproduce_plan.derivable(fewer, specs["E4"])
+    only = reproduce_plan.select_experiments(specs, "E1, A2")
+    assert [(g.parent, g.variants, g.children) for g in reproduce_plan.plan(only)] == [
         ("E1", [], []),
         ("A2", [], []),
     ]
     with pytest.raises(rep_mod.ReproduceError, match="unknown experiment E9"):
-        rep_mod.select_experiments(specs, "E1,E9")
+        reproduce_plan.select_experiments(specs, "E1,E9")
 
 
 def test_a_failing_stage_stops_the_reproduction_naming_it(tmp_path, monkeypatch):
