@@ -45,7 +45,7 @@ SMALL = 0.1  # seconds: below this a measured difference is noise
 _CHILD = r"""
 import json, sys, time
 from svrobs_core import parse_spec, plan_units, run_unit_result
-from svrobs_core import pipeline, sls
+from svrobs_core import observer_stages, sls
 import cvxpy  # noqa: F401  (an import, not the units' work)
 specs = json.loads(sys.argv[1])
 warm = parse_spec(specs.pop("warm-up"))  # the code paths' first calls, not measured
@@ -55,7 +55,7 @@ out = {}
 for key, obj in specs.items():
     spec = parse_spec(obj)
     sls.clear_cache()  # every unit compiles the SLS program and costs the true system
-    pipeline._truth_cached.cache_clear()
+    observer_stages._truth_cached.cache_clear()
     t = time.process_time()
     for u in plan_units(spec):
         run_unit_result(spec, u).json_lines()

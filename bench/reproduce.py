@@ -44,8 +44,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from svrobs_cli.reproduce import reproduce
 from svrobs_core import parse_spec
+from svrobs_core.observer_stages import truth
 from svrobs_core.paper import paper_specs
-from svrobs_core.pipeline import truth
 from svrobs_core.rollouts import MC_STREAM, RNGS, rng_for, seed_key
 
 

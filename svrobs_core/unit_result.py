@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike
 
 from .array_types import Array, IntArray
 from .notes import Notes
-from .pipeline import mc_note
+from .observer_stages import mc_note
 from .planning import EstimatorAxis
 from .records import (
     CELL_FIELDS,

@@ -23,10 +23,11 @@ from ..array_types import Array, FloatArray
 from ..estimators import fit_ols
 from ..norms import spectral_radius
 from ..notes import Notes
-from ..pipeline import CERTIFICATES, ESTIMATE_COND_LIMIT, _estimate, design
-from ..pipeline import _Cells as Cells  # the context the stage functions read
+from ..observer_stages import design
+from ..pipeline import CERTIFICATES, ESTIMATE_COND_LIMIT, _estimate
 from ..planning import EstimatorAxis
 from ..spec import STAGES, ExperimentSpec
+from ..stage_cells import Cells  # the context the stage functions read
 from ..uncertainty_stage import bounds_from_box, sound_box
 from .data import StateModel
 from .noise import noise_level, residual_sum
