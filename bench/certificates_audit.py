@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from svrobs_core import estimators as est
-from svrobs_core.rollouts import gram_data, seed_key
+from svrobs_core.rollouts import gram_data
 from svrobs_core.runner import run_spec
+from svrobs_core.seeding import seed_key
 from svrobs_core.spec import parse_spec
 
 sys.path.append(str(Path(__file__).resolve().parents[1]))

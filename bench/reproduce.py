@@ -46,7 +46,7 @@ from svrobs_cli.reproduce import reproduce
 from svrobs_core import parse_spec
 from svrobs_core.observer_stages import truth
 from svrobs_core.paper import paper_specs
-from svrobs_core.rollouts import MC_STREAM, RNGS, rng_for, seed_key
+from svrobs_core.seeding import MC_STREAM, RNGS, rng_for, seed_key
 
 
 # ---------------------------------------------------------------------------

@@ -190,7 +190,7 @@ def reproduce_command(
 ) -> None:
     """The paper's Section 6 (E1-E4) and the audits A1, A2 in process: tables, figures, report.md."""
     from svrobs_cli.reproduce import ReproduceError, reproduce
-    from svrobs_core.rollouts import RNGS
+    from svrobs_core.seeding import RNGS
 
     if scale not in ("full", "reduced"):
         raise CliError("--scale must be 'full' or 'reduced'")

@@ -19,7 +19,7 @@ from . import cost_mc as _mc
 from . import gains as _gains
 from . import kalman as _kalman
 from .norms import spectral_radius
-from .rollouts import MC_STREAM, generators
+from .seeding import MC_STREAM, generators
 from .stage_cells import Cells
 
 

@@ -22,7 +22,8 @@ from . import uncertainty as _unc
 from .notes import Notes
 from .observer_stages import design, observer_stages, sls_stage
 from .planning import EstimatorAxis
-from .rollouts import gram_data, seed_key
+from .rollouts import gram_data
+from .seeding import seed_key
 from .spec import STAGES, ExperimentSpec
 from .stage_cells import Cells
 from .uncertainty_stage import sound_bounds

@@ -14,7 +14,7 @@ from dataclasses import MISSING, dataclass, field, fields
 from typing import Any, cast
 
 from .errors import SpecError
-from .rollouts import DEFAULT_RNG, RNGS
+from .seeding import DEFAULT_RNG, RNGS
 from .systems import MAX_DIM, SystemSpec, resolve_system
 
 ESTIMATORS = ("ols", "svr", "shrunk-ols")

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..array_types import BoolArray, FloatArray, IntArray
 from ..errors import DimensionError
-from ..rollouts import generators, seed_key
+from ..seeding import generators, seed_key
 from .rollout_lists import RolloutLists
 
 SUBSAMPLE_STREAM = (3,)  # repetition r >= 1 draws its rollouts from key (0, 0, N, r) + (3,)

@@ -18,7 +18,7 @@ import numpy as np
 from ..array_types import Array, IntArray
 from ..notes import Notes
 from ..planning import MAX_CELLS_PER_UNIT, TARGET_CELLS_PER_UNIT, estimator_axis, plan_units
-from ..rollouts import seed_key
+from ..seeding import seed_key
 from ..spec import ExperimentSpec
 from ..threads import blas_single_thread
 from ..unit_result import Dataset, UnitResult

@@ -14,8 +14,9 @@ from scipy.optimize import minimize
 from svrobs_core import SpecError, parse_spec
 from svrobs_core.gains import certificate, design_gain, reuse_gains
 from svrobs_core.planning import plan_units
-from svrobs_core.rollouts import gram_data, seed_key
+from svrobs_core.rollouts import gram_data
 from svrobs_core.runner import run_unit
+from svrobs_core.seeding import seed_key
 from svrobs_core.uncertainty import rho_upper_bound, self_normalized_box
 
 TOY = {

@@ -20,7 +20,8 @@ from svrobs_core import gains, parse_spec, run_spec
 from svrobs_core import uncertainty as unc
 from svrobs_core.data_factor import U_EXT
 from svrobs_core.linalg import perron_upper_bound
-from svrobs_core.rollouts import gram_data, seed_key
+from svrobs_core.rollouts import gram_data
+from svrobs_core.seeding import seed_key
 from tests.core.exact_boxes import FASTSLOW, PAPER_T900, exact_box
 
 TOL = unc.RADIUS_RTOL

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from svrobs_core import RECORD_FIELDS, parse_spec, plan_units, run_spec, run_unit
-from svrobs_core.rollouts import collect, seed_key
+from svrobs_core.rollouts import collect
+from svrobs_core.seeding import seed_key
 
 ALL_STAGES = ["estimate", "bounds", "gain", "cost", "cost_bound"]
 SMALL = {

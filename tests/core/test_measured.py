@@ -20,7 +20,8 @@ from scipy.stats import chi2
 
 from svrobs_core import parse_spec, plan_units, run_unit_result
 from svrobs_core.measured import MeasuredData, run_measured_unit
-from svrobs_core.rollouts import draw_noise, seed_key, simulate
+from svrobs_core.rollouts import draw_noise, simulate
+from svrobs_core.seeding import seed_key
 
 # A system used only here (2 states, 1 input) and its observer model.
 SYS = {

@@ -33,7 +33,8 @@ from hypothesis import strategies as st
 
 from svrobs_cli.local import run_local
 from svrobs_core import estimators as est
-from svrobs_core.rollouts import gram_data, seed_key
+from svrobs_core.rollouts import gram_data
+from svrobs_core.seeding import seed_key
 from svrobs_core.systems import resolve_system
 from tests.core.exact_boxes import exact_box
 

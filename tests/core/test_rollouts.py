@@ -3,7 +3,8 @@ a naive simulator."""
 
 import numpy as np
 
-from svrobs_core.rollouts import MC_STREAM, collect, generators, gram_data, rng_for, seed_key
+from svrobs_core.rollouts import collect, gram_data
+from svrobs_core.seeding import MC_STREAM, generators, rng_for, seed_key
 from svrobs_core.systems import resolve_system
 
 S = resolve_system("paper-stable")

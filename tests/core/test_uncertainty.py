@@ -17,7 +17,8 @@ import pytest
 from svrobs_core import estimators as est
 from svrobs_core import gains, kalman
 from svrobs_core import uncertainty as unc
-from svrobs_core.rollouts import gram_data, rng_for, seed_key
+from svrobs_core.rollouts import gram_data
+from svrobs_core.seeding import rng_for, seed_key
 from svrobs_core.systems import resolve_system
 
 # A system used only here: 2 states, 1 input, ||A||, ||B|| < M = 1.2.
