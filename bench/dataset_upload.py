@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 
-from bench.load import start_server, stop_server, wait_ready  # noqa: E402
+from bench.api_server import start_server, stop_server, wait_ready  # noqa: E402
 from bench.reads import rss_mb  # noqa: E402
 
 N_STATES, N_INPUTS = 4, 2

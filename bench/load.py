@@ -32,9 +32,6 @@ import asyncio
 import os
 import random
 import shutil
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -43,13 +40,21 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-import httpx
-import numpy as np
+import httpx  # noqa: E402
+import numpy as np  # noqa: E402
 
-HOST = "127.0.0.1"  # loopback only
-API = "/api/v1"
-RATE_LIMIT = 10_000_000
-QUEUED_CAP = 10_000_000
+from bench.api_server import (  # noqa: E402
+    API,
+    HOST,
+    QUEUED_CAP,
+    RATE_LIMIT,
+    cpu_seconds,
+    free_port,
+    start_server,
+    stop_server,
+    wait_ready,
+)
+
 MIX = (("submit", 0.10), ("status", 0.45), ("results", 0.45))
 READS = ("status", "results")
 P99_TARGET_MS = 100.0
@@ -75,12 +80,6 @@ SUBMIT_SPEC = {
     "seed": 3,
     "tags": ["load"],
 }
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind((HOST, 0))
-        return s.getsockname()[1]
 
 
 def synthetic_records(spec, unit: dict, rng: random.Random) -> list[dict]:
@@ -170,88 +169,6 @@ def prepare(
         rows = s.scalar(select(func.count()).select_from(Result).where(Result.job_id == job_id))
     dispose_all()
     return key, job_id, rows
-
-
-def start_server(tmp: Path, db_url: str, port: int, workers: int = 1) -> subprocess.Popen:
-    env = {
-        **os.environ,
-        "SVROBS_DATABASE_URL": db_url,
-        "SVROBS_BROKER_URL": "filesystem://",
-        "SVROBS_BROKER_DIR": str(tmp / "broker"),
-        "SVROBS_VAR_DIR": str(tmp),
-        "SVROBS_RATE_LIMIT_PER_MINUTE": str(RATE_LIMIT),
-        "SVROBS_MAX_QUEUED_JOBS_PER_TEAM": str(QUEUED_CAP),
-        "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
-    }
-    cmd = [
-        sys.executable,
-        "-m",
-        "uvicorn",
-        "service.app:app",
-        "--host",
-        HOST,
-        "--port",
-        str(port),
-        "--workers",
-        str(workers),
-        "--no-access-log",
-        "--log-level",
-        "warning",
-    ]
-    with open(tmp / "api.log", "wb") as log:  # the child keeps its own descriptor
-        return subprocess.Popen(
-            cmd,
-            env=env,
-            cwd=str(ROOT),
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
-
-
-def stop_server(proc: subprocess.Popen) -> None:
-    if proc.poll() is not None:
-        return
-    proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(timeout=15)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait(timeout=5)
-
-
-def wait_ready(base: str, proc: subprocess.Popen, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"the API exited with code {proc.returncode}")
-        try:
-            if httpx.get(f"{base}/healthz", timeout=1.0).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.1)
-    raise RuntimeError("the API did not answer /healthz in time")
-
-
-def cpu_seconds(root_pid: int) -> float | None:
-    """User + system CPU of a process and its children (Linux /proc), else None."""
-    try:
-        tick = os.sysconf("SC_CLK_TCK")
-        total = 0.0
-        for entry in os.listdir("/proc"):
-            if not entry.isdigit():
-                continue
-            try:
-                fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            pid, ppid = int(entry), int(fields[1])
-            if pid == root_pid or ppid == root_pid:
-                total += (int(fields[11]) + int(fields[12])) / tick
-        return total
-    except (OSError, ValueError, AttributeError):
-        return None
 
 
 class Stats:

@@ -36,15 +36,15 @@ sys.path.insert(0, str(ROOT))
 
 import httpx  # noqa: E402
 
-from bench.load import (  # noqa: E402
+from bench.api_server import (  # noqa: E402
     API,
     HOST,
     free_port,
-    prepare,
     start_server,
     stop_server,
     wait_ready,
 )
+from bench.load import prepare  # noqa: E402
 
 PAPER_CELLS = 625_050
 TARGET_S = 2.0
