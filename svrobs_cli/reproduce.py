@@ -188,10 +188,14 @@ def _prepare(group: Group, specs: dict[str, dict]) -> _GroupRun:
 
 
 def _error(run: _GroupRun, exc: BaseException) -> ReproduceError:
-    stage, index = failed_stage(exc) or ("estimate", 0)
+    """The experiment, the stage (or that it was none: writing, the pool) and why."""
+    why = f"{type(exc).__name__}: {exc}".strip()
+    tagged = failed_stage(exc)
+    if tagged is None:
+        return ReproduceError(f"{run.group.parent}: failed outside its stages: {why}")
+    stage, index = tagged
     names = [run.group.parent, *run.group.variants]
     name = names[index] if index < len(names) else run.group.parent
-    why = f"{type(exc).__name__}: {exc}".strip()
     return ReproduceError(f"{name}: stage '{stage}' failed: {why}")
 
 

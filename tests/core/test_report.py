@@ -459,6 +459,16 @@ def test_a_failing_stage_stops_the_reproduction_naming_it(tmp_path, monkeypatch)
         rep_mod.reproduce(tmp_path, scale="reduced", quiet=True, n_jobs=1, only="E2,A1,A2")
 
 
+def test_a_failure_outside_the_stages_is_not_put_on_one(tmp_path, monkeypatch):
+    def full(*args, **kwargs):
+        raise OSError("No space left on device")
+
+    monkeypatch.setattr(rep_mod, "_part", full)
+    with pytest.raises(rep_mod.ReproduceError) as exc:
+        rep_mod.reproduce(tmp_path, scale="reduced", quiet=True, n_jobs=1, only="E1")
+    assert str(exc.value) == "E1: failed outside its stages: OSError: No space left on device"
+
+
 # ---------------------------------------------------------------------------
 # reproduce end to end on the reduced grid, real pipeline
 # ---------------------------------------------------------------------------
