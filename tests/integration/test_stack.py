@@ -78,12 +78,34 @@ def test_rest_job_equals_in_process_run(stack):
 # --------------------------------------------------------------------------- cancel
 
 
+WAIT_PUBLISHED = """
+import time
+import sqlalchemy as sa
+from service.config import get_settings
+engine = sa.create_engine(get_settings().DATABASE_URL)
+n = 0
+for _ in range(200):
+    with engine.connect() as c:
+        n = c.execute(sa.text(
+            "SELECT count(*) FROM work_units WHERE job_id = %d AND published_at IS NOT NULL"
+        )).scalar()
+    if n:
+        break
+    time.sleep(0.05)
+print(n)
+"""
+
+
 def test_cancel_stops_pending_units(stack):
     """Units of a cancelled job never run, even though their messages are delivered."""
     stack.stop("worker1", grace=3)  # idle: nothing reserved, nothing to lose
     try:
         with stack.client() as c:
             job = submit(c, SMALL_SPEC, name="to-cancel")
+            # the API publishes after its commit: cancel once a message is out, or the
+            # cancel can come first and nothing is ever delivered
+            published = stack.python(WAIT_PUBLISHED % job["id"])
+            assert int(published) >= 1, "no unit of the job was published in 10 s"
             r = c.post(f"/jobs/{job['id']}/cancel")
             assert r.status_code == 200, r.text
             assert r.json()["status"] == "cancelled"

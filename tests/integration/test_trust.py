@@ -222,11 +222,12 @@ def test_fair_share_keeps_k_units_in_flight_per_team(stack, pool, db):
 
 
 def test_cancel_stops_running_units(stack, pool, db):
-    """Cancel units (~4x the long unit) that started less than 1.5 s before: they stop
-    within 5 s, their state is final (`cancelled`), no row of them is stored, the job
-    says how many cells were done, and the pool takes new work at once."""
+    """Cancel units (~12x the long unit, a few seconds on a fast CPU) that started less
+    than 1.5 s before: they stop within 5 s, their state is final (`cancelled`), no row
+    of them is stored, the job says how many cells were done, and the pool takes new
+    work at once."""
     with stack.client() as c:
-        job = submit(c, long_job(8, scale=4), name="to cancel")
+        job = submit(c, long_job(8, scale=12), name="to cancel")
         wait_for(lambda: c.get(f"/jobs/{job['id']}").json()["progress"]["done"] >= 1, 180, "1 done")
         running = wait_for(lambda: fresh_units(db, job["id"]), 120, "a unit just started")
         log = stack.logs / f"{pool}.log"
