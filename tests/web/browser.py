@@ -7,6 +7,7 @@ another host.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -22,6 +23,11 @@ ARGS = [
     "--no-first-run",
     "--disable-quic",
 ]
+
+# Milliseconds of latency on every request the pages send (0: none). A hunt for tests
+# that act on a page before its deferred scripts have arrived and run:
+# SVROBS_TEST_LATENCY_MS=400 pytest tests/web
+LATENCY_MS = int(os.environ.get("SVROBS_TEST_LATENCY_MS", "0"))
 
 needs_chromium = pytest.mark.skipif(
     not CHROMIUM.exists(), reason=f"{CHROMIUM} missing (Debian package 'chromium')"
@@ -49,6 +55,10 @@ class Browser:
         )
         context.on("request", lambda r: self.requests.append(r.url))
         page = context.new_page()
+        if LATENCY_MS:
+            conditions = {"latency": LATENCY_MS, "downloadThroughput": -1, "uploadThroughput": -1}
+            cdp = context.new_cdp_session(page)
+            cdp.send("Network.emulateNetworkConditions", {"offline": False, **conditions})
         page.on(
             "console",
             lambda m: self.console_errors.append(m.text) if m.type == "error" else None,

@@ -104,6 +104,14 @@ def sign_in(page, key: str) -> None:
     page.wait_for_url(re.compile(r"/jobs$"))
 
 
+def follow(page, selector: str) -> None:
+    """Click a link and wait for the new page's load event: a click returns once the
+    navigation commits, before the deferred scripts (htmx, the page's own) have run,
+    and a change made on the page before then has no listener to reach."""
+    page.click(selector)
+    page.wait_for_load_state("load")
+
+
 def wait_charts(page, loads: int) -> list[dict]:
     page.wait_for_selector(f"#charts-card[data-loads='{loads}']")  # (the CSP forbids eval)
     return page.evaluate(PLOTTED)
@@ -192,7 +200,7 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
     assert stack.key not in page.content()
     stack.stop("worker1")  # the job waits, so the page sees it run and finish
     try:
-        page.click("nav a[href='/jobs/new']")
+        follow(page, "nav a[href='/jobs/new']")
         page.select_option("#preset", "system:paper-unstable")  # the form, filled
         expect(page.locator("#spec")).to_have_value(re.compile("paper-unstable"))
         assert json.loads(page.input_value("#spec"))["systems"] == ["paper-unstable"]
@@ -209,7 +217,7 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
         page.click("#submit-job")  # the uploaded file, not the (bad) text, is the spec
         page.wait_for_url(re.compile(r"/jobs/\d+$"))
         job_id = int(page.url.rsplit("/", 1)[1])
-        page.click("nav a[href='/jobs']")
+        follow(page, "nav a[href='/jobs']")
         row = page.locator(f"#job-{job_id}")
         assert row.get_attribute("data-status") == "queued"
         assert page.get_attribute("#jobs-table", "data-polling") == "yes"

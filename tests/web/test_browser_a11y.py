@@ -120,7 +120,7 @@ def test_every_page_has_no_serious_axe_violation_and_no_sideways_scroll(
     guest.wait_for_selector("#charts-card[data-state=ready] canvas")
     assert guest.locator("header nav a[href='/jobs']").count() == 0  # no app navigation
     check(guest, "shared", problems)
-    guest.click("#shared-report")
+    base.follow(guest, "#shared-report")
     guest.wait_for_selector("#back-link")
     check(guest, "shared report", problems)
 

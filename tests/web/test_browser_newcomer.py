@@ -24,7 +24,7 @@ KEYS = ("system", "sigma_w", "N", "estimator", "gamma", "rep")
 
 def submit_from_the_form(page, *, name: str, seed: int) -> int:
     """The spec form filled by a preset, then narrowed in its fields; the job's id."""
-    page.click("header nav a[href='/jobs/new']")
+    base.follow(page, "header nav a[href='/jobs/new']")
     page.select_option("#preset", "system:paper-stable")  # opens the filled form
     page.wait_for_url(re.compile(r"preset=system%3Apaper-stable"))
     page.fill("#name", name)
@@ -59,7 +59,7 @@ def test_sign_in_submit_two_compare_and_share_without_json(browser, stack):
         page.goto(f"/jobs/{i}")
         page.wait_for_selector(DONE, timeout=300_000)  # the progress card polls
 
-    page.click("header nav a[href='/compare']")
+    base.follow(page, "header nav a[href='/compare']")
     for i in ids:
         page.check(f"#compare-jobs input[value='{i}']")
     page.select_option("#compare-metric", "rmse_A")
@@ -83,7 +83,7 @@ def test_sign_in_submit_two_compare_and_share_without_json(browser, stack):
     page.click("#share-link")
     page.fill("#share-label", "for my supervisor")
     page.click("#share-form button[type=submit]")
-    page.wait_for_selector("#share-created")
+    page.wait_for_selector("#share-created[data-state=shown]")
     url = page.input_value("#new-share-url")
     assert re.search(r"/s/[\w-]{40,}$", url), url
     assert page.inner_text("#share-links tr.just-made .share-label") == "for my supervisor"
@@ -120,8 +120,7 @@ def test_a_cells_page_shows_the_apis_matrices(browser, stack, gain_job):
     page = browser.page(stack.base_url)
     base.sign_in(page, stack.key)
     page.goto(f"/jobs/{gain_job}")
-    page.click(f"a[href='/results?job={gain_job}']")
-    page.wait_for_selector("#results-grid")
+    base.follow(page, f"a[href='/results?job={gain_job}']")
     page.select_option("select[data-filter=estimator]", "svr")
     page.wait_for_selector("#results-grid[data-query*='estimator=svr']")
     row = page.locator("#results-grid tbody tr").nth(1)
@@ -148,5 +147,5 @@ def test_a_cells_page_shows_the_apis_matrices(browser, stack, gain_job):
         assert page.get_attribute(f"#cell-keys dd[data-field={field}]", "data-value") == str(
             record[field]
         )
-    page.click("#cell-back")  # back to the same filtered view
+    base.follow(page, "#cell-back")  # back to the same filtered view
     page.wait_for_selector("#results-grid[data-query*='estimator=svr']")

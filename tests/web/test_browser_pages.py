@@ -13,7 +13,7 @@ import pytest
 from tests.integration.stack import submit
 
 from . import test_browser as base
-from .test_browser import assert_charts_equal_summary, sign_in, wait_charts
+from .test_browser import assert_charts_equal_summary, follow, sign_in, wait_charts
 
 # the module's chromium and the after-each-test check (no foreign request, no error)
 browser = base.browser
@@ -51,7 +51,7 @@ def test_results_filter_and_sort(browser, stack, two_jobs):
     job_id = two_jobs[0]
     page = browser.page(stack.base_url)
     sign_in(page, stack.key)
-    page.click("nav a[href='/results']")
+    follow(page, "nav a[href='/results']")
     page.select_option("#results-job", str(job_id))
     page.click("#results-job-form button[type=submit]")
     page.wait_for_url(re.compile(rf"/results\?job={job_id}$"))
@@ -92,7 +92,7 @@ def test_results_filter_and_sort(browser, stack, two_jobs):
 def test_compare_two_jobs_plots_the_api_compare(browser, stack, two_jobs):
     page = browser.page(stack.base_url)
     sign_in(page, stack.key)
-    page.click("nav a[href='/compare']")
+    follow(page, "nav a[href='/compare']")
     for i in two_jobs:  # a labelled checkbox per job
         page.get_by_label(re.compile(rf"#{i} sweep seed \d")).check()
     page.select_option("#compare-metric", "rmse_B")
@@ -159,7 +159,7 @@ def test_create_a_schedule_from_a_job(browser, stack, two_jobs):
         job = api.get(f"/jobs/{job_id}").json()
     assert s["spec_template"] == job["spec"] and s["seed_policy"] == "due-time"
     assert s["cron"] == "30 1 * * *" and s["enabled"] is False
-    page.click("nav a[href='/schedules']")
+    follow(page, "nav a[href='/schedules']")
     assert page.locator(f"tr[data-schedule='{sid}']").count() == 1
 
 
@@ -172,7 +172,7 @@ def test_share_link_opens_without_cookies_and_404s_once_revoked(browser, stack, 
     page.context.grant_permissions(["clipboard-read", "clipboard-write"])
     page.fill("#share-label", "for the reviewers")
     page.click("#share-form button[type=submit]")
-    page.wait_for_selector("#share-created")
+    page.wait_for_selector("#share-created[data-state=shown]")
     url = page.input_value("#new-share-url")
     assert url.startswith(stack.base_url + "/s/") and stack.key not in url
     assert page.url == f"{stack.base_url}/jobs/{job_id}/share"  # no token left in the URL
