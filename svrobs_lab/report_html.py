@@ -115,6 +115,7 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
                 src = "data:image/png;base64," + base64.b64encode(fg.png()).decode("ascii")
             H.append(f"<img alt='{e(fg.title)}' src='{e(src)}'>")
         H.append(f"<p>{e(fg.full_caption)} Data: experiment {e(fg.experiment)}.</p>")
+    H += [f"<p>Not drawn: {e(title)} ({e(why)}).</p>" for title, why in report.figures_not_drawn]
     H.append("<h2>Specs</h2>")
     for name, x in report.experiments.items():
         H.append(f"<h3>{e(name)}</h3><pre>{e(spec_json(x['spec']))}</pre>")

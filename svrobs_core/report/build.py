@@ -103,6 +103,8 @@ class Report:
     audit: list[dict[str, Any]] = field(default_factory=list)
     audit_findings: list[str] = field(default_factory=list)
     audit_sources: dict[str, str] = field(default_factory=dict)
+    # (title, why) of each planned figure no experiment of the report has the data for
+    figures_not_drawn: list[tuple[str, str]] = field(default_factory=list)
 
 
 # name, function, preferred experiments, fields it needs, title, caption
@@ -195,13 +197,10 @@ def _choose_source(
     prefer: Sequence[str],
     needs: Sequence[str],
 ) -> str | None:
-    for name in prefer:
-        if name in experiments:
-            return name
-    for name in experiments:
-        if all(cols[name].has(f) for f in needs):
-            return name
-    return next(iter(experiments), None)
+    """The first of ``prefer``, then of the others, whose records have every field of
+    ``needs``; None when none has (the figure or table is not drawn, and says so)."""
+    ordered = [n for n in prefer if n in experiments] + [n for n in experiments if n not in prefer]
+    return next((n for n in ordered if all(cols[n].has(f) for f in needs)), None)
 
 
 def build_report(
@@ -248,6 +247,7 @@ class ReportBuilder:
         self.cols: dict[str, Columns] = {}
         self.exps: dict[str, dict[str, Any]] = {}
         self.figs: dict[int, tuple[ReportFigure, Any]] = {}
+        self.not_drawn: list[tuple[str, str]] = []  # (figure title, why)
 
     def _source(self, prefer: Sequence[str], needs: Sequence[str], final: bool) -> str | None:
         for name in prefer:
@@ -264,6 +264,8 @@ class ReportBuilder:
                 continue
             src = self._source(prefer, needs, final)
             if src is None or src not in self.experiments:
+                if final:
+                    self.not_drawn.append((ftitle, f"no experiment here has {', '.join(needs)}"))
                 continue
             fig = fn(
                 self.cols[src],
@@ -313,6 +315,7 @@ class ReportBuilder:
             audit=audit,
             audit_findings=a_findings,
             audit_sources=a_sources,
+            figures_not_drawn=list(self.not_drawn),
         )
 
     def _audit(

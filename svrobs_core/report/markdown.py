@@ -82,6 +82,9 @@ def render_markdown(report: Report, figure_files: dict[str, str] | None = None) 
         L.append("")
         L.append(f"{fg.full_caption} Data: experiment {fg.experiment}." + links)
         L.append("")
+    L += [f"- Not drawn: {title} ({why})." for title, why in report.figures_not_drawn]
+    if report.figures_not_drawn:
+        L.append("")
     L += ["## Specs", ""]
     for name, e in report.experiments.items():
         L.append(f"### {name}" + (f" (paper: {e['paper']})" if e.get("paper") else ""))

@@ -393,6 +393,25 @@ def test_coverage_of_one_everywhere_is_a_note_not_a_figure():
     assert "fig_coverage.png" not in md and f"is 1 in all {len(recs):,} records" in md
 
 
+def test_a_figure_is_drawn_only_from_an_experiment_with_its_fields():
+    spec = tiny_spec()
+    est = make_records(spec, cost=False)  # no delta_J, J_exact
+    cost_spec = paper_specs("reduced")["E4"]
+    full = make_records(cost_spec, seed=4)
+    rep = rpt.build_report({"E1": {"spec": spec, "records": est}})
+    titles = {f.name: f.experiment for f in rep.figures}
+    assert "fig4" not in titles and "fig5" not in titles and titles["fig_rmse"] == "E1"
+    assert [t.split(":")[0] for t, _ in rep.figures_not_drawn if t.startswith("Fig.")] == [
+        "Fig. 4",
+        "Fig. 5",
+    ]
+    both = rpt.build_report(
+        {"E1": {"spec": spec, "records": est}, "X": {"spec": cost_spec, "records": full}}
+    )
+    assert {f.name: f.experiment for f in both.figures}["fig4"] == "X"  # the one that has it
+    assert not [t for t, _ in both.figures_not_drawn if t.startswith("Fig. 4")]
+
+
 def test_svr_ols_difference_uses_the_same_repetition():
     recs = make_records(tiny_spec(), cost=False)
     cols = rpt.as_columns(recs)
@@ -630,6 +649,11 @@ def test_cli_reproduce_runs_a_subset_and_refuses_unknown_names(tmp_path):
     prov = json.loads((tmp_path / "t2" / "provenance.json").read_text())
     assert prov["experiments"] == ["E1"] and prov["records"]["E1"] == 2 * 3 * 3 * 3 * 2
     assert not list((tmp_path / "t2" / "E1").glob(".parts*"))
+    md = (tmp_path / "t2" / "report.md").read_text()  # E1 has no cost and no gain stage:
+    for title, needs in (("Fig. 4", "delta_J"), ("Fig. 5", "J_exact")):  # not drawn, said
+        assert f"- Not drawn: {title}" in md and f"no experiment here has {needs})" in md
+    assert "fig4.png" not in md and not (tmp_path / "t2" / "figures" / "fig4.png").exists()
+    assert "![RMSE per sample length" in md  # what E1 has is drawn
     bad = subprocess.run(
         [*cmd, "--only", "E1,E9", "--out", str(tmp_path / "bad")],
         capture_output=True,
