@@ -19,11 +19,12 @@ import numpy as np
 
 from . import planning
 from .array_types import FloatArray
+from .cost_rates import CELL_COST
 from .measured.runner import plan_measured_units
+from .measured.workload import measured_fixed_bytes
 from .records import NUMERIC_FIELDS
 from .spec import ExperimentSpec
 from .workload import (
-    CELL_COST,
     DataShape,
     JobCost,
     UnitCost,
@@ -34,7 +35,6 @@ from .workload import (
     _ill_conditioned,
     estimate_job,
     estimate_unit,
-    measured_fixed_bytes,
     plan_under_memory,
     unit_base_bytes,
     unit_fixed_seconds,

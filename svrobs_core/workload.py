@@ -25,120 +25,57 @@ the same per-operation constants applied to the measured path's operations
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from . import planning
-from .array_types import FloatArray, IntArray
+from .array_types import FloatArray
+from .cost_rates import (
+    BASE_BYTES,
+    BOOT_ELEM,
+    BOOT_REFIT,
+    BOOT_SET,
+    CALL,
+    CELL_COST,
+    CVX_SOLVE,
+    CVXPY_BYTES,
+    DATASET,
+    FLOP,
+    GRAM_CHUNK_BYTES,
+    KEY,
+    KRON_CHUNK_BYTES,
+    LONG_DOUBLE,
+    MC_BLOCK,
+    MC_CELL,
+    MC_DRAW,
+    MC_STEP,
+    NORMAL,
+    QR_REP,
+    RECORD_BYTES,
+    RECORD_ENTRY_BYTES,
+    SLS_VAR_BYTES,
+    DataShape,
+    JobCost,
+    UnitCost,
+    cell_seconds,
+    needs_cvxpy,
+    sls_compile_seconds,
+    sls_solve_seconds,
+    truth_seconds,
+)
 from .data_factor import EXT_MAX_WORK
 from .errors import SpecError
 from .estimators import FALLBACK_CHUNK_BYTES, SVR_COND_LIMIT
 from .gains import is_orthogonal
-from .measured.data import StateModel
-from .measured.spec import data_layout
+from .measured.workload import measured_unit, need_data
 from .spec import ExperimentSpec
 from .uncertainty import BOOT_CHUNK_BYTES
-
-# -- per-operation constants (seconds), calibrated with bench/workload.py ----
-NORMAL = 1.2e-8  # one standard normal draw
-FLOP = 5.5e-10  # one flop of the data path (simulation, Gram products, OLS residuals)
-KEY = 1.5e-5  # per repetition: seeding its generator, its small solves
-CALL = 1.5e-6  # one numpy call in a Python-level loop over time steps
-DATASET = 1.5e-3  # per (unit, N): the fixed cost of the stage chain
-# per cell of a stage, as c0 + c3 n^3 (+ c6 n^6): the vectorised small-matrix work
-CELL_COST = {
-    "estimate": (8.0e-6, 0.0, 0.0),  # records' JSON text, rmse
-    "bounds": (3.0e-6, 6.5e-9, 0.0),
-    "gain": (3.5e-5, 1.5e-7, 1.1e-10),  # Kalman SDA, Newton step (Kronecker LU: n^6)
-    "cost": (1.0e-5, 3.0e-7, 0.0),  # exact (doubling) and stationary cost
-    "cost_bound": (5.0e-6, 2.5e-8, 0.0),
-}
-# per unit with gain: K, J*, norms of the true system (c0 + c1 n + c3 n^3)
-TRUTH = (0.05, 0.0104, 1.6e-5)
-CELL_TRUTH = (0.015, 1.9e-5)  # a dataset job: the same per cell's estimate (c0 + c3 n^3)
-MC_DRAW = 1.2e-8  # Monte Carlo: per (row, step, run) and noise entry (draw + plant)
-MC_CELL = 2.5e-10  # Monte Carlo: per (cell, step, run) and n (W + n) multiply-add
-MC_STEP = 5.0e-6  # Monte Carlo: per step, the Python loop's calls
-QR_REP = 1.0e-3  # SVR's QR path: per repetition (the calls of estimators.ridge_qr)
-LONG_DOUBLE = 3.0e-8  # SVR's QR path: per long-double multiply-add of the refinement
-BOOT_ELEM = 1.0e-9  # bootstrap: one elementwise multiply-add of its simulation
-BOOT_SET = 1.0e-4  # bootstrap: per resampled dataset (its generator, draws, quantiles)
-BOOT_REFIT = 1.0e-3  # bootstrap: per chunk of datasets and estimator column (the refit call)
-CVX_SOLVE = 3.0e-3  # one small cvxpy + Clarabel solve (general-C gain design)
-# SLS (bench/cost_model.py): T_fir n (n + p) scalar variables, each row of the
-# affine constraint coupling n of them: solve and compile grow as T_fir n^2 (n + p)
-SLS_SOLVE = 6.0e-3  # one SLS solve: fixed part
-SLS_VAR = 3.2e-6  # one SLS solve: per scalar variable and state
-SLS_COMPILE = 1.0e-2  # compiling the SLS program (once per unit): fixed part
-SLS_COMPILE_VAR = 1.2e-5  # compiling: per scalar variable and state
-
-# -- memory (bytes) ------------------------------------------------------------
-BASE_BYTES = 50 * 2**20  # interpreter + numpy + scipy + svrobs_core
-CVXPY_BYTES = 70 * 2**20  # importing cvxpy + Clarabel
-SLS_VAR_BYTES = 3_200  # the compiled SLS program per scalar variable
-RECORD_BYTES = 1_000  # per record kept: its JSON text and column values
-RECORD_ENTRY_BYTES = 40  # per matrix entry of a record
-GRAM_CHUNK_BYTES = 2 * 2**20  # svrobs_core.rollouts.CHUNK_BYTES
-MC_BLOCK = 2**17  # svrobs_core.cost_mc: floats per Monte Carlo block
-KRON_CHUNK_BYTES = 64 * 2**20  # svrobs_core.norms._CHUNK_BYTES
-
-
-@dataclass(frozen=True)
-class UnitCost:
-    """Estimated CPU seconds and peak resident bytes of one work unit."""
-
-    cpu_seconds: float
-    peak_bytes: int
-
-
-@dataclass(frozen=True)
-class DataShape:
-    """The shape of the dataset a job runs on: n measured channels (states, or
-    outputs for the ARX state), m inputs, and T_i, the transitions of each rollout."""
-
-    n: int
-    m: int
-    lengths: tuple[int, ...]
-
-
-@dataclass(frozen=True)
-class JobCost:
-    """Estimated total CPU seconds, the largest unit's peak bytes, the unit count."""
-
-    cpu_seconds: float
-    peak_unit_bytes: int
-    n_units: int
 
 
 def _dims(spec: ExperimentSpec, si: int) -> tuple[int, int, int, bool]:
     s = spec.systems[si]
     return s.n, s.m, s.p, bool(is_orthogonal(s.C))
-
-
-def _needs_cvxpy(spec: ExperimentSpec, orth: bool) -> bool:
-    return spec.has("sls") or (spec.has("gain") and not orth)
-
-
-def _cell(stage: str, n: int) -> float:
-    c0, c3, c6 = CELL_COST[stage]
-    return c0 + c3 * n**3 + c6 * n**6
-
-
-def truth_seconds(n: int) -> float:
-    """K, J* and the norms of one n-state system (the true system's, once per unit)."""
-    return TRUTH[0] + TRUTH[1] * n + TRUTH[2] * n**3
-
-
-def sls_solve_seconds(T_fir: int, n: int, p: int) -> float:
-    """One SLS solve (:mod:`svrobs_core.sls`) of a cell, for an n-state, p-output system."""
-    return SLS_SOLVE + SLS_VAR * T_fir * n * (n + p) * n
-
-
-def sls_compile_seconds(T_fir: int, n: int, p: int) -> float:
-    """Compiling the SLS program, once per unit."""
-    return SLS_COMPILE + SLS_COMPILE_VAR * T_fir * n * (n + p) * n
 
 
 def _ill_conditioned(spec: ExperimentSpec, si: int) -> bool:
@@ -223,7 +160,7 @@ def _dataset(
         mem = np.maximum(mem, kept_data + m_boot)
     # per-cell work of the stages (small matrices, vectorised over the cells)
     h = max(n, p)
-    cpu = cpu + cells * sum(_cell(st, h) for st in CELL_COST if spec.has(st))
+    cpu = cpu + cells * sum(cell_seconds(st, h) for st in CELL_COST if spec.has(st))
     if spec.has("gain"):
         # kalman._stein: all cells' (n^2 x n^2) Kronecker systems at once
         mem = np.maximum(mem, 3 * 8.0 * cells * n**4)
@@ -287,75 +224,13 @@ def _monte_carlo_bytes(spec: ExperimentSpec, *, n: int, m: int, p: int, rows: in
     return 8.0 * (Xz + Ev + D + acc + draw)
 
 
-def _need_data(data: DataShape | None) -> DataShape:
-    """``data``, which a dataset job's cost needs."""
-    if data is None:
-        raise ValueError("a dataset job's cost needs its dataset's shape (data=DataShape)")
-    return data
-
-
-def _measured_sizes(
-    spec: ExperimentSpec, data: DataShape | None
-) -> tuple[StateModel, FloatArray, IntArray]:
-    """(model, C, the training rollouts' transitions in the model's state, longest
-    first) of a dataset job."""
-    data = _need_data(data)
-    model = StateModel(ny=data.n, m=data.m, lags=spec.measured.lags)
-    pool = np.asarray(data.lengths[: len(data.lengths) - spec.measured.holdout], dtype=np.int64)
-    steps = np.sort(np.maximum(pool - model.k0, 0))[::-1]
-    return model, data_layout(spec, data.n, data.m).C, steps
-
-
-def measured_fixed_bytes(spec: ExperimentSpec, data: DataShape) -> int:
-    """Bytes a worker holds for every unit of a dataset job: the interpreter (with
-    cvxpy, and the compiled SLS program, when needed), the dataset's arrays and the
-    training pool's regression columns (docs/measured.md#workload)."""
-    model, C, steps = _measured_sizes(spec, data)
-    n, d, total = model.n, model.n + data.m, int(np.sum(data.lengths))
-    arrays = 8 * (data.n * (total + len(data.lengths)) + data.m * total)
-    base = BASE_BYTES + (CVXPY_BYTES if _needs_cvxpy(spec, bool(is_orthogonal(C))) else 0)
-    if spec.has("sls"):
-        base += SLS_VAR_BYTES * spec.sls_T_fir * n * (n + C.shape[0])
-    return int(base + arrays + 8 * (d + n) * int(steps.sum()))
-
-
-def _measured_unit(spec: ExperimentSpec, unit: dict[str, Any], data: DataShape) -> UnitCost:
-    """A dataset job's unit: per N (R repetitions, E cells each, N0 the transitions of
-    the N longest training rollouts, an upper bound for every subsample) the regression
-    data (copy, Gram, OLS residual) and the stages' per-cell work."""
-    model, C, steps = _measured_sizes(spec, data)
-    n, m, p, ny = model.n, data.m, C.shape[0], data.n
-    d, E = n + m, spec.cells_per_rep
-    orth = bool(is_orthogonal(C))
-    R = unit["reps"][1] - unit["reps"][0]
-    cpu, peak, kept = KEY, 0.0, 0.0
-    for N in unit["N"]:
-        N0, cells = int(steps[:N].sum()), R * E
-        cpu += DATASET + KEY * R + FLOP * R * N0 * (d + ny + 2 * d * (d + ny) + 6 * ny * d)
-        cpu += cells * sum(_cell(st, max(n, p)) for st in CELL_COST if spec.has(st))
-        if spec.has("cost") or spec.has("sls"):  # K, J* and the norms of each cell's estimate
-            cpu += cells * (CELL_TRUTH[0] + CELL_TRUTH[1] * n**3)
-        transient = 3 * 8.0 * R * (d + ny) * N0
-        if spec.has("gain"):
-            transient = max(transient, 3 * 8.0 * cells * n**4)
-            if not orth:
-                cpu += CVX_SOLVE * cells * (1 + n * p / 50.0)
-        if spec.has("sls"):
-            cpu += cells * sls_solve_seconds(spec.sls_T_fir, n, p)
-        peak = max(peak, kept + transient)
-        kept += cells * (RECORD_BYTES + RECORD_ENTRY_BYTES * (2 * n * n + n * m + 2 * n * p))
-    if spec.has("sls"):
-        cpu += sls_compile_seconds(spec.sls_T_fir, n, p)
-    return UnitCost(cpu_seconds=float(cpu), peak_bytes=int(measured_fixed_bytes(spec, data) + peak))
-
-
 def estimate_unit(
     spec: ExperimentSpec, unit: dict[str, Any], *, data: DataShape | None = None
 ) -> UnitCost:
     """CPU seconds and peak resident bytes of one unit of ``plan_units(spec)`` (of a
     dataset job: of ``plan_measured_units``, with its dataset's shape ``data``)."""
     if spec.measured is not None:
-        return _measured_unit(spec, unit, _need_data(data))
+        return measured_unit(spec, unit, need_data(data))
     si = unit["system"]
     n, m, p, orth = _dims(spec, si)
     r0, r1 = unit["reps"]
@@ -391,7 +266,7 @@ def unit_base_bytes(spec: ExperimentSpec, *, n: int, p: int, orth: bool) -> floa
     """Bytes of a worker process before its unit's arrays: the interpreter, cvxpy
     when needed, the compiled SLS program."""
     base = BASE_BYTES
-    if _needs_cvxpy(spec, orth):
+    if needs_cvxpy(spec, orth):
         base += CVXPY_BYTES
     if spec.has("sls"):
         base += SLS_VAR_BYTES * spec.sls_T_fir * n * (n + p)

@@ -10,13 +10,13 @@ import pytest
 
 from svrobs_core import parse_spec, plan_units, run_spec
 from svrobs_core.admission import admit
+from svrobs_core.measured.workload import measured_fixed_bytes
 from svrobs_core.planning import unit_cells
 from svrobs_core.workload import (
     DataShape,
     WorkloadError,
     estimate_job,
     estimate_unit,
-    measured_fixed_bytes,
     plan_under_memory,
 )
 
