@@ -217,7 +217,7 @@ SeedPolicy = Annotated[
 class ScheduleCreate(_Strict):
     name: str = Field(min_length=1, max_length=200)
     cron: str = Field(min_length=1, max_length=200)
-    timezone: str = Field("UTC", min_length=1, max_length=64)
+    timezone: str = Field(default="UTC", min_length=1, max_length=64)
     spec_template: dict[str, Any]
     tags: list[TagStr] = Tag
     enabled: bool = True
@@ -225,11 +225,11 @@ class ScheduleCreate(_Strict):
 
 
 class ScheduleUpdate(_Strict):
-    name: str | None = Field(None, min_length=1, max_length=200)
-    cron: str | None = Field(None, min_length=1, max_length=200)
-    timezone: str | None = Field(None, min_length=1, max_length=64)
+    name: str | None = Field(default=None, min_length=1, max_length=200)
+    cron: str | None = Field(default=None, min_length=1, max_length=200)
+    timezone: str | None = Field(default=None, min_length=1, max_length=64)
     spec_template: dict[str, Any] | None = None
-    tags: list[TagStr] | None = Field(None, max_length=50)
+    tags: list[TagStr] | None = Field(default=None, max_length=50)
     enabled: bool | None = None
     seed_policy: SeedPolicy | None = None
 

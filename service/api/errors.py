@@ -16,17 +16,17 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Awaitable, Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import JSONResponse
 from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.http.errors import status_of
+from service.http.errors import ErrorHandler, status_of
 from svrobs_core.errors import SpecError
 from svrobs_lab.errors import LabError, RateLimited
 from svrobs_lab.schemas import ErrorOut
@@ -183,9 +183,6 @@ async def _internal(request: Request, exc: Exception) -> JSONResponse:
     log.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
     return error_response(500, "internal error")
 
-
-# a handler is called with an instance of the class it is registered for
-ErrorHandler = Callable[[Request, Any], Awaitable[Response]]
 
 HANDLERS: tuple[tuple[type[Exception], ErrorHandler], ...] = (
     (LabError, _lab_error),
