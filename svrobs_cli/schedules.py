@@ -17,7 +17,7 @@ import typer
 
 from svrobs_cli.errors import CliError
 from svrobs_cli.rest import client, finish, load_spec, print_json, print_table
-from svrobs_client import SEED_POLICIES, Schedule
+from svrobs_client import SEED_POLICIES, Job, Schedule
 
 
 def _line(s: Schedule) -> str:
@@ -75,7 +75,12 @@ def create(
     if seed_policy not in SEED_POLICIES:
         raise CliError(f"--seed-policy must be fixed or due-time, not {seed_policy!r}")
     with client() as c:
-        template = load_spec(spec) if spec is not None else c.job(from_job)
+        template: dict | Job
+        if spec is not None:
+            template = load_spec(spec)
+        else:
+            assert from_job is not None  # exactly one of the two, checked above
+            template = c.job(from_job)
         s = c.create_schedule(
             name,
             cron,

@@ -81,6 +81,8 @@ class JobTooLarge(SpecError, Invalid):
     SVROBS_MAX_JOB_CPU_SECONDS or SVROBS_MAX_UNIT_MEMORY_MB. A
     :class:`~svrobs_core.errors.SpecError` (``str`` is ``"field: message"``)."""
 
+    field: str  # always a spec field (SpecError's), never None
+
     def __init__(self, field: str, message: str):
         SpecError.__init__(self, field, message)
 
@@ -90,6 +92,8 @@ class DatasetNotFound(SpecError, Invalid):
     same as none): invalid, naming the spec field that refers to it. A
     :class:`~svrobs_core.errors.SpecError` (``str`` is ``"field: message"``)."""
 
+    field: str  # always a spec field (SpecError's), never None
+
     def __init__(self, dataset_id, field: str = "dataset"):
         SpecError.__init__(self, field, f"no dataset {dataset_id} in your team")
         self.dataset_id = dataset_id
@@ -98,6 +102,8 @@ class DatasetNotFound(SpecError, Invalid):
 class BadDatasetFile(SpecError, Invalid):
     """An uploaded file cannot be read as a dataset (or a system); the message names
     the row, column or variable. Invalid, naming the field ``file``."""
+
+    field: str  # always a spec field (SpecError's), never None
 
     def __init__(self, message: str, field: str = "file"):
         SpecError.__init__(self, field, message)

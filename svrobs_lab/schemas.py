@@ -4,7 +4,7 @@ the team and owner always come from the API key, never from a body."""
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Annotated, Any, Literal, Optional
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Optional
 
 from pydantic import (
     BaseModel,
@@ -117,7 +117,7 @@ def _spec_fields() -> dict[str, Any]:
 TagStr = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=100)]
 Tag: Any = Field(default_factory=list, max_length=50)
 
-JobSubmit = create_model(
+_JobSubmit = create_model(
     "JobSubmit",
     __base__=_Strict,
     __doc__="An experiment spec (docs/spec.md#spec-fields: systems and sigma_w; or a dataset,"
@@ -126,6 +126,14 @@ JobSubmit = create_model(
     tags=(list[TagStr], Tag),
     **_spec_fields(),
 )
+if TYPE_CHECKING:
+
+    class JobSubmit(_Strict):
+        """The model built above, as a class the type checker can name (its fields are
+        made from the spec's table at import)."""
+
+else:
+    JobSubmit = _JobSubmit
 
 SPEC_FIELD_NAMES = tuple(sorted(SPEC_FIELDS))
 
@@ -209,7 +217,7 @@ SeedPolicy = Annotated[
 class ScheduleCreate(_Strict):
     name: str = Field(min_length=1, max_length=200)
     cron: str = Field(min_length=1, max_length=200)
-    timezone: str = Field("UTC", min_length=1, max_length=64)
+    timezone: str = Field(default="UTC", min_length=1, max_length=64)
     spec_template: dict[str, Any]
     tags: list[TagStr] = Tag
     enabled: bool = True
@@ -217,11 +225,11 @@ class ScheduleCreate(_Strict):
 
 
 class ScheduleUpdate(_Strict):
-    name: str | None = Field(None, min_length=1, max_length=200)
-    cron: str | None = Field(None, min_length=1, max_length=200)
-    timezone: str | None = Field(None, min_length=1, max_length=64)
+    name: str | None = Field(default=None, min_length=1, max_length=200)
+    cron: str | None = Field(default=None, min_length=1, max_length=200)
+    timezone: str | None = Field(default=None, min_length=1, max_length=64)
     spec_template: dict[str, Any] | None = None
-    tags: list[TagStr] | None = Field(None, max_length=50)
+    tags: list[TagStr] | None = Field(default=None, max_length=50)
     enabled: bool | None = None
     seed_policy: SeedPolicy | None = None
 

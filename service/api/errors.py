@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -25,7 +26,7 @@ from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.http.errors import status_of
+from service.http.errors import ErrorHandler, status_of
 from svrobs_core.errors import SpecError
 from svrobs_lab.errors import LabError, RateLimited
 from svrobs_lab.schemas import ErrorOut
@@ -60,7 +61,11 @@ class _ErrorJSONResponse(JSONResponse):
 
 
 def error_response(
-    status: int, detail: Any, field: str | None = None, headers: dict | None = None, **extra
+    status: int,
+    detail: Any,
+    field: str | None = None,
+    headers: Mapping[str, str] | None = None,
+    **extra: Any,
 ) -> JSONResponse:
     return _ErrorJSONResponse(
         {"detail": detail, "field": field, **extra}, status_code=status, headers=headers
@@ -84,7 +89,7 @@ def lab_error_response(exc: LabError | SpecError) -> JSONResponse:
     return error_response(status_of(exc), exc.message, exc.field, headers=headers)
 
 
-async def _lab_error(request: Request, exc: LabError | SpecError):
+async def _lab_error(request: Request, exc: LabError | SpecError) -> JSONResponse:
     return lab_error_response(exc)
 
 
@@ -102,7 +107,7 @@ def _kind(part) -> str | None:
     return _KINDS.get(head) if ("[" in part or part in _KINDS) else None
 
 
-def plain_errors(errors: list[dict]) -> list[dict]:
+def plain_errors(errors: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """The errors with union member tags folded: ``N`` given a string where a list
     or an object is expected is one error, "must be a list or an object"."""
     out, unions = [], {}
@@ -124,7 +129,7 @@ def plain_errors(errors: list[dict]) -> list[dict]:
     return out
 
 
-async def _validation_error(request: Request, exc: RequestValidationError):
+async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
     errors = plain_errors(exc.errors())
     first = errors[0] if errors else {}
     field = _loc_to_field(first.get("loc", ()))
@@ -142,7 +147,7 @@ async def _validation_error(request: Request, exc: RequestValidationError):
     return error_response(422, msg, field, errors=clean)
 
 
-async def _http_error(request: Request, exc: StarletteHTTPException):
+async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     if exc.status_code == 400 and exc.detail == BODY_PARSE_ERROR:
         # FastAPI's 400 for a body it cannot decode (not UTF-8, nested too deep):
         # a bad body is a 422 naming the body, like malformed JSON.
@@ -155,17 +160,17 @@ async def _http_error(request: Request, exc: StarletteHTTPException):
     return error_response(exc.status_code, exc.detail, headers=exc.headers)
 
 
-async def _db_down(request: Request, exc: OperationalError):
+async def _db_down(request: Request, exc: OperationalError) -> JSONResponse:
     log.warning("database unavailable: %s", exc.orig if hasattr(exc, "orig") else exc)
     return error_response(503, "database unavailable; retry later", headers={"Retry-After": "5"})
 
 
-async def _db_busy(request: Request, exc: PoolTimeout):
+async def _db_busy(request: Request, exc: PoolTimeout) -> JSONResponse:
     log.warning("no database connection free: %s", exc)
     return error_response(503, "database busy; retry later", headers={"Retry-After": "1"})
 
 
-async def _db_error(request: Request, exc: DBAPIError):
+async def _db_error(request: Request, exc: DBAPIError) -> JSONResponse:
     if exc.connection_invalidated:
         return error_response(
             503, "database connection lost; retry later", headers={"Retry-After": "5"}
@@ -174,12 +179,12 @@ async def _db_error(request: Request, exc: DBAPIError):
     return error_response(500, "internal database error")
 
 
-async def _internal(request: Request, exc: Exception):
+async def _internal(request: Request, exc: Exception) -> JSONResponse:
     log.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
     return error_response(500, "internal error")
 
 
-HANDLERS = (
+HANDLERS: tuple[tuple[type[Exception], ErrorHandler], ...] = (
     (LabError, _lab_error),
     (SpecError, _lab_error),
     (RequestValidationError, _validation_error),
@@ -191,7 +196,7 @@ HANDLERS = (
 )
 
 
-def install_error_handlers(app: FastAPI, *, lab_error=_lab_error) -> None:
+def install_error_handlers(app: FastAPI, *, lab_error: ErrorHandler = _lab_error) -> None:
     """Register every mapping above on ``app`` (the only place errors become JSON
     responses); ``lab_error`` replaces the handler of application errors (the app
     factory's, which answers a web page with the web's error page)."""

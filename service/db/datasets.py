@@ -149,7 +149,7 @@ def arrays_digest(arrays: Iterable[np.ndarray]) -> str:
 def _bytes_view(a: np.ndarray) -> memoryview:
     """The array's little-endian float64 bytes, row-major (no copy when it is already)."""
     flat = np.ascontiguousarray(a, dtype=DTYPE).reshape(-1)
-    return memoryview(flat).cast("B")
+    return flat.data.cast("B")
 
 
 def iter_chunks(session: Session, dataset_id: int, part: str = "file") -> Iterator[bytes]:
@@ -159,9 +159,11 @@ def iter_chunks(session: Session, dataset_id: int, part: str = "file") -> Iterat
         select(c.seq).where(c.dataset_id == dataset_id, c.part == part).order_by(c.seq)
     ).all()
     for seq in seqs:
-        yield session.scalar(
+        data = session.scalar(
             select(c.data).where(c.dataset_id == dataset_id, c.part == part, c.seq == seq)
         )
+        assert data is not None  # listed above (unless the dataset is deleted meanwhile)
+        yield data
 
 
 def dataset_meta(row: Dataset) -> dict:

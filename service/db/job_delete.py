@@ -8,7 +8,9 @@ finds itself gone and stores nothing.
 
 from __future__ import annotations
 
-from sqlalchemy import delete, select, update
+from typing import Any, cast
+
+from sqlalchemy import CursorResult, delete, select, update
 from sqlalchemy.orm import Session
 
 from service.db.models import (
@@ -45,11 +47,10 @@ def delete_job(session: Session, job: Job) -> dict[str, int]:
         return {}
     if locked.status in JOB_ACTIVE:
         raise JobActive(job_id, locked.status)
-    counts = {}
+    counts: dict[str, int] = {}
     for model in (Result, ResultConstant, Summary, WorkUnit, JobTag, ShareLink, JobValidation):
-        counts[model.__tablename__] = session.execute(
-            delete(model).where(model.job_id == job_id)
-        ).rowcount
+        res = session.execute(delete(model).where(model.job_id == job_id))
+        counts[model.__tablename__] = cast("CursorResult[Any]", res).rowcount  # a DELETE's result
     session.execute(update(ScheduleRun).where(ScheduleRun.job_id == job_id).values(job_id=None))
     session.execute(delete(Job).where(Job.id == job_id))
     session.expunge(locked)

@@ -82,9 +82,9 @@ def create_job(
     cap = max_active_jobs
     if cap:
         lock_team_quota(session, team_id)  # count-then-insert: one at a time per team
-        active = session.scalar(
+        active = session.execute(
             select(func.count(Job.id)).where(Job.team_id == team_id, Job.status.in_(JOB_ACTIVE))
-        )
+        ).scalar_one()
         if active >= cap:
             raise QuotaExceeded(
                 f"the team has {active} queued or running jobs; the limit is {cap} "
@@ -263,12 +263,16 @@ def lock_job(session: Session, job_id: int) -> Job:
     """The job row, locked FOR NO KEY UPDATE and re-read."""
     # FOR NO KEY UPDATE: inserting results/units takes KEY SHARE locks on the job row
     # (their foreign key); a plain FOR UPDATE would deadlock two finishing units.
-    return session.scalar(
+    job = session.scalar(
         select(Job)
         .where(Job.id == job_id)
         .with_for_update(key_share=True)
         .execution_options(populate_existing=True)
     )
+    # the callers hold the job or one of its units (locked first: deleting a job
+    # locks its units, so a locked unit's job exists)
+    assert job is not None, f"no job {job_id}"
+    return job
 
 
 def spec_summary(spec: dict, n_cells: int) -> dict:

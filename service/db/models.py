@@ -10,7 +10,7 @@ or -1 for ols (NULLs are never equal in a key).
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from sqlalchemy import (
     JSON,
@@ -23,6 +23,7 @@ from sqlalchemy import (
     Integer,
     LargeBinary,
     String,
+    Table,
     Text,
     UniqueConstraint,
 )
@@ -74,6 +75,7 @@ class UTCDateTime(TypeDecorator):
 
 class Base(DeclarativeBase):
     type_annotation_map = {datetime: UTCDateTime(), dict[str, Any]: JSON, list[Any]: JSON}
+    __table__: ClassVar[Table]  # every model here maps one Table (declared: FromClause)
 
 
 class Team(Base):
@@ -275,6 +277,8 @@ class Result(Base):
     for _f in RESULT_COLUMN_ORDER:
         _ns[_f] = _result_column(_f)
     del _ns, _f
+    if TYPE_CHECKING:  # the columns the code names, as the type checker sees them
+        job_id: Mapped[int]
 
 
 class Summary(Base):

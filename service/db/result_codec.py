@@ -23,6 +23,7 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from dataclasses import field as dc_field
+from typing import cast
 
 import numpy as np
 
@@ -31,6 +32,7 @@ from svrobs_core.measured import data_layout
 from svrobs_core.records import json_value
 
 DTYPE = np.dtype("<f8")
+_NONE = np.array(None)  # None as an array: what where() puts at the non-finite entries
 SHARED_FIELDS = ("K",)  # matrices stored once per (job, system, sigma_w) when constant
 SHARED = b""  # the stored value of a row whose matrix is its (system, sigma_w)'s constant
 # a radius matrix stored as zero bytes: every entry is the row's scalar radius
@@ -90,7 +92,10 @@ class ResultCodec:
         if not a[0].size:  # matrices without entries (n x 0: no inputs)
             return [b""] * k
         flat = a.reshape(k, -1)
-        out = flat.view(np.dtype((np.void, flat.shape[1] * 8))).ravel().tolist()
+        # the items of an unstructured void array are bytes (numpy types them bytes or tuple)
+        out = cast(
+            "list[bytes]", flat.view(np.dtype((np.void, flat.shape[1] * 8))).ravel().tolist()
+        )
         bits = flat.view(np.int64)
         uniform = (bits == bits[:, :1]).all(axis=1)
         if scalars is not None:
@@ -141,7 +146,7 @@ class ResultCodec:
             values = a.tolist()
             finite = np.isfinite(a)
             for j in np.flatnonzero(~finite.all(axis=(1, 2))).tolist():
-                values[j] = np.where(finite[j], a[j], None).tolist()
+                values[j] = np.where(finite[j], a[j], _NONE).tolist()
             for i, v in zip(idx, values):
                 out[i] = v
         return out

@@ -22,8 +22,9 @@ import hashlib
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
-from sqlalchemy import Select, select
+from sqlalchemy import Insert, Select, Table, select
 from sqlalchemy.orm import Session
 
 from svrobs_core.parsing import parse_spec
@@ -58,6 +59,7 @@ def job_codec(session: Session, job_id: int, spec: dict | None = None) -> Result
     """The codec of a job's rows: from its spec (read if not given) and its constants."""
     if spec is None:
         spec = session.scalar(select(Job.spec).where(Job.id == job_id))
+        assert spec is not None, f"no job {job_id}"  # the caller's job exists
     c = CONSTANTS.c
     rows = session.execute(
         select(c.system, c.sigma_w, c.field, c.value).where(c.job_id == job_id)
@@ -82,17 +84,20 @@ def _shared(session: Session, codec: ResultCodec, job_id: int, key: tuple, value
         stored = session.scalar(
             select(CONSTANTS.c.value).where(*(CONSTANTS.c[k] == v for k, v in row.items()))
         )
+        assert stored is not None  # inserted above, or a concurrent writer's
         codec.constants[key] = bytes(stored)
     return codec.constants[key] == value
 
 
-def insert_ignore(session: Session, table, key: list[str]):
+def insert_ignore(session: Session, table: Table, key: list[str]) -> Insert:
     """``INSERT .. ON CONFLICT (key) DO NOTHING`` of ``table`` in the session's dialect."""
     if session.get_bind().dialect.name == "postgresql":
-        from sqlalchemy.dialects.postgresql import insert as upsert
-    else:
-        from sqlalchemy.dialects.sqlite import insert as upsert
-    return upsert(table).on_conflict_do_nothing(index_elements=key)
+        from sqlalchemy.dialects.postgresql import insert as pg_insert
+
+        return pg_insert(table).on_conflict_do_nothing(index_elements=key)
+    from sqlalchemy.dialects.sqlite import insert as sqlite_insert
+
+    return sqlite_insert(table).on_conflict_do_nothing(index_elements=key)
 
 
 # -- notes: a dictionary of distinct texts -----------------------------------------------
@@ -137,7 +142,7 @@ def decode_rows(rows: Sequence[Sequence], codec: ResultCodec) -> list[dict]:
     """Rows of :func:`record_select` -> records (a batch at a time)."""
     if not rows:
         return []
-    cols = list(zip(*rows))
+    cols: list[Sequence[Any]] = list(zip(*rows))
     system, sigma = cols[_IDX["system"]], cols[_IDX["sigma_w"]]
     for f in MATRIX_FIELDS:
         scalars = cols[_IDX[RADIUS_SCALAR[f]]] if f in RADIUS_SCALAR else None
@@ -216,7 +221,7 @@ def _clean_matrix(v):
 
 def record_to_row(job_id: int, record: dict) -> dict:
     """A record -> a ``results`` row (NaN/inf -> NULL, numpy -> Python)."""
-    row = {"job_id": job_id}
+    row: dict[str, Any] = {"job_id": job_id}
     get = record.get
     for f in RESULT_SCALAR_FIELDS:
         v = get(f)

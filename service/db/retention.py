@@ -10,8 +10,9 @@ pruned job records when (``jobs.pruned_at``). Times are the database's
 from __future__ import annotations
 
 from datetime import datetime, timedelta
+from typing import Any, cast
 
-from sqlalchemy import delete, select
+from sqlalchemy import CursorResult, delete, select
 from sqlalchemy.orm import Session
 
 from svrobs_lab.errors import AdminError
@@ -48,7 +49,11 @@ def due_for_pruning(session: Session, limit: int, now: datetime | None = None) -
         )
         .order_by(Job.finished_at)
     ).all()
-    due = [j for j, finished, days in rows if as_utc(finished) + timedelta(days=days) <= now]
+    due = [
+        j
+        for j, finished, days in rows
+        if days is not None and as_utc(finished) + timedelta(days=days) <= now  # not None: SQL
+    ]
     return due[:limit]
 
 
@@ -57,7 +62,8 @@ def prune_job(session: Session, job_id: int, now: datetime | None = None) -> int
     job = session.scalar(select(Job).where(Job.id == job_id).with_for_update())
     if job is None or job.pruned_at is not None:
         return 0
-    n = session.execute(delete(Result).where(Result.job_id == job_id)).rowcount or 0
+    res = session.execute(delete(Result).where(Result.job_id == job_id))
+    n = cast("CursorResult[Any]", res).rowcount or 0  # a DELETE's result
     session.execute(delete(ResultConstant).where(ResultConstant.job_id == job_id))
     job.pruned_at = now or db_now(session)
     session.flush()

@@ -5,7 +5,9 @@ many ticks run; within the team's cap).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
+from typing import TYPE_CHECKING
 from zoneinfo import ZoneInfo
 
 from croniter import croniter
@@ -17,6 +19,9 @@ from svrobs_lab.errors import IdempotencyConflict, QuotaExceeded
 
 from .jobs import create_job
 from .models import Job, Schedule, ScheduleRun, as_utc, utcnow
+
+if TYPE_CHECKING:
+    from sqlalchemy.dialects import postgresql, sqlite
 
 SEED_POLICIES = ("fixed", "due-time")
 SEED_MODULUS = 2**31  # a derived seed stays a 32-bit integer
@@ -134,6 +139,7 @@ def create_due_schedule_jobs(
     :func:`~service.db.jobs.create_job`. Not committed."""
     now = as_utc(now)
     dialect = session.get_bind().dialect.name
+    dialect_insert: Callable[[type[ScheduleRun]], postgresql.Insert | sqlite.Insert]
     if dialect == "postgresql":
         from sqlalchemy.dialects.postgresql import insert as dialect_insert
     else:
@@ -149,8 +155,8 @@ def create_due_schedule_jobs(
             due = latest_due(sched.cron, sched.timezone, now)
         except Exception:  # noqa: BLE001 - an invalid cron or zone in the DB must not stop the others
             continue
-        created = sched.created_at.replace(microsecond=0) if sched.created_at else None
-        if created is not None and due < created:
+        created_at = sched.created_at.replace(microsecond=0) if sched.created_at else None
+        if created_at is not None and due < created_at:
             continue
         previous = session.scalar(
             select(func.max(ScheduleRun.due_at)).where(
@@ -168,6 +174,7 @@ def create_due_schedule_jobs(
         if run_id is None:
             continue  # another tick already took this due time
         run = session.get(ScheduleRun, run_id)
+        assert run is not None  # inserted just above
         if previous is not None and due - as_utc(previous) < min_gap:
             run.skipped_reason = (
                 f"{(due - as_utc(previous)).total_seconds():.0f} s after the previous run; "

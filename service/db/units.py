@@ -11,8 +11,9 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from datetime import timedelta
+from typing import Any, cast
 
-from sqlalchemy import delete, func, insert, select, update
+from sqlalchemy import CursorResult, delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from svrobs_core.parsing import parse_spec
@@ -22,7 +23,7 @@ from svrobs_core.unit_result import UnitResult
 from .clock import db_now
 from .jobs import lock_job, set_timing
 from .models import JOB_ACTIVE, Job, Result, Summary, WorkUnit, utcnow
-from .results_store import gamma_key, unit_columns, upsert_results
+from .results_store import UnitColumns, gamma_key, unit_columns, upsert_results
 
 
 def _lock_unit(session: Session, unit_id: int) -> WorkUnit | None:
@@ -94,7 +95,7 @@ def heartbeat_unit(session: Session, unit_id: int, lease_seconds: int) -> bool:
         .where(WorkUnit.id == unit_id, WorkUnit.status == "running")
         .values(lease_expires_at=db_now(session) + timedelta(seconds=lease_seconds))
     )
-    return res.rowcount > 0
+    return cast("CursorResult[Any]", res).rowcount > 0  # an UPDATE's result
 
 
 def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | UnitResult) -> bool:
@@ -107,14 +108,15 @@ def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | Unit
     lock is held only for the statements."""
     # the CPU work first: on SQLite the first statement takes the one write lock
     groups = None
+    to_store: Sequence[dict] | UnitResult | UnitColumns = records
     if isinstance(records, UnitResult):
-        records = unit_columns(records)
-        if records.whole_groups:
-            groups = summarize_columns(records.columns)
+        to_store = unit_columns(records)
+        if to_store.whole_groups:
+            groups = summarize_columns(to_store.columns)
     unit = _lock_unit(session, unit_id)
     if unit is None or unit.status in ("cancelled", "failed"):
         return False  # cancelled while it ran (its job cancelled or failed)
-    stored = upsert_results(session, unit.job_id, records)
+    stored = upsert_results(session, unit.job_id, to_store)
     if stored["system"] and _whole_groups(session, unit):  # every repetition of its groups
         scope = (stored["system"][0], stored["sigma_w"][0], sorted(set(stored["N"])))
         if groups is None:
@@ -162,12 +164,16 @@ def summarize_job(session: Session, job_id: int) -> list[dict]:
 
 
 def _whole_groups(session: Session, unit: WorkUnit) -> bool:
-    reps = session.scalar(select(Job.spec).where(Job.id == unit.job_id))["reps"]
+    spec = session.scalar(select(Job.spec).where(Job.id == unit.job_id))
+    assert spec is not None  # the job of a locked unit exists
+    reps = spec["reps"]
     return list((unit.payload or {}).get("reps", ())) == [0, reps]
 
 
 def _stored_summaries(session: Session, job_id: int) -> int:
-    return session.scalar(select(func.count(Summary.id)).where(Summary.job_id == job_id))
+    return session.execute(
+        select(func.count(Summary.id)).where(Summary.job_id == job_id)
+    ).scalar_one()
 
 
 def _expected_groups(job: Job) -> int:

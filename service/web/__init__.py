@@ -16,6 +16,7 @@ from fastapi import FastAPI
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
+from service.http.errors import ErrorHandler
 from service.web.render import STATIC, SignInRequired, WebError, sign_in_redirect, web_error_page
 from svrobs_lab.sessions import Signer, load_secret
 
@@ -41,8 +42,12 @@ def mount_web(app: FastAPI) -> None:
     app.add_api_route("/favicon.ico", _favicon, include_in_schema=False)
     for module in (auth, jobs, submit, job, results, cell, compare, schedules, share, datasets):
         app.include_router(module.router)
-    app.add_exception_handler(WebError, web_error_page)
-    app.add_exception_handler(SignInRequired, sign_in_redirect)
+    handlers: tuple[tuple[type[Exception], ErrorHandler], ...] = (
+        (WebError, web_error_page),
+        (SignInRequired, sign_in_redirect),
+    )
+    for exc_class, handler in handlers:
+        app.add_exception_handler(exc_class, handler)
 
 
 def _favicon() -> FileResponse:

@@ -13,10 +13,11 @@ from typing import Annotated
 from fastapi import Depends, Form, Header, Request
 from sqlalchemy.orm import Session
 
+from service.db.models import ApiKey
 from service.http.deps import caller_of, get_db, rate_limit
 from service.web.render import SignInRequired, WebError
 from svrobs_lab.auth import Caller
-from svrobs_lab.sessions import WebSession, request_session, session_key, signer_of
+from svrobs_lab.sessions import Signer, WebSession, request_session, session_key, signer_of
 
 
 @dataclass(frozen=True)
@@ -31,11 +32,18 @@ class Viewer:
         return self.caller.team_id
 
 
+def web_signer(request: Request) -> Signer:
+    """The app's session signer: ``mount_web`` sets it, so every page has one."""
+    signer = signer_of(request.app)
+    assert signer is not None, "the web UI is mounted by mount_web, which sets the signer"
+    return signer
+
+
 def get_viewer(request: Request, db: Annotated[Session, Depends(get_db)]) -> Viewer:
     """The signed-in viewer, else SignInRequired (a redirect to /login)."""
-    found = {}
+    found: dict[str, ApiKey | None] = {}
 
-    def find(s: Session):
+    def find(s: Session) -> ApiKey | None:
         found["key"] = key = session_key(request, s)
         return key
 
@@ -45,11 +53,13 @@ def get_viewer(request: Request, db: Annotated[Session, Depends(get_db)]) -> Vie
     rate_limit(request, caller)  # RateLimited: a 429 page (service.web.errors)
     key = found["key"]
     ws = request_session(request)
+    # a caller is found only by the key of a live session (session_key)
+    assert key is not None and ws is not None
     return Viewer(
         caller=caller,
         email=key.user.email if key.user is not None else None,
         session=ws,
-        csrf=signer_of(request.app).csrf(ws),
+        csrf=web_signer(request).csrf(ws),
     )
 
 
@@ -60,7 +70,7 @@ def check_csrf(
 ) -> None:
     """403 unless the form field or the htmx header carries this session's token."""
     token = csrf_token or x_csrf_token
-    if not signer_of(request.app).csrf_ok(request_session(request), token):
+    if not web_signer(request).csrf_ok(request_session(request), token):
         raise WebError(
             403,
             "The form's security token is missing or out of date. Reload the page and try again.",

@@ -95,6 +95,7 @@ class _Reader:
                     what = _not_utf8(label) or "empty"
                     raise BadDatasetFile(f"row {line}, column rollout: {what}")
                 if label in seen:
+                    assert current is not None  # a label is seen once a rollout started
                     raise BadDatasetFile(
                         f"row {line}, column rollout: rollout {label} appears again after "
                         f"rollout {current.label}; the rows of a rollout must be consecutive"
@@ -134,6 +135,9 @@ class _Reader:
 class _Rollout:
     """One rollout's rows: text of at most BLOCK_ROWS rows, then float64 parts."""
 
+    X: np.ndarray  # the states and inputs, set by finish()
+    U: np.ndarray
+
     def __init__(self, owner: _Reader, label: str, k0: int, snames, unames):
         self.owner, self.label, self.k0, self.next_k = owner, label, k0, k0
         self.snames, self.unames = snames, unames
@@ -142,7 +146,6 @@ class _Rollout:
         self.us: list[list[str]] = []
         self.x_parts: list[np.ndarray] = []
         self.u_parts: list[np.ndarray] = []
-        self.X = self.U = None
 
     def add(self, line: int, xs: list[str], us: list[str]) -> None:
         self.lines.append(line)

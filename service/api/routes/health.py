@@ -4,6 +4,7 @@ runs when the API knows where its workers are: SVROBS_WORKER_PID_DIR)."""
 from __future__ import annotations
 
 import concurrent.futures
+from collections.abc import Callable
 
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
@@ -36,7 +37,10 @@ def _check_db(session_factory: SessionFactory) -> None:
 def readyz(session_factory: SessionFactoryDep, broker_check: BrokerCheckDep, settings: SettingsDep):
     timeout = settings.BROKER_TIMEOUT + 3
     checks: dict[str, str] = {}
-    todo = [("database", _check_db, (session_factory,)), ("broker", broker_check, ())]
+    todo: list[tuple[str, Callable[..., object], tuple[object, ...]]] = [
+        ("database", _check_db, (session_factory,)),
+        ("broker", broker_check, ()),
+    ]
     if settings.WORKER_PID_DIR:
         todo.append(("worker", check_workers, (settings.WORKER_PID_DIR,)))
     for name, fn, args in todo:
@@ -48,7 +52,10 @@ def readyz(session_factory: SessionFactoryDep, broker_check: BrokerCheckDep, set
         except Exception as exc:  # noqa: BLE001 - report, never raise
             checks[name] = f"error: {type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
     ok = all(v == "ok" for v in checks.values())
-    body = {"status": "ready" if ok else "not ready", "checks": checks}
+    body: dict[str, str | dict[str, str] | None] = {
+        "status": "ready" if ok else "not ready",
+        "checks": checks,
+    }
     if not ok:
         body["detail"] = "; ".join(f"{k} {v}" for k, v in checks.items() if v != "ok")
         body["field"] = None

@@ -23,7 +23,7 @@ router = APIRouter(tags=["jobs"])
     responses={**BODY_ERRORS, 409: {"model": ErrorOut}},
 )
 def submit_job(
-    body: JobSubmit,  # type: ignore[valid-type]
+    body: JobSubmit,
     submission: SubmissionDep,
     idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
 ):

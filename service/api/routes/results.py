@@ -93,10 +93,12 @@ def get_results(
             max_entries=settings.MAX_PAGE_MATRIX_ENTRIES,
         )
         return Response(body, media_type="application/json")
-    body, media = results.stream(session, session_factory, sel, format, limit=limit, offset=offset)
+    chunks, media = results.stream(
+        session, session_factory, sel, format, limit=limit, offset=offset
+    )
     ext = "csv" if format == "csv" else "jsonl"
     return StreamingResponse(
-        body,
+        chunks,
         media_type=media,
         headers={"Content-Disposition": f'attachment; filename="job-{job_id}-results.{ext}"'},
     )

@@ -6,7 +6,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated
 
-from fastapi import APIRouter, Path, Request, Response
+from fastapi import APIRouter, Body, Path, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.api.deps import DB, MAX_ID, CurrentCaller, JobId
@@ -21,13 +21,15 @@ ShareId = Annotated[int, Path(ge=1, le=MAX_ID)]
 class ShareCreate(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)
     days: float = Field(
-        shares.DEFAULT_DAYS,
+        default=shares.DEFAULT_DAYS,
         ge=shares.MIN_DAYS,
         le=shares.MAX_DAYS,
         description="valid for this many days (at least one hour: 1/24)",
     )
     label: str | None = Field(
-        None, max_length=shares.LABEL_MAX, description="what the link is for (shown in lists)"
+        default=None,
+        max_length=shares.LABEL_MAX,
+        description="what the link is for (shown in lists)",
     )
 
 
@@ -48,7 +50,13 @@ def share_url(request: Request, token: str) -> str:
 
 @router.post("/jobs/{job_id}/shares", status_code=201, response_model=ShareOut, responses=ERRORS)
 def create_share(
-    job_id: JobId, request: Request, session: DB, caller: CurrentCaller, body: ShareCreate = None
+    job_id: JobId,
+    request: Request,
+    session: DB,
+    caller: CurrentCaller,
+    # None when no body is sent; not `ShareCreate | None`, which would add null to the
+    # body's OpenAPI schema
+    body: ShareCreate = Body(None),
 ):
     """A read-only link to the job's report and charts, opened without a key; it expires
     after `days` (default 7) and can be revoked. The token is shown once (only its hash

@@ -11,7 +11,7 @@ from fastapi.responses import JSONResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
 from service.http.deps import auth_failed, caller_of, check_auth_throttle, get_db
-from service.web.deps import CSRF, get_viewer
+from service.web.deps import CSRF, get_viewer, web_signer
 from service.web.render import PAGE_HEADERS, SignInRequired, render, safe_next
 from svrobs_lab.auth import bearer_key
 from svrobs_lab.sessions import (
@@ -20,7 +20,6 @@ from svrobs_lab.sessions import (
     set_cookie,
     sign_in,
     sign_out,
-    signer_of,
 )
 
 router = APIRouter(include_in_schema=False)
@@ -53,7 +52,7 @@ def home(request: Request, db: Annotated[Session, Depends(get_db)]):
 
 def _login_page(request: Request, next_url: str, error: str | None = None, status: int = 200):
     """The sign-in form under the request's (anonymous) session, making one if needed."""
-    signer = signer_of(request.app)
+    signer = web_signer(request)
     ws = request_session(request)
     if ws is None or ws.signed_in:
         ws = signer.new()
@@ -96,7 +95,7 @@ def login(
         return _login_page(
             request, safe_next(next), "Invalid, revoked or expired API key.", status=401
         )
-    signer = signer_of(request.app)
+    signer = web_signer(request)
     response = RedirectResponse(safe_next(next), status_code=303)
     set_cookie(response, request, sign_in(db, signer, caller.key_id), signer)
     return response

@@ -18,6 +18,7 @@ from service.web import charts, figure_charts, job_tables
 from service.web.deps import CSRF, CurrentViewer
 from service.web.render import PAGE_HEADERS, REPORT_HEADERS, WebError, render, with_back_link
 from svrobs_lab import jobs
+from svrobs_lab.auth import Caller
 from svrobs_lab.reports import caller_job_report
 
 router = APIRouter(include_in_schema=False)
@@ -99,7 +100,23 @@ def chart_data(
     ``preset=figure/key``: one of the report's figure series instead of ``metric``
     and ``x`` (service.web.figure_charts); with ``metrics=1`` also the fields that
     have data (the field list, asked once)."""
-    job = _job(db, viewer, job_id)
+    return team_chart_data(
+        db, viewer.caller, job_id, metric=metric, x=x, preset=preset, metrics=metrics
+    )
+
+
+def team_chart_data(
+    db: Session,
+    caller: Caller,
+    job_id: int,
+    *,
+    metric: str,
+    x: str,
+    preset: str | None,
+    metrics: bool,
+) -> JSONResponse:
+    """:func:`chart_data` of a job of the caller's team (a 404 page for another's)."""
+    job = _job(db, caller, job_id)
     try:
         row = figure_charts.preset_of(preset) if preset else None
         charts.check(row.field if row else metric, x)

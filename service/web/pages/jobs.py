@@ -49,8 +49,11 @@ def _table_context(
         sort=sort,
     )
     params = {**filt.params(), **_sort_params(sort)}
-    shown = bool(sort.metric and sort.N is not None)
-    metric = queries.metric_values(db, [j.id for j in jobs], sort.metric, sort.N) if shown else {}
+    shown = False
+    metric: dict[int, float] = {}
+    if sort.metric and sort.N is not None:
+        shown = True
+        metric = queries.metric_values(db, [j.id for j in jobs], sort.metric, sort.N)
 
     def sort_query(key: str) -> str:
         """The query of a click on a column head: sort by it (again: descending)."""

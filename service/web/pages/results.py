@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from itertools import zip_longest
-from typing import Annotated
+from typing import Annotated, Any
 from urllib.parse import urlencode
 
 from fastapi import APIRouter, Depends, Query, Request
@@ -105,8 +105,10 @@ def _grid(request: Request, db: Session, viewer, job: Job, page: int) -> dict:
 
 
 def _job_of(db: Session, viewer, job: int | None) -> Job | None:
-    if job is None:
-        return None
+    return None if job is None else _team_job(db, viewer, job)
+
+
+def _team_job(db: Session, viewer, job: int) -> Job:
     found = queries.team_job(db, viewer.team_id, job) if 1 <= job <= MAX_ID else None
     if found is None:
         raise WebError(404, f"Job {job} not found.")
@@ -122,7 +124,12 @@ def results_page(
     request: Request, db: DB, viewer: CurrentViewer, job: JobParam = None, page: PageNo = 1
 ):
     the_job = _job_of(db, viewer, job)
-    ctx = {"viewer": viewer, "nav": "results", "job": the_job, "range_fields": RANGE_FIELDS}
+    ctx: dict[str, Any] = {
+        "viewer": viewer,
+        "nav": "results",
+        "job": the_job,
+        "range_fields": RANGE_FIELDS,
+    }
     ctx["jobs"], _ = queries.job_page(
         db, viewer.team_id, viewer.caller.user_id, queries.JobFilter(), limit=200, offset=0
     )
@@ -137,7 +144,7 @@ def results_page(
 @router.get("/results/rows")
 def results_rows(request: Request, db: DB, viewer: CurrentViewer, job: int, page: PageNo = 1):
     """The grid alone (htmx): a bad filter is shown in its place."""
-    the_job = _job_of(db, viewer, job)
+    the_job = _team_job(db, viewer, job)
     try:
         ctx = _grid(request, db, viewer, the_job, page)
     except Invalid as exc:

@@ -7,7 +7,7 @@ cron)."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, cast
 
 from fastapi import APIRouter, BackgroundTasks, Depends, Form, Query, Request
 from fastapi.responses import RedirectResponse
@@ -23,7 +23,7 @@ from svrobs_core.errors import SpecError
 from svrobs_lab import schedules as lab
 from svrobs_lab.auth import MAX_ID
 from svrobs_lab.errors import LabError, NotFound
-from svrobs_lab.schemas import ScheduleCreate, ScheduleUpdate
+from svrobs_lab.schemas import ScheduleCreate, ScheduleUpdate, SeedPolicy
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
@@ -83,7 +83,7 @@ def field_errors(request: Request, values: dict) -> dict[str, str]:
     return errors
 
 
-def _lab_error(exc: Exception) -> dict[str, str]:
+def _lab_error(exc: SpecError | LabError) -> dict[str, str]:
     """A refusal of svrobs_lab.schedules as ``{field: message}`` (a spec template's
     error under spec_template)."""
     if isinstance(exc, SpecError):
@@ -149,7 +149,8 @@ def create_schedule(
                 name=name,
                 cron=cron,
                 timezone=timezone,
-                seed_policy=seed_policy,
+                # one of SEED_POLICIES: field_errors checked it (the model checks it again)
+                seed_policy=cast(SeedPolicy, seed_policy),
                 spec_template=source.spec,
                 tags=_tags(tags),
             )

@@ -109,7 +109,7 @@ def shared_chart_data(
 ):
     """The job page's chart data (service.web.pages.job.chart_data) for a shared job."""
     link, job = shares.open_link(db, token)
-    return job_pages.chart_data(
+    return job_pages.team_chart_data(
         db, shares.reader(link), job.id, metric=metric, x=x, preset=preset, metrics=metrics
     )
 

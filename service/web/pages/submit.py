@@ -225,6 +225,8 @@ def submit(
     values = dict(name=name, tags=tags, preset=preset, idempotency_key=idempotency_key)
     uploaded = spec_file is not None and spec_file.filename
     shown = None
+    body: dict | None
+    errors: dict
     if source == "form" and not uploaded:
         body, type_errors = spec_form.spec_of(posted, posted.getlist)
         text, errors = _json(body), {}
