@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -24,7 +25,7 @@ from .cost_bound import TrueSystemNorms
 from .gains import GainResult
 from .norms import spectral_radius
 from .seeding import MC_STREAM, generators
-from .stage_cells import Cells
+from .stage_cells import Cells, StageCells, SystemT
 from .systems import SystemSpec
 
 Truth = tuple[FloatArray, float, TrueSystemNorms, Array | None]
@@ -62,7 +63,7 @@ def truth(system: SystemSpec, sigma_w: float, horizon: int) -> Truth:
 
 
 def design(
-    c: Cells, gamma: FloatArray, radius: FloatArray, *, matrix: bool = False
+    c: StageCells[SystemT, Any], gamma: FloatArray, radius: FloatArray, *, matrix: bool = False
 ) -> tuple[GainResult, Array | None]:
     """The designed gain of every cell (before the reuse policy): GainResult, K-hat notes.
 

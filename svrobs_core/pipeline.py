@@ -27,7 +27,7 @@ from .planning import EstimatorAxis
 from .rollouts import gram_data
 from .seeding import seed_key
 from .spec import STAGES, ExperimentSpec
-from .stage_cells import Cells
+from .stage_cells import Cells, StageCells
 from .uncertainty_stage import sound_bounds
 
 # Above this cond(Z Z^T + g I) the solve is not trusted to ~1e-9 relative
@@ -179,7 +179,7 @@ def run_dataset_variants(
         skipped = [st for st in STAGES if not s.has(st)]
         if skipped:
             notes.add(True, "stages not run: " + ", ".join(skipped))
-        cells = Cells(
+        cells = StageCells(
             spec=s,
             system=system,
             sigma_w=sigma_w,
