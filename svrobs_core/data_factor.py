@@ -23,6 +23,7 @@ the data (and the data from their exact simulation), in the V-norm of the box.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -74,24 +75,25 @@ class GramFactor:
         """The same factor with a new batch axis at ``axis`` (counted from the front
         of the batch dims), e.g. (R, ...) -> (R, 1, ...) to broadcast over cells."""
 
-        def ins(x: Array | None, core: int) -> Array | None:
-            if x is None:
-                return None
+        def ins(x: Array, core: int) -> Array:
             return np.expand_dims(x, axis if axis >= 0 else x.ndim - core + axis + 1)
+
+        def opt(x: Array | None, core: int) -> Array | None:
+            return None if x is None else ins(x, core)
 
         return GramFactor(
             lam=ins(self.lam, 1),
             U=ins(self.U, 2),
             formed=self.formed,
-            col=ins(self.col, 1),
-            fnorm=ins(self.fnorm, 1),
-            R11=ins(self.R11, 2),
-            R12=ins(self.R12, 2),
-            r22=ins(self.r22, 1),
-            ext=ins(self.ext, 0),
-            R11x=ins(self.R11x, 2),
-            R12x=ins(self.R12x, 2),
-            r22x=ins(self.r22x, 1),
+            col=opt(self.col, 1),
+            fnorm=opt(self.fnorm, 1),
+            R11=opt(self.R11, 2),
+            R12=opt(self.R12, 2),
+            r22=opt(self.r22, 1),
+            ext=opt(self.ext, 0),
+            R11x=opt(self.R11x, 2),
+            R12x=opt(self.R12x, 2),
+            r22x=opt(self.r22x, 1),
         )
 
 
@@ -159,7 +161,8 @@ def data_factor(Z: ArrayLike, F: ArrayLike) -> GramFactor:
         X = np.concatenate([Z, F], axis=-2)
         if not ok.all():
             X[~ok] = 0.0
-        R = np.linalg.qr(np.swapaxes(X, -1, -2), mode="r")
+        # numpy's stubs type every mode as QRResult; mode "r" returns the triangle
+        R = cast(Array, np.linalg.qr(np.swapaxes(X, -1, -2), mode="r"))
     if R.shape[-2] < k:  # N0 < d + n: the triangle padded with zero rows
         pad = np.zeros(R.shape[:-2] + (k - R.shape[-2], k))
         R = np.concatenate([R, pad], axis=-2)
@@ -240,7 +243,7 @@ def _sigma_max(X: Array) -> Array:
     (NaN where X is not finite, e.g. the inverse of a singular triangle)."""
     with np.errstate(over="ignore", invalid="ignore"):
         X = np.asarray(X, dtype=float)
-    ok = np.isfinite(X).all(axis=(-2, -1))
+    ok = np.asarray(np.isfinite(X).all(axis=(-2, -1)))  # (c,): an array, not a numpy bool
     s = np.linalg.svd(np.where(ok[..., None, None], X, 0.0), compute_uv=False)[..., 0]
     return np.where(ok, s, np.nan)
 
@@ -327,6 +330,7 @@ def v_parts(fac: GramFactor, lam: ArrayLike, *, lambda0: float = 1.0, n: int) ->
         if fac.ext is not None and fac.ext.any():
             ext = np.broadcast_to(fac.ext, batch).copy()
             idx = ext
+            assert fac.R11x is not None  # set with ext (data_factor)
             R11x = np.broadcast_to(fac.R11x, batch + (d, d))[idx]
             parts = _ext_parts(R11x, lam[idx], lambda0, n)
             diag, logdet, lam_min, lam_max = (np.array(x) for x in (diag, logdet, lam_min, lam_max))
@@ -385,7 +389,14 @@ def estimate_margin(
     """
     theta = np.asarray(theta, dtype=float)
     n, d = theta.shape[-2:]
-    if fac.formed or fac.R11 is None:
+    if (
+        fac.formed
+        or fac.R11 is None
+        or fac.R12 is None
+        or fac.r22 is None
+        or fac.col is None
+        or fac.fnorm is None
+    ):  # a formed Gram matrix has no triangle of the data
         return np.full(np.broadcast_shapes(theta.shape[:-1], fac.lam.shape[:-1] + (n,)), np.nan)
     lam = np.asarray(lam, dtype=float)
     shrink = np.asarray(shrink, dtype=float)
@@ -405,6 +416,8 @@ def estimate_margin(
         if parts.Rinv is not None:
             idx = parts.ext
             ld = np.longdouble
+            # set with ext (data_factor)
+            assert fac.R11x is not None and fac.R12x is not None and fac.r22x is not None
             R11x = np.broadcast_to(fac.R11x, batch + (d, d))[idx]
             R12x = np.broadcast_to(fac.R12x, batch + (d, n))[idx]
             tht = np.swapaxes(th[idx], -1, -2).astype(ld)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -18,13 +19,25 @@ from . import cost_bound as _cb
 from . import cost_mc as _mc
 from . import gains as _gains
 from . import kalman as _kalman
+from .array_types import Array, FloatArray
+from .bounds import BoundsResult
+from .cost_bound import TrueSystemNorms
+from .gains import GainResult
 from .norms import spectral_radius
 from .seeding import MC_STREAM, generators
-from .stage_cells import Cells
+from .stage_cells import Cells, StageCells, SystemT
+from .systems import SystemSpec
+
+Truth = tuple[FloatArray, float, TrueSystemNorms, Array | None]
 
 
 @lru_cache(maxsize=64)
-def _truth_cached(matrices, shapes, sigmas, horizon):
+def _truth_cached(
+    matrices: tuple[bytes, bytes, bytes],
+    shapes: tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...]],
+    sigmas: tuple[float, float, float],
+    horizon: int,
+) -> Truth:
     A, B, C = (np.frombuffer(x).reshape(s) for x, s in zip(matrices, shapes))
     sigma_u, sigma_w, sigma_v = sigmas
     kal = _kalman.kalman_predictor(A, C, sigma_w, sigma_v)
@@ -38,7 +51,7 @@ def _truth_cached(matrices, shapes, sigmas, horizon):
     return K, J_star, norms, kal.reasons() if not kal.ok else None
 
 
-def truth(system, sigma_w: float, horizon: int):
+def truth(system: SystemSpec, sigma_w: float, horizon: int) -> Truth:
     """K, J*, TrueSystemNorms and Kalman failure reason of the true system (cached)."""
     A, B, C = system.A, system.B, system.C
     return _truth_cached(
@@ -49,7 +62,9 @@ def truth(system, sigma_w: float, horizon: int):
     )
 
 
-def design(c: Cells, gamma, radius, *, matrix=False):
+def design(
+    c: StageCells[SystemT, Any], gamma: FloatArray, radius: FloatArray, *, matrix: bool = False
+) -> tuple[GainResult, Array | None]:
     """The designed gain of every cell (before the reuse policy): GainResult, K-hat notes.
 
     Centre (1+gamma) A_hat (gamma = 0: A_hat itself); ``radius`` is r_A per
@@ -70,7 +85,7 @@ def design(c: Cells, gamma, radius, *, matrix=False):
     return res, (None if kal.ok.all() else kal.reasons())
 
 
-def observer_stages(c: Cells, b, designed):
+def observer_stages(c: Cells, b: BoundsResult, designed: GainResult) -> None:
     """Fill gain/cost/bound/sls fields for one dataset; ``designed`` is the
     (possibly reused) GainResult the caller chose for this N."""
     spec, system, out, notes = c.spec, c.system, c.out, c.notes
@@ -132,7 +147,7 @@ def mc_note(limit: int) -> str:
     return f"J_mc: only computed for rep < mc_reps = {limit}"
 
 
-def _monte_carlo(c: Cells, L):
+def _monte_carlo(c: Cells, L: FloatArray) -> None:
     """J_mc for reps < mc_reps; one generator per (key, MC stream), so every
     estimator and gamma of a repetition sees the same noise: it is drawn once
     per repetition and drives all the repetition's cells (common random
@@ -166,7 +181,7 @@ def _monte_carlo(c: Cells, L):
     c.mc_seconds += time.process_time() - clock
 
 
-def _cost_ratio(c: Cells, J):
+def _cost_ratio(c: Cells, J: FloatArray) -> None:
     """r = |J_gamma - J_ref| / J_ref against gamma_ref of the same estimator
     (docs/science.md#64-j-and-the-cost-ratio)."""
     axis = c.axis
@@ -189,7 +204,7 @@ def _cost_ratio(c: Cells, J):
     c.out["cost_ratio"] = ratio
 
 
-def sls_stage(c: Cells, b):
+def sls_stage(c: Cells, b: BoundsResult) -> None:
     """J_opt by SLS per cell (cvxpy + Clarabel) and the paper's bound on it
     (docs/science.md#8-sls-sub-optimal-observer-j_opt).
 
@@ -210,7 +225,8 @@ def sls_stage(c: Cells, b):
         C_bound = float(_sls.default_C_bound(K, norms.h2_closed))
     J_opt = np.full((R, E), np.nan)
     status = np.empty((R, E), dtype=object)
-    undefined = ~np.isfinite(np.broadcast_to(F, (R, E)))
+    F_cells = np.broadcast_to(F, (R, E))
+    undefined = ~np.isfinite(F_cells)
     norms_ok = np.isfinite(norms.hinf_PhiA_B) & np.isfinite(norms.hinf_PhiA_K)
     notes.add(
         undefined & ~norms_ok,
@@ -222,7 +238,12 @@ def sls_stage(c: Cells, b):
             status[ri, ei] = "not_run"
             continue
         res = _sls.sls_observer(
-            c.A_hat[ri, ei], system.C, K, F[ri, ei], C_bound=C_bound, T_fir=spec.sls_T_fir
+            c.A_hat[ri, ei],
+            system.C,
+            K,
+            float(F_cells[ri, ei]),
+            C_bound=C_bound,
+            T_fir=spec.sls_T_fir,
         )
         J_opt[ri, ei], status[ri, ei] = res.J_opt, res.status
     bound, reason = _sls.jopt_upper_bound_from_norms(

@@ -10,7 +10,7 @@ docs/spec.md#record-fields). The observer stages (gain, cost, cost_bound, sls) a
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -19,13 +19,15 @@ from . import bounds as _bounds
 from . import estimators as _est
 from . import gains as _gains
 from . import uncertainty as _unc
+from .array_types import FloatArray, IntArray
+from .bounds import BoundsResult
 from .notes import Notes
 from .observer_stages import design, observer_stages, sls_stage
 from .planning import EstimatorAxis
 from .rollouts import gram_data
 from .seeding import seed_key
 from .spec import STAGES, ExperimentSpec
-from .stage_cells import Cells
+from .stage_cells import Cells, StageCells
 from .uncertainty_stage import sound_bounds
 
 # Above this cond(Z Z^T + g I) the solve is not trusted to ~1e-9 relative
@@ -34,12 +36,23 @@ from .uncertainty_stage import sound_bounds
 # a successful computation).
 ESTIMATE_COND_LIMIT = 1e20
 CERTIFICATES = ("stable_certified", "thm1_holds_A", "thm1_holds_B", "certified")
+# What ``reuse_gain`` carries to the next N: (L, A_hat, radius) of the chosen gain.
+GainState = tuple[FloatArray, FloatArray, FloatArray]
 
 
 # ---------------------------------------------------------------------------
 # dataset driver
 # ---------------------------------------------------------------------------
-def run_dataset(spec, *, si, wi, N, reps, axis, prev_gain=None):
+def run_dataset(
+    spec: ExperimentSpec,
+    *,
+    si: int,
+    wi: int,
+    N: int,
+    reps: Sequence[int],
+    axis: EstimatorAxis,
+    prev_gain: GainState | None = None,
+) -> tuple[Any, ...]:
     """All stages for one (system, sigma_w, N) and a range of reps.
 
     -> (fields, notes, N0, gain state for ``reuse_gain`` or None)."""
@@ -111,8 +124,9 @@ def run_dataset_variants(
     )
     N0 = (spec.T0 - 1) * N if spec.data == "all" else N
 
-    def rows_data(rows):  # the regression data of these reps, for the ill-conditioned SVR cells
-        if Z is not None:
+    def rows_data(rows: IntArray) -> tuple[FloatArray, FloatArray]:
+        # the regression data of these reps, for the ill-conditioned SVR cells
+        if Z is not None and F is not None:
             return Z[rows], F[rows]
         _, _, Zr, Fr = gram_data(
             system,
@@ -126,6 +140,7 @@ def run_dataset_variants(
             keep_data=True,
             rng=spec.rng,
         )
+        assert Zr is not None and Fr is not None  # keep_data=True returns the data
         return Zr, Fr
 
     try:
@@ -143,8 +158,8 @@ def run_dataset_variants(
         "rmse_A": _rmse(A_hat, system.A),
         "rmse_B": _rmse(B_hat, system.B),
     }
-    results = []
-    shared: dict = {}  # the data's factor, made by the first spec with a sound box
+    results: list[tuple[Any, ...]] = []
+    shared: dict[str, Any] = {}  # the data's factor, made by the first spec with a sound box
     if timings is not None:
         timings[0] = timings.get(0, 0.0) + time.process_time() - clock
     for s, prev_gain in zip(specs, prev_gains):
@@ -164,7 +179,7 @@ def run_dataset_variants(
         skipped = [st for st in STAGES if not s.has(st)]
         if skipped:
             notes.add(True, "stages not run: " + ", ".join(skipped))
-        cells = Cells(
+        cells = StageCells(
             spec=s,
             system=system,
             sigma_w=sigma_w,
@@ -198,7 +213,7 @@ def _tag(exc: BaseException, stage: str, index: int) -> None:
     """Name the stage (and which spec of :func:`run_dataset_variants`) on an exception
     passing through, without changing it (its type is what callers act on)."""
     if not hasattr(exc, "svrobs_stage"):
-        exc.svrobs_stage = (stage, index)
+        setattr(exc, "svrobs_stage", (stage, index))  # noqa: B010 (an attribute of no exception type)
         exc.add_note(f"svrobs: raised in stage {stage!r}")
 
 
@@ -207,7 +222,16 @@ def failed_stage(exc: BaseException) -> tuple[str, int] | None:
     return getattr(exc, "svrobs_stage", None)
 
 
-def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data):
+def _estimate(
+    spec: ExperimentSpec,
+    *,
+    G: FloatArray,
+    P: FloatArray,
+    Z: FloatArray | None,
+    F: FloatArray | None,
+    N0: int,
+    data: Callable[[IntArray], tuple[FloatArray, FloatArray]],
+) -> tuple[FloatArray, FloatArray]:
     """Theta for every (rep, estimator/gamma): (R, E, n, d), and cond(Z Z^T + g I)
     of each cell (R, E); docs/science.md#2-estimators.
 
@@ -215,32 +239,44 @@ def _estimate(spec: ExperimentSpec, *, G, P, Z, F, N0, data):
     data of its ill-conditioned cells (``data(rows)``); OLS (and shrunk OLS)
     use the data themselves (iterative refinement, QR fallback).
     """
-    parts, conds = [], []
-    ols = None
+    parts: list[FloatArray] = []
+    conds: list[FloatArray] = []
+    ols: tuple[FloatArray, FloatArray] | None = None
     G_n = len(spec.gamma)
     for e in spec.estimators:
-        if e in ("ols", "shrunk-ols") and ols is None:
-            ols = _est.fit_ols(Z, F, return_cond=True)
-        if e == "ols":
-            parts.append(ols[0][:, None])
-            conds.append(ols[1][:, None])
-        elif e == "svr":
+        if e == "svr":
             theta, cond = _est.svr_from_gram(
                 G, P, N0, spec.gamma, loss_scale=spec.loss_scale, data=data, return_cond=True
             )
             parts.append(theta)
             conds.append(cond)
+            continue
+        if ols is None:  # ols, shrunk-ols: the data are kept for them
+            assert Z is not None and F is not None
+            ols = _est.fit_ols(Z, F, return_cond=True)
+        theta_ols, cond_ols = ols
+        if e == "ols":
+            parts.append(theta_ols[:, None])
+            conds.append(cond_ols[:, None])
         else:  # shrunk-ols
-            parts.append(_est.shrunk_ols(ols[0], spec.gamma))
-            conds.append(np.repeat(ols[1][:, None], G_n, axis=1))
+            parts.append(_est.shrunk_ols(theta_ols, spec.gamma))
+            conds.append(np.repeat(cond_ols[:, None], G_n, axis=1))
     return np.concatenate(parts, axis=1), np.concatenate(conds, axis=1)
 
 
-def _rmse(X, X_true) -> np.ndarray:
-    return np.sqrt(np.mean((X - X_true) ** 2, axis=(-2, -1)))
+def _rmse(X: FloatArray, X_true: FloatArray) -> FloatArray:
+    rmse: FloatArray = np.sqrt(np.mean((X - X_true) ** 2, axis=(-2, -1)))
+    return rmse
 
 
-def _run_stages(c: Cells, *, N, N0, prev_gain, data):
+def _run_stages(
+    c: Cells,
+    *,
+    N: int,
+    N0: int,
+    prev_gain: GainState | None,
+    data: tuple[FloatArray, FloatArray | None, FloatArray | None, dict[str, Any]],
+) -> GainState | None:
     """bounds, then the observer stages; -> the gain state for ``reuse_gain``.
 
     The gain is designed on the chosen method's box: the paper's (centre
@@ -254,7 +290,7 @@ def _run_stages(c: Cells, *, N, N0, prev_gain, data):
         b, gamma, radius = _paper_bounds(c, N=N, N0=N0)
     else:
         G, Z, F, shared = data
-        if "factor" not in shared and Z is not None:  # one factor of the data for every box
+        if "factor" not in shared and Z is not None and F is not None:  # one factor for every box
             shared["factor"] = _unc.data_factor(Z, F)
         sound = sound_bounds(c, G=G, Z=Z, F=F, N=N, N0=N0, factor=shared.get("factor"))
         out.update(sound.fields)
@@ -266,7 +302,13 @@ def _run_stages(c: Cells, *, N, N0, prev_gain, data):
     return state
 
 
-def _gain_stages(c: Cells, b, gamma, radius, prev_gain):
+def _gain_stages(
+    c: Cells,
+    b: BoundsResult,
+    gamma: FloatArray,
+    radius: FloatArray,
+    prev_gain: GainState | None,
+) -> GainState:
     """gain (with the reuse policy), cost, cost_bound; -> the gain state for ``reuse_gain``."""
     spec, system, notes = c.spec, c.system, c.notes
     c.stage = "gain"
@@ -285,7 +327,7 @@ def _gain_stages(c: Cells, b, gamma, radius, prev_gain):
             np.stack([L_prev, designed.L]),
             np.stack([A_prev, c.A_hat]),
             gamma,
-            r_A=None if matrix else radii,
+            r_A=radii,  # read only without R_A
             C=system.C,
             R_A=radii if matrix else None,
         )
@@ -298,7 +340,7 @@ def _gain_stages(c: Cells, b, gamma, radius, prev_gain):
     return state
 
 
-def _paper_bounds(c: Cells, *, N, N0):
+def _paper_bounds(c: Cells, *, N: int, N0: int) -> tuple[BoundsResult, FloatArray, FloatArray]:
     """The paper's bounds (docs/science.md#3-error-bounds-theorem-1-lemma-2-corollary-1) ->
     (BoundsResult, gamma of the centre, r_A per estimator)."""
     spec, system, out, notes = c.spec, c.system, c.out, c.notes

@@ -12,6 +12,7 @@ true system are left out (null in the records) with the note ``NO_TRUTH``.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TypeAlias
 
 import numpy as np
 
@@ -20,6 +21,7 @@ from .. import cost as _cost
 from .. import cost_bound as _cb
 from .. import kalman as _kalman
 from ..array_types import Array, FloatArray
+from ..bounds import BoundsResult
 from ..estimators import fit_ols
 from ..norms import spectral_radius
 from ..notes import Notes
@@ -27,7 +29,7 @@ from ..observer_stages import design
 from ..pipeline import CERTIFICATES, ESTIMATE_COND_LIMIT, _estimate
 from ..planning import EstimatorAxis
 from ..spec import STAGES, ExperimentSpec
-from ..stage_cells import Cells  # the context the stage functions read
+from ..stage_cells import StageCells  # the context the stage functions read
 from ..uncertainty_stage import bounds_from_box, sound_box
 from .data import StateModel
 from .noise import noise_level, residual_sum
@@ -59,6 +61,11 @@ class Observer:
     B: None = None
 
 
+# A batch of measured datasets' context: no true system; sigma_w None until the
+# noise level is known, then the box's and the observer model's (a number or (R, 1)).
+MeasuredCells: TypeAlias = StageCells[Observer, float | FloatArray | None]
+
+
 def run_cells(
     spec: ExperimentSpec,
     *,
@@ -78,7 +85,7 @@ def run_cells(
     theta = model.full(rows)
     n = model.n
     notes = Notes(theta.shape[:2])
-    c = Cells(
+    c: MeasuredCells = StageCells(
         spec=spec,
         system=observer,
         sigma_w=None,
@@ -105,11 +112,21 @@ def run_cells(
         _bounds_and_observer(c, sigma_box, sigma_model, model=model, G=G, N=N, N0=N0)
     for f in CERTIFICATES:
         if f in c.out and withheld.any():
-            c.out[f] = np.where(withheld, None, np.asarray(c.out[f], dtype=object))
+            # None: an object scalar, which numpy's stubs do not admit in where()
+            c.out[f] = np.where(withheld, None, np.asarray(c.out[f], dtype=object))  # type: ignore[call-overload]
     return c.out, notes
 
 
-def _noise(c: Cells, *, G, Z, F, rows, n_rows: int, N0: int):
+def _noise(
+    c: MeasuredCells,
+    *,
+    G: FloatArray,
+    Z: FloatArray,
+    F: FloatArray,
+    rows: FloatArray,
+    n_rows: int,
+    N0: int,
+) -> tuple[float | FloatArray, float | FloatArray]:
     """(sigma of the box, sigma of the observer model), each (R, 1) or a number;
     the notes say what was estimated (docs/measured.md#sigma-w-estimate)."""
     spec, notes = c.spec, c.notes
@@ -146,12 +163,23 @@ def _noise(c: Cells, *, G, Z, F, rows, n_rows: int, N0: int):
         ],
         dtype=object,
     )
-    notes.add_reasons(np.where(np.isfinite(lvl.sigma_bar), texts, None)[:, None], None)
+    finite = np.isfinite(lvl.sigma_bar)
+    # None: an object scalar, which numpy's stubs do not admit in where()
+    notes.add_reasons(np.where(finite, texts, None)[:, None], None)  # type: ignore[call-overload]
     notes.add_reasons(lvl.reason[:, None], "noise")
     return lvl.sigma_bar[:, None], lvl.sigma_hat[:, None]
 
 
-def _bounds_and_observer(c: Cells, sigma_box, sigma_model, *, model, G, N, N0):
+def _bounds_and_observer(
+    c: MeasuredCells,
+    sigma_box: float | FloatArray,
+    sigma_model: float | FloatArray,
+    *,
+    model: StateModel,
+    G: FloatArray,
+    N: int,
+    N0: int,
+) -> None:
     """The box (known rows of the ARX state with radius 0), its certificates,
     then the observer stages on the estimate."""
     spec, out, notes, C = c.spec, c.out, c.notes, c.system.C
@@ -198,6 +226,7 @@ def _bounds_and_observer(c: Cells, sigma_box, sigma_model, *, model, G, N, N0):
             horizon=spec.horizon,
         )
     if spec.has("cost_bound"):
+        assert L is not None and norms is not None  # cost_bound needs gain and cost
         t3 = _cb.theorem3_bound(
             c.A_hat,
             L,
@@ -213,10 +242,11 @@ def _bounds_and_observer(c: Cells, sigma_box, sigma_model, *, model, G, N, N0):
         notes.add_reasons(t3.reason, "J_bound")
         out["J_bound"] = t3.J_b
     if spec.has("sls"):
+        assert norms is not None  # computed for the sls stage above
         _sls(c, b, K, norms)
 
 
-def _gain(c: Cells, R_A, K) -> np.ndarray:
+def _gain(c: MeasuredCells, R_A: Array, K: FloatArray) -> Array:
     """The certified gain on the box (centre A_hat, from the Kalman gain of A_hat)."""
     out, notes = c.out, c.notes
     designed, k_hat_reasons = design(c, np.zeros(len(c.axis.names)), R_A, matrix=True)
@@ -224,6 +254,7 @@ def _gain(c: Cells, R_A, K) -> np.ndarray:
         notes.add_reasons(k_hat_reasons, "K_hat")
     g = designed.g_L
     notes.add(~np.isfinite(g), "certified: undefined (no finite gain L or radius)")
+    assert designed.feasible is not None  # design_gain sets it
     with np.errstate(invalid="ignore"):
         notes.add(
             ~designed.feasible & np.isfinite(g), "gain: margin not reachable, L minimises g(L)"
@@ -237,7 +268,9 @@ def _gain(c: Cells, R_A, K) -> np.ndarray:
     return designed.L
 
 
-def _estimate_norms(A_hat, B_hat, C, K) -> _cb.TrueSystemNorms:
+def _estimate_norms(
+    A_hat: FloatArray, B_hat: FloatArray, C: FloatArray, K: FloatArray
+) -> _cb.TrueSystemNorms:
     """The norms Theorem 3 and SLS take from the true system, of the estimate
     (per cell); with m = 0 the input term's norm is 0 (there is no input)."""
     if B_hat.shape[-1]:
@@ -247,7 +280,7 @@ def _estimate_norms(A_hat, B_hat, C, K) -> _cb.TrueSystemNorms:
     return replace(norms, hinf_PhiA_B=np.where(np.isfinite(h), 0.0, h))
 
 
-def _sls(c: Cells, b, K, norms):
+def _sls(c: MeasuredCells, b: BoundsResult, K: FloatArray, norms: _cb.TrueSystemNorms) -> None:
     """J_opt by SLS on the estimate (cvxpy + Clarabel, one program per cell) and
     the paper's bound on it, with the estimate's K and norms
     (docs/science.md#8-sls-sub-optimal-observer-j_opt)."""

@@ -24,8 +24,9 @@ Modules, in the order a report is made:
   curves from stored summaries, the same as the figures draw from the records.
 * ``plotting``: figure plumbing, ``figure_bytes(fig, fmt="png" | "svg" | "pdf")``,
   ``figure_csv(fig)`` (the plotted data).
-* ``figures``: ``fig_rmse``, ``fig2``, ``fig3``, ``fig_coverage``,
-  ``fig_svr_ols_diff``; ``cost_figures``: ``fig4``, ``fig5``, ``fig_certified``;
+* ``figures``: ``fig_rmse``, ``fig_coverage``, ``fig_svr_ols_diff``;
+  ``entry_figures``: ``fig2``, ``fig3``; ``cost_figures``: ``fig4``, ``fig5``,
+  ``fig_certified``;
   each ``f(records, spec=None, *, experiment=...) -> matplotlib.figure.Figure``;
   ``audit``: the uncertainty-set audit (rows, findings, ``fig_bounds_audit``).
 * ``findings``: ``findings(records, spec) -> list[str]``.
@@ -39,7 +40,8 @@ from .build import FIGURE_PLAN, Report, ReportBuilder, ReportFigure, build_repor
 from .columns import STAGE_FIELDS, Columns, as_columns
 from .cost_figures import fig4, fig5, fig_certified
 from .derived import cost_ratio_of_means, first_stable_certified, svr_ols_diff
-from .figures import fig2, fig3, fig_coverage, fig_rmse, fig_svr_ols_diff
+from .entry_figures import fig2, fig3
+from .figures import fig_coverage, fig_rmse, fig_svr_ols_diff
 from .findings import findings
 from .markdown import render_markdown, spec_json
 from .plotting import figure_bytes, figure_csv

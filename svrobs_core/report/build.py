@@ -12,7 +12,8 @@ from ..paper import EXPERIMENTS, PRESET_NAME
 from .audit import audit_findings, audit_rows, audit_sources, fig_bounds_audit
 from .columns import Columns, as_columns, spec_meta
 from .cost_figures import fig4, fig5, fig_certified
-from .figures import fig2, fig3, fig_coverage, fig_rmse, fig_svr_ols_diff
+from .entry_figures import fig2, fig3
+from .figures import fig_coverage, fig_rmse, fig_svr_ols_diff
 from .findings import findings
 from .plotting import figure_bytes, figure_csv
 from .tables import table2

@@ -95,6 +95,7 @@ def fig4(
         name = series_name(ln.key)
         st = styles.setdefault(name, series_style(i))
         band = dict(band=s.band, color=st["color"], ls=st["ls"])
+        assert ln.lo is not None and ln.hi is not None  # the delta_J row has a band
         plot_band(ax, ln.x, ln.lo, ln.hi, panel="delta_J", series=name, **band)
         draw(ax, ln, "delta_J", name, "mean", **st)
         drawn[name] = ln
@@ -138,7 +139,7 @@ def fig4(
     )
     from matplotlib.patches import Patch
 
-    handles = [series_handle(n, st) for n, st in styles.items()]
+    handles: list[Any] = [series_handle(n, st) for n, st in styles.items()]
     handles.append(Patch(color=NEUTRAL, alpha=0.3, lw=0, label="5-95 % of the repetitions"))
     figure_legend(fig, handles, ncol=2)
     figure_title(fig, title, experiment, meta)

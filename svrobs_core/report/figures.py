@@ -1,5 +1,6 @@
-"""The report's figures on estimation: Table 2's curves, Figs. 2-3 of the paper,
-coverage and SVR minus OLS (the cost figures are in ``cost_figures``).
+"""The report's figures on estimation: Table 2's curves, coverage and SVR minus
+OLS, and what the other figure modules share (Figs. 2-3 of the paper are in
+``entry_figures``, the cost figures in ``cost_figures``).
 
 Each is ``f(records, spec=None, *, experiment=...) -> matplotlib.figure.Figure``;
 records are record dicts (docs/spec.md#record-fields) or
@@ -11,12 +12,13 @@ difference panel and a caption note with the largest gap (``fig.svrobs_notes``).
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 import numpy as np
 
-from .columns import Columns, as_columns, fmt_num, n0_ratio, select, spec_meta, systems_of
-from .derived import first_stable_certified
+from ..array_types import Array, FloatArray
+from .columns import Columns, Meta, as_columns, fmt_num, n0_ratio, select, spec_meta, systems_of
 from .plotting import (
     MERGED_NOTE,
     differences,
@@ -24,9 +26,9 @@ from .plotting import (
     figure_title,
     fmt_gap,
     grid_legend,
-    joined,
     label_panel,
     legend_line,
+    mark,
     new_figure,
     no_data_panel,
     no_data_reason,
@@ -38,11 +40,19 @@ from .plotting import (
     series_handle,
     value_axis,
 )
-from .series import context, figure_series, series_lines
+from .series import Line, context, figure_series, series_lines
 from .style import LINESTYLES, series_style, size, styled
 
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
 
-def series_name(key: dict) -> str:
+Records: TypeAlias = Columns | Iterable[dict[str, Any]]
+Styles: TypeAlias = dict[str, dict[str, Any]]  # series name -> its plot style
+
+
+def series_name(key: dict[str, Any]) -> str:
     """A line's name from its group key: "OLS", "SVR γ=0.05", "σ_w=1", ..."""
     parts = []
     if "sigma_w" in key:
@@ -54,12 +64,12 @@ def series_name(key: dict) -> str:
     return " ".join(parts) if parts else "all"
 
 
-def draw(ax, ln, panel: str, series: str, quantity: str, **style):
+def draw(ax: Axes, ln: Line, panel: str, series: str, quantity: str, **style: Any) -> Line2D:
     """Plot a :class:`~.series.Line` (recorded for the CSV)."""
     return plot_line(ax, ln.x, ln.y, panel=panel, series=series, quantity=quantity, **style)
 
 
-def _panels(cols: Columns):
+def _panels(cols: Columns) -> list[tuple[str, Array]]:
     systems = systems_of(cols) or ["(none)"]
     return [(s, select(cols, system=s)) for s in systems]
 
@@ -88,7 +98,13 @@ def _diff_panel(
 
 
 @styled
-def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float | None = None):
+def fig_rmse(
+    records: Records,
+    spec: Any = None,
+    *,
+    experiment: str | None = "E1",
+    gamma: float | None = None,
+) -> Figure:
     """RMSE of Ã and B̃ per N (the curves behind Table 2): OLS (solid, filled
     markers) and SVR (dashed, open markers), one colour and marker per σ_w; below
     each, SVR − OLS."""
@@ -100,8 +116,8 @@ def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float 
         4, len(panels), size("two", 19), sharex=True, height_ratios=[2, 1.1, 2, 1.1]
     )
     ratio = n0_ratio(cols)
-    sig_styles: dict = {}
-    gaps = []
+    sig_styles: dict[Any, int] = {}
+    gaps: list[tuple[float, str, float]] = []
     for c, (system, pm) in enumerate(panels):
         for r, mat in enumerate(("A", "B")):
             s = rows[f"rmse_{mat}"]
@@ -112,7 +128,7 @@ def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float 
                 axd.set_visible(False)
                 continue
             panel = f"{system}: {mat}"
-            by_sig: dict = {}
+            by_sig: dict[Any, dict[str, Line]] = {}
             for ln in lines:
                 sw = ln.key["sigma_w"]
                 j = sig_styles.setdefault(sw, len(sig_styles))
@@ -179,191 +195,12 @@ def fig_rmse(records, spec=None, *, experiment: str | None = "E1", gamma: float 
 
 
 # ---------------------------------------------------------------------------
-# Figs. 2 and 3: entry error, Lemma 2 interval ends, ε
-# ---------------------------------------------------------------------------
-
-QUANTITY_LS = {"err": "-", "hi": "--", "lo": "-.", "eps": ":"}
-QUANTITY_LEGEND = (  # the caption gives the formulas
-    ("err", "error"),
-    ("hi", "upper end"),
-    ("lo", "−(lower end)"),
-    ("eps", "ε_X"),
-)
-
-
-def _entry_figure(fig_name, records, spec, experiment, ctx_over, title, height_cm):
-    """Shared body of fig2/fig3: per system (columns) and matrix (rows) the entry
-    error, the interval ends and ε of each line; fig3 adds difference rows."""
-    cols, meta = as_columns(records), spec_meta(spec)
-    ctx = context(cols, meta, **ctx_over)
-    rows = figure_series(fig_name)
-    with_diff = rows["err_A"].diff_to is not None
-    panels = _panels(cols)
-    nr, hr = (4, [2, 1, 2, 1]) if with_diff else (2, [1, 1])
-    fig, axes = new_figure(nr, len(panels), size("two", height_cm), sharex=True, height_ratios=hr)
-    ratio = n0_ratio(cols)
-    styles: dict = {}
-    gaps = []
-    for c, (system, pm) in enumerate(panels):
-        for r, mat in enumerate(("A", "B")):
-            ax = axes[(2 if with_diff else 1) * r, c]
-            panel = f"{system}: {mat}"
-            drawn = {}
-            for q in ("err", "hi", "lo", "eps"):
-                s = rows[f"{q}_{mat}"]
-                for ln in series_lines(cols, meta, s, pm, ctx):
-                    name = series_name(ln.key)
-                    st = styles.setdefault(name, series_style(len(styles), line=False))
-                    draw(ax, ln, panel, name, s.field, ls=QUANTITY_LS[q], **st)
-                    if q == "err":
-                        drawn[name] = ln
-            if not drawn and not ax.lines:
-                fields = (f"{mat}_hat", f"r_{mat}", f"eps_{mat}")
-                no_data_panel(ax, no_data_reason(cols, pm, fields, meta))
-                if with_diff:
-                    axes[2 * r + 1, c].set_visible(False)
-                continue
-            value_axis(ax)
-            label_panel(
-                ax, f"{mat}: error and bounds", panel, ratio, xlabel=not with_diff and r == 1
-            )
-            if with_diff:
-                axd = axes[2 * r + 1, c]
-                if len(drawn) < 2:
-                    axd.set_visible(False)
-                    continue
-                ref_name = next(iter(drawn))  # the smallest γ
-                others = [(n, ln) for n, ln in drawn.items() if n != ref_name]
-                big = _diff_panel(
-                    axd,
-                    fig,
-                    panel,
-                    others,
-                    (ref_name, drawn[ref_name]),
-                    styles,
-                    f"entry_error_{mat} minus {ref_name}",
-                )
-                label_panel(axd, f"minus {ref_name}", None, ratio, xlabel=r == 1)
-                gaps.append((big[0], f"{panel}, {big[1]}, N0={big[2]:g}", ref_name, big[3]))
-    q = [legend_line(ls=QUANTITY_LS[k], label=lab) for k, lab in QUANTITY_LEGEND]
-    grid_legend(fig, [[series_handle(n, st) for n, st in styles.items()], q])
-    figure_title(fig, title, experiment, meta)
-    return fig, cols, meta, ctx, styles, axes, gaps
-
-
-@styled
-def fig2(records, spec=None, *, experiment: str | None = "E1", gamma: float | None = None):
-    """Fig. 2: SVR (γ = 0.05) estimation error and Lemma 2 interval ends vs N0,
-    S and U, one colour and marker per σ_w; ε_A, ε_B of Corollary 1 dotted."""
-    g = gamma if gamma is not None else None
-    cols = as_columns(records)
-    ctx_g = context(cols, spec_meta(spec), table=g)["table"]
-    fig, *_ = _entry_figure(
-        "fig2",
-        cols,
-        spec,
-        experiment,
-        {"table": g},
-        f"Fig. 2: SVR (γ={fmt_num(ctx_g)}) estimation error and Lemma 2 interval ends vs "
-        "sample length, for each σ_w",
-        13,
-    )
-    return fig
-
-
-@styled
-def fig3(records, spec=None, *, experiment: str | None = "E2", sigma_w: float | None = None):
-    """Fig. 3: as Fig. 2 for the four γ at one σ_w (default 1), each γ's error
-    minus that of γ_ref below; the first N0 at which stable_certified holds in
-    ≥ half the reps (vertical lines, if any, and in the caption)."""
-    cols = as_columns(records)
-    sw = context(cols, spec_meta(spec), sigma_ref=sigma_w)["sigma_ref"]
-    fig, cols, meta, ctx, styles, axes, gaps = _entry_figure(
-        "fig3",
-        cols,
-        spec,
-        experiment,
-        {"sigma_ref": sigma_w},
-        f"Fig. 3: SVR estimation error and Lemma 2 interval ends for each γ (σ_w={fmt_num(sw)})",
-        17,
-    )
-    if gaps:
-        g = max(gaps, key=lambda t: t[0])
-        note(
-            fig,
-            overlap_text(
-                f"The error curves of the {len(styles)} γ", max(t[3] for t in gaps), gaps[0][2]
-            )
-            + f"; the difference rows show each γ's error minus that of {g[2]}; the "
-            f"largest gap is {fmt_gap(g[0])} ({g[1]}).",
-        )
-    _certified_marks(fig, cols, meta, ctx, styles, axes)
-    return fig
-
-
-def _certified_marks(fig, cols, meta, ctx, styles, axes):
-    """Vertical lines at the first N0 with stable_certified in ≥ half the reps; the
-    caption says where (or that it never happens in the grid)."""
-    sw = ctx["sigma_ref"]
-    first = first_stable_certified(cols) if sw is not None else {}
-    hits, never, n0_max = [], [], None
-    for c, system in enumerate(systems_of(cols)):
-        for name in styles:
-            g = float(name.split("=")[1]) if name.startswith("γ=") else None
-            key = next(
-                (
-                    k
-                    for k in first
-                    if k[0] == system
-                    and k[2] == "svr"
-                    and k[1] is not None
-                    and np.isclose(k[1], sw)
-                    and k[3] is not None
-                    and np.isclose(k[3], g)
-                ),
-                None,
-            )
-            if key is None:
-                continue
-            hit = first[key]
-            n0_max = hit["N0_max"]
-            if hit["N0"] is None:
-                never.append(f"{system} {name}")
-                continue
-            hits.append(f"{system} {name}: N0={hit['N0']}")
-            ln = axes[0, c].axvline(hit["N0"], color=styles[name]["color"], ls=(0, (1, 2)), lw=1.6)
-            ln.svrobs_ref = True
-    if hits:
-        handles = list(fig.legends[0].legend_handles) if fig.legends else []
-        fig.legends.clear()
-        handles.append(
-            legend_line(
-                ls=(0, (1, 2)), lw=1.6, label="first N0 with stable_certified in ≥ half the reps"
-            )
-        )
-        figure_legend(fig, handles, ncol=max(1, min(4, len(styles))))
-    if not first:
-        return
-    if not hits:
-        text = (
-            "stable_certified holds in at least half of the repetitions at no N0 of the grid "
-            f"(N0 ≤ {n0_max}), for no γ on any system, so no vertical line is drawn"
-        )
-    else:
-        text = "The dotted vertical lines mark the first N0 at which stable_certified holds in "
-        text += "at least half of the repetitions: " + "; ".join(hits)
-        if never:
-            text += f"; never (N0 ≤ {n0_max}) for {joined(never)}"
-    note(fig, text + ".")
-
-
-# ---------------------------------------------------------------------------
 # coverage and SVR minus OLS
 # ---------------------------------------------------------------------------
 
 
 @styled
-def fig_coverage(records, spec=None, *, experiment: str | None = "E2"):
+def fig_coverage(records: Records, spec: Any = None, *, experiment: str | None = "E2") -> Figure:
     """Empirical coverage of the Lemma 2 intervals vs N0 with the 1 − δ line:
     rows (system, A/B), columns σ_w; one line per estimator / γ, identical lines
     drawn once. If every coverage is 1 there is nothing to plot: the figure is
@@ -374,20 +211,20 @@ def fig_coverage(records, spec=None, *, experiment: str | None = "E2"):
     systems = systems_of(cols) or ["(none)"]
     from .columns import sigmas_of
 
-    sig = sigmas_of(cols) or [None]
+    sig: Sequence[float | None] = sigmas_of(cols) or [None]
     cells = [(system, mat) for system in systems for mat in ("A", "B")]
     level = 1 - meta.delta
-    lines = {}
+    lines: dict[tuple[str, str, float | None], list[Line]] = {}
     for system, mat in cells:
         for s in sig:
             pm = select(cols, system=system, sigma_w=s) if s is not None else np.zeros(cols.n, bool)
             lines[(system, mat, s)] = series_lines(cols, meta, rows[f"coverage_{mat}"], pm, ctx)
 
-    def values(mats):
+    def values(mats: list[str]) -> FloatArray:
         ys = [ln.y[np.isfinite(ln.y)] for (_, m, _), v in lines.items() if m in mats for ln in v]
         return np.concatenate(ys) if ys else np.array([])
 
-    def n_records(mats):
+    def n_records(mats: list[str]) -> str:
         ok = np.zeros(cols.n, bool)
         for m in mats:
             ok |= np.isfinite(cols[f"coverage_{m}"])
@@ -415,7 +252,7 @@ def fig_coverage(records, spec=None, *, experiment: str | None = "E2"):
             f"The coverage of {m} is 1 in all {n_records([m])} records (every system, σ_w, N, "
             f"estimator and γ), above 1 − δ = {fmt_num(level)}: its rows are left out.",
         )
-    styles: dict = {}
+    styles: Styles = {}
     for r, (system, mat) in enumerate(cells):
         for c, s in enumerate(sig):
             ax = axes[r, c]
@@ -447,7 +284,7 @@ def fig_coverage(records, spec=None, *, experiment: str | None = "E2"):
     return fig
 
 
-def _empty_figure(text: str, title: str, experiment, meta):
+def _empty_figure(text: str, title: str, experiment: str | None, meta: Meta) -> Figure:
     """A figure with nothing to plot: no panels, the note as its only text; the
     report shows the note instead of an image (``svrobs_empty``)."""
     import textwrap
@@ -456,13 +293,15 @@ def _empty_figure(text: str, title: str, experiment, meta):
     fig.delaxes(axes[0, 0])
     note(fig, text)
     fig.text(0.5, 0.3, "\n".join(textwrap.wrap(text, 100)), ha="center", va="center")
-    fig.svrobs_empty = True
+    mark(fig, svrobs_empty=True)
     figure_title(fig, title, experiment, meta)
     return fig
 
 
 @styled
-def fig_svr_ols_diff(records, spec=None, *, experiment: str | None = "E2"):
+def fig_svr_ols_diff(
+    records: Records, spec: Any = None, *, experiment: str | None = "E2"
+) -> Figure:
     """max_ij |Ã_svr − Ã_ols| on the same data (mean over reps) vs N0, one colour
     and marker per γ, one line style per σ_w: where SVR and OLS really differ."""
     cols, meta = as_columns(records), spec_meta(spec)
@@ -470,7 +309,8 @@ def fig_svr_ols_diff(records, spec=None, *, experiment: str | None = "E2"):
     s = figure_series("fig_svr_ols_diff")["svr_ols_A"]
     panels = _panels(cols)
     fig, axes = new_figure(1, len(panels), size("two", 9.5), sharey=True)
-    g_styles, s_styles = {}, {}
+    g_styles: Styles = {}
+    s_styles: dict[str, Any] = {}  # σ_w name -> line style
     for c, (system, pm) in enumerate(panels):
         ax = axes[0, c]
         lines = series_lines(cols, meta, s, pm, ctx)

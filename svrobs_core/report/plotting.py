@@ -7,7 +7,8 @@ PNG/SVG/PDF bytes.
 Each Figure made by :func:`new_figure` carries ``svrobs_rows`` (every plotted
 curve: panel, series, quantity, x, y, in drawing order) and ``svrobs_notes``
 (sentences for the caption: what coincides, the largest gaps, panels left out
-and why).
+and why). These and the lines' ``svrobs_key`` / ``svrobs_ref`` are instance
+attributes matplotlib does not declare, set with :func:`mark`.
 """
 
 from __future__ import annotations
@@ -16,42 +17,65 @@ import csv
 import io
 import math
 import sys
-from typing import Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..array_types import Array, FloatArray
 from .columns import STAGE_FIELDS, Columns, Meta
 from .style import NEUTRAL, REFERENCE, figure_style
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+
+# A recorded curve: (panel, series, quantity, x, y).
+Row = tuple[str, str, str, FloatArray, FloatArray]
 
 SAME_TOL = 1e-12  # two curves within this (relative to their size) are "identical"
 
 
-def _ensure_agg():
+def mark(obj: object, **attrs: Any) -> None:
+    """Set svrobs_* attributes on a matplotlib object (its instance dict)."""
+    vars(obj).update(attrs)
+
+
+def _ensure_agg() -> None:
     import matplotlib
 
     if "matplotlib.pyplot" not in sys.modules:  # never switch a user's live pyplot backend
         matplotlib.use("Agg")
 
 
-def new_figure(nrows: int, ncols: int, figsize, sharex=False, sharey=False, **gridspec):
+def new_figure(
+    nrows: int,
+    ncols: int,
+    figsize: tuple[float, float],
+    sharex: bool = False,
+    sharey: bool = False,
+    **gridspec: Any,
+) -> tuple[Figure, Array]:
     """A Figure (Agg canvas, constrained layout) and its axes grid (always 2-D)."""
     _ensure_agg()
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.layout_engine import ConstrainedLayoutEngine
 
     fig = Figure(figsize=figsize, layout="constrained")
-    fig.get_layout_engine().set(h_pad=0.03, w_pad=0.03, hspace=0.03, wspace=0.03)
+    engine = fig.get_layout_engine()
+    assert isinstance(engine, ConstrainedLayoutEngine)  # layout="constrained"
+    engine.set(h_pad=0.03, w_pad=0.03, hspace=0.03, wspace=0.03)
     FigureCanvasAgg(fig)
     axes = fig.subplots(
         nrows, ncols, squeeze=False, sharex=sharex, sharey=sharey, gridspec_kw=gridspec or None
     )
-    fig.svrobs_rows = []
-    fig.svrobs_notes = []
-    fig.svrobs_empty = False
+    mark(fig, svrobs_rows=[], svrobs_notes=[], svrobs_empty=False)
     return fig, axes
 
 
-def figure_title(fig, what: str, experiment: str | None, meta: Meta):
+def figure_title(fig: Figure, what: str, experiment: str | None, meta: Meta) -> None:
     """Title (wrapped to the figure's width) and, below, experiment and seed."""
     import textwrap
 
@@ -60,13 +84,20 @@ def figure_title(fig, what: str, experiment: str | None, meta: Meta):
     fig.suptitle("\n".join(textwrap.wrap(what, width)) + f"\n{exp} · seed {meta.seed}")
 
 
-def note(fig, text: str):
+def notes_of(fig: Figure) -> list[str]:
+    """The caption's sentences of a figure of :func:`new_figure`."""
+    notes: list[str] = vars(fig)["svrobs_notes"]
+    return notes
+
+
+def note(fig: Figure, text: str) -> None:
     """A sentence for the figure's caption."""
-    if text and text not in fig.svrobs_notes:
-        fig.svrobs_notes.append(text)
+    notes = notes_of(fig)
+    if text and text not in notes:
+        notes.append(text)
 
 
-def no_data_panel(ax, msg: str):
+def no_data_panel(ax: Axes, msg: str) -> None:
     ax.text(
         0.5,
         0.5,
@@ -80,17 +111,19 @@ def no_data_panel(ax, msg: str):
     )
     # not set_xticks([]): that would clear the ticks of every axis shared with this one
     ax.tick_params(left=False, bottom=False, labelleft=False, labelbottom=False)
-    ax.figure.svrobs_no_data = True
+    mark(ax.figure, svrobs_no_data=True)
 
 
-def n0_axis(ax, ratio: float | None):
+def n0_axis(ax: Axes, ratio: float | None) -> None:
     if ratio is not None and ratio != 1.0:
         ax.set_xlabel(f"sample length N0 = {ratio:g}·N")
     else:
         ax.set_xlabel("sample length N0")
 
 
-def label_panel(ax, ylabel: str, title: str | None, ratio: float | None, *, xlabel=True):
+def label_panel(
+    ax: Axes, ylabel: str, title: str | None, ratio: float | None, *, xlabel: bool = True
+) -> None:
     """A panel's y label, title, N0 axis (if ``xlabel``) and grid."""
     ax.set_ylabel(ylabel)
     if title:
@@ -100,7 +133,7 @@ def label_panel(ax, ylabel: str, title: str | None, ratio: float | None, *, xlab
     ax.grid(True, which="major")
 
 
-def no_data_reason(cols: Columns, mask, fields: tuple[str, ...], meta: Meta) -> str:
+def no_data_reason(cols: Columns, mask: Array | None, fields: tuple[str, ...], meta: Meta) -> str:
     """Why a panel has no data: the stage did not run, or its fields are null."""
     need = [s for s, fs in STAGE_FIELDS.items() if any(f in fs for f in fields)]
     missing = [s for s in need if meta.stages and s not in meta.stages]
@@ -120,7 +153,17 @@ def no_data_reason(cols: Columns, mask, fields: tuple[str, ...], meta: Meta) -> 
 # ---------------------------------------------------------------------------
 
 
-def plot_line(ax, x, y, *, panel: str, series: str, quantity: str, label=None, **style):
+def plot_line(
+    ax: Axes,
+    x: Any,
+    y: Any,
+    *,
+    panel: str,
+    series: str,
+    quantity: str,
+    label: str | None = None,
+    **style: Any,
+) -> Line2D:
     """``ax.plot`` that records (panel, series, quantity, x, y) for the figure's CSV."""
     x = np.asarray(x, float)
     y = np.asarray(y, float)
@@ -132,12 +175,24 @@ def plot_line(ax, x, y, *, panel: str, series: str, quantity: str, label=None, *
         step = max(2, len(x) // 8)
         style["markevery"] = (k % step, step)
     (ln,) = ax.plot(x, y, label=label if label else "_nolegend_", **style)
-    ln.svrobs_key = (panel, series, quantity)
-    ax.figure.svrobs_rows.append((panel, series, quantity, x, y))
+    mark(ln, svrobs_key=(panel, series, quantity))
+    rows: list[Row] = vars(ax.figure)["svrobs_rows"]
+    rows.append((panel, series, quantity, x, y))
     return ln
 
 
-def plot_band(ax, x, lo, hi, *, panel: str, series: str, band: str, color, ls="-"):
+def plot_band(
+    ax: Axes,
+    x: Any,
+    lo: FloatArray,
+    hi: FloatArray,
+    *,
+    panel: str,
+    series: str,
+    band: tuple[float, float],
+    color: Any,
+    ls: Any = "-",
+) -> None:
     """A band drawn as a fill with both edges as thin lines in the series' line
     style (both recorded)."""
     qlo, qhi = (f"q{round(100 * b):02d}" for b in band)
@@ -149,18 +204,18 @@ def plot_band(ax, x, lo, hi, *, panel: str, series: str, band: str, color, ls="-
         )
 
 
-def ref_line(ax, y: float, **style):
+def ref_line(ax: Axes, y: float, **style: Any) -> Line2D:
     """A horizontal reference line (0, 1 − δ), not data: not in the CSV."""
     style.setdefault("color", REFERENCE)
     style.setdefault("lw", 0.8)
     ln = ax.axhline(y, **style)
-    ln.svrobs_ref = True
+    mark(ln, svrobs_ref=True)
     return ln
 
 
 def legend_line(
-    color: Any = NEUTRAL, ls: str = "-", label: str = "", marker: str | None = None, **kw: Any
-) -> Any:
+    color: Any = NEUTRAL, ls: Any = "-", label: str = "", marker: str | None = None, **kw: Any
+) -> Line2D:
     """A legend proxy: a series (its colour and marker) or a quantity (its line
     style, in the neutral colour)."""
     from matplotlib.lines import Line2D
@@ -168,18 +223,18 @@ def legend_line(
     return Line2D([], [], color=color, ls=ls, marker=marker, label=label, **kw)
 
 
-def series_handle(label: str, style: dict):
+def series_handle(label: str, style: dict[str, Any]) -> Line2D:
     """Legend proxy of a series: colour and marker, solid line."""
     keep = ("color", "marker", "markersize", "markerfacecolor", "markeredgewidth")
     return legend_line(ls="-", label=label, **{k: style[k] for k in keep if k in style})
 
 
-def figure_legend(fig: Any, handles: list[Any], ncol: int = 4) -> None:
+def figure_legend(fig: Figure, handles: list[Any], ncol: int = 4) -> None:
     if handles:
         fig.legend(handles=handles, loc="outside lower center", ncol=ncol)
 
 
-def grid_legend(fig, rows: list[list]):
+def grid_legend(fig: Figure, rows: list[list[Any]]) -> None:
     """A figure legend laid out row by row (``rows`` of handles; matplotlib
     fills a legend column by column, so the rows are interleaved and padded
     with blank entries, which carry no label)."""
@@ -201,12 +256,13 @@ def grid_legend(fig, rows: list[list]):
 # ---------------------------------------------------------------------------
 
 
-def _panel_values(ax) -> np.ndarray:
+def _panel_values(ax: Axes) -> FloatArray:
     vals = [ln.get_ydata() for ln in ax.lines if hasattr(ln, "svrobs_key")]
     if not vals:
         return np.array([])
     v = np.concatenate([np.asarray(a, float) for a in vals])
-    return v[np.isfinite(v)]
+    finite: FloatArray = v[np.isfinite(v)]
+    return finite
 
 
 def _decade(v: float) -> bool:
@@ -214,12 +270,12 @@ def _decade(v: float) -> bool:
     return abs(e - round(e)) < 1e-9
 
 
-def tick_labels(ticks) -> list[str]:
+def tick_labels(ticks: Sequence[float]) -> list[str]:
     """One format for all ticks of an axis: plain numbers when every tick is within
     [0.001, 10⁴), else powers of ten (10ᵏ, or m×10ᵏ)."""
     nz = [abs(t) for t in ticks if t != 0]
     plain = all(1e-3 <= t < 1e4 for t in nz)
-    out = []
+    out: list[str] = []
     for t in ticks:
         if t == 0:
             out.append("0")
@@ -233,7 +289,7 @@ def tick_labels(ticks) -> list[str]:
     return out
 
 
-def _fixed_ticks(ax, ticks, which="y"):
+def _fixed_ticks(ax: Axes, ticks: list[float], which: str = "y") -> None:
     from matplotlib.ticker import FixedFormatter, FixedLocator, NullLocator
 
     axis = ax.yaxis if which == "y" else ax.xaxis
@@ -242,7 +298,7 @@ def _fixed_ticks(ax, ticks, which="y"):
     axis.set_minor_locator(NullLocator())
 
 
-def log_axis(ax, lo: float, hi: float, which: str = "y"):
+def log_axis(ax: Axes, lo: float, hi: float, which: str = "y") -> None:
     """Log y (or x) axis over [lo, hi] (padded) with at least three labelled ticks:
     decades (or 1-2-5 steps) over a wide range, evenly stepped values over a
     range of less than about one decade."""
@@ -254,17 +310,16 @@ def log_axis(ax, lo: float, hi: float, which: str = "y"):
     lo, hi = lo / pad, hi * pad
     (ax.set_yscale if which == "y" else ax.set_xscale)("log")
     (ax.set_ylim if which == "y" else ax.set_xlim)(lo, hi)
-    inside = []
+    inside: list[float] = []
     if hi / lo > 3:
         e0, e1 = math.floor(math.log10(lo)) - 1, math.ceil(math.log10(hi)) + 1
-        found = []
+        found: list[list[float]] = []
         for subs in ((1.0,), (1.0, 3.0), (1.0, 2.0, 5.0), (1.0, 2.0, 3.0, 5.0, 7.0)):
             ticks = [m * 10.0**e for e in range(e0, e1 + 1) for m in subs]
             found.append([t for t in ticks if lo <= t <= hi])
         # the coarsest set with 4 to 8 ticks, else the coarsest with at least 3
-        inside = next((t for t in found if 4 <= len(t) <= 8), None) or next(
-            (t for t in found if len(t) >= 3), found[-1]
-        )
+        coarse = next((t for t in found if 4 <= len(t) <= 8), None)
+        inside = coarse or next((t for t in found if len(t) >= 3), found[-1])
         if len(inside) > 7:  # many decades: every other one
             inside = inside[:: math.ceil(len(inside) / 6)]
     if len(inside) < 3:
@@ -276,7 +331,7 @@ def log_axis(ax, lo: float, hi: float, which: str = "y"):
     _fixed_ticks(ax, inside, which)
 
 
-def symlog_axis(ax, v: np.ndarray):
+def symlog_axis(ax: Axes, v: FloatArray) -> None:
     """Symlog y axis for values of both signs. The linear region ends at the decade
     below the 10 % quantile of the nonzero |values| (sized to the data); ticks at
     0 and at the largest decade each side reaches."""
@@ -292,7 +347,7 @@ def symlog_axis(ax, v: np.ndarray):
     _fixed_ticks(ax, sorted(ticks))
 
 
-def value_axis(ax, scale: str = "auto") -> str:
+def value_axis(ax: Axes, scale: str = "auto") -> str:
     """Scale of a panel's y axis from its recorded data: ``log`` when every value
     is positive, ``symlog`` (sized to the data) when values change sign, else
     linear. Returns the scale used."""
@@ -313,7 +368,7 @@ def value_axis(ax, scale: str = "auto") -> str:
 # ---------------------------------------------------------------------------
 
 
-def same_curve(a, b) -> bool:
+def same_curve(a: Any, b: Any) -> bool:
     """Two curves equal within SAME_TOL (relative to their size); NaN equals NaN."""
     a, b = np.asarray(a, float), np.asarray(b, float)
     if a.shape != b.shape or not np.array_equal(np.isnan(a), np.isnan(b)):
@@ -325,9 +380,9 @@ def same_curve(a, b) -> bool:
     return bool(np.abs(a[ok] - b[ok]).max() <= SAME_TOL * scale)
 
 
-def merge_identical(items: list[tuple]) -> list[tuple[list, tuple]]:
+def merge_identical(items: list[tuple[Any, ...]]) -> list[tuple[list[Any], tuple[Any, ...]]]:
     """Group ``(name, x, y, ...)`` items whose (x, y) are identical: [(names, first item)]."""
-    groups: list[tuple[list, tuple]] = []
+    groups: list[tuple[list[Any], tuple[Any, ...]]] = []
     for it in items:
         for names, first in groups:
             if same_curve(first[1], it[1]) and same_curve(first[2], it[2]):
@@ -338,7 +393,15 @@ def merge_identical(items: list[tuple]) -> list[tuple[list, tuple]]:
     return groups
 
 
-def plot_merged(ax, items: list[tuple], styles: dict, *, panel: str, quantity: str, **over):
+def plot_merged(
+    ax: Axes,
+    items: list[tuple[Any, ...]],
+    styles: dict[str, dict[str, Any]],
+    *,
+    panel: str,
+    quantity: str,
+    **over: Any,
+) -> bool:
     """Draw ``(name, x, y)`` items in their ``styles``; identical ones share one line
     (the first one's colour and line style) on which each shows its own markers in
     turn. Returns True if any were identical."""
@@ -371,12 +434,16 @@ def joined(names: list[str]) -> str:
     return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
 
 
-def differences(lines: list[tuple], ref: tuple):
+def differences(
+    lines: list[tuple[str, Any, Any]], ref: tuple[str, Any, Any]
+) -> tuple[list[tuple[str, FloatArray, FloatArray]], tuple[Any, ...]]:
     """``lines``: (name, x, y); ``ref``: (name, x, y). -> [(name, x, y − y_ref)] on the
     x values both have, and (largest |y − y_ref|, its line, its x, largest
     |y − y_ref| / |y_ref| of any point)."""
     at = dict(zip(np.asarray(ref[1]).tolist(), np.asarray(ref[2]).tolist()))
-    out, big, rel = [], (0.0, None, None), 0.0
+    out: list[tuple[str, FloatArray, FloatArray]] = []
+    big: tuple[float, Any, Any] = (0.0, None, None)
+    rel = 0.0
     for name, x, y in lines:
         xs = [xv for xv in np.asarray(x).tolist() if xv in at]
         yv = dict(zip(np.asarray(x).tolist(), np.asarray(y).tolist()))
@@ -412,7 +479,7 @@ def fmt_gap(v: float) -> str:
 CSV_COLUMNS = ("panel", "series", "quantity", "N0", "value")
 
 
-def figure_csv(fig) -> str:
+def figure_csv(fig: Figure) -> str:
     """Every plotted curve of ``fig``, one row per point (long format; values at
     full precision, empty where the curve has a gap)."""
     buf = io.StringIO()
@@ -429,7 +496,7 @@ def figure_csv(fig) -> str:
 FORMATS = ("png", "svg", "pdf")
 
 
-def figure_bytes(fig, fmt: str = "png", dpi: int = 200) -> bytes:
+def figure_bytes(fig: Figure, fmt: str = "png", dpi: int = 200) -> bytes:
     """Render a Figure to PNG, SVG or PDF bytes in memory (deterministic
     metadata; PDF with embedded TrueType fonts, SVG text as text)."""
     if fmt not in FORMATS:

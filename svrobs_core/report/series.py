@@ -21,10 +21,13 @@ summaries.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
+from ..array_types import Array
 from ..paper import STABLE, TABLE2_GAMMA
 from .columns import GAMMA_RTOL, Columns, Meta, by_N, group_indices, mean_of, select
 
@@ -36,11 +39,11 @@ class FigureSeries:
     field: str  # a record field, or a name in DERIVED
     label: str
     stat: str = "mean"
-    where: tuple = ()  # ((field, value), ...)
-    panels: tuple = ("system",)
-    lines: tuple = ("gamma",)
+    where: tuple[tuple[str, Any], ...] = ()  # ((field, value), ...)
+    panels: tuple[str, ...] = ("system",)
+    lines: tuple[str, ...] = ("gamma",)
     x: str = "N0"  # summaries hold N; N0 = (T0 − 1)·N
-    band: tuple | None = None  # (lower, upper) quantiles over the repetitions
+    band: tuple[float, float] | None = None  # (lower, upper) quantiles over the repetitions
     scale: str = "auto"  # auto: log if positive, symlog if the values change sign
     # difference panel: each line minus the "ols" line or the "first" line (smallest γ)
     diff_to: str | None = None
@@ -49,14 +52,14 @@ class FigureSeries:
     def derived(self) -> bool:
         return self.field in DERIVED
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["where"] = dict(self.where)
         d["derived"] = self.derived
         return d
 
 
-def _fs(figure, key, field, label, **kw) -> FigureSeries:
+def _fs(figure: str, key: str, field: str, label: str, **kw: Any) -> FigureSeries:
     return FigureSeries(figure, key, field, label, **kw)
 
 
@@ -66,8 +69,10 @@ _S = (("estimator", "svr"), ("system", "system_S"))
 _AUDIT = (("sigma_w", "sigma_ref"), ("gamma", "table"))  # SVR at the table's γ, and OLS
 
 
-def _entry_rows(figure, where, lines, diff):
-    rows = []
+def _entry_rows(
+    figure: str, where: tuple[tuple[str, Any], ...], lines: tuple[str, ...], diff: str | None
+) -> list[FigureSeries]:
+    rows: list[FigureSeries] = []
     for m in ("A", "B"):
         rows += [
             _fs(
@@ -204,7 +209,7 @@ def figure_series(figure: str) -> dict[str, FigureSeries]:
     return {s.key: s for s in FIGURE_SERIES if s.figure == figure}
 
 
-def figure_series_json() -> list[dict]:
+def figure_series_json() -> list[dict[str, Any]]:
     """:data:`FIGURE_SERIES` as JSON-able dicts (for the dashboard)."""
     return [s.to_dict() for s in FIGURE_SERIES]
 
@@ -214,37 +219,42 @@ def figure_series_json() -> list[dict]:
 # ---------------------------------------------------------------------------
 
 
-def _entry(i):
-    def f(cols, meta, m):
+# A DERIVED quantity: (columns, meta, matrix "A"/"B" or None) -> per-record values.
+DerivedFn = Callable[[Columns, Meta, str | None], Array]
+
+
+def _entry(i: int) -> DerivedFn:
+    def f(cols: Columns, meta: Meta, m: str | None) -> Array:
         from .derived import entry_quantities
 
+        assert m is not None  # the entry rows name their matrix
         return entry_quantities(cols, meta, m)[i]
 
     return f
 
 
-def _neg(fn):
+def _neg(fn: DerivedFn) -> DerivedFn:
     return lambda cols, meta, m: -fn(cols, meta, m)
 
 
-def _svr_ols(cols, meta, m):
+def _svr_ols(cols: Columns, meta: Meta, m: str | None) -> Array:
     from .derived import svr_ols_diff
 
     return svr_ols_diff(cols)
 
 
-def _all_inside(cols, meta, m):
+def _all_inside(cols: Columns, meta: Meta, m: str | None) -> Array:
     from .derived import all_inside
 
     return all_inside(cols)
 
 
-def _stable_true(cols, meta, m):
+def _stable_true(cols: Columns, meta: Meta, m: str | None) -> Array:
     rho = cols["rho_true"]
     return np.where(np.isfinite(rho), (rho < 1).astype(float), np.nan)
 
 
-DERIVED = {
+DERIVED: dict[str, tuple[DerivedFn, str | None]] = {
     **{f"entry_error_{m}": (_entry(0), m) for m in ("A", "B")},
     **{f"interval_lo_{m}": (_entry(1), m) for m in ("A", "B")},
     # minus the lower end: positive when the interval reaches below 0, so that the
@@ -265,7 +275,8 @@ def values_of(cols: Columns, meta: Meta, field: str) -> np.ndarray:
     if key not in cols.cache:
         fn, m = DERIVED[field]
         cols.cache[key] = fn(cols, meta, m)
-    return cols.cache[key]
+    values: np.ndarray = cols.cache[key]
+    return values
 
 
 # ---------------------------------------------------------------------------
@@ -277,7 +288,7 @@ def values_of(cols: Columns, meta: Meta, field: str) -> np.ndarray:
 class Line:
     """One plotted line: its group key, x (N0), N, the statistic and the band."""
 
-    key: dict
+    key: dict[str, Any]
     x: np.ndarray
     N: np.ndarray
     y: np.ndarray
@@ -286,12 +297,12 @@ class Line:
     count: np.ndarray | None = None
 
 
-def resolve(value, ctx: dict):
+def resolve(value: Any, ctx: dict[str, Any]) -> Any:
     """A ``where`` value with the symbols resolved from ``ctx`` (table_gamma, ...)."""
     return ctx.get(value, value) if isinstance(value, str) else value
 
 
-def where_mask(cols: Columns, s: FigureSeries, ctx: dict) -> np.ndarray:
+def where_mask(cols: Columns, s: FigureSeries, ctx: dict[str, Any]) -> np.ndarray:
     """The records of row ``s``; a γ condition selects among the SVR records
     (OLS has no γ and passes it, unless ``estimator`` excludes it)."""
     m = np.ones(cols.n, bool)
@@ -306,14 +317,14 @@ def where_mask(cols: Columns, s: FigureSeries, ctx: dict) -> np.ndarray:
     return m
 
 
-def context(cols: Columns, meta: Meta, **over) -> dict:
+def context(cols: Columns, meta: Meta, **over: Any) -> dict[str, Any]:
     """The symbols of ``where``: table γ, reference σ_w, γ_ref, the stable system."""
     from .columns import sigmas_of, systems_of
     from .tables import table_gamma
 
     sig = sigmas_of(cols)
     systems = systems_of(cols)
-    ctx = {
+    ctx: dict[str, Any] = {
         "table": table_gamma(cols, None),
         "sigma_ref": 1.0 if any(math.isclose(s, 1.0) for s in sig) else (sig[0] if sig else None),
         "gamma_ref": meta.gamma_ref,
@@ -325,18 +336,24 @@ def context(cols: Columns, meta: Meta, **over) -> dict:
     return ctx
 
 
-def _share_negative(v):
+def _share_negative(v: Array) -> float:
     return float(np.mean(v < 0))
 
 
-def series_lines(cols: Columns, meta: Meta, s: FigureSeries, panel_mask, ctx: dict) -> list[Line]:
+def _quantile(q: float) -> Callable[[Array], float]:
+    return lambda v: float(np.quantile(v, q))
+
+
+def series_lines(
+    cols: Columns, meta: Meta, s: FigureSeries, panel_mask: Array, ctx: dict[str, Any]
+) -> list[Line]:
     """The lines of row ``s`` inside one panel (``panel_mask``), one per group of
     ``s.lines``, in the groups' order; lines without a finite value are left out."""
     m = panel_mask & where_mask(cols, s, ctx)
     if s.stat == "ratio_of_means":
         return _ratio_lines(cols, s, m, ctx)
     vals = values_of(cols, meta, s.field)
-    out = []
+    out: list[Line] = []
     fn = {"mean": mean_of, "share_negative": _share_negative}[s.stat]
     for key, idx in group_indices(cols, s.lines, m).items():
         gm = np.zeros(cols.n, bool)
@@ -347,13 +364,13 @@ def series_lines(cols: Columns, meta: Meta, s: FigureSeries, panel_mask, ctx: di
         line = Line(dict(zip(s.lines, key)), x, N, y, count=cnt)
         if s.band is not None:
             qlo, qhi = s.band
-            line.lo = by_N(cols, gm, vals, lambda v, q=qlo: float(np.quantile(v, q)))[2]
-            line.hi = by_N(cols, gm, vals, lambda v, q=qhi: float(np.quantile(v, q)))[2]
+            line.lo = by_N(cols, gm, vals, _quantile(qlo))[2]
+            line.hi = by_N(cols, gm, vals, _quantile(qhi))[2]
         out.append(line)
     return out
 
 
-def _ratio_lines(cols: Columns, s: FigureSeries, m, ctx) -> list[Line]:
+def _ratio_lines(cols: Columns, s: FigureSeries, m: Array, ctx: dict[str, Any]) -> list[Line]:
     """|mean_γ − mean_ref| / mean_ref per N
     (docs/science.md#92-how-the-tables-and-figures-aggregate), γ ≠ γ_ref."""
     from .derived import ratio_to_reference
@@ -366,7 +383,7 @@ def _ratio_lines(cols: Columns, s: FigureSeries, m, ctx) -> list[Line]:
         return []
     rm = np.zeros(cols.n, bool)
     rm[groups[ref[0]]] = True
-    out = []
+    out: list[Line] = []
     for key, idx in groups.items():
         if key != ref[0]:
             gm = np.zeros(cols.n, bool)
@@ -381,7 +398,7 @@ def _ratio_lines(cols: Columns, s: FigureSeries, m, ctx) -> list[Line]:
 # ---------------------------------------------------------------------------
 
 
-def _matches(g: dict, f: str, v) -> bool:
+def _matches(g: dict[str, Any], f: str, v: Any) -> bool:
     if f == "gamma":  # selects among the SVR groups; OLS has no γ
         return g["gamma"] is None or (
             v is not None and math.isclose(g["gamma"], v, rel_tol=GAMMA_RTOL)
@@ -390,10 +407,13 @@ def _matches(g: dict, f: str, v) -> bool:
         return False
     if isinstance(v, float) and g[f] is not None and not isinstance(g[f], str):
         return math.isclose(g[f], v, rel_tol=GAMMA_RTOL)
-    return g[f] == v
+    same: bool = g[f] == v
+    return same
 
 
-def summary_lines(groups: list[dict], s: FigureSeries, ctx: dict) -> list[dict]:
+def summary_lines(
+    groups: list[dict[str, Any]], s: FigureSeries, ctx: dict[str, Any]
+) -> list[dict[str, Any]]:
     """Row ``s`` on summary groups (``svrobs_core.summarize`` / the stored
     summaries: one dict per (system, σ_w, N, estimator, γ) with ``stats[field]``
     mean/std/count): ``[{"panel": {...}, "line": {...}, "N": [...], "y": [...]}]``
@@ -405,7 +425,7 @@ def summary_lines(groups: list[dict], s: FigureSeries, ctx: dict) -> list[dict]:
     where = [(f, resolve(v, ctx)) for f, v in s.where]
     # (panel, line, N) -> [sum, count]: groups that differ only in a coordinate the row
     # neither selects nor splits by (σ_w of Fig. 4) are pooled, as the records are
-    acc: dict[tuple, list] = {}
+    acc: dict[tuple[Any, Any, Any], list[float]] = {}
     for g in groups:
         st = (g.get("stats") or {}).get(s.field) or {}
         if (
@@ -423,7 +443,7 @@ def summary_lines(groups: list[dict], s: FigureSeries, ctx: dict) -> list[dict]:
     if s.stat == "ratio_of_means":  # each γ against γ_ref, per panel and N
         g_ref, gi = ctx["gamma_ref"], s.lines.index("gamma")
 
-        def is_ref(k):
+        def is_ref(k: tuple[Any, Any, Any]) -> bool:
             return k[1][gi] is not None and math.isclose(k[1][gi], g_ref, rel_tol=GAMMA_RTOL)
 
         ref = {(k[0], k[2]): v for k, v in mean.items() if is_ref(k)}
@@ -432,12 +452,12 @@ def summary_lines(groups: list[dict], s: FigureSeries, ctx: dict) -> list[dict]:
             for k, v in mean.items()
             if ref.get((k[0], k[2])) and not is_ref(k)
         }
-    out: dict = {}
+    out: dict[tuple[Any, Any], dict[Any, float]] = {}
     for (pk, lk, n), v in mean.items():
         out.setdefault((pk, lk), {})[n] = v
-    lines = []
+    lines: list[dict[str, Any]] = []
 
-    def order(t):
+    def order(t: tuple[Any, Any]) -> tuple[tuple[bool, Any], ...]:
         return tuple((v is None, v if v is not None else 0) for part in t for v in part)
 
     for pk, lk in sorted(out, key=order):
@@ -456,7 +476,9 @@ def summary_lines(groups: list[dict], s: FigureSeries, ctx: dict) -> list[dict]:
 GROUP_KEYS = ("system", "sigma_w", "N", "estimator", "gamma")
 
 
-def summary_context(groups: list[dict], spec: dict | None = None) -> dict:
+def summary_context(
+    groups: list[dict[str, Any]], spec: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """The symbols of ``where`` (as :func:`context`) from summary groups and the spec."""
     svr = sorted({g["gamma"] for g in groups if g["estimator"] == "svr" and g["gamma"] is not None})
     sig = sorted({g["sigma_w"] for g in groups if g["sigma_w"] is not None})
