@@ -337,37 +337,13 @@ def serve(
     grace: float = 10.0,
 ) -> int:
     """Run the stack in the foreground until Ctrl-C or SIGTERM; a child that exits is
-    restarted (svrobs_cli.processes.Supervisor). Returns the exit status."""
-    settings = settings or get_settings()
-    check_port(settings.API_HOST, settings.API_PORT)
-    prepare_dirs(settings)
-    print(f"svrobs: migrating {_redact(settings.DATABASE_URL)}", flush=True)
-    migrate(settings)
-    key = bootstrap_admin(settings)
-    if key:
-        print("svrobs: first start - created team 'admin' and its admin API key", flush=True)
+    restarted (svrobs_cli.processes.Supervisor). Returns the exit status.
 
-    extra = {}
-    if workers > 0:
-        pids = pid_dir(settings)
-        pids.mkdir(parents=True, exist_ok=True)
-        extra["SVROBS_WORKER_PID_DIR"] = str(pids)
-    if "SVROBS_WORKER_POOL_PROCESSES" not in os.environ and workers > 0:
-        # the fair share follows the pool these workers make (unless set for a
-        # pool that spans other hosts too)
-        extra["SVROBS_WORKER_POOL_PROCESSES"] = str(workers * concurrency)
-    env = child_env(settings, extra)
-    children = []
-    for name, argv in child_commands(
-        settings, workers=workers, concurrency=concurrency, beat=beat, pid_files=workers > 0
-    ):
-        pidfile = Path(argv[argv.index("--pidfile") + 1]) if "--pidfile" in argv else None
-        children.append(Child(name, guarded(argv, grace), env, pidfile=pidfile))
-    supervisor = Supervisor(children, log=lambda line: print(line, file=sys.stderr, flush=True))
-    browse = _browse_host(settings.API_HOST)
-    url = f"http://{browse}:{settings.API_PORT}"
-
+    The signal handlers are set before any work: a stop during the migration lets it
+    finish and starts nothing (a KeyboardInterrupt raised there could be swallowed by a
+    finalizer that happens to run, and the stack would start regardless)."""
     stopping: list[int] = []
+    children: list[Child] = []
 
     def _on_signal(signum, _frame):
         stopping.append(signum)
@@ -376,8 +352,25 @@ def serve(
                 c.signal(signal.SIGKILL, group=True)
 
     old = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    key: str | None = None
+    supervisor: Supervisor | None = None
     announced = False
     try:
+        settings = settings or get_settings()
+        check_port(settings.API_HOST, settings.API_PORT)
+        prepare_dirs(settings)
+        print(f"svrobs: migrating {_redact(settings.DATABASE_URL)}", flush=True)
+        migrate(settings)
+        key = bootstrap_admin(settings)
+        if key:
+            print("svrobs: first start - created team 'admin' and its admin API key", flush=True)
+        if stopping:
+            return 0
+        children += _children(settings, workers=workers, concurrency=concurrency, beat=beat,
+                              grace=grace)  # fmt: skip
+        supervisor = Supervisor(children, log=lambda line: print(line, file=sys.stderr, flush=True))
+        browse = _browse_host(settings.API_HOST)
+        url = f"http://{browse}:{settings.API_PORT}"
         supervisor.start()
         print(f"svrobs: API on {url} - waiting for it and the worker to be ready", flush=True)
         started = time.monotonic()
@@ -394,13 +387,38 @@ def serve(
                     announced = True
             time.sleep(0.3)
     finally:
-        print("svrobs: stopping", flush=True)
+        if supervisor is not None or stopping:
+            print("svrobs: stopping", flush=True)
         if key and not announced:  # the key is shown once: before it is lost
             print(f"svrobs: admin API key (shown once): {key}", flush=True)
-        supervisor.stop(grace)
+        if supervisor is not None:
+            supervisor.stop(grace)
         for s, h in old.items():
             signal.signal(s, h)
     return 0
+
+
+def _children(
+    settings: Settings, *, workers: int, concurrency: int, beat: bool, grace: float
+) -> list[Child]:
+    """The stack's processes (API, workers, beat), each under the guard."""
+    extra = {}
+    if workers > 0:
+        pids = pid_dir(settings)
+        pids.mkdir(parents=True, exist_ok=True)
+        extra["SVROBS_WORKER_PID_DIR"] = str(pids)
+    if "SVROBS_WORKER_POOL_PROCESSES" not in os.environ and workers > 0:
+        # the fair share follows the pool these workers make (unless set for a
+        # pool that spans other hosts too)
+        extra["SVROBS_WORKER_POOL_PROCESSES"] = str(workers * concurrency)
+    env = child_env(settings, extra)
+    children = []
+    for name, argv in child_commands(
+        settings, workers=workers, concurrency=concurrency, beat=beat, pid_files=workers > 0
+    ):
+        pidfile = Path(argv[argv.index("--pidfile") + 1]) if "--pidfile" in argv else None
+        children.append(Child(name, guarded(argv, grace), env, pidfile=pidfile))
+    return children
 
 
 def _redact(url: str) -> str:

@@ -155,3 +155,32 @@ def test_the_guard_kills_a_hung_child_after_its_parent_dies(tmp_path):
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def test_a_stop_during_the_migration_starts_nothing(tmp_path, monkeypatch, capsys):
+    """SIGINT while ``svrobs serve`` migrates, with the KeyboardInterrupt it used to
+    raise swallowed as a finalizer running at that moment would: the migration ends,
+    no process starts, the new admin key is still printed, the handlers are restored."""
+    from service.config import Settings
+    from svrobs_cli import serve as serve_mod
+
+    def migrate(_settings):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # the handler has run by now
+        except KeyboardInterrupt:  # what a finalizer does with it
+            pass
+
+    def start(_self):
+        raise AssertionError("the stack started after the stop")
+
+    monkeypatch.setattr(serve_mod, "check_port", lambda _host, _port: None)
+    monkeypatch.setattr(serve_mod, "migrate", migrate)
+    monkeypatch.setattr(serve_mod, "bootstrap_admin", lambda _s: "svr_new_key")
+    monkeypatch.setattr(Supervisor, "start", start)
+    before = signal.getsignal(signal.SIGINT)
+    settings = Settings(DATABASE_URL=f"sqlite:///{tmp_path / 'x.db'}", VAR_DIR=str(tmp_path))
+    assert serve_mod.serve(settings, grace=0.1) == 0
+    assert signal.getsignal(signal.SIGINT) is before
+    out = capsys.readouterr().out
+    assert "svrobs: stopping" in out and "admin API key (shown once): svr_new_key" in out
