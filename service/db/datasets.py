@@ -20,7 +20,7 @@ from sqlalchemy.orm import Session, defer, joinedload
 
 from svrobs_core.measured import check_against_data
 from svrobs_core.workload import DataShape
-from svrobs_lab.errors import DatasetInUse, DatasetNotFound
+from svrobs_lab.errors import DatasetInUse, DatasetNotFound, NotFound
 
 from .models import Dataset, DatasetChunk, Job
 
@@ -162,7 +162,8 @@ def iter_chunks(session: Session, dataset_id: int, part: str = "file") -> Iterat
         data = session.scalar(
             select(c.data).where(c.dataset_id == dataset_id, c.part == part, c.seq == seq)
         )
-        assert data is not None  # listed above (unless the dataset is deleted meanwhile)
+        if data is None:  # listed above: the dataset was deleted meanwhile
+            raise NotFound(f"dataset {dataset_id} was deleted while it was read")
         yield data
 
 
