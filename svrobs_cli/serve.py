@@ -41,6 +41,7 @@ import typer
 
 from service import worker_pids
 from service.config import Settings, default_pool_processes, get_settings
+from svrobs_cli import signals as early_signals
 from svrobs_cli.errors import CliError
 from svrobs_cli.processes import Child, Supervisor, guarded
 from svrobs_core.threads import THREAD_ENV
@@ -339,9 +340,10 @@ def serve(
     """Run the stack in the foreground until Ctrl-C or SIGTERM; a child that exits is
     restarted (svrobs_cli.processes.Supervisor). Returns the exit status.
 
-    The signal handlers are set before any work: a stop during the migration lets it
-    finish and starts nothing (a KeyboardInterrupt raised there could be swallowed by a
-    finalizer that happens to run, and the stack would start regardless)."""
+    The signal handlers are set before any work, and a stop that came before them
+    (:mod:`svrobs_cli.signals`) counts: a stop during the imports or the migration
+    starts nothing (a KeyboardInterrupt raised there can be swallowed by a library's
+    bare ``except`` or a finalizer, and the stack would start regardless)."""
     stopping: list[int] = []
     children: list[Child] = []
 
@@ -352,10 +354,13 @@ def serve(
                 c.signal(signal.SIGKILL, group=True)
 
     old = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    stopping += early_signals.RECEIVED  # a stop before these handlers were set
     key: str | None = None
     supervisor: Supervisor | None = None
     announced = False
     try:
+        if stopping:
+            return 0
         settings = settings or get_settings()
         check_port(settings.API_HOST, settings.API_PORT)
         prepare_dirs(settings)

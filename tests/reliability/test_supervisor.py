@@ -184,3 +184,26 @@ def test_a_stop_during_the_migration_starts_nothing(tmp_path, monkeypatch, capsy
     assert signal.getsignal(signal.SIGINT) is before
     out = capsys.readouterr().out
     assert "svrobs: stopping" in out and "admin API key (shown once): svr_new_key" in out
+
+
+def test_a_stop_during_the_imports_of_serve_starts_nothing(tmp_path):
+    """``svrobs serve`` keeps a SIGINT that arrives before its handlers are set (here
+    sent right after the entry point's first line) and starts nothing: exit 0, no
+    process started, nothing migrated."""
+    code = (
+        "import os, signal, sys\n"
+        "sys.argv = ['svrobs', 'serve', '--port', '1']\n"
+        "from svrobs_cli.signals import record_early\n"
+        "record_early()\n"
+        "os.kill(os.getpid(), signal.SIGINT)  # before svrobs_cli.app is imported\n"
+        "from svrobs_cli.__main__ import main\n"
+        "main()\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SVROBS_")}
+    env.update(SVROBS_DATABASE_URL=f"sqlite:///{tmp_path / 'x.db'}", SVROBS_VAR_DIR=str(tmp_path))
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    assert "svrobs: stopping" in done.stdout and "started" not in done.stdout + done.stderr
+    assert not (tmp_path / "x.db").exists()
