@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -30,12 +31,24 @@ import pytest
 from tests.service.svc_helpers import TINY_SPEC
 
 from .conftest import _stack_params
-from .stack import API, Stack, submit
+from .stack import API, Stack, free_port, submit
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(600)]
 
 BUILT = "built the report of job"
 STARTED = "building the report of job"
+# the API (as svrobs serve runs it) with every report build 3 s longer
+SLOW_API = """
+import sys, time
+import uvicorn
+import svrobs_lab.reports as reports
+render = reports._render
+def slow(job, cols):
+    time.sleep(3)
+    return render(job, cols)
+reports._render = slow
+uvicorn.run("service.app:app", host="127.0.0.1", port=int(sys.argv[1]), access_log=False)
+"""
 
 
 @pytest.fixture(scope="module", params=_stack_params())
@@ -106,17 +119,24 @@ def test_concurrent_reports_build_once_and_leave_other_teams_alone(lab):
     # the same progress: kept, no build
     assert a.get(f"/jobs/{jid}/report", timeout=60).text in pages
     assert _builds(lab) - before == 1
-    # two other jobs build at once; a third of the same team is refused meanwhile
+    # two other jobs build at once; a third of the same team is refused meanwhile (on
+    # an API whose builds each take 3 s more: a queued job's report has no records to
+    # read or draw, and is built in milliseconds)
     more = [submit(a, {**TINY_SPEC, "seed": s})["id"] for s in (11, 12, 13)]
-    started = _log(lab).count(STARTED)
-    with ThreadPoolExecutor(3) as pool:
-        first = [pool.submit(a.get, f"/jobs/{j}/report", timeout=120) for j in more[:2]]
-        lab.wait_log("api", STARTED, count=started + 2)  # both builds are running
-        third = a.get(f"/jobs/{more[2]}/report", timeout=120)
+    port = free_port()
+    lab.start("api-slow", [sys.executable, "-c", SLOW_API, str(port)])
+    slow = f"http://127.0.0.1:{port}"
+    lab.wait_http(slow + "/readyz", "api-slow")
+    c = httpx.Client(base_url=slow + API, headers=a.headers, timeout=120)
+    with c, ThreadPoolExecutor(3) as pool:
+        first = [pool.submit(c.get, f"/jobs/{j}/report") for j in more[:2]]
+        lab.wait_log("api-slow", STARTED, count=2)  # both builds are running
+        third = c.get(f"/jobs/{more[2]}/report")
         done = [f.result() for f in first]
     assert [r.status_code for r in done] == [200, 200]
     assert third.status_code == 429 and int(third.headers["retry-after"]) >= 1, third.text
     assert "REPORT_BUILDS_PER_TEAM" in third.json()["detail"]
+    lab.stop("api-slow")
 
 
 def _sign_in(base: str, key: str) -> httpx.Client:
