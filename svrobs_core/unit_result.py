@@ -26,9 +26,11 @@ from .planning import EstimatorAxis
 from .records import (
     CELL_FIELDS,
     COLUMN_MATRIX_FIELDS,
+    GROUP_FIELDS,
     MATRIX_FIELDS,
     RECORD_FIELDS,
     SCALAR_FIELDS,
+    SUMMARY_FIELDS,
     TEXT_FIELDS,
     json_value,
 )
@@ -53,6 +55,16 @@ def _values(arr: ArrayLike, RE: int) -> list[Any]:
     for i in np.flatnonzero(bad).tolist():
         out[i] = json_value(arr[i])
     return out
+
+
+def _floats(arr: ArrayLike, RE: int) -> Array:
+    """An (R, E) scalar field -> its RE values as floats in cell order, NaN where the
+    record holds null (None, NaN or an infinity); booleans as 0/1."""
+    flat = _flat(arr, RE)
+    if flat.dtype == object:
+        flat = np.array([np.nan if v is None else float(v) for v in flat.tolist()])
+    x = flat.astype(float)
+    return np.where(np.isfinite(x), x, np.nan)
 
 
 def _broadcast_row(arr: ArrayLike) -> Array | None:
@@ -258,6 +270,30 @@ class UnitResult:
             cols["notes"] = ds.notes.reshape(RE).tolist()
             for f in out:
                 out[f].extend(cols[f])
+        return out
+
+    def summary_columns(self) -> dict[str, Any]:
+        """{field: values in record order} of the group fields (lists) and the summary
+        fields (float arrays, NaN where a record holds null): what
+        :func:`~svrobs_core.records.summarize_columns` reads, built from the arrays
+        without a Python value per cell (docs/spec.md#summaries)."""
+        R, E = len(self.reps), len(self.axis.names)
+        RE = R * E
+        n = RE * len(self.datasets)
+        out: dict[str, Any] = {
+            "system": [self.system] * n,
+            "sigma_w": [self.sigma_w] * n,
+            "N": [ds.N for ds in self.datasets for _ in range(RE)],
+            "estimator": self.axis.names * (R * len(self.datasets)),
+            "gamma": self.axis.gammas * (R * len(self.datasets)),
+        }
+        assert tuple(out) == GROUP_FIELDS
+        for f in SUMMARY_FIELDS:
+            parts = [
+                np.full(RE, np.nan) if (v := ds.fields.get(f)) is None else _floats(v, RE)
+                for ds in self.datasets
+            ]
+            out[f] = np.concatenate(parts) if parts else np.empty(0)
         return out
 
     def matrix_blocks(self) -> list[dict[str, Array | None]]:

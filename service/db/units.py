@@ -111,8 +111,8 @@ def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | Unit
     to_store: Sequence[dict] | UnitResult | UnitColumns = records
     if isinstance(records, UnitResult):
         to_store = unit_columns(records)
-        if to_store.whole_groups:
-            groups = summarize_columns(to_store.columns)
+        if to_store.whole_groups:  # from the unit's arrays, not its stored values
+            groups = summarize_columns(records.summary_columns())
     unit = _lock_unit(session, unit_id)
     if unit is None or unit.status in ("cancelled", "failed"):
         return False  # cancelled while it ran (its job cancelled or failed)

@@ -81,3 +81,55 @@ def test_summarize_columns_equals_summarize_of_records():
     cols = {f: (np.array(v, dtype=object) if f == "system" else v) for f, v in cols.items()}
     assert summarize_columns(cols) == summarize(recs)
     assert summarize([]) == []
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [
+        {
+            "systems": ["paper-stable", "paper-unstable"],
+            "sigma_w": [0.1],
+            "N": [5, 20],
+            "reps": 9,
+            "gamma": [0.01, 0.1],
+            "stages": ["estimate", "bounds", "gain", "cost", "cost_bound"],
+            "mc_reps": 3,
+            "seed": 3,
+        },
+        # overflowing means and standard deviations (null with a note)
+        {
+            "systems": ["paper-stable"],
+            "sigma_w": [1e100],
+            "N": [5],
+            "reps": 2,
+            "stages": ["estimate", "bounds", "gain", "cost"],
+            "horizon": 20,
+            "mc_reps": 0,
+        },
+        # N = 1 with final data: undefined estimates and bounds (nulls), booleans
+        {
+            "systems": ["paper-stable"],
+            "sigma_w": [0.0],
+            "N": [1, 3],
+            "reps": 5,
+            "data": "final",
+            "estimators": ["ols", "shrunk-ols", "svr"],
+            "stages": ["estimate", "bounds", "gain"],
+            "bounds_method": "self-normalized",
+        },
+    ],
+)
+def test_a_units_summaries_from_its_arrays_equal_those_of_its_records(spec):
+    """The worker summarises a unit from its arrays (UnitResult.summary_columns), and
+    a job split by repetitions from its records: the same numbers, to the bit."""
+    import json
+
+    from svrobs_core import parse_spec
+    from svrobs_core.planning import plan_units
+    from svrobs_core.runner import run_unit_result
+
+    parsed = parse_spec(spec)
+    for unit in plan_units(parsed):
+        result = run_unit_result(parsed, unit)
+        want = summarize(result.records())
+        assert json.dumps(summarize_columns(result.summary_columns())) == json.dumps(want)
