@@ -9,6 +9,7 @@ tails are printed when a wait times out.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import math
 import os
@@ -34,27 +35,58 @@ API = "/api/v1"
 READY_TIMEOUT = 90.0
 
 
-# Ports for test servers come from a block of their own per pytest-xdist worker, below
-# the kernel's ephemeral range (32768-60999), so that neither the other worker nor an
-# outgoing connection's source port can take a port between this check and the
-# server's bind (a port asked of the kernel with bind(0) could be handed out again).
-_PORT_BLOCK = 3000
-_PORT_BASE = 20000 + _PORT_BLOCK * int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0)
-_next_port = [_PORT_BASE + os.getpid() % _PORT_BLOCK]
+# Ports for test servers come from a block of their own per test process, below the
+# kernel's ephemeral range (32768-60999), so that an outgoing connection's source port
+# cannot take a port between this check and the server's bind (a port asked of the
+# kernel with bind(0) could be handed out again). A process claims the first block no
+# other process on the machine holds (an flock on the block's file, held while the
+# process lives): the xdist workers of one suite, a second suite or `make test-faults`
+# beside it never draw the same ports.
+_PORT_FIRST = 20000
+_PORT_BLOCK = 1000
+_PORT_BLOCKS = 12  # 20000-31999
+_block: list = []  # [its first port, the open lock file] once claimed
+
+
+def _claim_block() -> int:
+    if not _block:
+        folder = Path(os.environ.get("TMPDIR", "/tmp")) / "svrobs-test-ports"
+        folder.mkdir(exist_ok=True)
+        for k in range(_PORT_BLOCKS):
+            f = open(folder / f"block-{k}.lock", "w")  # noqa: SIM115 - held while we live
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                f.close()
+                continue
+            _block.extend([_PORT_FIRST + k * _PORT_BLOCK, f])
+            _next_port.append(_block[0] + os.getpid() % _PORT_BLOCK)
+            break
+        else:
+            raise RuntimeError(f"all {_PORT_BLOCKS} test port blocks are held ({folder})")
+    return _block[0]
+
+
+_next_port: list[int] = []
 
 
 def free_port() -> int:
-    """A loopback port that nothing listens on, from this worker's block."""
+    """A loopback port that nothing listens on, from this process's block."""
+    base = _claim_block()
     for _ in range(_PORT_BLOCK):
         port = _next_port[0]
-        _next_port[0] = _PORT_BASE + (port + 1 - _PORT_BASE) % _PORT_BLOCK
+        _next_port[0] = base + (port + 1 - base) % _PORT_BLOCK
         with socket.socket() as s:
             try:
                 s.bind(("127.0.0.1", port))
             except OSError:
                 continue
             return port
-    raise RuntimeError(f"no free port in {_PORT_BASE}-{_PORT_BASE + _PORT_BLOCK - 1}")
+    raise RuntimeError(f"no free port in {base}-{base + _PORT_BLOCK - 1}")
+
+
+class PortTaken(AssertionError):
+    """The server could not bind its port: another process took it after the check."""
 
 
 def _with_search_path(url: str, schema: str) -> str:
@@ -197,13 +229,20 @@ class Stack:
             child.stop(grace)
 
     def start_api(self, name: str = "api", env: dict | None = None, wait: str = "/readyz") -> str:
-        port = free_port()
-        self.start(name, api_command("127.0.0.1", port), env)
-        url = f"http://127.0.0.1:{port}"
-        self.wait_http(url + wait, name)
-        if name == "api":
-            self.base_url = url
-        return url
+        for attempt in range(3):
+            port = free_port()
+            self.start(name, api_command("127.0.0.1", port), env)
+            url = f"http://127.0.0.1:{port}"
+            try:
+                self.wait_http(url + wait, name)
+            except PortTaken:
+                if attempt == 2:
+                    raise
+                continue  # taken between the check and the bind: another port
+            if name == "api":
+                self.base_url = url
+            return url
+        raise AssertionError("unreachable")
 
     def start_worker(
         self, name: str = "worker1", concurrency: int = 1, env: dict | None = None
@@ -219,12 +258,23 @@ class Stack:
         return self.start(name, beat_command(self.root / f"{name}-schedule"), env)
 
     def wait_http(self, url: str, name: str, timeout: float = READY_TIMEOUT) -> None:
+        """Until the uvicorn child ``name`` has bound the port of ``url`` (its log says
+        so: a 200 from another process on that port does not count) and answers 200.
+        PortTaken when it could not bind."""
         deadline = time.monotonic() + timeout
         last = None
+        bound = f"running on http://127.0.0.1:{urlsplit(url).port} "
+        log = self.logs / f"{name}.log"
         while time.monotonic() < deadline:
             child = self.children[name]
             if child.poll() is not None:
-                raise AssertionError(f"{name} exited ({child.poll()}):\n{self.log_tail(name)}")
+                tail = self.log_tail(name)
+                error = PortTaken if "address already in use" in tail else AssertionError
+                raise error(f"{name} exited ({child.poll()}):\n{tail}")
+            if not log.exists() or bound not in log.read_text(errors="replace"):
+                last = "not bound yet"
+                time.sleep(0.2)
+                continue
             try:
                 r = httpx.get(url, timeout=2)
                 if r.status_code == 200:
