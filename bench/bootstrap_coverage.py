@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from svrobs_core.runner import run_spec
-from svrobs_core.spec import parse_spec
+from svrobs_core.parsing import parse_spec
 
 SYSTEMS = [
     "paper-stable",
