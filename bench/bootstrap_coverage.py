@@ -17,8 +17,8 @@ import math
 
 import numpy as np
 
-from svrobs_core.runner import run_spec
 from svrobs_core.parsing import parse_spec
+from svrobs_core.runner import run_spec
 
 SYSTEMS = [
     "paper-stable",

@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from svrobs_core import estimators as est
+from svrobs_core.parsing import parse_spec
 from svrobs_core.rollouts import gram_data
 from svrobs_core.runner import run_spec
 from svrobs_core.seeding import seed_key
-from svrobs_core.parsing import parse_spec
 
 sys.path.append(str(Path(__file__).resolve().parents[1]))
 from tests.core.exact_boxes import FASTSLOW, PAPER_T900, exact_box  # noqa: E402
