@@ -10,6 +10,7 @@ tails are printed when a wait times out.
 from __future__ import annotations
 
 import fcntl
+import functools
 import json
 import math
 import os
@@ -45,29 +46,27 @@ READY_TIMEOUT = 90.0
 _PORT_FIRST = 20000
 _PORT_BLOCK = 1000
 _PORT_BLOCKS = 12  # 20000-31999
-_block: list = []  # [its first port, the open lock file] once claimed
+_next_port: list[int] = []  # the next port to try, once the block is claimed
+_held_locks: list = []  # the claimed block's lock file, open while this process lives
 
 
+@functools.cache
 def _claim_block() -> int:
-    if not _block:
-        folder = Path(os.environ.get("TMPDIR", "/tmp")) / "svrobs-test-ports"
-        folder.mkdir(exist_ok=True)
-        for k in range(_PORT_BLOCKS):
-            f = open(folder / f"block-{k}.lock", "w")  # noqa: SIM115 - held while we live
-            try:
-                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                f.close()
-                continue
-            _block.extend([_PORT_FIRST + k * _PORT_BLOCK, f])
-            _next_port.append(_block[0] + os.getpid() % _PORT_BLOCK)
-            break
-        else:
-            raise RuntimeError(f"all {_PORT_BLOCKS} test port blocks are held ({folder})")
-    return _block[0]
-
-
-_next_port: list[int] = []
+    """The first port of this process's block (its lock file stays open while we live)."""
+    folder = Path(os.environ.get("TMPDIR", "/tmp")) / "svrobs-test-ports"
+    folder.mkdir(exist_ok=True)
+    for k in range(_PORT_BLOCKS):
+        lock = open(folder / f"block-{k}.lock", "w")  # noqa: SIM115 - held while we live
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            lock.close()
+            continue
+        _held_locks.append(lock)
+        base = _PORT_FIRST + k * _PORT_BLOCK
+        _next_port.append(base + os.getpid() % _PORT_BLOCK)
+        return base
+    raise RuntimeError(f"all {_PORT_BLOCKS} test port blocks are held ({folder})")
 
 
 def free_port() -> int:
