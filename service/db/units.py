@@ -117,7 +117,10 @@ def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | Unit
     if unit is None or unit.status in ("cancelled", "failed"):
         return False  # cancelled while it ran (its job cancelled or failed)
     stored = upsert_results(session, unit.job_id, to_store)
-    if stored["system"] and _whole_groups(session, unit):  # every repetition of its groups
+    whole = to_store.whole_groups if isinstance(to_store, UnitColumns) else None
+    if whole is None and stored["system"]:  # not known from the result: the job's spec
+        whole = _whole_groups(session, unit)
+    if stored["system"] and whole:  # every repetition of its groups
         scope = (stored["system"][0], stored["sigma_w"][0], sorted(set(stored["N"])))
         if groups is None:
             groups = summarize_columns(stored)

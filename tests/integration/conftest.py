@@ -40,8 +40,7 @@ def stack(request, tmp_path_factory):
     st = Stack(request.param, tmp_path_factory.mktemp(f"stack-{request.param}"))
     try:
         st.setup()
-        st.start_api()
-        st.start_worker()
+        st.start_api_and_worker()
         yield st
     finally:
         st.teardown()

@@ -250,6 +250,12 @@ class Stack:
         self.wait_log(name, "ready.")
         return child
 
+    def start_api_and_worker(self, concurrency: int = 1) -> None:
+        """The API and ``worker1``, started at once (each waits on its own imports)."""
+        self.start("worker1", worker_command("worker1", concurrency))
+        self.start_api()
+        self.wait_log("worker1", "ready.")
+
     def start_beat(
         self, name: str = "beat", tick_seconds: float = 1.0, env: dict | None = None
     ) -> Child:

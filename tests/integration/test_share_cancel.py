@@ -46,8 +46,7 @@ def stack(tmp_path_factory):
     st = Stack("embedded", tmp_path_factory.mktemp("share-cancel"))
     try:
         st.setup()
-        st.start_api()
-        st.start_worker(concurrency=DEFAULT_CONCURRENCY)
+        st.start_api_and_worker(concurrency=DEFAULT_CONCURRENCY)
         yield st
     finally:
         st.teardown()

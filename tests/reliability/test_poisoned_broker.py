@@ -52,8 +52,7 @@ def stack(tmp_path, request):
     st = Stack("embedded", tmp_path)
     request.addfinalizer(st.teardown)
     st.setup()
-    st.start_api()
-    st.start_worker()
+    st.start_api_and_worker()
     return st
 
 

@@ -66,3 +66,38 @@ def test_broker_publisher_makes_one_app_on_first_use(tmp_path):
 def test_publish_with_broker_down_returns_quickly():
     app = make_celery(Settings(BROKER_URL="redis://127.0.0.1:1/0", BROKER_TIMEOUT=0.5))
     assert publish_units(app, [1, 2]) == []
+
+
+def _drain_polls(tmp_path, monkeypatch, timeout: float) -> int:
+    """How many times a consumer of an empty queue polls it in ``drain_events(timeout)``."""
+    from kombu import Exchange, Queue
+
+    from service import file_broker
+
+    polls = []
+    real_get = file_broker.Channel._get
+
+    def counted(self, queue):
+        polls.append(queue)
+        return real_get(self, queue)
+
+    monkeypatch.setattr(file_broker.Channel, "_get", counted)
+    app = make_celery(
+        Settings(BROKER_URL="filesystem://", BROKER_DIR=str(tmp_path), BROKER_POLL_SECONDS=0.02)
+    )
+    queue = Queue("t", Exchange("t", type="direct"), routing_key="t")
+    with app.connection_for_write() as conn, conn.Consumer(queue, callbacks=[]):
+        with pytest.raises(TimeoutError):
+            conn.drain_events(timeout=timeout)
+    return len(polls)
+
+
+@pytest.mark.timeout(60)
+def test_a_stopping_worker_stops_waiting_for_messages_at_the_next_poll(tmp_path, monkeypatch):
+    """Celery's loop for the filesystem broker waits 2 s per call: a worker told to stop
+    gives up after one polling interval instead of the whole wait."""
+    from celery.worker import state
+
+    assert _drain_polls(tmp_path / "a", monkeypatch, 0.3) >= 4  # the whole wait, polled
+    monkeypatch.setattr(state, "should_stop", 0)  # what a worker's SIGTERM handler sets
+    assert _drain_polls(tmp_path / "b", monkeypatch, 50.0) <= 3  # not 2,500 polls
