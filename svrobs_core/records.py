@@ -182,6 +182,8 @@ def stat_entry(mean: float, std: float, count: int) -> dict[str, Any]:
     """One field's summary of a group; a mean or std that is not a finite double is
     null, with a note (docs/spec.md#summaries)."""
     entry: dict[str, Any] = {"mean": mean, "std": std, "count": count}
+    if math.isfinite(mean) and math.isfinite(std):
+        return entry
     bad = [k for k in ("mean", "std") if not math.isfinite(entry[k])]
     if bad:
         for k in bad:
@@ -232,10 +234,9 @@ def summarize_columns(columns: dict[str, Any]) -> list[dict[str, Any]]:
     keys = list(zip(*(columns[g] for g in GROUP_FIELDS)))
     if not keys:
         return []
-    index: dict[tuple[Any, ...], int] = {}
-    gid = np.fromiter(
-        (index.setdefault(k, len(index)) for k in keys), dtype=np.intp, count=len(keys)
-    )
+    # the groups in the order they first appear, each record's group by a C-level map
+    index = {k: i for i, k in enumerate(dict.fromkeys(keys))}
+    gid = np.fromiter(map(index.__getitem__, keys), dtype=np.intp, count=len(keys))
     order = np.argsort(gid, kind="stable")
     sizes = np.bincount(gid, minlength=len(index))
     starts = np.concatenate(([0], np.cumsum(sizes)[:-1]))
