@@ -41,10 +41,11 @@ from .columns import STAGE_FIELDS, Columns, as_columns
 from .cost_figures import fig4, fig5, fig_certified
 from .derived import cost_ratio_of_means, first_stable_certified, svr_ols_diff
 from .entry_figures import fig2, fig3
+from .figure_files import figure_bytes
 from .figures import fig_coverage, fig_rmse, fig_svr_ols_diff
 from .findings import findings
 from .markdown import render_markdown, spec_json
-from .plotting import figure_bytes, figure_csv
+from .plotting import figure_csv
 from .series import (
     FIGURE_SERIES,
     FigureSeries,

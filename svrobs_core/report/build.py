@@ -13,9 +13,10 @@ from .audit import audit_findings, audit_rows, audit_sources, fig_bounds_audit
 from .columns import Columns, as_columns, spec_meta
 from .cost_figures import fig4, fig5, fig_certified
 from .entry_figures import fig2, fig3
+from .figure_files import figure_bytes
 from .figures import fig_coverage, fig_rmse, fig_svr_ols_diff
 from .findings import findings
-from .plotting import figure_bytes, figure_csv
+from .plotting import figure_csv
 from .tables import table2
 
 if TYPE_CHECKING:

@@ -1,8 +1,8 @@
 """Figure plumbing shared by every figure: a headless (Agg) Figure at print size,
 lines that record what they plot (the figure's CSV), value axes (log for
 positive data, symlog sized to the data where it changes sign), identical
-curves drawn once, difference panels, legends, notes, and rendering to
-PNG/SVG/PDF bytes.
+curves drawn once, difference panels, legends, notes and the figure's CSV
+(its PNG, SVG and PDF bytes: :mod:`.figure_files`).
 
 Each Figure made by :func:`new_figure` carries ``svrobs_rows`` (every plotted
 curve: panel, series, quantity, x, y, in drawing order) and ``svrobs_notes``
@@ -24,7 +24,7 @@ import numpy as np
 
 from ..array_types import Array, FloatArray
 from .columns import STAGE_FIELDS, Columns, Meta
-from .style import NEUTRAL, REFERENCE, figure_style
+from .style import NEUTRAL, REFERENCE
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -490,19 +490,4 @@ def figure_csv(fig: Figure) -> str:
             w.writerow(
                 (panel, series, quantity, repr(xv), "" if not math.isfinite(yv) else repr(yv))
             )
-    return buf.getvalue()
-
-
-FORMATS = ("png", "svg", "pdf")
-
-
-def figure_bytes(fig: Figure, fmt: str = "png", dpi: int = 200) -> bytes:
-    """Render a Figure to PNG, SVG or PDF bytes in memory (deterministic
-    metadata; PDF with embedded TrueType fonts, SVG text as text)."""
-    if fmt not in FORMATS:
-        raise ValueError(f"fmt must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    buf = io.BytesIO()
-    meta = {"png": {"Software": None}, "svg": {"Date": None}, "pdf": {"CreationDate": None}}
-    with figure_style():
-        fig.savefig(buf, format=fmt, dpi=dpi, metadata=meta[fmt])
     return buf.getvalue()

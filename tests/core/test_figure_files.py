@@ -1,0 +1,72 @@
+"""A figure's PNG (a palette of at most 256 colours) against matplotlib's own RGBA
+PNG of the same figure: the same size, the same pixels up to the quantizer's
+rounding; a figure with transparency keeps its alpha exactly (docs/performance.md#figure-files)."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from svrobs_core.report.figure_files import figure_bytes, palette_png
+from svrobs_core.report.plotting import new_figure
+from svrobs_core.report.style import figure_style
+
+
+def _figure():
+    fig, axes = new_figure(1, 2, (6.0, 2.5))
+    x = np.linspace(0.0, 10.0, 300)
+    for ax in np.ravel(axes):
+        for k in range(6):
+            ax.plot(x, np.sin(x + k) * (1 + k), label=f"series {k}")
+        ax.set_title("panel")
+        ax.legend(fontsize=6)
+    return fig
+
+
+def _matplotlib_png(fig, **kwargs) -> Image.Image:
+    buf = io.BytesIO()
+    with figure_style():
+        fig.savefig(buf, format="png", dpi=200, **kwargs)
+    return Image.open(buf)
+
+
+def test_the_png_is_matplotlibs_image_in_a_palette():
+    fig = _figure()
+    ours = Image.open(io.BytesIO(figure_bytes(fig, "png")))
+    ref = _matplotlib_png(fig)
+    assert ours.format == "PNG" and ours.mode == "P" and ours.size == ref.size
+    assert len(ours.getcolors(256) or []) <= 256
+    a = np.asarray(ours.convert("RGB"), dtype=int)
+    b = np.asarray(ref.convert("RGB"), dtype=int)
+    err = np.abs(a - b).max(axis=2)
+    assert np.abs(a - b).mean() < 3.0  # of 255
+    assert np.mean(err > 24) < 0.002  # the antialiasing's rarest shades move most
+    # the background's white and the text's black stay exact
+    for pure in (0, 255):
+        where = (b == pure).all(axis=2)
+        assert where.any() and (a[where] == pure).all()
+    assert figure_bytes(fig, "png") == figure_bytes(fig, "png")  # deterministic
+
+
+def test_a_transparent_figure_keeps_its_alpha_exactly():
+    fig = _figure()
+    fig.patch.set_alpha(0.0)
+    ours = Image.open(io.BytesIO(figure_bytes(fig, "png")))
+    buf = io.BytesIO()
+    with figure_style():
+        fig.savefig(buf, format="rgba", dpi=200)
+    assert ours.mode == "RGBA"
+    w, h = ours.size
+    assert np.array_equal(
+        np.asarray(ours), np.frombuffer(buf.getvalue(), np.uint8).reshape(h, w, 4)
+    )
+
+
+def test_raw_bytes_that_are_not_whole_rows_are_refused():
+    with pytest.raises(ValueError, match="not rows of 3 pixels"):
+        palette_png(bytes(4 * 3 * 2 + 4), 3)
+    with pytest.raises(ValueError, match="fmt must be one of png, svg, pdf"):
+        figure_bytes(_figure(), "gif")
