@@ -28,9 +28,9 @@ import os
 import socket
 import uuid
 from queue import Empty
-from time import monotonic, monotonic_ns
+from time import monotonic, monotonic_ns, sleep
 
-from celery.worker import state as worker_state
+from celery.worker import state
 from kombu.exceptions import ChannelError
 from kombu.transport import filesystem
 from kombu.utils.encoding import bytes_to_str, str_to_bytes
@@ -170,25 +170,29 @@ class Channel(filesystem.Channel):
 
 
 def _stopping() -> bool:
-    """Whether this process is a Celery worker that was told to stop (warm or cold)."""
-    return worker_state.should_stop is not None or worker_state.should_terminate is not None
+    """Whether this process is a Celery worker that was told to stop (warm or cold),
+    read as ``celery.worker.state.maybe_shutdown`` reads it."""
+    flags = (state.should_stop, state.should_terminate)  # an exit code: 0 is a stop
+    return any(flag is not None and flag is not False for flag in flags)
 
 
 class Transport(filesystem.Transport):
     Channel = Channel
 
     def drain_events(self, connection, timeout=None):
-        """Wait up to ``timeout`` s for a message as kombu does, in waits of one
-        polling interval, and give up after the first one that ends while the
-        worker is stopping (``socket.timeout``, what the worker's loop expects)."""
+        """Kombu's wait for a message (poll, sleep one polling interval, poll again
+        until ``timeout``), which also gives up (``socket.timeout``, what the worker's
+        loop expects) after a poll that finds nothing once the worker is stopping."""
         step = self.polling_interval
-        if timeout is None or not step or timeout <= step:
+        if timeout is None or not step:
             return super().drain_events(connection, timeout=timeout)
         deadline = monotonic() + timeout
         while True:
             try:
-                return super().drain_events(connection, timeout=min(step, timeout))
-            except socket.timeout:
-                if _stopping() or monotonic() >= deadline:
-                    raise
-                timeout = deadline - monotonic()
+                self.cycle.get(self._deliver, timeout=timeout)
+                return None
+            except Empty:
+                left = deadline - monotonic()
+                if left <= 0 or _stopping():
+                    raise socket.timeout() from None
+                sleep(min(step, left))

@@ -4,7 +4,9 @@
 The PNG is the Agg rendering reduced to a palette of at most 256 colours (Pillow's
 fast octree quantizer): a plot has few colours beyond its antialiasing, so the file
 is about a third of the RGBA one matplotlib writes and takes less time to encode
-(one byte per pixel to compress instead of four); white and black stay exact. SVG keeps text as text; PDF
+(one byte per pixel to compress instead of four). A palette colour within 2
+levels of white or black is set to it, so the background and the text stay exact
+unless a large near-white area shares their bucket. SVG keeps text as text; PDF
 embeds its TrueType fonts."""
 
 from __future__ import annotations
@@ -32,29 +34,38 @@ def figure_bytes(fig: Figure, fmt: str = "png", dpi: int = 200) -> bytes:
     meta = {"svg": {"Date": None}, "pdf": {"CreationDate": None}}
     with figure_style():
         if fmt == "png":
+            from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+            # an unpickled Figure has a base canvas: draw on an Agg one, whose
+            # renderer then holds the pixels' size (whatever savefig's rc crops)
+            canvas = fig.canvas if isinstance(fig.canvas, FigureCanvasAgg) else FigureCanvasAgg(fig)
             fig.savefig(buf, format="rgba", dpi=dpi)
-            return palette_png(buf.getvalue(), int(fig.get_figwidth() * dpi))
+            size = (int(canvas.renderer.width), int(canvas.renderer.height))
+            return palette_png(buf.getvalue(), size, dpi)
         fig.savefig(buf, format=fmt, dpi=dpi, metadata=meta[fmt])
     return buf.getvalue()
 
 
-def palette_png(rgba: bytes, width: int) -> bytes:
-    """PNG bytes of a raw RGBA image ``width`` pixels wide: RGB reduced to a palette of
-    ``PNG_COLOURS`` colours when every pixel is opaque, else RGBA as it is."""
+def palette_png(rgba: bytes, size: tuple[int, int], dpi: int) -> bytes:
+    """PNG bytes (``dpi`` recorded) of a raw RGBA image of ``size`` = (width, height)
+    pixels: RGB reduced to a palette of ``PNG_COLOURS`` colours when every pixel is
+    opaque, else RGBA as it is."""
     from PIL import Image
 
+    width, height = size
     pixels = np.frombuffer(rgba, dtype=np.uint8)
-    if width <= 0 or pixels.size % (4 * width):
-        raise ValueError(f"{pixels.size} RGBA bytes are not rows of {width} pixels")
-    image = Image.frombuffer("RGBA", (width, pixels.size // (4 * width)), rgba, "raw", "RGBA", 0, 1)
+    if width <= 0 or height <= 0 or pixels.size != 4 * width * height:
+        raise ValueError(f"{pixels.size} RGBA bytes are not {width} x {height} pixels")
+    image = Image.frombuffer("RGBA", (width, height), rgba, "raw", "RGBA", 0, 1)
     if pixels[3::4].min(initial=255) == 255:
         image = image.convert("RGB").quantize(PNG_COLOURS, method=Image.Quantize.FASTOCTREE)
         # the octree's colours are its buckets' means: a channel within SNAP of its end
-        # (the background's white, the text's black) is put back at the end
+        # is put at the end, so a bucket of white (the background) or black (the
+        # text) is exactly that
         palette = np.array(image.getpalette() or [], dtype=np.int16)
         palette[palette >= 255 - SNAP] = 255
         palette[palette <= SNAP] = 0
         image.putpalette(palette.astype(np.uint8).tobytes())
     out = io.BytesIO()
-    image.save(out, format="png")
+    image.save(out, format="png", dpi=(dpi, dpi))
     return out.getvalue()

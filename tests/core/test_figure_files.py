@@ -65,8 +65,20 @@ def test_a_transparent_figure_keeps_its_alpha_exactly():
     )
 
 
-def test_raw_bytes_that_are_not_whole_rows_are_refused():
-    with pytest.raises(ValueError, match="not rows of 3 pixels"):
-        palette_png(bytes(4 * 3 * 2 + 4), 3)
+def test_an_unpickled_figure_at_an_inexact_width_gives_the_same_png():
+    """12.7 cm at 200 dpi is 999.99... pixels in floating point: the size comes from
+    the renderer, also for a Figure that lost its Agg canvas in a pickle."""
+    import pickle
+
+    fig = _figure()
+    fig.set_size_inches(12.7 / 2.54, 2.0)
+    ours = Image.open(io.BytesIO(figure_bytes(pickle.loads(pickle.dumps(fig)), "png")))
+    assert ours.size == _matplotlib_png(fig).size == (1000, 400)
+    assert ours.info["dpi"] == pytest.approx((200, 200), abs=0.01)
+
+
+def test_raw_bytes_that_are_not_the_size_are_refused():
+    with pytest.raises(ValueError, match="not 3 x 2 pixels"):
+        palette_png(bytes(4 * 3 * 2 + 4), (3, 2), 200)
     with pytest.raises(ValueError, match="fmt must be one of png, svg, pdf"):
         figure_bytes(_figure(), "gif")
