@@ -185,10 +185,9 @@ def stat_entry(mean: float, std: float, count: int) -> dict[str, Any]:
     if math.isfinite(mean) and math.isfinite(std):
         return entry
     bad = [k for k in ("mean", "std") if not math.isfinite(entry[k])]
-    if bad:
-        for k in bad:
-            entry[k] = None
-        entry["note"] = f"{' and '.join(bad)} {OVERFLOW_NOTE}"
+    for k in bad:
+        entry[k] = None
+    entry["note"] = f"{' and '.join(bad)} {OVERFLOW_NOTE}"
     return entry
 
 
