@@ -244,15 +244,21 @@ class Stack:
         raise AssertionError("unreachable")
 
     def start_worker(
-        self, name: str = "worker1", concurrency: int = 1, env: dict | None = None
+        self,
+        name: str = "worker1",
+        concurrency: int = 1,
+        env: dict | None = None,
+        *,
+        wait: bool = True,
     ) -> Child:
         child = self.start(name, worker_command(name, concurrency), env)
-        self.wait_log(name, "ready.")
+        if wait:
+            self.wait_log(name, "ready.")
         return child
 
     def start_api_and_worker(self, concurrency: int = 1) -> None:
         """The API and ``worker1``, started at once (each waits on its own imports)."""
-        self.start("worker1", worker_command("worker1", concurrency))
+        self.start_worker(concurrency=concurrency, wait=False)
         self.start_api()
         self.wait_log("worker1", "ready.")
 
