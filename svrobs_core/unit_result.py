@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .array_types import Array, IntArray
+from .float_text import json_texts
 from .notes import Notes
 from .observer_stages import mc_note
 from .planning import EstimatorAxis
@@ -91,35 +92,10 @@ def _json_strings(arr: ArrayLike, RE: int) -> list[str]:
     if arr.dtype == object:
         return [json.dumps(v, allow_nan=False) for v in arr.tolist()]
     arr = arr.astype(float, copy=False)
-    finite = np.isfinite(arr)
-    if arr.ndim == 1:
-        vals = np.where(finite, arr, 0.0)
-        # few distinct values (coverage, gamma_ref's ratio 0): repr each once;
-        # unique on the bits, so that -0.0 and 0.0 stay apart
-        u, first, inv = np.unique(vals.view(np.int64), return_index=True, return_inverse=True)
-        if 2 * u.size < vals.size:
-            table = np.empty(u.size, dtype=object)
-            table[:] = list(map(repr, vals[first].tolist()))
-            out = table[inv.reshape(-1)].tolist()
-        else:
-            out = list(map(repr, vals.tolist()))
-        for i in np.flatnonzero(~finite).tolist():
-            out[i] = "null"
-        return out
-    # a matrix per cell: the JSON text is repr of its nested lists of floats,
-    # assembled from the entries' reprs by one template (the same text, faster)
-    if arr.ndim == 3 and arr.shape[1] * arr.shape[2] > 0:
-        rows, cols = arr.shape[1:]
-        row_text = "[" + ", ".join(["%s"] * cols) + "]"
-        template = "[" + ", ".join([row_text] * rows) + "]"
-        entries = map(repr, np.where(finite, arr, 0.0).ravel().tolist())
-        out = [template % t for t in zip(*[entries] * (rows * cols))]
-    else:
-        out = list(map(repr, np.where(finite, arr, 0.0).tolist()))
-    bad = ~finite.reshape(RE, -1).all(axis=1)
-    for i in np.flatnonzero(bad).tolist():
-        out[i] = json.dumps(json_value(arr[i]), allow_nan=False)
-    return out
+    if arr.size == 0:  # rows without entries: "[]" or "[[], ...]"
+        return [json.dumps(json_value(a), allow_nan=False) for a in arr]
+    # one orjson pass for the whole field (docs/performance.md#records-as-json-text)
+    return json_texts(arr)
 
 
 @dataclass
