@@ -11,11 +11,13 @@ handling is switched off (SQLAlchemy's documented recipe).
 
 from __future__ import annotations
 
+import json
 import os
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+import orjson
 from sqlalchemy import Engine, create_engine, event
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import Session, sessionmaker
@@ -59,16 +61,28 @@ def _sqlite_hooks(engine: Engine, immediate: bool) -> None:
         conn.exec_driver_sql("BEGIN IMMEDIATE" if immediate else "BEGIN")
 
 
+def json_text(value: object) -> str:
+    """The text of a JSON column's value: orjson's (a unit's summaries are ~40 such
+    values; docs/performance.md#the-store-of-a-unit), json.dumps' for what orjson
+    does not write (integers beyond 64 bits). NaN and infinities are null."""
+    try:
+        return orjson.dumps(value).decode()
+    except TypeError:
+        return json.dumps(value, allow_nan=False)
+
+
 def create_db_engine(url: str, *, write: bool = True) -> Engine:
     """A new engine (not cached); see :func:`get_engine`."""
     if url.startswith("sqlite"):
         _ensure_sqlite_dir(url)
         engine = create_engine(
-            url, connect_args={"check_same_thread": False, "timeout": SQLITE_BUSY_TIMEOUT_MS / 1000}
+            url,
+            connect_args={"check_same_thread": False, "timeout": SQLITE_BUSY_TIMEOUT_MS / 1000},
+            json_serializer=json_text,
         )
         _sqlite_hooks(engine, immediate=write)
         return engine
-    kwargs: dict = {"pool_pre_ping": True}
+    kwargs: dict = {"pool_pre_ping": True, "json_serializer": json_text}
     if url.startswith("postgresql"):
         kwargs["connect_args"] = {"connect_timeout": 5}
     return create_engine(url, **kwargs)
