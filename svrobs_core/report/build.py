@@ -58,8 +58,14 @@ class ReportFigure:
         if self._png is None:
             self._png = figure_bytes(self.figure, "png")
             # the constrained layout is computed by that first draw; keep it fixed
-            # so the SVG and PDF (and any later render) skip the second layout pass
-            self.figure.set_layout_engine("none")
+            # with no layout engine at all, so the SVG and PDF (and any later
+            # render) skip savefig's dry draw (an engine, even matplotlib's
+            # placeholder for "none", asks for one) and the layout pass
+            import matplotlib
+
+            off: Any = {"figure.autolayout": False, "figure.constrained_layout.use": False}
+            with matplotlib.rc_context(off):  # None would otherwise mean the rc's engine
+                self.figure.set_layout_engine(None)
         return self._png
 
     def svg(self) -> bytes:

@@ -12,6 +12,8 @@ embeds its TrueType fonts."""
 from __future__ import annotations
 
 import io
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -39,11 +41,26 @@ def figure_bytes(fig: Figure, fmt: str = "png", dpi: int = 200) -> bytes:
             # an unpickled Figure has a base canvas: draw on an Agg one, whose
             # renderer then holds the pixels' size (whatever savefig's rc crops)
             canvas = fig.canvas if isinstance(fig.canvas, FigureCanvasAgg) else FigureCanvasAgg(fig)
-            fig.savefig(buf, format="rgba", dpi=dpi)
-            size = (int(canvas.renderer.width), int(canvas.renderer.height))
-            return palette_png(buf.getvalue(), size, dpi)
+            # one draw at the file's dpi (savefig draws twice for a layout engine:
+            # a dry pass, then the pixels); the layout engine runs in the draw
+            with _figure_dpi(fig, dpi):
+                canvas.draw()  # type: ignore[no-untyped-call]
+                rgba = bytes(canvas.buffer_rgba())  # type: ignore[no-untyped-call]
+                size = (int(canvas.renderer.width), int(canvas.renderer.height))
+            return palette_png(rgba, size, dpi)
         fig.savefig(buf, format=fmt, dpi=dpi, metadata=meta[fmt])
     return buf.getvalue()
+
+
+@contextmanager
+def _figure_dpi(fig: Figure, dpi: int) -> Iterator[None]:
+    """The figure at ``dpi`` for a while (as ``savefig(dpi=...)`` sets it)."""
+    old = fig.dpi
+    fig.dpi = dpi
+    try:
+        yield
+    finally:
+        fig.dpi = old
 
 
 def palette_png(rgba: bytes, size: tuple[int, int], dpi: int) -> bytes:

@@ -82,3 +82,23 @@ def test_raw_bytes_that_are_not_the_size_are_refused():
         palette_png(bytes(4 * 3 * 2 + 4), (3, 2), 200)
     with pytest.raises(ValueError, match="fmt must be one of png, svg, pdf"):
         figure_bytes(_figure(), "gif")
+
+
+def test_one_draw_gives_savefigs_pixels_and_the_files_skip_the_layout_pass():
+    """The PNG's one draw (layout engine inside it) gives the pixels savefig's
+    two draws give; after it the figure has no layout engine, so SVG and PDF are
+    drawn once, with the layout the PNG fixed."""
+    from svrobs_core.report.build import ReportFigure
+
+    fig = _figure()
+    buf = io.BytesIO()
+    with figure_style():
+        fig.savefig(buf, format="rgba", dpi=200)  # the oracle: matplotlib's own path
+    w, h = (int(round(v * 200)) for v in fig.get_size_inches())
+    want = palette_png(buf.getvalue(), (w, h), 200)
+    rf = ReportFigure("f", "t", "c", "E1", _figure())
+    assert rf.png() == want
+    assert rf.figure.get_layout_engine() is None
+    positions = [ax.get_position().bounds for ax in rf.figure.axes]
+    assert rf.svg().startswith(b"<?xml") and rf.pdf().startswith(b"%PDF")
+    assert [ax.get_position().bounds for ax in rf.figure.axes] == positions
