@@ -10,7 +10,7 @@ as a worker does; records with every field, random values), starts ``uvicorn ser
 process, loopback), then measures
 
 * the first ``GET /jobs/{id}/report`` (it builds the report from the rows read
-  as columns and stores it);
+  as columns and stores it): target < 2 s;
 * four concurrent report requests (served as stored): target each < 2 s;
 * twenty stored report requests one after the other: target median < 50 ms;
 * four concurrent ``GET /compare`` by every summary field (from the stored
@@ -48,6 +48,7 @@ from bench.api_server import (  # noqa: E402
 from bench.load import prepare  # noqa: E402
 
 PAPER_CELLS = 625_050
+TARGET_FIRST_S = 2.0  # the first report of a job, built from its rows
 TARGET_S = 2.0
 TARGET_STORED_S = 0.050  # one stored report, requested alone
 TARGET_MB = 500.0
@@ -151,12 +152,14 @@ def run_stack(name: str, db_url: str, cells: int, tmp: Path) -> bool:
         report = f"{API}/jobs/{job_id}/report"
         first = asyncio.run(concurrent(base, key, report, n=1))
         now, peak = rss_mb(pid)
+        fast = first[0][0] < TARGET_FIRST_S
         print(
             f"  {'first report (build + store)':<34} 1 x: {first[0][0]:7.3f} s  codes "
             f"[{first[0][1]}]  {first[0][2] / 1e3:9.1f} kB  API RSS {now:6.1f} MB "
             f"(peak {peak:6.1f}){'' if peak < TARGET_MB else '  MISSES the memory target'}"
+            f"  {'ok' if fast else 'MISSES target'} (< {TARGET_FIRST_S:.0f} s)"
         )
-        ok &= first[0][1] == 200 and peak < TARGET_MB
+        ok &= first[0][1] == 200 and peak < TARGET_MB and fast
         ok &= show("report (stored)", asyncio.run(concurrent(base, key, report)), pid)
         ok &= show_one_by_one("report (stored), one at a time", base, key, report)
         by_group = {"jobs": job_id, "metric": "rmse_A", "by": "system,sigma_w,N,estimator,gamma"}
