@@ -63,12 +63,13 @@ def _sqlite_hooks(engine: Engine, immediate: bool) -> None:
 
 def json_text(value: object) -> str:
     """The text of a JSON column's value: orjson's (a unit's summaries are ~40 such
-    values; docs/performance.md#the-store-of-a-unit), json.dumps' for what orjson
-    does not write (integers beyond 64 bits). NaN and infinities are null."""
+    values; docs/performance.md#the-store-of-a-unit; NaN and infinities as null),
+    else what SQLAlchemy's default, ``json.dumps``, writes: for what orjson refuses
+    (integers beyond 64 bits, numpy scalars, keys that are not strings)."""
     try:
         return orjson.dumps(value).decode()
     except TypeError:
-        return json.dumps(value, allow_nan=False)
+        return json.dumps(value)
 
 
 def create_db_engine(url: str, *, write: bool = True) -> Engine:
