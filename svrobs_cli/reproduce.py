@@ -131,7 +131,7 @@ def _work(specs, unit, outputs, out: Path, ui: int):
                     keep = np.flatnonzero(mask)
                     lines = [lines[i] for i in keep.tolist()]
                     data = {f: v[keep] for f, v in data.items()}
-            _part(out, o.name, ui).write_text("".join(line + "\n" for line in lines))
+            _part(out, o.name, ui).write_text("\n".join(lines) + "\n" if lines else "")
             encoded[o.name] = (len(lines), data)
         cpu[o.name] += time.process_time() - t
     return encoded, cpu
