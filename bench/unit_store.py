@@ -1,8 +1,11 @@
-"""Benchmark: a unit's claim / compute / store in one process on SQLite (CPU seconds,
-``time.process_time``), the grid of ``bench/service.py``; ``-p`` adds a profile of the
-store (docs/performance.md#the-store-of-a-unit).
+"""Benchmark: a unit's claim / compute / store in one process (CPU seconds of this
+process, ``time.process_time``, and the store's wall time), the grid of
+``bench/service.py``, on SQLite or, with ``--pg``, on a fresh database of the
+PostgreSQL server of ``SVROBS_TEST_DATABASE_URL`` (dropped afterwards; the
+server's own CPU is not counted); ``-p`` adds a profile of the store
+(docs/performance.md#the-store-of-a-unit).
 
-    PYTHONPATH=. OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/unit_store.py [UNITS] [-p]
+    PYTHONPATH=. OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/unit_store.py [UNITS] [-p] [--pg]
 """
 
 import cProfile
@@ -11,9 +14,11 @@ import pstats
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-from sqlalchemy import select
+from sqlalchemy import create_engine, select, text
+from sqlalchemy.engine import make_url
 
 from bench.service import GRID
 from service.db import accounts, jobs, migrate
@@ -23,9 +28,35 @@ from service.db.units import complete_unit, start_unit
 from svrobs_lab.units import compute_unit
 
 
+@contextmanager
+def database(pg: bool):
+    """A fresh database URL: SQLite in a temporary folder, or a PostgreSQL database
+    made on the server of SVROBS_TEST_DATABASE_URL and dropped at the end."""
+    if not pg:
+        yield f"sqlite:///{tempfile.mkdtemp()}/p.db"
+        return
+    base = make_url(os.environ["SVROBS_TEST_DATABASE_URL"])
+    name = f"svrobs_bench_unit_store_{os.getpid()}"
+    admin = create_engine(base, isolation_level="AUTOCOMMIT")
+    with admin.connect() as c:
+        c.execute(text(f'CREATE DATABASE "{name}"'))
+    try:
+        yield base.set(database=name).render_as_string(hide_password=False)
+    finally:
+        from service.db.session import dispose_all
+
+        dispose_all()
+        with admin.connect() as c:
+            c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()
+
+
 def main() -> None:
-    d = tempfile.mkdtemp()
-    url = f"sqlite:///{d}/p.db"
+    with database("--pg" in sys.argv) as url:
+        run(url)
+
+
+def run(url: str) -> None:
     migrate.upgrade(url)
     with session_scope(url) as s:
         t = accounts.create_team(s, "t")
@@ -40,7 +71,7 @@ def main() -> None:
         )
     n = int(sys.argv[1]) if len(sys.argv) > 1 and sys.argv[1].isdigit() else 12
     prof = cProfile.Profile() if "-p" in sys.argv else None
-    tc = tp = ts = 0.0
+    tc = tp = ts = ws = 0.0
     for uid in uids[:n]:
         c0 = time.process_time()
         with session_scope(url) as s:
@@ -48,6 +79,7 @@ def main() -> None:
         c1 = time.process_time()
         res, _ = compute_unit(lambda **k: session_scope(url, **k), spec, payload)
         c2 = time.process_time()
+        w2 = time.perf_counter()
         if prof:
             prof.enable()
         with session_scope(url) as s:
@@ -55,11 +87,14 @@ def main() -> None:
         if prof:
             prof.disable()
         c3 = time.process_time()
+        ws += time.perf_counter() - w2
         tc += c1 - c0
         tp += c2 - c1
         ts += c3 - c2
     print(
-        f"{n} units: claim {1000 * tc / n:.1f} ms, compute {1000 * tp / n:.1f} ms, store {1000 * ts / n:.1f} ms, (claim+store)/compute {(tc + ts) / tp:.1%}"
+        f"{url.split(':')[0]}, {n} units: claim {1000 * tc / n:.1f} ms, compute {1000 * tp / n:.1f}"
+        f" ms, store {1000 * ts / n:.1f} ms (wall {1000 * ws / n:.1f} ms),"
+        f" (claim+store)/compute {(tc + ts) / tp:.1%}"
     )
     if prof:
         pstats.Stats(prof).sort_stats("cumulative").print_stats(45)
