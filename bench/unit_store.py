@@ -1,8 +1,8 @@
 """Benchmark: a unit's claim / compute / store in one process (CPU seconds of this
 process, ``time.process_time``, and the store's wall time), the grid of
 ``bench/service.py``, on SQLite or, with ``--pg``, on a fresh database of the
-PostgreSQL server of ``SVROBS_TEST_DATABASE_URL`` (dropped afterwards; the
-server's own CPU is not counted); ``-p`` adds a profile of the store
+PostgreSQL server of ``SVROBS_BENCH_DATABASE_URL`` or ``SVROBS_TEST_DATABASE_URL``
+(dropped afterwards; the server's own CPU is not counted); ``-p`` adds a profile of the store
 (docs/performance.md#the-store-of-a-unit).
 
     PYTHONPATH=. OPENBLAS_NUM_THREADS=1 .venv/bin/python bench/unit_store.py [UNITS] [-p] [--pg]
@@ -14,12 +14,13 @@ import pstats
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-from sqlalchemy import create_engine, select, text
-from sqlalchemy.engine import make_url
+from sqlalchemy import select
 
+from bench.pg_private import bench_pg_url, private_database
 from bench.service import GRID
 from service.db import accounts, jobs, migrate
 from service.db.models import WorkUnit
@@ -29,26 +30,17 @@ from svrobs_lab.units import compute_unit
 
 
 @contextmanager
-def database(pg: bool):
-    """A fresh database URL: SQLite in a temporary folder, or a PostgreSQL database
-    made on the server of SVROBS_TEST_DATABASE_URL and dropped at the end."""
+def database(pg: bool) -> Iterator[str]:
+    """A fresh database URL: SQLite in a temporary folder, or a private PostgreSQL
+    database (``bench.pg_private``, dropped at the end)."""
     if not pg:
         yield f"sqlite:///{tempfile.mkdtemp()}/p.db"
         return
-    base = make_url(os.environ["SVROBS_TEST_DATABASE_URL"])
-    name = f"svrobs_bench_unit_store_{os.getpid()}"
-    admin = create_engine(base, isolation_level="AUTOCOMMIT")
-    with admin.connect() as c:
-        c.execute(text(f'CREATE DATABASE "{name}"'))
-    try:
-        yield base.set(database=name).render_as_string(hide_password=False)
-    finally:
-        from service.db.session import dispose_all
-
-        dispose_all()
-        with admin.connect() as c:
-            c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-        admin.dispose()
+    base = bench_pg_url()
+    if base is None:
+        sys.exit("--pg: set SVROBS_BENCH_DATABASE_URL or SVROBS_TEST_DATABASE_URL")
+    with private_database(base, "svrobs_bench_unit_store") as url:
+        yield url
 
 
 def main() -> None:
