@@ -8,12 +8,17 @@ writes for ``json_value(row)`` (NaN and infinities as ``null``), to the byte,
 several times faster than ``map(repr, ...)``: orjson writes the whole array in
 one call, with the shortest digits (the same digits as ``repr``). Its layout
 differs from Python's only for 1e-9 <= |x| < 1e-4 (orjson writes ``1e-7`` and
-``0.00001`` where Python writes ``1e-07`` and ``1e-05``), so those entries are
-written by ``repr`` itself: they go to orjson as NaN (text ``null``) and their
-``repr`` is put in the place of that ``null``.
+``0.00001`` where Python writes ``1e-07`` and ``1e-05``), so the entries with
+1e-10 <= |x| < 1e-4 (a margin below) are written by ``repr`` itself: they go to
+orjson as NaN (text ``null``) and their ``repr`` is put in the place of that
+``null``. orjson before 3.11.7 wrote ``1e16`` for Python's ``1e+16``: at import
+the module checks orjson's text of a few such values, and where it differs every
+array is written by ``repr`` (the same text, slower).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import orjson
@@ -21,10 +26,33 @@ from numpy.typing import ArrayLike
 
 # |x| in [LOW, HIGH): orjson's text may differ from repr (a margin below 1e-9)
 _LOW, _HIGH = 1e-10, 1e-4
+# values whose text orjson must write as repr does for the fast path to be used
+_PROBE = [1e16, -1.5e300, 1.2345678901234568e17, 5e-324, -0.0, 0.1, 1e-11, 123456.0]
+
+
+def _orjson_writes_repr() -> bool:
+    text = orjson.dumps(np.array(_PROBE), option=orjson.OPT_SERIALIZE_NUMPY)
+    return text == ("[" + ",".join(map(repr, _PROBE)) + "]").encode()
+
+
+_FAST = _orjson_writes_repr()
+
+
+def _repr_text(arr: np.ndarray) -> bytes:
+    """The JSON text of a float array by ``repr`` of each entry (NaN/inf as null)."""
+
+    def write(a: np.ndarray) -> str:
+        if a.ndim == 1:
+            return "[" + ",".join(repr(x) if math.isfinite(x) else "null" for x in a.tolist()) + "]"
+        return "[" + ",".join(write(b) for b in a) + "]"
+
+    return write(arr).encode()
 
 
 def _orjson_text(arr: np.ndarray) -> bytes:
     """The JSON text of ``arr`` (C-contiguous float64) in Python's layout of floats."""
+    if not _FAST:
+        return _repr_text(arr)
     mag = np.abs(arr)
     odd = (mag >= _LOW) & (mag < _HIGH)
     if not odd.any():

@@ -69,3 +69,24 @@ def test_empty_and_bad_shapes():
         json_texts(np.float64(1.0))
     with pytest.raises(ValueError, match="without entries"):
         json_texts(np.zeros((3, 0)))
+
+
+def test_without_orjsons_layout_every_array_is_written_by_repr(monkeypatch):
+    """Where orjson's text of a float is not repr's (orjson before 3.11.7 wrote
+    1e16 for 1e+16), the module writes every entry by repr: the same text."""
+    import svrobs_core.float_text as ft
+
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal(3_000) * 10.0 ** rng.integers(-320, 300, 3_000)
+    x[::97] = np.nan
+    x[::89] = -np.inf
+    monkeypatch.setattr(ft, "_FAST", False)
+    assert json_texts(x) == dumps_rows(x)
+    assert json_texts(x[:2_997].reshape(-1, 3, 1)) == dumps_rows(x[:2_997].reshape(-1, 3, 1))
+
+
+def test_the_orjson_installed_writes_repr_text():
+    """The fast path is on with the orjson this project requires (>= 3.11.7)."""
+    from svrobs_core import float_text
+
+    assert float_text._FAST
