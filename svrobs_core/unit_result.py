@@ -87,8 +87,10 @@ def _json_strings(arr: ArrayLike, RE: int) -> list[str]:
     arr = _flat(arr, RE)
     out: list[str]
     if arr.dtype == bool:
-        out = np.where(arr, "true", "false").tolist()
-        return out
+        if arr.ndim == 1:
+            out = np.where(arr, "true", "false").tolist()
+            return out
+        return [json.dumps(row.tolist()) for row in arr]  # a boolean array per cell
     if arr.dtype == object:
         return [json.dumps(v, allow_nan=False) for v in arr.tolist()]
     arr = arr.astype(float, copy=False)

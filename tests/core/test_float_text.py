@@ -90,3 +90,24 @@ def test_the_orjson_installed_writes_repr_text():
     from svrobs_core import float_text
 
     assert float_text._FAST
+
+
+def test_unit_fields_of_every_kind_are_json_dumps():
+    """unit_result's per-field writer (the one json_lines uses) against json.dumps
+    of json_value per cell: floats, matrices, booleans of one and of more
+    dimensions, objects, and a field constant along the repetitions."""
+    from svrobs_core.unit_result import _json_strings
+
+    rng = np.random.default_rng(2)
+    R, E = 4, 3
+    fields = [
+        rng.standard_normal((R, E)) * 1e-6,
+        rng.standard_normal((R, E, 2, 3)),
+        rng.random((R, E)) < 0.5,
+        rng.random((R, E, 2)) < 0.5,
+        np.array([[None, 1.5, "x"]] * R, dtype=object),
+        np.broadcast_to(rng.standard_normal((E, 3, 1)), (R, E, 3, 1)),
+    ]
+    for f in fields:
+        cells = np.asarray(f).reshape((R * E,) + np.shape(f)[2:])
+        assert _json_strings(f, R * E) == [json.dumps(json_value(c)) for c in cells]
