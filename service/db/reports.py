@@ -11,13 +11,11 @@ record dicts, and no ``A_hat``/``B_hat`` above ``MATRIX_CELLS_LIMIT`` cells
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from typing import Any
 
 import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from svrobs_core.records import BOOL_FIELDS
 from svrobs_core.report.columns import COLUMN_MATRIX_FIELDS, SCALAR_FIELDS, TEXT_FIELDS, Columns
 
 from .models import JOB_ACTIVE, Job, JobReport, Result, utcnow
@@ -77,6 +75,14 @@ def _matrix_block(values: list, shape: tuple[int, int] | None) -> tuple[np.ndarr
     return out, shape
 
 
+class _FirstCodes(dict):
+    """value -> its code, the next free one the first time a value is looked up."""
+
+    def __missing__(self, value):
+        code = self[value] = len(self)
+        return code
+
+
 def _chunks(session: Session, q) -> Iterator[Sequence[Sequence]]:
     """The rows of ``q`` in chunks of ``CHUNK``. On SQLite straight from the driver's
     cursor (plain tuples: a third less time than SQLAlchemy's rows; booleans as 0/1);
@@ -111,7 +117,7 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
     text_cols = [NOTES.c.text if f == "notes" else t.c[f] for f in TEXT_FIELDS]
     cols = [t.c[f] for f in SCALAR_FIELDS] + text_cols + [t.c[f] for f in mats]
     data: dict[str, np.ndarray] = {f: np.full(n, np.nan) for f in SCALAR_FIELDS}
-    text = {f: np.empty(n, dtype=object) for f in TEXT_FIELDS}
+    text: dict[str, np.ndarray] = {}
     blocks: dict[str, list] = {f: [] for f in mats}
     shapes: dict[str, tuple | None] = dict.fromkeys(mats)
     order = [t.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
@@ -125,27 +131,35 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
     )
     ns, nt = len(SCALAR_FIELDS), len(TEXT_FIELDS)
     sig = SCALAR_FIELDS.index("sigma_w")
-    interned: dict[str, dict] = {f: {} for f in TEXT_FIELDS}
+    # each text field factorised as it is read (Columns.codes: codes in order of first
+    # appearance), so each distinct text is one str object and is never factorised again
+    firsts = {f: _FirstCodes() for f in TEXT_FIELDS}
+    codes = {f: np.empty(n, dtype=np.int64) for f in TEXT_FIELDS}
     at = 0
     for part in _chunks(session, q):
         k = len(part)
-        columns = list(zip(*part))
+        rows = np.array([tuple(r) for r in part], dtype=object)  # (k, columns)
+        # floats; None -> NaN, booleans (0/1 on SQLite) -> 0.0/1.0
+        scalars = rows[:, :ns].astype(float)
         for i, f in enumerate(SCALAR_FIELDS):
-            col: Any = columns[i]
-            if f in BOOL_FIELDS:
-                col = [None if v is None else float(v) for v in col]
-            data[f][at : at + k] = np.array(col, dtype=float)  # None -> nan
-        for i, f in enumerate(TEXT_FIELDS):  # one str object per distinct value, not per row
-            uniq = interned[f]
-            text[f][at : at + k] = [uniq.setdefault(v, v) for v in columns[ns + i]]
-        systems, sigmas = columns[ns + TEXT_FIELDS.index("system")], columns[sig]
+            data[f][at : at + k] = scalars[:, i]
+        for i, f in enumerate(TEXT_FIELDS):
+            codes[f][at : at + k] = np.fromiter(
+                map(firsts[f].__getitem__, rows[:, ns + i]), dtype=np.int64, count=k
+            )
+        systems, sigmas = rows[:, ns + TEXT_FIELDS.index("system")], scalars[:, sig]
         for i, f in enumerate(mats):
-            decoded = codec.decode_matrices(systems, sigmas, f, list(columns[ns + nt + i]))
+            decoded = codec.decode_matrices(systems, sigmas, f, list(rows[:, ns + nt + i]))
             block, shapes[f] = _matrix_block(decoded, shapes[f])
             blocks[f].append(block)
         at += k
+    factors = {}
+    for f in TEXT_FIELDS:
+        distinct = list(firsts[f])
+        factors[f] = (codes[f][:at], distinct)
+        text[f] = np.array([*distinct, None], dtype=object)[:-1][factors[f][0]]
     data = {f: a[:at] for f, a in data.items()}
-    data.update({f: a[:at] for f, a in text.items()})
+    data.update(text)
     for f in mats:
         shape = shapes[f]
         data[f] = (
@@ -158,4 +172,4 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
             if shape is not None
             else np.full((at, 0, 0), np.nan)
         )
-    return Columns(data, at)
+    return Columns(data, at, codes=factors)

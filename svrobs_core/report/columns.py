@@ -70,10 +70,18 @@ class Columns:
     """Record fields as arrays: floats (NaN = null; booleans as 0/1), text as
     object arrays, ``A_hat``/``B_hat`` as (k, n, .) float arrays if kept."""
 
-    def __init__(self, data: dict[str, Array], n: int) -> None:
+    def __init__(
+        self,
+        data: dict[str, Array],
+        n: int,
+        *,
+        codes: dict[str, tuple[Array, list[Any]]] | None = None,
+    ) -> None:
         self.data = data
         self.n = n
         self._cache: dict[Any, Any] = {}  # derived arrays (factorised text columns, ...)
+        for f, fc in (codes or {}).items():  # factorised by the reader, as codes() would
+            self._cache[("codes", f)] = fc
 
     def codes(self, f: str) -> tuple[Array, list[Any]]:
         """Field ``f`` factorised: integer codes and the value of each code
@@ -227,15 +235,24 @@ def select(
     if gamma is None:
         m &= np.isnan(cols["gamma"])
     elif gamma != "any":
-        m &= np.isclose(cols["gamma"], float(gamma), rtol=GAMMA_RTOL, atol=0)
+        m &= _close(cols, "gamma", float(gamma))
     if sigma_w is not None:
-        m &= np.isclose(cols["sigma_w"], float(sigma_w), rtol=GAMMA_RTOL, atol=0)
+        m &= _close(cols, "sigma_w", float(sigma_w))
     return m
 
 
+def _close(cols: Columns, f: str, value: float) -> BoolArray:
+    """``isclose(cols[f], value)`` (rtol GAMMA_RTOL), decided once per distinct value."""
+    codes, values = cols.codes(f)
+    distinct = np.array([np.nan if v is None else v for v in values], dtype=float)
+    hit: BoolArray = np.isclose(distinct, value, rtol=GAMMA_RTOL, atol=0)[codes]
+    return hit
+
+
 def systems_of(cols: Columns, mask: Array | None = None) -> list[str]:
-    vals = cols["system"] if mask is None else cols["system"][mask]
-    names = {v for v in vals if v is not None}
+    codes, values = cols.codes("system")
+    present = np.unique(codes if mask is None else codes[mask]).tolist()
+    names = {values[i] for i in present if values[i] is not None}
     known = [s for s in (STABLE, UNSTABLE) if s in names]
     return known + sorted(names - set(known))
 
@@ -271,8 +288,9 @@ def _codes(col: Array) -> tuple[Array, list[Any]]:
         setdefault = lut.setdefault
         codes = np.array([setdefault(v, len(lut)) for v in col.tolist()], dtype=np.int64)
         return codes, list(lut)
-    u, inv = np.unique(col.astype(float), return_inverse=True)  # NaNs: one value, last
-    return inv.reshape(-1).astype(np.int64), [_key(v) for v in u.tolist()]
+    a = col.astype(float)
+    u = np.unique(a)  # sorted, NaNs as one value, last (where searchsorted puts a NaN)
+    return np.searchsorted(u, a).astype(np.int64), [_key(v) for v in u.tolist()]
 
 
 def group_indices(
@@ -289,10 +307,10 @@ def group_indices(
         c, u = cols.codes(k)
         combined = combined * len(u) + c[idx]
         values.append(u)
-    uc, inv = np.unique(combined, return_inverse=True)
-    inv = inv.reshape(-1)
-    order = np.argsort(inv, kind="stable")
-    bounds = np.flatnonzero(np.diff(inv[order])) + 1
+    order = np.argsort(combined, kind="stable")  # members stay ascending in each group
+    ordered = combined[order]
+    bounds = np.flatnonzero(np.diff(ordered)) + 1
+    uc = ordered[np.concatenate(([0], bounds))]
     groups = np.split(idx[order], bounds)
     out: dict[tuple[Any, ...], Array] = {}
     for code, members in zip(uc.tolist(), groups):
@@ -316,9 +334,11 @@ def by_N(
     if idx.size == 0:
         e = np.array([])
         return e, e, e, e
-    Ns = cols["N"][idx]
-    uN, inv = np.unique(Ns, return_inverse=True)
-    inv = inv.reshape(-1)
+    codes, distinct = cols.codes("N")  # N's distinct values, sorted; keep those under mask
+    present = np.zeros(len(distinct), dtype=bool)
+    present[codes[idx]] = True
+    inv = (np.cumsum(present) - 1)[codes[idx]]
+    uN = np.array([np.nan if v is None else v for v in distinct], dtype=float)[present]
     k = uN.size
     n0 = cols["N0"][idx]
     f0 = np.isfinite(n0)

@@ -56,6 +56,9 @@ def _same_columns(a: Columns, b: Columns):
         x, y = a.data[f], b.data[f]
         if x.dtype == object:
             assert list(x) == list(y), f
+            # the codes the reader factorised as it read are the ones codes() computes
+            (cx, vx), (cy, vy) = a.codes(f), b.codes(f)
+            assert vx == vy and cx.tolist() == cy.tolist(), f
         else:
             np.testing.assert_array_equal(x, y, err_msg=f)  # NaN == NaN here
 
