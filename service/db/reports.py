@@ -2,14 +2,18 @@
 
 A finished job never changes, so its report is built once (by a worker when the
 tick sees the job finished, or at the first request) and then served as stored.
-The build reads only the fields the report uses (``REPORT_FIELDS``), straight
-from the cursor into preallocated numpy arrays in chunks of ``CHUNK`` rows: no
-record dicts, and no ``A_hat``/``B_hat`` above ``MATRIX_CELLS_LIMIT`` cells
-(as ``svrobs reproduce`` does; the figures that need them say "no data").
+The build reads only the fields the report uses (``REPORT_FIELDS``) into numpy
+arrays, with no record dicts, and no ``A_hat``/``B_hat`` above
+``MATRIX_CELLS_LIMIT`` cells (as ``svrobs reproduce`` does; the figures that need
+them say "no data"). Without the matrices, PostgreSQL sends the rows as one
+binary COPY of fixed-width floats (:mod:`service.db.report_copy`); otherwise the
+rows are read from the cursor in chunks of ``CHUNK``, each text field factorised
+as it is read (docs/performance.md#the-first-report-of-a-large-job).
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator, Sequence
 
 import numpy as np
@@ -19,7 +23,10 @@ from sqlalchemy.orm import Session
 from svrobs_core.report.columns import COLUMN_MATRIX_FIELDS, SCALAR_FIELDS, TEXT_FIELDS, Columns
 
 from .models import JOB_ACTIVE, Job, JobReport, Result, utcnow
+from .report_copy import SORT_KEY, StreamChanged, copy_columns
 from .results_store import NOTES, job_codec
+
+log = logging.getLogger(__name__)
 
 CHUNK = 5_000
 MATRIX_CELLS_LIMIT = 200_000
@@ -113,14 +120,21 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
     if matrices is None:
         matrices = n <= MATRIX_CELLS_LIMIT
     mats = COLUMN_MATRIX_FIELDS if matrices else ()
+    conn = session.connection()
+    if n and not mats and conn.dialect.name == "postgresql" and conn.dialect.driver == "psycopg":
+        try:
+            copied, factors = copy_columns(session, job_id, n)
+        except StreamChanged:  # a running job's rows changed meanwhile: read the rows
+            log.info("job %s: its rows changed during the COPY read; reading rows", job_id)
+        else:
+            return _columns(copied, factors)
     codec = job_codec(session, job_id)
     text_cols = [NOTES.c.text if f == "notes" else t.c[f] for f in TEXT_FIELDS]
     cols = [t.c[f] for f in SCALAR_FIELDS] + text_cols + [t.c[f] for f in mats]
     data: dict[str, np.ndarray] = {f: np.full(n, np.nan) for f in SCALAR_FIELDS}
-    text: dict[str, np.ndarray] = {}
     blocks: dict[str, list] = {f: [] for f in mats}
     shapes: dict[str, tuple | None] = dict.fromkeys(mats)
-    order = [t.c[f] for f in ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")]
+    order = [t.c[f] for f in SORT_KEY]
     # at most the rows counted (a running job may be writing more meanwhile)
     q = (
         select(*cols)
@@ -147,19 +161,16 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
             codes[f][at : at + k] = np.fromiter(
                 map(firsts[f].__getitem__, rows[:, ns + i]), dtype=np.int64, count=k
             )
-        systems, sigmas = rows[:, ns + TEXT_FIELDS.index("system")], scalars[:, sig]
+        if mats:
+            systems = list(rows[:, ns + TEXT_FIELDS.index("system")])
+            sigmas = scalars[:, sig].tolist()
         for i, f in enumerate(mats):
             decoded = codec.decode_matrices(systems, sigmas, f, list(rows[:, ns + nt + i]))
             block, shapes[f] = _matrix_block(decoded, shapes[f])
             blocks[f].append(block)
         at += k
-    factors = {}
-    for f in TEXT_FIELDS:
-        distinct = list(firsts[f])
-        factors[f] = (codes[f][:at], distinct)
-        text[f] = np.array([*distinct, None], dtype=object)[:-1][factors[f][0]]
+    factors = {f: (codes[f][:at], list(firsts[f])) for f in TEXT_FIELDS}
     data = {f: a[:at] for f, a in data.items()}
-    data.update(text)
     for f in mats:
         shape = shapes[f]
         data[f] = (
@@ -172,4 +183,11 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
             if shape is not None
             else np.full((at, 0, 0), np.nan)
         )
-    return Columns(data, at, codes=factors)
+    return _columns(data, factors)
+
+
+def _columns(data: dict[str, np.ndarray], factors: dict[str, tuple]) -> Columns:
+    """Columns of the scalar (and matrix) arrays and the factorised text fields."""
+    for f, (codes, distinct) in factors.items():
+        data[f] = np.array([*distinct, None], dtype=object)[:-1][codes]
+    return Columns(data, len(data["rep"]), codes=factors)

@@ -111,6 +111,76 @@ def test_load_columns_without_matrices_and_running_job_report_not_stored(
     assert session.get(JobReport, jid) is None  # a running job changes: never stored
 
 
+def _finished_fake_job(client, session, make_account) -> tuple[int, list[dict]]:
+    """A job of fake records whose units were stored last first (so the rows' storage
+    order is not the grid's)."""
+    from service.db import jobs, units
+    from tests.service.svc_fakes import fake_records
+
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    for uid in reversed(jobs.unit_ids_of_job(session, jid, pending_only=False)):
+        spec, payload = units.start_unit(session, uid, "w", 60, max_attempts=0)
+        units.complete_unit(session, uid, fake_records(spec, payload))
+        session.commit()
+    return jid, _records(session, jid)
+
+
+@pytest.mark.parametrize("block", [None, 7], ids=["blocks of 4 MB", "blocks of 7 bytes"])
+def test_postgresql_reads_report_columns_by_one_copy(
+    client, session, make_account, monkeypatch, block
+):
+    """On PostgreSQL the columns come from the binary COPY (the row read is not used)
+    and equal the records': floats, NaN for null, booleans, notes and their codes;
+    also when the stream is parsed in pieces that split its header and rows."""
+    if session.get_bind().dialect.name != "postgresql":
+        pytest.skip("the COPY read is PostgreSQL's")
+    from service.db import report_copy, reports
+
+    if block is not None:
+        monkeypatch.setattr(report_copy, "_BLOCK", block)
+
+    jid, records = _finished_fake_job(client, session, make_account)
+    assert any(r["notes"] for r in records) and any(r["notes"] is None for r in records)
+
+    def no_rows(*a, **k):
+        raise AssertionError("the row read was used")
+
+    monkeypatch.setattr(reports, "_chunks", no_rows)
+    # a sequential scan: the rows come in their storage order (last unit first)
+    from sqlalchemy import text
+
+    session.execute(text("SET LOCAL enable_indexscan = off"))
+    session.execute(text("SET LOCAL enable_bitmapscan = off"))
+    _same_columns(
+        load_columns(session, jid, matrices=False), Columns.from_records(records, matrices=False)
+    )
+
+
+def test_copy_read_falls_back_to_rows_when_a_value_is_new(
+    client, session, make_account, monkeypatch, caplog
+):
+    """A text value the distinct read did not see (a running job's new rows): the
+    whole COPY stream is still read, and the rows are read instead, in the same
+    transaction."""
+    if session.get_bind().dialect.name != "postgresql":
+        pytest.skip("the COPY read is PostgreSQL's")
+    from service.db import report_copy
+
+    jid, records = _finished_fake_job(client, session, make_account)
+    seen = report_copy._distinct
+
+    def without_svr(s, job_id):
+        d = seen(s, job_id)
+        return {**d, "estimator": [v for v in d["estimator"] if v != "svr"]}
+
+    monkeypatch.setattr(report_copy, "_distinct", without_svr)
+    with caplog.at_level("INFO", logger="service.db.reports"):
+        cols = load_columns(session, jid, matrices=False)
+    assert "reading rows" in caplog.text
+    _same_columns(cols, Columns.from_records(records, matrices=False))
+
+
 def _numpy_compare(records, jid, metric, by):
     values, seen = defaultdict(list), set()
     for rec in records:
