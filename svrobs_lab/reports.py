@@ -99,11 +99,16 @@ def _render(job: JobSnapshot, cols: Columns) -> str:
     return job_report_html(job.spec, cols, provenance, name=job.name)
 
 
+def _render_columns(job: JobSnapshot, cols: Columns) -> tuple[str, int]:
+    """(HTML, number of records); the caller's reference to ``cols`` is its last, so
+    the columns are freed on return, before :func:`_release_memory`."""
+    return _render(job, cols), len(cols)
+
+
 def build_job_report(session: Session, job: Job) -> tuple[str, int]:
     """(HTML, number of records) of a job, from its stored records read as columns."""
     try:
-        cols = load_columns(session, job.id)
-        return _render(JobSnapshot.of(job), cols), len(cols)
+        return _render_columns(JobSnapshot.of(job), load_columns(session, job.id))
     finally:
         _release_memory()
 
@@ -113,11 +118,14 @@ def _build(job: JobSnapshot, session_factory: SessionFactory) -> tuple[str, int]
     then render with no connection held."""
     with BUILD_SLOTS:
         try:
-            with closing(session_factory(False)) as s:
-                cols = load_columns(s, job.id)
-            return _render(job, cols), len(cols)
+            return _render_columns(job, _read_columns(job.id, session_factory))
         finally:
             _release_memory()
+
+
+def _read_columns(job_id: int, session_factory: SessionFactory) -> Columns:
+    with closing(session_factory(False)) as s:
+        return load_columns(s, job_id)
 
 
 def _build_and_store(job: JobSnapshot, session_factory: SessionFactory) -> str:

@@ -81,56 +81,64 @@ def _copy_sql(job_id: int, limit: int, distinct: dict[str, list]):
     ).format(sql.SQL(", ").join(exprs), sql.Literal(job_id), sql.Literal(limit)), len(exprs)
 
 
-def _read_stream(copy, n_fields: int, limit: int) -> np.ndarray:
-    """The COPY's rows as an (n_fields, rows) float array."""
+def _read_stream(copy, n_fields: int, limit: int) -> list[np.ndarray]:
+    """The COPY's rows as one float array per field (each its own, so that the
+    helper fields can be freed once used). The messages are copied into one reused
+    buffer (no Python object per row is kept) and parsed whenever it holds a block."""
     row = np.dtype(
         [("n", ">i2")] + [x for i in range(n_fields) for x in ((f"l{i}", ">i4"), (f"v{i}", ">f8"))]
     )
-    out = np.empty((n_fields, limit))
-    at, rest, parts, size, header, whole = 0, b"", [], 0, True, True
+    out = [np.empty(limit) for _ in range(n_fields)]
+    buf = bytearray(_BLOCK)
+    fill, at, header, whole = 0, 0, True, True
 
-    def parse(buf: bytes) -> bytes:
+    def parse(start: int, end: int) -> int:
+        """Copy the whole rows of buf[start:end] out; -> where the first row left starts."""
         nonlocal at, whole
-        k = min(len(buf) // row.itemsize, limit - at)
-        a = np.frombuffer(buf, dtype=row, count=k)
+        k = min((end - start) // row.itemsize, limit - at)
+        a = np.frombuffer(buf, dtype=row, count=k, offset=start)
         lengths = np.array([a[f"l{i}"] for i in range(n_fields)])
         if k and ((a["n"] != n_fields).any() or (lengths != 8).any()):
             whole = False  # a NULL where none can be: not the stream of these rows
         if whole:
             for i in range(n_fields):
-                out[i, at : at + k] = a[f"v{i}"]
+                out[i][at : at + k] = a[f"v{i}"]
             at += k
-        return buf[k * row.itemsize :]
+        return start + k * row.itemsize
 
     # the whole stream is read even when it is not as expected: leaving a COPY early
     # cancels it, and the session's transaction with it
     for data in copy:
-        parts.append(bytes(data))
-        size += len(data)
-        if size < _BLOCK:
+        n = len(data)
+        if fill + n > len(buf):
+            buf.extend(bytes(fill + n - len(buf)))
+        buf[fill : fill + n] = data
+        fill += n
+        if fill < _BLOCK:
             continue
-        buf, parts, size = rest + b"".join(parts), [], 0
+        start = 0
         if header:
-            if len(buf) < _header_size(buf):
-                rest = buf  # the header is not all here yet
-                continue
-            buf, header = buf[_header_size(buf) :], False
-        rest = parse(buf)
-    buf = rest + b"".join(parts)
-    if header:
-        buf = buf[_header_size(buf) :]
-    if buf[-2:] != b"\xff\xff" or parse(buf[:-2]) or not whole:
+            start = _header_size(buf, fill)
+            if start > fill:
+                continue  # the header is not all here yet
+            header = False
+        used = parse(start, fill)
+        buf[: fill - used] = buf[used:fill]
+        fill -= used
+    start = _header_size(buf, fill) if header else 0
+    end = fill - 2  # the trailer: -1 as a field count
+    if start > end or buf[end:fill] != b"\xff\xff" or parse(start, end) != end or not whole:
         raise StreamChanged
-    return out[:, :at]
+    return [a[:at] for a in out]
 
 
-def _header_size(buf: bytes) -> int:
-    """Bytes of the binary COPY header at the start of ``buf`` (signature, flags,
-    extension length, extension)."""
-    if len(buf) < 19:
+def _header_size(buf: bytearray, fill: int) -> int:
+    """Bytes of the binary COPY header at the start of ``buf[:fill]`` (signature,
+    flags, extension length, extension); more than ``fill`` until it is all there."""
+    if fill < 19:
         return 19
     if buf[: len(_SIGNATURE)] != _SIGNATURE:
-        return len(buf)  # not a COPY stream: nothing of it is parsed (and the end check fails)
+        return fill + 1  # not a COPY stream: nothing of it is parsed (and the end check fails)
     return 19 + int.from_bytes(buf[15:19], "big")
 
 
@@ -152,21 +160,21 @@ def copy_columns(session: Session, job_id: int, limit: int):
     pg = session.connection().connection.driver_connection
     assert pg is not None  # an open connection (session.connection() began it)
     with pg.cursor() as cur, cur.copy(query) as copy:
-        raw = _read_stream(copy, n_fields, limit)
-    ns = len(SCALAR_FIELDS)
-    field_row = {f: i for i, f in enumerate(SCALAR_FIELDS)}
-    field_row.update({f: ns + i for i, f in enumerate(_CODED)})
-    field_row.update({"notes": n_fields - 2, "gamma_key": n_fields - 1})
-    if raw.shape[1] and (raw[ns : ns + len(_CODED)] < 0).any():
+        names = [*SCALAR_FIELDS, *_CODED, "notes", "gamma_key"]
+        raw = dict(zip(names, _read_stream(copy, n_fields, limit), strict=True))
+    if any((raw[f] < 0).any() for f in _CODED):
         raise StreamChanged  # a text value the distinct read did not see
-    order = np.lexsort([raw[field_row[f]] for f in reversed(SORT_KEY)])
-    for i in range(n_fields):  # in place, one field at a time (no second copy of all)
-        raw[i] = raw[i][order]
-    data = {f: raw[field_row[f]] for f in SCALAR_FIELDS}
-    factors = {
-        f: _first_appearance(raw[field_row[f]].astype(np.int64), distinct[f]) for f in _CODED
-    }
-    factors["notes"] = _notes(session, raw[field_row["notes"]].astype(np.int64))
+    order = np.lexsort([raw[f] for f in reversed(SORT_KEY)])
+    del raw["gamma_key"]
+    data, factors = {}, {}
+    for f in list(raw):  # one field at a time: no second copy of all of them
+        a = raw.pop(f)[order]  # the unsorted array is freed here
+        if f in _CODED:
+            factors[f] = _first_appearance(a.astype(np.int64), distinct[f])
+        elif f == "notes":
+            factors[f] = _notes(session, a.astype(np.int64))
+        else:
+            data[f] = a
     return data, factors
 
 

@@ -186,3 +186,31 @@ def test_report_busy_is_429_with_retry_after(build_client, make_account, monkeyp
     r = client.get(f"{API}/jobs/{jid}/report", headers=acc.headers)
     assert r.status_code == 429 and r.headers["retry-after"] == "7"
     assert client.app.state.report_builds.per_team == 1
+
+
+def test_the_columns_are_freed_before_the_memory_is_handed_back(
+    tracked, session, make_account, monkeypatch
+):
+    """The build's columns (most of its memory) are garbage when ``_release_memory``
+    trims the heap, in both the request's build and the CLI's/tick's."""
+    import weakref
+
+    from service.db.models import Job
+
+    loaded, alive_at_release = [], []
+    real_load = reports.load_columns
+
+    def load(*a, **k):
+        cols = real_load(*a, **k)
+        loaded.append(weakref.ref(cols))
+        return cols
+
+    monkeypatch.setattr(reports, "load_columns", load)
+    monkeypatch.setattr(
+        reports, "_release_memory", lambda: alive_at_release.append(loaded[-1]() is not None)
+    )
+    acc = make_account()
+    jid = tracked.post(f"{API}/jobs", json=TINY_SPEC, headers=acc.headers).json()["id"]
+    assert tracked.get(f"{API}/jobs/{jid}/report", headers=acc.headers).status_code == 200
+    reports.build_job_report(session, session.get(Job, jid))
+    assert len(loaded) == 2 and alive_at_release == [False, False]
