@@ -41,6 +41,9 @@ class Settings(BaseSettings):
     WORKER_WATCHDOG_SECONDS: float = 20.0
     # Beat's tick (due schedules, then the relay) runs this often.
     TICK_SECONDS: float = 60.0
+    # Beat looks for finished jobs without a stored report this often (and at least
+    # every tick), and builds theirs, so a report is usually stored before it is asked.
+    REPORT_POLL_SECONDS: float = Field(default=5.0, gt=0)
 
     MAX_JOB_CELLS: int = 2_000_000
     # Admission (svrobs_core.admission, docs/deploy.md#admission): a job whose records

@@ -20,6 +20,15 @@ LOCAL_TASKS = {"svrobs.tick"}
 
 
 class TickScheduler(PersistentScheduler):
+    def setup_schedule(self):
+        """The schedule, and beat's report thread from the start (not from the first
+        tick, a whole ``TICK_SECONDS`` later): reports of jobs that finish meanwhile
+        are stored before they are asked for."""
+        super().setup_schedule()
+        from worker.tick import start_report_builds
+
+        start_report_builds()
+
     def apply_entry(self, entry, producer=None):
         if entry.task not in LOCAL_TASKS:
             return super().apply_entry(entry, producer=producer)

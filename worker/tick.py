@@ -31,6 +31,7 @@ REPORTS_PER_TICK = 2
 REPORT_RECENT_DAYS = 2  # reports are built ahead for jobs finished this recently
 REPORT_EXIT_WAIT_SECONDS = 8.0  # inside the supervisor's 10 s stop grace
 _report_thread: threading.Thread | None = None
+_stop_reports = threading.Event()  # set at exit: the report thread ends after its build
 
 
 def session_scope(write: bool = True):
@@ -139,30 +140,42 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
 
 
 def start_report_builds() -> bool:
-    """:func:`build_reports` in a background thread of this (beat) process, one at a
-    time: a report of a large job takes a minute, the tick must not wait for it."""
+    """:func:`build_reports` in a background thread of this (beat) process, again
+    every ``REPORT_POLL_SECONDS`` (at most ``TICK_SECONDS``) until the process exits:
+    a report of a large job takes seconds, the tick must not wait for it, and a
+    finished job's report should be stored before anyone asks for it. One thread
+    per process; False when it already runs."""
     global _report_thread
     if _report_thread is not None and _report_thread.is_alive():
         return False
+    from service.config import get_settings
+
+    settings = get_settings()
+    every = min(settings.REPORT_POLL_SECONDS, settings.TICK_SECONDS)
 
     def run():
-        try:
-            build_reports()
-        except Exception:  # retried next tick (logged with its traceback)
-            log.exception("tick: building reports failed; will retry next tick")
+        while not _stop_reports.is_set():
+            try:
+                build_reports()
+            except Exception:  # retried at the next poll (logged with its traceback)
+                log.exception("tick: building reports failed; will retry")
+            _stop_reports.wait(every)
 
     if _report_thread is None:  # the first build of this process
         atexit.register(wait_for_report_builds)
+    _stop_reports.clear()
     _report_thread = threading.Thread(target=run, name="svrobs-reports", daemon=True)
     _report_thread.start()
     return True
 
 
 def wait_for_report_builds(timeout: float = REPORT_EXIT_WAIT_SECONDS) -> bool:
-    """At exit: let a report build in flight finish (its write is one transaction,
-    so a build cut short stores nothing). Without it the interpreter would stop
-    the daemon thread inside a native call, which aborts the process ("terminate
-    called without an active exception"). True when no build is left running."""
+    """At exit: stop the report thread, letting a build in flight finish (its write
+    is one transaction, so a build cut short stores nothing). Without it the
+    interpreter would stop the daemon thread inside a native call, which aborts the
+    process ("terminate called without an active exception"). True when no build is
+    left running."""
+    _stop_reports.set()
     t = _report_thread
     if t is None or not t.is_alive():
         return True

@@ -65,3 +65,56 @@ def test_wait_is_bounded():
         assert tick.wait_for_report_builds(timeout=5) is True
     finally:
         tick._report_thread = old
+
+
+def test_the_report_thread_polls_until_stopped(monkeypatch):
+    """Beat's report thread builds again every REPORT_POLL_SECONDS (not once per
+    tick), survives a failing build, and ends when the process stops it."""
+    import threading
+
+    import worker.tick as tick
+    from service.config import get_settings
+
+    calls = []
+    third = threading.Event()
+
+    def counting_build(limit=2, scope=None):
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("a build that fails: retried at the next poll")
+        if len(calls) == 3:
+            third.set()
+        return []
+
+    monkeypatch.setenv("SVROBS_REPORT_POLL_SECONDS", "0.05")
+    get_settings.cache_clear()
+    monkeypatch.setattr(tick, "build_reports", counting_build)
+    monkeypatch.setattr(tick, "_report_thread", None)
+    monkeypatch.setattr(tick.atexit, "register", lambda fn: None)
+    try:
+        assert tick.start_report_builds()
+        assert not tick.start_report_builds()  # one thread per process
+        assert third.wait(30)  # polled again after the failure, with no tick in between
+        assert tick.wait_for_report_builds(timeout=30)
+        assert not tick._report_thread.is_alive()
+        n = len(calls)
+        threading.Event().wait(0.2)  # four polls' time
+        assert len(calls) == n  # nothing builds after the stop
+    finally:
+        get_settings.cache_clear()
+
+
+def test_beat_starts_the_report_thread_with_its_schedule(monkeypatch, tmp_path):
+    """The report thread runs from beat's start, not from its first tick."""
+    import worker.tick as tick
+    from worker.beat import TickScheduler
+    from worker.celery_app import celery_app
+
+    started = []
+    monkeypatch.setattr(tick, "start_report_builds", lambda: started.append(1) or True)
+    scheduler = TickScheduler(app=celery_app, schedule_filename=str(tmp_path / "schedule"))
+    try:
+        assert started == [1]
+        assert "svrobs.tick" in {e.task for e in scheduler.schedule.values()}
+    finally:
+        scheduler.close()
