@@ -111,14 +111,16 @@ def test_load_columns_without_matrices_and_running_job_report_not_stored(
     assert session.get(JobReport, jid) is None  # a running job changes: never stored
 
 
-def _finished_fake_job(client, session, make_account) -> tuple[int, list[dict]]:
+def _finished_fake_job(client, session, make_account, spec=SMALL_SPEC) -> tuple[int, list[dict]]:
     """A job of fake records whose units were stored last first (so the rows' storage
     order is not the grid's)."""
     from service.db import jobs, units
     from tests.service.svc_fakes import fake_records
 
     acc = make_account()
-    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    r = client.post(f"{API}/jobs", json=spec, headers=acc.headers)
+    assert r.status_code == 202, r.text
+    jid = r.json()["id"]
     for uid in reversed(jobs.unit_ids_of_job(session, jid, pending_only=False)):
         spec, payload = units.start_unit(session, uid, "w", 60, max_attempts=0)
         units.complete_unit(session, uid, fake_records(spec, payload))
@@ -152,6 +154,30 @@ def test_postgresql_reads_report_columns_by_one_copy(
 
     session.execute(text("SET LOCAL enable_indexscan = off"))
     session.execute(text("SET LOCAL enable_bitmapscan = off"))
+    _same_columns(
+        load_columns(session, jid, matrices=False), Columns.from_records(records, matrices=False)
+    )
+
+
+def test_copy_read_quotes_and_orders_system_names_as_the_database(
+    client, session, make_account, monkeypatch
+):
+    """System names with quotes, a backslash, non-ASCII letters and both cases: the
+    COPY's CASE literals match them, and the rows come in the database's order of
+    them (as the row read's ORDER BY gives it)."""
+    if session.get_bind().dialect.name != "postgresql":
+        pytest.skip("the COPY read is PostgreSQL's")
+    from service.db import reports
+    from svrobs_core.systems import resolve_system
+
+    paper = resolve_system("paper-stable")
+    names = ["Zeta 'q' \\ ü", 'alpha "x" É', "Émile;--"]
+    systems = [{"name": n, "A": paper.A.tolist(), "B": paper.B.tolist()} for n in names]
+    jid, records = _finished_fake_job(
+        client, session, make_account, {**SMALL_SPEC, "systems": systems}
+    )
+    assert {r["system"] for r in records} == set(names)
+    monkeypatch.setattr(reports, "_chunks", lambda *a, **k: pytest.fail("the row read was used"))
     _same_columns(
         load_columns(session, jid, matrices=False), Columns.from_records(records, matrices=False)
     )
