@@ -16,7 +16,9 @@ columns are the same as the row read's, bit for bit
 from __future__ import annotations
 
 import numpy as np
-from sqlalchemy import select
+from sqlalchemy import Integer, any_, bindparam, select
+from sqlalchemy.dialects.postgresql import ARRAY
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session
 
 from svrobs_core.records import BOOL_FIELDS
@@ -76,9 +78,12 @@ def _copy_sql(job_id: int, limit: int, distinct: dict[str, list]):
         exprs.append(sql.SQL("coalesce(CASE {} END, -1)::float8").format(sql.SQL(" ").join(whens)))
     exprs.append(sql.SQL("coalesce(notes_id, -1)::float8"))
     exprs.append(sql.SQL("gamma_key::float8"))
+    # one row more than counted: with no ORDER BY (a sort the server would have to make),
+    # a running job's new rows would give another set of rows than the row read's
+    # first ``limit``; the extra row is not read (StreamChanged: the rows are read)
     return sql.SQL(
         "COPY (SELECT {} FROM results WHERE job_id = {} LIMIT {}) TO STDOUT (FORMAT BINARY)"
-    ).format(sql.SQL(", ").join(exprs), sql.Literal(job_id), sql.Literal(limit)), len(exprs)
+    ).format(sql.SQL(", ").join(exprs), sql.Literal(job_id), sql.Literal(limit + 1)), len(exprs)
 
 
 def _read_stream(copy, n_fields: int, limit: int) -> list[np.ndarray]:
@@ -155,13 +160,23 @@ def copy_columns(session: Session, job_id: int, limit: int):
     """(fields -> arrays, text field -> (codes, values)) of at most ``limit`` rows of
     the job, in the row read's order; raises :class:`StreamChanged` when the rows
     changed between the reads."""
+    import psycopg
+
     distinct = _distinct(session, job_id)
     query, n_fields = _copy_sql(job_id, limit, distinct)
-    pg = session.connection().connection.driver_connection
+    conn = session.connection()
+    pg = conn.connection.driver_connection
     assert pg is not None  # an open connection (session.connection() began it)
-    with pg.cursor() as cur, cur.copy(query) as copy:
-        names = [*SCALAR_FIELDS, *_CODED, "notes", "gamma_key"]
-        raw = dict(zip(names, _read_stream(copy, n_fields, limit), strict=True))
+    names = [*SCALAR_FIELDS, *_CODED, "notes", "gamma_key"]
+    try:
+        with pg.cursor() as cur, cur.copy(query) as copy:
+            raw = dict(zip(names, _read_stream(copy, n_fields, limit), strict=True))
+    except psycopg.Error as exc:  # as SQLAlchemy reports a driver's error (503 if down)
+        if pg.closed:
+            conn.invalidate(exc)
+        raise DBAPIError.instance(
+            query.as_string(pg), None, exc, psycopg.Error, connection_invalidated=pg.closed
+        ) from exc
     if any((raw[f] < 0).any() for f in _CODED):
         raise StreamChanged  # a text value the distinct read did not see
     order = np.lexsort([raw[f] for f in reversed(SORT_KEY)])
@@ -183,9 +198,10 @@ def _notes(session: Session, note_ids: np.ndarray) -> tuple[np.ndarray, list]:
     gives them (an id without a text, like -1, is None)."""
     ids = np.unique(note_ids)
     known = ids[ids >= 0].tolist()
+    ids_param = bindparam("ids", known, type_=ARRAY(Integer))  # one parameter, any count
     texts = dict(
         session.execute(
-            select(ResultNote.id, ResultNote.text).where(ResultNote.id.in_(known))
+            select(ResultNote.id, ResultNote.text).where(ResultNote.id == any_(ids_param))
         ).all()
     )
     index: dict = {}

@@ -207,6 +207,53 @@ def test_copy_read_falls_back_to_rows_when_a_value_is_new(
     _same_columns(cols, Columns.from_records(records, matrices=False))
 
 
+def test_copy_read_of_more_rows_than_counted_reads_the_rows_instead(client, session, make_account):
+    """A running job that stored rows after they were counted: the COPY (no ORDER
+    BY) would hand over another set than the row read's first rows, so it stops."""
+    if session.get_bind().dialect.name != "postgresql":
+        pytest.skip("the COPY read is PostgreSQL's")
+    from service.db.report_copy import StreamChanged, copy_columns
+
+    jid, records = _finished_fake_job(client, session, make_account)
+    data, _ = copy_columns(session, jid, len(records))
+    assert len(data["rep"]) == len(records)
+    with pytest.raises(StreamChanged):
+        copy_columns(session, jid, len(records) - 1)
+
+
+def test_copy_read_notes_of_more_ids_than_a_statement_has_parameters(session):
+    """The notes' texts are read with the ids as one array parameter (PostgreSQL
+    takes at most 65,535 parameters in a statement); unknown ids and -1 are None."""
+    if session.get_bind().dialect.name != "postgresql":
+        pytest.skip("the COPY read is PostgreSQL's")
+    from service.db.report_copy import _notes
+    from service.db.results_store import note_ids
+
+    stored = note_ids(session, ["first note", "second note"])
+    a, b = stored["first note"], stored["second note"]
+    unknown = np.arange(10**6, 10**6 + 70_000)
+    ids = np.concatenate([[b, -1], unknown, [a, b]]).astype(np.int64)
+    codes, values = _notes(session, ids)
+    assert values == ["second note", None, "first note"]
+    assert codes.tolist() == [0, 1] + [1] * unknown.size + [2, 0]
+
+
+def test_a_driver_error_in_the_copy_read_is_reported_as_sqlalchemy_reports_it(session, monkeypatch):
+    """An error of the COPY (psycopg's) comes out as SQLAlchemy's DBAPIError, as the
+    row read's would (the API maps those to 503 once)."""
+    if session.get_bind().dialect.name != "postgresql":
+        pytest.skip("the COPY read is PostgreSQL's")
+    from psycopg import sql
+    from sqlalchemy.exc import ProgrammingError
+
+    from service.db import report_copy
+
+    bad = sql.SQL("COPY (SELECT 1 FROM no_such_table) TO STDOUT (FORMAT BINARY)")
+    monkeypatch.setattr(report_copy, "_copy_sql", lambda *a: (bad, 1))
+    with pytest.raises(ProgrammingError, match="no_such_table"):
+        report_copy.copy_columns(session, 1, 10)
+
+
 def _numpy_compare(records, jid, metric, by):
     values, seen = defaultdict(list), set()
     for rec in records:
