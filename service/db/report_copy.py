@@ -33,8 +33,9 @@ SORT_KEY = ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")  # the ro
 
 
 class StreamChanged(Exception):
-    """A row the distinct values read first do not cover (a running job's new rows):
-    the caller reads the rows instead."""
+    """The stream is not the one expected: a text value the distinct read did not
+    see or more rows than counted (a running job's new rows), or not a COPY of
+    these fields. The caller reads the rows instead."""
 
 
 def _distinct(session: Session, job_id: int) -> dict[str, list]:
@@ -61,6 +62,8 @@ def _distinct(session: Session, job_id: int) -> dict[str, list]:
 
 
 def _copy_sql(job_id: int, limit: int, distinct: dict[str, list]):
+    """(the COPY statement, its number of fields): the scalars, the coded text
+    fields, notes' id and gamma_key, each as a non-NULL float8."""
     from psycopg import sql
 
     exprs: list[sql.Composable] = []
