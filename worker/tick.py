@@ -20,6 +20,7 @@ from __future__ import annotations
 import atexit
 import logging
 import threading
+import time
 from datetime import datetime, timedelta
 
 log = logging.getLogger(__name__)
@@ -32,6 +33,8 @@ REPORT_RECENT_DAYS = 2  # reports are built ahead for jobs finished this recentl
 REPORT_EXIT_WAIT_SECONDS = 8.0  # inside the supervisor's 10 s stop grace
 _report_thread: threading.Thread | None = None
 _stop_reports = threading.Event()  # set at exit: the report thread ends after its build
+REPORT_RETRY_SECONDS = 600.0  # a job whose report build failed is tried again after this
+_failed_reports: dict[int, float] = {}  # job id -> when its build failed (monotonic)
 
 
 def session_scope(write: bool = True):
@@ -115,7 +118,9 @@ def prune_expired(limit: int = PRUNE_MAX_PER_TICK, scope=None) -> list[int]:
 
 def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
     """Store the reports of recently finished jobs that have none, so that the API
-    serves them as stored from the first request; returns the jobs done."""
+    serves them as stored from the first request; returns the jobs done. A job whose
+    build fails is logged once and left alone for REPORT_RETRY_SECONDS (its report is
+    then built at its first request), so it holds up neither the others nor the log."""
     from sqlalchemy.exc import IntegrityError
 
     from service.db.clock import db_now
@@ -123,9 +128,13 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
     from svrobs_lab.reports import store_if_missing
 
     scope = scope or session_scope
+    now = time.monotonic()
+    for job_id, failed_at in list(_failed_reports.items()):
+        if now - failed_at >= REPORT_RETRY_SECONDS:
+            del _failed_reports[job_id]
     with scope(write=False) as s:
         since = db_now(s) - timedelta(days=REPORT_RECENT_DAYS)
-        ids = jobs_without_report(s, limit, finished_after=since)
+        ids = jobs_without_report(s, limit, finished_after=since, skip=list(_failed_reports))
     done = []
     for job_id in ids:
         try:
@@ -134,6 +143,11 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
                     done.append(job_id)
         except IntegrityError:  # an API request stored it meanwhile: the same page
             continue
+        except Exception:  # logged with its traceback, once per REPORT_RETRY_SECONDS
+            log.exception(
+                "tick: the report of job %s failed; retried in %.0f s", job_id, REPORT_RETRY_SECONDS
+            )
+            _failed_reports[job_id] = time.monotonic()
     if done:
         log.info("tick: stored the reports of jobs %s", done)
     return done
@@ -154,9 +168,13 @@ def start_report_builds() -> bool:
     every = min(settings.REPORT_POLL_SECONDS, settings.TICK_SECONDS)
 
     def run():
+        from sqlalchemy.exc import DBAPIError
+
         while not _stop_reports.is_set():
             try:
                 build_reports()
+            except DBAPIError as exc:  # the database is down: retried at the next poll
+                log.warning("tick: building reports failed (%s); will retry", type(exc).__name__)
             except Exception:  # retried at the next poll (logged with its traceback)
                 log.exception("tick: building reports failed; will retry")
             _stop_reports.wait(every)

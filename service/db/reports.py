@@ -53,9 +53,11 @@ def store_report(session: Session, job_id: int, html: str, n_records: int) -> Jo
     return row
 
 
-def jobs_without_report(session: Session, limit: int, finished_after=None) -> list[int]:
+def jobs_without_report(
+    session: Session, limit: int, finished_after=None, skip: Sequence[int] = ()
+) -> list[int]:
     """Finished jobs that have cell rows and no stored report (finished after
-    ``finished_after`` if given), newest first."""
+    ``finished_after`` if given, not in ``skip``), newest first."""
     q = (
         select(Job.id)
         .where(Job.status.not_in(JOB_ACTIVE), Job.pruned_at.is_(None), Job.n_cells > 0)
@@ -65,6 +67,8 @@ def jobs_without_report(session: Session, limit: int, finished_after=None) -> li
     )
     if finished_after is not None:
         q = q.where(Job.finished_at >= finished_after)
+    if skip:
+        q = q.where(Job.id.not_in(list(skip)))
     return list(session.scalars(q))
 
 

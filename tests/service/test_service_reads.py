@@ -254,6 +254,43 @@ def test_a_driver_error_in_the_copy_read_is_reported_as_sqlalchemy_reports_it(se
         report_copy.copy_columns(session, 1, 10)
 
 
+def test_a_failing_report_build_holds_up_neither_other_jobs_nor_the_log(
+    client, session, session_factory, make_account, monkeypatch, caplog
+):
+    """Beat's report builds: a job whose build fails is logged once, skipped for
+    REPORT_RETRY_SECONDS while the others are built, and then tried again."""
+    import svrobs_lab.reports as lab_reports
+    from worker import tick
+
+    acc = make_account()
+    bad, good = (
+        client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+        for _ in range(2)
+    )
+    run_job_units(session, good)
+    run_job_units(session, bad)  # the newest: first in line
+    session.commit()
+    real, tried = lab_reports.store_if_missing, []
+
+    def failing(r, w, job_id):
+        tried.append(job_id)
+        if job_id == bad:
+            raise ValueError("a report that cannot be built")
+        return real(r, w, job_id)
+
+    monkeypatch.setattr(lab_reports, "store_if_missing", failing)
+    monkeypatch.setattr(tick, "_failed_reports", {})
+    scope = scope_of(session_factory)
+    with caplog.at_level("ERROR", logger="worker.tick"):
+        assert tick.build_reports(limit=1, scope=scope) == []  # only the bad one fits
+        assert tick.build_reports(limit=1, scope=scope) == [good]  # the bad one is skipped
+        assert tick.build_reports(limit=1, scope=scope) == []
+    failures = [r for r in caplog.records if r.getMessage().startswith("tick: the report of job")]
+    assert tried == [bad, good] and len(failures) == 1
+    tick._failed_reports[bad] -= tick.REPORT_RETRY_SECONDS  # its pause is over
+    assert tick.build_reports(limit=1, scope=scope) == [] and tried[-1] == bad
+
+
 def _numpy_compare(records, jid, metric, by):
     values, seen = defaultdict(list), set()
     for rec in records:
