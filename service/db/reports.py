@@ -20,7 +20,13 @@ import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from svrobs_core.report.columns import COLUMN_MATRIX_FIELDS, SCALAR_FIELDS, TEXT_FIELDS, Columns
+from svrobs_core.report.columns import (
+    COLUMN_MATRIX_FIELDS,
+    SCALAR_FIELDS,
+    TEXT_FIELDS,
+    Columns,
+    FirstCodes,
+)
 
 from .models import JOB_ACTIVE, Job, JobReport, Result, utcnow
 from .report_copy import SORT_KEY, StreamChanged, copy_columns
@@ -86,14 +92,6 @@ def _matrix_block(values: list, shape: tuple[int, int] | None) -> tuple[np.ndarr
     return out, shape
 
 
-class _FirstCodes(dict):
-    """value -> its code, the next free one the first time a value is looked up."""
-
-    def __missing__(self, value):
-        code = self[value] = len(self)
-        return code
-
-
 def _chunks(session: Session, q) -> Iterator[Sequence[Sequence]]:
     """The rows of ``q`` in chunks of ``CHUNK``. On SQLite straight from the driver's
     cursor (plain tuples: a third less time than SQLAlchemy's rows; booleans as 0/1);
@@ -151,7 +149,7 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
     sig = SCALAR_FIELDS.index("sigma_w")
     # each text field factorised as it is read (Columns.codes: codes in order of first
     # appearance), so each distinct text is one str object and is never factorised again
-    firsts = {f: _FirstCodes() for f in TEXT_FIELDS}
+    firsts = {f: FirstCodes() for f in TEXT_FIELDS}
     codes = {f: np.empty(n, dtype=np.int64) for f in TEXT_FIELDS}
     at = 0
     for part in _chunks(session, q):
@@ -162,9 +160,7 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
         for i, f in enumerate(SCALAR_FIELDS):
             data[f][at : at + k] = scalars[:, i]
         for i, f in enumerate(TEXT_FIELDS):
-            codes[f][at : at + k] = np.fromiter(
-                map(firsts[f].__getitem__, rows[:, ns + i]), dtype=np.int64, count=k
-            )
+            codes[f][at : at + k] = firsts[f].encode(rows[:, ns + i])
         if mats:
             systems = list(rows[:, ns + TEXT_FIELDS.index("system")])
             sigmas = scalars[:, sig].tolist()

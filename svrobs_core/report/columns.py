@@ -280,14 +280,26 @@ def _key(v: Any) -> Any:
     return v
 
 
+class FirstCodes(dict[Any, int]):
+    """value -> its code: the next free one the first time a value is looked up (so
+    codes number the values in order of first appearance, as :meth:`Columns.codes`
+    does for text; readers that factorise as they read use it too)."""
+
+    def __missing__(self, value: Any) -> int:
+        code = self[value] = len(self)
+        return code
+
+    def encode(self, values: Any) -> Array:
+        """The codes of ``values`` (a sequence), adding the values not seen yet."""
+        return np.fromiter(map(self.__getitem__, values), dtype=np.int64, count=len(values))
+
+
 def _codes(col: Array) -> tuple[Array, list[Any]]:
     """Factorise a column: integer codes and the key value of each code
     (floats as float, NaN as None; objects as themselves)."""
     if col.dtype == object:
-        lut: dict[Any, int] = {}
-        setdefault = lut.setdefault
-        codes = np.array([setdefault(v, len(lut)) for v in col.tolist()], dtype=np.int64)
-        return codes, list(lut)
+        lut = FirstCodes()
+        return lut.encode(col), list(lut)
     a = col.astype(float)
     u = np.unique(a)  # sorted, NaNs as one value, last (where searchsorted puts a NaN)
     return np.searchsorted(u, a).astype(np.int64), [_key(v) for v in u.tolist()]
