@@ -121,7 +121,7 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
     serves them as stored from the first request; returns the jobs done. A job whose
     build fails is logged once and left alone for REPORT_RETRY_SECONDS (its report is
     then built at its first request), so it holds up neither the others nor the log."""
-    from sqlalchemy.exc import IntegrityError
+    from sqlalchemy.exc import DBAPIError, IntegrityError
 
     from service.db.clock import db_now
     from service.db.reports import jobs_without_report
@@ -143,6 +143,8 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
                     done.append(job_id)
         except IntegrityError:  # an API request stored it meanwhile: the same page
             continue
+        except DBAPIError:  # the database, not this job: the next poll tries again
+            raise
         except Exception:  # logged with its traceback, once per REPORT_RETRY_SECONDS
             log.exception(
                 "tick: the report of job %s failed; retried in %.0f s", job_id, REPORT_RETRY_SECONDS

@@ -291,6 +291,31 @@ def test_a_failing_report_build_holds_up_neither_other_jobs_nor_the_log(
     assert tick.build_reports(limit=1, scope=scope) == [] and tried[-1] == bad
 
 
+def test_a_database_error_in_a_report_build_is_not_held_against_the_job(
+    client, session, session_factory, make_account, monkeypatch
+):
+    """The database failing during a build is raised (the report thread warns and
+    polls again); the job is not set aside as one whose report cannot be built."""
+    from sqlalchemy.exc import OperationalError
+
+    import svrobs_lab.reports as lab_reports
+    from worker import tick
+
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    run_job_units(session, jid)
+    session.commit()
+
+    def down(r, w, job_id):
+        raise OperationalError("SELECT 1", {}, Exception("server closed the connection"))
+
+    monkeypatch.setattr(lab_reports, "store_if_missing", down)
+    monkeypatch.setattr(tick, "_failed_reports", {})
+    with pytest.raises(OperationalError):
+        tick.build_reports(limit=1, scope=scope_of(session_factory))
+    assert tick._failed_reports == {}
+
+
 def _numpy_compare(records, jid, metric, by):
     values, seen = defaultdict(list), set()
     for rec in records:
