@@ -190,6 +190,8 @@ def test_skip_link_theme_toggle_favicon_and_keyboard_legend(browser, stack, site
     bg = page.evaluate("getComputedStyle(document.documentElement).backgroundColor")
     page.click("#theme-toggle")
     assert page.evaluate("document.documentElement.dataset.theme") == "dark"
+    # the skip link's fragment navigation (a popstate) did not fetch the charts again
+    assert page.evaluate("window.svrobsCharts.requests") == 1
     page.reload()
     assert page.evaluate("document.documentElement.dataset.theme") == "dark"
     assert page.evaluate("getComputedStyle(document.documentElement).backgroundColor") != bg

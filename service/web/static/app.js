@@ -231,9 +231,14 @@
     return location.pathname + (s ? `?${s}` : "");
   }
 
+  // the query of the view shown: a back/forward to another fragment of the same view
+  // (the skip link's #main) fires popstate too, and changes nothing here
+  let shownSearch = location.search;
+
   function remember(card) {
     const url = viewQuery(card);
     if (url !== location.pathname + location.search) history.pushState({ svrobsChart: true }, "", url);
+    shownSearch = location.search;
   }
 
   /* Set the controls from the URL (on load and on back/forward). */
@@ -358,7 +363,12 @@
         draw(card, registry.data);
       });
     });
-    window.addEventListener("popstate", () => { restore(card); load(card); });
+    window.addEventListener("popstate", () => {
+      if (location.search === shownSearch) return;
+      shownSearch = location.search;
+      restore(card);
+      load(card);
+    });
     document.addEventListener("svrobs:theme", () => draw(card, registry.data));
     document.body.addEventListener("svrobs:job-finished", () => load(card, true));
     // while the job runs: reload when the progress card says more cells are done
