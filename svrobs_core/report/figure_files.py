@@ -11,6 +11,7 @@ embeds its TrueType fonts."""
 
 from __future__ import annotations
 
+import functools
 import io
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -22,6 +23,7 @@ from .style import figure_style
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
+    from matplotlib.mathtext import MathTextParser, VectorParse
 
 FORMATS = ("png", "svg", "pdf")
 PNG_COLOURS = 256
@@ -44,12 +46,26 @@ def figure_bytes(fig: Figure, fmt: str = "png", dpi: int = 200) -> bytes:
             # one draw at the file's dpi (savefig draws twice for a layout engine:
             # a dry pass, then the pixels); the layout engine runs in the draw
             with _figure_dpi(fig, dpi):
+                # the renderer the draw reuses, with the process's one mathtext parser
+                renderer = canvas.get_renderer()  # type: ignore[no-untyped-call]
+                renderer.mathtext_parser = _mathtext_parser()
                 canvas.draw()  # type: ignore[no-untyped-call]
                 rgba = bytes(canvas.buffer_rgba())  # type: ignore[no-untyped-call]
                 size = (int(canvas.renderer.width), int(canvas.renderer.height))
             return palette_png(rgba, size, dpi)
         fig.savefig(buf, format=fmt, dpi=dpi, metadata=meta[fmt])
     return buf.getvalue()
+
+
+@functools.cache
+def _mathtext_parser() -> MathTextParser[VectorParse]:
+    """The mathtext parser of every PNG drawn in this process. Its parse cache is
+    keyed by the parser, so a renderer's own parser (one per figure) parses each
+    tick label again; with one parser they are parsed once per process (the same
+    pixels, docs/performance.md#figure-files)."""
+    from matplotlib.mathtext import MathTextParser
+
+    return MathTextParser("path")  # as RendererAgg makes its own
 
 
 @contextmanager

@@ -65,6 +65,36 @@ def test_a_transparent_figure_keeps_its_alpha_exactly():
     )
 
 
+def _log_figure():
+    """Tick labels and a title that matplotlib draws as mathtext, on a transparent
+    background (so the PNG keeps matplotlib's pixels exactly)."""
+    fig, axes = new_figure(1, 1, (4.0, 2.5))
+    ax = np.ravel(axes)[0]
+    x = np.logspace(-3, 1, 50)
+    ax.loglog(x, x**2)
+    ax.set_title(r"$\|\hat A - A\|_2$ against $N$")
+    fig.patch.set_alpha(0.0)
+    return fig
+
+
+def test_mathtext_is_parsed_once_per_process_and_drawn_as_matplotlib_draws_it():
+    from matplotlib.mathtext import MathTextParser
+
+    figure_bytes(_log_figure(), "png")  # its labels parsed once
+    misses = MathTextParser._parse_cached.cache_info().misses
+    fig = _log_figure()  # a new figure: a new renderer
+    ours = Image.open(io.BytesIO(figure_bytes(fig, "png")))
+    assert MathTextParser._parse_cached.cache_info().misses == misses
+    buf = io.BytesIO()
+    with figure_style():
+        fig.savefig(buf, format="rgba", dpi=200)
+    w, h = ours.size
+    assert ours.mode == "RGBA"
+    assert np.array_equal(
+        np.asarray(ours), np.frombuffer(buf.getvalue(), np.uint8).reshape(h, w, 4)
+    )
+
+
 def test_an_unpickled_figure_at_an_inexact_width_gives_the_same_png():
     """12.7 cm at 200 dpi is 999.99... pixels in floating point: the size comes from
     the renderer, also for a Figure that lost its Agg canvas in a pickle."""
