@@ -40,7 +40,7 @@ class Settings(BaseSettings):
     # (worker.watchdog; Redis brokers only; 0 turns it off).
     WORKER_WATCHDOG_SECONDS: float = 20.0
     # Beat's tick (due schedules, then the relay) runs this often.
-    TICK_SECONDS: float = 60.0
+    TICK_SECONDS: float = Field(default=60.0, gt=0)
     # Beat looks for finished jobs without a stored report this often (and at least
     # every tick), and builds theirs, so a report is usually stored before it is asked.
     REPORT_POLL_SECONDS: float = Field(default=5.0, gt=0)

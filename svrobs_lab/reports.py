@@ -18,6 +18,7 @@ import ctypes
 import gc
 import logging
 import threading
+from collections.abc import Callable
 from contextlib import closing
 from dataclasses import dataclass
 from typing import Any
@@ -105,14 +106,6 @@ def _render_columns(job: JobSnapshot, cols: Columns) -> tuple[str, int]:
     return _render(job, cols), len(cols)
 
 
-def build_job_report(session: Session, job: Job) -> tuple[str, int]:
-    """(HTML, number of records) of a job, from its stored records read as columns."""
-    try:
-        return _render_columns(JobSnapshot.of(job), load_columns(session, job.id))
-    finally:
-        _release_memory()
-
-
 def _build(job: JobSnapshot, session_factory: SessionFactory) -> tuple[str, int]:
     """Read the columns in a reading session of its own (closed before rendering),
     then render with no connection held."""
@@ -171,18 +164,43 @@ def job_report(
     return builds.get(snap.id, snap.team_id, snap.version, lambda: _build(snap, session_factory)[0])
 
 
-def store_if_missing(read_session: Session, write_session: Session, job_id: int) -> bool:
+def store_if_missing(
+    read_session: Session,
+    write_session: Session,
+    job_id: int,
+    *,
+    proceed: Callable[[], bool] | None = None,
+) -> bool:
     """Build a finished job's report (reading with ``read_session``) and add it to
-    ``write_session`` unless one is stored; True when it built one."""
-    job = read_session.get(Job, job_id)
-    if job is None or not is_final(job) or stored_report(read_session, job_id) is not None:
-        return False
+    ``write_session`` unless one is stored; True when it built one. The rows are read
+    and the read transaction ended before rendering, so none is held (nor cut by a
+    server's idle-in-transaction timeout) while the page renders; ``proceed()``,
+    asked between the read and the rendering, can call the build off (False)."""
     with BUILD_SLOTS:
-        html, n = build_job_report(read_session, job)
-    read_session.rollback()
+        read_session.rollback()  # a report stored while this waited for the slot is seen
+        job = read_session.get(Job, job_id)
+        if job is None or not is_final(job) or stored_report(read_session, job_id) is not None:
+            return False
+        snap = JobSnapshot.of(job)
+        cols: Columns | None = None
+        try:
+            cols = _read_rows(read_session, job_id)
+            if proceed is not None and not proceed():
+                return False
+            html, n = _render_columns(snap, cols)
+        finally:
+            cols = None  # freed before the heap is trimmed
+            _release_memory()
     if stored_report(write_session, job_id) is None:
         store_report(write_session, job_id, html, n)
     return True
+
+
+def _read_rows(session: Session, job_id: int) -> Columns:
+    """The job's columns, with the session's transaction ended once they are read."""
+    cols = load_columns(session, job_id)
+    session.rollback()
+    return cols
 
 
 def caller_job_report(

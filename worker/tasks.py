@@ -361,4 +361,4 @@ def _backoff(retries: int, base: float = 1.0, cap: float = 120.0) -> float:
 @shared_task(name="svrobs.tick", bind=True, ignore_result=True)
 def tick(self):
     """Normally run inside beat (worker.beat.TickScheduler); a worker can run it too."""
-    return run_tick(celery=self.app)
+    return run_tick(celery=self.app, reports=False)  # beat's process builds the reports

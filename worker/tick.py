@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import atexit
 import logging
+import os
 import threading
 import time
 from datetime import datetime, timedelta
@@ -120,7 +121,9 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
     """Store the reports of recently finished jobs that have none, so that the API
     serves them as stored from the first request; returns the jobs done. A job whose
     build fails is logged once and left alone for REPORT_RETRY_SECONDS (its report is
-    then built at its first request), so it holds up neither the others nor the log."""
+    then built at its first request), so it holds up neither the others nor the log;
+    a database that is unreachable is raised (the caller polls again). Once the
+    process is stopping, no build starts, and none renders after its read."""
     from sqlalchemy.exc import DBAPIError, IntegrityError
 
     from service.db.clock import db_now
@@ -137,27 +140,54 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
         ids = jobs_without_report(s, limit, finished_after=since, skip=list(_failed_reports))
     done = []
     for job_id in ids:
+        if _stop_reports.is_set():  # the process is stopping: no new build
+            break
         try:
             with scope(write=False) as r, scope(write=True) as w:
-                if store_if_missing(r, w, job_id):
+                if store_if_missing(r, w, job_id, proceed=lambda: not _stop_reports.is_set()):
                     done.append(job_id)
         except IntegrityError:  # an API request stored it meanwhile: the same page
             continue
-        except DBAPIError:  # the database, not this job: the next poll tries again
-            raise
-        except Exception:  # logged with its traceback, once per REPORT_RETRY_SECONDS
-            log.exception(
-                "tick: the report of job %s failed; retried in %.0f s", job_id, REPORT_RETRY_SECONDS
-            )
-            _failed_reports[job_id] = time.monotonic()
+        except DBAPIError as exc:
+            if _database_down(exc, scope):  # not this job's: the next poll tries again
+                raise
+            _set_aside(job_id)  # this job's (e.g. a timeout on its read)
+        except Exception:  # noqa: BLE001 - logged with its traceback by _set_aside
+            _set_aside(job_id)
     if done:
         log.info("tick: stored the reports of jobs %s", done)
     return done
 
 
+def _set_aside(job_id: int) -> None:
+    """Log a job's failed build with its traceback, and skip the job for
+    REPORT_RETRY_SECONDS."""
+    log.exception(
+        "tick: the report of job %s failed; retried in %.0f s", job_id, REPORT_RETRY_SECONDS
+    )
+    _failed_reports[job_id] = time.monotonic()
+
+
+def _database_down(exc: Exception, scope) -> bool:
+    """Whether a database error during a build means the database is unreachable (its
+    connection was lost, or a new one cannot run ``SELECT 1``) rather than a failure
+    of that job's build."""
+    from sqlalchemy import text
+    from sqlalchemy.exc import DBAPIError
+
+    if getattr(exc, "connection_invalidated", False):
+        return True
+    try:
+        with scope(write=False) as s:
+            s.execute(text("SELECT 1"))
+    except DBAPIError:
+        return True
+    return False
+
+
 def start_report_builds() -> bool:
     """:func:`build_reports` in a background thread of this (beat) process, again
-    every ``REPORT_POLL_SECONDS`` (at most ``TICK_SECONDS``) until the process exits:
+    every ``REPORT_POLL_SECONDS`` (at least once a ``TICK_SECONDS``) until the process exits:
     a report of a large job takes seconds, the tick must not wait for it, and a
     finished job's report should be stored before anyone asks for it. One thread
     per process; False when it already runs."""
@@ -182,7 +212,7 @@ def start_report_builds() -> bool:
             _stop_reports.wait(every)
 
     if _report_thread is None:  # the first build of this process
-        atexit.register(wait_for_report_builds)
+        atexit.register(_stop_at_exit)
     _stop_reports.clear()
     _report_thread = threading.Thread(target=run, name="svrobs-reports", daemon=True)
     _report_thread.start()
@@ -202,6 +232,18 @@ def wait_for_report_builds(timeout: float = REPORT_EXIT_WAIT_SECONDS) -> bool:
     log.info("tick: waiting up to %.0f s for the report build in flight", timeout)
     t.join(timeout)
     return not t.is_alive()
+
+
+def _stop_at_exit() -> None:
+    """At exit: :func:`wait_for_report_builds`; a build still running after that is
+    abandoned (its write, one transaction, was not committed: nothing is stored) by
+    ending the process at once, so that the interpreter's shutdown never meets the
+    thread inside a native call."""
+    if wait_for_report_builds(REPORT_EXIT_WAIT_SECONDS):
+        return
+    log.warning("tick: the report build in flight was abandoned at exit")
+    logging.shutdown()  # the handlers flushed: os._exit skips the atexit handlers left
+    os._exit(0)
 
 
 def run_tick(now: datetime | None = None, celery=None, *, reports: bool = True) -> dict:

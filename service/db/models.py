@@ -119,6 +119,8 @@ class Job(Base):
         UniqueConstraint("team_id", "idempotency_key", name="uq_jobs_team_idempotency"),
         Index("ix_jobs_team_status", "team_id", "status"),
         Index("ix_jobs_team_created", "team_id", "created_at"),
+        # beat's report thread polls for the newest finished jobs (reports.jobs_without_report)
+        Index("ix_jobs_finished", "finished_at"),
     )
     id: Mapped[int] = mapped_column(primary_key=True)
     team_id: Mapped[int] = mapped_column(ForeignKey("teams.id", ondelete="CASCADE"))

@@ -50,11 +50,71 @@ def test_exit_waits_for_the_report_build_in_flight(tmp_path):
     assert done.read_text() == "built"  # the build finished before the process ended
 
 
-def test_wait_is_bounded():
+ABANDON = """
+import sys, time
+import worker.tick as tick
+
+def endless_build(limit=2, scope=None):  # a build far longer than the wait at exit
+    import io
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 120.0:
+        fig, ax = plt.subplots()
+        ax.plot(range(20000))
+        fig.savefig(io.BytesIO(), format="png")
+        plt.close(fig)
+    open(sys.argv[1], "w").write("built")
+    return [1]
+
+tick.REPORT_EXIT_WAIT_SECONDS = 0.5
+tick.build_reports = endless_build
+assert tick.start_report_builds()
+time.sleep(0.5)  # the build is drawing
+print("exiting")
+"""
+
+
+def test_exit_abandons_a_build_longer_than_the_wait(tmp_path):
+    """A build still running when the wait at exit ends is abandoned: the process
+    ends at once with status 0 (nothing of the build is stored), never aborted."""
+    done = tmp_path / "built"
+    p = subprocess.run(
+        [sys.executable, "-c", ABANDON, str(done)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,  # far below the build's 120 s: the process did not wait for it
+    )
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "terminate called" not in p.stderr
+    assert "abandoned at exit" in p.stderr
+    assert p.stdout.strip() == "exiting" and not done.exists()
+
+
+def test_a_tick_run_by_a_worker_starts_no_report_thread(monkeypatch):
+    """Reports are built in beat's process: a worker that runs the tick task (beat
+    without the tick scheduler) does not start a report thread in its pool process."""
+    import worker.tasks as tasks
+    import worker.tick as tick
+
+    started = []
+    monkeypatch.setattr(tick, "start_report_builds", lambda: started.append(1) or True)
+    for part in ("create_due_jobs", "relay", "prune_expired"):
+        monkeypatch.setattr(tick, part, lambda *a, **k: [])
+    tasks.tick()
+    assert started == []
+    tick.run_tick()  # beat's own call does start it
+    assert started == [1]
+
+
+def test_wait_is_bounded(monkeypatch):
     import threading
 
     import worker.tick as tick
 
+    monkeypatch.setattr(tick, "_stop_reports", threading.Event())  # this process's stays clear
     release = threading.Event()
     t = threading.Thread(target=release.wait, daemon=True)
     t.start()
@@ -90,6 +150,7 @@ def test_the_report_thread_polls_until_stopped(monkeypatch):
     get_settings.cache_clear()
     monkeypatch.setattr(tick, "build_reports", counting_build)
     monkeypatch.setattr(tick, "_report_thread", None)
+    monkeypatch.setattr(tick, "_stop_reports", threading.Event())
     monkeypatch.setattr(tick.atexit, "register", lambda fn: None)
     try:
         assert tick.start_report_builds()

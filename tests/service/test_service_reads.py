@@ -272,11 +272,11 @@ def test_a_failing_report_build_holds_up_neither_other_jobs_nor_the_log(
     session.commit()
     real, tried = lab_reports.store_if_missing, []
 
-    def failing(r, w, job_id):
+    def failing(r, w, job_id, **kw):
         tried.append(job_id)
         if job_id == bad:
             raise ValueError("a report that cannot be built")
-        return real(r, w, job_id)
+        return real(r, w, job_id, **kw)
 
     monkeypatch.setattr(lab_reports, "store_if_missing", failing)
     monkeypatch.setattr(tick, "_failed_reports", {})
@@ -294,8 +294,8 @@ def test_a_failing_report_build_holds_up_neither_other_jobs_nor_the_log(
 def test_a_database_error_in_a_report_build_is_not_held_against_the_job(
     client, session, session_factory, make_account, monkeypatch
 ):
-    """The database failing during a build is raised (the report thread warns and
-    polls again); the job is not set aside as one whose report cannot be built."""
+    """The database lost during a build is raised (the report thread warns and polls
+    again); the job is not set aside as one whose report cannot be built."""
     from sqlalchemy.exc import OperationalError
 
     import svrobs_lab.reports as lab_reports
@@ -306,14 +306,117 @@ def test_a_database_error_in_a_report_build_is_not_held_against_the_job(
     run_job_units(session, jid)
     session.commit()
 
-    def down(r, w, job_id):
-        raise OperationalError("SELECT 1", {}, Exception("server closed the connection"))
+    def down(r, w, job_id, **_):
+        raise OperationalError(
+            "SELECT 1", {}, Exception("server closed the connection"), connection_invalidated=True
+        )
 
     monkeypatch.setattr(lab_reports, "store_if_missing", down)
     monkeypatch.setattr(tick, "_failed_reports", {})
     with pytest.raises(OperationalError):
         tick.build_reports(limit=1, scope=scope_of(session_factory))
     assert tick._failed_reports == {}
+
+
+def test_a_database_error_of_one_job_with_the_database_up_sets_that_job_aside(
+    client, session, session_factory, make_account, monkeypatch, caplog
+):
+    """A database error of one job's build (a statement or idle-in-transaction timeout
+    on its read) while the database answers is that job's failure: it is logged with
+    its id and set aside, and the other jobs are built."""
+    from sqlalchemy.exc import OperationalError
+
+    import svrobs_lab.reports as lab_reports
+    from worker import tick
+
+    acc = make_account()
+    bad, good = (
+        client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+        for _ in range(2)
+    )
+    run_job_units(session, good)
+    run_job_units(session, bad)  # the newest: first in line
+    session.commit()
+    real = lab_reports.store_if_missing
+
+    def timing_out(r, w, job_id, **kw):
+        if job_id == bad:
+            raise OperationalError("SELECT ...", {}, Exception("canceling statement"))
+        return real(r, w, job_id, **kw)
+
+    monkeypatch.setattr(lab_reports, "store_if_missing", timing_out)
+    monkeypatch.setattr(tick, "_failed_reports", {})
+    with caplog.at_level("ERROR", logger="worker.tick"):
+        assert tick.build_reports(limit=2, scope=scope_of(session_factory)) == [good]
+    assert list(tick._failed_reports) == [bad]
+    assert any(f"report of job {bad} failed" in r.getMessage() for r in caplog.records)
+
+
+def test_the_read_transaction_is_ended_before_the_report_renders(
+    client, session, session_factory, make_account, monkeypatch
+):
+    """A background build reads the rows, ends its read transaction, then renders: no
+    transaction stays open for the seconds of a large report's figures (a server's
+    idle-in-transaction timeout would end it, and on SQLite it pins the WAL)."""
+    import svrobs_lab.reports as lab_reports
+
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    run_job_units(session, jid)
+    session.commit()
+    scope, open_while_rendering = scope_of(session_factory), []
+    real_render = lab_reports._render_columns
+    with scope(write=False) as r, scope(write=True) as w:
+
+        def render(*a):
+            open_while_rendering.append(r.in_transaction())
+            return real_render(*a)
+
+        monkeypatch.setattr(lab_reports, "_render_columns", render)
+        assert lab_reports.store_if_missing(r, w, jid)
+    assert open_while_rendering == [False]
+
+
+def test_once_stopping_no_build_starts_and_none_renders_after_its_read(
+    client, session, session_factory, make_account, monkeypatch
+):
+    """At exit the report thread neither starts the next job's build nor renders the
+    one whose rows it was reading: nothing is stored, and it ends at once."""
+    import threading
+
+    import svrobs_lab.reports as lab_reports
+    from service.db.reports import stored_report
+    from worker import tick
+
+    acc = make_account()
+    first, second = (
+        client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+        for _ in range(2)
+    )
+    run_job_units(session, first)
+    run_job_units(session, second)
+    session.commit()
+    stop, tried, rendered = threading.Event(), [], []
+    real_read, real_render = lab_reports._read_rows, lab_reports._render_columns
+
+    def read_then_stop(s, job_id):  # the process is told to stop during the read
+        tried.append(job_id)
+        cols = real_read(s, job_id)
+        stop.set()
+        return cols
+
+    def render(*a):
+        rendered.append(1)
+        return real_render(*a)
+
+    monkeypatch.setattr(lab_reports, "_read_rows", read_then_stop)
+    monkeypatch.setattr(lab_reports, "_render_columns", render)
+    monkeypatch.setattr(tick, "_stop_reports", stop)
+    monkeypatch.setattr(tick, "_failed_reports", {})
+    assert tick.build_reports(limit=2, scope=scope_of(session_factory)) == []
+    assert len(tried) == 1 and rendered == []
+    session.expire_all()
+    assert stored_report(session, first) is None and stored_report(session, second) is None
 
 
 def _numpy_compare(records, jid, metric, by):

@@ -12,7 +12,8 @@ import pytest
 from svrobs_lab import reports
 from svrobs_lab.errors import RateLimited
 from svrobs_lab.report_builds import ReportBuilds
-from tests.service.svc_helpers import TINY_SPEC
+from tests.service.svc_fakes import run_job_units
+from tests.service.svc_helpers import TINY_SPEC, scope_of
 
 API = "/api/v1"
 
@@ -189,13 +190,15 @@ def test_report_busy_is_429_with_retry_after(build_client, make_account, monkeyp
 
 
 def test_the_columns_are_freed_before_the_memory_is_handed_back(
-    tracked, session, make_account, monkeypatch
+    tracked, session, session_factory, make_account, monkeypatch
 ):
     """The build's columns (most of its memory) are garbage when ``_release_memory``
-    trims the heap, in both the request's build and the CLI's/tick's."""
+    trims the heap, in both the request's build and the tick's."""
     import weakref
 
-    from service.db.models import Job
+    from sqlalchemy import delete
+
+    from service.db.models import JobReport
 
     loaded, alive_at_release = [], []
     real_load = reports.load_columns
@@ -211,6 +214,12 @@ def test_the_columns_are_freed_before_the_memory_is_handed_back(
     )
     acc = make_account()
     jid = tracked.post(f"{API}/jobs", json=TINY_SPEC, headers=acc.headers).json()["id"]
+    run_job_units(session, jid)
+    session.commit()
     assert tracked.get(f"{API}/jobs/{jid}/report", headers=acc.headers).status_code == 200
-    reports.build_job_report(session, session.get(Job, jid))
+    session.execute(delete(JobReport).where(JobReport.job_id == jid))
+    session.commit()
+    scope = scope_of(session_factory)
+    with scope(write=False) as r, scope(write=True) as w:
+        assert reports.store_if_missing(r, w, jid)  # the tick's build
     assert len(loaded) == 2 and alive_at_release == [False, False]
