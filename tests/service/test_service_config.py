@@ -56,9 +56,10 @@ def test_every_setting_is_a_typed_field_read_from_the_environment(monkeypatch):
     s = Settings()
     assert (s.TICK_SECONDS, s.VAR_DIR, s.LOG_LEVEL) == (1.5, "/tmp/somewhere", "DEBUG")
     assert s.TEST_CRASH_UNIT == 12 and s.TEST_STALL_CONSUMER is True
-    monkeypatch.setenv("SVROBS_TICK_SECONDS", "soon")
-    with pytest.raises(ValidationError, match="TICK_SECONDS"):
-        Settings()
+    for bad in ("soon", "0", "-1"):  # a tick (and the report poll it bounds) must wait
+        monkeypatch.setenv("SVROBS_TICK_SECONDS", bad)
+        with pytest.raises(ValidationError, match="TICK_SECONDS"):
+            Settings()
     monkeypatch.setenv("SVROBS_TICK_SECONDS", "2")
     monkeypatch.setenv("SVROBS_LOG_LEVEL", "loud")
     with pytest.raises(ValidationError, match="LOG_LEVEL"):
