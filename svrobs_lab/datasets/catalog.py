@@ -25,7 +25,7 @@ from svrobs_core.errors import SpecError
 from ..auth import Caller
 from ..dispatch import SessionFactory
 from ..errors import DatasetNotFound, NotFound
-from .parsed import DatasetOptions
+from .parsed import DatasetOptions, name_refused, printable
 from .reader import parse_dataset
 
 FIELDS = (
@@ -73,7 +73,7 @@ def _name_list(fields: Mapping, key: str) -> tuple[str, ...] | None:
     if value.startswith("["):
         try:
             items = json.loads(value)
-        except ValueError:
+        except (ValueError, RecursionError):
             raise SpecError(key, "not a JSON list of strings") from None
         if not isinstance(items, list) or not all(isinstance(v, str) for v in items):
             raise SpecError(key, "not a JSON list of strings")
@@ -82,6 +82,9 @@ def _name_list(fields: Mapping, key: str) -> tuple[str, ...] | None:
     items = [v.strip() for v in items]
     if any(not v for v in items):
         raise SpecError(key, "has an empty name (two commas in a row?)")
+    unprintable = next((v for v in items if not printable(v)), None)
+    if unprintable is not None:
+        raise SpecError(key, name_refused(unprintable))
     if len(items) > 50:
         raise SpecError(key, f"{len(items)} names; at most 50")
     return tuple(items)

@@ -5,6 +5,7 @@ list of rows (one list of numbers per time step). At most :data:`MAX_JSON_BYTES`
 from __future__ import annotations
 
 import json
+import sys
 from typing import BinaryIO
 
 import numpy as np
@@ -37,6 +38,13 @@ def read_json(stream: BinaryIO, *, size: int) -> Rollouts:
         ) from None
     except RecursionError:
         raise BadDatasetFile("not valid JSON: nested too deeply") from None
+    except BadDatasetFile:
+        raise
+    except ValueError:  # an integer longer than int() converts
+        raise BadDatasetFile(
+            f"an integer of more than {sys.get_int_max_str_digits():,} digits "
+            "(a float64 is at most about 1.8e308)"
+        ) from None
     if not isinstance(obj, dict):
         raise BadDatasetFile('a JSON dataset is an object {"X": [...], "U": [...]}')
     unknown = next((k for k in obj if k not in KEYS), None)

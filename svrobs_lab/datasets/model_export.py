@@ -29,6 +29,8 @@ from svrobs_core.measured import SIGMA_W_ESTIMATED
 from svrobs_core.records import json_value
 from svrobs_core.systems import resolve_system
 
+from .parsed import name_refused, printable
+
 FORMATS = ("json", "npz", "mat")
 MEDIA_TYPES = {
     "json": "application/json",
@@ -53,7 +55,7 @@ def parse_cell(cell: str | dict | None) -> dict:
     if isinstance(cell, str) and cell.lstrip().startswith("{"):
         try:
             cell = json.loads(cell)
-        except ValueError:
+        except (ValueError, RecursionError):
             raise SpecError("cell", "not a JSON object of coordinates") from None
     if isinstance(cell, str):
         items = []
@@ -81,6 +83,8 @@ def _coordinate(key: str, value):
     if key in ("system", "estimator"):
         if not isinstance(value, str) or not value:
             raise SpecError("cell", f"{key} must be a name")
+        if not printable(value):
+            raise SpecError("cell", f"{key}: {name_refused(value)}")
         return value
     if key == "gamma" and (value is None or text.lower() in ("null", "none", "ols")):
         return None

@@ -82,7 +82,25 @@ def default_names(prefix: str, count: int) -> list[str]:
     return [f"{prefix}{i + 1}" for i in range(count)]
 
 
-_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+SHOWN = 80  # characters of a refused value quoted in a message
+_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f\ud800-\udfff]")  # control, lone surrogate
+
+
+def printable(text: str) -> bool:
+    """No control character and no lone surrogate (which UTF-8 cannot encode)."""
+    return _UNPRINTABLE.search(text) is None
+
+
+def shown(text: str) -> str:
+    """``text`` quoted for a message, cut after :data:`SHOWN` characters."""
+    if len(text) <= SHOWN:
+        return repr(text)
+    return f"{text[:SHOWN]!r}... (cut, {len(text):,} characters)"
+
+
+def name_refused(text: str) -> str:
+    """The message refusing ``text`` as a channel or system name."""
+    return f"{shown(text)}: a name is 1 to {MAX_NAME} printable characters"
 
 
 def check_names(names: Sequence[str], field: str, count: int | None = None) -> list[str]:
@@ -98,8 +116,8 @@ def check_names(names: Sequence[str], field: str, count: int | None = None) -> l
     if count is not None and len(names) != count:
         raise error(f"{len(names)} names for {count} channels")
     for v in names:
-        if not v or len(v) > MAX_NAME or _CONTROL.search(v):
-            raise error(f"{v!r}: a name is 1 to {MAX_NAME} printable characters")
+        if not v or len(v) > MAX_NAME or not printable(v):
+            raise error(name_refused(v))
     dup = next((v for i, v in enumerate(names) if v in names[:i]), None)
     if dup is not None:
         raise error(f"{dup!r} appears twice")

@@ -17,7 +17,7 @@ from svrobs_core.systems import resolve_system
 from .arrays import numeric
 from .mat_format import mat5_variables, mat73_variables
 from .npz_format import npz_variables
-from .parsed import BadDatasetFile
+from .parsed import BadDatasetFile, name_refused, printable
 from .reader import FORMAT_NAMES, detect
 
 KEYS = ("A", "B", "C", "sigma_u", "sigma_v")
@@ -63,6 +63,10 @@ def read_system(stream: BinaryIO, *, filename: str | None = None, name: str | No
         in_file = str(in_file.reshape(-1)[0])
     stem = os.path.splitext(os.path.basename(filename or ""))[0]
     chosen = name or (in_file if isinstance(in_file, str) else None) or stem or "system"
+    if not printable(chosen):
+        if name:
+            raise SpecError("name", name_refused(chosen))
+        raise BadDatasetFile(f"name: {name_refused(chosen)}")
     system: dict = {"name": chosen.strip()[:64] or "system"}
     for key in ("A", "B", "C"):
         if key in variables:

@@ -7,6 +7,7 @@ its 409 while jobs use the dataset, the download's bytes."""
 from __future__ import annotations
 
 import hashlib
+import io
 import re
 import uuid
 
@@ -90,7 +91,78 @@ def test_no_inputs_end_to_end(client, session, make_account):
     assert [x.tobytes() for x in Xs] == [x.tobytes() for x in X]
 
 
-BAD = bad_files.cases()
+def _npz(**arrays) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+_X3 = files.rollouts(seed=5, lengths=(4, 3), n=1, m=0)[0]
+_NPZ = files.npz_bytes(_X3, [np.zeros((len(x) - 1, 0)) for x in _X3])
+_NAME_RULE = r"a name is 1 to 64 printable characters$"
+# text that UTF-8 cannot encode (a lone surrogate) or too deep or too long to read
+UNREADABLE = [
+    (
+        "json-surrogate-name",
+        "d.json",
+        b'{"X": [[[1], [2]]], "state_names": ["\\ud800"]}',
+        {},
+        "file",
+        r"^state_names: '\\ud800': " + _NAME_RULE,
+    ),
+    (
+        "npz-surrogate-name",
+        "d.npz",
+        _npz(X=np.zeros((1, 3, 1)), state_names=np.array(["\ud800"])),
+        {},
+        "file",
+        r"^state_names: '\\ud800': " + _NAME_RULE,
+    ),
+    (
+        "field-surrogate-name",
+        "d.npz",
+        _NPZ,
+        {"state_names": '["\\ud800"]'},
+        "state_names",
+        r"^'\\ud800': " + _NAME_RULE,
+    ),
+    (
+        "field-surrogate-column",
+        "d.csv",
+        bad_files.GOOD_CSV.replace(b"x3", b"x3\xe9", 1),  # not UTF-8: read as x3\udce9
+        {"state_columns": '["x1", "x2", "x3\\udce9"]'},
+        "state_columns",
+        r"^'x3\\udce9': " + _NAME_RULE,
+    ),
+    (
+        "npz-long-name-cut",
+        "d.npz",
+        _npz(X=np.zeros((1, 3, 1)), state_names=np.array(["a" * 200_000])),
+        {},
+        "file",
+        r"^state_names: 'a{80}'\.\.\. \(cut, 200,000 characters\): " + _NAME_RULE,
+    ),
+    (
+        "json-integer-too-long-in-X",
+        "d.json",
+        b'{"X": [[[%s], [1]]]}' % (b"1" * 5000),
+        {},
+        "file",
+        r"^an integer of more than [0-9,]+ digits",
+    ),
+    (
+        "json-integer-too-long-sample-time",
+        "d.json",
+        b'{"X": [[[1], [2]]], "sample_time": %s}' % (b"1" * 5000),
+        {},
+        "file",
+        r"^an integer of more than [0-9,]+ digits",
+    ),
+] + [
+    (f"field-{key}-nested", "d.csv", bad_files.GOOD_CSV, {key: "[" * 100_000}, key, r"^not a JSON")
+    for key in ("state_columns", "input_columns", "state_names", "input_names")
+]
+BAD = bad_files.cases() + UNREADABLE
 
 
 @pytest.mark.parametrize("case", BAD, ids=[c[0] for c in BAD])

@@ -142,6 +142,8 @@ def test_an_ols_cell_and_the_preset_system(client, computed):
         ("N", r"^'N' is not KEY=VALUE$"),
         ("N=20,N=30", r"^N given twice$"),
         ("{bad json", r"^not a JSON object"),
+        ('{"system":' + "[" * 1985, r"^not a JSON object"),
+        ('{"system": "\\ud800"}', r"^system: '\\ud800': a name is 1 to 64 printable"),
         ("sigma_w=nan", r"^sigma_w must be a finite number"),
     ],
 )
@@ -238,6 +240,31 @@ def test_system_from_file(client, make_account, tmp_path):
         f"{API}/systems/from-file", files={"file": ("b.npz", nob.getvalue())}, headers=acc.headers
     )
     assert r.status_code == 422 and r.json()["detail"].startswith("no variable 'B'")
+
+
+@pytest.mark.parametrize(
+    ("in_file", "form", "field", "message"),
+    [
+        ("\ud800", None, "file", r"^name: '\\ud800': a name is 1 to 64 printable characters$"),
+        ("a\x00b", None, "file", r"^name: 'a\\x00b': a name is 1 to 64 printable characters$"),
+        ("\udce9" * 100, None, "file", r"^name: '(\\udce9){80}'\.\.\. \(cut, 100 characters\)"),
+        ("plant", "a\x01b", "name", r"^'a\\x01b': a name is 1 to 64 printable characters$"),
+    ],
+)
+def test_a_system_files_name_is_printable_text(client, make_account, in_file, form, field, message):
+    import re
+
+    acc = make_account()
+    buf = io.BytesIO()
+    np.savez(buf, A=np.eye(2) * 0.5, B=np.ones((2, 1)), name=np.array(in_file))
+    r = client.post(
+        f"{API}/systems/from-file",
+        files={"file": ("s.npz", buf.getvalue())},
+        data={} if form is None else {"name": form},
+        headers=acc.headers,
+    )
+    assert r.status_code == 422 and r.json()["field"] == field, r.text
+    assert re.search(message, r.json()["detail"]), r.json()["detail"]
 
 
 def test_a_dataset_specs_output_matrix_and_estimated_noise():
