@@ -18,9 +18,9 @@ from svrobs_core import admission, workload
 from svrobs_core.parsing import parse_spec
 from svrobs_core.planning import unit_cells
 from svrobs_core.spec import ExperimentSpec
-from svrobs_lab.errors import IdempotencyConflict, JobTooLarge, QuotaExceeded
+from svrobs_lab.errors import DatasetNotFound, IdempotencyConflict, JobTooLarge, QuotaExceeded
 
-from .datasets import spec_data
+from .datasets import dataset_shape, spec_data
 from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
 from .provenance import provenance
 from .quota import lock_team_quota
@@ -55,7 +55,8 @@ def create_job(
     None: the checkout's) goes into the job's provenance (:mod:`service.db.provenance`).
     :class:`IdempotencyConflict` when the key was used with another spec, name or tags,
     :class:`~svrobs_lab.errors.NotFound` (422 naming ``dataset``) when the spec's
-    ``dataset`` is not one of the team's (the job is linked to it: ``jobs.dataset_id``).
+    ``dataset`` is not one of the team's (the job is linked to it: ``jobs.dataset_id``),
+    also when it is deleted between that check and the insert.
     With an ``idempotency_key`` already used by the team for the same spec, name and tags,
     returns that job. Returns ``(job, created)``; ``created`` is False for that job.
     """
@@ -116,9 +117,12 @@ def create_job(
     except IntegrityError:
         # A concurrent request with the same Idempotency-Key won the insert.
         existing = _job_by_key(session, team_id, idempotency_key) if idempotency_key else None
-        if existing is None:
-            raise
-        return _same_or_conflict(existing, normalised, name, tags)
+        if existing is not None:
+            return _same_or_conflict(existing, normalised, name, tags)
+        # The dataset, found above, was deleted before the insert (the foreign key refused).
+        if dataset_id is not None and dataset_shape(session, dataset_id, team_id) is None:
+            raise DatasetNotFound(dataset_id) from None
+        raise
 
     for t in tags:
         session.add(JobTag(job_id=job.id, tag=t))

@@ -4,6 +4,7 @@ bytes, extra form fields, the field named, a regular expression of the message).
 from __future__ import annotations
 
 import io
+import struct
 import zipfile
 
 import numpy as np
@@ -54,6 +55,28 @@ def _pickled_npz() -> bytes:
     buf = io.BytesIO()
     np.savez(buf, X=np.array([np.zeros((3, 2)), np.zeros((4, 2))], dtype=object))
     return buf.getvalue()
+
+
+def _npz_declaring(shape: tuple[int, ...]) -> bytes:
+    """An NPZ whose X.npy header declares ``shape`` of float64 over 64 bytes of data."""
+    header = repr({"descr": "<f8", "fortran_order": False, "shape": shape}).encode()
+    header += b" " * (-(10 + len(header) + 1) % 64) + b"\n"
+    npy = b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + bytes(64)
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        z.writestr("X.npy", npy)
+    return buf.getvalue()
+
+
+def _npz_marked(*, flags: int = 0, method: int = zipfile.ZIP_STORED) -> bytes:
+    """A good NPZ whose X.npy is marked, in its local and central headers, with the
+    general purpose ``flags`` (1: encrypted) and the compression ``method``."""
+    data = bytearray(_npz(X=np.zeros((1, 3, 1))))
+    for signature, at in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):
+        start = data.find(signature) + at
+        (old,) = struct.unpack_from("<H", data, start)
+        struct.pack_into("<HH", data, start, old | flags, method)
+    return bytes(data)
 
 
 def _xlsx() -> bytes:
@@ -255,6 +278,31 @@ def cases() -> list[tuple]:
             {},
             "file",
             r"^X: expected numbers, got text$",
+        ),
+        (
+            "npz-shape-over-its-data",
+            "d.npz",
+            _npz_declaring((10**12, 1, 1)),
+            {},
+            "file",
+            r"^X: its \.npy header declares shape \(1000000000000, 1, 1\) of float64 "
+            r"\(8,000,000,000,000 bytes\) but its data is 64 bytes$",
+        ),
+        (
+            "npz-encrypted",
+            "d.npz",
+            _npz_marked(flags=0x1),
+            {},
+            "file",
+            r"^X: encrypted; save the NPZ without a password$",
+        ),
+        (
+            "npz-compression-method",
+            "d.npz",
+            _npz_marked(method=99),
+            {},
+            "file",
+            r"^X: compression method 99 is not supported",
         ),
         ("mat-struct", "d.mat", _mat_struct(), {}, "file", r"^X: a MATLAB struct"),
         (

@@ -177,3 +177,25 @@ def test_the_committed_examples_hold_the_same_dataset():
     for name, p in parsed.items():
         assert same_bits(p.X, ref.X) and same_bits(p.U, ref.U), name
     assert {p.format for p in parsed.values()} == {"csv", "npz", "json", "mat", "mat73"}
+
+
+def test_an_npz_is_refused_when_its_arrays_as_float64_exceed_the_budget():
+    """The budget (4 x the upload limit) counts each array as it is read, float64, not
+    as stored: 1 MB of int8 is 8 MB once read, over a 4 MB budget."""
+    buf = io.BytesIO()
+    np.savez(buf, X=np.zeros((1, 2**20, 1), dtype=np.int8))
+    with pytest.raises(
+        BadDatasetFile, match=r"^file: the arrays take 8 MB once read; at most 4 MB$"
+    ):
+        parse_dataset(io.BytesIO(buf.getvalue()), max_bytes=2**20)
+
+
+@pytest.mark.parametrize("error", [MemoryError, RuntimeError, NotImplementedError])
+def test_an_npz_array_that_cannot_be_read_is_a_bad_file_naming_it(monkeypatch, error):
+    def failing(*args, **kwargs):
+        raise error("cannot read")
+
+    monkeypatch.setattr(np.lib.format, "read_array", failing)
+    data = files.npz_bytes(*files.rollouts(lengths=(3, 3)), ragged=False)
+    with pytest.raises(BadDatasetFile, match=r"^file: X: not a readable \.npy array: cannot read$"):
+        parse(data)

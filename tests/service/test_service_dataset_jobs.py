@@ -12,16 +12,20 @@ from __future__ import annotations
 import contextlib
 import json
 import uuid
+from datetime import UTC, datetime
 
 import numpy as np
 import pytest
 from sqlalchemy import func, select
 
+from service.config import get_settings
+from service.db import datasets as dataset_store
 from service.db import jobs as job_store
 from service.db import units
-from service.db.models import JobValidation, WorkUnit
+from service.db.models import Job, JobValidation, Schedule, ScheduleRun, WorkUnit
 from svrobs_core import RECORD_FIELDS, parse_spec
 from svrobs_core.measured import MeasuredData, run_measured_unit
+from svrobs_lab import schedules as lab_schedules
 from svrobs_lab.units import after_unit, compute_unit
 from svrobs_lab.validation import PLOTTED_ROLLOUTS, summarize
 from tests.datasets import files
@@ -289,3 +293,71 @@ def test_a_dataset_jobs_failed_unit_names_the_dataset(session, make_account, cli
     failed = client.get(f"{API}/jobs/{job.id}", headers=acc.headers).json()
     assert failed["status"] == "failed"
     assert failed["error"].startswith(f"unit 0 (system=dataset-{ds['id']}, sigma_w=estimate, N=[2]")
+
+
+@pytest.fixture
+def deleted_after_check(monkeypatch, session_factory):
+    """create_job's dataset check, then the dataset deleted and committed by another
+    session before the job's insert (which the foreign key on jobs.dataset_id refuses;
+    SQLite enforces it too: PRAGMA foreign_keys). The sessions share the test's
+    connection, so the request's rollback also undoes that delete."""
+    check = job_store.spec_data
+
+    def then_deleted(session, team_id, spec, field="dataset"):
+        out = check(session, team_id, spec, field)
+        with session_factory() as other:
+            row = dataset_store.team_dataset(other, team_id, out[0])
+            assert row is not None
+            dataset_store.delete_dataset(other, row)
+            other.commit()
+        return out
+
+    monkeypatch.setattr(job_store, "spec_data", then_deleted)
+
+
+def _jobs_on(session, dataset_id: int) -> int:
+    session.expire_all()
+    return session.scalar(select(func.count(Job.id)).where(Job.dataset_id == dataset_id))
+
+
+def test_a_dataset_deleted_while_its_job_is_submitted_is_the_422_of_a_missing_one(
+    client, session, make_account, deleted_after_check
+):
+    acc = make_account()
+    X, U = simulate(5, rollouts=4, T=10)
+    ds = upload(client, acc, "p.csv", files.csv_bytes(X, U))
+    spec = {"dataset": ds["id"], "N": [2], "holdout": 1, "reps": 1}
+    r = client.post(f"{API}/jobs", json=spec, headers=acc.headers)
+    assert r.status_code == 422, r.text
+    assert r.json() == {"detail": f"no dataset {ds['id']} in your team", "field": "dataset"}
+    assert _jobs_on(session, ds["id"]) == 0
+
+
+def test_a_dataset_deleted_while_its_schedule_runs_is_that_runs_error(
+    client, session, make_account, deleted_after_check
+):
+    """The tick records the missing dataset on the run, as for any spec error, and goes on."""
+    acc = make_account()
+    X, U = simulate(6, rollouts=4, T=10)
+    ds = upload(client, acc, "p.csv", files.csv_bytes(X, U))
+    sched = Schedule(
+        team_id=acc.team.id,
+        user_id=acc.user.id,
+        name="nightly-fit",
+        cron="0 2 * * *",
+        timezone="UTC",
+        spec_template={"dataset": ds["id"], "N": [2], "holdout": 1, "reps": 1},
+        tags=[],
+        created_at=datetime(2024, 1, 1, tzinfo=UTC),
+    )
+    session.add(sched)
+    session.commit()
+    made = lab_schedules.create_due_jobs(
+        get_settings(), session, datetime(2024, 6, 1, 3, tzinfo=UTC)
+    )
+    session.commit()
+    assert not [j for j in made if j.team_id == acc.team.id]
+    run = session.scalar(select(ScheduleRun).where(ScheduleRun.schedule_id == sched.id))
+    assert run is not None and run.job_id is None
+    assert run.error == f"dataset: no dataset {ds['id']} in your team"
+    assert _jobs_on(session, ds["id"]) == 0
