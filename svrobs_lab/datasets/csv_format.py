@@ -27,6 +27,7 @@ from svrobs_core.errors import SpecError
 
 from .parsed import MAX_CHANNELS, MAX_ROLLOUTS, BadDatasetFile, DatasetOptions, Rollouts
 from .parsed import check_names as _check_names
+from .parsed import shown as quoted
 
 BLOCK_ROWS = 4096
 DELIMITERS = (",", ";", "\t")
@@ -235,12 +236,12 @@ def _columns(header: list[str], options: DatasetOptions):
         inputs = _convention(header, "u", "input")
     for c in states:
         if c in ("rollout", "k"):
-            raise SpecError("state_columns", f"{c!r} is the {c} column, not a state")
+            raise SpecError("state_columns", f"{quoted(c)} is the {c} column, not a state")
     for c in inputs:
         if c in ("rollout", "k"):
-            raise SpecError("input_columns", f"{c!r} is the {c} column, not an input")
+            raise SpecError("input_columns", f"{quoted(c)} is the {c} column, not an input")
         if c in states:
-            raise SpecError("input_columns", f"{c!r} is also a state column")
+            raise SpecError("input_columns", f"{quoted(c)} is also a state column")
     if len(states) > MAX_CHANNELS or len(inputs) > MAX_CHANNELS:
         raise BadDatasetFile(
             f"header: {len(states)} state and {len(inputs)} input columns; "
@@ -249,12 +250,12 @@ def _columns(header: list[str], options: DatasetOptions):
     used = ["rollout", "k", *states, *inputs]
     for c in used:
         if header.count(c) > 1:
-            raise BadDatasetFile(f"header: column {c!r} appears twice")
+            raise BadDatasetFile(f"header: column {quoted(c)} appears twice")
     if not explicit:
         other = next((h for h in header if h not in used), None)
         if other is not None:
             raise BadDatasetFile(
-                f"header: column {other!r} is not rollout, k, x1..xn or u1..um; name the "
+                f"header: column {quoted(other)} is not rollout, k, x1..xn or u1..um; name the "
                 "state and input columns with state_columns and input_columns"
             )
     snames = _check_names(states, "file: header")
@@ -274,7 +275,7 @@ def _chosen(columns, field: str, index: dict, shown: str) -> list[str] | None:
         return None
     for c in columns:
         if c not in index:
-            raise SpecError(field, f"no column {c!r} in the file's header ({shown})")
+            raise SpecError(field, f"no column {quoted(c)} in the file's header ({shown})")
     return list(columns)
 
 

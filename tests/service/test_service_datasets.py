@@ -143,6 +143,14 @@ UNREADABLE = [
         r"^state_names: 'a{80}'\.\.\. \(cut, 200,000 characters\): " + _NAME_RULE,
     ),
     (
+        "csv-long-column-cut",
+        "d.csv",
+        bad_files.GOOD_CSV,
+        {"state_columns": '["%s"]' % ("c" * 100_000)},
+        "state_columns",
+        r"^no column 'c{80}'\.\.\. \(cut, 100,000 characters\) in the file's header",
+    ),
+    (
         "json-integer-too-long-in-X",
         "d.json",
         b'{"X": [[[%s], [1]]]}' % (b"1" * 5000),
