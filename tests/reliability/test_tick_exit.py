@@ -11,17 +11,17 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 
-SCRIPT = """
+DRAWING = """
 import sys, time
 import worker.tick as tick
 
-def slow_build(limit=2, scope=None):  # a report's figures: native drawing for ~1 s
+def drawing_build(limit=2, scope=None):  # a report's figures: native drawing for a while
     import io
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     t0 = time.monotonic()
-    while time.monotonic() - t0 < 1.0:
+    while time.monotonic() - t0 < SECONDS:
         fig, ax = plt.subplots()
         ax.plot(range(20000))
         fig.savefig(io.BytesIO(), format="png")
@@ -29,11 +29,17 @@ def slow_build(limit=2, scope=None):  # a report's figures: native drawing for ~
     open(sys.argv[1], "w").write("built")
     return [1]
 
-tick.build_reports = slow_build
+"""
+
+SCRIPT = (
+    DRAWING.replace("SECONDS", "1.0")
+    + """
+tick.build_reports = drawing_build
 assert tick.start_report_builds()
 assert not tick.start_report_builds()  # one build at a time
 print("exiting")
 """
+)
 
 
 def test_exit_waits_for_the_report_build_in_flight(tmp_path):
@@ -50,30 +56,16 @@ def test_exit_waits_for_the_report_build_in_flight(tmp_path):
     assert done.read_text() == "built"  # the build finished before the process ended
 
 
-ABANDON = """
-import sys, time
-import worker.tick as tick
-
-def endless_build(limit=2, scope=None):  # a build far longer than the wait at exit
-    import io
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < 120.0:
-        fig, ax = plt.subplots()
-        ax.plot(range(20000))
-        fig.savefig(io.BytesIO(), format="png")
-        plt.close(fig)
-    open(sys.argv[1], "w").write("built")
-    return [1]
-
-tick.REPORT_EXIT_WAIT_SECONDS = 0.5
-tick.build_reports = endless_build
+ABANDON = (
+    DRAWING.replace("SECONDS", "120.0")
+    + """
+tick.REPORT_EXIT_WAIT_SECONDS = 0.5  # a build far longer than the wait at exit
+tick.build_reports = drawing_build
 assert tick.start_report_builds()
 time.sleep(0.5)  # the build is drawing
 print("exiting")
 """
+)
 
 
 def test_exit_abandons_a_build_longer_than_the_wait(tmp_path):

@@ -254,6 +254,18 @@ def test_a_driver_error_in_the_copy_read_is_reported_as_sqlalchemy_reports_it(se
         report_copy.copy_columns(session, 1, 10)
 
 
+def _two_finished_jobs(client, session, acc) -> tuple[int, int]:
+    """Two finished jobs, the second finished last (the first a report poll takes)."""
+    ids = [
+        client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+        for _ in range(2)
+    ]
+    for jid in ids:
+        run_job_units(session, jid)
+    session.commit()
+    return ids[0], ids[1]
+
+
 def test_a_failing_report_build_holds_up_neither_other_jobs_nor_the_log(
     client, session, session_factory, make_account, monkeypatch, caplog
 ):
@@ -262,14 +274,7 @@ def test_a_failing_report_build_holds_up_neither_other_jobs_nor_the_log(
     import svrobs_lab.reports as lab_reports
     from worker import tick
 
-    acc = make_account()
-    bad, good = (
-        client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
-        for _ in range(2)
-    )
-    run_job_units(session, good)
-    run_job_units(session, bad)  # the newest: first in line
-    session.commit()
+    good, bad = _two_finished_jobs(client, session, make_account())  # bad: first in line
     real, tried = lab_reports.store_if_missing, []
 
     def failing(r, w, job_id, **kw):
@@ -329,14 +334,7 @@ def test_a_database_error_of_one_job_with_the_database_up_sets_that_job_aside(
     import svrobs_lab.reports as lab_reports
     from worker import tick
 
-    acc = make_account()
-    bad, good = (
-        client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
-        for _ in range(2)
-    )
-    run_job_units(session, good)
-    run_job_units(session, bad)  # the newest: first in line
-    session.commit()
+    good, bad = _two_finished_jobs(client, session, make_account())  # bad: first in line
     real = lab_reports.store_if_missing
 
     def timing_out(r, w, job_id, **kw):
@@ -388,14 +386,7 @@ def test_once_stopping_no_build_starts_and_none_renders_after_its_read(
     from service.db.reports import stored_report
     from worker import tick
 
-    acc = make_account()
-    first, second = (
-        client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
-        for _ in range(2)
-    )
-    run_job_units(session, first)
-    run_job_units(session, second)
-    session.commit()
+    first, second = _two_finished_jobs(client, session, make_account())
     stop, tried, rendered = threading.Event(), [], []
     real_read, real_render = lab_reports._read_rows, lab_reports._render_columns
 
