@@ -54,13 +54,17 @@ class Model:
 class Excitation:
     """Persistency of excitation of the regressors z = [x; u] of a dataset.
 
-    eigenvalues (d,) of the mean Gram Z Z^T / N0, ascending; direction: the
-    unit eigenvector of the smallest (over ``names``); notes: what they mean."""
+    eigenvalues (d,) of the mean Gram Z Z^T / N0, ascending (inf where one is beyond
+    the float range); direction: the unit eigenvector of the smallest (over
+    ``names``); cond: lambda_max / lambda_min (inf when lambda_min is 0), from the
+    Gram of Z / max|Z|, so finite data of any magnitude has it; notes: what they
+    mean."""
 
     names: tuple[str, ...]
     N0: int
     eigenvalues: FloatArray
     direction: FloatArray
+    cond: float
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -70,10 +74,6 @@ class Excitation:
     @property
     def lambda_max(self) -> float:
         return float(self.eigenvalues[-1])
-
-    @property
-    def cond(self) -> float:
-        return self.lambda_max / self.lambda_min if self.lambda_min > 0 else float("inf")
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = plain(
@@ -97,15 +97,22 @@ def excitation(data: MeasuredData, lags: tuple[int, int] | None = None) -> Excit
     lifted = sm.lift(data)
     Z, _ = regression(lifted)
     N0 = Z.shape[1]
-    lam, V = np.linalg.eigh(Z @ Z.T / N0)
-    lam = np.maximum(lam, 0.0)
+    # the Gram of Z / max|Z| (entries at most N0 / N0 = 1): no overflow nor underflow
+    # for finite data of any magnitude; the eigenvalues are scaled back after
+    scale = float(np.max(np.abs(Z))) if Z.size else 0.0
+    Zs = Z / scale if scale > 0 else Z
+    lam_s, V = np.linalg.eigh(Zs @ Zs.T / N0)
+    lam_s = np.maximum(lam_s, 0.0)
+    with np.errstate(over="ignore"):
+        lam = lam_s * scale * scale if scale > 0 else lam_s
+    cond = float(lam_s[-1] / lam_s[0]) if lam_s[0] > 0 else float("inf")
     names = tuple(lifted.state_names) + tuple(lifted.input_names)
-    ex = Excitation(names=names, N0=N0, eigenvalues=lam, direction=V[:, 0])
+    ex = Excitation(names=names, N0=N0, eigenvalues=lam, direction=V[:, 0], cond=cond)
     top = int(np.argmax(np.abs(V[:, 0])))
-    if not lam[0] > NOT_EXCITED_RTOL * lam[-1]:
+    if not lam_s[0] > NOT_EXCITED_RTOL * lam_s[-1]:
         ex.notes.append(
             f"the data do not excite every direction: lambda_min/lambda_max = "
-            f"{lam[0] / lam[-1]:.3g} (mostly along {names[top]}); the estimate along it is set "
+            f"{lam_s[0] / lam_s[-1] if lam_s[-1] > 0 else 0.0:.3g} (mostly along {names[top]}); the estimate along it is set "
             "by the regulariser or undefined, and the OLS sound set is null"
         )
     elif ex.cond > WEAK_COND:

@@ -200,6 +200,31 @@ def test_excitation_check():
     assert "weakly excited" in excitation(weak).notes[0]
 
 
+@pytest.mark.parametrize("c", [1e200, 1e-200, 1e150])
+def test_excitation_check_at_any_magnitude(c):
+    """The data times c: the same condition number and notes (the Gram of c Z would
+    overflow or underflow), the eigenvalues c^2 times (inf beyond the float range)."""
+    data = rollouts(3, 6)
+    base = excitation(data)
+    scaled = MeasuredData(X=[x * c for x in data.X], U=[u * c for u in data.U])
+    ex = excitation(scaled)
+    assert ex.cond == pytest.approx(base.cond, rel=1e-9) and ex.notes == base.notes == []
+    np.testing.assert_allclose(np.abs(ex.direction), np.abs(base.direction), rtol=1e-9)
+    with np.errstate(over="ignore"):
+        want = base.eigenvalues * c * c
+    np.testing.assert_allclose(ex.eigenvalues, want, rtol=1e-9)
+    assert ex.to_dict()["cond"] == pytest.approx(base.cond, rel=1e-9)
+    one = MeasuredData(X=scaled.X, U=[np.column_stack([u[:, 0], u[:, 0]]) for u in scaled.U])
+    assert "do not excite every direction" in excitation(one).notes[0]
+
+
+def test_excitation_check_of_zero_data():
+    data = rollouts(3, 6)
+    zero = MeasuredData(X=[0 * x for x in data.X], U=[0 * u for u in data.U])
+    ex = excitation(zero)
+    assert ex.cond == math.inf and "lambda_min/lambda_max = 0 " in ex.notes[0]
+
+
 def test_arx_validation_and_summary():
     rng = np.random.default_rng(4)
     X, U = [], []
