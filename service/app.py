@@ -26,6 +26,7 @@ from service.http.security import SecurityHeaders
 from service.logging_config import configure_logging
 from service.web import mount_web
 from service.web.errors import lab_error_page
+from svrobs_lab.datasets.upload_slots import UploadSlots
 from svrobs_lab.report_builds import ReportBuilds
 
 
@@ -80,6 +81,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.report_builds = ReportBuilds(
         per_team=settings.REPORT_BUILDS_PER_TEAM,
         waiters_per_team=settings.REPORT_WAITERS_PER_TEAM,
+    )
+    app.state.upload_slots = UploadSlots(
+        per_team=settings.UPLOADS_PER_TEAM, at_once=settings.UPLOADS_AT_ONCE
     )
     # nosniff, Referrer-Policy and (HTML) the CSP on every response (service.http.security)
     app.add_middleware(SecurityHeaders)

@@ -76,6 +76,17 @@ class Settings(BaseSettings):
     # A dataset upload (POST /datasets, streamed to a temporary file) may be at most
     # this many MB (2^20 bytes): 413 beyond (docs/datasets.md#limits).
     MAX_DATASET_MB: int = 256
+    # A team's stored datasets (docs/datasets.md#limits): at most this many, holding at
+    # most this many MB together (each upload's bytes plus its float64 arrays); an
+    # upload beyond either is refused (422 naming the setting) before anything is
+    # stored. 0: no cap.
+    MAX_DATASETS_PER_TEAM: int = Field(default=200, ge=0)
+    MAX_TEAM_DATASETS_MB: int = Field(default=8192, ge=0)
+    # Uploads read and parsed at once in each API process: at most this many of one
+    # team and this many in all (a file can take several times its size in memory
+    # while it is parsed); beyond, 429 with Retry-After.
+    UPLOADS_PER_TEAM: int = Field(default=2, ge=1)
+    UPLOADS_AT_ONCE: int = Field(default=4, ge=1)
     MAX_QUEUED_JOBS_PER_TEAM: int = 100
     RATE_LIMIT_PER_MINUTE: int = 600
     # Failed authentications (a bad sign-in, a bad bearer key) per client address per

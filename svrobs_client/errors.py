@@ -83,7 +83,8 @@ class ValidationError(SvrobsError):
 
 
 class RateLimited(SvrobsError):
-    """HTTP 429: the key's rate limit or the team's queued-jobs cap.
+    """HTTP 429: the key's rate limit, the team's queued-jobs cap, or too many report
+    builds or dataset uploads of the team at once.
     ``retry_after`` is the server's Retry-After in seconds, if it sent one."""
 
     def __init__(self, message: str, *, retry_after: float | None = None, **kw: Any):

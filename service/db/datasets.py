@@ -98,9 +98,29 @@ def list_datasets(
     how many the team has."""
     q = select(Dataset).where(Dataset.team_id == team_id)
     total = session.scalar(select(func.count()).select_from(q.subquery())) or 0
-    page = q.options(defer(Dataset.lengths), defer(Dataset.stats), joinedload(Dataset.user))
+    page = q.options(
+        defer(Dataset.lengths),
+        defer(Dataset.stats),
+        defer(Dataset.excitation),
+        joinedload(Dataset.user),
+    )
     rows = session.scalars(page.order_by(Dataset.id.desc()).limit(limit).offset(offset)).all()
     return list(rows), total
+
+
+def stored_bytes(n: int, m: int, rollouts: int, samples: int, size_bytes: int) -> int:
+    """What a dataset holds in the store: its upload's bytes and its float64 arrays
+    (every X_i of T_i + 1 states, every U_i of T_i inputs)."""
+    return size_bytes + DTYPE.itemsize * (samples * (n + m) + rollouts * n)
+
+
+def team_usage(session: Session, team_id: int) -> tuple[int, int]:
+    """(how many datasets the team has, the bytes they hold: :func:`stored_bytes`)."""
+    d = Dataset
+    held = d.size_bytes + DTYPE.itemsize * (d.samples * (d.n + d.m) + d.rollouts * d.n)
+    q = select(func.count(), func.coalesce(func.sum(held), 0)).where(d.team_id == team_id)
+    count, total = session.execute(q).one()
+    return int(count), int(total)
 
 
 def add_dataset(session: Session, **values) -> Dataset:

@@ -397,6 +397,9 @@ class Dataset(Base):
     state_names: Mapped[list[Any]]
     input_names: Mapped[list[Any]]
     stats: Mapped[dict[str, Any]]  # {"states"|"inputs": {name: {mean, std, min, max, count}}}
+    # the excitation check of all its rollouts, made at upload (None: too large to make
+    # then, or uploaded before it was stored)
+    excitation: Mapped[dict[str, Any] | None]
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     user: Mapped[User | None] = relationship()
 

@@ -1,9 +1,12 @@
 """A dataset upload as both HTTP front ends take it (``POST /api/v1/datasets`` and the
-web's ``POST /datasets/upload``): the multipart body read as it arrives, its file
-spooled to a temporary file past 1 MiB, a 413 (PayloadTooLarge, field ``file``) as
-soon as it is over SVROBS_MAX_DATASET_MB, declared or streamed; then the stored
-dataset (:func:`svrobs_lab.datasets.catalog.upload`) in a worker thread. The app's
-in-memory body limit lets these paths through (``service.api.mount``)."""
+web's ``POST /datasets/upload``): one of the process's upload slots
+(:class:`~svrobs_lab.datasets.upload_slots.UploadSlots`, 429 when none is free),
+the multipart body read as it arrives, its file spooled to a temporary file past
+1 MiB, a 413 (PayloadTooLarge, field ``file``) as soon as it is over
+SVROBS_MAX_DATASET_MB, declared or streamed; then the stored dataset
+(:func:`svrobs_lab.datasets.catalog.upload`, with the team's quota) in a worker
+thread. The app's in-memory body limit lets these paths through
+(``service.api.mount``)."""
 
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ from starlette.datastructures import UploadFile as FormFile
 from starlette.formparsers import MultiPartException, MultiPartParser
 
 from svrobs_lab.auth import Caller
-from svrobs_lab.datasets.catalog import FIELDS, upload
+from svrobs_lab.datasets.catalog import FIELDS, DatasetLimits, upload
 from svrobs_lab.errors import Invalid, PayloadTooLarge
 
 API_UPLOAD = "/api/v1/datasets"
@@ -78,18 +81,19 @@ async def store_upload(
     request: Request,
     session: Session,
     caller: Caller,
-    limit: int,
     *,
     ignore: Set[str] = frozenset(),
 ) -> dict:
-    """Read the request's multipart upload (at most ``limit`` bytes; the form fields in
-    ``ignore`` left out, e.g. the web form's CSRF token) and store it as the caller's
-    dataset, committed -> the dataset's view. Invalid / BadDatasetFile / SpecError
-    naming the field, PayloadTooLarge; nothing is stored then."""
-    form = await _form(request, limit, len(ignore))
-    try:
-        file, fields = _fields(form, ignore)
-        store = partial(upload, session, caller, file.file, file.filename, fields, limit)
-        return await anyio.to_thread.run_sync(store)
-    finally:
-        await form.close()
+    """Read the request's multipart upload (within the app settings' limits; the form
+    fields in ``ignore`` left out, e.g. the web form's CSRF token) and store it as the
+    caller's dataset, committed -> the dataset's view. Invalid / BadDatasetFile /
+    SpecError naming the field, PayloadTooLarge, RateLimited; nothing is stored then."""
+    limits = DatasetLimits.of(request.app.state.settings)
+    with request.app.state.upload_slots.hold(caller.team_id):
+        form = await _form(request, limits.max_bytes, len(ignore))
+        try:
+            file, fields = _fields(form, ignore)
+            store = partial(upload, session, caller, file.file, file.filename, fields, limits)
+            return await anyio.to_thread.run_sync(store)
+        finally:
+            await form.close()

@@ -1,9 +1,10 @@
 """The dataset use cases (docs/datasets.md): upload (check the fields, parse the
-file, store the row, the original bytes and the arrays in the caller's
-transaction), find, describe and delete a team's datasets.
+file, check the team's dataset quota, store the row, the original bytes and the
+arrays in the caller's transaction), find, describe and delete a team's datasets.
 
-Nothing is written before the file has been read whole and found good, so a bad
-file leaves no row and no chunk. The caller commits.
+Nothing is written before the file has been read whole and found good and the
+team's quota has room for it, so a refused file leaves no row and no chunk. The
+caller commits.
 """
 
 from __future__ import annotations
@@ -14,18 +15,21 @@ import math
 import os
 import re
 from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from typing import BinaryIO, cast
 
 from sqlalchemy.orm import Session
 
 from service.db import datasets as store
 from service.db.models import Dataset
+from service.db.quota import lock_team_quota
 from svrobs_core.errors import SpecError
+from svrobs_core.measured import MeasuredData, excitation
 
 from ..auth import Caller
 from ..dispatch import SessionFactory
-from ..errors import DatasetNotFound, NotFound
-from .parsed import DatasetOptions, name_refused, printable
+from ..errors import DatasetNotFound, Invalid, NotFound
+from .parsed import DatasetOptions, ParsedDataset, name_refused, printable
 from .reader import parse_dataset
 
 FIELDS = (
@@ -45,6 +49,9 @@ MEDIA_TYPES = {
     "mat": "application/x-matlab-data",
     "mat73": "application/x-matlab-data",
 }
+# the excitation check is made at upload for datasets of up to this many numbers (about
+# 40 MB of float64 arrays, and their regression copies); a job's validation has it for any
+EXCITATION_MAX_VALUES = 5_000_000
 _FLOAT_TEXT = re.compile(r"-?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]+)?", re.ASCII)
 _BAD_TEXT = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f\ud800-\udfff]")
 
@@ -141,6 +148,71 @@ def _file_chunks(stream: BinaryIO) -> Iterator[bytes]:
         yield chunk
 
 
+@dataclass(frozen=True, kw_only=True)
+class DatasetLimits:
+    """An upload's limits (docs/datasets.md#limits): ``max_bytes`` of the file (and
+    what it may read), and the team's quota: at most ``max_datasets`` datasets
+    holding at most ``max_team_bytes`` (None or 0: no cap)."""
+
+    max_bytes: int
+    max_datasets: int | None = None
+    max_team_bytes: int | None = None
+
+    @classmethod
+    def of(cls, settings) -> DatasetLimits:
+        """The limits of the service's settings."""
+        return cls(
+            max_bytes=settings.MAX_DATASET_MB * 2**20,
+            max_datasets=settings.MAX_DATASETS_PER_TEAM,
+            max_team_bytes=settings.MAX_TEAM_DATASETS_MB * 2**20,
+        )
+
+
+def check_team_quota(
+    session: Session, team_id: int, parsed: ParsedDataset, limits: DatasetLimits
+) -> None:
+    """Invalid (field ``file``) when the team's datasets, with this one, would be more
+    than ``limits`` allow. Holds the team's quota lock until the transaction ends,
+    so that concurrent uploads are counted one after the other."""
+    if not limits.max_datasets and not limits.max_team_bytes:
+        return
+    lock_team_quota(session, team_id)
+    count, held = store.team_usage(session, team_id)
+    if limits.max_datasets and count >= limits.max_datasets:
+        raise Invalid(
+            f"the team has {count} datasets; the limit is {limits.max_datasets} "
+            "(SVROBS_MAX_DATASETS_PER_TEAM): delete one first",
+            field="file",
+        )
+    size = store.stored_bytes(
+        parsed.n, parsed.m, parsed.rollouts, sum(parsed.lengths), parsed.size_bytes
+    )
+    if limits.max_team_bytes and held + size > limits.max_team_bytes:
+        mb = 2**20
+        raise Invalid(
+            f"the team's datasets hold {held / mb:,.1f} MB and this one would add "
+            f"{size / mb:,.1f} MB (its file and its arrays); the limit is "
+            f"{limits.max_team_bytes // mb:,} MB (SVROBS_MAX_TEAM_DATASETS_MB)",
+            field="file",
+        )
+
+
+def upload_excitation(parsed: ParsedDataset) -> dict | None:
+    """The excitation check of all the parsed rollouts as stored with the dataset, or
+    None above EXCITATION_MAX_VALUES numbers."""
+    if sum(parsed.lengths) * (parsed.n + parsed.m) + parsed.rollouts * parsed.n > (
+        EXCITATION_MAX_VALUES
+    ):
+        return None
+    data = MeasuredData(
+        X=parsed.X,
+        U=parsed.U,
+        state_names=tuple(parsed.state_names),
+        input_names=tuple(parsed.input_names),
+    )
+    return excitation(data).to_dict()
+
+
 def create_dataset(
     session: Session,
     *,
@@ -149,15 +221,18 @@ def create_dataset(
     stream: BinaryIO,
     filename: str | None,
     fields: Mapping[str, str | None],
-    max_bytes: int,
+    limits: DatasetLimits,
 ) -> Dataset:
-    """Check the fields, parse the file (a seekable binary stream) and store the dataset
-    with its original bytes and its arrays (flushed, not committed). Raises
-    BadDatasetFile (field ``file``) or SpecError naming the field; nothing is
-    written then."""
+    """Check the fields, parse the file (a seekable binary stream), check the team's
+    quota and store the dataset with its original bytes, its arrays and its
+    excitation check (flushed, not committed). Raises BadDatasetFile (field
+    ``file``), Invalid (the quota) or SpecError naming the field; nothing is written
+    then."""
     name, description, options = check_fields(fields)
     filename = clean_filename(filename)
-    parsed = parse_dataset(stream, filename=filename, options=options, max_bytes=max_bytes)
+    parsed = parse_dataset(stream, filename=filename, options=options, max_bytes=limits.max_bytes)
+    checked = upload_excitation(parsed)
+    check_team_quota(session, team_id, parsed, limits)
     arrays = list(itertools.chain(parsed.X, parsed.U))
     row = store.add_dataset(
         session,
@@ -181,6 +256,7 @@ def create_dataset(
         state_names=parsed.state_names,
         input_names=parsed.input_names,
         stats=parsed.stats,
+        excitation=checked,
     )
     store.add_chunks(session, row.id, "file", _file_chunks(stream))
     store.add_chunks(session, row.id, "arrays", store.array_chunks(arrays))
@@ -194,7 +270,7 @@ def upload(
     stream: BinaryIO,
     filename: str | None,
     fields: Mapping[str, str | None],
-    max_bytes: int,
+    limits: DatasetLimits,
 ) -> dict:
     """:func:`create_dataset` for the caller, committed -> the dataset as the API
     answers it."""
@@ -205,7 +281,7 @@ def upload(
         stream=stream,
         filename=filename,
         fields=fields,
-        max_bytes=max_bytes,
+        limits=limits,
     )
     session.commit()
     return dataset_view(team_dataset(session, caller, row.id))
@@ -287,4 +363,5 @@ def dataset_view(row: Dataset, *, full: bool = True) -> dict:
     if full:
         out["lengths"] = list(row.lengths)
         out["stats"] = row.stats
+        out["excitation"] = row.excitation
     return out

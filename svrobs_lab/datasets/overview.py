@@ -11,13 +11,10 @@ from svrobs_core.measured import excitation
 from svrobs_core.measured.validation import plain
 
 from ..auth import Caller
-from .catalog import dataset_view, list_datasets_page, team_dataset
+from .catalog import EXCITATION_MAX_VALUES, dataset_view, list_datasets_page, team_dataset
 from .loaded import measured_data
 
 PLOTTED_ROLLOUTS = 5
-# a page computes the excitation check of datasets up to this many numbers (about 40 MB
-# of float64 arrays, and their regression copies); a job's validation has it for any
-EXCITATION_MAX_VALUES = 5_000_000
 
 
 def datasets_page(session: Session, caller: Caller, *, limit: int = 100) -> dict:
@@ -27,15 +24,16 @@ def datasets_page(session: Session, caller: Caller, *, limit: int = 100) -> dict
 
 def dataset_overview(session: Session, caller: Caller, dataset_id: int) -> dict:
     """The caller's dataset (NotFound otherwise): its view, the jobs that run on it,
-    and the excitation check of the regressors of all its rollouts (None, with a
-    note, for a dataset of more than EXCITATION_MAX_VALUES numbers)."""
+    and the excitation check of the regressors of all its rollouts, as stored at
+    upload (made here for a dataset stored before it was; None, with a note, for a
+    dataset of more than EXCITATION_MAX_VALUES numbers)."""
     row = team_dataset(session, caller, dataset_id)
     jobs, total = store.jobs_using(session, row.id)
     values = row.samples * (row.n + row.m) + row.rollouts * row.n
-    ex, note = None, None
-    if values <= EXCITATION_MAX_VALUES:
+    ex, note = row.excitation, None
+    if ex is None and values <= EXCITATION_MAX_VALUES:
         ex = excitation(measured_data(session, row.id)).to_dict()
-    else:
+    elif ex is None:
         note = (
             f"not computed here: {values:,} numbers (more than {EXCITATION_MAX_VALUES:,}); "
             "the validation of a job on this dataset has it for its training rollouts"

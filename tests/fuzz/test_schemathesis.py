@@ -44,7 +44,7 @@ from service.db.session import dispose_all, get_sessionmaker
 from service.http.deps import get_broker_check
 from svrobs_core.records import NUMERIC_FIELDS
 from svrobs_lab.auth import MAX_ID
-from svrobs_lab.datasets.catalog import create_dataset
+from svrobs_lab.datasets.catalog import DatasetLimits, create_dataset
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC, no_broker_check
 
@@ -191,7 +191,7 @@ def _make_dataset(session, acc) -> int:
             stream=f,
             filename="rollouts.csv",
             fields={"name": "fuzz"},
-            max_bytes=2**20,
+            limits=DatasetLimits(max_bytes=2**20),
         )
     session.commit()
     return row.id

@@ -14,7 +14,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, File, Form, Path, Query, Request, Response, UploadFile
 from fastapi.responses import StreamingResponse
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from service.api.deps import (
     DB,
@@ -22,7 +22,6 @@ from service.api.deps import (
     CurrentCaller,
     JobId,
     SessionFactoryDep,
-    SettingsDep,
 )
 from service.api.errors import error_docs
 from service.http.uploads import store_upload
@@ -97,6 +96,11 @@ class DatasetItem(BaseModel):
 class DatasetOut(DatasetItem):
     lengths: list[int]
     stats: dict[str, Any]
+    excitation: dict[str, Any] | None = Field(
+        None,
+        description="the excitation check of all its rollouts, made at upload (null above "
+        "5,000,000 numbers): eigenvalues of the regressors' mean Gram, cond, notes",
+    )
 
 
 class DatasetPage(BaseModel):
@@ -113,15 +117,13 @@ class DatasetPage(BaseModel):
     responses={**ERRORS, **error_docs(413)},
     openapi_extra=UPLOAD_BODY,
 )
-async def upload_dataset(
-    request: Request, session: DB, caller: CurrentCaller, settings: SettingsDep
-):
+async def upload_dataset(request: Request, session: DB, caller: CurrentCaller):
     """Upload a dataset file (multipart field `file`): CSV in long form, NPZ, MATLAB
     .mat (v5 or v7.3) or JSON, with a `name` and optional `description`,
     `sample_time`, `state_columns` / `input_columns` (CSV) or `state_names` /
     `input_names`. A bad file is one 422 naming the row, column or variable, and
     nothing is stored; over SVROBS_MAX_DATASET_MB is a 413."""
-    body = await store_upload(request, session, caller, settings.MAX_DATASET_MB * 2**20)
+    body = await store_upload(request, session, caller)
     return Response(
         DatasetOut(**body).model_dump_json(),
         status_code=201,

@@ -53,9 +53,8 @@ async def upload(request: Request, db: DB, viewer: CurrentViewer):
     body is read only as it streams) -> 201 ``{"id", "url"}``, or the error as JSON
     ``{"detail", "field"}`` for the form to show beside its field."""
     check_csrf(request, None, request.headers.get("x-csrf-token"))
-    limit = request.app.state.settings.MAX_DATASET_MB * 2**20
     try:
-        body = await store_upload(request, db, viewer.caller, limit, ignore={"csrf_token"})
+        body = await store_upload(request, db, viewer.caller, ignore={"csrf_token"})
     except (LabError, SpecError) as exc:  # shown in place by the form
         return JSONResponse(
             {"detail": exc.message, "field": exc.field},
