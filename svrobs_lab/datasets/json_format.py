@@ -1,6 +1,8 @@
 """JSON for small sets (docs/datasets.md#json): ``{"X": [rollout, ...], "U": [...],
 "sample_time": ..., "state_names": [...], "input_names": [...]}``, a rollout being a
-list of rows (one list of numbers per time step). At most :data:`MAX_JSON_BYTES`."""
+list of rows (one list of numbers per time step). At most :data:`MAX_JSON_BYTES` and
+:data:`MAX_JSON_LISTS` lists (rows and rollouts): a parsed list takes some 60-90 bytes
+of memory, so the lists are counted in the bytes before the file is parsed."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ from .arrays import check_pair, names_of, sample_time_of
 from .parsed import BadDatasetFile, Rollouts
 
 MAX_JSON_BYTES = 32 * 2**20
+MAX_JSON_LISTS = 2_000_000
 KEYS = ("X", "U", "sample_time", "state_names", "input_names")
 
 
@@ -28,6 +31,12 @@ def read_json(stream: BinaryIO, *, size: int) -> Rollouts:
             "as CSV, NPZ or MAT"
         )
     raw = stream.read()
+    lists = raw.count(b"[")  # an upper bound: a "[" inside a name counts too
+    if lists > MAX_JSON_LISTS:
+        raise BadDatasetFile(
+            f"a JSON dataset has at most {MAX_JSON_LISTS:,} lists (rows and rollouts), this "
+            f"one about {lists:,}; upload larger sets as CSV, NPZ or MAT"
+        )
     try:
         obj = json.loads(raw.decode("utf-8-sig"), parse_constant=_no_constant)
     except UnicodeDecodeError as exc:
@@ -58,9 +67,14 @@ def read_json(stream: BinaryIO, *, size: int) -> Rollouts:
         raise BadDatasetFile(f"U: expected a list of {len(xs)} rollouts, like X")
     X: list[np.ndarray] = []
     U: list[np.ndarray] = []
+    # each rollout's lists are let go once converted: the parsed JSON (tens of bytes per
+    # number as Python lists) and the arrays are not both held whole
     for i, x in enumerate(xs):
+        xs[i] = None
         x = _matrix(f"X[{i}]", x)
         u = _matrix(f"U[{i}]", us[i]) if us is not None else np.zeros((0, 0))
+        if us is not None:
+            us[i] = None
         if u.size == 0:
             u = np.zeros((max(x.shape[0] - 1, 0), 0))
         check_pair(f"X[{i}]", f"U[{i}]", x, u, X, U)

@@ -354,6 +354,15 @@ def cases() -> list[tuple]:
             r'^X\[0\]\[0\]\[1\]: "2" is not a number$',
         ),
         (
+            "json-lists",
+            "d.json",
+            _json('{"X": [[' + ",".join(["[1]"] * 2_000_000) + "]]}"),
+            {},
+            "file",
+            r"^a JSON dataset has at most 2,000,000 lists \(rows and rollouts\), this one "
+            r"about 2,000,002; upload larger sets as CSV, NPZ or MAT$",
+        ),
+        (
             "png",
             "plot.png",
             b"\x89PNG\r\n\x1a\n" + bytes(100),

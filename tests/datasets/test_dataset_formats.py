@@ -199,3 +199,17 @@ def test_an_npz_array_that_cannot_be_read_is_a_bad_file_naming_it(monkeypatch, e
     data = files.npz_bytes(*files.rollouts(lengths=(3, 3)), ragged=False)
     with pytest.raises(BadDatasetFile, match=r"^file: X: not a readable \.npy array: cannot read$"):
         parse(data)
+
+
+def test_json_lists_are_counted_before_the_file_is_parsed():
+    """At MAX_JSON_LISTS lists (rows and rollouts) a JSON file is read, one more is
+    refused before json.loads builds any of them (docs/datasets.md#limits)."""
+    from svrobs_lab.datasets.json_format import MAX_JSON_LISTS
+
+    rows = MAX_JSON_LISTS - 2  # the X list and its one rollout
+    body = ('{"X": [[' + ",".join(["[1]"] * rows) + "]]}").encode()
+    parsed = parse_dataset(io.BytesIO(body), filename="d.json", max_bytes=len(body))
+    assert parsed.lengths == [rows - 1] and parsed.n == 1 and parsed.m == 0
+    more = body.replace(b"[[[1]", b"[[[1],[1]", 1)
+    with pytest.raises(BadDatasetFile, match=f"at most {MAX_JSON_LISTS:,} lists"):
+        parse_dataset(io.BytesIO(more), filename="d.json", max_bytes=len(more))
