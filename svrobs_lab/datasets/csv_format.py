@@ -75,7 +75,9 @@ class _Reader:
             raise BadDatasetFile(f"row 1 (the header): {_not_utf8(bad)}")
         ri, ki, sidx, snames, uidx, unames = _columns(header, self.options)
         width = len(header)
-        done: list[_Rollout] = []
+        # each finished rollout keeps only (X, U, label, first k): its reader, some 1 kB,
+        # is let go (files of many short rollouts)
+        done: list[tuple[np.ndarray, np.ndarray, str, int]] = []
         seen: set[str] = set()
         current: _Rollout | None = None
         for row in reader:
@@ -102,7 +104,7 @@ class _Reader:
                         f"rollout {current.label}; the rows of a rollout must be consecutive"
                     )
                 if current is not None:
-                    done.append(current.finish())
+                    done.append(current.finish().kept())
                 if len(seen) >= MAX_ROLLOUTS:
                     raise BadDatasetFile(f"row {line}: more than {MAX_ROLLOUTS:,} rollouts")
                 seen.add(label)
@@ -115,14 +117,15 @@ class _Reader:
             current.add(line, [row[i] for i in sidx], [row[i] for i in uidx])
         if current is None:
             raise BadDatasetFile("the CSV file has a header but no rows")
-        done.append(current.finish())
+        done.append(current.finish().kept())
+        X, U, labels, first_k = zip(*done)
         return Rollouts(
-            X=[r.X for r in done],
-            U=[r.U for r in done],
+            X=list(X),
+            U=list(U),
             state_names=snames,
             input_names=unames,
-            labels=[r.label for r in done],
-            first_k=[r.k0 for r in done],
+            labels=list(labels),
+            first_k=list(first_k),
         )
 
     def count(self, values: int) -> None:
@@ -169,8 +172,11 @@ class _Rollout:
 
     def _numbers(self, rows, lines, names, k: int, *, inputs: bool = False) -> np.ndarray:
         self.owner.count(len(rows) * len(names))
+        shape = (len(rows), len(names))
         try:
-            a = np.array(rows, dtype=np.float64).reshape(len(rows), len(names))
+            a = np.array(rows, dtype=np.float64)
+            if a.shape != shape:  # no rows; else a view would hold a second array object
+                a = a.reshape(shape)
         except ValueError:
             _raise_not_number(rows, lines, names, inputs)
         bad = ~np.isfinite(a)
@@ -182,6 +188,10 @@ class _Rollout:
                 f"(row {lines[r]}: {rows[r][c].strip()!r})"
             )
         return a
+
+    def kept(self) -> tuple[np.ndarray, np.ndarray, str, int]:
+        """What the dataset keeps of this finished rollout."""
+        return self.X, self.U, self.label, self.k0
 
     def finish(self) -> _Rollout:
         self._convert(len(self.lines), last=True)
