@@ -1,6 +1,13 @@
 """Schedules: validating a cron expression (and how often it fires) and a time zone,
 the latest due time, and turning due schedules into jobs (once per due time, however
 many ticks run; within the team's cap).
+
+A cron is read in its time zone's wall-clock time, and its due times are the instants
+at which those wall times occur (docs/client.md#daylight-saving-time): a wall time
+skipped by a change to summer time is due when the gap ends (one hour later, at the
+usual one-hour change); a wall time that occurs twice when the clocks go back is due
+at both instants if the cron's hour field is ``*`` (an hourly or more frequent
+schedule keeps its rhythm), else at the first only (a daily run stays one run).
 """
 
 from __future__ import annotations
@@ -61,21 +68,50 @@ def validate_cron(expr: str) -> str:
     return expr
 
 
+# a change of a zone's UTC offset is at most this (a day's changes of a few zones
+# included): wall times further apart than this are in the same order as their instants
+_OFFSET_CHANGE = timedelta(hours=3)
+
+
+def _wall(moment: datetime, zone: ZoneInfo) -> datetime:
+    """``moment``'s wall-clock time in ``zone``, naive."""
+    return as_utc(moment).astimezone(zone).replace(tzinfo=None)
+
+
+def _instants(wall: datetime, zone: ZoneInfo, both: bool) -> list[datetime]:
+    """The UTC instants (ascending) at which the naive wall time ``wall`` of ``zone`` is
+    due: the one instant it occurs; in a gap, the instant as far after the gap's start
+    as ``wall`` is; when it occurs twice, both with ``both``, else the first."""
+    first = wall.replace(tzinfo=zone, fold=0).astimezone(UTC)
+    second = wall.replace(tzinfo=zone, fold=1).astimezone(UTC)
+    if first == second:
+        return [first]
+    occurs = [u for u in (first, second) if _wall(u, zone) == wall]
+    if not occurs:  # skipped by the change: fold=0 reads it with the offset before
+        return [first]
+    return sorted(occurs) if both else [min(occurs)]
+
+
+def _hour_wildcard(cron: str) -> bool:
+    return croniter(cron).expanded[1] == ["*"]
+
+
 def shortest_interval(cron: str, tz: str = "UTC", *, start: datetime | None = None) -> float:
     """The shortest time (seconds) between two consecutive runs of ``cron`` in ``tz``,
-    over its next :data:`INTERVAL_SAMPLES` firings from ``start`` (default now). A cron
-    that fires more than that many times a day fires less than 86400/500 s apart, so
-    the sample always holds at least one whole day's firings when it matters."""
-    zone = ZoneInfo(tz)
-    it = croniter(cron, as_utc(start).astimezone(zone))
-    prev = it.get_next(float)
-    shortest = float("inf")
-    for _ in range(INTERVAL_SAMPLES):
-        nxt = it.get_next(float)
-        if nxt > prev:  # croniter may repeat a local time at a DST change: one due time
-            shortest = min(shortest, nxt - prev)
-        prev = nxt
-    return shortest
+    over its next :data:`INTERVAL_SAMPLES` due times from ``start`` (default now). A
+    cron that fires more than that many times a day fires less than 86400/500 s apart,
+    so the sample always holds at least one whole day's firings when it matters."""
+    zone, both = ZoneInfo(tz), _hour_wildcard(cron)
+    it = croniter(cron, _wall(start or utcnow(), zone))
+    due = sorted(
+        {
+            u
+            for _ in range(INTERVAL_SAMPLES + 1)
+            for u in _instants(it.get_next(datetime), zone, both)
+        }
+    )
+    gaps = [(b - a).total_seconds() for a, b in zip(due, due[1:])]
+    return min(gaps, default=float("inf"))
 
 
 INTERVAL_SAMPLES = 500
@@ -108,15 +144,20 @@ def validate_timezone(tz: str) -> str:
 
 
 def latest_due(cron: str, tz: str, now: datetime) -> datetime:
-    """The latest time <= ``now`` matched by ``cron`` in time zone ``tz`` (as UTC)."""
-    zone = ZoneInfo(tz)
-    local = as_utc(now).astimezone(zone)
-    # croniter's get_prev excludes an exact match, so start just after `now`
-    it = croniter(cron, local + timedelta(seconds=1))
-    due = it.get_prev(datetime)
-    if due.tzinfo is None:
-        due = due.replace(tzinfo=zone)
-    return due.astimezone(UTC).replace(microsecond=0)
+    """The latest due time <= ``now`` of ``cron`` in time zone ``tz`` (as UTC, whole
+    seconds): the wall times matched are walked back from ``now``'s wall time plus the
+    largest offset change, until they are that much before the latest found."""
+    zone, both, now = ZoneInfo(tz), _hour_wildcard(cron), as_utc(now)
+    # croniter's get_prev excludes an exact match, so start just after
+    it = croniter(cron, _wall(now, zone) + _OFFSET_CHANGE + timedelta(seconds=1))
+    best: datetime | None = None
+    while True:
+        wall = it.get_prev(datetime)
+        if best is not None and wall < _wall(best, zone) - _OFFSET_CHANGE:
+            return best.replace(microsecond=0)
+        for u in _instants(wall, zone, both):
+            if u <= now and (best is None or u > best):
+                best = u
 
 
 def create_due_schedule_jobs(
