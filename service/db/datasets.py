@@ -251,11 +251,12 @@ def _byte_range(session: Session, dataset_id: int, start: int, stop: int) -> byt
 
 
 def load_rollouts(
-    session: Session, dataset_id: int, count: int
+    session: Session, dataset_id: int, count: int, *, max_steps: int | None = None
 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """The first ``count`` rollouts of a stored dataset, ``(X_list, U_list)`` as
-    :func:`load_arrays` gives them, reading only the chunks that hold them (a page's
-    plot of a large dataset). DatasetNotFound when it does not exist."""
+    """The first ``count`` rollouts of a stored dataset, each cut to its first
+    ``max_steps`` steps (X_i (min(T_i, max_steps) + 1, n), U_i (min(T_i, max_steps), m);
+    None: whole), reading only the chunks that hold them (a page's plot of a large
+    dataset). DatasetNotFound when it does not exist."""
     row = session.execute(
         select(Dataset.n, Dataset.m, Dataset.lengths).where(Dataset.id == dataset_id)
     ).first()
@@ -264,15 +265,17 @@ def load_rollouts(
     lengths = np.asarray(row.lengths, dtype=np.int64)
     n, m, k = row.n, row.m, max(0, min(int(count), len(lengths)))
     size = DTYPE.itemsize
-    x_at = int((lengths + 1).sum()) * n * size  # the U part starts after every X_i
-    nx, nu = int((lengths[:k] + 1).sum()) * n, int(lengths[:k].sum()) * m
-    X_all = np.frombuffer(_byte_range(session, dataset_id, 0, nx * size), dtype=DTYPE)
-    U_all = np.frombuffer(
-        _byte_range(session, dataset_id, x_at, x_at + nu * size) if nu else b"", dtype=DTYPE
-    )
-    X = np.split(X_all.reshape(-1, n), np.cumsum(lengths[:k] + 1)[:-1]) if k else []
-    U_all = U_all.reshape(-1, m) if m else np.zeros((int(lengths[:k].sum()), 0))
-    U = np.split(U_all, np.cumsum(lengths[:k])[:-1]) if k else []
+    # where each X_i and U_i starts: every X_i, then every U_i
+    x_starts = np.concatenate([[0], np.cumsum((lengths[:k] + 1) * n)])[:k] * size
+    u_part = int((lengths + 1).sum()) * n * size
+    u_starts = u_part + np.concatenate([[0], np.cumsum(lengths[:k] * m)])[:k] * size
+    steps = lengths[:k] if max_steps is None else np.minimum(lengths[:k], max_steps)
+    X, U = [], []
+    for x0, u0, t in zip(x_starts.tolist(), u_starts.tolist(), steps.tolist()):
+        x = _byte_range(session, dataset_id, x0, x0 + (t + 1) * n * size)
+        u = _byte_range(session, dataset_id, u0, u0 + t * m * size) if m else b""
+        X.append(np.frombuffer(x, dtype=DTYPE).reshape(t + 1, n))
+        U.append(np.frombuffer(u, dtype=DTYPE).reshape(t, m) if m else np.zeros((t, 0)))
     return X, U
 
 

@@ -15,6 +15,9 @@ from .catalog import EXCITATION_MAX_VALUES, dataset_view, list_datasets_page, te
 from .loaded import measured_data
 
 PLOTTED_ROLLOUTS = 5
+# a plot holds at most this many numbers, and each rollout at most PLOTTED_STEPS steps
+PLOTTED_VALUES = 200_000
+PLOTTED_STEPS = 2_000
 
 
 def datasets_page(session: Session, caller: Caller, *, limit: int = 100) -> dict:
@@ -48,14 +51,19 @@ def dataset_overview(session: Session, caller: Caller, dataset_id: int) -> dict:
 
 
 def plot_data(session: Session, caller: Caller, dataset_id: int) -> dict:
-    """The first PLOTTED_ROLLOUTS rollouts of the caller's dataset for a plot: X_i
-    (T_i + 1, n) and U_i (T_i, m) as lists, the channel names and the sample time."""
+    """The first PLOTTED_ROLLOUTS rollouts of the caller's dataset for a plot, each cut
+    to its first ``steps`` steps (PLOTTED_STEPS, fewer with many channels: at most
+    PLOTTED_VALUES numbers in all): X_i and U_i as lists, the channel names and the
+    sample time."""
     row = team_dataset(session, caller, dataset_id)
-    X, U = store.load_rollouts(session, row.id, PLOTTED_ROLLOUTS)
+    steps = max(1, min(PLOTTED_STEPS, PLOTTED_VALUES // (PLOTTED_ROLLOUTS * (row.n + row.m))))
+    X, U = store.load_rollouts(session, row.id, PLOTTED_ROLLOUTS, max_steps=steps)
     return {
         "id": row.id,
         "rollouts": row.rollouts,
         "shown": len(X),
+        "steps": steps,
+        "cut": any(t > steps for t in row.lengths[:PLOTTED_ROLLOUTS]),
         "sample_time": row.sample_time,
         "state_names": list(row.state_names),
         "input_names": list(row.input_names),

@@ -108,6 +108,47 @@ def test_pages_and_plot_data_are_the_teams(web, build_client, session, make_acco
     assert theirs.get("/datasets").text.count("data-dataset=") == 0
 
 
+def test_plot_data_cuts_long_rollouts_and_many_channels(web, session, make_account):
+    """Each plotted rollout is cut to its first PLOTTED_STEPS steps, fewer with many
+    channels (at most PLOTTED_VALUES numbers): the plot of a long rollout stays small."""
+    acc = make_account()
+    csrf = _signed_in(web, acc)
+    X, U = files.rollouts(seed=7, lengths=(3000, 10, 2500), n=2, m=1)
+    ds = _upload(web, csrf, "long.npz", files.npz_bytes(X, U)).json()
+    plot = web.get(f"{ds['url']}/plot-data").json()
+    assert plot["steps"] == 2000 and plot["cut"] is True and plot["shown"] == 3
+    assert plot["X"] == [X[0][:2001].tolist(), X[1].tolist(), X[2][:2001].tolist()]
+    assert plot["U"] == [U[0][:2000].tolist(), U[1].tolist(), U[2][:2000].tolist()]
+    X, U = files.rollouts(seed=8, lengths=(1000, 12), n=40, m=10)
+    ds = _upload(web, csrf, "wide.npz", files.npz_bytes(X, U)).json()
+    plot = web.get(f"{ds['url']}/plot-data").json()
+    assert plot["steps"] == 200_000 // (5 * 50) == 800 and plot["cut"] is True
+    assert plot["X"][0] == X[0][:801].tolist() and plot["U"][1] == U[1].tolist()
+    assert sum(np.size(a) for a in plot["X"] + plot["U"]) <= 200_000
+
+
+def test_load_rollouts_reads_the_arrays_across_chunks(client, session, make_account):
+    """The first rollouts, whole or cut, equal load_arrays' (which reads every chunk),
+    for rollouts that span the stored chunks' boundaries."""
+    acc = make_account()
+    X, U = files.rollouts(seed=9, lengths=(40_000, 30_000, 50_000, 7), n=2, m=1)
+    r = client.post(
+        f"{API}/datasets",
+        files={"file": ("big.npz", files.npz_bytes(X, U))},
+        data={"name": "big"},
+        headers=acc.headers,
+    )
+    assert r.status_code == 201, r.text
+    Xa, Ua, _ = load_arrays(session, r.json()["id"])
+    for count, cut in ((3, None), (4, 35_000), (2, 1), (9, 0)):
+        Xs, Us = load_rollouts(session, r.json()["id"], count, max_steps=cut)
+        k = min(count, 4)
+        want_X = [x if cut is None else x[: cut + 1] for x in Xa[:k]]
+        want_U = [u if cut is None else u[:cut] for u in Ua[:k]]
+        assert len(Xs) == k and all(np.array_equal(a, b) for a, b in zip(Xs, want_X))
+        assert all(np.array_equal(a, b) for a, b in zip(Us, want_U))
+
+
 def test_a_dataset_jobs_page_has_the_validation_card(web, make_account):
     acc = make_account()
     csrf = _signed_in(web, acc)

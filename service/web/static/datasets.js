@@ -129,7 +129,8 @@
       registry.charts.push({ channel: ch.name, kind: ch.kind, chart: chart,
         lines: lines.map((l) => ({ rollout: l.rollout, points: l.points.map((p) => [p.x, p.y]) })) });
     });
-    note.textContent = `(the first ${data.shown} of ${data.rollouts} rollouts, each channel against ${xLabel})`;
+    const cut = data.cut ? `, each cut to its first ${data.steps.toLocaleString("en")} steps` : "";
+    note.textContent = `(the first ${data.shown} of ${data.rollouts} rollouts${cut}, each channel against ${xLabel})`;
     registry.loads += 1;
     card.dataset.loads = String(registry.loads);
   }
