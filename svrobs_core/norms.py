@@ -254,13 +254,21 @@ _GOLD = (np.sqrt(5.0) - 1.0) / 2.0
 
 
 def _sigma_max(F: Array, G: Array, H: Array, D: Array, *, w: Array) -> FloatArray:
-    """sigma_max(H (e^{jw} I - F)^-1 G + D) for F (c,n,n) ... and w (c, k). -> (c, k)"""
+    """sigma_max(H (e^{jw} I - F)^-1 G + D) for F (c,n,n) ... and w (c, k). -> (c, k);
+    NaN where the response is not finite (a solve that overflowed or met a
+    numerically singular e^{jw} I - F), so that hinf_norm is NaN there."""
     n = F.shape[-1]
     z = np.exp(1j * w)[..., None, None]
     M = z * np.eye(n) - F[:, None]
-    R = _solve(M, np.broadcast_to(G[:, None], M.shape[:-1] + G.shape[-1:]))
-    T = H[:, None] @ R + D[:, None]
-    return np.linalg.svd(T, compute_uv=False)[..., 0]
+    with np.errstate(over="ignore", invalid="ignore"):
+        R = _solve(M, np.broadcast_to(G[:, None], M.shape[:-1] + G.shape[-1:]))
+        T = H[:, None] @ R + D[:, None]
+    finite = np.isfinite(T).all(axis=(-2, -1))
+    if finite.all():
+        return np.linalg.svd(T, compute_uv=False)[..., 0]
+    s = np.linalg.svd(np.where(finite[..., None, None], T, 0.0), compute_uv=False)[..., 0]
+    out: FloatArray = np.where(finite, s, np.nan)
+    return out
 
 
 @overload

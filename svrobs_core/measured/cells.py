@@ -109,7 +109,7 @@ def run_cells(
         notes.add(True, "stages not run: " + ", ".join(st for st in STAGES if st not in ran))
     sigma_box, sigma_model = _noise(c, G=G, Z=Z, F=F, rows=rows, n_rows=F.shape[1], N0=N0)
     if spec.has("bounds"):
-        _bounds_and_observer(c, sigma_box, sigma_model, model=model, G=G, N=N, N0=N0)
+        _bounds_and_observer(c, sigma_box, sigma_model, model=model, Z=Z, F=F, N=N, N0=N0)
     for f in CERTIFICATES:
         if f in c.out and withheld.any():
             # None: an object scalar, which numpy's stubs do not admit in where()
@@ -176,28 +176,39 @@ def _bounds_and_observer(
     sigma_model: float | FloatArray,
     *,
     model: StateModel,
-    G: FloatArray,
+    Z: FloatArray,
+    F: FloatArray,
     N: int,
     N0: int,
 ) -> None:
-    """The box (known rows of the ARX state with radius 0), its certificates,
-    then the observer stages on the estimate."""
+    """The box from the data's own factor, with the estimate's rounding margin
+    in its certificate radii (docs/uncertainty.md#certificates-on-the-boxes;
+    the known rows of the ARX state with radius 0, docs/measured.md#arx), its
+    certificates, then the observer stages on the estimate."""
     spec, out, notes, C = c.spec, c.out, c.notes, c.system.C
     estimate = spec.measured.sigma_w is None
     boxed = replace(c, spec=replace(spec, delta=spec.delta / 2) if estimate else spec)
     boxed.sigma_w = sigma_box
-    box = sound_box(boxed, G=G, Z=None, F=None, N=N, N0=N0)
+    box = sound_box(boxed, G=None, Z=Z, F=_full_targets(model, Z, F), N=N, N0=N0)
     if model.lags is not None:
         known = ~model.estimated[:, None]
-        box = replace(box, R_A=np.where(known, 0.0, box.R_A), R_B=np.where(known, 0.0, box.R_B))
+        assert box.R_A_up is not None and box.R_B_up is not None  # sound_box sets them
+        box = replace(
+            box,
+            R_A=np.where(known, 0.0, box.R_A),
+            R_B=np.where(known, 0.0, box.R_B),
+            R_A_up=np.where(known, 0.0, box.R_A_up),
+            R_B_up=np.where(known, 0.0, box.R_B_up),
+        )
     sound = bounds_from_box(c, box)
     out.update(sound.fields)
     b = sound.result
+    R_cert = sound.box.R_A  # the certificate radii R_up (NaN where not bounded)
     c.sigma_w = sigma_model
     unmeasured = ~(C != 0).any(axis=0)  # state columns that no row of C reads
     if unmeasured.any():
         with np.errstate(invalid="ignore"):
-            floor = (np.abs(c.A_hat) + box.R_A)[..., unmeasured].sum(axis=-1).max(axis=-1)
+            floor = (np.abs(c.A_hat) + R_cert)[..., unmeasured].sum(axis=-1).max(axis=-1)
         notes.add(
             floor >= 1.0,
             "gain: no L is certified: in the columns C does not measure, a row of"
@@ -209,7 +220,7 @@ def _bounds_and_observer(
     K = kal.K
     L = None
     if spec.has("gain"):
-        L = _gain(c, box.R_A, K)
+        L = _gain(c, R_cert, K)
     norms = None
     if spec.has("cost") or spec.has("sls"):
         notes.add(True, PLUG_IN)
@@ -244,6 +255,17 @@ def _bounds_and_observer(
     if spec.has("sls"):
         assert norms is not None  # computed for the sls stage above
         _sls(c, b, K, norms)
+
+
+def _full_targets(model: StateModel, Z: FloatArray, F: FloatArray) -> FloatArray:
+    """The targets of every row of the state (R, n, N0): F for the estimated rows
+    (the first ny), and for the known rows of the ARX state the regressor each
+    copies (a shift or the input), so that the factor of [Z^T F^T] matches the
+    full [A B]."""
+    if model.lags is None:
+        return F
+    known = np.concatenate(model.known_rows(), axis=1)[~model.estimated]
+    return np.concatenate([F, Z[:, np.argmax(known, axis=1)]], axis=1)
 
 
 def _gain(c: MeasuredCells, R_A: Array, K: FloatArray) -> Array:

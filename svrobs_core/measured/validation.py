@@ -168,10 +168,26 @@ def _nrmse(y: FloatArray, yhat: FloatArray) -> FloatArray:
         return out
 
 
-def _lagged(a: list[FloatArray], b: list[FloatArray], k: int) -> FloatArray | float:
+def _lagged(a: list[FloatArray], b: list[FloatArray], k: int) -> FloatArray:
     """sum over rollouts and t of a_t b_{t-k} (rows of a, b per rollout), per column pair
-    (0.0 when no rollout is longer than k)."""
-    return sum((x[k:].T @ y[: y.shape[0] - k] for x, y in zip(a, b) if x.shape[0] > k), 0.0)
+    (zeros when no rollout is longer than k). -> (a columns, b columns)"""
+    zero = np.zeros((a[0].shape[1], b[0].shape[1]))
+    out: FloatArray = sum(
+        (x[k:].T @ y[: y.shape[0] - k] for x, y in zip(a, b) if x.shape[0] > k), zero
+    )
+    return out
+
+
+def _pairs(eps: list[FloatArray], lags: range) -> FloatArray:
+    """P_k: the (residual, lagged) pairs inside the rollouts at each lag k. -> (len(lags),)"""
+    T = np.array([e.shape[0] for e in eps])
+    return np.array([np.maximum(T - k, 0).sum() for k in lags], dtype=float)
+
+
+NO_PAIRS = (
+    "{test}: no pairs inside a held-out rollout at lag 1 (every held-out rollout has one"
+    " transition): {stat} and its p-value null"
+)
 
 
 def _simulate(model: Model, X: list[FloatArray], U: list[FloatArray], ny: int) -> list[FloatArray]:
@@ -190,19 +206,23 @@ def _simulate(model: Model, X: list[FloatArray], U: list[FloatArray], ny: int) -
     return [x[i, : X[i].shape[0], :ny] for i in range(R)]
 
 
-def _whiteness(eps: list[FloatArray]) -> tuple[int, FloatArray, FloatArray, int]:
-    """Ljung-Box per channel on residuals pooled within rollouts -> (h, r (ny, h), Q, n)."""
+def _whiteness(eps: list[FloatArray]) -> tuple[int, FloatArray, FloatArray, int, list[str]]:
+    """Ljung-Box per channel on residuals pooled within rollouts -> (h, r (ny, h), Q, n,
+    notes); r_k and Q are NaN where lag k has no pairs inside a rollout."""
     E = np.concatenate(eps)
     n_res = E.shape[0]
     h = min(MAX_LAGS, max(1, max(e.shape[0] for e in eps) // 4))
     mu = E.mean(axis=0)
     ec = [e - mu for e in eps]
     s0 = np.sum((E - mu) ** 2, axis=0)
-    P = np.array([sum(max(e.shape[0] - k, 0) for e in eps) for k in range(1, h + 1)])
+    P = _pairs(eps, range(1, h + 1))
+    none = P == 0
     with np.errstate(divide="ignore", invalid="ignore"):
         r = np.stack([np.diag(_lagged(ec, ec, k)) for k in range(1, h + 1)], axis=1) / s0[:, None]
-    Q = n_res * (n_res + 2) * np.sum(r * r / P, axis=1)
-    return h, r, Q, n_res
+        r[:, none] = np.nan
+        Q = n_res * (n_res + 2) * np.sum(r * r / P, axis=1)
+    notes = [NO_PAIRS.format(test="whiteness", stat="Q")] if none.any() else []
+    return h, r, Q, n_res, notes
 
 
 def _cross(
@@ -211,7 +231,7 @@ def _cross(
     """Residual-input cross-correlations rho (ny, m, h + 1) and the statistic
     S = s^T R_u^-1 s per (channel, input), s_k = n rho_k / sqrt(P_k) (P_k pairs at
     lag k inside the rollouts), R_u the input's autocorrelation Toeplitz matrix;
-    -> (rho, S, notes)."""
+    -> (rho, S, notes); rho_k is NaN, and S null, where lag k has no pairs."""
     E, Uall = np.concatenate(eps), np.concatenate(U)
     ny, m = E.shape[1], Uall.shape[1]
     ec = [e - E.mean(axis=0) for e in eps]
@@ -229,7 +249,10 @@ def _cross(
         ru = np.stack([np.diag(_lagged(uc, uc, k)) for k in range(h + 1)], axis=1) / s_u[:, None]
     lag = np.abs(np.subtract.outer(np.arange(h + 1), np.arange(h + 1)))
     n_res = E.shape[0]
-    pairs = np.array([sum(max(e.shape[0] - k, 0) for e in eps) for k in range(h + 1)])
+    pairs = _pairs(eps, range(h + 1))
+    if (pairs == 0).any():
+        rho[..., pairs == 0] = np.nan
+        return rho, S, [NO_PAIRS.format(test="cross-correlation", stat="S")]
     std = rho * (n_res / np.sqrt(pairs))  # Var ~ 1 per lag for a white input (P_k pairs)
     for j in range(m):  # one (h + 1) x (h + 1) solve per input
         Ru = ru[j][lag]
@@ -254,7 +277,7 @@ def validate(model: Model, holdout: MeasuredData) -> ValidationResult:
     notes: list[str] = []
     if not np.isfinite(sim_fit).all():
         notes.append("open-loop simulation: left the double range or a constant channel (null)")
-    h, r, Q, n_res = _whiteness(eps)
+    h, r, Q, n_res, white_notes = _whiteness(eps)
     rho, S, cross_notes = _cross(eps, data.U, h, data.input_names)
     return ValidationResult(
         channels=tuple(holdout.state_names),
@@ -273,7 +296,7 @@ def validate(model: Model, holdout: MeasuredData) -> ValidationResult:
         cross_p=chi2.sf(S, h + 1),
         predicted=predicted,
         simulated=simulated,
-        notes=notes + cross_notes,
+        notes=notes + white_notes + cross_notes,
     )
 
 
