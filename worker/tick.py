@@ -22,7 +22,11 @@ import logging
 import os
 import threading
 import time
+from contextlib import nullcontext
 from datetime import datetime, timedelta
+from pathlib import Path
+
+from .report_crashes import FILE_NAME, CrashRecord
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +40,8 @@ _report_thread: threading.Thread | None = None
 _stop_reports = threading.Event()  # set at exit: the report thread ends after its build
 REPORT_RETRY_SECONDS = 600.0  # a job whose report build failed is tried again after this
 _failed_reports: dict[int, float] = {}  # job id -> when its build failed (monotonic)
+# builds that ended the process (worker.report_crashes); set by the report thread's start
+_crash_record: CrashRecord | None = None
 
 
 def session_scope(write: bool = True):
@@ -123,7 +129,9 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
     build fails is logged once and left alone for REPORT_RETRY_SECONDS (its report is
     then built at its first request), so it holds up neither the others nor the log;
     a database that is unreachable is raised (the caller polls again). Once the
-    process is stopping, no build starts, and none renders after its read."""
+    process is stopping, no build starts, and none renders after its read. Each build
+    is marked in flight in the crash record (worker.report_crashes) when the report
+    thread has one."""
     from sqlalchemy.exc import DBAPIError, IntegrityError
 
     from service.db.clock import db_now
@@ -135,15 +143,18 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
     for job_id, failed_at in list(_failed_reports.items()):
         if now - failed_at >= REPORT_RETRY_SECONDS:
             del _failed_reports[job_id]
+    record = _crash_record
+    skip = list(_failed_reports) + (record.given_up() if record is not None else [])
     with scope(write=False) as s:
         since = db_now(s) - timedelta(days=REPORT_RECENT_DAYS)
-        ids = jobs_without_report(s, limit, finished_after=since, skip=list(_failed_reports))
+        ids = jobs_without_report(s, limit, finished_after=since, skip=skip)
     done = []
     for job_id in ids:
         if _stop_reports.is_set():  # the process is stopping: no new build
             break
+        mark = record.in_flight(job_id) if record is not None else nullcontext()
         try:
-            with scope(write=False) as r, scope(write=True) as w:
+            with mark, scope(write=False) as r, scope(write=True) as w:
                 if store_if_missing(r, w, job_id, proceed=lambda: not _stop_reports.is_set()):
                     done.append(job_id)
         except IntegrityError:  # an API request stored it meanwhile: the same page
@@ -191,13 +202,18 @@ def start_report_builds() -> bool:
     a report of a large job takes seconds, the tick must not wait for it, and a
     finished job's report should be stored before anyone asks for it. One thread
     per process; False when it already runs."""
-    global _report_thread
+    global _report_thread, _crash_record
     if _report_thread is not None and _report_thread.is_alive():
         return False
     from service.config import get_settings
 
     settings = get_settings()
     every = min(settings.REPORT_POLL_SECONDS, settings.TICK_SECONDS)
+    if _crash_record is None:  # the first start of this process: did the last one crash?
+        _crash_record = CrashRecord(Path(settings.VAR_DIR) / FILE_NAME)
+        crashed = _crash_record.recover()
+        if crashed is not None:
+            _failed_reports[crashed] = time.monotonic()
 
     def run():
         from sqlalchemy.exc import DBAPIError
@@ -244,6 +260,8 @@ def _stop_at_exit() -> None:
     if wait_for_report_builds(REPORT_EXIT_WAIT_SECONDS):
         return
     log.warning("tick: the report build in flight was abandoned at exit")
+    if _crash_record is not None:  # abandoned, not crashed
+        _crash_record.clear()
     logging.shutdown()  # the handlers flushed: os._exit skips the atexit handlers left
     os._exit(0)
 

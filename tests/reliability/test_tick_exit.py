@@ -85,6 +85,44 @@ def test_exit_abandons_a_build_longer_than_the_wait(tmp_path):
     assert p.stdout.strip() == "exiting" and not done.exists()
 
 
+ABANDON_MARKED = (
+    DRAWING.replace("SECONDS", "120.0")
+    + """
+from pathlib import Path
+from worker.report_crashes import CrashRecord
+
+tick.REPORT_EXIT_WAIT_SECONDS = 0.5
+tick._crash_record = CrashRecord(Path(sys.argv[1]).with_name("record.json"))
+
+def marked_build(limit=2, scope=None):  # a build marked in flight, as build_reports marks it
+    with tick._crash_record.in_flight(5):
+        return drawing_build(limit, scope)
+
+tick.build_reports = marked_build
+assert tick.start_report_builds()
+time.sleep(0.5)
+assert '"in_flight": 5' in tick._crash_record.path.read_text()
+print("exiting")
+"""
+)
+
+
+def test_a_build_abandoned_at_exit_is_not_counted_as_a_crash(tmp_path):
+    """The in-flight mark of a build abandoned at exit is cleared: only a build that
+    ends the process counts against its job (worker.report_crashes)."""
+    from worker.report_crashes import CrashRecord
+
+    p = subprocess.run(
+        [sys.executable, "-c", ABANDON_MARKED, str(tmp_path / "built")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert p.returncode == 0 and "abandoned at exit" in p.stderr, p.stderr[-2000:]
+    assert CrashRecord(tmp_path / "record.json").recover() is None
+
+
 def test_a_tick_run_by_a_worker_starts_no_report_thread(monkeypatch):
     """Reports are built in beat's process: a worker that runs the tick task (beat
     without the tick scheduler) does not start a report thread in its pool process."""
@@ -119,7 +157,7 @@ def test_wait_is_bounded(monkeypatch):
         tick._report_thread = old
 
 
-def test_the_report_thread_polls_until_stopped(monkeypatch):
+def test_the_report_thread_polls_until_stopped(monkeypatch, tmp_path):
     """Beat's report thread builds again every REPORT_POLL_SECONDS (not once per
     tick), survives a failing build, and ends when the process stops it."""
     import threading
@@ -139,6 +177,8 @@ def test_the_report_thread_polls_until_stopped(monkeypatch):
         return []
 
     monkeypatch.setenv("SVROBS_REPORT_POLL_SECONDS", "0.05")
+    monkeypatch.setenv("SVROBS_VAR_DIR", str(tmp_path))
+    monkeypatch.setattr(tick, "_crash_record", None)
     get_settings.cache_clear()
     monkeypatch.setattr(tick, "build_reports", counting_build)
     monkeypatch.setattr(tick, "_report_thread", None)
@@ -153,6 +193,7 @@ def test_the_report_thread_polls_until_stopped(monkeypatch):
         n = len(calls)
         threading.Event().wait(0.2)  # four polls' time
         assert len(calls) == n  # nothing builds after the stop
+        assert tick._crash_record.path.parent == tmp_path  # in the state folder
     finally:
         get_settings.cache_clear()
 
