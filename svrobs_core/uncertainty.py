@@ -262,7 +262,8 @@ def certificate_radii(
     data, and the final rounding (docs/uncertainty.md#certificates-on-the-boxes).
     NaN where the box is NaN or its error estimate exceeds RADIUS_RTOL, inf where
     the margin is unbounded (a singular V). From a formed Gram matrix
-    (:func:`gram_factor`, no data) the margin is taken as 0.
+    (:func:`gram_factor`, no data) the margin is not bounded, so the radii are NaN
+    (no certificate rests on them): every pipeline passes the data.
     """
     theta = np.asarray(theta_hat, dtype=float)
     n, d = theta.shape[-2:]
@@ -274,8 +275,8 @@ def certificate_radii(
     if box.rel_err is not None:
         err = np.fmax(err, box.rel_err)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        if fac.formed:  # no data: the estimate's rounding is not bounded (margin 0)
-            margin = np.zeros(parts.diag.shape[:-1] + (n,))
+        if fac.formed:  # no data: the estimate's rounding is not bounded
+            margin = np.full(parts.diag.shape[:-1] + (n,), np.nan)
         else:
             margin = estimate_margin(fac, theta, lam=lam, shrink=shrink, parts=parts)
         e = (1.0 + err)[..., None, None]

@@ -268,3 +268,23 @@ def test_zero_noise_boxes_on_marginal_systems_never_certify():
     for b in run_spec(parse_spec(MARGINAL)):
         for r in b:
             assert r["stable_certified"] is not True, r
+
+
+def test_certificate_radii_need_the_data():
+    """From a formed Gram matrix the estimate's rounding margin is not bounded, so the
+    certificate radii are NaN (no certificate); from the data's factor they are finite
+    and at least the box's radii."""
+    rng = np.random.default_rng(11)
+    Z = _data(1e3, d=3, N0=60, rng=rng)
+    theta = rng.standard_normal((2, 3))
+    kw = dict(sigma_w=1.0, delta=0.1, lam=1e-6, S=1.0)
+    G = Z @ Z.T
+    formed = unc.GramFactor(lam=np.maximum(np.linalg.eigvalsh(G), 0), U=np.linalg.eigh(G)[1])
+    box = unc.self_normalized_box(formed, theta, **kw)
+    assert np.isfinite(box.R_A).all()  # the box itself is accurate at this cond
+    R_A_up, R_B_up = unc.certificate_radii(box, formed, theta, lam=1e-6)
+    assert np.isnan(R_A_up).all() and np.isnan(R_B_up).all()
+    fac = unc.data_factor(Z, theta @ Z)
+    box = unc.self_normalized_box(fac, theta, **kw)
+    R_A_up, R_B_up = unc.certificate_radii(box, fac, theta, lam=1e-6)
+    assert np.isfinite(R_A_up).all() and (R_A_up >= box.R_A).all() and (R_B_up >= box.R_B).all()
