@@ -27,7 +27,7 @@ from svrobs_core.records import GROUP_FIELDS, NUMERIC_FIELDS, RECORD_FIELDS
 from .auth import MAX_ID, Caller
 from .errors import Gone, Invalid
 from .jobs import team_job
-from .params import is_float_text, is_int_text
+from .params import is_float_text, is_int_text, read_number
 from .record_json import encode_lines, encode_page
 
 STREAM_CHUNK = 1000  # rows read at a time by a stream, at most
@@ -90,7 +90,8 @@ def select_rows(
     the range parameters ``ranges`` (``(name, value)`` pairs), in ``sort`` order."""
     keys = gamma_keys(gamma) if gamma else None
     conds = rq.grid_conditions(job.id, system, sigma_w, N, estimator, keys, rep)
-    range_conds = rq.range_terms(ranges)
+    bounds = [(name, read_number(name, text)) for name, text in ranges if rq.is_range_param(name)]
+    range_conds = rq.range_terms(bounds)
     return Selection(
         job=job,
         conds=conds + range_conds,

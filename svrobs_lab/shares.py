@@ -14,7 +14,8 @@ from service.db import shares as store
 from service.db.models import SHARE_LABEL_MAX, Job, ShareLink
 
 from .auth import MAX_ID, Caller
-from .errors import NotFound
+from .datasets.parsed import printable
+from .errors import Invalid, NotFound
 from .jobs import team_job
 
 DEFAULT_DAYS = store.DEFAULT_DAYS
@@ -41,7 +42,9 @@ def create(
     session: Session, caller: Caller, job_id: int, days: float, label: str | None = None
 ) -> tuple[ShareLink, str]:
     """A link to the caller's job, valid ``days``, named ``label``, committed -> (link,
-    token)."""
+    token). The label is one line of printable text (shown in lists)."""
+    if label is not None and not printable(label):
+        raise Invalid("must be printable text (no control characters)", field="label")
     job = team_job(session, caller, job_id)
     link, token = store.create_share(session, job, user_id=caller.user_id, days=days, label=label)
     session.commit()

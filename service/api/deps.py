@@ -1,7 +1,7 @@
 """FastAPI dependencies of the REST API: the caller of a bearer key (or the web
 session's: for a read, or a write that carries the session's CSRF token, as the API
-docs page sends it), the query-text rules, a submission of the caller. The ones the
-web shares (DB sessions, settings, the publisher) are :mod:`service.http.deps`."""
+docs page sends it), a submission of the caller. The ones the web shares (DB
+sessions, settings, the publisher, the query-text rule) are in :mod:`service.http`."""
 
 from __future__ import annotations
 
@@ -27,9 +27,7 @@ from service.http.deps import (
     submission_of,
 )
 from svrobs_lab.auth import MAX_ID, Caller, bearer_key
-from svrobs_lab.errors import Invalid
 from svrobs_lab.jobs import Submission
-from svrobs_lab.params import check_numbers
 from svrobs_lab.sessions import request_session, session_key, signer_of
 
 JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="a job id of the caller's team")]
@@ -79,24 +77,6 @@ def _session_csrf_ok(request: Request) -> bool:
     return signer is not None and signer.csrf_ok(request_session(request), token)
 
 
-async def clean_query_text(request: Request) -> None:
-    """422 for a query parameter or an Idempotency-Key holding a NUL character (which a
-    PostgreSQL text column cannot hold: it would be a 500 there and a silent miss on
-    SQLite), and for a numeric query or path parameter not written in plain ASCII
-    decimal (:mod:`svrobs_lab.params`: ``+30``, ``3_0``, ``3.0``, ``٣٠`` are not the
-    integer 30). Registered on every /api/v1 router."""
-    items = list(request.query_params.multi_items())
-    key = request.headers.get("idempotency-key")
-    for name, value in items + ([("Idempotency-Key", key)] if key is not None else []):
-        if "\x00" in name or "\x00" in value:
-            raise Invalid(
-                "must not contain NUL (\\u0000) characters", field=name.replace("\x00", "")
-            )
-    bad = check_numbers(items + list(request.path_params.items()))
-    if bad is not None:
-        raise Invalid(bad[1], field=bad[0])
-
-
 CurrentCaller = Annotated[Caller, Depends(get_caller)]
 
 
@@ -119,6 +99,5 @@ __all__ = [
     "SessionFactoryDep",
     "SettingsDep",
     "SubmissionDep",
-    "clean_query_text",
     "get_caller",
 ]

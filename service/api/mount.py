@@ -6,10 +6,10 @@ from __future__ import annotations
 
 from fastapi import Depends, FastAPI
 
-from service.api.deps import clean_query_text
 from service.api.docs import install_redoc, install_swagger
 from service.api.errors import error_response
 from service.api.query_params import reject_unknown_query
+from service.http.query_text import clean_query_text
 from service.http.uploads import STREAMED
 
 API_PREFIX = "/api/v1"

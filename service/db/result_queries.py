@@ -66,20 +66,16 @@ def sort_order(sort: str | None) -> list:
     return terms + list(ORDER)
 
 
-def range_terms(items: Iterable[tuple[str, str]]) -> list:
-    """WHERE conditions of the ``(name, value)`` pairs that are range parameters."""
+def range_terms(bounds: Iterable[tuple[str, float]]) -> list:
+    """WHERE conditions of the ``(name, bound)`` pairs whose name is a range parameter
+    (each bound a finite number, read from its text by the caller:
+    :func:`svrobs_lab.params.read_number`)."""
     conds = []
-    for name, value in items:
+    for name, bound in bounds:
         m = RANGE_RE.match(name)
         if m is None or m.group("field") not in RANGE_FIELDS:
             continue
-        try:
-            v = float(value)
-        except ValueError:
-            raise Invalid("must be a number", field=name) from None
-        if not math.isfinite(v):
-            raise Invalid("must be finite", field=name)
-        conds.append(getattr(T.c[m.group("field")], RANGE_OPS[m.group("op")])(v))
+        conds.append(getattr(T.c[m.group("field")], RANGE_OPS[m.group("op")])(bound))
     return conds
 
 

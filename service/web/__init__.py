@@ -12,11 +12,12 @@ an application error they let through is a page too (:mod:`service.web.errors`).
 
 from __future__ import annotations
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 from service.http.errors import ErrorHandler
+from service.http.query_text import clean_page_query
 from service.web.render import STATIC, SignInRequired, WebError, sign_in_redirect, web_error_page
 from svrobs_lab.sessions import Signer, load_secret
 
@@ -41,7 +42,8 @@ def mount_web(app: FastAPI) -> None:
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     app.add_api_route("/favicon.ico", _favicon, include_in_schema=False)
     for module in (auth, jobs, submit, job, results, cell, compare, schedules, share, datasets):
-        app.include_router(module.router)
+        # the API's query-text rule (NUL, plain numbers), an empty form field no value
+        app.include_router(module.router, dependencies=[Depends(clean_page_query)])
     handlers: tuple[tuple[type[Exception], ErrorHandler], ...] = (
         (WebError, web_error_page),
         (SignInRequired, sign_in_redirect),

@@ -14,7 +14,6 @@ from __future__ import annotations
 import importlib.metadata
 import io
 import json
-import math
 import re
 
 import numpy as np
@@ -29,7 +28,8 @@ from svrobs_core.measured import SIGMA_W_ESTIMATED
 from svrobs_core.records import json_value
 from svrobs_core.systems import resolve_system
 
-from .parsed import name_refused, printable
+from ..params import int32_problem, number_problem
+from .parsed import name_refused, printable, shown
 
 FORMATS = ("json", "npz", "mat")
 MEDIA_TYPES = {
@@ -43,8 +43,6 @@ FLAGS = ("stable_certified", "certified", "sigma_w_estimated")
 TEXTS = ("system", "estimator", "bounds_method", "notes")
 COORDINATES = cells.CELL_COORDINATES
 AMBIGUOUS_SHOWN = 1000  # cells looked at to say which coordinates still vary
-_INT = re.compile(r"-?[0-9]+", re.ASCII)
-_FLOAT = re.compile(r"-?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]+)?", re.ASCII)
 
 
 def parse_cell(cell: str | dict | None) -> dict:
@@ -53,11 +51,13 @@ def parse_cell(cell: str | dict | None) -> dict:
     if cell is None or cell == "":
         return {}
     if isinstance(cell, str) and cell.lstrip().startswith("{"):
-        try:
-            cell = json.loads(cell)
+        try:  # the object as its pairs: a coordinate given twice is refused below
+            cell = json.loads(cell, object_pairs_hook=_Pairs)
         except (ValueError, RecursionError):
             raise SpecError("cell", "not a JSON object of coordinates") from None
-    if isinstance(cell, str):
+    if isinstance(cell, _Pairs):
+        items = list(cell)
+    elif isinstance(cell, str):
         items = []
         for part in cell.split(","):
             key, eq, value = part.partition("=")
@@ -78,6 +78,10 @@ def parse_cell(cell: str | dict | None) -> dict:
     return out
 
 
+class _Pairs(list):
+    """A JSON object's (key, value) pairs, in order, duplicates kept."""
+
+
 def _coordinate(key: str, value):
     text = value if isinstance(value, str) else json.dumps(value)
     if key in ("system", "estimator"):
@@ -88,12 +92,13 @@ def _coordinate(key: str, value):
         return value
     if key == "gamma" and (value is None or text.lower() in ("null", "none", "ols")):
         return None
-    if key in ("N", "rep"):
-        if not _INT.fullmatch(text):
-            raise SpecError("cell", f"{key} must be an integer, got {text!r}")
+    if key in ("N", "rep"):  # a 32-bit column: a larger integer would overflow the driver
+        problem = int32_problem(text)
+        if problem is not None:
+            raise SpecError("cell", f"{key} {problem}, got {shown(text)}")
         return int(text)
-    if not _FLOAT.fullmatch(text) or not math.isfinite(float(text)):
-        raise SpecError("cell", f"{key} must be a finite number, got {text!r}")
+    if number_problem(text) is not None:
+        raise SpecError("cell", f"{key} must be a finite number, got {shown(text)}")
     return float(text)
 
 

@@ -55,3 +55,12 @@ def run_job_units(session, job_id: int, worker: str = "w1") -> int:
         session.commit()
         n += len(recs)
     return n
+
+
+def stored_job(client, session, acc, spec: dict) -> int:
+    """The id of a job of ``acc``'s team submitted through the API, every unit of which
+    is completed with fake records."""
+    r = client.post("/api/v1/jobs", json=spec, headers=acc.headers)
+    assert r.status_code == 202, r.text
+    run_job_units(session, r.json()["id"])
+    return r.json()["id"]

@@ -7,19 +7,19 @@ from datetime import datetime
 from typing import Annotated
 
 from fastapi import APIRouter, Body, Path, Request, Response
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, Field
 
 from service.api.deps import DB, MAX_ID, CurrentCaller, JobId
 from service.api.errors import error_docs
 from svrobs_lab import shares
+from svrobs_lab.schemas import _Strict
 
 router = APIRouter(tags=["shares"])
 ERRORS = error_docs(401, 404, 422, 429, 503)
 ShareId = Annotated[int, Path(ge=1, le=MAX_ID)]
 
 
-class ShareCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True)
+class ShareCreate(_Strict):
     days: float = Field(
         default=shares.DEFAULT_DAYS,
         ge=shares.MIN_DAYS,

@@ -25,6 +25,7 @@ from svrobs_core.records import NUMERIC_FIELDS
 from svrobs_lab import results
 from svrobs_lab.auth import MAX_ID
 from svrobs_lab.errors import Invalid
+from svrobs_lab.params import read_int32, read_number
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
@@ -41,17 +42,8 @@ def _range_rows(q) -> list[tuple[str, str, str]]:
 def _grid(request: Request, db: Session, viewer, job: Job, page: int) -> dict:
     q = request.query_params
 
-    def floats(name):
-        try:
-            return [float(v) for v in q.getlist(name) if v != ""]
-        except ValueError:
-            raise Invalid("must be a number", field=name) from None
-
-    def ints(name):
-        try:
-            return [int(v) for v in q.getlist(name) if v != ""]
-        except ValueError:
-            raise Invalid("must be an integer", field=name) from None
+    def values(name, read):  # an empty field of the form is no filter
+        return [read(name, v) for v in q.getlist(name) if v != ""]
 
     pick = {f: [v for v in q.getlist(f) if v != ""] for f in ("system", "estimator", "gamma")}
     ranges = []
@@ -66,11 +58,11 @@ def _grid(request: Request, db: Session, viewer, job: Job, page: int) -> dict:
     sel = results.select_rows(
         job,
         system=pick["system"],
-        sigma_w=floats("sigma_w"),
-        N=ints("N"),
+        sigma_w=values("sigma_w", read_number),
+        N=values("N", read_int32),
         estimator=pick["estimator"],
         gamma=pick["gamma"],
-        rep=ints("rep"),
+        rep=values("rep", read_int32),
         ranges=ranges,
         sort=sort,
     )

@@ -14,7 +14,7 @@ import json
 import secrets
 from typing import Annotated, NamedTuple
 
-from fastapi import APIRouter, BackgroundTasks, Depends, File, Form, Request, UploadFile
+from fastapi import APIRouter, BackgroundTasks, Depends, File, Form, Query, Request, UploadFile
 from fastapi.responses import RedirectResponse
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
@@ -28,6 +28,7 @@ from svrobs_core.errors import SpecError
 from svrobs_core.paper import PRESET_NAME, paper_specs
 from svrobs_core.spec_fields import spec_errors
 from svrobs_core.systems import PRESETS
+from svrobs_lab.auth import MAX_ID
 from svrobs_lab.datasets.overview import datasets_page, starter_spec
 from svrobs_lab.errors import IdempotencyConflict, QuotaExceeded
 from svrobs_lab.jobs import JobRequest
@@ -147,7 +148,11 @@ def _json(spec: dict) -> str:
 
 @router.get("/jobs/new")
 def submit_form(
-    request: Request, db: DB, viewer: CurrentViewer, preset: str = "", dataset: int | None = None
+    request: Request,
+    db: DB,
+    viewer: CurrentViewer,
+    preset: str = "",
+    dataset: Annotated[int | None, Query(ge=1, le=MAX_ID)] = None,
 ):
     """The form, empty (the defaults), filled by a preset (every field, name and tags),
     or with a first job on one of the team's datasets (``?dataset=ID``, the dataset

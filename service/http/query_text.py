@@ -1,0 +1,42 @@
+"""The query-text rule of every route, the API's and the web's: a query parameter (or
+an Idempotency-Key) holding a NUL character, or a numeric parameter not written in
+plain ASCII decimal (:mod:`svrobs_lab.params`), is a 422 naming it
+(:class:`svrobs_lab.errors.Invalid`: JSON under /api/v1, the error page on the web)."""
+
+from __future__ import annotations
+
+from fastapi import Request
+
+from svrobs_lab.errors import Invalid
+from svrobs_lab.params import check_numbers
+
+
+def check_query_text(request: Request, *, empty_is_absent: bool = False) -> None:
+    """Invalid for a query parameter or an Idempotency-Key holding a NUL character
+    (which a PostgreSQL text column cannot hold: it would be a 500 there and a silent
+    miss on SQLite), and for a numeric query or path parameter not written in plain
+    ASCII decimal (``+30``, ``3_0``, ``3.0``, ``٣٠`` are not the integer 30). With
+    ``empty_is_absent``, an empty value (a form's empty field) is not a number."""
+    items = list(request.query_params.multi_items())
+    key = request.headers.get("idempotency-key")
+    for name, value in items + ([("Idempotency-Key", key)] if key is not None else []):
+        if "\x00" in name or "\x00" in value:
+            raise Invalid(
+                "must not contain NUL (\\u0000) characters", field=name.replace("\x00", "")
+            )
+    numbers = [(k, v) for k, v in items if not (empty_is_absent and v == "")]
+    # a path parameter as sent (one a route's ``{id:int}`` converted is digits already)
+    numbers += [(k, v) for k, v in request.path_params.items() if isinstance(v, str)]
+    bad = check_numbers(numbers)
+    if bad is not None:
+        raise Invalid(bad[1], field=bad[0])
+
+
+async def clean_query_text(request: Request) -> None:
+    """The rule on an /api/v1 route: every value as sent."""
+    check_query_text(request)
+
+
+async def clean_page_query(request: Request) -> None:
+    """The rule on a web page: a form's empty field (``rep=``) is no value."""
+    check_query_text(request, empty_is_absent=True)
