@@ -41,6 +41,8 @@ import typer
 
 from service import worker_pids
 from service.config import Settings, default_pool_processes, get_settings
+from service.report_crashes import FILE_NAME as REPORT_CRASHES
+from service.report_crashes import CrashRecord
 from svrobs_cli import signals as early_signals
 from svrobs_cli.errors import CliError
 from svrobs_cli.processes import Child, Supervisor, guarded
@@ -398,6 +400,10 @@ def serve(
             print(f"svrobs: admin API key (shown once): {key}", flush=True)
         if supervisor is not None:
             supervisor.stop(grace)
+            if settings is not None:  # set before any child started
+                # beat's report build cut short by this stop (a second Ctrl-C, or past
+                # the grace) did not crash: its mark must not count against its job
+                CrashRecord(var_dir(settings) / REPORT_CRASHES).clear()
         for s, h in old.items():
             signal.signal(s, h)
     return 0

@@ -26,7 +26,7 @@ from contextlib import nullcontext
 from datetime import datetime, timedelta
 from pathlib import Path
 
-from .report_crashes import FILE_NAME, CrashRecord
+from service.report_crashes import FILE_NAME, CrashRecord
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +40,7 @@ _report_thread: threading.Thread | None = None
 _stop_reports = threading.Event()  # set at exit: the report thread ends after its build
 REPORT_RETRY_SECONDS = 600.0  # a job whose report build failed is tried again after this
 _failed_reports: dict[int, float] = {}  # job id -> when its build failed (monotonic)
-# builds that ended the process (worker.report_crashes); set by the report thread's start
+# builds that ended the process (service.report_crashes); set by the report thread's start
 _crash_record: CrashRecord | None = None
 
 
@@ -130,7 +130,7 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
     then built at its first request), so it holds up neither the others nor the log;
     a database that is unreachable is raised (the caller polls again). Once the
     process is stopping, no build starts, and none renders after its read. Each build
-    is marked in flight in the crash record (worker.report_crashes) when the report
+    is marked in flight in the crash record (service.report_crashes) when the report
     thread has one."""
     from sqlalchemy.exc import DBAPIError, IntegrityError
 

@@ -1,4 +1,4 @@
-"""Report builds that end beat's process (worker.report_crashes): the in-flight mark
+"""Report builds that end beat's process (service.report_crashes): the in-flight mark
 survives the process's death (a real os._exit inside the build), the job is counted
 when the next process starts, and after CRASH_LIMIT such deaths beat gives it up; a
 build that returns clears its count; an unreadable file is a warning, not a stop."""
@@ -9,14 +9,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-from worker.report_crashes import CRASH_LIMIT, CrashRecord
+from service.report_crashes import CRASH_LIMIT, CrashRecord
 
 ROOT = Path(__file__).resolve().parents[2]
 
 DIES = """
 import os, sys
 from pathlib import Path
-from worker.report_crashes import CrashRecord
+from service.report_crashes import CrashRecord
 
 record = CrashRecord(Path(sys.argv[1]))
 record.recover()
@@ -67,7 +67,18 @@ def test_a_build_that_raises_keeps_its_count_and_clears_the_mark(tmp_path):
 def test_an_unreadable_record_is_a_warning(tmp_path, caplog):
     path = tmp_path / "record.json"
     path.write_text("{not json")
-    with caplog.at_level("WARNING", logger="worker.report_crashes"):
+    with caplog.at_level("WARNING", logger="service.report_crashes"):
         assert CrashRecord(path).recover() is None
     assert "not readable" in caplog.text
     assert CrashRecord(path).recover() is None  # rewritten readable
+
+
+def test_clear_keeps_the_counts(tmp_path):
+    path = tmp_path / "record.json"
+    _die_building(path, 4)  # counted at the next read
+    _die_building(path, 5)  # its mark: cleared by a stop, not counted
+    CrashRecord(path).clear()
+    record = CrashRecord(path)
+    assert record.recover() is None and record.crashes == {4: 1}
+    CrashRecord(tmp_path / "none.json").clear()  # no file: nothing to clear, none made
+    assert not (tmp_path / "none.json").exists()

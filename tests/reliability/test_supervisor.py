@@ -207,3 +207,32 @@ def test_a_stop_during_the_imports_of_serve_starts_nothing(tmp_path):
     assert done.returncode == 0, done.stderr
     assert "svrobs: stopping" in done.stdout and "started" not in done.stdout + done.stderr
     assert not (tmp_path / "x.db").exists()
+
+
+def test_a_stop_clears_beats_report_build_mark(tmp_path, monkeypatch):
+    """A report build cut short by the operator's stop (here two Ctrl-Cs while beat's
+    build is marked in flight) is not a crash: ``svrobs serve`` clears the mark after
+    stopping its processes and keeps the jobs' counts (service.report_crashes)."""
+    from service.config import Settings
+    from service.report_crashes import FILE_NAME, CrashRecord
+    from svrobs_cli import serve as serve_mod
+
+    record = CrashRecord(tmp_path / FILE_NAME)
+    record.crashes = {3: 1}
+    building = record.in_flight(9)  # held: the build never ends in this process
+
+    def start(_self):  # beat marks a build in flight; then the operator presses Ctrl-C twice
+        building.__enter__()
+        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(serve_mod, "check_port", lambda _host, _port: None)
+    monkeypatch.setattr(serve_mod, "migrate", lambda _s: None)
+    monkeypatch.setattr(serve_mod, "bootstrap_admin", lambda _s: None)
+    monkeypatch.setattr(serve_mod, "_children", lambda *a, **k: [])
+    monkeypatch.setattr(Supervisor, "start", start)
+    settings = Settings(DATABASE_URL=f"sqlite:///{tmp_path / 'x.db'}", VAR_DIR=str(tmp_path))
+    assert serve_mod.serve(settings, grace=0.1) == 0
+    assert building.gen.gi_frame is not None  # the mark was not cleared by the build
+    after = CrashRecord(tmp_path / FILE_NAME)
+    assert after.recover() is None and after.crashes == {3: 1}

@@ -89,7 +89,7 @@ ABANDON_MARKED = (
     DRAWING.replace("SECONDS", "120.0")
     + """
 from pathlib import Path
-from worker.report_crashes import CrashRecord
+from service.report_crashes import CrashRecord
 
 tick.REPORT_EXIT_WAIT_SECONDS = 0.5
 tick._crash_record = CrashRecord(Path(sys.argv[1]).with_name("record.json"))
@@ -109,8 +109,8 @@ print("exiting")
 
 def test_a_build_abandoned_at_exit_is_not_counted_as_a_crash(tmp_path):
     """The in-flight mark of a build abandoned at exit is cleared: only a build that
-    ends the process counts against its job (worker.report_crashes)."""
-    from worker.report_crashes import CrashRecord
+    ends the process counts against its job (service.report_crashes)."""
+    from service.report_crashes import CrashRecord
 
     p = subprocess.run(
         [sys.executable, "-c", ABANDON_MARKED, str(tmp_path / "built")],

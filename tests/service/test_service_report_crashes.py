@@ -1,4 +1,4 @@
-"""Beat's report builds with the crash record (worker.report_crashes), on SQLite and
+"""Beat's report builds with the crash record (service.report_crashes), on SQLite and
 PostgreSQL: a job whose build ended the last process is set aside when the report
 thread starts while the other jobs are built, tried again after its pause, and never
 built by beat once it has ended the process CRASH_LIMIT times."""
@@ -8,7 +8,7 @@ from __future__ import annotations
 from tests.reliability.test_report_crashes import _die_building
 from tests.service.svc_helpers import scope_of
 from tests.service.test_service_reads import _two_finished_jobs
-from worker.report_crashes import CRASH_LIMIT, CrashRecord
+from service.report_crashes import CRASH_LIMIT, CrashRecord
 
 
 def _started(tick, monkeypatch, path):

@@ -7,7 +7,10 @@ ended the process (the kernel's OOM killer, a crash in native code): that job's
 count goes up, it is set aside like any failed build, and once its builds have ended
 the process CRASH_LIMIT times beat never builds it again (its report is then built
 at its first request, in the API). So one job whose report cannot be built cannot
-keep beat, and with it the schedules, in a restart loop.
+keep beat, and with it the schedules, in a restart loop. A stop by the operator is
+not a crash: beat clears the mark of a build it abandons at exit, and ``svrobs
+serve`` clears it after stopping its processes (also when a second Ctrl-C killed
+them).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ log = logging.getLogger(__name__)
 
 FILE_NAME = "report-build-in-flight.json"
 CRASH_LIMIT = 2
+UNREADABLE = (ValueError, TypeError, AttributeError, OSError)
 
 
 class CrashRecord:
@@ -39,17 +43,22 @@ class CrashRecord:
         tmp.write_text(json.dumps(body))
         os.replace(tmp, self.path)  # a reader sees the old file or the new one
 
+    def _read(self) -> int | None:
+        """Load the counts from the file -> the job marked in flight (None: none).
+        FileNotFoundError; ValueError (and the like) when it is not readable."""
+        body = json.loads(self.path.read_text())
+        self.crashes = {int(j): int(c) for j, c in body.get("crashes", {}).items()}
+        crashed = body.get("in_flight")
+        return None if crashed is None else int(crashed)
+
     def recover(self) -> int | None:
         """Read the file (at the thread's start): the job whose build was in flight when
         the last process ended, its count raised and the mark cleared; None if none."""
         try:
-            body = json.loads(self.path.read_text())
-            self.crashes = {int(j): int(c) for j, c in body.get("crashes", {}).items()}
-            crashed = body.get("in_flight")
-            crashed = None if crashed is None else int(crashed)
+            crashed = self._read()
         except FileNotFoundError:
             return None
-        except (ValueError, TypeError, AttributeError, OSError):
+        except UNREADABLE:
             log.warning("tick: %s is not readable; starting without it", self.path)
             self.crashes, crashed = {}, None
         if crashed is not None:
@@ -81,5 +90,12 @@ class CrashRecord:
             self._write(None)
 
     def clear(self) -> None:
-        """Clear the mark (a build abandoned at exit did not crash)."""
+        """Clear the mark, keeping the counts (a build abandoned at a stop did not
+        crash)."""
+        try:
+            self._read()
+        except FileNotFoundError:
+            return
+        except UNREADABLE:
+            pass  # recover() says so at the next start
         self._write(None)
