@@ -5,29 +5,44 @@
 The app's state is set here, for both: the settings, the DB session factory, the
 unit publisher (the app's Celery app, made on first use; tests replace it), the
 rate limiter, the throttle of failed authentications, the report builds; the
-security headers of every response (:mod:`service.http.security`). An application error (:class:`svrobs_lab.errors.LabError`) is
-answered once: JSON under /api and for the health routes
-(:func:`service.api.errors.lab_error_response`), the web's error page elsewhere
-(:func:`service.web.errors.lab_error_page`); nothing else becomes a traceback.
+security headers of every response (:mod:`service.http.security`). An application error
+(:class:`svrobs_lab.errors.LabError`), a request that failed validation and the
+framework's HTTP errors (no such path) are each answered once: JSON under /api and for
+the health routes (:mod:`service.api.errors`), the web's error page elsewhere
+(:mod:`service.web.errors`); nothing else becomes a traceback.
 """
 
 from __future__ import annotations
 
 from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi_offline import FastAPIOffline
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.api.errors import install_error_handlers, lab_error_response
+from service.api.errors import install_error_handlers
 from service.api.mount import API_PREFIX, mount_api
 from service.api.ratelimit import RateLimiter
 from service.broker import BrokerPublisher
 from service.config import Settings, get_settings
 from service.http.auth_throttle import AuthThrottle
+from service.http.errors import ErrorHandler
+from service.http.query_text import EmptyFieldsAbsent
 from service.http.security import SecurityHeaders
 from service.logging_config import configure_logging
 from service.web import mount_web
-from service.web.errors import lab_error_page
+from service.web.errors import http_error_page, lab_error_page, validation_error_page
+from svrobs_core.errors import SpecError
 from svrobs_lab.datasets.upload_slots import UploadSlots
+from svrobs_lab.errors import LabError
 from svrobs_lab.report_builds import ReportBuilds
+
+# the errors a web page answers with the web's error page (the API: JSON)
+PAGE_ERRORS: dict[type[Exception], ErrorHandler] = {
+    LabError: lab_error_page,
+    SpecError: lab_error_page,
+    RequestValidationError: validation_error_page,
+    StarletteHTTPException: http_error_page,
+}
 
 
 def _default_session_factory(settings: Settings):
@@ -45,13 +60,16 @@ def _default_session_factory(settings: Settings):
     return factory
 
 
-def _is_api(request: Request) -> bool:
-    path = request.url.path
+def _is_api_path(path: str) -> bool:
     return path.startswith(API_PREFIX + "/") or path in ("/healthz", "/readyz")
 
 
-async def _lab_error(request: Request, exc):
-    return lab_error_response(exc) if _is_api(request) else lab_error_page(request, exc)
+def _is_api(request: Request) -> bool:
+    return _is_api_path(request.url.path)
+
+
+def _is_page_path(path: str) -> bool:
+    return not _is_api_path(path)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -87,8 +105,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     # nosniff, Referrer-Policy and (HTML) the CSP on every response (service.http.security)
     app.add_middleware(SecurityHeaders)
+    # a page's query: a form's empty field (``at=``) is no value
+    app.add_middleware(EmptyFieldsAbsent, applies=_is_page_path)
 
-    install_error_handlers(app, lab_error=_lab_error)
+    install_error_handlers(app, pages=PAGE_ERRORS, is_api=_is_api)
     mount_api(app)  # /api/v1, /healthz, /readyz, /docs
     mount_web(app)  # the web UI's pages under /
     return app

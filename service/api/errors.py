@@ -9,14 +9,15 @@ running), 410 gone (pruned rows), 403, 429 over the team's job quota or the key'
 rate, 413 for a body over SVROBS_MAX_BODY_BYTES; 503 when the database is
 unreachable. Anything else is a bug: it is logged with its traceback and answered
 500 ``{"detail": "internal error"}``, with no internals. On a web page (a path out of
-/api), an application error is the web's error page instead (``service.app``).
+/api), an application error, a request that failed validation and the framework's
+HTTP errors (no such page) are the web's error page instead (``service.app``).
 """
 
 from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -26,14 +27,12 @@ from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.http.errors import ErrorHandler, status_of
+from service.http.errors import ErrorHandler, http_problem, status_of, validation_problem
 from svrobs_core.errors import SpecError
 from svrobs_lab.errors import LabError, RateLimited
 from svrobs_lab.schemas import ErrorOut
 
 log = logging.getLogger(__name__)
-
-BODY_PARSE_ERROR = "There was an error parsing the body"  # fastapi.routing's 400 detail
 
 
 def error_docs(*statuses: int) -> dict:
@@ -72,17 +71,6 @@ def error_response(
     )
 
 
-def _loc_to_field(loc) -> str | None:
-    parts = [p for p in loc if p not in ("body", "query", "path", "header")]
-    out = ""
-    for p in parts:
-        if isinstance(p, int):
-            out += f"[{p}]"
-        else:
-            out += f".{p}" if out else str(p)
-    return out or None
-
-
 def lab_error_response(exc: LabError | SpecError) -> JSONResponse:
     """The JSON answer of an application error (or a bad spec)."""
     headers = {"Retry-After": str(exc.retry_after)} if isinstance(exc, RateLimited) else None
@@ -93,71 +81,14 @@ async def _lab_error(request: Request, exc: LabError | SpecError) -> JSONRespons
     return lab_error_response(exc)
 
 
-# pydantic names the member of a union in the location ("N.list[any]"): the kinds
-# a value may be, in plain words
-_KINDS = {"list": "a list", "dict": "an object", "int": "an integer", "float": "a number"}
-_KINDS.update(str="a string", bool="true or false", none="null", tuple="a list")
-
-
-def _kind(part) -> str | None:
-    """The plain name of a union member tag in a location, else None."""
-    if not isinstance(part, str):
-        return None
-    head = part.split("[", 1)[0]
-    return _KINDS.get(head) if ("[" in part or part in _KINDS) else None
-
-
-def plain_errors(errors: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The errors with union member tags folded: ``N`` given a string where a list
-    or an object is expected is one error, "must be a list or an object"."""
-    out, unions = [], {}
-    for e in errors:
-        loc = tuple(e.get("loc", ()))
-        tags = [i for i, p in enumerate(loc) if _kind(p)]
-        if not tags:
-            out.append(e)
-            continue
-        base = loc[: tags[0]]
-        if base not in unions:
-            unions[base] = {**e, "loc": base, "kinds": []}
-            out.append(unions[base])
-        kind = _kind(loc[tags[0]])
-        if kind not in unions[base]["kinds"]:
-            unions[base]["kinds"].append(kind)
-    for u in unions.values():
-        u["msg"], u["type"] = "must be " + " or ".join(u.pop("kinds")), "type_error"
-    return out
-
-
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    errors = plain_errors(exc.errors())
-    first = errors[0] if errors else {}
-    field = _loc_to_field(first.get("loc", ()))
-    msg = first.get("msg", "invalid request")
-    if first.get("type") == "extra_forbidden":
-        msg = "unknown field"
-    clean = [
-        {
-            "field": _loc_to_field(e.get("loc", ())),
-            "message": e.get("msg"),
-            "type": e.get("type"),
-        }
-        for e in errors
-    ]
-    return error_response(422, msg, field, errors=clean)
+    p = validation_problem(exc)
+    return error_response(p.status, p.message, p.field, errors=p.errors)
 
 
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-    if exc.status_code == 400 and exc.detail == BODY_PARSE_ERROR:
-        # FastAPI's 400 for a body it cannot decode (not UTF-8, nested too deep):
-        # a bad body is a 422 naming the body, like malformed JSON.
-        return error_response(422, "the request body is not valid JSON (UTF-8)", "body")
-    if exc.status_code == 400 and request.headers.get("content-type", "").startswith(
-        "multipart/form-data"
-    ):
-        # Starlette's 400 for a multipart body it cannot parse (a form with a file)
-        return error_response(422, f"not valid multipart/form-data: {exc.detail}", "body")
-    return error_response(exc.status_code, exc.detail, headers=exc.headers)
+    p = http_problem(request, exc)
+    return error_response(p.status, p.message, p.field, headers=p.headers)
 
 
 async def _db_down(request: Request, exc: OperationalError) -> JSONResponse:
@@ -196,9 +127,24 @@ HANDLERS: tuple[tuple[type[Exception], ErrorHandler], ...] = (
 )
 
 
-def install_error_handlers(app: FastAPI, *, lab_error: ErrorHandler = _lab_error) -> None:
+def install_error_handlers(
+    app: FastAPI,
+    *,
+    pages: Mapping[type[Exception], ErrorHandler] | None = None,
+    is_api: Callable[[Request], bool] = lambda request: True,
+) -> None:
     """Register every mapping above on ``app`` (the only place errors become JSON
-    responses); ``lab_error`` replaces the handler of application errors (the app
-    factory's, which answers a web page with the web's error page)."""
+    responses). ``pages`` maps an exception class to the handler that answers it on
+    a request ``is_api`` says is not the API's (a web page: the web's error page)."""
     for exc_class, handler in HANDLERS:
-        app.add_exception_handler(exc_class, lab_error if handler is _lab_error else handler)
+        page = (pages or {}).get(exc_class)
+        app.add_exception_handler(
+            exc_class, handler if page is None else _by_path(handler, page, is_api)
+        )
+
+
+def _by_path(api: ErrorHandler, page: ErrorHandler, is_api) -> ErrorHandler:
+    async def handle(request: Request, exc: Exception):
+        return await (api if is_api(request) else page)(request, exc)
+
+    return handle

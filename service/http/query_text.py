@@ -1,11 +1,17 @@
 """The query-text rule of every route, the API's and the web's: a query parameter (or
 an Idempotency-Key) holding a NUL character, or a numeric parameter not written in
 plain ASCII decimal (:mod:`svrobs_lab.params`), is a 422 naming it
-(:class:`svrobs_lab.errors.Invalid`: JSON under /api/v1, the error page on the web)."""
+(:class:`svrobs_lab.errors.Invalid`: JSON under /api/v1, the error page on the web).
+On the web, a form's empty field is no value (:class:`EmptyFieldsAbsent`)."""
 
 from __future__ import annotations
 
+from collections import Counter
+from collections.abc import Callable
+from urllib.parse import unquote_plus
+
 from fastapi import Request
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from svrobs_lab.errors import Invalid
 from svrobs_lab.params import check_numbers
@@ -40,3 +46,30 @@ async def clean_query_text(request: Request) -> None:
 async def clean_page_query(request: Request) -> None:
     """The rule on a web page: a form's empty field (``rep=``) is no value."""
     check_query_text(request, empty_is_absent=True)
+
+
+def without_empty_fields(query: bytes) -> bytes:
+    """A raw query string without the parameters sent once with an empty value
+    (``at=``, or ``at`` alone). A name sent more than once keeps every value: the
+    empty ones hold their place in a row of parallel fields."""
+    parts = query.split(b"&")
+    names = [unquote_plus(p.partition(b"=")[0].decode("latin-1")) for p in parts]
+    sent = Counter(names)
+    return b"&".join(
+        p for p, name in zip(parts, names, strict=True) if p.partition(b"=")[2] or sent[name] > 1
+    )
+
+
+class EmptyFieldsAbsent:
+    """ASGI middleware: on a path ``applies(path)`` accepts (the web's pages), a query
+    parameter sent once with an empty value, a form's empty field, is left out before
+    the request is routed, so the page sees no value (the parameter's default) rather
+    than an empty text that is not a number."""
+
+    def __init__(self, app: ASGIApp, applies: Callable[[str], bool]):
+        self.app, self.applies = app, applies
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http" and scope.get("query_string") and self.applies(scope["path"]):
+            scope = {**scope, "query_string": without_empty_fields(scope["query_string"])}
+        await self.app(scope, receive, send)

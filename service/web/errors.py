@@ -1,36 +1,77 @@
-"""Application errors on a page: :func:`lab_error_page` maps each
-:class:`svrobs_lab.errors.LabError` (and a bad spec, a
-:class:`~svrobs_core.errors.SpecError`) to the web UI's error page, once, with the
-status of its kind (:mod:`service.http.errors`)."""
+"""Errors on a page, each mapped to the web UI's error page once, with the status the
+API gives the same error (:mod:`service.http.errors`): an application error
+(:class:`svrobs_lab.errors.LabError`, a bad spec: :class:`~svrobs_core.errors.SpecError`)
+by its kind (:func:`lab_error_page`), a query FastAPI refused (a page number that is not
+a number, a missing cell coordinate) as a 422 naming each parameter
+(:func:`validation_error_page`), and the framework's HTTP errors, such as no such page,
+by their status (:func:`http_error_page`)."""
 
 from __future__ import annotations
 
-from fastapi import Request
-from fastapi.responses import HTMLResponse
+from collections.abc import Mapping
+from http import HTTPStatus
 
-from service.http.errors import status_of
+from fastapi import Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import HTMLResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from service.http.errors import http_problem, status_of, validation_problem
 from svrobs_core.errors import SpecError
 from svrobs_lab.errors import LabError, RateLimited
 
 from .render import WebError, render
 
 
+def sentence(text: str) -> str:
+    """``text`` with a capital first letter and a full stop."""
+    return text[:1].upper() + text[1:] + ("" if text.endswith(".") else ".")
+
+
 def plain(exc: LabError | SpecError) -> str:
     """The error in one line: ``field: message`` for a field, else a sentence."""
-    if exc.field:
-        return f"{exc.field}: {exc.message}"
-    text = exc.message
-    return text[:1].upper() + text[1:] + ("" if text.endswith(".") else ".")
+    return f"{exc.field}: {exc.message}" if exc.field else sentence(exc.message)
 
 
 def web_error(exc: LabError | SpecError) -> WebError:
     return WebError(status_of(exc), plain(exc))
 
 
-def lab_error_page(request: Request, exc: LabError | SpecError) -> HTMLResponse:
-    """The error page of an application error."""
-    error = web_error(exc)
+def _page(request: Request, error: WebError, headers: Mapping[str, str] | None = None):
     page = render(request, "error.html", status=error.status, error=error, viewer=None)
-    if isinstance(exc, RateLimited):
-        page.headers["Retry-After"] = str(exc.retry_after)
+    page.headers.update(headers or {})
     return page
+
+
+async def lab_error_page(request: Request, exc: LabError | SpecError) -> HTMLResponse:
+    """The error page of an application error."""
+    retry = {"Retry-After": str(exc.retry_after)} if isinstance(exc, RateLimited) else None
+    return _page(request, web_error(exc), retry)
+
+
+async def validation_error_page(request: Request, exc: RequestValidationError) -> HTMLResponse:
+    """The 422 page of a query (or form) FastAPI refused: every parameter it names, each
+    as ``name: what is wrong``."""
+    problem = validation_problem(exc)
+    each = [f"{e['field'] or 'request'}: {_clause(e['message'])}" for e in problem.errors]
+    return _page(request, WebError(422, "; ".join(each) or sentence(problem.message)))
+
+
+def _clause(message) -> str:
+    """pydantic's message as the clause after a field's name ("must be …", "field
+    required")."""
+    text = str(message or "invalid value")
+    return text[:1].lower() + text[1:]
+
+
+async def http_error_page(request: Request, exc: StarletteHTTPException) -> HTMLResponse:
+    """The page of the framework's HTTP error: 404 for a path with no page, 405 for a
+    method a page does not take, 422 for a form body it cannot parse."""
+    problem = http_problem(request, exc)
+    if problem.status == 404 and problem.message == HTTPStatus.NOT_FOUND.phrase:
+        message = f"There is no page at {request.url.path}."
+    elif problem.field:
+        message = f"{problem.field}: {problem.message}"
+    else:
+        message = sentence(str(problem.message))
+    return _page(request, WebError(problem.status, message), problem.headers)

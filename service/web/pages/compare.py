@@ -17,12 +17,13 @@ from service.web.deps import CurrentViewer
 from service.web.render import WebError, render
 from svrobs_core.records import NUMERIC_FIELDS
 from svrobs_lab import results
-from svrobs_lab.auth import MAX_ID
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
 X_CHOICES = ("N", "sigma_w", "gamma", "N0", "rep")
-Ids = Annotated[list[Annotated[int, Field(ge=1, le=MAX_ID)]], Query(max_length=50)]
+# job ids, each its own parameter (the form's checkboxes) or comma-separated (the API's
+# form: ``jobs=1,2``); results.compare reads and checks them
+Ids = Annotated[list[Annotated[str, Field(max_length=2000)]], Query(max_length=50)]
 Names = Annotated[list[str], Query(max_length=20)]
 
 
@@ -38,6 +39,11 @@ def compare_page(
 ):
     if x not in X_CHOICES:
         raise WebError(422, f"x: must be one of {', '.join(X_CHOICES)}")
+    if metric in results.COMPARE_BY:
+        raise WebError(
+            422, f"metric: {metric} is a grid coordinate, not a metric (pick one such as rmse_A)"
+        )
+    ids = ",".join(part for text in jobs for part in text.split(",") if part.strip())
     by = list(dict.fromkeys(by or ["N", "estimator", "gamma"]))
     if x not in by:
         by.insert(0, x)
@@ -45,9 +51,9 @@ def compare_page(
         db, viewer.team_id, viewer.caller.user_id, queries.JobFilter(), limit=200, offset=0
     )
     data = None
-    if jobs:
+    if ids:
         data = results.compare(  # a LabError is a page (service.web.errors)
-            db, viewer.caller, jobs=",".join(map(str, jobs)), metric=metric, by=",".join(by)
+            db, viewer.caller, jobs=ids, metric=metric, by=",".join(by)
         )
     return render(
         request,
@@ -55,7 +61,7 @@ def compare_page(
         viewer=viewer,
         nav="compare",
         team_jobs=team_jobs,
-        picked=set(jobs),
+        picked=set(data["jobs"]) if data else set(),
         metric=metric,
         metrics=NUMERIC_FIELDS,
         by=by,

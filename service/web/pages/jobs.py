@@ -39,15 +39,23 @@ def _sort_params(sort: queries.JobSort) -> dict[str, str]:
 def _table_context(
     db: Session, viewer, filt: queries.JobFilter, page: int, sort: queries.JobSort
 ) -> dict:
-    jobs, total = queries.job_page(
-        db,
-        viewer.team_id,
-        viewer.caller.user_id,
-        filt,
-        limit=PAGE_SIZE,
-        offset=(page - 1) * PAGE_SIZE,
-        sort=sort,
-    )
+    def page_of(page: int) -> tuple[list, int]:
+        return queries.job_page(
+            db,
+            viewer.team_id,
+            viewer.caller.user_id,
+            filt,
+            limit=PAGE_SIZE,
+            offset=(page - 1) * PAGE_SIZE,
+            sort=sort,
+        )
+
+    jobs, total = page_of(page)
+    pages = max(1, math.ceil(total / PAGE_SIZE))
+    if page > pages:  # past the last page: the last one
+        page = pages
+        jobs, total = page_of(page)
+        pages = max(1, math.ceil(total / PAGE_SIZE))
     params = {**filt.params(), **_sort_params(sort)}
     shown = False
     metric: dict[int, float] = {}
@@ -69,7 +77,7 @@ def _table_context(
         "jobs": jobs,
         "total": total,
         "page": page,
-        "pages": max(1, math.ceil(total / PAGE_SIZE)),
+        "pages": pages,
         "filt": filt,
         "polling": queries.any_active(jobs),
         "query": urlencode({**params, "page": page}),
@@ -108,6 +116,17 @@ def job_sort(
 
 
 Sort = Annotated[queries.JobSort, Depends(job_sort)]
+
+
+def metric_note(sort: queries.JobSort) -> str | None:
+    """What the metric column lacks, when only one of its two fields is filled."""
+    if sort.metric and sort.N is None:
+        return f"The metric column needs an N: fill in “at N” to show {sort.metric} at that N."
+    if sort.N is not None and not sort.metric:
+        return f"Pick a metric to show its column at N = {sort.N}."
+    return None
+
+
 PageNo = Annotated[int, Query(ge=1, le=10**6)]
 
 
@@ -130,6 +149,7 @@ def jobs_page(
         tags=queries.team_tags(db, viewer.team_id),
         owners=queries.team_owners(db, viewer.team_id),
         deleted=[int(i) for i in deleted.split(",") if i],
+        metric_note=metric_note(sort),
         **_table_context(db, viewer, filt, page, sort),
     )
 
