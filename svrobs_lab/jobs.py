@@ -13,15 +13,19 @@ reused Idempotency-Key raise :mod:`svrobs_lab.errors` (``JobTooLarge``,
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from sqlalchemy.orm import Session
 
 from service.config import Settings
 from service.db import job_queries
+from service.db.datasets import dataset_shape
 from service.db.job_delete import delete_job
 from service.db.jobs import admit, cancel_job, create_job
 from service.db.models import Job
+from svrobs_core.errors import SpecError
+from svrobs_core.measured import check_against_data
+from svrobs_core.parsing import parse_spec
 from svrobs_core.spec import ExperimentSpec
 from svrobs_core.workload import DataShape
 
@@ -56,6 +60,53 @@ def admit_spec(
     lim = limits(settings)
     lim.pop("max_active_jobs")
     return admit(spec, field=field, data=data, **lim)
+
+
+def _set_aside(spec: ExperimentSpec, field: str) -> ExperimentSpec | None:
+    """``spec`` with the field a check against the data refused given a value that
+    passes it and changes no other check (N one rollout, no holdout, the default C, no
+    input lags where there are no inputs), or None when the other checks depend on it
+    (the dataset, the ARX lags, sigma_v)."""
+    opts = spec.measured
+    assert opts is not None  # a dataset spec
+    if field == "N":
+        return replace(spec, N=(1,))
+    if field == "holdout":
+        return replace(spec, measured=replace(opts, holdout=0))
+    if field == "C":  # sigma_v = 0's check needs C: it is set aside too
+        return replace(spec, measured=replace(opts, C=None, sigma_v=max(opts.sigma_v, 0.1)))
+    if field == "state.lags.u" and opts.lags is not None:  # no inputs: q changes nothing
+        return replace(spec, measured=replace(opts, lags=(opts.lags[0], 0)))
+    return None
+
+
+def data_errors(session: Session, caller: Caller, spec: dict) -> dict[str, str]:
+    """``{field: message}`` of every check of a valid dataset spec against the shape of
+    the team's dataset (N and holdout against its rollouts, C's columns, the ARX lags),
+    each field checked with those refused before it set aside, so one error does not
+    hide another; empty for a simulated spec or a dataset the team does not have
+    (submitting says so)."""
+    parsed = parse_spec(spec)
+    if parsed.measured is None:
+        return {}
+    shape = dataset_shape(session, parsed.measured.dataset, caller.team_id)
+    if shape is None:
+        return {}
+    found: dict[str, str] = {}
+    checked: ExperimentSpec | None = parsed
+    while checked is not None:
+        try:
+            check_against_data(
+                checked, shape.n, shape.m, len(shape.lengths), lengths=list(shape.lengths)
+            )
+            break
+        except SpecError as exc:
+            field = exc.field or "dataset"
+            if field in found:
+                break
+            found[field] = exc.message
+            checked = _set_aside(checked, field)
+    return found
 
 
 @dataclass(frozen=True)

@@ -263,6 +263,24 @@ def test_submit_errors_are_shown_beside_their_field(
     assert web.get(f"{API}/jobs", headers=acc.headers).json()["total"] == 0
 
 
+def test_an_unknown_field_is_shown_beside_the_json_view(web, sent, make_account):
+    """A field no input of the form shows (``bogus``) is the JSON view's error: beside
+    the textarea, which is marked invalid, and linked from the list at the top."""
+    acc = make_account()
+    sign_in(web, acc.key)
+    token = csrf_of(web.get("/jobs/new").text)
+    spec = {"systems": ["paper-stable"], "sigma_w": [0.5], "N": [20], "bogus": 1}
+    r = _post_spec(web, token, json.dumps(spec), source="json")
+    assert r.status_code == 422
+    beside = re.search(r'<div id="spec-error" class="field-error">(.*?)</div>', r.text, re.S)
+    assert beside is not None, r.text[-3000:]
+    assert "<code>bogus</code>: unknown field" in beside.group(1)
+    textarea = re.search(r"<textarea[^>]*>", r.text).group(0)
+    assert 'aria-invalid="true"' in textarea and "spec-error" in textarea
+    assert '<a href="#spec"><code>bogus</code></a>: unknown field' in r.text
+    assert sent.published == []
+
+
 def _posted(spec: dict, **edits) -> dict:
     """The spec form as the browser posts it ({name: [values]}), filled with ``spec``,
     then ``edits`` ({input name: text}) typed in."""

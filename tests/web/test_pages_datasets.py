@@ -233,3 +233,37 @@ def test_the_spec_form_on_a_dataset_keeps_a_dataset_spec(web, build_client, make
     r = web.post("/jobs/new", data=bad)
     assert r.status_code == 422 and f"no dataset {foreign['id']} in your team" in r.text
     assert re.search(r'id="err-dataset"', r.text)
+
+
+def test_the_spec_form_shows_every_error_against_the_datasets_shape(web, make_account):
+    """N beyond the rollouts left after the holdout and a C with the wrong number of
+    columns: both errors at once, each beside its field (each needs the dataset's
+    shape, so the parser alone cannot find them)."""
+    acc = make_account()
+    csrf = _signed_in(web, acc)
+    X, U = files.rollouts(seed=9, lengths=(12,) * 10, n=2, m=1)  # 10 rollouts, n = 2
+    ds = _upload(web, csrf, "a.csv", files.csv_bytes(X, U)).json()
+    page = web.get(f"/jobs/new?dataset={ds['id']}").text
+    starter = json.loads(
+        html.unescape(re.search(r'<textarea[^>]*id="spec"[^>]*>([^<]*)<', page).group(1))
+    )
+    edits = {"f.N": "5, 10, 30", "f.holdout": "4", "f.C": "[[1, 0, 0]]"}
+    bad = _posted(spec_form.values_of(starter), **edits)
+    bad.update(csrf_token=csrf, source="form")
+    r = web.post("/jobs/new", data=bad)
+    assert r.status_code == 422
+    beside = dict(re.findall(r'id="err-([\w.-]+)"><p><code>[^<]*</code>: ([^<]*)</p>', r.text))
+    assert set(beside) == {"N", "C"}, beside
+    assert "N = 30 rollouts, but the dataset has 6 for training" in beside["N"]
+    assert "must have 2 columns" in beside["C"]
+    assert "2 errors to fix" in r.text
+    assert 'value="5, 10, 30"' in r.text  # as typed
+    # the spec as the JSON view sends it: the same two errors
+    spec = {**starter, "N": [5, 10, 30], "holdout": 4, "C": [[1, 0, 0]]}
+    r = web.post("/jobs/new", data={"csrf_token": csrf, "source": "json", "spec": json.dumps(spec)})
+    assert r.status_code == 422 and "2 errors to fix" in r.text
+    # one fixed: the other alone
+    spec["N"] = [5]
+    r = web.post("/jobs/new", data={"csrf_token": csrf, "source": "json", "spec": json.dumps(spec)})
+    assert r.status_code == 422 and "1 error to fix" in r.text and "must have 2 columns" in r.text
+    assert web.get(f"{API}/jobs", headers=acc.headers).json()["total"] == 0

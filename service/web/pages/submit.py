@@ -31,7 +31,7 @@ from svrobs_core.systems import PRESETS
 from svrobs_lab.auth import MAX_ID
 from svrobs_lab.datasets.overview import datasets_page, starter_spec
 from svrobs_lab.errors import IdempotencyConflict, QuotaExceeded
-from svrobs_lab.jobs import JobRequest
+from svrobs_lab.jobs import JobRequest, data_errors
 from svrobs_lab.schemas import SPEC_FIELD_NAMES, JobSubmit
 
 router = APIRouter(include_in_schema=False)
@@ -281,6 +281,10 @@ def submit(
         tags=data.get("tags") or (),
         idempotency_key=idempotency_key or None,
     )
+    # every check against the dataset's shape at once (submitting stops at the first)
+    found = data_errors(db, viewer.caller, job.spec)
+    if found:
+        return refused(errors, found)
     submission = submission_of(request, db, viewer.caller, background)
     try:
         (out,) = submission.submit([job])
