@@ -17,9 +17,18 @@ from svrobs_core.report import Report, build_report, spec_json, table2_markdown
 from svrobs_core.report.audit import audit_markdown
 from svrobs_core.report.columns import fmt_num
 
-# A table scrolls sideways inside itself on a narrow screen (report.css), so it
-# takes the focus: its overflow can be scrolled with the keyboard.
-TABLE = "<table tabindex='0'>"
+
+def _table(name: str) -> str:
+    """The start of a table. A table, like a spec's <pre>, scrolls sideways inside
+    itself on a narrow screen (report.css), so it takes the focus (its overflow can
+    be scrolled with the keyboard) and has a name (what a screen reader says there)."""
+    return f"<table tabindex='0' aria-label='{html.escape(name, quote=True)}'>"
+
+
+def _scrolled_pre(name: str, text: str) -> str:
+    """Preformatted text that scrolls inside itself: a focusable, named region."""
+    label = html.escape(name, quote=True)
+    return f"<pre tabindex='0' role='region' aria-label='{label}'>{html.escape(text)}</pre>"
 
 
 @cache
@@ -45,11 +54,11 @@ def _html_finding(f: str) -> str:
     return f"<li>{html.escape(f)}</li>"
 
 
-def _markdown_table(md: str) -> str:
-    """A pipe table (header, rule, rows) as an HTML table."""
+def _markdown_table(md: str, name: str) -> str:
+    """A pipe table (header, rule, rows) as an HTML table named ``name``."""
     lines = [ln.strip().strip("|") for ln in md.strip().splitlines()]
     rows = [[c.strip() for c in ln.split(" | ")] for ln in lines[:1] + lines[2:]]
-    out = [TABLE + "<tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in rows[0]) + "</tr>"]
+    out = [_table(name) + "<tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in rows[0]) + "</tr>"]
     for r in rows[1:]:
         out.append("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>")
     return "".join(out) + "</table>"
@@ -68,7 +77,7 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
         "<p>Every number below comes from the records of this run (and, for the true system "
         "matrices, from its specs), except the cells marked <span class='pub'>published</span>, "
         "which are the paper's own Table 2 values.</p>",
-        TABLE + "<tr><th>Experiment</th><th>What</th><th>Records</th></tr>",
+        _table("Experiments") + "<tr><th>Experiment</th><th>What</th><th>Records</th></tr>",
     ]
     for name, x in report.experiments.items():
         H.append(f"<tr><td>{e(name)}</td><td>{e(x['title'])}</td><td>{x['n_records']}</td></tr>")
@@ -82,7 +91,7 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
     if report.table2:
         H.append(f"<p>Source: experiment {e(str(report.table2_source))}.</p>")
         H.append(
-            TABLE + "<tr><th>System</th><th>σ_w</th><th>Matrix</th><th>OLS (ours)</th>"
+            _table("Table 2") + "<tr><th>System</th><th>σ_w</th><th>Matrix</th><th>OLS (ours)</th>"
             "<th>SVR (ours)</th><th class='pub'>OLS (paper, published)</th>"
             "<th class='pub'>\"Ours\" SVR (paper, published)</th><th>OLS ours/paper</th>"
             "<th>SVR ours/paper</th><th>SVR − OLS (ours)</th></tr>"
@@ -105,7 +114,8 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
         H.append("<h2>Beyond the paper: uncertainty sets that hold (bounds_method)</h2><ul>")
         H += [_html_finding(f) for f in report.audit_findings]
         H.append("</ul>")
-        H.append(_markdown_table(audit_markdown(report.audit, report.audit[0]["delta"])))
+        audit = audit_markdown(report.audit, report.audit[0]["delta"])
+        H.append(_markdown_table(audit, "Uncertainty sets"))
     H.append("<h2>Figures</h2>")
     for fg in report.figures:
         H.append(f"<h3>{e(fg.title)}</h3>")
@@ -118,8 +128,8 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
     H += [f"<p>Not drawn: {e(title)} ({e(why)}).</p>" for title, why in report.figures_not_drawn]
     H.append("<h2>Specs</h2>")
     for name, x in report.experiments.items():
-        H.append(f"<h3>{e(name)}</h3><pre>{e(spec_json(x['spec']))}</pre>")
-    H.append(f"<h2>Provenance</h2>{TABLE}<tr><th>Key</th><th>Value</th></tr>")
+        H.append(f"<h3>{e(name)}</h3>" + _scrolled_pre(f"Spec of {name}", spec_json(x["spec"])))
+    H.append(f"<h2>Provenance</h2>{_table('Provenance')}<tr><th>Key</th><th>Value</th></tr>")
     for k, v in report.provenance.items():
         val = v if isinstance(v, str) else json.dumps(v)
         H.append(f"<tr><td>{e(str(k))}</td><td style='text-align:left'>{e(str(val))}</td></tr>")

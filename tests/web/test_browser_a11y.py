@@ -199,3 +199,47 @@ def test_skip_link_theme_toggle_favicon_and_keyboard_legend(browser, stack, site
     page.click("#theme-toggle")  # dark -> light
     page.click("#theme-toggle")  # light -> auto
     assert page.evaluate("localStorage.getItem('svrobs-theme')") is None
+
+
+# Every element that scrolls sideways: how it is reached from the keyboard and named.
+SCROLLERS = """() => [...document.querySelectorAll("body *")].filter(el => {
+    const o = getComputedStyle(el).overflowX;
+    return (o === "auto" || o === "scroll") && el.scrollWidth > el.clientWidth;
+  }).map(el => ({tag: el.tagName.toLowerCase(), tabindex: el.getAttribute("tabindex"),
+                 name: el.getAttribute("aria-label")}))"""
+
+
+def test_the_report_at_phone_width_scrolls_its_wide_parts_from_the_keyboard(browser, stack, site):
+    """At 375 px a spec with a long line (a system of its own) is wider than its box:
+    the report's, signed in and shared, has no serious axe violation, and every part
+    that scrolls sideways takes the focus and has a name."""
+    wide = {
+        "systems": [
+            {"name": "a wide spec line", "A": [[0.9, 0.1], [0.0, 0.8]], "B": [[1.0], [0.5]]}
+        ],
+        "sigma_w": [1.0],
+        "N": [10],
+        "reps": 2,
+        "estimators": ["ols"],
+        "seed": 3,
+    }
+    with stack.client() as api:
+        job = submit(api, wide, name="a11y wide spec")["id"]
+        stack.wait_job(api, job)
+        share = api.post(f"/jobs/{job}/shares", json={"label": "a11y wide"}).json()
+    page = browser.page(stack.base_url, width=375, height=812)
+    sign_in(page, stack.key)
+    problems: list = []
+    for name, path in (
+        ("report", f"/jobs/{job}/report"),
+        ("shared report", f"{share['url']}/report"),
+    ):
+        assert page.goto(path).status == 200, name
+        page.wait_for_selector("#back-link")
+        check(page, name, problems)
+        scrollers = page.evaluate(SCROLLERS)
+        assert any(s["tag"] == "pre" for s in scrollers), (name, scrollers)  # the spec's
+        unnamed = [s for s in scrollers if s["tabindex"] != "0" or not s["name"]]
+        if unnamed:
+            problems.append((name, "scrollers", unnamed))
+    assert not problems, pformat(problems, width=120)
