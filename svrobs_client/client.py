@@ -303,9 +303,20 @@ class Client(DatasetCalls):
             return
         write_atomic(Path(out), lambda f: [f.write(c.encode("utf-8")) for c in chunks()])
 
-    def summary_json(self, job: Job | int) -> dict[str, Any]:
-        """``GET /jobs/{id}/summary`` as the API sends it."""
-        return _object(self.request("GET", f"/jobs/{_id(job)}/summary"))
+    def summary_json(self, job: Job | int, *, page_size: int = 10_000) -> dict[str, Any]:
+        """``GET /jobs/{id}/summary`` as the API sends it, every page's groups in one
+        body (pages of ``page_size`` groups; the API sends at most 10,000 a request)."""
+        path = f"/jobs/{_id(job)}/summary"
+        body = _object(self.request("GET", path, params={"limit": page_size}))
+        groups = list(body["groups"])
+        while groups and len(groups) < body["total"]:
+            params = {"limit": page_size, "offset": len(groups)}
+            page = _object(self.request("GET", path, params=params))
+            if not page["groups"]:  # a running job's groups changed meanwhile
+                break
+            groups += page["groups"]
+            body["total"], body["partial"] = page["total"], page["partial"]
+        return {**body, "groups": groups}  # the first page's body, with every group
 
     def summary(self, job: Job | int, *, long: bool = False) -> Any:
         """Mean, std and count of every numeric field per (system, sigma_w, N, estimator,

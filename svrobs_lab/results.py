@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from sqlalchemy.orm import Session
 
 from service.db import result_queries as rq
-from service.db.aggregates import summarize_in_db
+from service.db.aggregates import count_groups_in_db, summarize_in_db
 from service.db.compare import COMPARE_BY, compare_page
 from service.db.models import Job
 from service.db.result_codec import ResultCodec
@@ -217,12 +217,20 @@ def _group_out(g: dict) -> dict:
     return {**{k: g[k] for k in GROUP_FIELDS}, "count": g["count"], "stats": g["stats"]}
 
 
-def summary(session: Session, job: Job) -> dict:
-    """Mean, std and count of every numeric field per group: stored when the job
-    succeeded, aggregated in the database from the results so far otherwise."""
+# a page of a job's summary holds at most this many groups (about 1.5 kB each as JSON)
+SUMMARY_PAGE_MAX = 10_000
+
+
+def summary(session: Session, job: Job, *, limit: int = SUMMARY_PAGE_MAX, offset: int = 0) -> dict:
+    """Mean, std and count of every numeric field per group, one page of ``limit``
+    groups from ``offset`` in grid order, with how many there are: stored when the
+    job succeeded, aggregated in the database from the results so far otherwise."""
+    page = {"limit": limit, "offset": offset}
     if job.status != "succeeded":  # units store their groups' summaries as they finish
-        groups = [_group_out(g) for g in summarize_in_db(session, job.id)]
-        return {"job_id": job.id, "partial": True, "groups": groups}
+        rows = summarize_in_db(session, job.id, limit=limit, offset=offset)
+        total = count_groups_in_db(session, job.id)
+        groups = [_group_out(g) for g in rows]
+        return {"job_id": job.id, "partial": True, "groups": groups, "total": total, **page}
     groups = [
         {
             "system": s.system,
@@ -233,9 +241,10 @@ def summary(session: Session, job: Job) -> dict:
             "count": s.count,
             "stats": s.stats,
         }
-        for s in rq.summary_rows(session, job.id)
+        for s in rq.summary_rows(session, job.id, limit=limit, offset=offset)
     ]
-    return {"job_id": job.id, "partial": False, "groups": groups}
+    total = rq.count_summaries(session, job.id)
+    return {"job_id": job.id, "partial": False, "groups": groups, "total": total, **page}
 
 
 def _csv_list(value: str, name: str) -> list[str]:

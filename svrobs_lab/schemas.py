@@ -192,7 +192,7 @@ class ResultPage(Page):
     next_offset: int | None = None
 
 
-class SummaryOut(BaseModel):
+class SummaryOut(Page):
     job_id: int
     partial: bool
     groups: list[dict[str, Any]]

@@ -43,9 +43,21 @@ def _square(x):
     return case((func.abs(x) < 1e-150, 0.0), else_=x * x)
 
 
-def summarize_in_db(session: Session, job_id: int) -> list[dict]:
-    """The job's groups as ``summarize_columns`` gives them, ordered by group
-    (a mean or std beyond the double range is null with a note, ``stat_entry``)."""
+def count_groups_in_db(session: Session, job_id: int) -> int:
+    """How many groups the job's rows hold so far."""
+    t = Result.__table__
+    groups = (
+        select(*[t.c[k] for k in KEY]).where(t.c.job_id == job_id).group_by(*[t.c[k] for k in KEY])
+    )
+    return int(session.scalar(select(func.count()).select_from(groups.subquery())) or 0)
+
+
+def summarize_in_db(
+    session: Session, job_id: int, *, limit: int | None = None, offset: int = 0
+) -> list[dict]:
+    """The job's groups as ``summarize_columns`` gives them, ordered by group, a page
+    of ``limit`` from ``offset`` (a mean or std beyond the double range is null with
+    a note, ``stat_entry``)."""
     t = Result.__table__
     aggs = []
     for i, f in enumerate(SUMMARY_FIELDS):
@@ -80,6 +92,8 @@ def summarize_in_db(session: Session, job_id: int) -> list[dict]:
         .where(t.c.job_id == job_id)
         .group_by(*[t.c[k] for k in KEY], t.c.gamma)
         .order_by(*[t.c[k] for k in KEY])
+        .limit(limit)
+        .offset(offset)
     )
     out = []
     for row in session.execute(q):

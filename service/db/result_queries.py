@@ -124,8 +124,10 @@ def row_chunks(session: Session, query: Select, size: int) -> Iterator[Sequence]
     yield from rows.partitions(size)
 
 
-def summary_rows(session: Session, job_id: int) -> list[Summary]:
-    """The job's stored summaries in grid order."""
+def summary_rows(
+    session: Session, job_id: int, *, limit: int | None = None, offset: int = 0
+) -> list[Summary]:
+    """The job's stored summaries in grid order, a page of ``limit`` from ``offset``."""
     return list(
         session.scalars(
             select(Summary)
@@ -133,8 +135,16 @@ def summary_rows(session: Session, job_id: int) -> list[Summary]:
             .order_by(
                 Summary.system, Summary.sigma_w, Summary.N, Summary.estimator, Summary.gamma_key
             )
+            .limit(limit)
+            .offset(offset)
         )
     )
+
+
+def count_summaries(session: Session, job_id: int) -> int:
+    """How many stored summary groups the job has."""
+    q = select(func.count()).select_from(Summary).where(Summary.job_id == job_id)
+    return int(session.scalar(q) or 0)
 
 
 def grid_choices(session: Session, job_id: int) -> dict[str, list]:

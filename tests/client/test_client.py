@@ -518,3 +518,16 @@ def test_config_from_environment_and_file(stack, job, tmp_path, monkeypatch):
     cfg.write_text("{not json")
     with pytest.raises(ConfigError, match="cannot read"):
         Client()
+
+
+def test_summary_json_pages_through_every_group(client, job, http):
+    """In pages of 3 groups the client's summary is the API's in one page; the API
+    refuses a page over 10,000 groups, naming limit."""
+    whole = http.get(f"/jobs/{job.id}/summary").json()
+    assert whole["total"] == len(whole["groups"]) == 4 and whole["offset"] == 0
+    paged = client.summary_json(job, page_size=3)
+    assert paged["groups"] == whole["groups"] and paged["total"] == 4
+    second = http.get(f"/jobs/{job.id}/summary", params={"limit": 3, "offset": 3}).json()
+    assert second["groups"] == whole["groups"][3:] and second["limit"] == 3
+    r = http.get(f"/jobs/{job.id}/summary", params={"limit": 10_001})
+    assert r.status_code == 422 and r.json()["field"] == "limit"

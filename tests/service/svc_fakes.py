@@ -40,12 +40,13 @@ def fake_records(spec_dict: dict, unit: dict) -> list[dict]:
     return out
 
 
-def run_job_units(session, job_id: int, worker: str = "w1") -> int:
-    """Start and complete every unit of a job with fake records; returns records written."""
+def run_job_units(session, job_id: int, worker: str = "w1", *, count: int | None = None) -> int:
+    """Start and complete every unit of a job (its first ``count``) with fake records;
+    returns records written."""
     from service.db import jobs, units
 
     n = 0
-    for uid in jobs.unit_ids_of_job(session, job_id, pending_only=False):
+    for uid in jobs.unit_ids_of_job(session, job_id, pending_only=False)[:count]:
         claimed = units.start_unit(session, uid, worker, 60, max_attempts=0)
         if claimed is None:
             continue

@@ -137,7 +137,37 @@ def test_summary_of_running_job_is_partial(client, session, make_account):
     acc = make_account()
     jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
     s = client.get(f"{API}/jobs/{jid}/summary", headers=acc.headers).json()
-    assert s == {"job_id": jid, "partial": True, "groups": []}
+    page = {"total": 0, "limit": 10_000, "offset": 0}
+    assert s == {"job_id": jid, "partial": True, "groups": [], **page}
+
+
+def _pages(client, acc, jid, size: int) -> list[dict]:
+    """Every group of the job's summary, read in pages of ``size``."""
+    out, offset = [], 0
+    while True:
+        params = {"limit": size, "offset": offset}
+        r = client.get(f"{API}/jobs/{jid}/summary", params=params, headers=acc.headers)
+        body = r.json()
+        assert body["limit"] == size and body["offset"] == offset
+        out += body["groups"]
+        offset += size
+        if offset >= body["total"]:
+            return out
+
+
+def test_summary_pages_stored_and_partial(client, session, make_account):
+    """The summary's pages, in grid order, join into the whole summary, for a running
+    job (aggregated in the database) and once it succeeded (stored)."""
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    run_job_units(session, jid, count=1)
+    whole = client.get(f"{API}/jobs/{jid}/summary", headers=acc.headers).json()
+    assert whole["partial"] is True and whole["total"] == len(whole["groups"]) > 5
+    assert _pages(client, acc, jid, 5) == whole["groups"]
+    run_job_units(session, jid)
+    whole = client.get(f"{API}/jobs/{jid}/summary", headers=acc.headers).json()
+    assert whole["partial"] is False and whole["total"] == len(whole["groups"]) == 24
+    assert _pages(client, acc, jid, 7) == whole["groups"]
 
 
 def test_compare(client, session, done_job):

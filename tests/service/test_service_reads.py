@@ -95,13 +95,7 @@ def test_load_columns_without_matrices_and_running_job_report_not_stored(
 ):
     acc = make_account()
     jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
-    from service.db import jobs, units
-    from tests.service.svc_fakes import fake_records
-
-    uid = jobs.unit_ids_of_job(session, jid, pending_only=False)[0]
-    spec, payload = units.start_unit(session, uid, "w", 60, max_attempts=0)
-    units.complete_unit(session, uid, fake_records(spec, payload))
-    session.commit()
+    run_job_units(session, jid, count=1)
     cols = load_columns(session, jid, matrices=False)
     assert "A_hat" not in cols.data and cols.n == len(_records(session, jid)) > 0
     full = Columns.from_records(_records(session, jid), matrices=False)

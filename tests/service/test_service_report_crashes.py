@@ -5,10 +5,10 @@ built by beat once it has ended the process CRASH_LIMIT times."""
 
 from __future__ import annotations
 
+from service.report_crashes import CRASH_LIMIT, CrashRecord
 from tests.reliability.test_report_crashes import _die_building
 from tests.service.svc_helpers import scope_of
 from tests.service.test_service_reads import _two_finished_jobs
-from service.report_crashes import CRASH_LIMIT, CrashRecord
 
 
 def _started(tick, monkeypatch, path):

@@ -105,11 +105,19 @@ def get_results(
 
 
 @router.get("/jobs/{job_id}/summary", response_model=SummaryOut, responses=ERRORS)
-def get_summary(job_id: JobId, session: DB, caller: CurrentCaller):
+def get_summary(
+    job_id: JobId,
+    session: DB,
+    caller: CurrentCaller,
+    limit: Annotated[int, Query(ge=1, le=results.SUMMARY_PAGE_MAX)] = results.SUMMARY_PAGE_MAX,
+    offset: Annotated[int, Query(ge=0, le=10**9)] = 0,
+):
     """Mean, std and count of every numeric field per (system, sigma_w, N, estimator,
-    gamma). Stored when the job succeeds; aggregated in the database from the results
+    gamma), a page of `limit` groups (at most 10,000) from `offset` in grid order, and
+    `total`. Stored when the job succeeds; aggregated in the database from the results
     so far otherwise (`partial: true`)."""
-    return results.summary(session, team_job(session, caller, job_id))
+    job = team_job(session, caller, job_id)
+    return results.summary(session, job, limit=limit, offset=offset)
 
 
 @router.get("/compare", response_model=CompareOut, responses={**ERRORS, **GONE})
