@@ -201,7 +201,8 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
     stack.stop("worker1")  # the job waits, so the page sees it run and finish
     try:
         follow(page, "nav a[href='/jobs/new']")
-        page.select_option("#preset", "system:paper-unstable")  # the form, filled
+        page.select_option("#preset", "system:paper-unstable")
+        follow(page, "#preset-fill")  # the form, filled
         expect(page.locator("#spec")).to_have_value(re.compile("paper-unstable"))
         assert json.loads(page.input_value("#spec"))["systems"] == ["paper-unstable"]
         assert page.input_value("#name") == "paper-unstable sweep"

@@ -25,7 +25,8 @@ KEYS = ("system", "sigma_w", "N", "estimator", "gamma", "rep")
 def submit_from_the_form(page, *, name: str, seed: int) -> int:
     """The spec form filled by a preset, then narrowed in its fields; the job's id."""
     base.follow(page, "header nav a[href='/jobs/new']")
-    page.select_option("#preset", "system:paper-stable")  # opens the filled form
+    page.select_option("#preset", "system:paper-stable")
+    page.click("#preset-fill")  # opens the filled form
     page.wait_for_url(re.compile(r"preset=system%3Apaper-stable"))
     page.fill("#name", name)
     page.fill("#f-sigma_w", "1.0")

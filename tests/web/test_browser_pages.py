@@ -41,6 +41,28 @@ def two_jobs(stack) -> list[int]:
     return ids
 
 
+@pytest.fixture(scope="module")
+def estimate_only(stack) -> int:
+    """A job that differs from two_jobs in N, γ, reps, stages and seed: no bounds stage,
+    so no values of H_A."""
+    spec = {**SPEC, "N": [10, 30], "gamma": [0.05], "reps": 3, "stages": ["estimate"], "seed": 7}
+    with stack.client() as api:
+        jid = submit(api, spec, name="estimate only")["id"]
+        stack.wait_job(api, jid)
+    return jid
+
+
+MEAN_LINES = """() => window.svrobsCompare.chart.data.datasets
+  .filter(d => d.svrobs.role === "mean").map(d => [d.svrobs.job, d.label])"""
+
+
+def open_compare(page, jobs: list[int], metric: str) -> list[list]:
+    """/compare of these jobs and metric: its lines as [job, label]."""
+    page.goto(f"/compare?{'&'.join(f'jobs={j}' for j in jobs)}&metric={metric}")
+    page.wait_for_selector("#compare-card[data-ready=yes]")
+    return page.evaluate(MEAN_LINES)
+
+
 def grid_values(page, field: str) -> list[str]:
     return page.eval_on_selector_all(
         f"#results-grid td[data-field='{field}']", "tds => tds.map(td => td.dataset.value)"
@@ -136,6 +158,34 @@ def test_compare_two_jobs_plots_the_api_compare(browser, stack, two_jobs):
     rows = [r.split("\t") for r in page.inner_text("#spec-diff-table tbody").split("\n")]
     seeds = {f"job {a}": "5", f"job {b}": "6"}
     assert rows == [["seed", *(seeds[h.split(" · ")[0]] for h in heads[1:])]]
+
+
+def test_compare_labels_tell_every_job_apart(browser, stack, two_jobs, estimate_only):
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    a, b = two_jobs  # these two differ only by their seed
+    lines = open_compare(page, [a, b, estimate_only], "rmse_A")
+    assert {job for job, _ in lines} == {a, b, estimate_only}
+    for job, label in lines:
+        assert not [j for j, other in lines if other == label and j != job], label
+    prefix = {job: label.split(" · ")[0] for job, label in lines}
+    assert prefix[a] == "seed=5" and prefix[b] == "seed=6" and prefix[estimate_only] == "N=[10,30]"
+
+
+def test_compare_names_the_jobs_without_values(browser, stack, two_jobs, estimate_only):
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    a = two_jobs[0]
+    lines = open_compare(page, [a, estimate_only], "H_A")
+    assert {job for job, _ in lines} == {a}
+    assert page.inner_text("#compare-missing") == (
+        f"No values of H_A (H_A) in job {estimate_only}: it has no line."
+    )
+    assert open_compare(page, [estimate_only], "H_A") == []
+    missing = page.inner_text("#compare-missing")
+    assert missing == f"No values of H_A (H_A) in job {estimate_only}: nothing to draw."
+    open_compare(page, [a], "H_A")
+    assert page.locator("#compare-missing").count() == 0
 
 
 def test_create_a_schedule_from_a_job(browser, stack, two_jobs):

@@ -12,6 +12,7 @@ import json
 import re
 
 import pytest
+from playwright.sync_api import expect
 
 from tests.integration.stack import submit
 
@@ -122,6 +123,48 @@ def test_results_view_survives_reload_and_exports_what_is_shown(browser, stack, 
     assert page.get_attribute("#results-grid", "data-sort") == "-rmse_A,N"
 
 
+def test_results_bad_sort_key_stays_with_its_error(browser, stack, job_id):
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.goto(f"/results?job={job_id}")
+    sent = []
+    page.on("request", lambda r: sent.append(r.url) if "/results/rows" in r.url else None)
+    for typed, key in (("-nope", "Enter"), ("-zzz", "Tab")):
+        page.fill("#results-sort", typed)
+        page.press("#results-sort", key)
+        expect(page.locator("#results-grid .error-message")).to_contain_text(typed[1:])
+        assert page.input_value("#results-sort") == typed  # what was typed stays
+        assert page.get_attribute("#results-grid", "data-sort") == typed
+        assert re.search(rf"sort={typed}(&|$)", page.url)
+    page.wait_for_load_state("networkidle")
+    assert [re.search(r"sort=([^&]*)", u).group(1) for u in sent] == ["-nope", "-zzz"]
+    page.fill("#results-sort", "-rmse_A")  # a good key again
+    page.press("#results-sort", "Enter")
+    page.wait_for_selector("#results-grid[data-sort='-rmse_A'] table")
+    assert page.locator("#results-grid .error-message").count() == 0
+
+
+def test_job_chart_link_with_a_bad_field_says_why_and_falls_back(browser, stack, job_id):
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    for bad in ("nope", "sigma_w"):  # no field; a grid coordinate
+        page.goto(f"/jobs/{job_id}?metric={bad}&x=sigma_w")
+        status = page.locator("#chart-status")
+        expect(status).to_contain_text("metric: must be a numeric record field of the summaries")
+        wait_charts(page, 1)
+        expect(status).to_contain_text(f"“{bad}”")
+        assert page.input_value("#chart-metric") == "rmse_A"
+        assert page.input_value("#chart-x") == "sigma_w"  # the rest of the view kept
+        fields = page.eval_on_selector_all("#chart-metric option", "os => os.map(o => o.value)")
+        assert bad not in fields and {"rmse_A", "H_A", "eps_A"} <= set(fields)
+        assert "metric=" not in page.url and "x=sigma_w" in page.url
+    page.select_option("#chart-metric", "H_A")
+    wait_charts(page, 2)
+    assert page.evaluate(Y_TITLE).startswith("H_A")
+    assert "must be" not in page.inner_text("#chart-status")
+    assert page.eval_on_selector_all("#chart-metric option", "os => os.length") == len(fields)
+
+
 def back(page, step) -> None:
     """Back or forward, then wait for the page the URL names (a fresh document)."""
     page.evaluate("window.svrobsOld = true")
@@ -219,11 +262,30 @@ def test_job_page_progress_in_cells_and_log_y_as_the_data_arrive(browser, stack)
     assert fresh.is_checked("#chart-logy")
 
 
+# the preset form's submits, counted and held (until svrobsSubmits is set to null)
+COUNT_SUBMITS = """() => {
+  window.svrobsSubmits = 0;
+  document.getElementById("preset-form").addEventListener("submit", (e) => {
+    if (window.svrobsSubmits === null) return;
+    window.svrobsSubmits += 1;
+    e.preventDefault();
+  });
+}"""
+
+
 def test_spec_form_json_in_sync_and_every_error_at_once(browser, stack):
     page = browser.page(stack.base_url)
     sign_in(page, stack.key)
     page.goto("/jobs/new")
-    page.select_option("#preset", "system:paper-stable")
+    page.fill("#name", "mine")
+    page.focus("#preset")
+    page.evaluate(COUNT_SUBMITS)
+    page.keyboard.press("ArrowDown")  # a choice in the list is no submit (WCAG 3.2.2)
+    assert page.input_value("#preset") == "system:paper-stable"
+    assert page.evaluate("window.svrobsSubmits") == 0
+    assert page.input_value("#name") == "mine" and "preset=" not in page.url
+    page.evaluate("window.svrobsSubmits = null")  # the button goes on
+    page.click("#preset-fill")
     page.wait_for_url(re.compile(r"preset=system%3Apaper-stable"))
     assert page.input_value("#name") == "paper-stable sweep"
     assert page.input_value("#tags") == "sweep, paper-stable"

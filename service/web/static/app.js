@@ -5,8 +5,10 @@
  * (the stored summaries), reloaded while the job runs as its cells complete; a
  * response that arrives after a newer request was sent is dropped. The choices are
  * kept in the page's URL (?metric=…&x=…&panel=…), so a reload or a copied link shows
- * the same view and back/forward step through the views. Every plotted chart is kept
- * in window.svrobsCharts so that tests can read what is drawn. */
+ * the same view and back/forward step through the views. A view the server refuses
+ * (a link with ?metric=nope) shows the server's reason and falls back to the default
+ * field, with the list of the fields that have data. Every plotted chart is kept in
+ * window.svrobsCharts so that tests can read what is drawn. */
 (function () {
   "use strict";
 
@@ -246,11 +248,12 @@
     const c = controls(card), q = new URLSearchParams(location.search);
     if (c.preset) c.preset.value = q.get("preset") || "";
     if (c.preset && c.preset.value !== (q.get("preset") || "")) c.preset.value = "";
-    const metric = q.get("metric") || "rmse_A";
+    const metric = q.get("metric") || DEFAULT_METRIC;
     if (![...c.metric.options].some((o) => o.value === metric)) {
-      const o = document.createElement("option");
+      const o = document.createElement("option");  // asked as it is: the server says if it is no field
       o.value = metric;
       o.textContent = metric;
+      o.dataset.unknown = "yes";
       c.metric.appendChild(o);
     }
     c.metric.value = metric;
@@ -268,6 +271,36 @@
   }
 
   let sequence = 0;
+  let haveMetrics = false;  // the field list came with an answer (asked until it has)
+  const DEFAULT_METRIC = "rmse_A";
+
+  /* The reason of a refused request: the JSON body's detail, else the status. */
+  async function reason(r) {
+    let detail = "", field = "";
+    try {
+      const body = await r.json();
+      if (body && typeof body.detail === "string") detail = body.detail;
+      if (body && typeof body.field === "string") field = body.field;
+    } catch (e) { /* not JSON: the status alone */ }
+    return { detail, field };
+  }
+
+  /* A refused field or axis (a link with ?metric=nope): the default one instead, the
+   * URL made to name it, and the field list asked again. */
+  function fallBack(card, why) {
+    const c = controls(card);
+    const asked = why.field === "x" ? c.x.value : c.metric.value;
+    c.metric.querySelectorAll("option[data-unknown]").forEach((o) => o.remove());
+    if (why.field === "x") c.x.value = "N";
+    else c.metric.value = [...c.metric.options].some((o) => o.value === DEFAULT_METRIC) ?
+      DEFAULT_METRIC : (c.metric.options[0] || {}).value;
+    card.dataset.fallback = `Could not show ${why.field} = “${asked}” (HTTP 422: ${why.detail}); ` +
+      `showing ${why.field === "x" ? "N" : c.metric.value} instead.`;
+    const url = viewQuery(card);
+    history.replaceState(history.state, "", url);
+    shownSearch = location.search;
+    load(card, true);
+  }
 
   async function load(card, withMetrics) {
     const c = controls(card);
@@ -277,17 +310,17 @@
     const preset = presetMode(card);
     const query = preset ? `preset=${encodeURIComponent(preset)}` :
       `metric=${encodeURIComponent(c.metric.value)}&x=${encodeURIComponent(c.x.value)}`;
-    const url = `${card.dataset.chartUrl}?${query}` + (withMetrics ? "&metrics=1" : "");
+    const url = `${card.dataset.chartUrl}?${query}` + (withMetrics || !haveMetrics ? "&metrics=1" : "");
     const mine = ++sequence;
     registry.requests += 1;
     status.dataset.state = "loading";
     status.textContent = "Loading the chart data…";
     box.setAttribute("aria-busy", "true");
     card.dataset.state = "loading";
-    let r, data;
+    let r, data, why = { detail: "", field: "" };
     try {
       r = await fetch(url, { credentials: "same-origin", headers: { Accept: "application/json" } });
-      data = r.ok ? await r.json() : null;
+      if (r.ok) data = await r.json(); else why = await reason(r);
     } catch (e) {
       r = { ok: false, status: "network error" };
     }
@@ -300,10 +333,16 @@
     status.dataset.state = "ready";
     if (!r.ok) {
       status.dataset.state = "error";
-      status.textContent = `Could not load the chart data (HTTP ${r.status}).`;
+      status.textContent = `Could not load the chart data (HTTP ${r.status}${why.detail ? ": " + why.detail : ""}).`;
       registry.errors.push(r.status);
+      const again = card.dataset.fallback;  // (the fallback itself refused: no second one)
+      delete card.dataset.fallback;
+      if (r.status === 422 && !preset && ["metric", "x"].includes(why.field) && !again) fallBack(card, why);
       return;
     }
+    const fellBack = card.dataset.fallback || "";
+    delete card.dataset.fallback;
+    if (data.metrics) haveMetrics = true;
     if (data.metrics && data.metrics.length && !data.preset) {
       const shown = data.metrics.includes(data.metric) ? data.metrics : [data.metric].concat(data.metrics);
       setOptions(c.metric, shown, data.metric,
@@ -327,6 +366,7 @@
       status.textContent = `${data.groups} summary groups, ${data.panels.length} panel(s)${partial}.` +
         (describe(data) || (data.positive ? "" : " Some means are ≤ 0: linear y axis."));
     }
+    if (fellBack) status.textContent = `${fellBack} ${status.textContent}`;
     draw(card, data);
     registry.loads += 1;
     card.dataset.loads = String(registry.loads);

@@ -1,10 +1,12 @@
 /* The compare page's chart: the rows of GET /api/v1/compare (embedded in
  * #compare-card's data-compare) as one line per job and remaining group, the mean
- * against the chosen x field with a ± std band. Labels say only what differs: the
- * spec fields that differ between the chosen jobs (data-jobs holds their specs) and
- * the group fields that take more than one value; what every line shares is said
- * once above the chart. Points with a null mean are left out. The bands and log-y
- * choices are kept in the URL beside the form's own fields. */
+ * against the chosen x field with a ± std band. Labels say only what differs: for
+ * each job, the spec fields that tell it apart from the other chosen jobs
+ * (data-jobs holds their specs; the job id when no field does), and the group fields
+ * that take more than one value; what every line shares is said once above the chart.
+ * Points with a null mean are left out, and a job with no value of the metric is
+ * named above the chart. The bands and log-y choices are kept in the URL beside the
+ * form's own fields. */
 (function () {
   "use strict";
   const kit = window.svrobsChartKit;
@@ -31,16 +33,43 @@
   const keys = [...new Set(jobs.flatMap((j) => Object.keys(flat[j.id])))];
   const differs = keys.filter((k) => new Set(jobs.map((j) => flat[j.id][k])).size > 1);
 
-  function jobLabel(id) {
-    if (data.jobs.length < 2) return "";
-    if (!differs.length || !flat[id]) return `job ${id}`;
-    const parts = differs.slice(0, 3).map((k) => {
-      const v = flat[id][k];
-      const text = v === undefined ? "unset" : v.length > 24 ? v.slice(0, 22) + "…" : v;
-      return `${k}=${text.replace(/^"|"$/g, "")}`;
-    });
-    return parts.join(", ") + (differs.length > 3 ? ", …" : "");
+  function shown(id, k) {
+    const v = flat[id][k];
+    const text = v === undefined ? "unset" : v.length > 24 ? v.slice(0, 22) + "…" : v;
+    return `${k}=${text.replace(/^"|"$/g, "")}`;
   }
+
+  /* The fields that tell a job apart from each other job: greedily, the field that
+   * separates it from most of the jobs not yet told apart (at most 3). */
+  function telling(id) {
+    let others = jobs.map((j) => j.id).filter((o) => o !== id && flat[o]);
+    const keys = [];
+    while (others.length && keys.length < 3) {
+      let best = null, split = 0;
+      for (const k of differs) {
+        if (keys.includes(k)) continue;
+        const n = others.filter((o) => flat[o][k] !== flat[id][k]).length;
+        if (n > split) { best = k; split = n; }
+      }
+      if (best === null) break;
+      keys.push(best);
+      others = others.filter((o) => flat[o][best] === flat[id][best]);
+    }
+    return keys;
+  }
+
+  const jobLabels = new Map();
+  if (data.jobs.length > 1) {
+    data.jobs.forEach((id) => {
+      const keys = flat[id] ? telling(id) : [];
+      jobLabels.set(id, keys.length ? keys.map((k) => shown(id, k)).join(", ") : `job ${id}`);
+    });
+    const count = new Map();
+    jobLabels.forEach((l) => count.set(l, (count.get(l) || 0) + 1));
+    jobLabels.forEach((l, id) => { if (count.get(l) > 1) jobLabels.set(id, `${l} (job ${id})`); });
+  }
+
+  function jobLabel(id) { return jobLabels.get(id) || ""; }
 
   const varies = rest.filter((b) => new Set(data.rows.map((r) => JSON.stringify(r[b]))).size > 1);
   const same = rest.filter((b) => !varies.includes(b) && data.rows.length);
@@ -127,7 +156,22 @@
   function note() {
     const shared = same.map((b) => `${kit.label(glossary, b)}=${show(data.rows[0][b])}`);
     if (data.jobs.length > 1 && !differs.length) shared.push("the same spec in every job");
-    document.getElementById("compare-legend-note").textContent = shared.length ? `Every line: ${shared.join(", ")}.` : "";
+    const box = document.getElementById("compare-legend-note");
+    box.textContent = shared.length ? `Every line: ${shared.join(", ")}.` : "";
+    // the jobs that draw no line: no value of the metric (in the groups read)
+    const drawn = new Set([...series.values()].map((s) => s.job));
+    const none = data.jobs.filter((id) => !drawn.has(id));
+    if (!none.length) return;
+    const metric = `${kit.label(glossary, data.metric)} (${data.metric})`;
+    const names = none.map((id) => `job ${id}`).join(", ");
+    const read = data.total > data.rows.length ? ` in the first ${data.rows.length} of ${data.total} groups` : "";
+    const p = document.createElement("p");
+    p.className = "chart-note";
+    p.id = "compare-missing";
+    p.textContent = none.length === data.jobs.length ?
+      `No values of ${metric}${read} in ${none.length > 1 ? "any of " : ""}${names}: nothing to draw.` :
+      `No values of ${metric}${read} in ${names}: ${none.length > 1 ? "they have" : "it has"} no line.`;
+    box.after(p);
   }
 
   function specDiff() {

@@ -3,7 +3,11 @@
  * a bookmark or a copied link opens the same view and back/forward step through the
  * views. The CSV and JSONL buttons export the view shown: the API's export with the
  * same filters, ranges and sort (every page of it). Shift+click on a column head
- * adds it as the next sort key; the column chooser hides columns (?hide=a,b). */
+ * adds it as the next sort key; the column chooser hides columns (?hide=a,b). A change
+ * of a filter and a submit (Enter, Apply) ask for the grid once: the form's query is
+ * sent only when it differs from the one the grid shows (a typed sort key is both a
+ * change and, with Enter, a submit). A refused view (a bad sort key) shows its error in
+ * the grid, and the boxes keep what was typed. */
 (function () {
   "use strict";
 
@@ -54,8 +58,25 @@
       a.href = `/api/v1/jobs/${job}/results?${exportQuery(q.toString(), a.dataset.format)}`;
     });
     const sort = document.getElementById("results-sort");
-    if (sort) sort.value = g.dataset.sort || "";
+    if (sort && !g.dataset.error) sort.value = g.dataset.sort || "";
     applyColumns();
+    shown = formQuery();
+  }
+
+  /* The query the filters form would send, and the one the grid shows. */
+  function formQuery() {
+    const form = document.getElementById("results-filters");
+    return form ? new URLSearchParams(new FormData(form)).toString() : "";
+  }
+  let shown = null;
+
+  function apply(e) {
+    const form = document.getElementById("results-filters");
+    if (!window.htmx || e.target.closest("form") !== form) return;  // (no htmx: the plain GET)
+    if (e.type === "submit") e.preventDefault();
+    if (formQuery() === shown) return;
+    shown = formQuery();
+    window.htmx.trigger(form, "svrobs-apply");
   }
 
   /* Shift+click on a column head: the field becomes the next sort key (or, if it is one
@@ -78,6 +99,8 @@
     const g = grid();
     if (!g) return;
     document.addEventListener("click", addSortKey, true);
+    const form = document.getElementById("results-filters");
+    if (form) { form.addEventListener("change", apply); form.addEventListener("submit", apply); }
     document.body.addEventListener("htmx:afterSwap", (e) => {
       if (e.detail.target.id === "results-grid" || (e.detail.elt && e.detail.elt.id === "results-grid")) sync(true);
     });
