@@ -11,7 +11,8 @@ worker. :class:`Transport` (what ``service.broker.make_celery`` selects for a
 - a consumer claims a message by renaming it into the processed folder (one
   rename on one file system: exactly one consumer wins), reads it there, and a
   message it cannot decode into a kombu message is moved to the ``bad`` folder
-  and logged, and the next message is taken: nothing on disk stops a worker;
+  and logged, and the next message is taken: nothing on disk stops a worker (a
+  message the worker drops, ``worker.message_guard``, is written there too);
 - a new exchange table (the ``control`` folder) is written whole and linked into
   place; an unreadable one is rewritten with the binding being made;
 - waiting for a message ends at the next poll once the worker is stopping: Celery's
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import socket
 import uuid
 from queue import Empty
@@ -40,12 +42,34 @@ from kombu.utils.objects import cached_property
 log = logging.getLogger(__name__)
 
 TRANSPORT = "service.file_broker:Transport"  # the name Celery's broker_transport takes
+_QUEUE_NAME = re.compile(r"[A-Za-z0-9_-]{1,100}")
 
 
 def _queue_of(name: str) -> str:
     """The queue a message file belongs to, the way kombu names them:
     ``<ms>_<uuid>.<queue>.msg``. Temporary files start with a dot and match no queue."""
     return name.partition(".")[2]
+
+
+def _write_whole(folder: str, queue: str, payload) -> str:
+    """Write ``payload`` as a message file of ``queue`` in ``folder``: to a hidden
+    temporary file, renamed into place. Returns the file's path."""
+    # zero-padded nanoseconds: names sort in publishing order (kombu: milliseconds,
+    # unpadded, so messages of one millisecond and across a digit count were shuffled)
+    name = f"{monotonic_ns():020d}_{uuid.uuid4()}.{queue}.msg"
+    final = os.path.join(folder, name)
+    tmp = os.path.join(folder, f".{name}.tmp")
+    try:
+        with open(tmp, "xb") as fh:
+            fh.write(str_to_bytes(dumps(payload)))
+        os.rename(tmp, final)
+    except OSError:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    return final
 
 
 class Channel(filesystem.Channel):
@@ -58,21 +82,19 @@ class Channel(filesystem.Channel):
 
     # ------------------------------------------------------------------ write
     def _put(self, queue, payload, **kwargs):
-        # zero-padded nanoseconds: names sort in publishing order (kombu: milliseconds,
-        # unpadded, so messages of one millisecond and across a digit count were shuffled)
-        name = f"{monotonic_ns():020d}_{uuid.uuid4()}.{queue}.msg"
-        final = os.path.join(self.data_folder_out, name)
-        tmp = os.path.join(self.data_folder_out, f".{name}.tmp")
         try:
-            with open(tmp, "xb") as fh:
-                fh.write(str_to_bytes(dumps(payload)))
-            os.rename(tmp, final)
+            _write_whole(self.data_folder_out, queue, payload)
         except OSError as exc:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise ChannelError(f"Cannot add file {final!r} to directory") from exc
+            raise ChannelError(f"Cannot add file to {self.data_folder_out!r}: {exc}") from exc
+
+    def keep_bad_message(self, message) -> str:
+        """Write a delivered message the worker dropped (``worker.message_guard``) to the
+        bad folder, as it was queued; returns its path (OSError if it cannot)."""
+        os.makedirs(self.bad_folder, exist_ok=True)
+        queue = (message.delivery_info or {}).get("routing_key")
+        if not (isinstance(queue, str) and _QUEUE_NAME.fullmatch(queue)):
+            queue = "unknown"  # the name becomes part of a path
+        return _write_whole(self.bad_folder, queue, message.serializable())
 
     # ------------------------------------------------------------------ read
     def _get(self, queue):

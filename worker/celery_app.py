@@ -1,7 +1,8 @@
 """The Celery app every worker and beat process loads (``celery -A worker.celery_app``).
 
 Celery itself is configured in one place, ``service.broker.make_celery``; this
-module only adds the task modules, the beat schedule (one ``svrobs.tick`` every
+module only adds the task modules, the consumer that drops task messages the worker
+cannot run (:mod:`worker.message_guard`), the beat schedule (one ``svrobs.tick`` every
 ``SVROBS_TICK_SECONDS``; the integration tests use 1-2) and the process's logging
 (:func:`service.logging_config.configure_logging`, instead of Celery's own).
 """
@@ -14,6 +15,7 @@ from service.broker import make_celery
 from service.config import get_settings
 from service.logging_config import configure_logging
 from worker import watchdog
+from worker.message_guard import CONSUMER
 
 settings = get_settings()
 
@@ -25,6 +27,7 @@ def _setup_logging(**_kwargs) -> None:
 
 
 celery_app = make_celery(settings)
+celery_app.conf.worker_consumer = CONSUMER
 if watchdog.enabled(settings):
     celery_app.steps["consumer"].add(watchdog.ConsumerWatchdog)
 celery_app.conf.include = list(celery_app.conf.include or ()) + ["worker.tasks"]

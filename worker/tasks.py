@@ -14,7 +14,8 @@
    the job finishes when the DB says every unit is done. A dataset job's
    validation is stored after its first unit (``svrobs_lab.units.after_unit``).
 
-A redelivered or duplicated message is therefore harmless. Only transient
+A redelivered or duplicated message is therefore harmless; one whose argument is
+not a unit id (``is_unit_id``) is logged and dropped. Only transient
 errors (the DB or the broker unreachable: ``is_transient``) retry the task, with
 exponential backoff (acks_late: the message is acknowledged only after the task
 returned, and rejected - so redelivered - if the worker process is lost; a unit
@@ -44,6 +45,7 @@ from celery.worker.request import Request
 from service.config import get_settings
 from service.db import units
 from service.db.session import dispose_all
+from svrobs_lab.auth import MAX_ID
 from svrobs_lab.units import after_unit, compute_unit
 from worker.tick import run_tick, session_scope
 
@@ -331,16 +333,31 @@ def _note_lost(unit_id: int, why: str) -> None:
     Request=UnitRequest,
 )
 def run_unit(self, unit_id: int):
+    if not is_unit_id(unit_id):
+        log.error(
+            "run_unit message %s dropped: %s is not a unit id (an integer from 1 to %d)",
+            self.request.id,
+            repr(unit_id)[:100],
+            MAX_ID,
+        )
+        return {"unit": None, "status": "invalid"}
     try:
-        return execute_unit(int(unit_id), worker_name=self.request.hostname)
+        return execute_unit(unit_id, worker_name=self.request.hostname)
     except Retry:
         raise
-    except Exception as exc:  # only transient errors reach here (execute_unit)
+    except Exception as exc:
+        if not is_transient(exc):
+            raise  # claiming the unit failed for good: Celery logs it, the message is acked
         log.warning(
             "unit %s: transient error, retry %d: %s", unit_id, self.request.retries + 1, exc
         )
         _release(unit_id, f"transient: {type(exc).__name__}: {exc}")
         raise self.retry(exc=exc, countdown=_backoff(self.request.retries)) from exc
+
+
+def is_unit_id(value: object) -> bool:
+    """An id the work_units table can hold (a 32-bit column; bool is not an id)."""
+    return type(value) is int and 1 <= value <= MAX_ID
 
 
 def _release(unit_id: int, error: str) -> None:
