@@ -144,6 +144,30 @@ def test_results_bad_sort_key_stays_with_its_error(browser, stack, job_id):
     assert page.locator("#results-grid .error-message").count() == 0
 
 
+def test_an_edit_made_while_the_grid_is_on_its_way_is_applied(browser, stack, job_id):
+    """A bound typed while the grid of the range's field is still on its way is sent by
+    Apply once that grid lands: the grid in place is compared with what it was made
+    from, not with the boxes."""
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.goto(f"/results?job={job_id}")
+    held = []
+    page.route(re.compile(r"/results/rows\?"), lambda route: held.append(route))
+    page.select_option(".range-field", "rmse_A")  # its grid is held on the way
+    for _ in range(400):  # until the route has the request
+        if held:
+            break
+        page.wait_for_timeout(25)
+    page.fill(".range-max", "0.05")  # typed meanwhile (no change event yet)
+    held[0].continue_()
+    page.unroute(re.compile(r"/results/rows\?"))
+    page.wait_for_selector("#results-grid[data-query*='rf=rmse_A']")
+    page.click("#results-filters button[type=submit]")
+    page.wait_for_selector("#results-grid[data-query*='rmax=0.05']")
+    values = [float(v) for v in grid_column(page, "rmse_A")]
+    assert values and max(values) < 0.05
+
+
 def test_job_chart_link_with_a_bad_field_says_why_and_falls_back(browser, stack, job_id):
     page = browser.page(stack.base_url)
     sign_in(page, stack.key)

@@ -60,10 +60,11 @@
     const sort = document.getElementById("results-sort");
     if (sort && !g.dataset.error) sort.value = g.dataset.sort || "";
     applyColumns();
-    shown = formQuery();
+    // the query the grid was made from (an edit made while it was on its way is not in it)
+    shown = new URLSearchParams(g.dataset.query || "").toString();
   }
 
-  /* The query the filters form would send, and the one the grid shows. */
+  /* The query the filters form would send; ``shown``: the last one sent or shown. */
   function formQuery() {
     const form = document.getElementById("results-filters");
     return form ? new URLSearchParams(new FormData(form)).toString() : "";
