@@ -201,11 +201,14 @@ def test_an_npz_array_that_cannot_be_read_is_a_bad_file_naming_it(monkeypatch, e
         parse(data)
 
 
-def test_json_lists_are_counted_before_the_file_is_parsed():
+def test_json_lists_are_counted_before_the_file_is_parsed(monkeypatch):
     """At MAX_JSON_LISTS lists (rows and rollouts) a JSON file is read, one more is
-    refused before json.loads builds any of them (docs/datasets.md#limits)."""
-    from svrobs_lab.datasets.json_format import MAX_JSON_LISTS
+    refused before json.loads builds any of them (docs/datasets.md#limits; the limit
+    lowered here to 1,000, the bad-file catalog has a file past the real one)."""
+    from svrobs_lab.datasets import json_format
 
+    monkeypatch.setattr(json_format, "MAX_JSON_LISTS", 1_000)
+    MAX_JSON_LISTS = json_format.MAX_JSON_LISTS
     rows = MAX_JSON_LISTS - 2  # the X list and its one rollout
     body = ('{"X": [[' + ",".join(["[1]"] * rows) + "]]}").encode()
     parsed = parse_dataset(io.BytesIO(body), filename="d.json", max_bytes=len(body))
