@@ -30,13 +30,24 @@ def web(build_client):
     return build_client(SECRET_KEY="query-errors-secret-0123456789")[0]
 
 
+def _signed_in_jobs(web, session, make_account, seeds):
+    acc = make_account()
+    ids = [stored_job(web, session, acc, {**TINY_SPEC, "seed": s}) for s in seeds]
+    sign_in(web, acc.key)
+    return acc, ids
+
+
 @pytest.fixture
 def done(web, session, make_account):
     """A signed-in team with two jobs whose cells are stored."""
-    acc = make_account()
-    ids = [stored_job(web, session, acc, {**TINY_SPEC, "seed": s}) for s in (5, 6)]
-    sign_in(web, acc.key)
-    return acc, ids
+    return _signed_in_jobs(web, session, make_account, (5, 6))
+
+
+@pytest.fixture
+def one(web, session, make_account):
+    """A signed-in team with one job whose cells are stored."""
+    acc, (a,) = _signed_in_jobs(web, session, make_account, (5,))
+    return acc, a
 
 
 def _error_page(r, status: int, *texts: str) -> str:
@@ -86,20 +97,20 @@ def test_the_runs_filter_as_the_form_sends_it(web, done):
         ("/jobs/{a}/share?created=abc", ["created: "]),
     ],
 )
-def test_a_bad_query_is_the_error_page_naming_the_parameter(web, done, path, texts):
-    _, (a, _b) = done
+def test_a_bad_query_is_the_error_page_naming_the_parameter(web, one, path, texts):
+    _, a = one
     _error_page(web.get(path.format(a=a)), 422, *texts)
 
 
 @pytest.mark.parametrize("path", ["/jobs/abc", "/jobs/{a}/zzz", "/nope", "/results/cells"])
-def test_a_path_with_no_page_is_the_404_page(web, done, path):
-    _, (a, _b) = done
+def test_a_path_with_no_page_is_the_404_page(web, one, path):
+    _, a = one
     path = path.format(a=a)
     _error_page(web.get(path), 404, f"There is no page at {path}")
 
 
-def test_the_api_keeps_its_json(web, done):
-    acc, (a, _b) = done
+def test_the_api_keeps_its_json(web, one):
+    acc, a = one
     r = web.get(f"{API}/nope", headers=acc.headers)
     assert r.status_code == 404 and r.json() == {"detail": "Not Found", "field": None}
     r = web.get(f"{API}/jobs/{a}/results", params={"N": ""}, headers=acc.headers)
@@ -125,8 +136,8 @@ def test_compare_takes_the_apis_comma_form(web, done):
 
 
 @pytest.mark.parametrize("coordinate", ["sigma_w", "N", "gamma", "rep"])
-def test_compare_refuses_a_grid_coordinate_as_the_metric(web, done, coordinate):
-    _, (a, _b) = done
+def test_compare_refuses_a_grid_coordinate_as_the_metric(web, one, coordinate):
+    _, a = one
     r = web.get(f"/compare?jobs={a}&metric={coordinate}")
     _error_page(r, 422, f"metric: {coordinate} is a grid coordinate, not a metric")
 
