@@ -108,16 +108,21 @@ def list_datasets(
     return list(rows), total
 
 
+def array_values(n, m, rollouts, samples):
+    """How many numbers a dataset's arrays hold: every X_i of T_i + 1 states and every
+    U_i of T_i inputs (``samples`` = the sum of the T_i). Numbers or columns alike."""
+    return samples * (n + m) + rollouts * n
+
+
 def stored_bytes(n: int, m: int, rollouts: int, samples: int, size_bytes: int) -> int:
-    """What a dataset holds in the store: its upload's bytes and its float64 arrays
-    (every X_i of T_i + 1 states, every U_i of T_i inputs)."""
-    return size_bytes + DTYPE.itemsize * (samples * (n + m) + rollouts * n)
+    """What a dataset holds in the store: its upload's bytes and its float64 arrays."""
+    return size_bytes + DTYPE.itemsize * array_values(n, m, rollouts, samples)
 
 
 def team_usage(session: Session, team_id: int) -> tuple[int, int]:
     """(how many datasets the team has, the bytes they hold: :func:`stored_bytes`)."""
     d = Dataset
-    held = d.size_bytes + DTYPE.itemsize * (d.samples * (d.n + d.m) + d.rollouts * d.n)
+    held = d.size_bytes + DTYPE.itemsize * array_values(d.n, d.m, d.rollouts, d.samples)
     q = select(func.count(), func.coalesce(func.sum(held), 0)).where(d.team_id == team_id)
     count, total = session.execute(q).one()
     return int(count), int(total)
@@ -236,18 +241,30 @@ def load_arrays(
     return X, U, dataset_meta(row)
 
 
-def _byte_range(session: Session, dataset_id: int, start: int, stop: int) -> bytes:
-    """Bytes ``start:stop`` of a dataset's stored arrays, reading only the chunks they
-    fall in."""
+def _byte_ranges(session: Session, dataset_id: int, ranges: list[tuple[int, int]]) -> list[bytes]:
+    """Bytes ``start:stop`` of a dataset's stored arrays for each range, reading each
+    chunk they fall in once, in one query."""
+    spans = [(a // CHUNK_BYTES, max(a, b - 1) // CHUNK_BYTES) for a, b in ranges if b > a]
+    seqs = sorted({s for first, last in spans for s in range(first, last + 1)})
     c = CHUNKS.c
-    first, last = start // CHUNK_BYTES, max(start, stop - 1) // CHUNK_BYTES
-    rows = session.execute(
-        select(c.seq, c.data)
-        .where(c.dataset_id == dataset_id, c.part == "arrays", c.seq.between(first, last))
-        .order_by(c.seq)
-    ).all()
-    data = b"".join(bytes(d) for _, d in rows)
-    return data[start - first * CHUNK_BYTES : stop - first * CHUNK_BYTES]
+    chunks = dict(
+        session.execute(
+            select(c.seq, c.data).where(
+                c.dataset_id == dataset_id, c.part == "arrays", c.seq.in_(seqs)
+            )
+        ).all()
+        if seqs
+        else []
+    )
+    out = []
+    for a, b in ranges:
+        if b <= a:
+            out.append(b"")
+            continue
+        first, last = a // CHUNK_BYTES, (b - 1) // CHUNK_BYTES
+        data = b"".join(bytes(chunks[s]) for s in range(first, last + 1))
+        out.append(data[a - first * CHUNK_BYTES : b - first * CHUNK_BYTES])
+    return out
 
 
 def load_rollouts(
@@ -269,13 +286,12 @@ def load_rollouts(
     x_starts = np.concatenate([[0], np.cumsum((lengths[:k] + 1) * n)])[:k] * size
     u_part = int((lengths + 1).sum()) * n * size
     u_starts = u_part + np.concatenate([[0], np.cumsum(lengths[:k] * m)])[:k] * size
-    steps = lengths[:k] if max_steps is None else np.minimum(lengths[:k], max_steps)
-    X, U = [], []
-    for x0, u0, t in zip(x_starts.tolist(), u_starts.tolist(), steps.tolist()):
-        x = _byte_range(session, dataset_id, x0, x0 + (t + 1) * n * size)
-        u = _byte_range(session, dataset_id, u0, u0 + t * m * size) if m else b""
-        X.append(np.frombuffer(x, dtype=DTYPE).reshape(t + 1, n))
-        U.append(np.frombuffer(u, dtype=DTYPE).reshape(t, m) if m else np.zeros((t, 0)))
+    steps = (lengths[:k] if max_steps is None else np.minimum(lengths[:k], max_steps)).tolist()
+    x_ranges = [(a, a + (t + 1) * n * size) for a, t in zip(x_starts.tolist(), steps)]
+    u_ranges = [(a, a + t * m * size) for a, t in zip(u_starts.tolist(), steps)]
+    data = _byte_ranges(session, dataset_id, x_ranges + u_ranges)
+    X = [np.frombuffer(x, dtype=DTYPE).reshape(t + 1, n) for x, t in zip(data[:k], steps)]
+    U = [np.frombuffer(u, dtype=DTYPE).reshape(t, m) for u, t in zip(data[k:], steps)]
     return X, U
 
 

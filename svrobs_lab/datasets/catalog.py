@@ -200,9 +200,8 @@ def check_team_quota(
 def upload_excitation(parsed: ParsedDataset) -> dict | None:
     """The excitation check of all the parsed rollouts as stored with the dataset, or
     None above EXCITATION_MAX_VALUES numbers."""
-    if sum(parsed.lengths) * (parsed.n + parsed.m) + parsed.rollouts * parsed.n > (
-        EXCITATION_MAX_VALUES
-    ):
+    values = store.array_values(parsed.n, parsed.m, parsed.rollouts, sum(parsed.lengths))
+    if values > EXCITATION_MAX_VALUES:
         return None
     data = MeasuredData(
         X=parsed.X,

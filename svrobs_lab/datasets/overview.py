@@ -32,7 +32,7 @@ def dataset_overview(session: Session, caller: Caller, dataset_id: int) -> dict:
     dataset of more than EXCITATION_MAX_VALUES numbers)."""
     row = team_dataset(session, caller, dataset_id)
     jobs, total = store.jobs_using(session, row.id)
-    values = row.samples * (row.n + row.m) + row.rollouts * row.n
+    values = store.array_values(row.n, row.m, row.rollouts, row.samples)
     ex, note = row.excitation, None
     if ex is None and values <= EXCITATION_MAX_VALUES:
         ex = excitation(measured_data(session, row.id)).to_dict()
