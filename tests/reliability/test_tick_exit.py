@@ -11,6 +11,18 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 
+
+def run_script(script: str, arg, *, timeout: float) -> subprocess.CompletedProcess:
+    """``script`` in a new interpreter of this checkout, with ``arg`` as argv[1]."""
+    return subprocess.run(
+        [sys.executable, "-c", script, str(arg)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
 DRAWING = """
 import sys, time
 import worker.tick as tick
@@ -44,13 +56,7 @@ print("exiting")
 
 def test_exit_waits_for_the_report_build_in_flight(tmp_path):
     done = tmp_path / "built"
-    p = subprocess.run(
-        [sys.executable, "-c", SCRIPT, str(done)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    p = run_script(SCRIPT, done, timeout=120)
     assert p.returncode == 0, p.stderr[-2000:]
     assert "terminate called" not in p.stderr
     assert done.read_text() == "built"  # the build finished before the process ended
@@ -72,13 +78,8 @@ def test_exit_abandons_a_build_longer_than_the_wait(tmp_path):
     """A build still running when the wait at exit ends is abandoned: the process
     ends at once with status 0 (nothing of the build is stored), never aborted."""
     done = tmp_path / "built"
-    p = subprocess.run(
-        [sys.executable, "-c", ABANDON, str(done)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,  # far below the build's 120 s: the process did not wait for it
-    )
+    # far below the build's 120 s: the process did not wait for it
+    p = run_script(ABANDON, done, timeout=60)
     assert p.returncode == 0, p.stderr[-2000:]
     assert "terminate called" not in p.stderr
     assert "abandoned at exit" in p.stderr
@@ -112,13 +113,7 @@ def test_a_build_abandoned_at_exit_is_not_counted_as_a_crash(tmp_path):
     ends the process counts against its job (service.report_crashes)."""
     from service.report_crashes import CrashRecord
 
-    p = subprocess.run(
-        [sys.executable, "-c", ABANDON_MARKED, str(tmp_path / "built")],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    p = run_script(ABANDON_MARKED, tmp_path / "built", timeout=60)
     assert p.returncode == 0 and "abandoned at exit" in p.stderr, p.stderr[-2000:]
     assert CrashRecord(tmp_path / "record.json").recover() is None
 
