@@ -11,8 +11,8 @@ embeds its TrueType fonts."""
 
 from __future__ import annotations
 
-import functools
 import io
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING
@@ -46,7 +46,7 @@ def figure_bytes(fig: Figure, fmt: str = "png", dpi: int = 200) -> bytes:
             # one draw at the file's dpi (savefig draws twice for a layout engine:
             # a dry pass, then the pixels); the layout engine runs in the draw
             with _figure_dpi(fig, dpi):
-                # the renderer the draw reuses, with the process's one mathtext parser
+                # the renderer the draw reuses, with this thread's one mathtext parser
                 renderer = canvas.get_renderer()  # type: ignore[no-untyped-call]
                 renderer.mathtext_parser = _mathtext_parser()
                 canvas.draw()  # type: ignore[no-untyped-call]
@@ -57,15 +57,23 @@ def figure_bytes(fig: Figure, fmt: str = "png", dpi: int = 200) -> bytes:
     return buf.getvalue()
 
 
-@functools.cache
-def _mathtext_parser() -> MathTextParser[VectorParse]:
-    """The mathtext parser of every PNG drawn in this process. Its parse cache is
-    keyed by the parser, so a renderer's own parser (one per figure) parses each
-    tick label again; with one parser they are parsed once per process (the same
-    pixels, docs/performance.md#figure-files)."""
-    from matplotlib.mathtext import MathTextParser
+_parsers = threading.local()
 
-    return MathTextParser("path")  # as RendererAgg makes its own
+
+def _mathtext_parser() -> MathTextParser[VectorParse]:
+    """The mathtext parser of every PNG drawn in this thread. Its parse cache is keyed
+    by the parser, so a renderer's own parser (one per figure) parses each tick label
+    again; with one parser they are parsed once per thread (the same pixels,
+    docs/performance.md#figure-files). One per thread, not per process: a parse holds
+    the FreeType fonts of the thread that made it (matplotlib keeps fonts per thread),
+    and a font drawn from two threads at once fails ("FT_Load_Glyph ... invalid
+    outline", seen while `svrobs reproduce` drew figures in its background thread)."""
+    parser = getattr(_parsers, "parser", None)
+    if parser is None:
+        from matplotlib.mathtext import MathTextParser
+
+        parser = _parsers.parser = MathTextParser("path")  # as RendererAgg makes its own
+    return parser
 
 
 @contextmanager

@@ -77,7 +77,7 @@ def _log_figure():
     return fig
 
 
-def test_mathtext_is_parsed_once_per_process_and_drawn_as_matplotlib_draws_it():
+def test_mathtext_is_parsed_once_per_thread_and_drawn_as_matplotlib_draws_it():
     from matplotlib.mathtext import MathTextParser
 
     figure_bytes(_log_figure(), "png")  # its labels parsed once
@@ -93,6 +93,21 @@ def test_mathtext_is_parsed_once_per_process_and_drawn_as_matplotlib_draws_it():
     assert np.array_equal(
         np.asarray(ours), np.frombuffer(buf.getvalue(), np.uint8).reshape(h, w, 4)
     )
+
+
+def test_each_thread_draws_with_its_own_mathtext_parser():
+    """A parse holds the fonts of the thread that made it (matplotlib keeps FreeType
+    fonts per thread): another thread gets its own parser, this one keeps its own."""
+    import threading
+
+    from svrobs_core.report import figure_files
+
+    here = figure_files._mathtext_parser()
+    there = []
+    t = threading.Thread(target=lambda: there.append(figure_files._mathtext_parser()))
+    t.start()
+    t.join()
+    assert there and there[0] is not here and figure_files._mathtext_parser() is here
 
 
 def test_an_unpickled_figure_at_an_inexact_width_gives_the_same_png():
