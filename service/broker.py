@@ -17,6 +17,7 @@ from celery import Celery
 
 from service.config import Settings
 from service.file_broker import TRANSPORT as FILE_TRANSPORT
+from service.redis_broker import TRANSPORT as REDIS_TRANSPORT
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +97,8 @@ def make_celery(settings: Settings, name: str = "svrobs") -> Celery:
         # broadcast (remote control, mingle, gossip) is not reliable across processes on files
         conf["worker_enable_remote_control"] = False
     elif settings.BROKER_URL.startswith(("redis:", "rediss:")):
+        # kombu's Redis transport, which sets aside what is not a message (service.redis_broker)
+        conf["broker_transport"] = REDIS_TRANSPORT
         conf["broker_transport_options"] = {
             # a unit not acked within this time is redelivered: keep it above the longest task
             "visibility_timeout": limit + 600,

@@ -35,9 +35,11 @@ from time import monotonic, monotonic_ns, sleep
 from celery.worker import state
 from kombu.exceptions import ChannelError
 from kombu.transport import filesystem
-from kombu.utils.encoding import bytes_to_str, str_to_bytes
-from kombu.utils.json import dumps, loads
+from kombu.utils.encoding import str_to_bytes
+from kombu.utils.json import dumps
 from kombu.utils.objects import cached_property
+
+from service.broker_messages import decode_message
 
 log = logging.getLogger(__name__)
 
@@ -124,13 +126,9 @@ class Channel(filesystem.Channel):
 
     def _decode(self, path: str, data: bytes):
         """The message in ``data``, or None after moving the file to the bad folder."""
-        try:
-            payload = loads(bytes_to_str(data))
-            self.Message(payload, channel=self)  # the envelope kombu's consumer needs
-        except Exception as exc:  # noqa: BLE001 - any undecodable file is set aside
-            reason = f"{type(exc).__name__}: {str(exc)[:200]}"
+        payload, reason = decode_message(self, data)
+        if reason is not None:
             self._set_aside(path, reason, len(data))
-            return None
         return payload
 
     def _set_aside(self, path: str, reason: str, size: int) -> None:

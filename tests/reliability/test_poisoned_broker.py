@@ -21,6 +21,7 @@ import time
 
 import pytest
 
+from service.redis_broker import BAD_LIST as REDIS_BAD_LIST
 from tests.integration.stack import (
     PG_URL,
     REDIS_URL,
@@ -132,6 +133,9 @@ MALFORMED = {
 }
 # run_unit's own argument: not a unit id (one line each, never retried)
 BAD_UNIT_IDS = [["abc"], [None], [2**70], [True]]
+# Raw items on the Redis list that are not kombu messages at all (redis-cli LPUSH):
+# each one is one ERROR line and is kept on the list REDIS_BAD_LIST.
+RAW_ITEMS = [b"not json", b"\xff\xfe\x00", b"5", b'{"headers": {}}', b'{"properties": 1}']
 
 PUBLISH = """
 import json, sys
@@ -180,6 +184,11 @@ def test_malformed_task_messages_are_dropped(kind, tmp_path, request):
     st.start_api_and_worker()
     worker = st.children["worker1"]
 
+    if kind == "pg":
+        import redis
+
+        r = redis.Redis.from_url(st.redis_url)
+        r.lpush("svrobs", *RAW_ITEMS)
     _publish(st, list(MALFORMED.values()), BAD_UNIT_IDS)
     with st.client() as c:
         job = submit(c, SMALL)
@@ -212,3 +221,9 @@ def test_malformed_task_messages_are_dropped(kind, tmp_path, request):
         )
         queue = st.root / "broker" / "queue"
         assert not [p for p in queue.iterdir() if p.name.endswith(".msg")]
+    else:
+        raw = [ln for ln in lines if " ERROR " in ln and "is not a message" in ln]
+        assert len(raw) == len(RAW_ITEMS), "\n".join(raw) + st.log_tail("worker1")
+        kept = r.lrange(REDIS_BAD_LIST, 0, -1)
+        r.close()
+        assert sorted(kept) == sorted(RAW_ITEMS)
