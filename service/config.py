@@ -82,6 +82,10 @@ class Settings(BaseSettings):
     # stored. 0: no cap.
     MAX_DATASETS_PER_TEAM: int = Field(default=200, ge=0)
     MAX_TEAM_DATASETS_MB: int = Field(default=8192, ge=0)
+    # A job's live share links (not revoked, not expired: svrobs_lab.shares): at most
+    # this many; making one more is refused (422 naming the setting) until one is
+    # revoked or expires. Counted under the team's quota lock. 0: no cap.
+    MAX_SHARES_PER_JOB: int = Field(default=100, ge=0)
     # Uploads read and parsed at once in each API process: at most this many of one
     # team and this many in all (a file can take several times its size in memory
     # while it is parsed); beyond, 429 with Retry-After.

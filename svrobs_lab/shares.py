@@ -3,15 +3,18 @@
 Only the token's hash is stored (:mod:`service.db.shares`); the token is shown once,
 when the link is made. An unknown, expired or revoked token is NotFound, like a job
 of another team. Who reads through a link is :func:`reader`: the job's team, with no
-key, user or admin right.
+key, user or admin right. A job has at most SVROBS_MAX_SHARES_PER_JOB live links
+(:func:`create`).
 """
 
 from __future__ import annotations
 
 from sqlalchemy.orm import Session
 
+from service.config import Settings
 from service.db import shares as store
 from service.db.models import SHARE_LABEL_MAX, Job, ShareLink
+from service.db.quota import lock_team_quota
 
 from .auth import MAX_ID, Caller
 from .datasets.parsed import printable
@@ -39,13 +42,30 @@ def share_out(link: ShareLink, url: str | None = None) -> dict:
 
 
 def create(
-    session: Session, caller: Caller, job_id: int, days: float, label: str | None = None
+    session: Session,
+    caller: Caller,
+    settings: Settings,
+    job_id: int,
+    days: float,
+    label: str | None = None,
 ) -> tuple[ShareLink, str]:
     """A link to the caller's job, valid ``days``, named ``label``, committed -> (link,
-    token). The label is one line of printable text (shown in lists)."""
+    token). The label is one line of printable text (shown in lists). Invalid when the
+    job already has SVROBS_MAX_SHARES_PER_JOB live links (0: no cap); they are counted
+    under the team's quota lock, held until the commit, so concurrent creates are
+    counted one after the other."""
     if label is not None and not printable(label):
         raise Invalid("must be printable text (no control characters)", field="label")
     job = team_job(session, caller, job_id)
+    cap = settings.MAX_SHARES_PER_JOB
+    if cap:
+        lock_team_quota(session, job.team_id)
+        live = store.count_live(session, job.id)
+        if live >= cap:
+            raise Invalid(
+                f"job {job.id} has {live} live share links; the limit is {cap} "
+                "(SVROBS_MAX_SHARES_PER_JOB): revoke one first"
+            )
     link, token = store.create_share(session, job, user_id=caller.user_id, days=days, label=label)
     session.commit()
     return link, token

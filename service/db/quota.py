@@ -1,6 +1,6 @@
 """The per-team quota lock: a team's count-then-insert checks (its active jobs, its
-schedules) run one at a time, so that concurrent requests never exceed a cap
-(docs/architecture.md#one-job).
+schedules, a job's live share links) run one at a time, so that concurrent requests
+never exceed a cap (docs/architecture.md#one-job).
 
 Under READ COMMITTED two transactions may both count 4 of 5 and both insert;
 holding this lock from before the count until the transaction ends makes the second

@@ -14,7 +14,7 @@ import hmac
 import secrets
 from datetime import timedelta
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from .models import Job, ShareLink, as_utc, utcnow
@@ -60,6 +60,14 @@ def create_share(
 
 def is_live(link: ShareLink, now=None) -> bool:
     return link.revoked_at is None and as_utc(link.expires_at) > as_utc(now)
+
+
+def count_live(session: Session, job_id: int) -> int:
+    """How many of the job's links are live (:func:`is_live`: not revoked, not expired)."""
+    q = select(func.count(ShareLink.id)).where(
+        ShareLink.job_id == job_id, ShareLink.revoked_at.is_(None), ShareLink.expires_at > utcnow()
+    )
+    return int(session.scalar(q) or 0)
 
 
 def open_share(session: Session, token: str) -> ShareLink | None:

@@ -1,9 +1,10 @@
 """A team's quotas hold under concurrent requests, through real processes (embedded
 stack, and PostgreSQL + Redis when the SVROBS_TEST_* URLs are set): 50 submits at
 once against a cap of 5 queued jobs, 20 schedule creates at once against a cap
-of 3 schedules and 12 dataset uploads at once against a cap of 3 datasets are
-accepted exactly up to the cap; the rest are refused naming the setting
-(docs/architecture.md#one-job, docs/datasets.md#limits)."""
+of 3 schedules, 12 dataset uploads at once against a cap of 3 datasets and 20 share
+links of one job at once against a cap of 3 live links are accepted exactly up to
+the cap; the rest are refused naming the setting (docs/architecture.md#one-job,
+docs/datasets.md#limits, docs/security.md)."""
 
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from .test_trust import second_team
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
 
-JOB_CAP, SCHEDULE_CAP, DATASET_CAP = 5, 3, 3
+JOB_CAP, SCHEDULE_CAP, DATASET_CAP, SHARE_CAP = 5, 3, 3, 3
 
 
 @pytest.fixture(scope="module")
@@ -31,6 +32,7 @@ def capped(stack):
         "SVROBS_MAX_QUEUED_JOBS_PER_TEAM": str(JOB_CAP),
         "SVROBS_MAX_SCHEDULES_PER_TEAM": str(SCHEDULE_CAP),
         "SVROBS_MAX_DATASETS_PER_TEAM": str(DATASET_CAP),
+        "SVROBS_MAX_SHARES_PER_JOB": str(SHARE_CAP),
         "SVROBS_UPLOADS_PER_TEAM": "100",
         "SVROBS_UPLOADS_AT_ONCE": "100",
         "SVROBS_RATE_LIMIT_PER_MINUTE": "100000",
@@ -122,3 +124,16 @@ def test_parallel_uploads_stop_at_the_datasets_cap(stack, capped):
     setting = "SVROBS_MAX_DATASETS_PER_TEAM"
     made = made_up_to_the_cap(rs, DATASET_CAP, setting, capped, key, "/datasets?limit=100")
     print(f"\n[{stack.kind}] 12 parallel uploads, cap {DATASET_CAP}: {len(made)} stored")
+
+
+def test_parallel_share_creates_stop_at_the_shares_cap(stack, capped):
+    key = second_team(stack, "quota-shares")
+    with httpx.Client(
+        base_url=capped + API, timeout=30, headers={"Authorization": f"Bearer {key}"}
+    ) as c:
+        job_id = c.post("/jobs", json=TINY_SPEC).json()["id"]
+
+    rs = at_once(20, capped, key, lambda c, i: c.post(f"/jobs/{job_id}/shares", json={}))
+    setting = "SVROBS_MAX_SHARES_PER_JOB"
+    made = made_up_to_the_cap(rs, SHARE_CAP, setting, capped, key, f"/jobs/{job_id}/shares")
+    print(f"\n[{stack.kind}] 20 parallel share creates, cap {SHARE_CAP}: {len(made)} made")

@@ -9,7 +9,7 @@ from typing import Annotated
 from fastapi import APIRouter, Body, Path, Request, Response
 from pydantic import BaseModel, Field
 
-from service.api.deps import DB, MAX_ID, CurrentCaller, JobId
+from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SettingsDep
 from service.api.errors import error_docs
 from svrobs_lab import shares
 from svrobs_lab.schemas import _Strict
@@ -54,15 +54,16 @@ def create_share(
     request: Request,
     session: DB,
     caller: CurrentCaller,
+    settings: SettingsDep,
     # None when no body is sent; not `ShareCreate | None`, which would add null to the
     # body's OpenAPI schema
     body: ShareCreate = Body(None),
 ):
     """A read-only link to the job's report and charts, opened without a key; it expires
     after `days` (default 7) and can be revoked. The token is shown once (only its hash
-    is stored)."""
+    is stored). A job has at most `SVROBS_MAX_SHARES_PER_JOB` live links (422 beyond)."""
     body = body or ShareCreate()
-    link, token = shares.create(session, caller, job_id, body.days, body.label)
+    link, token = shares.create(session, caller, settings, job_id, body.days, body.label)
     return shares.share_out(link, share_url(request, token))
 
 

@@ -13,7 +13,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
 from service.db.models import Job
-from service.http.deps import ReportBuildsDep, SessionFactoryDep, get_db
+from service.http.deps import ReportBuildsDep, SessionFactoryDep, SettingsDep, get_db
 from service.web import charts, figure_charts
 from service.web.deps import CSRF, CurrentViewer
 from service.web.pages import job as job_pages
@@ -64,13 +64,15 @@ def share_page(
 def make_link(
     db: DB,
     viewer: CurrentViewer,
+    settings: SettingsDep,
     job_id: int,
     days: Annotated[float, Form(ge=shares.MIN_DAYS, le=shares.MAX_DAYS)] = shares.DEFAULT_DAYS,
     label: Annotated[str, Form(max_length=shares.LABEL_MAX)] = "",
 ):
-    """Make a link, then redirect (POST-redirect-GET: a reload makes no second link)."""
+    """Make a link, then redirect (POST-redirect-GET: a reload makes no second link);
+    over SVROBS_MAX_SHARES_PER_JOB live links, the 422 error page."""
     job = job_pages._job(db, viewer, job_id)
-    link, token = shares.create(db, viewer.caller, job.id, days, label)
+    link, token = shares.create(db, viewer.caller, settings, job.id, days, label)
     return RedirectResponse(f"/jobs/{job.id}/share?created={link.id}#new={token}", 303)
 
 
