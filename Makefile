@@ -53,7 +53,8 @@ run: $(RUNTIME_STAMP)
 # time waiting on the processes they start (`make test TEST_WORKERS=2` to compare)
 TEST_WORKERS ?= 3
 test: $(TEST_STAMP)
-	$(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadscope --ignore=tests/faults
+	$(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadscope --ignore=tests/faults \
+		-m "not faults"
 
 test-core: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider tests/core
@@ -66,10 +67,13 @@ test-integration: $(TEST_STAMP)
 
 # worker kills, Redis/PostgreSQL restarts, API kill, two beats, a poison unit, 50 stop
 # cycles of `svrobs serve` (tests/faults/test_stop_cycles.py, the embedded stack): real
-# processes on private servers (initdb + redis-server on spare loopback ports)
+# processes on private servers (initdb + redis-server on spare loopback ports); and the
+# integration tests marked `faults` (a killed worker's lease, a unit out of memory, a
+# killed worker restarted by `svrobs serve`) on the machine's servers
 test-faults: $(TEST_STAMP)
 	SVROBS_FAULTS_REPORT=var/faults-report.json $(BIN)/python -m pytest -q -p no:cacheprovider \
-		-m faults --durations=0 tests/faults
+		-m faults --durations=0 tests/faults \
+		tests/integration/test_trust.py tests/integration/test_serve.py
 	SVROBS_PROPERTY_EXAMPLES=2000 $(BIN)/python -m pytest -q -p no:cacheprovider \
 		tests/core/test_property_specs.py
 

@@ -174,11 +174,3 @@ def pytest_terminal_summary(terminalreporter):
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_text(json.dumps(RESULTS, indent=2, default=str) + "\n")
         terminalreporter.write_line(f"(written to {path})")
-
-
-def pytest_configure(config):
-    config.addinivalue_line(
-        "markers",
-        "faults: kills and restarts real processes and private PostgreSQL/Redis "
-        "servers (make test-faults)",
-    )

@@ -124,6 +124,7 @@ def test_serve_first_start_prints_key_and_ctrl_c_stops_everything(tmp_path):
         assert not [n for n, p in pids.items() if _alive(p)], log.read_text()
 
 
+@pytest.mark.faults  # kills a worker: `make test-faults`
 def test_a_killed_worker_is_restarted_and_readyz_says_so(tmp_path):
     port = free_port()
     with _serving(tmp_path, port) as (proc, log, text):

@@ -268,7 +268,8 @@ def test_cancel_stops_running_units(stack, pool, db):
     assert latency < 5.0
 
 
-def test_lease_ends_the_units_of_a_killed_worker(stack, db):
+@pytest.mark.faults  # kills a worker: `make test-faults`
+def test_lease_ends_the_units_of_a_killed_worker(stack, pool, db):
     """A worker with a 3 s lease is SIGKILLed (with its pool) mid-unit: beat's relay
     takes the unit out of `running` once the lease has run out."""
     stack.stop("pool", grace=5)
@@ -305,7 +306,8 @@ def test_lease_ends_the_units_of_a_killed_worker(stack, db):
 # --------------------------------------------------------------------------- retries, admission
 
 
-def test_permanent_failure_fails_at_once(stack, db):
+@pytest.mark.faults  # kills a worker: `make test-faults`
+def test_permanent_failure_fails_at_once(stack, pool, db):
     """A unit that runs out of memory (a worker under a 2 GB address-space limit, a
     spec admitted by an API with no work limits) fails on its first attempt with the
     reason; it is never retried."""
