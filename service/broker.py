@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import ssl
 from collections.abc import Callable, Iterable
 from typing import cast
 
@@ -99,6 +100,13 @@ def make_celery(settings: Settings, name: str = "svrobs") -> Celery:
     elif settings.BROKER_URL.startswith(("redis:", "rediss:")):
         # kombu's Redis transport, which sets aside what is not a message (service.redis_broker)
         conf["broker_transport"] = REDIS_TRANSPORT
+        if (
+            settings.BROKER_URL.startswith("rediss:")
+            and "ssl_cert_reqs=" not in settings.BROKER_URL
+        ):
+            # TLS with the server's certificate checked (kombu alone, for the rediss scheme
+            # only, falls back to TLS without any check); ?ssl_cert_reqs=none in the URL opts out
+            conf["broker_use_ssl"] = {"ssl_cert_reqs": ssl.CERT_REQUIRED}
         conf["broker_transport_options"] = {
             # a unit not acked within this time is redelivered: keep it above the longest task
             "visibility_timeout": limit + 600,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import ssl
 
 import pytest
 
@@ -31,6 +32,25 @@ def test_make_celery_settings(tmp_path):
         assert os.path.isdir(opts[key])
     redis = make_celery(Settings(BROKER_URL="redis://127.0.0.1:6379/0", TASK_TIME_LIMIT=100))
     assert redis.conf.broker_transport_options["visibility_timeout"] > 100
+
+
+@pytest.mark.parametrize(
+    "url, checked",
+    [
+        ("rediss://broker.example:6380/0", ssl.CERT_REQUIRED),
+        ("rediss://broker.example:6380/0?ssl_cert_reqs=required", ssl.CERT_REQUIRED),
+        ("rediss://broker.example:6380/0?ssl_cert_reqs=none", ssl.CERT_NONE),
+        ("redis://broker.example:6379/0", None),
+    ],
+)
+def test_redis_broker_connection_and_tls(url, checked):
+    """A Redis URL gets the transport that sets aside bad items; a rediss URL is TLS
+    with the certificate checked unless the URL says otherwise."""
+    app = make_celery(Settings(BROKER_URL=url))
+    conn = app.connection_for_write()
+    assert conn.transport_cls == "service.redis_broker:Transport"
+    assert (conn.ssl or {}).get("ssl_cert_reqs") == checked
+    conn.release()
 
 
 def test_publish_to_filesystem_broker(tmp_path):
