@@ -17,6 +17,13 @@ from svrobs_core.report import Report, build_report, spec_json, table2_markdown
 from svrobs_core.report.audit import audit_markdown
 from svrobs_core.report.columns import fmt_num
 
+# The layout of the page :func:`job_report_html` gives for a job's rows, stored with
+# each stored report (``job_reports.layout``). Raise it whenever a change (here, in
+# report.css or in svrobs_core.report) alters the page a job's rows give: a stored
+# report of another layout is then built again from the job's rows, at its next
+# request or by beat's report thread (a job whose rows were pruned keeps its own).
+REPORT_LAYOUT = 1
+
 
 def _table(name: str) -> str:
     """The start of a table. A table, like a spec's <pre>, scrolls sideways inside

@@ -2,7 +2,10 @@
 
 A finished job's report is built at its first request (or beforehand, by the
 retention tick before it prunes the job's rows: :func:`store_if_missing`) and
-stored in ``job_reports``; a running job's is built again only when its progress
+stored in ``job_reports`` with the page layout it was built with
+(:data:`~svrobs_lab.report_html.REPORT_LAYOUT`); a stored report of another layout
+counts as missing and is built again, unless the job's rows were pruned (then it
+is the only copy, served as stored). A running job's is built again only when its progress
 changed (docs/security.md#reports-of-running-jobs). A request reads the job, closes its
 database session, and then waits for or runs the one build of that job
 (:class:`~svrobs_lab.report_builds.ReportBuilds`: single-flight, bounded per team);
@@ -27,13 +30,13 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from service.db.models import JOB_ACTIVE, Job
-from service.db.reports import is_final, load_columns, store_report, stored_report
+from service.db.reports import is_final, load_columns, servable_report, store_report
 from svrobs_core.report.columns import Columns
 from svrobs_lab.auth import Caller
 from svrobs_lab.dispatch import SessionFactory
 from svrobs_lab.jobs import team_job
 from svrobs_lab.report_builds import ReportBuilds
-from svrobs_lab.report_html import job_report_html
+from svrobs_lab.report_html import REPORT_LAYOUT, job_report_html
 
 log = logging.getLogger(__name__)
 
@@ -123,15 +126,20 @@ def _read_columns(job_id: int, session_factory: SessionFactory) -> Columns:
 
 def _build_and_store(job: JobSnapshot, session_factory: SessionFactory) -> str:
     """A finished job's report: stored by another process meanwhile, else built and
-    stored through a new writing session."""
+    stored (or an old layout's replaced) through a new writing session. A job pruned
+    while this built keeps its stored page: that is served, not the page of the rows
+    this read (some or none)."""
     with closing(session_factory(False)) as s:
-        row = stored_report(s, job.id)
+        row = servable_report(s, job.id, REPORT_LAYOUT)
         if row is not None:
             return row.html
     html, n = _build(job, session_factory)
     with closing(session_factory(True)) as w:
         try:
-            store_report(w, job.id, html, n)
+            row = servable_report(w, job.id, REPORT_LAYOUT)
+            if row is not None:  # stored meanwhile, or the job's rows were pruned
+                return row.html
+            store_report(w, job.id, html, n, REPORT_LAYOUT)
             w.commit()
             log.info("stored the report of job %s (%d records)", job.id, n)
         except IntegrityError:  # another process stored it first: the same page
@@ -151,7 +159,7 @@ def job_report(
     builds = builds or DEFAULT_BUILDS
     snap = JobSnapshot.of(job)
     if snap.final:
-        row = stored_report(session, snap.id)
+        row = servable_report(session, snap.id, REPORT_LAYOUT)
         if row is not None:
             return row.html
     session.close()  # no connection is held while building or waiting for a build
@@ -172,14 +180,20 @@ def store_if_missing(
     proceed: Callable[[], bool] | None = None,
 ) -> bool:
     """Build a finished job's report (reading with ``read_session``) and add it to
-    ``write_session`` unless one is stored; True when it built one. The rows are read
+    ``write_session`` unless one is stored (one of an old layout is replaced, except
+    for a job whose rows were pruned: :func:`servable_report`); True when it built
+    one. The rows are read
     and the read transaction ended before rendering, so none is held (nor cut by a
     server's idle-in-transaction timeout) while the page renders; ``proceed()``,
     asked between the read and the rendering, can call the build off (False)."""
     with BUILD_SLOTS:
         read_session.rollback()  # a report stored while this waited for the slot is seen
         job = read_session.get(Job, job_id)
-        if job is None or not is_final(job) or stored_report(read_session, job_id) is not None:
+        if (
+            job is None
+            or not is_final(job)
+            or servable_report(read_session, job_id, REPORT_LAYOUT) is not None
+        ):
             return False
         snap = JobSnapshot.of(job)
         cols: Columns | None = None
@@ -191,8 +205,8 @@ def store_if_missing(
         finally:
             cols = None  # freed before the heap is trimmed
             _release_memory()
-    if stored_report(write_session, job_id) is None:
-        store_report(write_session, job_id, html, n)
+    if servable_report(write_session, job_id, REPORT_LAYOUT) is None:
+        store_report(write_session, job_id, html, n, REPORT_LAYOUT)
     return True
 
 

@@ -124,8 +124,9 @@ def prune_expired(limit: int = PRUNE_MAX_PER_TICK, scope=None) -> list[int]:
 
 
 def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
-    """Store the reports of recently finished jobs that have none, so that the API
-    serves them as stored from the first request; returns the jobs done. A job whose
+    """Store the reports of recently finished jobs that have none, or one of an old
+    page layout (``jobs_without_report``), so that the API serves them as stored
+    from the first request; returns the jobs done. A job whose
     build fails is logged once and left alone for REPORT_RETRY_SECONDS (its report is
     then built at its first request), so it holds up neither the others nor the log;
     a database that is unreachable is raised (the caller polls again). Once the
@@ -136,6 +137,7 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
 
     from service.db.clock import db_now
     from service.db.reports import jobs_without_report
+    from svrobs_lab.report_html import REPORT_LAYOUT
     from svrobs_lab.reports import store_if_missing
 
     scope = scope or session_scope
@@ -147,7 +149,7 @@ def build_reports(limit: int = REPORTS_PER_TICK, scope=None) -> list[int]:
     skip = list(_failed_reports) + (record.given_up() if record is not None else [])
     with scope(write=False) as s:
         since = db_now(s) - timedelta(days=REPORT_RECENT_DAYS)
-        ids = jobs_without_report(s, limit, finished_after=since, skip=skip)
+        ids = jobs_without_report(s, limit, layout=REPORT_LAYOUT, finished_after=since, skip=skip)
     done = []
     for job_id in ids:
         if _stop_reports.is_set():  # the process is stopping: no new build

@@ -303,13 +303,17 @@ class Summary(Base):
 
 
 class JobReport(Base):
-    """A finished job's HTML report, built once (finished jobs do not change)."""
+    """A finished job's HTML report, built once (finished jobs do not change) and
+    again when the page's layout changed (``layout``: the
+    ``svrobs_lab.report_html.REPORT_LAYOUT`` it was built with; 0 for a report stored
+    before the column existed), unless the job's rows were pruned."""
 
     __tablename__ = "job_reports"
     job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
     html: Mapped[str] = mapped_column(Text)
     n_records: Mapped[int]
     built_at: Mapped[datetime] = mapped_column(default=utcnow)
+    layout: Mapped[int] = mapped_column(default=0, server_default="0")
 
 
 class JobValidation(Base):

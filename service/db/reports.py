@@ -1,7 +1,11 @@
 """Stored reports (``job_reports``) and the bounded read the report is built from.
 
 A finished job never changes, so its report is built once (by a worker when the
-tick sees the job finished, or at the first request) and then served as stored.
+tick sees the job finished, or at the first request) and then served as stored,
+until the page's layout changes: a stored report records the layout it was built
+with, and one of another layout is built again from the job's rows
+(:func:`servable_report`), except when those rows were pruned (``jobs.pruned_at``):
+then the stored page is the only copy and is served as it is.
 The build reads only the fields the report uses (``REPORT_FIELDS``) into numpy
 arrays, with no record dicts, and no ``A_hat``/``B_hat`` above
 ``MATRIX_CELLS_LIMIT`` cells (as ``svrobs reproduce`` does; the figures that need
@@ -42,32 +46,53 @@ def stored_report(session: Session, job_id: int) -> JobReport | None:
     return session.get(JobReport, job_id)
 
 
+def servable_report(session: Session, job_id: int, layout: int) -> JobReport | None:
+    """The job's stored report if it is served as stored: built with ``layout``, or
+    of any layout once the job's rows were pruned (the stored page is then the only
+    copy); None when the report is to be built (again) from the rows."""
+    row = session.get(JobReport, job_id)
+    if row is None or row.layout == layout:
+        return row
+    pruned = session.scalar(select(Job.pruned_at).where(Job.id == job_id))
+    return row if pruned is not None else None
+
+
 def is_final(job: Job) -> bool:
     """A finished job (succeeded, failed or cancelled): its report can be stored."""
     return job.status not in JOB_ACTIVE
 
 
-def store_report(session: Session, job_id: int, html: str, n_records: int) -> JobReport:
-    """Store (or replace) a job's report."""
+def store_report(
+    session: Session, job_id: int, html: str, n_records: int, layout: int
+) -> JobReport:
+    """Store (or replace) a job's report, built with page layout ``layout``."""
     row = session.get(JobReport, job_id)
     if row is None:
-        row = JobReport(job_id=job_id, html=html, n_records=n_records)
+        row = JobReport(job_id=job_id, html=html, n_records=n_records, layout=layout)
         session.add(row)
     else:
         row.html, row.n_records, row.built_at = html, n_records, utcnow()
+        row.layout = layout
     session.flush()
     return row
 
 
 def jobs_without_report(
-    session: Session, limit: int, finished_after=None, skip: Sequence[int] = ()
+    session: Session,
+    limit: int,
+    *,
+    layout: int,
+    finished_after=None,
+    skip: Sequence[int] = (),
 ) -> list[int]:
-    """Finished jobs that have cell rows and no stored report (finished after
-    ``finished_after`` if given, not in ``skip``), newest first."""
+    """Finished jobs that have cell rows and no stored report of page layout
+    ``layout`` (none, or one of another layout: :func:`servable_report`), finished
+    after ``finished_after`` if given, not in ``skip``; newest first."""
+    current = select(JobReport.job_id).where(JobReport.job_id == Job.id, JobReport.layout == layout)
     q = (
         select(Job.id)
         .where(Job.status.not_in(JOB_ACTIVE), Job.pruned_at.is_(None), Job.n_cells > 0)
-        .where(~select(JobReport.job_id).where(JobReport.job_id == Job.id).exists())
+        .where(~current.exists())
         .order_by(Job.finished_at.desc())
         .limit(limit)
     )
