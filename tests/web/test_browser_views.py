@@ -1,8 +1,9 @@
 """Views that live in the URL, in a real chromium against a real server: a filtered,
 sorted results view (two sort keys, a range, a hidden column) survives a reload and
 back/forward, and its CSV and JSONL buttons export the rows shown, in the order shown,
-as the API's own filtered, sorted page; the job page's chart choices are in the URL, a
-late chart response is dropped, and log y follows the data as the job finishes."""
+as the API's own filtered, sorted page; Apply asks for the grid again; the job page's
+chart choices are in the URL, a late chart response is dropped, and log y follows the
+data as the job finishes."""
 
 from __future__ import annotations
 
@@ -166,6 +167,28 @@ def test_an_edit_made_while_the_grid_is_on_its_way_is_applied(browser, stack, jo
     page.wait_for_selector("#results-grid[data-query*='rmax=0.05']")
     values = [float(v) for v in grid_column(page, "rmse_A")]
     assert values and max(values) < 0.05
+
+
+def test_apply_asks_again_for_an_unchanged_view_and_once_for_an_edit(browser, stack, job_id):
+    """Apply, or Enter in a box, with nothing changed asks for the grid again (a running
+    job's new rows), also when every field of the form is filled; a box edited, then
+    Apply: one request (the box's change and the button's submit are one action)."""
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.goto(f"/results?job={job_id}&rep=0&rf=rmse_A&rmin=0&rmax=1e9&sort=N&hide=rmse_B")
+    sent = []
+    page.on("request", lambda r: sent.append(r.url) if "/results/rows" in r.url else None)
+    apply = "#results-filters button[type=submit]"
+    for act in (lambda: page.click(apply), lambda: page.press("#results-sort", "Enter")):
+        page.eval_on_selector("#results-grid", "g => { g.dataset.stale = 'yes'; }")
+        act()
+        page.wait_for_selector("#results-grid:not([data-stale])", timeout=5000)
+    page.fill("#results-sort", "-N")
+    page.click(apply)
+    page.wait_for_selector("#results-grid[data-sort='-N']")
+    page.wait_for_load_state("networkidle")
+    assert [re.search(r"sort=([^&]*)", u).group(1) for u in sent] == ["N", "N", "-N"]
+    assert "sort=-N&" in page.url and "hide=rmse_B" in page.url
 
 
 def test_job_chart_link_with_a_bad_field_says_why_and_falls_back(browser, stack, job_id):

@@ -4,10 +4,11 @@
  * views. The CSV and JSONL buttons export the view shown: the API's export with the
  * same filters, ranges and sort (every page of it). Shift+click on a column head
  * adds it as the next sort key; the column chooser hides columns (?hide=a,b). A change
- * of a filter and a submit (Enter, Apply) ask for the grid once: the form's query is
- * sent only when it differs from the one the grid shows (a typed sort key is both a
- * change and, with Enter, a submit). A refused view (a bad sort key) shows its error in
- * the grid, and the boxes keep what was typed. */
+ * of a filter asks for the grid; Apply (or Enter in a box) asks for it every time, the
+ * same view too (a running job's new rows). A change that is part of an Apply (the box
+ * left as the pointer goes down on Apply, the box Enter submits) waits for it: one
+ * request. A refused view (a bad sort key) shows its error in the grid, and the boxes
+ * keep what was typed. */
 (function () {
   "use strict";
 
@@ -60,24 +61,43 @@
     const sort = document.getElementById("results-sort");
     if (sort && !g.dataset.error) sort.value = g.dataset.sort || "";
     applyColumns();
-    // the query the grid was made from (an edit made while it was on its way is not in it)
-    shown = new URLSearchParams(g.dataset.query || "").toString();
   }
 
-  /* The query the filters form would send; ``shown``: the last one sent or shown. */
-  function formQuery() {
-    const form = document.getElementById("results-filters");
-    return form ? new URLSearchParams(new FormData(form)).toString() : "";
+  /* ``held``: a change not asked for yet; ``pressing``: a pointer is down on Apply. */
+  let held = false, pressing = false;
+
+  function ask() {
+    held = false;
+    window.htmx.trigger(document.getElementById("results-filters"), "svrobs-apply");
   }
-  let shown = null;
+
+  /* A held change is asked for at the end of this task (Enter's submit comes in the same
+   * task as its change) or of the press on Apply (its click and submit come in the task
+   * of the pointer's release), unless that submit asked meanwhile. */
+  function askLater() {
+    if (held) setTimeout(() => { if (held) ask(); });
+  }
 
   function apply(e) {
     const form = document.getElementById("results-filters");
     if (!window.htmx || e.target.closest("form") !== form) return;  // (no htmx: the plain GET)
-    if (e.type === "submit") e.preventDefault();
-    if (formQuery() === shown) return;
-    shown = formQuery();
-    window.htmx.trigger(form, "svrobs-apply");
+    if (e.type === "submit") {
+      e.preventDefault();
+      ask();
+      return;
+    }
+    held = true;
+    if (!pressing) askLater();
+  }
+
+  function pressed(e) {
+    pressing = !!e.target.closest("button[type=submit]");
+  }
+
+  function released() {
+    if (!pressing) return;
+    pressing = false;
+    askLater();
   }
 
   /* Shift+click on a column head: the field becomes the next sort key (or, if it is one
@@ -101,7 +121,12 @@
     if (!g) return;
     document.addEventListener("click", addSortKey, true);
     const form = document.getElementById("results-filters");
-    if (form) { form.addEventListener("change", apply); form.addEventListener("submit", apply); }
+    if (form) {
+      form.addEventListener("change", apply);
+      form.addEventListener("submit", apply);
+      form.addEventListener("pointerdown", pressed);
+      ["pointerup", "pointercancel"].forEach((t) => window.addEventListener(t, released, true));
+    }
     document.body.addEventListener("htmx:afterSwap", (e) => {
       if (e.detail.target.id === "results-grid" || (e.detail.elt && e.detail.elt.id === "results-grid")) sync(true);
     });
