@@ -2,15 +2,18 @@
 an Idempotency-Key) holding a NUL character, or a numeric parameter not written in
 plain ASCII decimal (:mod:`svrobs_lab.params`), is a 422 naming it
 (:class:`svrobs_lab.errors.Invalid`: JSON under /api/v1, the error page on the web).
-On the web, a form's empty field is no value (:class:`EmptyFieldsAbsent`)."""
+On the web, a form's empty field is no value, in a query (:class:`EmptyFieldsAbsent`)
+and in a posted form that a route parses itself (:func:`form_without_empty_fields`);
+FastAPI gives a declared ``Form()`` field sent empty its default."""
 
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from urllib.parse import unquote_plus
 
 from fastapi import Request
+from starlette.datastructures import UploadFile
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from svrobs_lab.errors import Invalid
@@ -48,16 +51,35 @@ async def clean_page_query(request: Request) -> None:
     check_query_text(request, empty_is_absent=True)
 
 
+def kept_fields(fields: Sequence[tuple[str, bool]]) -> list[bool]:
+    """Which fields of a form, each ``(name, empty)``, count as sent: all but a name
+    sent once with an empty value (a form's empty field). A name sent more than once
+    keeps every value: the empty ones hold their place in a row of parallel fields."""
+    sent = Counter(name for name, _ in fields)
+    return [not empty or sent[name] > 1 for name, empty in fields]
+
+
 def without_empty_fields(query: bytes) -> bytes:
-    """A raw query string without the parameters sent once with an empty value
-    (``at=``, or ``at`` alone). A name sent more than once keeps every value: the
-    empty ones hold their place in a row of parallel fields."""
+    """A raw query string without a form's empty fields (:func:`kept_fields`: ``at=``,
+    or ``at`` alone, sent once)."""
     parts = query.split(b"&")
-    names = [unquote_plus(p.partition(b"=")[0].decode("latin-1")) for p in parts]
-    sent = Counter(names)
-    return b"&".join(
-        p for p, name in zip(parts, names, strict=True) if p.partition(b"=")[2] or sent[name] > 1
-    )
+    fields = [
+        (unquote_plus(name.decode("latin-1")), not value)
+        for name, _, value in (p.partition(b"=") for p in parts)
+    ]
+    return b"&".join(p for p, keep in zip(parts, kept_fields(fields), strict=True) if keep)
+
+
+def form_without_empty_fields(
+    items: Sequence[tuple[str, str | UploadFile]],
+) -> list[tuple[str, str | UploadFile]]:
+    """A posted form's fields without its empty ones (:func:`kept_fields`): a text
+    field left empty, a file field with no file chosen (no name, no bytes)."""
+    fields = [
+        (name, value == "" if isinstance(value, str) else not (value.filename or value.size))
+        for name, value in items
+    ]
+    return [item for item, keep in zip(items, kept_fields(fields), strict=True) if keep]
 
 
 class EmptyFieldsAbsent:

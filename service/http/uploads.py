@@ -19,6 +19,7 @@ from sqlalchemy.orm import Session
 from starlette.datastructures import UploadFile as FormFile
 from starlette.formparsers import MultiPartException, MultiPartParser
 
+from service.http.query_text import form_without_empty_fields
 from svrobs_lab.auth import Caller
 from svrobs_lab.datasets.catalog import FIELDS, DatasetLimits, upload
 from svrobs_lab.errors import Invalid, PayloadTooLarge
@@ -57,11 +58,10 @@ async def _form(request: Request, limit: int, extra_fields: int = 0):
         raise Invalid(f"not valid multipart/form-data: {exc.message}", field="file") from None
 
 
-def _fields(form, ignore: Set[str]) -> tuple[FormFile, dict[str, str]]:
+def _fields(form, ignore: Set[str], empty_is_absent: bool) -> tuple[FormFile, dict[str, str]]:
     file, fields = None, {}
-    for key, value in form.multi_items():
-        if key in ignore:
-            continue
+    items = [(key, value) for key, value in form.multi_items() if key not in ignore]
+    for key, value in form_without_empty_fields(items) if empty_is_absent else items:
         if key == "file":
             if not isinstance(value, FormFile):
                 raise Invalid("must be a file, not text", field="file")
@@ -83,16 +83,18 @@ async def store_upload(
     caller: Caller,
     *,
     ignore: Set[str] = frozenset(),
+    empty_is_absent: bool = False,
 ) -> dict:
     """Read the request's multipart upload (within the app settings' limits; the form
-    fields in ``ignore`` left out, e.g. the web form's CSRF token) and store it as the
-    caller's dataset, committed -> the dataset's view. Invalid / BadDatasetFile /
+    fields in ``ignore`` left out, e.g. the web form's CSRF token; with
+    ``empty_is_absent``, the web form's, an empty field is not given) and store it as
+    the caller's dataset, committed -> the dataset's view. Invalid / BadDatasetFile /
     SpecError naming the field, PayloadTooLarge, RateLimited; nothing is stored then."""
     limits = DatasetLimits.of(request.app.state.settings)
     with request.app.state.upload_slots.hold(caller.team_id):
         form = await _form(request, limits.max_bytes, len(ignore))
         try:
-            file, fields = _fields(form, ignore)
+            file, fields = _fields(form, ignore, empty_is_absent)
             store = partial(upload, session, caller, file.file, file.filename, fields, limits)
             return await anyio.to_thread.run_sync(store)
         finally:

@@ -1,7 +1,8 @@
 """The results, compare, schedules and share pages through the app (TestClient): the
 grid's filters and sort equal the API's, compare's table is the API's compare, a
 schedule made from a job's spec, and share links (no key needed; expired, revoked or
-another team's is a 404; token stored hashed)."""
+another team's is a 404; token stored hashed); a posted form's empty field is not
+given."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from service.config import get_settings
 from service.db.models import Schedule, ShareLink, utcnow
 from service.db.shares import token_hash
 from svrobs_lab import schedules as lab_schedules
+from svrobs_lab import shares
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC
 
@@ -265,3 +267,49 @@ def test_share_link_lifecycle(web, done, session, make_account):
     named = web.post(f"{API}/jobs/{jid}/shares", json={"label": "x" * 201}, headers=acc.headers)
     assert named.status_code == 422 and named.json()["field"] == "label"
     assert web.delete(f"{API}/shares/{listed[0]['id']}", headers=other.headers).status_code == 404
+
+
+def test_an_empty_field_of_a_posted_form_is_not_given(web, session, make_account):
+    """An optional field of a posted form left empty is as if not sent (its default
+    applies): the share form, the schedule form, the dataset upload (an empty "CSV
+    input columns" is the columns u1..um, not no inputs); a required one left empty is
+    a 422 naming it."""
+    acc = make_account()
+    jid = web.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    sign_in(web, acc.key)
+    token = csrf_of(web.get(f"/jobs/{jid}/share").text)
+    form = {"csrf_token": token, "label": "", "days": ""}
+    assert web.post(f"/jobs/{jid}/share", data=form, follow_redirects=False).status_code == 303
+    link = session.scalars(select(ShareLink).where(ShareLink.job_id == jid)).one()
+    days = (link.expires_at - link.created_at) / timedelta(days=1)
+    assert link.label is None and days == pytest.approx(shares.DEFAULT_DAYS)
+    data = {"csrf_token": token, "job": jid, "name": "nightly", "cron": "0 3 * * *"}
+    empty = {"timezone": "", "seed_policy": "", "tags": ""}
+    made = web.post("/schedules/new", data={**data, **empty}, follow_redirects=False)
+    assert made.status_code == 303, made.text
+    (s,) = web.get(f"{API}/schedules", headers=acc.headers).json()
+    assert (s["timezone"], s["seed_policy"], s["tags"]) == ("UTC", "fixed", [])
+    runs = b"rollout,k,x1,u1\n" + b"".join(
+        b"%d,%d,%d,1\n" % (r, k, k) for r in range(3) for k in range(9)
+    )
+    fields = ("description", "sample_time", "state_columns", "input_columns", "state_names")
+    upload = {"csrf_token": token, "name": "runs", **dict.fromkeys(fields, "")}
+    headers = {"X-CSRF-Token": token}
+    r = web.post(
+        "/datasets/upload", files={"file": ("runs.csv", runs)}, data=upload, headers=headers
+    )
+    assert r.status_code == 201, r.text
+    stored = web.get(f"{API}/datasets/{r.json()['id']}", headers=acc.headers).json()
+    assert (stored["n"], stored["m"], stored["description"]) == (1, 1, None)
+    # a required field left empty
+    refused = web.post("/schedules/new", data={**data, "job": ""})
+    assert refused.status_code == 422 and "job: field required" in refused.text
+    r = web.post("/datasets/upload", files={"file": ("", b"")}, data=upload, headers=headers)
+    assert (r.status_code, r.json()["field"]) == (422, "file"), r.text
+    r = web.post(
+        "/datasets/upload",
+        files={"file": ("runs.csv", runs)},
+        data={**upload, "name": ""},
+        headers=headers,
+    )
+    assert (r.status_code, r.json()) == (422, {"detail": "is required", "field": "name"})

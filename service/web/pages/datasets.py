@@ -51,10 +51,13 @@ def datasets_page(request: Request, db: DB, viewer: CurrentViewer):
 async def upload(request: Request, db: DB, viewer: CurrentViewer):
     """The upload form's file (the CSRF token in the X-CSRF-Token header, so that the
     body is read only as it streams) -> 201 ``{"id", "url"}``, or the error as JSON
-    ``{"detail", "field"}`` for the form to show beside its field."""
+    ``{"detail", "field"}`` for the form to show beside its field. An empty field is
+    not given (an empty "CSV input columns": the columns u1..um, not no inputs)."""
     check_csrf(request, None, request.headers.get("x-csrf-token"))
     try:
-        body = await store_upload(request, db, viewer.caller, ignore={"csrf_token"})
+        body = await store_upload(
+            request, db, viewer.caller, ignore={"csrf_token"}, empty_is_absent=True
+        )
     except (LabError, SpecError) as exc:  # shown in place by the form
         return JSONResponse(
             {"detail": exc.message, "field": exc.field},
