@@ -27,6 +27,7 @@ import typer
 from svrobs_cli.errors import CliError, plain_message
 from svrobs_cli.rest import client, print_json, print_table
 from svrobs_client import Dataset, ValidationError
+from svrobs_client.files import write_atomic, writer
 
 
 def _summary(d: Dataset) -> str:
@@ -36,6 +37,12 @@ def _summary(d: Dataset) -> str:
         f"dataset {d.id} {d.name!r}: {d.rollouts} rollouts ({steps}), n={d.n}, m={d.m}, "
         f"{d.format}, sha256 {d.sha256[:12]}"
     )
+
+
+def _check_file(file: Path) -> None:
+    """A file to send: a CliError saying so when ``file`` is missing or a folder."""
+    if not file.is_file():
+        raise CliError(f"cannot read {file}: {'a folder' if file.is_dir() else 'no such file'}")
 
 
 def upload(
@@ -56,8 +63,7 @@ def upload(
     ),
 ) -> None:
     """Upload a file of measured rollouts as a dataset."""
-    if not file.is_file():
-        raise CliError(f"cannot read {file}: no such file")
+    _check_file(file)
     with client(timeout=600) as c:
         try:
             d = c.upload_dataset(
@@ -201,7 +207,7 @@ def validation(
     with client(timeout=120) as c:
         body = c.validation(job)
     if out is not None:
-        out.write_text(json.dumps(body, indent=1))
+        write_atomic(out, writer(json.dumps(body, indent=1).encode()))
         return typer.echo(f"wrote {out}")
     for m in body["models"]:
         gamma = "" if m["gamma"] is None else f" gamma={m['gamma']:g}"
@@ -235,8 +241,7 @@ def system_from_file(
     name: str | None = typer.Option(None, help="the system's name (default: the file's)"),
 ) -> None:
     """Print a spec's custom system ({name, A, B, C, sigma_u, sigma_v}) read from a file."""
-    if not file.is_file():
-        raise CliError(f"cannot read {file}: no such file")
+    _check_file(file)
     with client() as c:
         try:
             system = c.system_from_file(file, name=name)

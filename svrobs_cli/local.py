@@ -24,17 +24,6 @@ import typer
 
 from svrobs_cli.errors import CliError
 
-
-def load_spec_file(path: Path) -> dict:
-    """Read a JSON (or YAML, if PyYAML is installed) spec file."""
-    text = Path(path).read_text()
-    if Path(path).suffix in (".yaml", ".yml"):
-        import yaml  # optional
-
-        return yaml.safe_load(text)
-    return json.loads(text)
-
-
 LOCAL_DATASET_ID = 1  # the id of a dataset given as a path (the records' dataset-1)
 
 
@@ -152,14 +141,10 @@ def run_local_command(
 ) -> None:
     """Run a spec in process: DIR/records.jsonl and DIR/summary.json (a dataset spec:
     also DIR/validation.json)."""
+    from svrobs_cli.rest import load_spec
     from svrobs_core import SpecError
 
-    try:
-        spec_obj = load_spec_file(spec_path)
-    except FileNotFoundError:
-        raise CliError(f"{spec_path}: no such file") from None
-    except ValueError as exc:
-        raise CliError(f"{spec_path}: not valid JSON ({exc})") from None
+    spec_obj = load_spec(spec_path)
     try:
         res = run_local(
             spec_obj,

@@ -37,20 +37,26 @@ def client(*, timeout: float = 30.0) -> Client:
 
 
 def load_spec(path: Path) -> dict:
-    """A spec file (JSON, or YAML with PyYAML installed); ``-`` reads stdin."""
-    if str(path) == "-":
-        text = sys.stdin.read()
-    else:
-        try:
-            text = path.read_text()
-        except OSError as exc:
-            raise CliError(f"cannot read {path}: {exc.strerror}") from None
+    """A spec file (JSON, or YAML with PyYAML installed); ``-`` reads stdin. Every
+    problem with the file is a :class:`CliError` naming it."""
+    try:
+        text = sys.stdin.read() if str(path) == "-" else path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise CliError(f"cannot read {path}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise CliError(f"cannot read {path}: not a text file (not UTF-8)") from None
     if path.suffix in (".yaml", ".yml"):
         try:
             import yaml
         except ImportError:
             raise CliError("YAML specs need PyYAML (pip install pyyaml)") from None
-        data = yaml.safe_load(text)
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+            problem = getattr(exc, "problem", None) or "cannot be parsed"
+            raise CliError(f"{path}: not valid YAML: {problem}{where}") from None
     else:
         try:
             data = json.loads(text)

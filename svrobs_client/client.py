@@ -24,9 +24,15 @@ import httpx
 from . import frames
 from .config import resolve
 from .datasets import DatasetCalls
-from .errors import ConnectionFailed, Unavailable, WaitTimeout, error_from_response
+from .errors import (
+    ConnectionFailed,
+    Unavailable,
+    WaitTimeout,
+    error_from_response,
+    not_the_api,
+)
 from .files import write_atomic, writer
-from .models import Job, JobPage, Report, Schedule, ScheduleRun, Share
+from .models import Job, JobPage, Report, Schedule, ScheduleRun, Share, ident
 from .params import RESULT_FILTERS, results_params
 from .progress import make_bar
 
@@ -39,14 +45,6 @@ SEED_POLICIES = ("fixed", "due-time")
 _FIGURE = re.compile(r"<img[^>]*?alt='([^']*)'[^>]*?src='data:image/png;base64,([^']+)'")
 
 
-def _id(obj: object) -> int:
-    """The id of a Job / Schedule / Share or an id given as int (or a digit string)."""
-    value = getattr(obj, "id", obj)
-    if isinstance(value, bool) or not isinstance(value, (int, str)):
-        raise TypeError(f"expected a job/schedule or its id, got {type(obj).__name__}")
-    return int(value)
-
-
 def _load_json(spec: object) -> dict[str, Any]:
     """A spec given as a mapping, a Job (its spec), or a path to a JSON file."""
     if isinstance(spec, Job):
@@ -54,17 +52,16 @@ def _load_json(spec: object) -> dict[str, Any]:
     if isinstance(spec, Mapping):
         return dict(spec)
     if isinstance(spec, (str, os.PathLike)):
-        data = json.loads(Path(spec).read_text())
+        try:
+            data = json.loads(Path(spec).read_text(encoding="utf-8"))
+        except UnicodeDecodeError:
+            raise ValueError(f"{spec}: not a JSON file (not UTF-8 text)") from None
+        except ValueError as exc:
+            raise ValueError(f"{spec}: not valid JSON: {exc}") from None
         if not isinstance(data, dict):
             raise ValueError(f"{spec}: the spec must be a JSON object")
         return data
     raise TypeError(f"a spec is a dict or a path to a JSON file, got {type(spec).__name__}")
-
-
-def _object(r: httpx.Response) -> dict[str, Any]:
-    """The JSON object of a response (the API's answers are objects where it says so)."""
-    data: dict[str, Any] = r.json()
-    return data
 
 
 def _check_seed_policy(policy: object) -> None:
@@ -113,27 +110,49 @@ class Client(DatasetCalls):
         self.close()
 
     # ------------------------------------------------------------------ HTTP
+    def _check(self, r: httpx.Response, *, data: bool) -> None:
+        """The typed error of an HTTP error status; a :class:`SvrobsError` for a redirect,
+        or with ``data`` for an HTML page (answers of a server that is not the API)."""
+        if r.status_code >= 400:
+            r.read()
+            raise error_from_response(r.status_code, r.content, r.headers, url=self.url)
+        if 300 <= r.status_code < 400 or (data and "html" in r.headers.get("content-type", "")):
+            raise not_the_api(self.url, r.status_code, r.headers)
+
     def request(self, method: str, path: str, **kw: Any) -> httpx.Response:
         """One request under ``/api/v1``; a typed :class:`SvrobsError` for any HTTP error
-        status, :class:`ConnectionFailed` when the server cannot be reached."""
+        status or a redirect, :class:`ConnectionFailed` when the server cannot be reached."""
         try:
             r = self._http.request(method, path, **kw)
         except httpx.HTTPError as exc:
             raise ConnectionFailed(f"cannot reach {self.url}: {exc}") from None
-        if r.status_code >= 400:
-            raise error_from_response(r.status_code, r.content, r.headers)
+        self._check(r, data=False)
         return r
+
+    def request_json(self, method: str, path: str, **kw: Any) -> Any:
+        """:meth:`request`, and its JSON body; a :class:`SvrobsError` when the body is not
+        JSON (the server is not the API)."""
+        r = self.request(method, path, **kw)
+        if "json" not in r.headers.get("content-type", ""):
+            raise not_the_api(self.url, r.status_code, r.headers)
+        try:
+            return r.json()
+        except ValueError:
+            raise not_the_api(self.url, r.status_code, r.headers) from None
 
     @contextmanager
     def _stream(self, path: str, params: dict[str, Any]) -> Iterator[httpx.Response]:
+        """A streamed GET of data (records, a file): errors as :meth:`request`'s, an HTML
+        page too; a connection lost mid-answer is :class:`ConnectionFailed` saying so."""
+        answered = False
         try:
             with self._http.stream("GET", path, params=params) as r:
-                if r.status_code >= 400:
-                    r.read()
-                    raise error_from_response(r.status_code, r.content, r.headers)
+                self._check(r, data=True)
+                answered = True
                 yield r
         except httpx.HTTPError as exc:
-            raise ConnectionFailed(f"cannot reach {self.url}: {exc}") from None
+            what = "lost the connection to" if answered else "cannot reach"
+            raise ConnectionFailed(f"{what} {self.url}: {exc}") from None
 
     # ------------------------------------------------------------------ jobs
     def submit(
@@ -161,7 +180,7 @@ class Client(DatasetCalls):
                 [tags] if isinstance(tags, str) else list(tags)
             )
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
-        job = Job.from_json(self.request("POST", "/jobs", json=body, headers=headers).json())
+        job = Job.from_json(self.request_json("POST", "/jobs", json=body, headers=headers))
         if wait:
             job = self.wait(job, progress=progress, timeout=timeout)
         return job
@@ -215,9 +234,9 @@ class Client(DatasetCalls):
     ) -> JobPage:
         """The team's jobs, newest first; ``owner`` is an email or ``"me"``."""
         params = {"status": status, "tag": tag, "owner": owner, "limit": limit, "offset": offset}
-        body = self.request(
+        body = self.request_json(
             "GET", "/jobs", params={k: v for k, v in params.items() if v is not None}
-        ).json()
+        )
         return JobPage(
             items=[Job.from_json(j) for j in body["items"]],
             total=body["total"],
@@ -227,18 +246,18 @@ class Client(DatasetCalls):
 
     def job(self, job: Job | int) -> Job:
         """One job (status, progress, timings, provenance, error)."""
-        return Job.from_json(self.request("GET", f"/jobs/{_id(job)}").json())
+        return Job.from_json(self.request_json("GET", f"/jobs/{ident(job)}"))
 
     def cancel(self, job: Job | int) -> Job:
         """Cancel a queued or running job (its units not yet started never run);
         :class:`Conflict` if it already succeeded or failed."""
-        return Job.from_json(self.request("POST", f"/jobs/{_id(job)}/cancel").json())
+        return Job.from_json(self.request_json("POST", f"/jobs/{ident(job)}/cancel"))
 
     def delete(self, job: Job | int) -> None:
         """Delete a job with its results and summaries (``DELETE /jobs/{id}``);
         :class:`Conflict` while it runs; :class:`MethodNotAllowed` on a server without
         the route."""
-        self.request("DELETE", f"/jobs/{_id(job)}")
+        self.request("DELETE", f"/jobs/{ident(job)}")
 
     # ------------------------------------------------------------------ results
     def iter_results(
@@ -254,7 +273,7 @@ class Client(DatasetCalls):
         (``rmse_A_lt=0.01``); ``limit`` / ``offset``. An unknown name is a TypeError,
         a bad value a ValueError, before any request (:mod:`svrobs_client.params`)."""
         params = {**results_params(filters, sort), "format": "jsonl"}
-        with self._stream(f"/jobs/{_id(job)}/results", params) as r:
+        with self._stream(f"/jobs/{ident(job)}/results", params) as r:
             for line in r.iter_lines():
                 if line.strip():
                     yield json.loads(line)
@@ -294,7 +313,7 @@ class Client(DatasetCalls):
             if format == "json":
                 yield json.dumps(self.results_records(job, sort=sort, **filters)) + "\n"
                 return
-            with self._stream(f"/jobs/{_id(job)}/results", params) as r:
+            with self._stream(f"/jobs/{ident(job)}/results", params) as r:
                 yield from r.iter_text()
 
         if hasattr(out, "write"):
@@ -306,12 +325,12 @@ class Client(DatasetCalls):
     def summary_json(self, job: Job | int, *, page_size: int = 10_000) -> dict[str, Any]:
         """``GET /jobs/{id}/summary`` as the API sends it, every page's groups in one
         body (pages of ``page_size`` groups; the API sends at most 10,000 a request)."""
-        path = f"/jobs/{_id(job)}/summary"
-        body = _object(self.request("GET", path, params={"limit": page_size}))
+        path = f"/jobs/{ident(job)}/summary"
+        body: dict[str, Any] = self.request_json("GET", path, params={"limit": page_size})
         groups = list(body["groups"])
         while groups and len(groups) < body["total"]:
             params = {"limit": page_size, "offset": len(groups)}
-            page = _object(self.request("GET", path, params=params))
+            page = self.request_json("GET", path, params=params)
             if not page["groups"]:  # a running job's groups changed meanwhile
                 break
             groups += page["groups"]
@@ -331,10 +350,11 @@ class Client(DatasetCalls):
     ) -> dict[str, Any]:
         """``GET /compare`` as the API sends it."""
         by = by if isinstance(by, str) else ",".join(by)
-        ids = ",".join(str(_id(j)) for j in jobs)
-        return _object(
-            self.request("GET", "/compare", params={"jobs": ids, "metric": metric, "by": by})
+        ids = ",".join(str(ident(j)) for j in jobs)
+        data: dict[str, Any] = self.request_json(
+            "GET", "/compare", params={"jobs": ids, "metric": metric, "by": by}
         )
+        return data
 
     def compare(
         self,
@@ -348,7 +368,7 @@ class Client(DatasetCalls):
 
     def report_html(self, job: Job | int) -> str:
         """The job's HTML report (tables, embedded figures, spec, provenance, findings)."""
-        return self.request("GET", f"/jobs/{_id(job)}/report", timeout=300).text
+        return self.request("GET", f"/jobs/{ident(job)}/report", timeout=300).text
 
     def report(
         self, job: Job | int, folder: str | os.PathLike[str], *, figures: bool = True
@@ -379,21 +399,20 @@ class Client(DatasetCalls):
         body: dict[str, Any] = {"days": days}
         if label is not None:
             body["label"] = label
-        r = self.request("POST", f"/jobs/{_id(job)}/shares", json=body)
-        return Share.from_json(r.json())
+        return Share.from_json(self.request_json("POST", f"/jobs/{ident(job)}/shares", json=body))
 
     def shares(self, job: Job | int) -> list[Share]:
         """The job's share links, newest first (without their URLs: tokens are not kept)."""
-        return [Share.from_json(s) for s in self.request("GET", f"/jobs/{_id(job)}/shares").json()]
+        return [Share.from_json(s) for s in self.request_json("GET", f"/jobs/{ident(job)}/shares")]
 
     def revoke_share(self, share: Share | int) -> None:
         """Revoke a link: opening it is a 404 from now on (revoking twice is harmless)."""
-        self.request("DELETE", f"/shares/{_id(share)}")
+        self.request("DELETE", f"/shares/{ident(share)}")
 
     # ------------------------------------------------------------------ presets
     def presets(self) -> list[dict[str, Any]]:
         """The system presets (name, matrices, noise levels) a spec may name."""
-        presets: list[dict[str, Any]] = self.request("GET", "/presets").json()
+        presets: list[dict[str, Any]] = self.request_json("GET", "/presets")
         return presets
 
     def run_paper_preset(
@@ -412,8 +431,8 @@ class Client(DatasetCalls):
         if experiments is not None:
             body["experiments"] = list(experiments)
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
-        out = self.request("POST", f"/presets/{PAPER_PRESET}/run", json=body, headers=headers)
-        jobs = [Job.from_json(j) for j in out.json()]
+        out = self.request_json("POST", f"/presets/{PAPER_PRESET}/run", json=body, headers=headers)
+        jobs = [Job.from_json(j) for j in out]
         if wait:
             jobs = [self.wait(j, progress=progress) for j in jobs]
         return jobs
@@ -421,10 +440,10 @@ class Client(DatasetCalls):
     # ------------------------------------------------------------------ schedules
     def schedules(self) -> list[Schedule]:
         """The team's schedules."""
-        return [Schedule.from_json(s) for s in self.request("GET", "/schedules").json()]
+        return [Schedule.from_json(s) for s in self.request_json("GET", "/schedules")]
 
     def schedule(self, schedule: Schedule | int) -> Schedule:
-        return Schedule.from_json(self.request("GET", f"/schedules/{_id(schedule)}").json())
+        return Schedule.from_json(self.request_json("GET", f"/schedules/{ident(schedule)}"))
 
     def create_schedule(
         self,
@@ -454,7 +473,7 @@ class Client(DatasetCalls):
             "seed_policy": seed_policy,
             **extra,
         }
-        return Schedule.from_json(self.request("POST", "/schedules", json=body).json())
+        return Schedule.from_json(self.request_json("POST", "/schedules", json=body))
 
     def update_schedule(self, schedule: Schedule | int, **changes: Any) -> Schedule:
         """Change any of ``name``, ``cron``, ``timezone``, ``spec_template``, ``tags``,
@@ -463,8 +482,9 @@ class Client(DatasetCalls):
             _check_seed_policy(changes["seed_policy"])
         if "spec_template" in changes:
             changes["spec_template"] = _load_json(changes["spec_template"])
-        r = self.request("PATCH", f"/schedules/{_id(schedule)}", json=changes)
-        return Schedule.from_json(r.json())
+        return Schedule.from_json(
+            self.request_json("PATCH", f"/schedules/{ident(schedule)}", json=changes)
+        )
 
     def enable_schedule(self, schedule: Schedule | int) -> Schedule:
         return self.update_schedule(schedule, enabled=True)
@@ -474,9 +494,9 @@ class Client(DatasetCalls):
 
     def delete_schedule(self, schedule: Schedule | int) -> None:
         """Delete a schedule (its jobs stay)."""
-        self.request("DELETE", f"/schedules/{_id(schedule)}")
+        self.request("DELETE", f"/schedules/{ident(schedule)}")
 
     def schedule_runs(self, schedule: Schedule | int) -> list[ScheduleRun]:
         """The due times already turned into jobs, newest first (last 100)."""
-        r = self.request("GET", f"/schedules/{_id(schedule)}/runs")
-        return [ScheduleRun.from_json(x) for x in r.json()]
+        runs = self.request_json("GET", f"/schedules/{ident(schedule)}/runs")
+        return [ScheduleRun.from_json(x) for x in runs]

@@ -19,17 +19,10 @@ from pathlib import Path
 from typing import IO, Any
 
 from .files import write_atomic
-from .models import Dataset, DatasetPage
+from .models import Dataset, DatasetPage, ident
 
 MODEL_FORMATS = ("json", "npz", "mat")
 _MATRICES = ("A_hat", "B_hat", "C", "radii_A", "radii_B", "L", "K")
-
-
-def _ident(obj: object) -> int:
-    value = getattr(obj, "id", obj)
-    if isinstance(value, bool) or not isinstance(value, (int, str)):
-        raise TypeError(f"expected a dataset/job or its id, got {type(obj).__name__}")
-    return int(value)
 
 
 def _names(value: str | Sequence[str] | None) -> str | None:
@@ -101,6 +94,7 @@ class DatasetCalls:
     """Datasets, model exports and system files (methods of :class:`Client`)."""
 
     request: Any  # Client.request
+    request_json: Any
     _stream: Any
 
     # ------------------------------------------------------------------ datasets
@@ -139,26 +133,28 @@ class DatasetCalls:
             path = Path(source)
             with path.open("rb") as fh:
                 files = {"file": (filename or path.name, fh, "application/octet-stream")}
-                r = self.request("POST", "/datasets", files=files, data=data, timeout=timeout)
+                body = self.request_json(
+                    "POST", "/datasets", files=files, data=data, timeout=timeout
+                )
         else:
             if _is_frame(source):
-                body, default = source.to_csv(index=False).encode(), "dataset.csv"
+                content, default = source.to_csv(index=False).encode(), "dataset.csv"
             elif hasattr(source, "read"):
-                body, default = source, "dataset"
+                content, default = source, "dataset"
             elif isinstance(source, tuple) and len(source) == 2:
-                body, default = _npz_of_arrays(*source), "dataset.npz"
+                content, default = _npz_of_arrays(*source), "dataset.npz"
             else:
                 raise TypeError(
                     "source is a path, a binary file, (X, U) arrays or a pandas DataFrame, "
                     f"not {type(source).__name__}"
                 )
-            files = {"file": (filename or default, body, "application/octet-stream")}
-            r = self.request("POST", "/datasets", files=files, data=data, timeout=timeout)
-        return Dataset.from_json(r.json())
+            files = {"file": (filename or default, content, "application/octet-stream")}
+            body = self.request_json("POST", "/datasets", files=files, data=data, timeout=timeout)
+        return Dataset.from_json(body)
 
     def datasets(self, *, limit: int = 50, offset: int = 0) -> DatasetPage:
         """The team's datasets, newest first (without lengths and statistics)."""
-        body = self.request("GET", "/datasets", params={"limit": limit, "offset": offset}).json()
+        body = self.request_json("GET", "/datasets", params={"limit": limit, "offset": offset})
         return DatasetPage(
             items=[Dataset.from_json(d) for d in body["items"]],
             total=body["total"],
@@ -168,18 +164,18 @@ class DatasetCalls:
 
     def dataset(self, dataset: Dataset | int) -> Dataset:
         """One dataset with every rollout's length and the per-channel statistics."""
-        return Dataset.from_json(self.request("GET", f"/datasets/{_ident(dataset)}").json())
+        return Dataset.from_json(self.request_json("GET", f"/datasets/{ident(dataset)}"))
 
     def delete_dataset(self, dataset: Dataset | int) -> None:
         """Delete a dataset; :class:`Conflict` (naming them) while jobs use it."""
-        self.request("DELETE", f"/datasets/{_ident(dataset)}")
+        self.request("DELETE", f"/datasets/{ident(dataset)}")
 
     def download_dataset(
         self, dataset: Dataset | int, out: str | os.PathLike[str] | IO[bytes] | None = None
     ) -> bytes | Path | IO[bytes]:
         """The file as uploaded: its bytes, or written to ``out`` (a path, written whole
         or not at all; a folder: the upload's file name in it; a binary stream)."""
-        return self._download(f"/datasets/{_ident(dataset)}/file", {}, out)
+        return self._download(f"/datasets/{ident(dataset)}/file", {}, out)
 
     def _download(
         self, path: str, params: dict[str, Any], out: str | os.PathLike[str] | IO[bytes] | None
@@ -215,7 +211,7 @@ class DatasetCalls:
         params: dict[str, Any] = {"format": format}
         if cell is not None:
             params["cell"] = cell if isinstance(cell, str) else json.dumps(dict(cell))
-        return self._download(f"/jobs/{_ident(job)}/model", params, out)
+        return self._download(f"/jobs/{ident(job)}/model", params, out)
 
     def model_data(self, job: object, cell: str | Mapping[str, Any] | None = None) -> Model:
         """One job cell's model as numpy arrays (read from its NPZ export)."""
@@ -258,7 +254,7 @@ class DatasetCalls:
         """A dataset job's validation on its held-out rollouts, as the API sends it
         (``GET /jobs/{id}/validation``): per estimator and gamma the fitted model, the
         fit, whiteness and cross-correlation statistics; the excitation check."""
-        body: dict[str, Any] = self.request("GET", f"/jobs/{_ident(job)}/validation").json()
+        body: dict[str, Any] = self.request_json("GET", f"/jobs/{ident(job)}/validation")
         return body
 
     # ------------------------------------------------------------------ systems
@@ -272,9 +268,9 @@ class DatasetCalls:
         with path.open("rb") as fh:
             files = {"file": (path.name, fh, "application/octet-stream")}
             data = {"name": name} if name else {}
-            system: dict[str, Any] = self.request(
+            system: dict[str, Any] = self.request_json(
                 "POST", "/systems/from-file", files=files, data=data
-            ).json()
+            )
             return system
 
 

@@ -3,7 +3,9 @@
 Every error the client raises is a :class:`SvrobsError`; an HTTP error carries the
 ``status`` code, the offending ``field`` (``None`` when the API names none) and the
 ``message`` (the API's ``detail``). Transport and configuration problems have
-``status`` ``None``.
+``status`` ``None``. An answer that is not the API's (a redirect, an HTML page where
+the API sends data: the URL is not the API's address) is a :class:`SvrobsError` itself,
+with the answer's ``status``.
 """
 
 from __future__ import annotations
@@ -42,7 +44,8 @@ class SvrobsError(Exception):
 
 
 class ConfigError(SvrobsError):
-    """No API key configured, or an unreadable config file."""
+    """No API key configured, a key or server URL that cannot be one, or an unreadable
+    config file."""
 
 
 class ConnectionFailed(SvrobsError, ConnectionError):
@@ -122,9 +125,43 @@ def _message(detail: Any) -> str:
     return "" if detail is None else str(detail)
 
 
-def error_from_response(status: int, body: bytes, headers: Mapping[str, str]) -> SvrobsError:
+def _is_html(body: bytes, headers: Mapping[str, str]) -> bool:
+    return "html" in headers.get("content-type", "") or body.lstrip()[:1] == b"<"
+
+
+def _page_text(body: bytes) -> str:
+    """The words of an HTML page (no head, scripts or tags), at most 200 characters."""
+    import html
+    import re
+
+    page = body[:20_000].decode("utf-8", "replace")
+    page = re.sub(r"(?is)<(head|script|style)\b.*?</\1\s*>", " ", page)
+    words = " ".join(html.unescape(re.sub(r"(?s)<[^>]*>", " ", page)).split())
+    return words[:200]
+
+
+def not_the_api(url: str, status: int, headers: Mapping[str, str]) -> SvrobsError:
+    """The error of an answer that is no answer of the API: a redirect, an HTML page or a
+    body that is not JSON where the API sends data (``url`` is not the API's address)."""
+    if 300 <= status < 400:
+        where = headers.get("location")
+        what = f"a redirect (HTTP {status})" + (f" to {where}" if where else "")
+    elif _is_html(b"", headers):
+        what = f"an HTML page (HTTP {status})"
+    else:
+        kind = headers.get("content-type") or "no content type"
+        what = f"HTTP {status} and a body that is not the API's JSON ({kind})"
+    return SvrobsError(
+        f"{url} is not the svrobs API's address: it answered with {what}", status=status
+    )
+
+
+def error_from_response(
+    status: int, body: bytes, headers: Mapping[str, str], *, url: str | None = None
+) -> SvrobsError:
     """The typed error of an HTTP error response (JSON ``{"detail", "field"}`` when the
-    API sent it; the start of the body otherwise)."""
+    API sent it; the words of an HTML page, e.g. a proxy's, or the start of the body
+    otherwise). ``url`` is the server's, named in the message of an HTML page."""
     import json
 
     field, errors = None, None
@@ -136,6 +173,11 @@ def error_from_response(status: int, body: bytes, headers: Mapping[str, str]) ->
         message = _message(data.get("detail"))
         field = data.get("field") if isinstance(data.get("field"), str) else None
         errors = data.get("errors") if isinstance(data.get("errors"), list) else None
+    elif _is_html(body, headers):
+        message = (
+            f"{url or 'the server'} answered HTTP {status} with an HTML page, not the "
+            f"svrobs API's JSON: {_page_text(body)}"
+        )
     else:
         message = " ".join(body[:300].decode("utf-8", "replace").split())
     message = message or f"HTTP {status}"

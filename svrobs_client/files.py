@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -13,17 +14,39 @@ def writer(data: bytes) -> Callable[[IO[bytes]], object]:
     return lambda f: f.write(data)
 
 
+def _cannot_write(path: Path, exc: OSError) -> OSError:
+    """``exc`` as an error naming ``path`` (not a temporary file) and why in plain words:
+    a folder on the way that is a file, ``path`` itself a folder, or the system's reason."""
+    for folder in path.parents:  # the nearest that exists decides
+        if folder.exists():
+            if not folder.is_dir():
+                message = f"cannot write {path}: {folder} is not a folder"
+                return NotADirectoryError(errno.ENOTDIR, message)
+            break
+    if path.is_dir():
+        return IsADirectoryError(errno.EISDIR, f"cannot write {path}: it is a folder")
+    reason = exc.strerror or str(exc)
+    return type(exc)(exc.errno, f"cannot write {path}: {reason}")
+
+
 def write_atomic(path: Path, write: Callable[[IO[bytes]], object]) -> None:
     """Write through ``write(file)`` into a temporary file beside ``path``, then rename it:
-    ``path`` appears complete or not at all."""
+    ``path`` appears complete or not at all. The folder is made if needed; an OSError
+    that it or the file cannot be made names ``path`` (:func:`_cannot_write`)."""
     import tempfile
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    except OSError as exc:
+        raise _cannot_write(path, exc) from None
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, path)
+        except OSError as exc:
+            raise _cannot_write(path, exc) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

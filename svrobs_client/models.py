@@ -14,6 +14,18 @@ _T = TypeVar("_T")
 TERMINAL = ("succeeded", "failed", "cancelled")
 
 
+def ident(obj: object) -> int:
+    """The id of a Job, Schedule, Share or Dataset, or an id given as an int or a string
+    of digits; a TypeError or ValueError (saying so) for anything else."""
+    value = getattr(obj, "id", obj)
+    if isinstance(value, bool) or not isinstance(value, (int, str)):
+        raise TypeError(f"expected an id or an object with one, got {type(obj).__name__}")
+    try:
+        return int(value)
+    except ValueError:
+        raise ValueError(f"{value!r} is not an id: ids are whole numbers") from None
+
+
 def _time(value: str | None) -> datetime | None:
     if not value:
         return None

@@ -1,5 +1,6 @@
 """Running the ``svrobs`` CLI in tests: in process through the console-script entry (so
-errors are one line and exit status 2, as for a user), or as a real process."""
+errors are one line and exit status 2, as for a user), or as a real process; and a
+fake API in process (:func:`fake_api`) for answers no svrobs server gives."""
 
 from __future__ import annotations
 
@@ -7,6 +8,9 @@ import os
 import subprocess
 import sys
 
+import httpx
+
+import svrobs_client.client
 from svrobs_cli.app import app
 from tests.integration.stack import ROOT
 
@@ -32,4 +36,14 @@ def run_process(stack, *args, timeout: float = 200) -> subprocess.CompletedProce
         text=True,
         timeout=timeout,
         check=False,
+    )
+
+
+def fake_api(monkeypatch, handler) -> None:
+    """Every ``svrobs_client.Client`` made from here on sends its requests to
+    ``handler(request) -> httpx.Response`` in this process (no server)."""
+    real = httpx.Client
+    transport = httpx.MockTransport(handler)
+    monkeypatch.setattr(
+        svrobs_client.client.httpx, "Client", lambda **kw: real(transport=transport, **kw)
     )

@@ -12,8 +12,9 @@ import pytest
 
 from svrobs_cli.errors import plain_field
 from svrobs_cli.rest import fmt
-from tests.client.cli_helpers import run_cli, run_process
+from tests.client.cli_helpers import fake_api, run_cli, run_process
 from tests.client.test_client import QUICK, SPEC
+from tests.client.test_progress_errors import URL, _html
 from tests.integration.stack import fetch_jsonl, free_port
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
@@ -364,6 +365,98 @@ def test_errors_are_one_line(stack, run, spec_file, tmp_path, http, monkeypatch)
     _fails(run("status"), "error: no API key")
     proc = run_process(stack, "status", 999_999, timeout=60)
     assert proc.returncode == 2 and proc.stderr == "error: job 999999 not found\n"
+
+
+def _offline(capsys, monkeypatch, handler=None):
+    """``run(*args)`` as the ``run`` fixture's, its requests sent to ``handler`` in this
+    process (:func:`fake_api`); no server."""
+    monkeypatch.setenv("SVROBS_URL", URL)
+    monkeypatch.setenv("SVROBS_API_KEY", "svr_k")
+    monkeypatch.setenv("SVROBS_CONFIG", os.devnull)
+    if handler is not None:
+        fake_api(monkeypatch, handler)
+    return lambda *args: run_cli(capsys, *args)
+
+
+def test_command_lines_that_do_not_parse_are_one_line(capsys, monkeypatch):
+    """An unknown command or option, a missing argument, a job id that is not a number:
+    one line naming it and the help to read, exit status 2 (not click's usage box)."""
+    run = _offline(capsys, monkeypatch)
+    for args, message in [
+        (("status", "abc"), "error: Invalid value for 'job': Input should be a valid integer"),
+        (("nosuch",), "error: No such command 'nosuch' (see "),
+        (("status", "--bogus"), "error: No such option: --bogus (see "),
+        (("results",), "error: Missing argument 'job' (see "),
+        (("schedules", "show", "x"), "error: Invalid value for 'schedule': "),
+        (("datasets", "upload", "f.csv"), "error: Missing option '--name' (see "),
+    ]:
+        result = run(*args)
+        _fails(result, message)
+        assert result[2].endswith(" --help)\n")
+    assert run("status", "abc")[2].endswith(" status --help)\n")
+    assert run("--help")[0] == 0 and "Usage:" in run("schedules")[1]  # help, as asked
+
+
+def test_files_that_cannot_be_read_or_written(capsys, monkeypatch, tmp_path):
+    """A spec that is not text or not YAML, a folder given as a file, an output path
+    under a file or on a folder, an id that is not a number: one line naming it."""
+
+    def api(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/results"):
+            return httpx.Response(200, text="N\n10\n", headers={"content-type": "text/csv"})
+        return httpx.Response(200, json={"models": [], "excitation": {}, "notes": []})
+
+    run = _offline(capsys, monkeypatch, api)
+    binary, yaml, folder = tmp_path / "bin.json", tmp_path / "bad.yaml", tmp_path / "folder"
+    binary.write_bytes(b"\xff\xfe{")
+    yaml.write_text("a: [1\n")
+    folder.mkdir()
+    for args, message in [
+        (("submit", binary), f"cannot read {binary}: not a text file (not UTF-8)"),
+        (
+            ("submit", yaml),
+            f"{yaml}: not valid YAML: expected ',' or ']', but got '<stream end>' at line 2, "
+            "column 1",
+        ),
+        (("run-local", folder), f"cannot read {folder}: Is a directory"),
+        (("datasets", "upload", folder, "--name", "x"), f"cannot read {folder}: a folder"),
+        (("systems", "from-file", folder), f"cannot read {folder}: a folder"),
+        (
+            ("results", 1, "--out", binary / "r.csv"),
+            f"cannot write {binary / 'r.csv'}: {binary} is not a folder",
+        ),
+        (("results", 1, "--out", folder), f"cannot write {folder}: it is a folder"),
+        (
+            ("validation", 1, "--out", binary / "v.json"),
+            f"cannot write {binary / 'v.json'}: {binary} is not a folder",
+        ),
+        (("compare", "--jobs", "1,abc"), "'abc' is not an id: ids are whole numbers"),
+    ]:
+        _fails(run(*args), f"error: {message}\n")
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["bad.yaml", "bin.json", "folder"]
+
+
+def test_a_server_that_is_not_the_api_or_a_url_or_key_that_cannot_be(capsys, monkeypatch, tmp_path):
+    """SVROBS_URL on a plain web server (an HTML page, a redirect: no empty export
+    written as a success), not http(s), or a key no key can be: one line saying so."""
+    run = _offline(capsys, monkeypatch, _html)
+    _fails(
+        run("status"),
+        f"error: {URL} is not the svrobs API's address: it answered with an HTML page (HTTP 200)\n",
+    )
+    _fails(
+        run("results", 1, "--out", tmp_path / "r.csv"),
+        f"error: {URL} is not the svrobs API's address: it answered with a redirect (HTTP 301)"
+        " to /api/v1/jobs/1/results/\n",
+    )
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.setenv("SVROBS_URL", "ftp://svrobs.test")
+    _fails(
+        run("status"), "error: SVROBS_URL: 'ftp://svrobs.test' is not an http:// or https:// URL\n"
+    )
+    monkeypatch.setenv("SVROBS_URL", URL)
+    monkeypatch.setenv("SVROBS_API_KEY", "svr_\u00e9")
+    _fails(run("status"), "error: SVROBS_API_KEY: the API key has a space, a line break or")
 
 
 @pytest.mark.parametrize(

@@ -1,5 +1,7 @@
 """Which progress bar the client draws where, and errors from bodies that are not the
-API's JSON (a proxy's HTML page, a Retry-After header). No server needed."""
+API's JSON (a proxy's HTML page, a Retry-After header), from servers that are not the
+API, from connections lost mid-answer, from a URL or key that cannot be one and from
+files that cannot be read or written. No server needed (a fake API in process)."""
 
 from __future__ import annotations
 
@@ -7,9 +9,21 @@ import io
 import sys
 import types
 
+import httpx
 import pytest
 
-from svrobs_client import errors, progress
+from svrobs_client import (
+    Client,
+    ConfigError,
+    ConnectionFailed,
+    NotFound,
+    SvrobsError,
+    errors,
+    progress,
+)
+from tests.client.cli_helpers import fake_api
+
+URL = "http://svrobs.test"
 
 
 class _Tty(io.StringIO):
@@ -71,7 +85,11 @@ def test_errors_from_other_bodies():
     page = b"<html><body><h1>502 Bad Gateway</h1>\n</body></html>"
     err = errors.error_from_response(502, page, {})
     assert type(err) is errors.ServerError and err.status == 502 and err.field is None
-    assert err.message == "<html><body><h1>502 Bad Gateway</h1> </body></html>"
+    assert err.message == (
+        "the server answered HTTP 502 with an HTML page, not the svrobs API's JSON: 502 Bad Gateway"
+    )
+    err = errors.error_from_response(503, b"Service Unavailable", {"content-type": "text/plain"})
+    assert type(err) is errors.Unavailable and err.message == "Service Unavailable"
     err = errors.error_from_response(429, b'{"detail": "slow down", "field": null}', {})
     assert isinstance(err, errors.RateLimited) and err.retry_after is None
     err = errors.error_from_response(429, b'{"detail": "slow down"}', {"retry-after": "12"})
@@ -85,3 +103,130 @@ def test_errors_from_other_bodies():
     )
     with pytest.raises(errors.SvrobsError):
         raise errors.Unavailable("database down", status=503)
+
+
+PAGE = (
+    b"<!DOCTYPE html><html><head><title>Index</title></head><body><h1>Directory</h1></body></html>"
+)
+
+
+def _html(request: httpx.Request) -> httpx.Response:
+    """A plain web server (``python -m http.server``): pages, a 404 page, and a redirect
+    from a folder without its slash."""
+    html = {"content-type": "text/html"}
+    if request.url.path.endswith("/results"):
+        return httpx.Response(301, headers={"location": request.url.path + "/"})
+    if request.url.path.endswith("/summary"):
+        page = b"<html><body><p>Error code: 404</p><p>Message: File not found.</p></body></html>"
+        return httpx.Response(404, content=page, headers=html)
+    if request.url.path.endswith("/jobs/2"):
+        return httpx.Response(200, content=b"ok", headers={"content-type": "text/plain"})
+    return httpx.Response(200, content=PAGE, headers=html)
+
+
+def test_answers_of_a_server_that_is_not_the_api(monkeypatch, tmp_path):
+    """An HTML page, a redirect or a body that is not JSON is a SvrobsError naming the URL
+    (not a JSONDecodeError, nor an empty export reported as written)."""
+    fake_api(monkeypatch, _html)
+    with Client(URL, "svr_k") as c:
+        with pytest.raises(SvrobsError, match="is not the svrobs API's address") as e:
+            c.jobs()
+        assert type(e.value) is SvrobsError and e.value.status == 200
+        assert e.value.message == (
+            f"{URL} is not the svrobs API's address: it answered with an HTML page (HTTP 200)"
+        )
+        with pytest.raises(SvrobsError, match=r"a body that is not the API's JSON \(text/plain"):
+            c.job(2)
+        with pytest.raises(
+            SvrobsError, match=r"a redirect \(HTTP 301\) to /api/v1/jobs/1/results/"
+        ):
+            c.download_results(1, tmp_path / "r.csv")
+        with pytest.raises(SvrobsError, match="an HTML page"):
+            c.download_dataset(1, tmp_path / "d.csv")
+        with pytest.raises(NotFound) as e:
+            c.summary_json(1)
+        assert e.value.message == (
+            f"{URL} answered HTTP 404 with an HTML page, not the svrobs API's JSON: "
+            "Error code: 404 Message: File not found."
+        )
+    assert list(tmp_path.iterdir()) == []
+
+
+class _Cut(httpx.SyncByteStream):
+    """Two lines of records, then the connection is gone."""
+
+    def __iter__(self):
+        yield b'{"N": 10}\n{"N": 20}\n{"N'
+        raise httpx.ReadError("connection reset by peer")
+
+
+def test_a_connection_lost_mid_answer(monkeypatch, tmp_path):
+    """The server gone mid-results or between two pages of a summary: ConnectionFailed
+    saying which, and no file."""
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith("/results"):
+            return httpx.Response(200, stream=_Cut(), headers={"content-type": "text/csv"})
+        if "offset" in request.url.params:
+            raise httpx.ConnectError("connection refused")
+        body = {"job_id": 1, "groups": [{"N": 10}], "total": 2, "partial": False}
+        return httpx.Response(200, json=body)
+
+    fake_api(monkeypatch, handler)
+    with Client(URL, "svr_k") as c:
+        with pytest.raises(ConnectionFailed, match=f"^lost the connection to {URL}: conn"):
+            c.results_records(1)
+        with pytest.raises(ConnectionFailed, match="^lost the connection"):
+            c.download_results(1, tmp_path / "r.csv")
+        with pytest.raises(ConnectionFailed, match=f"^cannot reach {URL}: connection refused"):
+            c.summary_json(1)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "url, key, message",
+    [
+        ("ftp://svrobs.test", "svr_k", "the url argument: 'ftp://svrobs.test' is not an http"),
+        ("svrobs.test:8000", "svr_k", "the url argument: 'svrobs.test:8000' is not an http"),
+        ("http://[::1", "svr_k", "the url argument: 'http://[::1' is not an http"),
+        (URL, "svr_é", "the api_key argument: the API key has a space, a line break or"),
+        (URL, "svr_a\nb", "the api_key argument: the API key has a space, a line break or"),
+    ],
+)
+def test_a_url_or_key_that_cannot_be_one(url, key, message):
+    with pytest.raises(ConfigError) as e:
+        Client(url, key)
+    assert e.value.message.startswith(message) and e.value.status is None
+
+
+def test_ids_spec_files_and_output_paths_are_named(monkeypatch, tmp_path):
+    """An id that is not a number, a spec file that is not JSON and an output path that
+    cannot be written: errors that say so, naming the value or the path."""
+    fake_api(monkeypatch, lambda r: httpx.Response(200, text="N\n10\n"))
+    (tmp_path / "bin.json").write_bytes(b"\xff\xfe{")
+    (tmp_path / "bad.json").write_text("{not json")
+    (tmp_path / "folder").mkdir()
+    with Client(URL, "svr_k") as c:
+        with pytest.raises(ValueError, match="^'abc' is not an id: ids are whole numbers$"):
+            c.job("abc")
+        with pytest.raises(ValueError, match=r"bin.json: not a JSON file \(not UTF-8 text\)$"):
+            c.submit(tmp_path / "bin.json")
+        with pytest.raises(ValueError, match="bad.json: not valid JSON: Expecting property"):
+            c.submit(tmp_path / "bad.json")
+        with pytest.raises(NotADirectoryError) as e:
+            c.download_results(1, tmp_path / "bad.json" / "r.csv")
+        assert e.value.strerror == (
+            f"cannot write {tmp_path / 'bad.json' / 'r.csv'}: {tmp_path / 'bad.json'} is not a folder"
+        )
+        with pytest.raises(IsADirectoryError) as e:
+            c.download_results(1, tmp_path / "folder")
+        assert e.value.strerror == f"cannot write {tmp_path / 'folder'}: it is a folder"
+        c.download_results(1, tmp_path / "new" / "r.csv")  # a missing folder is made
+    assert (tmp_path / "new" / "r.csv").read_text() == "N\n10\n"
+    assert sorted(p.name for p in tmp_path.rglob("*")) == [
+        "bad.json",
+        "bin.json",
+        "folder",
+        "new",
+        "r.csv",
+    ]
