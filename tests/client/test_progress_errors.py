@@ -230,3 +230,30 @@ def test_ids_spec_files_and_output_paths_are_named(monkeypatch, tmp_path):
         "new",
         "r.csv",
     ]
+
+
+def test_a_written_file_has_the_permissions_of_one_written_in_place(tmp_path):
+    """The temporary file is private (mkstemp: 0600); the file it becomes has the
+    umask's permissions, or keeps those of the file it replaces."""
+    import os
+    import stat
+
+    from svrobs_client.files import write_atomic, writer
+
+    def mode(p):
+        return stat.S_IMODE(p.stat().st_mode)
+
+    old = os.umask(0o022)
+    try:
+        write_atomic(tmp_path / "new.json", writer(b"{}"))
+        assert mode(tmp_path / "new.json") == 0o644
+        os.umask(0o077)
+        write_atomic(tmp_path / "private.json", writer(b"{}"))
+        assert mode(tmp_path / "private.json") == 0o600
+        (tmp_path / "kept.csv").write_bytes(b"a")
+        (tmp_path / "kept.csv").chmod(0o640)
+        write_atomic(tmp_path / "kept.csv", writer(b"b"))
+        assert mode(tmp_path / "kept.csv") == 0o640
+        assert (tmp_path / "kept.csv").read_bytes() == b"b"
+    finally:
+        os.umask(old)
