@@ -21,13 +21,14 @@ from sqlalchemy.orm import Session
 
 from service.db import cells
 from service.db import datasets as dataset_store
-from service.db.models import Job
+from service.db.models import JOB_ACTIVE, Job
 from svrobs_core import parse_spec
 from svrobs_core.errors import SpecError
 from svrobs_core.measured import SIGMA_W_ESTIMATED
 from svrobs_core.records import json_value
 from svrobs_core.systems import resolve_system
 
+from ..errors import Conflict
 from ..params import int32_problem, number_problem
 from .parsed import name_refused, printable, shown
 
@@ -104,14 +105,15 @@ def _coordinate(key: str, value):
 
 def find_cell(session: Session, job: Job, cell: str | dict | None) -> dict:
     """The record of the job's one cell at ``cell``; SpecError('cell') when none or
-    several match (naming the coordinates that still vary)."""
+    several match (naming the coordinates that still vary), Conflict('cell') when none
+    matches and the job is queued or running (its cells are not all computed)."""
     coords = parse_cell(cell)
     if job.pruned_at is not None:
         raise SpecError("cell", f"job {job.id}'s cell rows were dropped by the retention policy")
     keys = cells.matching_keys(session, job.id, coords, AMBIGUOUS_SHOWN)
     shown = ", ".join(f"{k}={'null' if v is None else v}" for k, v in coords.items()) or "any"
     if not keys:
-        raise SpecError("cell", f"no cell of job {job.id} has {shown}")
+        raise _no_cell(job, shown)
     if len(keys) > 1:
         varying = []
         for c in COORDINATES:
@@ -127,6 +129,23 @@ def find_cell(session: Session, job: Job, cell: str | dict | None) -> dict:
     if record is None:  # deleted between the two reads
         raise SpecError("cell", f"no cell of job {job.id} has {shown}")
     return record
+
+
+def _no_cell(job: Job, shown: str) -> Exception:
+    """No computed cell of ``job`` has the coordinates ``shown``: a Conflict while the
+    job is queued or running (the cell may come), else a SpecError naming ``cell``,
+    with the job's status when it did not succeed."""
+    done = f"{job.cells_done or 0} of {job.n_cells or 0} cells computed"
+    if job.status in JOB_ACTIVE:
+        return Conflict(
+            f"job {job.id} is {job.status} ({done}): no computed cell has {shown} yet;"
+            " export it once the job has computed it",
+            field="cell",
+        )
+    if job.status in ("failed", "cancelled"):
+        ended = "was cancelled" if job.status == "cancelled" else "failed"
+        return SpecError("cell", f"no cell of job {job.id} has {shown} (it {ended} with {done})")
+    return SpecError("cell", f"no cell of job {job.id} has {shown}")
 
 
 def _output_matrix(spec: dict, system: str, n: int, dataset: dict | None):

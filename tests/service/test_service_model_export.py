@@ -156,6 +156,29 @@ def test_a_cell_that_is_not_one_cell_is_a_422_naming_it(client, computed, cell, 
     assert re.search(message, r.json()["detail"]), r.json()["detail"]
 
 
+def test_a_cell_the_job_has_not_computed_names_the_jobs_state(client, session, make_account):
+    """Queued or running: a 409 saying so (the cell may come); cancelled: the 422 of a
+    missing cell, saying the job was cancelled."""
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SPEC, headers=acc.headers).json()["id"]
+    cell = {"cell": "system=plant,N=20,estimator=ols,rep=0"}
+    wanted = "no computed cell has system=plant, N=20, estimator=ols, rep=0 yet"
+    for status in ("queued", "running"):
+        r = client.get(f"{API}/jobs/{jid}/model", params=cell, headers=acc.headers)
+        assert r.status_code == 409 and r.json()["field"] == "cell", r.text
+        assert r.json()["detail"] == (
+            f"job {jid} is {status} (0 of 16 cells computed): {wanted};"
+            " export it once the job has computed it"
+        )
+        uid = job_store.unit_ids_of_job(session, jid, pending_only=False)[0]
+        units.start_unit(session, uid, "w1", 60, max_attempts=0)
+        session.commit()
+    assert client.post(f"{API}/jobs/{jid}/cancel", headers=acc.headers).status_code == 200
+    r = client.get(f"{API}/jobs/{jid}/model", params=cell, headers=acc.headers)
+    assert r.status_code == 422 and r.json()["field"] == "cell", r.text
+    assert r.json()["detail"].endswith("(it was cancelled with 0 of 16 cells computed)")
+
+
 def test_format_and_team_scoping(client, computed, make_account):
     acc, jid = computed
     cell = "system=plant,N=20,estimator=ols,rep=0"

@@ -195,6 +195,7 @@ def _attachment(name: str) -> str:
     tags=["models"],
     responses={
         **ERRORS,
+        **error_docs(409),
         200: {"content": {"application/json": {}, "application/octet-stream": {}}},
     },
 )
@@ -213,7 +214,8 @@ def get_model(
     format: Literal["json", "npz", "mat"] = "json",
 ):
     """One cell of the job as a model file: A_hat, B_hat, C, the radii and eps, L with
-    g(L), K, delta, sigma_w, and the provenance (dataset sha256, spec, version)."""
+    g(L), K, delta, sigma_w, and the provenance (dataset sha256, spec, version). 409
+    when the job is queued or running and no computed cell matches yet."""
     job = team_job(session, caller, job_id)
     content, media, name = export_model(session, job, cell=cell, fmt=format)
     return Response(content, media_type=media, headers={"Content-Disposition": _attachment(name)})
