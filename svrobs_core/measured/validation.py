@@ -272,9 +272,12 @@ def validate(model: Model, holdout: MeasuredData) -> ValidationResult:
     predicted = [(x[:-1] @ model.A.T + u @ model.B.T)[:, :ny] for x, u in zip(data.X, data.U)]
     eps = [x[1:, :ny] - p for x, p in zip(data.X, predicted)]
     Y = np.concatenate([x[1:, :ny] for x in data.X])
+    one_step = _nrmse(Y, np.concatenate(predicted))
     simulated = _simulate(model, data.X, data.U, ny)
     sim_fit = np.stack([_fit(x[1:, :ny], s[1:]) for x, s in zip(data.X, simulated)])
     notes: list[str] = []
+    if not np.isfinite(one_step).all():
+        notes.append("one-step prediction: left the double range or a constant channel (null)")
     if not np.isfinite(sim_fit).all():
         notes.append("open-loop simulation: left the double range or a constant channel (null)")
     h, r, Q, n_res, white_notes = _whiteness(eps)
@@ -283,8 +286,8 @@ def validate(model: Model, holdout: MeasuredData) -> ValidationResult:
         channels=tuple(holdout.state_names),
         inputs=tuple(holdout.input_names),
         lags=h,
-        one_step_nrmse=_nrmse(Y, np.concatenate(predicted)),
-        one_step_fit=_fit(Y, np.concatenate(predicted)),
+        one_step_nrmse=one_step,
+        one_step_fit=100.0 * (1.0 - one_step),
         simulation_fit=sim_fit,
         simulation_fit_pooled=_fit(Y, np.concatenate([s[1:] for s in simulated])),
         autocorrelation=r,

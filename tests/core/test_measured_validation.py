@@ -164,6 +164,21 @@ def test_one_rollout_is_the_textbook_ljung_box():
         np.testing.assert_allclose(v.autocorrelation[j], r, rtol=1e-12)
 
 
+def test_a_held_out_rollout_of_one_transition():
+    """One target per channel: NRMSE and fit are undefined (0 / 0 spread), null with a
+    note, as the simulation fit; the lag tests have no pair inside a rollout."""
+    held = rollouts(5, 1, lo=1, hi=2)
+    v = validate(Model(A=A, B=B), held)
+    d = v.to_dict()
+    assert d["one_step_nrmse"] == d["one_step_fit"] == [None, None]
+    assert d["simulation_fit"] == [[None, None]] and d["ljung_box_Q"] == [None, None]
+    assert v.notes[:2] == [
+        "one-step prediction: left the double range or a constant channel (null)",
+        "open-loop simulation: left the double range or a constant channel (null)",
+    ]
+    assert v.notes[2].startswith("whiteness: no pairs") and v.notes[3].startswith("cross-")
+
+
 def test_p_values_are_calibrated_under_the_true_model():
     """200 held-out sets from the true model: P(p < 0.05) within 3 standard errors of 0.05."""
     ps_lb, ps_x = [], []
