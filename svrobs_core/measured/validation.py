@@ -109,7 +109,15 @@ def excitation(data: MeasuredData, lags: tuple[int, int] | None = None) -> Excit
     names = tuple(lifted.state_names) + tuple(lifted.input_names)
     ex = Excitation(names=names, N0=N0, eigenvalues=lam, direction=V[:, 0], cond=cond)
     top = int(np.argmax(np.abs(V[:, 0])))
-    if not lam_s[0] > NOT_EXCITED_RTOL * lam_s[-1]:
+    sizes, balanced = _balanced(Zs)
+    if ex.cond > WEAK_COND and balanced <= WEAK_COND:
+        ex.notes.append(
+            f"badly scaled: the regressors' sizes differ by a factor of {sizes:.3g}; each "
+            f"scaled to one size, the data excite every direction (condition number "
+            f"{balanced:.3g}), but the sound sets and certificates are computed in the units "
+            f"given and are null or wide along {names[top]}: rescale the channels for them"
+        )
+    elif not lam_s[0] > NOT_EXCITED_RTOL * lam_s[-1]:
         ex.notes.append(
             f"the data do not excite every direction: lambda_min/lambda_max = "
             f"{lam_s[0] / lam_s[-1] if lam_s[-1] > 0 else 0.0:.3g} (mostly along {names[top]}); the estimate along it is set "
@@ -123,6 +131,19 @@ def excitation(data: MeasuredData, lags: tuple[int, int] | None = None) -> Excit
     if N0 < Z.shape[0]:
         ex.notes.append(f"fewer samples ({N0}) than regressors ({Z.shape[0]})")
     return ex
+
+
+def _balanced(Zs: FloatArray) -> tuple[float, float]:
+    """(largest / smallest nonzero regressor norm, condition number of the Gram with
+    every regressor scaled to norm 1): whether an ill-conditioned Gram is only the
+    channels' units (inf where a regressor is all zero)."""
+    norms = np.sqrt(np.sum(Zs * Zs, axis=1))
+    if not (norms.size and norms.min() > 0):
+        return float("inf"), float("inf")
+    Ze = Zs / norms[:, None]
+    lam = np.maximum(np.linalg.eigvalsh(Ze @ Ze.T), 0.0)
+    cond = float(lam[-1] / lam[0]) if lam[0] > 0 else float("inf")
+    return float(norms.max() / norms.min()), cond
 
 
 @dataclass

@@ -233,6 +233,28 @@ def test_excitation_check_at_any_magnitude(c):
     assert "do not excite every direction" in excitation(one).notes[0]
 
 
+def test_excitation_check_tells_bad_units_from_missing_directions():
+    """States of sizes 1e6 and 1e-6: the Gram's condition number is about 1e24, but each
+    channel scaled to one size excites every direction: the note says the units, not
+    that a direction has no data. Collinear inputs stay "not excited" at any scale."""
+    data = rollouts(3, 6)
+    D = np.array([1e6, 1e-6])
+    scaled = MeasuredData(X=[x * D for x in data.X], U=data.U)
+    ex = excitation(scaled)
+    assert ex.cond > 1e20 and len(ex.notes) == 1
+    assert ex.notes[0].startswith("badly scaled: the regressors' sizes differ by a factor of")
+    assert "do not excite" not in ex.notes[0] and "x2" in ex.notes[0]
+    base = excitation(data).cond
+    Z = np.array(
+        [np.concatenate([x[k], u[k]]) for x, u in zip(scaled.X, scaled.U) for k in range(len(u))]
+    )
+    Ze = Z / np.linalg.norm(Z, axis=0)  # a second way: columns of the sample matrix
+    lam = np.linalg.eigvalsh(Ze.T @ Ze)
+    assert f"(condition number {lam[-1] / lam[0]:.3g})" in ex.notes[0] and base < 1e8
+    one = MeasuredData(X=scaled.X, U=[np.column_stack([u[:, 0], u[:, 0]]) for u in data.U])
+    assert "do not excite every direction" in excitation(one).notes[0]
+
+
 def test_excitation_check_of_zero_data():
     data = rollouts(3, 6)
     zero = MeasuredData(X=[0 * x for x in data.X], U=[0 * u for u in data.U])
