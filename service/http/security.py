@@ -8,9 +8,14 @@ Content-Security-Policy (:data:`CSP`: scripts, styles, images and requests from
 this server only, no framing) unless its route set one. The report pages and the
 API docs set :data:`INLINE_STYLE_CSP`: the same policy, with the inline
 stylesheet a self-contained report carries allowed (still no inline script).
+
+A download names its file with :func:`attachment`, whatever the name holds.
 """
 
 from __future__ import annotations
+
+import re
+from urllib.parse import quote
 
 CSP = (
     "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; "
@@ -48,3 +53,21 @@ class SecurityHeaders:
             await send(message)
 
         await self.app(scope, receive, send_with_headers)
+
+
+# what a file name may not hold: control characters, path separators, lone surrogates
+_NOT_IN_NAME = re.compile(r"[\x00-\x1f\x7f-\x9f/\\\ud800-\udfff]")
+# the characters of the ASCII fallback (no quote, backslash, comma, semicolon or %)
+_NOT_FALLBACK = re.compile(r"[^A-Za-z0-9 ._()+=@-]")
+
+
+def attachment(filename: str) -> str:
+    """The ``Content-Disposition`` of a download saved as ``filename`` (a user's name:
+    any text). RFC 6266: ``filename*`` holds the name in UTF-8, percent-encoded (RFC
+    5987), and ``filename`` an ASCII fallback for older clients. Control characters
+    (CR and LF: no header can be split), path separators and lone surrogates become
+    ``_``; leading and trailing dots and spaces go (no ``..``); an empty name is
+    ``download``."""
+    name = _NOT_IN_NAME.sub("_", filename).strip(". ") or "download"
+    fallback = _NOT_FALLBACK.sub("_", name)
+    return f"attachment; filename=\"{fallback}\"; filename*=UTF-8''{quote(name, safe='')}"

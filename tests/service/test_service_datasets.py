@@ -10,6 +10,7 @@ import hashlib
 import io
 import re
 import uuid
+from urllib.parse import unquote
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from sqlalchemy import func, select, update
 from service.db import datasets as store
 from service.db import jobs as job_store
 from service.db.models import Dataset, DatasetChunk, Job
+from service.http.security import attachment
 from svrobs_core import parse_spec
 from svrobs_core.errors import SpecError
 from svrobs_lab.datasets.catalog import resolve_dataset
@@ -234,6 +236,36 @@ def test_size_limit_is_a_413_declared_or_streamed(build_client, session, make_ac
     )
     assert r.status_code == 201, r.text
     assert r.json()["sha256"] == hashlib.sha256(small).hexdigest()
+
+
+def test_a_downloads_file_name_cannot_split_its_header(client, make_account):
+    """The file name a download is saved under is the uploader's: a LF in it (a
+    multipart header may hold one) must not reach the header, nor a quote, semicolon or
+    path; RFC 6266: the name in ``filename*`` (UTF-8), an ASCII fallback."""
+    acc = make_account()
+    sent = "x\nSet-Cookie: s=1;r\u00e9sum\u00e9.csv"
+    body = (
+        (
+            '--b0\r\nContent-Disposition: form-data; name="name"\r\n\r\nd\r\n'
+            f'--b0\r\nContent-Disposition: form-data; name="file"; filename="{sent}"\r\n\r\n'
+        ).encode()
+        + files.csv_bytes(*files.rollouts(lengths=(5,)))
+        + b"\r\n--b0--\r\n"
+    )
+    headers = {**acc.headers, "Content-Type": "multipart/form-data; boundary=b0"}
+    up = client.post(f"{API}/datasets", content=body, headers=headers)
+    assert up.status_code == 201 and up.json()["filename"] == sent, up.text
+    d = client.get(f"{API}/datasets/{up.json()['id']}/file", headers=acc.headers)
+    value = d.headers["content-disposition"]
+    assert value.isascii() and value.isprintable()
+    fallback, star = (
+        "x_Set-Cookie_ s=1_r_sum_.csv",
+        "x_Set-Cookie%3A%20s%3D1%3Br%C3%A9sum%C3%A9.csv",
+    )
+    assert value == f"attachment; filename=\"{fallback}\"; filename*=UTF-8''{star}"
+    assert unquote(star) == "x_Set-Cookie: s=1;r\u00e9sum\u00e9.csv"
+    for name, saved in (("..", "download"), ('a"b\\c/d', "a_b_c_d"), ("\ud800.x", "_.x")):
+        assert attachment(name).startswith(f'attachment; filename="{saved}"; ')
 
 
 def test_not_multipart_and_no_file(client, make_account):

@@ -24,6 +24,7 @@ from service.api.deps import (
     SessionFactoryDep,
 )
 from service.api.errors import error_docs
+from service.http.security import attachment
 from service.http.uploads import store_upload
 from svrobs_lab.datasets.catalog import (
     MEDIA_TYPES,
@@ -175,19 +176,11 @@ def download_dataset(
         file_chunks(session_factory, dataset_id),
         media_type=media,
         headers={
-            "Content-Disposition": _attachment(name),
+            "Content-Disposition": attachment(name),
             "Content-Length": str(size),
             "ETag": f'"{row.sha256}"',
         },
     )
-
-
-def _attachment(name: str) -> str:
-    """A Content-Disposition for ``name`` (an ASCII fallback, RFC 5987 for the rest)."""
-    from urllib.parse import quote
-
-    ascii_name = name.encode("ascii", "replace").decode().replace('"', "_").replace("?", "_")
-    return f"attachment; filename=\"{ascii_name}\"; filename*=UTF-8''{quote(name)}"
 
 
 @router.get(
@@ -218,7 +211,7 @@ def get_model(
     when the job is queued or running and no computed cell matches yet."""
     job = team_job(session, caller, job_id)
     content, media, name = export_model(session, job, cell=cell, fmt=format)
-    return Response(content, media_type=media, headers={"Content-Disposition": _attachment(name)})
+    return Response(content, media_type=media, headers={"Content-Disposition": attachment(name)})
 
 
 @router.get("/jobs/{job_id}/validation", tags=["models"], responses=ERRORS)

@@ -12,6 +12,7 @@ from service.api.deps import DB, MAX_ID, CurrentCaller, JobId, SessionFactoryDep
 from service.api.errors import ERRORS, error_docs
 from service.api.query_params import accepts_query
 from service.db.result_queries import is_range_param
+from service.http.security import attachment
 from svrobs_lab import results
 from svrobs_lab.jobs import team_job
 from svrobs_lab.schemas import CompareOut, ResultPage, SummaryOut
@@ -100,7 +101,7 @@ def get_results(
     return StreamingResponse(
         chunks,
         media_type=media,
-        headers={"Content-Disposition": f'attachment; filename="job-{job_id}-results.{ext}"'},
+        headers={"Content-Disposition": attachment(f"job-{job_id}-results.{ext}")},
     )
 
 
