@@ -22,6 +22,7 @@ import numpy as np
 from .style import figure_style
 
 if TYPE_CHECKING:
+    from matplotlib.artist import Artist
     from matplotlib.figure import Figure
     from matplotlib.mathtext import MathTextParser, VectorParse
 
@@ -36,6 +37,7 @@ def figure_bytes(fig: Figure, fmt: str = "png", dpi: int = 200) -> bytes:
         raise ValueError(f"fmt must be one of {', '.join(FORMATS)}, got {fmt!r}")
     buf = io.BytesIO()
     meta = {"svg": {"Date": None}, "pdf": {"CreationDate": None}}
+    _plain_text(fig)
     with figure_style():
         if fmt == "png":
             from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -55,6 +57,27 @@ def figure_bytes(fig: Figure, fmt: str = "png", dpi: int = 200) -> bytes:
             return palette_png(rgba, size, dpi)
         fig.savefig(buf, format=fmt, dpi=dpi, metadata=meta[fmt])
     return buf.getvalue()
+
+
+def _plain_text(fig: Figure) -> None:
+    """Every text of ``fig`` but its tick labels is drawn as written, never parsed as
+    mathtext: a title, legend or note may hold a user's name (a system, a job), and a
+    name such as ``$\\frac{a$`` would fail the draw, and with it the report. The
+    report's own text has no mathtext; its tick labels (``$10^{-2}$``) and axis offsets,
+    which an Axis holds, keep it."""
+    from matplotlib.axis import Axis
+    from matplotlib.text import Text
+
+    stack: list[Artist] = [fig]
+    while stack:
+        artist = stack.pop()
+        for child in artist.get_children():
+            if isinstance(child, Axis):  # its ticks are made at the draw: not walked
+                child.label.set_parse_math(False)
+                continue
+            if isinstance(child, Text):
+                child.set_parse_math(False)
+            stack.append(child)
 
 
 _parsers = threading.local()

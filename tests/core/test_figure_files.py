@@ -66,8 +66,8 @@ def test_a_transparent_figure_keeps_its_alpha_exactly():
 
 
 def _log_figure():
-    """Tick labels and a title that matplotlib draws as mathtext, on a transparent
-    background (so the PNG keeps matplotlib's pixels exactly)."""
+    """Tick labels that matplotlib draws as mathtext (the title is written as it is),
+    on a transparent background (so the PNG keeps matplotlib's pixels exactly)."""
     fig, axes = new_figure(1, 1, (4.0, 2.5))
     ax = np.ravel(axes)[0]
     x = np.logspace(-3, 1, 50)
@@ -93,6 +93,22 @@ def test_mathtext_is_parsed_once_per_thread_and_drawn_as_matplotlib_draws_it():
     assert np.array_equal(
         np.asarray(ours), np.frombuffer(buf.getvalue(), np.uint8).reshape(h, w, 4)
     )
+
+
+def test_a_users_name_is_drawn_as_written_and_the_tick_labels_as_mathtext():
+    """A system or job name that is not mathtext (``$\\frac{a$``) in a title, a legend
+    or a note fails no draw (it failed the report); the tick labels are still mathtext."""
+    fig = _log_figure()
+    ax = fig.axes[0]
+    name = r"$\frac{a$ \x"
+    ax.plot([1e-3, 10.0], [1.0, 2.0], label=name)
+    ax.legend(title=name)
+    ax.text(0.5, 0.5, name)
+    fig.suptitle(name)
+    for fmt, magic in (("png", b"\x89PNG"), ("svg", b"<?xml")):
+        assert figure_bytes(fig, fmt).startswith(magic)
+    ticks = [t for t in ax.get_yticklabels() if t.get_text()]
+    assert ticks and all(t.get_text().startswith("$") and t.get_parse_math() for t in ticks)
 
 
 def test_each_thread_draws_with_its_own_mathtext_parser():
