@@ -7,8 +7,6 @@ web's results and compare pages select through these functions, so both agree.
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
 from collections.abc import Iterable, Iterator
@@ -36,6 +34,7 @@ COMPARE_MAX_JOBS = 50
 # a text cell starting with one of these is a formula to a spreadsheet (OWASP, "CSV
 # injection"): it is written with a leading single quote
 FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+CSV_HEADER = ",".join(RECORD_FIELDS) + "\r\n"
 
 
 @dataclass(frozen=True)
@@ -161,25 +160,38 @@ def page_records(session: Session, sel: Selection, *, limit: int, offset: int) -
     return decode_rows(rows, job_codec(session, sel.job.id, sel.job.spec))
 
 
-def _csv_value(v):
-    if isinstance(v, str):
-        return "'" + v if v.startswith(FORMULA_START) else v
+def _csv_field(v) -> str:
+    """One field of a CSV row (RFC 4180). A number is written as it is (-0.5 stays a
+    number), null as an empty field; any other value is text (true/false, a matrix as
+    JSON, a name or a note), always in double quotes, so that no comma, semicolon or
+    tab inside it starts another cell in a spreadsheet that splits the line on it, and
+    with a leading single quote when it starts like a formula (:data:`FORMULA_START`,
+    OWASP's advice against CSV injection)."""
     if v is None:
         return ""
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, float):
+    if isinstance(v, str):
+        text = "'" + v if v.startswith(FORMULA_START) else v
+    elif isinstance(v, bool):
+        text = "true" if v else "false"
+    elif isinstance(v, (list, dict)):
+        text = json.dumps(v, allow_nan=False, separators=(",", ":"))
+    elif isinstance(v, float):
         return repr(v) if math.isfinite(v) else ""
-    if isinstance(v, (list, dict)):
-        return json.dumps(v, allow_nan=False, separators=(",", ":"))
-    return v  # an int
+    else:
+        return str(v)  # an int
+    return '"' + text.replace('"', '""') + '"'
+
+
+def _csv_row(values: Iterable) -> str:
+    """One line of CSV (CRLF-terminated) of these values (:func:`_csv_field`)."""
+    return ",".join(_csv_field(v) for v in values) + "\r\n"
 
 
 def stream(
     session: Session, session_factory, sel: Selection, fmt: str, *, limit=None, offset: int = 0
 ) -> tuple[Iterator, str]:
-    """(chunks, media type) of the selection as CSV (RFC 4180: CRLF line ends, so a
-    cell holding a CR or LF is quoted) or JSON lines, read in chunks by a reading
+    """(chunks, media type) of the selection as CSV (RFC 4180: CRLF line ends, every
+    text field quoted, :func:`_csv_row`) or JSON lines, read in chunks by a reading
     session of its own (``session_factory(False)``) once iterated. ``session``, the
     request's, is closed first. A chunk holds at most STREAM_CHUNK rows and
     STREAM_ENTRIES matrix entries."""
@@ -194,16 +206,11 @@ def stream(
         own = session_factory(False)
         try:
             if fmt == "csv":
-                buf = io.StringIO()
-                csv.writer(buf, lineterminator="\r\n").writerow(RECORD_FIELDS)
-                yield buf.getvalue()
+                yield CSV_HEADER
             for chunk in rq.row_chunks(own, query, size):
                 if fmt == "csv":
-                    buf = io.StringIO()
-                    writer = csv.writer(buf, lineterminator="\r\n")
-                    for rec in decode_rows(chunk, codec):
-                        writer.writerow([_csv_value(rec[f]) for f in RECORD_FIELDS])
-                    yield buf.getvalue()
+                    recs = decode_rows(chunk, codec)
+                    yield "".join(_csv_row(rec[f] for f in RECORD_FIELDS) for rec in recs)
                 else:
                     yield encode_lines(chunk, codec)
         finally:

@@ -1,6 +1,7 @@
 """Trust, service side, in process (SQLite, and PostgreSQL when SVROBS_TEST_DATABASE_URL
 is set): admission by estimated work, the per-team fair share of units in flight,
-schedule limits and skipped runs, strict input, CSV formula escaping, revoke-key.
+schedule limits and skipped runs, strict input, what a system name does to the CSV and
+JSON-lines exports, revoke-key.
 The real-process side (latencies, cancel, leases, a MemoryError) is
 tests/integration/test_trust.py."""
 
@@ -375,29 +376,63 @@ def test_tags_are_stripped_and_blank_ones_rejected(client, make_account):
     assert r.status_code == 202 and r.json()["tags"] == ["a"]
 
 
-# --------------------------------------------------------------------------- CSV
+# --------------------------------------------------------------------------- exports
+
+# a system name that is a formula once a spreadsheet splits its line on ";" or a tab
+# (LibreOffice and Excel do, by locale or by choice), with the line separators JSON
+# lets a string hold as they are
+EXPORT_SYSTEM = "sys;=1+1\t@SUM(A1)\u2028x\x85y\u2029z"
 
 
-def test_csv_escapes_formulas_in_text_columns_only(client, make_account, session):
-    acc = make_account()
-    spec = {**SMALL_SPEC, "systems": ["paper-stable"], "sigma_w": [1.0], "N": [20]}
+def _job_with_texts(session, acc, texts):
+    """A stored job on a system named EXPORT_SYSTEM, whose records' notes are ``texts``
+    in turn and whose rmse_A is -0.25."""
+    A = [[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]]
+    system = {"name": EXPORT_SYSTEM, "A": A, "B": [[1.0], [0.0], [0.0]]}
+    spec = {**SMALL_SPEC, "systems": [system], "sigma_w": [1.0], "N": [20]}
     job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=spec)
     session.commit()
     (uid,) = jobs.unit_ids_of_job(session, job.id)
     spec_dict, payload = units.start_unit(session, uid, "w", 60, max_attempts=0)
     recs = fake_records(spec_dict, payload)
-    texts = ['=HYPERLINK("http://x","y")', "+1", "-2", "@SUM(A1)", "\tx", "\rx", "plain"]
     for r, t in zip(recs, texts * len(recs)):
         r["notes"] = t
         r["rmse_A"] = -0.25  # a negative number stays a number
     units.complete_unit(session, uid, recs)
     session.commit()
-    r = client.get(f"{API}/jobs/{job.id}/results", params={"format": "csv"}, headers=acc.headers)
+    return job.id, len(recs)
+
+
+def test_csv_escapes_formulas_and_quotes_every_text_cell(client, make_account, session):
+    acc = make_account()
+    texts = ['=HYPERLINK("http://x","y")', "+1", "-2", "@SUM(A1)", "\tx", "\rx", "plain"]
+    jid, _ = _job_with_texts(session, acc, texts)
+    r = client.get(f"{API}/jobs/{jid}/results", params={"format": "csv"}, headers=acc.headers)
     rows = list(csv.DictReader(io.StringIO(r.text, newline="")))
     got = {row["notes"] for row in rows}
     assert got == {"'" + t for t in texts[:-1]} | {"plain"}
-    assert {row["rmse_A"] for row in rows} == {"-0.25"}
-    assert {row["system"] for row in rows} == {"paper-stable"}
+    assert {row["rmse_A"] for row in rows} == {"-0.25"} and ",-0.25," in r.text
+    assert {row["system"] for row in rows} == {EXPORT_SYSTEM}
+    # split on ";" or a tab, the system name (the line's first cell, quoted) stays one
+    # cell: every cell starting like a formula is a number
+    assert r.text.split("\r\n")[1].startswith(f'"{EXPORT_SYSTEM}",')
+    for delimiter in (";", "\t"):
+        for row in csv.reader(io.StringIO(r.text, newline=""), delimiter=delimiter):
+            for cell in row:
+                if cell.startswith(("=", "+", "-", "@")):
+                    float(cell)
+
+
+def test_json_lines_are_lines_to_every_reader(client, make_account, session):
+    acc = make_account()
+    jid, n = _job_with_texts(session, acc, ["a\u2028b"])
+    url = f"{API}/jobs/{jid}/results"
+    r = client.get(url, params={"format": "jsonl"}, headers=acc.headers)
+    assert r.text.isascii()
+    lines = r.text.splitlines()  # as httpx's iter_lines splits them
+    assert len(lines) == n and all(json.loads(x)["system"] == EXPORT_SYSTEM for x in lines)
+    page = client.get(url, params={"limit": 1}, headers=acc.headers)
+    assert page.json()["items"][0]["notes"] == "a\u2028b" and page.text.isascii()
 
 
 # --------------------------------------------------------------------------- revoke-key
