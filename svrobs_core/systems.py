@@ -10,6 +10,7 @@ import numpy as np
 
 from .array_types import FloatArray
 from .errors import SpecError
+from .text import printable
 
 _PAPER_B = [[1.0], [1.5], [2.0]]
 
@@ -122,8 +123,11 @@ def resolve_system(obj: object, field: str = "systems[0]") -> SystemSpec:
         if key not in obj:
             raise SpecError(f"{field}.{key}", "is required")
     name = obj["name"]
-    if not isinstance(name, str) or not name.strip() or len(name) > 64:
-        raise SpecError(f"{field}.name", "must be a non-empty string of at most 64 characters")
+    if not isinstance(name, str) or not name.strip() or len(name) > 64 or not printable(name):
+        raise SpecError(
+            f"{field}.name",
+            "must be a non-empty string of at most 64 printable characters (no control characters)",
+        )
     A = _matrix(obj["A"], f"{field}.A")
     if A.shape[0] != A.shape[1]:
         raise SpecError(f"{field}.A", f"must be square, got {A.shape[0]}x{A.shape[1]}")

@@ -11,7 +11,6 @@ field ``file``), whose message names the row, column or variable.
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import cast
@@ -20,6 +19,7 @@ import numpy as np
 
 from svrobs_core.errors import SpecError
 from svrobs_core.measured.rollout_lists import RolloutLists
+from svrobs_core.text import printable
 
 from ..errors import BadDatasetFile
 
@@ -83,12 +83,6 @@ def default_names(prefix: str, count: int) -> list[str]:
 
 
 SHOWN = 80  # characters of a refused value quoted in a message
-_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f\ud800-\udfff]")  # control, lone surrogate
-
-
-def printable(text: str) -> bool:
-    """No control character and no lone surrogate (which UTF-8 cannot encode)."""
-    return _UNPRINTABLE.search(text) is None
 
 
 def shown(text: str) -> str:

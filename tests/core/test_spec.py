@@ -125,6 +125,11 @@ def test_custom_system_and_flat_B_column():
         ),
         ({"sls": {"T_fir": 1001}}, "sls.T_fir"),
         ({"rng": "mt19937"}, "rng"),
+        # a name is printable text: no terminal escape, line break or C1 control
+        ({"systems": [custom(name="s\x1b[31m")]}, "systems[0].name"),
+        ({"systems": [custom(name="a\nb")]}, "systems[0].name"),
+        ({"systems": [custom(name="a\x9bb")]}, "systems[0].name"),
+        ({"systems": [custom(name="a\u2028b")]}, "systems[0].name"),
     ],
 )
 def test_bad_input_names_the_field(changes, field):

@@ -233,7 +233,7 @@ def test_record_json_edge_values():
     from service.db.result_codec import ResultCodec
     from svrobs_lab.record_json import encode_lines, encode_page
 
-    name = 'sys "q" \u00e9\u2603\n\x00'
+    name = 'sys "q" \u00e9\u2603'
     system = {"name": name, "A": [[0.5, 0.0], [0.0, 0.5]], "B": [[1.0], [0.0]], "C": [[1.0, 0.0]]}
     codec = ResultCodec.of({"systems": ["paper-stable", system], "sigma_w": [0.1, 2.0]})
 

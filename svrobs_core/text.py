@@ -1,0 +1,21 @@
+"""Names users give things (systems, datasets, columns, labels): printable text only.
+
+A name is shown in terminals, pages, file names and CSV cells; a control character
+(an ESC starts a terminal escape sequence, a line break splits a table row) or a lone
+surrogate (which UTF-8 cannot encode) has no place in one (docs/security.md).
+"""
+
+from __future__ import annotations
+
+import re
+
+# C0 and C1 control characters, DEL, line and paragraph separators, lone surrogates
+_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029\ud800-\udfff]")
+
+
+def printable(text: str) -> bool:
+    """No control character, line separator or lone surrogate in ``text``."""
+    return _UNPRINTABLE.search(text) is None
+
+
+__all__ = ["printable"]
