@@ -7,6 +7,7 @@ from datetime import datetime
 from typing import TYPE_CHECKING, Annotated, Any, Literal, Optional
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
@@ -18,6 +19,7 @@ from pydantic import (
 from pydantic_core import InitErrorDetails, PydanticCustomError, ValidationError
 
 from svrobs_core.spec import DATASET_KEYS, SPEC_KEYS
+from svrobs_core.text import printable
 
 from .spec_schema import spec_properties
 
@@ -114,7 +116,21 @@ def _spec_fields() -> dict[str, Any]:
     return out
 
 
-TagStr = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=100)]
+def _printable(text: str) -> str:
+    if not printable(text):
+        raise ValueError("must be printable text (no control characters)")
+    return text
+
+
+TagStr = Annotated[
+    str,
+    StringConstraints(strip_whitespace=True, min_length=1, max_length=100),
+    AfterValidator(_printable),
+]
+# a job's or a schedule's name: shown in terminals, pages and file names
+NameStr = Annotated[
+    str, StringConstraints(min_length=1, max_length=200), AfterValidator(_printable)
+]
 Tag: Any = Field(default_factory=list, max_length=50)
 
 _JobSubmit = create_model(
@@ -122,7 +138,7 @@ _JobSubmit = create_model(
     __base__=_Strict,
     __doc__="An experiment spec (docs/spec.md#spec-fields: systems and sigma_w; or a dataset,"
     " docs/measured.md#spec) plus an optional name and tags.",
-    name=(Optional[str], Field(None, min_length=1, max_length=200)),
+    name=(Optional[NameStr], None),
     tags=(list[TagStr], Tag),
     **_spec_fields(),
 )
@@ -215,7 +231,7 @@ SeedPolicy = Annotated[
 
 
 class ScheduleCreate(_Strict):
-    name: str = Field(min_length=1, max_length=200)
+    name: NameStr
     cron: str = Field(min_length=1, max_length=200)
     timezone: str = Field(default="UTC", min_length=1, max_length=64)
     spec_template: dict[str, Any]
@@ -225,7 +241,7 @@ class ScheduleCreate(_Strict):
 
 
 class ScheduleUpdate(_Strict):
-    name: str | None = Field(default=None, min_length=1, max_length=200)
+    name: NameStr | None = None
     cron: str | None = Field(default=None, min_length=1, max_length=200)
     timezone: str | None = Field(default=None, min_length=1, max_length=64)
     spec_template: dict[str, Any] | None = None

@@ -85,6 +85,10 @@ def test_nul_and_surrogates_in_job_bodies_are_422_and_nothing_written(
         ({**SMALL_SPEC, "systems": [{**custom, "name": "x" + SURROGATE}]}, "systems[0].name"),
         ({**SMALL_SPEC, "systems": [{**custom, "name": "x\x00"}]}, "systems[0].name"),
         ({**SMALL_SPEC, "sls": {"T_fir": 5, SURROGATE: 1}}, "sls"),
+        # names are printable: no terminal escape, line break or C1 control
+        ({**SMALL_SPEC, "name": "run \x1b[2J"}, "name"),
+        ({**SMALL_SPEC, "tags": ["ok", "a\nb"]}, "tags[1]"),
+        ({**SMALL_SPEC, "systems": [{**custom, "name": "x\x9b"}]}, "systems[0].name"),
     ]:
         _assert_422(_post_raw(client, f"{API}/jobs", body, acc), field)
     r = client.post(
@@ -101,6 +105,7 @@ def test_nul_and_surrogates_in_schedule_bodies_are_422(client, session, make_acc
     custom = {"name": "x" + SURROGATE, "A": [[0.5]], "B": [[1.0]]}
     for body, field in [
         ({**good, "name": "n\x00"}, "name"),
+        ({**good, "name": "n\u2028x"}, "name"),
         ({**good, "tags": ["\x00"]}, "tags[0]"),
         ({**good, "timezone": "UTC\x00"}, "timezone"),
         (
