@@ -13,9 +13,12 @@ import re
 _UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029\ud800-\udfff]")
 
 
+NOT_PRINTABLE = "must be printable text (no control characters)"  # the message of a refusal
+
+
 def printable(text: str) -> bool:
     """No control character, line separator or lone surrogate in ``text``."""
     return _UNPRINTABLE.search(text) is None
 
 
-__all__ = ["printable"]
+__all__ = ["NOT_PRINTABLE", "printable"]

@@ -19,7 +19,7 @@ from pydantic import (
 from pydantic_core import InitErrorDetails, PydanticCustomError, ValidationError
 
 from svrobs_core.spec import DATASET_KEYS, SPEC_KEYS
-from svrobs_core.text import printable
+from svrobs_core.text import NOT_PRINTABLE, printable
 
 from .spec_schema import spec_properties
 
@@ -118,7 +118,7 @@ def _spec_fields() -> dict[str, Any]:
 
 def _printable(text: str) -> str:
     if not printable(text):
-        raise ValueError("must be printable text (no control characters)")
+        raise ValueError(NOT_PRINTABLE)
     return text
 
 

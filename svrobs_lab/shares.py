@@ -15,6 +15,7 @@ from service.config import Settings
 from service.db import shares as store
 from service.db.models import SHARE_LABEL_MAX, Job, ShareLink
 from service.db.quota import lock_team_quota
+from svrobs_core.text import NOT_PRINTABLE
 
 from .auth import MAX_ID, Caller
 from .datasets.parsed import printable
@@ -55,7 +56,7 @@ def create(
     under the team's quota lock, held until the commit, so concurrent creates are
     counted one after the other."""
     if label is not None and not printable(label):
-        raise Invalid("must be printable text (no control characters)", field="label")
+        raise Invalid(NOT_PRINTABLE, field="label")
     job = team_job(session, caller, job_id)
     cap = settings.MAX_SHARES_PER_JOB
     if cap:

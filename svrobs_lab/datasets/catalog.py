@@ -25,6 +25,7 @@ from service.db.models import Dataset
 from service.db.quota import lock_team_quota
 from svrobs_core.errors import SpecError
 from svrobs_core.measured import MeasuredData, excitation
+from svrobs_core.text import NOT_PRINTABLE
 
 from ..auth import Caller
 from ..dispatch import SessionFactory
@@ -67,7 +68,7 @@ def _text(fields: Mapping, key: str, *, limit: int, required: bool = False) -> s
         raise SpecError(key, f"at most {limit} characters")
     line_breaks = key != "description" and any(c in value for c in "\t\r\n")
     if line_breaks or _BAD_TEXT.search(value):
-        raise SpecError(key, "must be printable text (no control characters)")
+        raise SpecError(key, NOT_PRINTABLE)
     return value
 
 
