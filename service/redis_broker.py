@@ -7,7 +7,9 @@ the list by hand or by another program) raise there and end the worker.
 through Celery's ``broker_transport``) checks each item ``BRPOP`` returns with
 :func:`service.broker_messages.decode_message`; one that fails is logged (one ERROR
 line), pushed onto the list :data:`BAD_LIST` (the newest :data:`BAD_KEPT` are kept)
-and skipped, as if the wait had ended empty. See docs/security.md#task-messages.
+and skipped, as if the wait had ended empty. A synchronous get (``basic_get``, the
+path of a ``SimpleQueue`` and of tools that poll) sets aside such items the same way
+and returns the first message behind them. See docs/security.md#task-messages.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import logging
 from typing import Any
 
 from kombu.transport import redis
+from kombu.transport.virtual import Empty
 
 from service.broker_messages import decode_message
 
@@ -43,12 +46,32 @@ class Channel(redis.Channel):
             client.parse_response = parse_response
         return client
 
+    def _get(self, queue: str, timeout: Any = None) -> Any:
+        """The next message on ``queue`` (kombu's ``_get``, each item checked): items
+        that are not messages are set aside, the first message behind them returned."""
+        with self.conn_or_acquire() as client:
+            for pri in self.priority_steps:
+                while item := client.rpop(self._q_for_pri(queue, pri)):
+                    payload, reason = decode_message(self, item)
+                    if reason is None:
+                        self._maybe_update_queues_expire(client, queue)
+                        return payload
+                    self._set_aside(queue, item, reason)
+            self._maybe_update_queues_expire(client, queue)
+            raise Empty()
+
     def _is_message(self, key: bytes, item: bytes) -> bool:
         """Whether ``item`` (taken off the list ``key``) is a message; if not, it is
-        logged and kept on :data:`BAD_LIST`."""
+        set aside."""
         _, reason = decode_message(self, item)
         if reason is None:
             return True
+        self._set_aside(key, item, reason)
+        return False
+
+    def _set_aside(self, key: bytes | str, item: bytes, reason: str) -> None:
+        """Log ``item`` (not a message, taken off the list ``key``) and keep it on
+        :data:`BAD_LIST`."""
         where = f"kept on the list {BAD_LIST!r}"
         try:
             with self.conn_or_acquire() as client:
@@ -64,7 +87,6 @@ class Channel(redis.Channel):
             reason,
             where,
         )
-        return False
 
 
 class Transport(redis.Transport):

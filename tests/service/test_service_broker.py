@@ -122,3 +122,47 @@ def test_a_stopping_worker_stops_waiting_for_messages_at_the_next_poll(tmp_path,
     assert 4 <= _drain_polls(tmp_path / "a", monkeypatch, 0.3) <= 1 + 15
     monkeypatch.setattr(state, "should_stop", 0)  # what a worker's SIGTERM handler sets
     assert _drain_polls(tmp_path / "b", monkeypatch, 50.0) <= 3  # not 2,500 polls
+
+
+@pytest.mark.skipif(
+    not os.environ.get("SVROBS_TEST_BROKER_URL"), reason="SVROBS_TEST_BROKER_URL not set"
+)
+def test_redis_synchronous_get_sets_aside_items_that_are_not_messages(caplog):
+    """``basic_get`` (kombu's synchronous ``_get``) on a real Redis: raw items ahead of a
+    message are logged and kept on the bad list, and the message behind them is
+    returned; kombu's own transport raises on the first of them."""
+    import kombu
+    import redis as redis_py
+
+    from service.redis_broker import BAD_LIST
+
+    # database 15 of the test server: the integration stacks flush theirs
+    url = os.environ["SVROBS_TEST_BROKER_URL"].rsplit("/", 1)[0] + "/15"
+    r = redis_py.Redis.from_url(url)
+    queue = f"svrobs-test-get-{os.getpid()}"
+    raw = [b"not json", b"\xff\xfe", b'{"properties": 1}']
+    r.delete(queue, BAD_LIST)
+    try:
+        with kombu.Connection(url, transport="service.redis_broker:Transport") as conn:
+            q = conn.SimpleQueue(queue)
+            r.lpush(queue, *raw)  # the oldest first: RPOP takes them before the message
+            q.put({"ok": 1})
+            r.rpush(queue, r.lpop(queue))  # the message behind the raw items
+            with caplog.at_level("ERROR", logger="service.redis_broker"):
+                msg = q.get(block=False)
+            assert msg.payload == {"ok": 1}
+            msg.ack()
+            with pytest.raises(q.Empty):
+                q.get(block=False)
+            q.close()
+        assert sorted(r.lrange(BAD_LIST, 0, -1)) == sorted(raw)
+        assert sum("is not a message" in m for m in caplog.messages) == len(raw)
+        r.rpush(queue, b"not json")  # kombu's transport: the raw item is an error
+        with kombu.Connection(url) as conn:
+            plain = conn.SimpleQueue(queue)
+            with pytest.raises(ValueError):
+                plain.get(block=False)
+            plain.close()
+    finally:
+        r.delete(queue, BAD_LIST)
+        r.close()
