@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import re
 
-# C0 and C1 control characters, DEL, line and paragraph separators, lone surrogates
-_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029\ud800-\udfff]")
+# the characters a name may not hold: C0 and C1 control characters, DEL, line and
+# paragraph separators (U+2028, U+2029), lone surrogates
+UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029\ud800-\udfff]")
 
 
 NOT_PRINTABLE = "must be printable text (no control characters)"  # the message of a refusal
@@ -18,7 +19,12 @@ NOT_PRINTABLE = "must be printable text (no control characters)"  # the message 
 
 def printable(text: str) -> bool:
     """No control character, line separator or lone surrogate in ``text``."""
-    return _UNPRINTABLE.search(text) is None
+    return UNPRINTABLE.search(text) is None
 
 
-__all__ = ["NOT_PRINTABLE", "printable"]
+def strip_unprintable(text: str) -> str:
+    """``text`` without the characters :func:`printable` refuses."""
+    return UNPRINTABLE.sub("", text)
+
+
+__all__ = ["NOT_PRINTABLE", "UNPRINTABLE", "printable", "strip_unprintable"]

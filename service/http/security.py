@@ -17,6 +17,8 @@ from __future__ import annotations
 import re
 from urllib.parse import quote
 
+from svrobs_core.text import UNPRINTABLE
+
 CSP = (
     "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; "
     "connect-src 'self'; font-src 'self'; object-src 'none'; base-uri 'none'; "
@@ -55,8 +57,7 @@ class SecurityHeaders:
         await self.app(scope, receive, send_with_headers)
 
 
-# what a file name may not hold: control characters, path separators, lone surrogates
-_NOT_IN_NAME = re.compile(r"[\x00-\x1f\x7f-\x9f/\\\ud800-\udfff]")
+_PATH_SEPARATORS = re.compile(r"[/\\]")  # a file name holds no folder
 # the characters of the ASCII fallback (no quote, backslash, comma, semicolon or %)
 _NOT_FALLBACK = re.compile(r"[^A-Za-z0-9 ._()+=@-]")
 
@@ -64,10 +65,10 @@ _NOT_FALLBACK = re.compile(r"[^A-Za-z0-9 ._()+=@-]")
 def attachment(filename: str) -> str:
     """The ``Content-Disposition`` of a download saved as ``filename`` (a user's name:
     any text). RFC 6266: ``filename*`` holds the name in UTF-8, percent-encoded (RFC
-    5987), and ``filename`` an ASCII fallback for older clients. Control characters
-    (CR and LF: no header can be split), path separators and lone surrogates become
-    ``_``; leading and trailing dots and spaces go (no ``..``); an empty name is
-    ``download``."""
-    name = _NOT_IN_NAME.sub("_", filename).strip(". ") or "download"
+    5987), and ``filename`` an ASCII fallback for older clients. The characters a name
+    may not hold (svrobs_core.text: CR and LF, so no header can be split) and path
+    separators become ``_``; leading and trailing dots and spaces go (no ``..``); an
+    empty name is ``download`` (docs/security.md#names-in-downloads-and-pages)."""
+    name = _PATH_SEPARATORS.sub("_", UNPRINTABLE.sub("_", filename)).strip(". ") or "download"
     fallback = _NOT_FALLBACK.sub("_", name)
     return f"attachment; filename=\"{fallback}\"; filename*=UTF-8''{quote(name, safe='')}"

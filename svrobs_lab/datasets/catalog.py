@@ -25,12 +25,12 @@ from service.db.models import Dataset
 from service.db.quota import lock_team_quota
 from svrobs_core.errors import SpecError
 from svrobs_core.measured import MeasuredData, excitation
-from svrobs_core.text import NOT_PRINTABLE
+from svrobs_core.text import NOT_PRINTABLE, printable, strip_unprintable
 
 from ..auth import Caller
 from ..dispatch import SessionFactory
 from ..errors import DatasetNotFound, Invalid, NotFound
-from .parsed import DatasetOptions, ParsedDataset, name_refused, printable
+from .parsed import DatasetOptions, ParsedDataset, name_refused
 from .reader import parse_dataset
 
 FIELDS = (
@@ -54,10 +54,12 @@ MEDIA_TYPES = {
 # 40 MB of float64 arrays, and their regression copies); a job's validation has it for any
 EXCITATION_MAX_VALUES = 5_000_000
 _FLOAT_TEXT = re.compile(r"-?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]+)?", re.ASCII)
-_BAD_TEXT = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f\ud800-\udfff]")
+_LINE_BREAKS = str.maketrans("", "", "\t\r\n")  # a description's tabs and line breaks
 
 
 def _text(fields: Mapping, key: str, *, limit: int, required: bool = False) -> str | None:
+    """A text field: printable (docs/security.md#names-in-downloads-and-pages), but for
+    the tabs and line breaks of a description."""
     value = fields.get(key)
     if value is None or not value.strip():
         if required:
@@ -66,8 +68,7 @@ def _text(fields: Mapping, key: str, *, limit: int, required: bool = False) -> s
     value = value.strip()
     if len(value) > limit:
         raise SpecError(key, f"at most {limit} characters")
-    line_breaks = key != "description" and any(c in value for c in "\t\r\n")
-    if line_breaks or _BAD_TEXT.search(value):
+    if not printable(value.translate(_LINE_BREAKS) if key == "description" else value):
         raise SpecError(key, NOT_PRINTABLE)
     return value
 
@@ -135,11 +136,12 @@ def check_fields(fields: Mapping[str, str | None]) -> tuple[str, str | None, Dat
 
 
 def clean_filename(filename: str | None) -> str | None:
-    """The upload's file name without folders or control characters (at most 255)."""
+    """The upload's file name without folders or the characters a name may not hold
+    (docs/security.md#names-in-downloads-and-pages), at most 255 characters."""
     if not filename:
         return None
     base = os.path.basename(filename.replace("\\", "/"))
-    base = _BAD_TEXT.sub("", base).strip()[:255]
+    base = strip_unprintable(base).strip()[:255]
     return base or None
 
 

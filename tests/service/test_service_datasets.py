@@ -172,7 +172,19 @@ UNREADABLE = [
     (f"field-{key}-nested", "d.csv", bad_files.GOOD_CSV, {key: "[" * 100_000}, key, r"^not a JSON")
     for key in ("state_columns", "input_columns", "state_names", "input_names")
 ]
-BAD = bad_files.cases() + UNREADABLE
+# a dataset's name and description are printable text (svrobs_core/text.py): no C1
+# control (U+009B starts a terminal escape sequence) nor U+2028/U+2029 (which split lines)
+_PRINTABLE_RULE = r"^must be printable text"
+UNPRINTABLE_FIELDS = [
+    (f"field-{key}-{cid}", "d.csv", bad_files.GOOD_CSV, {key: text}, key, _PRINTABLE_RULE)
+    for key in ("name", "description")
+    for cid, text in (
+        ("c1", "run \x9b2J"),
+        ("line-separator", "a\u2028b"),
+        ("paragraph-separator", "a\u2029b"),
+    )
+]
+BAD = bad_files.cases() + UNREADABLE + UNPRINTABLE_FIELDS
 
 
 @pytest.mark.parametrize("case", BAD, ids=[c[0] for c in BAD])
@@ -238,34 +250,63 @@ def test_size_limit_is_a_413_declared_or_streamed(build_client, session, make_ac
     assert r.json()["sha256"] == hashlib.sha256(small).hexdigest()
 
 
-def test_a_downloads_file_name_cannot_split_its_header(client, make_account):
-    """The file name a download is saved under is the uploader's: a LF in it (a
-    multipart header may hold one) must not reach the header, nor a quote, semicolon or
-    path; RFC 6266: the name in ``filename*`` (UTF-8), an ASCII fallback."""
+def test_a_description_may_hold_tabs_and_line_breaks(client, make_account):
     acc = make_account()
-    sent = "x\nSet-Cookie: s=1;r\u00e9sum\u00e9.csv"
+    text = "bench run\tday 2\r\nsecond line"
+    r = upload(client, acc, "d.csv", bad_files.GOOD_CSV, description=text)
+    assert r.status_code == 201 and r.json()["description"] == text, r.text
+
+
+def _upload_named(client, acc, filename: str):
+    """An upload whose multipart header names the file ``filename`` as it is."""
     body = (
         (
             '--b0\r\nContent-Disposition: form-data; name="name"\r\n\r\nd\r\n'
-            f'--b0\r\nContent-Disposition: form-data; name="file"; filename="{sent}"\r\n\r\n'
+            f'--b0\r\nContent-Disposition: form-data; name="file"; filename="{filename}"\r\n\r\n'
         ).encode()
         + files.csv_bytes(*files.rollouts(lengths=(5,)))
         + b"\r\n--b0--\r\n"
     )
     headers = {**acc.headers, "Content-Type": "multipart/form-data; boundary=b0"}
-    up = client.post(f"{API}/datasets", content=body, headers=headers)
-    assert up.status_code == 201 and up.json()["filename"] == sent, up.text
+    return client.post(f"{API}/datasets", content=body, headers=headers)
+
+
+def test_an_uploaded_file_name_is_kept_without_unprintable_characters(client, make_account):
+    """The file name is shown in listings and terminals: its tabs, line breaks, C1
+    controls and U+2028/U+2029 are dropped at upload, as its folders are."""
+    acc = make_account()
+    up = _upload_named(client, acc, "runs\\a\tb\x9bc\u2028d\u2029e\x1b[0m.csv")
+    assert up.status_code == 201 and up.json()["filename"] == "abcde[0m.csv", up.text
+    d = client.get(f"{API}/datasets/{up.json()['id']}", headers=acc.headers)
+    assert d.json()["filename"] == "abcde[0m.csv"
+
+
+def test_a_downloads_file_name_cannot_split_its_header(client, make_account):
+    """The file name a download is saved under is the uploader's, kept without its LF
+    (a multipart header may hold one): no LF, quote, semicolon or path reaches the
+    header; RFC 6266: the name in ``filename*`` (UTF-8), an ASCII fallback."""
+    acc = make_account()
+    up = _upload_named(client, acc, "x\nSet-Cookie: s=1;r\u00e9sum\u00e9.csv")
+    kept = "xSet-Cookie: s=1;r\u00e9sum\u00e9.csv"
+    assert up.status_code == 201 and up.json()["filename"] == kept, up.text
     d = client.get(f"{API}/datasets/{up.json()['id']}/file", headers=acc.headers)
     value = d.headers["content-disposition"]
     assert value.isascii() and value.isprintable()
     fallback, star = (
-        "x_Set-Cookie_ s=1_r_sum_.csv",
-        "x_Set-Cookie%3A%20s%3D1%3Br%C3%A9sum%C3%A9.csv",
+        "xSet-Cookie_ s=1_r_sum_.csv",
+        "xSet-Cookie%3A%20s%3D1%3Br%C3%A9sum%C3%A9.csv",
     )
     assert value == f"attachment; filename=\"{fallback}\"; filename*=UTF-8''{star}"
-    assert unquote(star) == "x_Set-Cookie: s=1;r\u00e9sum\u00e9.csv"
+    assert unquote(star) == kept
     for name, saved in (("..", "download"), ('a"b\\c/d', "a_b_c_d"), ("\ud800.x", "_.x")):
         assert attachment(name).startswith(f'attachment; filename="{saved}"; ')
+
+
+@pytest.mark.parametrize("name", ["a\r\nb", "a\x1b\x9bb", "a\u2028\u2029b"])
+def test_a_downloads_file_name_holds_only_printable_text(name):
+    """Whatever name a download is given: the characters no name holds
+    (svrobs_core/text.py) become ``_`` in ``filename*`` as in the fallback."""
+    assert attachment(name) == "attachment; filename=\"a__b\"; filename*=UTF-8''a__b"
 
 
 def test_not_multipart_and_no_file(client, make_account):
