@@ -4,8 +4,8 @@ Every error the client raises is a :class:`SvrobsError`; an HTTP error carries t
 ``status`` code, the offending ``field`` (``None`` when the API names none) and the
 ``message`` (the API's ``detail``). Transport and configuration problems have
 ``status`` ``None``. An answer that is not the API's (a redirect, an HTML page where
-the API sends data: the URL is not the API's address) is a :class:`SvrobsError` itself,
-with the answer's ``status``.
+the API sends data: the URL is not the API's address; a report page without the API's
+:data:`REPORT_HEADER`) is a :class:`SvrobsError` itself, with the answer's ``status``.
 """
 
 from __future__ import annotations
@@ -153,6 +153,22 @@ def not_the_api(url: str, status: int, headers: Mapping[str, str]) -> SvrobsErro
         what = f"HTTP {status} and a body that is not the API's JSON ({kind})"
     return SvrobsError(
         f"{url} is not the svrobs API's address: it answered with {what}", status=status
+    )
+
+
+# The header the API's report page carries (its value: the job's id); a page without
+# it is another server's (a proxy's sign-in page, another web app), never saved.
+REPORT_HEADER = "X-Svrobs-Report"
+
+
+def not_a_report(url: str, status: int, headers: Mapping[str, str]) -> SvrobsError:
+    """The error of an answer to ``GET /jobs/{id}/report`` without :data:`REPORT_HEADER`:
+    its status and content type, and that the server at ``url`` is not svrobs."""
+    kind = headers.get("content-type") or "no content type"
+    return SvrobsError(
+        f"{url} does not look like svrobs: the report request got HTTP {status} ({kind}) "
+        f"without the {REPORT_HEADER} header of an svrobs report",
+        status=status,
     )
 
 

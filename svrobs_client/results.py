@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from . import frames
+from .errors import REPORT_HEADER, not_a_report
 from .files import write_atomic, writer
 from .models import Job, Report, ident
 from .params import results_params
@@ -137,8 +138,14 @@ class ResultCalls:
         return frames.compare_frame(self.compare_json(jobs, metric, by))
 
     def report_html(self, job: Job | int) -> str:
-        """The job's HTML report (tables, embedded figures, spec, provenance, findings)."""
-        return self.request("GET", f"/jobs/{ident(job)}/report", timeout=300).text
+        """The job's HTML report (tables, embedded figures, spec, provenance, findings);
+        a :class:`SvrobsError` for a page without the API's report header (another
+        server's page, :func:`~svrobs_client.errors.not_a_report`)."""
+        r = self.request("GET", f"/jobs/{ident(job)}/report", timeout=300)
+        if REPORT_HEADER not in r.headers:
+            raise not_a_report(self.url, r.status_code, r.headers)
+        text: str = r.text
+        return text
 
     def report(
         self, job: Job | int, folder: str | os.PathLike[str], *, figures: bool = True

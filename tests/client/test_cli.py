@@ -14,7 +14,7 @@ from svrobs_cli.errors import plain_field
 from svrobs_cli.rest import fmt
 from tests.client.cli_helpers import fake_api, run_cli, run_process
 from tests.client.test_client import QUICK, SPEC
-from tests.client.test_progress_errors import URL, _html
+from tests.client.test_progress_errors import NOT_A_REPORT, URL, _html
 from tests.integration.stack import fetch_jsonl, free_port
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(300)]
@@ -438,7 +438,8 @@ def test_files_that_cannot_be_read_or_written(capsys, monkeypatch, tmp_path):
 
 def test_a_server_that_is_not_the_api_or_a_url_or_key_that_cannot_be(capsys, monkeypatch, tmp_path):
     """SVROBS_URL on a plain web server (an HTML page, a redirect: no empty export
-    written as a success), not http(s), or a key no key can be: one line saying so."""
+    written as a success, and no page saved as a report), not http(s), or a key no key
+    can be: one line saying so."""
     run = _offline(capsys, monkeypatch, _html)
     _fails(
         run("status"),
@@ -449,6 +450,7 @@ def test_a_server_that_is_not_the_api_or_a_url_or_key_that_cannot_be(capsys, mon
         f"error: {URL} is not the svrobs API's address: it answered with a redirect (HTTP 301)"
         " to /api/v1/jobs/1/results/\n",
     )
+    _fails(run("report", 1, "--out", tmp_path / "rep"), f"error: {NOT_A_REPORT}\n")
     assert list(tmp_path.iterdir()) == []
     monkeypatch.setenv("SVROBS_URL", "ftp://svrobs.test")
     _fails(

@@ -110,6 +110,12 @@ PAGE = (
 )
 
 
+NOT_A_REPORT = (
+    f"{URL} does not look like svrobs: the report request got HTTP 200 (text/html) "
+    "without the X-Svrobs-Report header of an svrobs report"
+)
+
+
 def _html(request: httpx.Request) -> httpx.Response:
     """A plain web server (``python -m http.server``): pages, a 404 page, and a redirect
     from a folder without its slash."""
@@ -126,7 +132,8 @@ def _html(request: httpx.Request) -> httpx.Response:
 
 def test_answers_of_a_server_that_is_not_the_api(monkeypatch, tmp_path):
     """An HTML page, a redirect or a body that is not JSON is a SvrobsError naming the URL
-    (not a JSONDecodeError, nor an empty export reported as written)."""
+    (not a JSONDecodeError, nor an empty export reported as written); so is a page
+    without the API's report header where the report is asked for (not saved)."""
     fake_api(monkeypatch, _html)
     with Client(URL, "svr_k") as c:
         with pytest.raises(SvrobsError, match="is not the svrobs API's address") as e:
@@ -149,6 +156,11 @@ def test_answers_of_a_server_that_is_not_the_api(monkeypatch, tmp_path):
             f"{URL} answered HTTP 404 with an HTML page, not the svrobs API's JSON: "
             "Error code: 404 Message: File not found."
         )
+        for ask in (lambda: c.report(1, tmp_path / "rep"), lambda: c.report_html(1)):
+            with pytest.raises(SvrobsError) as e:
+                ask()
+            assert type(e.value) is SvrobsError and e.value.status == 200
+            assert e.value.message == NOT_A_REPORT
     assert list(tmp_path.iterdir()) == []
 
 

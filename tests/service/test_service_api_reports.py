@@ -70,6 +70,7 @@ def test_job_report_is_html_from_stored_records_and_team_scoped(client, session,
     records = run_units_with_core(session, jid)
     r = client.get(f"{API}/jobs/{jid}/report", headers=acc.headers)
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    assert r.headers["x-svrobs-report"] == str(jid)  # what the client checks before saving
     html = r.text
     assert "<img" in html and "data:image/png;base64," in html
     # Table 2 values in the page are the ones computed from the stored records

@@ -25,6 +25,10 @@ from svrobs_lab.schemas import ErrorOut, JobOut
 
 router = APIRouter(tags=["reports"])
 
+# Marks the page as an svrobs job report (its value: the job's id); the client saves
+# no page without it (svrobs_client.errors.REPORT_HEADER).
+REPORT_HEADER = "X-Svrobs-Report"
+
 
 # The page is HTML but its errors are JSON (ERRORS with a model would document them as
 # text/html, the route's media type).
@@ -35,9 +39,16 @@ JSON_ERRORS = {
     }
     for s in ERRORS
 }
+REPORT_RESPONSES = {
+    200: {
+        "description": "the report page",
+        "headers": {REPORT_HEADER: {"description": "the job's id", "schema": {"type": "string"}}},
+    },
+    **JSON_ERRORS,
+}
 
 
-@router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses=JSON_ERRORS)
+@router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses=REPORT_RESPONSES)
 def job_report(
     job_id: JobId,
     session: DB,
@@ -48,9 +59,11 @@ def job_report(
     """The job's report as one HTML page: tables, figures (embedded PNG), the spec,
     provenance and the data-generated findings. Built from the stored records, once
     for a finished job (then served as stored), and for a running job again only when
-    its progress changed; 429 with Retry-After while the team builds too many."""
+    its progress changed; 429 with Retry-After while the team builds too many. The
+    header X-Svrobs-Report (the job's id) tells a client the page is the report."""
     html = caller_job_report(session, caller, job_id, session_factory, builds=builds)
-    return HTMLResponse(html, headers={"Content-Security-Policy": INLINE_STYLE_CSP})
+    headers = {"Content-Security-Policy": INLINE_STYLE_CSP, REPORT_HEADER: str(job_id)}
+    return HTMLResponse(html, headers=headers)
 
 
 class PresetRun(BaseModel):
