@@ -49,7 +49,7 @@ from numpy.typing import ArrayLike
 
 from .array_types import Array, FloatArray
 from .errors import check_matrix
-from .norms import REASON_UNSTABLE, spectral_radius, stability_reason, stein_solve
+from .norms import REASON_UNSTABLE, schur_stable, spectral_radius, stability_reason, stein_solve
 
 # Up to this state dimension the batched small products are done with the
 # batch in the last axis; above it with stacked matmul (BLAS per matrix).
@@ -394,7 +394,7 @@ def stationary_cost(
     return_reason: bool = False,
 ) -> FloatArray | tuple[FloatArray, Any]:
     """Stationary E||e||^2 by discrete Lyapunov; NaN where the augmented system
-    is not Schur stable. -> (...)
+    is not Schur stable (:func:`svrobs_core.norms.schur_stable`). -> (...)
 
     Blockwise: ``X = A X A^T + Qxx`` (true system, solved once), the cross
     block ``S = A S F^T + (-A X dA^T + Qxe)`` (Stein-Sylvester, batched) and
@@ -402,7 +402,8 @@ def stationary_cost(
     (batched); ``J = trace E``. The augmented matrix is block triangular, so
     it is Schur stable iff ``rho(A) < 1`` and ``rho(F) < 1``; otherwise the
     value is NaN with reason ``"unstable"`` (``"non-finite input"`` for NaN
-    inputs). ``rho_F``: optional precomputed spectral radius of
+    inputs, :data:`svrobs_core.norms.REASON_BOUNDARY` for a radius within
+    UNIT_CIRCLE_TOL below 1). ``rho_F``: optional precomputed spectral radius of
     ``F = A~ - L C`` (saves the batched eigenvalue call). ``return_reason=True``
     gives ``(value, reason)``, reason an object array of None / str (a plain
     object for one cell).
@@ -420,9 +421,7 @@ def stationary_cost(
     if rho_F is None:
         rho_F = spectral_radius(F)
     rho_F = np.asarray(rho_F, dtype=float)
-    with np.errstate(invalid="ignore"):
-        okA = rho_A < 1.0
-        okF = rho_F < 1.0
+    okA, okF = schur_stable(rho_A), schur_stable(rho_F)
     # unstable matrices are replaced by 0 so every solve is well posed; those
     # cells are set to NaN at the end
     A_s = np.where(okA[..., None, None], c.A, 0.0)
@@ -440,8 +439,7 @@ def stationary_cost(
         np.nan,
         rho,
     )
-    with np.errstate(invalid="ignore"):
-        J = np.where(rho < 1.0, J, np.nan)
+    J = np.where(schur_stable(rho), J, np.nan)
     if return_reason:
         return J, stability_reason(None, rho=rho)
     return J

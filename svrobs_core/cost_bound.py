@@ -23,9 +23,10 @@ NaN semantics: ``J_b`` is NaN (record ``null``) where
 
 * the true ``A`` is not Schur stable (``rho(A) >= 1``, e.g. the paper's U
   system): the H-infinity norms of ``[Phi_A B; I]`` and ``[Phi_A K; I]`` are
-  undefined; reason :data:`REASON_A_UNSTABLE`;
+  undefined; reason :data:`REASON_A_UNSTABLE` (:data:`REASON_A_BOUNDARY` for a
+  computed rho(A) within UNIT_CIRCLE_TOL below 1, :func:`svrobs_core.norms.schur_stable`);
 * ``F = A~ - L C`` is not Schur stable: the H2 norms are undefined; reason
-  :data:`REASON_F_UNSTABLE`;
+  :data:`REASON_F_UNSTABLE` (:data:`REASON_F_BOUNDARY`);
 * an input is non-finite (e.g. no gain): reason :data:`REASON_NONFINITE`.
 
 When several apply, the first in this list is reported.
@@ -40,11 +41,25 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .array_types import Array, FloatArray
-from .norms import REASON_NONFINITE, h2_norm, hinf_norm, spectral_radius, stein_solve
+from .norms import (
+    REASON_NONFINITE,
+    UNIT_CIRCLE_TOL,
+    h2_norm,
+    hinf_norm,
+    schur_stable,
+    spectral_radius,
+    stability_reason,
+    stein_solve,
+)
 
 REASON_A_UNSTABLE = "unstable: rho(A) >= 1, H-inf of [Phi_A B; I] undefined"
 REASON_F_UNSTABLE = "unstable: rho(A_tilde - L C) >= 1, H2 of Phi~_w undefined"
 REASON_CLOSED_UNSTABLE = "unstable: rho(A - K C) >= 1"
+# the same for a computed radius within UNIT_CIRCLE_TOL below 1 (norms.schur_stable)
+_NEAR = f"within {UNIT_CIRCLE_TOL:g} of 1 (the stability boundary)"
+REASON_A_BOUNDARY = f"rho(A) {_NEAR}: H-inf of [Phi_A B; I] undefined"
+REASON_F_BOUNDARY = f"rho(A_tilde - L C) {_NEAR}: H2 of Phi~_w undefined"
+REASON_CLOSED_BOUNDARY = f"rho(A - K C) {_NEAR}"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -104,14 +119,6 @@ def true_system_norms(
     h2c = h2_norm(Fk, I, I, rho=rho_k)
     hic = hinf_norm(Fk, I, I, rho=rho_k, grid=grid)
 
-    def reason(rho: ArrayLike, text: str) -> Any:
-        rho = np.asarray(rho, dtype=float)
-        out = np.full(rho.shape, None, dtype=object)
-        out[np.isnan(rho)] = REASON_NONFINITE
-        with np.errstate(invalid="ignore"):
-            out[rho >= 1.0] = text
-        return out.item() if out.ndim == 0 else out
-
     return TrueSystemNorms(
         hinf_PhiA_B=_scalar(hB),
         hinf_PhiA_K=_scalar(hK),
@@ -119,8 +126,12 @@ def true_system_norms(
         hinf_closed=_scalar(hic),
         rho_A=_scalar(rho_A),
         rho_closed=_scalar(rho_k),
-        open_reason=reason(rho_A, REASON_A_UNSTABLE),
-        closed_reason=reason(rho_k, REASON_CLOSED_UNSTABLE),
+        open_reason=stability_reason(
+            None, rho_A, unstable=REASON_A_UNSTABLE, boundary=REASON_A_BOUNDARY
+        ),
+        closed_reason=stability_reason(
+            None, rho_k, unstable=REASON_CLOSED_UNSTABLE, boundary=REASON_CLOSED_BOUNDARY
+        ),
     )
 
 
@@ -146,7 +157,7 @@ def phi_w_h2_norms(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """(||Phi~_w||_H2, ||Phi~_w (K - L)||_H2, rho_F), batched, one shared solve.
 
-    NaN where F = A~ - L C is not Schur stable or non-finite."""
+    NaN where F = A~ - L C is not :func:`~svrobs_core.norms.schur_stable` or non-finite."""
     At = np.asarray(A_tilde, dtype=float)
     L = np.asarray(L, dtype=float)
     C = np.asarray(C, dtype=float)
@@ -157,8 +168,7 @@ def phi_w_h2_norms(
         rho_F = spectral_radius(F)
     rho_F = np.asarray(rho_F, dtype=float)
     batch = np.broadcast_shapes(F.shape[:-2], K.shape[:-2], rho_F.shape)
-    with np.errstate(invalid="ignore"):
-        ok = rho_F < 1.0
+    ok = schur_stable(rho_F)
     Fs = np.where(ok[..., None, None], F, 0.0)
     dK = np.where(np.isfinite(K - L), K - L, 0.0)
     rhs = np.stack(
@@ -223,10 +233,11 @@ def theorem3_bound(
 
     # reasons, in order of precedence
     reason = np.full(batch, None, dtype=object)
-    with np.errstate(invalid="ignore"):
-        f_bad = np.broadcast_to(~(rho_F < 1.0), batch)
     reason[np.broadcast_to(~np.isfinite(J_b), batch)] = REASON_NONFINITE
-    reason[f_bad & ~np.broadcast_to(np.isnan(rho_F), batch)] = REASON_F_UNSTABLE
+    f_reason = stability_reason(None, rho_F, unstable=REASON_F_UNSTABLE, boundary=REASON_F_BOUNDARY)
+    f_reason = np.broadcast_to(np.asarray(f_reason, dtype=object), batch)
+    f_bad = (f_reason != None) & (f_reason != REASON_NONFINITE)  # noqa: E711 (object arrays)
+    reason[f_bad] = f_reason[f_bad]
     open_reason = norms.open_reason
     if isinstance(open_reason, np.ndarray):
         o = np.broadcast_to(open_reason, batch)

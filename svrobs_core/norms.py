@@ -7,12 +7,15 @@ between the arguments) and returns an array of the broadcast batch shape (a
 
 NaN semantics: a transfer matrix whose ``F`` is not Schur stable
 (``rho(F) >= 1``) has no finite H2 / H-infinity norm here; its value is NaN and
-its reason is :data:`REASON_UNSTABLE`. A non-finite ``F`` (e.g. a gain that
-could not be designed) gives NaN with :data:`REASON_NONFINITE`. Callers turn
-NaN into ``null`` and put the reason in ``notes``: pass ``return_reason=True``
-to get ``(value, reason)``, where ``reason`` has the batch shape, dtype object,
-entries ``None`` (finite value) or one of the two strings (a plain Python
-object, not an array, for a single system).
+its reason is :data:`REASON_UNSTABLE`. Stability is decided by
+:func:`schur_stable`: a computed ``rho(F)`` within :data:`UNIT_CIRCLE_TOL` of 1
+counts as the boundary (NaN, :data:`REASON_BOUNDARY`). A non-finite ``F``
+(e.g. a gain that could not be designed) gives NaN with
+:data:`REASON_NONFINITE`. Callers turn NaN into ``null`` and put the reason in
+``notes``: pass ``return_reason=True`` to get ``(value, reason)``, where
+``reason`` has the batch shape, dtype object, entries ``None`` (finite value)
+or one of the strings (a plain Python object, not an array, for a single
+system).
 """
 
 from __future__ import annotations
@@ -26,7 +29,15 @@ from .array_types import Array, BoolArray, FloatArray
 from .errors import check_matrix
 from .linalg import solve as _solve
 
+# A matrix counts as Schur stable only when its computed spectral radius is below
+# 1 - UNIT_CIRCLE_TOL (docs/science.md#62-stationary-j_stationary). The computed radius of
+# a matrix on the unit circle (rho = 1 exactly: a stochastic matrix, det 1 with |trace| < 2)
+# lands a few ulps (times the eigenvalue's condition) on either side of 1, and as rho -> 1
+# the Stein solves and the H-infinity peak lose accuracy (relative error ~ u / (1 - rho),
+# 1e-6 at 1 - 1e-10): such a matrix has no stationary covariance or system norm here.
+UNIT_CIRCLE_TOL = 1e-10
 REASON_UNSTABLE = "unstable"
+REASON_BOUNDARY = f"on the stability boundary (rho within {UNIT_CIRCLE_TOL:g} of 1)"
 REASON_NONFINITE = "non-finite input"
 
 # Kronecker (vectorised LU) solves of the Stein equation are used while the
@@ -51,17 +62,31 @@ def spectral_radius(F: ArrayLike) -> FloatArray:
     return np.where(finite, rho, np.nan)
 
 
-def is_schur(F: ArrayLike) -> BoolArray:
-    """rho(F) < 1 (False for non-finite F). -> (...) bool"""
+def schur_stable(rho: ArrayLike) -> BoolArray:
+    """The computed spectral radius ``rho`` is below ``1 - UNIT_CIRCLE_TOL``: the one
+    stability test of every quantity that exists only for a Schur-stable matrix
+    (False for NaN). -> (...) bool"""
     with np.errstate(invalid="ignore"):
-        schur: BoolArray = spectral_radius(F) < 1.0
-        return schur
+        stable: BoolArray = np.asarray(rho, dtype=float) < 1.0 - UNIT_CIRCLE_TOL
+        return stable
 
 
-def stability_reason(F: ArrayLike | None, rho: ArrayLike | None = None) -> Any:
-    """Reason array for F: None if Schur stable, else REASON_UNSTABLE or
-    REASON_NONFINITE. ``rho`` may be a precomputed spectral radius. -> (...)
-    object (Python object for a single system)."""
+def is_schur(F: ArrayLike) -> BoolArray:
+    """:func:`schur_stable` of rho(F) (False for non-finite F). -> (...) bool"""
+    return schur_stable(spectral_radius(F))
+
+
+def stability_reason(
+    F: ArrayLike | None,
+    rho: ArrayLike | None = None,
+    *,
+    unstable: str = REASON_UNSTABLE,
+    boundary: str = REASON_BOUNDARY,
+) -> Any:
+    """Reason array for F: None if :func:`schur_stable`, else ``unstable`` (rho >= 1),
+    ``boundary`` (rho within UNIT_CIRCLE_TOL below 1) or REASON_NONFINITE. ``rho``
+    may be a precomputed spectral radius. -> (...) object (Python object for a
+    single system)."""
     if rho is None:
         assert F is not None, "stability_reason needs F or rho"
         rho = spectral_radius(F)
@@ -69,7 +94,8 @@ def stability_reason(F: ArrayLike | None, rho: ArrayLike | None = None) -> Any:
     out = np.full(rho.shape, None, dtype=object)
     out[np.isnan(rho)] = REASON_NONFINITE
     with np.errstate(invalid="ignore"):
-        out[rho >= 1.0] = REASON_UNSTABLE
+        out[~schur_stable(rho) & (rho < 1.0)] = boundary
+        out[rho >= 1.0] = unstable
     return _unwrap0(out)
 
 
@@ -186,8 +212,7 @@ def _broadcast_sys(
 def _finish(
     value: FloatArray, rho: FloatArray, return_reason: bool
 ) -> FloatArray | tuple[FloatArray, Any]:
-    with np.errstate(invalid="ignore"):
-        value = np.where(rho < 1.0, value, np.nan)
+    value = np.where(schur_stable(rho), value, np.nan)
     if return_reason:
         reason = np.asarray(stability_reason(None, rho=rho), dtype=object)
         reason[np.isnan(value) & (reason == None)] = REASON_NONFINITE
@@ -221,7 +246,8 @@ def h2_norm(
     rho: ArrayLike | None = None,
     return_reason: bool = False,
 ) -> FloatArray | tuple[FloatArray, Any]:
-    """||H (zI-F)^-1 G||_H2 via the discrete Lyapunov Gramian; NaN if rho(F) >= 1.
+    """||H (zI-F)^-1 G||_H2 via the discrete Lyapunov Gramian; NaN unless F is
+    :func:`schur_stable`.
 
     ``||.||_H2^2 = trace(H W H^T)``, ``W = F W F^T + G G^T``. F (..., n, n),
     G (..., n, m), H (..., p, n) -> (...). ``rho``: optional precomputed
@@ -232,8 +258,7 @@ def h2_norm(
     if rho is None:
         rho = spectral_radius(F)
     rho = np.broadcast_to(np.asarray(rho, dtype=float), batch)
-    with np.errstate(invalid="ignore"):
-        stable = rho < 1.0
+    stable = schur_stable(rho)
     # Replace unstable / non-finite cells by F = 0 so the solve stays harmless.
     if stable.all():
         Fs = F
@@ -309,7 +334,8 @@ def hinf_norm(
     rho: ArrayLike | None = None,
     return_reason: bool = False,
 ) -> FloatArray | tuple[FloatArray, Any]:
-    """sup_w sigma_max(H (e^jw I - F)^-1 G + D) on a refined grid; NaN if unstable.
+    """sup_w sigma_max(H (e^jw I - F)^-1 G + D) on a refined grid; NaN unless F is
+    :func:`schur_stable`.
 
     F (..., n, n), G (..., n, m), H (..., p, n), D (..., p, m) or None (zero)
     -> (...). Method: sigma_max on a uniform grid of ``grid`` frequencies over
@@ -334,13 +360,12 @@ def hinf_norm(
         Df = np.zeros((Nb, p, m))
     else:
         Df = np.broadcast_to(D, batch + (p, m)).reshape(Nb, p, m)
-    with np.errstate(invalid="ignore"):
-        ok = (
-            (rho.reshape(Nb) < 1.0)
-            & np.isfinite(Gf).all((1, 2))
-            & np.isfinite(Hf).all((1, 2))
-            & np.isfinite(Df).all((1, 2))
-        )
+    ok = (
+        schur_stable(rho.reshape(Nb))
+        & np.isfinite(Gf).all((1, 2))
+        & np.isfinite(Hf).all((1, 2))
+        & np.isfinite(Df).all((1, 2))
+    )
     out = np.full(Nb, np.nan)
     idx = np.flatnonzero(ok)
     if idx.size:
