@@ -2,9 +2,11 @@
 per team, and the last report of each job kept until the job's progress changes
 (docs/security.md#reports-of-running-jobs).
 
-:meth:`ReportBuilds.get` is given the job's ``version`` (its status, units done and
-cells done): a kept report of that version is returned at once; else the request
-joins the job's build in progress (it waits for that one build) or starts one.
+:meth:`ReportBuilds.get` is given the job's key (its id and creation time: SQLite
+gives the id of a deleted job to the next job made, which may be another team's) and
+``version`` (its status, units done and cells done): a kept report of that job and
+version is returned at once; else the request joins the job's build in progress (it
+waits for that one build) or starts one.
 A team already running ``per_team`` builds, or with ``waiters_per_team`` requests
 waiting, is refused with :class:`~svrobs_lab.errors.RateLimited` (429, Retry-After:
 the last build's duration). Nothing here touches the database: the caller reads
@@ -42,10 +44,10 @@ class ReportBuilds:
         self.waiters_per_team = waiters_per_team
         self.keep = keep
         self._lock = threading.Lock()
-        self._flights: dict[int, _Flight] = {}
+        self._flights: dict[Hashable, _Flight] = {}
         self._building: Counter[int] = Counter()
         self._waiting: Counter[int] = Counter()
-        self._kept: OrderedDict[int, tuple[Hashable, str]] = OrderedDict()
+        self._kept: OrderedDict[Hashable, tuple[Hashable, str]] = OrderedDict()
         self._last_seconds = 5.0
         self.builds = 0  # builds started (for tests and the bench)
 
@@ -58,28 +60,29 @@ class ReportBuilds:
             f"{what}: retry in {retry} s (SVROBS_REPORT_BUILDS_PER_TEAM)", retry_after=retry
         )
 
-    def kept(self, job_id: int, version: Hashable) -> str | None:
-        """The kept report of ``job_id`` if it was built at ``version``."""
+    def kept(self, job: Hashable, version: Hashable) -> str | None:
+        """The kept report of the job keyed ``job`` if it was built at ``version``."""
         with self._lock:
-            hit = self._kept.get(job_id)
+            hit = self._kept.get(job)
             if hit is None or hit[0] != version:
                 return None
-            self._kept.move_to_end(job_id)
+            self._kept.move_to_end(job)
             return hit[1]
 
-    def forget(self, job_id: int) -> None:
+    def forget(self, job: Hashable) -> None:
         with self._lock:
-            self._kept.pop(job_id, None)
+            self._kept.pop(job, None)
 
-    def get(self, job_id: int, team_id: int, version: Hashable, build: Callable[[], str]) -> str:
-        """The report of ``job_id`` at ``version``: kept, another request's build in
-        progress, or ``build()`` run here (and kept)."""
+    def get(self, job: Hashable, team_id: int, version: Hashable, build: Callable[[], str]) -> str:
+        """The report of the job keyed ``job`` (its id and creation time, one job of one
+        team) at ``version``: kept, another request's build in progress, or ``build()``
+        run here (and kept)."""
         with self._lock:
-            hit = self._kept.get(job_id)
+            hit = self._kept.get(job)
             if hit is not None and hit[0] == version:
-                self._kept.move_to_end(job_id)
+                self._kept.move_to_end(job)
                 return hit[1]
-            flight = self._flights.get(job_id)
+            flight = self._flights.get(job)
             if flight is not None:
                 if self._waiting[team_id] >= self.waiters_per_team:
                     raise self._busy("too many report requests of this team are waiting")
@@ -88,13 +91,13 @@ class ReportBuilds:
             else:
                 if self._building[team_id] >= self.per_team:
                     raise self._busy(f"this team already builds {self.per_team} reports")
-                flight = self._flights[job_id] = _Flight(version)
+                flight = self._flights[job] = _Flight(version)
                 self._building[team_id] += 1
                 self.builds += 1
                 leader = True
         if not leader:
             return self._wait(flight, team_id)
-        return self._lead(flight, job_id, team_id, build)
+        return self._lead(flight, job, team_id, build)
 
     def _wait(self, flight: _Flight, team_id: int) -> str:
         try:
@@ -109,9 +112,9 @@ class ReportBuilds:
         assert flight.html is not None
         return flight.html
 
-    def _lead(self, flight: _Flight, job_id: int, team_id: int, build: Callable[[], str]) -> str:
+    def _lead(self, flight: _Flight, job: Hashable, team_id: int, build: Callable[[], str]) -> str:
         started = time.monotonic()
-        log.info("building the report of job %s (team %s)", job_id, team_id)
+        log.info("building the report of job %s (team %s)", job, team_id)
         try:
             flight.html = build()
         except BaseException as exc:
@@ -120,13 +123,13 @@ class ReportBuilds:
         finally:
             with self._lock:
                 self._building[team_id] -= 1
-                del self._flights[job_id]
+                del self._flights[job]
                 if flight.html is not None:
                     self._last_seconds = time.monotonic() - started
-                    self._kept[job_id] = (flight.version, flight.html)
-                    self._kept.move_to_end(job_id)
+                    self._kept[job] = (flight.version, flight.html)
+                    self._kept.move_to_end(job)
                     while len(self._kept) > self.keep:
                         self._kept.popitem(last=False)
             flight.done.set()
-        log.info("built the report of job %s in %.1f s", job_id, time.monotonic() - started)
+        log.info("built the report of job %s in %.1f s", job, time.monotonic() - started)
         return flight.html

@@ -24,7 +24,8 @@ import threading
 from collections.abc import Callable
 from contextlib import closing
 from dataclasses import dataclass
-from typing import Any
+from datetime import datetime
+from typing import Any, NamedTuple
 
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -45,11 +46,24 @@ BUILD_SLOTS = threading.BoundedSemaphore(1)
 DEFAULT_BUILDS = ReportBuilds(per_team=2, waiters_per_team=8)
 
 
+class JobKey(NamedTuple):
+    """One job, for the builds kept in memory: its id and creation time. SQLite gives
+    the id of a deleted job to the next job made (another team's, maybe), which must
+    not be served the deleted job's kept report."""
+
+    id: int
+    created_at: datetime
+
+    def __str__(self) -> str:  # in the builds' log lines
+        return f"{self.id} (made {self.created_at.isoformat()})"
+
+
 @dataclass(frozen=True)
 class JobSnapshot:
     """What a report is built from, read before the request's session is closed."""
 
     id: int
+    created_at: datetime
     team_id: int
     status: str
     progress_done: int
@@ -63,6 +77,7 @@ class JobSnapshot:
     def of(cls, job: Job) -> JobSnapshot:
         return cls(
             id=job.id,
+            created_at=job.created_at,
             team_id=job.team_id,
             status=job.status,
             progress_done=job.progress_done,
@@ -72,6 +87,10 @@ class JobSnapshot:
             provenance=dict(job.provenance or {}),
             name=job.name or f"job-{job.id}",
         )
+
+    @property
+    def key(self) -> JobKey:
+        return JobKey(self.id, self.created_at)
 
     @property
     def version(self) -> tuple:
@@ -165,11 +184,13 @@ def job_report(
     session.close()  # no connection is held while building or waiting for a build
     if snap.final:
         html = builds.get(
-            snap.id, snap.team_id, snap.version, lambda: _build_and_store(snap, session_factory)
+            snap.key, snap.team_id, snap.version, lambda: _build_and_store(snap, session_factory)
         )
-        builds.forget(snap.id)  # stored: served from the database from now on
+        builds.forget(snap.key)  # stored: served from the database from now on
         return html
-    return builds.get(snap.id, snap.team_id, snap.version, lambda: _build(snap, session_factory)[0])
+    return builds.get(
+        snap.key, snap.team_id, snap.version, lambda: _build(snap, session_factory)[0]
+    )
 
 
 def store_if_missing(

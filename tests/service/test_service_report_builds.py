@@ -223,3 +223,21 @@ def test_the_columns_are_freed_before_the_memory_is_handed_back(
     with scope(write=False) as r, scope(write=True) as w:
         assert reports.store_if_missing(r, w, jid)  # the tick's build
     assert len(loaded) == 2 and alive_at_release == [False, False]
+
+
+def test_a_deleted_jobs_kept_report_is_not_served_for_the_job_that_takes_its_id(
+    client, make_account
+):
+    """SQLite gives the id of the newest job, once deleted, to the next job made: the
+    report kept for the deleted job (same status, units and cells as the new one) is
+    not the new job's, whichever team made it."""
+    a, b = make_account(), make_account()
+    jid = client.post(f"{API}/jobs", json={**TINY_SPEC, "name": "a-secret"}, headers=a.headers)
+    jid = jid.json()["id"]
+    assert "a-secret" in client.get(f"{API}/jobs/{jid}/report", headers=a.headers).text
+    assert client.post(f"{API}/jobs/{jid}/cancel", headers=a.headers).status_code == 200
+    assert client.delete(f"{API}/jobs/{jid}", headers=a.headers).status_code == 204
+    new = client.post(f"{API}/jobs", json={**TINY_SPEC, "name": "b-own"}, headers=b.headers)
+    page = client.get(f"{API}/jobs/{new.json()['id']}/report", headers=b.headers)
+    assert page.status_code == 200, page.text
+    assert "b-own" in page.text and "a-secret" not in page.text
