@@ -9,7 +9,9 @@ points at)::
     celery -A worker.celery_app beat        the scheduler (runs the tick)
 
 ``svrobs serve --host H --port P`` picks the API's address (a port in use is one
-line naming it, before anything starts). Once ``/readyz`` answers, a box says
+line naming it, before anything starts). One ``serve`` at a time runs on a state
+folder (:mod:`svrobs_cli.serve_lock`): a second one on it, on another port or not,
+is one line naming the first one's pid and URL, before anything starts. Once ``/readyz`` answers, a box says
 which URL to open, the admin key (first start only) and a first command to run.
 
 Each child is a :class:`svrobs_cli.processes.Child`: its own process group (so a
@@ -46,6 +48,7 @@ from service.report_crashes import CrashRecord
 from svrobs_cli import signals as early_signals
 from svrobs_cli.errors import CliError
 from svrobs_cli.processes import Child, Supervisor, guarded
+from svrobs_cli.serve_lock import already_serving, hold_serve_lock, running_serve
 from svrobs_core.threads import THREAD_ENV
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -359,13 +362,21 @@ def serve(
     stopping += early_signals.RECEIVED  # a stop before these handlers were set
     key: str | None = None
     supervisor: Supervisor | None = None
+    lock: int | None = None
     announced = False
     try:
         if stopping:
             return 0
         settings = settings or get_settings()
+        state = var_dir(settings)
+        holder = running_serve(state)  # before the port: it may be that serve's port
+        if holder is not None:
+            raise already_serving(state, holder)
         check_port(settings.API_HOST, settings.API_PORT)
         prepare_dirs(settings)
+        browse = _browse_host(settings.API_HOST)
+        url = f"http://{browse}:{settings.API_PORT}"
+        lock = hold_serve_lock(state, url)
         print(f"svrobs: migrating {_redact(settings.DATABASE_URL)}", flush=True)
         migrate(settings)
         key = bootstrap_admin(settings)
@@ -376,8 +387,6 @@ def serve(
         children += _children(settings, workers=workers, concurrency=concurrency, beat=beat,
                               grace=grace)  # fmt: skip
         supervisor = Supervisor(children, log=lambda line: print(line, file=sys.stderr, flush=True))
-        browse = _browse_host(settings.API_HOST)
-        url = f"http://{browse}:{settings.API_PORT}"
         supervisor.start()
         print(f"svrobs: API on {url} - waiting for it and the worker to be ready", flush=True)
         started = time.monotonic()
@@ -404,6 +413,8 @@ def serve(
                 # beat's report build cut short by this stop (a second Ctrl-C, or past
                 # the grace) did not crash: its mark must not count against its job
                 CrashRecord(var_dir(settings) / REPORT_CRASHES).clear()
+        if lock is not None:  # after the children stopped: the folder is free again
+            os.close(lock)
         for s, h in old.items():
             signal.signal(s, h)
     return 0

@@ -200,3 +200,40 @@ def test_a_port_in_use_is_one_line_and_starts_nothing(tmp_path):
     )
     assert run.stdout == ""  # nothing migrated, nothing started
     assert not (tmp_path / "var").exists()
+
+
+def test_a_second_serve_on_the_same_state_folder_is_one_line_and_starts_nothing(tmp_path):
+    """``make run`` again (the same port, or another one as the port message suggests)
+    while one runs from the same folder: one line naming the running one; the first
+    stack keeps its worker's pid file and stays ready."""
+    port, other = free_port(), free_port()
+    with _serving(tmp_path, port) as (proc, log, _text):
+        pid_files = sorted((tmp_path / "var" / "run").glob("*.pid"))
+        assert pid_files, log.read_text()
+        for p in (port, other):
+            second = subprocess.Popen(
+                [sys.executable, "-m", "svrobs_cli", "serve", "--port", str(p)],
+                cwd=str(ROOT),
+                env=_serve_env(tmp_path),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                start_new_session=True,
+            )
+            try:
+                out, err = second.communicate(timeout=60)
+            except subprocess.TimeoutExpired:
+                _stop(second)
+                raise AssertionError(f"a second serve on port {p} started") from None
+            assert second.returncode == 2, out + err
+            assert err.strip() == (
+                f"error: svrobs serve already runs on the state folder {tmp_path / 'var'} "
+                f"(pid {proc.pid}, http://127.0.0.1:{port}); use that one, or stop it "
+                "(Ctrl-C in its terminal) before starting another"
+            )
+            assert out == ""
+        assert sorted((tmp_path / "var" / "run").glob("*.pid")) == pid_files
+        assert _readyz(port) == 200
+    # stopped: the folder is free for the next start
+    with _serving(tmp_path, other) as (_proc, _log, text):
+        assert f"http://127.0.0.1:{other}/" in text
