@@ -28,6 +28,7 @@ from .errors import (
     WaitTimeout,
     error_from_response,
     not_the_api,
+    unreachable,
 )
 from .models import Job, JobPage, Schedule, ScheduleRun, Share, ident
 from .params import RESULT_FILTERS
@@ -121,7 +122,7 @@ class Client(ResultCalls, DatasetCalls):
         try:
             r = self._http.request(method, path, **kw)
         except httpx.HTTPError as exc:
-            raise ConnectionFailed(f"cannot reach {self.url}: {exc}") from None
+            raise unreachable(self.url, exc) from None
         self._check(r, data=False)
         return r
 
@@ -147,8 +148,9 @@ class Client(ResultCalls, DatasetCalls):
                 answered = True
                 yield r
         except httpx.HTTPError as exc:
-            what = "lost the connection to" if answered else "cannot reach"
-            raise ConnectionFailed(f"{what} {self.url}: {exc}") from None
+            if not answered:
+                raise unreachable(self.url, exc) from None
+            raise ConnectionFailed(f"lost the connection to {self.url}: {exc}") from None
 
     # ------------------------------------------------------------------ jobs
     def submit(

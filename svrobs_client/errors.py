@@ -13,6 +13,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+import httpx
+
 
 class SvrobsError(Exception):
     """Base class: ``status`` (HTTP code or None), ``field`` and ``message``."""
@@ -50,6 +52,17 @@ class ConfigError(SvrobsError):
 
 class ConnectionFailed(SvrobsError, ConnectionError):
     """The server could not be reached (or the connection broke mid-response)."""
+
+
+# what a refused or unresolvable connection most often means: no server there yet
+NO_SERVER_HINT = "no server answers there: start one (make run) or set SVROBS_URL"
+
+
+def unreachable(url: str, exc: Exception) -> ConnectionFailed:
+    """``cannot reach URL: <reason>``; with :data:`NO_SERVER_HINT` when the connection
+    itself failed (refused, unknown host), not when it timed out or broke."""
+    hint = f" ({NO_SERVER_HINT})" if isinstance(exc, httpx.ConnectError) else ""
+    return ConnectionFailed(f"cannot reach {url}: {exc}{hint}")
 
 
 class WaitTimeout(SvrobsError, TimeoutError):

@@ -6,6 +6,7 @@ files that cannot be read or written. No server needed (a fake API in process)."
 from __future__ import annotations
 
 import io
+import socket
 import sys
 import types
 
@@ -193,6 +194,32 @@ def test_a_connection_lost_mid_answer(monkeypatch, tmp_path):
         with pytest.raises(ConnectionFailed, match=f"^cannot reach {URL}: connection refused"):
             c.summary_json(1)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_no_server_at_the_url_says_how_to_start_one(monkeypatch):
+    """A refused connection (the CLI run before ``make run`` is up) names the URL and
+    what to do; a timeout, where a server may be busy, does not say there is none."""
+    with socket.socket() as s:  # a port no one listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    url = f"http://127.0.0.1:{port}"
+    with Client(url, "svr_k") as c:
+        with pytest.raises(ConnectionFailed) as refused:
+            c.jobs()
+        with pytest.raises(ConnectionFailed) as streamed:  # a streamed download
+            c.results_records(1)
+    for err in (refused, streamed):
+        assert err.value.message.startswith(f"cannot reach {url}: ")
+        assert err.value.message.endswith(f" ({errors.NO_SERVER_HINT})")
+    assert "make run" in errors.NO_SERVER_HINT and "SVROBS_URL" in errors.NO_SERVER_HINT
+
+    def slow(request):
+        raise httpx.ReadTimeout("timed out", request=request)
+
+    fake_api(monkeypatch, slow)
+    with Client(URL, "svr_k") as c, pytest.raises(ConnectionFailed) as timed_out:
+        c.jobs()
+    assert timed_out.value.message == f"cannot reach {URL}: timed out"
 
 
 @pytest.mark.parametrize(
