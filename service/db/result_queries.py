@@ -26,6 +26,9 @@ from .results_store import record_select
 RANGE_OPS = {"lt": "__lt__", "lte": "__le__", "gt": "__gt__", "gte": "__ge__"}
 RANGE_RE = re.compile(r"^(?P<field>\w+?)_(?P<op>lt|lte|gt|gte)$")
 MAX_SORT_KEYS = 5
+# range filters of one request: 28 fields x 4 bounds need no more, and SQLite refuses
+# a WHERE whose ANDs nest deeper than 1000 ("Expression tree is too large")
+MAX_RANGE_FILTERS = 100
 RANGE_FIELDS = tuple(f for f in NUMERIC_FIELDS if f not in BOOL_FIELDS)  # booleans: no <
 T = Result.__table__
 # built once (a select of 41 columns costs ~1 ms to construct); callers add WHERE/ORDER
@@ -69,12 +72,19 @@ def sort_order(sort: str | None) -> list:
 def range_terms(bounds: Iterable[tuple[str, float]]) -> list:
     """WHERE conditions of the ``(name, bound)`` pairs whose name is a range parameter
     (each bound a finite number, read from its text by the caller:
-    :func:`svrobs_lab.params.read_number`)."""
-    conds = []
+    :func:`svrobs_lab.params.read_number`); Invalid naming the first one past
+    :data:`MAX_RANGE_FILTERS`."""
+    conds: list = []
     for name, bound in bounds:
         m = RANGE_RE.match(name)
         if m is None or m.group("field") not in RANGE_FIELDS:
             continue
+        if len(conds) == MAX_RANGE_FILTERS:
+            raise Invalid(
+                f"at most {MAX_RANGE_FILTERS} range filters (<field>_lt, _lte, _gt, _gte) "
+                "in one request",
+                field=name,
+            )
         conds.append(getattr(T.c[m.group("field")], RANGE_OPS[m.group("op")])(bound))
     return conds
 

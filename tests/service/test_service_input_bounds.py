@@ -5,7 +5,9 @@
 * a coordinate given twice in the JSON form of a cell (as in the text form);
 * a range filter's number not written in plain ASCII decimal (the rule of ``N`` and
   ``sigma_w``): ``٣``, full-width ``１``, ``1_0``, `` 1 ``;
-* a share link's label with a NUL or another control character.
+* a share link's label with a NUL or another control character;
+* more range filters than MAX_RANGE_FILTERS (SQLite refused a WHERE of 1,000 ANDs:
+  a 503 on a JSON page, a CSV cut short after its header).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import pytest
 from sqlalchemy import func, select
 
 from service.db.models import ShareLink
+from service.db.result_queries import MAX_RANGE_FILTERS
 from tests.service.svc_fakes import stored_job
 from tests.service.svc_helpers import TINY_SPEC
 
@@ -106,6 +109,20 @@ def test_a_range_filter_in_plain_ascii_still_filters(client, done):
     for value in ("1e999", "-inf", "NaN"):
         r = client.get(f"{API}/jobs/{jid}/results", params={"N_lt": value}, headers=acc.headers)
         assert _refused(r, "N_lt") == "must be finite"
+
+
+def test_more_range_filters_than_the_cap_is_a_422_naming_the_first_past_it(client, done):
+    acc, jid = done
+    many = [("rmse_A_lt", str(10 + i)) for i in range(1100)]
+    for fmt in ("json", "csv", "jsonl"):
+        r = client.get(
+            f"{API}/jobs/{jid}/results", params=[*many, ("format", fmt)], headers=acc.headers
+        )
+        assert "at most 100 range filters" in _refused(r, "rmse_A_lt"), fmt
+    r = client.get(
+        f"{API}/jobs/{jid}/results", params=[*many[:MAX_RANGE_FILTERS]], headers=acc.headers
+    )
+    assert r.status_code == 200 and r.json()["total"] == 2, r.text
 
 
 @pytest.mark.parametrize(
