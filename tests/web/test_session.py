@@ -50,6 +50,17 @@ def test_wrong_key_stays_signed_out_and_is_not_echoed(web, make_account):
     assert web.get("/jobs", follow_redirects=False).status_code == 303
 
 
+@pytest.mark.parametrize("hours, shown", [(12.0, "12 hours"), (1.0, "1 hour."), (0.5, "0.5 hours")])
+def test_the_sign_in_page_says_where_a_key_comes_from_and_how_long_a_session_lasts(
+    build_client, hours, shown
+):
+    client, _ = build_client(SECRET_KEY="test-secret-0123456789", SESSION_HOURS=hours)
+    text = " ".join(client.get("/login").text.split())
+    assert "the admin key <code>make run</code> printed on its first start" in text
+    assert "<code>svrobs admin create-key EMAIL</code>" in text
+    assert f"a signed session cookie for {shown}" in text
+
+
 def test_pages_redirect_to_login_without_a_session(web):
     r = web.get("/jobs?status=running", follow_redirects=False)
     assert r.status_code == 303
