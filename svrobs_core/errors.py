@@ -10,7 +10,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import difflib
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -29,6 +30,13 @@ class SpecError(ValueError):
         super().__init__(f"{field}: {message}")
         self.field = field
         self.message = message
+
+
+def unknown_field(key: str, known: Iterable[str]) -> str:
+    """The message of an unknown field ``key``: ``"unknown field"``, and the known field
+    it is a typo of when one is close (``sigmaw``: ``did you mean 'sigma_w'?``)."""
+    close = difflib.get_close_matches(key, sorted(known), n=1, cutoff=0.75)
+    return f"unknown field (did you mean '{close[0]}'?)" if close else "unknown field"
 
 
 class DimensionError(ValueError):

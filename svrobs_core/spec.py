@@ -13,7 +13,7 @@ from collections.abc import Iterable
 from dataclasses import MISSING, dataclass, field, fields
 from typing import Any, cast
 
-from .errors import SpecError
+from .errors import SpecError, unknown_field
 from .seeding import DEFAULT_RNG, RNGS
 from .systems import MAX_DIM, SystemSpec, resolve_system
 
@@ -293,7 +293,8 @@ def parse_simulation_spec(obj: dict[str, Any]) -> ExperimentSpec:
     unknown = set(obj) - SPEC_KEYS
     if unknown:
         key = sorted(unknown)[0]
-        raise SpecError(key, DATASET_ONLY_MESSAGE if key in DATASET_KEYS else "unknown field")
+        message = unknown_field(key, SPEC_KEYS | DATASET_KEYS)
+        raise SpecError(key, DATASET_ONLY_MESSAGE if key in DATASET_KEYS else message)
     for key in ("systems", "sigma_w", "N"):
         if key not in obj:
             raise SpecError(key, "is required")

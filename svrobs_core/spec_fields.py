@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from typing import Any
 
-from .errors import SpecError
+from .errors import SpecError, unknown_field
 from .measured.spec import BOUNDS_METHOD as DATASET_BOUNDS_METHOD
 from .measured.spec import SPEC_FIELDS as DATASET_SPEC_KEYS
 from .measured.spec import DatasetOptions
@@ -423,7 +423,8 @@ def spec_errors(obj: object) -> dict[str, str]:
             errors["N"] = "is required"
         return _whole(obj, errors)
     for key in sorted(set(obj) - SPEC_KEYS):
-        errors[key] = DATASET_ONLY_MESSAGE if key in DATASET_KEYS else "unknown field"
+        message = unknown_field(key, SPEC_KEYS | DATASET_KEYS)
+        errors[key] = DATASET_ONLY_MESSAGE if key in DATASET_KEYS else message
     for key in REQUIRED_KEYS:
         if key not in obj:
             errors[key] = "is required"

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..array_types import IntArray
-from ..errors import SpecError
+from ..errors import SpecError, unknown_field
 from ..spec import (
     MAX_STATE_DIM,
     SPEC_KEYS,
@@ -173,7 +173,7 @@ def parse_dataset_spec(obj: dict[str, Any]) -> ExperimentSpec:
             raise SpecError("dataset", "give either systems or dataset, not both")
         if key in SPEC_KEYS:
             raise SpecError(key, "is not used with a dataset (it describes a simulation)")
-        raise SpecError(key, "unknown field")
+        raise SpecError(key, unknown_field(key, SPEC_FIELDS))
     if "N" not in obj:
         raise SpecError("N", "is required")
     dataset = _int(obj["dataset"], "dataset", lo=1, hi=2**63 - 1)

@@ -138,6 +138,30 @@ def test_bad_input_names_the_field(changes, field):
     assert exc.value.field == field, str(exc.value)
 
 
+@pytest.mark.parametrize(
+    "obj, field, message",
+    [
+        ({"sigmaw": [1.0]}, "sigmaw", "unknown field (did you mean 'sigma_w'?)"),
+        ({"sytems": ["paper-stable"]}, "sytems", "unknown field (did you mean 'systems'?)"),
+        ({"gama": [0.1]}, "gama", "unknown field (did you mean 'gamma'?)"),
+        ({"datset": 1}, "datset", "unknown field (did you mean 'dataset'?)"),
+        ({"bogus": 1}, "bogus", "unknown field"),  # nothing close: no guess
+    ],
+)
+def test_a_misspelt_field_names_the_field_it_is_close_to(obj, field, message):
+    """A typo in a field's name (the CLI: ``error: invalid spec: sigmaw: unknown field
+    (did you mean 'sigma_w'?)``), in the parser and in the form's every-error check."""
+    from svrobs_core.spec_fields import spec_errors
+
+    with pytest.raises(SpecError) as exc:
+        parse_spec({**BASE, **obj})
+    assert (exc.value.field, exc.value.message) == (field, message)
+    assert spec_errors({**BASE, **obj})[field] == message
+    with pytest.raises(SpecError) as exc:  # a job on measured data
+        parse_spec({"dataset": 1, "N": [5], "holdot": 4})
+    assert exc.value.message == "unknown field (did you mean 'holdout'?)"
+
+
 @pytest.mark.parametrize("missing", ["systems", "sigma_w", "N"])
 def test_required_fields(missing):
     d = dict(BASE)
