@@ -98,6 +98,15 @@ def print_json(data) -> None:
     typer.echo(json.dumps(data, indent=2))
 
 
+def _count(n: int, word: str) -> str:
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
+def submitted_line(job: Job) -> str:
+    """``job 3 queued (30 cells, 1 unit)``: what ``svrobs submit`` made."""
+    return f"job {job.id} {job.status} ({_count(job.n_cells, 'cell')}, {_count(job.progress.total, 'unit')})"
+
+
 def progress_line(job: Job) -> str:
     return f"job {job.id} {job.status} {job.progress.done}/{job.progress.total} units"
 
@@ -138,8 +147,7 @@ def submit(
             job = c.submit(spec, name=name, tags=tag, idempotency_key=idempotency_key, wait=False)
         except ValidationError as exc:
             raise CliError(f"invalid spec: {plain_message(exc)}") from None
-        line = f"job {job.id} {job.status} ({job.n_cells} cells, {job.progress.total} units)"
-        typer.echo(line, err=print_id)
+        typer.echo(submitted_line(job), err=print_id)
         if wait:
             finish(c, job, err=print_id)
         if print_id:

@@ -22,7 +22,7 @@ from svrobs_client import (
     errors,
     progress,
 )
-from tests.client.cli_helpers import fake_api
+from tests.client.cli_helpers import fake_api, run_cli
 
 URL = "http://svrobs.test"
 
@@ -296,3 +296,20 @@ def test_a_written_file_has_the_permissions_of_one_written_in_place(tmp_path):
         assert (tmp_path / "kept.csv").read_bytes() == b"b"
     finally:
         os.umask(old)
+
+
+@pytest.mark.parametrize(
+    "cells, units, line",
+    [(30, 1, "job 3 queued (30 cells, 1 unit)"), (1, 4, "job 3 queued (1 cell, 4 units)")],
+)
+def test_the_submit_line_counts_in_words(monkeypatch, capsys, tmp_path, cells, units, line):
+    """``svrobs submit``'s first line: a count of one is singular."""
+    job = {"id": 3, "name": None, "tags": [], "status": "queued", "n_cells": cells}
+    job |= {"progress": {"done": 0, "total": units, "fraction": 0.0}, "owner": None}
+    job |= {"spec": {}, "provenance": {}, "error": None, "timings": {}}
+    job |= {"created_at": None, "started_at": None, "finished_at": None}
+    fake_api(monkeypatch, lambda r: httpx.Response(202, json=job))
+    monkeypatch.setenv("SVROBS_URL", URL)
+    monkeypatch.setenv("SVROBS_API_KEY", "svr_k")
+    (tmp_path / "spec.json").write_text('{"systems": ["paper-stable"], "sigma_w": [1], "N": [10]}')
+    assert run_cli(capsys, "submit", tmp_path / "spec.json") == (0, line + "\n", "")
