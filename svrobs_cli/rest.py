@@ -206,7 +206,9 @@ def status(
 def results(
     job: int = typer.Argument(...),
     format: str = typer.Option("csv", "--format", help="csv, jsonl or json"),
-    out: Path | None = typer.Option(None, "--out", help="write to this file (default stdout)"),
+    out: Path | None = typer.Option(
+        None, "--out", help="write to this file (default, or -: stdout)"
+    ),
     system: list[str] = typer.Option([], help="filter (repeatable)"),
     sigma_w: list[float] = typer.Option([], help="filter (repeatable)"),
     n: list[int] = typer.Option([], "--N", help="filter on N (repeatable)"),
@@ -224,6 +226,8 @@ def results(
     A file given by --out is written whole or not at all."""
     if format not in ("csv", "jsonl", "json"):
         raise CliError("--format must be csv, jsonl or json")
+    if out is not None and str(out) == "-":  # as `svrobs submit -` reads stdin
+        out = None
     ranges = {}
     for item in where:
         name, eq, value = item.partition("=")

@@ -313,3 +313,14 @@ def test_the_submit_line_counts_in_words(monkeypatch, capsys, tmp_path, cells, u
     monkeypatch.setenv("SVROBS_API_KEY", "svr_k")
     (tmp_path / "spec.json").write_text('{"systems": ["paper-stable"], "sigma_w": [1], "N": [10]}')
     assert run_cli(capsys, "submit", tmp_path / "spec.json") == (0, line + "\n", "")
+
+
+def test_results_out_dash_is_stdout(monkeypatch, capsys, tmp_path):
+    """``svrobs results JOB --out -`` prints the records, as without ``--out``, and
+    writes no file named ``-``."""
+    fake_api(monkeypatch, lambda r: httpx.Response(200, text="N\n10\n"))
+    monkeypatch.setenv("SVROBS_URL", URL)
+    monkeypatch.setenv("SVROBS_API_KEY", "svr_k")
+    monkeypatch.chdir(tmp_path)
+    assert run_cli(capsys, "results", "1", "--out", "-") == (0, "N\n10\n", "")
+    assert list(tmp_path.iterdir()) == []
