@@ -36,7 +36,14 @@ FIELDS = ("name", "cron", "timezone", "spec_template", "tags", "enabled", "seed_
 def validate_template(spec: dict, settings: Settings, session: Session, team_id: int) -> dict:
     """``spec`` if it is a valid spec within the job limits, on one of the team's
     datasets if it names one (checked against its shape), else a SpecError naming
-    ``spec_template.<field>`` (anything else is a bug, not a 422)."""
+    ``spec_template.<field>`` (anything else is a bug, not a 422).
+
+    The session's transaction is ended first (what the caller read is not kept): a
+    simulated spec is parsed and admitted with no transaction open, which takes
+    seconds for a spec of thousands of systems, and a writing session on SQLite holds
+    the database's one write lock from its first read (a dataset spec reads its
+    dataset's shape, then is admitted in a few milliseconds)."""
+    session.rollback()
     try:
         parsed = parse_spec(spec)
         _, data = spec_data(session, team_id, parsed)
@@ -95,8 +102,12 @@ def _commit_or_conflict(session: Session, name: str) -> None:
 
 
 def create(session: Session, caller: Caller, settings: Settings, data: dict) -> dict:
-    """Create a schedule from ``data`` (a validated ``ScheduleCreate`` as a dict); the
-    team's schedules are counted under its quota lock, held until the commit."""
+    """Create a schedule from ``data`` (a validated ``ScheduleCreate`` as a dict). It is
+    checked first, then the team's schedules are counted under its quota lock, held
+    until the commit (not while the template is admitted: :func:`validate_template`)."""
+    timezone = store.validate_timezone(data["timezone"])
+    cron = _checked_cron(data["cron"], timezone, settings)
+    template = validate_template(data["spec_template"], settings, session, caller.team_id)
     lock_team_quota(session, caller.team_id)
     count = store.count_schedules(session, caller.team_id)
     if count >= settings.MAX_SCHEDULES_PER_TEAM:
@@ -106,14 +117,13 @@ def create(session: Session, caller: Caller, settings: Settings, data: dict) -> 
             field="schedules",
         )
     now = utcnow()
-    timezone = store.validate_timezone(data["timezone"])
     s = Schedule(
         team_id=caller.team_id,
         user_id=caller.user_id,
         name=data["name"],
-        cron=_checked_cron(data["cron"], timezone, settings),
+        cron=cron,
         timezone=timezone,
-        spec_template=validate_template(data["spec_template"], settings, session, caller.team_id),
+        spec_template=template,
         tags=list(dict.fromkeys(data["tags"])),
         enabled=data["enabled"],
         seed_policy=data["seed_policy"],
@@ -136,7 +146,9 @@ def get(session: Session, caller: Caller, schedule_id: int) -> dict:
 def update(
     session: Session, caller: Caller, settings: Settings, schedule_id: int, data: dict
 ) -> dict:
-    """Change the fields given in ``data`` (a ``ScheduleUpdate``, unset fields left out)."""
+    """Change the fields given in ``data`` (a ``ScheduleUpdate``, unset fields left out);
+    a new template is admitted with no transaction open (:func:`validate_template`),
+    then the schedule read again (NotFound if it was deleted meanwhile)."""
     s = team_schedule(session, caller, schedule_id)
     for key in FIELDS:
         if key != "tags" and key in data and data[key] is None:
@@ -149,6 +161,7 @@ def update(
         )
     if "spec_template" in data:
         validate_template(data["spec_template"], settings, session, caller.team_id)
+        s = team_schedule(session, caller, schedule_id)
     if "tags" in data:
         data["tags"] = list(dict.fromkeys(data["tags"] or []))
     for key, value in data.items():
@@ -161,7 +174,9 @@ def update(
 def run_now(submission: Submission, schedule_id: int) -> dict:
     """A job of the schedule's template now, as a due run makes one (its seed policy at
     this time, its name and tags, linked to the schedule) but outside the due times:
-    no run is recorded and the next due run is unchanged. -> the job's body."""
+    no run is recorded and the next due run is unchanged. The schedule's read ends
+    before the job is made, so that its spec is admitted with no transaction open (as
+    :func:`validate_template` does). -> the job's body."""
     s = team_schedule(submission.session, submission.caller, schedule_id)
     now = utcnow().replace(microsecond=0)
     stamp = now.strftime("%Y-%m-%dT%H:%M:%SZ")
@@ -171,6 +186,7 @@ def run_now(submission: Submission, schedule_id: int) -> dict:
         tags=list(s.tags or []) + [f"schedule:{s.name}"],
         schedule_id=s.id,
     )
+    submission.session.rollback()
     (out,) = submission.submit([job])
     return out
 
