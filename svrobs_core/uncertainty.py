@@ -149,6 +149,7 @@ def self_normalized_box(
     S: float | FloatArray,
     lambda0: float = 1.0,
     shrink: ArrayLike = 0.0,
+    sigma_err: ArrayLike = 0.0,
 ) -> BoxResult:
     """Self-normalized box (docs/uncertainty.md, (b)-(d)).
 
@@ -166,8 +167,10 @@ def self_normalized_box(
 
     Accuracy (docs/uncertainty.md#numerical-accuracy-of-the-radii): ``rel_err``
     estimates the relative error of the radii from the factor's backward
-    error; where it exceeds RADIUS_RTOL the cell is null with a reason that
-    gives cond(V). OLS is singular (null) when Z is numerically rank
+    error, plus ``sigma_err`` (...), the relative error of ``sigma_w`` when it is
+    itself computed (the bound of measured data, docs/measured.md#sigma-w-estimate;
+    every radius scales with sigma_w at most linearly); where it exceeds
+    RADIUS_RTOL the cell is null with a reason that gives cond(V). OLS is singular (null) when Z is numerically rank
     deficient (lambda_min(G) <= (d u)^2 lambda_max(G) from the data, d u
     lambda_max(G) from a formed G).
     """
@@ -185,7 +188,8 @@ def self_normalized_box(
     log_n_delta = 2.0 * np.log(n / float(delta))
     rank_tol = d * U_ROUND if fac.formed else (d * U_ROUND) ** 2
     parts = v_parts(fac, lam, lambda0=lambda0, n=n)
-    err, cond = (np.broadcast_to(x, batch) for x in (parts.err, parts.cond))
+    err = np.broadcast_to(parts.err + np.asarray(sigma_err, dtype=float), batch)
+    cond = np.broadcast_to(parts.cond, batch)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         lam_min, lam_max = parts.lam_min, parts.lam_max
         singular = ols & ~(lam_min > rank_tol * lam_max)

@@ -93,10 +93,13 @@ def sound_box(
     N: int,
     N0: int,
     factor: GramFactor | None = None,
+    sigma_err: Array | float = 0.0,
 ) -> _unc.BoxResult:
     """The box of the spec's ``bounds_method`` for one dataset's cells
     (:func:`sound_bounds`), with the radii its certificates use (``R_A_up``,
     ``R_B_up``, :func:`svrobs_core.uncertainty.certificate_radii`).
+    ``sigma_err``: the relative error of ``c.sigma_w`` where it is computed (the
+    bound of measured data), added to the radii's error estimate.
 
     The radii come from the data's own factor (:func:`svrobs_core.uncertainty.data_factor`);
     with ``Z`` None (a caller with only the Gram matrices G) from the formed
@@ -123,6 +126,7 @@ def sound_box(
             S=spec.S_bound,
             lambda0=spec.lambda0,
             shrink=shrink,
+            sigma_err=sigma_err,
         )
     else:
         if spec.boot_sigma_w == "spec":

@@ -22,6 +22,7 @@ from .. import cost_bound as _cb
 from .. import kalman as _kalman
 from ..array_types import Array, FloatArray
 from ..bounds import BoundsResult
+from ..data_factor import GramFactor, data_factor, estimate_margin
 from ..estimators import fit_ols
 from ..norms import spectral_radius
 from ..notes import Notes
@@ -32,7 +33,7 @@ from ..spec import STAGES, ExperimentSpec
 from ..stage_cells import StageCells  # the context the stage functions read
 from ..uncertainty_stage import bounds_from_box, sound_box
 from .data import StateModel
-from .noise import noise_level, residual_sum
+from .noise import noise_level, residual_error, residual_sum
 
 NO_TRUTH = "measured data: no true system"
 # The fields each stage fills on a simulated job that need the true system.
@@ -107,9 +108,13 @@ def run_cells(
     )
     if len(ran) < len(STAGES):
         notes.add(True, "stages not run: " + ", ".join(st for st in STAGES if st not in ran))
-    sigma_box, sigma_model = _noise(c, G=G, Z=Z, F=F, rows=rows, n_rows=F.shape[1], N0=N0)
+    # the data's factor: the noise bound's and the box's (docs/measured.md#sound-set)
+    fac = data_factor(Z, _full_targets(model, Z, F))
+    sigma_box, sigma_model, sigma_err = _noise(c, fac, Z=Z, F=F, rows=rows, model=model, N0=N0)
     if spec.has("bounds"):
-        _bounds_and_observer(c, sigma_box, sigma_model, model=model, Z=Z, F=F, N=N, N0=N0)
+        _bounds_and_observer(
+            c, sigma_box, sigma_model, model=model, Z=Z, N=N, N0=N0, fac=fac, sigma_err=sigma_err
+        )
     for f in CERTIFICATES:
         if f in c.out and withheld.any():
             # None: an object scalar, which numpy's stubs do not admit in where()
@@ -119,25 +124,28 @@ def run_cells(
 
 def _noise(
     c: MeasuredCells,
+    fac: GramFactor,
     *,
-    G: FloatArray,
     Z: FloatArray,
     F: FloatArray,
     rows: FloatArray,
-    n_rows: int,
+    model: StateModel,
     N0: int,
-) -> tuple[float | FloatArray, float | FloatArray]:
-    """(sigma of the box, sigma of the observer model), each (R, 1) or a number;
-    the notes say what was estimated (docs/measured.md#sigma-w-estimate)."""
+) -> tuple[float | FloatArray, float | FloatArray, float | FloatArray]:
+    """(sigma of the box, sigma of the observer model, the relative error of the
+    box's sigma), each (R, 1) or a number; the notes say what was estimated
+    (docs/measured.md#sigma-w-estimate). ``fac``: the data's factor (full targets)."""
     spec, notes = c.spec, c.notes
     if "ols" in c.axis.names:
         theta_ols = rows[:, c.axis.names.index("ols")]
     else:
         theta_ols = fit_ols(Z, F)
-    q = spec.delta / 4
-    lvl = noise_level(
-        G, residual_sum(Z, F, theta_ols), n=n_rows, N0=N0, delta1=q, delta2=q, lambda0=spec.lambda0
-    )
+    n_rows = F.shape[1]
+    rss = residual_sum(Z, F, theta_ols)
+    # the OLS estimate's distance from the exact fit, in the norm of Z Z^T
+    margin = estimate_margin(fac, model.full(theta_ols), lam=0.0)[:, :n_rows]
+    err, q, lam0 = residual_error(Z, F, theta_ols, margin, rss), spec.delta / 4, spec.lambda0
+    lvl = noise_level(fac, rss, n=n_rows, N0=N0, delta1=q, delta2=q, lambda0=lam0, resid_err=err)
     given = spec.measured.sigma_w
     if given is not None:
         with np.errstate(invalid="ignore"):
@@ -154,7 +162,7 @@ def _noise(
             dtype=object,
         )
         notes.add_reasons(texts[:, None], None)
-        return given, given
+        return given, given, 0.0
     texts = np.array(
         [
             f"noise: sigma_w estimated: sigma_hat_w = {s:.4g} (residual, for K and the costs),"
@@ -167,7 +175,7 @@ def _noise(
     # None: an object scalar, which numpy's stubs do not admit in where()
     notes.add_reasons(np.where(finite, texts, None)[:, None], None)  # type: ignore[call-overload]
     notes.add_reasons(lvl.reason[:, None], "noise")
-    return lvl.sigma_bar[:, None], lvl.sigma_hat[:, None]
+    return lvl.sigma_bar[:, None], lvl.sigma_hat[:, None], lvl.rel_err[:, None]
 
 
 def _bounds_and_observer(
@@ -177,11 +185,13 @@ def _bounds_and_observer(
     *,
     model: StateModel,
     Z: FloatArray,
-    F: FloatArray,
     N: int,
     N0: int,
+    fac: GramFactor,
+    sigma_err: float | FloatArray,
 ) -> None:
-    """The box from the data's own factor, with the estimate's rounding margin
+    """The box from the data's own factor ``fac`` (of the full targets), with the
+    estimate's rounding margin and the error of an estimated sigma (``sigma_err``)
     in its certificate radii (docs/uncertainty.md#certificates-on-the-boxes;
     the known rows of the ARX state with radius 0, docs/measured.md#arx), its
     certificates, then the observer stages on the estimate."""
@@ -189,7 +199,7 @@ def _bounds_and_observer(
     estimate = spec.measured.sigma_w is None
     boxed = replace(c, spec=replace(spec, delta=spec.delta / 2) if estimate else spec)
     boxed.sigma_w = sigma_box
-    box = sound_box(boxed, G=None, Z=Z, F=_full_targets(model, Z, F), N=N, N0=N0)
+    box = sound_box(boxed, G=None, Z=Z, F=None, N=N, N0=N0, factor=fac, sigma_err=sigma_err)
     if model.lags is not None:
         known = ~model.estimated[:, None]
         assert box.R_A_up is not None and box.R_B_up is not None  # sound_box sets them

@@ -123,6 +123,32 @@ def exact_box(Z, theta, *, sigma_w, delta, lam, S, lambda0=1.0, shrink=0.0) -> E
         )
 
 
+def exact_sigma_bar(Z, F, *, delta, lambda0=1.0):
+    """(sigma_bar, D) of the noise bound of measured data (docs/measured.md#sigma-w-estimate)
+    on the double data Z (d, N0), F (n, N0), delta1 = delta2 = delta / 4: the exact least
+    squares residual, eigenvalues and log det to 60 digits (the chi2 quantile is scipy's).
+    sigma_bar is None where D <= 0."""
+    from scipy.stats import chi2
+
+    F = np.asarray(F, dtype=float)
+    n, N0 = F.shape
+    q = delta / 4
+    with mp.workdps(DPS):
+        G = gram(Z)
+        Zm = mp.matrix([[mp.mpf(float(v)) for v in row] for row in np.asarray(Z, dtype=float)])
+        Gi = mp.inverse(G)
+        rss = mp.mpf(0)
+        for i in range(n):
+            f = mp.matrix([[mp.mpf(float(v)) for v in F[i]]])
+            r = f - (f * Zm.T) * Gi * Zm
+            rss += mp.fsum(r[0, k] ** 2 for k in range(N0))
+        lam = _eig_sym(G)
+        c = 1 + mp.mpf(lambda0) / lam[0]
+        logdet = mp.fsum(mp.log(1 + x / lambda0) for x in lam)
+        D = mp.mpf(chi2.ppf(q, n * N0)) - n * c * (logdet + 2 * mp.log(n / mp.mpf(q)))
+        return (float(mp.sqrt(rss / D)) if D > 0 else None), D
+
+
 def exact_rho(M) -> mp.mpf:
     """The spectral radius of a small double matrix, to 60 digits."""
     with mp.workdps(DPS):

@@ -24,9 +24,10 @@ from svrobs_core.measured import (
     validate,
     validation_summary,
 )
+from svrobs_core.measured.noise import REASON_INACCURATE
 from svrobs_core.norms import REASON_NONFINITE, hinf_norm
 
-from .exact_boxes import DPS, exact_rho, gram
+from .exact_boxes import DPS, exact_box, exact_rho, exact_sigma_bar, gram
 from .test_measured_validation import hand_statistics
 
 
@@ -142,6 +143,98 @@ def test_radii_of_weakly_excited_data_come_from_the_data():
     assert r["radii_A"] is not None and r["radii_B"] is not None
     got = np.hstack([np.array(r["radii_A"]), np.array(r["radii_B"])])
     np.testing.assert_allclose(got, np.tile(R, (2, 1)), rtol=1e-9)
+
+
+# --------------------------------------------------------------------------
+# sigma_w = "estimate": the bound's own error enters the radii's
+# --------------------------------------------------------------------------
+def one_step_rollouts(Z, F):
+    """Rollouts of one transition each whose regressors and targets are Z, F."""
+    n = F.shape[0]
+    X = [np.stack([Z[:n, k], F[:, k]]) for k in range(Z.shape[1])]
+    U = [Z[n:, k][None, :] for k in range(Z.shape[1])]
+    return X, U
+
+
+def ill_conditioned(cond, N0, seed, noise):
+    """Z (3, N0) with lambda_min(Z Z^T) = 1 and cond(Z Z^T) = cond; F = Theta Z + noise."""
+    rng = np.random.default_rng(seed)
+    Q1, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    Q2, _ = np.linalg.qr(rng.standard_normal((N0, 3)))
+    Z = (Q1 * math.sqrt(cond) * np.logspace(0, -math.log10(cond) / 2, 3)) @ Q2.T
+    theta = np.array([[0.3, 0.1, 0.5], [0.05, 0.2, -0.4]])
+    return Z, theta @ Z + noise * rng.standard_normal((2, N0))
+
+
+def check_estimated_box(r, Z, F, delta):
+    """The record's box with sigma_w = "estimate" against the exact one (the exact
+    sigma_bar, the box at delta / 2): given radii within 1e-6 of it, and
+    stable_certified true only where the exact |A_hat| + R_A has rho < 1 (it is a
+    vertex of the box when A_hat >= 0). -> whether the radii were given."""
+    sigma_bar, D = exact_sigma_bar(Z, F, delta=delta)
+    R = np.hstack([np.array(r["radii_A"], dtype=float), np.array(r["radii_B"], dtype=float)])
+    if not np.isfinite(R).all():
+        assert REASON_INACCURATE in r["notes"] or sigma_bar is None, r["notes"]
+        assert r["stable_certified"] is None
+        return False
+    assert sigma_bar is not None, mp.nstr(D, 5)
+    centre = np.hstack([np.array(r["A_hat"]), np.array(r["B_hat"])])
+    ex = exact_box(Z, centre, sigma_w=sigma_bar, delta=delta / 2, lam=0.0, S=1.0)
+    assert np.max(np.abs(R / ex.R - 1)) <= 1e-6
+    rho = exact_rho(np.abs(centre[:, :2]) + ex.R[:, :2])
+    assert r["rho_upper_bound"] >= rho
+    if r["stable_certified"]:
+        assert rho < 1
+    return True
+
+
+def test_estimated_sigma_w_with_a_vanishing_denominator_certifies_nothing_false():
+    """D = chi2 quantile - n c (l + ...) near 0 (0.002): sigma_bar = sqrt(RSS / D) takes
+    D's error times 1 / D. From the formed Gram (cond 1e11) it came out 1.8 % low:
+    stable_certified was true (rho_upper_bound 0.993) on a box whose vertex |A_hat| + R_A
+    has spectral radius 1.004. Now its error estimate nulls it, with a note."""
+    Z, F = ill_conditioned(1e11, 200, 2, 1.3914273702909675e-4)
+    delta = 1.96464e-06
+    _, D = exact_sigma_bar(Z, F, delta=delta)
+    assert 0 < D < 0.01
+    X, U = one_step_rollouts(Z, F)
+    obj = {"N": [200], "delta": delta, "stages": ["estimate", "bounds"], "estimators": ["ols"]}
+    (r,) = records(obj, X, U)
+    check_estimated_box(r, Z, F, delta)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_estimated_sigma_w_of_ill_conditioned_data_comes_from_the_data(seed):
+    """cond(Z Z^T) = 9e11 (below the bound's singular limit 1e12): lambda_min from the
+    formed Gram was off by 1e-4, the radii by up to 3.5e-5 and rho_upper_bound below the
+    exact value; from the data's factor they agree with the 60-digit box."""
+    Z, F = ill_conditioned(9e11, 200, seed, 0.1)
+    X, U = one_step_rollouts(Z, F)
+    obj = {"N": [200], "delta": 0.1, "stages": ["estimate", "bounds"], "estimators": ["ols"]}
+    (r,) = records(obj, X, U)
+    assert check_estimated_box(r, Z, F, 0.1)
+
+
+@pytest.mark.parametrize(
+    ("sw", "given"), [(1e-3, True), (1e-8, True), (1e-12, None), (1e-14, None)]
+)
+def test_estimated_sigma_w_of_nearly_noise_free_data(sw, given):
+    """The residual of data with sigma_w / |x| = 1e-12 is rounding noise for 1e-4 of
+    its size: the radii were 5.5e-6 (1e-14: 1.4e-4) off the exact box. They are
+    given within 1e-6, or null with a note; at ordinary noise levels they are given."""
+    A, B = np.array([[0.5, 0.2], [-0.1, 0.4]]), np.array([[1.0], [0.5]])
+    rng = np.random.default_rng(1)
+    x, u = np.empty((6, 21, 2)), rng.standard_normal((6, 20, 1))  # 6 rollouts at once
+    x[:, 0] = rng.standard_normal((6, 2))
+    for k in range(20):
+        x[:, k + 1] = x[:, k] @ A.T + u[:, k] @ B.T + sw * rng.standard_normal((6, 2))
+    X, U = list(x), list(u)
+    obj = {"N": [6], "delta": 0.1, "stages": ["estimate", "bounds"], "estimators": ["ols"]}
+    (r,) = records(obj, X, U)
+    Z, F = regressors(X, U)
+    shown = check_estimated_box(r, Z, F, 0.1)
+    if given:
+        assert shown
 
 
 # --------------------------------------------------------------------------
