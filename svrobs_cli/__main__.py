@@ -5,7 +5,12 @@ import sys
 
 def main() -> None:
     """Run the command line; for ``serve``, stop signals are kept from the start
-    (:mod:`svrobs_cli.signals`), before the imports."""
+    (:mod:`svrobs_cli.signals`), before the imports. BLAS is pinned to one thread and
+    one kernel before numpy loads (:mod:`svrobs_core.threads`): ``svrobs reproduce``
+    computes in this process and its forks."""
+    from svrobs_core.threads import single_thread_env
+
+    single_thread_env()
     if sys.argv[1:2] == ["serve"]:
         from svrobs_cli.signals import record_early
 

@@ -5,11 +5,21 @@ private database or schema named after its process.
 
 Property tests are derandomized and keep no example database, so a run's outcome
 depends on the code alone, never on which examples a previous run happened to find.
-Set ``HYPOTHESIS_PROFILE=explore`` to draw fresh examples while hunting for bugs."""
+Set ``HYPOTHESIS_PROFILE=explore`` to draw fresh examples while hunting for bugs.
+
+The records computed in the test process are compared bit for bit with those of
+worker processes, which pin BLAS's threads and kernel before numpy loads
+(:mod:`svrobs_core.threads`): the test process pins them the same way, first."""
 
 from __future__ import annotations
 
 import os
+import sys
+
+from svrobs_core.threads import single_thread_env
+
+if "numpy" not in sys.modules:  # a plugin that loaded numpy first fixed its BLAS already
+    single_thread_env()
 from urllib.parse import urlsplit, urlunsplit
 
 from hypothesis import settings
