@@ -411,7 +411,10 @@ def estimate_margin(
         S = np.swapaxes(fac.R11, -1, -2) @ fit + lamb[..., None, None] * np.swapaxes(th, -1, -2)
         inv = 1.0 / (fac.lam + lamb[..., None])  # eigenvalues of V^-1
         y = np.swapaxes(fac.U, -1, -2) @ S  # (..., d, n)
-        s_norm = np.sqrt(np.sum(y * y * inv[..., :, None], axis=-2))  # (..., n)
+        # ||S_i||_{V^-1}: scaled by sqrt(inv) before squaring (S ~ ||Z||^2 |theta| would
+        # overflow when squared for data of size 1e77, well inside the double range)
+        y = y * np.sqrt(inv)[..., :, None]
+        s_norm = np.sqrt(np.sum(y * y, axis=-2))  # (..., n)
         resid = np.sqrt(np.sum(fit * fit, axis=-2) + fac.r22**2)
         if parts.Rinv is not None:
             idx = parts.ext

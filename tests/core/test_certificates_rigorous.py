@@ -288,3 +288,45 @@ def test_certificate_radii_need_the_data():
     box = unc.self_normalized_box(fac, theta, **kw)
     R_A_up, R_B_up = unc.certificate_radii(box, fac, theta, lam=1e-6)
     assert np.isfinite(R_A_up).all() and (R_A_up >= box.R_A).all() and (R_B_up >= box.R_B).all()
+
+
+def test_certificates_of_huge_data_are_those_of_the_data_scaled_down():
+    """sigma_u = sigma_w / 0.1 = 1e100 (the largest valid level) with lambda0 = 1e200 is
+    the unit-scale spec times 1e100: the same radii and certificates. The estimate's
+    rounding margin squared the normal-equation residual (~||Z||^2 |theta|) and
+    overflowed for data from ~1e77 on: the certificates were null, with the note that
+    Z Z^T is singular or too ill-conditioned. The 60-digit box of the huge data agrees."""
+
+    def spec(scale):
+        system = {"name": "s", "A": [[0.5, 0.2], [-0.1, 0.4]], "B": [[1.0], [0.5]]}
+        return parse_spec(
+            {
+                "systems": [{**system, "sigma_u": scale}],
+                "sigma_w": [0.1 * scale],
+                "N": [10],
+                "T0": 10,
+                "reps": 2,
+                "estimators": ["ols"],
+                "bounds_method": "self-normalized",
+                "lambda0": scale * scale,
+                "stages": ["estimate", "bounds", "gain"],
+            }
+        )
+
+    unit, huge = ([r for b in run_spec(spec(s)) for r in b] for s in (1.0, 1e100))
+    big = spec(1e100)
+    keys = [seed_key(0, 0, 10, r) for r in range(2)]
+    _, _, Z, _ = gram_data(big.systems[0], 1e99, 10, 10, seed=0, keys=keys, keep_data=True)
+    for a, b in zip(unit, huge):
+        assert a["stable_certified"] is True and a["certified"] is True
+        assert b["stable_certified"] is True and b["certified"] is True, b["notes"]
+        assert b["r_A"] == pytest.approx(a["r_A"], rel=1e-12)
+        assert b["rho_upper_bound"] == pytest.approx(a["rho_upper_bound"], rel=1e-12)
+        theta = np.hstack([np.array(b["A_hat"]), np.array(b["B_hat"])])
+        ex = exact_box(
+            Z[b["rep"]], theta, sigma_w=1e99, delta=big.delta, lam=0.0, S=1.0, lambda0=1e200
+        )
+        R = np.hstack([np.array(b["radii_A"]), np.array(b["radii_B"])])
+        assert _rel(R, ex.R) <= TOL
+        exact = [[abs(_fr(x)) + _fr(r) for x, r in zip(xa, ra)] for xa, ra in zip(theta, ex.R)]
+        assert b["rho_upper_bound"] >= _exact_rho([row[:2] for row in exact])
