@@ -82,7 +82,7 @@ async def _lab_error(request: Request, exc: LabError | SpecError) -> JSONRespons
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    p = validation_problem(exc)
+    p = validation_problem(exc, request)
     return error_response(p.status, p.message, p.field, errors=p.errors)
 
 

@@ -16,7 +16,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import Request
 from starlette.responses import Response
 
-from svrobs_core.errors import SpecError
+from svrobs_core.errors import SpecError, unknown_field
 from svrobs_lab.errors import LabError
 
 STATUS = {
@@ -104,15 +104,32 @@ def plain_errors(errors: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def validation_problem(exc: RequestValidationError) -> Problem:
+def body_field_names(request: Request | None) -> set[str]:
+    """The fields of the request's body model (its route's), or none when unknown."""
+    route = request.scope.get("route") if request is not None else None
+    body = getattr(route, "body_field", None)
+    model = getattr(getattr(body, "field_info", None), "annotation", None)
+    fields = getattr(model, "model_fields", None)
+    if not isinstance(fields, dict):
+        return set()
+    return {f.alias or name for name, f in fields.items()}
+
+
+def validation_problem(exc: RequestValidationError, request: Request | None = None) -> Problem:
     """A request that failed FastAPI's validation: 422 naming its first bad field, with
-    every field's error (``{field, message, type}``)."""
+    every field's error (``{field, message, type}``). An unknown field of the body
+    (``sigmaw``) names the body's field it is a typo of, when one is close."""
+    raw = plain_errors(exc.errors())
     errors = [
         {"field": loc_to_field(e.get("loc", ())), "message": e.get("msg"), "type": e.get("type")}
-        for e in plain_errors(exc.errors())
+        for e in raw
     ]
     first = errors[0] if errors else {"field": None, "message": "invalid request", "type": None}
-    message = "unknown field" if first["type"] == "extra_forbidden" else str(first["message"])
+    message = str(first["message"])
+    if first["type"] == "extra_forbidden":
+        loc = tuple(raw[0].get("loc", ()))
+        top = len(loc) == 2 and loc[0] == "body" and isinstance(loc[1], str)
+        message = unknown_field(loc[1], body_field_names(request)) if top else "unknown field"
     return Problem(422, message, first["field"], errors)
 
 

@@ -52,7 +52,7 @@ async def lab_error_page(request: Request, exc: LabError | SpecError) -> HTMLRes
 async def validation_error_page(request: Request, exc: RequestValidationError) -> HTMLResponse:
     """The 422 page of a query (or form) FastAPI refused: every parameter it names, each
     as ``name: what is wrong``."""
-    problem = validation_problem(exc)
+    problem = validation_problem(exc, request)
     each = [f"{e['field'] or 'request'}: {_clause(e['message'])}" for e in problem.errors]
     return _page(request, WebError(422, "; ".join(each) or sentence(problem.message)))
 

@@ -62,3 +62,24 @@ def test_spec_errors_stay_422_naming_the_field(client, make_account, caplog):
         r = client.post(f"{API}/jobs", json={**SMALL_SPEC, "gamma": [-1]}, headers=acc.headers)
     assert r.status_code == 422 and r.json()["field"] == "gamma[0]"
     assert not [x for x in caplog.records if x.name == "service.api.errors"]
+
+
+def test_a_misspelt_field_of_a_body_names_the_field_it_is_close_to(client, make_account):
+    """``POST /jobs`` with ``sigmaw`` (the CLI prints the detail: ``error: invalid spec:
+    sigmaw: unknown field (did you mean 'sigma_w'?)``); a name close to none of the body's
+    fields, or a server-owned one, stays "unknown field"; a schedule's body likewise."""
+    acc = make_account()
+    spec = {k: v for k, v in SMALL_SPEC.items() if k != "sigma_w"}
+    schedule = {"name": "n", "cron": "0 2 * * *", "spec_template": SMALL_SPEC}
+    cases = [
+        ("/jobs", {**spec, "sigmaw": SMALL_SPEC["sigma_w"]}, "sigmaw", "sigma_w"),
+        ("/jobs", {**SMALL_SPEC, "tag": ["x"]}, "tag", "tags"),
+        ("/jobs", {**SMALL_SPEC, "bogus": 1}, "bogus", None),
+        ("/jobs", {**SMALL_SPEC, "status": "done"}, "status", None),
+        ("/schedules", {**schedule, "timezon": "UTC"}, "timezon", "timezone"),
+    ]
+    for path, body, field, close in cases:
+        r = client.post(f"{API}{path}", json=body, headers=acc.headers)
+        assert r.status_code == 422, r.text
+        hint = f" (did you mean '{close}'?)" if close else ""
+        assert (r.json()["field"], r.json()["detail"]) == (field, "unknown field" + hint)
