@@ -97,8 +97,9 @@ class Settings(BaseSettings):
     # minute, in each API process: beyond, 429 with Retry-After (0: no limit).
     AUTH_FAILURES_PER_MINUTE: int = 10
     # Report builds (svrobs_lab.report_builds), in each API process: at most this many
-    # builds of one team at once, and this many of its requests waiting for a build of
-    # the same job; beyond, 429 with Retry-After.
+    # builds of one team at once (a report, or a dataset job's validation computed on
+    # request), and this many of its requests waiting for a build of the same job;
+    # beyond, 429 with Retry-After.
     REPORT_BUILDS_PER_TEAM: int = 2
     REPORT_WAITERS_PER_TEAM: int = 8
 

@@ -1,6 +1,8 @@
 """Report builds in one API process: one build per job at a time, a bounded number
 per team, and the last report of each job kept until the job's progress changes
-(docs/security.md#reports-of-running-jobs).
+(docs/security.md#reports-of-running-jobs). A dataset job's validation computed on
+request (:mod:`svrobs_lab.validation`) is such a build too, under its own key, and
+counts against the same bounds.
 
 :meth:`ReportBuilds.get` is given the job's key (its id and creation time: SQLite
 gives the id of a deleted job to the next job made, which may be another team's) and
@@ -20,19 +22,22 @@ import threading
 import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Hashable
+from typing import Any, TypeVar
 
 from .errors import RateLimited
 
 log = logging.getLogger(__name__)
 
 WAIT_SECONDS = 300.0  # a request waits at most this long for another's build
+T = TypeVar("T")
 
 
 class _Flight:
     def __init__(self, version: Hashable):
         self.version = version
         self.done = threading.Event()
-        self.html: str | None = None
+        self.built = False
+        self.result: Any = None  # what the build returned (a page, a validation)
         self.error: BaseException | None = None
 
 
@@ -47,7 +52,7 @@ class ReportBuilds:
         self._flights: dict[Hashable, _Flight] = {}
         self._building: Counter[int] = Counter()
         self._waiting: Counter[int] = Counter()
-        self._kept: OrderedDict[Hashable, tuple[Hashable, str]] = OrderedDict()
+        self._kept: OrderedDict[Hashable, tuple[Hashable, Any]] = OrderedDict()
         self._last_seconds = 5.0
         self.builds = 0  # builds started (for tests and the bench)
 
@@ -60,7 +65,7 @@ class ReportBuilds:
             f"{what}: retry in {retry} s (SVROBS_REPORT_BUILDS_PER_TEAM)", retry_after=retry
         )
 
-    def kept(self, job: Hashable, version: Hashable) -> str | None:
+    def kept(self, job: Hashable, version: Hashable) -> Any:
         """The kept report of the job keyed ``job`` if it was built at ``version``."""
         with self._lock:
             hit = self._kept.get(job)
@@ -73,7 +78,7 @@ class ReportBuilds:
         with self._lock:
             self._kept.pop(job, None)
 
-    def get(self, job: Hashable, team_id: int, version: Hashable, build: Callable[[], str]) -> str:
+    def get(self, job: Hashable, team_id: int, version: Hashable, build: Callable[[], T]) -> T:
         """The report of the job keyed ``job`` (its id and creation time, one job of one
         team) at ``version``: kept, another request's build in progress, or ``build()``
         run here (and kept)."""
@@ -90,7 +95,9 @@ class ReportBuilds:
                 leader = False
             else:
                 if self._building[team_id] >= self.per_team:
-                    raise self._busy(f"this team already builds {self.per_team} reports")
+                    raise self._busy(
+                        f"this team already builds {self.per_team} reports (or validations)"
+                    )
                 flight = self._flights[job] = _Flight(version)
                 self._building[team_id] += 1
                 self.builds += 1
@@ -99,7 +106,7 @@ class ReportBuilds:
             return self._wait(flight, team_id)
         return self._lead(flight, job, team_id, build)
 
-    def _wait(self, flight: _Flight, team_id: int) -> str:
+    def _wait(self, flight: _Flight, team_id: int) -> Any:
         try:
             finished = flight.done.wait(WAIT_SECONDS)
         finally:
@@ -109,14 +116,15 @@ class ReportBuilds:
             raise self._busy("the report is still being built")
         if flight.error is not None:
             raise flight.error
-        assert flight.html is not None
-        return flight.html
+        assert flight.built
+        return flight.result
 
-    def _lead(self, flight: _Flight, job: Hashable, team_id: int, build: Callable[[], str]) -> str:
+    def _lead(self, flight: _Flight, job: Hashable, team_id: int, build: Callable[[], T]) -> T:
         started = time.monotonic()
-        log.info("building the report of job %s (team %s)", job, team_id)
+        log.info("building %s (team %s)", job, team_id)
         try:
-            flight.html = build()
+            result = build()
+            flight.result, flight.built = result, True
         except BaseException as exc:
             flight.error = exc
             raise
@@ -124,12 +132,12 @@ class ReportBuilds:
             with self._lock:
                 self._building[team_id] -= 1
                 del self._flights[job]
-                if flight.html is not None:
+                if flight.built:
                     self._last_seconds = time.monotonic() - started
-                    self._kept[job] = (flight.version, flight.html)
+                    self._kept[job] = (flight.version, flight.result)
                     self._kept.move_to_end(job)
                     while len(self._kept) > self.keep:
                         self._kept.popitem(last=False)
             flight.done.set()
-        log.info("built the report of job %s in %.1f s", job, time.monotonic() - started)
-        return flight.html
+        log.info("built %s in %.1f s", job, time.monotonic() - started)
+        return result

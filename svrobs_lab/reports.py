@@ -47,15 +47,17 @@ DEFAULT_BUILDS = ReportBuilds(per_team=2, waiters_per_team=8)
 
 
 class JobKey(NamedTuple):
-    """One job, for the builds kept in memory: its id and creation time. SQLite gives
-    the id of a deleted job to the next job made (another team's, maybe), which must
-    not be served the deleted job's kept report."""
+    """What is built of one job (``report``, ``validation``), for the builds in memory:
+    the job is known by its id and creation time. SQLite gives the id of a deleted job
+    to the next job made (another team's, maybe), which must not be served the deleted
+    job's kept report."""
 
+    what: str
     id: int
     created_at: datetime
 
     def __str__(self) -> str:  # in the builds' log lines
-        return f"{self.id} (made {self.created_at.isoformat()})"
+        return f"the {self.what} of job {self.id} (made {self.created_at.isoformat()})"
 
 
 @dataclass(frozen=True)
@@ -90,7 +92,7 @@ class JobSnapshot:
 
     @property
     def key(self) -> JobKey:
-        return JobKey(self.id, self.created_at)
+        return JobKey("report", self.id, self.created_at)
 
     @property
     def version(self) -> tuple:

@@ -5,7 +5,8 @@ computed once per job and stored (docs/datasets.md#validation).
 A worker computes it after the first unit of the job it runs (it holds the
 arrays then: :func:`store_after_unit`); ``GET /jobs/{id}/validation`` and the job's
 page serve the stored copy, computing it first if no unit has run yet
-(:func:`job_validation`). The per-step series (one-step predictions, open-loop
+(:func:`job_validation`: one computation per job at a time, bounded per team
+with its reports', with no database connection held while it runs). The per-step series (one-step predictions, open-loop
 simulations, and the measured values they are compared with) are kept for the
 first ``PLOTTED_ROLLOUTS`` held-out rollouts: they are for the plots; every
 statistic is over all held-out rollouts.
@@ -14,10 +15,14 @@ statistic is over all held-out rollouts.
 from __future__ import annotations
 
 import logging
+from contextlib import closing
+from typing import Any
 
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from service.db import validations as store
+from service.db.models import Job
 from svrobs_core.measured import MeasuredData, StateModel, validation_summary
 from svrobs_core.measured.validation import plain
 from svrobs_core.parsing import parse_spec
@@ -27,6 +32,8 @@ from .datasets.loaded import measured_data
 from .dispatch import SessionFactory
 from .errors import NotFound
 from .jobs import team_job
+from .report_builds import ReportBuilds
+from .reports import DEFAULT_BUILDS, JobKey
 
 log = logging.getLogger(__name__)
 
@@ -75,22 +82,56 @@ def store_after_unit(scope, unit_id: int, spec_dict: dict, data: MeasuredData) -
 
 
 def job_validation(
-    session: Session, caller: Caller, job_id: int, session_factory: SessionFactory
+    session: Session,
+    caller: Caller,
+    job_id: int,
+    session_factory: SessionFactory,
+    *,
+    builds: ReportBuilds | None = None,
 ) -> dict:
     """The validation of the caller's dataset job: stored, or computed and stored
-    (NotFound for another team's job, or one that is not on a dataset)."""
+    (NotFound for another team's job, or one that is not on a dataset). A computation
+    is one of the team's builds (``builds``, the app's report builds: concurrent
+    requests for the job wait for the one in progress, and a team runs at most
+    SVROBS_REPORT_BUILDS_PER_TEAM at once, RateLimited beyond); ``session`` (the
+    request's) is closed before it."""
     job = team_job(session, caller, job_id)
     if job.dataset_id is None:
         raise NotFound(f"job {job_id} is not on a dataset: it has no validation")
     head = {"job_id": job.id, "dataset": job.dataset_id}
     summary = store.stored_validation(session, job.id)
     if summary is None:
-        summary = summarize(job.spec, measured_data(session, job.dataset_id))
-        session.rollback()  # the read is over (SQLite: no snapshot held while writing)
-        writer = session_factory(True)
+        key, team = JobKey("validation", job.id, job.created_at), job.team_id
+        build = _computation(job, session_factory)
+        session.close()  # no connection is held while it is computed or waited for
+        builds = builds or DEFAULT_BUILDS
         try:
-            store.store_validation(writer, head["job_id"], summary)
-            writer.commit()
+            summary = builds.get(key, team, "stored", build)
         finally:
-            writer.close()
+            builds.forget(key)  # stored: read from the database from now on
     return {**head, **summary}
+
+
+def _computation(job: Job, session_factory: SessionFactory):
+    """The build of the job's validation: read the dataset in a reading session of its
+    own (closed before computing), compute, store through a writing session; one
+    stored meanwhile (by a worker) is returned as it is."""
+    job_id, dataset_id, spec = job.id, job.dataset_id, dict(job.spec)
+    assert dataset_id is not None  # a dataset job
+
+    def compute() -> dict[str, Any]:
+        with closing(session_factory(False)) as reader:
+            stored = store.stored_validation(reader, job_id)
+            if stored is not None:
+                return stored
+            data = measured_data(reader, dataset_id)
+        summary = summarize(spec, data)
+        with closing(session_factory(True)) as writer:
+            try:
+                store.store_validation(writer, job_id, summary)
+                writer.commit()
+            except IntegrityError:  # the job was deleted meanwhile
+                raise NotFound(f"job {job_id} not found") from None
+        return summary
+
+    return compute

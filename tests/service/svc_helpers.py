@@ -104,3 +104,17 @@ BIG_MEMORY_SPEC = {
     "estimators": ["ols"],
     "stages": ["estimate"],
 }
+
+
+def track_sessions(app, session_factory) -> list:
+    """The sessions ``app`` makes from now on (its session factory wrapped), to ask
+    whether any of them is in a transaction while something runs."""
+    opened: list = []
+
+    def factory(write: bool = True):
+        s = session_factory(write)
+        opened.append(s)
+        return s
+
+    app.state.session_factory = factory
+    return opened

@@ -5,7 +5,7 @@ from __future__ import annotations
 from sqlalchemy import func, select
 
 from service.db.models import Schedule
-from tests.service.svc_helpers import SMALL_SPEC
+from tests.service.svc_helpers import SMALL_SPEC, track_sessions
 
 API = "/api/v1"
 
@@ -81,14 +81,7 @@ def test_a_template_is_admitted_with_no_transaction_open(
     from tests.web.helpers import csrf_of, sign_in
 
     client, _ = build_client(SECRET_KEY="test-secret-0123456789")
-    opened: list = []
-
-    def factory(write: bool = True):
-        s = session_factory(write)
-        opened.append(s)
-        return s
-
-    client.app.state.session_factory = factory
+    opened = track_sessions(client.app, session_factory)
     in_transaction: list[bool] = []
 
     def watched(admit):

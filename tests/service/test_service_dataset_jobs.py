@@ -30,7 +30,7 @@ from svrobs_lab.units import after_unit, compute_unit
 from svrobs_lab.validation import PLOTTED_ROLLOUTS, summarize
 from tests.datasets import files
 from tests.integration.stack import cell_key, same
-from tests.service.svc_helpers import SMALL_SPEC
+from tests.service.svc_helpers import SMALL_SPEC, track_sessions
 
 API = "/api/v1"
 # a system of no preset: 3 states, 2 inputs, stable
@@ -164,6 +164,46 @@ def test_dataset_job_records_equal_the_core_on_the_same_arrays(
     # the report of a dataset job: built, truth fields null with their reason
     report = client.get(f"{API}/jobs/{job['id']}/report", headers=acc.headers)
     assert report.status_code == 200 and "measured data: no true system" in report.text
+
+
+def test_a_validation_computed_on_request_holds_no_connection_and_counts_as_a_build(
+    build_client, session_factory, make_account, monkeypatch
+):
+    """A validation the API computes (the job's units never ran) takes up to the job's
+    own CPU time (seconds per thousand gamma values): no session of the request is in
+    a transaction meanwhile (each held a pooled connection: fifteen such requests took
+    PostgreSQL's pool from every other team), and it is one of the team's report
+    builds, under SVROBS_REPORT_BUILDS_PER_TEAM (429 with Retry-After beyond)."""
+    from svrobs_lab import validation
+
+    client, _ = build_client(REPORT_BUILDS_PER_TEAM=1)
+    opened = track_sessions(client.app, session_factory)
+    in_transaction: list[bool] = []
+
+    def watched(spec, data):
+        in_transaction.append(any(s.in_transaction() for s in opened))
+        return summarize(spec, data)
+
+    monkeypatch.setattr(validation, "summarize", watched)
+    acc = make_account()
+    X, U = simulate(5, rollouts=8, T=25)
+    ds = upload(client, acc, "d.npz", files.npz_bytes(X, U))
+    spec = {"dataset": ds["id"], "N": [5], "holdout": 2, "reps": 1, "sigma_w": 0.2}
+    first, second = (
+        client.post(f"{API}/jobs", json={**spec, "seed": seed}, headers=acc.headers).json()["id"]
+        for seed in (1, 2)
+    )
+    r = client.get(f"{API}/jobs/{first}/validation", headers=acc.headers)
+    assert r.status_code == 200 and r.json()["job_id"] == first, r.text
+    assert in_transaction == [False]
+    builds = client.app.state.report_builds
+    builds._building[acc.team.id] += 1  # the team's one build (a report) in progress
+    busy = client.get(f"{API}/jobs/{second}/validation", headers=acc.headers)
+    assert busy.status_code == 429 and int(busy.headers["retry-after"]) >= 1, busy.text
+    assert client.get(f"{API}/jobs/{first}/validation", headers=acc.headers).json() == r.json()
+    builds._building[acc.team.id] -= 1
+    assert client.get(f"{API}/jobs/{second}/validation", headers=acc.headers).status_code == 200
+    assert in_transaction == [False, False]
 
 
 def test_no_inputs_gives_n_by_zero_matrices_and_the_validation_is_computed_once(

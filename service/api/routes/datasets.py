@@ -21,6 +21,7 @@ from service.api.deps import (
     MAX_ID,
     CurrentCaller,
     JobId,
+    ReportBuildsDep,
     SessionFactoryDep,
 )
 from service.api.errors import error_docs
@@ -216,16 +217,21 @@ def get_model(
 
 @router.get("/jobs/{job_id}/validation", tags=["models"], responses=ERRORS)
 def get_validation(
-    job_id: JobId, session: DB, caller: CurrentCaller, session_factory: SessionFactoryDep
+    job_id: JobId,
+    session: DB,
+    caller: CurrentCaller,
+    session_factory: SessionFactoryDep,
+    builds: ReportBuildsDep,
 ) -> dict:
     """A dataset job's validation on its held-out rollouts (docs/measured.md#validation):
     per estimator and gamma, the model fitted on the largest N's training rollouts,
     one-step and simulation fit per channel, Ljung-Box and input-residual
     cross-correlation tests with their p-values, the residual autocorrelation with its
     band; the excitation check of those rollouts; the measured and predicted series of
-    the first held-out rollouts (for plots). Computed once and stored; 404 for a job
-    that is not on a dataset."""
-    return job_validation(session, caller, job_id, session_factory)
+    the first held-out rollouts (for plots). Computed once and stored (one computation
+    per job at a time; 429 with Retry-After while the team builds too many reports or
+    validations); 404 for a job that is not on a dataset."""
+    return job_validation(session, caller, job_id, session_factory, builds=builds)
 
 
 @router.post("/systems/from-file", tags=["presets"], responses={**ERRORS, **error_docs(413)})
