@@ -30,6 +30,7 @@ from svrobs_core.systems import resolve_system
 
 from ..errors import Conflict
 from ..params import int32_problem, number_problem
+from ..results import not_pruned
 from .parsed import name_refused, printable, shown
 
 FORMATS = ("json", "npz", "mat")
@@ -106,10 +107,10 @@ def _coordinate(key: str, value):
 def find_cell(session: Session, job: Job, cell: str | dict | None) -> dict:
     """The record of the job's one cell at ``cell``; SpecError('cell') when none or
     several match (naming the coordinates that still vary), Conflict('cell') when none
-    matches and the job is queued or running (its cells are not all computed)."""
+    matches and the job is queued or running (its cells are not all computed), Gone
+    when retention dropped the job's cell rows (as for its results)."""
     coords = parse_cell(cell)
-    if job.pruned_at is not None:
-        raise SpecError("cell", f"job {job.id}'s cell rows were dropped by the retention policy")
+    not_pruned(job)
     keys = cells.matching_keys(session, job.id, coords, AMBIGUOUS_SHOWN)
     shown = ", ".join(f"{k}={'null' if v is None else v}" for k, v in coords.items()) or "any"
     if not keys:

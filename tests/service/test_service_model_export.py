@@ -191,6 +191,24 @@ def test_format_and_team_scoping(client, computed, make_account):
     assert r.status_code == 404
 
 
+def test_a_pruned_jobs_export_is_a_410_as_its_results(client, session, computed):
+    """Retention dropped the cell rows: the model of a cell is gone, as the results are
+    (the cell named is right; a 422 naming it said otherwise)."""
+    from service.db.retention import prune_job
+
+    acc, jid = computed
+    cell = {"cell": "system=plant,N=20,estimator=ols,rep=0"}
+    r = client.get(f"{API}/jobs/{jid}/model", params=cell, headers=acc.headers)
+    assert r.status_code == 200
+    prune_job(session, jid)
+    session.commit()
+    for path, params in ((f"/jobs/{jid}/model", cell), (f"/jobs/{jid}/results", {})):
+        r = client.get(f"{API}{path}", params=params, headers=acc.headers)
+        assert r.status_code == 410 and "retention policy" in r.json()["detail"], r.text
+    bad = client.get(f"{API}/jobs/{jid}/model", params={"cell": "x"}, headers=acc.headers)
+    assert bad.status_code == 422 and bad.json()["field"] == "cell"  # a bad cell is still one
+
+
 def test_a_dataset_jobs_export_names_the_dataset(client, session, computed):
     acc, jid = computed
     X, U = files.rollouts(lengths=(4, 5), n=2, m=1)

@@ -189,7 +189,7 @@ def download_dataset(
     tags=["models"],
     responses={
         **ERRORS,
-        **error_docs(409),
+        **error_docs(409, 410),
         200: {"content": {"application/json": {}, "application/octet-stream": {}}},
     },
 )
@@ -209,7 +209,8 @@ def get_model(
 ):
     """One cell of the job as a model file: A_hat, B_hat, C, the radii and eps, L with
     g(L), K, delta, sigma_w, and the provenance (dataset sha256, spec, version). 409
-    when the job is queued or running and no computed cell matches yet."""
+    when the job is queued or running and no computed cell matches yet; 410 once
+    retention dropped the job's cell rows."""
     job = team_job(session, caller, job_id)
     content, media, name = export_model(session, job, cell=cell, fmt=format)
     return Response(content, media_type=media, headers={"Content-Disposition": attachment(name)})
