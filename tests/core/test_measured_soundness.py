@@ -192,7 +192,7 @@ def test_estimated_sigma_w_with_a_vanishing_denominator_certifies_nothing_false(
     """D = chi2 quantile - n c (l + ...) near 0 (0.002): sigma_bar = sqrt(RSS / D) takes
     D's error times 1 / D. From the formed Gram (cond 1e11) it came out 1.8 % low:
     stable_certified was true (rho_upper_bound 0.993) on a box whose vertex |A_hat| + R_A
-    has spectral radius 1.004. Now its error estimate nulls it, with a note."""
+    has spectral radius 1.004. Its error estimate nulls it, with a note."""
     Z, F = ill_conditioned(1e11, 200, 2, 1.3914273702909675e-4)
     delta = 1.96464e-06
     _, D = exact_sigma_bar(Z, F, delta=delta)
