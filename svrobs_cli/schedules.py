@@ -61,15 +61,20 @@ def create(
     name: str = typer.Argument(...),
     cron: str = typer.Option(..., help="5 fields (minute hour day month weekday) or @daily etc."),
     spec: Path | None = typer.Option(None, help="the spec template (a JSON or YAML file)"),
-    from_job: int | None = typer.Option(None, help="use this job's spec as the template"),
+    from_job: int | None = typer.Option(
+        None, help="use this job's spec as the template (and its tags, without --tag)"
+    ),
     timezone: str = typer.Option("UTC", help="an IANA time zone, e.g. Europe/Berlin"),
-    tag: list[str] = typer.Option([], "--tag", help="a tag of every job (repeatable)"),
+    tag: list[str] = typer.Option(
+        [], "--tag", help="a tag of every job (repeatable; default: --from-job's tags)"
+    ),
     disabled: bool = typer.Option(False, "--disabled", help="create it disabled"),
     seed_policy: str = typer.Option(
         "fixed", help="fixed (the template's seed) or due-time (fresh repetitions each run)"
     ),
 ) -> None:
-    """Create a schedule: the spec template runs at every due time of the cron."""
+    """Create a schedule: the spec template runs at every due time of the cron. Made
+    from a job, it runs that job's spec with that job's tags unless --tag is given."""
     if (spec is None) == (from_job is None):
         raise CliError("give exactly one of --spec FILE and --from-job ID")
     if seed_policy not in SEED_POLICIES:
@@ -81,6 +86,7 @@ def create(
         else:
             assert from_job is not None  # exactly one of the two, checked above
             template = c.job(from_job)
+            tag = tag or list(template.tags)
         s = c.create_schedule(
             name,
             cron,

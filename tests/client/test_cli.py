@@ -322,6 +322,14 @@ def test_schedules(run, job_id, http, spec_file):
         "error: --seed-policy must be fixed or due-time, not 'x'\n",
     )
     _fails(run("schedules", "show", sid), f"error: schedule {sid} not found")
+    # made from a job without --tag: the job's tags (its spec's run again as it was)
+    code, out, err = run(
+        "schedules", "create", "cli-again", "--cron", "@daily", "--from-job", job_id
+    )
+    assert code == 0, err
+    again = int(out.split()[1])
+    assert http.get(f"/schedules/{again}").json()["tags"] == ["cli"]
+    assert run("schedules", "delete", again)[0] == 0
 
 
 def test_delete(stack, run, tmp_path, http):
