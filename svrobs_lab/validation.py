@@ -54,14 +54,17 @@ def summarize(spec_dict: dict, data: MeasuredData) -> dict:
         if v is not None:
             v["predicted"], v["simulated"] = v["predicted"][:shown], v["simulated"][:shown]
     first = data.rollouts - holdout
-    lifted = StateModel(ny=data.n, m=data.m, lags=spec.measured.lags).lift(
-        data.take(range(first, first + shown))
-    )
+    measured = []  # none held out (holdout 0): nothing to plot
+    if shown:
+        lifted = StateModel(ny=data.n, m=data.m, lags=spec.measured.lags).lift(
+            data.take(range(first, first + shown))
+        )
+        measured = plain([x[:, : data.n] for x in lifted.X])
     summary["plots"] = {
         "rollouts": list(range(first, first + shown)),
         "of": holdout,
         "channels": list(data.state_names),
-        "measured": plain([x[:, : data.n] for x in lifted.X]),
+        "measured": measured,
         "sample_time": data.sample_time,
     }
     return summary

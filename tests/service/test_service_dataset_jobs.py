@@ -401,3 +401,29 @@ def test_a_dataset_deleted_while_its_schedule_runs_is_that_runs_error(
     assert run is not None and run.job_id is None
     assert run.error == f"dataset: no dataset {ds['id']} in your team"
     assert _jobs_on(session, ds["id"]) == 0
+
+
+def test_a_job_that_holds_no_rollout_out_has_its_validation_stored(
+    client, session, scope, make_account, caplog
+):
+    """holdout 0: the worker stores the validation (no model is validated, the
+    excitation check is there, nothing to plot) and the API serves it."""
+    acc = make_account()
+    X, U = simulate(12, rollouts=12, T=20)
+    ds = upload(client, acc, "all-in.csv", files.csv_bytes(X, U))
+    spec = {**SPEC, "dataset": ds["id"], "holdout": 0}
+    job = client.post(f"{API}/jobs", json=spec, headers=acc.headers).json()
+    with caplog.at_level("WARNING", logger="svrobs_lab.units"):
+        run_worker_units(session, scope, job["id"])
+    assert not [m for m in caplog.messages if "validation failed" in m], caplog.messages
+    stored = session.scalar(
+        select(func.count()).select_from(JobValidation).where(JobValidation.job_id == job["id"])
+    )
+    assert stored == 1
+    body = client.get(f"{API}/jobs/{job['id']}/validation", headers=acc.headers)
+    assert body.status_code == 200, body.text
+    got = body.json()
+    assert got["holdout"] == 0 and got["plots"]["rollouts"] == [] and got["plots"]["measured"] == []
+    assert [m["validation"] for m in got["models"]] == [None, None]
+    want = summarize(job["spec"], MeasuredData(X=X, U=U))
+    assert got["models"] == json.loads(json.dumps(want["models"], allow_nan=False))
