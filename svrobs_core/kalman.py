@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike
 from .array_types import Array, BoolArray, FloatArray
 from .errors import SpecError, check_matrix
 from .linalg import solve as _solve
-from .norms import spectral_radius
+from .norms import UNIT_CIRCLE_TOL, is_schur
 from .systems import SIGMA_V0_COND_LIMIT
 
 __all__ = [
@@ -65,7 +65,6 @@ _SDA_A_TOL = 1e-8  # and |A_k|_F below this: A_k ~ (A - K C)^(2^k) has vanished
 _SDA_MAX_ITER = 64  # 2^64 Riccati steps: ample even for rho(A - K C) = 1 - 1e-15
 _NEWTON_TOL = 1e-13
 _NEWTON_MAX_ITER = 60
-_UNIT_CIRCLE_TOL = 1e-10
 _PBH_TOL = 1e-9
 
 
@@ -81,7 +80,8 @@ class KalmanResult:
 
     A cell is OK only when the iteration converged to the *stabilising*
     solution: for sigma_w > 0 the doubling matrix A_k ~ (A - K C)^(2^k) must
-    have vanished, for sigma_w = 0 (Newton) rho(A - K C) < 1 is checked.
+    have vanished, for sigma_w = 0 (Newton) A - K C is checked Schur stable
+    (norms.schur_stable).
     """
 
     K: FloatArray
@@ -112,10 +112,6 @@ def _sym(X: Array) -> Array:
 def _fro(X: Array) -> FloatArray:
     out: FloatArray = np.sqrt(np.einsum("...ij,...ij->...", X, X))
     return out
-
-
-def _spectral_radius(F: Array) -> FloatArray:
-    return spectral_radius(F)  # NaN for a non-finite F
 
 
 def _stein(F: Array, W: Array) -> Array:
@@ -220,7 +216,7 @@ def _undetectable(A: Array, C: Array) -> BoolArray:
     scale = np.maximum(1.0, _fro(A) + _fro(C))[:, None]
     return cast(
         BoolArray,
-        ((np.abs(lam) >= 1.0 - _UNIT_CIRCLE_TOL) & (smin <= _PBH_TOL * scale)).any(axis=-1),
+        ((np.abs(lam) >= 1.0 - UNIT_CIRCLE_TOL) & (smin <= _PBH_TOL * scale)).any(axis=-1),
     )
 
 
@@ -296,7 +292,7 @@ def kalman_predictor(
         unit = np.zeros(idx.size, dtype=bool)
         if zero_w.any():
             z = np.flatnonzero(zero_w)
-            unit[z] = (np.abs(np.abs(np.linalg.eigvals(a[z])) - 1.0) <= _UNIT_CIRCLE_TOL).any(-1)
+            unit[z] = (np.abs(np.abs(np.linalg.eigvals(a[z])) - 1.0) <= UNIT_CIRCLE_TOL).any(-1)
             z_ok = z[conv[z] & ~unit[z]]
             conv[z] = False
             if z_ok.size:
@@ -305,7 +301,7 @@ def kalman_predictor(
                 Xz, cz = _newton(a[z_ok], c[z_ok], np.zeros(z_ok.size), K0)
                 if cz.any():  # Newton keeps A - K C stable in theory; verify it
                     Kz = _gain_from_X(a[z_ok[cz]], c[z_ok[cz]], Xz[cz])
-                    cz[cz] = _spectral_radius(a[z_ok[cz]] - Kz @ c[z_ok[cz]]) < 1.0
+                    cz[cz] = is_schur(a[z_ok[cz]] - Kz @ c[z_ok[cz]])
                 X[z_ok], conv[z_ok] = Xz, cz
         # one Newton-Hewer refinement step: its error is quadratic in the
         # doubling's (which loses a few digits when A has unstable modes)
