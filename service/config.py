@@ -131,6 +131,11 @@ class Settings(BaseSettings):
     # how long a sign-in lasts.
     SECRET_KEY: str | None = None
     SESSION_HOURS: float = 12.0
+    # Whether the session cookie is Secure (sent over https only). Unset: when the
+    # request came over https as uvicorn sees it, which behind a TLS proxy is only so
+    # when uvicorn trusts the proxy's X-Forwarded-Proto (--forwarded-allow-ips); set it
+    # to true when every user reaches the dashboard over https.
+    SESSION_COOKIE_SECURE: bool | None = None
 
     # The level of every svrobs process's log (service.logging_config).
     LOG_LEVEL: Literal["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"] = "INFO"

@@ -169,6 +169,13 @@ def sign_out(session: Session, request) -> None:
         session.commit()
 
 
+def secure_cookie(request) -> bool:
+    """Whether the session cookie is Secure: SVROBS_SESSION_COOKIE_SECURE, else whether
+    the request came over https."""
+    forced = request.app.state.settings.SESSION_COOKIE_SECURE
+    return request.url.scheme == "https" if forced is None else bool(forced)
+
+
 def set_cookie(response, request, s: WebSession, signer: Signer) -> None:
     response.set_cookie(
         COOKIE,
@@ -176,12 +183,12 @@ def set_cookie(response, request, s: WebSession, signer: Signer) -> None:
         max_age=max(0, s.expires - int(time.time())),
         httponly=True,
         samesite="strict",
-        secure=request.url.scheme == "https",
+        secure=secure_cookie(request),
         path="/",
     )
 
 
 def clear_cookie(response, request) -> None:
     response.delete_cookie(
-        COOKIE, path="/", httponly=True, samesite="strict", secure=request.url.scheme == "https"
+        COOKIE, path="/", httponly=True, samesite="strict", secure=secure_cookie(request)
     )

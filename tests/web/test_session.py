@@ -192,6 +192,37 @@ def test_cookie_is_secure_over_https(build_client, make_account):
     assert r.status_code == 303 and "; secure" in r.headers["set-cookie"].lower()
 
 
+@pytest.mark.parametrize(("setting", "scheme"), [(True, "http"), (False, "https")])
+def test_the_cookie_setting_decides_whatever_the_scheme(
+    build_client, make_account, setting, scheme
+):
+    """Behind a TLS proxy that uvicorn does not trust, every request looks like plain
+    http: SVROBS_SESSION_COOKIE_SECURE=true still makes every session cookie Secure (the
+    sign-in form's, the signed-in one and its removal), and false never does. The
+    browser's cookie is sent as a header (a client keeps no Secure cookie for http)."""
+    client, _ = build_client(SECRET_KEY="s" * 20, SESSION_COOKIE_SECURE=setting)
+    client.base_url = f"{scheme}://testserver"
+    acc = make_account()
+
+    def secure(response) -> bool:
+        client.cookies.clear()
+        return "; secure" in response.headers["set-cookie"].lower()
+
+    def cookie(response) -> dict:
+        return {"Cookie": response.headers["set-cookie"].split(";", 1)[0]}
+
+    form = client.get("/login")
+    assert secure(form) is setting
+    data = {"key": acc.key, "csrf_token": csrf_of(form.text)}
+    r = client.post("/login", data=data, headers=cookie(form), follow_redirects=False)
+    assert r.status_code == 303 and secure(r) is setting
+    token = csrf_of(client.get("/jobs", headers=cookie(r)).text)
+    out = client.post(
+        "/logout", data={"csrf_token": token}, headers=cookie(r), follow_redirects=False
+    )
+    assert out.status_code == 303 and secure(out) is setting
+
+
 @pytest.mark.parametrize(
     ("target", "followed"),
     [
