@@ -179,17 +179,26 @@ def _bytes_view(a: np.ndarray) -> memoryview:
 
 def iter_chunks(session: Session, dataset_id: int, part: str = "file") -> Iterator[bytes]:
     """The stored bytes of one part, chunk by chunk (one chunk read at a time)."""
+    for seq in chunk_seqs(session, dataset_id, part):
+        yield read_chunk(session, dataset_id, part, seq)
+
+
+def chunk_seqs(session: Session, dataset_id: int, part: str = "file") -> list[int]:
+    """The numbers of the stored chunks of one part, in order."""
     c = CHUNKS.c
-    seqs = session.scalars(
-        select(c.seq).where(c.dataset_id == dataset_id, c.part == part).order_by(c.seq)
-    ).all()
-    for seq in seqs:
-        data = session.scalar(
-            select(c.data).where(c.dataset_id == dataset_id, c.part == part, c.seq == seq)
-        )
-        if data is None:  # listed above: the dataset was deleted meanwhile
-            raise NotFound(f"dataset {dataset_id} was deleted while it was read")
-        yield data
+    q = select(c.seq).where(c.dataset_id == dataset_id, c.part == part).order_by(c.seq)
+    return list(session.scalars(q))
+
+
+def read_chunk(session: Session, dataset_id: int, part: str, seq: int) -> bytes:
+    """One stored chunk (NotFound when the dataset was deleted since it was listed)."""
+    c = CHUNKS.c
+    data = session.scalar(
+        select(c.data).where(c.dataset_id == dataset_id, c.part == part, c.seq == seq)
+    )
+    if data is None:
+        raise NotFound(f"dataset {dataset_id} was deleted while it was read")
+    return data
 
 
 def dataset_meta(row: Dataset) -> dict:

@@ -15,6 +15,7 @@ import math
 import os
 import re
 from collections.abc import Iterator, Mapping
+from contextlib import closing
 from dataclasses import dataclass
 from typing import BinaryIO, cast
 
@@ -322,13 +323,17 @@ def remove_dataset(session: Session, caller: Caller, dataset_id: int) -> None:
 
 
 def file_chunks(session_factory: SessionFactory, dataset_id: int) -> Iterator[bytes]:
-    """The dataset's file as uploaded, chunk by chunk, read in a session of its own
-    (for a streamed response that outlives the request's session)."""
-    reader = session_factory(False)
-    try:
-        yield from store.iter_chunks(reader, dataset_id, "file")
-    finally:
-        reader.close()
+    """The dataset's file as uploaded, chunk by chunk (for a streamed response that
+    outlives the request's session), each chunk read in a short reading session of its
+    own: a client that reads slowly, or not at all, holds no database connection
+    while it is sent (with one session for the whole download, fifteen stalled
+    downloads would take PostgreSQL's pool from every other request)."""
+    with closing(session_factory(False)) as reader:
+        seqs = store.chunk_seqs(reader, dataset_id, "file")
+    for seq in seqs:
+        with closing(session_factory(False)) as reader:
+            chunk = store.read_chunk(reader, dataset_id, "file", seq)
+        yield chunk
 
 
 def download_name(row: Dataset) -> str:

@@ -206,6 +206,33 @@ def test_bad_file_kinds_are_at_least_fifteen():
     assert len(kinds) >= 15
 
 
+def test_a_download_holds_no_database_session_between_its_chunks(
+    client, session_factory, make_account
+):
+    """The file is sent chunk by chunk, each read in a short session: while the client
+    has not taken a chunk, no session of the download is open (one session for the
+    whole download held a pooled connection for as long as the slowest client took:
+    sixteen stalled downloads made every other team's GET a 503 after 30 s)."""
+    from svrobs_lab.datasets.catalog import file_chunks
+    from tests.service.svc_helpers import track_sessions
+
+    acc = make_account()
+    rng = np.random.default_rng(1)
+    data = _npz(X=rng.standard_normal((4, 20_001, 3)), U=rng.standard_normal((4, 20_000, 2)))
+    assert len(data) > 2 * store.CHUNK_BYTES
+    made = upload(client, acc, "big.npz", data)
+    assert made.status_code == 201, made.text
+    opened = track_sessions(client.app, session_factory)
+    chunks = file_chunks(client.app.state.session_factory, made.json()["id"])
+    got = []
+    for chunk in chunks:
+        assert not any(s.in_transaction() for s in opened), len(got)
+        got.append(chunk)
+    assert b"".join(got) == data and len(got) >= 3
+    whole = client.get(f"{API}/datasets/{made.json()['id']}/file", headers=acc.headers)
+    assert whole.status_code == 200 and whole.content == data
+
+
 def test_size_limit_is_a_413_declared_or_streamed(build_client, session, make_account):
     client, _ = build_client(MAX_DATASET_MB=1)
     acc = make_account()
