@@ -91,6 +91,12 @@ class Settings(BaseSettings):
     # while it is parsed); beyond, 429 with Retry-After.
     UPLOADS_PER_TEAM: int = Field(default=2, ge=1)
     UPLOADS_AT_ONCE: int = Field(default=4, ge=1)
+    # Results streamed at once (CSV, JSON lines) in each API process: a stream reads
+    # its rows through one database connection, held until the client has read the
+    # last of them; at most this many of one team and this many in all (below the 15
+    # connections of a process's pool of reads); beyond, 429 with Retry-After.
+    STREAMS_PER_TEAM: int = Field(default=2, ge=1)
+    STREAMS_AT_ONCE: int = Field(default=8, ge=1)
     MAX_QUEUED_JOBS_PER_TEAM: int = 100
     RATE_LIMIT_PER_MINUTE: int = 600
     # Failed authentications (a bad sign-in, a bad bearer key) per client address per

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import weakref
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
@@ -27,6 +28,7 @@ from .errors import Gone, Invalid
 from .jobs import team_job
 from .params import is_float_text, is_int_text, read_number
 from .record_json import encode_lines, encode_page
+from .slots import TeamSlots
 
 STREAM_CHUNK = 1000  # rows read at a time by a stream, at most
 STREAM_ENTRIES = 250_000  # matrix entries read at a time by a stream, at most
@@ -188,19 +190,38 @@ def _csv_row(values: Iterable) -> str:
 
 
 def stream(
-    session: Session, session_factory, sel: Selection, fmt: str, *, limit=None, offset: int = 0
+    session: Session,
+    session_factory,
+    sel: Selection,
+    fmt: str,
+    *,
+    limit=None,
+    offset: int = 0,
+    slots: TeamSlots | None = None,
 ) -> tuple[Iterator, str]:
     """(chunks, media type) of the selection as CSV (RFC 4180: CRLF line ends, every
     text field quoted, :func:`_csv_row`) or JSON lines, read in chunks by a reading
     session of its own (``session_factory(False)``) once iterated. ``session``, the
     request's, is closed first. A chunk holds at most STREAM_CHUNK rows and
-    STREAM_ENTRIES matrix entries."""
-    codec: ResultCodec = job_codec(session, sel.job.id, sel.job.spec)
-    query = rq.rows_query(sel.conds, sel.order, limit=limit, offset=offset)
-    size = rows_within(
-        codec, sel.job.spec, STREAM_ENTRIES, STREAM_CHUNK
-    )  # constant memory whatever n is
-    session.close()
+    STREAM_ENTRIES matrix entries.
+
+    The reading session holds a database connection until the client has read the
+    last chunk, however slowly it reads: with ``slots``
+    (:func:`svrobs_lab.slots.stream_slots`) the stream takes one of the job's team's
+    first (RateLimited when none is free) and gives it back when it ends, is closed,
+    or is dropped unread."""
+    release = slots.take(sel.job.team_id) if slots is not None else None
+    try:
+        codec: ResultCodec = job_codec(session, sel.job.id, sel.job.spec)
+        query = rq.rows_query(sel.conds, sel.order, limit=limit, offset=offset)
+        size = rows_within(
+            codec, sel.job.spec, STREAM_ENTRIES, STREAM_CHUNK
+        )  # constant memory whatever n is
+        session.close()
+    except BaseException:
+        if release is not None:
+            release()
+        raise
 
     def gen():
         own = session_factory(False)
@@ -215,9 +236,14 @@ def stream(
                     yield encode_lines(chunk, codec)
         finally:
             own.close()
+            if release is not None:
+                release()
 
+    chunks = gen()
+    if release is not None:  # a generator never started runs no finally
+        weakref.finalize(chunks, release)
     media = "text/csv; charset=utf-8" if fmt == "csv" else "application/x-ndjson"
-    return gen(), media
+    return chunks, media
 
 
 def _group_out(g: dict) -> dict:

@@ -1,6 +1,7 @@
 """The REST API under /api/v1 (and /healthz, /readyz): ``mount_api(app)`` adds its
-routers, its request rules and its error mapping (:mod:`service.api.errors`) to the
-app that :mod:`service.app` builds."""
+routers, its request rules, its error mapping (:mod:`service.api.errors`) and the
+slots of its results streams (:mod:`svrobs_lab.slots`) to the app that
+:mod:`service.app` builds."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from service.api.errors import error_response
 from service.api.query_params import reject_unknown_query
 from service.http.query_text import clean_query_text
 from service.http.uploads import STREAMED
+from svrobs_lab.slots import stream_slots
 
 API_PREFIX = "/api/v1"
 
@@ -79,8 +81,13 @@ def mount_api(app: FastAPI) -> None:
 
     install_redoc(app)
     install_swagger(app)
+    settings = app.state.settings
+    # results streamed at once, each holding a database connection (svrobs_lab.slots)
+    app.state.stream_slots = stream_slots(
+        per_team=settings.STREAMS_PER_TEAM, at_once=settings.STREAMS_AT_ONCE
+    )
     query_rules = [Depends(clean_query_text), Depends(reject_unknown_query)]
     app.include_router(health.router, dependencies=query_rules[1:])
     for module in (jobs, results, presets, reports, schedules, shares, datasets):
         app.include_router(module.router, prefix=API_PREFIX, dependencies=query_rules)
-    app.add_middleware(BodyLimitMiddleware, max_bytes=app.state.settings.MAX_BODY_BYTES)
+    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.MAX_BODY_BYTES)

@@ -353,3 +353,49 @@ def test_page_total_of_a_succeeded_job_is_the_row_count(client, session, done_jo
         got = client.get(f"{API}/jobs/{jid}/results", params=params, headers=acc.headers).json()
         assert got["total"] == want, params
     assert want == 0 and got["items"] == []
+
+
+def test_streams_are_bounded_per_team_and_give_their_slot_back(build_client, session, make_account):
+    """A CSV or JSON-lines stream reads through one database connection until its
+    client has read the last row (sixteen stalled streams of one team made every other
+    team's GET a 503 after 30 s on PostgreSQL): a team streams at most
+    SVROBS_STREAMS_PER_TEAM at once, 429 with Retry-After beyond; a JSON page and
+    another team's stream are not counted; a stream gives its slot back when it ends,
+    and when it is dropped unread."""
+    import gc
+
+    from svrobs_lab import results
+    from svrobs_lab.auth import Caller
+    from svrobs_lab.jobs import team_job
+    from svrobs_lab.slots import stream_slots
+
+    client, _ = build_client(STREAMS_PER_TEAM=1)
+    slots = client.app.state.stream_slots
+    jobs = {}
+    for acc in (make_account(), make_account()):
+        jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+        jobs[jid] = acc
+        run_job_units(session, jid)
+    (jid, acc), (theirs, other) = jobs.items()
+    url = f"{API}/jobs/{jid}/results"
+    release = slots.take(acc.team.id)  # a stream of the team's that its client reads slowly
+    for fmt in ("csv", "jsonl"):
+        busy = client.get(url, params={"format": fmt}, headers=acc.headers)
+        assert busy.status_code == 429 and int(busy.headers["retry-after"]) >= 1, busy.text
+        assert "SVROBS_STREAMS_PER_TEAM" in busy.json()["detail"]
+    assert client.get(url, headers=acc.headers).status_code == 200  # a page: no stream
+    r = client.get(f"{API}/jobs/{theirs}/results?format=csv", headers=other.headers)
+    assert r.status_code == 200
+    release()
+    done = client.get(url, params={"format": "jsonl"}, headers=acc.headers)
+    assert done.status_code == 200 and len(done.text.splitlines()) == 72
+    assert slots.in_use() == 0
+    # dropped before its first chunk: the slot comes back with the generator
+    caller = Caller(key_id=0, team_id=acc.team.id, user_id=None, is_admin=False)
+    sel = results.select_rows(team_job(session, caller, jid))
+    own = stream_slots(per_team=1, at_once=1)
+    chunks, _ = results.stream(session, client.app.state.session_factory, sel, "csv", slots=own)
+    assert own.in_use(acc.team.id) == 1
+    del chunks
+    gc.collect()
+    assert own.in_use() == 0

@@ -67,7 +67,8 @@ def get_results(
     SVROBS_MAX_PAGE_MATRIX_ENTRIES matrix entries (1,000,000), so with large
     systems its `limit` is lowered; `next_offset` is where the next page starts
     (null after the last). CSV and JSONL stream the whole selection (or
-    `limit`/`offset` if given) at constant memory.
+    `limit`/`offset` if given) at constant memory; a team streams at most
+    SVROBS_STREAMS_PER_TEAM at once (429 with Retry-After beyond).
 
     `sort`: comma-separated numeric record fields, `-` for descending
     (`sort=-rmse_A,N`); nulls last; ties in grid order. Range filters on any numeric
@@ -95,7 +96,13 @@ def get_results(
         )
         return Response(body, media_type="application/json")
     chunks, media = results.stream(
-        session, session_factory, sel, format, limit=limit, offset=offset
+        session,
+        session_factory,
+        sel,
+        format,
+        limit=limit,
+        offset=offset,
+        slots=request.app.state.stream_slots,
     )
     ext = "csv" if format == "csv" else "jsonl"
     return StreamingResponse(
