@@ -84,3 +84,49 @@ def test_records_do_not_depend_on_the_hosts_native_kernel():
     assert native == pinned
     if "avx512f" in _cpu_flags():
         assert _records(OPENBLAS_CORETYPE="SkylakeX") != pinned
+
+
+# records the environment at numpy's first import, then runs an entry point
+AT_NUMPY = """
+import os, sys
+from importlib.abc import MetaPathFinder
+seen = {}
+class Watch(MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name == "numpy" and not seen:
+            seen.update(os.environ)
+        return None
+sys.meta_path.insert(0, Watch())
+sys.argv = ["svrobs", "--help"]
+try:
+    exec(sys.stdin.read())
+except SystemExit:
+    pass
+import numpy  # noqa: F401 - loaded by now in any case
+from svrobs_core.threads import THREAD_ENV
+print(all(seen.get(k) == v for k, v in THREAD_ENV.items()))
+"""
+
+
+@pytest.mark.parametrize(
+    "entry",
+    [
+        "import service.app",  # uvicorn service.app:app
+        "import worker.celery_app",  # celery -A worker.celery_app
+        "from svrobs_cli.__main__ import main; main()",  # the svrobs console script
+    ],
+)
+def test_each_entry_pins_blas_before_numpy_loads(entry):
+    """The API, the worker and ``svrobs`` have the environment of :data:`THREAD_ENV`
+    set when numpy first loads (OpenBLAS reads it then, once)."""
+    env = {k: v for k, v in os.environ.items() if k not in THREAD_ENV}
+    out = subprocess.run(
+        [sys.executable, "-c", AT_NUMPY],
+        input=entry,
+        cwd=str(ROOT),
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.stdout.strip().splitlines()[-1:] == ["True"], out.stdout[-500:] + out.stderr[-2000:]
