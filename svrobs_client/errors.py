@@ -100,7 +100,7 @@ class ValidationError(SvrobsError):
 
 class RateLimited(SvrobsError):
     """HTTP 429: the key's rate limit, the team's queued-jobs cap, or too many report
-    builds or dataset uploads of the team at once.
+    builds, dataset uploads or results streams of the team (or of the server) at once.
     ``retry_after`` is the server's Retry-After in seconds, if it sent one."""
 
     def __init__(self, message: str, *, retry_after: float | None = None, **kw: Any):
