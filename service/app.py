@@ -6,10 +6,11 @@ The app's state is set here, for both: the settings, the DB session factory, the
 unit publisher (the app's Celery app, made on first use; tests replace it), the
 rate limiter, the throttle of failed authentications, the report builds; the
 security headers of every response (:mod:`service.http.security`). An application error
-(:class:`svrobs_lab.errors.LabError`), a request that failed validation and the
-framework's HTTP errors (no such path) are each answered once: JSON under /api and for
-the health routes (:mod:`service.api.errors`), the web's error page elsewhere
-(:mod:`service.web.errors`); nothing else becomes a traceback.
+(:class:`svrobs_lab.errors.LabError`), a request that failed validation, the
+framework's HTTP errors (no such path) and the server's own (the database down, a bug)
+are each answered once: JSON under /api and for the health routes
+(:mod:`service.api.errors`), the web's error page elsewhere (:mod:`service.web.errors`);
+nothing becomes a traceback.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from __future__ import annotations
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi_offline import FastAPIOffline
+from sqlalchemy.exc import DBAPIError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.api.errors import install_error_handlers
@@ -30,7 +33,12 @@ from service.http.query_text import EmptyFieldsAbsent
 from service.http.security import SecurityHeaders
 from service.logging_config import configure_logging
 from service.web import mount_web
-from service.web.errors import http_error_page, lab_error_page, validation_error_page
+from service.web.errors import (
+    http_error_page,
+    lab_error_page,
+    server_error_page,
+    validation_error_page,
+)
 from svrobs_core.errors import SpecError
 from svrobs_lab.datasets.upload_slots import UploadSlots
 from svrobs_lab.errors import LabError
@@ -42,6 +50,10 @@ PAGE_ERRORS: dict[type[Exception], ErrorHandler] = {
     SpecError: lab_error_page,
     RequestValidationError: validation_error_page,
     StarletteHTTPException: http_error_page,
+    OperationalError: server_error_page,
+    PoolTimeout: server_error_page,
+    DBAPIError: server_error_page,
+    Exception: server_error_page,
 }
 
 

@@ -4,16 +4,21 @@ API gives the same error (:mod:`service.http.errors`): an application error
 by its kind (:func:`lab_error_page`), a query FastAPI refused (a page number that is not
 a number, a missing cell coordinate) as a 422 naming each parameter
 (:func:`validation_error_page`), and the framework's HTTP errors, such as no such page,
-by their status (:func:`http_error_page`)."""
+by their status (:func:`http_error_page`); an error of the server itself (the database
+down or busy, a bug) is a 503 or 500 page in plain words, its cause in the log only
+(:func:`server_error_page`)."""
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from http import HTTPStatus
 
 from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse
+from sqlalchemy.exc import DBAPIError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.http.errors import http_problem, status_of, validation_problem
@@ -21,6 +26,8 @@ from svrobs_core.errors import SpecError
 from svrobs_lab.errors import LabError, RateLimited
 
 from .render import WebError, render
+
+log = logging.getLogger(__name__)
 
 
 def sentence(text: str) -> str:
@@ -75,3 +82,23 @@ async def http_error_page(request: Request, exc: StarletteHTTPException) -> HTML
     else:
         message = sentence(str(problem.message))
     return _page(request, WebError(problem.status, message), problem.headers)
+
+
+async def server_error_page(request: Request, exc: Exception) -> HTMLResponse:
+    """The page of an error of the server, with the API's statuses: 503 while the
+    database is down, busy or lost its connection (retry later), else 500. The cause
+    goes to the log, never to the page."""
+    if isinstance(exc, PoolTimeout):
+        log.warning("no database connection free: %s", exc)
+        error, retry = WebError(503, "The database is busy. Try again in a moment."), "1"
+    elif isinstance(exc, OperationalError) or (
+        isinstance(exc, DBAPIError) and exc.connection_invalidated
+    ):
+        log.warning("database unavailable: %s", getattr(exc, "orig", None) or exc)
+        message = "The database is unavailable. Try again in a few seconds."
+        error, retry = WebError(503, message), "5"
+    else:
+        log.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
+        message = "Something went wrong on the server (it is logged). Reload the page to try again."
+        return _page(request, WebError(500, message))
+    return _page(request, error, {"Retry-After": retry})

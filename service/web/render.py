@@ -96,7 +96,8 @@ def render(request: Request, template: str, status: int = 200, **context) -> HTM
 
 
 class WebError(Exception):
-    """An error page: 403 (CSRF), 404 (not this team's, or missing), 409, 410, 413, 422, 429."""
+    """An error page: 403 (CSRF), 404 (not this team's, or missing), 409, 410, 413, 422, 429,
+    500, 503."""
 
     def __init__(self, status: int, message: str, *, title: str | None = None):
         super().__init__(message)
@@ -110,6 +111,8 @@ class WebError(Exception):
             413: "Too large",
             422: "Invalid input",
             429: "Too many requests",
+            500: "Server error",
+            503: "Service unavailable",
         }.get(status, "Error")
 
 

@@ -1,7 +1,8 @@
 """The web UI in a real chromium against a real server (uvicorn + celery worker on the
-embedded stack of tests/integration): sign in, submit, live progress, charts equal
-to the API's summary, cancel, delete, sign out, team scoping, CSRF, and no request
-to any host but the server."""
+embedded stack of tests/integration): sign in, submit, live progress (a poll the
+server cannot answer said beside the table), charts equal to the API's summary,
+cancel, delete, sign out, team scoping, CSRF, and no request to any host but the
+server."""
 
 from __future__ import annotations
 
@@ -222,6 +223,25 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
         row = page.locator(f"#job-{job_id}")
         assert row.get_attribute("data-status") == "queued"
         assert page.get_attribute("#jobs-table", "data-polling") == "yes"
+        # a poll the server cannot answer (its database down): the table stays, and says why
+        down = (
+            '<p class="error-message">The database is unavailable. Try again in a few seconds.</p>'
+        )
+        page.route(
+            "**/jobs/rows*", lambda r: r.fulfill(status=503, body=down, content_type="text/html")
+        )
+        failed = page.locator("#jobs-table-failed")
+        expect(failed).to_have_text(
+            "Could not update this part of the page: HTTP 503: The database is unavailable."
+            " Try again in a few seconds."
+        )
+        assert (
+            row.get_attribute("data-status") == "queued" and failed.get_attribute("role") == "alert"
+        )
+        page.unroute("**/jobs/rows*")
+        expect(failed).to_have_count(0)  # answered again
+        # (the browser and htmx log each refused poll as an error)
+        browser.console_errors[:] = [e for e in browser.console_errors if "503" not in e]
         navigations = []
         page.on("framenavigated", lambda frame: navigations.append(frame.url))
         page.evaluate("window.notReloaded = true")

@@ -7,7 +7,9 @@
 * ``/compare?jobs=1,2`` (the API's comma form) picks both jobs; a grid coordinate is
   not a metric there;
 * the runs table past its last page shows the last page, and a metric column without
-  its N says so.
+  its N says so;
+* the database down or busy, and a bug, are the error page too (503, 500), in plain
+  words and with no traceback; the API keeps its JSON.
 """
 
 from __future__ import annotations
@@ -16,7 +18,10 @@ import html
 import re
 
 import pytest
+from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 
+from service.db import job_queries
 from tests.service.svc_fakes import stored_job
 from tests.service.svc_helpers import TINY_SPEC
 
@@ -55,7 +60,8 @@ def _error_page(r, status: int, *texts: str) -> str:
     assert r.status_code == status, (r.status_code, r.text[:300])
     assert r.headers["content-type"].startswith("text/html"), r.text[:300]
     assert re.search(r'<html lang="en">', r.text)
-    title = {404: "Not found", 422: "Invalid input"}[status]
+    title = {404: "Not found", 422: "Invalid input", 500: "Server error"}
+    title = {**title, 503: "Service unavailable"}[status]
     assert f"<title>{title} · svrobs</title>" in r.text
     assert f"<h1>{status} · {title}</h1>" in r.text
     message = html.unescape(re.search(r'<p class="error-message">(.*?)</p>', r.text, re.S)[1])
@@ -162,3 +168,35 @@ def test_a_metric_column_without_its_n_says_what_is_missing(web, done):
     note = re.search(r'<p[^>]*id="metric-note"[^>]*>(.*?)</p>', r.text, re.S)
     assert note and "Pick a metric" in note[1]
     assert 'id="metric-note"' not in web.get("/jobs?metric=rmse_A&at=10").text
+
+
+def _raising(exc: Exception):
+    def read(*args, **kwargs):
+        raise exc
+
+    return read
+
+
+DOWN = OperationalError("SELECT", {}, Exception("server closed the connection"))
+
+
+@pytest.mark.parametrize(
+    ("exc", "status", "text", "retry"),
+    [
+        (DOWN, 503, "The database is unavailable. Try again in a few seconds.", "5"),
+        (PoolTimeout("QueuePool limit reached"), 503, "The database is busy.", "1"),
+        (RuntimeError("a bug"), 500, "Something went wrong on the server", None),
+    ],
+)
+def test_an_error_of_the_server_is_the_error_page(web, one, monkeypatch, exc, status, text, retry):
+    """A page (and the runs table htmx polls) whose database read fails is the error
+    page in plain words, never the API's JSON or the exception's text."""
+    acc, _ = one
+    monkeypatch.setattr(job_queries, "job_page", _raising(exc))
+    for path in ("/jobs", "/jobs/rows", "/compare"):
+        r = web.get(path)
+        message = _error_page(r, status, text)
+        assert r.headers.get("retry-after") == retry
+        assert str(exc.args[0]) not in r.text and "Traceback" not in r.text, message
+    api = web.get(f"{API}/jobs", headers=acc.headers)  # the API's answer stays JSON
+    assert api.status_code == status and "detail" in api.json()

@@ -1,8 +1,8 @@
 /* Behaviour every page shares: the header's menu button (narrow screens), the theme
  * toggle (auto -> dark -> light, remembered in localStorage), copy buttons
  * ([data-copy] copies the value of the element it names) and confirmations
- * (form[data-confirm] asks before it is sent); boxes that scroll take the focus; the
- * figure of a chart (window.svrobsUi.chartPanel). */
+ * (form[data-confirm] asks before it is sent); boxes that scroll take the focus; a part
+ * htmx could not update says why; the figure of a chart (window.svrobsUi.chartPanel). */
 (function () {
   "use strict";
   const root = document.documentElement;
@@ -122,6 +122,45 @@
   }
   window.svrobsUi = { chartPanel: chartPanel };
 
+  /* A region htmx could not update (the server refused, or did not answer: the database
+   * down, the network gone) keeps what it showed and says why, until an update comes. */
+  function reasonOf(xhr) {
+    const again = "Try again in a moment, or reload the page.";
+    if (!xhr || !xhr.status) return `the server did not answer. ${again}`;
+    let detail = "";
+    const type = xhr.getResponseHeader("content-type") || "";
+    try {
+      if (type.includes("json")) detail = JSON.parse(xhr.responseText).detail;
+      else if (type.includes("html")) {  // the error page's message
+        const page = new DOMParser().parseFromString(xhr.responseText, "text/html");
+        const message = page.querySelector(".error-message");
+        detail = message ? message.textContent.trim() : "";
+      }
+    } catch (err) { /* the status alone */ }
+    return typeof detail === "string" && detail ? `HTTP ${xhr.status}: ${detail}` : `HTTP ${xhr.status}. ${again}`;
+  }
+  function showFailure(e) {
+    const target = e.detail.target;
+    if (!target || !target.id) return;
+    const id = `${target.id}-failed`;
+    let note = document.getElementById(id);
+    if (!note) {
+      note = document.createElement("p");
+      note.id = id;
+      note.className = "error-message update-failed";
+      note.setAttribute("role", "alert");
+      const loading = target.querySelector("[data-loading]");  // (a card still saying "Loading…")
+      if (loading) loading.replaceWith(note); else target.before(note);
+    }
+    const text = `Could not update this part of the page: ${reasonOf(e.detail.xhr)}`;
+    if (note.textContent !== text) note.textContent = text;  // (said once, not at every poll)
+  }
+  function clearFailure(e) {
+    const target = e.detail.target;
+    const note = target && target.id && document.getElementById(`${target.id}-failed`);
+    if (note && !target.contains(note)) note.remove();
+  }
+
   function init() {
     focusableScrollers(document);
     initMenu();
@@ -129,9 +168,12 @@
     initCopy(document);
     initConfirm();
     document.body.addEventListener("htmx:afterSwap", (e) => {
+      clearFailure(e);
       initCopy(e.detail.target);
       focusableScrollers(document);
     });
+    document.body.addEventListener("htmx:responseError", showFailure);
+    document.body.addEventListener("htmx:sendError", showFailure);
   }
 
   if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", init);
