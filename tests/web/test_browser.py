@@ -1,8 +1,8 @@
 """The web UI in a real chromium against a real server (uvicorn + celery worker on the
-embedded stack of tests/integration): sign in, submit, live progress (a poll the
-server cannot answer said beside the table), charts equal to the API's summary,
-cancel, delete, sign out, team scoping, CSRF, and no request to any host but the
-server."""
+embedded stack of tests/integration): sign in, submit, live progress (the focus kept
+through the table's polls, a poll the server cannot answer said beside the table),
+charts equal to the API's summary, cancel, delete, sign out, team scoping, CSRF, and no
+request to any host but the server."""
 
 from __future__ import annotations
 
@@ -223,6 +223,7 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
         row = page.locator(f"#job-{job_id}")
         assert row.get_attribute("data-status") == "queued"
         assert page.get_attribute("#jobs-table", "data-polling") == "yes"
+        page.focus(f"#job-{job_id} .run-pick")  # the keyboard's place, kept through the polls
         # a poll the server cannot answer (its database down): the table stays, and says why
         down = (
             '<p class="error-message">The database is unavailable. Try again in a few seconds.</p>'
@@ -252,6 +253,7 @@ def test_sign_in_submit_watch_progress_chart_and_sign_out(browser, stack):
     bar = page.locator(f"#job-{job_id} progress")
     assert bar.get_attribute("value") == bar.get_attribute("max") != "0"
     page.wait_for_selector("#jobs-table[data-polling=no]")  # polling stopped
+    assert page.evaluate("document.activeElement.id") == f"pick-{job_id}"
 
     with stack.client() as api:
         summary = api.get(f"/jobs/{job_id}/summary").json()

@@ -2,7 +2,8 @@
  * toggle (auto -> dark -> light, remembered in localStorage), copy buttons
  * ([data-copy] copies the value of the element it names) and confirmations
  * (form[data-confirm] asks before it is sent); boxes that scroll take the focus; a part
- * htmx could not update says why; the figure of a chart (window.svrobsUi.chartPanel). */
+ * htmx replaces keeps the focus, and one it could not update says why; the figure of a
+ * chart (window.svrobsUi.chartPanel). */
 (function () {
   "use strict";
   const root = document.documentElement;
@@ -122,6 +123,25 @@
   }
   window.svrobsUi = { chartPanel: chartPanel };
 
+  /* A region htmx replaces (the polled runs table and job status, the results grid)
+   * keeps the keyboard focus: htmx focuses the element of the same id in the new
+   * content; where there is none (the last page has no "next"), the region itself. */
+  let focusIn = null;
+  function keepFocus(e) {
+    const active = document.activeElement, target = e.detail.target;
+    focusIn = e.detail.shouldSwap && target && target.id && active && active !== document.body &&
+      target.contains(active) ? target.id : null;
+  }
+  function restoreFocus() {
+    const id = focusIn, active = document.activeElement;
+    focusIn = null;
+    if (!id || (active && active !== document.body && active.isConnected)) return;
+    const region = document.getElementById(id);
+    if (!region) return;
+    if (!region.hasAttribute("tabindex")) region.setAttribute("tabindex", "-1");
+    region.focus({ preventScroll: true });
+  }
+
   /* A region htmx could not update (the server refused, or did not answer: the database
    * down, the network gone) keeps what it showed and says why, until an update comes. */
   function reasonOf(xhr) {
@@ -167,7 +187,9 @@
     initTheme();
     initCopy(document);
     initConfirm();
+    document.body.addEventListener("htmx:beforeSwap", keepFocus);
     document.body.addEventListener("htmx:afterSwap", (e) => {
+      restoreFocus();
       clearFailure(e);
       initCopy(e.detail.target);
       focusableScrollers(document);
