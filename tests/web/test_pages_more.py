@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from service.config import get_settings
-from service.db.models import Schedule, ShareLink, utcnow
+from service.db.models import Job, Schedule, ShareLink, utcnow
 from service.db.shares import token_hash
 from svrobs_lab import schedules as lab_schedules
 from svrobs_lab import shares
@@ -85,6 +85,32 @@ def test_compare_page_table_is_the_api_compare(web, done):
     embedded = json.loads(html.unescape(re.search(r'data-compare="([^"]+)"', page.text).group(1)))
     assert embedded["rows"] == api["rows"] and embedded["x"] == "N"
     assert page.text.count('<tr><td><a href="/jobs/') == len(api["rows"])
+
+
+def test_a_chosen_job_older_than_the_listed_newest_is_listed_as_chosen(web, done, session):
+    """The compare page, the results page and a new schedule list the team's 200 newest
+    jobs: a job chosen (compared, opened, scheduled) that is older than those is listed
+    too, chosen, so the form sends it again and the page describes it."""
+    acc, (a, b) = done
+    first = session.get(Job, a)
+    session.add_all(
+        Job(team_id=first.team_id, user_id=first.user_id, name=f"newer {i}", spec=first.spec)
+        for i in range(200)
+    )
+    session.commit()
+    page = web.get(f"/compare?jobs={a}&jobs={b}&metric=rmse_A").text
+    assert set(re.findall(r'name="jobs" value="(\d+)" checked', page)) == {str(a), str(b)}
+    assert "(2 older ones compared, then 200 of the team's newest)" in page
+    described = json.loads(html.unescape(re.search(r'data-jobs="([^"]+)"', page)[1]))
+    assert [j["id"] for j in described] == [a, b]  # their specs: the labels and the diff
+    for path, box in (
+        (f"/results?job={a}", "results-job"),
+        (f"/schedules/new?job={a}", "schedule-job"),
+    ):
+        options = re.search(
+            rf'<select name="job" id="{box}">(.*?)</select>', web.get(path).text, re.S
+        )
+        assert re.findall(r'<option value="(\d+)" selected>', options[1]) == [str(a)], path
 
 
 def test_runs_table_sorts_shows_a_metric_and_deletes_the_ticked(web, done, session):

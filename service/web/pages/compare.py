@@ -11,9 +11,9 @@ from fastapi import APIRouter, Depends, Query, Request
 from pydantic import Field
 from sqlalchemy.orm import Session
 
-from service.db import job_queries as queries
 from service.http.deps import get_db
 from service.web.deps import CurrentViewer
+from service.web.job_picks import job_picks
 from service.web.render import WebError, render
 from svrobs_core.records import NUMERIC_FIELDS
 from svrobs_lab import results
@@ -47,20 +47,19 @@ def compare_page(
     by = list(dict.fromkeys(by or ["N", "estimator", "gamma"]))
     if x not in by:
         by.insert(0, x)
-    team_jobs, _ = queries.job_page(
-        db, viewer.team_id, viewer.caller.user_id, queries.JobFilter(), limit=200, offset=0
-    )
     data = None
     if ids:
         data = results.compare(  # a LabError is a page (service.web.errors)
             db, viewer.caller, jobs=ids, metric=metric, by=",".join(by)
         )
+    picks = job_picks(db, viewer, data["jobs"] if data else ())
     return render(
         request,
         "compare.html",
         viewer=viewer,
         nav="compare",
-        team_jobs=team_jobs,
+        team_jobs=picks.jobs,
+        older=picks.older,
         picked=set(data["jobs"]) if data else set(),
         metric=metric,
         metrics=NUMERIC_FIELDS,

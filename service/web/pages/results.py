@@ -19,6 +19,7 @@ from service.db.result_queries import RANGE_FIELDS, grid_choices
 from service.http.deps import get_db
 from service.web.deps import CurrentViewer
 from service.web.errors import plain
+from service.web.job_picks import job_picks
 from service.web.pages.cell import cell_query
 from service.web.render import WebError, render
 from svrobs_core.records import NUMERIC_FIELDS
@@ -122,9 +123,7 @@ def results_page(
         "job": the_job,
         "range_fields": RANGE_FIELDS,
     }
-    ctx["jobs"], _ = queries.job_page(
-        db, viewer.team_id, viewer.caller.user_id, queries.JobFilter(), limit=200, offset=0
-    )
+    ctx["jobs"] = job_picks(db, viewer, [the_job.id] if the_job else []).jobs
     if the_job is not None:
         ctx["choices"] = grid_choices(db, the_job.id)
         ctx["picked"] = {f: request.query_params.getlist(f) for f in GRID}

@@ -18,6 +18,7 @@ from service.db import job_queries as queries
 from service.db.schedules import SEED_POLICIES, check_interval, validate_cron, validate_timezone
 from service.http.deps import get_db, submission_of
 from service.web.deps import CSRF, CurrentViewer
+from service.web.job_picks import job_picks
 from service.web.render import WebError, render
 from svrobs_core.errors import SpecError
 from svrobs_lab import schedules as lab
@@ -93,12 +94,10 @@ def _lab_error(exc: SpecError | LabError) -> dict[str, str]:
 
 
 def _new_form(request, db, viewer, *, status=200, errors=None, **values):
-    team_jobs, _ = queries.job_page(
-        db, viewer.team_id, viewer.caller.user_id, queries.JobFilter(), limit=200, offset=0
-    )
     job = None
     if values.get("job"):
         job = queries.team_job(db, viewer.team_id, int(values["job"]))
+    team_jobs = job_picks(db, viewer, [job.id] if job else []).jobs
     form = {"cron": "0 2 * * *", "timezone": "UTC", "seed_policy": "fixed", "name": "", "tags": ""}
     form.update({k: v for k, v in values.items() if v is not None})
     return render(
