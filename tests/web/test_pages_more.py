@@ -113,6 +113,22 @@ def test_a_chosen_job_older_than_the_listed_newest_is_listed_as_chosen(web, done
         assert re.findall(r'<option value="(\d+)" selected>', options[1]) == [str(a)], path
 
 
+def test_compare_says_which_jobs_are_still_running(web, done, session):
+    """A job compared while queued or running is named with its progress: its lines are
+    the cells done so far."""
+    acc, (a, _) = done
+    queued = web.post(f"{API}/jobs", json={**SMALL_SPEC, "seed": 9}, headers=acc.headers).json()
+    page = web.get(f"/compare?jobs={a}&jobs={queued['id']}&metric=rmse_A").text
+    note = re.search(r'<p class="flash warn" id="compare-unfinished">(.*?)</p>', page, re.S)
+    assert note is not None, page[-3000:]
+    cells = f"{queued['n_cells']:,}"
+    assert note[1] == (
+        f"Job {queued['id']} is queued (0 of {cells} cells done): its lines hold the cells"
+        " done so far; reload the page for more."
+    )
+    assert 'id="compare-unfinished"' not in web.get(f"/compare?jobs={a}&metric=rmse_A").text
+
+
 def test_runs_table_sorts_shows_a_metric_and_deletes_the_ticked(web, done, session):
     acc, (a, b) = done
     noisy = {**SMALL_SPEC, "sigma_w": [4.0], "seed": 3}  # a job whose RMSE differs
