@@ -40,6 +40,23 @@ def plain(exc: LabError | SpecError) -> str:
     return f"{exc.field}: {exc.message}" if exc.field else sentence(exc.message)
 
 
+def field_message(error: Mapping) -> str:
+    """One of pydantic's errors of a form field in the words of the spec's own errors:
+    "must be at most 100 characters long", not "String should have at most 100
+    characters"; a validator's own message without pydantic's "Value error, "."""
+    kind, ctx = error.get("type"), error.get("ctx") or {}
+    if kind == "string_too_long":
+        return f"must be at most {ctx['max_length']} characters long"
+    if kind == "string_too_short":
+        n = ctx.get("min_length", 1)
+        return "must not be empty" if n == 1 else f"must be at least {n} characters long"
+    if kind == "too_long":
+        return f"must have at most {ctx['max_length']} entries ({ctx['actual_length']} given)"
+    if kind == "value_error" and ctx.get("error"):
+        return str(ctx["error"])
+    return _clause(error.get("msg"))
+
+
 def web_error(exc: LabError | SpecError) -> WebError:
     return WebError(status_of(exc), plain(exc))
 

@@ -237,8 +237,30 @@ def _post_spec(web, token: str, spec_text: str, **fields):
         ),
         ({**SMALL_SPEC, "N": "100"}, {}, "err-N", "<code>N</code>: must be a non-empty list"),
         ({**SMALL_SPEC, "bogus": 1}, {}, "form-errors", "<code>bogus</code></a>: unknown field"),
-        (SMALL_SPEC, {"name": "n" * 201}, "name-error", "<code>name</code>:"),
-        (SMALL_SPEC, {"tags": "ok, " + "t" * 101}, "tags-error", "<code>tags[1]</code>:"),
+        (
+            SMALL_SPEC,
+            {"name": "n" * 201},
+            "name-error",
+            "<code>name</code>: must be at most 200 characters long",
+        ),
+        (
+            SMALL_SPEC,
+            {"tags": "ok, " + "t" * 101},
+            "tags-error",
+            "<code>tags[1]</code>: must be at most 100 characters long",
+        ),
+        (
+            SMALL_SPEC,
+            {"tags": ", ".join(f"t{i}" for i in range(51))},
+            "tags-error",
+            "<code>tags</code>: must have at most 50 entries (51 given)",
+        ),
+        (
+            SMALL_SPEC,
+            {"name": "a\x01b"},
+            "name-error",
+            "<code>name</code>: must be printable text (no control characters)",
+        ),
         ("{not json", {}, "spec-error", "<code>spec</code>: not valid JSON"),
         ("[1, 2]", {}, "spec-error", "<code>spec</code>: must be a JSON object"),
         ("", {}, "spec-error", "<code>spec</code>: paste a spec"),
@@ -323,7 +345,9 @@ def test_the_form_shows_every_error_at_once_beside_its_field(web, sent, make_acc
         "gamma": "must be &gt; 0",
         "delta": "must be &lt; 1",
     }
-    assert r.text.count("<li><a href=") == 4 and "4 errors to fix" in r.text
+    assert "4 errors to fix" in r.text  # listed at the top as the fields are on the page
+    listed = re.findall(r'<li><a href="#field-([\w.-]+)">', r.text)
+    assert listed == ["sigma_w", "gamma", "reps", "delta"]
     assert 'value="-1, 1"' in r.text and 'value="ten"' in r.text  # as typed
     assert sent.published == []
 

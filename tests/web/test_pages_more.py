@@ -211,6 +211,8 @@ def test_schedule_form_errors_at_once_edit_and_run_now(web, done):
     errors = dict(re.findall(r'id="err-(\w+)">\w+: ([^<]*)</p>', bad.text))
     assert set(errors) == {"name", "cron", "timezone", "tags"}, errors  # all four at once
     assert "5 fields" in errors["cron"] and "Mars/Olympus" in html.unescape(errors["timezone"])
+    assert errors["name"] == "must not be empty"  # in plain words, not pydantic's
+    assert errors["tags"] == "must be at most 100 characters long"
     good = {**data, "name": "nightly", "cron": "0 3 * * *", "timezone": "Europe/Paris"}
     made = web.post("/schedules/new", data=good, follow_redirects=False)
     assert made.status_code == 303, made.text

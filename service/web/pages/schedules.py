@@ -18,6 +18,7 @@ from service.db import job_queries as queries
 from service.db.schedules import SEED_POLICIES, check_interval, validate_cron, validate_timezone
 from service.http.deps import get_db, submission_of
 from service.web.deps import CSRF, CurrentViewer
+from service.web.errors import field_message
 from service.web.job_picks import job_picks
 from service.web.render import WebError, render
 from svrobs_core.errors import SpecError
@@ -65,7 +66,7 @@ def field_errors(request: Request, values: dict) -> dict[str, str]:
         )
     except ValidationError as exc:
         for e in exc.errors():
-            errors.setdefault(str(e["loc"][0]) if e.get("loc") else "form", e["msg"])
+            errors.setdefault(str(e["loc"][0]) if e.get("loc") else "form", field_message(e))
     for field, check in (("cron", validate_cron), ("timezone", validate_timezone)):
         if field not in errors:
             try:

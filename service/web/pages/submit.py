@@ -23,6 +23,7 @@ from starlette.datastructures import FormData
 from service.http.deps import get_db, submission_of
 from service.web import spec_form
 from service.web.deps import CSRF, CurrentViewer
+from service.web.errors import field_message
 from service.web.render import render
 from svrobs_core.errors import SpecError
 from svrobs_core.paper import PRESET_NAME, paper_specs
@@ -37,6 +38,13 @@ from svrobs_lab.schemas import SPEC_FIELD_NAMES, JobSubmit
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
 FORM_FIELDS = ("name", "tags")  # shown beside their own inputs; anything else is the spec's
+# where each field is on the page: the list of errors at the top follows it
+_PAGE_ORDER = {
+    key: i
+    for i, key in enumerate(
+        (*FORM_FIELDS, *(f.form_key for _, fs in spec_form.groups() for f in fs), "spec", "file")
+    )
+}
 
 
 class Preset(NamedTuple):
@@ -121,6 +129,7 @@ def _form(
     on_dataset = bool(chosen)
     listed = [(spec_form.field_of(p, dataset=on_dataset), p, m) for p, m in spec_errors.items()]
     listed += [(k, path or k, m) for k, (path, m) in errors.items() if k != "form"]
+    listed.sort(key=lambda e: _PAGE_ORDER.get(e[0], len(_PAGE_ORDER)))  # as the fields are
     return render(
         request,
         "submit.html",
@@ -201,7 +210,7 @@ def _name_tag_errors(exc: ValidationError) -> dict:
     for e in exc.errors():
         loc = e["loc"]
         if loc and loc[0] in FORM_FIELDS and loc[0] not in out:
-            out[loc[0]] = (_field(loc), e["msg"])
+            out[loc[0]] = (_field(loc), field_message(e))
     return out
 
 
@@ -272,7 +281,7 @@ def submit(
             errors.update(_name_tag_errors(exc))
             if not found and not errors:  # the model refused what the parser accepts
                 first = exc.errors()[0]
-                errors["spec"] = (_field(first["loc"]), first["msg"])
+                errors["spec"] = (_field(first["loc"]), field_message(first))
     if errors or found:
         return refused(errors, found)
     job = JobRequest(
