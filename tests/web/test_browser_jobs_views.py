@@ -1,6 +1,7 @@
 """The runs table over more than one page, in a real chromium against a real server (the
 stack and browser of test_browser): runs ticked on one page stay ticked on the others,
-"Compare selected" sends them all and then forgets them."""
+"Compare selected" sends them all and then forgets them; a run's long name (one word of
+200 characters) wraps in its column and is cut in the compare page's spec table."""
 
 from __future__ import annotations
 
@@ -18,16 +19,22 @@ pytestmark = base.pytestmark
 
 TINY = {"systems": ["paper-stable"], "sigma_w": [1.0], "N": [10], "reps": 1, "stages": ["estimate"]}
 PAGE = 25  # runs per page of /jobs
+LONG = "x" * 200  # the oldest run's name: the longest a name may be, one word
 
 
 @pytest.fixture(scope="module")
 def runs(stack) -> list[int]:
     """PAGE + 2 finished runs, oldest first: the newest PAGE on the first page."""
     with stack.client() as api:
-        ids = [submit(api, {**TINY, "seed": s}, name=f"run {s}")["id"] for s in range(PAGE + 2)]
+        names = [LONG] + [f"run {s}" for s in range(1, PAGE + 2)]
+        ids = [submit(api, {**TINY, "seed": s}, name=n)["id"] for s, n in enumerate(names)]
         for i in ids:
             stack.wait_job(api, i)
     return ids
+
+
+# the box named fits its content: it does not scroll sideways
+FITS = "sel => { const b = document.querySelector(sel); return b.scrollWidth <= b.clientWidth; }"
 
 
 def ticked(page) -> list[str]:
@@ -42,6 +49,7 @@ def test_ticks_stay_across_pages_until_compared(browser, stack, runs):
     page.check(f"#job-{second} .run-pick")
     follow(page, "#jobs-table a[rel=next]")  # older →
     assert page.locator(f"#job-{oldest}").count() == 1 and ticked(page) == []
+    assert page.evaluate(FITS, "#jobs-scroll")  # the long name wraps: no column pushed out
     status = page.locator("#runs-selected")
     expect(status).to_have_text(f"2 runs ticked (2 not on this page): #{newest}, #{second}")
     page.check(f"#job-{oldest} .run-pick")
@@ -54,6 +62,9 @@ def test_ticks_stay_across_pages_until_compared(browser, stack, runs):
     assert sorted(page.evaluate("window.svrobsCompare.data.jobs")) == sorted(
         [newest, second, oldest]
     )
+    head = page.locator("#spec-diff-table th", has_text=f"job {oldest}")  # (seeds differ)
+    expect(head).to_have_text(f"job {oldest} · {LONG[:39]}…")
+    assert head.get_attribute("title") == LONG and page.evaluate(FITS, "#spec-diff .table-wrap")
     page.goto("/jobs")  # compared: the ticks are forgotten
     assert ticked(page) == [] and page.is_disabled("#compare-selected")
     expect(status).to_have_text("Tick runs to compare them.")

@@ -188,12 +188,16 @@
     table.className = "spec-diff";
     table.id = "spec-diff-table";
     const head = table.createTHead().insertRow();
-    ["field"].concat(jobs.map((j) => `job ${j.id}${j.name ? " · " + j.name : ""}`)).forEach((t) => {
-      const th = document.createElement("th");
-      th.scope = "col";
-      th.textContent = t;
-      head.appendChild(th);
-    });
+    // a long name is cut (whole in its tooltip): the head of a column stays on one line
+    const cut = (name) => (name.length > 40 ? `${name.slice(0, 39)}…` : name);
+    [["field", ""]].concat(jobs.map((j) => [`job ${j.id}${j.name ? " · " + cut(j.name) : ""}`, j.name || ""]))
+      .forEach(([t, whole]) => {
+        const th = document.createElement("th");
+        th.scope = "col";
+        th.textContent = t;
+        if (whole.length > 40) th.title = whole;
+        head.appendChild(th);
+      });
     const body = table.createTBody();
     differs.forEach((k) => {
       const row = body.insertRow();
