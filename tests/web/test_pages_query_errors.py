@@ -200,3 +200,25 @@ def test_an_error_of_the_server_is_the_error_page(web, one, monkeypatch, exc, st
         assert str(exc.args[0]) not in r.text and "Traceback" not in r.text, message
     api = web.get(f"{API}/jobs", headers=acc.headers)  # the API's answer stays JSON
     assert api.status_code == status and "detail" in api.json()
+
+
+def test_the_runs_table_pager_reaches_the_first_and_last_pages(
+    web, session, make_account, monkeypatch
+):
+    """Past the second page the pager links the first and the last page too (a team with
+    1,000 jobs has 40 pages); "newer" and "older" only in the default order."""
+    from service.web.pages import jobs as jobs_page
+
+    monkeypatch.setattr(jobs_page, "PAGE_SIZE", 1)
+    _signed_in_jobs(web, session, make_account, (5, 6, 7, 8, 9))
+    pager = re.compile(r'<a (?:rel="\w+" )?href="/jobs\?([^"]*)" id="jobs-(\w+)">([^<]*)</a>')
+    links = {k: (html.unescape(q), t) for q, k, t in pager.findall(web.get("/jobs?page=3").text)}
+    assert links == {
+        "first": ("page=1", "« newest"),
+        "prev": ("page=2", "← newer"),
+        "next": ("page=4", "older →"),
+        "last": ("page=5", "oldest »"),
+    }
+    page = web.get("/jobs?sort=name&page=2").text
+    texts = {k: t for _, k, t in pager.findall(page)}
+    assert texts == {"prev": "← previous", "next": "next →", "last": "last page »"}
