@@ -44,14 +44,23 @@ class Browser:
         self.console_errors: list[str] = []
         self.servers: set[str] = set()  # host:port of every base_url a page was opened on
 
-    def page(self, base_url: str, *, width: int = 1280, height: int = 900, dark: bool = False):
+    def page(
+        self,
+        base_url: str,
+        *,
+        width: int = 1280,
+        height: int = 900,
+        dark: bool = False,
+        js: bool = True,
+    ):
         """A fresh context (no cookies) and page on ``base_url``, its requests logged;
-        ``dark``: the system asks for a dark colour scheme."""
+        ``dark``: the system asks for a dark colour scheme; ``js=False``: JavaScript off."""
         self.servers.add(urlsplit(base_url).netloc)
         context = self.chromium.new_context(
             base_url=base_url,
             viewport={"width": width, "height": height},
             color_scheme="dark" if dark else "light",
+            java_script_enabled=js,
         )
         context.on("request", lambda r: self.requests.append(r.url))
         page = context.new_page()

@@ -1,9 +1,10 @@
 """Every page (each signed-in page, the sign-in, shared and error pages) in a real
-chromium at 1400×900 and 390×844 (and dark at 1400): no horizontal scroll
+chromium at 1400×900 and 375×667 (and dark at 1400): no horizontal scroll
 (scrollWidth <= innerWidth) and no axe-core violation of serious or critical impact
 (axe injected into each page as it is served, under its CSP); the header collapses
 behind a menu button on a phone; the theme toggle is remembered; a skip link,
-/favicon.ico, and a chart legend worked from the keyboard."""
+/favicon.ico, and a chart legend worked from the keyboard; with JavaScript off, the
+pages work and say what needs it."""
 
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ SPEC = {
     "reps": 2,
     "seed": 3,
 }
-VIEWS = [(1400, 900, False), (390, 844, False), (1400, 900, True)]
+VIEWS = [(1400, 900, False), (375, 667, False), (1400, 900, True)]
 # Problems known and owned elsewhere: (page, check) -> why. Found, the test is an
 # expected failure after every other check has passed.
 KNOWN: dict[tuple[str, str], str] = {}  # (page, problem) -> why it is not fixed yet
@@ -243,3 +244,32 @@ def test_the_report_at_phone_width_scrolls_its_wide_parts_from_the_keyboard(brow
         if unnamed:
             problems.append((name, "scrollers", unnamed))
     assert not problems, pformat(problems, width=120)
+
+
+def test_without_javascript_the_pages_work_and_say_what_needs_it(browser, stack, site):
+    """JavaScript off, on a phone: the header's menu is open, with no Menu button that
+    would do nothing; runs ticked in the runs table are compared (the buttons start
+    enabled); the compare page and a job's page say that their charts need JavaScript
+    and where the numbers are; nothing waits for a script ("Loading…")."""
+    page = browser.page(stack.base_url, width=375, height=667, js=False)
+    try:
+        sign_in(page, stack.key)
+        assert page.locator("header nav a[href='/compare']").is_visible()
+        assert page.locator("#menu-toggle").is_hidden()
+        assert page.locator("#runs-columns").is_hidden()  # (the column chooser is a script's)
+        a, b = site["jobs"]
+        page.check(f"#pick-{a}")
+        page.check(f"#pick-{b}")
+        page.click("#compare-selected")
+        page.wait_for_url(re.compile(r"/compare\?jobs="))
+        assert page.locator("#compare-table tbody tr").count() > 0
+        assert page.locator("#compare-noscript").is_visible()
+        assert page.locator("#compare-card .chart-box").is_hidden()
+        page.goto(f"/jobs/{a}")
+        assert page.locator("#charts-noscript").is_visible()
+        assert page.get_attribute("#charts-noscript a", "href") == f"/jobs/{a}/report"
+        assert page.locator("#charts-card").is_hidden() and page.locator("#views-card").is_hidden()
+        assert page.get_by_text("Loading").filter(visible=True).count() == 0
+        assert page.locator("#table2-card a[href$='/report']").is_visible()
+    finally:
+        page.context.close()
