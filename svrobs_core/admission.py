@@ -27,15 +27,20 @@ from .spec import ExperimentSpec
 from .workload import (
     DataShape,
     JobCost,
+    SystemKinds,
+    SystemTable,
     UnitCost,
     WorkloadError,
     _dataset,
     _dims,
     _fit,
-    _ill_conditioned,
+    _unit_cost,
     estimate_job,
     estimate_unit,
     plan_under_memory,
+    system_dims,
+    system_kinds,
+    system_table,
     unit_base_bytes,
     unit_fixed_seconds,
 )
@@ -77,8 +82,14 @@ def stored_bytes(spec: ExperimentSpec, *, data: DataShape | None = None) -> floa
         m = data.m if data is not None else 1
         entries = (2 if spec.has("bounds") else 1) * (n * n + n * m)
         return float(spec.n_cells) * (ROW_BYTES + 8 * entries)
-    per_system = [ROW_BYTES + 8 * cell_entries(spec, si) for si in range(len(spec.systems))]
-    return float(per_pair) * len(spec.sigma_w) * float(sum(per_system))
+    n, m, p = system_dims(spec).T  # cell_entries of every system at once
+    entries = n * n + n * m
+    if spec.has("bounds"):
+        entries = entries + n * n + n * m
+    if spec.has("gain"):
+        entries = entries + 2 * n * p
+    per_system = int(np.sum(ROW_BYTES + 8 * entries))
+    return float(per_pair) * len(spec.sigma_w) * float(per_system)
 
 
 def check_size(
@@ -130,11 +141,14 @@ def grid_cost(
     max_cells: int = planning.MAX_CELLS_PER_UNIT,
     target_cells: int = planning.TARGET_CELLS_PER_UNIT,
     n_axis: FloatArray | None = None,
+    table: SystemTable | None = None,
 ) -> GridCost:
     """The cost of ``plan_units(spec, max_cells=, target_cells=)`` in closed form: the
-    N axis as one numpy array per system and repetition chunk size, each unit's sum
-    over its N group by a reshape (a simulated job). ``n_axis``: :func:`n_axis`
-    of the spec, if already made."""
+    N axis as one numpy array per kind of system (:func:`~svrobs_core.workload.system_kinds`:
+    systems of one kind cost the same) and repetition chunk size, each unit's sum over
+    its N group by a reshape (a simulated job). ``n_axis``: :func:`n_axis` of the
+    spec, ``table``: :func:`~svrobs_core.workload.system_table` of its systems, if
+    already made."""
     if spec.measured is not None:
         raise ValueError("a dataset job's cost: workload.estimate_job with its shape")
     E, L, W = spec.cells_per_rep, len(spec.N), len(spec.sigma_w)
@@ -142,33 +156,38 @@ def grid_cost(
     g = L if spec.reuse_gain else max(1, target_cells // (E * spec.reps))
     starts = np.arange(0, L, g)
     lengths = np.minimum(g, L - starts)
-    n_units, peak, longest, per_system = 0, 0.0, 0.0, []
-    for si in range(len(spec.systems)):
+    # the N groups of each length (at most two: the groups' and the last one's) and
+    # their repetition chunks, the same for every system
+    blocks = []
+    for Lg in np.unique(lengths).tolist():
+        sel = starts[lengths == Lg]
+        idx = (sel[:, None] + np.arange(Lg)[None, :]).ravel()  # N of these groups
+        chunk = max(1, min(spec.reps, max_cells // (E * Lg)))
+        within = np.tile(np.arange(Lg), len(sel))  # earlier N's records kept
+        blocks.append((Lg, len(sel), Ns[idx], within, _rep_classes(spec, chunk)))
+    kinds = system_kinds(spec, table)
+    n_units, peak, longest, per_kind = 0, 0.0, 0.0, []
+    for (n, m, p, orth, ill_data), systems in zip(kinds.kinds, kinds.counts.tolist()):
         total = 0.0
-        n, m, p, orth = _dims(spec, si)
-        ill_data = _ill_conditioned(spec, si)
         ill = "svr" in spec.estimators and ill_data
         fixed = unit_fixed_seconds(spec, n=n, p=p)
         base = unit_base_bytes(spec, n=n, p=p, orth=orth)
-        for Lg in np.unique(lengths):  # at most two: the groups' size and the last one's
-            sel = starts[lengths == Lg]
-            idx = (sel[:, None] + np.arange(Lg)[None, :]).ravel()  # N of these groups
-            chunk = max(1, min(spec.reps, max_cells // (E * int(Lg))))
-            for R, mc, count in _rep_classes(spec, chunk):
+        for Lg, groups, N_axis, within, rep_classes in blocks:
+            for R, mc, count in rep_classes:
                 c, transient, kept = _dataset(
-                    spec, n=n, m=m, p=p, orth=orth, N=Ns[idx], R=R, mc_rows=mc, ill=ill,
+                    spec, n=n, m=m, p=p, orth=orth, N=N_axis, R=R, mc_rows=mc, ill=ill,
                     ill_data=ill_data,
                 )  # fmt: skip
-                c = np.broadcast_to(c, idx.shape)
-                per_unit = c.reshape(len(sel), int(Lg)).sum(axis=1) + fixed
+                c = np.broadcast_to(c, N_axis.shape)
+                per_unit = c.reshape(groups, Lg).sum(axis=1) + fixed
                 total += W * count * float(per_unit.sum())
-                n_units += W * count * len(sel)
+                n_units += systems * W * count * groups
                 longest = max(longest, float(per_unit.max()))
-                within = np.tile(np.arange(Lg), len(sel))  # earlier N's records kept
                 peak = max(peak, base + float(np.max(within * kept + transient)))
-        per_system.append(total)
+        per_kind.append(total)
+    per_system = np.array(per_kind, dtype=np.float64)[kinds.of].tolist()
     return GridCost(
-        cpu_seconds=float(sum(per_system)),
+        cpu_seconds=float(sum(per_system)),  # summed in the systems' order
         n_units=n_units,
         peak_unit_bytes=int(peak),
         max_unit_seconds=longest,
@@ -182,20 +201,31 @@ def n_axis_of(spec: ExperimentSpec) -> FloatArray:
     return Ns if spec.reuse_gain else np.sort(Ns)
 
 
-def smallest_unit_bytes(spec: ExperimentSpec, *, data: DataShape | None = None) -> int:
+def smallest_unit_bytes(
+    spec: ExperimentSpec, *, data: DataShape | None = None, table: SystemTable | None = None
+) -> int:
     """Peak bytes of the smallest unit the plan can make: one repetition of the
-    largest N (all N together under ``reuse_gain``), for the largest system."""
-    return max(_smallest(spec, si, data).peak_bytes for si in range(len(spec.grid_systems)))
+    largest N (all N together under ``reuse_gain``), for the largest system
+    (``table``: :func:`~svrobs_core.workload.system_table` of its systems, if made)."""
+    return max(u.peak_bytes for u in _smallest(spec, data, table))
 
 
-def smallest_unit_seconds(spec: ExperimentSpec, *, data: DataShape | None = None) -> float:
+def smallest_unit_seconds(
+    spec: ExperimentSpec, *, data: DataShape | None = None, table: SystemTable | None = None
+) -> float:
     """CPU seconds of the longest smallest unit: one repetition of the largest N."""
-    return max(_smallest(spec, si, data).cpu_seconds for si in range(len(spec.grid_systems)))
+    return max(u.cpu_seconds for u in _smallest(spec, data, table))
 
 
-def _smallest(spec: ExperimentSpec, si: int, data: DataShape | None) -> UnitCost:
+def _smallest(
+    spec: ExperimentSpec, data: DataShape | None, table: SystemTable | None
+) -> list[UnitCost]:
+    """The smallest unit's cost for each kind of system (a dataset job: its one)."""
     Ns = list(spec.N) if spec.reuse_gain else [max(spec.N)]
-    return estimate_unit(spec, {"system": si, "sigma_w": 0, "N": Ns, "reps": [0, 1]}, data=data)
+    unit = {"system": 0, "sigma_w": 0, "N": Ns, "reps": [0, 1]}
+    if spec.measured is not None:
+        return [estimate_unit(spec, unit, data=data)]
+    return [_unit_cost(spec, unit, kind) for kind in system_kinds(spec, table).kinds]
 
 
 def _reductions(spec: ExperimentSpec, kind: str) -> dict[str, ExperimentSpec]:
@@ -233,6 +263,7 @@ def _plan(
     max_unit_bytes: int | None,
     max_unit_seconds: float | None,
     data: DataShape | None,
+    kinds: SystemKinds | None = None,
 ) -> list[dict[str, Any]]:
     """The units under the memory and per-unit CPU caps: :func:`plan_under_memory`, or
     for a dataset job :func:`~svrobs_core.measured.plan_measured_units` with what the
@@ -240,7 +271,7 @@ def _plan(
     this estimate split as :func:`plan_under_memory` splits one."""
     if spec.measured is None:
         return plan_under_memory(
-            spec, max_unit_bytes=max_unit_bytes, max_unit_seconds=max_unit_seconds
+            spec, max_unit_bytes=max_unit_bytes, max_unit_seconds=max_unit_seconds, kinds=kinds
         )
     if max_unit_bytes is None:
         units = plan_measured_units(spec)
@@ -257,23 +288,29 @@ def _plan(
 
 
 def _cpu_sizes(
-    spec: ExperimentSpec, data: DataShape | None, grid: GridCost | None, Ns: FloatArray | None
+    spec: ExperimentSpec,
+    data: DataShape | None,
+    grid: GridCost | None,
+    Ns: FloatArray | None,
+    table: SystemTable | None,
 ) -> dict[str, float]:
     """The job's CPU seconds with each size field at its smallest. A simulated job's
     in closed form: one :func:`grid_cost` per reduction that changes the spec, the
     sigma_w and systems reductions read off the whole grid's (units cost the same
-    for every sigma_w; each system's are summed apart)."""
+    for every sigma_w; each system's are summed apart). ``table``: the systems'
+    :func:`~svrobs_core.workload.system_table`, which no reduction costed here changes."""
     if spec.measured is not None:
         return {
             f: estimate_job(s, _plan(s, None, None, data), data=data).cpu_seconds
             for f, s in _reductions(spec, "cpu").items()
         }
     Ns = n_axis_of(spec) if Ns is None else Ns
-    grid = grid_cost(spec, n_axis=Ns) if grid is None else grid
+    table = system_table(spec) if table is None else table
+    grid = grid_cost(spec, n_axis=Ns, table=table) if grid is None else grid
     if len(spec.N) > CULPRIT_AXIS:  # only a name: the reductions costed on a strided N axis
         step = -(-len(spec.N) // CULPRIT_AXIS)
         Ns, spec = Ns[::step], replace(spec, N=tuple(int(v) for v in Ns[::step]))
-        grid = grid_cost(spec, n_axis=Ns)
+        grid = grid_cost(spec, n_axis=Ns, table=table)
     reductions = _reductions(spec, "cpu")
     sizes = {
         "sigma_w": grid.cpu_seconds / len(spec.sigma_w),
@@ -291,7 +328,8 @@ def _cpu_sizes(
         if inert.get(f, False) or s == spec:  # e.g. one gamma already: nothing to reduce
             sizes[f] = grid.cpu_seconds
         else:
-            sizes[f] = grid_cost(s, n_axis=Ns if s.N is spec.N else None).cpu_seconds
+            axis = Ns if s.N is spec.N else None
+            sizes[f] = grid_cost(s, n_axis=axis, table=table).cpu_seconds
     return sizes
 
 
@@ -301,14 +339,16 @@ def _culprit(
     data: DataShape | None = None,
     grid: GridCost | None = None,
     n_axis: FloatArray | None = None,
+    table: SystemTable | None = None,
 ) -> str:
-    """The size field whose reduction lowers the estimate of ``kind`` most (``grid``
-    and ``n_axis``: the spec's, if already made)."""
+    """The size field whose reduction lowers the estimate of ``kind`` most (``grid``,
+    ``n_axis`` and ``table``: the spec's, if already made)."""
     if kind == "cpu":
-        sizes = _cpu_sizes(spec, data, grid, n_axis)
+        sizes = _cpu_sizes(spec, data, grid, n_axis, table)
     else:
         need = smallest_unit_seconds if kind == "unit_cpu" else smallest_unit_bytes
-        sizes = {f: need(s, data=data) for f, s in _reductions(spec, "memory").items()}
+        reduced = _reductions(spec, "memory").items()  # none changes the systems
+        sizes = {f: need(s, data=data, table=table) for f, s in reduced}
     return min(sizes, key=lambda f: sizes[f])
 
 
@@ -319,9 +359,10 @@ def _over_cpu(
     data: DataShape | None,
     grid: GridCost | None = None,
     Ns: FloatArray | None = None,
+    table: SystemTable | None = None,
 ) -> WorkloadError:
     return WorkloadError(
-        _culprit(spec, "cpu", data, grid, Ns),
+        _culprit(spec, "cpu", data, grid, Ns, table),
         f"the job needs an estimated {seconds:.0f} CPU seconds, over the limit of {limit:.0f} s",
         kind="cpu",
         estimate=seconds,
@@ -358,15 +399,19 @@ def admit(
             estimate=floor,
             limit=max_cpu_seconds,
         )
-    for kind, cap, need in (
-        ("memory", max_unit_bytes, smallest_unit_bytes),
-        ("unit_cpu", max_unit_seconds, smallest_unit_seconds),
-    ):
-        if cap is not None and (value := need(spec, data=data)) > cap:
+    # what the cost model reads of each system, for every system at once
+    table = system_table(spec) if spec.measured is None else None
+    smallest: list[UnitCost] = []  # smallest_unit_bytes and _seconds read the same units
+    for kind, cap in (("memory", max_unit_bytes), ("unit_cpu", max_unit_seconds)):
+        if cap is None:
+            continue
+        smallest = smallest or _smallest(spec, data, table)
+        value = max(u.peak_bytes if kind == "memory" else u.cpu_seconds for u in smallest)
+        if value > cap:
             what = f"{value / 2**20:.0f} MB" if kind == "memory" else f"{value:.0f} CPU seconds"
             limit = f"{cap / 2**20:.0f} MB" if kind == "memory" else f"{cap:.0f} s"
             raise WorkloadError(
-                _culprit(spec, kind, data),
+                _culprit(spec, kind, data, table=table),
                 f"one work unit (a single repetition) needs an estimated {what},"
                 f" over the limit of {limit}",
                 kind=kind,
@@ -375,19 +420,20 @@ def admit(
             )
     if spec.measured is None:
         Ns = n_axis_of(spec)
-        grid = grid_cost(spec, n_axis=Ns)
+        grid = grid_cost(spec, n_axis=Ns, table=table)
         if max_cpu_seconds is not None and grid.cpu_seconds > max_cpu_seconds:
-            raise _over_cpu(spec, grid.cpu_seconds, max_cpu_seconds, data, grid, Ns)
+            raise _over_cpu(spec, grid.cpu_seconds, max_cpu_seconds, data, grid, Ns, table)
         fits = (max_unit_bytes is None or grid.peak_unit_bytes <= max_unit_bytes) and (
             max_unit_seconds is None or grid.max_unit_seconds <= max_unit_seconds
         )
         if fits:  # no unit is split: the plan's cost is the closed form's
             job = JobCost(grid.cpu_seconds, grid.peak_unit_bytes, grid.n_units)
             return planning.plan_units(spec), job
-    units = _plan(spec, max_unit_bytes, max_unit_seconds, data)
-    job = estimate_job(spec, units, data=data)
+    kinds = None if table is None else system_kinds(spec, table)
+    units = _plan(spec, max_unit_bytes, max_unit_seconds, data, kinds)
+    job = estimate_job(spec, units, data=data, kinds=kinds)
     if max_cpu_seconds is not None and job.cpu_seconds > max_cpu_seconds:
-        raise _over_cpu(spec, job.cpu_seconds, max_cpu_seconds, data)
+        raise _over_cpu(spec, job.cpu_seconds, max_cpu_seconds, data, table=table)
     return units, job
 
 

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .array_types import Array, FloatArray
+from .array_types import Array, BoolArray, FloatArray
 from .errors import check_matrix
 from .linalg import down, sum_up, up
 
@@ -141,12 +141,19 @@ def project_l1_ball(V: ArrayLike, radius: ArrayLike) -> FloatArray:
 
 
 def is_orthogonal(C: ArrayLike) -> bool:
-    """True when C is square with C^T C = I (to 1e-12): the closed-form design applies."""
+    """True when C (or every C of a stack) is square with C^T C = I (to 1e-12): the
+    closed-form design applies."""
+    return bool(np.all(orthogonal_each(C)))
+
+
+def orthogonal_each(C: ArrayLike) -> BoolArray:
+    """:func:`is_orthogonal` of each matrix of a stack ``(..., p, n)``: a mask ``(...)``."""
     C = np.asarray(C, dtype=float)
     if C.shape[-1] != C.shape[-2]:
-        return False
+        return np.zeros(C.shape[:-2], dtype=bool)
     p = C.shape[-1]
-    return bool(np.all(np.abs(_mT(C) @ C - np.eye(p)) <= 1e-12))
+    each: BoolArray = np.all(np.abs(_mT(C) @ C - np.eye(p)) <= 1e-12, axis=(-2, -1))
+    return each
 
 
 def design_gain(

@@ -50,21 +50,15 @@ def _plan(spec: ExperimentSpec, *, max_cells: int, target_cells: int) -> list[di
                 group = []
             group.append(N)
         n_groups.append(group)
-    units: list[dict[str, Any]] = []
-    for si, wi in _pairs(spec):
-        for Ns in n_groups:
-            per_rep = spec.cells_per_rep * len(Ns)
-            chunk = max(1, min(spec.reps, max_cells // per_rep))
-            for r0 in range(0, spec.reps, chunk):
-                units.append(
-                    {
-                        "system": si,
-                        "sigma_w": wi,
-                        "N": list(Ns),
-                        "reps": [r0, min(spec.reps, r0 + chunk)],
-                    }
-                )
-    return units
+    blocks: list[tuple[list[int], int, int]] = []  # the units of one (system, sigma_w)
+    for Ns in n_groups:
+        chunk = max(1, min(spec.reps, max_cells // (spec.cells_per_rep * len(Ns))))
+        blocks += [(Ns, r0, min(spec.reps, r0 + chunk)) for r0 in range(0, spec.reps, chunk)]
+    return [
+        {"system": si, "sigma_w": wi, "N": list(Ns), "reps": [r0, r1]}
+        for si, wi in _pairs(spec)
+        for Ns, r0, r1 in blocks
+    ]
 
 
 def _pairs(spec: ExperimentSpec) -> list[tuple[int, int]]:

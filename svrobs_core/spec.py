@@ -15,7 +15,8 @@ from typing import Any, cast
 
 from .errors import SpecError, unknown_field
 from .seeding import DEFAULT_RNG, RNGS
-from .systems import MAX_DIM, SystemSpec, resolve_system
+from .system_batch import resolve_systems
+from .systems import MAX_DIM, SystemSpec
 
 ESTIMATORS = ("ols", "svr", "shrunk-ols")
 BOUNDS_METHODS = ("paper", "self-normalized", "bootstrap")
@@ -300,7 +301,7 @@ def parse_simulation_spec(obj: dict[str, Any]) -> ExperimentSpec:
             raise SpecError(key, "is required")
 
     raw_systems = _list(obj["systems"], "systems")
-    systems = tuple(resolve_system(s, f"systems[{i}]") for i, s in enumerate(raw_systems))
+    systems = resolve_systems(raw_systems, "systems")  # as resolve_system each, in order
     _unique(tuple(s.name for s in systems), "systems")
     sigma_w = tuple(
         _float(v, f"sigma_w[{i}]", nonneg=True)

@@ -109,7 +109,12 @@ _SYSTEM_KEYS = {"name", "A", "B", "C", "sigma_u", "sigma_v"}
 
 
 def resolve_system(obj: object, field: str = "systems[0]") -> SystemSpec:
-    """A preset name or a ``{name, A, B, C, sigma_u, sigma_v}`` object -> SystemSpec."""
+    """A preset name or a ``{name, A, B, C, sigma_u, sigma_v}`` object -> SystemSpec.
+
+    A spec's systems are resolved by :func:`svrobs_core.system_batch.resolve_systems`,
+    which checks the systems of one shape together and gives the same systems and
+    errors: a check added here needs its stacked form there (the test of both is
+    ``tests/core/test_system_batch.py``)."""
     if isinstance(obj, str):
         if obj not in PRESETS:
             raise SpecError(field, f"unknown preset {obj!r}; known: {sorted(PRESETS)}")

@@ -25,12 +25,13 @@ the same per-operation constants applied to the measured path's operations
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from . import planning
-from .array_types import FloatArray
+from .array_types import BoolArray, FloatArray, IntArray
 from .cost_rates import (
     BASE_BYTES,
     BOOT_ELEM,
@@ -67,7 +68,7 @@ from .cost_rates import (
 from .data_factor import EXT_MAX_WORK
 from .errors import SpecError
 from .estimators import FALLBACK_CHUNK_BYTES, SVR_COND_LIMIT
-from .gains import is_orthogonal
+from .gains import is_orthogonal, orthogonal_each
 from .measured.workload import measured_unit, need_data
 from .spec import ExperimentSpec
 from .uncertainty import BOOT_CHUNK_BYTES
@@ -84,6 +85,78 @@ def _ill_conditioned(spec: ExperimentSpec, si: int) -> bool:
     rho(A)^(2 T0) (a heuristic for the cost, not for the numbers)."""
     rho = float(np.max(np.abs(np.linalg.eigvals(spec.systems[si].A))))
     return rho > 1 and 2 * (spec.T0 - 1) * np.log10(rho) > np.log10(SVR_COND_LIMIT)
+
+
+# What the cost model reads of a system: (n, m, p, C orthogonal, ill-conditioned data)
+Kind = tuple[int, int, int, bool, bool]
+
+
+@dataclass(frozen=True)
+class SystemTable:
+    """Per system of a spec: n, m, p, the spectral radius of A and whether C is
+    orthogonal (:func:`~svrobs_core.gains.is_orthogonal`); what :func:`_dims` and
+    :func:`_ill_conditioned` read, for every system at once."""
+
+    n: IntArray
+    m: IntArray
+    p: IntArray
+    rho: FloatArray
+    orth: BoolArray
+
+
+@dataclass(frozen=True)
+class SystemKinds:
+    """The distinct :data:`Kind` of a spec's systems (for its T0), and each system's
+    index into them: systems of one kind cost the same."""
+
+    kinds: tuple[Kind, ...]
+    of: IntArray
+    counts: IntArray
+
+    def kind(self, si: int) -> Kind:
+        return self.kinds[int(self.of[si])]
+
+
+def system_dims(spec: ExperimentSpec) -> IntArray:
+    """(n, m, p) of each system of ``spec``: an integer array (systems, 3)."""
+    dims = [(s.A.shape[0], s.B.shape[1], s.C.shape[0]) for s in spec.systems]
+    return np.array(dims, dtype=np.int64).reshape(len(dims), 3)
+
+
+def system_table(spec: ExperimentSpec) -> SystemTable:
+    """The :class:`SystemTable` of ``spec``'s systems: one eigenvalue call on the
+    stacked A of each n, one C^T C of the stacked square C of each n."""
+    dims = system_dims(spec)
+    rho = np.zeros(len(dims))
+    orth = np.zeros(len(dims), dtype=bool)
+    for n in np.unique(dims[:, 0]).tolist():
+        idx = np.flatnonzero(dims[:, 0] == n)
+        A = np.stack([spec.systems[i].A for i in idx.tolist()])
+        rho[idx] = np.max(np.abs(np.linalg.eigvals(A)), axis=-1)
+        square = idx[dims[idx, 2] == n]
+        if len(square):
+            orth[square] = orthogonal_each(np.stack([spec.systems[i].C for i in square.tolist()]))
+    return SystemTable(n=dims[:, 0], m=dims[:, 1], p=dims[:, 2], rho=rho, orth=orth)
+
+
+def system_kinds(spec: ExperimentSpec, table: SystemTable | None = None) -> SystemKinds:
+    """The :class:`SystemKinds` of ``spec`` (``table``: :func:`system_table` of its
+    systems, if already made): :func:`_ill_conditioned` of every system at once."""
+    t = system_table(spec) if table is None else table
+    if len(t.n) != len(spec.systems):
+        raise ValueError("the table is of other systems than the spec's")
+    ill = t.rho > 1
+    ill[ill] = 2 * (spec.T0 - 1) * np.log10(t.rho[ill]) > np.log10(SVR_COND_LIMIT)
+    base = int(max(t.n.max(initial=0), t.m.max(initial=0), t.p.max(initial=0))) + 1
+    code = ((t.n * base + t.m) * base + t.p) * 4 + t.orth * 2 + ill  # one integer a kind
+    codes, of, counts = np.unique(code, return_inverse=True, return_counts=True)
+    kinds = []
+    for c in codes.tolist():  # the distinct kinds, decoded
+        nmp, flags = divmod(c, 4)
+        nm, p = divmod(nmp, base)
+        n, m = divmod(nm, base)
+        kinds.append((n, m, p, flags >= 2, flags % 2 == 1))
+    return SystemKinds(kinds=tuple(kinds), of=of.reshape(-1), counts=counts)
 
 
 def _floor(x: FloatArray) -> FloatArray:
@@ -225,19 +298,33 @@ def _monte_carlo_bytes(spec: ExperimentSpec, *, n: int, m: int, p: int, rows: in
 
 
 def estimate_unit(
-    spec: ExperimentSpec, unit: dict[str, Any], *, data: DataShape | None = None
+    spec: ExperimentSpec,
+    unit: dict[str, Any],
+    *,
+    data: DataShape | None = None,
+    kinds: SystemKinds | None = None,
 ) -> UnitCost:
     """CPU seconds and peak resident bytes of one unit of ``plan_units(spec)`` (of a
-    dataset job: of ``plan_measured_units``, with its dataset's shape ``data``)."""
+    dataset job: of ``plan_measured_units``, with its dataset's shape ``data``);
+    ``kinds``: :func:`system_kinds` of the spec, if already made."""
     if spec.measured is not None:
         return measured_unit(spec, unit, need_data(data))
     si = unit["system"]
-    n, m, p, orth = _dims(spec, si)
+    if kinds is None:
+        n, m, p, orth = _dims(spec, si)
+        ill_data = _ill_conditioned(spec, si)
+    else:
+        n, m, p, orth, ill_data = kinds.kind(si)
+    return _unit_cost(spec, unit, (n, m, p, orth, ill_data))
+
+
+def _unit_cost(spec: ExperimentSpec, unit: dict[str, Any], kind: Kind) -> UnitCost:
+    """:func:`estimate_unit` of a simulated job's unit whose system is of ``kind``."""
+    n, m, p, orth, ill_data = kind
     r0, r1 = unit["reps"]
     R = r1 - r0
     limit = spec.reps if spec.mc_reps is None else spec.mc_reps
     mc_rows = max(0, min(r1, limit) - r0)
-    ill_data = _ill_conditioned(spec, si)
     ill = "svr" in spec.estimators and ill_data
     c, transient, kept = _dataset(
         spec, n=n, m=m, p=p, orth=orth, N=unit["N"], R=R, mc_rows=mc_rows, ill=ill,
@@ -273,7 +360,7 @@ def unit_base_bytes(spec: ExperimentSpec, *, n: int, p: int, orth: bool) -> floa
     return base
 
 
-# estimates by (system, N, first and last repetition)
+# estimates by (system's kind, or the system; N, first and last repetition)
 _Memo = dict[tuple[int, tuple[int, ...], int, int], UnitCost]
 
 
@@ -282,20 +369,25 @@ def plan_under_memory(
     *,
     max_unit_bytes: int | None = None,
     max_unit_seconds: float | None = None,
+    kinds: SystemKinds | None = None,
 ) -> list[dict[str, Any]]:
     """:func:`~svrobs_core.planning.plan_units`, with a unit whose estimated peak
     memory (:func:`estimate_unit`) is above ``max_unit_bytes``, or whose CPU seconds
     are above ``max_unit_seconds``, split further: first into its N values (unless
     ``reuse_gain``), then by repetitions, down to one repetition (which may still be
     above a cap: :func:`svrobs_core.admission.admit` refuses it). None: no cap. The
-    records do not depend on the split."""
+    records do not depend on the split. ``kinds``: :func:`system_kinds` of the spec,
+    if already made."""
     units = planning.plan_units(spec)
     if max_unit_bytes is None and max_unit_seconds is None:
         return units
     if spec.measured is not None:
         raise ValueError("a dataset job's memory cap: svrobs_core.measured.plan_measured_units")
     memo: _Memo = {}
-    return [v for u in units for v in _fit(spec, u, max_unit_bytes, max_unit_seconds, None, memo)]
+    kinds = system_kinds(spec) if kinds is None else kinds
+    return [
+        v for u in units for v in _fit(spec, u, max_unit_bytes, max_unit_seconds, None, memo, kinds)
+    ]
 
 
 def _fits(
@@ -305,11 +397,13 @@ def _fits(
     cpu_cap: float | None,
     data: DataShape | None,
     memo: _Memo,
+    kinds: SystemKinds | None = None,
 ) -> bool:
     r0, r1 = unit["reps"]
-    key = (unit["system"], tuple(unit["N"]), r0, r1)  # units differing in sigma_w alone
+    si = unit["system"] if kinds is None else int(kinds.of[unit["system"]])
+    key = (si, tuple(unit["N"]), r0, r1)  # units differing in sigma_w or system alone
     if key not in memo:
-        memo[key] = estimate_unit(spec, unit, data=data)
+        memo[key] = estimate_unit(spec, unit, data=data, kinds=kinds)
     cost = memo[key]
     return (mem_cap is None or cost.peak_bytes <= mem_cap) and (
         cpu_cap is None or cost.cpu_seconds <= cpu_cap
@@ -323,23 +417,25 @@ def _fit(
     cpu_cap: float | None,
     data: DataShape | None = None,
     memo: _Memo | None = None,
+    kinds: SystemKinds | None = None,
 ) -> list[dict[str, Any]]:
     """``unit`` split so that each part's estimated peak bytes stay under ``mem_cap``
-    and its CPU seconds under ``cpu_cap`` (None: no cap)."""
+    and its CPU seconds under ``cpu_cap`` (None: no cap); ``kinds``: the simulated
+    spec's :func:`system_kinds`."""
     memo = {} if memo is None else memo
-    if _fits(spec, unit, mem_cap, cpu_cap, data, memo):
+    if _fits(spec, unit, mem_cap, cpu_cap, data, memo, kinds):
         return [unit]
     if len(unit["N"]) > 1 and not spec.reuse_gain:
         return [
             v
             for N in unit["N"]
-            for v in _fit(spec, {**unit, "N": [N]}, mem_cap, cpu_cap, data, memo)
+            for v in _fit(spec, {**unit, "N": [N]}, mem_cap, cpu_cap, data, memo, kinds)
         ]
     r0, r1 = unit["reps"]
     lo, hi = 1, r1 - r0  # the largest chunk of repetitions under the caps, by bisection
     while lo < hi:
         mid = (lo + hi + 1) // 2
-        if _fits(spec, {**unit, "reps": [r0, r0 + mid]}, mem_cap, cpu_cap, data, memo):
+        if _fits(spec, {**unit, "reps": [r0, r0 + mid]}, mem_cap, cpu_cap, data, memo, kinds):
             lo = mid
         else:
             hi = mid - 1
@@ -351,21 +447,26 @@ def estimate_job(
     units: list[dict[str, Any]] | None = None,
     *,
     data: DataShape | None = None,
+    kinds: SystemKinds | None = None,
 ) -> JobCost:
     """Total CPU seconds of ``units`` (default: ``plan_units(spec)``), the largest
-    unit's peak bytes and the unit count (``data``: a dataset job's shape)."""
+    unit's peak bytes and the unit count (``data``: a dataset job's shape; ``kinds``:
+    a simulated job's :func:`system_kinds`, if already made)."""
     if units is None:
         units = planning.plan_units(spec)
+    if kinds is None and spec.measured is None:
+        kinds = system_kinds(spec)
     seen: dict[
         tuple[int, tuple[int, ...], int, int], UnitCost
-    ] = {}  # units differing only in sigma_w cost the same
+    ] = {}  # units differing only in sigma_w, or in systems of one kind, cost the same
     costs = []
     limit = spec.reps if spec.mc_reps is None else spec.mc_reps
     for u in units:
         r0, r1 = u["reps"]
-        key = (u["system"], tuple(u["N"]), r1 - r0, max(0, min(r1, limit) - r0))
+        si = u["system"] if kinds is None else int(kinds.of[u["system"]])
+        key = (si, tuple(u["N"]), r1 - r0, max(0, min(r1, limit) - r0))
         if key not in seen:
-            seen[key] = estimate_unit(spec, u, data=data)
+            seen[key] = estimate_unit(spec, u, data=data, kinds=kinds)
         costs.append(seen[key])
     return JobCost(
         cpu_seconds=float(sum(c.cpu_seconds for c in costs)),
@@ -392,9 +493,14 @@ class WorkloadError(SpecError):
 __all__ = [
     "DataShape",
     "JobCost",
+    "SystemKinds",
+    "SystemTable",
     "UnitCost",
     "WorkloadError",
     "estimate_job",
     "estimate_unit",
     "plan_under_memory",
+    "system_dims",
+    "system_kinds",
+    "system_table",
 ]

@@ -40,8 +40,8 @@ def validate_template(spec: dict, settings: Settings, session: Session, team_id:
 
     The session's transaction is ended first (what the caller read is not kept): a
     simulated spec is parsed and admitted with no transaction open, which takes
-    seconds for a spec of thousands of systems, and a writing session on SQLite holds
-    the database's one write lock from its first read (a dataset spec reads its
+    tenths of a second for a spec of thousands of systems, and a writing session on
+    SQLite holds the database's one write lock from its first read (a dataset spec reads its
     dataset's shape, then is admitted in a few milliseconds)."""
     session.rollback()
     try:

@@ -71,8 +71,9 @@ def test_schedule_validation_422_nothing_written(client, session, make_account):
 def test_a_template_is_admitted_with_no_transaction_open(
     build_client, session_factory, make_account, monkeypatch
 ):
-    """Admitting a template takes seconds for thousands of systems (33 s for 22,000 in a
-    1 MB body): creating or changing a schedule, or running it now from its page, does
+    """Admitting a template takes time that grows with its systems (0.2 s of CPU for
+    22,000 in a 1 MB body, docs/performance.md#parsing-and-admitting-many-systems):
+    creating or changing a schedule, or running it now from its page, does
     it with none of the request's sessions in a transaction, so a writing session on
     SQLite holds no write lock (every other team's writes waited for it) and
     PostgreSQL's quota lock of the team is not taken yet."""
