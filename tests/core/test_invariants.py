@@ -29,7 +29,7 @@ from hypothesis import strategies as st
 from svrobs_core import SpecError, parse_spec, run_spec
 from svrobs_core.spec import STAGES
 
-MAX_EXAMPLES = 400
+MAX_EXAMPLES = 200
 COUNTS = {"generated": 0, "refused": 0, "ran": 0, "records": 0}
 
 # -- strategies ----------------------------------------------------------------

@@ -38,9 +38,9 @@ from svrobs_core.seeding import seed_key
 from svrobs_core.systems import resolve_system
 from tests.core.exact_boxes import exact_box
 
-# 500 generated specs per `make test`; `make test-faults` runs 2,000
+# 250 generated specs per `make test`; `make test-faults` runs 2,000
 # (SVROBS_PROPERTY_EXAMPLES), with the soak tests.
-EXAMPLES = int(os.environ.get("SVROBS_PROPERTY_EXAMPLES", "500"))
+EXAMPLES = int(os.environ.get("SVROBS_PROPERTY_EXAMPLES", "250"))
 
 
 def _fr(x) -> Fraction:
