@@ -19,6 +19,7 @@ from .validation import (
     ValidationResult,
     excitation,
     fit_model,
+    regressor_excitation,
     validate,
     validation_summary,
 )
@@ -37,6 +38,7 @@ __all__ = [
     "excitation",
     "fit_model",
     "plan_measured_units",
+    "regressor_excitation",
     "run_datasets",
     "run_measured_unit",
     "validate",

@@ -3,16 +3,17 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 
 class RolloutLists:
-    """``n``, ``m`` and ``rollouts`` of the attributes ``X`` and ``U`` (lists of
+    """``n``, ``m`` and ``rollouts`` of the attributes ``X`` and ``U`` (sequences of
     2-D arrays, at least one rollout)."""
 
     __slots__ = ()
-    X: list[Any]
-    U: list[Any]
+    X: Sequence[Any]
+    U: Sequence[Any]
 
     @property
     def n(self) -> int:

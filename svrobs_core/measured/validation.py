@@ -96,6 +96,11 @@ def excitation(data: MeasuredData, lags: tuple[int, int] | None = None) -> Excit
     sm = StateModel(ny=data.n, m=data.m, lags=lags)
     lifted = sm.lift(data)
     Z, _ = regression(lifted)
+    return regressor_excitation(Z, tuple(lifted.state_names) + tuple(lifted.input_names))
+
+
+def regressor_excitation(Z: FloatArray, names: tuple[str, ...]) -> Excitation:
+    """The excitation check of the regressors ``Z`` (d, N0), channels ``names``."""
     N0 = Z.shape[1]
     # the Gram of Z / max|Z| (entries at most N0 / N0 = 1): no overflow nor underflow
     # for finite data of any magnitude; the eigenvalues are scaled back after
@@ -106,7 +111,6 @@ def excitation(data: MeasuredData, lags: tuple[int, int] | None = None) -> Excit
     with np.errstate(over="ignore"):
         lam = lam_s * scale * scale if scale > 0 else lam_s
     cond = float(lam_s[-1] / lam_s[0]) if lam_s[0] > 0 else float("inf")
-    names = tuple(lifted.state_names) + tuple(lifted.input_names)
     ex = Excitation(names=names, N0=N0, eigenvalues=lam, direction=V[:, 0], cond=cond)
     top = int(np.argmax(np.abs(V[:, 0])))
     sizes, balanced = _balanced(Zs)

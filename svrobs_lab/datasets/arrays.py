@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from .parsed import BadDatasetFile, Rollouts
+from .stacked import RolloutStack
 
 ALLOWED = "X, U (or X_0, U_0, X_1, ...), sample_time, state_names, input_names"
 _PER_ROLLOUT = re.compile(r"([XU])_(0|[1-9][0-9]{0,6})", re.ASCII)
@@ -67,8 +68,8 @@ def split_variables(variables: Mapping) -> tuple[dict, dict, dict]:
     return whole, per, meta
 
 
-def whole_rollouts(X, U, *, matlab: bool = False) -> tuple[list, list]:
-    """X (N, T+1, n) and U (N, T, m) or None (m = 0) -> per-rollout lists.
+def whole_rollouts(X, U, *, matlab: bool = False) -> tuple[RolloutStack, RolloutStack]:
+    """X (N, T+1, n) and U (N, T, m) or None (m = 0) -> the rollouts (one block each).
 
     ``matlab``: MATLAB drops trailing singleton dimensions, so a 2-D X is
     (N, T+1) with n = 1 and a 2-D U is (N, T) with m = 1."""
@@ -91,7 +92,18 @@ def whole_rollouts(X, U, *, matlab: bool = False) -> tuple[list, list]:
         )
     if T1 < 2:
         raise BadDatasetFile(f"X: {T1} state per rollout; a rollout needs at least 2 states")
-    return list(X), list(U)
+    return _equal(X), _equal(U)
+
+
+def _equal(a: np.ndarray) -> RolloutStack:
+    """(N, rows, width) -> N rollouts of ``rows`` rows in one C-contiguous block."""
+    N, rows, width = a.shape
+    return RolloutStack.of_equal(np.ascontiguousarray(a).reshape(N * rows, width), N)
+
+
+def ragged(arrays: list[np.ndarray]) -> RolloutStack:
+    """Rollouts of their own arrays (checked: 2-D, one width) -> one block each."""
+    return RolloutStack.of_arrays([np.ascontiguousarray(a) for a in arrays], arrays[0].shape[1])
 
 
 def _underscore(var: str, i: int) -> str:
@@ -102,8 +114,11 @@ def _cell(var: str, i: int) -> str:
     return f"{var}{{{i + 1}}}"  # MATLAB's 1-based cell index: X{1}
 
 
-def per_rollout(per: dict, *, matlab: bool = False, name=_underscore) -> tuple[list, list]:
-    """{i: {"X": X_i, "U": U_i}} with i = 0..N-1 -> lists (U_i absent everywhere: m = 0).
+def per_rollout(
+    per: dict, *, matlab: bool = False, name=_underscore
+) -> tuple[RolloutStack, RolloutStack]:
+    """{i: {"X": X_i, "U": U_i}} with i = 0..N-1 -> the rollouts (U_i absent
+    everywhere: m = 0).
     ``name(var, i)``: how messages call rollout i's variable (X_3, or X{4} in a cell)."""
     count = max(per) + 1
     missing = next((i for i in range(count) if "X" not in per.get(i, {})), None)
@@ -133,7 +148,7 @@ def per_rollout(per: dict, *, matlab: bool = False, name=_underscore) -> tuple[l
         check_pair(xname, uname, x, u, X, U)
         X.append(x)
         U.append(u)
-    return X, U
+    return ragged(X), ragged(U)
 
 
 def check_pair(xname: str, uname: str, x: np.ndarray, u: np.ndarray, X: list, U: list) -> None:
@@ -214,8 +229,8 @@ def rollouts_of(variables: Mapping, *, matlab: bool = False) -> Rollouts:
     else:
         Xs, Us = per_rollout(per, matlab=matlab)
     return Rollouts(
-        X=[np.ascontiguousarray(x) for x in Xs],
-        U=[np.ascontiguousarray(u) for u in Us],
+        X=Xs,
+        U=Us,
         state_names=names_of("state_names", meta.get("state_names")),
         input_names=names_of("input_names", meta.get("input_names")),
         sample_time=sample_time_of(meta.get("sample_time")),

@@ -9,7 +9,6 @@ caller commits.
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 import os
@@ -25,7 +24,7 @@ from service.db import datasets as store
 from service.db.models import Dataset
 from service.db.quota import lock_team_quota
 from svrobs_core.errors import SpecError
-from svrobs_core.measured import MeasuredData, excitation
+from svrobs_core.measured import regressor_excitation
 from svrobs_core.text import NOT_PRINTABLE, printable, strip_unprintable
 
 from ..auth import Caller
@@ -33,6 +32,7 @@ from ..dispatch import SessionFactory
 from ..errors import DatasetNotFound, Invalid, NotFound
 from .parsed import DatasetOptions, ParsedDataset, name_refused
 from .reader import parse_dataset
+from .stacked import regressors
 
 FIELDS = (
     "name",
@@ -189,7 +189,7 @@ def check_team_quota(
             field="file",
         )
     size = store.stored_bytes(
-        parsed.n, parsed.m, parsed.rollouts, sum(parsed.lengths), parsed.size_bytes
+        parsed.n, parsed.m, parsed.rollouts, parsed.samples, parsed.size_bytes
     )
     if limits.max_team_bytes and held + size > limits.max_team_bytes:
         mb = 2**20
@@ -203,17 +203,13 @@ def check_team_quota(
 
 def upload_excitation(parsed: ParsedDataset) -> dict | None:
     """The excitation check of all the parsed rollouts as stored with the dataset, or
-    None above EXCITATION_MAX_VALUES numbers."""
-    values = store.array_values(parsed.n, parsed.m, parsed.rollouts, sum(parsed.lengths))
+    None above EXCITATION_MAX_VALUES numbers: that of their MeasuredData, made of
+    the stacked rollouts (no array a rollout)."""
+    values = store.array_values(parsed.n, parsed.m, parsed.rollouts, parsed.samples)
     if values > EXCITATION_MAX_VALUES:
         return None
-    data = MeasuredData(
-        X=parsed.X,
-        U=parsed.U,
-        state_names=tuple(parsed.state_names),
-        input_names=tuple(parsed.input_names),
-    )
-    return excitation(data).to_dict()
+    names = tuple(parsed.state_names) + tuple(parsed.input_names)
+    return regressor_excitation(regressors(parsed.X, parsed.U), names).to_dict()
 
 
 def create_dataset(
@@ -236,7 +232,8 @@ def create_dataset(
     parsed = parse_dataset(stream, filename=filename, options=options, max_bytes=limits.max_bytes)
     checked = upload_excitation(parsed)
     check_team_quota(session, team_id, parsed, limits)
-    arrays = list(itertools.chain(parsed.X, parsed.U))
+    arrays = parsed.arrays()
+    lengths = parsed.lengths
     row = store.add_dataset(
         session,
         team_id=team_id,
@@ -251,10 +248,10 @@ def create_dataset(
         n=parsed.n,
         m=parsed.m,
         rollouts=parsed.rollouts,
-        samples=sum(parsed.lengths),
-        t_min=min(parsed.lengths),
-        t_max=max(parsed.lengths),
-        lengths=parsed.lengths,
+        samples=parsed.samples,
+        t_min=min(lengths),
+        t_max=max(lengths),
+        lengths=lengths,
         sample_time=parsed.sample_time,
         state_names=parsed.state_names,
         input_names=parsed.input_names,

@@ -57,8 +57,8 @@ def file_data(path, *, max_bytes: int) -> MeasuredData:
     with open(path, "rb") as f:
         parsed = parse_dataset(f, filename=os.path.basename(str(path)), max_bytes=max_bytes)
     return MeasuredData(
-        X=parsed.X,
-        U=parsed.U,
+        X=list(parsed.X),
+        U=list(parsed.U),
         sample_time=parsed.sample_time,
         state_names=tuple(parsed.state_names),
         input_names=tuple(parsed.input_names),

@@ -22,6 +22,7 @@ from svrobs_core.measured.rollout_lists import RolloutLists
 from svrobs_core.text import printable
 
 from ..errors import BadDatasetFile
+from .stacked import RolloutStack, channel_stats, first_misshapen, first_not_finite
 
 MAX_CHANNELS = 50  # n and m: the state dimension the core accepts (svrobs_core.spec)
 MAX_ROLLOUTS = 1_000_000
@@ -45,10 +46,11 @@ class DatasetOptions:
 @dataclass(frozen=True, kw_only=True, eq=False)
 class ParsedDataset(RolloutLists):
     """Rollouts ``X[i]`` of shape (T_i + 1, n) and inputs ``U[i]`` of shape (T_i, m)
-    (m may be 0), float64 and finite; the sha256 and size of the original bytes."""
+    (m may be 0), float64 and finite, stacked (views of one rollout made when asked
+    for); the sha256 and size of the original bytes."""
 
-    X: list[np.ndarray]
-    U: list[np.ndarray]
+    X: RolloutStack
+    U: RolloutStack
     state_names: list[str]
     input_names: list[str]
     sample_time: float | None
@@ -60,22 +62,28 @@ class ParsedDataset(RolloutLists):
     @property
     def lengths(self) -> list[int]:
         """T_i of every rollout: its number of steps (it has T_i + 1 states)."""
-        return [u.shape[0] for u in self.U]
+        return self.U.lengths.tolist()
+
+    @property
+    def samples(self) -> int:
+        """The sum of the T_i."""
+        return self.U.rows
+
+    def arrays(self) -> list[np.ndarray]:
+        """The stored form's arrays: every rollout's states, then every rollout's
+        inputs, back to back (the blocks)."""
+        return [*self.X.blocks, *self.U.blocks]
 
 
 @dataclass(frozen=True, kw_only=True)
 class Rollouts:
     """What a format's reader returns: the arrays and whatever names the file holds."""
 
-    X: list[np.ndarray]
-    U: list[np.ndarray]
+    X: RolloutStack
+    U: RolloutStack
     state_names: Sequence[str] | None = None
     input_names: Sequence[str] | None = None
     sample_time: float | None = None
-    # how a rollout is called in messages: its CSV label, else its index
-    labels: Sequence[str] | None = None
-    # the k of each rollout's first state (CSV), else 0
-    first_k: Sequence[int] | None = None
 
 
 def default_names(prefix: str, count: int) -> list[str]:
@@ -118,20 +126,13 @@ def check_names(names: Sequence[str], field: str, count: int | None = None) -> l
     return names
 
 
-def _where(labels, first_k, i: int, row: int) -> str:
-    rollout = labels[i] if labels is not None else str(i)
-    k = (first_k[i] if first_k is not None else 0) + row
-    return f"rollout {rollout}, k {k}"
-
-
-def check_finite(arrays: list[np.ndarray], names: list[str], labels, first_k) -> None:
+def check_finite(stack: RolloutStack, names: list[str]) -> None:
     """BadDatasetFile naming the first NaN or inf (rollout, k, column)."""
-    for i, a in enumerate(arrays):
-        ok = np.isfinite(a)
-        if not ok.all():
-            r, c = np.argwhere(~ok)[0]
-            what = "NaN" if math.isnan(a[r, c]) else "inf"
-            raise BadDatasetFile(f"{what} at {_where(labels, first_k, i, r)}, column {names[c]}")
+    found = first_not_finite(stack)
+    if found is not None:
+        i, r, c = found
+        what = "NaN" if math.isnan(stack[i][r, c]) else "inf"
+        raise BadDatasetFile(f"{what} at rollout {i}, k {r}, column {names[c]}")
 
 
 def build(
@@ -147,27 +148,16 @@ def build(
     upload's ``state_names`` / ``input_names``, else the file's, else x1..xn, u1..um
     (``names_in_file``: the names are the CSV columns, already checked)."""
     X, U = rollouts.X, rollouts.U
-    if not X:
+    if not len(X):
         raise BadDatasetFile("no rollouts")
     if len(X) > MAX_ROLLOUTS:
         raise BadDatasetFile(f"{len(X):,} rollouts; at most {MAX_ROLLOUTS:,}")
-    n, m = X[0].shape[1], U[0].shape[1]
+    n, m = X.width, U.width
     if n < 1:
         raise BadDatasetFile("no state columns (n = 0)")
     if n > MAX_CHANNELS or m > MAX_CHANNELS:
         raise BadDatasetFile(f"n = {n}, m = {m}: at most {MAX_CHANNELS} states and inputs")
-    labels, first_k = rollouts.labels, rollouts.first_k
-    for i, (x, u) in enumerate(zip(X, U)):
-        name = labels[i] if labels is not None else str(i)
-        if x.shape[0] < 2:
-            raise BadDatasetFile(
-                f"rollout {name}: {x.shape[0]} state; a rollout needs at least 2 states"
-            )
-        if x.shape[1] != n or u.shape[1] != m or u.shape[0] != x.shape[0] - 1:
-            raise BadDatasetFile(
-                f"rollout {name}: states {x.shape} and inputs {u.shape} do not make "
-                f"(T + 1, {n}) and (T, {m})"
-            )
+    _check_lengths(X, U)
     if names_in_file:
         # the CSV's columns: both given
         state_names = list(cast("Sequence[str]", rollouts.state_names))
@@ -175,8 +165,8 @@ def build(
     else:
         state_names = _names(options.state_names, rollouts.state_names, "state_names", "x", n)
         input_names = _names(options.input_names, rollouts.input_names, "input_names", "u", m)
-    check_finite(X, state_names, labels, first_k)
-    check_finite(U, input_names, labels, first_k)
+    check_finite(X, state_names)
+    check_finite(U, input_names)
     sample_time = options.sample_time if options.sample_time is not None else rollouts.sample_time
     return ParsedDataset(
         X=X,
@@ -199,41 +189,18 @@ def _names(given, in_file, field: str, prefix: str, count: int) -> list[str]:
     return default_names(prefix, count)
 
 
-def channel_stats(arrays: list[np.ndarray], names: list[str]) -> dict:
-    """{name: {mean, std (ddof 0), min, max, count}} over every sample of every rollout
-    (two passes: the sum, then the squared deviations about the mean)."""
-    width = arrays[0].shape[1]
-    count = sum(a.shape[0] for a in arrays)
-    if width == 0:
-        return {}
-    if count == 0:
-        return {n: {"mean": None, "std": None, "min": None, "max": None, "count": 0} for n in names}
-    total = np.zeros(width)
-    lo, hi = np.full(width, np.inf), np.full(width, -np.inf)
-    with np.errstate(over="ignore", invalid="ignore"):
-        for a in arrays:
-            total += a.sum(axis=0)
-            if len(a):
-                lo, hi = np.minimum(lo, a.min(axis=0)), np.maximum(hi, a.max(axis=0))
-        mean = total / count
-        dev = np.zeros(width)
-        for a in arrays:
-            dev += ((a - mean) ** 2).sum(axis=0)
-    with np.errstate(over="ignore", invalid="ignore"):
-        std = np.sqrt(dev / count)
-    return {
-        name: {
-            "mean": _finite(mean[j]),
-            "std": _finite(std[j]),
-            "min": _finite(lo[j]),
-            "max": _finite(hi[j]),
-            "count": int(count),
-        }
-        for j, name in enumerate(names)
-    }
-
-
-def _finite(v) -> float | None:
-    """A statistic, or None when it overflows (values near 1e308 summed)."""
-    v = float(v)
-    return v if math.isfinite(v) else None
+def _check_lengths(X: RolloutStack, U: RolloutStack) -> None:
+    """Every rollout has at least 2 states and one input fewer (the first one that
+    does not is named)."""
+    if len(U) != len(X):
+        raise BadDatasetFile(f"{len(X)} state rollouts and {len(U)} input rollouts")
+    i = first_misshapen(X, U)
+    if i is None:
+        return
+    x, u = X[i], U[i]
+    if x.shape[0] < 2:
+        raise BadDatasetFile(f"rollout {i}: {x.shape[0]} state; a rollout needs at least 2 states")
+    raise BadDatasetFile(
+        f"rollout {i}: states {x.shape} and inputs {u.shape} do not make "
+        f"(T + 1, {X.width}) and (T, {U.width})"
+    )
