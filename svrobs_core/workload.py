@@ -79,12 +79,20 @@ def _dims(spec: ExperimentSpec, si: int) -> tuple[int, int, int, bool]:
     return s.n, s.m, s.p, bool(is_orthogonal(s.C))
 
 
+def _ill_from_rho(rho: FloatArray, T0: int) -> BoolArray:
+    """Whether SVR's data are likely worse conditioned than estimators.SVR_COND_LIMIT,
+    per spectral radius ``rho`` of A: the states of an unstable system grow like
+    rho^T0, so cond(Z Z^T) like rho^(2 T0) (a heuristic for the cost, not for the
+    numbers)."""
+    ill: BoolArray = rho > 1
+    ill[ill] = 2 * (T0 - 1) * np.log10(rho[ill]) > np.log10(SVR_COND_LIMIT)
+    return ill
+
+
 def _ill_conditioned(spec: ExperimentSpec, si: int) -> bool:
-    """Whether SVR's data are likely worse conditioned than estimators.SVR_COND_LIMIT:
-    the states of an unstable system grow like rho(A)^T0, so cond(Z Z^T) like
-    rho(A)^(2 T0) (a heuristic for the cost, not for the numbers)."""
-    rho = float(np.max(np.abs(np.linalg.eigvals(spec.systems[si].A))))
-    return rho > 1 and 2 * (spec.T0 - 1) * np.log10(rho) > np.log10(SVR_COND_LIMIT)
+    """:func:`_ill_from_rho` of system ``si`` of ``spec``."""
+    rho = np.max(np.abs(np.linalg.eigvals(spec.systems[si].A)), keepdims=True)
+    return bool(_ill_from_rho(rho, spec.T0)[0])
 
 
 # What the cost model reads of a system: (n, m, p, C orthogonal, ill-conditioned data)
@@ -141,12 +149,11 @@ def system_table(spec: ExperimentSpec) -> SystemTable:
 
 def system_kinds(spec: ExperimentSpec, table: SystemTable | None = None) -> SystemKinds:
     """The :class:`SystemKinds` of ``spec`` (``table``: :func:`system_table` of its
-    systems, if already made): :func:`_ill_conditioned` of every system at once."""
+    systems, if already made): :func:`_ill_from_rho` of every system at once."""
     t = system_table(spec) if table is None else table
     if len(t.n) != len(spec.systems):
         raise ValueError("the table is of other systems than the spec's")
-    ill = t.rho > 1
-    ill[ill] = 2 * (spec.T0 - 1) * np.log10(t.rho[ill]) > np.log10(SVR_COND_LIMIT)
+    ill = _ill_from_rho(t.rho, spec.T0)
     base = int(max(t.n.max(initial=0), t.m.max(initial=0), t.p.max(initial=0))) + 1
     code = ((t.n * base + t.m) * base + t.p) * 4 + t.orth * 2 + ill  # one integer a kind
     codes, of, counts = np.unique(code, return_inverse=True, return_counts=True)
