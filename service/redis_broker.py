@@ -56,7 +56,7 @@ class Channel(redis.Channel):
                     if reason is None:
                         self._maybe_update_queues_expire(client, queue)
                         return payload
-                    self._set_aside(queue, item, reason)
+                    self._set_aside(queue, item, reason, client)
             self._maybe_update_queues_expire(client, queue)
             raise Empty()
 
@@ -69,14 +69,14 @@ class Channel(redis.Channel):
         self._set_aside(key, item, reason)
         return False
 
-    def _set_aside(self, key: bytes | str, item: bytes, reason: str) -> None:
+    def _set_aside(self, key: bytes | str, item: bytes, reason: str, client: Any = None) -> None:
         """Log ``item`` (not a message, taken off the list ``key``) and keep it on
-        :data:`BAD_LIST`."""
+        :data:`BAD_LIST` (through ``client`` if one is in hand)."""
         where = f"kept on the list {BAD_LIST!r}"
         try:
-            with self.conn_or_acquire() as client:
-                client.lpush(BAD_LIST, item)
-                client.ltrim(BAD_LIST, 0, BAD_KEPT - 1)
+            with self.conn_or_acquire(client) as bad:
+                bad.lpush(BAD_LIST, item)
+                bad.ltrim(BAD_LIST, 0, BAD_KEPT - 1)
         except Exception as exc:  # noqa: BLE001 - the item is dropped all the same
             where = f"not kept: {exc}"
         queue = key.decode(errors="replace") if isinstance(key, bytes) else str(key)
