@@ -19,6 +19,7 @@ from service.db.models import (
     JobTag,
     JobValidation,
     Result,
+    ResultBlock,
     ResultConstant,
     ScheduleRun,
     ShareLink,
@@ -48,7 +49,16 @@ def delete_job(session: Session, job: Job) -> dict[str, int]:
     if locked.status in JOB_ACTIVE:
         raise JobActive(job_id, locked.status)
     counts: dict[str, int] = {}
-    for model in (Result, ResultConstant, Summary, WorkUnit, JobTag, ShareLink, JobValidation):
+    for model in (
+        Result,
+        ResultBlock,
+        ResultConstant,
+        Summary,
+        WorkUnit,
+        JobTag,
+        ShareLink,
+        JobValidation,
+    ):
         res = session.execute(delete(model).where(model.job_id == job_id))
         counts[model.__tablename__] = cast("CursorResult[Any]", res).rowcount  # a DELETE's result
     session.execute(update(ScheduleRun).where(ScheduleRun.job_id == job_id).values(job_id=None))

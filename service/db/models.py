@@ -254,6 +254,19 @@ class ResultConstant(Base):
     value: Mapped[bytes] = mapped_column(LargeBinary)
 
 
+class ResultBlock(Base):
+    """A unit's stored cells as report columns in one binary value
+    (``service.db.result_blocks``): written with the unit's rows, read by a report
+    build instead of the rows, dropped once the job's report is stored. No foreign
+    key, as for ``results``."""
+
+    __tablename__ = "result_blocks"
+    job_id: Mapped[int] = mapped_column(primary_key=True)
+    unit_id: Mapped[int] = mapped_column(primary_key=True)
+    n_rows: Mapped[int]
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+
+
 class Result(Base):
     """One cell (docs/spec.md#record-fields), keyed by its grid coordinates (the primary key;
     ``gamma_key`` is gamma, or -1 for ols). The compact format of migration 0005

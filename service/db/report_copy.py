@@ -16,20 +16,18 @@ columns are the same as the row read's, bit for bit
 from __future__ import annotations
 
 import numpy as np
-from sqlalchemy import Integer, any_, bindparam, select
-from sqlalchemy.dialects.postgresql import ARRAY
-from sqlalchemy.exc import DBAPIError
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from svrobs_core.records import BOOL_FIELDS
-from svrobs_core.report.columns import SCALAR_FIELDS, TEXT_FIELDS
+from svrobs_core.report.columns import SCALAR_FIELDS
 
-from .models import Result, ResultNote
+from .models import Result
+from .report_order import CODED as _CODED
+from .report_order import collated, driver_errors, ordered_columns
 
-_CODED = tuple(f for f in TEXT_FIELDS if f != "notes")  # text columns sent as codes
 _SIGNATURE = b"PGCOPY\n\xff\r\n\x00"
 _BLOCK = 1 << 22  # bytes of the stream parsed at once
-SORT_KEY = ("system", "sigma_w", "N", "estimator", "gamma_key", "rep")  # the row read's order
 
 
 class StreamChanged(Exception):
@@ -45,20 +43,7 @@ def _distinct(session: Session, job_id: int) -> dict[str, list]:
     combos = session.execute(
         select(*(t.c[f] for f in _CODED)).where(t.c.job_id == job_id).distinct()
     ).all()
-    out = {}
-    for i, f in enumerate(_CODED):
-        values = {row[i] for row in combos}
-        text = [v for v in values if v is not None]
-        if len(text) > 1:  # the database's collation decides, as in the row read's ORDER BY
-            text = list(
-                session.connection()
-                .exec_driver_sql(
-                    "SELECT v FROM unnest(CAST(%(v)s AS text[])) AS v ORDER BY v", {"v": text}
-                )
-                .scalars()
-            )
-        out[f] = text + ([None] if None in values else [])
-    return out
+    return {f: collated(session, {row[i] for row in combos}) for i, f in enumerate(_CODED)}
 
 
 def _copy_sql(job_id: int, limit: int, distinct: dict[str, list]):
@@ -150,65 +135,18 @@ def _header_size(buf: bytearray, fill: int) -> int:
     return 19 + int.from_bytes(buf[15:19], "big")
 
 
-def _first_appearance(codes: np.ndarray, values: list) -> tuple[np.ndarray, list]:
-    """Codes renumbered in order of first appearance (as ``Columns.codes`` numbers them)."""
-    seen, first = np.unique(codes, return_index=True)
-    order = seen[np.argsort(first)]
-    renumber = np.empty(len(values), dtype=np.int64)
-    renumber[order] = np.arange(order.size)
-    return renumber[codes], [values[c] for c in order.tolist()]
-
-
 def copy_columns(session: Session, job_id: int, limit: int):
     """(fields -> arrays, text field -> (codes, values)) of at most ``limit`` rows of
     the job, in the row read's order; raises :class:`StreamChanged` when the rows
     changed between the reads."""
-    import psycopg
-
     distinct = _distinct(session, job_id)
     query, n_fields = _copy_sql(job_id, limit, distinct)
     conn = session.connection()
     pg = conn.connection.driver_connection
     assert pg is not None  # an open connection (session.connection() began it)
     names = [*SCALAR_FIELDS, *_CODED, "notes", "gamma_key"]
-    try:
-        with pg.cursor() as cur, cur.copy(query) as copy:
-            raw = dict(zip(names, _read_stream(copy, n_fields, limit), strict=True))
-    except psycopg.Error as exc:  # as SQLAlchemy reports a driver's error (503 if down)
-        if pg.closed:
-            conn.invalidate(exc)
-        raise DBAPIError.instance(
-            query.as_string(pg), None, exc, psycopg.Error, connection_invalidated=pg.closed
-        ) from exc
+    with driver_errors(conn, query.as_string(pg)), pg.cursor() as cur, cur.copy(query) as copy:
+        raw = dict(zip(names, _read_stream(copy, n_fields, limit), strict=True))
     if any((raw[f] < 0).any() for f in _CODED):
         raise StreamChanged  # a text value the distinct read did not see
-    order = np.lexsort([raw[f] for f in reversed(SORT_KEY)])
-    del raw["gamma_key"]
-    data, factors = {}, {}
-    for f in list(raw):  # one field at a time: no second copy of all of them
-        a = raw.pop(f)[order]  # the unsorted array is freed here
-        if f in _CODED:
-            factors[f] = _first_appearance(a.astype(np.int64), distinct[f])
-        elif f == "notes":
-            factors[f] = _notes(session, a.astype(np.int64))
-        else:
-            data[f] = a
-    return data, factors
-
-
-def _notes(session: Session, note_ids: np.ndarray) -> tuple[np.ndarray, list]:
-    """The rows' notes ids (-1: none) -> (codes, texts) as the row read's outer join
-    gives them (an id without a text, like -1, is None)."""
-    ids = np.unique(note_ids)
-    known = ids[ids >= 0].tolist()
-    ids_param = bindparam("ids", known, type_=ARRAY(Integer))  # one parameter, any count
-    texts = dict(
-        session.execute(
-            select(ResultNote.id, ResultNote.text).where(ResultNote.id == any_(ids_param))
-        ).all()
-    )
-    index: dict = {}
-    code_of_id = np.array(
-        [index.setdefault(texts.get(i), len(index)) for i in ids.tolist()], dtype=np.int64
-    )
-    return _first_appearance(code_of_id[np.searchsorted(ids, note_ids)], list(index))
+    return ordered_columns(session, raw, distinct)

@@ -9,10 +9,12 @@ then the stored page is the only copy and is served as it is.
 The build reads only the fields the report uses (``REPORT_FIELDS``) into numpy
 arrays, with no record dicts, and no ``A_hat``/``B_hat`` above
 ``MATRIX_CELLS_LIMIT`` cells (as ``svrobs reproduce`` does; the figures that need
-them say "no data"). Without the matrices, PostgreSQL sends the rows as one
-binary COPY of fixed-width floats (:mod:`service.db.report_copy`); otherwise the
-rows are read from the cursor in chunks of ``CHUNK``, each text field factorised
-as it is read (docs/performance.md#the-first-report-of-a-large-job).
+them say "no data"). Without the matrices, the columns come from the blocks the
+units wrote with their rows (:mod:`service.db.result_blocks`) when they make up
+the job, else on PostgreSQL from one binary COPY of fixed-width floats
+(:mod:`service.db.report_copy`); otherwise the rows are read from the cursor in
+chunks of ``CHUNK``, each text field factorised as it is read
+(docs/performance.md#the-first-report-of-a-large-job).
 """
 
 from __future__ import annotations
@@ -33,7 +35,9 @@ from svrobs_core.report.columns import (
 )
 
 from .models import JOB_ACTIVE, Job, JobReport, Result, utcnow
-from .report_copy import SORT_KEY, StreamChanged, copy_columns
+from .report_copy import StreamChanged, copy_columns
+from .report_order import SORT_KEY, ordered_columns
+from .result_blocks import block_columns, drop_blocks
 from .results_store import NOTES, job_codec
 
 log = logging.getLogger(__name__)
@@ -65,7 +69,9 @@ def is_final(job: Job) -> bool:
 def store_report(
     session: Session, job_id: int, html: str, n_records: int, layout: int
 ) -> JobReport:
-    """Store (or replace) a job's report, built with page layout ``layout``."""
+    """Store (or replace) a finished job's report, built with page layout ``layout``;
+    its blocks (:mod:`service.db.result_blocks`) are no longer needed and go."""
+    drop_blocks(session, job_id)
     row = session.get(JobReport, job_id)
     if row is None:
         row = JobReport(job_id=job_id, html=html, n_records=n_records, layout=layout)
@@ -148,6 +154,10 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
         matrices = n <= MATRIX_CELLS_LIMIT
     mats = COLUMN_MATRIX_FIELDS if matrices else ()
     conn = session.connection()
+    if n and not mats:
+        stored = block_columns(session, job_id, n)
+        if stored is not None:
+            return _columns(*ordered_columns(session, *stored))
     if n and not mats and conn.dialect.name == "postgresql" and conn.dialect.driver == "psycopg":
         try:
             copied, factors = copy_columns(session, job_id, n)

@@ -20,6 +20,7 @@ from svrobs_lab.errors import AdminError
 from .accounts import get_team
 from .clock import db_now
 from .models import Job, Result, ResultConstant, Team, as_utc
+from .result_blocks import drop_blocks
 
 MAX_RETENTION_DAYS = 36_500
 
@@ -65,6 +66,7 @@ def prune_job(session: Session, job_id: int, now: datetime | None = None) -> int
     res = session.execute(delete(Result).where(Result.job_id == job_id))
     n = cast("CursorResult[Any]", res).rowcount or 0  # a DELETE's result
     session.execute(delete(ResultConstant).where(ResultConstant.job_id == job_id))
+    drop_blocks(session, job_id)
     job.pruned_at = now or db_now(session)
     session.flush()
     return n

@@ -23,6 +23,7 @@ from svrobs_core.unit_result import UnitResult
 from .clock import db_now
 from .jobs import lock_job, set_timing
 from .models import JOB_ACTIVE, Job, Result, Summary, WorkUnit, utcnow
+from .result_blocks import store_block
 from .results_store import UnitColumns, gamma_key, unit_columns, upsert_results
 
 
@@ -117,6 +118,8 @@ def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | Unit
     if unit is None or unit.status in ("cancelled", "failed"):
         return False  # cancelled while it ran (its job cancelled or failed)
     stored = upsert_results(session, unit.job_id, to_store)
+    if stored["system"]:  # the report's copy of them (a unit stored again: replaced)
+        store_block(session, unit.job_id, unit_id, stored)
     whole = to_store.whole_groups if isinstance(to_store, UnitColumns) else None
     if whole is None and stored["system"]:  # not known from the result: the job's spec
         whole = _whole_groups(session, unit)

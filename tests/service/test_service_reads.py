@@ -16,6 +16,7 @@ from sqlalchemy import delete
 
 from service.db.models import JobReport, Result
 from service.db.reports import load_columns
+from service.db.result_blocks import drop_blocks
 from service.db.results_store import load_records
 from svrobs_core.parsing import parse_spec
 from svrobs_core.report import Columns
@@ -105,11 +106,15 @@ def test_load_columns_without_matrices_and_running_job_report_not_stored(
     assert session.get(JobReport, jid) is None  # a running job changes: never stored
 
 
-def _finished_fake_job(client, session, make_account, spec=SMALL_SPEC) -> tuple[int, list[dict]]:
-    """A job of fake records whose units were stored last first (so the rows' storage
-    order is not the grid's)."""
+def _finished_fake_job(
+    client, session, make_account, spec=SMALL_SPEC, *, make=None
+) -> tuple[int, list[dict]]:
+    """A job of fake records (``make(spec, payload)``, default ``fake_records``) whose
+    units were stored last first (so the rows' storage order is not the grid's)."""
     from service.db import jobs, units
     from tests.service.svc_fakes import fake_records
+
+    make = make or fake_records
 
     acc = make_account()
     r = client.post(f"{API}/jobs", json=spec, headers=acc.headers)
@@ -117,7 +122,7 @@ def _finished_fake_job(client, session, make_account, spec=SMALL_SPEC) -> tuple[
     jid = r.json()["id"]
     for uid in reversed(jobs.unit_ids_of_job(session, jid, pending_only=False)):
         spec, payload = units.start_unit(session, uid, "w", 60, max_attempts=0)
-        units.complete_unit(session, uid, fake_records(spec, payload))
+        units.complete_unit(session, uid, make(spec, payload))
         session.commit()
     return jid, _records(session, jid)
 
@@ -138,6 +143,7 @@ def test_postgresql_reads_report_columns_by_one_copy(
 
     jid, records = _finished_fake_job(client, session, make_account)
     assert any(r["notes"] for r in records) and any(r["notes"] is None for r in records)
+    drop_blocks(session, jid)  # else they are read: see test_service_result_blocks
 
     def no_rows(*a, **k):
         raise AssertionError("the row read was used")
@@ -171,6 +177,7 @@ def test_copy_read_quotes_and_orders_system_names_as_the_database(
         client, session, make_account, {**SMALL_SPEC, "systems": systems}
     )
     assert {r["system"] for r in records} == set(names)
+    drop_blocks(session, jid)
     monkeypatch.setattr(reports, "_chunks", lambda *a, **k: pytest.fail("the row read was used"))
     _same_columns(
         load_columns(session, jid, matrices=False), Columns.from_records(records, matrices=False)
@@ -195,6 +202,7 @@ def test_copy_read_falls_back_to_rows_when_a_value_is_new(
         return {**d, "estimator": [v for v in d["estimator"] if v != "svr"]}
 
     monkeypatch.setattr(report_copy, "_distinct", without_svr)
+    drop_blocks(session, jid)
     with caplog.at_level("INFO", logger="service.db.reports"):
         cols = load_columns(session, jid, matrices=False)
     assert "reading rows" in caplog.text
@@ -215,12 +223,11 @@ def test_copy_read_of_more_rows_than_counted_reads_the_rows_instead(client, sess
         copy_columns(session, jid, len(records) - 1)
 
 
-def test_copy_read_notes_of_more_ids_than_a_statement_has_parameters(session):
-    """The notes' texts are read with the ids as one array parameter (PostgreSQL
-    takes at most 65,535 parameters in a statement); unknown ids and -1 are None."""
-    if session.get_bind().dialect.name != "postgresql":
-        pytest.skip("the COPY read is PostgreSQL's")
-    from service.db.report_copy import _notes
+def test_column_read_notes_of_more_ids_than_a_statement_has_parameters(session):
+    """The notes' texts are read with the ids as one array parameter on PostgreSQL
+    (at most 65,535 parameters in a statement), in lists of 500 on SQLite; unknown
+    ids and -1 are None."""
+    from service.db.report_order import _notes
     from service.db.results_store import note_ids
 
     stored = note_ids(session, ["first note", "second note"])
