@@ -277,9 +277,29 @@ def test_findings_cost_hand_counts():
     assert f"in {n_mc - 1} of {n_mc} " in find(lines, r"Monte Carlo J agrees")
     n_cert_s = sum(1 for r in s_cells if r["certified"])
     line = find(lines, r"Certified gains \(g\(L\) < 1\) on paper-stable")
-    assert f"ρ(A − LC) ≥ 1 for the true A: 1 of {n_cert_s} " in line
+    assert f"ρ(A − LC) ≥ 1 − 10⁻¹⁰ for the true A: 1 of {n_cert_s} " in line
     assert line.startswith("[does not hold]")
     find(lines, r"cost variance is much larger.*On paper-stable")
+
+
+def test_soundness_findings_use_the_certificates_stability_rule():
+    """ρ within 10⁻¹⁰ of 1 is not Schur-stable for the certificates
+    (``norms.schur_stable``), so a certificate there is counted as unsound: both for
+    stable_certified on a true A of ρ = 1 − 10⁻¹² and for a certified gain with
+    ρ(A − LC) = 1 − 10⁻¹² (a plain ρ ≥ 1 called both sound)."""
+    spec = dict(paper_specs("reduced")["E4"])
+    recs = make_records(spec, seed=2)
+    edge = {"name": "edge", "A": [[1 - 1e-12, 0.0], [0.0, 0.5]], "B": [[1.0], [0.0]]}
+    spec["systems"] = [*spec["systems"], edge]
+    extra = [dict(r, system="edge", stable_certified=True) for r in recs[:3]]
+    cert = [r for r in recs if r["certified"] and r["system"] == "paper-stable"]
+    for r in cert:
+        r["rho_true"] = 0.5
+    cert[0]["rho_true"] = 1 - 1e-12
+    lines = rpt.findings(recs + extra, spec)
+    assert find(lines, r"Soundness on edge").startswith("[does not hold]")
+    line = find(lines, r"Certified gains \(g\(L\) < 1\) on paper-stable")
+    assert f"for the true A: 1 of {len(cert)} " in line and line.startswith("[does not hold]")
 
 
 def test_findings_report_stages_without_data():
