@@ -22,18 +22,20 @@ from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.api.errors import install_error_handlers
+from service.api.errors import error_response, install_error_handlers
 from service.api.mount import API_PREFIX, mount_api
 from service.api.ratelimit import RateLimiter
 from service.broker import BrokerPublisher
 from service.config import Settings, get_settings
 from service.http.auth_throttle import AuthThrottle
+from service.http.body_limit import BodyLimitMiddleware
 from service.http.errors import ErrorHandler
 from service.http.query_text import EmptyFieldsAbsent
 from service.http.security import SecurityHeaders
 from service.logging_config import configure_logging
 from service.web import mount_web
 from service.web.errors import (
+    error_page,
     http_error_page,
     lab_error_page,
     server_error_page,
@@ -80,6 +82,13 @@ def _is_api(request: Request) -> bool:
     return _is_api_path(request.url.path)
 
 
+def _refuse(scope: dict, status: int, message: str):
+    """A request refused before it reached a route: JSON for the API, else the page."""
+    if _is_api_path(scope["path"]):
+        return error_response(status, message)
+    return error_page(Request(scope), status, message)
+
+
 def _is_page_path(path: str) -> bool:
     return not _is_api_path(path)
 
@@ -115,6 +124,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.upload_slots = UploadSlots(
         per_team=settings.UPLOADS_PER_TEAM, at_once=settings.UPLOADS_AT_ONCE
     )
+    # a body over SVROBS_MAX_BODY_BYTES: 413 before any route (service.http.body_limit)
+    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.MAX_BODY_BYTES, respond=_refuse)
     # nosniff, Referrer-Policy and (HTML) the CSP on every response (service.http.security)
     app.add_middleware(SecurityHeaders)
     # a page's query: a form's empty field (``at=``) is no value

@@ -67,6 +67,11 @@ def _page(request: Request, error: WebError, headers: Mapping[str, str] | None =
     return page
 
 
+def error_page(request: Request, status: int, message: str) -> HTMLResponse:
+    """The page of an error found before any route (a body over the size limit)."""
+    return _page(request, WebError(status, sentence(message)))
+
+
 async def lab_error_page(request: Request, exc: LabError | SpecError) -> HTMLResponse:
     """The error page of an application error."""
     retry = {"Retry-After": str(exc.retry_after)} if isinstance(exc, RateLimited) else None

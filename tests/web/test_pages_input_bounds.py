@@ -146,3 +146,19 @@ def test_a_share_label_made_on_the_page_is_printable_text(web, session, done, la
         follow_redirects=False,
     )
     assert ok.status_code == 303 and re.search(r"created=\d+", ok.headers["location"])
+
+
+def test_a_form_body_over_the_limit_is_the_error_page_and_the_apis_json(build_client, make_account):
+    """SVROBS_MAX_BODY_BYTES refuses a body before any route: a page's form gets the
+    web's error page (413, HTML, the security headers), the API JSON naming the limit."""
+    web = build_client(SECRET_KEY="bounds-secret-0123456789", MAX_BODY_BYTES=2_000)[0]
+    acc = make_account()
+    sign_in(web, acc.key)
+    form = {"csrf_token": csrf_of(web.get("/jobs/new").text), "spec": "x" * 5_000}
+    page = web.post("/jobs/new", data=form)
+    assert page.status_code == 413 and "text/html" in page.headers["content-type"]
+    assert "Too large" in page.text and "2000 bytes" in page.text, page.text[:2000]
+    assert page.headers["x-content-type-options"] == "nosniff"
+    api = web.post("/api/v1/jobs", content=b"{" + b" " * 5_000 + b"}", headers=acc.headers)
+    assert api.status_code == 413 and "2000 bytes" in api.json()["detail"]
+    assert api.headers["x-content-type-options"] == "nosniff"
