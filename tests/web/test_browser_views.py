@@ -365,6 +365,8 @@ def test_spec_form_json_in_sync_and_every_error_at_once(browser, stack):
     }
     assert page.locator("#form-errors li").count() == 3
     assert page.evaluate("document.activeElement.id") == "form-errors"
+    page.click("#form-errors a[href='#field-gamma']")  # the list's link: into the field
+    assert page.evaluate("document.activeElement.id") == "f-gamma"
     assert page.input_value("#f-sigma_w") == "-1, 1"  # as typed
     assert page.locator("#f-reps[aria-invalid=true]").count() == 1
     page.fill("#f-sigma_w", "0.5")

@@ -388,3 +388,29 @@ def test_submit_text_upload_and_preset_create_jobs_once(web, sent, make_account)
         "E1",
     ]
     assert web.post("/jobs/new", data={"spec": text}).status_code == 403  # no token
+
+
+def test_a_ranged_grid_in_error_marks_its_range_inputs_invalid(web, sent, make_account):
+    """A grid field posted as start / stop / step with an error: its three range
+    inputs carry aria-invalid (the list input, hidden in that mode, does not), and the
+    list at the top links to the field."""
+    from service.web import spec_form
+
+    acc = make_account()
+    sign_in(web, acc.key)
+    token = csrf_of(web.get("/jobs/new").text)
+    form, lists = spec_form.as_posted(spec_form.values_of(SMALL_SPEC))
+    form.update({"m.gamma": "range", "r.gamma.start": "1", "r.gamma.stop": "0"})
+    form.update({"r.gamma.step": "0.1", "source": "form", "csrf_token": token})
+    r = web.post("/jobs/new", data={**form, **lists}, follow_redirects=False)
+    assert r.status_code == 422, r.text[-2000:]
+    field = re.search(
+        r'<div class="spec-field has-error" id="field-gamma".*?</fieldset>', r.text, re.S
+    )
+    assert field is not None, r.text[-3000:]
+    ranged = re.findall(r'<input name="r\.gamma\.\w+"[^>]*>', field.group(0))
+    assert len(ranged) == 3 and all('aria-invalid="true"' in i for i in ranged), ranged
+    listed = re.search(r'<input name="f\.gamma"[^>]*>', field.group(0)).group(0)
+    assert "aria-invalid" not in listed
+    assert '<a href="#field-gamma"><code>gamma.stop</code></a>' in r.text
+    assert sent.published == []
