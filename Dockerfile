@@ -17,4 +17,5 @@ RUN pip install .
 RUN useradd --create-home svrobs && mkdir -p /var/lib/svrobs && chown svrobs /var/lib/svrobs
 USER svrobs
 EXPOSE 8000
-CMD ["uvicorn", "service.app:app", "--host", "0.0.0.0", "--port", "8000"]
+CMD ["uvicorn", "service.app:app", "--host", "0.0.0.0", "--port", "8000", \
+     "--http", "service.http.header_timeout:HeaderTimeoutProtocol"]

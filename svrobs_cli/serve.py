@@ -174,6 +174,8 @@ def api_command(host: str, port: int) -> list[str]:
         "--workers",
         "1",
         "--no-access-log",
+        "--http",  # a deadline on each request's headers (slow clients)
+        "service.http.header_timeout:HeaderTimeoutProtocol",
     ]
 
 

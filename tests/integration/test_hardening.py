@@ -192,3 +192,58 @@ def test_300_bad_keys_from_one_address_are_mostly_429(lab):
         assert bad.get("/jobs").status_code == 401  # one token back
     finally:
         lab.stop("api-auth")
+
+
+def _closed_within(sock, seconds: float) -> bytes | None:
+    """What the server sent before closing the connection (b"" for nothing), or None
+    if it was still open after ``seconds``."""
+    import socket
+
+    sock.settimeout(0.5)
+    got, deadline = b"", time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        try:
+            data = sock.recv(65536)
+        except socket.timeout:
+            continue
+        if not data:
+            return got
+        got += data
+    return None
+
+
+def test_a_request_whose_headers_never_end_is_closed(lab):
+    """A client that sends a request's headers a byte now and then (slowloris) is cut
+    off SVROBS_HEADER_TIMEOUT_SECONDS after the connection opened, or after its last
+    response on a kept-alive connection; a request that completes its headers in time
+    is answered (plain uvicorn keeps such a connection open for good); headers over
+    64 KiB are cut off too (httptools reads any size)."""
+    import socket
+
+    url = lab.start_api("api-headers", env={"SVROBS_HEADER_TIMEOUT_SECONDS": "1"})
+    host, port = url.removeprefix("http://").split(":")
+    partial = b"GET /healthz HTTP/1.1\r\nHost: x\r\n"
+    with socket.create_connection((host, int(port))) as s:
+        s.sendall(partial)
+        for _ in range(3):
+            time.sleep(0.2)
+            s.sendall(b"X-Slow: 1\r\n")  # bytes keep coming, the headers never end
+        assert _closed_within(s, 30) == b""
+    with socket.create_connection((host, int(port))) as s:
+        s.sendall(partial + b"\r\n")  # complete: answered, the connection kept alive
+        s.settimeout(10)
+        assert s.recv(65536).startswith(b"HTTP/1.1 200")
+        s.sendall(partial)  # the next request's headers never end
+        assert _closed_within(s, 30) == b""
+    body = b'{"name": "' + b"n" * 900_000 + b'"}'  # a body sent with its headers: read
+    head = f"POST /api/v1/jobs HTTP/1.1\r\nHost: x\r\nContent-Length: {len(body)}\r\n"
+    with socket.create_connection((host, int(port))) as s:
+        s.sendall(head.encode() + b"Content-Type: application/json\r\n\r\n" + body)
+        s.settimeout(10)
+        assert s.recv(65536).startswith(b"HTTP/1.1 401")  # no key: refused, not cut off
+    with socket.create_connection((host, int(port))) as s:
+        s.sendall(partial + b"X-Big: " + b"b" * 100_000)  # headers of 100 KB: cut off
+        assert _closed_within(s, 30) == b""
+    log = _log(lab, "api-headers")
+    assert "no complete request headers in 1 s" in log and "headers over 65536 bytes" in log
+    lab.stop("api-headers")
