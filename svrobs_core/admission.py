@@ -24,23 +24,25 @@ from .measured.runner import plan_measured_units
 from .measured.workload import measured_fixed_bytes
 from .records import NUMERIC_FIELDS
 from .spec import ExperimentSpec
+from .system_kinds import (
+    SystemKinds,
+    SystemTable,
+    _dims,
+    system_dims,
+    system_kinds,
+    system_table,
+)
 from .workload import (
     DataShape,
     JobCost,
-    SystemKinds,
-    SystemTable,
     UnitCost,
     WorkloadError,
     _dataset,
-    _dims,
     _fit,
     _unit_cost,
     estimate_job,
     estimate_unit,
     plan_under_memory,
-    system_dims,
-    system_kinds,
-    system_table,
     unit_base_bytes,
     unit_fixed_seconds,
 )
@@ -144,10 +146,10 @@ def grid_cost(
     table: SystemTable | None = None,
 ) -> GridCost:
     """The cost of ``plan_units(spec, max_cells=, target_cells=)`` in closed form: the
-    N axis as one numpy array per kind of system (:func:`~svrobs_core.workload.system_kinds`:
+    N axis as one numpy array per kind of system (:func:`~svrobs_core.system_kinds.system_kinds`:
     systems of one kind cost the same) and repetition chunk size, each unit's sum over
     its N group by a reshape (a simulated job). ``n_axis``: :func:`n_axis` of the
-    spec, ``table``: :func:`~svrobs_core.workload.system_table` of its systems, if
+    spec, ``table``: :func:`~svrobs_core.system_kinds.system_table` of its systems, if
     already made."""
     if spec.measured is not None:
         raise ValueError("a dataset job's cost: workload.estimate_job with its shape")
@@ -206,7 +208,7 @@ def smallest_unit_bytes(
 ) -> int:
     """Peak bytes of the smallest unit the plan can make: one repetition of the
     largest N (all N together under ``reuse_gain``), for the largest system
-    (``table``: :func:`~svrobs_core.workload.system_table` of its systems, if made)."""
+    (``table``: :func:`~svrobs_core.system_kinds.system_table` of its systems, if made)."""
     return max(u.peak_bytes for u in _smallest(spec, data, table))
 
 
@@ -298,7 +300,7 @@ def _cpu_sizes(
     in closed form: one :func:`grid_cost` per reduction that changes the spec, the
     sigma_w and systems reductions read off the whole grid's (units cost the same
     for every sigma_w; each system's are summed apart). ``table``: the systems'
-    :func:`~svrobs_core.workload.system_table`, which no reduction costed here changes."""
+    :func:`~svrobs_core.system_kinds.system_table`, which no reduction costed here changes."""
     if spec.measured is not None:
         return {
             f: estimate_job(s, _plan(s, None, None, data), data=data).cpu_seconds
