@@ -99,13 +99,29 @@ class Columns:
         return cache
 
     def equals(self, f: str, value: object) -> BoolArray:
-        """Boolean mask ``self[f] == value`` for a text field (via the cached codes)."""
-        codes, values = self.codes(f)
-        hit = [i for i, v in enumerate(values) if v == value]
-        if not hit:
-            return np.zeros(self.n, dtype=bool)
-        eq: BoolArray = codes == hit[0]
-        return eq
+        """Boolean mask ``self[f] == value`` for a text field (via the cached codes;
+        cached itself, read-only: a report asks for the same few masks many times)."""
+
+        def mask() -> BoolArray:
+            codes, values = self.codes(f)
+            hit = [i for i, v in enumerate(values) if v == value]
+            if not hit:
+                return np.zeros(self.n, dtype=bool)
+            eq: BoolArray = codes == hit[0]
+            return eq
+
+        return self.cached_mask(("equals", f, value), mask)
+
+    def cached_mask(self, key: tuple[Any, ...], make: Callable[[], BoolArray]) -> BoolArray:
+        """The mask ``make()`` cached under ``key``, read-only (combine it into a mask
+        of your own: ``m &= ...``)."""
+        cache = self.cache
+        if key not in cache:
+            m = make()
+            m.flags.writeable = False
+            cache[key] = m
+        out: BoolArray = cache[key]
+        return out
 
     @classmethod
     def from_records(cls, records: Iterable[dict[str, Any]], matrices: bool = True) -> Columns:
@@ -147,10 +163,12 @@ class Columns:
         a = self.data.get(f)
         if a is None or self.n == 0:
             return False
-        if mask is not None:
+        if mask is not None and a.dtype != object:
             a = a[mask]
-        if a.dtype == object:
-            return any(v is not None for v in a)
+        if a.dtype == object:  # via its codes: whether a non-null value's code occurs
+            codes, values = self.codes(f)
+            known = np.array([v is not None for v in values], dtype=bool)
+            return bool(known[codes if mask is None else codes[mask]].any())
         if a.ndim == 3:
             return a.shape[1] > 0 and bool(np.isfinite(a).all(axis=(1, 2)).any())
         return bool(np.isfinite(a).any())
@@ -242,11 +260,18 @@ def select(
 
 
 def _close(cols: Columns, f: str, value: float) -> BoolArray:
-    """``isclose(cols[f], value)`` (rtol GAMMA_RTOL), decided once per distinct value."""
-    codes, values = cols.codes(f)
-    distinct = np.array([np.nan if v is None else v for v in values], dtype=float)
-    hit: BoolArray = np.isclose(distinct, value, rtol=GAMMA_RTOL, atol=0)[codes]
-    return hit
+    """``isclose(cols[f], value)`` (rtol GAMMA_RTOL), decided once per distinct value
+    (cached, read-only: :meth:`Columns.cached_mask`)."""
+
+    def mask() -> BoolArray:
+        codes, values = cols.codes(f)
+        distinct = np.array([np.nan if v is None else v for v in values], dtype=float)
+        hit: BoolArray = np.isclose(distinct, value, rtol=GAMMA_RTOL, atol=0)[codes]
+        return hit
+
+    if value != value:  # NaN: a key no lookup finds again
+        return mask()
+    return cols.cached_mask(("close", f, value), mask)
 
 
 def systems_of(cols: Columns, mask: Array | None = None) -> list[str]:

@@ -78,6 +78,32 @@ def test_select_is_isclose_of_each_value(cm, gamma, sigma):
 
 
 @settings(max_examples=200, deadline=None)
+@given(columns(), gammas, st.sampled_from([0.1, 1.0]))
+def test_a_selection_asked_again_is_the_same_and_the_callers_own(cm, gamma, sigma):
+    """select's masks are made of cached, read-only ones: a second call gives the same
+    mask, and a caller that changes its mask in place changes no later selection."""
+    cols, mask = cm
+    first = select(cols, system="paper-stable", gamma=gamma, sigma_w=sigma)
+    want = first.copy()
+    first &= mask  # the caller's own array
+    again = select(cols, system="paper-stable", gamma=gamma, sigma_w=sigma)
+    np.testing.assert_array_equal(again, want)
+    assert again.flags.writeable
+    eq = cols.equals("system", "paper-stable")
+    assert not eq.flags.writeable and eq is cols.equals("system", "paper-stable")
+
+
+@settings(max_examples=200, deadline=None)
+@given(columns())
+def test_has_of_a_text_field_against_plain_python(cm):
+    cols, mask = cm
+    assert cols.has("system") == any(s is not None for s in cols["system"])
+    want = any(s is not None for s, m in zip(cols["system"], mask) if m)
+    assert cols.has("system", mask) == want
+    assert cols.has("system", np.flatnonzero(mask)) == want
+
+
+@settings(max_examples=200, deadline=None)
 @given(columns())
 def test_systems_and_groups_against_plain_python(cm):
     cols, mask = cm
