@@ -274,29 +274,34 @@ def _close(cols: Columns, f: str, value: float) -> BoolArray:
     return cols.cached_mask(("close", f, value), mask)
 
 
+def _present(cols: Columns, f: str, mask: Array | None) -> list[Any]:
+    """The distinct values of field ``f`` under ``mask``, in code order (a float
+    field's ascending, None for NaN last): a count per code, no sort of the rows."""
+    codes, values = cols.codes(f)
+    counts = np.bincount(codes if mask is None else codes[mask], minlength=len(values))
+    return [values[i] for i in np.flatnonzero(counts).tolist()]
+
+
 def systems_of(cols: Columns, mask: Array | None = None) -> list[str]:
-    codes, values = cols.codes("system")
-    present = np.unique(codes if mask is None else codes[mask]).tolist()
-    names = {values[i] for i in present if values[i] is not None}
+    names = {v for v in _present(cols, "system", mask) if v is not None}
     known = [s for s in (STABLE, UNSTABLE) if s in names]
     return known + sorted(names - set(known))
 
 
-def _uniq_float(a: Array) -> list[float]:
-    a = a[np.isfinite(a)]
-    return [float(v) for v in np.unique(a)]
+def _uniq_float(cols: Columns, f: str, mask: Array | None) -> list[float]:
+    """The distinct finite values of float field ``f`` under ``mask``, ascending."""
+    return [float(v) for v in _present(cols, f, mask) if v is not None and math.isfinite(v)]
 
 
 def gammas_of(cols: Columns, mask: Array | None = None, estimator: str = "svr") -> list[float]:
     m = select(cols, estimator=estimator)
     if mask is not None:
         m &= mask
-    return _uniq_float(cols["gamma"][m])
+    return _uniq_float(cols, "gamma", m)
 
 
 def sigmas_of(cols: Columns, mask: Array | None = None) -> list[float]:
-    a = cols["sigma_w"] if mask is None else cols["sigma_w"][mask]
-    return _uniq_float(a)
+    return _uniq_float(cols, "sigma_w", mask)
 
 
 def _key(v: Any) -> Any:
@@ -349,15 +354,28 @@ def group_indices(
     bounds = np.flatnonzero(np.diff(ordered)) + 1
     uc = ordered[np.concatenate(([0], bounds))]
     groups = np.split(idx[order], bounds)
-    out: dict[tuple[Any, ...], Array] = {}
-    for code, members in zip(uc.tolist(), groups):
-        key = []
-        for u in reversed(values):
-            code, j = divmod(code, len(u))
-            key.append(u[j])
-        out[tuple(reversed(key))] = members
-    order_k = sorted(out, key=lambda k: tuple((v is None, v if v is not None else 0) for v in k))
-    return {k: out[k] for k in order_k}
+    parts = []  # each key's code in each group
+    for u in reversed(values):
+        uc, j = np.divmod(uc, len(u))
+        parts.append(j)
+    parts.reverse()
+    # the groups in key order, None last: each key's codes ranked by their values
+    by_key = np.lexsort([_ranks(u)[p] for u, p in zip(reversed(values), reversed(parts))])
+    columns = [[u[j] for j in p.tolist()] for u, p in zip(values, parts)]
+    return {tuple(c[g] for c in columns): groups[g] for g in by_key.tolist()}
+
+
+def _ranks(values: list[Any]) -> Array:
+    """The rank of each code's value among ``values`` (ascending, None last)."""
+
+    def key(i: int) -> tuple[bool, Any]:
+        v = values[i]
+        return (v is None, v if v is not None else 0)
+
+    order = sorted(range(len(values)), key=key)
+    ranks = np.empty(len(values), dtype=np.int64)
+    ranks[order] = np.arange(len(values))
+    return ranks
 
 
 def by_N(

@@ -115,6 +115,12 @@ def test_systems_and_groups_against_plain_python(cm):
         groups.setdefault(key, []).append(i)
     got = group_indices(cols, ("gamma", "system"), mask)
     assert {k: v.tolist() for k, v in got.items()} == groups
+    ordered = sorted(groups, key=lambda k: tuple((v is None, v if v is not None else 0) for v in k))
+    assert list(got) == ordered  # by their keys, None last
+    by_system = group_indices(cols, ("system", "N"), mask)
+    assert list(by_system) == sorted(
+        by_system, key=lambda k: tuple((v is None, v if v is not None else 0) for v in k)
+    )
 
 
 @settings(max_examples=200, deadline=None)
