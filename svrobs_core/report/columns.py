@@ -381,11 +381,12 @@ def _ranks(values: list[Any]) -> Array:
 def by_N(
     cols: Columns, mask: Array, values: Array, fn: Callable[[Array], float]
 ) -> tuple[FloatArray, FloatArray, FloatArray, Array]:
-    """Group ``values`` (full-length array) by N under ``mask``; NaNs dropped.
+    """Group ``values`` (full-length array) by N under ``mask`` (a boolean mask, or
+    the rows' indices, ascending); NaNs dropped.
 
     -> (N0 array, N array, stat array, count array)
     """
-    idx = np.nonzero(mask)[0]
+    idx = np.nonzero(mask)[0] if mask.dtype == bool else mask
     if idx.size == 0:
         e = np.array([])
         return e, e, e, e

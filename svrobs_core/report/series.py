@@ -356,16 +356,14 @@ def series_lines(
     out: list[Line] = []
     fn = {"mean": mean_of, "share_negative": _share_negative}[s.stat]
     for key, idx in group_indices(cols, s.lines, m).items():
-        gm = np.zeros(cols.n, bool)
-        gm[idx] = True
-        x, N, y, cnt = by_N(cols, gm, vals, fn)
+        x, N, y, cnt = by_N(cols, idx, vals, fn)
         if not np.isfinite(y).any():
             continue
         line = Line(dict(zip(s.lines, key)), x, N, y, count=cnt)
         if s.band is not None:
             qlo, qhi = s.band
-            line.lo = by_N(cols, gm, vals, _quantile(qlo))[2]
-            line.hi = by_N(cols, gm, vals, _quantile(qhi))[2]
+            line.lo = by_N(cols, idx, vals, _quantile(qlo))[2]
+            line.hi = by_N(cols, idx, vals, _quantile(qhi))[2]
         out.append(line)
     return out
 
