@@ -59,6 +59,10 @@ SINGULAR_RTOL = 1e-12
 BOOT_CHUNK_BYTES = 16 * 2**20  # working set of one chunk of resampled datasets
 REASON_SINGULAR = "Z Z^T is singular (OLS self-normalized bound undefined)"
 REASON_NONFINITE = "non-finite estimate or noise level"
+REASON_OVERFLOW = (
+    "the radius overflows: lambda (lambda0 for OLS, else the ridge's gamma) is too "
+    "small beside Z Z^T for log det(I + G/lambda)"
+)
 
 
 def _one_digit(x: ArrayLike) -> FloatArray:
@@ -222,7 +226,10 @@ def self_normalized_box(
     R = np.where(nan, np.nan, R)
     eps_A, eps_B, beta = (np.where(bad, np.nan, x) for x in (eps_A, eps_B, beta))
     reason = _objects(batch, singular, REASON_SINGULAR)
-    reason[(bad & ~singular & ~inaccurate)] = REASON_NONFINITE
+    inputs = np.isfinite(theta).all(axis=(-2, -1)) & np.isfinite(sw)  # else the box's own
+    other = bad & ~singular & ~inaccurate
+    reason[other & ~inputs] = REASON_NONFINITE
+    reason[other & inputs] = REASON_OVERFLOW
     if inaccurate.any():  # one text per (cond, err) to one significant digit
         pairs = np.stack([_one_digit(cond[inaccurate]), _one_digit(err[inaccurate])], axis=-1)
         uniq, inverse = np.unique(pairs, axis=0, return_inverse=True)

@@ -146,6 +146,26 @@ def test_singular_gram_gives_nan_with_reason():
     assert ridge.ok and np.isfinite(ridge.R_A).all()
 
 
+def test_a_radius_that_overflows_says_so_not_that_the_estimate_is_non_finite():
+    """λ0 = 5e-324 (the smallest subnormal): log det(I + G/λ0) overflows with a finite
+    estimate and noise level; the reason names the cause. A NaN estimate keeps its own."""
+    rng = np.random.default_rng(3)
+    Z = rng.standard_normal((3, 50))
+    theta = np.zeros((2, 3))
+    tiny = unc.self_normalized_box(
+        Z @ Z.T, theta, sigma_w=1.0, delta=0.1, lam=0.0, S=1.0, lambda0=5e-324
+    )
+    assert np.isnan(tiny.eps_A) and tiny.reason[()] == unc.REASON_OVERFLOW
+    fine = unc.self_normalized_box(Z @ Z.T, theta, sigma_w=1.0, delta=0.1, lam=0.0, S=1.0)
+    assert fine.reason[()] is None and np.isfinite(fine.eps_A)
+    bad = unc.self_normalized_box(
+        Z @ Z.T, theta + np.nan, sigma_w=1.0, delta=0.1, lam=0.0, S=1.0, lambda0=5e-324
+    )
+    assert bad.reason[()] == unc.REASON_NONFINITE
+    noise = unc.self_normalized_box(Z @ Z.T, theta, sigma_w=np.inf, delta=0.1, lam=0.0, S=1.0)
+    assert noise.reason[()] == unc.REASON_NONFINITE
+
+
 def test_norm_above_S_is_noted():
     G = np.eye(2) * 100
     theta = np.array([[3.0, 0.0], [0.0, 0.1]])
