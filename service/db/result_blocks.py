@@ -122,7 +122,8 @@ def block_columns(
     for f in CODED:
         found = list(values[f])
         distinct[f] = collated(session, set(found))
-        rank = np.array([distinct[f].index(v) for v in found], dtype=float)
+        at_rank = {v: i for i, v in enumerate(distinct[f])}
+        rank = np.array([at_rank[v] for v in found], dtype=float)
         raw[f] = rank[raw[f].astype(np.int64)]
     return raw, distinct
 
