@@ -194,6 +194,23 @@ def test_300_bad_keys_from_one_address_are_mostly_429(lab):
         lab.stop("api-auth")
 
 
+# an app with a route that answers in 3 s, served as the API is (service.http.header_timeout)
+SLOW_ROUTE = """
+import asyncio, logging, sys, uvicorn
+from service.http.header_timeout import PROTOCOL
+logging.basicConfig(level=logging.INFO)
+async def app(scope, receive, send):
+    if scope["type"] != "http":
+        return
+    if scope["path"] == "/slow":
+        await asyncio.sleep(3)
+    await send({"type": "http.response.start", "status": 200,
+                "headers": [(b"content-length", b"2")]})
+    await send({"type": "http.response.body", "body": b"ok"})
+uvicorn.run(app, host="127.0.0.1", port=int(sys.argv[1]), http=PROTOCOL, log_level="info")
+"""
+
+
 def _closed_within(sock, seconds: float) -> bytes | None:
     """What the server sent before closing the connection (b"" for nothing), or None
     if it was still open after ``seconds``."""
@@ -244,6 +261,42 @@ def test_a_request_whose_headers_never_end_is_closed(lab):
     with socket.create_connection((host, int(port))) as s:
         s.sendall(partial + b"X-Big: " + b"b" * 100_000)  # headers of 100 KB: cut off
         assert _closed_within(s, 30) == b""
+    big = b"{" + b" " * 5_000_000 + b"}"  # over the body limit: 413 before it is all sent
+    head = f"POST /api/v1/jobs HTTP/1.1\r\nHost: x\r\nContent-Length: {len(big)}\r\n\r\n"
+    with socket.create_connection((host, int(port))) as s:
+        s.sendall(head.encode() + big)  # the rest of the body is read, not cut off
+        s.settimeout(10)
+        assert s.recv(65536).startswith(b"HTTP/1.1 413")
     log = _log(lab, "api-headers")
-    assert "no complete request headers in 1 s" in log and "headers over 65536 bytes" in log
+    assert "no complete request headers in 1 s" in log
+    assert log.count("headers over 65536 bytes") == 1, log[-3000:]
     lab.stop("api-headers")
+
+
+def test_headers_are_bounded_while_a_request_is_answered(lab):
+    """While a request is answered (3 s, past the 1 s deadline), it is not cut off,
+    but a pipelined request's headers are counted: past 64 KiB the connection closes."""
+    import socket
+
+    port = free_port()
+    lab.start(
+        "api-pipe",
+        [sys.executable, "-c", SLOW_ROUTE, str(port)],
+        env={"SVROBS_HEADER_TIMEOUT_SECONDS": "1"},
+    )
+    lab.wait_http(f"http://127.0.0.1:{port}/", "api-pipe")
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(b"GET /slow HTTP/1.1\r\nHost: x\r\n\r\n")
+        s.settimeout(10)
+        assert s.recv(65536).startswith(b"HTTP/1.1 200")  # after 3 s: answered
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(b"GET /slow HTTP/1.1\r\nHost: x\r\n\r\nGET / HTTP/1.1\r\nX-Big: ")
+        try:
+            for _ in range(50):  # 1 MB of header while /slow is answered
+                s.sendall(b"b" * 20_000)
+                time.sleep(0.02)
+        except (BrokenPipeError, ConnectionResetError):
+            pass  # closed while sending: what is checked
+        assert _closed_within(s, 30) is not None
+    assert "request headers over 65536 bytes" in _log(lab, "api-pipe")
+    lab.stop("api-pipe")
