@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from sqlalchemy import delete, func, insert, select
@@ -40,46 +41,97 @@ _PER_READ = 8  # blocks fetched at once
 _SELECT = "SELECT n_rows, data FROM result_blocks WHERE job_id = %s"  # psycopg's, in binary
 
 
-def encode_block(stored: Mapping[str, Sequence], *, signed_zeros: bool = True) -> bytes:
-    """A unit's stored columns (``upsert_results``' return: the values as stored)
-    as one block. ``signed_zeros=False`` stores -0.0 as 0.0, as SQLite does."""
-    k = len(stored["system"])
+@dataclass(frozen=True)
+class BlockDraft:
+    """A block without its ``notes`` ids (:func:`draft_block`): made from a unit's
+    columns before the write transaction, finished by :func:`finish_block` once the
+    notes' ids are known."""
+
+    n: int
+    text: dict[str, list]
+    runs: list[int]
+    parts: list[np.ndarray]
+    note_codes: np.ndarray  # each row's note, as a code into the block's notes
+    note_rows: list[int]  # the first row of each of those notes
+
+
+def draft_block(columns: Mapping[str, Sequence], *, signed_zeros: bool = True) -> BlockDraft:
+    """The block of a unit's columns as stored (``upsert_results``' return, or its
+    :class:`~service.db.results_store.UnitColumns`' columns: the same values, the
+    notes as texts or ids). ``signed_zeros=False`` stores -0.0 as 0.0, as SQLite does."""
+    k = len(columns["system"])
     text: dict[str, list] = {}
     runs: list[int] = []
     parts: list[np.ndarray] = []
+    note_codes, note_rows = np.zeros(k, dtype=np.int64), []
     for f in BLOCK_FIELDS:
         if f in CODED:
             lut = FirstCodes()
-            a = lut.encode(stored[f]).astype(float)
+            a = lut.encode(columns[f]).astype(float)
             text[f] = list(lut)
-        elif f == "notes":
-            a = np.array([-1 if v is None else v for v in stored["notes_id"]], dtype=float)
+        elif f == "notes":  # filled in by finish_block
+            note_codes = FirstCodes().encode(columns["notes_id"])
+            note_rows = np.unique(note_codes, return_index=True)[1].tolist()
+            runs.append(0)
+            parts.append(np.empty(0))
+            continue
         else:
-            a = np.array(stored[f], dtype=float)  # None -> NaN, booleans -> 0/1
+            a = np.array(columns[f], dtype=float)  # None -> NaN, booleans -> 0/1
             if not signed_zeros:
                 a += 0.0  # -0.0 -> 0.0
-        bits = a.view(np.int64)
-        if k and (bits == bits[0]).all():
-            a = a[:1]  # one value, the same bits in every row
-        runs.append(len(a))
-        parts.append(a)
-    header = json.dumps({"n": k, "fields": BLOCK_FIELDS, "runs": runs, "text": text}).encode()
+        runs.append(_runs(a, k))
+        parts.append(a[: runs[-1]])
+    return BlockDraft(k, text, runs, parts, note_codes, note_rows)
+
+
+def finish_block(draft: BlockDraft, note_ids: Sequence) -> bytes:
+    """The block's bytes, with the rows' notes ids (``note_ids``: the stored
+    ``notes_id`` column, None for none)."""
+    ids = np.array([-1 if note_ids[i] is None else note_ids[i] for i in draft.note_rows])
+    notes = ids.astype(float)[draft.note_codes]
+    at = BLOCK_FIELDS.index("notes")
+    runs, parts = list(draft.runs), list(draft.parts)
+    runs[at] = _runs(notes, draft.n)
+    parts[at] = notes[: runs[at]]
+    fields = {"n": draft.n, "fields": BLOCK_FIELDS, "runs": runs, "text": draft.text}
+    header = json.dumps(fields).encode()
     body = np.concatenate(parts).astype("<f8", copy=False).tobytes()
     return len(header).to_bytes(_HEADER, "little") + header + body
 
 
+def _runs(a: np.ndarray, k: int) -> int:
+    """1 when every value of ``a`` has the same bits (stored once), else ``k``."""
+    bits = a.view(np.int64)
+    return 1 if k and (bits == bits[0]).all() else k
+
+
+def encode_block(stored: Mapping[str, Sequence], *, signed_zeros: bool = True) -> bytes:
+    """:func:`draft_block` and :func:`finish_block` of a unit's stored columns."""
+    return finish_block(draft_block(stored, signed_zeros=signed_zeros), stored["notes_id"])
+
+
+def signed_zeros(session: Session) -> bool:
+    """Whether the session's database keeps -0.0 (SQLite stores it as 0.0)."""
+    return session.get_bind().dialect.name != "sqlite"
+
+
 def store_block(
-    session: Session, job_id: int, unit_id: int, stored: Mapping[str, Sequence]
+    session: Session,
+    job_id: int,
+    unit_id: int,
+    stored: Mapping[str, Sequence],
+    *,
+    draft: BlockDraft | None = None,
 ) -> None:
-    """Write (or replace) the block of the unit's stored columns."""
-    sqlite = session.connection().dialect.name == "sqlite"
-    data = encode_block(stored, signed_zeros=not sqlite)
+    """Write (or replace) the block of the unit's stored columns (``draft``: its
+    :func:`draft_block`, made before the transaction)."""
+    if draft is None:
+        draft = draft_block(stored, signed_zeros=signed_zeros(session))
+    data = finish_block(draft, stored["notes_id"])
     c = BLOCKS.c
     session.execute(delete(BLOCKS).where(c.job_id == job_id, c.unit_id == unit_id))
     session.execute(
-        insert(BLOCKS).values(
-            job_id=job_id, unit_id=unit_id, n_rows=len(stored["system"]), data=data
-        )
+        insert(BLOCKS).values(job_id=job_id, unit_id=unit_id, n_rows=draft.n, data=data)
     )
 
 

@@ -23,7 +23,7 @@ from svrobs_core.unit_result import UnitResult
 from .clock import db_now
 from .jobs import lock_job, set_timing
 from .models import JOB_ACTIVE, Job, Result, Summary, WorkUnit, utcnow
-from .result_blocks import store_block
+from .result_blocks import draft_block, signed_zeros, store_block
 from .results_store import UnitColumns, gamma_key, unit_columns, upsert_results
 
 
@@ -109,9 +109,11 @@ def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | Unit
     lock is held only for the statements."""
     # the CPU work first: on SQLite the first statement takes the one write lock
     groups = None
+    draft = None
     to_store: Sequence[dict] | UnitResult | UnitColumns = records
     if isinstance(records, UnitResult):
         to_store = unit_columns(records)
+        draft = draft_block(to_store.columns, signed_zeros=signed_zeros(session))
         if to_store.whole_groups:  # from the unit's arrays, not its stored values
             groups = summarize_columns(records.summary_columns())
     unit = _lock_unit(session, unit_id)
@@ -119,7 +121,7 @@ def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | Unit
         return False  # cancelled while it ran (its job cancelled or failed)
     stored = upsert_results(session, unit.job_id, to_store)
     if stored["system"]:  # the report's copy of them (a unit stored again: replaced)
-        store_block(session, unit.job_id, unit_id, stored)
+        store_block(session, unit.job_id, unit_id, stored, draft=draft)
     whole = to_store.whole_groups if isinstance(to_store, UnitColumns) else None
     if whole is None and stored["system"]:  # not known from the result: the job's spec
         whole = _whole_groups(session, unit)

@@ -220,3 +220,38 @@ def test_a_driver_error_in_the_block_read_is_reported_as_sqlalchemy_reports_it(
     monkeypatch.setattr(result_blocks, "_SELECT", "SELECT n_rows, data FROM no_such_table")
     with pytest.raises(ProgrammingError, match="no_such_table"):
         block_columns(session, jid, len(records))
+
+
+def test_a_core_units_block_is_made_before_its_write_and_equals_its_rows(
+    client, session, make_account, monkeypatch
+):
+    """A unit computed by the core (a UnitResult) has its block drafted from its
+    columns before the write transaction, the notes' ids filled in after: the block
+    read equals the rows' (notes included), and the draft is the one store_block
+    gets."""
+    from service.db import jobs, result_blocks, units
+    from svrobs_core.parsing import parse_spec
+    from svrobs_core.runner import run_unit_result
+    from tests.service.test_service_reads import REAL_SPEC
+
+    drafts = []
+    real = result_blocks.store_block
+
+    def spy(*args, draft=None, **kw):
+        drafts.append(draft)
+        return real(*args, draft=draft, **kw)
+
+    monkeypatch.setattr(units, "store_block", spy)
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=REAL_SPEC, headers=acc.headers).json()["id"]
+    for uid in jobs.unit_ids_of_job(session, jid, pending_only=False):  # as a worker does
+        spec, payload = units.start_unit(session, uid, "test", 60, max_attempts=0)
+        units.complete_unit(session, uid, run_unit_result(parse_spec(spec), payload))
+        session.commit()
+    assert drafts and all(d is not None for d in drafts)
+    records = load_records(session, jid)
+    assert any(r["notes"] for r in records)
+    with monkeypatch.context() as m:
+        _no_other_read(m)
+        cols = load_columns(session, jid, matrices=False)
+    _same_columns(cols, Columns.from_records(records, matrices=False))
