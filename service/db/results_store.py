@@ -234,10 +234,12 @@ def record_to_row(job_id: int, record: dict) -> dict:
     row["estimator"] = str(record["estimator"])
     row["gamma_key"] = gamma_key(row["gamma"])
     row["seed_key"] = json_value(record.get("seed_key"))
-    row["bounds_method"] = record.get("bounds_method")
-    row["sls_status"] = record.get("sls_status")
+    for f in ("bounds_method", "sls_status"):  # text columns: text, as SQLite would store it
+        v = record.get(f)
+        row[f] = None if v is None else str(v)
     notes = record.get("notes")
-    row["notes"] = "; ".join(notes) if isinstance(notes, (list, tuple)) else notes
+    notes = "; ".join(map(str, notes)) if isinstance(notes, (list, tuple)) else notes
+    row["notes"] = None if notes is None else str(notes)
     return row
 
 

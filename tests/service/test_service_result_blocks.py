@@ -255,3 +255,24 @@ def test_a_core_units_block_is_made_before_its_write_and_equals_its_rows(
         _no_other_read(m)
         cols = load_columns(session, jid, matrices=False)
     _same_columns(cols, Columns.from_records(records, matrices=False))
+
+
+def test_text_fields_of_dict_records_are_stored_as_text(client, session, make_account):
+    """A dict record whose bounds_method, sls_status or notes is not a string (5):
+    stored as its text on both databases, so the row read and the block read agree
+    (SQLite turned 5 into '5' in the row while the block kept 5, and the block read
+    failed comparing 5 with text)."""
+
+    def numbered(spec, payload):
+        out = _odd_records(spec, payload)
+        for i, r in enumerate(out):
+            r["bounds_method"] = 5 if i % 2 else "dean"
+            r["sls_status"] = 7 if i % 3 == 0 else None
+            r["notes"] = [1, "two"] if i % 4 == 0 else None
+        return out
+
+    jid, records = _finished_fake_job(client, session, make_account, make=numbered)
+    assert {r["bounds_method"] for r in records} == {"5", "dean"}
+    assert "1; two" in {r["notes"] for r in records}
+    cols = load_columns(session, jid, matrices=False)
+    _same_columns(cols, Columns.from_records(records, matrices=False))
