@@ -276,3 +276,32 @@ def test_text_fields_of_dict_records_are_stored_as_text(client, session, make_ac
     assert "1; two" in {r["notes"] for r in records}
     cols = load_columns(session, jid, matrices=False)
     _same_columns(cols, Columns.from_records(records, matrices=False))
+
+
+def test_blocks_of_few_rows_each_send_the_read_to_the_rows(
+    client, session, make_account, monkeypatch
+):
+    """Blocks that hold fewer than MIN_ROWS_PER_BLOCK rows on average are slower to
+    read than the rows: the rows (or the COPY) are read, with the same columns."""
+    from service.db import result_blocks
+
+    jid, records = _job(client, session, make_account)
+    n_blocks = _blocks(session, jid)
+    assert block_columns(session, jid, len(records)) is not None
+    monkeypatch.setattr(result_blocks, "MIN_ROWS_PER_BLOCK", len(records) // n_blocks + 1)
+    assert block_columns(session, jid, len(records)) is None
+    cols = load_columns(session, jid, matrices=False)
+    _same_columns(cols, Columns.from_records(records, matrices=False))
+
+
+def test_two_block_reads_may_overlap_in_one_transaction(client, session, make_account):
+    """PostgreSQL's binary fetch names a server-side cursor per read: a read that
+    starts while another's cursor is open (a generator not yet exhausted) works."""
+    from service.db import result_blocks
+
+    jid, records = _job(client, session, make_account)
+    first = result_blocks._stored(session, jid)
+    next(first)  # its cursor is open
+    second = list(result_blocks._stored(session, jid))
+    assert len(second) == _blocks(session, jid)
+    assert 1 + sum(1 for _ in first) == len(second)
