@@ -82,7 +82,11 @@ def test_the_block_read_equals_the_row_read_bit_for_bit(client, session, make_ac
     assert (np.signbit(eps) & (eps == 0)).any() == (session.bind.dialect.name != "sqlite")
     assert np.isnan(cols.data["J_exact"]).any()  # the infinities, stored as NULL
     _same_columns(cols, Columns.from_records(records, matrices=False))
-    _same_columns(cols, _row_read(session, jid))
+    rows = _row_read(session, jid)
+    _same_columns(cols, rows)
+    for f, a in cols.data.items():  # bit for bit: -0.0 is not 0.0, NaN's bits alike
+        if a.dtype != object:
+            assert a.view(np.int64).tolist() == rows.data[f].view(np.int64).tolist(), f
 
 
 def test_a_unit_stored_again_replaces_its_block(client, session, make_account):
