@@ -62,10 +62,19 @@ class BlockDraft:
     note_rows: list[int]  # the first row of each of those notes
 
 
-def draft_block(columns: Mapping[str, Sequence], *, signed_zeros: bool = True) -> BlockDraft:
+def draft_block(
+    columns: Mapping[str, Sequence],
+    *,
+    signed_zeros: bool = True,
+    arrays: Mapping[str, np.ndarray] | None = None,
+) -> BlockDraft:
     """The block of a unit's columns as stored (``upsert_results``' return, or its
     :class:`~service.db.results_store.UnitColumns`' columns: the same values, the
-    notes as texts or ids). ``signed_zeros=False`` stores -0.0 as 0.0, as SQLite does."""
+    notes as texts or ids). ``arrays``: some scalar fields already as float arrays
+    of those values (NaN for NULL, booleans 0/1: ``UnitResult.summary_columns``),
+    used instead of their columns. ``signed_zeros=False`` stores -0.0 as 0.0, as
+    SQLite does."""
+    arrays = arrays or {}
     k = len(columns["system"])
     text: dict[str, list] = {}
     runs: list[int] = []
@@ -83,7 +92,9 @@ def draft_block(columns: Mapping[str, Sequence], *, signed_zeros: bool = True) -
             parts.append(np.empty(0))
             continue
         else:
-            a = np.array(columns[f], dtype=float)  # None -> NaN, booleans -> 0/1
+            given = arrays.get(f)
+            # None -> NaN, booleans -> 0/1
+            a = np.array(columns[f] if given is None else given, dtype=float)  # a copy
             if not signed_zeros:
                 a += 0.0  # -0.0 -> 0.0
         runs.append(_runs(a, k))

@@ -113,9 +113,11 @@ def complete_unit(session: Session, unit_id: int, records: Sequence[dict] | Unit
     to_store: Sequence[dict] | UnitResult | UnitColumns = records
     if isinstance(records, UnitResult):
         to_store = unit_columns(records)
-        draft = draft_block(to_store.columns, signed_zeros=signed_zeros(session))
+        arrays = records.summary_columns()  # the summary fields as floats
+        summary = {f: arrays[f] for f in SUMMARY_FIELDS}
+        draft = draft_block(to_store.columns, signed_zeros=signed_zeros(session), arrays=summary)
         if to_store.whole_groups:  # from the unit's arrays, not its stored values
-            groups = summarize_columns(records.summary_columns())
+            groups = summarize_columns(arrays)
     unit = _lock_unit(session, unit_id)
     if unit is None or unit.status in ("cancelled", "failed"):
         return False  # cancelled while it ran (its job cancelled or failed)
