@@ -145,7 +145,7 @@ def copy_columns(session: Session, job_id: int, limit: int):
     pg = conn.connection.driver_connection
     assert pg is not None  # an open connection (session.connection() began it)
     names = [*SCALAR_FIELDS, *_CODED, "notes", "gamma_key"]
-    with driver_errors(conn, query.as_string(pg)), pg.cursor() as cur, cur.copy(query) as copy:
+    with driver_errors(conn, query), pg.cursor() as cur, cur.copy(query) as copy:
         raw = dict(zip(names, _read_stream(copy, n_fields, limit), strict=True))
     if any((raw[f] < 0).any() for f in _CODED):
         raise StreamChanged  # a text value the distinct read did not see

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 import numpy as np
 from sqlalchemy import Connection, Integer, any_, bindparam, select
@@ -40,10 +41,11 @@ def psycopg_conn(session: Session):
 
 
 @contextmanager
-def driver_errors(conn: Connection, statement: str) -> Iterator[None]:
-    """psycopg's errors raised as SQLAlchemy's ``DBAPIError`` of ``statement``, as a
-    statement run through SQLAlchemy raises them (so the API answers 503 when the
-    database is down), the connection invalidated when it was lost."""
+def driver_errors(conn: Connection, statement: Any) -> Iterator[None]:
+    """psycopg's errors raised as SQLAlchemy's ``DBAPIError`` of ``statement`` (text,
+    or a psycopg ``sql`` composition, written out only on an error), as a statement
+    run through SQLAlchemy raises them (so the API answers 503 when the database is
+    down), the connection invalidated when it was lost."""
     import psycopg
 
     pg = conn.connection.driver_connection
@@ -53,8 +55,9 @@ def driver_errors(conn: Connection, statement: str) -> Iterator[None]:
         closed = pg is not None and pg.closed
         if closed:
             conn.invalidate(exc)
+        text = statement if isinstance(statement, str) else statement.as_string(pg)
         raise DBAPIError.instance(
-            statement, None, exc, psycopg.Error, connection_invalidated=closed
+            text, None, exc, psycopg.Error, connection_invalidated=closed
         ) from exc
 
 

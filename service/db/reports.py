@@ -36,7 +36,7 @@ from svrobs_core.report.columns import (
 
 from .models import JOB_ACTIVE, Job, JobReport, Result, utcnow
 from .report_copy import StreamChanged, copy_columns
-from .report_order import SORT_KEY, ordered_columns
+from .report_order import SORT_KEY, ordered_columns, psycopg_conn
 from .result_blocks import block_columns, drop_blocks
 from .results_store import NOTES, job_codec
 
@@ -153,12 +153,11 @@ def load_columns(session: Session, job_id: int, *, matrices: bool | None = None)
     if matrices is None:
         matrices = n <= MATRIX_CELLS_LIMIT
     mats = COLUMN_MATRIX_FIELDS if matrices else ()
-    conn = session.connection()
     if n and not mats:
         stored = block_columns(session, job_id, n)
         if stored is not None:
             return _columns(*ordered_columns(session, *stored))
-    if n and not mats and conn.dialect.name == "postgresql" and conn.dialect.driver == "psycopg":
+    if n and not mats and psycopg_conn(session) is not None:
         try:
             copied, factors = copy_columns(session, job_id, n)
         except StreamChanged:  # a running job's rows changed meanwhile: read the rows
