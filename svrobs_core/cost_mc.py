@@ -200,18 +200,42 @@ def mc_cost_shared(
     # steps per block: fixed by runs and sizes only (never by R or E), so the
     # grouping of the sums over k is the same for every grid
     h_max = max(1, min(T, (2**17) // (runs * W)))
-    Xz = np.zeros((R, W, h_max + 1, runs))  # [x_k; z_k] for the block's steps
-    Ev = np.zeros((R, E, h_max + 1, n, runs))  # e_k
     acc = np.zeros((R, E, n, runs))
+    for r, g in enumerate(rngs):  # a row at a time: its blocks stay in cache
+        acc[r] = _mc_row(Mx, G[r : r + 1], F[r : r + 1], g, T=T, h_max=h_max, runs=runs, q=q)[0]
+    per_run = acc.sum(axis=2) / T  # (R, E, runs)
+    mean = per_run.mean(axis=-1)
+    se = per_run.std(axis=-1, ddof=1) / np.sqrt(runs)
+    return mean, se
+
+
+def _mc_row(
+    Mx: FloatArray,
+    G: FloatArray,
+    F: FloatArray,
+    g: np.random.Generator,
+    *,
+    T: int,
+    h_max: int,
+    runs: int,
+    q: int,
+) -> FloatArray:
+    """One row of :func:`mc_cost_shared` (G (1, E, n, W), F (1, E, n, n)): the sums
+    over k of ||e_k||^2 per cell, component and run, (1, E, n, runs). Shapes keep
+    the row axis, so each BLAS call is the one a batch of rows makes per row."""
+    n, W = Mx.shape
+    E = G.shape[1]
+    Xz = np.zeros((1, W, h_max + 1, runs))  # [x_k; z_k] for the block's steps
+    Ev = np.zeros((1, E, h_max + 1, n, runs))  # e_k
+    acc = np.zeros((1, E, n, runs))
     k = 0
     while k < T:
         h = min(h_max, T - k)
-        for r, g in enumerate(rngs):
-            Xz[r, n:, :h, :] = g.standard_normal((h, runs, q)).transpose(2, 0, 1)
+        Xz[0, n:, :h, :] = g.standard_normal((h, runs, q)).transpose(2, 0, 1)
         for i in range(h):
             np.matmul(Mx, Xz[:, :, i, :], out=Xz[:, :n, i + 1, :])
-        D = G @ Xz[:, None, :, :h, :].reshape(R, 1, W, h * runs)  # (R, E, n, h runs)
-        D = D.reshape(R, E, n, h, runs)
+        D = G @ Xz[:, None, :, :h, :].reshape(1, 1, W, h * runs)  # (1, E, n, h runs)
+        D = D.reshape(1, E, n, h, runs)
         for i in range(h):
             np.matmul(F, Ev[:, :, i], out=Ev[:, :, i + 1])
             Ev[:, :, i + 1] += D[:, :, :, i]
@@ -220,10 +244,7 @@ def mc_cost_shared(
         Ev[:, :, 0] = Ev[:, :, h]
         Xz[:, :n, 0] = Xz[:, :n, h]
         k += h
-    per_run = acc.sum(axis=2) / T  # (R, E, runs)
-    mean = per_run.mean(axis=-1)
-    se = per_run.std(axis=-1, ddof=1) / np.sqrt(runs)
-    return mean, se
+    return acc
 
 
 __all__ = ["mc_cost", "mc_cost_shared"]

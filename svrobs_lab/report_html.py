@@ -22,7 +22,7 @@ from svrobs_core.report.columns import fmt_num
 # report.css or in svrobs_core.report) alters the page a job's rows give: a stored
 # report of another layout is then built again from the job's rows, at its next
 # request or by beat's report thread (a job whose rows were pruned keeps its own).
-REPORT_LAYOUT = 1
+REPORT_LAYOUT = 2
 
 
 def _table(name: str) -> str:
