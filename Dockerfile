@@ -18,4 +18,4 @@ RUN useradd --create-home svrobs && mkdir -p /var/lib/svrobs && chown svrobs /va
 USER svrobs
 EXPOSE 8000
 CMD ["uvicorn", "service.app:app", "--host", "0.0.0.0", "--port", "8000", \
-     "--http", "service.http.header_timeout:HeaderTimeoutProtocol"]
+     "--http", "service.http.request_deadlines:RequestDeadlineProtocol"]

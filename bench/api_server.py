@@ -53,8 +53,8 @@ def start_server(tmp: Path, db_url: str, port: int, workers: int = 1) -> subproc
         "--no-access-log",
         "--log-level",
         "warning",
-        "--http",  # as svrobs serve runs it (service.http.header_timeout)
-        "service.http.header_timeout:HeaderTimeoutProtocol",
+        "--http",  # as svrobs serve runs it (service.http.request_deadlines)
+        "service.http.request_deadlines:RequestDeadlineProtocol",
     ]
     with open(tmp / "api.log", "wb") as log:  # the child keeps its own descriptor
         return subprocess.Popen(

@@ -95,11 +95,17 @@ class Settings(BaseSettings):
     # its rows through one database connection, held until the client has read the
     # last of them; at most this many of one team and this many in all (below the 15
     # connections of a process's pool of reads); beyond, 429 with Retry-After.
-    # A connection whose request headers are not complete this long after it opened,
-    # or after its last response, is closed (service.http.header_timeout).
-    HEADER_TIMEOUT_SECONDS: float = Field(default=10.0, gt=0)
     STREAMS_PER_TEAM: int = Field(default=2, ge=1)
     STREAMS_AT_ONCE: int = Field(default=8, ge=1)
+    # A connection whose request headers are not complete this long after it opened,
+    # or after its last response, is closed (service.http.request_deadlines).
+    HEADER_TIMEOUT_SECONDS: float = Field(default=10.0, gt=0)
+    # A request's body must be whole this long after its headers, plus one second
+    # per BODY_MIN_BYTES_PER_SECOND bytes of it received; else its connection is
+    # closed (service.http.request_deadlines). Time the server spends not reading
+    # does not count.
+    BODY_TIMEOUT_SECONDS: float = Field(default=20.0, gt=0)
+    BODY_MIN_BYTES_PER_SECOND: float = Field(default=500.0, gt=0)
     MAX_QUEUED_JOBS_PER_TEAM: int = 100
     RATE_LIMIT_PER_MINUTE: int = 600
     # Failed authentications (a bad sign-in, a bad bearer key) per client address per

@@ -175,7 +175,7 @@ def api_command(host: str, port: int) -> list[str]:
         "1",
         "--no-access-log",
         "--http",  # a deadline on each request's headers (slow clients)
-        "service.http.header_timeout:HeaderTimeoutProtocol",
+        "service.http.request_deadlines:RequestDeadlineProtocol",
     ]
 
 

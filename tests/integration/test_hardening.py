@@ -194,19 +194,26 @@ def test_300_bad_keys_from_one_address_are_mostly_429(lab):
         lab.stop("api-auth")
 
 
-# an app with a route that answers in 3 s, served as the API is (service.http.header_timeout)
+# an app served as the API is (service.http.request_deadlines): /slow answers in 3 s,
+# /late reads its body after 3 s; each answers with the length of the body it read
 SLOW_ROUTE = """
 import asyncio, logging, sys, uvicorn
-from service.http.header_timeout import PROTOCOL
+from service.http.request_deadlines import PROTOCOL
 logging.basicConfig(level=logging.INFO)
 async def app(scope, receive, send):
     if scope["type"] != "http":
         return
-    if scope["path"] == "/slow":
+    if scope["path"] in ("/slow", "/late"):
         await asyncio.sleep(3)
+    size, more = 0, True
+    while more:
+        message = await receive()
+        size += len(message.get("body", b""))
+        more = message.get("more_body", False)
+    body = str(size).encode()
     await send({"type": "http.response.start", "status": 200,
-                "headers": [(b"content-length", b"2")]})
-    await send({"type": "http.response.body", "body": b"ok"})
+                "headers": [(b"content-length", str(len(body)).encode())]})
+    await send({"type": "http.response.body", "body": body})
 uvicorn.run(app, host="127.0.0.1", port=int(sys.argv[1]), http=PROTOCOL, log_level="info")
 """
 
@@ -250,6 +257,19 @@ def _response(sock) -> bytes:
     return head + b"\r\n\r\n" + body
 
 
+def _trickled(sock) -> bool:
+    """Send a body 10 bytes every 0.2 s (for at most 20 s) -> whether the server
+    closed the connection (within 30 s of the last bytes)."""
+    try:
+        for _ in range(100):
+            sock.sendall(b" " * 10)
+            if _closed_within(sock, 0.2) is not None:
+                return True
+    except (BrokenPipeError, ConnectionResetError):
+        return True
+    return _closed_within(sock, 30) is not None
+
+
 def test_a_request_whose_headers_never_end_is_closed(lab):
     """A client that sends a request's headers a byte now and then (slowloris) is cut
     off SVROBS_HEADER_TIMEOUT_SECONDS after the connection opened, or after its last
@@ -258,7 +278,10 @@ def test_a_request_whose_headers_never_end_is_closed(lab):
     64 KiB are cut off too (httptools reads any size)."""
     import socket
 
-    url = lab.start_api("api-headers", env={"SVROBS_HEADER_TIMEOUT_SECONDS": "1"})
+    url = lab.start_api(
+        "api-headers",
+        env={"SVROBS_HEADER_TIMEOUT_SECONDS": "1", "SVROBS_BODY_TIMEOUT_SECONDS": "1"},
+    )
     host, port = url.removeprefix("http://").split(":")
     partial = b"GET /healthz HTTP/1.1\r\nHost: x\r\n"
     with socket.create_connection((host, int(port))) as s:
@@ -287,8 +310,20 @@ def test_a_request_whose_headers_never_end_is_closed(lab):
         s.sendall(head.encode() + big)  # the rest of the body is read, not cut off
         s.settimeout(10)
         assert s.recv(65536).startswith(b"HTTP/1.1 413")
+    head = "POST /api/v1/jobs HTTP/1.1\r\nHost: x\r\nContent-Length: 6000\r\n\r\n"
+    with socket.create_connection((host, int(port))) as s:
+        s.sendall(head.encode())
+        for _ in range(15):  # 2,000 bytes/s for 3 s: 1 s + 1 s per 500 bytes, answered
+            time.sleep(0.2)
+            s.sendall(b" " * 400)
+        assert _response(s).startswith(b"HTTP/1.1 401")  # read whole, then refused
+    head = "POST /api/v1/jobs HTTP/1.1\r\nHost: x\r\nContent-Length: 1000\r\n\r\n"
+    with socket.create_connection((host, int(port))) as s:
+        s.sendall(head.encode())
+        assert _trickled(s)  # 10 bytes every 0.2 s: cut off
     log = _log(lab, "api-headers")
     assert "no complete request headers in 1 s" in log
+    assert "request body not whole in 1 s plus 1 s per 500 bytes received" in log
     assert log.count("headers over 65536 bytes") == 1, log[-3000:]
     lab.stop("api-headers")
 
@@ -320,3 +355,30 @@ def test_headers_are_bounded_while_a_request_is_answered(lab):
         assert _closed_within(s, 30) is not None
     assert "request headers over 65536 bytes" in _log(lab, "api-pipe")
     lab.stop("api-pipe")
+
+
+def test_a_body_is_timed_only_while_the_server_reads_it(lab):
+    """With a 1 s body timeout (and no time earned per byte): a 1 MB body that the
+    app reads only after 3 s is answered whole (uvicorn stops reading meanwhile, so
+    the client cannot send); a body that trickles is cut off."""
+    import socket
+
+    port = free_port()
+    lab.start(
+        "api-body",
+        [sys.executable, "-c", SLOW_ROUTE, str(port)],
+        env={"SVROBS_BODY_TIMEOUT_SECONDS": "1", "SVROBS_BODY_MIN_BYTES_PER_SECOND": "1e12"},
+    )
+    lab.wait_http(f"http://127.0.0.1:{port}/", "api-body")
+
+    def post(path: str, size: int) -> bytes:
+        return f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Length: {size}\r\n\r\n".encode()
+
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(post("/late", 1_000_000) + b"x" * 1_000_000)
+        assert _response(s).endswith(b"\r\n\r\n1000000")
+    with socket.create_connection(("127.0.0.1", port)) as s:
+        s.sendall(post("/", 6_000))
+        assert _trickled(s)
+    assert _log(lab, "api-body").count("request body not whole in 1 s") == 1
+    lab.stop("api-body")
