@@ -42,12 +42,14 @@ SLOW_API = """
 import sys, time
 import uvicorn
 import svrobs_lab.reports as reports
+from service.http.request_deadlines import PROTOCOL
 render = reports._render
 def slow(job, cols):
     time.sleep(3)
     return render(job, cols)
 reports._render = slow
-uvicorn.run("service.app:app", host="127.0.0.1", port=int(sys.argv[1]), access_log=False)
+uvicorn.run("service.app:app", host="127.0.0.1", port=int(sys.argv[1]), access_log=False,
+            http=PROTOCOL)
 """
 
 
