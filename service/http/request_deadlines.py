@@ -20,8 +20,9 @@ Body. Once a request's headers are complete, its body must have arrived whole by
 deadline ``SVROBS_BODY_TIMEOUT_SECONDS`` (20 s) away, which each body byte moves
 ``1 / SVROBS_BODY_MIN_BYTES_PER_SECOND`` s later (500 bytes/s: a 100 MB upload at
 that rate is never cut off), as Apache's mod_reqtimeout does. While the server does
-not read (uvicorn pauses reading when the app has not taken 64 KiB of body yet),
-the client cannot send: the deadline is then at least the full timeout away.
+not read (uvicorn pauses reading when the app has not taken 64 KiB of body yet), or
+has not yet answered a client's ``Expect: 100-continue``, the client cannot send:
+the deadline is then at least the full timeout away.
 
 Every entry point serves the API with it:
 ``uvicorn ... --http service.http.request_deadlines:RequestDeadlineProtocol``
@@ -77,6 +78,8 @@ class RequestDeadlineProtocol(HttpToolsProtocol):
         self._awaiting = False
         self._stop_deadline()
         super().on_headers_complete()
+        if self.parser.should_upgrade() and self._should_upgrade():
+            return  # a WebSocket: the connection goes to another protocol, untimed
         seconds = get_settings().BODY_TIMEOUT_SECONDS
         self._body_deadline = self.loop.time() + seconds
         self._body_due = self.loop.call_later(seconds, self._body_check)
@@ -129,7 +132,8 @@ class RequestDeadlineProtocol(HttpToolsProtocol):
         if self.transport.is_closing():
             return
         settings, now = get_settings(), self.loop.time()
-        if self.flow is not None and self.flow.read_paused:  # the client waits for us
+        waiting = self.cycle is not None and self.cycle.waiting_for_100_continue
+        if waiting or (self.flow is not None and self.flow.read_paused):  # the client waits
             self._body_deadline = max(self._body_deadline, now + settings.BODY_TIMEOUT_SECONDS)
         left = self._body_deadline - now
         if left > 0:

@@ -362,7 +362,8 @@ def test_headers_are_bounded_while_a_request_is_answered(lab):
 def test_a_body_is_timed_only_while_the_server_reads_it(lab):
     """With a 1 s body timeout (and no time earned per byte): a 1 MB body that the
     app reads only after 3 s is answered whole (uvicorn stops reading meanwhile, so
-    the client cannot send); a body that trickles is cut off."""
+    the client cannot send), and so is a body that waits for the 100 Continue the
+    app's first read sends; a body that trickles is cut off."""
     import socket
 
     port = free_port()
@@ -379,6 +380,12 @@ def test_a_body_is_timed_only_while_the_server_reads_it(lab):
     with socket.create_connection(("127.0.0.1", port)) as s:
         s.sendall(post("/late", 1_000_000) + b"x" * 1_000_000)
         assert _response(s).endswith(b"\r\n\r\n1000000")
+    with socket.create_connection(("127.0.0.1", port)) as s:  # the body once asked for
+        s.sendall(post("/late", 5).replace(b"\r\n\r\n", b"\r\nExpect: 100-continue\r\n\r\n"))
+        s.settimeout(10)
+        assert s.recv(65536).startswith(b"HTTP/1.1 100 Continue")  # after 3 s
+        s.sendall(b"hello")
+        assert _response(s).endswith(b"\r\n\r\n5")
     with socket.create_connection(("127.0.0.1", port)) as s:
         s.sendall(post("/", 6_000))
         assert _trickled(s)
