@@ -20,9 +20,10 @@ Body. Once a request's headers are complete, its body must have arrived whole by
 deadline ``SVROBS_BODY_TIMEOUT_SECONDS`` (20 s) away, which each body byte moves
 ``1 / SVROBS_BODY_MIN_BYTES_PER_SECOND`` s later (500 bytes/s: a 100 MB upload at
 that rate is never cut off), as Apache's mod_reqtimeout does. While the server does
-not read (uvicorn pauses reading when the app has not taken 64 KiB of body yet), or
-has not yet answered a client's ``Expect: 100-continue``, the client cannot send:
-the deadline is then at least the full timeout away.
+not read (uvicorn pauses reading when the app has not taken 64 KiB of body yet, or
+while it answers an earlier pipelined request), or has not yet answered a client's
+``Expect: 100-continue``, the client cannot send: the deadline is kept at least the
+full timeout away then, and from the moment the client can send again.
 
 Every entry point serves the API with it:
 ``uvicorn ... --http service.http.request_deadlines:RequestDeadlineProtocol``
@@ -32,7 +33,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Callable
 
+from uvicorn.protocols.http.flow_control import FlowControl
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from service.config import get_settings
@@ -41,6 +44,18 @@ log = logging.getLogger(__name__)
 
 PROTOCOL = f"{__name__}:RequestDeadlineProtocol"  # uvicorn's --http value
 MAX_HEADER_BYTES = 64 * 1024  # a request line and headers: h11's limit (16 KiB) x 4
+
+
+class _Flow(FlowControl):
+    """uvicorn's flow control, telling its protocol whenever reading resumes."""
+
+    def __init__(self, transport: asyncio.Transport, on_resume: Callable[[bool], None]) -> None:
+        super().__init__(transport)
+        self._on_resume = on_resume
+
+    def resume_reading(self) -> None:
+        self._on_resume(self.read_paused)
+        super().resume_reading()
 
 
 class RequestDeadlineProtocol(HttpToolsProtocol):
@@ -53,9 +68,11 @@ class RequestDeadlineProtocol(HttpToolsProtocol):
     _headers_seen = 0  # requests whose headers were complete, so far
     _body_due: asyncio.TimerHandle | None = None
     _body_deadline = 0.0  # loop time by which the request's body must be whole
+    _expects_continue = False  # the request's client waits for a 100 Continue
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        self.flow = _Flow(transport, self._reading_resumed)
         self._await_headers(deadline=True)
 
     def connection_lost(self, exc: Exception | None) -> None:
@@ -81,6 +98,7 @@ class RequestDeadlineProtocol(HttpToolsProtocol):
         if self.parser.should_upgrade() and self._should_upgrade():
             return  # a WebSocket: the connection goes to another protocol, untimed
         seconds = get_settings().BODY_TIMEOUT_SECONDS
+        self._expects_continue = self.expect_100_continue
         self._body_deadline = self.loop.time() + seconds
         self._body_due = self.loop.call_later(seconds, self._body_check)
 
@@ -91,13 +109,29 @@ class RequestDeadlineProtocol(HttpToolsProtocol):
     def on_message_complete(self) -> None:
         self._stop_body()
         super().on_message_complete()
+        if self.parser.should_upgrade() and self._should_upgrade():
+            return  # a WebSocket: the connection goes to another protocol, untimed
         answered = self.cycle is not None and self.cycle.response_complete
         self._await_headers(deadline=answered)
 
     def on_response_complete(self) -> None:
         super().on_response_complete()
-        if self._awaiting and self._headers_due is None and not self.transport.is_closing():
-            self._start_deadline()
+        # the latest request answered too (uvicorn may have just started a pipelined one)
+        answered = self.cycle is not None and self.cycle.response_complete
+        if answered and self._awaiting and self._headers_due is None:
+            if not self.transport.is_closing():
+                self._start_deadline()
+
+    def _reading_resumed(self, paused: bool) -> None:
+        """The client may send again (reading resumes, or its 100 Continue is sent):
+        the body it is sending gets at least the full timeout from now."""
+        continued = self._expects_continue and not (
+            self.cycle is not None and self.cycle.waiting_for_100_continue
+        )
+        if (paused or continued) and self._body_due is not None:
+            self._expects_continue = False
+            seconds = get_settings().BODY_TIMEOUT_SECONDS
+            self._body_deadline = max(self._body_deadline, self.loop.time() + seconds)
 
     def _await_headers(self, *, deadline: bool) -> None:
         self._awaiting = True
@@ -127,7 +161,7 @@ class RequestDeadlineProtocol(HttpToolsProtocol):
 
     def _body_check(self) -> None:
         """At the body's deadline as it was when this was scheduled: close the
-        connection if the deadline has passed while the server was reading."""
+        connection if it has passed and the client could send meanwhile."""
         self._body_due = None
         if self.transport.is_closing():
             return

@@ -197,12 +197,19 @@ def test_300_bad_keys_from_one_address_are_mostly_429(lab):
 
 
 # an app served as the API is (service.http.request_deadlines): /slow answers in 3 s,
-# /late reads its body after 3 s; each answers with the length of the body it read
+# /late reads its body after 3 s; each answers with the length of the body it read;
+# a WebSocket is accepted and kept until the client leaves
 SLOW_ROUTE = """
 import asyncio, logging, sys, uvicorn
 from service.http.request_deadlines import PROTOCOL
 logging.basicConfig(level=logging.INFO)
 async def app(scope, receive, send):
+    if scope["type"] == "websocket":
+        await receive()
+        await send({"type": "websocket.accept"})
+        while (await receive())["type"] != "websocket.disconnect":
+            pass
+        return
     if scope["type"] != "http":
         return
     if scope["path"] in ("/slow", "/late"):
@@ -332,7 +339,9 @@ def test_a_request_whose_headers_never_end_is_closed(lab):
 
 def test_headers_are_bounded_while_a_request_is_answered(lab):
     """While a request is answered (3 s, past the 1 s deadline), it is not cut off,
-    but a pipelined request's headers are counted: past 64 KiB the connection closes."""
+    nor is a pipelined request behind it, nor a WebSocket opened after a request on
+    the same connection; but a pipelined request's headers are counted: past 64 KiB
+    the connection closes."""
     import socket
 
     port = free_port()
@@ -346,6 +355,21 @@ def test_headers_are_bounded_while_a_request_is_answered(lab):
         s.sendall(b"GET /slow HTTP/1.1\r\nHost: x\r\n\r\n")
         s.settimeout(10)
         assert s.recv(65536).startswith(b"HTTP/1.1 200")  # after 3 s: answered
+    with socket.create_connection(("127.0.0.1", port)) as s:  # two pipelined: both answered
+        s.sendall(b"GET /slow HTTP/1.1\r\nHost: x\r\n\r\n" * 2)
+        assert _response(s).startswith(b"HTTP/1.1 200")
+        assert _response(s).startswith(b"HTTP/1.1 200")  # after 6 s, its own 3 s counted
+    upgrade = (
+        b"GET /ws HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    )
+    with socket.create_connection(("127.0.0.1", port)) as s:  # a WebSocket after a GET
+        s.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")
+        assert _response(s).startswith(b"HTTP/1.1 200")
+        s.sendall(upgrade)
+        s.settimeout(10)
+        assert s.recv(65536).startswith(b"HTTP/1.1 101")
+        assert _closed_within(s, 3) is None  # past the 1 s header deadline: still open
     with socket.create_connection(("127.0.0.1", port)) as s:
         s.sendall(b"GET /slow HTTP/1.1\r\nHost: x\r\n\r\nGET / HTTP/1.1\r\nX-Big: ")
         try:
@@ -360,17 +384,19 @@ def test_headers_are_bounded_while_a_request_is_answered(lab):
 
 
 def test_a_body_is_timed_only_while_the_server_reads_it(lab):
-    """With a 1 s body timeout (and no time earned per byte): a 1 MB body that the
-    app reads only after 3 s is answered whole (uvicorn stops reading meanwhile, so
-    the client cannot send), and so is a body that waits for the 100 Continue the
-    app's first read sends; a body that trickles is cut off."""
+    """With a 1.6 s body timeout (and no time earned per byte), against an app that
+    reads its body after 3 s: a 1 MB body whose rest is sent 0.3 s after the app
+    starts reading is answered whole (uvicorn stopped reading meanwhile, so the
+    client could not send: the timeout counts from when it can), and so is a body
+    sent 0.3 s after the 100 Continue the app's first read sends; a body that
+    trickles is cut off."""
     import socket
 
     port = free_port()
     lab.start(
         "api-body",
         [sys.executable, "-c", SLOW_ROUTE, str(port)],
-        env={"SVROBS_BODY_TIMEOUT_SECONDS": "1", "SVROBS_BODY_MIN_BYTES_PER_SECOND": "1e12"},
+        env={"SVROBS_BODY_TIMEOUT_SECONDS": "1.6", "SVROBS_BODY_MIN_BYTES_PER_SECOND": "1e12"},
     )
     lab.wait_http(f"http://127.0.0.1:{port}/", "api-body")
 
@@ -378,16 +404,19 @@ def test_a_body_is_timed_only_while_the_server_reads_it(lab):
         return f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Length: {size}\r\n\r\n".encode()
 
     with socket.create_connection(("127.0.0.1", port)) as s:
-        s.sendall(post("/late", 1_000_000) + b"x" * 1_000_000)
+        s.sendall(post("/late", 1_000_000) + b"x" * 300_000)  # reading pauses
+        time.sleep(3.3)  # the app reads from 3 s on; the deadline is then 1.6 s away
+        s.sendall(b"x" * 700_000)
         assert _response(s).endswith(b"\r\n\r\n1000000")
     with socket.create_connection(("127.0.0.1", port)) as s:  # the body once asked for
         s.sendall(post("/late", 5).replace(b"\r\n\r\n", b"\r\nExpect: 100-continue\r\n\r\n"))
         s.settimeout(10)
         assert s.recv(65536).startswith(b"HTTP/1.1 100 Continue")  # after 3 s
+        time.sleep(0.3)
         s.sendall(b"hello")
         assert _response(s).endswith(b"\r\n\r\n5")
     with socket.create_connection(("127.0.0.1", port)) as s:
         s.sendall(post("/", 6_000))
         assert _trickled(s)
-    assert _log(lab, "api-body").count("request body not whole in 1 s") == 1
+    assert _log(lab, "api-body").count("request body not whole in 1.6 s") == 1
     lab.stop("api-body")
