@@ -98,6 +98,7 @@ class RequestDeadlineProtocol(HttpToolsProtocol):
         if self.parser.should_upgrade() and self._should_upgrade():
             return  # a WebSocket: the connection goes to another protocol, untimed
         seconds = get_settings().BODY_TIMEOUT_SECONDS
+        self._stop_body()  # one body timed at a time: this request's
         self._expects_continue = self.expect_100_continue
         self._body_deadline = self.loop.time() + seconds
         self._body_due = self.loop.call_later(seconds, self._body_check)
