@@ -117,10 +117,7 @@ def mc_cost(
         E = S[..., n:] - S[..., :n]
         acc += np.einsum("h...i,h...i->...", E, E)
         k += h
-    per_run = acc / T
-    mean = per_run.mean(axis=-1)
-    se = per_run.std(axis=-1, ddof=1) / np.sqrt(runs)
-    return mean, se
+    return _mean_se(acc / T)
 
 
 def mc_cost_shared(
@@ -202,10 +199,14 @@ def mc_cost_shared(
     h_max = max(1, min(T, (2**17) // (runs * W)))
     acc = np.zeros((R, E, n, runs))
     for r, g in enumerate(rngs):  # a row at a time: its blocks stay in cache
-        acc[r] = _mc_row(Mx, G[r : r + 1], F[r : r + 1], g, T=T, h_max=h_max, runs=runs, q=q)[0]
-    per_run = acc.sum(axis=2) / T  # (R, E, runs)
+        acc[r] = _mc_row(Mx, G[r : r + 1], F[r : r + 1], g, T=T, h_max=h_max, runs=runs)[0]
+    return _mean_se(acc.sum(axis=2) / T)  # per run (R, E, runs)
+
+
+def _mean_se(per_run: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Mean and standard error over the runs (the last axis) of each run's statistic."""
     mean = per_run.mean(axis=-1)
-    se = per_run.std(axis=-1, ddof=1) / np.sqrt(runs)
+    se = per_run.std(axis=-1, ddof=1) / np.sqrt(per_run.shape[-1])
     return mean, se
 
 
@@ -218,13 +219,12 @@ def _mc_row(
     T: int,
     h_max: int,
     runs: int,
-    q: int,
 ) -> FloatArray:
     """One row of :func:`mc_cost_shared` (G (1, E, n, W), F (1, E, n, n)): the sums
     over k of ||e_k||^2 per cell, component and run, (1, E, n, runs). Shapes keep
     the row axis, so each BLAS call is the one a batch of rows makes per row."""
     n, W = Mx.shape
-    E = G.shape[1]
+    E, q = G.shape[1], W - n  # z = [u; w; v]
     Xz = np.zeros((1, W, h_max + 1, runs))  # [x_k; z_k] for the block's steps
     Ev = np.zeros((1, E, h_max + 1, n, runs))  # e_k
     acc = np.zeros((1, E, n, runs))

@@ -95,7 +95,7 @@ class RequestDeadlineProtocol(HttpToolsProtocol):
         self._awaiting = False
         self._stop_deadline()
         super().on_headers_complete()
-        if self.parser.should_upgrade() and self._should_upgrade():
+        if self._upgrading():
             return  # a WebSocket: the connection goes to another protocol, untimed
         seconds = get_settings().BODY_TIMEOUT_SECONDS
         self._stop_body()  # one body timed at a time: this request's
@@ -110,7 +110,7 @@ class RequestDeadlineProtocol(HttpToolsProtocol):
     def on_message_complete(self) -> None:
         self._stop_body()
         super().on_message_complete()
-        if self.parser.should_upgrade() and self._should_upgrade():
+        if self._upgrading():
             return  # a WebSocket: the connection goes to another protocol, untimed
         answered = self.cycle is not None and self.cycle.response_complete
         self._await_headers(deadline=answered)
@@ -122,6 +122,10 @@ class RequestDeadlineProtocol(HttpToolsProtocol):
         if answered and self._awaiting and self._headers_due is None:
             if not self.transport.is_closing():
                 self._start_deadline()
+
+    def _upgrading(self) -> bool:
+        """The request upgrades the connection to a WebSocket (uvicorn's own test)."""
+        return bool(self.parser.should_upgrade() and self._should_upgrade())
 
     def _reading_resumed(self, paused: bool) -> None:
         """The client may send again (reading resumes, or its 100 Continue is sent):
