@@ -7,22 +7,16 @@ made: a malformed one fails at start-up with an error naming its variable.
 
 from __future__ import annotations
 
-import os
 from functools import lru_cache
 from typing import Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
-from sqlalchemy.engine import make_url
-from sqlalchemy.exc import ArgumentError
+
+from service.pool_size import default_pool_processes
 
 # The Celery transports the service is run with (filesystem: the embedded default).
 BROKER_SCHEMES = ("filesystem", "redis", "rediss", "memory", "amqp")
-
-
-def default_pool_processes() -> int:
-    """One pool process per CPU plus one, at most 5: what ``svrobs serve`` starts."""
-    return max(1, min((os.cpu_count() or 1) + 1, 5))
 
 
 class Settings(BaseSettings):
@@ -180,6 +174,10 @@ class Settings(BaseSettings):
     @field_validator("DATABASE_URL")
     @classmethod
     def _database_url(cls, value: str) -> str:
+        # imported here: the CLI's REST commands import this module and never need it
+        from sqlalchemy.engine import make_url
+        from sqlalchemy.exc import ArgumentError
+
         try:
             make_url(value)
         except (ArgumentError, ValueError):  # ValueError: a port that is not a number

@@ -38,11 +38,12 @@ import socket
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from service import worker_pids
-from service.config import Settings, default_pool_processes, get_settings
+from service.pool_size import default_pool_processes
 from service.report_crashes import FILE_NAME as REPORT_CRASHES
 from service.report_crashes import CrashRecord
 from svrobs_cli import signals as early_signals
@@ -51,10 +52,21 @@ from svrobs_cli.processes import Child, Supervisor, guarded
 from svrobs_cli.serve_lock import already_serving, hold_serve_lock, running_serve
 from svrobs_core.threads import THREAD_ENV
 
+if TYPE_CHECKING:
+    from service.config import Settings
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
 # --------------------------------------------------------------------------- setup
+def _settings() -> Settings:
+    """The process's settings, imported at first use: the CLI's REST commands, which
+    import this module to register ``serve``, never need them."""
+    from service.config import get_settings
+
+    return get_settings()
+
+
 def var_dir(settings: Settings) -> Path:
     """The state folder, SVROBS_VAR_DIR (``./var`` by default)."""
     return Path(settings.VAR_DIR)
@@ -95,7 +107,7 @@ def migrate(settings: Settings | None = None) -> None:
     """``alembic upgrade head`` against settings.DATABASE_URL."""
     from service.db.migrate import upgrade
 
-    upgrade((settings or get_settings()).DATABASE_URL)
+    upgrade((settings or _settings()).DATABASE_URL)
 
 
 ADMIN_TEAM = "admin"
@@ -116,7 +128,7 @@ def bootstrap_admin(settings: Settings | None = None) -> str | None:
     from service.db.session import session_scope
     from svrobs_lab.errors import AdminError
 
-    url = (settings or get_settings()).DATABASE_URL
+    url = (settings or _settings()).DATABASE_URL
     try:
         with session_scope(url) as s:
             if s.scalar(select(func.count(Team.id))):
@@ -369,7 +381,7 @@ def serve(
     try:
         if stopping:
             return 0
-        settings = settings or get_settings()
+        settings = settings or _settings()
         state = var_dir(settings)
         holder = running_serve(state)  # before the port: it may be that serve's port
         if holder is not None:
@@ -479,7 +491,7 @@ def serve_command(
     """Migrate, then run API + worker + scheduler (embedded default: SQLite + filesystem broker)."""
     from service.logging_config import configure_logging
 
-    settings = get_settings()
+    settings = _settings()
     update = {k: v for k, v in (("API_HOST", host), ("API_PORT", port)) if v is not None}
     if update:
         settings = settings.model_copy(update=update)

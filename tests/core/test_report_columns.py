@@ -22,6 +22,8 @@ texts = st.sampled_from(["paper-stable", "paper-unstable", "b", None])
 gammas = st.sampled_from([NAN, 0.05, 0.05 * (1 + 1e-12), 0.05 * (1 + 1e-8), 0.1, 1e-3])
 Ns = st.sampled_from([10.0, 20.0, 450.0, NAN])
 values = st.one_of(st.floats(-1e6, 1e6), st.just(NAN))
+# derandomized: the same examples on every run; each draws up to 60 rows of 7 columns
+EXAMPLES = 60
 
 
 @st.composite
@@ -45,7 +47,7 @@ def _key(v):
     return None if isinstance(v, float) and math.isnan(v) else v
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=EXAMPLES, deadline=None)
 @given(columns())
 def test_codes_give_back_every_value_once_and_sorted(cm):
     cols, _ = cm
@@ -58,7 +60,7 @@ def test_codes_give_back_every_value_once_and_sorted(cm):
             assert finite == sorted(finite) and None not in distinct[: len(finite)]
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=EXAMPLES, deadline=None)
 @given(columns(), gammas, st.sampled_from([0.1, 1.0]))
 def test_select_is_isclose_of_each_value(cm, gamma, sigma):
     cols, _ = cm
@@ -77,7 +79,7 @@ def test_select_is_isclose_of_each_value(cm, gamma, sigma):
     np.testing.assert_array_equal(select(cols, gamma=None), np.isnan(cols["gamma"]))
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=EXAMPLES, deadline=None)
 @given(columns(), gammas, st.sampled_from([0.1, 1.0]))
 def test_a_selection_asked_again_is_the_same_and_the_callers_own(cm, gamma, sigma):
     """select's masks are made of cached, read-only ones: a second call gives the same
@@ -93,7 +95,7 @@ def test_a_selection_asked_again_is_the_same_and_the_callers_own(cm, gamma, sigm
     assert not eq.flags.writeable and eq is cols.equals("system", "paper-stable")
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=EXAMPLES, deadline=None)
 @given(columns())
 def test_has_of_a_text_field_against_plain_python(cm):
     cols, mask = cm
@@ -103,7 +105,7 @@ def test_has_of_a_text_field_against_plain_python(cm):
     assert cols.has("system", np.flatnonzero(mask)) == want
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=EXAMPLES, deadline=None)
 @given(columns())
 def test_systems_and_groups_against_plain_python(cm):
     cols, mask = cm
@@ -123,7 +125,7 @@ def test_systems_and_groups_against_plain_python(cm):
     )
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=EXAMPLES, deadline=None)
 @given(columns())
 def test_by_N_means_against_plain_python(cm):
     cols, mask = cm
