@@ -9,8 +9,9 @@
   schema of its own (``search_path`` in the URL; dropped at teardown) and
   flushes the Redis database number of the broker URL before and after.
 
-A stack migrates (a subprocess running ``svrobs_cli.serve.migrate``, i.e. what
-``svrobs serve`` runs), creates a team and key, and starts uvicorn on a free
+A stack migrates (``svrobs_cli.serve.prepare_dirs`` and ``migrate``, what
+``svrobs serve`` runs first, in the test process with the stack's settings),
+creates a team and key, and starts uvicorn on a free
 port plus one celery worker - the exact commands ``svrobs_cli.serve`` uses, from
 ``svrobs_cli.serve.child_commands``. Tests can stop/start workers, start beat or a
 second API with another environment. Teardown terminates every child, then

@@ -161,21 +161,29 @@ class Stack:
                 c.exec_driver_sql(f'CREATE SCHEMA "{self.schema}"')
             engine.dispose()
             self.flush_redis()
-        out = self.python(
-            "import json\n"
-            "from service.config import get_settings\n"
-            "from svrobs_cli.serve import prepare_dirs, migrate\n"
-            "from service.db.session import session_scope\n"
-            "from service.db import accounts\n"
-            "s = get_settings(); prepare_dirs(s); migrate(s)\n"
-            "with session_scope(s.DATABASE_URL) as db:\n"
-            "    accounts.create_team(db, 'lab')\n"
-            "    accounts.create_user(db, 'lab', 'it@lab.example')\n"
-            "    _, key = accounts.create_key(db, 'it@lab.example')\n"
-            "print(json.dumps({'key': key}))\n",
-            timeout=120,
-        )
-        self.key = json.loads(out.strip().splitlines()[-1])["key"]
+        # what `svrobs serve` runs first (prepare_dirs, migrate), here in this process
+        # with the stack's settings, then a team, a user and their key
+        from sqlalchemy.orm import Session
+
+        from service.config import Settings
+        from service.db import accounts
+        from service.db.session import create_db_engine
+        from svrobs_cli.serve import migrate, prepare_dirs
+
+        ours = {
+            k.removeprefix("SVROBS_"): v for k, v in self.env.items() if k.startswith("SVROBS_")
+        }
+        settings = Settings(**ours)
+        prepare_dirs(settings)
+        migrate(settings)
+        engine = create_db_engine(settings.DATABASE_URL)
+        try:
+            with Session(engine) as db, db.begin():
+                accounts.create_team(db, "lab")
+                accounts.create_user(db, "lab", "it@lab.example")
+                _, self.key = accounts.create_key(db, "it@lab.example")
+        finally:
+            engine.dispose()
 
     def teardown(self) -> None:
         stop_all(list(self.children.values()), grace=10)
