@@ -161,29 +161,35 @@ class Stack:
                 c.exec_driver_sql(f'CREATE SCHEMA "{self.schema}"')
             engine.dispose()
             self.flush_redis()
-        # what `svrobs serve` runs first (prepare_dirs, migrate), here in this process
-        # with the stack's settings, then a team, a user and their key
-        from sqlalchemy.orm import Session
-
+        # what `svrobs serve` runs first, here in this process with the stack's settings
         from service.config import Settings
-        from service.db import accounts
-        from service.db.session import create_db_engine
         from svrobs_cli.serve import migrate, prepare_dirs
 
         ours = {
             k.removeprefix("SVROBS_"): v for k, v in self.env.items() if k.startswith("SVROBS_")
         }
-        settings = Settings(**ours)
-        prepare_dirs(settings)
-        migrate(settings)
-        engine = create_db_engine(settings.DATABASE_URL)
+        self.settings = Settings(**ours)
+        prepare_dirs(self.settings)
+        migrate(self.settings)
+        self.key = self.team_key("lab")
+
+    def team_key(self, team: str) -> str:
+        """A new team of the stack's database, its user ``it@<team>.example`` and that
+        user's API key (made in this process)."""
+        from sqlalchemy.orm import Session
+
+        from service.db import accounts
+        from service.db.session import create_db_engine
+
+        engine = create_db_engine(self.settings.DATABASE_URL)
         try:
             with Session(engine) as db, db.begin():
-                accounts.create_team(db, "lab")
-                accounts.create_user(db, "lab", "it@lab.example")
-                _, self.key = accounts.create_key(db, "it@lab.example")
+                accounts.create_team(db, team)
+                accounts.create_user(db, team, f"it@{team}.example")
+                _, key = accounts.create_key(db, f"it@{team}.example")
         finally:
             engine.dispose()
+        return key
 
     def teardown(self) -> None:
         stop_all(list(self.children.values()), grace=10)

@@ -18,7 +18,6 @@ Run with ``-s`` to see the figures.
 
 from __future__ import annotations
 
-import json
 import math
 import re
 import sys
@@ -59,18 +58,7 @@ def lab(request, tmp_path_factory):
     st = Stack(request.param, tmp_path_factory.mktemp(f"hard-{request.param}"))
     try:
         st.setup()
-        out = st.python(
-            "import json\n"
-            "from service.config import get_settings\n"
-            "from service.db.session import session_scope\n"
-            "from service.db import accounts\n"
-            "with session_scope(get_settings().DATABASE_URL) as db:\n"
-            "    accounts.create_team(db, 'other')\n"
-            "    accounts.create_user(db, 'other', 'b@other.example')\n"
-            "    _, key = accounts.create_key(db, 'b@other.example')\n"
-            "print(json.dumps({'key': key}))\n"
-        )
-        st.other_key = json.loads(out.strip().splitlines()[-1])["key"]
+        st.other_key = st.team_key("other")
         st.start_api(env={"SVROBS_SECRET_KEY": "it-secret-0123456789abcdef"})
         yield st
     finally:

@@ -9,7 +9,6 @@ are printed; run with ``-s`` to see them. Bounds are stated in each test.
 
 from __future__ import annotations
 
-import json
 import re
 import statistics
 import time
@@ -53,18 +52,7 @@ def long_job(n_units: int, scale: int = 1) -> dict:
 
 def second_team(stack, team: str) -> str:
     """A key of a new team (the stack's own key belongs to team 'lab')."""
-    out = stack.python(
-        "import json\n"
-        "from service.config import get_settings\n"
-        "from service.db.session import session_scope\n"
-        "from service.db import accounts\n"
-        "with session_scope(get_settings().DATABASE_URL) as db:\n"
-        f"    accounts.create_team(db, {team!r})\n"
-        f"    accounts.create_user(db, {team!r}, 'it@{team}.example')\n"
-        f"    _, key = accounts.create_key(db, 'it@{team}.example')\n"
-        "print(json.dumps({'key': key}))\n"
-    )
-    return json.loads(out.strip().splitlines()[-1])["key"]
+    return stack.team_key(team)
 
 
 def team_client(stack, key: str):

@@ -72,17 +72,7 @@ def only_the_server(browser):
 
 @pytest.fixture(scope="module")
 def team_b_key(stack) -> str:
-    out = stack.python(
-        "from service.config import get_settings\n"
-        "from service.db.session import session_scope\n"
-        "from service.db import accounts as admin\n"
-        "with session_scope(get_settings().DATABASE_URL) as db:\n"
-        "    admin.create_team(db, 'other-lab')\n"
-        "    admin.create_user(db, 'other-lab', 'b@other.example')\n"
-        "    _, key = admin.create_key(db, 'b@other.example')\n"
-        "print(key)\n"
-    )
-    return out.strip().splitlines()[-1]
+    return stack.team_key("other-lab")
 
 
 @pytest.fixture(scope="module")
