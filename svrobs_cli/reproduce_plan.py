@@ -9,8 +9,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from svrobs_core import parse_spec
 from svrobs_core.pipeline import shares_data
+from svrobs_core.rollouts import resample_draws
 
 
 class ReproduceError(Exception):
@@ -121,7 +124,11 @@ def normals_drawn(specs: dict[str, dict], groups: list[Group]) -> dict[str, int]
                 if name == g.parent:
                     total += len(s.sigma_w) * s.reps * per_N * sumN
                 if s.bounds_method == "bootstrap":
-                    total += len(s.sigma_w) * s.reps * s.boot_reps * per_N * sumN
+                    per_set = resample_draws(
+                        np.array(s.N), n=n, m=m, T0=s.T0, x0_std=s.x0_std, draws=s.boot_draws
+                    )
+                    per_set = int(per_set.sum())
+                    total += len(s.sigma_w) * s.reps * s.boot_reps * per_set
                 if s.has("cost"):
                     mc = min(s.reps, mc_limit(s))
                     if name != g.parent:

@@ -25,7 +25,8 @@ stability (docs/uncertainty.md):
 
 * **A1**: E2 with ``bounds_method = "self-normalized"`` (same data: the seed
   key does not depend on the method).
-* **A2**: E2 with ``bounds_method = "bootstrap"`` (100 resamples) on
+* **A2**: E2 with ``bounds_method = "bootstrap"`` (100 resamples, drawn as
+  Wishart scatter matrices: docs/uncertainty.md#how-the-resamples-are-drawn) on
   N in {10, 50, 100, 200, 450}: the bootstrap re-simulates every cell.
 
 A1 and A2 share E2's data, so ``svrobs reproduce`` computes them in E2's
@@ -225,7 +226,13 @@ def _full_specs() -> dict[str, dict[str, Any]]:
     }
     e4 = {**copy.deepcopy(e3), "systems": [STABLE, UNSTABLE], "mc_reps": 0}
     a1 = {**copy.deepcopy(e2), "bounds_method": "self-normalized"}
-    a2 = {**copy.deepcopy(e2), "N": list(AUDIT_N), "bounds_method": "bootstrap", "boot_reps": 100}
+    a2 = {
+        **copy.deepcopy(e2),
+        "N": list(AUDIT_N),
+        "bounds_method": "bootstrap",
+        "boot_reps": 100,
+        "boot_draws": "wishart",
+    }
     return {"E1": e1, "E2": e2, "E3": e3, "E4": e4, "A1": a1, "A2": a2}
 
 

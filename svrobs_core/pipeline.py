@@ -63,7 +63,9 @@ def run_dataset(
 
 # The fields in which specs that share their data and estimates may differ
 # (:func:`shares_data`): the bounds method and its options.
-BOUNDS_KEYS = frozenset({"bounds_method", "S", "lambda0", "boot_reps", "boot_sigma_w"})
+BOUNDS_KEYS = frozenset(
+    {"bounds_method", "S", "lambda0", "boot_reps", "boot_sigma_w", "boot_draws"}
+)
 
 
 def shares_data(parent: ExperimentSpec, other: ExperimentSpec) -> bool:

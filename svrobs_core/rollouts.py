@@ -6,7 +6,8 @@ so a repetition's numbers do not depend on how the grid is batched.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -132,6 +133,66 @@ def _draw(g: np.random.Generator, x0b: FloatArray, draw: FloatArray, x0_std: flo
     return x0_std > 0
 
 
+# How a resampled dataset's noise is drawn (docs/uncertainty.md#how-the-resamples-are-drawn):
+# its N rollouts' noise, or a factor of that noise's scatter matrix drawn at once.
+RESAMPLE_DRAWS = ("rollouts", "wishart")
+
+
+def noise_dim(*, n: int, m: int, T0: int, x0_std: float) -> int:
+    """Standard normals of one rollout: x0 (n, if x0_std > 0), then u and w of every step."""
+    return (m + n) * T0 + (n if x0_std > 0 else 0)
+
+
+def resample_columns(N: Any, *, n: int, m: int, T0: int, x0_std: float, draws: str) -> Any:
+    """Columns simulated per resampled dataset of N rollouts (N an int or an array):
+    N, or with ``"wishart"`` at most the noise dimension (:class:`_WishartDraw`)."""
+    if draws == "rollouts":
+        return N
+    return np.minimum(N, noise_dim(n=n, m=m, T0=T0, x0_std=x0_std))
+
+
+def resample_draws(N: Any, *, n: int, m: int, T0: int, x0_std: float, draws: str) -> Any:
+    """Random numbers one resampled dataset of N rollouts draws (N an int or an array):
+    q N, or with ``"wishart"`` above q = :func:`noise_dim` the q (q + 1) / 2 of
+    :class:`_WishartDraw`."""
+    q = noise_dim(n=n, m=m, T0=T0, x0_std=x0_std)
+    Nc = resample_columns(N, n=n, m=m, T0=T0, x0_std=x0_std, draws=draws)
+    return np.where(Nc < N, q * (q + 1) // 2, q * np.asarray(N))
+
+
+class _WishartDraw:
+    """One key's pseudo-noise: q columns whose scatter matrix has the law of N rollouts'.
+
+    With xi_r (q) the standard normals of rollout r (:func:`noise_dim`), every
+    statistic of the bootstrap is a function of S = sum_r xi_r xi_r^T ~ Wishart(I_q, N).
+    Bartlett's decomposition draws S = L L^T directly (N >= q): in this order,
+    L_ii^2 ~ chi^2(N - i) for i = 0..q-1, then the strictly lower entries ~ N(0, 1) in
+    row-major order. The columns of L are the pseudo-rollouts, rows laid out as
+    :func:`_draw`'s: x0 (n) if x0_std > 0, then u and w (m+n, T0). Called like
+    :func:`_draw`, with buffers of q columns.
+    """
+
+    def __init__(self, q: int, N: int) -> None:
+        self.df = N - np.arange(q, dtype=float)
+        self.L = np.zeros((q, q))
+        self.diag = np.diag_indices(q)
+        self.lower = np.tril_indices(q, -1)
+        self.normals = np.empty(q * (q - 1) // 2)
+
+    def __call__(
+        self, g: np.random.Generator, x0b: FloatArray, draw: FloatArray, x0_std: float
+    ) -> bool:
+        L = self.L
+        L[self.diag] = np.sqrt(g.chisquare(self.df))
+        g.standard_normal(out=self.normals)
+        L[self.lower] = self.normals
+        k = x0b.shape[0] if x0_std > 0 else 0
+        if k:
+            x0b[...] = L[:k]
+        draw[...] = L[k:].reshape(draw.shape)
+        return k > 0
+
+
 # Working-set size of one chunk of repetitions in :func:`gram_data` (cache-sized).
 CHUNK_BYTES = 2 * 2**20
 
@@ -221,6 +282,7 @@ def resampled_grams(
     data: str = "all",
     x0_std: float = 0.0,
     rng: str = DEFAULT_RNG,
+    draws: str = "rollouts",
     chunk_bytes: int = CHUNK_BYTES,
 ) -> Iterator[tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray]]:
     """Datasets of several systems on shared noise, as sufficient statistics, by chunks.
@@ -233,11 +295,17 @@ def resampled_grams(
     (one stacked BLAS product per step, every (dataset, system) its own call of
     the same shape, so a dataset's bits do not depend on the chunk).
 
+    With ``draws="wishart"`` and N above the noise dimension q, a dataset's
+    N rollouts are replaced by the q pseudo-rollouts of :class:`_WishartDraw`:
+    G and W have the same joint law, at q instead of N columns
+    (docs/uncertainty.md#how-the-resamples-are-drawn).
+
     Yields ``(idx, G, W, Z, F)`` per chunk of datasets ``idx``: ``G = Z Z^T``
     (h, E, d, d), ``W = sum_k w_k z_k^T`` (h, E, n, d) over the regression
     columns (so that ``F Z^T = [A_e B_e] G + s_e W``) and the regression data
-    ``Z`` (h, E, d, K N), ``F`` (h, E, n, K N) as views into the chunk's buffer
-    (valid until the next chunk is requested).
+    ``Z`` (h, E, d, K Nc), ``F`` (h, E, n, K Nc) of the Nc
+    (:func:`resample_columns`) simulated columns, as views into the chunk's
+    buffer (valid until the next chunk is requested).
     """
     systems = np.asarray(systems, dtype=float)
     owner = np.asarray(owner, dtype=np.intp)
@@ -247,11 +315,15 @@ def resampled_grams(
     D = len(keys)
     k0 = 1 if data == "all" else T0 - 1
     K = T0 - k0
-    per_set = 8 * N * (E * q * (T0 + 1) + 2 * E * d * d)
+    Nc = int(resample_columns(N, n=n, m=m, T0=T0, x0_std=x0_std, draws=draws))
+    fill: Callable[[np.random.Generator, FloatArray, FloatArray, float], bool] = (
+        _draw if Nc == N else _WishartDraw(Nc, N)
+    )
+    per_set = 8 * Nc * (E * q * (T0 + 1) + 2 * E * d * d)
     c = int(max(1, min(D, chunk_bytes // per_set)))
-    Y = np.zeros((c, E, q, T0 + 1, N))
-    draw = np.empty((m + n, T0, N))
-    x0b = np.empty((n, N))
+    Y = np.zeros((c, E, q, T0 + 1, Nc))
+    draw = np.empty((m + n, T0, Nc))
+    x0b = np.empty((n, Nc))
     G = np.empty((c, E, d, d))
     W = np.empty((c, E, n, d))
     gens = generators(seed, keys, rng=rng)
@@ -259,15 +331,15 @@ def resampled_grams(
         e_ = min(D, s + c)
         h = e_ - s
         for i in range(h):
-            if _draw(next(gens), x0b, draw, x0_std):
+            if fill(next(gens), x0b, draw, x0_std):
                 Y[i, :, :n, 0] = x0b * x0_std
             draw[:m] *= sigma_u
             Y[i, :, n:, :T0] = draw
         Yh = Y[:h]
         Mh = systems[owner[s:e_]]  # (h, E, n, q)
-        Zv = Yh[:, :, :d, k0:T0].reshape(h, E, d, K * N)
-        Fv = Yh[:, :, :n, k0 + 1 : T0 + 1].reshape(h, E, n, K * N)
-        Wv = Yh[:, :, d:, k0:T0].reshape(h, E, n, K * N)
+        Zv = Yh[:, :, :d, k0:T0].reshape(h, E, d, K * Nc)
+        Fv = Yh[:, :, :n, k0 + 1 : T0 + 1].reshape(h, E, n, K * Nc)
+        Wv = Yh[:, :, d:, k0:T0].reshape(h, E, n, K * Nc)
         Zt = np.swapaxes(Zv, -1, -2)
         with np.errstate(over="ignore", invalid="ignore"):
             for k in range(T0):

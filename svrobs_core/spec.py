@@ -14,6 +14,7 @@ from dataclasses import MISSING, dataclass, field, fields
 from typing import Any, cast
 
 from .errors import SpecError, unknown_field
+from .rollouts import RESAMPLE_DRAWS
 from .seeding import DEFAULT_RNG, RNGS
 from .system_batch import resolve_systems
 from .systems import MAX_DIM, SystemSpec
@@ -24,8 +25,11 @@ BOOT_SIGMA_SOURCES = ("estimate", "spec")
 # Options of each non-paper bounds method (docs/uncertainty.md), with their defaults.
 BOUNDS_OPTIONS: dict[str, dict[str, Any]] = {
     "self-normalized": {"S": None, "lambda0": 1.0},
-    "bootstrap": {"boot_reps": 100, "boot_sigma_w": "estimate"},
+    "bootstrap": {"boot_reps": 100, "boot_sigma_w": "estimate", "boot_draws": "rollouts"},
 }
+# Options written to the normalised JSON only when they differ from their default,
+# so that the JSON of every spec written before they existed is unchanged.
+QUIET_DEFAULTS = {"boot_draws": "rollouts"}
 STAGES = ("estimate", "bounds", "gain", "cost", "cost_bound", "sls")
 # A stage needs the ones before it in this order (cost_bound needs cost's J).
 STAGE_NEEDS = {
@@ -64,6 +68,7 @@ SPEC_KEYS = {
     "lambda0",
     "boot_reps",
     "boot_sigma_w",
+    "boot_draws",
     "rng",
 }
 # The fields of a job on measured data that a simulated job does not have
@@ -116,6 +121,8 @@ class ExperimentSpec:
     boot_reps: int = BOUNDS_OPTIONS["bootstrap"]["boot_reps"]
     # bootstrap noise level: the residuals' estimate or the spec's
     boot_sigma_w: str = BOUNDS_OPTIONS["bootstrap"]["boot_sigma_w"]
+    # how each resample is drawn (docs/uncertainty.md#how-the-resamples-are-drawn)
+    boot_draws: str = BOUNDS_OPTIONS["bootstrap"]["boot_draws"]
     rng: str = DEFAULT_RNG  # bit generator of every draw (docs/performance.md#generators)
     raw_systems: tuple[Any, ...] = field(default=(), compare=False)
     # A job on measured data: its options (svrobs_core.measured.spec.DatasetOptions);
@@ -193,7 +200,12 @@ class ExperimentSpec:
         if self.bounds_method == "paper":
             return {}
         opts = BOUNDS_OPTIONS[self.bounds_method]
-        return {"bounds_method": self.bounds_method, **{k: getattr(self, k) for k in opts}}
+        values = {k: getattr(self, k) for k in opts}
+        quiet = {k for k, v in QUIET_DEFAULTS.items() if values.get(k, v) == v}
+        return {
+            "bounds_method": self.bounds_method,
+            **{k: v for k, v in values.items() if k not in quiet},
+        }
 
     @property
     def S_bound(self) -> float:
@@ -423,5 +435,8 @@ def _bounds_options(obj: dict[str, Any]) -> dict[str, Any]:
         )
         out["boot_sigma_w"] = _choice(
             obj.get("boot_sigma_w", DEFAULTS["boot_sigma_w"]), "boot_sigma_w", BOOT_SIGMA_SOURCES
+        )
+        out["boot_draws"] = _choice(
+            obj.get("boot_draws", DEFAULTS["boot_draws"]), "boot_draws", RESAMPLE_DRAWS
         )
     return out

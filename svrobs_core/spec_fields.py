@@ -23,6 +23,7 @@ from .measured.spec import BOUNDS_METHOD as DATASET_BOUNDS_METHOD
 from .measured.spec import SPEC_FIELDS as DATASET_SPEC_KEYS
 from .measured.spec import DatasetOptions
 from .parsing import parse_spec
+from .rollouts import RESAMPLE_DRAWS
 from .seeding import RNGS
 from .spec import (
     BOOT_SIGMA_SOURCES,
@@ -240,6 +241,14 @@ SPEC_FIELDS: tuple[SpecField, ...] = (
         "choice",
         "Noise of the resamples: the residuals' or the cell's",
         choices=BOOT_SIGMA_SOURCES,
+        only_with="bootstrap",
+        group="bounds",
+    ),
+    SpecField(
+        "boot_draws",
+        "choice",
+        "How a resample is drawn: its N rollouts, or their noise's Wishart scatter at once",
+        choices=RESAMPLE_DRAWS,
         only_with="bootstrap",
         group="bounds",
     ),

@@ -328,14 +328,16 @@ def noise_level(Z: ArrayLike, F: ArrayLike, theta_hat: ArrayLike) -> tuple[Float
     return np.sqrt(rss / (n * (N0 - d))), None
 
 
-def _refit(name: str, gamma: Any, Z: Array, F: Array, G: Array, loss_scale: str) -> Array:
-    """Re-estimate with the cell's own estimator from the data (docs/science.md#2-estimators). -> (h, n, d)"""
+def _refit(name: str, gamma: Any, Z: Array, F: Array, G: Array, N0: int, loss_scale: str) -> Array:
+    """Re-estimate with the cell's own estimator from the data (docs/science.md#2-estimators);
+    N0 the datasets' sample count (Z may hold fewer columns with the same Gram). -> (h, n, d)"""
     if name == "ols":
         return _est.fit_ols(Z, F)
     if name == "svr":
-        P = np.matmul(F, np.swapaxes(Z, -1, -2))
+        with np.errstate(over="ignore", invalid="ignore"):  # huge data: inf/NaN, noted downstream
+            P = np.matmul(F, np.swapaxes(Z, -1, -2))
         return _est.svr_from_gram(
-            G, P, Z.shape[-1], [gamma], loss_scale=loss_scale, data=lambda rows: (Z[rows], F[rows])
+            G, P, N0, [gamma], loss_scale=loss_scale, data=lambda rows: (Z[rows], F[rows])
         )[:, 0]
     if name == "shrunk-ols":
         return _est.shrunk_ols(_est.fit_ols(Z, F), [gamma])[:, 0]
@@ -351,9 +353,11 @@ def _deviations(
     W: Array,
     Z: Array,
     F: Array,
+    N0: int,
     loss_scale: str,
 ) -> Array:
-    """Theta_b - Theta for one estimator column of a chunk of resampled datasets.
+    """Theta_b - Theta for one estimator column of a chunk of resampled datasets
+    of N0 samples each.
 
     The data were simulated from ``centre`` Theta (h, n, d) with noise level s
     (h,), so ``F Z^T = Theta G + s W`` and the estimator's deviation is, for the
@@ -362,7 +366,6 @@ def _deviations(
     the eigendecomposition of G, without the cancellation of ``Theta_b - Theta``.
     Datasets with cond(G + g I) above the estimator's limit (or non-finite)
     are re-estimated from their data (:func:`_refit`) instead."""
-    N0 = Z.shape[-1]
     d = G.shape[-1]
     g = _est.ridge_parameters([gamma], N0, loss_scale)[0] if name == "svr" else 0.0
     limit = _est.SVR_COND_LIMIT if name == "svr" else _est.REFINE_COND_LIMIT
@@ -377,7 +380,7 @@ def _deviations(
         dev = (dev - gamma * centre) / (1.0 + gamma)
     if not fine.all():
         rows = np.flatnonzero(~fine)
-        dev[rows] = _refit(name, gamma, Z[rows], F[rows], G[rows], loss_scale) - centre[rows]
+        dev[rows] = _refit(name, gamma, Z[rows], F[rows], G[rows], N0, loss_scale) - centre[rows]
     return dev
 
 
@@ -398,6 +401,7 @@ def bootstrap_box(
     loss_scale: str = "sum",
     joint: bool = True,
     rng: str = "pcg64",
+    draws: str = "rollouts",
 ) -> BoxResult:
     """Parametric bootstrap box
     (docs/uncertainty.md#e-the-parametric-bootstrap-dean-mania-matni-recht-tu-2020-alg-2).
@@ -412,6 +416,8 @@ def bootstrap_box(
     Theta_b - Theta_hat per entry, c the (1 - delta) quantile of
     max_ij |Theta_b - Theta_hat|_ij / s_ij), else the (1 - delta) quantile
     of |Theta_b - Theta_hat| per entry. numpy's default (linear) quantiles.
+    ``draws``: each resample's N rollouts, or (``"wishart"``) their noise's
+    scatter matrix drawn at once (docs/uncertainty.md#how-the-resamples-are-drawn).
 
     Batched: all R x boot_reps resampled datasets go through one chunked
     simulation of every cell's system (:func:`svrobs_core.rollouts.resampled_grams`)
@@ -429,6 +435,7 @@ def bootstrap_box(
     s_ok = np.where(good, sw, 0.0)
     systems = np.concatenate([th, s_ok[..., None, None] * np.eye(n)], axis=-1)  # (R, E, n, d+n)
     D = R * Bn
+    N0 = (T0 - 1 if data == "all" else 1) * int(N)
     owner = np.arange(D) // Bn
     bkeys = [tuple(keys[r]) + BOOT_STREAM + (b,) for r in range(R) for b in range(Bn)]
     dev_b = np.empty((D, E, n, d))
@@ -443,6 +450,7 @@ def bootstrap_box(
         data=data,
         x0_std=x0_std,
         rng=rng,
+        draws=draws,
         chunk_bytes=BOOT_CHUNK_BYTES,
     ):
         r = owner[idx]
@@ -456,6 +464,7 @@ def bootstrap_box(
                 W[:, ei],
                 Z[:, ei],
                 F[:, ei],
+                N0,
                 loss_scale,
             )
     dev = dev_b.reshape(R, Bn, E, n, d).transpose(0, 2, 1, 3, 4)

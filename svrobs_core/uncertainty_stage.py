@@ -151,6 +151,7 @@ def sound_box(
             x0_std=spec.x0_std,
             loss_scale=spec.loss_scale,
             rng=spec.rng,
+            draws=spec.boot_draws,
         )
         c.notes.add(True, HEURISTIC_NOTE)
     R_A_up, R_B_up = _unc.certificate_radii(box, fac, theta, lam=lam, shrink=shrink)

@@ -68,6 +68,7 @@ from .data_factor import EXT_MAX_WORK
 from .errors import SpecError
 from .estimators import FALLBACK_CHUNK_BYTES
 from .measured.workload import measured_unit, need_data
+from .rollouts import resample_columns, resample_draws
 from .spec import ExperimentSpec
 from .system_kinds import (
     Kind,
@@ -151,7 +152,7 @@ def _dataset(
         if ill_data:
             cpu = cpu + LONG_DOUBLE * R * np.minimum(work, EXT_MAX_WORK)
     if spec.has("bounds") and spec.bounds_method == "bootstrap":
-        c_boot, m_boot = _bootstrap(spec, n=n, m=m, N=N, R=R, E=E, N0=N0)
+        c_boot, m_boot = _bootstrap(spec, n=n, m=m, N=N, R=R, E=E)
         cpu = cpu + c_boot
         mem = np.maximum(mem, kept_data + m_boot)
     # per-cell work of the stages (small matrices, vectorised over the cells)
@@ -173,20 +174,29 @@ def _dataset(
 
 
 def _bootstrap(
-    spec: ExperimentSpec, *, n: int, m: int, N: FloatArray, R: int, E: int, N0: FloatArray
+    spec: ExperimentSpec, *, n: int, m: int, N: FloatArray, R: int, E: int
 ) -> tuple[FloatArray, FloatArray]:
     """(cpu, bytes) of uncertainty.bootstrap_box: boot_reps datasets per repetition,
     each simulated for every cell's estimate and refitted by its estimator."""
     T0, d = spec.T0, n + m
     K = spec.T0 - 1 if spec.data == "all" else 1
     sets = R * spec.boot_reps
-    per_set = 8.0 * N * (E * (n * (T0 + 1) + (d + n) * K + m * T0) + (n + m) * T0 + n)
+    # the simulated columns and random numbers per set (docs/uncertainty.md#how-the-resamples-are-drawn)
+    shape: dict[str, Any] = {
+        "n": n,
+        "m": m,
+        "T0": T0,
+        "x0_std": spec.x0_std,
+        "draws": spec.boot_draws,
+    }
+    Nc, draws = resample_columns(N, **shape), resample_draws(N, **shape)
+    per_set = 8.0 * Nc * (E * (n * (T0 + 1) + (d + n) * K + m * T0) + (n + m) * T0 + n)
     chunks = _ceil(sets / np.maximum(1, _floor(BOOT_CHUNK_BYTES / per_set)))
     ols = sum(1 for e in spec.estimators if e != "svr")
     cpu = sets * (
-        NORMAL * (m + n) * T0 * N
-        + BOOT_ELEM * E * n * (n + m + 1) * T0 * N
-        + FLOP * N0 * (E * 2 * d * (d + n) + ols * 6 * n * d)
+        NORMAL * draws
+        + BOOT_ELEM * E * n * (n + m + 1) * T0 * Nc
+        + FLOP * K * Nc * (E * 2 * d * (d + n) + ols * 6 * n * d)
     )
     cpu += CALL * chunks * T0 * (n + m + 2) + BOOT_SET * sets + BOOT_REFIT * chunks * E
     return cpu, np.maximum(per_set, np.minimum(sets * per_set, BOOT_CHUNK_BYTES)) * 1.5
