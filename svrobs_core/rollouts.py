@@ -175,17 +175,19 @@ class _WishartDraw:
     def __init__(self, q: int, N: int) -> None:
         self.df = N - np.arange(q, dtype=float)
         self.L = np.zeros((q, q))
-        self.diag = np.diag_indices(q)
-        self.lower = np.tril_indices(q, -1)
+        # flat positions in L (row-major): faster to assign than pairs of index arrays
+        self.diag = np.arange(q) * (q + 1)
+        self.lower = np.flatnonzero(np.tri(q, k=-1, dtype=bool))
         self.normals = np.empty(q * (q - 1) // 2)
 
     def __call__(
         self, g: np.random.Generator, x0b: FloatArray, draw: FloatArray, x0_std: float
     ) -> bool:
         L = self.L
-        L[self.diag] = np.sqrt(g.chisquare(self.df))
+        flat = L.reshape(-1)
+        flat[self.diag] = np.sqrt(g.chisquare(self.df))
         g.standard_normal(out=self.normals)
-        L[self.lower] = self.normals
+        flat[self.lower] = self.normals
         k = x0b.shape[0] if x0_std > 0 else 0
         if k:
             x0b[...] = L[:k]
