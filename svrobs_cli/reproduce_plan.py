@@ -13,7 +13,7 @@ import numpy as np
 
 from svrobs_core import parse_spec
 from svrobs_core.pipeline import shares_data
-from svrobs_core.rollouts import resample_draws
+from svrobs_core.resample_wishart import resample_draws
 
 
 class ReproduceError(Exception):

@@ -14,7 +14,7 @@ from dataclasses import MISSING, dataclass, field, fields
 from typing import Any, cast
 
 from .errors import SpecError, unknown_field
-from .rollouts import RESAMPLE_DRAWS
+from .resample_wishart import RESAMPLE_DRAWS
 from .seeding import DEFAULT_RNG, RNGS
 from .system_batch import resolve_systems
 from .systems import MAX_DIM, SystemSpec

@@ -23,7 +23,7 @@ from .measured.spec import BOUNDS_METHOD as DATASET_BOUNDS_METHOD
 from .measured.spec import SPEC_FIELDS as DATASET_SPEC_KEYS
 from .measured.spec import DatasetOptions
 from .parsing import parse_spec
-from .rollouts import RESAMPLE_DRAWS
+from .resample_wishart import RESAMPLE_DRAWS
 from .seeding import RNGS
 from .spec import (
     BOOT_SIGMA_SOURCES,

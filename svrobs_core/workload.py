@@ -68,7 +68,7 @@ from .data_factor import EXT_MAX_WORK
 from .errors import SpecError
 from .estimators import FALLBACK_CHUNK_BYTES
 from .measured.workload import measured_unit, need_data
-from .rollouts import resample_columns, resample_draws
+from .resample_wishart import resample_columns, resample_draws
 from .spec import ExperimentSpec
 from .system_kinds import (
     Kind,

@@ -13,7 +13,8 @@ import pytest
 from scipy import stats
 
 from svrobs_core import uncertainty as unc
-from svrobs_core.rollouts import noise_dim, resample_columns, resampled_grams
+from svrobs_core.resample_wishart import noise_dim, resample_columns
+from svrobs_core.rollouts import resampled_grams
 from svrobs_core.seeding import seed_key
 
 # A 2-state, 1-input system used only here, and a second one driven by the same noise.
