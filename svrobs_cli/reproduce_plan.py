@@ -125,7 +125,7 @@ def normals_drawn(specs: dict[str, dict], groups: list[Group]) -> dict[str, int]
                     total += len(s.sigma_w) * s.reps * per_N * sumN
                 if s.bounds_method == "bootstrap":
                     per_set = resample_draws(
-                        np.array(s.N), n=n, m=m, T0=s.T0, x0_std=s.x0_std, draws=s.boot_draws
+                        np.array(s.N), n=n, m=m, T0=s.T0, x0_std=s.x0_std, draws=s.draws
                     )
                     per_set = int(per_set.sum())
                     total += len(s.sigma_w) * s.reps * s.boot_reps * per_set

@@ -25,9 +25,12 @@ stability (docs/uncertainty.md):
 
 * **A1**: E2 with ``bounds_method = "self-normalized"`` (same data: the seed
   key does not depend on the method).
-* **A2**: E2 with ``bounds_method = "bootstrap"`` (100 resamples, drawn as
-  Wishart scatter matrices: docs/uncertainty.md#how-the-resamples-are-drawn) on
+* **A2**: E2 with ``bounds_method = "bootstrap"`` (100 resamples) on
   N in {10, 50, 100, 200, 450}: the bootstrap re-simulates every cell.
+
+Every experiment draws its datasets (and A2 its resamples) as Wishart scatter
+matrices (``draws = "wishart"``, docs/science.md#15-wishart-draws): the law
+of every record is that of the paper's rollouts, at a tenth of the draws.
 
 A1 and A2 share E2's data, so ``svrobs reproduce`` computes them in E2's
 pass over the data (docs/performance.md#one-pass).
@@ -200,6 +203,7 @@ def _full_specs() -> dict[str, dict[str, Any]]:
         "loss_scale": "sum",
         "data": "all",
         "seed": SEED,
+        "draws": "wishart",
     }
     e1 = {
         "systems": [STABLE, UNSTABLE],
@@ -231,7 +235,6 @@ def _full_specs() -> dict[str, dict[str, Any]]:
         "N": list(AUDIT_N),
         "bounds_method": "bootstrap",
         "boot_reps": 100,
-        "boot_draws": "wishart",
     }
     return {"E1": e1, "E2": e2, "E3": e3, "E4": e4, "A1": a1, "A2": a2}
 

@@ -63,9 +63,7 @@ def run_dataset(
 
 # The fields in which specs that share their data and estimates may differ
 # (:func:`shares_data`): the bounds method and its options.
-BOUNDS_KEYS = frozenset(
-    {"bounds_method", "S", "lambda0", "boot_reps", "boot_sigma_w", "boot_draws"}
-)
+BOUNDS_KEYS = frozenset({"bounds_method", "S", "lambda0", "boot_reps", "boot_sigma_w"})
 
 
 def shares_data(parent: ExperimentSpec, other: ExperimentSpec) -> bool:
@@ -123,6 +121,7 @@ def run_dataset_variants(
         x0_std=spec.x0_std,
         keep_data=need_data,
         rng=spec.rng,
+        draws=spec.draws,
     )
     N0 = (spec.T0 - 1) * N if spec.data == "all" else N
 
@@ -141,6 +140,7 @@ def run_dataset_variants(
             x0_std=spec.x0_std,
             keep_data=True,
             rng=spec.rng,
+            draws=spec.draws,
         )
         assert Zr is not None and Fr is not None  # keep_data=True returns the data
         return Zr, Fr

@@ -1,5 +1,5 @@
 """Resampled datasets drawn as Wishart scatter matrices
-(docs/uncertainty.md#how-the-resamples-are-drawn, docs/performance.md#the-bootstraps-wishart-draws).
+(docs/uncertainty.md#how-the-resamples-are-drawn, docs/performance.md#wishart-draws).
 
 Every bootstrap statistic of a resample of N rollouts depends on their noise
 only through its scatter matrix, so above the noise dimension q the N rollouts
@@ -15,9 +15,10 @@ import numpy as np
 
 from .array_types import FloatArray
 
-# How a resampled dataset's noise is drawn (docs/uncertainty.md#how-the-resamples-are-drawn):
-# its N rollouts' noise, or a factor of that noise's scatter matrix drawn at once.
-RESAMPLE_DRAWS = ("rollouts", "wishart")
+# How a dataset's noise is drawn (docs/science.md#15-wishart-draws): its N
+# rollouts' noise, or a factor of that noise's scatter matrix drawn at once.
+DRAWS = ("rollouts", "wishart")
+DEFAULT_DRAWS = "rollouts"
 
 
 def noise_dim(*, n: int, m: int, T0: int, x0_std: float) -> int:

@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .array_types import Array, FloatArray, IntArray
-from .resample_wishart import WishartDraw, resample_columns
+from .resample_wishart import DEFAULT_DRAWS, WishartDraw, resample_columns
 from .seeding import DEFAULT_RNG, generators
 from .systems import SystemSpec
 
@@ -149,6 +149,7 @@ def gram_data(
     x0_std: float = 0.0,
     keep_data: bool = False,
     rng: str = DEFAULT_RNG,
+    draws: str = DEFAULT_DRAWS,
 ) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray | None]:
     """Sufficient statistics of every key's regression data, without forming Z.
 
@@ -166,6 +167,12 @@ def gram_data(
     (``Z`` = rows x, u of the time slices k0..T0-1, ``F`` = rows x of
     k0+1..T0: no copy); ``Z, F`` as :func:`regression_data` lays them out
     when ``keep_data`` (else None).
+
+    With ``draws="wishart"`` and N above the noise dimension q, each key's
+    N rollouts are q pseudo-rollouts whose statistics have their law
+    (:class:`svrobs_core.resample_wishart.WishartDraw`,
+    docs/science.md#15-wishart-draws): Z and F then have K q columns, and the
+    sample count is still K N.
     """
     n, m = system.n, system.m
     d = n + m
@@ -174,6 +181,11 @@ def gram_data(
     R = len(keys)
     k0 = 1 if data == "all" else T0 - 1
     K = T0 - k0
+    Nc = int(resample_columns(N, n=n, m=m, T0=T0, x0_std=x0_std, draws=draws))
+    fill: Callable[[np.random.Generator, FloatArray, FloatArray, float], bool] = (
+        _draw if Nc == N else WishartDraw(Nc, N)
+    )
+    N = Nc  # the columns simulated from here on
     G = np.empty((R, d, d))
     P = np.empty((R, n, d))
     Z = np.empty((R, d, K * N)) if keep_data else None
@@ -188,7 +200,7 @@ def gram_data(
         e = min(R, s + c)
         h = e - s
         for i in range(h):
-            if _draw(next(gens), x0b, draw, x0_std):
+            if fill(next(gens), x0b, draw, x0_std):
                 np.multiply(x0b, x0_std, out=Y[i, :n, 0])
             Y[i, n:, :T0] = draw
         Yh = Y[:h]

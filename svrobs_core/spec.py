@@ -14,7 +14,7 @@ from dataclasses import MISSING, dataclass, field, fields
 from typing import Any, cast
 
 from .errors import SpecError, unknown_field
-from .resample_wishart import RESAMPLE_DRAWS
+from .resample_wishart import DEFAULT_DRAWS, DRAWS
 from .seeding import DEFAULT_RNG, RNGS
 from .system_batch import resolve_systems
 from .systems import MAX_DIM, SystemSpec
@@ -25,11 +25,8 @@ BOOT_SIGMA_SOURCES = ("estimate", "spec")
 # Options of each non-paper bounds method (docs/uncertainty.md), with their defaults.
 BOUNDS_OPTIONS: dict[str, dict[str, Any]] = {
     "self-normalized": {"S": None, "lambda0": 1.0},
-    "bootstrap": {"boot_reps": 100, "boot_sigma_w": "estimate", "boot_draws": "rollouts"},
+    "bootstrap": {"boot_reps": 100, "boot_sigma_w": "estimate"},
 }
-# Options written to the normalised JSON only when they differ from their default,
-# so that the JSON of every spec written before they existed is unchanged.
-QUIET_DEFAULTS = {"boot_draws": "rollouts"}
 STAGES = ("estimate", "bounds", "gain", "cost", "cost_bound", "sls")
 # A stage needs the ones before it in this order (cost_bound needs cost's J).
 STAGE_NEEDS = {
@@ -68,8 +65,8 @@ SPEC_KEYS = {
     "lambda0",
     "boot_reps",
     "boot_sigma_w",
-    "boot_draws",
     "rng",
+    "draws",
 }
 # The fields of a job on measured data that a simulated job does not have
 # (docs/measured.md#spec).
@@ -121,9 +118,9 @@ class ExperimentSpec:
     boot_reps: int = BOUNDS_OPTIONS["bootstrap"]["boot_reps"]
     # bootstrap noise level: the residuals' estimate or the spec's
     boot_sigma_w: str = BOUNDS_OPTIONS["bootstrap"]["boot_sigma_w"]
-    # how each resample is drawn (docs/uncertainty.md#how-the-resamples-are-drawn)
-    boot_draws: str = BOUNDS_OPTIONS["bootstrap"]["boot_draws"]
     rng: str = DEFAULT_RNG  # bit generator of every draw (docs/performance.md#generators)
+    # a dataset's N rollouts, or their noise's Wishart scatter (docs/science.md#15-wishart-draws)
+    draws: str = DEFAULT_DRAWS
     raw_systems: tuple[Any, ...] = field(default=(), compare=False)
     # A job on measured data: its options (svrobs_core.measured.spec.DatasetOptions);
     # then systems and sigma_w are empty (docs/measured.md#spec).
@@ -192,6 +189,7 @@ class ExperimentSpec:
             **self._bounds_dict(),
             # only a non-default generator: the normalised JSON of older specs is unchanged
             **({} if self.rng == DEFAULT_RNG else {"rng": self.rng}),
+            **({} if self.draws == DEFAULT_DRAWS else {"draws": self.draws}),
         }
 
     def _bounds_dict(self) -> dict[str, Any]:
@@ -200,12 +198,7 @@ class ExperimentSpec:
         if self.bounds_method == "paper":
             return {}
         opts = BOUNDS_OPTIONS[self.bounds_method]
-        values = {k: getattr(self, k) for k in opts}
-        quiet = {k for k, v in QUIET_DEFAULTS.items() if values.get(k, v) == v}
-        return {
-            "bounds_method": self.bounds_method,
-            **{k: v for k, v in values.items() if k not in quiet},
-        }
+        return {"bounds_method": self.bounds_method, **{k: getattr(self, k) for k in opts}}
 
     @property
     def S_bound(self) -> float:
@@ -352,6 +345,7 @@ def parse_simulation_spec(obj: dict[str, Any]) -> ExperimentSpec:
         **shared,
         **bounds,
         rng=_choice(obj.get("rng", DEFAULTS["rng"]), "rng", tuple(RNGS)),
+        draws=_choice(obj.get("draws", DEFAULTS["draws"]), "draws", DRAWS),
         raw_systems=tuple(raw_systems),
     )
 
@@ -435,8 +429,5 @@ def _bounds_options(obj: dict[str, Any]) -> dict[str, Any]:
         )
         out["boot_sigma_w"] = _choice(
             obj.get("boot_sigma_w", DEFAULTS["boot_sigma_w"]), "boot_sigma_w", BOOT_SIGMA_SOURCES
-        )
-        out["boot_draws"] = _choice(
-            obj.get("boot_draws", DEFAULTS["boot_draws"]), "boot_draws", RESAMPLE_DRAWS
         )
     return out

@@ -23,7 +23,7 @@ from .measured.spec import BOUNDS_METHOD as DATASET_BOUNDS_METHOD
 from .measured.spec import SPEC_FIELDS as DATASET_SPEC_KEYS
 from .measured.spec import DatasetOptions
 from .parsing import parse_spec
-from .resample_wishart import RESAMPLE_DRAWS
+from .resample_wishart import DRAWS
 from .seeding import RNGS
 from .spec import (
     BOOT_SIGMA_SOURCES,
@@ -181,6 +181,13 @@ SPEC_FIELDS: tuple[SpecField, ...] = (
         "rng", "choice", "Bit generator of every random draw", choices=tuple(RNGS), group="estimate"
     ),
     SpecField(
+        "draws",
+        "choice",
+        "A dataset's noise: its N rollouts, or their Wishart scatter matrix at once",
+        choices=DRAWS,
+        group="estimate",
+    ),
+    SpecField(
         "stages",
         "choices",
         "Stages to run (each needs the ones before it)",
@@ -241,14 +248,6 @@ SPEC_FIELDS: tuple[SpecField, ...] = (
         "choice",
         "Noise of the resamples: the residuals' or the cell's",
         choices=BOOT_SIGMA_SOURCES,
-        only_with="bootstrap",
-        group="bounds",
-    ),
-    SpecField(
-        "boot_draws",
-        "choice",
-        "How a resample is drawn: its N rollouts, or their noise's Wishart scatter at once",
-        choices=RESAMPLE_DRAWS,
         only_with="bootstrap",
         group="bounds",
     ),

@@ -311,17 +311,20 @@ def rho_upper_bound(A_hat: ArrayLike, R_A: ArrayLike) -> FloatArray:
 # ---------------------------------------------------------------------------
 # parametric bootstrap (Dean et al. 2020, Algorithm 2)
 # ---------------------------------------------------------------------------
-def noise_level(Z: ArrayLike, F: ArrayLike, theta_hat: ArrayLike) -> tuple[FloatArray, str | None]:
+def noise_level(
+    Z: ArrayLike, F: ArrayLike, theta_hat: ArrayLike, *, N0: int | None = None
+) -> tuple[FloatArray, str | None]:
     """sigma_hat_w^2 = ||F - Theta_hat Z||_F^2 / (n (N0 - d)); -> (sigma_hat (...), reason).
 
-    Z (..., d, N0), F (..., n, N0), theta_hat (..., n, d), batch dims broadcast.
+    Z (..., d, c), F (..., n, c), theta_hat (..., n, d), batch dims broadcast; N0 the
+    sample count (default c; more with Wishart draws, docs/science.md#15-wishart-draws).
     NaN with a reason when N0 <= d.
     """
     Z = np.asarray(Z, dtype=float)
     F = np.asarray(F, dtype=float)
     theta = np.asarray(theta_hat, dtype=float)
     n, d = theta.shape[-2:]
-    N0 = Z.shape[-1]
+    N0 = Z.shape[-1] if N0 is None else N0
     rss = np.sum((F - theta @ Z) ** 2, axis=(-2, -1))
     if N0 <= d:
         return np.full(rss.shape, np.nan), f"sigma_w estimate needs N0 > d = {d}"

@@ -133,7 +133,7 @@ def sound_box(
             sigma = c.sigma_w
         else:
             assert Z is not None and F is not None  # the bootstrap's noise level needs the data
-            sigma, reason = _unc.noise_level(Z[:, None], F[:, None], theta)
+            sigma, reason = _unc.noise_level(Z[:, None], F[:, None], theta, N0=N0)
             if reason is not None:
                 c.notes.add(True, f"bounds: {reason}")
         box = _unc.bootstrap_box(
@@ -151,7 +151,7 @@ def sound_box(
             x0_std=spec.x0_std,
             loss_scale=spec.loss_scale,
             rng=spec.rng,
-            draws=spec.boot_draws,
+            draws=spec.draws,
         )
         c.notes.add(True, HEURISTIC_NOTE)
     R_A_up, R_B_up = _unc.certificate_radii(box, fac, theta, lam=lam, shrink=shrink)

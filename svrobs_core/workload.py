@@ -187,7 +187,7 @@ def _bootstrap(
         "m": m,
         "T0": T0,
         "x0_std": spec.x0_std,
-        "draws": spec.boot_draws,
+        "draws": spec.draws,
     }
     Nc, draws = resample_columns(N, **shape), resample_draws(N, **shape)
     per_set = 8.0 * Nc * (E * (n * (T0 + 1) + (d + n) * K + m * T0) + (n + m) * T0 + n)

@@ -50,7 +50,6 @@ def test_default_spec_is_unchanged_and_new_methods_round_trip():
     for extra in (
         {"bounds_method": "self-normalized", "S": 2.0, "lambda0": 0.5},
         {"bounds_method": "bootstrap", "boot_reps": 7, "boot_sigma_w": "spec"},
-        {"bounds_method": "bootstrap", "boot_draws": "wishart"},
     ):
         s = parse_spec({**BASE, **extra})
         d = s.to_dict()
@@ -58,10 +57,7 @@ def test_default_spec_is_unchanged_and_new_methods_round_trip():
         assert parse_spec(d).to_dict() == d
     sn = parse_spec({**BASE, "bounds_method": "self-normalized"})
     assert sn.S_bound == pytest.approx(np.sqrt(2) * 1.0) and sn.lambda0 == 1.0
-    boot = parse_spec({**BASE, "bounds_method": "bootstrap"})
-    assert boot.boot_reps == 100 and boot.boot_draws == "rollouts"
-    # the default draws are not written: the JSON of older bootstrap specs is unchanged
-    assert "boot_draws" not in boot.to_dict()
+    assert parse_spec({**BASE, "bounds_method": "bootstrap"}).boot_reps == 100
 
 
 @pytest.mark.parametrize(
@@ -75,8 +71,6 @@ def test_default_spec_is_unchanged_and_new_methods_round_trip():
         ({"bounds_method": "self-normalized", "lambda0": "1"}, "lambda0"),
         ({"bounds_method": "bootstrap", "boot_reps": 1}, "boot_reps"),
         ({"bounds_method": "bootstrap", "boot_sigma_w": "true"}, "boot_sigma_w"),
-        ({"bounds_method": "bootstrap", "boot_draws": "bartlett"}, "boot_draws"),
-        ({"boot_draws": "wishart"}, "boot_draws"),
     ],
 )
 def test_bad_bounds_options_name_the_field(extra, field):
@@ -240,7 +234,7 @@ def test_sound_methods_run_every_stage_and_do_not_depend_on_the_split():
         {"bounds_method": "self-normalized"},
         {"bounds_method": "bootstrap", "boot_reps": 8},
         {"bounds_method": "bootstrap", "boot_reps": 8, "boot_sigma_w": "spec"},
-        {"bounds_method": "bootstrap", "boot_reps": 8, "boot_draws": "wishart"},
+        {"bounds_method": "bootstrap", "boot_reps": 8, "draws": "wishart"},
     ):
         spec_obj = {
             **BASE,

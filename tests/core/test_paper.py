@@ -54,7 +54,6 @@ def test_audit_experiments_are_e2_with_another_bounds_method(full):
         "bounds_method": "bootstrap",
         "boot_reps": 100,
         "boot_sigma_w": "estimate",
-        "boot_draws": "wishart",
     }
 
 

@@ -125,6 +125,7 @@ def test_custom_system_and_flat_B_column():
         ),
         ({"sls": {"T_fir": 1001}}, "sls.T_fir"),
         ({"rng": "mt19937"}, "rng"),
+        ({"draws": "bartlett"}, "draws"),
         # a name is printable text: no terminal escape, line break or C1 control
         ({"systems": [custom(name="s\x1b[31m")]}, "systems[0].name"),
         ({"systems": [custom(name="a\nb")]}, "systems[0].name"),
@@ -200,8 +201,11 @@ def test_to_dict_round_trips():
     assert s.stages == ("estimate", "bounds", "gain")  # canonical order
 
 
-def test_rng_is_normalised_only_when_not_the_default():
-    assert "rng" not in parse_spec(spec_with()).to_dict()
-    assert parse_spec(spec_with(rng="pcg64")).to_dict() == parse_spec(spec_with()).to_dict()
-    fast = parse_spec(spec_with(rng="sfc64"))
-    assert fast.rng == "sfc64" and parse_spec(fast.to_dict()).to_dict()["rng"] == "sfc64"
+@pytest.mark.parametrize(
+    "key,default,other", [("rng", "pcg64", "sfc64"), ("draws", "rollouts", "wishart")]
+)
+def test_rng_and_draws_are_normalised_only_when_not_the_default(key, default, other):
+    assert key not in parse_spec(spec_with()).to_dict()
+    assert parse_spec(spec_with(**{key: default})).to_dict() == parse_spec(spec_with()).to_dict()
+    fast = parse_spec(spec_with(**{key: other}))
+    assert getattr(fast, key) == other and parse_spec(fast.to_dict()).to_dict()[key] == other

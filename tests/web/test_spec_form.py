@@ -22,7 +22,7 @@ OTHERS = [
     CUSTOM,
     {**CUSTOM, "bounds_method": "self-normalized", "S": 2.0, "lambda0": 0.5},
     {**CUSTOM, "bounds_method": "bootstrap", "boot_reps": 20, "boot_sigma_w": "spec"},
-    {**CUSTOM, "bounds_method": "bootstrap", "boot_draws": "wishart"},
+    {**CUSTOM, "bounds_method": "bootstrap", "draws": "wishart"},
     {
         **CUSTOM,
         "stages": ["estimate", "bounds", "gain", "cost"],

@@ -1,9 +1,11 @@
-"""The bootstrap's Wishart draws (docs/uncertainty.md#how-the-resamples-are-drawn).
+"""Wishart draws of datasets and bootstrap resamples (docs/science.md#15-wishart-draws,
+docs/uncertainty.md#how-the-resamples-are-drawn).
 
 Oracles: scipy's Wishart sampler for the law of the scatter matrix; the rollouts'
 own statistics (two-sample Kolmogorov-Smirnov tests and means within their standard
 errors) and their exact expectation, propagated here by the covariance recursion;
-the rollouts' bits where N is at most the noise dimension.
+the rollouts' bits where N is at most the noise dimension; end to end, the records
+of a spec run both ways.
 """
 
 from __future__ import annotations
@@ -12,10 +14,12 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from svrobs_core import parse_spec, run_spec
 from svrobs_core import uncertainty as unc
 from svrobs_core.resample_wishart import noise_dim, resample_columns
-from svrobs_core.rollouts import resampled_grams
+from svrobs_core.rollouts import gram_data, resampled_grams
 from svrobs_core.seeding import seed_key
+from svrobs_core.systems import resolve_system
 
 # A 2-state, 1-input system used only here, and a second one driven by the same noise.
 A1 = np.array([[0.7, 0.2], [-0.1, 0.5]])
@@ -57,7 +61,7 @@ def _grams(N, draws, *, D, x0_std=0.0, data="all", seed=4):
     return np.concatenate(G), np.concatenate(W)
 
 
-def _expected_gram(A, B, s, *, N, x0_std, data):
+def _expected_gram(A, B, s, *, N, x0_std, data, sigma_u=SIGMA_U):
     """E[Z Z^T] of N rollouts: the covariance of x_k propagated step by step."""
     n, m = B.shape
     X = x0_std**2 * np.eye(n)
@@ -66,8 +70,8 @@ def _expected_gram(A, B, s, *, N, x0_std, data):
     for k in range(T0):
         if k >= k0:
             out[:n, :n] += X
-            out[n:, n:] += SIGMA_U**2 * np.eye(m)
-        X = A @ X @ A.T + SIGMA_U**2 * B @ B.T + s**2 * np.eye(n)
+            out[n:, n:] += sigma_u**2 * np.eye(m)
+        X = A @ X @ A.T + sigma_u**2 * B @ B.T + s**2 * np.eye(n)
     return N * out
 
 
@@ -159,3 +163,72 @@ def test_bootstrap_boxes_have_the_same_law_under_both_draws(loss_scale):
             assert stats.ks_2samp(a, b).pvalue > 1e-3
             se = np.hypot(a.std(), b.std()) / np.sqrt(R)
             assert abs(a.mean() - b.mean()) <= 5 * se
+
+
+# ---------------------------------------------------------------------------
+# the data of a simulated job
+# ---------------------------------------------------------------------------
+SYSTEM = resolve_system(
+    {"name": "wishart-2x1", "A": A1.tolist(), "B": B1.tolist(), "sigma_u": SIGMA_U}
+)
+
+
+def _data(N, draws, *, R, x0_std=0.0, data="all"):
+    keys = [seed_key(0, 0, N, r) for r in range(R)]
+    return gram_data(
+        SYSTEM, S1, N, T0, seed=2, keys=keys, data=data, x0_std=x0_std, keep_data=True, draws=draws
+    )
+
+
+@pytest.mark.parametrize("x0_std,data", [(0.0, "all"), (0.9, "final")])
+def test_wishart_data_have_the_rollouts_law(x0_std, data):
+    N, R = 40, 3000
+    Gr, Pr, _, _ = _data(N, "rollouts", R=R, x0_std=x0_std, data=data)
+    Gw, Pw, Zw, Fw = _data(N, "wishart", R=R, x0_std=x0_std, data=data)
+    K = T0 - 1 if data == "all" else 1
+    q = noise_dim(n=2, m=1, T0=T0, x0_std=x0_std)
+    assert Zw.shape == (R, 3, K * q) and Fw.shape == (R, 2, K * q)  # q < N pseudo-rollouts
+    np.testing.assert_allclose(Zw @ np.swapaxes(Zw, -1, -2), Gw, rtol=1e-12)
+    exact = _expected_gram(A1, B1, S1, N=N, x0_std=x0_std, data=data)
+    for G in (Gr, Gw):
+        assert np.all(np.abs(G.mean(axis=0) - exact) <= 5 * G.std(axis=0) / np.sqrt(R) + 1e-9)
+    for i, j in ((0, 0), (1, 2), (0, 1)):
+        assert stats.ks_2samp(Gr[:, i, j], Gw[:, i, j]).pvalue > 1e-3
+    for i, j in ((0, 0), (1, 2)):
+        assert stats.ks_2samp(Pr[:, i, j], Pw[:, i, j]).pvalue > 1e-3
+
+
+def test_wishart_data_at_most_the_noise_dimension_are_the_rollouts():
+    q = noise_dim(n=2, m=1, T0=T0, x0_std=0.0)
+    for N in (2, q):
+        for a, b in zip(_data(N, "rollouts", R=5), _data(N, "wishart", R=5)):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_records_have_the_same_law_under_both_draws():
+    """Estimates, the sound box and the bootstrap with the residual noise level (its
+    N0 is the real sample count, not the pseudo-rollouts' columns) agree in law."""
+    base = {
+        "systems": [SYSTEM.to_dict()],
+        "sigma_w": [S1],
+        "N": [60],
+        "T0": T0,
+        "reps": 300,
+        "gamma": [0.5],
+        "estimators": ["ols", "svr"],
+        "loss_scale": "mean",
+        "seed": 8,
+    }
+    fields = ("rmse_A", "rmse_B", "r_A", "eps_A", "eps_B")
+    for bounds in (
+        {"bounds_method": "self-normalized"},
+        {"bounds_method": "bootstrap", "boot_reps": 20},
+    ):
+        recs = {}
+        for draws in ("rollouts", "wishart"):
+            spec = parse_spec({**base, **bounds, "draws": draws})
+            recs[draws] = [r for batch in run_spec(spec) for r in batch]
+        for est in ("ols", "svr"):
+            for f in fields:
+                a, b = ([r[f] for r in recs[d] if r["estimator"] == est] for d in recs)
+                assert stats.ks_2samp(a, b).pvalue > 1e-3, (bounds, est, f)
