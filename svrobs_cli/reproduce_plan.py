@@ -119,15 +119,14 @@ def normals_drawn(specs: dict[str, dict], groups: list[Group]) -> dict[str, int]
             total = 0
             for x in s.systems:
                 n, m, p = x.n, x.m, x.p
-                per_N = (m + n) * s.T0 + (n if s.x0_std > 0 else 0)
-                sumN = sum(s.N)
+                # random numbers of one dataset per N, summed over the N grid
+                per_set = resample_draws(
+                    np.array(s.N), n=n, m=m, T0=s.T0, x0_std=s.x0_std, draws=s.draws
+                )
+                per_set = int(per_set.sum())
                 if name == g.parent:
-                    total += len(s.sigma_w) * s.reps * per_N * sumN
+                    total += len(s.sigma_w) * s.reps * per_set
                 if s.bounds_method == "bootstrap":
-                    per_set = resample_draws(
-                        np.array(s.N), n=n, m=m, T0=s.T0, x0_std=s.x0_std, draws=s.draws
-                    )
-                    per_set = int(per_set.sum())
                     total += len(s.sigma_w) * s.reps * s.boot_reps * per_set
                 if s.has("cost"):
                     mc = min(s.reps, mc_limit(s))
