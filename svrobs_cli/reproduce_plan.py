@@ -13,7 +13,7 @@ import numpy as np
 
 from svrobs_core import parse_spec
 from svrobs_core.pipeline import shares_data
-from svrobs_core.resample_wishart import resample_draws
+from svrobs_core.wishart_draws import dataset_draws
 
 
 class ReproduceError(Exception):
@@ -120,7 +120,7 @@ def normals_drawn(specs: dict[str, dict], groups: list[Group]) -> dict[str, int]
             for x in s.systems:
                 n, m, p = x.n, x.m, x.p
                 # random numbers of one dataset per N, summed over the N grid
-                per_set = resample_draws(
+                per_set = dataset_draws(
                     np.array(s.N), n=n, m=m, T0=s.T0, x0_std=s.x0_std, draws=s.draws
                 )
                 per_set = int(per_set.sum())

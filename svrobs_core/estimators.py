@@ -255,7 +255,7 @@ def svr_from_gram(
         denom = lam[..., None, None, :] + g[:, None, None]  # (..., G, 1, d)
         theta = np.matmul(P[..., None, :, :] / denom, np.swapaxes(V, -1, -2)[..., None, :, :])
     theta = np.where(ok[..., None, None, None], theta, np.nan)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         kappa = (lam[..., -1:] + g) / (lam[..., :1] + g)  # (..., G)
     kappa = np.where(ok[..., None], kappa, np.nan)
     bad = ok[..., None] & ~(kappa <= SVR_COND_LIMIT)
@@ -327,7 +327,7 @@ def ridge_qr(
     if not return_cond:
         return theta
     s = np.linalg.svd(Rg, compute_uv=False)
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", over="ignore"):  # cond beyond the double range: inf
         return theta, (s[..., 0] / s[..., -1]) ** 2
 
 

@@ -30,7 +30,7 @@ stability (docs/uncertainty.md):
 
 Every experiment draws its datasets (and A2 its resamples) as Wishart scatter
 matrices (``draws = "wishart"``, docs/science.md#15-wishart-draws): the law
-of every record is that of the paper's rollouts, at a tenth of the draws.
+of every record is that of the paper's rollouts, at a third of the draws.
 
 A1 and A2 share E2's data, so ``svrobs reproduce`` computes them in E2's
 pass over the data (docs/performance.md#one-pass).

@@ -6,15 +6,15 @@ so a repetition's numbers do not depend on how the grid is batched.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from .array_types import Array, FloatArray, IntArray
-from .resample_wishart import DEFAULT_DRAWS, WishartDraw, resample_columns
 from .seeding import DEFAULT_RNG, generators
 from .systems import SystemSpec
+from .wishart_draws import DEFAULT_DRAWS, filler
 
 
 # ---------------------------------------------------------------------------
@@ -170,7 +170,7 @@ def gram_data(
 
     With ``draws="wishart"`` and N above the noise dimension q, each key's
     N rollouts are q pseudo-rollouts whose statistics have their law
-    (:class:`svrobs_core.resample_wishart.WishartDraw`,
+    (:class:`svrobs_core.wishart_draws.WishartDraw`,
     docs/science.md#15-wishart-draws): Z and F then have K q columns, and the
     sample count is still K N.
     """
@@ -181,11 +181,7 @@ def gram_data(
     R = len(keys)
     k0 = 1 if data == "all" else T0 - 1
     K = T0 - k0
-    Nc = int(resample_columns(N, n=n, m=m, T0=T0, x0_std=x0_std, draws=draws))
-    fill: Callable[[np.random.Generator, FloatArray, FloatArray, float], bool] = (
-        _draw if Nc == N else WishartDraw(Nc, N)
-    )
-    N = Nc  # the columns simulated from here on
+    N, fill = filler(N, _draw, n=n, m=m, T0=T0, x0_std=x0_std, draws=draws)  # simulated columns
     G = np.empty((R, d, d))
     P = np.empty((R, n, d))
     Z = np.empty((R, d, K * N)) if keep_data else None
@@ -234,7 +230,7 @@ def resampled_grams(
     data: str = "all",
     x0_std: float = 0.0,
     rng: str = DEFAULT_RNG,
-    draws: str = "rollouts",
+    draws: str = DEFAULT_DRAWS,
     chunk_bytes: int = CHUNK_BYTES,
 ) -> Iterator[tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray]]:
     """Datasets of several systems on shared noise, as sufficient statistics, by chunks.
@@ -248,7 +244,7 @@ def resampled_grams(
     the same shape, so a dataset's bits do not depend on the chunk).
 
     With ``draws="wishart"`` and N above the noise dimension q, a dataset's
-    N rollouts are replaced by the q pseudo-rollouts of :class:`svrobs_core.resample_wishart.WishartDraw`:
+    N rollouts are replaced by the q pseudo-rollouts of :class:`svrobs_core.wishart_draws.WishartDraw`:
     G and W have the same joint law, at q instead of N columns
     (docs/uncertainty.md#how-the-resamples-are-drawn).
 
@@ -256,7 +252,7 @@ def resampled_grams(
     (h, E, d, d), ``W = sum_k w_k z_k^T`` (h, E, n, d) over the regression
     columns (so that ``F Z^T = [A_e B_e] G + s_e W``) and the regression data
     ``Z`` (h, E, d, K Nc), ``F`` (h, E, n, K Nc) of the Nc
-    (:func:`resample_columns`) simulated columns, as views into the chunk's
+    (:func:`dataset_columns`) simulated columns, as views into the chunk's
     buffer (valid until the next chunk is requested).
     """
     systems = np.asarray(systems, dtype=float)
@@ -267,10 +263,7 @@ def resampled_grams(
     D = len(keys)
     k0 = 1 if data == "all" else T0 - 1
     K = T0 - k0
-    Nc = int(resample_columns(N, n=n, m=m, T0=T0, x0_std=x0_std, draws=draws))
-    fill: Callable[[np.random.Generator, FloatArray, FloatArray, float], bool] = (
-        _draw if Nc == N else WishartDraw(Nc, N)
-    )
+    Nc, fill = filler(N, _draw, n=n, m=m, T0=T0, x0_std=x0_std, draws=draws)
     per_set = 8 * Nc * (E * q * (T0 + 1) + 2 * E * d * d)
     c = int(max(1, min(D, chunk_bytes // per_set)))
     Y = np.zeros((c, E, q, T0 + 1, Nc))

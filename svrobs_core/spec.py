@@ -14,10 +14,10 @@ from dataclasses import MISSING, dataclass, field, fields
 from typing import Any, cast
 
 from .errors import SpecError, unknown_field
-from .resample_wishart import DEFAULT_DRAWS, DRAWS
 from .seeding import DEFAULT_RNG, RNGS
 from .system_batch import resolve_systems
 from .systems import MAX_DIM, SystemSpec
+from .wishart_draws import DEFAULT_DRAWS, DRAWS
 
 ESTIMATORS = ("ols", "svr", "shrunk-ols")
 BOUNDS_METHODS = ("paper", "self-normalized", "bootstrap")

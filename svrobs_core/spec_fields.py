@@ -23,7 +23,6 @@ from .measured.spec import BOUNDS_METHOD as DATASET_BOUNDS_METHOD
 from .measured.spec import SPEC_FIELDS as DATASET_SPEC_KEYS
 from .measured.spec import DatasetOptions
 from .parsing import parse_spec
-from .resample_wishart import DRAWS
 from .seeding import RNGS
 from .spec import (
     BOOT_SIGMA_SOURCES,
@@ -41,6 +40,7 @@ from .spec import (
     STAGES,
 )
 from .systems import PRESETS
+from .wishart_draws import DRAWS
 
 REQUIRED = object()  # the default of a field the spec must give
 

@@ -472,16 +472,17 @@ def bootstrap_box(
             )
     dev = dev_b.reshape(R, Bn, E, n, d).transpose(0, 2, 1, 3, 4)
     level = 1.0 - float(delta)
-    eps_A = np.quantile(_spectral_norm(dev[..., :n]), level, axis=-1)
-    eps_B = np.quantile(_spectral_norm(dev[..., n:]), level, axis=-1)
-    a = np.abs(dev)
-    if joint:
-        scale = np.sqrt(np.mean(dev**2, axis=2))  # (R, E, n, d)
-        with np.errstate(divide="ignore", invalid="ignore"):
+    # resamples beyond the double range give inf / NaN radii: not finite, so no certificate
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        eps_A = np.quantile(_spectral_norm(dev[..., :n]), level, axis=-1)
+        eps_B = np.quantile(_spectral_norm(dev[..., n:]), level, axis=-1)
+        a = np.abs(dev)
+        if joint:
+            scale = np.sqrt(np.mean(dev**2, axis=2))  # (R, E, n, d)
             t = np.where(a > 0, a / scale[:, :, None], 0.0).max(axis=(-2, -1))
-        Rad = np.quantile(t, level, axis=-1)[..., None, None] * scale
-    else:
-        Rad = np.quantile(a, level, axis=2)
+            Rad = np.quantile(t, level, axis=-1)[..., None, None] * scale
+        else:
+            Rad = np.quantile(a, level, axis=2)
     bad = ~good
     Rad = np.where(bad[..., None, None], np.nan, Rad)
     eps_A, eps_B = np.where(bad, np.nan, eps_A), np.where(bad, np.nan, eps_B)

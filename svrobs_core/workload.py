@@ -68,7 +68,6 @@ from .data_factor import EXT_MAX_WORK
 from .errors import SpecError
 from .estimators import FALLBACK_CHUNK_BYTES
 from .measured.workload import measured_unit, need_data
-from .resample_wishart import resample_columns, resample_draws
 from .spec import ExperimentSpec
 from .system_kinds import (
     Kind,
@@ -81,6 +80,7 @@ from .system_kinds import (
     system_table,
 )
 from .uncertainty import BOOT_CHUNK_BYTES
+from .wishart_draws import dataset_columns, dataset_draws
 
 
 def _floor(x: FloatArray) -> FloatArray:
@@ -189,7 +189,7 @@ def _bootstrap(
         "x0_std": spec.x0_std,
         "draws": spec.draws,
     }
-    Nc, draws = resample_columns(N, **shape), resample_draws(N, **shape)
+    Nc, draws = dataset_columns(N, **shape), dataset_draws(N, **shape)
     per_set = 8.0 * Nc * (E * (n * (T0 + 1) + (d + n) * K + m * T0) + (n + m) * T0 + n)
     chunks = _ceil(sets / np.maximum(1, _floor(BOOT_CHUNK_BYTES / per_set)))
     ols = sum(1 for e in spec.estimators if e != "svr")

@@ -16,10 +16,10 @@ from scipy import stats
 
 from svrobs_core import parse_spec, run_spec
 from svrobs_core import uncertainty as unc
-from svrobs_core.resample_wishart import noise_dim, resample_columns
 from svrobs_core.rollouts import gram_data, resampled_grams
 from svrobs_core.seeding import seed_key
 from svrobs_core.systems import resolve_system
+from svrobs_core.wishart_draws import dataset_columns, noise_dim
 
 # A 2-state, 1-input system used only here, and a second one driven by the same noise.
 A1 = np.array([[0.7, 0.2], [-0.1, 0.5]])
@@ -96,7 +96,7 @@ def test_bartlett_factor_has_the_wishart_law():
             )
         ]
     )
-    assert resample_columns(N, n=1, m=1, T0=T0, x0_std=0.0, draws="wishart") == 6 < N
+    assert dataset_columns(N, n=1, m=1, T0=T0, x0_std=0.0, draws="wishart") == 6 < N
     # x_k = 0, so G = [[0, 0], [0, u_1^2 + u_2^2]] summed over the rollouts: chi^2(2 N)
     assert np.all(G[:, 0, :] == 0)
     u2 = G[:, 1, 1]
@@ -109,7 +109,7 @@ def test_bartlett_factor_has_the_wishart_law():
 @pytest.mark.parametrize("x0_std,data", [(0.0, "all"), (0.9, "final")])
 def test_wishart_grams_have_the_rollouts_law(x0_std, data):
     N, D = 40, 3000
-    assert resample_columns(N, n=2, m=1, T0=T0, x0_std=x0_std, draws="wishart") == noise_dim(
+    assert dataset_columns(N, n=2, m=1, T0=T0, x0_std=x0_std, draws="wishart") == noise_dim(
         n=2, m=1, T0=T0, x0_std=x0_std
     )
     Gr, Wr = _grams(N, "rollouts", D=D, x0_std=x0_std, data=data)

@@ -1,14 +1,15 @@
-"""Resampled datasets drawn as Wishart scatter matrices
-(docs/uncertainty.md#how-the-resamples-are-drawn, docs/performance.md#wishart-draws).
+"""Datasets and bootstrap resamples drawn as Wishart scatter matrices
+(docs/science.md#15-wishart-draws, docs/performance.md#wishart-draws).
 
-Every bootstrap statistic of a resample of N rollouts depends on their noise
-only through its scatter matrix, so above the noise dimension q the N rollouts
-are replaced by the q columns of Bartlett's factor of that matrix: the same
-law, at q columns and q (q + 1) / 2 random numbers.
+Every statistic the service computes from a dataset of N rollouts depends on
+their noise only through its scatter matrix, so above the noise dimension q the
+N rollouts are replaced by the q columns of Bartlett's factor of that matrix:
+the same law, at q columns and q (q + 1) / 2 random numbers.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -26,20 +27,20 @@ def noise_dim(*, n: int, m: int, T0: int, x0_std: float) -> int:
     return (m + n) * T0 + (n if x0_std > 0 else 0)
 
 
-def resample_columns(N: Any, *, n: int, m: int, T0: int, x0_std: float, draws: str) -> Any:
-    """Columns simulated per resampled dataset of N rollouts (N an int or an array):
+def dataset_columns(N: Any, *, n: int, m: int, T0: int, x0_std: float, draws: str) -> Any:
+    """Columns simulated per dataset (or resample) of N rollouts (N an int or an array):
     N, or with ``"wishart"`` at most the noise dimension (:class:`WishartDraw`)."""
     if draws == "rollouts":
         return N
     return np.minimum(N, noise_dim(n=n, m=m, T0=T0, x0_std=x0_std))
 
 
-def resample_draws(N: Any, *, n: int, m: int, T0: int, x0_std: float, draws: str) -> Any:
-    """Random numbers one resampled dataset of N rollouts draws (N an int or an array):
+def dataset_draws(N: Any, *, n: int, m: int, T0: int, x0_std: float, draws: str) -> Any:
+    """Random numbers one dataset (or resample) of N rollouts draws (N an int or an array):
     q N, or with ``"wishart"`` above q = :func:`noise_dim` the q (q + 1) / 2 of
     :class:`WishartDraw`."""
     q = noise_dim(n=n, m=m, T0=T0, x0_std=x0_std)
-    Nc = resample_columns(N, n=n, m=m, T0=T0, x0_std=x0_std, draws=draws)
+    Nc = dataset_columns(N, n=n, m=m, T0=T0, x0_std=x0_std, draws=draws)
     return np.where(Nc < N, q * (q + 1) // 2, q * np.asarray(N))
 
 
@@ -47,7 +48,7 @@ class WishartDraw:
     """One key's pseudo-noise: q columns whose scatter matrix has the law of N rollouts'.
 
     With xi_r (q) the standard normals of rollout r (:func:`noise_dim`), every
-    statistic of the bootstrap is a function of S = sum_r xi_r xi_r^T ~ Wishart(I_q, N).
+    statistic of the data is a function of S = sum_r xi_r xi_r^T ~ Wishart(I_q, N).
     Bartlett's decomposition draws S = L L^T directly (N >= q): in this order,
     L_ii^2 ~ chi^2(N - i) for i = 0..q-1, then the strictly lower entries ~ N(0, 1) in
     row-major order. The columns of L are the pseudo-rollouts, rows laid out as
@@ -76,3 +77,15 @@ class WishartDraw:
             x0b[...] = L[:k]
         draw[...] = L[k:].reshape(draw.shape)
         return k > 0
+
+
+Fill = Callable[[np.random.Generator, FloatArray, FloatArray, float], bool]
+
+
+def filler(
+    N: int, fill: Fill, *, n: int, m: int, T0: int, x0_std: float, draws: str
+) -> tuple[int, Fill]:
+    """(columns, fill function) of a dataset of N rollouts: N and the rollouts'
+    ``fill``, or with ``"wishart"`` above q the q columns of a :class:`WishartDraw`."""
+    Nc = int(dataset_columns(N, n=n, m=m, T0=T0, x0_std=x0_std, draws=draws))
+    return Nc, (fill if Nc == N else WishartDraw(Nc, N))
