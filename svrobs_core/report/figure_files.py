@@ -12,6 +12,7 @@ embeds its TrueType fonts."""
 from __future__ import annotations
 
 import io
+import os
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -81,6 +82,20 @@ def _plain_text(fig: Figure) -> None:
 
 
 _parsers = threading.local()
+
+
+def _forget_parsers() -> None:
+    """In a forked child: parsers of its own. A parse the parent cached holds the
+    parent's FreeType fonts, whose font files the child shares with it (one file
+    offset for both processes), so two processes drawing its glyphs at once read
+    each other's bytes ("FT_Load_Glyph ... invalid outline"). matplotlib forgets its
+    own fonts at a fork in the same way."""
+    global _parsers
+    _parsers = threading.local()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_parsers)
 
 
 def _mathtext_parser() -> MathTextParser[VectorParse]:

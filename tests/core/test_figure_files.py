@@ -126,6 +126,36 @@ def test_each_thread_draws_with_its_own_mathtext_parser():
     assert there and there[0] is not here and figure_files._mathtext_parser() is here
 
 
+def test_a_forked_child_draws_with_parsers_of_its_own():
+    """The parent's parser (its cached parses hold fonts whose file offset a forked
+    child would share) is not the child's; the child's parser draws the same pixels."""
+    import os
+
+    from svrobs_core.report import figure_files
+
+    fig = _log_figure()  # mathtext tick labels
+    want = figure_files.figure_bytes(fig, "png")
+    here = figure_files._mathtext_parser()
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: report by its exit code, never return into pytest
+        code = 1
+        try:
+            fresh = getattr(figure_files._parsers, "parser", None) is None
+            mine = figure_files._mathtext_parser() is not here
+            same = figure_files.figure_bytes(fig, "png") == want
+            code = 0 if fresh and mine and same else 2
+        finally:
+            os.write(write, bytes([code]))
+            os._exit(0)
+    os.close(write)
+    got = os.read(read, 1)
+    os.waitpid(pid, 0)
+    os.close(read)
+    assert got == bytes([0])
+    assert figure_files._mathtext_parser() is here
+
+
 def test_an_unpickled_figure_at_an_inexact_width_gives_the_same_png():
     """12.7 cm at 200 dpi is 999.99... pixels in floating point: the size comes from
     the renderer, also for a Figure that lost its Agg canvas in a pickle."""
