@@ -106,8 +106,14 @@ def _serving(tmp_path, port, *args: str):
         _stop(proc)
 
 
-def test_serve_first_start_prints_key_and_ctrl_c_stops_everything(tmp_path):
-    port = free_port()
+def test_serve_from_first_start_to_ctrl_c_and_the_next_start(tmp_path):
+    """One state folder through its life (each start of ``svrobs serve`` costs seconds):
+    the first start prints the key box on ``--host`` / ``--port`` and the API takes
+    that key; ``make run`` again while it runs (the same port, or another one as the
+    port message suggests) is one line naming the running one, and the stack keeps its
+    worker's pid file and stays ready; Ctrl-C stops every child; the next start on the
+    freed folder prints no new key."""
+    port, other = free_port(), free_port()
     with _serving(tmp_path, port, "--host", "127.0.0.1", "--port", str(port)) as (proc, log, text):
         key = re.search(r"(svr_[a-z0-9]{8}_\S+)", text).group(1)
         assert f"svrobs is running: open http://127.0.0.1:{port}/" in text
@@ -118,10 +124,41 @@ def test_serve_first_start_prints_key_and_ctrl_c_stops_everything(tmp_path):
         assert r.status_code == 200, r.text
         pids = _child_pids(text)
         assert set(pids) == {"api", "worker1", "beat"}
+        pid_files = sorted((tmp_path / "var" / "run").glob("*.pid"))
+        assert pid_files, log.read_text()
+        for p in (port, other):
+            second = subprocess.Popen(
+                [sys.executable, "-m", "svrobs_cli", "serve", "--port", str(p)],
+                cwd=str(ROOT),
+                env=_serve_env(tmp_path),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                start_new_session=True,
+            )
+            try:
+                out, err = second.communicate(timeout=60)
+            except subprocess.TimeoutExpired:
+                _stop(second)
+                raise AssertionError(f"a second serve on port {p} started") from None
+            assert second.returncode == 2, out + err
+            assert err.strip() == (
+                f"error: svrobs serve already runs on the state folder {tmp_path / 'var'} "
+                f"(pid {proc.pid}, http://127.0.0.1:{port}); use that one, or stop it "
+                "(Ctrl-C in its terminal) before starting another"
+            )
+            assert out == ""
+        assert sorted((tmp_path / "var" / "run").glob("*.pid")) == pid_files
+        assert _readyz(port) == 200
         os.kill(proc.pid, signal.SIGINT)  # what Ctrl-C sends
         assert proc.wait(40) == 0, log.read_text()
         time.sleep(0.5)
         assert not [n for n, p in pids.items() if _alive(p)], log.read_text()
+    # stopped: the folder is free for the next start, which prints no new key
+    with _serving(tmp_path, other) as (_proc, _log, text):
+        assert f"http://127.0.0.1:{other}/" in text
+        assert "svr_" not in text.replace("svr_...", "")
+        assert "admin API key: printed on first start" in text
 
 
 @pytest.mark.faults  # kills a worker: `make test-faults`
@@ -172,15 +209,6 @@ def test_a_killed_worker_is_restarted_and_readyz_says_so(tmp_path):
         assert not [p for p in [*pids.values(), new_worker] if _alive(p)], log.read_text()
 
 
-def test_second_start_prints_no_new_key(tmp_path):
-    port = free_port()
-    with _serving(tmp_path, port) as (_proc, _log, first):
-        assert "svr_" in first
-    with _serving(tmp_path, port) as (_proc, _log, text):
-        assert "svr_" not in text.replace("svr_...", "")
-        assert "admin API key: printed on first start" in text
-
-
 def test_a_port_in_use_is_one_line_and_starts_nothing(tmp_path):
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
@@ -200,40 +228,3 @@ def test_a_port_in_use_is_one_line_and_starts_nothing(tmp_path):
     )
     assert run.stdout == ""  # nothing migrated, nothing started
     assert not (tmp_path / "var").exists()
-
-
-def test_a_second_serve_on_the_same_state_folder_is_one_line_and_starts_nothing(tmp_path):
-    """``make run`` again (the same port, or another one as the port message suggests)
-    while one runs from the same folder: one line naming the running one; the first
-    stack keeps its worker's pid file and stays ready."""
-    port, other = free_port(), free_port()
-    with _serving(tmp_path, port) as (proc, log, _text):
-        pid_files = sorted((tmp_path / "var" / "run").glob("*.pid"))
-        assert pid_files, log.read_text()
-        for p in (port, other):
-            second = subprocess.Popen(
-                [sys.executable, "-m", "svrobs_cli", "serve", "--port", str(p)],
-                cwd=str(ROOT),
-                env=_serve_env(tmp_path),
-                stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE,
-                text=True,
-                start_new_session=True,
-            )
-            try:
-                out, err = second.communicate(timeout=60)
-            except subprocess.TimeoutExpired:
-                _stop(second)
-                raise AssertionError(f"a second serve on port {p} started") from None
-            assert second.returncode == 2, out + err
-            assert err.strip() == (
-                f"error: svrobs serve already runs on the state folder {tmp_path / 'var'} "
-                f"(pid {proc.pid}, http://127.0.0.1:{port}); use that one, or stop it "
-                "(Ctrl-C in its terminal) before starting another"
-            )
-            assert out == ""
-        assert sorted((tmp_path / "var" / "run").glob("*.pid")) == pid_files
-        assert _readyz(port) == 200
-    # stopped: the folder is free for the next start
-    with _serving(tmp_path, other) as (_proc, _log, text):
-        assert f"http://127.0.0.1:{other}/" in text
