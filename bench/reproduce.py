@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/reproduce.py [--scale full|reduced] [--jobs N] [--out DIR]
                                         [--only E1,E2] [--rng pcg64|sfc64]
+                                        [--draws wishart|rollouts]
                                         [--naive] [--naive-reps 2] [--naive-runs 10]
 
 1. Measures this machine's rate of normal random numbers (numpy's
@@ -47,6 +48,7 @@ from svrobs_core import parse_spec
 from svrobs_core.observer_stages import truth
 from svrobs_core.paper import paper_specs
 from svrobs_core.seeding import MC_STREAM, RNGS, rng_for, seed_key
+from svrobs_core.wishart_draws import DRAWS
 
 
 # ---------------------------------------------------------------------------
@@ -345,6 +347,7 @@ def main():
     ap.add_argument("--out", default=None, help="output folder (default: a temporary one)")
     ap.add_argument("--only", default=None, help="experiments, e.g. E1,E2 (default: all)")
     ap.add_argument("--rng", default=None, choices=sorted(RNGS), help="default: the preset's")
+    ap.add_argument("--draws", default=None, choices=DRAWS, help="default: the preset's")
     ap.add_argument("--naive", action="store_true", help="also time the naive baseline")
     ap.add_argument("--naive-reps", type=int, default=2)
     ap.add_argument("--naive-runs", type=int, default=10)
@@ -365,7 +368,15 @@ def main():
         tmp = tempfile.TemporaryDirectory(prefix="svrobs-bench-")
         out = tmp.name
     t0, c0 = time.perf_counter(), time.process_time()
-    reproduce(out, scale=args.scale, quiet=True, n_jobs=args.jobs, only=args.only, rng=args.rng)
+    reproduce(
+        out,
+        scale=args.scale,
+        quiet=True,
+        n_jobs=args.jobs,
+        only=args.only,
+        rng=args.rng,
+        draws=args.draws,
+    )
     wall = time.perf_counter() - t0
     cpu_parent = time.process_time() - c0
     ch = resource.getrusage(resource.RUSAGE_CHILDREN)

@@ -170,21 +170,27 @@ def reproduce_command(
     rng: str = typer.Option(
         None, "--rng", help="generator of every draw: pcg64 (the preset's) or sfc64 (faster)"
     ),
+    draws: str = typer.Option(
+        None, "--draws", help="datasets drawn as wishart (the preset's) or rollouts (same law)"
+    ),
     jobs: int = typer.Option(None, "--jobs", help="worker processes (default: CPUs)"),
     quiet: bool = typer.Option(False, "--quiet"),
 ) -> None:
     """The paper's Section 6 (E1-E4) and the audits A1, A2 in process: tables, figures, report.md."""
     from svrobs_cli.reproduce import ReproduceError, reproduce
     from svrobs_core.seeding import RNGS
+    from svrobs_core.wishart_draws import DRAWS
 
     if scale not in ("full", "reduced"):
         raise CliError("--scale must be 'full' or 'reduced'")
     if rng is not None and rng not in RNGS:
         raise CliError(f"--rng must be one of {', '.join(sorted(RNGS))}")
+    if draws is not None and draws not in DRAWS:
+        raise CliError(f"--draws must be one of {', '.join(DRAWS)}")
     if jobs is not None and jobs < 1:
         raise CliError("--jobs must be >= 1")
     try:
-        reproduce(out, scale=scale, quiet=quiet, only=only, rng=rng, n_jobs=jobs)
+        reproduce(out, scale=scale, quiet=quiet, only=only, rng=rng, draws=draws, n_jobs=jobs)
     except ReproduceError as exc:
         raise CliError(f"reproduce: {exc}") from None
     typer.echo(f"report -> {out}/report.md")

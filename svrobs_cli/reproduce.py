@@ -351,19 +351,22 @@ def reproduce(
     n_jobs: int | None = None,
     only=None,
     rng: str | None = None,
+    draws: str | None = None,
 ) -> dict:
     """Run the preset ``paper-section-6`` in process and write tables, figures, report.
 
     ``only``: experiment names (list or "E1,E2") to run, default all;
     ``rng``: the generator of every experiment (default the preset's);
+    ``draws``: how every experiment draws its datasets (default the preset's,
+    ``"wishart"``; docs/science.md#15-wishart-draws);
     ``n_jobs``: worker processes for the pipeline (default: the machine's CPU
     count); the records are the same to the bit for any value.
     Returns ``{"out", "records": {exp: n}, "files": [...], "seconds"}``.
     """
     out = Path(out_dir)
     specs = select_experiments(paper_specs(scale), only)
-    if rng is not None:
-        specs = {n: {**s, "rng": rng} for n, s in specs.items()}
+    over = {k: v for k, v in (("rng", rng), ("draws", draws)) if v is not None}
+    specs = {n: {**s, **over} for n, s in specs.items()}
     out.mkdir(parents=True, exist_ok=True)
     groups = plan(specs, derive)
     console = Console(stderr=True)

@@ -86,6 +86,7 @@ def write_report(run: FinishedRun, builder, console, quiet) -> dict:
         "worker_cpu_seconds": {n: round(results[n]["cpu_seconds"], 3) for n in specs},
         "normals": normals_drawn(specs, groups),
         "rng": {n: parse_spec(specs[n]).rng for n in specs},
+        "draws": {n: parse_spec(specs[n]).draws for n in specs},
         "n_jobs": run.n_jobs,
         "monte_carlo": {
             n: {

@@ -651,6 +651,7 @@ def test_report_contents(reproduced):
     assert prov["derived_from"] == {"E1": "E2", "E3": "E4"}
     assert prov["shares_data_of"] == {"A1": "E2", "A2": "E2"}
     assert set(prov["normals"]) == set(paper_specs("reduced")) and prov["normals"]["E1"] == 0
+    assert prov["draws"] == dict.fromkeys(paper_specs("reduced"), "wishart")
 
 
 def test_cli_reproduce_runs_a_subset_and_refuses_unknown_names(tmp_path):
@@ -659,7 +660,7 @@ def test_cli_reproduce_runs_a_subset_and_refuses_unknown_names(tmp_path):
 
     cmd = [sys.executable, "-m", "svrobs_cli", "reproduce", "--scale", "reduced", "--quiet"]
     done = subprocess.run(
-        [*cmd, "--only", "E1", "--jobs", "1", "--out", str(tmp_path / "t2")],
+        [*cmd, "--only", "E1", "--jobs", "1", "--draws", "rollouts", "--out", str(tmp_path / "t2")],
         capture_output=True,
         text=True,
         timeout=600,
@@ -668,6 +669,7 @@ def test_cli_reproduce_runs_a_subset_and_refuses_unknown_names(tmp_path):
     assert sorted(p.name for p in (tmp_path / "t2").iterdir() if p.is_dir()) == ["E1"]
     prov = json.loads((tmp_path / "t2" / "provenance.json").read_text())
     assert prov["experiments"] == ["E1"] and prov["records"]["E1"] == 2 * 3 * 3 * 3 * 2
+    assert prov["draws"] == {"E1": "rollouts"}  # the preset's "wishart", overridden
     assert not list((tmp_path / "t2" / "E1").glob(".parts*"))
     md = (tmp_path / "t2" / "report.md").read_text()  # E1 has no cost and no gain stage:
     for title, needs in (("Fig. 4", "delta_J"), ("Fig. 5", "J_exact")):  # not drawn, said
@@ -684,3 +686,6 @@ def test_cli_reproduce_runs_a_subset_and_refuses_unknown_names(tmp_path):
     assert bad.stderr.strip().splitlines() == [
         "error: reproduce: --only: unknown experiment E9; the preset has E1, E2, E3, E4, A1, A2"
     ]
+    bad = subprocess.run([*cmd, "--draws", "bartlett"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2
+    assert bad.stderr.strip().splitlines() == ["error: --draws must be one of rollouts, wishart"]
