@@ -230,12 +230,7 @@ def _full_specs() -> dict[str, dict[str, Any]]:
     }
     e4 = {**copy.deepcopy(e3), "systems": [STABLE, UNSTABLE], "mc_reps": 0}
     a1 = {**copy.deepcopy(e2), "bounds_method": "self-normalized"}
-    a2 = {
-        **copy.deepcopy(e2),
-        "N": list(AUDIT_N),
-        "bounds_method": "bootstrap",
-        "boot_reps": 100,
-    }
+    a2 = {**copy.deepcopy(e2), "N": list(AUDIT_N), "bounds_method": "bootstrap", "boot_reps": 100}
     return {"E1": e1, "E2": e2, "E3": e3, "E4": e4, "A1": a1, "A2": a2}
 
 

@@ -24,7 +24,7 @@ from .bounds import BoundsResult
 from .notes import Notes
 from .observer_stages import design, observer_stages, sls_stage
 from .planning import EstimatorAxis
-from .rollouts import gram_data
+from .rollouts import gram_data, sample_count
 from .seeding import seed_key
 from .spec import STAGES, ExperimentSpec
 from .stage_cells import Cells, StageCells
@@ -123,7 +123,7 @@ def run_dataset_variants(
         rng=spec.rng,
         draws=spec.draws,
     )
-    N0 = (spec.T0 - 1) * N if spec.data == "all" else N
+    N0 = sample_count(N, spec.T0, spec.data)
 
     def rows_data(rows: IntArray) -> tuple[FloatArray, FloatArray]:
         # the regression data of these reps, for the ill-conditioned SVR cells

@@ -78,6 +78,12 @@ def simulate(A: Array, B: Array, *, x0: Array, u: Array, w: Array) -> FloatArray
     return x
 
 
+def sample_count(N: int, T0: int, data: str = "all") -> int:
+    """N0 of a dataset of N rollouts: (T0-1) N for ``data="all"``, N for ``"final"``
+    (docs/science.md#13-regression-data-the-two-data-modes)."""
+    return (T0 - 1) * N if data == "all" else N
+
+
 def regression_data(x: Array, u: Array, data: str = "all") -> tuple[FloatArray, FloatArray]:
     """Regressors Z = [x_k; u_k] (R, n+m, N0) and targets F = x_{k+1} (R, n, N0).
 

@@ -36,7 +36,8 @@ from .data_factor import (
     v_parts,
 )
 from .linalg import perron_upper_bound, up
-from .rollouts import resampled_grams
+from .rollouts import resampled_grams, sample_count
+from .wishart_draws import DEFAULT_DRAWS
 
 __all__ = [
     "BOOT_STREAM",
@@ -404,7 +405,7 @@ def bootstrap_box(
     loss_scale: str = "sum",
     joint: bool = True,
     rng: str = "pcg64",
-    draws: str = "rollouts",
+    draws: str = DEFAULT_DRAWS,
 ) -> BoxResult:
     """Parametric bootstrap box
     (docs/uncertainty.md#e-the-parametric-bootstrap-dean-mania-matni-recht-tu-2020-alg-2).
@@ -438,7 +439,7 @@ def bootstrap_box(
     s_ok = np.where(good, sw, 0.0)
     systems = np.concatenate([th, s_ok[..., None, None] * np.eye(n)], axis=-1)  # (R, E, n, d+n)
     D = R * Bn
-    N0 = (T0 - 1 if data == "all" else 1) * int(N)
+    N0 = sample_count(int(N), T0, data)
     owner = np.arange(D) // Bn
     bkeys = [tuple(keys[r]) + BOOT_STREAM + (b,) for r in range(R) for b in range(Bn)]
     dev_b = np.empty((D, E, n, d))
