@@ -48,9 +48,9 @@ types: $(TEST_STAMP)
 run: $(RUNTIME_STAMP)
 	$(BIN)/svrobs serve $(if $(HOST),--host $(HOST)) $(if $(PORT),--port $(PORT))
 
-# three pytest-xdist workers on two cores: the integration tests spend much of their
-# time waiting on the processes they start (`make test TEST_WORKERS=2` to compare)
-TEST_WORKERS ?= 3
+# four pytest-xdist workers on two cores: the integration tests spend much of their
+# time waiting on the processes they start (`make test TEST_WORKERS=3` to compare)
+TEST_WORKERS ?= 4
 test: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadscope --ignore=tests/faults \
 		-m "not faults"

@@ -304,15 +304,15 @@ class ReportBuilder:
     def finish(self) -> Report:
         self._figures(final=True)
         experiments = {n: self.experiments[n] for n in self.names if n in self.experiments}
+        # the audit's figure first: it renders while the others are awaited
+        audit, a_findings, a_sources, a_fig = self._audit(experiments)
         t_src = _choose_source(experiments, self.cols, ("E1",), ("rmse_A",))
         rows = table2(self.cols[t_src], spec=experiments[t_src].get("spec")) if t_src else []
         figs: list[ReportFigure] = []
-        for i in sorted(self.figs):
-            fg, fut = self.figs[i]
+        for fg, fut in [self.figs[i] for i in sorted(self.figs)] + ([a_fig] if a_fig else []):
             if fut is not None:
                 fg.set_rendered(*fut.result())
             figs.append(fg)
-        audit, a_findings, a_sources = self._audit(experiments, figs)
         return Report(
             title=self.title or f"Reproduction of the paper's Section 6 ({PRESET_NAME})",
             experiments={n: self.exps[n] for n in experiments},
@@ -327,12 +327,13 @@ class ReportBuilder:
         )
 
     def _audit(
-        self, experiments: dict[str, dict[str, Any]], figs: list[ReportFigure]
-    ) -> tuple[list[dict[str, Any]], list[str], dict[str, str]]:
-        """The uncertainty-set audit when two or more bounds_methods ran."""
+        self, experiments: dict[str, dict[str, Any]]
+    ) -> tuple[list[dict[str, Any]], list[str], dict[str, str], tuple[ReportFigure, Any] | None]:
+        """The uncertainty-set audit when two or more bounds_methods ran: its rows,
+        findings, sources and figure (with its render's future, if rendered elsewhere)."""
         sources = audit_sources(experiments, self.cols)
         if len(sources) < 2:
-            return [], [], {}
+            return [], [], {}, None
         cols = {m: self.cols[n] for m, n in sources.items()}
         meta = spec_meta(experiments[next(iter(sources.values()))].get("spec"))
         rows = audit_rows(cols, meta.delta)
@@ -340,7 +341,6 @@ class ReportBuilder:
         fig = fig_bounds_audit(
             cols, meta.delta, experiment=_exp_label(label, self.provenance), seed=meta.seed
         )
-        rendered = None if self.render is None else self.render(fig).result()
         caption = (
             "Top: share of records with every entry of A and of B inside the method's box "
             "(linear axis), with the 1 − δ line; bottom: mean largest radius r_A (log axis). "
@@ -355,10 +355,8 @@ class ReportBuilder:
             " + ".join(sources.values()),
             fig,
         )
-        if rendered is not None:
-            fg.set_rendered(*rendered)
-        figs.append(fg)
-        return rows, audit_findings(rows, meta.delta), dict(sources)
+        fut = None if self.render is None else self.render(fig)
+        return rows, audit_findings(rows, meta.delta), dict(sources), (fg, fut)
 
 
 def _topics(name: str) -> bool:
