@@ -102,7 +102,7 @@ def fit_ols(
         theta = solve(np.matmul(F, Zt))
         for _ in range(REFINE_STEPS):
             theta = theta + solve(np.matmul(F - np.matmul(theta, Z), Zt))
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # inf: ill-conditioned
         cond = np.where(finite, lam[..., -1] / lam[..., 0], np.nan)
     if not ok.all():
         bad = finite & ~ok
@@ -149,7 +149,7 @@ def _fit_ols_qr(Z: FloatArray, F: FloatArray) -> tuple[FloatArray, FloatArray]:
     S = _normal_residual(Z[:, None], F[:, None], theta[:, None], [0.0])[:, 0]  # (b, n, d)
     dT = np.matmul(np.matmul(S, V) * (s_inv**2)[..., None, :], Vh)
     full = s.shape[-1] == d  # N0 >= d: R11 is square
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # inf: ill-conditioned
         cond = np.where(full & (s[..., -1] > cutoff[..., 0]), (s[..., 0] / s[..., -1]) ** 2, np.inf)
     return theta + dT, cond
 

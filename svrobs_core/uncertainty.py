@@ -237,7 +237,7 @@ def self_normalized_box(
         texts = np.empty(len(uniq), dtype=object)
         texts[:] = [reason_inaccurate(c, e) for c, e in uniq.tolist()]
         reason[inaccurate] = texts[inverse.reshape(-1)]
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):  # a norm beyond the doubles: > S
         over = ~ols & (np.linalg.norm(th, axis=-1).max(axis=-1) > S)
     notes = _objects(batch, over & ~bad, f"some row of Theta_hat has norm > S = {S:g}")
     return BoxResult(
@@ -326,7 +326,8 @@ def noise_level(
     theta = np.asarray(theta_hat, dtype=float)
     n, d = theta.shape[-2:]
     N0 = Z.shape[-1] if N0 is None else N0
-    rss = np.sum((F - theta @ Z) ** 2, axis=(-2, -1))
+    with np.errstate(over="ignore", invalid="ignore"):  # huge data: inf/NaN, noted downstream
+        rss = np.sum((F - theta @ Z) ** 2, axis=(-2, -1))
     if N0 <= d:
         return np.full(rss.shape, np.nan), f"sigma_w estimate needs N0 > d = {d}"
     return np.sqrt(rss / (n * (N0 - d))), None

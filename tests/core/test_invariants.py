@@ -20,6 +20,7 @@ paper-unstable give null radii with a note, never 0 and a certificate.
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -255,3 +256,36 @@ def test_no_certificate_from_an_untrustworthy_solve():
         assert r["certified"] is None and r["stable_certified"] is None
         assert "certificates withheld" in r["notes"]
         check_record(r, spec.stages)
+
+
+def test_an_exact_cost_beyond_the_doubles_is_null_with_its_note():
+    """An SVR fit with gamma = 1e-300 on a one-rollout, two-step dataset gives a
+    huge but finite estimate and gain. Over one step with sigma_w = sigma_v = 0,
+    J = E||e_1||^2 = sigma_u^2 (B_hat - B)^2 exactly, which (in logs) is beyond
+    the largest double: J_exact (and J_mc) null, J_exact with its note, and
+    nothing warns."""
+    su = 1e-3
+    obj = {
+        "systems": [{"name": "s", "A": [[1.0]], "B": [[1.0]], "sigma_u": su, "sigma_v": 0.0}],
+        "sigma_w": [0.0],
+        "N": [1],
+        "T0": 2,
+        "reps": 1,
+        "estimators": ["svr"],
+        "gamma": [1e-300],
+        "stages": ["estimate", "bounds", "gain", "cost", "cost_bound"],
+        "horizon": 1,
+        "seed": 0,
+    }
+    spec = parse_spec(obj)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # an unsilenced overflow fails here
+        records = [r for batch in run_spec(spec) for r in batch]
+    (r,) = records
+    b_hat = r["B_hat"][0][0]
+    assert r["g_L"] is not None and r["L"] is not None  # the gain is defined
+    log10_J = 2 * np.log10(su) + 2 * np.log10(abs(b_hat - 1.0))
+    assert log10_J > np.log10(np.finfo(float).max)
+    assert r["J_exact"] is None and r["J_mc"] is None
+    assert "J_exact: not finite (the cost leaves the double range)" in r["notes"]
+    check_record(r, spec.stages)
