@@ -263,6 +263,7 @@ def _square(ops: _Layout, P: _Blocks) -> _Blocks:
 # --------------------------------------------------------------------------
 # exact finite-horizon cost
 # --------------------------------------------------------------------------
+@np.errstate(over="ignore", invalid="ignore")  # near the double range: inf/NaN, not warnings
 def exact_cost(
     A: ArrayLike,
     B: ArrayLike,
@@ -379,6 +380,7 @@ def stationary_cost(
     rho_F: ArrayLike | None = ...,
     return_reason: Literal[True],
 ) -> tuple[FloatArray, Any]: ...
+@np.errstate(over="ignore", invalid="ignore")  # near the double range: inf/NaN, not warnings
 def stationary_cost(
     A: ArrayLike,
     B: ArrayLike,

@@ -186,6 +186,7 @@ def phi_w_h2_norms(
     return np.where(bad, np.nan, h_w), np.where(bad, np.nan, h_dk), np.broadcast_to(rho_F, batch)
 
 
+@np.errstate(over="ignore", invalid="ignore")  # near the double range: inf/NaN, not warnings
 def theorem3_bound(
     A_tilde: ArrayLike,
     L: ArrayLike,

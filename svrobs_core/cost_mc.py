@@ -27,6 +27,7 @@ def _steps(horizon: int, runs: int) -> tuple[int, int]:
     return T, runs
 
 
+@np.errstate(over="ignore", invalid="ignore")  # near the double range: inf/NaN, not warnings
 def mc_cost(
     A: ArrayLike,
     B: ArrayLike,
@@ -120,6 +121,7 @@ def mc_cost(
     return _mean_se(acc / T)
 
 
+@np.errstate(over="ignore", invalid="ignore")  # near the double range: inf/NaN, not warnings
 def mc_cost_shared(
     A: ArrayLike,
     B: ArrayLike,

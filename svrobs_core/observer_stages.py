@@ -29,6 +29,7 @@ from .stage_cells import Cells, StageCells, SystemT
 from .systems import SystemSpec
 
 Truth = tuple[FloatArray, float, TrueSystemNorms, Array | None]
+J_EXACT_NOT_FINITE = "J_exact: not finite (the cost leaves the double range)"
 
 
 @lru_cache(maxsize=64)
@@ -112,12 +113,11 @@ def observer_stages(c: Cells, b: BoundsResult, designed: GainResult) -> None:
         return
     c.stage = "cost"
     noise = dict(sigma_u=system.sigma_u, sigma_w=c.sigma_w, sigma_v=system.sigma_v)
-    # a huge (finite) estimate can take the costs beyond the doubles: inf/NaN, noted
-    with np.errstate(over="ignore", invalid="ignore"):
-        J = _cost.exact_cost(A, B, A_hat, B_hat, L=L, C=C, **noise, horizon=spec.horizon)
-        J_stat, stat_reason = _cost.stationary_cost(
-            A, B, A_hat, B_hat, L=L, C=C, **noise, rho_F=rho_F, return_reason=True
-        )
+    J = _cost.exact_cost(A, B, A_hat, B_hat, L=L, C=C, **noise, horizon=spec.horizon)
+    J_stat, stat_reason = _cost.stationary_cost(
+        A, B, A_hat, B_hat, L=L, C=C, **noise, rho_F=rho_F, return_reason=True
+    )
+    # a huge (finite) estimate can take the cost beyond the doubles
     notes.add(defined & ~np.isfinite(J), J_EXACT_NOT_FINITE)
     notes.add_reasons(stat_reason, "J_stationary")
     out["J_exact"], out["J_stationary"] = J, J_stat
@@ -126,26 +126,22 @@ def observer_stages(c: Cells, b: BoundsResult, designed: GainResult) -> None:
     _cost_ratio(c, J)
     if spec.has("cost_bound"):
         c.stage = "cost_bound"
-        with np.errstate(over="ignore", invalid="ignore"):  # a huge estimate: noted by t3.reason
-            t3 = _cb.theorem3_bound(
-                A_hat,
-                L,
-                C,
-                K,
-                eps_A=b.eps_A,
-                eps_B=b.eps_B,
-                sigma_u=system.sigma_u,
-                sigma_v=system.sigma_v,
-                norms=norms,
-                rho_F=rho_F,
-            )
-            delta_J = t3.J_b - J
+        t3 = _cb.theorem3_bound(
+            A_hat,
+            L,
+            C,
+            K,
+            eps_A=b.eps_A,
+            eps_B=b.eps_B,
+            sigma_u=system.sigma_u,
+            sigma_v=system.sigma_v,
+            norms=norms,
+            rho_F=rho_F,
+        )
         notes.add_reasons(t3.reason, "J_bound")
         out["J_bound"] = t3.J_b
-        out["delta_J"] = delta_J
-
-
-J_EXACT_NOT_FINITE = "J_exact: not finite (the cost leaves the double range)"
+        with np.errstate(invalid="ignore"):  # inf - inf: null, as both are
+            out["delta_J"] = t3.J_b - J
 
 
 def mc_note(limit: int) -> str:
@@ -171,21 +167,20 @@ def _monte_carlo(c: Cells, L: FloatArray) -> None:
     idx = np.flatnonzero(rows)
     if idx.size:
         gens = generators(spec.seed, [keys[i] for i in idx], MC_STREAM, fresh=True, rng=spec.rng)
-        with np.errstate(over="ignore", invalid="ignore"):  # as J_exact: null beyond the doubles
-            J_mc[idx], J_se[idx] = _mc.mc_cost_shared(
-                system.A,
-                system.B,
-                c.A_hat[idx],
-                c.B_hat[idx],
-                L=L[idx],
-                C=system.C,
-                sigma_u=system.sigma_u,
-                sigma_w=c.sigma_w,
-                sigma_v=system.sigma_v,
-                horizon=spec.horizon,
-                rngs=list(gens),
-                runs=spec.mc_runs,
-            )
+        J_mc[idx], J_se[idx] = _mc.mc_cost_shared(
+            system.A,
+            system.B,
+            c.A_hat[idx],
+            c.B_hat[idx],
+            L=L[idx],
+            C=system.C,
+            sigma_u=system.sigma_u,
+            sigma_w=c.sigma_w,
+            sigma_v=system.sigma_v,
+            horizon=spec.horizon,
+            rngs=list(gens),
+            runs=spec.mc_runs,
+        )
     c.out["J_mc"], c.out["J_mc_se"] = J_mc, J_se
     c.mc_seconds += time.process_time() - clock
 
