@@ -48,6 +48,7 @@ from svrobs_cli.reproduce_plan import (
     ReproduceError,
     mc_limit,
     plan,
+    run_order,
     select_experiments,
     unit_weight,
 )
@@ -401,16 +402,7 @@ def reproduce(
             for n in group:
                 report_parts.append(background.submit(add, n, report_input(n, group[n])))
 
-        # the group with the most experiments first (then the most records): its
-        # report part (findings, figures: some per experiment) is then made while
-        # the others run, and the one left after the last unit is the smallest
-        runs = sorted(
-            (_prepare(g, specs) for g in groups),
-            key=lambda r: (
-                -len(r.group.names),
-                -sum(parse_spec(specs[n]).n_cells for n in r.group.names),
-            ),
-        )
+        runs = [_prepare(g, specs) for g in run_order(groups, specs)]
         with progress_bar(console, quiet=quiet) as bar:
             _run_all(runs, out, None if quiet else bar, pool, on_group, window=2 * n_jobs)
         t_run = time.perf_counter() - t_start

@@ -84,6 +84,15 @@ def plan(specs: dict[str, dict], derive: bool = True) -> list[Group]:
     return [groups[n] for n in specs if n in groups]
 
 
+def run_order(groups: list[Group], specs: dict[str, dict]) -> list[Group]:
+    """The groups in the order their units go to the pool: the most experiments
+    first (then the most records), so that its report part (findings, and figures
+    per experiment) is made while the others run, and the one left after the last
+    unit is the smallest (docs/performance.md#one-pass)."""
+    cells = {n: parse_spec(s).n_cells for n, s in specs.items()}
+    return sorted(groups, key=lambda g: (-len(g.names), -sum(cells[n] for n in g.names)))
+
+
 def mc_limit(spec) -> int:
     return spec.reps if spec.mc_reps is None else spec.mc_reps
 

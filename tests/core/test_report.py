@@ -468,6 +468,20 @@ def test_plan_takes_sub_grids_from_their_parents_and_shares_their_data():
     assert not reproduce_plan.derivable(other_seed, specs["E2"])
     swapped = dict(specs["E3"], systems=["paper-unstable"])  # index 0 in E3, 1 in E4
     assert not reproduce_plan.derivable(swapped, specs["E4"])
+
+
+def test_the_group_with_the_most_experiments_runs_first_then_the_most_records():
+    specs = paper_specs("full")
+    groups = reproduce_plan.plan(specs)
+    # E4's group holds more records (E4 + E3: 540,000 against 152,550), but E2's has four
+    # experiments, six figures: its report part is made while E4's units run
+    cells = {n: parse_spec(s).n_cells for n, s in specs.items()}
+    assert cells["E4"] + cells["E3"] > cells["E2"] + cells["A1"] + cells["A2"] + cells["E1"]
+    order = [g.names for g in reproduce_plan.run_order(groups, specs)]
+    assert order == [["E2", "A1", "A2", "E1"], ["E4", "E3"]]
+    # between groups of as many experiments, the one with more records first
+    solo = reproduce_plan.plan({"E1": specs["E1"], "E4": specs["E4"]}, derive=False)
+    assert [g.names for g in reproduce_plan.run_order(solo, specs)] == [["E4"], ["E1"]]
     fewer = dict(specs["E3"], gamma=[0.05, 0.1])  # the cost ratio couples the gammas
     assert not reproduce_plan.derivable(fewer, specs["E4"])
     only = reproduce_plan.select_experiments(specs, "E1, A2")
