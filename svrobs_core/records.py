@@ -254,7 +254,8 @@ def summarize_columns(columns: dict[str, Any]) -> list[dict[str, Any]]:
         over = (n > 0) & ~(np.isfinite(mean) & np.isfinite(std))
         if over.any():
             mean, std = _scaled_stats(x, ok, starts, sizes, n, mean, std, over)
-        stats[f] = (mean.tolist(), std.tolist(), n.tolist())
+        finite = (np.isfinite(mean) & np.isfinite(std)).tolist()
+        stats[f] = (mean.tolist(), std.tolist(), n.tolist(), finite)
     out = []
     for key in sorted(index, key=lambda k: tuple((v is None, v) for v in k)):
         g = index[key]
@@ -263,8 +264,12 @@ def summarize_columns(columns: dict[str, Any]) -> list[dict[str, Any]]:
             if f not in stats or stats[f][2][g] == 0:
                 group_stats[f] = {"mean": None, "std": None, "count": 0}
             else:
-                mean, std, n = stats[f]
-                group_stats[f] = stat_entry(mean[g], std[g], n[g])
+                mean, std, n, finite = stats[f]
+                group_stats[f] = (
+                    {"mean": mean[g], "std": std[g], "count": n[g]}
+                    if finite[g]
+                    else stat_entry(mean[g], std[g], n[g])
+                )
         out.append({**dict(zip(GROUP_FIELDS, key)), "count": int(sizes[g]), "stats": group_stats})
     return out
 

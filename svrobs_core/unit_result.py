@@ -250,6 +250,28 @@ class UnitResult:
                 out[f].extend(cols[f])
         return out
 
+    def plain_fields(self) -> dict[str, str]:
+        """{cell field: kind} of the one-value-per-cell fields whose
+        :meth:`value_columns` values are plain by construction: ``"float"`` (a
+        numeric array in every dataset that has the field: finite floats or None),
+        ``"bool"`` (bool arrays: bools) or ``"none"`` (not computed: None). A field
+        of object arrays, or of arrays of another kind or shape, is not listed."""
+        kinds: dict[str, str] = {}
+        for f in CELL_FIELDS:
+            seen = set()
+            for ds in self.datasets:
+                v = ds.fields.get(f)
+                if v is not None:
+                    v = np.asarray(v)
+                    seen.add(v.dtype.kind if v.ndim == 2 else "O")
+            if not seen:
+                kinds[f] = "none"
+            elif seen <= set("fiu"):
+                kinds[f] = "float"
+            elif seen == {"b"}:
+                kinds[f] = "bool"
+        return kinds
+
     def summary_columns(self) -> dict[str, Any]:
         """{field: values in record order} of the group fields (lists) and the summary
         fields (float arrays, NaN where a record holds null): what

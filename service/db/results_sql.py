@@ -64,11 +64,13 @@ _BOOL_INT = {True: 1, False: 0, None: None}
 def _bound_columns(columns: dict[str, Sequence]) -> tuple[str, ...]:
     """The columns to send: the key and every column with a value in some row (a
     column that is NULL in every row is left to its default, NULL)."""
-    return tuple(
-        c
-        for c in COLUMNS
-        if c in _KEY or columns[c].count(None) != len(columns[c])  # count: C speed
-    )
+    return tuple(c for c in COLUMNS if c in _KEY or _has_value(columns[c]))
+
+
+def _has_value(col: Sequence) -> bool:
+    """Whether some value of ``col`` is not None (the first one, mostly; else a count
+    at C speed)."""
+    return len(col) > 0 and (col[0] is not None or col.count(None) != len(col))
 
 
 def _sqlite_column(c: str, values: Sequence) -> Sequence:

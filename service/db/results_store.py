@@ -275,6 +275,16 @@ def _clean_column(f: str, col: list) -> list:
     return col if ok else [_clean_scalar(f, v) for v in col]
 
 
+def _is_plain(f: str, kind: str | None) -> bool:
+    """Whether a column of ``kind`` (:meth:`UnitResult.plain_fields`) holds what
+    ``_clean_scalar`` gives for field ``f`` already: no value needs a check."""
+    if kind == "none":
+        return True
+    if kind == "bool":
+        return f in BOOL_FIELDS
+    return kind == "float" and f not in _NOT_FLOAT
+
+
 @dataclass
 class UnitColumns:
     """A unit's rows as columns ({column: values}, table order), computed from its
@@ -300,8 +310,9 @@ def unit_columns(result: UnitResult) -> UnitColumns:
     cols = result.value_columns(omit=frozenset(MATRIX_FIELDS) | {"seed_key"})
     n = len(cols["system"])
     out: dict[str, list] = {"job_id": [None] * n}
+    plain = result.plain_fields()
     for f in RESULT_SCALAR_FIELDS:
-        out[f] = _clean_column(f, cols[f])
+        out[f] = cols[f] if _is_plain(f, plain.get(f)) else _clean_column(f, cols[f])
     for f in TEXT_COLUMNS:
         col = cols[f]
         out[f] = (

@@ -113,3 +113,44 @@ def test_a_redelivered_unit_overwrites_its_cells_and_adds_no_row(session, make_a
         assert stored["H_A"] is None and bits(stored["rmse_A"]) == bits(r["rmse_A"])
         assert stored["A_hat"] == r["A_hat"] and stored["notes"] == r["notes"]
         assert stored["r_A"] is None  # set by the first delivery, absent from this one
+
+
+def test_the_columns_left_unchecked_hold_what_the_check_gives():
+    """``unit_columns`` skips the per-value check of a field whose arrays are plain
+    (``UnitResult.plain_fields``): for every scalar column, of every array kind a
+    field can hold (numeric with NaN and infinities, bool, object with numpy
+    scalars and None, a bool array in a float field, a float array in a bool
+    field), the stored values equal ``_clean_scalar`` of each value, type and bits."""
+    import numpy as np
+
+    spec = parse_spec({**SPEC, "systems": ["paper-unstable"], "N": [40]})
+    from svrobs_core import plan_units
+
+    result = run_unit_result(spec, plan_units(spec)[0])
+    ds = result.datasets[0]
+    R, E = len(result.reps), len(result.axis.names)
+    shape = (R, E)
+    odd = np.full(shape, 0.25)
+    odd.flat[0], odd.flat[-1] = np.nan, -np.inf
+    obj = np.empty(shape, dtype=object)
+    obj.flat[:] = [np.float64(1.5), None, np.float32(2.0), np.int64(3)][: R * E] + [None] * (
+        R * E - 4
+    )
+    ds.fields.update(
+        {
+            "rmse_A": odd,  # numeric, with NaN and -inf: plain
+            "rmse_B": obj,  # object: checked
+            "eps_A": np.ones(shape, dtype=bool),  # bool in a float field: checked
+            "thm1_holds_A": np.array(np.eye(*shape), dtype=float),  # float in a bool field
+            "stable_certified": np.zeros(shape, dtype=bool),  # bool in a bool field: plain
+            "J_exact": np.arange(R * E, dtype=np.int64).reshape(shape),  # ints: plain floats
+        }
+    )
+    kinds = result.plain_fields()
+    assert kinds["rmse_A"] == "float" and kinds["J_exact"] == "float"
+    assert kinds["stable_certified"] == kinds["eps_A"] == "bool" and "rmse_B" not in kinds
+    got = results_store.unit_columns(result).columns
+    values = result.value_columns()
+    for f in RESULT_SCALAR_FIELDS:
+        want = [results_store._clean_scalar(f, v) for v in values[f]]
+        assert bits(got[f]) == bits(want), f
