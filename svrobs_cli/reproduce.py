@@ -50,7 +50,6 @@ from svrobs_cli.reproduce_plan import (
     plan,
     run_order,
     select_experiments,
-    unit_weight,
 )
 from svrobs_cli.reproduce_report import FinishedRun, report_input, write_report
 from svrobs_core import parse_spec, plan_units
@@ -158,6 +157,9 @@ class _GroupRun:
     outputs: list[_Output]
     parts: dict = field(default_factory=dict)
     counts: dict = field(default_factory=dict)
+    files: dict = field(default_factory=dict)  # name -> its records.jsonl, open
+    done: set = field(default_factory=set)  # the units finished
+    written: int = 0  # the units appended to the records.jsonl files, in unit order
     cpu: dict = field(default_factory=dict)
     t0: float = 0.0
     seconds: float = 0.0
@@ -202,9 +204,9 @@ def _error(run: _GroupRun, exc: BaseException) -> ReproduceError:
 
 def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int = 4) -> None:
     """Every unit of every group, ``window`` at a time in the pool (groups in
-    order, the heaviest units of a group first), written as they finish: each
-    experiment's unit texts go to part files, and its records.jsonl is
-    assembled in unit order when its group is complete; ``on_group(run)`` then."""
+    order, each in unit order), written as they finish: each
+    experiment's unit texts go to part files, appended to its records.jsonl in
+    unit order (:func:`_append_ready`); ``on_group(run)`` when a group is complete."""
     tasks = {}
     pending = {}
     for gi, run in enumerate(runs):
@@ -216,6 +218,7 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
         for n in run.group.names:
             (out / n / ".parts").mkdir(parents=True, exist_ok=True)
             run.parts[n], run.counts[n], run.cpu[n] = {}, 0, 0.0
+            run.files[n] = open(out / n / "records.jsonl", "wb", buffering=0)
         pending[gi] = len(run.units)
         run.t0 = time.perf_counter()
     calls = [(gi, ui) for gi, run in enumerate(runs) for ui in range(len(run.units))]
@@ -236,10 +239,12 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
         for n, c in cpu.items():
             run.cpu[n] += c
         pending[gi] -= 1
+        run.done.add(ui)
+        _append_ready(run, out)
         if bar is not None:
             bar.update(tasks[gi], completed=len(run.units) - pending[gi])
         if pending[gi] == 0:
-            _assemble(run, out)
+            _close(run)
             run.seconds = time.perf_counter() - run.t0
             on_group(run)
 
@@ -249,8 +254,8 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
                 with blas_single_thread():
                     take(gi, ui, lambda gi=gi, ui=ui: _work(*args(gi, ui)))
             return
-        weight = {c: unit_weight(*args(*c)[:2]) for c in calls}
-        queue = sorted(calls, key=lambda c: (c[0], -weight[c]), reverse=True)
+        # in unit order, so that the part files are appended and removed as they come
+        queue = calls[::-1]
         futures: dict = {}
         try:
             while queue or futures:
@@ -268,22 +273,36 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
                 f.cancel()
     finally:
         for run in runs:
+            for f in run.files.values():
+                f.close()
             for n in run.group.names:
                 for part in (out / n / ".parts").glob("*.jsonl"):
                     part.unlink()
                 (out / n / ".parts").rmdir()
 
 
-def _assemble(run: _GroupRun, out: Path) -> None:
-    """records.jsonl of each experiment of a finished group: its part files in
-    unit order (copied within the kernel where it can)."""
-    for n in run.group.names:
-        with open(out / n / "records.jsonl", "wb", buffering=0) as dst:
-            for ui in sorted(run.parts[n]):
+def _append_ready(run: _GroupRun, out: Path) -> None:
+    """Append the part files of the finished units that no unfinished one precedes
+    to their experiments' records.jsonl, in unit order (copied within the kernel
+    where it can), and remove them: the parts on disk are the few units finished
+    ahead of an earlier one, and the memory of a removed part's pages serves the
+    next ones (docs/performance.md#reproduce)."""
+    while run.written in run.done:
+        ui = run.written
+        for n in run.group.names:
+            if ui in run.parts[n]:
                 part = _part(out, n, ui)
                 with open(part, "rb", buffering=0) as src:
-                    _copy_file(src, dst, os.fstat(src.fileno()).st_size)
+                    _copy_file(src, run.files[n], os.fstat(src.fileno()).st_size)
                 part.unlink()
+        run.written += 1
+
+
+def _close(run: _GroupRun) -> None:
+    """A finished group: its records.jsonl files closed, each experiment's report
+    columns in unit order."""
+    for n in run.group.names:
+        run.files[n].close()
         parts = run.parts[n]
         run.parts[n] = [parts[ui] for ui in sorted(parts)]
 

@@ -97,25 +97,6 @@ def mc_limit(spec) -> int:
     return spec.reps if spec.mc_reps is None else spec.mc_reps
 
 
-def unit_weight(specs, unit) -> float:
-    """Rough relative cost of a unit (normals drawn), to start the heaviest first."""
-    s0 = specs[0]
-    system = s0.systems[unit["system"]]
-    n, m, p = system.n, system.m, system.p
-    r0, r1 = unit["reps"]
-    w = 0.0
-    for N in unit["N"]:
-        w += (r1 - r0) * (m + n) * s0.T0 * N
-        for s in specs:
-            if s.bounds_method == "bootstrap" and N in s.N:
-                w += 3.0 * (r1 - r0) * s.boot_reps * (m + n) * s0.T0 * N
-    if s0.has("cost"):
-        limit = unit.get("mc_reps", s0.mc_reps)
-        rows = max(0, min(r1, s0.reps if limit is None else limit) - r0)
-        w += 2.0 * rows * len(unit["N"]) * s0.mc_runs * s0.horizon * (m + n + p)
-    return w
-
-
 def normals_drawn(specs: dict[str, dict], groups: list[Group]) -> dict[str, int]:
     """Normal random numbers each experiment draws in this plan: its data (none when
     it takes or shares another's), its Monte Carlo runs beyond its parent's, its

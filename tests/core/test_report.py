@@ -493,6 +493,36 @@ def test_the_group_with_the_most_experiments_runs_first_then_the_most_records():
         reproduce_plan.select_experiments(specs, "E1,E9")
 
 
+def test_unit_texts_are_appended_in_unit_order_whatever_order_units_finish(tmp_path):
+    """Each experiment's records.jsonl is its units' parts in unit order, appended as
+    soon as every earlier unit is in; a part on disk is one waiting for an earlier
+    unit; a unit with no text for an experiment (another system) is skipped."""
+    group = reproduce_plan.Group("P", children=["C"])
+    run = rep_mod._GroupRun(group=group, specs=(), units=[{}] * 5, outputs=[])
+    for n in group.names:
+        (tmp_path / n / ".parts").mkdir(parents=True)
+        run.parts[n] = {}
+        run.files[n] = open(tmp_path / n / "records.jsonl", "wb", buffering=0)
+    text = {("P", ui): f"p{ui}a\np{ui}b\n" for ui in range(5)}
+    text.update({("C", ui): f"c{ui}\n" for ui in (0, 2, 3)})  # C has no cells in units 1, 4
+    waiting = {2: {2}, 4: {2, 4}, 0: {2, 4}, 1: {4}, 3: set()}
+    for ui in (2, 4, 0, 1, 3):  # the order the units finish
+        for n in group.names:
+            if (n, ui) in text:
+                rep_mod._part(tmp_path, n, ui).write_text(text[n, ui])
+                run.parts[n][ui] = ui
+        run.done.add(ui)
+        rep_mod._append_ready(run, tmp_path)
+        on_disk = {int(p.stem) for p in (tmp_path / "P" / ".parts").glob("*.jsonl")}
+        assert on_disk == waiting[ui], ui
+    rep_mod._close(run)
+    for n in group.names:
+        want = "".join(text[n, ui] for ui in range(5) if (n, ui) in text)
+        assert (tmp_path / n / "records.jsonl").read_text() == want
+        assert run.parts[n] == sorted(run.parts[n])  # the report's columns in unit order
+    assert not list((tmp_path / "C" / ".parts").iterdir())
+
+
 def test_a_failing_stage_stops_the_reproduction_naming_it(tmp_path, monkeypatch):
     """No stage is dropped: the run stops, naming the experiment, the stage and why."""
     from svrobs_core import pipeline, uncertainty
