@@ -272,9 +272,11 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
             for f in futures:
                 f.cancel()
     finally:
-        for run in runs:
-            for f in run.files.values():
+        for gi, run in enumerate(runs):
+            for n, f in run.files.items():
                 f.close()
+                if pending[gi]:  # stopped: no records.jsonl of a group that did not finish
+                    (out / n / "records.jsonl").unlink(missing_ok=True)
             for n in run.group.names:
                 for part in (out / n / ".parts").glob("*.jsonl"):
                     part.unlink()
@@ -286,7 +288,7 @@ def _append_ready(run: _GroupRun, out: Path) -> None:
     to their experiments' records.jsonl, in unit order (copied within the kernel
     where it can), and remove them: the parts on disk are the few units finished
     ahead of an earlier one, and the memory of a removed part's pages serves the
-    next ones (docs/performance.md#reproduce)."""
+    next ones (docs/performance.md#one-pass)."""
     while run.written in run.done:
         ui = run.written
         for n in run.group.names:

@@ -537,6 +537,9 @@ def test_a_failing_stage_stops_the_reproduction_naming_it(tmp_path, monkeypatch)
         "E3: stage 'gain' failed: NotImplementedError: observer pipeline not yet written"
     )
     assert not (tmp_path / "report.md").exists()
+    # nothing of the stopped group is left: no partial records.jsonl, no part file
+    assert not (tmp_path / "E3" / "records.jsonl").exists()
+    assert not list(tmp_path.glob("*/.parts"))
     monkeypatch.setattr(uncertainty, "bootstrap_box", missing)
     with pytest.raises(rep_mod.ReproduceError, match="^A2: stage 'bounds' failed: NotImpl"):
         rep_mod.reproduce(tmp_path, scale="reduced", quiet=True, n_jobs=1, only="E2,A1,A2")
