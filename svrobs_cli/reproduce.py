@@ -34,6 +34,7 @@ import contextlib
 import datetime as _dt
 import json
 import os
+import shutil
 import time
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -278,9 +279,8 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
                 if pending[gi]:  # stopped: no records.jsonl of a group that did not finish
                     (out / n / "records.jsonl").unlink(missing_ok=True)
             for n in run.group.names:
-                for part in (out / n / ".parts").glob("*.jsonl"):
-                    part.unlink()
-                (out / n / ".parts").rmdir()
+                # a unit still running in a worker after a failure may add a part
+                shutil.rmtree(out / n / ".parts", ignore_errors=True)
 
 
 def _append_ready(run: _GroupRun, out: Path) -> None:
