@@ -44,7 +44,11 @@ def _flat(arr: ArrayLike, RE: int) -> Array:
 
 def _values(arr: ArrayLike, RE: int) -> list[Any]:
     """An (R, E, ...) field -> one plain value per cell (NaN/inf -> None), cell order."""
-    arr = _flat(arr, RE)
+    return _flat_values(_flat(arr, RE))
+
+
+def _flat_values(arr: Array) -> list[Any]:
+    """:func:`_values` of a field already flat: (cells, ...)."""
     out: list[Any]
     if arr.dtype == object or arr.dtype == bool:
         out = arr.tolist()
@@ -52,7 +56,7 @@ def _values(arr: ArrayLike, RE: int) -> list[Any]:
     arr = arr.astype(float, copy=False)
     finite = np.isfinite(arr)
     out = np.where(finite, arr, 0.0).tolist()
-    bad = ~finite.reshape(RE, -1).all(axis=1)
+    bad = ~finite.reshape(len(arr), -1).all(axis=1)
     for i in np.flatnonzero(bad).tolist():
         out[i] = json_value(arr[i])
     return out
@@ -231,24 +235,41 @@ class UnitResult:
         R, E = len(self.reps), len(self.axis.names)
         RE = R * E
         out: dict[str, list[Any]] = {f: [] for f in RECORD_FIELDS if f not in omit}
-        for di, ds in enumerate(self.datasets):
+        for ds in self.datasets:
             cols = self._key_columns(ds)
             if "seed_key" in as_json:
                 cols["seed_key"] = self._seed_key_strings(ds)
-            for f in CELL_FIELDS:
-                v = ds.fields.get(f)
-                if f in omit:
-                    continue
-                if v is None:
-                    cols[f] = repeat("null" if f in as_json else None, RE)
-                elif f in as_json:
-                    cols[f] = self._json_strings(di, f, v, RE)
-                else:
-                    cols[f] = _values(v, RE)
             cols["notes"] = ds.notes.reshape(RE).tolist()
-            for f in out:
-                out[f].extend(cols[f])
+            for f, col in cols.items():
+                if f in out:
+                    out[f].extend(col)
+        for f in CELL_FIELDS:
+            if f in omit:
+                continue
+            if f not in as_json and (whole := self._whole_field(f, RE)) is not None:
+                out[f] = _flat_values(whole)  # one pass over every dataset's cells
+                continue
+            for di, ds in enumerate(self.datasets):
+                v = ds.fields.get(f)
+                if v is None:
+                    out[f].extend(repeat("null" if f in as_json else None, RE))
+                elif f in as_json:
+                    out[f].extend(self._json_strings(di, f, v, RE))
+                else:
+                    out[f].extend(_values(v, RE))
         return out
+
+    def _whole_field(self, f: str, RE: int) -> Array | None:
+        """A field's cells of every dataset as one flat array, when every dataset has
+        it as an array of one dtype (so that :func:`_flat_values` of it is the
+        datasets' values one after the other), else None."""
+        arrs = [ds.fields.get(f) for ds in self.datasets]
+        if len(arrs) < 2 or any(a is None for a in arrs):
+            return None
+        flats = [_flat(cast(ArrayLike, a), RE) for a in arrs]
+        if len({(a.dtype, a.shape[1:]) for a in flats}) != 1:
+            return None
+        return np.concatenate(flats)
 
     def plain_fields(self) -> dict[str, str]:
         """{cell field: kind} of the one-value-per-cell fields whose

@@ -220,6 +220,38 @@ def test_run_local_cli_bad_spec_is_one_line_exit_2(tmp_path):
 # ---------------------------------------------------------------------------
 # column results: JSON text, report columns, notes, worker processes
 # ---------------------------------------------------------------------------
+def test_value_columns_equal_those_of_each_dataset_on_its_own():
+    """value_columns takes a field of every dataset in one pass when its arrays share a
+    dtype: the values are those of each dataset's own UnitResult one after the other,
+    also where a field is missing in one dataset or of another dtype in another."""
+    import copy
+
+    from svrobs_core.runner import run_unit_result
+
+    spec = parse_spec({**SMALL, "N": [10, 20, 30]})
+    res = run_unit_result(spec, plan_units(spec)[0])
+    assert len(res.datasets) == 3
+    a, b, c = res.datasets
+    b.fields["rmse_A"] = None  # not computed in one dataset
+    c.fields["rmse_B"] = np.asarray(c.fields["rmse_B"], dtype=object)  # another dtype
+    c.fields["rmse_B"][0, 0] = np.inf
+    a.fields["eps_A"] = np.full_like(a.fields["eps_A"], np.nan)
+    a.fields["rmse_B"] = np.array(a.fields["rmse_B"], dtype=float)
+    a.fields["rmse_B"][0, 0] = np.nan  # null here, beside the object array of c
+
+    def alone(ds):
+        one = copy.copy(res)  # the same unit with this dataset only
+        one.datasets = [ds]
+        return one.value_columns()
+
+    got = res.value_columns()
+    parts = [alone(ds) for ds in res.datasets]
+    for f in RECORD_FIELDS:
+        want = [v for p in parts for v in p[f]]
+        assert [repr(v) for v in got[f]] == [repr(v) for v in want], f
+    assert got["rmse_A"].count(None) == len(res.reps) * len(res.axis.names)
+
+
 def test_json_lines_and_columns_equal_the_records():
     """UnitResult.json_lines() is json.dumps(record) to the byte, and
     UnitResult.columns() is what report.Columns builds from the records."""
