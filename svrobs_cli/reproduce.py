@@ -165,6 +165,10 @@ class _GroupRun:
     t0: float = 0.0
     seconds: float = 0.0
 
+    @property
+    def finished(self) -> bool:
+        return len(self.done) == len(self.units)
+
 
 def _prepare(group: Group, specs: dict[str, dict]) -> _GroupRun:
     parsed = {n: parse_spec(specs[n]) for n in group.names}
@@ -209,7 +213,6 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
     experiment's unit texts go to part files, appended to its records.jsonl in
     unit order (:func:`_append_ready`); ``on_group(run)`` when a group is complete."""
     tasks = {}
-    pending = {}
     for gi, run in enumerate(runs):
         label = run.group.parent
         if run.group.variants or run.group.children:
@@ -220,7 +223,6 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
             (out / n / ".parts").mkdir(parents=True, exist_ok=True)
             run.parts[n], run.counts[n], run.cpu[n] = {}, 0, 0.0
             run.files[n] = open(out / n / "records.jsonl", "wb", buffering=0)
-        pending[gi] = len(run.units)
         run.t0 = time.perf_counter()
     calls = [(gi, ui) for gi, run in enumerate(runs) for ui in range(len(run.units))]
 
@@ -239,12 +241,11 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
             run.parts[n][ui] = rpt.Columns(data, k)
         for n, c in cpu.items():
             run.cpu[n] += c
-        pending[gi] -= 1
         run.done.add(ui)
         _append_ready(run, out)
         if bar is not None:
-            bar.update(tasks[gi], completed=len(run.units) - pending[gi])
-        if pending[gi] == 0:
+            bar.update(tasks[gi], completed=len(run.done))
+        if run.finished:
             _close(run)
             run.seconds = time.perf_counter() - run.t0
             on_group(run)
@@ -273,10 +274,10 @@ def _run_all(runs: list[_GroupRun], out: Path, bar, pool, on_group, window: int 
             for f in futures:
                 f.cancel()
     finally:
-        for gi, run in enumerate(runs):
+        for run in runs:
             for n, f in run.files.items():
                 f.close()
-                if pending[gi]:  # stopped: no records.jsonl of a group that did not finish
+                if not run.finished:  # stopped: no records.jsonl of a group that did not finish
                     (out / n / "records.jsonl").unlink(missing_ok=True)
             for n in run.group.names:
                 # a unit still running in a worker after a failure may add a part
