@@ -44,6 +44,7 @@ from .plotting import (
     no_data_panel,
     note,
     overlap_text,
+    panel_title,
     plot_merged,
     ref_line,
     series_handle,
@@ -182,7 +183,7 @@ def _style(i: int, estimator: str) -> dict[str, Any]:
 
 def _text_panel(ax: Any, title: str, text: str) -> None:
     """A panel with nothing to plot: its title and one statement, no axes."""
-    ax.set_title(title)
+    panel_title(ax, title)
     ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes)
     ax.set_axis_off()
 

@@ -34,6 +34,7 @@ from .plotting import (
     no_data_reason,
     note,
     overlap_text,
+    panel_title,
     plot_line,
     plot_merged,
     ref_line,
@@ -267,7 +268,7 @@ def fig_coverage(records: Records, spec: Any = None, *, experiment: str | None =
             if plot_merged(ax, items, styles, panel=panel, quantity=f"coverage_{mat}"):
                 note(fig, MERGED_NOTE)
             ref_line(ax, level, ls="--", color="k")
-            ax.set_title(panel)
+            panel_title(ax, panel)
             if c == 0:
                 ax.set_ylabel(f"coverage of {mat}_ij intervals")
             if r == len(cells) - 1:

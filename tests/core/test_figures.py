@@ -145,6 +145,43 @@ def test_every_text_is_at_least_8_pt_at_print_size(figures):
         assert not small, (name, small[:3])
 
 
+def drawn_texts(fig):
+    """The visible texts of a drawn figure, tick labels only where their tick is in view."""
+    ticks, texts = set(), []
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            lo, hi = sorted(axis.get_view_interval())
+            for tick in axis.get_major_ticks() + axis.get_minor_ticks():
+                ticks.update((id(tick.label1), id(tick.label2)))
+                if lo <= tick.get_loc() <= hi:
+                    texts += [tick.label1, tick.label2]
+    texts += [t for t in fig.findobj(Text) if id(t) not in ticks]
+    return [t for t in texts if t.get_visible() and t.get_text().strip()]
+
+
+def test_every_panel_title_sits_above_its_axes_clear_of_the_other_texts(figures):
+    """Panel titles are placed once at the top of their axes (``panel_title``), not
+    moved at each draw: drawn, each is above its axes' box and overlaps no other
+    visible text of the figure (tick labels, offset texts, labels, legends)."""
+    titled = 0
+    for name, fig in figures:
+        renderer = fig.canvas.get_renderer()
+        texts = drawn_texts(fig)
+        for ax in fig.axes:
+            title = ax.title
+            if not (ax.get_visible() and title.get_text()):
+                continue
+            titled += 1
+            box = title.get_window_extent(renderer)
+            assert box.y0 >= ax.bbox.y1 - 0.5, (name, title.get_text())
+            for t in texts:
+                if t is title:
+                    continue
+                other = t.get_window_extent(renderer)
+                assert not box.overlaps(other), (name, title.get_text(), t.get_text())
+    assert titled >= 10
+
+
 def same(a, b):
     a, b = np.asarray(a, float), np.asarray(b, float)
     if a.shape != b.shape or not np.array_equal(np.isnan(a), np.isnan(b)):
