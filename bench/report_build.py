@@ -13,7 +13,10 @@ renders its page (``svrobs_lab.report_html.job_report_html``), and prints the wa
 and CPU seconds of each step and a sha256 of the page (the same on every run; for
 the same cells on SQLite and PostgreSQL the pages differ only in the job's
 provenance). The imports a fresh API process would pay
-at its first report (matplotlib) are done before the first run.
+at its first report (matplotlib) are done before the first run, and so is the start
+of the helper processes that draw the figures (``svrobs_lab.figure_pool``; its time
+is printed; ``SVROBS_REPORT_RENDER_PROCESSES=0`` draws them in this process). The
+CPU printed is this process's: the helpers' is not in it.
 """
 
 from __future__ import annotations
@@ -43,11 +46,20 @@ def measure(db_url: str, job_id: int, runs: int) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot  # noqa: F401 - the imports, before the first run
 
+    from service.config import get_settings
     from service.db.models import Job
     from service.db.reports import load_columns
     from service.db.session import get_sessionmaker
+    from svrobs_lab.figure_pool import configure, warm
     from svrobs_lab.reports import JobSnapshot, _render
 
+    helpers = get_settings().REPORT_RENDER_PROCESSES
+    configure(helpers)  # as the API app and beat do
+    (started, start_s, _) = timed(warm, helpers)
+    if started:
+        print(f"  {helpers} helper processes drawing the figures, started in {start_s:.2f} s")
+    else:
+        print("  the figures drawn in this process (SVROBS_REPORT_RENDER_PROCESSES=0)")
     make = get_sessionmaker(db_url, write=False)
     for run in range(runs):
         with make() as s:

@@ -42,6 +42,7 @@ from service.web.errors import (
     validation_error_page,
 )
 from svrobs_core.errors import SpecError
+from svrobs_lab import figure_pool
 from svrobs_lab.datasets.upload_slots import UploadSlots
 from svrobs_lab.errors import LabError
 from svrobs_lab.report_builds import ReportBuilds
@@ -112,6 +113,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         favicon_url="data:,",
     )
     app.state.settings = settings
+    figure_pool.configure(settings.REPORT_RENDER_PROCESSES)
     app.state.session_factory = _default_session_factory(settings)
     app.state.broker = BrokerPublisher(lambda: app.state.settings)
     app.state.publisher = app.state.broker

@@ -144,11 +144,16 @@ def render_html(report: Report, figure_src: dict[str, str] | None = None) -> str
     return "\n".join(H)
 
 
-def job_report_html(spec: dict, records, provenance: dict | None = None, name: str = "job") -> str:
-    """One job's spec and records -> a self-contained HTML report (for the REST route)."""
+def job_report_html(
+    spec: dict, records, provenance: dict | None = None, name: str = "job", *, render=None
+) -> str:
+    """One job's spec and records -> a self-contained HTML report (for the REST route).
+    ``render``: :func:`~svrobs_core.report.build_report`'s hook (e.g. the figures drawn
+    by helper processes: :mod:`svrobs_lab.figure_pool`)."""
     rep = build_report(
         {name: {"spec": spec, "records": records, "title": f"Job {name}"}},
         provenance,
         title=f"svrobs report: {name}",
+        render=render,
     )
     return render_html(rep)

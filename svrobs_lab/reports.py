@@ -35,6 +35,7 @@ from service.db.reports import is_final, load_columns, servable_report, store_re
 from svrobs_core.report.columns import Columns
 from svrobs_lab.auth import Caller
 from svrobs_lab.dispatch import SessionFactory
+from svrobs_lab.figure_pool import figure_renderer
 from svrobs_lab.jobs import team_job
 from svrobs_lab.report_builds import ReportBuilds
 from svrobs_lab.report_html import REPORT_LAYOUT, job_report_html
@@ -121,7 +122,7 @@ def _render(job: JobSnapshot, cols: Columns) -> str:
         "status": job.status,
         "progress": f"{job.progress_done}/{job.progress_total} units",
     }
-    return job_report_html(job.spec, cols, provenance, name=job.name)
+    return job_report_html(job.spec, cols, provenance, name=job.name, render=figure_renderer())
 
 
 def _render_columns(job: JobSnapshot, cols: Columns) -> tuple[str, int]:

@@ -208,9 +208,11 @@ def start_report_builds() -> bool:
     if _report_thread is not None and _report_thread.is_alive():
         return False
     from service.config import get_settings
+    from svrobs_lab import figure_pool
 
     settings = get_settings()
     every = min(settings.REPORT_POLL_SECONDS, settings.TICK_SECONDS)
+    figure_pool.configure(settings.REPORT_RENDER_PROCESSES)
     if _crash_record is None:  # the first start of this process: did the last one crash?
         _crash_record = CrashRecord(Path(settings.VAR_DIR) / FILE_NAME)
         crashed = _crash_record.recover()

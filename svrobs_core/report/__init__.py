@@ -36,7 +36,15 @@ Modules, in the order a report is made:
 
 from ..records import COLUMN_MATRIX_FIELDS, REPORT_FIELDS, SCALAR_FIELDS, TEXT_FIELDS
 from .audit import fig_bounds_audit
-from .build import FIGURE_PLAN, Report, ReportBuilder, ReportFigure, build_report, render_figure
+from .build import (
+    FIGURE_PLAN,
+    Report,
+    ReportBuilder,
+    ReportFigure,
+    build_report,
+    render_figure,
+    render_png,
+)
 from .columns import STAGE_FIELDS, Columns, as_columns
 from .cost_figures import fig4, fig5, fig_certified
 from .derived import cost_ratio_of_means, first_stable_certified, svr_ols_diff
@@ -91,6 +99,7 @@ __all__ = [
     "findings",
     "first_stable_certified",
     "render_figure",
+    "render_png",
     "render_markdown",
     "spec_json",
     "summary_context",

@@ -84,9 +84,17 @@ class ReportFigure:
         """The plotted data (:func:`~.plotting.figure_csv`)."""
         return figure_csv(self.figure)
 
-    def set_rendered(self, png: bytes, svg: bytes, pdf: bytes | None = None) -> None:
-        """Bytes rendered elsewhere (e.g. :func:`render_figure` in another process)."""
+    def set_rendered(self, png: bytes, svg: bytes | None = None, pdf: bytes | None = None) -> None:
+        """Bytes rendered elsewhere (e.g. :func:`render_figure` in another process);
+        a file given as None is drawn here when asked for."""
         self._png, self._svg, self._pdf = png, svg, pdf
+
+
+def render_png(fig: Figure) -> tuple[bytes, None, None]:
+    """``(PNG, None, None)`` of a Figure, as ``ReportFigure.png()`` gives it (for a
+    report page, whose only file is the PNG; picklable, as :func:`render_figure`)."""
+    rf = ReportFigure("", "", "", "", fig)
+    return (b"" if rf.empty else rf.png()), None, None
 
 
 def render_figure(fig: Figure) -> tuple[bytes, bytes, bytes]:

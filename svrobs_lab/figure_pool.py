@@ -1,0 +1,185 @@
+"""A report's figures drawn as PNG in helper processes while the build goes on
+(docs/performance.md#figures-drawn-beside-the-build).
+
+matplotlib draws in Python, holding the GIL: threads cannot share a report's
+drawing, and its five PNGs are most of a build. A process that builds reports
+keeps a small pool of helpers (``SVROBS_REPORT_RENDER_PROCESSES``, 0: none),
+started by a forkserver that has matplotlib imported, at its first report. Each
+figure is handed to the pool as soon as it is built (``build_report``'s
+``render`` hook) and drawn there, byte for byte the PNG this process would draw,
+while this process computes the findings, tables and the other figures.
+
+A helper that fails (killed, out of memory, a figure that cannot be pickled) or
+takes longer than ``DRAW_TIMEOUT_SECONDS`` costs nothing but time: the figure is
+drawn here instead and the pool is replaced at the next report. A process that
+may not have children (a daemon, such as a Celery pool process) draws its own.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+import signal
+import threading
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import TYPE_CHECKING, Any
+
+from svrobs_core.report import render_png
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from matplotlib.figure import Figure
+
+log = logging.getLogger(__name__)
+
+# A figure not back from its helper by then is drawn in this process.
+DRAW_TIMEOUT_SECONDS = 60.0
+# What the forkserver imports once, so that a new helper starts drawing at once.
+PRELOAD = ["matplotlib.pyplot", "svrobs_core.report"]
+
+_lock = threading.Lock()
+_pool: ProcessPoolExecutor | None = None
+_size = 0
+_processes = 0  # this process's setting: configure()
+
+
+class DrawnFigure:
+    """A figure's ``(png, None, None)`` as ``ReportFigure.set_rendered`` takes it:
+    from its helper, or drawn here when the helper failed."""
+
+    def __init__(self, fig: Figure, future: Future[Any] | None, pool: ProcessPoolExecutor | None):
+        self._fig, self._future, self._pool = fig, future, pool
+
+    def result(self) -> tuple[bytes, None, None]:
+        if self._future is not None:
+            try:
+                out: tuple[bytes, None, None] = self._future.result(timeout=DRAW_TIMEOUT_SECONDS)
+                return out
+            except Exception as exc:  # noqa: BLE001 - any failure: draw it here
+                log.warning("a report figure's helper failed (%s): drawn in process", exc)
+                _discard(self._pool)
+        return render_png(self._fig)
+
+
+def configure(processes: int) -> None:
+    """How many helpers this process's reports use: set by each front end that builds
+    reports (the API app, beat) from ``SVROBS_REPORT_RENDER_PROCESSES``; 0 until then."""
+    global _processes
+    _processes = max(0, int(processes))
+
+
+def figure_renderer(processes: int | None = None) -> Callable[[Figure], DrawnFigure] | None:
+    """``build_report``'s ``render`` hook drawing on this process's pool of
+    ``processes`` helpers (default: as configured); None (draw in process) for 0 or
+    in a daemon process."""
+    processes = _processes if processes is None else processes
+    if processes <= 0 or mp.current_process().daemon:
+        return None
+
+    def render(fig: Figure) -> DrawnFigure:
+        pool = _get(processes)
+        if pool is None:
+            return DrawnFigure(fig, None, None)
+        try:
+            return DrawnFigure(fig, pool.submit(render_png, fig), pool)
+        except Exception as exc:  # noqa: BLE001 - a broken or stopped pool: draw here
+            log.warning("report figures could not be handed to helpers (%s)", exc)
+            _discard(pool)
+            return DrawnFigure(fig, None, None)
+
+    return render
+
+
+def warm(processes: int) -> bool:
+    """Start this process's helpers now and have each draw a small figure (fonts and
+    mathtext loaded), rather than at the first report; False when there are none."""
+    if figure_renderer(processes) is None:
+        return False
+    pool = _get(processes)
+    if pool is None:
+        return False
+    try:
+        for f in [pool.submit(_draw_sample) for _ in range(processes)]:
+            f.result(timeout=DRAW_TIMEOUT_SECONDS)
+    except Exception as exc:  # noqa: BLE001 - the first report draws in process instead
+        log.warning("report figure helpers did not start (%s)", exc)
+        _discard(pool)
+        return False
+    return True
+
+
+def _draw_sample() -> int:
+    """In a helper: one panel in the report's style, with a log axis' mathtext labels."""
+    from svrobs_core.report.plotting import new_figure
+    from svrobs_core.report.style import figure_style
+
+    with figure_style():
+        fig, axes = new_figure(1, 1, (3.0, 2.0))
+        axes[0, 0].loglog([1, 10, 100], [1e-3, 1e-2, 1e-1])
+        axes[0, 0].set_title("γ σ_w", y=1.0)
+    return len(render_png(fig)[0])
+
+
+def helper_pids() -> list[int]:
+    """The process ids of this process's helpers (none before its first report)."""
+    with _lock:
+        procs = getattr(_pool, "_processes", None) or {}
+        return list(procs)
+
+
+def _get(processes: int) -> ProcessPoolExecutor | None:
+    global _pool, _size
+    with _lock:
+        if _pool is not None and _size == processes:
+            return _pool
+        old, _pool = _pool, None
+        if old is not None:
+            old.shutdown(wait=False, cancel_futures=True)
+        try:
+            ctx = _context()
+            _pool = ProcessPoolExecutor(
+                max_workers=processes, mp_context=ctx, initializer=_ignore_sigint
+            )
+            _size = processes
+        except (OSError, ValueError) as exc:
+            log.warning("no helper processes for report figures (%s)", exc)
+        return _pool
+
+
+def _ignore_sigint() -> None:
+    """In a helper: a terminal's Ctrl-C (SIGINT to the process group) is for the
+    process that owns the pool, which stops its helpers as it exits."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _context() -> Any:
+    if "forkserver" not in mp.get_all_start_methods():
+        return mp.get_context("spawn")
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(PRELOAD)
+    return ctx
+
+
+def _discard(pool: ProcessPoolExecutor | None) -> None:
+    """Stop ``pool`` (if it is still this process's); the next report starts another."""
+    global _pool
+    with _lock:
+        if pool is None or pool is not _pool:
+            return
+        _pool = None
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in list((getattr(pool, "_processes", None) or {}).values()):
+        if p.is_alive():
+            p.kill()
+
+
+def _forget() -> None:
+    """In a forked child: the parent's pool is not its own (nor its lock's state)."""
+    global _pool, _lock
+    _pool, _lock = None, threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget)

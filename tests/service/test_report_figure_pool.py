@@ -1,0 +1,151 @@
+"""A report's figures drawn by helper processes (svrobs_lab.figure_pool): the page is
+the one drawn in process, byte for byte, and a helper that fails, is killed, is
+late or cannot be handed its figure costs only time."""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+import signal
+import threading
+import time
+
+import pytest
+
+from svrobs_core.report import render_png
+from svrobs_core.report.plotting import new_figure
+from svrobs_lab import figure_pool
+from svrobs_lab.report_html import job_report_html
+from tests.core.test_report import make_records, tiny_spec
+
+HELPERS = 2
+
+
+@pytest.fixture(scope="module")
+def job():
+    spec = tiny_spec()
+    return spec, make_records(spec, seed=5)
+
+
+@pytest.fixture
+def pool():
+    figure_pool._discard(figure_pool._pool)  # a pool of this test's own
+    yield
+    figure_pool._discard(figure_pool._pool)
+
+
+def page(job, render):
+    spec, recs = job
+    return job_report_html(spec, recs, {"job_id": 7}, name="pool", render=render)
+
+
+def alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_the_helpers_draw_the_page_drawn_in_process(job, pool):
+    here = page(job, None)
+    assert figure_pool.warm(HELPERS)
+    pids = figure_pool.helper_pids()
+    assert len(pids) == HELPERS and os.getpid() not in pids and all(map(alive, pids))
+    drawn = page(job, figure_pool.figure_renderer(HELPERS))
+    assert drawn == here
+    assert "data:image/png;base64," in drawn
+    assert figure_pool.helper_pids() == pids  # the same helpers, kept for the next report
+
+
+def test_killed_helpers_cost_only_time(job, pool, caplog):
+    here = page(job, None)
+    assert figure_pool.warm(HELPERS)
+    killed = figure_pool.helper_pids()
+    for pid in killed:
+        os.kill(pid, signal.SIGKILL)
+    deadline = time.monotonic() + 10
+    while any(map(alive, killed)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    with caplog.at_level(logging.WARNING, logger="svrobs_lab.figure_pool"):
+        assert page(job, figure_pool.figure_renderer(HELPERS)) == here
+    assert "drawn in process" in caplog.text or "could not be handed" in caplog.text
+    # the next report has helpers of its own
+    assert page(job, figure_pool.figure_renderer(HELPERS)) == here
+    fresh = figure_pool.helper_pids()
+    assert fresh and not set(fresh) & set(killed)
+
+
+def test_a_late_helper_leaves_its_figure_to_this_process(job, pool, monkeypatch, caplog):
+    here = page(job, None)
+    assert figure_pool.warm(HELPERS)
+    started = figure_pool.helper_pids()
+    monkeypatch.setattr(figure_pool, "DRAW_TIMEOUT_SECONDS", 1e-4)  # no draw is this fast
+    with caplog.at_level(logging.WARNING, logger="svrobs_lab.figure_pool"):
+        assert page(job, figure_pool.figure_renderer(HELPERS)) == here
+    assert "drawn in process" in caplog.text
+    assert figure_pool._pool is None  # the late pool was stopped, its helpers killed
+    deadline = time.monotonic() + 10
+    while any(map(alive, started)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(map(alive, started))
+
+
+def test_a_figure_that_cannot_be_pickled_is_drawn_here(pool, caplog):
+    fig, axes = new_figure(1, 1, (3.0, 2.0))
+    axes[0, 0].plot([1, 2, 3], [3, 1, 2])
+    expected = render_png(fig)
+    fig.svrobs_callback = lambda: None  # pickle refuses a lambda
+    render = figure_pool.figure_renderer(HELPERS)
+    assert render is not None
+    with caplog.at_level(logging.WARNING, logger="svrobs_lab.figure_pool"):
+        assert render(fig).result() == expected
+    assert "drawn in process" in caplog.text
+
+
+def _renderer_in_daemon(q):
+    q.put(figure_pool.figure_renderer(HELPERS) is None)
+
+
+def test_no_helpers_when_turned_off_or_in_a_daemon(monkeypatch):
+    assert figure_pool.figure_renderer(0) is None
+    monkeypatch.setattr(figure_pool, "_processes", 0)
+    assert figure_pool.figure_renderer() is None  # not configured: drawn in process
+    figure_pool.configure(HELPERS)
+    assert figure_pool.figure_renderer() is not None
+    assert not figure_pool.warm(0)
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    p = ctx.Process(target=_renderer_in_daemon, args=(q,), daemon=True)
+    p.start()
+    assert q.get(timeout=30) is True  # a daemon (a Celery pool process) may have no children
+    p.join(30)
+
+
+def test_the_api_app_and_beat_set_the_helpers_from_the_settings(monkeypatch, tmp_path):
+    from service.app import create_app
+    from service.config import Settings, get_settings
+    from worker import tick
+
+    monkeypatch.setattr(figure_pool, "_processes", 0)
+    db = f"sqlite:///{tmp_path / 'svrobs.db'}"
+    create_app(Settings(DATABASE_URL=db, REPORT_RENDER_PROCESSES=3))
+    assert figure_pool._processes == 3
+    create_app(Settings(DATABASE_URL=db, REPORT_RENDER_PROCESSES=0))
+    assert figure_pool.figure_renderer() is None
+    # beat's report thread, from the process's settings
+    monkeypatch.setenv("SVROBS_REPORT_RENDER_PROCESSES", "1")
+    monkeypatch.setenv("SVROBS_VAR_DIR", str(tmp_path))
+    get_settings.cache_clear()
+    monkeypatch.setattr(tick, "build_reports", lambda *a, **k: [])
+    monkeypatch.setattr(tick, "_report_thread", None)
+    monkeypatch.setattr(tick, "_crash_record", None)
+    monkeypatch.setattr(tick, "_stop_reports", threading.Event())
+    try:
+        assert tick.start_report_builds()
+        assert figure_pool._processes == 1
+    finally:
+        tick._stop_reports.set()
+        tick._report_thread.join(10)
+        get_settings.cache_clear()
