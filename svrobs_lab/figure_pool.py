@@ -23,6 +23,7 @@ import os
 import signal
 import threading
 from concurrent.futures import Future, ProcessPoolExecutor
+from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
 from svrobs_core.report import render_png
@@ -37,12 +38,15 @@ log = logging.getLogger(__name__)
 # A figure not back from its helper by then is drawn in this process.
 DRAW_TIMEOUT_SECONDS = 60.0
 # What the forkserver imports once, so that a new helper starts drawing at once.
-PRELOAD = ["matplotlib.pyplot", "svrobs_core.report"]
+PRELOAD = ["matplotlib.figure", "matplotlib.backends.backend_agg", "svrobs_core.report"]
 
 _lock = threading.Lock()
 _pool: ProcessPoolExecutor | None = None
 _size = 0
 _processes = 0  # this process's setting: configure()
+# The pipe by which the helpers see this process end: they hold its read end, only
+# this process its write end (see _watch_owner).
+_lifeline: tuple[int, int] | None = None
 
 
 class DrawnFigure:
@@ -139,8 +143,13 @@ def _get(processes: int) -> ProcessPoolExecutor | None:
             old.shutdown(wait=False, cancel_futures=True)
         try:
             ctx = _context()
+            # the pool's own copy of the read end (closed with the pool, when collected)
+            lifeline = Connection(os.dup(_open_lifeline()), writable=False)
             _pool = ProcessPoolExecutor(
-                max_workers=processes, mp_context=ctx, initializer=_ignore_sigint
+                max_workers=processes,
+                mp_context=ctx,
+                initializer=_helper_start,
+                initargs=(lifeline,),
             )
             _size = processes
         except (OSError, ValueError) as exc:
@@ -148,10 +157,30 @@ def _get(processes: int) -> ProcessPoolExecutor | None:
         return _pool
 
 
-def _ignore_sigint() -> None:
+def _open_lifeline() -> int:
+    """The read end of this process's lifeline (made once, kept open)."""
+    global _lifeline
+    if _lifeline is None:
+        _lifeline = os.pipe()
+    return _lifeline[0]
+
+
+def _helper_start(lifeline: Connection) -> None:
     """In a helper: a terminal's Ctrl-C (SIGINT to the process group) is for the
-    process that owns the pool, which stops its helpers as it exits."""
+    process that owns the pool, which stops its helpers as it exits; and when that
+    process ends any other way (SIGKILL), the helper ends too. A pool's helpers
+    would otherwise wait for work forever, as each holds a write end of its own
+    task queue, and keep their forkserver (and its resource tracker) alive."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    threading.Thread(target=_watch_owner, args=(lifeline,), daemon=True).start()
+
+
+def _watch_owner(lifeline: Connection) -> None:
+    try:
+        lifeline.recv_bytes()  # nothing is ever sent: returns only at the owner's end
+    except (EOFError, OSError):
+        pass
+    os._exit(0)
 
 
 def _context() -> Any:
@@ -169,16 +198,22 @@ def _discard(pool: ProcessPoolExecutor | None) -> None:
         if pool is None or pool is not _pool:
             return
         _pool = None
+    helpers = list((getattr(pool, "_processes", None) or {}).values())  # before the shutdown
     pool.shutdown(wait=False, cancel_futures=True)
-    for p in list((getattr(pool, "_processes", None) or {}).values()):
+    for p in helpers:  # a helper stuck in a draw would otherwise be waited for
         if p.is_alive():
             p.kill()
 
 
 def _forget() -> None:
-    """In a forked child: the parent's pool is not its own (nor its lock's state)."""
-    global _pool, _lock
+    """In a forked child: the parent's pool is not its own (nor its lock's state), and
+    its copy of the parent's lifeline must not keep the parent's helpers alive."""
+    global _pool, _lock, _lifeline
     _pool, _lock = None, threading.Lock()
+    if _lifeline is not None:
+        for fd in _lifeline:
+            os.close(fd)
+        _lifeline = None
 
 
 if hasattr(os, "register_at_fork"):

@@ -149,3 +149,57 @@ def test_the_api_app_and_beat_set_the_helpers_from_the_settings(monkeypatch, tmp
         tick._stop_reports.set()
         tick._report_thread.join(10)
         get_settings.cache_clear()
+
+
+OWNER = """
+import os, sys, time
+from svrobs_lab import figure_pool
+assert figure_pool.warm(2)
+print(" ".join(map(str, figure_pool.helper_pids())), flush=True)
+time.sleep(120)
+"""
+
+
+def marked(value: str) -> list[int]:
+    """Live processes whose environment holds SVROBS_TEST_POOL_OWNER=value."""
+    needle = f"SVROBS_TEST_POOL_OWNER={value}\0".encode()
+    found = []
+    for entry in os.scandir("/proc"):
+        if entry.name.isdigit():
+            try:
+                with open(f"/proc/{entry.name}/environ", "rb") as fh:
+                    if needle in fh.read():
+                        found.append(int(entry.name))
+            except OSError:
+                continue
+    return found
+
+
+@pytest.mark.parametrize("stop", [signal.SIGKILL, signal.SIGTERM])
+def test_the_helpers_end_with_the_process_that_owns_them(stop):
+    """A killed owner leaves no helper, forkserver or resource tracker behind (a
+    helper holds a write end of its own task queue, so it would wait forever)."""
+    import subprocess
+    import sys
+    import uuid
+
+    value = uuid.uuid4().hex
+    env = dict(os.environ, SVROBS_TEST_POOL_OWNER=value)
+    owner = subprocess.Popen(
+        [sys.executable, "-c", OWNER], stdout=subprocess.PIPE, text=True, env=env
+    )
+    try:
+        helpers = [int(p) for p in owner.stdout.readline().split()]
+        assert len(helpers) == 2 and all(map(alive, helpers))
+        assert len(marked(value)) >= 5  # owner, forkserver, resource tracker, 2 helpers
+        owner.send_signal(stop)
+        owner.wait(10)
+        deadline = time.monotonic() + 10
+        while marked(value) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not marked(value)
+    finally:
+        owner.kill()
+        owner.wait()
+        for pid in marked(value):
+            os.kill(pid, signal.SIGKILL)
