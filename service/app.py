@@ -15,6 +15,9 @@ nothing becomes a traceback.
 
 from __future__ import annotations
 
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi_offline import FastAPIOffline
@@ -94,6 +97,15 @@ def _is_page_path(path: str) -> bool:
     return not _is_api_path(path)
 
 
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    yield
+    # the report figures' helpers stopped and their pool freed now: uvicorn ends the
+    # process by its stop signal once this is done, without the exit handlers that
+    # would free it (svrobs_lab.figure_pool)
+    figure_pool.close()
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or get_settings()
     configure_logging(settings)
@@ -111,6 +123,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         docs_url=None,  # service.api.docs: Swagger UI under the web session
         redoc_url=None,  # service.api.docs: ReDoc's script without its CDN logo
         favicon_url="data:,",
+        lifespan=_lifespan,
     )
     app.state.settings = settings
     figure_pool.configure(settings.REPORT_RENDER_PROCESSES)

@@ -126,6 +126,18 @@ def _draw_sample() -> int:
     return len(render_png(fig)[0])
 
 
+def close() -> None:
+    """Stop this process's helpers, letting a draw in progress finish, and free the
+    pool (its queues' semaphores). For an orderly stop of a process that may end
+    without running its exit handlers: uvicorn ends the API process by the signal
+    that stopped it, once its shutdown is done."""
+    global _pool
+    with _lock:
+        pool, _pool = _pool, None
+    if pool is not None:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def helper_pids() -> list[int]:
     """The process ids of this process's helpers (none before its first report)."""
     with _lock:

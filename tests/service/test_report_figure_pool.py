@@ -203,3 +203,38 @@ def test_the_helpers_end_with_the_process_that_owns_them(stop):
         owner.wait()
         for pid in marked(value):
             os.kill(pid, signal.SIGKILL)
+
+
+def test_the_api_app_stops_the_helpers_at_its_shutdown(tmp_path, monkeypatch):
+    """uvicorn ends the API process by its stop signal after the app's shutdown, so
+    the exit handlers that would free the pool do not run: the shutdown frees it."""
+    import subprocess
+    import sys
+
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.config import Settings
+
+    monkeypatch.setattr(figure_pool, "_processes", 0)
+    app = create_app(Settings(DATABASE_URL=f"sqlite:///{tmp_path / 'svrobs.db'}"))
+    with TestClient(app):
+        assert figure_pool.warm(HELPERS)
+        pids = figure_pool.helper_pids()
+    assert figure_pool._pool is None
+    deadline = time.monotonic() + 10
+    while any(map(alive, pids)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(map(alive, pids))
+    # a process that closed its pool and then ends by SIGTERM leaks nothing its
+    # resource tracker would have to clean up (and warn of, on the terminal)
+    script = (
+        "import os, signal\nfrom svrobs_lab import figure_pool\n"
+        "assert figure_pool.warm(2)\nfigure_pool.close()\n"
+        "os.kill(os.getpid(), signal.SIGTERM)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == -signal.SIGTERM
+    assert "leaked" not in done.stderr and "Traceback" not in done.stderr, done.stderr
