@@ -105,14 +105,14 @@ class Settings(BaseSettings):
     # Failed authentications (a bad sign-in, a bad bearer key) per client address per
     # minute, in each API process: beyond, 429 with Retry-After (0: no limit).
     AUTH_FAILURES_PER_MINUTE: int = 10
-    # Report builds (svrobs_lab.report_builds), in each API process: at most this many
-    # builds of one team at once (a report, or a dataset job's validation computed on
-    # request), and this many of its requests waiting for a build of the same job;
-    # beyond, 429 with Retry-After.
     # A report's figures are drawn as PNG by this many helper processes of each
     # process that builds reports (API, beat), started at its first report, while the
     # build goes on (svrobs_lab.figure_pool; 0: drawn in the building process).
     REPORT_RENDER_PROCESSES: int = Field(default=2, ge=0)
+    # Report builds (svrobs_lab.report_builds), in each API process: at most this many
+    # builds of one team at once (a report, or a dataset job's validation computed on
+    # request), and this many of its requests waiting for a build of the same job;
+    # beyond, 429 with Retry-After.
     REPORT_BUILDS_PER_TEAM: int = 2
     REPORT_WAITERS_PER_TEAM: int = 8
 

@@ -116,13 +116,13 @@ def warm(processes: int) -> bool:
 
 def _draw_sample() -> int:
     """In a helper: one panel in the report's style, with a log axis' mathtext labels."""
-    from svrobs_core.report.plotting import new_figure
+    from svrobs_core.report.plotting import new_figure, panel_title
     from svrobs_core.report.style import figure_style
 
     with figure_style():
         fig, axes = new_figure(1, 1, (3.0, 2.0))
         axes[0, 0].loglog([1, 10, 100], [1e-3, 1e-2, 1e-1])
-        axes[0, 0].set_title("γ σ_w", y=1.0)
+        panel_title(axes[0, 0], "γ σ_w")
     return len(render_png(fig)[0])
 
 

@@ -122,10 +122,8 @@ def n0_axis(ax: Axes, ratio: float | None) -> None:
 
 
 def panel_title(ax: Axes, title: str) -> None:
-    """A panel's title, at the top of its axes. Placed there once (``y=1``) rather
-    than moved clear of top ticks or an offset text at each draw: a panel here has
-    neither, and the automatic placement costs a tick pass per axes and layout
-    pass (docs/performance.md#figure-files)."""
+    """A panel's title, placed once at the top of its axes (``y=1``): no panel has top
+    ticks or an offset text to move it clear of (docs/performance.md#figure-files)."""
     ax.set_title(title, y=1.0)
 
 
