@@ -357,10 +357,10 @@ def _results(run: _GroupRun, specs: dict[str, dict], out: Path) -> dict[str, dic
 
 
 def _renderer(pool):
-    """Figures rendered in the worker processes (a future per figure)."""
+    """Figures built and drawn in the worker processes (a future per figure)."""
 
-    def render(fig):
-        return pool.submit(rpt.render_figure, fig)
+    def render(job):
+        return pool.submit(rpt.draw_files, job)
 
     return render
 
@@ -402,7 +402,7 @@ def reproduce(
         pool = stack.enter_context(open_pool(n_jobs))
         # The report is made as the groups finish: the findings and figures of a
         # group are computed in a background thread while the next group runs,
-        # and the figures are rendered in the worker processes.
+        # and the figures are built and drawn in the worker processes.
         builder = rpt.ReportBuilder(
             list(specs),
             {"preset": PRESET_NAME},

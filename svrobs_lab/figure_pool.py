@@ -2,16 +2,19 @@
 (docs/performance.md#figures-drawn-beside-the-build).
 
 matplotlib draws in Python, holding the GIL: threads cannot share a report's
-drawing, and its five PNGs are most of a build. A process that builds reports
-keeps a small pool of helpers (``SVROBS_REPORT_RENDER_PROCESSES``, 0: none),
-started by a forkserver that has matplotlib imported, at its first report. Each
-figure is handed to the pool as soon as it is built (``build_report``'s
-``render`` hook) and drawn there, byte for byte the PNG this process would draw,
-while this process computes the findings, tables and the other figures.
+drawing, and building and drawing its five figures is most of a build. A process
+that builds reports keeps a small pool of helpers
+(``SVROBS_REPORT_RENDER_PROCESSES``, 0: none), started by a forkserver that has
+matplotlib imported, at its first report. Each figure's job (its function and the
+few columns it reads: ``svrobs_core.report.FigureJob``) is handed to the pool as
+soon as its experiment is read (``build_report``'s ``render`` hook) and built and
+drawn there, byte for byte the PNG this process would draw, while this process
+computes the findings and tables.
 
-A helper that fails (killed, out of memory, a figure that cannot be pickled) or
-takes longer than ``DRAW_TIMEOUT_SECONDS`` costs nothing but time: the figure is
-drawn here instead and the pool is replaced at the next report. A process that
+A helper that fails (killed, out of memory, a job that cannot be pickled or that
+reads a field it was not sent) or takes longer than ``DRAW_TIMEOUT_SECONDS`` costs
+nothing but time: the figure is built and drawn here instead (and a pool with a
+helper gone or late is replaced at the next report). A process that
 may not have children (a daemon, such as a Celery pool process) draws its own.
 """
 
@@ -22,16 +25,14 @@ import multiprocessing as mp
 import os
 import signal
 import threading
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import BrokenExecutor, Future, ProcessPoolExecutor
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
-from svrobs_core.report import render_png
+from svrobs_core.report import Drawn, FigureJob, draw_png
 
 if TYPE_CHECKING:
     from collections.abc import Callable
-
-    from matplotlib.figure import Figure
 
 log = logging.getLogger(__name__)
 
@@ -50,21 +51,28 @@ _lifeline: tuple[int, int] | None = None
 
 
 class DrawnFigure:
-    """A figure's ``(png, None, None)`` as ``ReportFigure.set_rendered`` takes it:
-    from its helper, or drawn here when the helper failed."""
+    """A figure's :class:`Drawn` PNG as ``ReportFigure.set_drawn`` takes it: from its
+    helper, or built and drawn here when the helper failed."""
 
-    def __init__(self, fig: Figure, future: Future[Any] | None, pool: ProcessPoolExecutor | None):
-        self._fig, self._future, self._pool = fig, future, pool
+    def __init__(
+        self, job: FigureJob, future: Future[Any] | None, pool: ProcessPoolExecutor | None
+    ):
+        self._job, self._future, self._pool = job, future, pool
 
-    def result(self) -> tuple[bytes, None, None]:
-        if self._future is not None:
+    def result(self) -> Drawn:
+        future, self._future = self._future, None
+        if future is not None:
             try:
-                out: tuple[bytes, None, None] = self._future.result(timeout=DRAW_TIMEOUT_SECONDS)
+                out: Drawn = future.result(timeout=DRAW_TIMEOUT_SECONDS)
                 return out
             except Exception as exc:  # noqa: BLE001 - any failure: draw it here
-                log.warning("a report figure's helper failed (%s): drawn in process", exc)
-                _discard(self._pool)
-        return render_png(self._fig)
+                why = f"{type(exc).__name__}: {exc}"
+                log.warning("a report figure's helper failed (%s): drawn in process", why)
+                if isinstance(exc, (BrokenExecutor, TimeoutError)):  # gone or stuck
+                    _discard(self._pool)  # new helpers at the next report
+            # the future's exception holds this frame: let go of both (and the columns)
+            future = None
+        return draw_png(self._job)
 
 
 def configure(processes: int) -> None:
@@ -74,7 +82,7 @@ def configure(processes: int) -> None:
     _processes = max(0, int(processes))
 
 
-def figure_renderer(processes: int | None = None) -> Callable[[Figure], DrawnFigure] | None:
+def figure_renderer(processes: int | None = None) -> Callable[[FigureJob], DrawnFigure] | None:
     """``build_report``'s ``render`` hook drawing on this process's pool of
     ``processes`` helpers (default: as configured); None (draw in process) for 0 or
     in a daemon process."""
@@ -82,16 +90,16 @@ def figure_renderer(processes: int | None = None) -> Callable[[Figure], DrawnFig
     if processes <= 0 or mp.current_process().daemon:
         return None
 
-    def render(fig: Figure) -> DrawnFigure:
+    def render(job: FigureJob) -> DrawnFigure:
         pool = _get(processes)
         if pool is None:
-            return DrawnFigure(fig, None, None)
+            return DrawnFigure(job, None, None)
         try:
-            return DrawnFigure(fig, pool.submit(render_png, fig), pool)
+            return DrawnFigure(job, pool.submit(draw_png, job), pool)
         except Exception as exc:  # noqa: BLE001 - a broken or stopped pool: draw here
             log.warning("report figures could not be handed to helpers (%s)", exc)
             _discard(pool)
-            return DrawnFigure(fig, None, None)
+            return DrawnFigure(job, None, None)
 
     return render
 
@@ -123,7 +131,7 @@ def _draw_sample() -> int:
         fig, axes = new_figure(1, 1, (3.0, 2.0))
         axes[0, 0].loglog([1, 10, 100], [1e-3, 1e-2, 1e-1])
         panel_title(axes[0, 0], "γ σ_w")
-    return len(render_png(fig)[0])
+    return len(draw_png(fig).png)
 
 
 def close() -> None:

@@ -30,6 +30,9 @@ Modules, in the order a report is made:
   each ``f(records, spec=None, *, experiment=...) -> matplotlib.figure.Figure``;
   ``audit``: the uncertainty-set audit (rows, findings, ``fig_bounds_audit``).
 * ``findings``: ``findings(records, spec) -> list[str]``.
+* ``report_figure``: ``ReportFigure`` (a figure of the report and its files),
+  ``FigureJob`` (a figure function and its arguments, to build here or in another
+  process), ``draw_png`` / ``draw_files`` (build and draw a job -> ``Drawn``).
 * ``build``: ``build_report(experiments, provenance)``, ``ReportBuilder``, ``Report``.
 * ``markdown``: ``render_markdown(report)``, ``spec_json(spec)``.
 """
@@ -40,10 +43,7 @@ from .build import (
     FIGURE_PLAN,
     Report,
     ReportBuilder,
-    ReportFigure,
     build_report,
-    render_figure,
-    render_png,
 )
 from .columns import STAGE_FIELDS, Columns, as_columns
 from .cost_figures import fig4, fig5, fig_certified
@@ -54,6 +54,7 @@ from .figures import fig_coverage, fig_rmse, fig_svr_ols_diff
 from .findings import findings
 from .markdown import render_markdown, spec_json
 from .plotting import figure_csv
+from .report_figure import Drawn, FigureJob, ReportFigure, draw_files, draw_png
 from .series import (
     FIGURE_SERIES,
     FigureSeries,
@@ -76,12 +77,16 @@ __all__ = [
     "TABLE2_COLUMNS",
     "TEXT_FIELDS",
     "Columns",
+    "Drawn",
+    "FigureJob",
     "Report",
     "ReportBuilder",
     "ReportFigure",
     "as_columns",
     "build_report",
     "cost_ratio_of_means",
+    "draw_files",
+    "draw_png",
     "fig2",
     "fig3",
     "fig4",
@@ -98,8 +103,6 @@ __all__ = [
     "figure_style",
     "findings",
     "first_stable_certified",
-    "render_figure",
-    "render_png",
     "render_markdown",
     "spec_json",
     "summary_context",

@@ -6,104 +6,17 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from ..paper import EXPERIMENTS, PRESET_NAME
 from .audit import audit_findings, audit_rows, audit_sources, fig_bounds_audit
 from .columns import Columns, as_columns, spec_meta
 from .cost_figures import fig4, fig5, fig_certified
 from .entry_figures import fig2, fig3
-from .figure_files import figure_bytes
 from .figures import fig_coverage, fig_rmse, fig_svr_ols_diff
 from .findings import findings
-from .plotting import figure_csv
+from .report_figure import FigureFn, FigureJob, ReportFigure
 from .tables import table2
-
-if TYPE_CHECKING:
-    from matplotlib.figure import Figure
-
-# a figure function: (records, spec, *, experiment=) -> Figure
-FigureFn = Callable[..., Any]
-
-
-@dataclass
-class ReportFigure:
-    """One figure of the report: its caption (the plan's text plus the figure's
-    own notes: what coincides, the largest gaps, what is left out), the
-    Figure, and its PNG / SVG / PDF / CSV. An *empty* figure (nothing to plot,
-    e.g. every coverage is 1) has only its notes: no image is written."""
-
-    name: str
-    title: str
-    caption: str
-    experiment: str
-    figure: Figure
-    _png: bytes | None = None
-    _svg: bytes | None = None
-    _pdf: bytes | None = None
-
-    @property
-    def notes(self) -> list[str]:
-        return list(getattr(self.figure, "svrobs_notes", []))
-
-    @property
-    def empty(self) -> bool:
-        return bool(getattr(self.figure, "svrobs_empty", False))
-
-    @property
-    def full_caption(self) -> str:
-        return " ".join([self.caption, *self.notes]).strip()
-
-    def png(self) -> bytes:
-        if self._png is None:
-            self._png = figure_bytes(self.figure, "png")
-            # the constrained layout is computed by that first draw; keep it fixed
-            # with no layout engine at all, so the SVG and PDF (and any later
-            # render) skip savefig's dry draw (an engine, even matplotlib's
-            # placeholder for "none", asks for one) and the layout pass
-            import matplotlib
-
-            off: Any = {"figure.autolayout": False, "figure.constrained_layout.use": False}
-            with matplotlib.rc_context(off):  # None would otherwise mean the rc's engine
-                self.figure.set_layout_engine(None)
-        return self._png
-
-    def svg(self) -> bytes:
-        if self._svg is None:
-            self.png()
-            self._svg = figure_bytes(self.figure, "svg")
-        return self._svg
-
-    def pdf(self) -> bytes:
-        if self._pdf is None:
-            self.png()
-            self._pdf = figure_bytes(self.figure, "pdf")
-        return self._pdf
-
-    def csv(self) -> str:
-        """The plotted data (:func:`~.plotting.figure_csv`)."""
-        return figure_csv(self.figure)
-
-    def set_rendered(self, png: bytes, svg: bytes | None = None, pdf: bytes | None = None) -> None:
-        """Bytes rendered elsewhere (e.g. :func:`render_figure` in another process);
-        a file given as None is drawn here when asked for."""
-        self._png, self._svg, self._pdf = png, svg, pdf
-
-
-def render_png(fig: Figure) -> tuple[bytes, None, None]:
-    """``(PNG, None, None)`` of a Figure, as ``ReportFigure.png()`` gives it (for a
-    report page, whose only file is the PNG; picklable, as :func:`render_figure`)."""
-    rf = ReportFigure("", "", "", "", fig)
-    return (b"" if rf.empty else rf.png()), None, None
-
-
-def render_figure(fig: Figure) -> tuple[bytes, bytes, bytes]:
-    """(PNG, SVG, PDF) of a Figure, as ``ReportFigure.png()``/``svg()``/``pdf()``
-    give them (picklable: figures can be rendered in worker processes)."""
-    rf = ReportFigure("", "", "", "", fig)
-    if rf.empty:
-        return b"", b"", b""
-    return rf.png(), rf.svg(), rf.pdf()
 
 
 @dataclass
@@ -203,6 +116,27 @@ FIGURE_PLAN: tuple[tuple[str, FigureFn, tuple[str, ...], tuple[str, ...], str, s
 )
 
 
+# The fields each figure reads (of its Columns), on any of its branches: all that is
+# sent with it to a helper process (:class:`~.report_figure.FigureJob`). Reading
+# another field there is a KeyError, and the figure is then built from all the
+# fields in the building process; tests/core/test_report_figure.py checks every
+# figure on records of several shapes.
+# Every figure reads the cells' key, and their notes where a panel has no data.
+_KEY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep", "notes")
+_BOXES = ("A_hat", "B_hat", "eps_A", "eps_B", "r_A", "r_B", "stable_certified", "rmse_A")
+FIGURE_FIELDS: dict[str, tuple[str, ...]] = {
+    "fig_rmse": (*_KEY, "rmse_A", "rmse_B"),
+    "fig2": (*_KEY, *_BOXES),
+    "fig3": (*_KEY, *_BOXES),
+    "fig4": (*_KEY, "delta_J", "J_bound", "J_exact"),
+    "fig5": (*_KEY, "J_exact", "cost_ratio"),
+    "fig_coverage": (*_KEY, "coverage_A", "coverage_B"),
+    "fig_certified": (*_KEY, "certified", "rho_true", "stable_certified"),
+    "fig_svr_ols_diff": (*_KEY, "A_hat", "rmse_A"),
+    "fig_bounds_audit": (*_KEY, "coverage_A", "coverage_B", "r_A", "r_B"),
+}
+
+
 def _records_of(exp: dict[str, Any]) -> Columns:
     return as_columns(exp["records"])
 
@@ -224,15 +158,16 @@ def build_report(
     provenance: dict[str, Any] | None = None,
     title: str | None = None,
     *,
-    render: Callable[[object], Any] | None = None,
+    render: Callable[[FigureJob], Any] | None = None,
 ) -> Report:
     """``experiments``: name -> {"spec": dict, "records": list|Columns, optional
     "title", "notes" (list[str], e.g. stages that could not run)}.
 
-    ``render``: optional ``fig -> future`` (e.g. ``pool.submit(render_figure, fig)``);
-    each figure is handed to it as soon as it is built, so that rendering runs
-    elsewhere while the rest is computed; the futures' ``(png, svg)`` are
-    collected at the end."""
+    ``render``: optional ``job -> future`` (e.g. ``pool.submit(draw_files, job)``);
+    each figure's :class:`~.report_figure.FigureJob` is handed to it as soon as its
+    experiment is there, so that the figure is built and drawn elsewhere while the
+    rest is computed; the futures' :class:`~.report_figure.Drawn` are collected at
+    the end. Without it each figure is built and drawn here at its first use."""
     builder = ReportBuilder(list(experiments), provenance, title, render=render)
     for name, e in experiments.items():
         builder.add(name, e)
@@ -253,7 +188,7 @@ class ReportBuilder:
         provenance: dict[str, Any] | None = None,
         title: str | None = None,
         *,
-        render: Callable[[object], Any] | None = None,
+        render: Callable[[FigureJob], Any] | None = None,
     ) -> None:
         self.names = list(names)
         self.provenance = provenance
@@ -283,13 +218,14 @@ class ReportBuilder:
                 if final:
                     self.not_drawn.append((ftitle, f"no experiment here has {', '.join(needs)}"))
                 continue
-            fig = fn(
-                self.cols[src],
-                self.experiments[src].get("spec"),
-                experiment=_exp_label(src, self.provenance),
+            job = FigureJob(
+                fn,
+                (self.cols[src], self.experiments[src].get("spec")),
+                {"experiment": _exp_label(src, self.provenance)},
+                FIGURE_FIELDS.get(name),
             )
-            fut = self.render(fig) if self.render is not None else None
-            self.figs[i] = (ReportFigure(name, ftitle, caption, src, fig), fut)
+            fut = self.render(job) if self.render is not None else None
+            self.figs[i] = (ReportFigure(name, ftitle, caption, src, job), fut)
 
     def add(self, name: str, e: dict[str, Any]) -> None:
         self.experiments[name] = e
@@ -319,7 +255,7 @@ class ReportBuilder:
         figs: list[ReportFigure] = []
         for fg, fut in [self.figs[i] for i in sorted(self.figs)] + ([a_fig] if a_fig else []):
             if fut is not None:
-                fg.set_rendered(*fut.result())
+                fg.set_drawn(fut.result())
             figs.append(fg)
         return Report(
             title=self.title or f"Reproduction of the paper's Section 6 ({PRESET_NAME})",
@@ -346,8 +282,11 @@ class ReportBuilder:
         meta = spec_meta(experiments[next(iter(sources.values()))].get("spec"))
         rows = audit_rows(cols, meta.delta)
         label = " + ".join(f"{n} ({m})" for m, n in sources.items())
-        fig = fig_bounds_audit(
-            cols, meta.delta, experiment=_exp_label(label, self.provenance), seed=meta.seed
+        job = FigureJob(
+            fig_bounds_audit,
+            (cols, meta.delta),
+            {"experiment": _exp_label(label, self.provenance), "seed": meta.seed},
+            FIGURE_FIELDS["fig_bounds_audit"],
         )
         caption = (
             "Top: share of records with every entry of A and of B inside the method's box "
@@ -361,9 +300,9 @@ class ReportBuilder:
             "Beyond the paper: coverage and width of the uncertainty sets per bounds_method",
             caption,
             " + ".join(sources.values()),
-            fig,
+            job,
         )
-        fut = None if self.render is None else self.render(fig)
+        fut = None if self.render is None else self.render(job)
         return rows, audit_findings(rows, meta.delta), dict(sources), (fg, fut)
 
 

@@ -1,6 +1,6 @@
 """A report's figures drawn by helper processes (svrobs_lab.figure_pool): the page is
 the one drawn in process, byte for byte, and a helper that fails, is killed, is
-late or cannot be handed its figure costs only time."""
+late, cannot be handed its figure or was not sent a field it reads costs only time."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ import time
 
 import pytest
 
-from svrobs_core.report import render_png
+from svrobs_core.report import FigureJob, draw_png
+from svrobs_core.report.build import FIGURE_FIELDS
 from svrobs_core.report.plotting import new_figure
 from svrobs_lab import figure_pool
 from svrobs_lab.report_html import job_report_html
@@ -92,16 +93,33 @@ def test_a_late_helper_leaves_its_figure_to_this_process(job, pool, monkeypatch,
     assert not any(map(alive, started))
 
 
-def test_a_figure_that_cannot_be_pickled_is_drawn_here(pool, caplog):
+def _small_figure(*_):
     fig, axes = new_figure(1, 1, (3.0, 2.0))
     axes[0, 0].plot([1, 2, 3], [3, 1, 2])
-    expected = render_png(fig)
-    fig.svrobs_callback = lambda: None  # pickle refuses a lambda
+    return fig
+
+
+def test_a_figure_that_cannot_be_pickled_is_drawn_here(pool, caplog):
+    expected = draw_png(_small_figure())
+    job = FigureJob(_small_figure, (lambda: None,))  # pickle refuses a lambda
     render = figure_pool.figure_renderer(HELPERS)
     assert render is not None
     with caplog.at_level(logging.WARNING, logger="svrobs_lab.figure_pool"):
-        assert render(fig).result() == expected
+        assert render(job).result() == expected
     assert "drawn in process" in caplog.text
+
+
+def test_a_figure_sent_too_few_fields_is_built_here_from_all(job, pool, monkeypatch, caplog):
+    here = page(job, None)
+    assert figure_pool.warm(HELPERS)
+    pids = figure_pool.helper_pids()
+    fields = {n: tuple(f for f in fs if f != "N") for n, fs in FIGURE_FIELDS.items()}
+    monkeypatch.setattr("svrobs_core.report.build.FIGURE_FIELDS", fields)
+    with caplog.at_level(logging.WARNING, logger="svrobs_lab.figure_pool"):
+        assert page(job, figure_pool.figure_renderer(HELPERS)) == here
+    assert "KeyError: 'N (not sent with the figure)'" in caplog.text
+    assert "drawn in process" in caplog.text
+    assert figure_pool.helper_pids() == pids  # the helpers are fine: kept
 
 
 def _renderer_in_daemon(q):
