@@ -18,6 +18,8 @@ from svrobs_core import report as rpt
 from svrobs_core.paper import paper_specs
 from svrobs_core.report.build import FIGURE_FIELDS, FIGURE_PLAN
 from svrobs_core.report.columns import Columns
+from tests.core.test_measured import ragged
+from tests.core.test_measured import run as measured_run
 from tests.core.test_report import make_records, tiny_spec
 
 
@@ -114,12 +116,22 @@ SHAPES = {
 }
 
 
-@pytest.mark.parametrize("shape", list(SHAPES))
+def _records(shape):
+    if shape != "measured":
+        spec = SHAPES[shape]
+        return spec, [r for b in run_spec(parse_spec(spec)) for r in b]
+    spec = {"dataset": 6, "N": [10, 20], "holdout": 2, "reps": 2, "sigma_w": "estimate"}
+    spec["stages"] = ["estimate", "bounds", "gain", "cost", "cost_bound"]
+    return spec, measured_run(spec, ragged(4, 30))[1]
+
+
+@pytest.mark.parametrize("shape", [*SHAPES, "measured"])
 def test_every_figure_on_records_of_each_shape_sent_its_fields_is_the_same(shape):
     """Each figure of the plan on records it may have no data for (a stage not run, one
-    estimator only): its no-data branches read what it is sent too."""
-    spec = SHAPES[shape]
-    cols = Columns.from_records([r for b in run_spec(parse_spec(spec)) for r in b])
+    estimator only, measured data without a true system): its no-data branches read
+    what it is sent too."""
+    spec, records = _records(shape)
+    cols = Columns.from_records(records)
     plan = [(n, fn, (cols, spec)) for n, fn, *_ in FIGURE_PLAN]
     plan.append(("fig_bounds_audit", rpt.fig_bounds_audit, ({"paper": cols, "x": cols}, 0.01)))
     for name, fn, args in plan:
