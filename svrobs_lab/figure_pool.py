@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import pickle
 import signal
 import threading
 from concurrent.futures import BrokenExecutor, Future, ProcessPoolExecutor
@@ -70,7 +71,9 @@ class DrawnFigure:
                 log.warning("a report figure's helper failed (%s): drawn in process", why)
                 if isinstance(exc, (BrokenExecutor, TimeoutError)):  # gone or stuck
                     _discard(self._pool)  # new helpers at the next report
-            # the future's exception holds this frame: let go of both (and the columns)
+                # a broken pool's futures share one exception, whose traceback would
+                # keep this frame (and the columns) until the next gc pass
+                exc.__traceback__ = None
             future = None
         return draw_png(self._job)
 
@@ -94,14 +97,27 @@ def figure_renderer(processes: int | None = None) -> Callable[[FigureJob], Drawn
         pool = _get(processes)
         if pool is None:
             return DrawnFigure(job, None, None)
+        try:  # here, so that the pool never holds the job's whole columns
+            wire = pickle.dumps(job, protocol=pickle.HIGHEST_PROTOCOL)
+        except Exception as exc:  # noqa: BLE001 - e.g. a lambda among its arguments
+            why = f"{type(exc).__name__}: {exc}"
+            log.warning("a report figure could not be sent to a helper (%s): drawn in process", why)
+            return DrawnFigure(job, None, None)
         try:
-            return DrawnFigure(job, pool.submit(draw_png, job), pool)
+            return DrawnFigure(job, pool.submit(_draw_sent, wire), pool)
         except Exception as exc:  # noqa: BLE001 - a broken or stopped pool: draw here
-            log.warning("report figures could not be handed to helpers (%s)", exc)
+            why = f"{type(exc).__name__}: {exc}"  # not the exception: its frames hold the job
+            log.warning("report figures could not be handed to helpers (%s)", why)
             _discard(pool)
             return DrawnFigure(job, None, None)
 
     return render
+
+
+def _draw_sent(wire: bytes) -> Drawn:
+    """In a helper: the pickled job built and drawn."""
+    job: FigureJob = pickle.loads(wire)
+    return draw_png(job)
 
 
 def warm(processes: int) -> bool:

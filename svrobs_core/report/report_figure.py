@@ -167,6 +167,6 @@ def draw_files(job: FigureJob | Figure) -> Drawn:
     """The figure's PNG, SVG, PDF and CSV, as ``ReportFigure`` draws them, for the
     reproduction's files (picklable: run in a worker process)."""
     rf = ReportFigure("", "", "", "", job)
-    if rf.empty:
-        return Drawn(b"", b"", b"", "", rf.notes, True)
+    if rf.empty:  # nothing to draw: no image files (a ReportFigure draws them if asked)
+        return Drawn(b"", None, None, rf.csv(), rf.notes, True)
     return Drawn(rf.png(), rf.svg(), rf.pdf(), rf.csv(), rf.notes, False)

@@ -102,11 +102,14 @@ def _small_figure(*_):
 def test_a_figure_that_cannot_be_pickled_is_drawn_here(pool, caplog):
     expected = draw_png(_small_figure())
     job = FigureJob(_small_figure, (lambda: None,))  # pickle refuses a lambda
+    assert figure_pool.warm(HELPERS)
+    pids = figure_pool.helper_pids()
     render = figure_pool.figure_renderer(HELPERS)
     assert render is not None
     with caplog.at_level(logging.WARNING, logger="svrobs_lab.figure_pool"):
         assert render(job).result() == expected
-    assert "drawn in process" in caplog.text
+    assert "could not be sent to a helper" in caplog.text and "drawn in process" in caplog.text
+    assert figure_pool.helper_pids() == pids  # the helpers are fine: kept
 
 
 def test_a_figure_sent_too_few_fields_is_built_here_from_all(job, pool, monkeypatch, caplog):
@@ -256,3 +259,30 @@ def test_the_api_app_stops_the_helpers_at_its_shutdown(tmp_path, monkeypatch):
     )
     assert done.returncode == -signal.SIGTERM
     assert "leaked" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+def test_a_report_whose_helpers_died_lets_go_of_its_columns(job, pool):
+    """The futures of a broken pool share one exception; its traceback must not keep
+    the build's frames, and so its columns, until a gc pass."""
+    import gc
+    import weakref
+
+    from svrobs_core.report.columns import Columns
+
+    spec, recs = job
+    page(job, None)  # this process's first draws (lazy imports) before the one watched
+    assert figure_pool.warm(HELPERS)
+    for pid in figure_pool.helper_pids():
+        os.kill(pid, signal.SIGKILL)
+    time.sleep(0.5)
+    cols = Columns.from_records(recs)
+    ref = weakref.ref(cols)
+    gc.disable()
+    try:
+        job_report_html(
+            spec, cols, {"job_id": 7}, name="pool", render=figure_pool.figure_renderer(HELPERS)
+        )
+        del cols
+        assert ref() is None
+    finally:
+        gc.enable()
