@@ -33,7 +33,6 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import json
-import logging
 import os
 import shutil
 import time
@@ -61,8 +60,7 @@ from svrobs_core.parallel import open_pool
 from svrobs_core.pipeline import failed_stage
 from svrobs_core.runner import run_unit_results
 from svrobs_core.threads import blas_single_thread
-
-log = logging.getLogger(__name__)
+from svrobs_lab.figure_pool import DrawnFigure
 
 # Above this many cells an experiment keeps no A_hat/B_hat in memory for the
 # report (only E1/E2-sized grids draw the figures that need them).
@@ -359,28 +357,12 @@ def _results(run: _GroupRun, specs: dict[str, dict], out: Path) -> dict[str, dic
     return results
 
 
-class _Drawn:
-    """A figure's files from a worker process, or built and drawn here when that
-    failed (e.g. a field its job was not sent: docs/performance.md#figures-drawn-beside-the-build)."""
-
-    def __init__(self, job, future):
-        self.job, self.future = job, future
-
-    def result(self):
-        future, self.future = self.future, None
-        try:
-            return future.result()
-        except Exception as exc:  # noqa: BLE001 - any failure: draw it here
-            log.warning("a figure's worker failed (%s: %s): drawn here", type(exc).__name__, exc)
-            exc.__traceback__ = None  # it would keep this frame, and the columns
-        return rpt.draw_files(self.job)
-
-
 def _renderer(pool):
     """Figures built and drawn in the worker processes (a future per figure)."""
 
-    def render(job):
-        return _Drawn(job, pool.submit(rpt.draw_files, job))
+    def render(job):  # a figure whose worker failed is built and drawn here
+        future = pool.submit(rpt.draw_files, job)
+        return DrawnFigure(job, future, None, draw=rpt.draw_files, timed=False)
 
     return render
 

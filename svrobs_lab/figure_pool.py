@@ -52,19 +52,28 @@ _lifeline: tuple[int, int] | None = None
 
 
 class DrawnFigure:
-    """A figure's :class:`Drawn` PNG as ``ReportFigure.set_drawn`` takes it: from its
-    helper, or built and drawn here when the helper failed."""
+    """A figure's :class:`Drawn` as ``ReportFigure.set_drawn`` takes it: from its
+    helper, or built and drawn here (by ``draw``) when the helper failed. ``timed``:
+    a result not back within ``DRAW_TIMEOUT_SECONDS`` counts as failed (False: waited
+    for, as in a pool whose figures queue behind other work)."""
 
     def __init__(
-        self, job: FigureJob, future: Future[Any] | None, pool: ProcessPoolExecutor | None
+        self,
+        job: FigureJob,
+        future: Future[Any] | None,
+        pool: ProcessPoolExecutor | None,
+        *,
+        draw: Callable[[FigureJob], Drawn] = draw_png,
+        timed: bool = True,
     ):
         self._job, self._future, self._pool = job, future, pool
+        self._draw, self._timed = draw, timed
 
     def result(self) -> Drawn:
         future, self._future = self._future, None
         if future is not None:
             try:
-                out: Drawn = future.result(timeout=DRAW_TIMEOUT_SECONDS)
+                out: Drawn = future.result(timeout=DRAW_TIMEOUT_SECONDS if self._timed else None)
                 return out
             except Exception as exc:  # noqa: BLE001 - any failure: draw it here
                 why = f"{type(exc).__name__}: {exc}"
@@ -75,7 +84,7 @@ class DrawnFigure:
                 # keep this frame (and the columns) until the next gc pass
                 exc.__traceback__ = None
             future = None
-        return draw_png(self._job)
+        return self._draw(self._job)
 
 
 def configure(processes: int) -> None:

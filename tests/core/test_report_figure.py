@@ -186,6 +186,16 @@ def _small(*_):
     return fig
 
 
+class _Failed:
+    """A pool whose every submission gives this failed future."""
+
+    def __init__(self, future):
+        self.future = future
+
+    def submit(self, *_):
+        return self.future
+
+
 def test_a_reproduction_figure_whose_worker_failed_is_drawn_here(caplog):
     from concurrent.futures import Future
 
@@ -194,7 +204,7 @@ def test_a_reproduction_figure_whose_worker_failed_is_drawn_here(caplog):
     job = rpt.FigureJob(_small, ())
     failed: Future = Future()
     failed.set_exception(KeyError("rmse_A (not sent with the figure)"))
-    with caplog.at_level(logging.WARNING, logger="svrobs_cli.reproduce"):
-        drawn = reproduce._Drawn(job, failed).result()
+    with caplog.at_level(logging.WARNING, logger="svrobs_lab.figure_pool"):
+        drawn = reproduce._renderer(_Failed(failed))(job).result()
     assert drawn == rpt.draw_files(job) and drawn.png and drawn.svg and drawn.pdf and drawn.csv
-    assert "KeyError" in caplog.text and "drawn here" in caplog.text
+    assert "KeyError" in caplog.text and "drawn in process" in caplog.text
