@@ -26,6 +26,7 @@ from ..records import (  # noqa: F401 - the report's field lists live with the r
     SCALAR_FIELDS,
     TEXT_FIELDS,
 )
+from . import column_wire
 
 # Per stage, the fields that are null in every record when the stage did not run
 # (named in the "no data" messages of the figures and findings).
@@ -181,86 +182,16 @@ class Columns:
         """These of the fields (those present), with their cached codes: what a
         figure built in another process is sent (:class:`~.report_figure.FigureJob`).
         Reading any other field of it is a KeyError, not a field without data."""
-        keep = set(fields)
-        data = Withheld(
-            {f: a for f, a in self.data.items() if f in keep},
-            [*getattr(self.data, "withheld", ()), *(f for f in self.data if f not in keep)],
-        )
-        cache = self.cache
-        codes = {f: cache[("codes", f)] for f in data if ("codes", f) in cache}
+        data, codes = column_wire.narrow(self.data, self.cache, fields)
         return Columns(data, self.n, codes=codes)
 
     def __getstate__(self) -> dict[str, Any]:
-        """Pickled as its fields and their cached codes (the masks stay here). A field
-        with codes whose values its codes give back exactly (text, or floats none of
-        which is zero, whose sign the codes do not keep) travels as the codes alone,
-        in the smallest integer type, and is rebuilt on arrival."""
-        cache = self.cache
-        codes = {f: cache[("codes", f)] for f in self.data if ("codes", f) in cache}
-        rebuilt = {f for f, a in self.data.items() if f in codes and _rebuildable(a, codes[f][1])}
-        data = {f: (None if f in rebuilt else a) for f, a in self.data.items()}
-        sent = {
-            f: (c.astype(np.min_scalar_type(max(len(v) - 1, 0))), v, c.dtype, self.data[f].dtype)
-            for f, (c, v) in codes.items()
-        }
-        withheld = sorted(getattr(self.data, "withheld", ()))
-        return {"data": data, "n": self.n, "codes": sent, "withheld": withheld}
+        """Pickled as :func:`.column_wire.pack` packs it (the masks stay here)."""
+        return column_wire.pack(self.data, self.cache, self.n)
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        codes = {f: (c.astype(dt), v) for f, (c, v, dt, _) in state["codes"].items()}
-        data = {
-            f: (_from_codes(*codes[f], state["codes"][f][3]) if a is None else a)
-            for f, a in state["data"].items()
-        }
-        self.data = Withheld(data, state["withheld"]) if state["withheld"] else data
-        self.n = state["n"]
+        self.data, codes, self.n = column_wire.unpack(state)
         self._cache = {("codes", f): fc for f, fc in codes.items()}
-
-
-class Withheld(dict[str, Array]):
-    """The fields of a Columns of which others were left out (:meth:`Columns.only`):
-    looking up one of those raises KeyError, so that a figure built from too few
-    fields fails rather than drawing them as fields without data."""
-
-    def __init__(self, data: dict[str, Array], withheld: Iterable[str]) -> None:
-        super().__init__(data)
-        self.withheld = frozenset(withheld)
-
-    def _check(self, f: object) -> None:
-        if f in self.withheld:
-            raise KeyError(f"{f} (not sent with the figure)")
-
-    def __getitem__(self, f: str) -> Array:
-        self._check(f)
-        return super().__getitem__(f)
-
-    def get(self, f: str, default: Any = None) -> Any:
-        self._check(f)
-        return super().get(f, default)
-
-    def __contains__(self, f: object) -> bool:
-        self._check(f)
-        return super().__contains__(f)
-
-
-def _rebuildable(col: Array, values: list[Any]) -> bool:
-    """Whether ``_from_codes`` gives ``col`` back from its codes and ``values``."""
-    if col.dtype == object:
-        return all(v is None or type(v) is str for v in values)
-    return col.dtype == np.float64 and col.ndim == 1 and all(v != 0.0 for v in values)
-
-
-def _from_codes(codes: Array, values: list[Any], dtype: Any) -> Array:
-    """The column (of ``dtype``: object, or float64 with None as NaN) whose codes and
-    values these are."""
-    if np.dtype(dtype).kind == "O":
-        lut = np.empty(len(values), dtype=object)
-        for i, v in enumerate(values):
-            lut[i] = v
-    else:
-        lut = np.array([np.nan if v is None else v for v in values], dtype=np.float64)
-    out: Array = lut[codes]
-    return out
 
 
 def as_columns(records: Columns | Iterable[dict[str, Any]]) -> Columns:
