@@ -76,6 +76,24 @@ def test_every_figure_sent_its_fields_is_the_figure_built_from_all(experiments):
             assert set(narrow.data) == set(job.fields) & set(whole.data) < set(whole.data)
 
 
+def test_a_jobs_figures_are_handed_over_slowest_first_and_shown_in_the_plans_order(experiments):
+    sent: list = []
+    report = rpt.build_report({"job": experiments["E4"]}, render=lambda job: _Sent(job, sent))
+    handed = [job.fn.__name__ for job, _ in sent]
+    # coverage (12 panels on the paper's job), the entry-wise figures, then the rest
+    assert handed == [
+        "fig_coverage",
+        "fig2",
+        "fig3",
+        "fig_rmse",
+        "fig5",
+        "fig4",
+        "fig_certified",
+        "fig_svr_ols_diff",
+    ]
+    assert [fg.name for fg in report.figures] == [n for n, *_ in FIGURE_PLAN if n in handed]
+
+
 def _constructed():
     """Records that take the branches the preset does not: coverage below one
     (fig_coverage drawn), some ΔJ < 0 (fig4's share panel)."""
