@@ -333,11 +333,8 @@ class UnitResult:
 
     def _seed_key_strings(self, ds: Dataset) -> list[str]:
         E = len(self.axis.names)
-        return [
-            f"[{self.system_idx}, {self.sigma_w_idx}, {ds.N}, {r}]"
-            for r in self.reps
-            for _ in range(E)
-        ]
+        head = f"[{self.system_idx}, {self.sigma_w_idx}, {ds.N}, "
+        return [t for r in self.reps for t in repeat(f"{head}{r}]", E)]
 
     def _json_strings(self, di: int, f: str, v: Array, RE: int) -> list[str]:
         """``_json_strings`` of a field, cached (J_mc and J_mc_se per Monte Carlo limit)."""
@@ -360,7 +357,7 @@ class UnitResult:
             var: dict[str, list[str]] = {
                 "estimator": [json.dumps(x) for x in self.axis.names] * R,
                 "gamma": ["null" if g is None else repr(float(g)) for g in self.axis.gammas] * R,
-                "rep": [str(r) for r in self.reps for _ in range(E)],
+                "rep": [t for r in self.reps for t in repeat(str(r), E)],
                 "seed_key": self._seed_key_strings(ds),
             }
             n0 = ds.n0_column(E)
@@ -374,14 +371,9 @@ class UnitResult:
                     const[f] = "null"
                 else:
                     var[f] = self._json_strings(di, f, v, RE)
-            cache: dict[Any, str] = {}
-            note_col: list[str] = []
-            for t in ds.notes.reshape(RE).tolist():
-                s = cache.get(t)
-                if s is None:
-                    s = cache[t] = json.dumps(t)
-                note_col.append(s)
-            var["notes"] = note_col
+            notes = ds.notes.reshape(RE).tolist()
+            texts = {t: json.dumps(t) for t in dict.fromkeys(notes)}  # a few distinct
+            var["notes"] = list(map(texts.__getitem__, notes))
             parts: list[str] = []
             order: list[list[str]] = []
             for f in RECORD_FIELDS:
@@ -391,7 +383,7 @@ class UnitResult:
                 else:
                     parts.append(f'"{f}": ' + const[f].replace("%", "%%"))
             template = "{" + ", ".join(parts) + "}"
-            lines += [template % t for t in zip(*order)]
+            lines += map(template.__mod__, zip(*order))
         return lines
 
     def columns(self, matrices: bool = True) -> dict[str, Array]:
