@@ -228,8 +228,9 @@ def summarize(records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def summarize_columns(columns: dict[str, Any]) -> list[dict[str, Any]]:
     """:func:`summarize` of records given as columns ({field: sequence}, one value per
-    record, None = null), vectorised over groups: one sort, then per field one
-    ``np.add.reduceat`` for the sums and one for the squared deviations."""
+    record, None = null), vectorised over groups and fields: one sort, then one
+    ``np.add.reduceat`` over the (field, record) array for the sums and one for the
+    squared deviations (each row's sums are those of the row alone, to the bit)."""
     keys = list(zip(*(columns[g] for g in GROUP_FIELDS)))
     if not keys:
         return []
@@ -239,23 +240,24 @@ def summarize_columns(columns: dict[str, Any]) -> list[dict[str, Any]]:
     order = np.argsort(gid, kind="stable")
     sizes = np.bincount(gid, minlength=len(index))
     starts = np.concatenate(([0], np.cumsum(sizes)[:-1]))
-    stats: dict[str, tuple[Any, ...]] = {}
-    for f in SUMMARY_FIELDS:
-        col = columns.get(f)
-        if col is None:
-            continue
-        x = np.asarray(col, dtype=float)[order]  # None -> nan, booleans -> 0/1
-        ok = ~np.isnan(x)
-        n = np.add.reduceat(ok.astype(np.int64), starts)
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            mean = np.add.reduceat(np.where(ok, x, 0.0), starts) / n
-            dev = np.where(ok, x - np.repeat(mean, sizes), 0.0)
-            std = np.sqrt(np.add.reduceat(dev * dev, starts) / n)
-        over = (n > 0) & ~(np.isfinite(mean) & np.isfinite(std))
-        if over.any():
-            mean, std = _scaled_stats(x, ok, starts, sizes, n, mean, std, over)
-        finite = (np.isfinite(mean) & np.isfinite(std)).tolist()
-        stats[f] = (mean.tolist(), std.tolist(), n.tolist(), finite)
+    present = [f for f in SUMMARY_FIELDS if columns.get(f) is not None]
+    X = np.empty((len(present), len(keys)))
+    for i, f in enumerate(present):
+        X[i] = np.asarray(columns[f], dtype=float)  # None -> nan, booleans -> 0/1
+    X = X[:, order]
+    ok = ~np.isnan(X)
+    n = np.add.reduceat(ok.astype(np.int64), starts, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        mean = np.add.reduceat(np.where(ok, X, 0.0), starts, axis=1) / n
+        dev = np.where(ok, X - np.repeat(mean, sizes, axis=1), 0.0)
+        std = np.sqrt(np.add.reduceat(dev * dev, starts, axis=1) / n)
+    over = (n > 0) & ~(np.isfinite(mean) & np.isfinite(std))
+    for i in np.flatnonzero(over.any(axis=1)).tolist():
+        mean[i], std[i] = _scaled_stats(X[i], ok[i], starts, sizes, n[i], mean[i], std[i], over[i])
+    finite = (np.isfinite(mean) & np.isfinite(std)).tolist()
+    stats: dict[str, tuple[Any, ...]] = {
+        f: row for f, row in zip(present, zip(mean.tolist(), std.tolist(), n.tolist(), finite))
+    }
     out = []
     for key in sorted(index, key=lambda k: tuple((v is None, v) for v in k)):
         g = index[key]
