@@ -64,3 +64,32 @@ def test_a_statistic_beyond_the_double_range_is_null_with_a_note():
     st = _summary([math.inf, 1.0])  # only a non-finite input gets here
     assert st["mean"] is None and st["std"] is None and st["count"] == 2
     assert st["note"] == f"mean and std {OVERFLOW_NOTE}"
+
+
+def test_one_fields_overflow_leaves_the_other_fields_of_the_call_plain():
+    huge, plain = [1.7e308, 1.7e308, 1.6e308], [0.1, 0.7, 2.5]
+    cols = {
+        "system": ["s"] * 3,
+        "sigma_w": [1.0] * 3,
+        "N": [5] * 3,
+        "estimator": ["ols"] * 3,
+        "gamma": [None] * 3,
+        "J_exact": huge,
+        "rmse_A": plain,
+        "J_mc": [None, 1.0, 3.0],  # nulls skipped
+        "certified": [True, False, True],  # booleans as 0/1
+    }
+    (group,) = summarize_columns(cols)
+    st = group["stats"]
+    mean, std = _exact(huge)
+    assert st["J_exact"]["mean"] == pytest.approx(mean, rel=1e-12)
+    assert st["J_exact"]["std"] == pytest.approx(std, rel=1e-12)
+    mean, std = _exact(plain)
+    assert st["rmse_A"]["mean"] == pytest.approx(mean, rel=1e-15)
+    assert st["rmse_A"]["std"] == pytest.approx(std, rel=1e-15)
+    for f in ("J_exact", "rmse_A", "J_mc", "certified"):  # each the field's own, to the bit
+        alone = {k: cols[k] for k in ("system", "sigma_w", "N", "estimator", "gamma", f)}
+        assert st[f] == summarize_columns(alone)[0]["stats"][f]
+    assert st["J_mc"] == {"mean": 2.0, "std": 1.0, "count": 2}
+    assert st["certified"]["mean"] == pytest.approx(2 / 3, rel=1e-15)
+    assert st["J_opt"] == {"mean": None, "std": None, "count": 0}  # not a column here
