@@ -209,6 +209,30 @@ def test_a_first_report_reads_the_blocks_not_the_rows(client, session, make_acco
     assert page == oracle
 
 
+def test_the_block_read_checks_the_blocks_against_the_units_count_not_the_rows(
+    client, session, make_account
+):
+    """Counting a large job's rows reads every row's index entry: the blocks are
+    checked against the cells its done units counted instead."""
+    from sqlalchemy import event
+
+    jid, records = _job(client, session, make_account)
+    seen: list[str] = []
+    conn = session.connection()
+
+    def record(conn, cursor, statement, *args):
+        seen.append(statement.lower())
+
+    event.listen(conn, "before_cursor_execute", record)
+    try:
+        cols = load_columns(session, jid, matrices=False)
+    finally:
+        event.remove(conn, "before_cursor_execute", record)
+    _same_columns(cols, Columns.from_records(records, matrices=False))
+    assert any("result_blocks" in q for q in seen)
+    assert not [q for q in seen if "count(" in q and "from results" in q]
+
+
 def test_a_driver_error_in_the_block_read_is_reported_as_sqlalchemy_reports_it(
     client, session, make_account, monkeypatch
 ):
