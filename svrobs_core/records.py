@@ -243,7 +243,10 @@ def summarize_columns(columns: dict[str, Any]) -> list[dict[str, Any]]:
     present = [f for f in SUMMARY_FIELDS if columns.get(f) is not None]
     X = np.empty((len(present), len(keys)))
     for i, f in enumerate(present):
-        X[i] = np.asarray(columns[f], dtype=float)  # None -> nan, booleans -> 0/1
+        x = np.asarray(columns[f], dtype=float)  # None -> nan, booleans -> 0/1
+        if x.shape != (len(keys),):
+            raise ValueError(f"summary field {f!r} has {x.size} values for {len(keys)} records")
+        X[i] = x
     X = X[:, order]
     ok = ~np.isnan(X)
     n = np.add.reduceat(ok.astype(np.int64), starts, axis=1)

@@ -93,3 +93,17 @@ def test_one_fields_overflow_leaves_the_other_fields_of_the_call_plain():
     assert st["J_mc"] == {"mean": 2.0, "std": 1.0, "count": 2}
     assert st["certified"]["mean"] == pytest.approx(2 / 3, rel=1e-15)
     assert st["J_opt"] == {"mean": None, "std": None, "count": 0}  # not a column here
+
+
+@pytest.mark.parametrize("values", [[1.0], [1.0, 2.0, 3.0, 4.0], 1.0])
+def test_a_summary_field_of_another_length_than_the_keys_is_refused(values):
+    cols = {
+        "system": ["s"] * 3,
+        "sigma_w": [1.0] * 3,
+        "N": [5] * 3,
+        "estimator": ["ols"] * 3,
+        "gamma": [None] * 3,
+        "J_exact": values,
+    }
+    with pytest.raises(ValueError, match="'J_exact' has"):
+        summarize_columns(cols)
