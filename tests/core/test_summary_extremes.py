@@ -21,15 +21,19 @@ def _exact(values):
     return float(m), math.sqrt(float(var / Fraction(2) ** k)) * 2.0 ** (k // 2)
 
 
-def _summary(values):
-    cols = {
-        "system": ["s"] * len(values),
-        "sigma_w": [1.0] * len(values),
-        "N": [5] * len(values),
-        "estimator": ["ols"] * len(values),
-        "gamma": [None] * len(values),
-        "J_exact": list(values),
+def _one_group(k):
+    """The group fields of k records of one group."""
+    return {
+        "system": ["s"] * k,
+        "sigma_w": [1.0] * k,
+        "N": [5] * k,
+        "estimator": ["ols"] * k,
+        "gamma": [None] * k,
     }
+
+
+def _summary(values):
+    cols = {**_one_group(len(values)), "J_exact": list(values)}
     (group,) = summarize_columns(cols)
     json.dumps(group, allow_nan=False)  # always valid JSON
     return group["stats"]["J_exact"]
@@ -69,11 +73,7 @@ def test_a_statistic_beyond_the_double_range_is_null_with_a_note():
 def test_one_fields_overflow_leaves_the_other_fields_of_the_call_plain():
     huge, plain = [1.7e308, 1.7e308, 1.6e308], [0.1, 0.7, 2.5]
     cols = {
-        "system": ["s"] * 3,
-        "sigma_w": [1.0] * 3,
-        "N": [5] * 3,
-        "estimator": ["ols"] * 3,
-        "gamma": [None] * 3,
+        **_one_group(3),
         "J_exact": huge,
         "rmse_A": plain,
         "J_mc": [None, 1.0, 3.0],  # nulls skipped
@@ -88,7 +88,7 @@ def test_one_fields_overflow_leaves_the_other_fields_of_the_call_plain():
     assert st["rmse_A"]["mean"] == pytest.approx(mean, rel=1e-15)
     assert st["rmse_A"]["std"] == pytest.approx(std, rel=1e-15)
     for f in ("J_exact", "rmse_A", "J_mc", "certified"):  # each the field's own, to the bit
-        alone = {k: cols[k] for k in ("system", "sigma_w", "N", "estimator", "gamma", f)}
+        alone = {**_one_group(3), f: cols[f]}
         assert st[f] == summarize_columns(alone)[0]["stats"][f]
     assert st["J_mc"] == {"mean": 2.0, "std": 1.0, "count": 2}
     assert st["certified"]["mean"] == pytest.approx(2 / 3, rel=1e-15)
@@ -97,13 +97,6 @@ def test_one_fields_overflow_leaves_the_other_fields_of_the_call_plain():
 
 @pytest.mark.parametrize("values", [[1.0], [1.0, 2.0, 3.0, 4.0], 1.0])
 def test_a_summary_field_of_another_length_than_the_keys_is_refused(values):
-    cols = {
-        "system": ["s"] * 3,
-        "sigma_w": [1.0] * 3,
-        "N": [5] * 3,
-        "estimator": ["ols"] * 3,
-        "gamma": [None] * 3,
-        "J_exact": values,
-    }
+    cols = {**_one_group(3), "J_exact": values}
     with pytest.raises(ValueError, match="'J_exact' has"):
         summarize_columns(cols)
