@@ -145,9 +145,11 @@ FIGURE_FIELDS: dict[str, tuple[str, ...]] = {
 DRAW_FIRST = ("fig_coverage", "fig2", "fig3", "fig_rmse", "fig5")
 
 
-def _draw_order() -> list[int]:
-    first = {name: k for k, name in enumerate(DRAW_FIRST)}
-    return sorted(range(len(FIGURE_PLAN)), key=lambda i: first.get(FIGURE_PLAN[i][0], len(first)))
+_FIRST = {name: k for k, name in enumerate(DRAW_FIRST)}
+# the plan's indices in that order
+DRAW_ORDER = sorted(
+    range(len(FIGURE_PLAN)), key=lambda i: _FIRST.get(FIGURE_PLAN[i][0], len(_FIRST))
+)
 
 
 def _records_of(exp: dict[str, Any]) -> Columns:
@@ -223,7 +225,7 @@ class ReportBuilder:
         return _choose_source(ordered, self.cols, prefer, needs)
 
     def _figures(self, final: bool) -> None:
-        for i in _draw_order():
+        for i in DRAW_ORDER:
             name, fn, prefer, needs, ftitle, caption = FIGURE_PLAN[i]
             if i in self.figs:
                 continue
