@@ -148,7 +148,7 @@ def _counted_cells(session: Session, job_id: int) -> int | None:
     """The job's rows as its units counted them (``cells_done``, written in the
     transaction that writes a unit's rows and block), or None after its rows were
     pruned: the blocks are checked against it instead of a count of the rows,
-    which reads every row's index entry (0.12-0.18 s on PostgreSQL at 625,050
+    which reads every row's index entry (0.12-0.15 s on PostgreSQL at 625,050
     cells, docs/performance.md#the-first-report-of-a-large-job)."""
     row = session.execute(
         select(Job.cells_done, Job.pruned_at).where(Job.id == job_id)
