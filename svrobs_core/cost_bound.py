@@ -220,10 +220,8 @@ def theorem3_bound(
     eps_L = np.where(finite, eps_L, np.nan)
     eps_A = np.asarray(eps_A, dtype=float)
     eps_B = np.asarray(eps_B, dtype=float)
-    eps1 = np.fmax(eps_A, eps_B)
-    eps2 = np.fmax(eps_A, eps_L)
-    eps1 = np.where(np.isnan(eps_A) | np.isnan(eps_B), np.nan, eps1)
-    eps2 = np.where(np.isnan(eps_A) | np.isnan(eps_L), np.nan, eps2)
+    eps1 = np.maximum(eps_A, eps_B)  # null if either is null
+    eps2 = np.maximum(eps_A, eps_L)
     su = np.asarray(sigma_u, dtype=float)
     sv = np.asarray(sigma_v, dtype=float)
     s2 = np.sqrt(2.0)

@@ -28,6 +28,7 @@ __all__ = [
     "KALMAN_NOT_CONVERGED",
     "KALMAN_OK",
     "KALMAN_REASONS",
+    "KALMAN_SCALE_OVERFLOW",
     "KALMAN_UNDETECTABLE",
     "KALMAN_UNIT_CIRCLE",
     "KalmanResult",
@@ -45,6 +46,7 @@ KALMAN_UNDETECTABLE = 1  # (A, C) not detectable: an unstable mode is unobservab
 KALMAN_UNIT_CIRCLE = 2  # sigma_w = 0 and A has an eigenvalue on the unit circle
 KALMAN_NOT_CONVERGED = 3  # no stabilising solution reached (numerically ill-posed)
 KALMAN_NONFINITE_INPUT = 4  # A, C, sigma_w or sigma_v not finite
+KALMAN_SCALE_OVERFLOW = 5  # (sigma_w / sigma_v)^2 overflows and C is not square invertible
 
 KALMAN_REASONS = {
     KALMAN_OK: "",
@@ -58,6 +60,10 @@ KALMAN_REASONS = {
         "stabilising solution (ill-conditioned problem)"
     ),
     KALMAN_NONFINITE_INPUT: "Kalman gain undefined: non-finite A, C, sigma_w or sigma_v",
+    KALMAN_SCALE_OVERFLOW: (
+        "Kalman gain undefined: (sigma_w / sigma_v)^2 is beyond the double range "
+        "and C is not square and invertible (the limit sigma_v -> 0 needs it)"
+    ),
 }
 
 _SDA_TOL = 1e-14  # relative step size at which doubling stops (quadratic convergence)
@@ -99,6 +105,14 @@ class KalmanResult:
         for code, text in KALMAN_REASONS.items():
             out[self.status == code] = text
         return out
+
+
+def _square_invertible(C: Array, n: int) -> BoolArray:
+    """Per (p, n) C of the batch (b, p, n): square and invertible to SIGMA_V0_COND_LIMIT."""
+    if C.shape[-2] != n or C.shape[0] == 0:
+        return np.zeros(C.shape[0], dtype=bool)
+    ok: BoolArray = np.linalg.cond(C) <= SIGMA_V0_COND_LIMIT
+    return ok
 
 
 def _mT(X: Array) -> Array:
@@ -270,16 +284,25 @@ def kalman_predictor(
 
     # sigma_v = 0: K = A C^-1 (validation error unless C is square and invertible)
     zero_v = finite & (sv == 0)
-    if zero_v.any():
-        idx = np.flatnonzero(zero_v)
-        if p != n or not np.all(np.linalg.cond(C[idx]) <= SIGMA_V0_COND_LIMIT):
-            raise SpecError("sigma_v", "sigma_v = 0 requires a square invertible C")
+    if zero_v.any() and not _square_invertible(C[zero_v], n).all():
+        raise SpecError("sigma_v", "sigma_v = 0 requires a square invertible C")
+    # sigma_v > 0 so small against sigma_w that q = (sigma_w/sigma_v)^2 overflows:
+    # K = A C^-1 (1 + O(sigma_v^2 / sigma_w^2)) is the sigma_v = 0 gain to the last bit
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        tiny_v = finite & (sv > 0) & ~np.isfinite((sw / np.where(sv > 0, sv, 1.0)) ** 2)
+    t_idx = np.flatnonzero(tiny_v)
+    ok_v = _square_invertible(C[t_idx], n)
+    status[t_idx[~ok_v]] = KALMAN_SCALE_OVERFLOW
+    limit = zero_v.copy()
+    limit[t_idx[ok_v]] = True
+    if limit.any():
+        idx = np.flatnonzero(limit)
         K[idx] = _mT(_solve(_mT(C[idx]), _mT(A[idx])))
         P[idx] = (sw[idx] ** 2)[:, None, None] * np.eye(n)
         status[idx] = KALMAN_OK
 
     # Scaled DARE: X = P / sigma_v^2 solves X = A X (I + C^T C X)^-1 A^T + q I, q = (sigma_w/sigma_v)^2
-    todo = finite & (sv > 0)
+    todo = finite & (sv > 0) & ~tiny_v
     if todo.any():
         idx = np.flatnonzero(todo)
         a, c = A[idx], C[idx]

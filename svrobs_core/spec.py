@@ -231,7 +231,10 @@ def _float(value: object, name: str, *, positive: bool = False, nonneg: bool = F
     """A JSON number: booleans and numeric strings ("0.5") are refused."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise SpecError(name, f"must be a number, got {json.dumps(value, default=str)}")
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:  # an integer beyond the double range
+        v = math.inf
     if not math.isfinite(v):
         raise SpecError(name, "must be finite (no NaN or inf)")
     if positive and v <= 0:

@@ -3,6 +3,7 @@ docs/science.md#91-the-preset-paper-section-6)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -95,7 +96,10 @@ def _matrix(value: object, field: str) -> FloatArray:
 def _positive_number(value: object, field: str, *, allow_zero: bool) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise SpecError(field, "must be a number")
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:  # an integer beyond the double range
+        v = math.inf
     if not np.isfinite(v):
         raise SpecError(field, "must be finite")
     if v < 0 or (v == 0 and not allow_zero):

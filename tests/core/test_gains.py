@@ -21,6 +21,7 @@ from svrobs_core.gains import (
 from svrobs_core.kalman import (
     KALMAN_OK,
     KALMAN_REASONS,
+    KALMAN_SCALE_OVERFLOW,
     KALMAN_UNDETECTABLE,
     KALMAN_UNIT_CIRCLE,
     dare_residual,
@@ -143,6 +144,25 @@ def test_sigma_v_zero():
         kalman_gain(A, np.array([[1.0, 0, 0], [0, 1, 0], [1, 1, 0]]), 1.0, 0.0)
     with pytest.raises(SpecError):
         kalman_gain(A, I3, -1.0, 0.1)
+
+
+def test_sigma_v_so_small_that_the_dare_scale_overflows():
+    """(sigma_w / sigma_v)^2 beyond the double range: a square invertible C gives the
+    sigma_v -> 0 gain A C^-1 (python-control's dlqe at sigma_v = 1e-100 agrees to the
+    last digits), any other C a null gain whose reason says why."""
+    A = np.array([[0.9, 0.2], [0.0, 0.7]])
+    C = np.array([[1.0, 0.5], [0.0, 2.0]])
+    L_dlqe, _, _ = control.dlqe(A, np.eye(2), C, 0.01 * np.eye(2), 1e-200 * np.eye(2))
+    for sv in (1e-160, 1e-200, 5e-324):
+        res = kalman_predictor(A, C, 0.1, sv)
+        assert res.status == KALMAN_OK
+        np.testing.assert_allclose(res.K, A @ np.linalg.inv(C), rtol=1e-14, atol=0)
+        np.testing.assert_allclose(res.K, L_dlqe, rtol=1e-9, atol=1e-15)
+    C1 = np.array([[1.0, 0.0]])
+    res = kalman_predictor(np.stack([A, A]), C1, 0.1, np.array([1e-150, 1e-160]))
+    assert res.status.tolist() == [KALMAN_OK, KALMAN_SCALE_OVERFLOW]
+    assert np.isfinite(res.K[0]).all() and np.isnan(res.K[1]).all()
+    assert "beyond the double range" in res.reasons()[1]
 
 
 def test_sigma_w_zero_stable_and_unstable():

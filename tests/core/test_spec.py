@@ -109,6 +109,11 @@ def test_custom_system_and_flat_B_column():
         ({"systems": [custom(A=[[1e308, 0.0], [0.0, 0.5]])]}, "systems[0].A"),
         ({"systems": [custom(sigma_u="1")]}, "systems[0].sigma_u"),
         ({"systems": [custom(sigma_u=1e200)]}, "systems[0].sigma_u"),
+        # an integer beyond the double range (JSON integers have no size limit)
+        ({"sigma_w": [10**400]}, "sigma_w[0]"),
+        ({"M": 10**400}, "M"),
+        ({"gamma": [-(10**400)]}, "gamma[0]"),
+        ({"systems": [custom(sigma_v=10**400)]}, "systems[0].sigma_v"),
         (
             {"systems": [custom(sigma_v=0.0, C=[[1.0, 0.0], [1.0, 1e-13]])]},
             "systems[0].sigma_v",
