@@ -222,7 +222,7 @@ def sls_stage(c: Cells, b: BoundsResult) -> None:
         notes.add(True, f"true system: {k_reason}")
     R, E = c.shape
     su, sv = system.sigma_u, system.sigma_v
-    eps1 = np.maximum(b.eps_A, b.eps_B)  # null if either is null
+    eps1 = _sls.eps_max(b.eps_A, b.eps_B)
     F = _sls.sls_F(eps1, norms.hinf_PhiA_B, norms.hinf_PhiA_K, sigma_u=su, sigma_v=sv)
     C_bound = spec.sls_C_bound
     if C_bound is None:

@@ -275,6 +275,13 @@ def default_C_bound(K: ArrayLike, h2_closed_loop_inv: ArrayLike) -> float | Floa
     return _out(2.0 * (1.0 + k_norm) * np.asarray(h2_closed_loop_inv, dtype=float))
 
 
+def eps_max(eps_A: ArrayLike, eps_B: ArrayLike) -> FloatArray:
+    """``eps1 = max(eps_A, eps_B)`` of :func:`sls_F` and :func:`jopt_upper_bound`: null
+    (NaN) when either bound is (docs/science.md#8-sls-sub-optimal-observer-j_opt)."""
+    out: FloatArray = np.maximum(np.asarray(eps_A, dtype=float), np.asarray(eps_B, dtype=float))
+    return out
+
+
 def sls_F(
     eps1: ArrayLike,
     hinf_AB: ArrayLike,

@@ -320,7 +320,7 @@ def _sls(c: MeasuredCells, b: BoundsResult, K: FloatArray, norms: _cb.TrueSystem
 
     spec, sys_ = c.spec, c.system
     R, E = c.shape
-    eps1 = np.maximum(b.eps_A, b.eps_B)  # null if either is null
+    eps1 = _sls.eps_max(b.eps_A, b.eps_B)
     F = np.broadcast_to(
         _sls.sls_F(
             eps1, norms.hinf_PhiA_B, norms.hinf_PhiA_K, sigma_u=sys_.sigma_u, sigma_v=sys_.sigma_v

@@ -21,6 +21,7 @@ from svrobs_core.sls import (
     REASON_UNDEFINED,
     SLSResult,
     default_C_bound,
+    eps_max,
     jopt_upper_bound,
     sls_F,
     sls_observer,
@@ -357,6 +358,13 @@ def test_default_C_bound_by_hand():
     Ks = np.stack([K, 3 * K])
     np.testing.assert_allclose(default_C_bound(Ks, [1.0, 2.0]), [6.0, 2 * 7 * 2.0])
     assert math.isnan(default_C_bound(K, math.nan))
+
+
+def test_eps1_is_null_when_either_bound_is_null():
+    got = eps_max(
+        np.array([0.1, math.nan, 0.3, math.nan]), np.array([0.2, 0.1, math.nan, math.nan])
+    )
+    assert got[0] == 0.2 and np.isnan(got[1:]).all()
 
 
 def test_sls_F_by_hand():
