@@ -59,6 +59,14 @@ def _header_problem(headers: dict) -> str | None:
     retries = headers.get("retries")
     if retries is not None and (type(retries) is not int or retries < 0):
         return f"header 'retries' is {_short(retries)}, not an integer >= 0"
+    stamped = headers.get("stamped_headers")  # iterated in the main process (revoke check)
+    if stamped is not None and not (
+        isinstance(stamped, (list, tuple)) and all(isinstance(h, str) for h in stamped)
+    ):
+        return f"header 'stamped_headers' is {_short(stamped)}, not a list of names"
+    stamps = headers.get("stamps")
+    if stamps is not None and not isinstance(stamps, dict):
+        return f"header 'stamps' is {_short(stamps)}, not an object"
     return None
 
 

@@ -130,6 +130,13 @@ MALFORMED = {
     "tick-no-id": ({"task": "svrobs.tick"}, [[], {}, {}]),
     "unknown-task-no-id": ({"task": "no.such.task"}, [[], {}, {}]),
     "task-is-list": ({"task": ["svrobs.run_unit"], "id": "m-task"}, [[1], {}, {}]),
+    # iterated by the worker's revoke check in its main process
+    "stamped-int": ({**_OK, "id": "m-stamped", "stamped_headers": 5}, [[1], {}, {}]),
+    "stamped-lists": ({**_OK, "id": "m-stamped2", "stamped_headers": [["x"]]}, [[1], {}, {}]),
+    "stamps-list": (
+        {**_OK, "id": "m-stamps", "stamped_headers": ["x"], "stamps": [1]},
+        [[1], {}, {}],
+    ),
 }
 # run_unit's own argument: not a unit id (one line each, never retried)
 BAD_UNIT_IDS = [["abc"], [None], [2**70], [True]]
@@ -206,7 +213,7 @@ def test_malformed_task_messages_are_dropped(kind, tmp_path, request):
     lines = log.splitlines()
     dropped = [ln for ln in lines if " ERROR " in ln and "task message" in ln and "dropped" in ln]
     assert len(dropped) == len(MALFORMED), "\n".join(dropped) + st.log_tail("worker1")
-    for ident in ("m-int", "m-short", "m-tl", "m-eta", "m-retries"):
+    for ident in ("m-int", "m-short", "m-tl", "m-eta", "m-retries", "m-stamped", "m-stamps"):
         assert any(f"'{ident}'" in ln for ln in dropped), (ident, dropped)
     bad_ids = [ln for ln in lines if "not a unit id" in ln]
     assert len(bad_ids) == len(BAD_UNIT_IDS), bad_ids
