@@ -29,6 +29,7 @@ from svrobs_cli.errors import CliError, plain_message
 from svrobs_cli.system_files import resolve_system_files
 from svrobs_client import RESULT_FILTERS, Client, Job, ValidationError
 from svrobs_client.params import results_params
+from svrobs_lab import json_text
 
 
 def client(*, timeout: float = 30.0) -> Client:
@@ -59,9 +60,9 @@ def load_spec(path: Path) -> dict:
             raise CliError(f"{path}: not valid YAML: {problem}{where}") from None
     else:
         try:
-            data = json.loads(text)
+            data = json_text.loads(text)
         except ValueError as exc:
-            raise CliError(f"{path}: not valid JSON: {exc}") from None
+            raise CliError(f"{path}: {exc}") from None
     if not isinstance(data, dict):
         raise CliError(f"{path}: the spec must be a JSON object")
     return data

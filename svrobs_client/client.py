@@ -53,7 +53,7 @@ def _load_json(spec: object) -> dict[str, Any]:
             data = json.loads(Path(spec).read_text(encoding="utf-8"))
         except UnicodeDecodeError:
             raise ValueError(f"{spec}: not a JSON file (not UTF-8 text)") from None
-        except ValueError as exc:
+        except (ValueError, RecursionError) as exc:  # RecursionError: nested too deeply
             raise ValueError(f"{spec}: not valid JSON: {exc}") from None
         if not isinstance(data, dict):
             raise ValueError(f"{spec}: the spec must be a JSON object")

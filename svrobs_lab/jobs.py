@@ -29,7 +29,7 @@ from svrobs_core.parsing import parse_spec
 from svrobs_core.spec import ExperimentSpec
 from svrobs_core.workload import DataShape
 
-from .auth import Caller
+from .auth import MAX_ID, Caller
 from .dispatch import Publisher, SessionFactory, dispatch_after_commit
 from .errors import Conflict, NotFound
 from .views import job_item, job_out
@@ -179,8 +179,9 @@ class Submission:
 
 
 def team_job(session: Session, caller: Caller, job_id: int) -> Job:
-    """The caller's job, or NotFound (another team's job is indistinguishable from none)."""
-    job = job_queries.team_job(session, caller.team_id, job_id)
+    """The caller's job, or NotFound (another team's job is indistinguishable from none;
+    so is an id no job can have, which the database would refuse)."""
+    job = job_queries.team_job(session, caller.team_id, job_id) if 1 <= job_id <= MAX_ID else None
     if job is None:
         raise NotFound(f"job {job_id} not found")
     return job

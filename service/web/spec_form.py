@@ -28,6 +28,7 @@ from svrobs_core.spec_fields import (
     SpecField,
     for_datasets,
 )
+from svrobs_lab import json_text
 
 GROUPS = (
     ("grid", "The grid"),
@@ -231,18 +232,18 @@ def spec_of(form: Mapping, getlist) -> tuple[dict, dict[str, str]]:
                 _put(spec, f.name, None)
                 continue
             try:
-                value = json.loads(text)
-            except json.JSONDecodeError as exc:
-                errors[f.name] = f"not valid JSON: {exc}"
+                value = json_text.loads(text)
+            except ValueError as exc:
+                errors[f.name] = str(exc)
                 continue
         elif f.kind == "systems":
             value = [s for s in getlist(key) if s]
             custom = str(form.get("f.systems_custom", "")).strip()
             if custom:
                 try:
-                    extra = json.loads(custom)
-                except json.JSONDecodeError as exc:
-                    errors["systems"] = f"the custom systems are not valid JSON: {exc}"
+                    extra = json_text.loads(custom)
+                except ValueError as exc:
+                    errors["systems"] = f"the custom systems are {exc}"
                     extra = []
                 value += extra if isinstance(extra, list) else [extra]
             value = value or None

@@ -14,12 +14,12 @@ from __future__ import annotations
 import itertools
 import json
 import re
-import sys
 from array import array
 from typing import BinaryIO
 
 import numpy as np
 
+from .. import json_text
 from .arrays import check_pair, names_of, ragged, sample_time_of
 from .parsed import BadDatasetFile, Rollouts
 from .stacked import RolloutStack, first_misshapen
@@ -58,20 +58,11 @@ def _loaded(text: str) -> Rollouts:
     """The file parsed whole by ``json.loads``, then checked rollout by rollout: what
     gives every error its message (and reads the files :func:`_streamed` leaves)."""
     try:
-        obj = json.loads(text, parse_constant=_no_constant)
-    except json.JSONDecodeError as exc:
-        raise BadDatasetFile(
-            f"not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}"
-        ) from None
-    except RecursionError:
-        raise BadDatasetFile("not valid JSON: nested too deeply") from None
+        obj = json_text.loads(text, parse_constant=_no_constant)
     except BadDatasetFile:
         raise
-    except ValueError:  # an integer longer than int() converts
-        raise BadDatasetFile(
-            f"an integer of more than {sys.get_int_max_str_digits():,} digits "
-            "(a float64 is at most about 1.8e308)"
-        ) from None
+    except ValueError as exc:
+        raise BadDatasetFile(str(exc)) from None
     if not isinstance(obj, dict):
         raise BadDatasetFile('a JSON dataset is an object {"X": [...], "U": [...]}')
     unknown = next((k for k in obj if k not in KEYS), None)

@@ -91,7 +91,11 @@ def test_another_teams_job_is_a_404_page_everywhere(web, session, make_account):
     for path in ("/cancel", "/delete"):
         r = web.post(f"/jobs/{jid}{path}", data={"csrf_token": token}, follow_redirects=False)
         assert r.status_code == 404 and "not found" in r.text
-    assert web.get("/jobs/2147483648").status_code == 404
+    for huge in (2**31, 2**63):  # beyond the database's integers: no job, not a 500
+        for path in ("", "/report", "/delete"):
+            assert web.get(f"/jobs/{huge}{path}").status_code == 404, (huge, path)
+        r = web.post(f"/jobs/{huge}/delete", data={"csrf_token": token}, follow_redirects=False)
+        assert r.status_code == 404 and "not found" in r.text
     assert _rows(web.get("/jobs").text) == []
     r = web.get(f"{API}/jobs/{jid}", headers=a.headers).json()
     assert r["status"] == "queued"  # untouched
@@ -262,6 +266,13 @@ def _post_spec(web, token: str, spec_text: str, **fields):
             "<code>name</code>: must be printable text (no control characters)",
         ),
         ("{not json", {}, "spec-error", "<code>spec</code>: not valid JSON"),
+        ('{"a":' * 3000 + "1" + "}" * 3000, {}, "spec-error", "not valid JSON: nested too deeply"),
+        (
+            '{"systems": ["paper-stable"], "sigma_w": [1], "N": [10], "seed": ' + "9" * 5000 + "}",
+            {},
+            "spec-error",
+            "<code>spec</code>: an integer of more than 4,300 digits",
+        ),
         ("[1, 2]", {}, "spec-error", "<code>spec</code>: must be a JSON object"),
         ("", {}, "spec-error", "<code>spec</code>: paste a spec"),
     ],

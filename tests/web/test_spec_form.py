@@ -156,6 +156,11 @@ def test_a_dataset_job_sends_the_fields_it_takes():
     assert parse_spec(spec).measured.sigma_w == 0.25
     spec, errors = post(values, **{"f.C": "[[1, 0]", "f.state": ""})
     assert errors["C"].startswith("not valid JSON") and spec["state"] is None
+    for bad, said in (("[" * 3000 + "]" * 3000, "nested too deeply"), ("9" * 5000, "digits")):
+        spec, errors = post(values, **{"f.C": bad})
+        assert said in errors["C"], errors
+        _, errors = post(spec_form.values_of(CUSTOM), **{"f.systems_custom": bad})
+        assert errors["systems"].startswith("the custom systems are ") and said in errors["systems"]
     simulated, errors = post(values, **{"f.dataset": "", "f.systems": "paper-stable"})
     assert "dataset" not in simulated and not set(simulated) - SPEC_KEYS
     assert simulated["bounds_method"] == "self-normalized"  # as it was chosen

@@ -18,12 +18,11 @@ from service.web import charts, figure_charts, job_tables
 from service.web.deps import CSRF, CurrentViewer
 from service.web.render import PAGE_HEADERS, REPORT_HEADERS, WebError, render, with_back_link
 from svrobs_lab import jobs
-from svrobs_lab.auth import Caller
+from svrobs_lab.auth import MAX_ID, Caller
 from svrobs_lab.reports import caller_job_report
 
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
-MAX_ID = 2_147_483_647
 FINISHED_EVENT = "svrobs:job-finished"
 
 

@@ -29,6 +29,7 @@ from svrobs_core.errors import SpecError
 from svrobs_core.paper import PRESET_NAME, paper_specs
 from svrobs_core.spec_fields import spec_errors
 from svrobs_core.systems import PRESETS
+from svrobs_lab import json_text
 from svrobs_lab.auth import MAX_ID
 from svrobs_lab.datasets.overview import datasets_page, starter_spec
 from svrobs_lab.errors import IdempotencyConflict, QuotaExceeded
@@ -196,9 +197,9 @@ def _read_spec(text: str, upload: UploadFile | None) -> tuple[str, dict | None, 
     if not text.strip():
         return text, None, {"spec": ("spec", "paste a spec, upload a .json file or pick a preset")}
     try:
-        body = json.loads(text)
-    except json.JSONDecodeError as exc:
-        return text, None, {"spec": ("spec", f"not valid JSON: {exc}")}
+        body = json_text.loads(text)
+    except ValueError as exc:
+        return text, None, {"spec": ("spec", str(exc))}
     if not isinstance(body, dict):
         return text, None, {"spec": ("spec", "must be a JSON object")}
     return text, body, {}
