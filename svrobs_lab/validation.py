@@ -8,8 +8,9 @@ page serve the stored copy, computing it first if no unit has run yet
 (:func:`job_validation`: one computation per job at a time, bounded per team
 with its reports', with no database connection held while it runs). The per-step series (one-step predictions, open-loop
 simulations, and the measured values they are compared with) are kept for the
-first ``PLOTTED_ROLLOUTS`` held-out rollouts: they are for the plots; every
-statistic is over all held-out rollouts.
+first ``PLOTTED_ROLLOUTS`` held-out rollouts and their first steps, as many as a
+plot holds (:func:`summarize`): they are for the plots; every statistic is over all
+held-out steps.
 """
 
 from __future__ import annotations
@@ -26,9 +27,11 @@ from service.db.models import Job
 from svrobs_core.measured import MeasuredData, StateModel, validation_summary
 from svrobs_core.measured.validation import plain
 from svrobs_core.parsing import parse_spec
+from svrobs_core.planning import estimator_axis
 
 from .auth import Caller
 from .datasets.loaded import measured_data
+from .datasets.overview import PLOTTED_ROLLOUTS, PLOTTED_STEPS, PLOTTED_VALUES
 from .dispatch import SessionFactory
 from .errors import NotFound
 from .jobs import team_job
@@ -37,32 +40,32 @@ from .reports import DEFAULT_BUILDS, JobKey
 
 log = logging.getLogger(__name__)
 
-PLOTTED_ROLLOUTS = 5
-
 
 def summarize(spec_dict: dict, data: MeasuredData) -> dict:
     """What is stored for a dataset job on ``data``: :func:`validation_summary`, with
-    its per-step series cut to the first PLOTTED_ROLLOUTS held-out rollouts and, as
-    ``plots``, those rollouts' measured channels in the model's time steps (the
-    simulations' rows; the one-step predictions are of rows 1 on)."""
+    its per-step series cut to the first PLOTTED_ROLLOUTS held-out rollouts and their
+    first ``steps`` steps (PLOTTED_STEPS, fewer with many channels and models: at most
+    PLOTTED_VALUES numbers in all, as a dataset's own plot) and, as ``plots``, those
+    rollouts' measured channels in the model's time steps (the simulations' rows; the
+    one-step predictions are of rows 1 on)."""
     spec = parse_spec(spec_dict)
-    summary = validation_summary(spec, data)
     holdout = spec.measured.holdout
     shown = min(holdout, PLOTTED_ROLLOUTS)
-    for model in summary["models"]:
-        v = model["validation"]
-        if v is not None:
-            v["predicted"], v["simulated"] = v["predicted"][:shown], v["simulated"][:shown]
+    series = max(1, shown) * data.n * (1 + 2 * len(estimator_axis(spec).names))
+    steps = max(1, min(PLOTTED_STEPS, PLOTTED_VALUES // series - 1))  # steps + 1 rows
+    summary = validation_summary(spec, data, series_rollouts=shown, series_steps=steps)
     first = data.rollouts - holdout
     measured = []  # none held out (holdout 0): nothing to plot
     if shown:
         lifted = StateModel(ny=data.n, m=data.m, lags=spec.measured.lags).lift(
             data.take(range(first, first + shown))
         )
-        measured = plain([x[:, : data.n] for x in lifted.X])
+        measured = plain([x[: steps + 1, : data.n] for x in lifted.X])
     summary["plots"] = {
         "rollouts": list(range(first, first + shown)),
         "of": holdout,
+        "steps": steps,
+        "cut": any(len(x) > steps + 1 for x in lifted.X) if shown else False,
         "channels": list(data.state_names),
         "measured": measured,
         "sample_time": data.sample_time,

@@ -12,7 +12,7 @@ estimator and gamma of a dataset spec, as JSON for the application layer.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, cast
 
 import numpy as np
@@ -216,8 +216,9 @@ NO_PAIRS = (
 
 
 def _simulate(model: Model, X: list[FloatArray], U: list[FloatArray], ny: int) -> list[FloatArray]:
-    """Open-loop simulation of every rollout from its first state with its inputs,
-    in lockstep over time (rollouts padded to the longest)."""
+    """Open-loop simulation of every rollout from its first state with its inputs
+    (rollouts padded to the longest): ``x_{k+1} = A x_k + B u_k`` as a prefix scan
+    (:func:`_affine_scan`), about 2 log2(T) array passes instead of T steps."""
     R, T = len(X), max(u.shape[0] for u in U)
     n, m = model.A.shape[0], model.B.shape[1]
     u = np.zeros((R, T, m))
@@ -226,9 +227,30 @@ def _simulate(model: Model, X: list[FloatArray], U: list[FloatArray], ny: int) -
     x = np.empty((R, T + 1, n))
     x[:, 0] = np.stack([xi[0] for xi in X])
     with np.errstate(over="ignore", invalid="ignore"):
-        for k in range(T):
-            x[:, k + 1] = x[:, k] @ model.A.T + u[:, k] @ model.B.T
+        x[:, 1:] = u @ model.B.T
+        _affine_scan(model.A, x)
     return [x[i, : X[i].shape[0], :ny] for i in range(R)]
+
+
+def _affine_scan(A: FloatArray, x: FloatArray) -> None:
+    """In place: ``x[:, k] <- A x[:, k-1] + x[:, k]`` for k = 1, 2, ... (x (R, T+1, n)).
+
+    Hillis-Steele: after the pass of offset s, ``x[:, k]`` holds the sum over
+    j < 2s of ``A^j`` times the k-j-th input; each pass reads the values before it.
+    If a power ``A^s`` it needs overflows (an unstable model over a long rollout,
+    where ``inf * 0`` would make NaN of a state the recursion keeps finite), the
+    recursion runs step by step instead."""
+    steps = x.shape[1]
+    powers = [A]
+    while 2 ** len(powers) < steps:
+        powers.append(powers[-1] @ powers[-1])
+    if not all(np.isfinite(P).all() for P in powers):
+        for k in range(1, steps):
+            x[:, k] += x[:, k - 1] @ A.T
+        return
+    for i, P in enumerate(powers):
+        s = 2**i
+        x[:, s:] += x[:, :-s] @ P.T
 
 
 def _whiteness(eps: list[FloatArray]) -> tuple[int, FloatArray, FloatArray, int, list[str]]:
@@ -357,11 +379,28 @@ def fit_model(
     return Model(A=theta[:, :n], B=theta[:, n:], lags=opts.lags, estimator=estimator, gamma=gamma)
 
 
-def validation_summary(spec: ExperimentSpec, data: MeasuredData) -> dict[str, Any]:
+def validation_summary(
+    spec: ExperimentSpec,
+    data: MeasuredData,
+    *,
+    series_rollouts: int | None = None,
+    series_steps: int | None = None,
+) -> dict[str, Any]:
     """JSON for a dataset job: the excitation of the training rollouts used at the
     largest N, and each (estimator, gamma)'s model and its validation on the
-    held-out rollouts (None without held-out rollouts)."""
+    held-out rollouts (None without held-out rollouts). The per-step series
+    (``predicted``, ``simulated``) are kept for the first ``series_rollouts``
+    held-out rollouts and their first ``series_steps`` steps (all when None); the
+    statistics are over every held-out step."""
     from ..planning import estimator_axis
+
+    def cut(v: ValidationResult) -> ValidationResult:
+        r, t = series_rollouts, series_steps
+        return replace(
+            v,
+            predicted=[p[:t] for p in v.predicted[:r]],
+            simulated=[x[: None if t is None else t + 1] for x in v.simulated[:r]],
+        )
 
     opts = spec.measured
     train, held = data.split(opts.holdout)
@@ -376,7 +415,7 @@ def validation_summary(spec: ExperimentSpec, data: MeasuredData) -> dict[str, An
                 "gamma": gamma,
                 "A_hat": plain(model.A),
                 "B_hat": plain(model.B),
-                "validation": None if held is None else validate(model, held).to_dict(),
+                "validation": None if held is None else cut(validate(model, held)).to_dict(),
             }
         )
     return {

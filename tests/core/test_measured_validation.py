@@ -149,6 +149,39 @@ def test_statistics_equal_a_hand_computation(coloured):
     assert d["lags"] == ref["h"] and len(d["simulated"]) == 5 and len(d["predicted"][0][0]) == 2
 
 
+@pytest.mark.parametrize("scale", [0.5, 0.999, 1.2, 1.5])
+def test_the_open_loop_simulation_is_the_recursion_step_by_step(scale):
+    """The prefix scan of the simulation against x_{k+1} = A x_k + B u_k one step at
+    a time, on ragged rollouts (up to 4,000 steps): each state within 1e-12 of the
+    largest state before it, and a rollout leaves the double range in both or in
+    neither. Where the powers the scan needs overflow (scale 1.5) the recursion
+    itself runs: the same steps are non-finite."""
+    rng = np.random.default_rng(7)
+    A3 = rng.standard_normal((3, 3))
+    A3 *= scale / np.abs(np.linalg.eigvals(A3)).max()
+    B3 = rng.standard_normal((3, 2))
+    lengths = [4000, 1, 2500]
+    X = [rng.standard_normal((T + 1, 3)) for T in lengths]
+    U = [rng.standard_normal((T, 2)) for T in lengths]
+    v = validate(Model(A=A3, B=B3), MeasuredData(X=X, U=U))
+    left = []
+    for x, u, got in zip(X, U, v.simulated):
+        want = np.empty_like(x)
+        want[0] = x[0]
+        with np.errstate(over="ignore", invalid="ignore"):
+            for k in range(len(u)):
+                want[k + 1] = want[k] @ A3.T + u[k] @ B3.T
+        assert got.shape == want.shape
+        assert np.isfinite(got).all() == np.isfinite(want).all()
+        if scale == 1.5:
+            assert (np.isfinite(got) == np.isfinite(want)).all()
+        both = np.isfinite(got).all(axis=1) & np.isfinite(want).all(axis=1)
+        top = np.maximum.accumulate(np.abs(want[both]).max(axis=1))[:, None]
+        assert (np.abs(got[both] - want[both]) <= 1e-12 * top).all()
+        left.append(not np.isfinite(want).all())
+    assert left == [scale > 1, False, scale > 1.2]  # 1.2^2500 is about 1e198
+
+
 def test_one_rollout_is_the_textbook_ljung_box():
     held = rollouts(2, 1, lo=80, hi=81)
     model = Model(A=A, B=B)

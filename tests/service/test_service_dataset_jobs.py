@@ -24,8 +24,9 @@ from service.db import jobs as job_store
 from service.db import units
 from service.db.models import Job, JobValidation, Schedule, ScheduleRun, WorkUnit
 from svrobs_core import RECORD_FIELDS, parse_spec
-from svrobs_core.measured import MeasuredData, run_measured_unit
+from svrobs_core.measured import MeasuredData, run_measured_unit, validation_summary
 from svrobs_lab import schedules as lab_schedules
+from svrobs_lab.datasets.overview import PLOTTED_VALUES
 from svrobs_lab.units import after_unit, compute_unit
 from svrobs_lab.validation import PLOTTED_ROLLOUTS, summarize
 from tests.datasets import files
@@ -164,6 +165,34 @@ def test_dataset_job_records_equal_the_core_on_the_same_arrays(
     # the report of a dataset job: built, truth fields null with their reason
     report = client.get(f"{API}/jobs/{job['id']}/report", headers=acc.headers)
     assert report.status_code == 200 and "measured data: no true system" in report.text
+
+
+def test_the_stored_validation_keeps_a_plots_worth_of_series_and_every_statistic():
+    """Long held-out rollouts: what is stored keeps the per-step series of the first
+    PLOTTED_ROLLOUTS rollouts and their first ``steps`` steps only (at most
+    PLOTTED_VALUES numbers), and every statistic is the one of all held-out steps
+    (``validation_summary`` uncut)."""
+    X, U = simulate(13, rollouts=9, T=20_000)
+    data = MeasuredData(X=X, U=U)
+    spec = {**SPEC, "dataset": 1, "N": [1, 2], "holdout": 7, "gamma": [0.01, 0.05, 0.1]}
+    got = summarize(spec, data)
+    whole = validation_summary(parse_spec(spec), data)
+    steps = got["plots"]["steps"]
+    assert got["plots"]["cut"] and 1 <= steps < 20_000
+    assert got["plots"]["rollouts"] == list(range(2, 2 + PLOTTED_ROLLOUTS))
+    numbers = 3 * len(got["plots"]["measured"]) * len(got["plots"]["measured"][0])
+    for cut, full in zip(got["models"], whole["models"]):
+        v, w = cut["validation"], full["validation"]
+        assert len(v["predicted"]) == len(v["simulated"]) == PLOTTED_ROLLOUTS
+        for r in range(PLOTTED_ROLLOUTS):
+            assert v["predicted"][r] == w["predicted"][r][:steps]
+            assert v["simulated"][r] == w["simulated"][r][: steps + 1]
+            assert np.array(got["plots"]["measured"][r]) == pytest.approx(X[2 + r][: steps + 1])
+        numbers += sum(3 * (len(p) + len(q)) for p, q in zip(v["predicted"], v["simulated"]))
+        assert len(w["simulated"]) == 7 and len(w["simulated"][0]) == 20_001
+        stats = {k: x for k, x in w.items() if k not in ("predicted", "simulated")}
+        assert {k: v[k] for k in stats} == stats
+    assert numbers <= PLOTTED_VALUES
 
 
 def test_a_validation_computed_on_request_holds_no_connection_and_counts_as_a_build(

@@ -160,7 +160,8 @@
     const all = data.notes.concat(ex ? ex.notes : [], ...data.models.map((m) => (m.validation ? m.validation.notes : [])));
     notes.replaceChildren(...[...new Set(all)].map((t) => { const li = document.createElement("li"); li.textContent = t; return li; }));
     const held = data.plots.of;
-    note.textContent = held ? `(N = ${data.N}; ${held} held-out rollouts, the first ${data.plots.rollouts.length} plotted)` : "(no held-out rollouts: holdout = 0)";
+    const steps = data.plots.cut ? `, each to its step ${data.plots.steps}` : "";
+    note.textContent = held ? `(N = ${data.N}; ${held} held-out rollouts, the first ${data.plots.rollouts.length} plotted${steps})` : "(no held-out rollouts: holdout = 0)";
     draw(card);
     registry.loads += 1;
     card.dataset.loads = String(registry.loads);
