@@ -208,6 +208,16 @@ def cases() -> list[tuple]:
             r"^row 3, column x1: not UTF-8 text \(byte 0xe9\)$",
         ),
         (
+            # a small file in Latin-1 (a spreadsheet's export): one in eight bytes is not
+            # UTF-8, and it is text all the same
+            "csv-latin1",
+            "d.csv",
+            "rollout,k,x1,u1\nessai-été,0,1,1\nessai-été,1,2,\n".encode("latin-1"),
+            {},
+            "file",
+            r"^row 2, column rollout: not UTF-8 text \(byte 0xe9\)$",
+        ),
+        (
             "csv-k-not-integer",
             "d.csv",
             _csv(_set(2, 1, "0.5")),
