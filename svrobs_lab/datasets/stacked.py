@@ -207,18 +207,23 @@ def _signed_zeros(stack: RolloutStack, columns: np.ndarray) -> bool:
 
 def channel_stats(stack: RolloutStack, names: list[str]) -> dict:
     """{name: {mean, std (ddof 0), min, max, count}} over every sample of every rollout
-    (two passes: the sum, then the squared deviations about the mean)."""
+    (two passes: the sum, then the squared deviations about the mean), each channel
+    divided by the power of two nearest its largest magnitude first: exact, so the
+    same numbers as unscaled where those neither overflow (values near 1e308 summed)
+    nor underflow (values near 1e-310 squared)."""
     width, count = stack.width, stack.rows
     if width == 0:
         return {}
     if count == 0:
         return {n: {"mean": None, "std": None, "min": None, "max": None, "count": 0} for n in names}
-    with np.errstate(over="ignore", invalid="ignore"):
-        total = _fold(stack, lambda g: g.sum(axis=1))
+    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
         lo, hi = _extremes(stack)
-        mean = total / count
-        dev = _fold(stack, lambda g: ((g - mean) ** 2).sum(axis=1))
-        std = np.sqrt(dev / count)
+        top = np.maximum(np.abs(lo), np.abs(hi))
+        usable = np.isfinite(top) & (top > 0)
+        scale = np.where(usable, np.ldexp(1.0, np.frexp(np.where(usable, top, 1.0))[1] - 1), 1.0)
+        mean_s = _fold(stack, lambda g: (g / scale).sum(axis=1)) / count
+        dev = _fold(stack, lambda g: ((g / scale - mean_s) ** 2).sum(axis=1))
+        mean, std = mean_s * scale, np.sqrt(dev / count) * scale
     return {
         name: {
             "mean": _finite(mean[j]),

@@ -100,6 +100,26 @@ def test_statistics_equal_numpy_over_the_stacked_samples():
             assert (s["min"], s["max"]) == (stacked[:, j].min(), stacked[:, j].max())
 
 
+@pytest.mark.parametrize("scale", [1e307, 1e-308, 3e-310])
+def test_statistics_of_finite_data_near_the_ends_of_the_double_range(scale):
+    """Values whose sum overflows (1e307 x 40) or whose squares underflow (1e-308,
+    subnormal 3e-310): the mean and std of the exact rationals (Fraction; the std as
+    the square root of the exact variance), never null and never a std of 0."""
+    from fractions import Fraction
+
+    rng = np.random.default_rng(5)
+    X = [(rng.uniform(1, 17, size=(40, 1)) * scale)]
+    U = [np.ones((39, 1))]
+    p = parse(files.npz_bytes(X, U))
+    s = p.stats["states"][p.state_names[0]]
+    exact = [Fraction(v) for v in X[0][:, 0].tolist()]
+    mean = sum(exact) / len(exact)
+    var = sum((v - mean) ** 2 for v in exact) / len(exact)
+    assert s["mean"] == pytest.approx(float(mean), rel=1e-13, abs=0)
+    want_std = float(var / Fraction(scale) ** 2) ** 0.5 * scale
+    assert s["std"] == pytest.approx(want_std, rel=1e-12, abs=0)
+
+
 def test_csv_column_mapping_delimiters_labels_and_long_rollouts():
     X, U = files.rollouts(lengths=(BLOCK_ROWS * 2 + 17, 3), n=2, m=1)
     data = files.csv_bytes(
