@@ -219,7 +219,8 @@ def validation(
         lb = ", ".join(_p(p) for p in v["ljung_box_p"])
         typer.echo(f"{m['estimator']}{gamma}: one-step fit {fits}; Ljung-Box p {lb}")
     ex = body["excitation"]
-    typer.echo(f"excitation: lambda_min {ex['lambda_min']:.3g}, condition number {_g(ex['cond'])}")
+    lam = _g(ex["lambda_min"], null="none")  # none: beyond the double range (a note says so)
+    typer.echo(f"excitation: lambda_min {lam}, condition number {_g(ex['cond'])}")
     for note in ex["notes"] + body["notes"]:
         typer.echo(f"note: {note}")
 
@@ -232,8 +233,8 @@ def _p(v) -> str:
     return "null" if v is None else f"{v:.3g}"
 
 
-def _g(v) -> str:
-    return "inf" if v is None else f"{v:.3g}"
+def _g(v, null: str = "inf") -> str:
+    return null if v is None else f"{v:.3g}"
 
 
 def system_from_file(

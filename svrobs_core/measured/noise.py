@@ -27,6 +27,11 @@ from ..array_types import Array, FloatArray
 from ..data_factor import U_ROUND, GramFactor, gram_factor, v_parts
 from ..uncertainty import RADIUS_RTOL, SINGULAR_RTOL
 
+REASON_RANGE = (
+    "the data or their squares are not finite doubles (a value beyond about 1e154 or a "
+    "Gram beyond the double range; data of magnitude near 1e-154 or below underflow): "
+    "rescale the channels"
+)
 REASON_FEW = "too few transitions to bound sigma_w (N0 <= d or the bound's denominator <= 0)"
 REASON_SINGULAR = "Z Z^T is singular: sigma_w cannot be bounded"
 REASON_INACCURATE = (
@@ -143,7 +148,7 @@ def noise_level(
     reason[good & ~accurate] = REASON_INACCURATE
     reason[ok & ~singular & ~(D > 0)] = REASON_FEW
     reason[singular & ok] = REASON_SINGULAR
-    reason[~ok] = "non-finite data"
+    reason[~ok] = REASON_RANGE
     good &= accurate
     return NoiseLevel(
         sigma_hat=np.where(ok, sigma_hat, np.nan),

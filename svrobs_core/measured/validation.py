@@ -108,8 +108,11 @@ def regressor_excitation(Z: FloatArray, names: tuple[str, ...]) -> Excitation:
     Zs = Z / scale if scale > 0 else Z
     lam_s, V = np.linalg.eigh(Zs @ Zs.T / N0)
     lam_s = np.maximum(lam_s, 0.0)
-    with np.errstate(over="ignore"):
+    with np.errstate(over="ignore", under="ignore"):
         lam = lam_s * scale * scale if scale > 0 else lam_s
+    # a positive eigenvalue that underflows to 0 or overflows: null, not 0 or inf
+    out_of_range = (lam_s > 0) & ((lam == 0) | ~np.isfinite(lam))
+    lam = np.where(out_of_range, np.nan, lam)
     cond = float(lam_s[-1] / lam_s[0]) if lam_s[0] > 0 else float("inf")
     ex = Excitation(names=names, N0=N0, eigenvalues=lam, direction=V[:, 0], cond=cond)
     top = int(np.argmax(np.abs(V[:, 0])))
@@ -134,6 +137,12 @@ def regressor_excitation(Z: FloatArray, names: tuple[str, ...]) -> Excitation:
         )
     if N0 < Z.shape[0]:
         ex.notes.append(f"fewer samples ({N0}) than regressors ({Z.shape[0]})")
+    if out_of_range.any():
+        ex.notes.append(
+            f"eigenvalues beyond the double range (null): the regressors' largest magnitude "
+            f"is {scale:.3g}, and its square is not a double; the condition number and the "
+            "least excited direction are those of the data scaled to 1: rescale the channels"
+        )
     return ex
 
 

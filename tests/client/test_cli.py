@@ -485,3 +485,18 @@ def test_a_server_that_is_not_the_api_or_a_url_or_key_that_cannot_be(capsys, mon
 def test_plain_field(field, plain):
     """pydantic's union-branch and validator names are dropped from a field path."""
     assert plain_field(field) == plain
+
+
+def test_a_validation_whose_eigenvalues_are_beyond_the_double_range_prints(capsys, monkeypatch):
+    """lambda_min null (the data's squares out of the double range): ``none`` and the
+    note that says why, not a traceback."""
+    note = "eigenvalues beyond the double range (null): ..."
+    body = {
+        "models": [{"estimator": "ols", "gamma": None, "validation": None}],
+        "excitation": {"lambda_min": None, "cond": 2.02, "notes": [note]},
+        "notes": [],
+    }
+    run = _offline(capsys, monkeypatch, lambda r: httpx.Response(200, json=body))
+    code, out, err = run("validation", "3")
+    assert (code, err) == (0, "")
+    assert "excitation: lambda_min none, condition number 2.02\n" in out and f"note: {note}" in out

@@ -250,17 +250,21 @@ def test_excitation_check():
 
 @pytest.mark.parametrize("c", [1e200, 1e-200, 1e150])
 def test_excitation_check_at_any_magnitude(c):
-    """The data times c: the same condition number and notes (the Gram of c Z would
-    overflow or underflow), the eigenvalues c^2 times (inf beyond the float range)."""
+    """The data times c: the same condition number and direction (the Gram of c Z would
+    overflow or underflow), the eigenvalues c^2 times, or null with a note where that
+    is beyond the double range (never 0 or inf: they are positive and finite)."""
     data = rollouts(3, 6)
     base = excitation(data)
     scaled = MeasuredData(X=[x * c for x in data.X], U=[u * c for u in data.U])
     ex = excitation(scaled)
-    assert ex.cond == pytest.approx(base.cond, rel=1e-9) and ex.notes == base.notes == []
+    assert ex.cond == pytest.approx(base.cond, rel=1e-9) and base.notes == []
     np.testing.assert_allclose(np.abs(ex.direction), np.abs(base.direction), rtol=1e-9)
-    with np.errstate(over="ignore"):
-        want = base.eigenvalues * c * c
-    np.testing.assert_allclose(ex.eigenvalues, want, rtol=1e-9)
+    if c == 1e150:
+        np.testing.assert_allclose(ex.eigenvalues, base.eigenvalues * c * c, rtol=1e-9)
+        assert ex.notes == []
+    else:  # c^2 = 1e400 or 1e-400
+        assert np.isnan(ex.eigenvalues).all() and ex.to_dict()["lambda_min"] is None
+        assert ex.notes[0].startswith("eigenvalues beyond the double range (null)")
     assert ex.to_dict()["cond"] == pytest.approx(base.cond, rel=1e-9)
     one = MeasuredData(X=scaled.X, U=[np.column_stack([u[:, 0], u[:, 0]]) for u in scaled.U])
     assert "do not excite every direction" in excitation(one).notes[0]

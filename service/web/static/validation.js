@@ -154,7 +154,7 @@
     ["#val-model", "#val-rollout"].forEach((sel) => card.querySelector(sel).addEventListener("change", () => draw(card)));
     const ex = data.excitation;
     card.querySelector("#validation-excitation").textContent = ex
-      ? `Excitation of the ${ex.N0} training transitions: λ_min = ${Number(ex.lambda_min).toPrecision(3)}, condition number ${ex.cond === null ? "∞" : Number(ex.cond).toPrecision(3)}.`
+      ? `Excitation of the ${ex.N0} training transitions: λ_min = ${ex.lambda_min === null ? "none" : Number(ex.lambda_min).toPrecision(3)}, condition number ${ex.cond === null ? "∞" : Number(ex.cond).toPrecision(3)}.`
       : "";
     const notes = card.querySelector("#validation-notes");
     const all = data.notes.concat(ex ? ex.notes : [], ...data.models.map((m) => (m.validation ? m.validation.notes : [])));
