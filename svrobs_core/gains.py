@@ -219,8 +219,10 @@ def design_gain(
         feasible = good & (rho >= 0)
         with np.errstate(invalid="ignore"):
             c0 = Ct - K_hat @ Cb
-            # infeasible -> radius 0 -> c = 0, the unique minimiser of g(L)
-            c = project_l1_ball(c0, np.where(feasible[..., None], rows, 0.0))
+            # infeasible: min g(L) = the largest row of radii (its c = 0); row i may
+            # keep sum_j |c_ij| up to that less its own radii (rows - rho), and the
+            # nearest to K_hat is its projection there (a scalar r_A: c = 0)
+            c = project_l1_ball(c0, np.where(feasible[..., None], rows, rows - rho[..., None]))
             L = (Ct - c) @ _mT(Cb)  # C orthogonal: L C = Ct - c
     elif method == "cvxpy":
         L = np.full(batch + (n, p), np.nan)

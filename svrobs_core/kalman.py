@@ -70,6 +70,9 @@ _SDA_TOL = 1e-14  # relative step size at which doubling stops (quadratic conver
 _SDA_A_TOL = 1e-8  # and |A_k|_F below this: A_k ~ (A - K C)^(2^k) has vanished
 _SDA_MAX_ITER = 64  # 2^64 Riccati steps: ample even for rho(A - K C) = 1 - 1e-15
 _NEWTON_TOL = 1e-13
+# a step this small that no longer halves: Newton's quadratic phase is over and the
+# rest is rounding (a strongly unstable A leaves the Stein solve about 1e-9 off)
+_NEWTON_STALL_TOL = 1e-8
 _NEWTON_MAX_ITER = 60
 _PBH_TOL = 1e-9
 
@@ -197,6 +200,7 @@ def _newton(A: Array, C: Array, q: Array, K0: Array) -> tuple[Array, BoolArray]:
     converged = np.zeros(b, dtype=bool)
     active = np.arange(b)
     scaleA = _fro(A)
+    last = np.full(b, np.inf)  # each cell's previous step
     with np.errstate(all="ignore"):
         for _ in range(_NEWTON_MAX_ITER):
             if active.size == 0:
@@ -208,7 +212,10 @@ def _newton(A: Array, C: Array, q: Array, K0: Array) -> tuple[Array, BoolArray]:
             k_new = _gain_from_X(a, c, x)
             X[active], K[active] = x, k_new
             finite = np.isfinite(k_new).all(axis=(-1, -2))
-            done = finite & (_fro(k_new - k) <= _NEWTON_TOL * (_fro(k_new) + scaleA[active]))
+            step = _fro(k_new - k) / (_fro(k_new) + scaleA[active])
+            stalled = (step <= _NEWTON_STALL_TOL) & (step > 0.5 * last[active])
+            done = finite & ((step <= _NEWTON_TOL) | stalled)
+            last[active] = step
             converged[active[done]] = True
             active = active[~done & finite]
     # one last Lyapunov solve so that X and K are exactly consistent

@@ -189,6 +189,27 @@ def test_sigma_w_zero_stable_and_unstable():
         assert dare_residual(A, C, 0.0, SIGMA_V, P=res.P) < 1e-12
 
 
+def test_sigma_w_zero_on_a_strongly_unstable_A_where_newton_stalls_near_rounding():
+    """|eig A| up to 2.98, one output: Newton-Hewer's step stalls near 1e-9 (the Stein
+    solve's rounding) instead of reaching 1e-13; the gain exists (scipy's DARE) and is
+    returned, stabilising, to 1e-8."""
+    A = np.array(
+        [
+            [0.7104349511470777, -1.3889758602168776, -1.9211671574447928, -1.4750951895760447, -2.9215970760969387],
+            [1.2897420862173463, 3.5754473935614204, -0.31304993733860587, -1.1909153872071536, 0.5335978219269796],
+            [2.3918555228542178, 0.13572859036564733, 1.9262771120768547, -0.014288364683264087, 0.34913839235110505],
+            [-2.2745332247369867, 0.5245166680643647, -1.395563650836997, -1.5711330482019927, -2.3499689562289183],
+            [0.9010988553677903, 3.4280018841424793, -1.0812408662491482, -0.40440659089431696, -0.5409039352450489],
+        ]
+    )  # fmt: skip
+    C = np.array([[0.9834678581747583, -0.03670772506922313, -0.40017731600642675, -1.7973649955675688, 0.6327317884736099]])  # fmt: skip
+    res = kalman_predictor(A, C, 0.0, 0.1)
+    assert res.status == KALMAN_OK, res.reasons()
+    K_ref, _ = scipy_kalman(A, C, 0.0, 0.1)
+    np.testing.assert_allclose(res.K, K_ref, rtol=1e-8, atol=0)
+    assert spectral_radius(A - res.K @ C) < 0.51
+
+
 def test_failures_are_nan_with_a_reason_and_do_not_contaminate_the_batch():
     C = np.array([[0.0, 1.0]])  # observes the second coordinate only
     A = np.stack(
@@ -278,6 +299,27 @@ def test_closed_form_design_equals_cvxpy_clarabel():
     np.testing.assert_allclose(fast.L[~f], ((1 + gamma)[:, None, None] * At)[~f], atol=1e-14)
     np.testing.assert_allclose(fast.g_L[~f], 3 * r_A[~f], rtol=1e-14)
     np.testing.assert_array_equal(fast.certified, fast.g_L < 1)
+
+
+def test_per_row_radii_closed_form_equals_cvxpy_when_infeasible_too():
+    """Radii per entry (the self-normalized and bootstrap boxes): where no row fits its
+    budget the design minimises g(L) and, among its minimisers, takes the L nearest
+    to K_hat (rows with smaller radii keep part of K_hat), as cvxpy + Clarabel does."""
+    rng = np.random.default_rng(23)
+    At, gamma, _, K_hat = random_design_cells(rng, 12)
+    R_A = rng.uniform(0.0, 0.45, size=(12, 3, 3)) * rng.uniform(0.2, 1.0, size=(12, 3, 1))
+    fast = design_gain(At, gamma, None, I3, K_hat=K_hat, margin=0.01, R_A=R_A)
+    slow = design_gain(At, gamma, None, I3, K_hat=K_hat, margin=0.01, R_A=R_A, method="cvxpy")
+    assert fast.feasible.any() and (~fast.feasible).any()
+    np.testing.assert_array_equal(fast.feasible, slow.feasible)
+    np.testing.assert_allclose(fast.L, slow.L, atol=1e-6)
+    np.testing.assert_allclose(fast.g_L, slow.g_L, atol=1e-6)
+    f = fast.feasible
+    np.testing.assert_allclose(fast.g_L[~f], R_A.sum(-1).max(-1)[~f], rtol=1e-12)
+    centre = (1 + gamma)[:, None, None] * At
+    assert (np.abs(fast.L - K_hat).sum(axis=(1, 2)) < np.abs(centre - K_hat).sum(axis=(1, 2)))[
+        ~f
+    ].any()
 
 
 def test_orthogonal_C_closed_form_equals_cvxpy():
