@@ -350,11 +350,15 @@ def test_spec_form_json_in_sync_and_every_error_at_once(browser, stack):
     spec = json.loads(page.input_value("#spec"))
     assert spec["sigma_w"] == [-1, 1] and spec["gamma"] == [0, 0.1] and "S" not in spec
     assert page.is_checked("input[name=source][value=form]")
-    # JSON -> fields
-    page.fill("#spec", json.dumps({**spec, "reps": 0}))
+    # JSON -> fields; a seed beyond 2^53 (a JS number would round it) kept digit for digit
+    page.fill("#spec", json.dumps({**spec, "reps": 0, "seed": 2**63 - 1}))
     assert page.input_value("#f-reps") == "0"
+    assert page.input_value("#f-seed") == str(2**63 - 1)
     page.fill("#f-M", "1.2")  # the fields again: the JSON keeps reps = 0
     assert json.loads(page.input_value("#spec"))["reps"] == 0
+    assert json.loads(page.input_value("#spec"))["seed"] == 2**63 - 1
+    page.fill("#f-seed", "9007199254740993")  # typed in the field: the JSON has it
+    assert json.loads(page.input_value("#spec"))["seed"] == 9007199254740993
     page.click("#submit-job")
     page.wait_for_selector("#form-errors")
     beside = {f: page.inner_text(f"#err-{f}") for f in ("sigma_w", "reps", "gamma")}
@@ -378,6 +382,7 @@ def test_spec_form_json_in_sync_and_every_error_at_once(browser, stack):
         job = api.get(f"/jobs/{page.url.rsplit('/', 1)[1]}").json()
     assert job["name"] == "paper-stable sweep" and job["tags"] == ["sweep", "paper-stable"]
     assert job["spec"]["sigma_w"] == [0.5] and job["spec"]["M"] == 1.2
+    assert job["spec"]["seed"] == 9007199254740993
     assert job["spec"]["N"] == list(range(10, 101, 10)) and job["spec"]["reps"] == 2
 
 

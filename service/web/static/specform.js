@@ -18,8 +18,29 @@
   const named = (name) => form.querySelectorAll(`[name="${CSS.escape(name)}"]`);
   const one = (name) => named(name)[0];
 
+  /* An integer beyond 2^53 (a seed may be up to 2^63 - 1) as its digits: a JS number
+   * would round it. parse() and stringify() carry it through the JSON view as is. */
+  class BigIntText {
+    constructor(digits) { this.digits = digits; }
+    toString() { return this.digits; }
+  }
+  const MARK = "\u0001";
+  function parse(text) {
+    // the reviver's third argument holds the number's source text (Chromium 114+)
+    return JSON.parse(text, (k, v, ctx) =>
+      typeof v === "number" && !Number.isSafeInteger(v) && ctx && INT.test(ctx.source || "")
+        ? new BigIntText(ctx.source) : v);
+  }
+  function stringify(value, indent) {
+    const json = JSON.stringify(value, (k, v) => (v instanceof BigIntText ? MARK + v.digits + MARK : v), indent);
+    return json.replace(/"\\u0001(-?\d+)\\u0001"/g, "$1");
+  }
+
   function number(token, integer) {
-    if (INT.test(token)) return parseInt(token, 10);
+    if (INT.test(token)) {
+      const v = parseInt(token, 10);
+      return Number.isSafeInteger(v) ? v : new BigIntText(token.replace(/^\+/, ""));
+    }
     const v = Number(token);
     return integer || token === "" || !Number.isFinite(v) ? token : v;
   }
@@ -65,11 +86,11 @@
       let value;
       if (kind === "json") {
         const t = one(`f.${key}`).value.trim();
-        try { value = t ? JSON.parse(t) : null; } catch (e) { value = t; /* the server says so */ }
+        try { value = t ? parse(t) : null; } catch (e) { value = t; /* the server says so */ }
       } else if (kind === "systems") {
         value = [...named("f.systems")].filter((c) => c.checked).map((c) => c.value);
         const custom = one("f.systems_custom").value.trim();
-        if (custom) { try { value = value.concat(JSON.parse(custom)); } catch (e) { /* the server says so */ } }
+        if (custom) { try { value = value.concat(parse(custom)); } catch (e) { /* the server says so */ } }
         if (!value.length) value = undefined;
       } else if (kind === "numbers" || kind === "grid") {
         value = gridValue(name, kind);
@@ -106,12 +127,12 @@
       const v = name.startsWith("sls.") ? (spec.sls || {})[name.slice(4)] : spec[name];
       if (v === undefined) continue;
       if (kind === "json") {
-        one(`f.${key}`).value = v === null ? "" : JSON.stringify(v);
+        one(`f.${key}`).value = v === null ? "" : stringify(v);
       } else if (kind === "systems") {
         const list = Array.isArray(v) ? v : [];
         named("f.systems").forEach((c) => { c.checked = list.includes(c.value); });
         const custom = list.filter((s) => typeof s !== "string");
-        one("f.systems_custom").value = custom.length ? JSON.stringify(custom) : "";
+        one("f.systems_custom").value = custom.length ? stringify(custom) : "";
         document.getElementById("systems-custom-note").textContent =
           custom.length ? `+ ${custom.length} custom system(s) of the JSON view` : "";
       } else if (kind === "numbers" || kind === "grid") {
@@ -151,7 +172,7 @@
   }
 
   function fromFields() {
-    textarea.value = JSON.stringify(fieldsToSpec(), null, 2);
+    textarea.value = stringify(fieldsToSpec(), 2);
     status.textContent = "The JSON follows the fields.";
     source("form");
   }
@@ -159,7 +180,7 @@
   form.addEventListener("input", (e) => {
     if (e.target === textarea) {
       let spec;
-      try { spec = JSON.parse(textarea.value); } catch (err) {
+      try { spec = parse(textarea.value); } catch (err) {
         status.textContent = `Not valid JSON yet (${err.message}); the fields keep their values.`;
         source("json");
         return;
