@@ -15,6 +15,7 @@ from collections import defaultdict
 from sqlalchemy.orm import Session
 
 from service.db.result_queries import summary_metrics, summary_stats
+from service.web import fields
 from svrobs_core.records import SUMMARY_FIELDS
 
 X_FIELDS = ("N", "sigma_w", "gamma")
@@ -103,7 +104,9 @@ def chart_data(groups: list[dict], *, metric: str, x: str) -> dict:
                 }
             )
         coords = dict(zip(panel_fields, pkey))
-        title = " · ".join(f"{LABELS[f]} = {fmt(v)}" for f, v in coords.items())
+        title = " · ".join(
+            f"{LABELS[f]} = {fields.coordinate(f, v) or fmt(v)}" for f, v in coords.items()
+        )
         key = "|".join(map(str, pkey))
         out.append({"key": key, "title": title, "coords": coords, "x": xvals, "series": series})
     return {

@@ -3,6 +3,7 @@ column head or axis label, and its tooltip (what the field is and its unit)."""
 
 from __future__ import annotations
 
+from svrobs_core.measured.spec import SIGMA_W_ESTIMATED
 from svrobs_core.records import FIELD_GLOSSARY
 
 
@@ -24,6 +25,14 @@ def title(field: str) -> str:
         return field
     _, u, description = entry
     return f"{field}: {description}" + (f" [{u}]" if u else "")
+
+
+def coordinate(field: str, value) -> str | None:
+    """The text of a grid coordinate that is not its number, else None: the σ_w key
+    of a dataset job that estimates σ_w (docs/measured.md#spec) is "estimate"."""
+    if field == "sigma_w" and value == SIGMA_W_ESTIMATED:
+        return "estimate"
+    return None
 
 
 def as_json() -> dict[str, dict[str, str]]:

@@ -72,6 +72,7 @@ env.filters["pretty"] = lambda v: json.dumps(v, indent=2, sort_keys=False, allow
 env.filters["tojson_attr"] = lambda v: json.dumps(v, separators=(",", ":"))
 env.filters["label"] = fields.label
 env.filters["field_title"] = fields.title
+env.filters["coord"] = lambda v, field: fields.coordinate(field, v)  # "estimate" or None
 env.globals["glossary_json"] = json.dumps(fields.as_json(), separators=(",", ":"))
 env.globals["utcnow"] = lambda: datetime.now(UTC)
 

@@ -133,6 +133,22 @@ def test_upload_with_progress_then_the_dataset_page_and_a_job_on_it(browser, sta
     # the job page: measured vs predicted and the residual autocorrelation, as served
     page.reload()
     page.wait_for_selector("#validation-card[data-loads='1']")
+    # its charts: the default field (rmse_A) has no values on measured data, so the first
+    # field that has is shown, and said so; σ_w estimated reads "estimate"; no N0 axis
+    # (a dataset job has no T0)
+    page.wait_for_function("window.svrobsCharts && window.svrobsCharts.charts.length > 0")
+    metric = page.input_value("#chart-metric")
+    assert metric != "rmse_A" and f"metric={metric}" in page.url
+    assert "rmse_A has no values in this job" in page.inner_text("#chart-status")
+    titles = page.locator("#charts .chart-panel h3").all_inner_texts()
+    assert titles and all("σ_w = estimate" in t for t in titles), titles
+    assert page.evaluate("Object.keys(window.svrobsCharts.charts[0].chart.options.scales)") == [
+        "x",
+        "y",
+    ]
+    grid = page.request.get(f"{stack.base_url}/results?job={job_id}&limit=5").text()
+    assert '<option value="-1.0">estimate</option>' in grid
+    assert '<td class="num" data-field="sigma_w" data-value="-1.0">estimate</td>' in grid
     drawn = page.evaluate(VALIDATION)
     ols = validation["models"][0]["validation"]
     measured = validation["plots"]["measured"][0]

@@ -343,6 +343,16 @@
     const fellBack = card.dataset.fallback || "";
     delete card.dataset.fallback;
     if (data.metrics) haveMetrics = true;
+    const asked = new URLSearchParams(location.search).has("metric");
+    if (data.metrics && data.metrics.length && !data.preset && !asked && !data.metrics.includes(data.metric)) {
+      // the default field has no values in this job (rmse_A on measured data): the first that has
+      setOptions(c.metric, data.metrics, data.metrics[0],
+        (f) => `${kit.label(glossary, f)} · ${f}`, (f) => kit.describe(glossary, f));
+      card.dataset.fallback = `${data.metric} has no values in this job; showing ${data.metrics[0]}.`;
+      history.replaceState(history.state, "", viewQuery(card));
+      shownSearch = location.search;
+      return load(card, false);
+    }
     if (data.metrics && data.metrics.length && !data.preset) {
       const shown = data.metrics.includes(data.metric) ? data.metrics : [data.metric].concat(data.metrics);
       setOptions(c.metric, shown, data.metric,

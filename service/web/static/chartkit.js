@@ -26,6 +26,10 @@
     return a !== 0 && (a < 1e-3 || a >= 1e5) ? v.toExponential(3) : Number(v.toPrecision(4)).toString();
   }
 
+  /* A grid coordinate's text: the σ_w key -1 of a dataset job that estimates σ_w is
+   * "estimate" (service/web/fields.py coordinate), any other value its number. */
+  function coord(field, v) { return field === "sigma_w" && v === -1 ? "estimate" : fmt(v); }
+
   function themeColours() {
     const css = getComputedStyle(document.documentElement);
     return { fg: css.getPropertyValue("--muted").trim() || "#56606b", line: css.getPropertyValue("--line").trim() || "#d9dee4" };
@@ -127,7 +131,7 @@
   }
 
   window.svrobsChartKit = {
-    palette, alpha, fmt, themeColours, axis, glossaryOf, label, axisTitle, describe,
+    palette, alpha, fmt, coord, themeColours, axis, glossaryOf, label, axisTitle, describe,
     axisTooltips, setSeries, legend, band,
   };
 })();

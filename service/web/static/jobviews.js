@@ -74,7 +74,7 @@
                 label: (item) => {
                   const g = item.raw.g, s = g.stats[metric];
                   const gamma = g.gamma === null ? "—" : kit.fmt(g.gamma);
-                  return `${g.system} · σ_w ${kit.fmt(g.sigma_w)} · N ${g.N} · ${g.estimator} γ ${gamma}: ` +
+                  return `${g.system} · σ_w ${kit.coord("sigma_w", g.sigma_w)} · N ${g.N} · ${g.estimator} γ ${gamma}: ` +
                     `${kit.fmt(s.mean)} ± ${kit.fmt(s.std)} (n = ${s.count})`;
                 },
               },
@@ -132,7 +132,7 @@
     const body = table.createTBody();
     views.certificates.forEach((r) => {
       const tr = body.insertRow();
-      [r.system, kit.fmt(r.sigma_w), r.estimator, r.gamma === null ? "—" : kit.fmt(r.gamma)].forEach((t) => { tr.insertCell().textContent = t; });
+      [r.system, kit.coord("sigma_w", r.sigma_w), r.estimator, r.gamma === null ? "—" : kit.fmt(r.gamma)].forEach((t) => { tr.insertCell().textContent = t; });
       Ns.forEach((n) => {
         const c = r.byN[n], td = tr.insertCell();
         td.className = "cert";
