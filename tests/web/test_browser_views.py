@@ -126,6 +126,23 @@ def test_results_view_survives_reload_and_exports_what_is_shown(browser, stack, 
     assert page.get_attribute("#results-grid", "data-sort") == "-rmse_A,N"
 
 
+def test_back_to_the_view_the_page_was_opened_on(browser, stack, job_id):
+    """The first filter pushes a view; Back shows the unfiltered grid again (the entry
+    the page opened on is marked as a results view too)."""
+    page = browser.page(stack.base_url)
+    sign_in(page, stack.key)
+    page.goto(f"/results?job={job_id}")
+    everything = page.get_attribute("#results-grid", "data-total")
+    page.select_option("select[name=estimator]", "svr")
+    page.wait_for_selector("#results-grid[data-query*='estimator=svr']")
+    assert page.get_attribute("#results-grid", "data-total") != everything
+    back(page, page.go_back)
+    assert page.url.endswith(f"/results?job={job_id}")
+    assert page.get_attribute("#results-grid", "data-total") == everything
+    picked = "s => [...s.selectedOptions].map(o => o.value)"
+    assert page.eval_on_selector("select[name=estimator]", picked) == []
+
+
 def test_results_bad_sort_key_stays_with_its_error(browser, stack, job_id):
     page = browser.page(stack.base_url)
     sign_in(page, stack.key)

@@ -50,10 +50,10 @@
     const hide = [...hidden()].join(",");
     if (hide) q.set("hide", hide); else q.delete("hide");
     const url = `/results?${q.toString()}`;
-    if (url !== location.pathname + location.search) {
-      if (push) history.pushState({ svrobsResults: true }, "", url);
-      else history.replaceState({ svrobsResults: true }, "", url);
-    }
+    // the entry the page was opened on is marked too (replaceState), so that going
+    // back to it shows its view again (popstate below)
+    if (!push) history.replaceState({ svrobsResults: true }, "", url);
+    else if (url !== location.pathname + location.search) history.pushState({ svrobsResults: true }, "", url);
     const job = q.get("job");
     document.querySelectorAll("#results-exports a[data-format]").forEach((a) => {
       a.href = `/api/v1/jobs/${job}/results?${exportQuery(q.toString(), a.dataset.format)}`;
