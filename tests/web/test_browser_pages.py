@@ -158,6 +158,15 @@ def test_compare_two_jobs_plots_the_api_compare(browser, stack, two_jobs):
     rows = [r.split("\t") for r in page.inner_text("#spec-diff-table tbody").split("\n")]
     seeds = {f"job {a}": "5", f"job {b}": "6"}
     assert rows == [["seed", *(seeds[h.split(" · ")[0]] for h in heads[1:])]]
+    # another comparison from the form keeps the bands and log-y choices of the URL
+    page.uncheck("#compare-logy")
+    assert "logy=0" in page.url
+    page.select_option("#compare-metric", "rmse_A")
+    page.click("#compare-form button[type=submit]")
+    page.wait_for_url(re.compile(r"metric=rmse_A"))
+    page.wait_for_selector("#compare-card[data-ready=yes]")
+    assert "logy=0" in page.url and "bands=1" in page.url
+    assert not page.is_checked("#compare-logy") and page.is_checked("#compare-bands")
 
 
 def test_compare_labels_tell_every_job_apart(browser, stack, two_jobs, estimate_only):

@@ -221,6 +221,19 @@
 
   bandsBox.addEventListener("change", () => { remember(); draw(); });
   logBox.addEventListener("change", () => { remember(); draw(); });
+  // "Compare" loads a new page from the form: the bands and log-y choices go with it
+  const form = document.getElementById("compare-form");
+  if (form) {
+    form.addEventListener("submit", () => {
+      const p = new URLSearchParams(location.search);
+      form.querySelectorAll("input[data-kept]").forEach((i) => i.remove());
+      ["bands", "logy"].filter((k) => p.has(k)).forEach((k) => {
+        const i = Object.assign(document.createElement("input"), { type: "hidden", name: k, value: p.get(k) });
+        i.dataset.kept = "yes";
+        form.appendChild(i);
+      });
+    });
+  }
   document.addEventListener("svrobs:theme", draw);
   note();
   specDiff();
