@@ -173,6 +173,22 @@ def test_upload_with_progress_then_the_dataset_page_and_a_job_on_it(browser, sta
     first = page.locator("#validation-table tbody tr").first.locator("td").all_inner_texts()
     assert first[0] == "ols" and float(first[1]) == round(ols["one_step_fit"][0], 1)
 
+    # the dark theme: the measured line in the theme's text colour, axes in its muted one
+    page.click("#theme-toggle")
+    assert page.evaluate("document.documentElement.dataset.theme") == "dark"
+    css = "n => getComputedStyle(document.documentElement).getPropertyValue(n).trim()"
+    fg, muted = page.evaluate(css, "--fg"), page.evaluate(css, "--muted")
+    drawn = page.evaluate(
+        """() => window.svrobsValidation.predictions.concat(window.svrobsValidation.autocorrelation)
+          .map(c => ({measured: (c.chart.data.datasets.find(d => d.svrobs.role === "measured")
+                                 || {}).borderColor,
+                      ticks: c.chart.options.scales.x.ticks.color,
+                      title: c.chart.options.scales.y.title.color}))"""
+    )
+    assert fg == "#e3e8ee" and all(d["ticks"] == d["title"] == muted for d in drawn), drawn
+    assert [d["measured"] for d in drawn if d["measured"]] == [fg] * 2
+    page.click("#theme-toggle")  # back to light
+
     # another model and another held-out rollout redraw the charts
     page.select_option("#val-model", "1")
     page.select_option("#val-rollout", "2")

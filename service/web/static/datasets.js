@@ -99,8 +99,23 @@
       options: {
         animation: false, responsive: true, maintainAspectRatio: false,
         interaction: { mode: "nearest", axis: "x", intersect: false },
-        scales: { x: { type: "linear", title: { display: true, text: xLabel } }, y: { title: { display: true, text: title } } },
+        scales: { x: window.svrobsChartKit.axis("linear", xLabel), y: window.svrobsChartKit.axis("linear", title) },
       },
+    });
+  }
+
+  /* The axes of the charts drawn in the theme's colours again when it changes. */
+  function followTheme(charts) {
+    document.addEventListener("svrobs:theme", () => {
+      const c = window.svrobsChartKit.themeColours();
+      charts.forEach((chart) => {
+        Object.values(chart.options.scales).forEach((a) => {
+          a.title.color = c.fg;
+          a.ticks.color = c.fg;
+          a.grid.color = c.line;
+        });
+        chart.update("none");
+      });
     });
   }
 
@@ -131,6 +146,7 @@
     });
     const cut = data.cut ? `, each cut to its first ${data.steps.toLocaleString("en")} steps` : "";
     note.textContent = `(the first ${data.shown} of ${data.rollouts} rollouts${cut}, each channel against ${xLabel})`;
+    followTheme(registry.charts.map((c) => c.chart));
     registry.loads += 1;
     card.dataset.loads = String(registry.loads);
   }

@@ -9,7 +9,11 @@
 
   const registry = { data: null, predictions: [], autocorrelation: [], loads: 0 };
   window.svrobsValidation = registry;
-  const COLORS = { measured: "#1d232b", predicted: "#1f5fa8", simulated: "#c0392b", band: "#a15c00" };
+  const COLORS = { predicted: "#1f5fa8", simulated: "#c0392b", band: "#a15c00" };
+  const kit = window.svrobsChartKit;
+  // the measured values in the theme's text colour (dark on light, light on dark)
+  const colour = (name) => COLORS[name] ||
+    getComputedStyle(document.documentElement).getPropertyValue("--fg").trim() || "#1d232b";
 
   function fmt(v, digits) {
     if (v === null || v === undefined) return "–";
@@ -70,7 +74,7 @@
   }
 
   function line(name, points, extra) {
-    return Object.assign({ label: name, data: points, borderColor: COLORS[name], backgroundColor: COLORS[name],
+    return Object.assign({ label: name, data: points, borderColor: colour(name), backgroundColor: colour(name),
       borderWidth: 1.5, pointRadius: 0, svrobs: { role: name } }, extra || {});
   }
 
@@ -104,7 +108,7 @@
           line("predicted", series.predicted, { borderDash: [4, 3] }), line("simulated", series.simulated)] },
         options: { animation: false, responsive: true, maintainAspectRatio: false,
           interaction: { mode: "nearest", axis: "x", intersect: false },
-          scales: { x: { type: "linear", title: { display: true, text: xLabel } }, y: { title: { display: true, text: ch } } } },
+          scales: { x: kit.axis("linear", xLabel), y: kit.axis("linear", ch) } },
       });
       const points = {};
       Object.keys(series).forEach((k) => { points[k] = series[k].map((p) => [p.x, p.y]); });
@@ -120,11 +124,16 @@
           line("band", lags.map((k) => ({ x: k, y: -band })), { type: "line", label: "−99 % band", borderDash: [5, 4], svrobs: { role: "band" } }),
         ] },
         options: { animation: false, responsive: true, maintainAspectRatio: false,
-          scales: { x: { type: "linear", min: 0, max: lags.length + 1, ticks: { stepSize: 1 }, title: { display: true, text: "lag k" } },
-            y: { title: { display: true, text: "r_k" } } } },
+          scales: { x: lagAxis(lags.length), y: kit.axis("linear", "r_k") } },
       });
       registry.autocorrelation.push({ channel: ch, model: label(m), chart: ac, r: v.autocorrelation[j], band });
     });
+  }
+
+  function lagAxis(h) {
+    const a = kit.axis("linear", "lag k", { min: 0, max: h + 1 });
+    a.ticks.stepSize = 1;
+    return a;
   }
 
   function options(select, labels) {
@@ -163,6 +172,7 @@
     const steps = data.plots.cut ? `, each to its step ${data.plots.steps}` : "";
     note.textContent = held ? `(N = ${data.N}; ${held} held-out rollouts, the first ${data.plots.rollouts.length} plotted${steps})` : "(no held-out rollouts: holdout = 0)";
     draw(card);
+    document.addEventListener("svrobs:theme", () => draw(card));  // the theme's colours
     registry.loads += 1;
     card.dataset.loads = String(registry.loads);
   }
