@@ -114,8 +114,17 @@ def progress_line(job: Job) -> str:
 
 def finish(c: Client, job: Job, *, err: bool = False) -> None:
     """Wait for ``job`` with a progress bar, print its last state (on stderr with
-    ``err``); an error unless it succeeded."""
-    job = c.wait(job)
+    ``err``); an error unless it succeeded. Ctrl-C stops the waiting, not the job:
+    one line says so and how to follow or cancel it (then KeyboardInterrupt)."""
+    try:
+        job = c.wait(job)
+    except KeyboardInterrupt:
+        typer.echo(
+            f"interrupted: job {job.id} keeps running (svrobs status {job.id}; "
+            f"svrobs cancel {job.id} stops it)",
+            err=True,
+        )
+        raise
     typer.echo(progress_line(job), err=err)
     if job.status != "succeeded":
         raise CliError(f"job {job.id} {job.status}: {job.error or ''}".strip())
@@ -150,7 +159,12 @@ def submit(
             raise CliError(f"invalid spec: {plain_message(exc)}") from None
         typer.echo(submitted_line(job), err=print_id)
         if wait:
-            finish(c, job, err=print_id)
+            try:
+                finish(c, job, err=print_id)
+            except KeyboardInterrupt:
+                if print_id:  # job=$(svrobs submit ... --print-id): the id all the same
+                    typer.echo(job.id)
+                raise typer.Exit(130) from None
         if print_id:
             typer.echo(job.id)
 

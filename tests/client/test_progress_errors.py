@@ -315,6 +315,37 @@ def test_the_submit_line_counts_in_words(monkeypatch, capsys, tmp_path, cells, u
     assert run_cli(capsys, "submit", tmp_path / "spec.json") == (0, line + "\n", "")
 
 
+@pytest.mark.parametrize("print_id", [False, True])
+def test_ctrl_c_while_submit_waits_names_the_job_that_keeps_running(
+    monkeypatch, capsys, tmp_path, print_id
+):
+    """Ctrl-C (KeyboardInterrupt) while ``submit --wait`` polls: exit 130, one line that
+    the job keeps running and how to follow or cancel it; with ``--print-id`` the id is
+    still printed on stdout (``job=$(svrobs submit ... --print-id)``)."""
+    job = {"id": 8, "name": None, "tags": [], "status": "queued", "n_cells": 30}
+    job |= {"progress": {"done": 0, "total": 3, "fraction": 0.0}, "owner": None}
+    job |= {"spec": {}, "provenance": {}, "error": None, "timings": {}}
+    job |= {"created_at": None, "started_at": None, "finished_at": None}
+
+    def api(request):
+        if request.method == "POST":
+            return httpx.Response(202, json=job)
+        raise KeyboardInterrupt  # the user's Ctrl-C while the progress is polled
+
+    fake_api(monkeypatch, api)
+    monkeypatch.setenv("SVROBS_URL", URL)
+    monkeypatch.setenv("SVROBS_API_KEY", "svr_k")
+    monkeypatch.setattr("svrobs_client.client.time.sleep", lambda s: None)
+    (tmp_path / "spec.json").write_text('{"systems": ["paper-stable"], "sigma_w": [1], "N": [10]}')
+    args = ["submit", tmp_path / "spec.json", "--wait"] + (["--print-id"] if print_id else [])
+    code, out, err = run_cli(capsys, *args)
+    assert code == 130
+    assert out == ("8\n" if print_id else "job 8 queued (30 cells, 3 units)\n")
+    assert err.endswith(
+        "interrupted: job 8 keeps running (svrobs status 8; svrobs cancel 8 stops it)\n"
+    )
+
+
 def test_results_out_dash_is_stdout(monkeypatch, capsys, tmp_path):
     """``svrobs results JOB --out -`` prints the records, as without ``--out``, and
     writes no file named ``-``."""
