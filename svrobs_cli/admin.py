@@ -29,11 +29,19 @@ def _admin_call(fn):
     """``fn(session, accounts)`` in one committed transaction; an AdminError is one line."""
     from service.config import get_settings
     from service.db import accounts
+    from service.db.migrate import missing_database
     from service.db.session import session_scope
     from svrobs_lab.errors import AdminError
 
+    url = get_settings().DATABASE_URL
+    missing = missing_database(url)
+    if missing is not None:
+        raise CliError(
+            f"{missing}: run svrobs admin from the checkout that runs `make run` (its ./var), "
+            "or set SVROBS_DATABASE_URL to the service's database"
+        )
     try:
-        with session_scope(get_settings().DATABASE_URL) as session:
+        with session_scope(url) as session:
             return fn(session, accounts)
     except AdminError as exc:
         raise CliError(str(exc)) from None

@@ -35,3 +35,19 @@ def current_revision(url: str) -> str | None:
 
     with get_engine(url).connect() as conn:
         return MigrationContext.configure(conn).get_current_revision()
+
+
+def missing_database(url: str) -> str | None:
+    """Why ``url`` holds no svrobs database, without creating one (a connection to a
+    SQLite path that does not exist would create the file): the file is not there, or
+    no migration ever ran on it. None when the tables are there."""
+    from sqlalchemy.engine import make_url
+
+    u = make_url(url)
+    shown = u.render_as_string(hide_password=True)
+    if u.get_backend_name() == "sqlite" and u.database not in (None, "", ":memory:"):
+        if not u.database.startswith("file:") and not os.path.exists(u.database):
+            return f"no svrobs database at {shown} (no such file)"
+    if current_revision(url) is None:
+        return f"no svrobs tables in the database at {shown} (never migrated)"
+    return None

@@ -37,6 +37,19 @@ def test_admin_commands(own_db, run):
     assert run("admin", "revoke-key", key.split("_")[1])[0] == 0
 
 
+def test_admin_where_there_is_no_database_creates_none_and_says_so(own_db, run, tmp_path):
+    """``svrobs admin`` run outside the checkout (no such SQLite file), or on a file no
+    migration ran on: one line saying which, no file created, no SQL in the message."""
+    code, out, err = run("admin", "list-keys")
+    assert code == 2 and err.count("\n") == 1 and "no such file" in err
+    assert "SVROBS_DATABASE_URL" in err and "SELECT" not in err
+    assert not (tmp_path / "cli.db").exists()
+    (tmp_path / "cli.db").touch()
+    code, out, err = run("admin", "create-team", "lab")
+    assert code == 2 and "never migrated" in err and err.count("\n") == 1
+    assert run("migrate")[0] == 0 and run("admin", "create-team", "lab")[0] == 0
+
+
 def test_errors_are_one_line_exit_2(own_db, run, monkeypatch):
     run("migrate")
     run("admin", "create-team", "lab")
