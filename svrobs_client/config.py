@@ -37,7 +37,9 @@ def _check_url(url: str, source: str) -> str:
         parsed = None
     if parsed is None or parsed.scheme not in ("http", "https") or not parsed.host:
         raise ConfigError(f"{source}: {url!r} is not an http:// or https:// URL")
-    return url.rstrip("/")
+    url = url.rstrip("/")
+    # the server's root is meant; the API's prefix given with it is taken off
+    return url.removesuffix("/api/v1") if url.endswith("/api/v1") else url
 
 
 def _check_key(key: str, source: str) -> str:

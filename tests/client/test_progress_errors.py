@@ -238,6 +238,18 @@ def test_a_url_or_key_that_cannot_be_one(url, key, message):
     assert e.value.message.startswith(message) and e.value.status is None
 
 
+@pytest.mark.parametrize("suffix", ["/api/v1", "/api/v1/", "/"])
+def test_a_url_given_with_the_apis_prefix_is_the_servers_root(monkeypatch, suffix):
+    """SVROBS_URL copied with the API's prefix (``.../api/v1``): the requests go to
+    ``/api/v1/...`` once, not ``/api/v1/api/v1/...`` (a bare 404)."""
+    job = job_body(1, cells=1, units=1)
+    seen = []
+    fake_api(monkeypatch, lambda r: seen.append(r.url.path) or httpx.Response(200, json=job))
+    with Client(URL + suffix, "svr_k") as c:
+        assert c.url == URL and c.job(1).id == 1
+    assert seen == ["/api/v1/jobs/1"]
+
+
 def test_ids_spec_files_and_output_paths_are_named(monkeypatch, tmp_path):
     """An id that is not a number, a spec file that is not JSON and an output path that
     cannot be written: errors that say so, naming the value or the path."""
@@ -298,16 +310,21 @@ def test_a_written_file_has_the_permissions_of_one_written_in_place(tmp_path):
         os.umask(old)
 
 
+def job_body(job_id: int, *, cells: int, units: int) -> dict:
+    """A queued job as ``GET /api/v1/jobs/{id}`` gives it."""
+    job = {"id": job_id, "name": None, "tags": [], "status": "queued", "n_cells": cells}
+    job |= {"progress": {"done": 0, "total": units, "fraction": 0.0}, "owner": None}
+    job |= {"spec": {}, "provenance": {}, "error": None, "timings": {}}
+    return job | {"created_at": None, "started_at": None, "finished_at": None}
+
+
 @pytest.mark.parametrize(
     "cells, units, line",
     [(30, 1, "job 3 queued (30 cells, 1 unit)"), (1, 4, "job 3 queued (1 cell, 4 units)")],
 )
 def test_the_submit_line_counts_in_words(monkeypatch, capsys, tmp_path, cells, units, line):
     """``svrobs submit``'s first line: a count of one is singular."""
-    job = {"id": 3, "name": None, "tags": [], "status": "queued", "n_cells": cells}
-    job |= {"progress": {"done": 0, "total": units, "fraction": 0.0}, "owner": None}
-    job |= {"spec": {}, "provenance": {}, "error": None, "timings": {}}
-    job |= {"created_at": None, "started_at": None, "finished_at": None}
+    job = job_body(3, cells=cells, units=units)
     fake_api(monkeypatch, lambda r: httpx.Response(202, json=job))
     monkeypatch.setenv("SVROBS_URL", URL)
     monkeypatch.setenv("SVROBS_API_KEY", "svr_k")
@@ -322,10 +339,7 @@ def test_ctrl_c_while_submit_waits_names_the_job_that_keeps_running(
     """Ctrl-C (KeyboardInterrupt) while ``submit --wait`` polls: exit 130, one line that
     the job keeps running and how to follow or cancel it; with ``--print-id`` the id is
     still printed on stdout (``job=$(svrobs submit ... --print-id)``)."""
-    job = {"id": 8, "name": None, "tags": [], "status": "queued", "n_cells": 30}
-    job |= {"progress": {"done": 0, "total": 3, "fraction": 0.0}, "owner": None}
-    job |= {"spec": {}, "provenance": {}, "error": None, "timings": {}}
-    job |= {"created_at": None, "started_at": None, "finished_at": None}
+    job = job_body(8, cells=30, units=3)
 
     def api(request):
         if request.method == "POST":
