@@ -19,7 +19,8 @@ def _pandas() -> Any:
         import pandas as pd
     except ImportError:
         raise ImportError(
-            "DataFrames need pandas: pip install 'svrobs[dataframe]' "
+            "DataFrames need pandas: pip install pandas (in a checkout: "
+            ".venv/bin/pip install -e '.[dataframe]') "
             "(or use the *_records methods, which return plain dicts)"
         ) from None
     return pd
