@@ -121,8 +121,9 @@ class Settings(BaseSettings):
 
     TASK_TIME_LIMIT: int = 3600
     # A unit whose lease ran out (worker died without the broker redelivering)
-    # is re-published by the relay; the worker sets the lease when it starts.
-    UNIT_LEASE_SECONDS: int = 3900
+    # is re-published by the relay; the worker sets the lease when it starts and
+    # renews it every third of it while the unit computes (docs/deploy.md#scaling).
+    UNIT_LEASE_SECONDS: int = Field(default=300, ge=3)
     # A unit published but never started is re-published after this long.
     PUBLISH_RETRY_SECONDS: int = 600
     # A unit that was started this many times without finishing is failed (0: never).

@@ -14,7 +14,7 @@ from celery import signals
 from service.broker import make_celery
 from service.config import get_settings
 from service.logging_config import configure_logging
-from worker import watchdog
+from worker import recovery, watchdog  # noqa: F401 (recovery: its signal handler)
 from worker.message_guard import CONSUMER
 
 settings = get_settings()

@@ -83,6 +83,29 @@ def start_unit(
     return job.spec, unit.payload
 
 
+def expire_leases_of(session: Session, worker_name: str) -> list[int]:
+    """End the leases of the units ``worker_name`` holds as ``running`` -> their ids.
+
+    Called by a worker as it starts, before it takes any message: a unit its node name
+    still holds was claimed by a process of that name that is gone (stopped or killed
+    mid-unit), and the relay re-publishes a running unit whose lease ran out
+    (:func:`service.db.outbox.units_to_publish`) instead of after the whole lease."""
+    ids = list(
+        session.scalars(
+            select(WorkUnit.id).where(WorkUnit.status == "running", WorkUnit.worker == worker_name)
+        )
+    )
+    if ids:
+        session.execute(
+            update(WorkUnit)
+            .where(WorkUnit.id.in_(ids), WorkUnit.status == "running")
+            # a second ago: expired also to a relay in this transaction (PostgreSQL's
+            # now() is the transaction's start)
+            .values(lease_expires_at=db_now(session) - timedelta(seconds=1))
+        )
+    return ids
+
+
 def unit_status(session: Session, unit_id: int) -> str | None:
     """The unit's status (None if it does not exist): a running unit whose status
     became ``cancelled`` (its job was cancelled or failed) stops."""

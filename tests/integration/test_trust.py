@@ -257,6 +257,40 @@ def test_cancel_stops_running_units(stack, pool, db):
 
 
 @pytest.mark.faults  # kills a worker: `make test-faults`
+def test_a_worker_restarted_takes_back_the_unit_it_was_killed_in(stack, pool, db):
+    """A worker SIGKILLed (with its pool) mid-unit, then started again under the same
+    node name (as `svrobs serve` restarts it), with the lease still hours long and no
+    beat: the new process ends the unit's lease before it takes a message and
+    re-publishes it, so the unit runs again at once (a second attempt) and the job
+    finishes."""
+    stack.stop("pool", grace=5)
+    env = {"SVROBS_UNIT_LEASE_SECONDS": "7200"}
+    stack.start_worker("restarted", concurrency=1, env=env)
+    try:
+        with stack.client() as c:
+            job = submit(c, long_job(1, scale=4), name="cut short")
+            uid = wait_for(
+                lambda: [u["id"] for u in unit_rows(db, job["id"]) if u["status"] == "running"],
+                60,
+                "running",
+            )[0]
+            stack.children["restarted"].kill_group()
+            stack.children.pop("restarted")
+            t0 = time.monotonic()
+            stack.start_worker("restarted", concurrency=1, env=env)
+            stack.wait_log("restarted", "this node left running", timeout=30)
+            done = stack.wait_job(c, job["id"], timeout=120)
+            left = time.monotonic() - t0
+        assert done["status"] == "succeeded", done
+        unit = next(u for u in unit_rows(db, job["id"]) if u["id"] == uid)
+        assert unit["status"] == "done" and unit["attempts"] == 2
+        print(f"\n[{stack.kind}] the killed worker's job finished {left:.1f} s after its restart")
+    finally:
+        stack.stop("restarted")
+        stack.start_worker("pool", concurrency=2)
+
+
+@pytest.mark.faults  # kills a worker: `make test-faults`
 def test_lease_ends_the_units_of_a_killed_worker(stack, pool, db):
     """A worker with a 3 s lease is SIGKILLed (with its pool) mid-unit: beat's relay
     takes the unit out of `running` once the lease has run out."""

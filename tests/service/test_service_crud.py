@@ -202,6 +202,25 @@ def test_relay_publishes_unpublished_and_expired(session, make_account):
     assert outbox.units_to_publish(session, now=later, retry_seconds=600) == []
 
 
+def test_a_starting_worker_ends_the_leases_of_the_units_its_name_left_running(
+    session, make_account
+):
+    """``expire_leases_of``: the running units of that node name only, re-published by
+    the next relay (their lease is over); another worker's and a done unit untouched."""
+    acc = make_account()
+    job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
+    session.commit()
+    ids = jobs.unit_ids_of_job(session, job.id)
+    outbox.mark_published(session, ids)
+    for uid, name in zip(ids[:3], ("w1@host", "w1@host", "w2@host")):
+        units.start_unit(session, uid, name, lease_seconds=7200, max_attempts=0)
+    assert outbox.units_to_publish(session, retry_seconds=600) == []
+    assert sorted(units.expire_leases_of(session, "w1@host")) == ids[:2]
+    assert outbox.units_to_publish(session, retry_seconds=600) == ids[:2]
+    assert units.expire_leases_of(session, "w3@host") == []
+    assert session.get(WorkUnit, ids[2]).status == "running"
+
+
 def test_cancel_job(session, make_account):
     acc = make_account()
     job, _ = jobs.create_job(session, team_id=acc.team.id, user_id=None, spec=SMALL_SPEC)
