@@ -28,6 +28,7 @@ from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from service.http.errors import ErrorHandler, http_problem, status_of, validation_problem
+from service.http.security import ALWAYS
 from svrobs_core.errors import SpecError
 from svrobs_lab.errors import LabError, RateLimited
 from svrobs_lab.schemas import ErrorOut
@@ -66,8 +67,12 @@ def error_response(
     headers: Mapping[str, str] | None = None,
     **extra: Any,
 ) -> JSONResponse:
+    # the security headers here too: an unhandled error's response is made outside every
+    # middleware (Starlette's ServerErrorMiddleware), SecurityHeaders included
     return _ErrorJSONResponse(
-        {"detail": detail, "field": field, **extra}, status_code=status, headers=headers
+        {"detail": detail, "field": field, **extra},
+        status_code=status,
+        headers={**ALWAYS, **(headers or {})},
     )
 
 

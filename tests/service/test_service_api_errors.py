@@ -39,6 +39,8 @@ def test_core_fault_is_a_logged_500_without_internals(
     # a bug is not the user's mistake: not a 422, and nothing of the exception leaks
     assert r.status_code == 500
     assert r.headers["content-type"].startswith("application/json")
+    assert r.headers["x-content-type-options"] == "nosniff"  # as on every response
+    assert r.headers["referrer-policy"] == "same-origin"
     assert r.json() == {"detail": "internal error", "field": None}
     for leak in (FAULT, exc_type.__name__, "Traceback", "to_dict", ".py"):
         assert leak not in r.text
