@@ -35,11 +35,11 @@ def _value(f: str):
 BIG, TINY, NEGLIGIBLE = 1e150, 1e-200, 1e-100
 
 
-def _scaled(v):
+def scaled(v):
     return case((func.abs(v) < NEGLIGIBLE, 0.0), else_=v * TINY)
 
 
-def _square(x):
+def square(x):
     return case((func.abs(x) < 1e-150, 0.0), else_=x * x)
 
 
@@ -64,7 +64,7 @@ def summarize_in_db(
         v = _value(f)
         aggs += [
             func.avg(case((func.abs(v) > BIG, 0.0), else_=v)).label(f"w_m{i}"),
-            func.avg(_scaled(v)).label(f"w_t{i}"),
+            func.avg(scaled(v)).label(f"w_t{i}"),
             func.max(func.abs(v)).label(f"w_x{i}"),
         ]
     means = (
@@ -77,14 +77,14 @@ def summarize_in_db(
     for i, f in enumerate(SUMMARY_FIELDS):
         big = means.c[f"w_x{i}"] > BIG
         dev = case(
-            (big, _scaled(_value(f)) - means.c[f"w_t{i}"]), else_=_value(f) - means.c[f"w_m{i}"]
+            (big, scaled(_value(f)) - means.c[f"w_t{i}"]), else_=_value(f) - means.c[f"w_m{i}"]
         )
         cols += [
             func.count(t.c[f]).label(f"w_n{i}"),
             func.max(means.c[f"w_m{i}"]).label(f"w_a{i}"),
             func.max(means.c[f"w_t{i}"]).label(f"w_b{i}"),
             func.max(means.c[f"w_x{i}"]).label(f"w_x{i}"),
-            func.sum(_square(dev)).label(f"w_q{i}"),
+            func.sum(square(dev)).label(f"w_q{i}"),
         ]
     q = (
         select(*[t.c[g] for g in GROUP_FIELDS], func.count().label("w_c"), *cols)

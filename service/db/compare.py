@@ -4,12 +4,14 @@ One metric of several jobs: count, mean and std (ddof 0) of its non-null values
 per job and per combination of the ``by`` fields, one page of groups at a time
 (with the number of groups). Each source row carries ``(n, m, s)``: a result row
 is ``(1, x, 0)`` (``(0, NULL, 0)`` when x is null), a stored summary row its
-group's (count, mean, std). One pass pools them, shifted by a per-job constant
-``c`` (a value of the metric in that job) against cancellation: with
-``S1 = Σ n·(m − c)`` and ``S2 = Σ n·(s² + (m − c)²)`` (= Σ (x − c)² over the
-values), ``mean = c + S1/Σn`` and ``var = S2/Σn − (S1/Σn)²``. Succeeded jobs
-are read from their summaries when ``by`` is within the summary's group fields
-(a small fraction of the rows, and all that is left of a pruned job);
+group's (count, mean, std). They are pooled in two passes, as numpy and the
+summaries do: the group's mean ``M = Σ n·m / Σ n`` (a window over the group), then
+``var = Σ n·(s² + (m − M)²) / Σ n`` (the law of total variance: no cancellation).
+A group whose largest |m| or s is above :data:`~service.db.aggregates.BIG` is pooled
+scaled by ``TINY`` and scaled back (its squares would overflow, an error on
+PostgreSQL), as the summaries of a running job are (:mod:`service.db.aggregates`).
+Succeeded jobs are read from their summaries when ``by`` is within the summary's
+group fields (a small fraction of the rows, and all that is left of a pruned job);
 otherwise from the results. Aliases are prefixed ``w_``: SQLite names are
 case-blind, and ``n`` would be the column ``N``.
 """
@@ -26,6 +28,7 @@ from sqlalchemy.orm import Session
 from svrobs_core.records import BOOL_FIELDS, GROUP_FIELDS, SUMMARY_FIELDS
 from svrobs_lab.errors import NeedsCellRows
 
+from .aggregates import BIG, TINY, scaled, square
 from .models import Job, Result, Summary
 
 COMPARE_BY = ("system", "sigma_w", "N", "N0", "estimator", "gamma", "rep")
@@ -45,14 +48,14 @@ def _as_float(metric: str):
     return cast(cast(col, Integer) if metric in BOOL_FIELDS else col, Float)
 
 
-def _from_results(job_id: int, metric: str, by: list[str], shift: float):
+def _from_results(job_id: int, metric: str, by: list[str]):
     t = Result.__table__
     x = _as_float(metric)
     return select(
         t.c.job_id.label("job_id"),
         *[t.c[b].label(b) for b in by],
         case((x.is_(None), 0), else_=1).label("w_n"),
-        (x - shift).label("w_d"),
+        x.label("w_m"),
         literal(0.0, Float).label("w_s"),
     ).where(t.c.job_id == job_id)
 
@@ -61,29 +64,48 @@ def _summary_stat(metric: str, name: str):
     return Summary.__table__.c.stats[(metric, name)].as_float()
 
 
-def _from_summaries(job_id: int, metric: str, by: list[str], shift: float):
+def _from_summaries(job_id: int, metric: str, by: list[str]):
     t = Summary.__table__
     return select(
         t.c.job_id.label("job_id"),
         *[t.c[b].label(b) for b in by],
         func.coalesce(_summary_stat(metric, "count"), 0.0).label("w_n"),
-        (_summary_stat(metric, "mean") - shift).label("w_d"),
+        _summary_stat(metric, "mean").label("w_m"),
         func.coalesce(_summary_stat(metric, "std"), 0.0).label("w_s"),
     ).where(t.c.job_id == job_id)
 
 
-def _shift(session: Session, job_id: int, metric: str) -> float:
-    """A value of the metric in the job (a stored group mean, else a cell's), or 0."""
-    v = None
-    if metric in SUMMARY_FIELDS:
-        mean = _summary_stat(metric, "mean")
-        v = session.scalar(select(mean).where(Summary.job_id == job_id, mean.is_not(None)).limit(1))
-    if v is None:
-        col = _as_float(metric)
-        v = session.scalar(
-            select(col).where(Result.__table__.c.job_id == job_id, col.is_not(None)).limit(1)
-        )
-    return float(v) if v is not None and math.isfinite(v) else 0.0
+def _pooled(src, keys: list) -> Any:
+    """Per group of ``keys``: w_count, the plain and scaled means w_a, w_b, the largest
+    magnitude w_x and the pooled squared deviations w_q (plain or scaled as w_x says),
+    and the number of groups w_total."""
+    n, m, sd = src.c.w_n, src.c.w_m, src.c.w_s
+    count = func.nullif(func.sum(n).over(partition_by=keys), 0)
+    top = func.max(case((func.abs(m) > sd, func.abs(m)), else_=sd)).over(partition_by=keys)
+    plain = func.sum(n * case((func.abs(m) > BIG, 0.0), else_=m)).over(partition_by=keys) / count
+    small = func.sum(n * scaled(m)).over(partition_by=keys) / count
+    rows = select(*keys, n, m, sd, plain.label("w_a"), small.label("w_b"), top.label("w_x"))
+    r = rows.subquery("rows")
+    big = r.c.w_x > BIG
+    q = case(
+        (big, r.c.w_n * (square(scaled(r.c.w_s)) + square(scaled(r.c.w_m) - r.c.w_b))),
+        else_=r.c.w_n * (square(r.c.w_s) + square(r.c.w_m - r.c.w_a)),
+    )
+    rkeys = [r.c[k.name] for k in keys]
+    return select(
+        *rkeys,
+        func.sum(r.c.w_n).label("w_count"),
+        func.max(r.c.w_a).label("w_a"),
+        func.max(r.c.w_b).label("w_b"),
+        func.max(r.c.w_x).label("w_x"),
+        func.sum(q).label("w_q"),
+        func.count().over().label("w_total"),
+    ).group_by(*rkeys), rkeys
+
+
+def _finite(v: float) -> float | None:
+    """A mean or std beyond the double range (scaled back) is null."""
+    return v if math.isfinite(v) else None
 
 
 def _order_of(col) -> tuple:
@@ -103,22 +125,14 @@ def compare_page(
         raise NeedsCellRows(pruned, by, GROUP_FIELDS)
     if set(by) >= CELL_KEY:
         return _cell_page(session, jobs, metric, by, limit=limit, offset=offset)
-    shift = {j.id: _shift(session, j.id, metric) for j in jobs}
     parts = []
     for j in jobs:
         source = _from_summaries if from_summaries and j.status == "succeeded" else _from_results
-        parts.append(source(j.id, metric, by, shift[j.id]))
+        parts.append(source(j.id, metric, by))
     both: Any = parts[0] if len(parts) == 1 else union_all(*parts)  # mypy cannot join them
     src = both.subquery("src")
-    keys = [src.c.job_id] + [src.c[b] for b in by]
-    grouped = select(
-        *keys,
-        func.sum(src.c.w_n).label("w_count"),
-        func.sum(src.c.w_n * src.c.w_d).label("w_s1"),
-        func.sum(src.c.w_n * (src.c.w_s * src.c.w_s + src.c.w_d * src.c.w_d)).label("w_s2"),
-        func.count().over().label("w_total"),
-    ).group_by(*keys)
-    order = [c for b in by for c in _order_of(src.c[b])] + [src.c.job_id]
+    grouped, rkeys = _pooled(src, [src.c.job_id] + [src.c[b] for b in by])
+    order = [c for k in rkeys[1:] for c in _order_of(k)] + [rkeys[0]]
     page = session.execute(grouped.order_by(*order).limit(limit).offset(offset)).all()
     if page:
         total = page[0]._mapping["w_total"]
@@ -130,9 +144,9 @@ def compare_page(
         count = int(r["w_count"] or 0)
         mean = std = None
         if count:
-            d = float(r["w_s1"]) / count
-            mean = shift[r["job_id"]] + d
-            std = math.sqrt(max(float(r["w_s2"]) / count - d * d, 0.0))
+            scale = 1.0 / TINY if float(r["w_x"]) > BIG else 1.0
+            mean = _finite(float(r["w_b"] if scale != 1.0 else r["w_a"]) * scale)
+            std = _finite(math.sqrt(max(float(r["w_q"] or 0.0), 0.0) / count) * scale)
         out.append(
             {
                 "job_id": r["job_id"],

@@ -82,3 +82,54 @@ def _check(groups, written):
             else:
                 assert h["std"] == pytest.approx(std, rel=1e-9)
                 assert h["mean"] == pytest.approx(mean, rel=1e-9, abs=1e295)
+
+
+def test_compare_pools_huge_and_far_apart_values_as_the_exact_mean_and_std(
+    client, session, make_account
+):
+    """``GET /compare`` on values whose squares overflow (J_exact near 1e200) and on
+    groups whose means are far apart (J_star 3e6 in one estimator's groups, 1e-3 in
+    the other's: one shift for the whole job cancelled to a std of 0.06 where it is 0),
+    while the job runs (from its rows) and once it has finished (from its summaries),
+    by several fields: the exact mean and std of each group's values (Fraction)."""
+    from service.db import jobs, units
+
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    uids = jobs.unit_ids_of_job(session, jid, pending_only=False)
+    written: list[dict] = []
+    for k, uid in enumerate(uids):
+        spec, payload = units.start_unit(session, uid, "w", 60, max_attempts=0)
+        recs = _extreme_records(spec, payload)
+        for i, r in enumerate(recs):
+            r["J_star"] = 3e6 if r["estimator"] == "ols" else 1e-3 * (1 + i % 5)
+        written += recs
+        units.complete_unit(session, uid, recs)
+        session.commit()
+        if k == 0 or k == len(uids) - 1:  # running (rows), then finished (summaries)
+            for by in ("N", "estimator", "rep", "system,sigma_w,N,estimator,gamma"):
+                for metric in ("J_exact", "J_star"):
+                    _check_compare(client, acc, jid, metric, by, written)
+
+
+def _check_compare(client, acc, jid, metric, by, written):
+    params = {"jobs": str(jid), "metric": metric, "by": by, "limit": 1000}
+    r = client.get(f"{API}/compare", params=params, headers=acc.headers)
+    assert r.status_code == 200, r.text
+    fields = by.split(",")
+    groups: dict[tuple, list[float]] = {}
+    for rec in written:
+        groups.setdefault(tuple(rec[f] for f in fields), []).append(rec[metric])
+    rows = r.json()["rows"]
+    assert len(rows) == len(groups), (metric, by)
+    for row in rows:
+        values = groups[tuple(row[f] for f in fields)]
+        mean, std = _exact(values)
+        assert row["count"] == len(values)
+        assert row["mean"] == pytest.approx(mean, rel=1e-12), (metric, by, row)
+        # a group of one value repeated: its std is 0 up to the last bit of its mean
+        assert row["std"] == pytest.approx(std, rel=1e-9, abs=4 * math.ulp(abs(mean))), (
+            metric,
+            by,
+            row,
+        )
