@@ -118,14 +118,23 @@ class ResultCalls:
         jobs: Iterable[Job | int | str],
         metric: str,
         by: Sequence[str] | str = ("N", "estimator", "gamma"),
+        *,
+        page_size: int = 10_000,
     ) -> dict[str, Any]:
-        """``GET /compare`` as the API sends it."""
+        """``GET /compare`` as the API sends it, every page's rows in one body (pages of
+        ``page_size`` groups; the API sends at most 10,000 a request)."""
         by = by if isinstance(by, str) else ",".join(by)
         ids = ",".join(str(ident(j)) for j in jobs)
-        data: dict[str, Any] = self.request_json(
-            "GET", "/compare", params={"jobs": ids, "metric": metric, "by": by}
-        )
-        return data
+        params: dict[str, Any] = {"jobs": ids, "metric": metric, "by": by, "limit": page_size}
+        body: dict[str, Any] = self.request_json("GET", "/compare", params=params)
+        rows = list(body["rows"])
+        while rows and len(rows) < body["total"]:
+            page = self.request_json("GET", "/compare", params={**params, "offset": len(rows)})
+            if not page["rows"]:  # a running job's groups changed meanwhile
+                break
+            rows += page["rows"]
+            body["total"] = page["total"]
+        return {**body, "rows": rows}  # the first page's body, with every row
 
     def compare(
         self,

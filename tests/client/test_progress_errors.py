@@ -369,3 +369,23 @@ def test_results_out_dash_is_stdout(monkeypatch, capsys, tmp_path):
     monkeypatch.chdir(tmp_path)
     assert run_cli(capsys, "results", "1", "--out", "-") == (0, "N\n10\n", "")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_compare_reads_every_page_of_groups(monkeypatch):
+    """A comparison of more groups than one page: every page is asked for (limit,
+    then offsets), and the rows are all there, in the API's order."""
+    rows = [{"job_id": 1, "N": n, "mean": float(n), "std": 0.0, "count": 1} for n in range(25)]
+    asked = []
+
+    def api(request):
+        q = dict(request.url.params)
+        asked.append((int(q["limit"]), int(q.get("offset", 0))))
+        start = int(q.get("offset", 0))
+        page = rows[start : start + int(q["limit"])]
+        return httpx.Response(200, json={"metric": "rmse_A", "rows": page, "total": len(rows)})
+
+    fake_api(monkeypatch, api)
+    with Client(URL, "svr_k") as c:
+        body = c.compare_json([1], "rmse_A", by="N", page_size=10)
+    assert body["rows"] == rows and body["total"] == 25
+    assert asked == [(10, 0), (10, 10), (10, 20)]
