@@ -121,15 +121,16 @@ class ResultCalls:
         *,
         page_size: int = 10_000,
     ) -> dict[str, Any]:
-        """``GET /compare`` as the API sends it, every page's rows in one body (pages of
-        ``page_size`` groups; the API sends at most 10,000 a request)."""
+        """``GET /compare`` as the API sends it (its first page), with every page's rows
+        (the next pages of ``page_size`` groups; the API sends at most 10,000 a request)."""
         by = by if isinstance(by, str) else ",".join(by)
         ids = ",".join(str(ident(j)) for j in jobs)
-        params: dict[str, Any] = {"jobs": ids, "metric": metric, "by": by, "limit": page_size}
+        params: dict[str, Any] = {"jobs": ids, "metric": metric, "by": by}
         body: dict[str, Any] = self.request_json("GET", "/compare", params=params)
         rows = list(body["rows"])
         while rows and len(rows) < body["total"]:
-            page = self.request_json("GET", "/compare", params={**params, "offset": len(rows)})
+            more = {**params, "limit": page_size, "offset": len(rows)}
+            page = self.request_json("GET", "/compare", params=more)
             if not page["rows"]:  # a running job's groups changed meanwhile
                 break
             rows += page["rows"]

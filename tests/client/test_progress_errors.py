@@ -377,15 +377,15 @@ def test_compare_reads_every_page_of_groups(monkeypatch):
     rows = [{"job_id": 1, "N": n, "mean": float(n), "std": 0.0, "count": 1} for n in range(25)]
     asked = []
 
-    def api(request):
+    def api(request):  # a server whose default page is 7 groups
         q = dict(request.url.params)
-        asked.append((int(q["limit"]), int(q.get("offset", 0))))
-        start = int(q.get("offset", 0))
-        page = rows[start : start + int(q["limit"])]
-        return httpx.Response(200, json={"metric": "rmse_A", "rows": page, "total": len(rows)})
+        asked.append((q.get("limit"), int(q.get("offset", 0))))
+        start, limit = int(q.get("offset", 0)), int(q.get("limit", 7))
+        body = {"metric": "rmse_A", "rows": rows[start : start + limit], "total": len(rows)}
+        return httpx.Response(200, json=body | {"limit": limit})
 
     fake_api(monkeypatch, api)
     with Client(URL, "svr_k") as c:
         body = c.compare_json([1], "rmse_A", by="N", page_size=10)
-    assert body["rows"] == rows and body["total"] == 25
-    assert asked == [(10, 0), (10, 10), (10, 20)]
+    assert body["rows"] == rows and body["total"] == 25 and body["limit"] == 7  # the first page's
+    assert asked == [(None, 0), ("10", 7), ("10", 17)]
