@@ -7,6 +7,7 @@ so a guessed key is no more use than a wrong one."""
 
 from __future__ import annotations
 
+import ipaddress
 import threading
 import time
 
@@ -58,5 +59,21 @@ class AuthThrottle:
 
 def client_address(request) -> str:
     """The request's peer address (uvicorn's ``--proxy-headers`` makes it the
-    forwarded one behind a trusted proxy)."""
-    return request.client.host if request.client is not None else "unknown"
+    forwarded one behind a trusted proxy), as :func:`throttled_as` counts it."""
+    return throttled_as(request.client.host if request.client is not None else "unknown")
+
+
+def throttled_as(host: str) -> str:
+    """The bucket of a peer: its IPv4 address (also when written IPv4-mapped, as
+    ``::ffff:a.b.c.d``), or the /64 network of an IPv6 one (a host is routinely given
+    a whole /64, so one bucket per address would let it spread its guesses over
+    2^64 buckets); any other text as it is."""
+    try:
+        ip = ipaddress.ip_address(host)
+    except ValueError:
+        return host
+    if isinstance(ip, ipaddress.IPv6Address):
+        if ip.ipv4_mapped is not None:
+            return str(ip.ipv4_mapped)
+        return str(ipaddress.IPv6Network((ip, 64), strict=False))
+    return str(ip)

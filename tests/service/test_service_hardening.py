@@ -4,6 +4,8 @@ and the shortest share link."""
 
 from __future__ import annotations
 
+from contextlib import nullcontext
+
 import pytest
 
 from service.http.security import CSP
@@ -55,6 +57,30 @@ def test_bad_bearer_keys_are_throttled_per_address(build_client, make_account):
     other = type(client)(client.app, client=("10.0.0.2", 5000))
     assert other.get(f"{API}/jobs", headers=acc.headers).status_code == 200
     assert other.get(f"{API}/jobs", headers=bad).status_code == 401
+
+
+@pytest.mark.parametrize(
+    "a, b, same",
+    [
+        ("2001:db8:1:2::1", "2001:db8:1:2:ffff:ffff:ffff:ffff", True),  # one /64
+        ("2001:db8:1:2::1", "2001:db8:1:3::1", False),
+        ("::ffff:192.0.2.7", "192.0.2.7", True),  # IPv4-mapped is the IPv4 address
+        ("192.0.2.7", "192.0.2.8", False),
+        ("unknown", "unknown", True),
+    ],
+)
+def test_failed_authentications_count_per_ipv4_address_and_ipv6_64(a, b, same):
+    """A bucket per IPv4 address and per IPv6 /64: the addresses of one /64 share
+    theirs, so a host given a /64 cannot spread its guesses over 2^64 buckets."""
+    from service.http.auth_throttle import AuthThrottle, throttled_as
+    from svrobs_lab.errors import RateLimited
+
+    throttle = AuthThrottle(per_minute=2)
+    for _ in range(2):
+        throttle.failed(throttled_as(a))
+    with pytest.raises(RateLimited, match="too many failed") if same else nullcontext():
+        throttle.check(throttled_as(b))
+    assert (throttled_as(a) == throttled_as(b)) is same
 
 
 def test_bad_sign_ins_are_throttled_with_a_429_page(build_client, make_account):
