@@ -75,7 +75,7 @@ def _from_summaries(job_id: int, metric: str, by: list[str]):
     ).where(t.c.job_id == job_id)
 
 
-def _pooled(src, keys: list) -> Any:
+def _pooled(src, keys: list) -> tuple[Any, list[Any]]:
     """Per group of ``keys``: w_count, the plain and scaled means w_a, w_b, the largest
     magnitude w_x and the pooled squared deviations w_q (plain or scaled as w_x says),
     and the number of groups w_total."""

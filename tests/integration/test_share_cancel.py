@@ -21,7 +21,15 @@ from svrobs_cli.serve import DEFAULT_CONCURRENCY
 from tests.service.svc_helpers import TINY_SPEC
 
 from .stack import Stack, submit
-from .test_trust import long_job, n_results, second_team, team_client, unit_rows, wait_for
+from .test_trust import (
+    long_job,
+    n_results,
+    running_units,
+    second_team,
+    team_client,
+    unit_rows,
+    wait_for,
+)
 from .test_trust import stop_line as trust_stop_line
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(420)]
@@ -161,11 +169,7 @@ def test_cancel_then_delete_stops_the_running_units(stack, db):
     rows are gone) stop without running to their end, and the worker serves on."""
     with stack.client() as c:
         job = submit(c, long_job(3, scale=16), name="cancel then delete")
-        running = wait_for(
-            lambda: [u["id"] for u in unit_rows(db, job["id"]) if u["status"] == "running"],
-            120,
-            "a unit running",
-        )
+        running = running_units(db, job["id"], 120, "a unit running")
         time.sleep(1.5)
         assert c.post(f"/jobs/{job['id']}/cancel").status_code == 200
         assert c.delete(f"/jobs/{job['id']}").status_code == 204

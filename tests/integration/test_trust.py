@@ -80,6 +80,25 @@ def unit_rows(db, job_id: int) -> list[dict]:
         return [dict(r._mapping) for r in rows]
 
 
+def running_units(db, job_id: int, timeout: float, what: str = "running") -> list[int]:
+    """The ids of the job's running units, once it has any (``wait_for``)."""
+    return wait_for(
+        lambda: [u["id"] for u in unit_rows(db, job_id) if u["status"] == "running"],
+        timeout,
+        what,
+    )
+
+
+def killed_mid_unit(stack, db, c, worker: str, spec: dict, name: str) -> tuple[dict, int]:
+    """Submit ``spec``, wait for its unit to run on ``worker``, then SIGKILL the worker
+    with its pool -> (the job, the unit left running)."""
+    job = submit(c, spec, name=name)
+    uid = running_units(db, job["id"], 60)[0]
+    stack.children[worker].kill_group()
+    stack.children.pop(worker)
+    return job, uid
+
+
 def fresh_units(db, job_id: int, within: float = 1.5) -> list[int]:
     """Units of the job running for less than ``within`` s (far from their end)."""
     now = datetime.now(UTC)
@@ -268,14 +287,7 @@ def test_a_worker_restarted_takes_back_the_unit_it_was_killed_in(stack, pool, db
     stack.start_worker("restarted", concurrency=1, env=env)
     try:
         with stack.client() as c:
-            job = submit(c, long_job(1, scale=4), name="cut short")
-            uid = wait_for(
-                lambda: [u["id"] for u in unit_rows(db, job["id"]) if u["status"] == "running"],
-                60,
-                "running",
-            )[0]
-            stack.children["restarted"].kill_group()
-            stack.children.pop("restarted")
+            job, uid = killed_mid_unit(stack, db, c, "restarted", long_job(1, scale=4), "cut short")
             t0 = time.monotonic()
             stack.start_worker("restarted", concurrency=1, env=env)
             stack.wait_log("restarted", "this node left running", timeout=30)
@@ -298,14 +310,7 @@ def test_lease_ends_the_units_of_a_killed_worker(stack, pool, db):
     stack.start_worker("short-lease", concurrency=1, env={"SVROBS_UNIT_LEASE_SECONDS": "3"})
     try:
         with stack.client() as c:
-            job = submit(c, long_job(1, scale=8), name="orphan")
-            uid = wait_for(
-                lambda: [u["id"] for u in unit_rows(db, job["id"]) if u["status"] == "running"],
-                60,
-                "running",
-            )[0]
-            stack.children["short-lease"].kill_group()
-            stack.children.pop("short-lease")
+            job, uid = killed_mid_unit(stack, db, c, "short-lease", long_job(1, scale=8), "orphan")
             t0 = time.monotonic()
             stack.start_beat("beat", tick_seconds=1)
             wait_for(
