@@ -19,6 +19,7 @@ import json
 import logging
 import os
 import secrets
+import tempfile
 import time
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -45,26 +46,32 @@ def secret_folder(settings: Settings) -> Path:
 
 
 def load_secret(settings: Settings) -> bytes:
-    """SVROBS_SECRET_KEY, else the secret kept in the state folder, made on first use
-    (created exclusively, so concurrent API processes agree on one)."""
+    """SVROBS_SECRET_KEY, else the secret kept in the state folder, made on first use.
+    It is written whole to a private temporary file, then linked to its name, which
+    fails if another process linked first: the file never exists half written, and
+    concurrent API processes agree on one secret."""
     if settings.SECRET_KEY:
         return settings.SECRET_KEY.encode("utf-8")
     path = secret_folder(settings) / SECRET_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        pass
-    else:
-        with os.fdopen(fd, "w") as f:
-            f.write(secrets.token_urlsafe(48))
-        log.info("generated the web session secret in %s", path)
-    for _ in range(50):  # another process may be writing it right now
-        text = path.read_text().strip()
-        if text:
-            return text.encode("utf-8")
-        time.sleep(0.02)
-    raise RuntimeError(f"{path} is empty: delete it or set SVROBS_SECRET_KEY")
+    if not path.exists():
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{SECRET_FILE}.")
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(secrets.token_urlsafe(48))
+                f.flush()
+                os.fsync(f.fileno())
+            os.link(tmp, path)
+        except FileExistsError:
+            pass
+        else:
+            log.info("generated the web session secret in %s", path)
+        finally:
+            os.unlink(tmp)
+    text = path.read_text().strip()
+    if not text:
+        raise RuntimeError(f"{path} is empty: delete it or set SVROBS_SECRET_KEY")
+    return text.encode("utf-8")
 
 
 def _b64(data: bytes) -> str:

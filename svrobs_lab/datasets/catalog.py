@@ -9,7 +9,6 @@ caller commits.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import re
@@ -27,6 +26,7 @@ from svrobs_core.errors import SpecError
 from svrobs_core.measured import regressor_excitation
 from svrobs_core.text import NOT_PRINTABLE, printable, strip_unprintable
 
+from .. import json_text
 from ..auth import Caller
 from ..dispatch import SessionFactory
 from ..errors import DatasetNotFound, Invalid, NotFound
@@ -82,8 +82,8 @@ def _name_list(fields: Mapping, key: str) -> tuple[str, ...] | None:
     value = value.strip()
     if value.startswith("["):
         try:
-            items = json.loads(value)
-        except (ValueError, RecursionError):
+            items = json_text.loads(value)
+        except ValueError:
             raise SpecError(key, "not a JSON list of strings") from None
         if not isinstance(items, list) or not all(isinstance(v, str) for v in items):
             raise SpecError(key, "not a JSON list of strings")

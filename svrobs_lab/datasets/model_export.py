@@ -28,6 +28,7 @@ from svrobs_core.measured import SIGMA_W_ESTIMATED
 from svrobs_core.records import json_value
 from svrobs_core.systems import resolve_system
 
+from .. import json_text
 from ..errors import Conflict
 from ..params import int32_problem, number_problem
 from ..results import not_pruned
@@ -54,8 +55,8 @@ def parse_cell(cell: str | dict | None) -> dict:
         return {}
     if isinstance(cell, str) and cell.lstrip().startswith("{"):
         try:  # the object as its pairs: a coordinate given twice is refused below
-            cell = json.loads(cell, object_pairs_hook=_Pairs)
-        except (ValueError, RecursionError):
+            cell = json_text.loads(cell, object_pairs_hook=_Pairs)
+        except ValueError:
             raise SpecError("cell", "not a JSON object of coordinates") from None
     if isinstance(cell, _Pairs):
         items = list(cell)

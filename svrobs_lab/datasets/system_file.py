@@ -5,7 +5,6 @@ a spec's ``systems`` list takes, checked as the spec checks it."""
 
 from __future__ import annotations
 
-import json
 import os
 from typing import BinaryIO
 
@@ -14,6 +13,7 @@ import numpy as np
 from svrobs_core.errors import SpecError
 from svrobs_core.systems import resolve_system
 
+from .. import json_text
 from .arrays import numeric
 from .mat_format import mat5_variables, mat73_variables
 from .npz_format import npz_variables
@@ -33,8 +33,8 @@ def _variables(stream: BinaryIO, fmt: str) -> dict:
         return mat73_variables(stream, max_array_bytes=16 * MAX_SYSTEM_BYTES)[0]
     if fmt == "json":
         try:
-            data = json.loads(stream.read(MAX_SYSTEM_BYTES + 1).decode("utf-8-sig"))
-        except (ValueError, UnicodeDecodeError, RecursionError):
+            data = json_text.loads(stream.read(MAX_SYSTEM_BYTES + 1).decode("utf-8-sig"))
+        except ValueError:  # a UnicodeDecodeError too
             raise BadDatasetFile("not valid JSON (UTF-8)") from None
         if not isinstance(data, dict):
             raise BadDatasetFile('a JSON system is an object {"A": [[...]], "B": [[...]]}')

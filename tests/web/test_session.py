@@ -5,6 +5,7 @@ state-changing form without this session's token is a 403; the key never shows."
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
 
 import pytest
@@ -182,6 +183,31 @@ def test_generated_secret_is_kept_across_restarts(tmp_path):
     assert len(first) >= 32 and load_secret(settings) == first
     assert (tmp_path / "var" / "secret_key").stat().st_mode & 0o077 == 0
     assert load_secret(make_settings("sqlite://", SECRET_KEY="abc")) == b"abc"
+
+
+def test_a_process_killed_while_writing_the_secret_leaves_no_empty_file(tmp_path, monkeypatch):
+    """The secret appears under its name only whole: a writer that dies mid-write
+    leaves nothing there, and the next start makes one."""
+    settings = make_settings("sqlite://", VAR_DIR=str(tmp_path / "var"))
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt  # the process ends between creating and writing
+
+    with monkeypatch.context() as m:
+        m.setattr(sessions.secrets, "token_urlsafe", killed)
+        with pytest.raises(KeyboardInterrupt):
+            load_secret(settings)
+    assert not (tmp_path / "var" / "secret_key").exists()
+    assert len(load_secret(settings)) >= 32
+    assert sorted(p.name for p in (tmp_path / "var").iterdir()) == ["secret_key"]
+
+
+def test_concurrent_first_starts_agree_on_one_secret(tmp_path):
+    settings = make_settings("sqlite://", VAR_DIR=str(tmp_path / "var"))
+    with ThreadPoolExecutor(8) as pool:
+        secrets_seen = set(pool.map(lambda _: load_secret(settings), range(32)))
+    assert len(secrets_seen) == 1
+    assert sorted(p.name for p in (tmp_path / "var").iterdir()) == ["secret_key"]
 
 
 def test_cookie_is_secure_over_https(build_client, make_account):
