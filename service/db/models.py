@@ -73,6 +73,14 @@ class UTCDateTime(TypeDecorator):
         return value.astimezone(UTC)
 
 
+# the tables whose ids name a row outside its transaction (URLs, worker messages,
+# schedules' templates, cookies): on SQLite an id without AUTOINCREMENT is reused
+# after the newest row is deleted, so a deleted job's unit still computing could
+# write into the next job; AUTOINCREMENT never hands an id out twice (PostgreSQL's
+# sequences never do). Migration 0016 rebuilds the existing tables with it.
+NEVER_REUSED: dict[str, Any] = {"sqlite_autoincrement": True}
+
+
 class Base(DeclarativeBase):
     type_annotation_map = {datetime: UTCDateTime(), dict[str, Any]: JSON, list[Any]: JSON}
     __table__: ClassVar[Table]  # every model here maps one Table (declared: FromClause)
@@ -80,6 +88,7 @@ class Base(DeclarativeBase):
 
 class Team(Base):
     __tablename__ = "teams"
+    __table_args__ = NEVER_REUSED
     id: Mapped[int] = mapped_column(primary_key=True)
     name: Mapped[str] = mapped_column(String(200), unique=True)
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
@@ -90,6 +99,7 @@ class Team(Base):
 
 class User(Base):
     __tablename__ = "users"
+    __table_args__ = NEVER_REUSED
     id: Mapped[int] = mapped_column(primary_key=True)
     team_id: Mapped[int] = mapped_column(ForeignKey("teams.id", ondelete="CASCADE"), index=True)
     email: Mapped[str] = mapped_column(String(320), unique=True)
@@ -100,6 +110,7 @@ class User(Base):
 
 class ApiKey(Base):
     __tablename__ = "api_keys"
+    __table_args__ = NEVER_REUSED
     id: Mapped[int] = mapped_column(primary_key=True)
     prefix: Mapped[str] = mapped_column(String(16), unique=True, index=True)
     key_hash: Mapped[str] = mapped_column(String(64))  # sha256 hex of the whole key
@@ -121,6 +132,7 @@ class Job(Base):
         Index("ix_jobs_team_created", "team_id", "created_at"),
         # beat's report thread polls for the newest finished jobs (reports.jobs_without_report)
         Index("ix_jobs_finished", "finished_at"),
+        NEVER_REUSED,
     )
     id: Mapped[int] = mapped_column(primary_key=True)
     team_id: Mapped[int] = mapped_column(ForeignKey("teams.id", ondelete="CASCADE"))
@@ -171,6 +183,7 @@ class WorkUnit(Base):
     __table_args__ = (
         UniqueConstraint("job_id", "index", name="uq_work_units_job_index"),
         Index("ix_work_units_status_published", "status", "published_at"),
+        NEVER_REUSED,
     )
     id: Mapped[int] = mapped_column(primary_key=True)
     job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"))
@@ -341,7 +354,10 @@ class JobValidation(Base):
 
 class Schedule(Base):
     __tablename__ = "schedules"
-    __table_args__ = (UniqueConstraint("team_id", "name", name="uq_schedules_team_name"),)
+    __table_args__ = (
+        UniqueConstraint("team_id", "name", name="uq_schedules_team_name"),
+        NEVER_REUSED,
+    )
     id: Mapped[int] = mapped_column(primary_key=True)
     team_id: Mapped[int] = mapped_column(ForeignKey("teams.id", ondelete="CASCADE"), index=True)
     user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id", ondelete="SET NULL"))
@@ -359,7 +375,10 @@ class Schedule(Base):
 
 class ScheduleRun(Base):
     __tablename__ = "schedule_runs"
-    __table_args__ = (UniqueConstraint("schedule_id", "due_at", name="uq_schedule_runs_due"),)
+    __table_args__ = (
+        UniqueConstraint("schedule_id", "due_at", name="uq_schedule_runs_due"),
+        NEVER_REUSED,
+    )
     id: Mapped[int] = mapped_column(primary_key=True)
     schedule_id: Mapped[int] = mapped_column(ForeignKey("schedules.id", ondelete="CASCADE"))
     due_at: Mapped[datetime]
@@ -375,6 +394,7 @@ class ShareLink(Base):
     is stored as its SHA-256 only; it expires, and can be revoked."""
 
     __tablename__ = "share_links"
+    __table_args__ = NEVER_REUSED
     id: Mapped[int] = mapped_column(primary_key=True)
     token_hash: Mapped[str] = mapped_column(String(64), unique=True)
     job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
@@ -392,7 +412,7 @@ class Dataset(Base):
     the arrays (float64) in ``dataset_chunks``."""
 
     __tablename__ = "datasets"
-    __table_args__ = (Index("ix_datasets_team_created", "team_id", "created_at"),)
+    __table_args__ = (Index("ix_datasets_team_created", "team_id", "created_at"), NEVER_REUSED)
     id: Mapped[int] = mapped_column(primary_key=True)
     team_id: Mapped[int] = mapped_column(ForeignKey("teams.id", ondelete="CASCADE"))
     user_id: Mapped[int | None] = mapped_column(ForeignKey("users.id", ondelete="SET NULL"))
@@ -441,6 +461,7 @@ class SignIn(Base):
     out deletes it)."""
 
     __tablename__ = "sessions"
+    __table_args__ = NEVER_REUSED
     id: Mapped[int] = mapped_column(primary_key=True)
     token_hash: Mapped[str] = mapped_column(String(64), unique=True)
     key_id: Mapped[int] = mapped_column(ForeignKey("api_keys.id", ondelete="CASCADE"), index=True)

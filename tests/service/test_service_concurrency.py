@@ -12,6 +12,7 @@ from sqlalchemy.orm import sessionmaker
 
 from service.config import get_settings
 from service.db import accounts, jobs, units
+from service.db.job_delete import delete_job
 from service.db.models import Job, Result, Schedule, Team
 from svrobs_lab import schedules as lab_schedules
 from tests.service.svc_fakes import fake_records
@@ -106,3 +107,30 @@ def test_units_finishing_together_finish_the_job(real_sessions):
     with maker() as s:
         j = s.get(Job, job.id)
         assert j.status == "succeeded" and j.progress_done == len(ids)
+
+
+def test_a_deleted_jobs_running_unit_stores_nothing_in_the_next_job(real_sessions):
+    """A unit computing while its job is cancelled and deleted: the next job made gets
+    new job and unit ids (SQLite too: NEVER_REUSED), so the old unit's completion
+    finds no unit and stores nothing, in either job."""
+    maker, team_ids = real_sessions
+    with maker() as s:
+        team = accounts.create_team(s, "deleted-while-running")
+        team_ids.append(team.id)
+        old, _ = jobs.create_job(s, team_id=team.id, user_id=None, spec=SMALL_SPEC)
+        s.commit()
+        uid = jobs.unit_ids_of_job(s, old.id)[-1]
+        spec, payload = units.start_unit(s, uid, "w", 60, max_attempts=0)
+        s.commit()
+        jobs.cancel_job(s, jobs.lock_job(s, old.id))
+        s.commit()
+        delete_job(s, jobs.lock_job(s, old.id))
+        s.commit()
+        new, _ = jobs.create_job(s, team_id=team.id, user_id=None, spec=SMALL_SPEC)
+        s.commit()
+        new_units = jobs.unit_ids_of_job(s, new.id)
+        assert new.id > old.id and min(new_units) > uid
+        assert units.complete_unit(s, uid, fake_records(spec, payload)) is False
+        s.commit()
+        stored = s.scalar(select(func.count()).select_from(Result).where(Result.job_id == new.id))
+        assert stored == 0 and s.get(Job, new.id).status == "queued"

@@ -228,9 +228,9 @@ def test_the_columns_are_freed_before_the_memory_is_handed_back(
 def test_a_deleted_jobs_kept_report_is_not_served_for_the_job_that_takes_its_id(
     client, make_account
 ):
-    """SQLite gives the id of the newest job, once deleted, to the next job made: the
-    report kept for the deleted job (same status, units and cells as the new one) is
-    not the new job's, whichever team made it."""
+    """The report kept for a deleted job (same status, units and cells as the next
+    one) is not served for a job made after it, whichever team made it, even where a
+    database would hand its id out again (ids are not: service.db.models.NEVER_REUSED)."""
     a, b = make_account(), make_account()
     jid = client.post(f"{API}/jobs", json={**TINY_SPEC, "name": "a-secret"}, headers=a.headers)
     jid = jid.json()["id"]
