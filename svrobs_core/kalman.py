@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike
 from .array_types import Array, BoolArray, FloatArray
 from .errors import SpecError, check_matrix
 from .linalg import solve as _solve
-from .norms import UNIT_CIRCLE_TOL, is_schur
+from .norms import UNIT_CIRCLE_TOL, is_schur, spectral_radius
 from .systems import SIGMA_V0_COND_LIMIT
 
 __all__ = [
@@ -80,6 +80,9 @@ _NEWTON_MAX_ITER = 60
 # solve's rounding dominates (8.9e-5 against 1.8e-9 beyond 1e8), against a
 # 60-digit solution on 600 random systems (tests/core/test_kalman.py)
 _REFINE_MAX_COND = 1e6
+# a converged gain whose A - K C has a spectral radius at least this is checked for
+# an undetectable mode (PBH), which no gain moves
+_SUSPECT_RHO = 0.999
 _PBH_TOL = 1e-9
 
 
@@ -363,6 +366,16 @@ def kalman_predictor(
         with np.errstate(all="ignore"):
             Kc = _gain_from_X(a, c, X)
         good = conv & np.isfinite(Kc).all(axis=(-1, -2))
+        # the doubling can also stop on an undetectable (A, C), its A_k vanishing
+        # only by rounding once H_k is huge: the gain leaves a mode with |lambda| >= 1
+        # in A - K C. Such a mode keeps rho(A - K C) near 1 or above, so only those
+        # cells are put to the PBH test
+        g = np.flatnonzero(good)
+        rho = spectral_radius(a[g] - Kc[g] @ c[g])
+        near = np.flatnonzero(~(rho < _SUSPECT_RHO))
+        if near.size:
+            s_idx = g[near]
+            good[s_idx] = (rho[near] < 1.0) & ~_undetectable(a[s_idx], c[s_idx])
         st = np.full(idx.size, KALMAN_NOT_CONVERGED, dtype=np.int8)
         st[good] = KALMAN_OK
         st[unit & ~good] = KALMAN_UNIT_CIRCLE

@@ -503,6 +503,34 @@ def test_reuse_with_designed_gains_never_loses_certification():
     np.testing.assert_allclose(res.g_L, certificate(res.L, At, 0.05, r_A, C=I3))
 
 
+@pytest.mark.parametrize(
+    ("A", "C"),
+    [
+        (np.eye(2), [[1.0, 2.0]]),  # eigenvalue 1 twice, one output: one direction hidden
+        (np.diag([0.5, 1.0, 1.0]), [[1.0, 1.0, 1.0]]),
+        (  # a rotation on the unit circle beside I_2, one output
+            sla.block_diag([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]], np.eye(2)),
+            [[1.0, 0.0, 1.0, 1.0]],
+        ),
+    ],
+    ids=["I2", "diag-0.5-1-1", "rotation-and-I2"],
+)
+def test_undetectable_modes_the_doubling_stops_on_give_a_null_gain(A, C):
+    """The doubling stops on these (its A_k vanishing by rounding once H_k is huge),
+    but no gain stabilises them: PBH finds a unit-circle mode C does not see. The
+    gain is null with the undetectable reason, not a K that leaves that mode in A - K C."""
+    A, C = np.asarray(A), np.asarray(C)
+    lam = np.linalg.eigvals(A)
+    hidden = [
+        np.linalg.svd(np.vstack([A - z * np.eye(len(A)), C]), compute_uv=False)[-1] < 1e-12
+        for z in lam
+        if abs(abs(z) - 1) < 1e-12
+    ]
+    assert any(hidden)  # the oracle: some unit-circle mode is unobservable
+    res = kalman_predictor(A, C, 1.0, 1.0)
+    assert res.status == KALMAN_UNDETECTABLE and np.isnan(res.K).all()
+
+
 def mp_kalman_gain(A, C, q, X0, digits=60):
     """The predictor gain of X = A X (I + C^T C X)^-1 A^T + q I to ``digits`` digits:
     Newton-Hewer in mpmath from X0, each Stein equation solved by its Kronecker form."""
