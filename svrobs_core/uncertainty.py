@@ -54,9 +54,6 @@ __all__ = [
 
 BOOT_STREAM = (2,)  # resample b of a cell's key uses the stream key + (2, b)
 RADIUS_RTOL = 1e-6  # radii whose estimated relative error exceeds this are null
-# lambda_min(G) <= this * lambda_max(G) of a formed Gram matrix: treated as singular
-# (svrobs_core.measured.noise; the box itself decides from its error estimate)
-SINGULAR_RTOL = 1e-12
 BOOT_CHUNK_BYTES = 16 * 2**20  # working set of one chunk of resampled datasets
 REASON_SINGULAR = "Z Z^T is singular (OLS self-normalized bound undefined)"
 REASON_NONFINITE = "non-finite estimate or noise level"

@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike
 
 from ..array_types import Array, FloatArray
 from ..data_factor import U_ROUND, GramFactor, gram_factor, v_parts
-from ..uncertainty import RADIUS_RTOL, SINGULAR_RTOL
+from ..uncertainty import RADIUS_RTOL
 
 REASON_RANGE = (
     "the data or their squares are not finite doubles (a value beyond about 1e154 or a "
@@ -130,9 +130,11 @@ def noise_level(
         )
     sigma_hat = np.sqrt(rss / (n * (N0 - d)))
     parts = v_parts(fac, 0.0, lambda0=lambda0, n=min(n, d))
-    lam_min, lam_max, e = parts.lam_min, parts.lam_max, parts.err
+    lam_min, e = parts.lam_min, parts.err
     ok = np.isfinite(fac.lam).all(axis=-1) & np.isfinite(rss)
-    singular = ~(lam_min > SINGULAR_RTOL * lam_max)
+    # singular: lambda_min not told apart from 0 by its own error estimate (a small
+    # lambda_min that is known well is not: the bound's error estimate decides)
+    singular = ~(lam_min > 0) | ~(e < 1.0)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         c = 1.0 + lambda0 / lam_min
         tail = parts.logdet + 2.0 * np.log(n / delta2)

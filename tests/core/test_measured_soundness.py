@@ -205,13 +205,27 @@ def test_estimated_sigma_w_with_a_vanishing_denominator_certifies_nothing_false(
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_estimated_sigma_w_of_ill_conditioned_data_comes_from_the_data(seed):
-    """cond(Z Z^T) = 9e11 (below the bound's singular limit 1e12): lambda_min from the
+    """cond(Z Z^T) = 9e11: lambda_min from the
     formed Gram was off by 1e-4, the radii by up to 3.5e-5 and rho_upper_bound below the
     exact value; from the data's factor they agree with the 60-digit box."""
     Z, F = ill_conditioned(9e11, 200, seed, 0.1)
     X, U = one_step_rollouts(Z, F)
     obj = {"N": [200], "delta": 0.1, "stages": ["estimate", "bounds"], "estimators": ["ols"]}
     (r,) = records(obj, X, U)
+    assert check_estimated_box(r, Z, F, 0.1)
+
+
+@pytest.mark.parametrize(("cond", "seed"), [(1e14, 0), (1e14, 1), (1e15, 2)])
+def test_estimated_sigma_w_of_data_beyond_a_formed_grams_limit_is_given(cond, seed):
+    """cond(Z Z^T) = 1e14-1e15 with lambda_min = 1: well excited (lambda_min equals
+    lambda0), and the data's factor knows lambda_min to 1e-8. The bound sigma_bar and
+    the box are given and equal the 60-digit ones; a ratio lambda_min / lambda_max
+    below 1e-12 said "singular" whatever the data."""
+    Z, F = ill_conditioned(cond, 200, seed, 0.1)
+    X, U = one_step_rollouts(Z, F)
+    obj = {"N": [200], "delta": 0.1, "stages": ["estimate", "bounds"], "estimators": ["ols"]}
+    (r,) = records(obj, X, U)
+    assert "singular" not in r["notes"]
     assert check_estimated_box(r, Z, F, 0.1)
 
 
