@@ -262,9 +262,21 @@ def _affine_scan(A: FloatArray, x: FloatArray) -> None:
         x[:, s:] += x[:, :-s] @ P.T
 
 
-def _whiteness(eps: list[FloatArray]) -> tuple[int, FloatArray, FloatArray, int, list[str]]:
+def _constant(s: FloatArray, names: Sequence[str], test: str, stat: str) -> list[str]:
+    """A note per channel whose residual sum of squares ``s`` is 0 (a residual that
+    does not vary has no correlation): its ``stat`` and p-value are null."""
+    return [
+        f"{test}: the residual of {names[i]} is constant: {stat} and its p-value null"
+        for i in np.flatnonzero(~(s > 0))
+    ]
+
+
+def _whiteness(
+    eps: list[FloatArray], names: Sequence[str]
+) -> tuple[int, FloatArray, FloatArray, int, list[str]]:
     """Ljung-Box per channel on residuals pooled within rollouts -> (h, r (ny, h), Q, n,
-    notes); r_k and Q are NaN where lag k has no pairs inside a rollout."""
+    notes); r_k and Q are NaN where lag k has no pairs inside a rollout, or the
+    channel's residual is constant."""
     E = np.concatenate(eps)
     n_res = E.shape[0]
     h = min(MAX_LAGS, max(1, max(e.shape[0] for e in eps) // 4))
@@ -277,12 +289,17 @@ def _whiteness(eps: list[FloatArray]) -> tuple[int, FloatArray, FloatArray, int,
         r = np.stack([np.diag(_lagged(ec, ec, k)) for k in range(1, h + 1)], axis=1) / s0[:, None]
         r[:, none] = np.nan
         Q = n_res * (n_res + 2) * np.sum(r * r / P, axis=1)
-    notes = [NO_PAIRS.format(test="whiteness", stat="Q")] if none.any() else []
-    return h, r, Q, n_res, notes
+    if none.any():
+        return h, r, Q, n_res, [NO_PAIRS.format(test="whiteness", stat="Q")]
+    return h, r, Q, n_res, _constant(s0, names, "whiteness", "Q")
 
 
 def _cross(
-    eps: list[FloatArray], U: list[FloatArray], h: int, names: Sequence[str]
+    eps: list[FloatArray],
+    U: list[FloatArray],
+    h: int,
+    names: Sequence[str],
+    channels: Sequence[str],
 ) -> tuple[FloatArray, FloatArray, list[str]]:
     """Residual-input cross-correlations rho (ny, m, h + 1) and the statistic
     S = s^T R_u^-1 s per (channel, input), s_k = n rho_k / sqrt(P_k) (P_k pairs at
@@ -316,7 +333,7 @@ def _cross(
             S[:, j] = np.sum(std[:, j] * np.linalg.solve(Ru, std[:, j].T).T, axis=1)
         else:
             notes.append(f"cross-correlation: input {names[j]} is not excited (null)")
-    return rho, S, notes
+    return rho, S, notes + _constant(s_e, channels, "cross-correlation", "S")
 
 
 def validate(model: Model, holdout: MeasuredData) -> ValidationResult:
@@ -336,8 +353,9 @@ def validate(model: Model, holdout: MeasuredData) -> ValidationResult:
         notes.append("one-step prediction: left the double range or a constant channel (null)")
     if not np.isfinite(sim_fit).all():
         notes.append("open-loop simulation: left the double range or a constant channel (null)")
-    h, r, Q, n_res, white_notes = _whiteness(eps)
-    rho, S, cross_notes = _cross(eps, data.U, h, data.input_names)
+    channels = holdout.state_names
+    h, r, Q, n_res, white_notes = _whiteness(eps, channels)
+    rho, S, cross_notes = _cross(eps, data.U, h, data.input_names, channels)
     return ValidationResult(
         channels=tuple(holdout.state_names),
         inputs=tuple(holdout.input_names),

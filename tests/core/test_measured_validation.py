@@ -212,6 +212,26 @@ def test_a_held_out_rollout_of_one_transition():
     assert v.notes[2].startswith("whiteness: no pairs") and v.notes[3].startswith("cross-")
 
 
+def test_a_channel_whose_residual_is_constant_says_why_its_statistics_are_null():
+    """x2 identically 0 (a valid dataset): its residual has no correlation, so Q, S and
+    their p-values are null, each with a note naming the channel; x1's are given."""
+    rng = np.random.default_rng(0)
+    X, U = [], []
+    for _ in range(6):
+        x, u = np.zeros((31, 2)), rng.normal(size=(30, 1))
+        for k in range(30):
+            x[k + 1, 0] = 0.5 * x[k, 0] + u[k, 0] + 0.1 * rng.normal()
+        X.append(x)
+        U.append(u)
+    v = validate(Model(A=np.diag([0.5, 0.0]), B=np.array([[1.0], [0.0]])), MeasuredData(X=X, U=U))
+    d = v.to_dict()
+    assert d["ljung_box_Q"][1] is None and d["cross_S"][1] == [None]
+    assert d["ljung_box_Q"][0] is not None and d["cross_S"][0][0] is not None
+    assert "whiteness: the residual of x2 is constant: Q and its p-value null" in v.notes
+    assert "cross-correlation: the residual of x2 is constant: S and its p-value null" in v.notes
+    assert not any("x1" in note for note in v.notes)
+
+
 def test_p_values_are_calibrated_under_the_true_model():
     """200 held-out sets from the true model: P(p < 0.05) within 3 standard errors of 0.05."""
     ps_lb, ps_x = [], []
