@@ -208,7 +208,8 @@ def self_normalized_box(
     lmax_B = np.where(bad, 0.0, parts.lmax_B)
     root_n = np.sqrt(n)
     beta = np.where(bad, 0.0, beta)  # NaN again below; keeps the arithmetic quiet
-    R = beta[..., None, None] * np.sqrt(np.maximum(diag, 0.0))[..., None, :]
+    with np.errstate(invalid="ignore"):  # 0 * inf of a null cell: NaN, as below
+        R = beta[..., None, None] * np.sqrt(np.maximum(diag, 0.0))[..., None, :]
     R = np.broadcast_to(R, batch + (n, d))
     eps_A = root_n * beta * np.sqrt(np.maximum(lmax_A, 0.0))
     eps_B = root_n * beta * np.sqrt(np.maximum(lmax_B, 0.0))

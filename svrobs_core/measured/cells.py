@@ -20,7 +20,7 @@ from .. import bounds as _bounds
 from .. import cost as _cost
 from .. import cost_bound as _cb
 from .. import kalman as _kalman
-from ..array_types import Array, FloatArray
+from ..array_types import Array, BoolArray, FloatArray
 from ..bounds import BoundsResult
 from ..data_factor import GramFactor, data_factor, estimate_margin
 from ..estimators import fit_ols
@@ -33,9 +33,11 @@ from ..spec import STAGES, ExperimentSpec
 from ..stage_cells import StageCells  # the context the stage functions read
 from ..uncertainty_stage import bounds_from_box, sound_box
 from .data import StateModel
-from .noise import noise_level, residual_error, residual_sum
+from .noise import REASON_RANGE, noise_level, residual_error, residual_sum
 
 NO_TRUTH = "measured data: no true system"
+# below this magnitude a number's square underflows (about 1.5e-154)
+_SQRT_TINY = float(np.sqrt(np.finfo(float).tiny))
 # The fields each stage fills on a simulated job that need the true system.
 TRUTH_FIELDS = {
     "estimate": ("rmse_A", "rmse_B"),
@@ -81,8 +83,12 @@ def run_cells(
     """All stages for R datasets of one N with the same N0 -> (fields, notes)."""
     R, _, N0 = Z.shape
     Zt = np.swapaxes(Z, -1, -2)
-    G, P = Z @ Zt, F @ Zt
+    with np.errstate(over="ignore"):  # data beyond the range: noted below
+        G, P = Z @ Zt, F @ Zt
     rows, cond = _estimate(spec, G=G, P=P, Z=Z, F=F, N0=N0, data=lambda r: (Z[r], F[r]))
+    # data whose squares leave the range: Z Z^T is infinite or subnormal (digits lost)
+    scale = _out_of_range(Z, G)
+    rows = np.where(scale[:, None, None, None], np.nan, rows)
     theta = model.full(rows)
     n = model.n
     notes = Notes(theta.shape[:2])
@@ -101,8 +107,9 @@ def run_cells(
     truth = [f for st in ran for f in TRUTH_FIELDS.get(st, ())]
     notes.add(True, f"{NO_TRUTH} (null: {', '.join(truth)})")
     withheld = ~(cond <= ESTIMATE_COND_LIMIT) | ~np.isfinite(theta).all(axis=(-2, -1))
+    notes.add(withheld & scale[:, None], f"estimate: certificates withheld: {REASON_RANGE}")
     notes.add(
-        withheld,
+        withheld & ~scale[:, None],
         f"estimate: not finite or cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g} (the data do not"
         " excite every direction): certificates withheld",
     )
@@ -113,13 +120,33 @@ def run_cells(
     sigma_box, sigma_model, sigma_err = _noise(c, fac, Z=Z, F=F, rows=rows, model=model, N0=N0)
     if spec.has("bounds"):
         _bounds_and_observer(
-            c, sigma_box, sigma_model, model=model, Z=Z, N=N, N0=N0, fac=fac, sigma_err=sigma_err
+            c,
+            sigma_box,
+            sigma_model,
+            model=model,
+            Z=Z,
+            N=N,
+            N0=N0,
+            fac=fac,
+            sigma_err=sigma_err,
+            scale=scale,
         )
     for f in CERTIFICATES:
         if f in c.out and withheld.any():
             # None: an object scalar, which numpy's stubs do not admit in where()
             c.out[f] = np.where(withheld, None, np.asarray(c.out[f], dtype=object))  # type: ignore[call-overload]
     return c.out, notes
+
+
+def _out_of_range(Z: FloatArray, G: FloatArray) -> BoolArray:
+    """(R,) True where the data's squares leave the double range: Z Z^T overflows, or a
+    regressor's largest magnitude is nonzero but its square underflows (OLS is
+    scale-equivariant: such data are well posed once rescaled)."""
+    with np.errstate(over="ignore"):
+        top = np.abs(Z).max(axis=-1)  # (R, d)
+    tiny = (top > 0) & (top < _SQRT_TINY)
+    out: BoolArray = ~np.isfinite(G).all(axis=(-2, -1)) | tiny.any(axis=-1)
+    return out
 
 
 def _noise(
@@ -189,6 +216,7 @@ def _bounds_and_observer(
     N0: int,
     fac: GramFactor,
     sigma_err: float | FloatArray,
+    scale: BoolArray,
 ) -> None:
     """The box from the data's own factor ``fac`` (of the full targets), with the
     estimate's rounding margin and the error of an estimated sigma (``sigma_err``)
@@ -200,6 +228,9 @@ def _bounds_and_observer(
     boxed = replace(c, spec=replace(spec, delta=spec.delta / 2) if estimate else spec)
     boxed.sigma_w = sigma_box
     box = sound_box(boxed, G=None, Z=Z, F=None, N=N, N0=N0, factor=fac, sigma_err=sigma_err)
+    # a null box of data out of the range says so, not what the overflow looked like
+    nulled = scale[:, None] & (box.reason != None)  # noqa: E711 - elementwise on objects
+    box = replace(box, reason=np.where(nulled, REASON_RANGE, box.reason))
     if model.lags is not None:
         known = ~model.estimated[:, None]
         assert box.R_A_up is not None and box.R_B_up is not None  # sound_box sets them

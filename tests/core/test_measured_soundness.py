@@ -10,6 +10,7 @@ numpy's eigenvalues; the validation statistics written out with loops
 from __future__ import annotations
 
 import math
+import warnings
 from fractions import Fraction
 
 import mpmath as mp
@@ -24,7 +25,7 @@ from svrobs_core.measured import (
     validate,
     validation_summary,
 )
-from svrobs_core.measured.noise import REASON_INACCURATE
+from svrobs_core.measured.noise import REASON_INACCURATE, REASON_RANGE
 from svrobs_core.norms import REASON_NONFINITE, hinf_norm
 
 from .exact_boxes import DPS, exact_box, exact_rho, exact_sigma_bar, gram
@@ -227,6 +228,38 @@ def test_estimated_sigma_w_of_data_beyond_a_formed_grams_limit_is_given(cond, se
     (r,) = records(obj, X, U)
     assert "singular" not in r["notes"]
     assert check_estimated_box(r, Z, F, 0.1)
+
+
+@pytest.mark.parametrize("scale", [1e160, 1e-160])
+def test_well_excited_data_beyond_the_range_of_their_squares_say_so(scale):
+    """sigma_min / sigma_max(Z) = 0.135 at any scale, but at 1e160 Z Z^T overflows and at
+    1e-160 lambda_min underflows: the nulls say the data are out of range and to
+    rescale, not that they lack excitation or that lambda0 is too small, and no
+    warning escapes. The estimate is null too: from a subnormal Z Z^T it was 3e-4 off
+    the unscaled one, which OLS (scale-equivariant) equals on rescaled data."""
+    A, B = np.array([[0.5, 0.1], [0.0, 0.3]]), np.array([[1.0], [0.5]])
+    rng = np.random.default_rng(1)
+    X, U = [], []
+    for _ in range(2):
+        x, u = np.zeros((31, 2)), rng.normal(size=(30, 1))
+        x[0] = rng.normal(size=2)
+        for k in range(30):
+            x[k + 1] = A @ x[k] + B @ u[k] + 0.1 * rng.normal(size=2)
+        X.append(x)
+        U.append(u)
+    obj = {"N": [2], "stages": ["estimate", "bounds"], "estimators": ["ols"]}
+    (plain,) = records({**obj, "sigma_w": 0.1}, X, U)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        (r,) = records(
+            {**obj, "sigma_w": 0.1 * scale}, [x * scale for x in X], [u * scale for u in U]
+        )
+    assert r["r_A"] is None and f"bounds: {REASON_RANGE}" in r["notes"]
+    for wrong in ("excite every direction", "singular", "too small beside"):
+        assert wrong not in r["notes"]
+    assert np.isnan(np.array(r["A_hat"], dtype=float)).all()
+    assert np.isfinite(plain["A_hat"]).all()
+    assert f"estimate: certificates withheld: {REASON_RANGE}" in r["notes"]
 
 
 @pytest.mark.parametrize(
