@@ -267,7 +267,7 @@ def _constant(s: FloatArray, names: Sequence[str], test: str, stat: str) -> list
     does not vary has no correlation): its ``stat`` and p-value are null."""
     return [
         f"{test}: the residual of {names[i]} is constant: {stat} and its p-value null"
-        for i in np.flatnonzero(~(s > 0))
+        for i in np.flatnonzero(~(s > 0)).tolist()
     ]
 
 
