@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from svrobs_core.errors import SpecError
 
+NAMED_SCHEDULES = 10  # how many schedule names a DatasetScheduled message gives
+
 
 class LabError(Exception):
     """A request the lab refuses: ``kind``, optional ``field``, plain ``message``."""
@@ -55,6 +57,20 @@ class DatasetInUse(Conflict):
         jobs = "job" if total == 1 else "jobs"
         super().__init__(f"dataset {dataset_id} is used by {jobs} {named}{more}: delete them first")
         self.dataset_id, self.job_ids, self.total = dataset_id, job_ids, total
+
+
+class DatasetScheduled(Conflict):
+    """Schedules' templates run on the dataset: it can be deleted once they do not
+    (their names given)."""
+
+    def __init__(self, dataset_id: int, names: list[str]):
+        shown = ", ".join(repr(n) for n in names[:NAMED_SCHEDULES])
+        more = f" and {len(names) - NAMED_SCHEDULES} more" if len(names) > NAMED_SCHEDULES else ""
+        which = "schedule" if len(names) == 1 else "schedules"
+        super().__init__(
+            f"dataset {dataset_id} is named by {which} {shown}{more}: change or delete them first"
+        )
+        self.dataset_id, self.names = dataset_id, names
 
 
 class IdempotencyConflict(Conflict):
@@ -163,6 +179,7 @@ __all__ = [
     "BadDatasetFile",
     "Conflict",
     "DatasetInUse",
+    "DatasetScheduled",
     "DatasetNotFound",
     "Forbidden",
     "Gone",

@@ -20,9 +20,9 @@ from sqlalchemy.orm import Session, defer, joinedload
 
 from svrobs_core.measured import check_against_data
 from svrobs_core.workload import DataShape
-from svrobs_lab.errors import DatasetInUse, DatasetNotFound, NotFound
+from svrobs_lab.errors import DatasetInUse, DatasetNotFound, DatasetScheduled, NotFound
 
-from .models import Dataset, DatasetChunk, Job
+from .models import Dataset, DatasetChunk, Job, Schedule
 
 CHUNK_BYTES = 1 << 20
 DTYPE = np.dtype("<f8")
@@ -313,12 +313,26 @@ def jobs_using(session: Session, dataset_id: int) -> tuple[list[int], int]:
     return list(ids), total or 0
 
 
+def schedules_naming(session: Session, team_id: int, dataset_id: int) -> list[str]:
+    """The names of the team's schedules whose template runs on the dataset."""
+    rows = session.execute(
+        select(Schedule.name, Schedule.spec_template)
+        .where(Schedule.team_id == team_id)
+        .order_by(Schedule.name)
+    ).all()
+    return [name for name, template in rows if spec_dataset_id(template) == dataset_id]
+
+
 def delete_dataset(session: Session, row: Dataset) -> None:
     """Delete the dataset and its chunks; DatasetInUse while jobs refer to it (also
-    when a job referring to it is created concurrently: the foreign key refuses)."""
+    when a job referring to it is created concurrently: the foreign key refuses) or
+    a schedule's template names it (its next run would find no data)."""
     ids, total = jobs_using(session, row.id)
     if total:
         raise DatasetInUse(row.id, ids, total)
+    scheduled = schedules_naming(session, row.team_id, row.id)
+    if scheduled:
+        raise DatasetScheduled(row.id, scheduled)
     dataset_id = row.id
     try:
         with session.begin_nested():

@@ -403,6 +403,32 @@ def test_delete_is_a_409_naming_the_jobs_that_use_it(client, session, make_accou
     assert client.delete(f"{API}/datasets/{ds['id']}", headers=acc.headers).status_code == 204
 
 
+def test_delete_is_a_409_naming_the_schedules_that_run_on_it(client, make_account):
+    """A schedule's template that names the dataset keeps it, as a job does: its next
+    run would otherwise find no data (or, had ids been reused, another dataset)."""
+    acc = make_account()
+    ds = upload(client, acc, "a.csv", files.csv_bytes(*files.rollouts(lengths=(3, 4)))).json()
+    template = {"dataset": ds["id"], "N": [1], "holdout": 1, "reps": 1, "sigma_w": 0.2}
+    sids = [
+        client.post(
+            f"{API}/schedules",
+            headers=acc.headers,
+            json={"name": name, "cron": "0 2 * * *", "spec_template": template},
+        ).json()["id"]
+        for name in ("nightly", "hourly")
+    ]
+    r = client.delete(f"{API}/datasets/{ds['id']}", headers=acc.headers)
+    assert r.status_code == 409
+    assert r.json()["detail"] == (
+        f"dataset {ds['id']} is named by schedules 'hourly', 'nightly': "
+        "change or delete them first"
+    )
+    assert client.get(f"{API}/datasets/{ds['id']}", headers=acc.headers).status_code == 200
+    for sid in sids:
+        assert client.delete(f"{API}/schedules/{sid}", headers=acc.headers).status_code == 204
+    assert client.delete(f"{API}/datasets/{ds['id']}", headers=acc.headers).status_code == 204
+
+
 def test_a_spec_names_the_teams_dataset(client, session, make_account):
     """create_job links a job to its spec's dataset, refuses another team's and checks
     the spec against the dataset's shape (the store check every path to create_job
