@@ -420,8 +420,7 @@ def test_delete_is_a_409_naming_the_schedules_that_run_on_it(client, make_accoun
     r = client.delete(f"{API}/datasets/{ds['id']}", headers=acc.headers)
     assert r.status_code == 409
     assert r.json()["detail"] == (
-        f"dataset {ds['id']} is named by schedules 'hourly', 'nightly': "
-        "change or delete them first"
+        f"dataset {ds['id']} is named by schedules 'hourly', 'nightly': change or delete them first"
     )
     assert client.get(f"{API}/datasets/{ds['id']}", headers=acc.headers).status_code == 200
     for sid in sids:
