@@ -78,11 +78,17 @@ env.globals["utcnow"] = lambda: datetime.now(UTC)
 
 
 def with_back_link(report_html: str, href: str, text: str) -> str:
-    """A stored report page with a link back to the dashboard at its top (the report
-    itself is built once and knows nothing of where it is shown)."""
+    """A stored report page with a link back to the dashboard at its top and the
+    report in the page's ``<main>`` landmark (the report itself is built once and
+    knows nothing of where it is shown)."""
     link = f'<p><a href="{escape(href)}" id="back-link">{escape(text)}</a></p>'
     head, sep, rest = report_html.partition("<body>")
-    return head + sep + link + rest if sep else link + report_html
+    if not sep:
+        return link + report_html
+    body, end, tail = rest.rpartition("</body>")
+    if not end:
+        body, tail = rest, ""
+    return f'{head}{sep}{link}<main id="main">{body}</main>{end}{tail}'
 
 
 # a stored report carries its stylesheet inline (service.http.security)

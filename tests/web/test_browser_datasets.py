@@ -41,6 +41,17 @@ VALIDATION = """() => ({
 })"""
 
 
+def upload_bad_csv(page, tmp_path) -> None:
+    """Send a CSV with a non-number from the datasets page: its error beside the file
+    field."""
+    bad = tmp_path / "bad.csv"
+    bad.write_text("rollout,k,x1,u1\n0,0,1.0,abc\n0,1,2.0,\n")
+    page.set_input_files("#ds-file", str(bad))
+    page.fill("#ds-name", "broken")
+    page.click("#upload-button")
+    expect(page.locator("#err-file")).to_contain_text("'abc' is not a number")
+
+
 def test_upload_with_progress_then_the_dataset_page_and_a_job_on_it(browser, stack, tmp_path):
     X, U = files.simulate(A_TRUE, B_TRUE, 41, lengths=(30,) * 20)
     path = tmp_path / "bench-runs.csv"
@@ -51,12 +62,7 @@ def test_upload_with_progress_then_the_dataset_page_and_a_job_on_it(browser, sta
     page.wait_for_url(re.compile(r"/datasets$"))
 
     # a bad file: its error beside the file field, nothing stored
-    bad = tmp_path / "bad.csv"
-    bad.write_text("rollout,k,x1,u1\n0,0,1.0,abc\n0,1,2.0,\n")
-    page.set_input_files("#ds-file", str(bad))
-    page.fill("#ds-name", "broken")
-    page.click("#upload-button")
-    expect(page.locator("#err-file")).to_contain_text("'abc' is not a number")
+    upload_bad_csv(page, tmp_path)
     assert "invalid" in page.get_attribute("#ds-file", "class")
     with stack.client() as api:
         assert api.get("/datasets").json()["total"] == 0

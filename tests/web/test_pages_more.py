@@ -270,7 +270,14 @@ def test_share_link_lifecycle(web, done, session, make_account):
     chart = anon.get(f"{path}/chart-data?metric=rmse_A&x=N").json()
     mine = web.get(f"/jobs/{jid}/chart-data?metric=rmse_A&x=N").json()
     assert chart == mine
-    assert anon.get(f"{path}/report").status_code == 200
+    report = anon.get(f"{path}/report")
+    assert report.status_code == 200
+    # the back link, then the report as the page's one <main> landmark
+    page = report.text
+    assert 0 < page.index('id="back-link"') < page.index('<main id="main">')
+    assert report.text.count("<main") == 1 and report.text.rstrip().endswith(
+        "</main></body></html>"
+    )
     signed_out = anon.get(f"/jobs/{jid}", follow_redirects=False)  # the link opens nothing else
     assert signed_out.status_code == 303 and signed_out.headers["location"].startswith("/login")
     assert anon.get("/s/" + "x" * 43).status_code == 404

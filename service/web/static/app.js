@@ -216,10 +216,13 @@
     return ` ${data.scale} y axis, as the figure.${band}`;
   }
 
-  /* The view in the page's URL: what differs from the defaults. */
+  const KEYS = ["preset", "metric", "x", "panel", "logy", "logx", "bands"];
+
+  /* The view in the page's URL: what differs from the defaults (the keys of the page's
+   * other views kept). */
   function viewQuery(card) {
     const c = controls(card), q = new URLSearchParams(location.search);
-    ["preset", "metric", "x", "panel", "logy", "logx", "bands"].forEach((k) => q.delete(k));
+    KEYS.forEach((k) => q.delete(k));
     if (c.preset && c.preset.value) q.set("preset", c.preset.value);
     else {
       if (c.metric.value && c.metric.value !== "rmse_A") q.set("metric", c.metric.value);
@@ -233,14 +236,20 @@
     return location.pathname + (s ? `?${s}` : "");
   }
 
-  // the query of the view shown: a back/forward to another fragment of the same view
-  // (the skip link's #main) fires popstate too, and changes nothing here
-  let shownSearch = location.search;
+  /* The charts' part of the URL's query. */
+  function chartSearch() {
+    const q = new URLSearchParams(location.search);
+    return KEYS.map((k) => `${k}=${q.get(k)}`).join("&");
+  }
+  // the charts' query of the view shown: a back/forward to another fragment of the same
+  // view (the skip link's #main) or to another choice of the page's other views fires
+  // popstate too, and changes nothing here
+  let shownSearch = chartSearch();
 
   function remember(card) {
     const url = viewQuery(card);
     if (url !== location.pathname + location.search) history.pushState({ svrobsChart: true }, "", url);
-    shownSearch = location.search;
+    shownSearch = chartSearch();
   }
 
   /* Set the controls from the URL (on load and on back/forward). */
@@ -298,7 +307,7 @@
       `showing ${why.field === "x" ? "N" : c.metric.value} instead.`;
     const url = viewQuery(card);
     history.replaceState(history.state, "", url);
-    shownSearch = location.search;
+    shownSearch = chartSearch();
     load(card, true);
   }
 
@@ -350,7 +359,7 @@
         (f) => `${kit.label(glossary, f)} · ${f}`, (f) => kit.describe(glossary, f));
       card.dataset.fallback = `${data.metric} has no values in this job; showing ${data.metrics[0]}.`;
       history.replaceState(history.state, "", viewQuery(card));
-      shownSearch = location.search;
+      shownSearch = chartSearch();
       return load(card, false);
     }
     if (data.metrics && data.metrics.length && !data.preset) {
@@ -414,8 +423,8 @@
       });
     });
     window.addEventListener("popstate", () => {
-      if (location.search === shownSearch) return;
-      shownSearch = location.search;
+      if (chartSearch() === shownSearch) return;
+      shownSearch = chartSearch();
       restore(card);
       load(card);
     });

@@ -2,7 +2,7 @@
  * colours of the current theme, number format, the record glossary's axis titles and
  * tooltips, and a legend of buttons (Tab to a line, Enter or Space hides or shows it,
  * with its band). A dataset's svrobs.series groups a line with its band;
- * svrobs.role is "mean" for the line. */
+ * svrobs.role is "mean" for the line (or svrobs.legend lists it). */
 (function () {
   "use strict";
 
@@ -86,13 +86,15 @@
     chart.update();
   }
 
-  /* The legend as a list of buttons (aria-pressed: shown), for the lines of ``chart``. */
+  /* The legend as a list of buttons (aria-pressed: shown), for the lines of ``chart``:
+   * each dataset of role "mean" or with svrobs.legend (true, or the text to show in
+   * place of its label). */
   function legend(chart) {
     const ul = document.createElement("ul");
     ul.className = "legend";
     ul.setAttribute("aria-label", "lines (press to hide or show)");
     chart.data.datasets.forEach((d, k) => {
-      if (d.svrobs.role !== "mean") return;
+      if (d.svrobs.role !== "mean" && !d.svrobs.legend) return;
       const li = document.createElement("li");
       const b = document.createElement("button");
       b.type = "button";
@@ -102,7 +104,7 @@
       sw.className = "swatch" + (d.borderDash && d.borderDash.length ? " dash" : "");
       sw.style.borderTopColor = d.borderColor;
       sw.setAttribute("aria-hidden", "true");
-      b.append(sw, document.createTextNode(d.label));
+      b.append(sw, document.createTextNode(typeof d.svrobs.legend === "string" ? d.svrobs.legend : d.label));
       b.addEventListener("click", () => {
         const show = b.getAttribute("aria-pressed") !== "true";
         setSeries(chart, d.svrobs.series, show);

@@ -2,12 +2,12 @@
  * progress bar follows the bytes sent (xhr.upload's progress events), the CSRF token in
  * the X-CSRF-Token header; a refused file's error is shown beside its field. The
  * dataset page plots its first rollouts, one Chart.js chart per channel (states,
- * then inputs), one line per rollout, from /datasets/{id}/plot-data. What is drawn is
- * kept in window.svrobsDataset so that tests can read it. */
+ * then inputs), one line per rollout, from /datasets/{id}/plot-data, in the theme's
+ * colours with a keyboard legend (window.svrobsChartKit), drawn again when the theme
+ * changes. What is drawn is kept in window.svrobsDataset so that tests can read it. */
 (function () {
   "use strict";
 
-  const PALETTE = ["#1f5fa8", "#c0392b", "#2e8b57", "#8e44ad", "#d68910", "#17a2b8"];
   const registry = { charts: [], upload: { progress: [] }, loads: 0 };
   window.svrobsDataset = registry;
 
@@ -19,7 +19,10 @@
 
   function clearErrors(form) {
     form.querySelectorAll(".field-error").forEach((p) => { p.hidden = true; p.textContent = ""; });
-    form.querySelectorAll(".invalid").forEach((el) => el.classList.remove("invalid"));
+    form.querySelectorAll(".invalid").forEach((el) => {
+      el.classList.remove("invalid");
+      el.removeAttribute("aria-invalid");
+    });
   }
 
   function showError(form, field, message) {
@@ -27,7 +30,11 @@
     slot.textContent = field ? `${field}: ${message}` : message;
     slot.hidden = false;
     const input = field && form.querySelector(`[name="${CSS.escape(field)}"]`);
-    if (input) { input.classList.add("invalid"); input.focus(); }
+    if (input) {
+      input.classList.add("invalid");
+      input.setAttribute("aria-invalid", "true");
+      input.focus();
+    }
   }
 
   function setupUpload(form) {
@@ -85,52 +92,36 @@
   }
 
   function chartFor(box, title, lines, xLabel) {
-    const { canvas } = window.svrobsUi.chartPanel(
+    const kit = window.svrobsChartKit, palette = kit.palette();
+    const { fig, canvas } = window.svrobsUi.chartPanel(
       box, title, `${title} against ${xLabel}, ${lines.length} rollouts`, { channel: title });
-    return new Chart(canvas, {
+    const chart = new Chart(canvas, {
       type: "line",
       data: {
         datasets: lines.map((ln, i) => ({
-          label: `rollout ${ln.rollout}`, data: ln.points, borderColor: PALETTE[i % PALETTE.length],
-          backgroundColor: PALETTE[i % PALETTE.length], borderWidth: 1.5, pointRadius: 0,
-          stepped: ln.stepped ? "before" : false, svrobs: { rollout: ln.rollout },
+          label: `rollout ${ln.rollout}`, data: ln.points, borderColor: palette[i % palette.length],
+          backgroundColor: palette[i % palette.length], borderWidth: 1.5, pointRadius: 0,
+          stepped: ln.stepped ? "before" : false, svrobs: { rollout: ln.rollout, series: i, legend: true },
         })),
       },
       options: {
         animation: false, responsive: true, maintainAspectRatio: false,
         interaction: { mode: "nearest", axis: "x", intersect: false },
-        scales: { x: window.svrobsChartKit.axis("linear", xLabel), y: window.svrobsChartKit.axis("linear", title) },
+        scales: { x: kit.axis("linear", xLabel), y: kit.axis("linear", title) },
+        plugins: { legend: { display: false } },
       },
     });
+    fig.appendChild(kit.legend(chart));
+    return chart;
   }
 
-  /* The axes of the charts drawn in the theme's colours again when it changes. */
-  function followTheme(charts) {
-    document.addEventListener("svrobs:theme", () => {
-      const c = window.svrobsChartKit.themeColours();
-      charts.forEach((chart) => {
-        Object.values(chart.options.scales).forEach((a) => {
-          a.title.color = c.fg;
-          a.ticks.color = c.fg;
-          a.grid.color = c.line;
-        });
-        chart.update("none");
-      });
-    });
-  }
-
-  async function loadPlot(card) {
-    const note = card.querySelector("#plot-note");
-    const r = await fetch(card.dataset.plotUrl, { credentials: "same-origin", headers: { Accept: "application/json" } });
-    if (!r.ok) {
-      note.textContent = `Could not load the rollouts (HTTP ${r.status}).`;
-      return;
-    }
-    const data = await r.json();
+  /* One chart per channel of the plot data, in place of those drawn before. */
+  function drawPlot(card, data) {
     const dt = data.sample_time;
     const xLabel = dt ? "time (s)" : "step k";
     const at = (k) => (dt ? k * dt : k);
     const box = card.querySelector("#rollout-charts");
+    registry.charts.forEach((c) => c.chart.destroy());
     box.replaceChildren();
     registry.charts = [];
     const channels = data.state_names.map((name, j) => ({ name, kind: "state", j, of: data.X }))
@@ -144,9 +135,21 @@
       registry.charts.push({ channel: ch.name, kind: ch.kind, chart: chart,
         lines: lines.map((l) => ({ rollout: l.rollout, points: l.points.map((p) => [p.x, p.y]) })) });
     });
+    return xLabel;
+  }
+
+  async function loadPlot(card) {
+    const note = card.querySelector("#plot-note");
+    const r = await fetch(card.dataset.plotUrl, { credentials: "same-origin", headers: { Accept: "application/json" } });
+    if (!r.ok) {
+      note.textContent = `Could not load the rollouts (HTTP ${r.status}).`;
+      return;
+    }
+    const data = await r.json();
+    const xLabel = drawPlot(card, data);
     const cut = data.cut ? `, each cut to its first ${data.steps.toLocaleString("en")} steps` : "";
     note.textContent = `(the first ${data.shown} of ${data.rollouts} rollouts${cut}, each channel against ${xLabel})`;
-    followTheme(registry.charts.map((c) => c.chart));
+    document.addEventListener("svrobs:theme", () => drawPlot(card, data));  // the theme's colours
     registry.loads += 1;
     card.dataset.loads = String(registry.loads);
   }

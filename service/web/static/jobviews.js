@@ -5,10 +5,13 @@
  * - the certificates: per group and N, the share of cells with stable_certified and
  *   with certified (means of the booleans over the repetitions), beside the mean
  *   coverage of the true A's entries, under the job's bounds method.
+ * Which are open, the scatter's field and its colouring are in the page's URL
+ * (?scatter=1&scatter_field=…&scatter_colour=…&certificates=1).
  * window.svrobsViews holds what is drawn, for the tests. */
 (function () {
   "use strict";
   const kit = window.svrobsChartKit;
+  const ui = window.svrobsUi;
   const card = document.getElementById("views-card");
   if (!card || !kit || !window.Chart) return;
   const glossary = kit.glossaryOf(card);
@@ -171,6 +174,7 @@
             o.title = kit.describe(glossary, f);
             return o;
           }));
+          pick(sel, ui.queryValue("scatter_field"));
         }
         drawScatter(s.groups);
       } else {
@@ -179,9 +183,45 @@
     }).catch((e) => { status.textContent = `Could not load the summaries (${e.message}).`; });
   }
 
-  card.querySelector("#scatter-view").addEventListener("toggle", (e) => { if (e.target.open) open("scatter"); });
-  card.querySelector("#certificates-view").addEventListener("toggle", (e) => { if (e.target.open) open("certificates"); });
-  ["#scatter-metric", "#scatter-colour"].forEach((sel) =>
-    card.querySelector(sel).addEventListener("change", () => summary().then((s) => drawScatter(s.groups))));
+  /* ``select`` set to ``value`` when it has that option. */
+  function pick(select, value) {
+    if (value !== null && [...select.options].some((o) => o.value === value)) select.value = value;
+  }
+
+  const VIEWS = { scatter: "#scatter-view", certificates: "#certificates-view" };
+  const metricList = card.querySelector("#scatter-metric"), colourList = card.querySelector("#scatter-colour");
+
+  /* The scatter's field and colouring in the URL (the first of each list, the default,
+   * left out). */
+  function rememberScatter() {
+    ui.setQuery({
+      scatter_field: metricList.selectedIndex > 0 ? metricList.value : null,
+      scatter_colour: colourList.selectedIndex > 0 ? colourList.value : null,
+    });
+  }
+
+  /* The views of the URL: its choices set, its views opened (and the others closed);
+   * an open scatter whose choices changed is drawn again. */
+  function restore() {
+    const before = [metricList.value, colourList.value].join();
+    pick(metricList, ui.queryValue("scatter_field") || (metricList.options[0] || {}).value);
+    pick(colourList, ui.queryValue("scatter_colour") || colourList.options[0].value);
+    const scatter = card.querySelector(VIEWS.scatter);
+    if (scatter.open && views.summary && [metricList.value, colourList.value].join() !== before) {
+      drawScatter(views.summary.groups);
+    }
+    Object.entries(VIEWS).forEach(([key, sel]) => { card.querySelector(sel).open = ui.queryValue(key) === "1"; });
+  }
+
+  Object.entries(VIEWS).forEach(([key, sel]) => card.querySelector(sel).addEventListener("toggle", (e) => {
+    ui.setQuery({ [key]: e.target.open ? "1" : null });
+    if (e.target.open) open(key);
+  }));
+  [metricList, colourList].forEach((list) => list.addEventListener("change", () => {
+    rememberScatter();
+    summary().then((s) => drawScatter(s.groups));
+  }));
+  window.addEventListener("popstate", restore);
+  restore();
   document.addEventListener("svrobs:theme", () => { if (views.summary && card.querySelector("#scatter-view").open) drawScatter(views.summary.groups); });
 })();

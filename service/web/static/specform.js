@@ -206,24 +206,5 @@
   document.getElementById("spec_file").addEventListener("change", () => source("json"));
   modes();
   if (!textarea.value.trim()) fromFields();
-  const summary = document.getElementById("form-errors");
-  if (summary) {
-    summary.focus();
-    // a link of the list moves the focus into its field (a fragment link would only
-    // scroll to the field's box): the control marked invalid, else the first shown
-    summary.addEventListener("click", (e) => {
-      const a = e.target.closest("a[href^='#']");
-      const box = a && document.getElementById(a.getAttribute("href").slice(1));
-      if (!box) return;
-      const shown = (c) => c.getClientRects().length > 0;
-      const controls = box.matches("input, select, textarea") ? [box]
-        : [...box.querySelectorAll("input:not([type=hidden]), select, textarea")].filter(shown);
-      const control = controls.find((c) => c.getAttribute("aria-invalid") === "true") || controls[0];
-      if (!control) return;
-      e.preventDefault();
-      control.focus();
-      control.scrollIntoView({ block: "center" });
-    });
-  }
   window.svrobsSpecForm = { fieldsToSpec, specToFields };
 })();

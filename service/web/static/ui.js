@@ -1,7 +1,9 @@
 /* Behaviour every page shares: the header's menu button (narrow screens), the theme
  * toggle (auto -> dark -> light, remembered in localStorage), copy buttons
  * ([data-copy] copies the value of the element it names) and confirmations
- * (form[data-confirm] asks before it is sent); boxes that scroll take the focus; a part
+ * (form[data-confirm] asks before it is sent); a form's error list takes the focus and
+ * its links lead into their fields; a view's choices in the query string
+ * (window.svrobsUi.setQuery); boxes that scroll take the focus; a part
  * htmx replaces keeps the focus, and one it could not update says why; the figure of a
  * chart (window.svrobsUi.chartPanel). */
 (function () {
@@ -121,7 +123,25 @@
     box.appendChild(fig);
     return { fig: fig, canvas: canvas };
   }
-  window.svrobsUi = { chartPanel: chartPanel };
+
+  /* A view's choices in the page's query string, as the job chart keeps its own: each
+   * key of ``values`` set to its value, or left out when null (its default). A change
+   * is a step of the history; the other keys of the query are kept. */
+  function setQuery(values) {
+    const q = new URLSearchParams(location.search);
+    Object.entries(values).forEach(([k, v]) => {
+      if (v === null || v === undefined) q.delete(k); else q.set(k, String(v));
+    });
+    const s = q.toString();
+    if (s !== new URLSearchParams(location.search).toString()) {
+      history.pushState({ svrobsView: true }, "", location.pathname + (s ? `?${s}` : ""));
+    }
+  }
+
+  /* The value of ``key`` in the page's query string (null when absent). */
+  function queryValue(key) { return new URLSearchParams(location.search).get(key); }
+
+  window.svrobsUi = { chartPanel, setQuery, queryValue };
 
   /* A region htmx replaces (the polled runs table and job status, the results grid)
    * keeps the keyboard focus: htmx focuses the element of the same id in the new
@@ -181,8 +201,32 @@
     if (note && !target.contains(note)) note.remove();
   }
 
+  /* A form's error list (#form-errors: the spec form, the schedule forms) takes the
+   * focus when the page loads; a link of the list moves the focus into its field (a
+   * fragment link would only scroll to the field's box): the control marked invalid,
+   * else the first shown. */
+  function initErrorSummary() {
+    const summary = document.getElementById("form-errors");
+    if (!summary) return;
+    summary.focus();
+    summary.addEventListener("click", (e) => {
+      const a = e.target.closest("a[href^='#']");
+      const box = a && document.getElementById(a.getAttribute("href").slice(1));
+      if (!box) return;
+      const shown = (c) => c.getClientRects().length > 0;
+      const controls = box.matches("input, select, textarea") ? [box]
+        : [...box.querySelectorAll("input:not([type=hidden]), select, textarea")].filter(shown);
+      const control = controls.find((c) => c.getAttribute("aria-invalid") === "true") || controls[0];
+      if (!control) return;
+      e.preventDefault();
+      control.focus();
+      control.scrollIntoView({ block: "center" });
+    });
+  }
+
   function init() {
     focusableScrollers(document);
+    initErrorSummary();
     initMenu();
     initTheme();
     initCopy(document);

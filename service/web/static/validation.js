@@ -2,18 +2,29 @@
  * (the session's cookie), a table of each model's fit and test p-values per channel,
  * and for the chosen model and held-out rollout one chart per channel of the measured
  * values with the one-step predictions and the open-loop simulation, and one chart per
- * channel of the residual autocorrelation r_1..r_h with its ±band. What is drawn is
- * kept in window.svrobsValidation for the tests. */
+ * channel of the residual autocorrelation r_1..r_h with its ±band, in the theme's
+ * colours, each with a keyboard legend (window.svrobsChartKit). The model and rollout
+ * chosen are in the page's URL (?model=…&rollout=…). What is drawn is kept in
+ * window.svrobsValidation for the tests. */
 (function () {
   "use strict";
 
   const registry = { data: null, predictions: [], autocorrelation: [], loads: 0 };
   window.svrobsValidation = registry;
-  const COLORS = { predicted: "#1f5fa8", simulated: "#c0392b", band: "#a15c00" };
   const kit = window.svrobsChartKit;
-  // the measured values in the theme's text colour (dark on light, light on dark)
-  const colour = (name) => COLORS[name] ||
-    getComputedStyle(document.documentElement).getPropertyValue("--fg").trim() || "#1d232b";
+  const ui = window.svrobsUi;
+  const SERIES = { measured: 0, predicted: 1, simulated: 2, band: 3 };
+
+  /* A series' colour in the current theme: the measured values in the theme's text
+   * colour (dark on light, light on dark), the band in its muted one, the others of
+   * its palette. */
+  function colour(name) {
+    if (name === "band") return kit.themeColours().fg;
+    if (name === "measured") {
+      return getComputedStyle(document.documentElement).getPropertyValue("--fg").trim() || "#1d232b";
+    }
+    return kit.palette()[name === "predicted" ? 0 : 1];
+  }
 
   function fmt(v, digits) {
     if (v === null || v === undefined) return "–";
@@ -69,13 +80,19 @@
     el.replaceChildren(thead, tbody);
   }
 
-  function panel(box, title) {
-    return window.svrobsUi.chartPanel(box, title, title, { channel: title }).canvas;
+  /* A chart of ``config`` in a new figure of ``box``, its legend of buttons under it. */
+  function chartIn(box, title, config) {
+    const { fig, canvas } = ui.chartPanel(box, title, title, { channel: title });
+    config.options.plugins = { legend: { display: false } };
+    const chart = new Chart(canvas, config);
+    fig.appendChild(kit.legend(chart));
+    return chart;
   }
 
+  /* A line of the series ``name`` (listed in the legend unless svrobs says otherwise). */
   function line(name, points, extra) {
     return Object.assign({ label: name, data: points, borderColor: colour(name), backgroundColor: colour(name),
-      borderWidth: 1.5, pointRadius: 0, svrobs: { role: name } }, extra || {});
+      borderWidth: 1.5, pointRadius: 0, svrobs: { role: name, series: SERIES[name], legend: true } }, extra || {});
   }
 
   function draw(card) {
@@ -102,7 +119,7 @@
         predicted: (v.predicted[r] || []).map((row, k) => ({ x: at(k + 1), y: row[j] })),
         simulated: (v.simulated[r] || []).map((row, k) => ({ x: at(k), y: row[j] })),
       };
-      const chart = new Chart(panel(pbox, `${ch}: held-out rollout ${data.plots.rollouts[r]}`), {
+      const chart = chartIn(pbox, `${ch}: held-out rollout ${data.plots.rollouts[r]}`, {
         type: "line",
         data: { datasets: [line("measured", series.measured, { borderWidth: 2 }),
           line("predicted", series.predicted, { borderDash: [4, 3] }), line("simulated", series.simulated)] },
@@ -115,13 +132,16 @@
       registry.predictions.push({ channel: ch, rollout: data.plots.rollouts[r], model: label(m), chart, points });
       const lags = v.autocorrelation[j].map((_, i) => i + 1);
       const band = v.band;
-      const ac = new Chart(panel(abox, `${ch}: residual autocorrelation (Ljung-Box p = ${pval(v.ljung_box_p[j])})`), {
+      const bar = colour("predicted");
+      const ac = chartIn(abox, `${ch}: residual autocorrelation (Ljung-Box p = ${pval(v.ljung_box_p[j])})`, {
         type: "bar",
         data: { datasets: [
           { type: "bar", label: "r_k", data: lags.map((k, i) => ({ x: k, y: v.autocorrelation[j][i] })),
-            backgroundColor: COLORS.predicted, svrobs: { role: "r" } },
-          line("band", lags.map((k) => ({ x: k, y: band })), { type: "line", label: "+99 % band", borderDash: [5, 4], svrobs: { role: "band" } }),
-          line("band", lags.map((k) => ({ x: k, y: -band })), { type: "line", label: "−99 % band", borderDash: [5, 4], svrobs: { role: "band" } }),
+            backgroundColor: bar, borderColor: bar, svrobs: { role: "r", series: 0, legend: true } },
+          line("band", lags.map((k) => ({ x: k, y: band })), { type: "line", label: "+99 % band", borderDash: [5, 4],
+            svrobs: { role: "band", series: SERIES.band, legend: "±99 % band" } }),
+          line("band", lags.map((k) => ({ x: k, y: -band })), { type: "line", label: "−99 % band", borderDash: [5, 4],
+            svrobs: { role: "band", series: SERIES.band } }),
         ] },
         options: { animation: false, responsive: true, maintainAspectRatio: false,
           scales: { x: lagAxis(lags.length), y: kit.axis("linear", "r_k") } },
@@ -136,13 +156,41 @@
     return a;
   }
 
-  function options(select, labels) {
+  /* The options of ``select``: value its index, text its label, data-key its key in
+   * the URL. */
+  function options(select, labels, keys) {
     select.replaceChildren(...labels.map((text, i) => {
       const o = document.createElement("option");
       o.value = String(i);
       o.textContent = text;
+      o.dataset.key = keys[i];
       return o;
     }));
+  }
+
+  const CHOICES = { model: "#val-model", rollout: "#val-rollout" };
+
+  /* The choices in the page's URL (the first of each list, the default, left out). */
+  function remember(card) {
+    const values = {};
+    Object.entries(CHOICES).forEach(([key, sel]) => {
+      const s = card.querySelector(sel);
+      values[key] = s.selectedIndex > 0 ? s.selectedOptions[0].dataset.key : null;
+    });
+    ui.setQuery(values);
+  }
+
+  /* The choices of the URL, where the lists have them (else the first); true when one
+   * changed. */
+  function restore(card) {
+    let changed = false;
+    Object.entries(CHOICES).forEach(([key, sel]) => {
+      const s = card.querySelector(sel), want = ui.queryValue(key);
+      const i = Math.max([...s.options].findIndex((o) => o.dataset.key === want), 0);
+      changed = changed || s.selectedIndex !== i;
+      s.selectedIndex = i;
+    });
+    return changed;
   }
 
   async function init() {
@@ -157,10 +205,15 @@
     }
     const data = await r.json();
     registry.data = data;
-    options(card.querySelector("#val-model"), data.models.map(label));
-    options(card.querySelector("#val-rollout"), data.plots.rollouts.map((k) => `rollout ${k}`));
+    options(card.querySelector("#val-model"), data.models.map(label), data.models.map(label));
+    options(card.querySelector("#val-rollout"), data.plots.rollouts.map((k) => `rollout ${k}`), data.plots.rollouts.map(String));
     table(card.querySelector("#validation-table"), data);
-    ["#val-model", "#val-rollout"].forEach((sel) => card.querySelector(sel).addEventListener("change", () => draw(card)));
+    restore(card);
+    Object.values(CHOICES).forEach((sel) => card.querySelector(sel).addEventListener("change", () => {
+      remember(card);
+      draw(card);
+    }));
+    window.addEventListener("popstate", () => { if (restore(card)) draw(card); });
     const ex = data.excitation;
     card.querySelector("#validation-excitation").textContent = ex
       ? `Excitation of the ${ex.N0} training transitions: λ_min = ${ex.lambda_min === null ? "none" : Number(ex.lambda_min).toPrecision(3)}, condition number ${ex.cond === null ? "∞" : Number(ex.cond).toPrecision(3)}.`
