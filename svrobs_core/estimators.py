@@ -51,11 +51,18 @@ def ridge_parameters(gammas: ArrayLike, N0: int, loss_scale: str = "sum") -> Flo
     if loss_scale == "sum":
         return g
     if loss_scale == "mean":
-        return g * float(N0)
+        with np.errstate(over="ignore"):  # beyond the double range: inf, a NaN estimate
+            return g * float(N0)
     raise ValueError(f"loss_scale must be one of {LOSS_SCALES}, got {loss_scale!r}")
 
 
 REFINE_STEPS = 1
+# ridge_qr's refinement step, relative to the estimate: at or above REFINE_STEP_NULL
+# the iteration does not contract (the estimate is rounding: NaN); above
+# REFINE_STEP_TRUST its square, the error left, exceeds 1e-9 (reported as an
+# infinite condition number, so the estimate's certificates are withheld)
+REFINE_STEP_NULL = 0.5
+REFINE_STEP_TRUST = 3e-5
 REFINE_COND_LIMIT = 1e8  # above this cond(Z Z^T) one refinement step is not enough: use QR
 
 
@@ -248,17 +255,19 @@ def svr_from_gram(
     FZt = np.asarray(FZt, dtype=float)
     g = ridge_parameters(gammas, N0, loss_scale)
     ok = np.isfinite(G).all(axis=(-1, -2)) & np.isfinite(FZt).all(axis=(-1, -2))
+    g_ok = np.isfinite(g)  # gamma * N0 ("mean") beyond the double range: NaN cells
     lam, V = np.linalg.eigh(np.where(ok[..., None, None], G, 0.0))  # (..., d), (..., d, d)
     lam = np.maximum(lam, 0.0)
     with np.errstate(over="ignore", invalid="ignore"):  # huge data: inf/NaN, noted downstream
         P = np.matmul(FZt, V)  # (..., n, d)
         denom = lam[..., None, None, :] + g[:, None, None]  # (..., G, 1, d)
         theta = np.matmul(P[..., None, :, :] / denom, np.swapaxes(V, -1, -2)[..., None, :, :])
-    theta = np.where(ok[..., None, None, None], theta, np.nan)
+    cells = ok[..., None] & g_ok  # (..., G)
+    theta = np.where(cells[..., None, None], theta, np.nan)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         kappa = (lam[..., -1:] + g) / (lam[..., :1] + g)  # (..., G)
-    kappa = np.where(ok[..., None], kappa, np.nan)
-    bad = ok[..., None] & ~(kappa <= SVR_COND_LIMIT)
+    kappa = np.where(cells, kappa, np.nan)
+    bad = cells & ~(kappa <= SVR_COND_LIMIT)
     if data is None or not bad.any():
         return (theta, kappa) if return_cond else theta
     d, n = G.shape[-1], FZt.shape[-2]
@@ -324,11 +333,23 @@ def ridge_qr(
     S = _normal_residual(Z[:, None], F[:, None], np.swapaxes(Xt, -1, -2), g)
     dX = _solve(Rg, _solve(np.swapaxes(Rg, -1, -2), np.swapaxes(S, -1, -2)))
     theta = np.swapaxes(Xt + dX, -1, -2)
+    # the refinement's step measures the first solve's error: a step as large as the
+    # estimate itself (its iteration not contracting) leaves rounding, whatever its
+    # size, and the cell is NaN; the error after the step is about its square
+    # (docs/science.md#22-the-papers-l2-loss-svr-and-its-closed-form)
+    size = np.abs(Xt + dX).max(axis=(-2, -1), initial=0.0)  # largest entries: no overflow
+    moved = np.abs(dX).max(axis=(-2, -1), initial=0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(moved > 0, moved / size, 0.0)
+    theta = np.where(~(ratio < REFINE_STEP_NULL)[..., None, None], np.nan, theta)
     if not return_cond:
         return theta
-    s = np.linalg.svd(Rg, compute_uv=False)
-    with np.errstate(divide="ignore", over="ignore"):  # cond beyond the double range: inf
-        return theta, (s[..., 0] / s[..., -1]) ** 2
+    finite = np.isfinite(Rg).all(axis=(-2, -1))
+    s = np.linalg.svd(np.where(finite[..., None, None], Rg, 0.0), compute_uv=False)
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # beyond the range: inf
+        cond = np.where(finite, (s[..., 0] / s[..., -1]) ** 2, np.nan)
+    # a step above REFINE_STEP_TRUST: not trusted to ~1e-9 whatever cond says
+    return theta, np.where(ratio > REFINE_STEP_TRUST, np.inf, cond)
 
 
 def shrunk_ols(theta_ols: ArrayLike, gammas: ArrayLike) -> FloatArray:

@@ -175,8 +175,8 @@ def run_dataset_variants(
         )
         notes.add(
             unreliable,
-            f"estimate: data too ill-conditioned (cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g}):"
-            " certificates withheld",
+            f"estimate: data too ill-conditioned (cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g},"
+            " or the solve's refinement step above 3e-05 of it): certificates withheld",
         )
         skipped = [st for st in STAGES if not s.has(st)]
         if skipped:

@@ -10,17 +10,20 @@ from __future__ import annotations
 import warnings
 
 import cvxpy as cp
+import mpmath
 import numpy as np
 import pytest
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.svm import LinearSVR
 
+from svrobs_core import parse_spec, run_spec
 from svrobs_core.estimators import (
     OLSIdentifier,
     SVRIdentifier,
     fit_ols,
     fit_svr,
     ridge_parameters,
+    ridge_qr,
     shrunk_ols,
     svr_from_gram,
 )
@@ -271,3 +274,82 @@ def test_shapes_wrappers_and_validation():
         fit_svr(Z, F, [[0.1]])
     with pytest.raises(ValueError):
         fit_ols(Z, F[..., :-1])
+
+
+def mp_ridge(Z, F, g, digits=120):
+    """F Z^T (Z Z^T + g I)^-1 of the doubles Z, F, g to ``digits`` digits."""
+    with mpmath.workdps(digits):
+        Zm, Fm = mpmath.matrix(Z.tolist()), mpmath.matrix(F.tolist())
+        G = Zm * Zm.T + mpmath.mpf(float(g)) * mpmath.eye(Z.shape[0])
+        return np.array((Fm * Zm.T * G**-1).tolist(), dtype=float)
+
+
+def test_svr_is_accurate_or_withheld_on_ill_conditioned_data():
+    """150 datasets with rows scaled by 1e-4..1e4, some with one row a multiple of
+    another, g chosen for cond(Z Z^T + g I) of 1e10-1e18: every estimate whose
+    condition number is reported within the trusted 1e20 is within 1e-8 of the
+    120-digit ridge; the QR solve's refinement step flags the others (one was 3e-6
+    off at a reported cond of 2.8e17)."""
+    rng = np.random.default_rng(1)
+    flagged = 0
+    for _ in range(150):
+        d, n, N0 = int(rng.integers(2, 5)), int(rng.integers(1, 4)), int(rng.integers(2, 30))
+        Z = rng.standard_normal((d, N0)) * (10.0 ** rng.uniform(-4, 4, size=d))[:, None]
+        if rng.integers(3) == 0 and d > 2:
+            Z[-1] = rng.uniform(-3, 3) * Z[0]
+        F = rng.standard_normal((n, d)) @ Z + 0.1 * rng.standard_normal((n, N0))
+        g = max(np.linalg.eigvalsh(Z @ Z.T)[-1] / 10.0 ** rng.uniform(10, 18), 1e-300)
+        theta, cond = svr_from_gram(
+            (Z @ Z.T)[None],
+            (F @ Z.T)[None],
+            N0,
+            [g],
+            data=lambda r, Z=Z, F=F: (Z[None][r], F[None][r]),
+            return_cond=True,
+        )
+        exact = mp_ridge(Z, F, g)
+        error = np.linalg.norm(theta[0, 0] - exact) / np.linalg.norm(exact)
+        if cond[0, 0] <= 1e20:
+            assert error <= 1e-8, (error, cond[0, 0])
+        else:
+            flagged += error > 1e-8
+    assert flagged >= 1  # the refinement's flag is what keeps those out
+
+
+def test_a_rounding_svr_solve_is_null_and_an_accurate_one_is_kept():
+    """3 samples for 4 regressors whose scales span 1e-4..1e6 (the regressors of
+    x+ = 0.5 x + [1e6, 1, 1e-4] u): at gamma = 1e-300 and 1e-100 the QR solve gave
+    entries of 4e274 and 1e75 where the exact ridge's largest is 125; its refinement
+    step is as large as the estimate, which is NaN. At 1e-12 it is kept and exact."""
+    rng = np.random.default_rng(0)
+    Z = rng.standard_normal((4, 3)) * np.array([1e6, 1.0, 1e-4, 1.0])[:, None]
+    F = rng.standard_normal((3, 4)) @ Z + 1e-3 * rng.standard_normal((3, 3))
+    theta, cond = ridge_qr(Z[None], F[None], [1e-300, 1e-100, 1e-12], return_cond=True)
+    assert np.isnan(theta[0, :2]).all()
+    exact = mp_ridge(Z, F, 1e-12, digits=400)
+    np.testing.assert_allclose(theta[0, 2], exact, rtol=1e-6)
+    assert np.isfinite(mp_ridge(Z, F, 1e-300, digits=1000)).all()  # defined, not computable
+
+
+def test_a_ridge_parameter_beyond_the_double_range_is_a_null_estimate():
+    """loss_scale "mean" with gamma = 1e307: g = gamma N0 overflows. The records are
+    null with the estimate's note, not an exception from the QR fallback."""
+    spec = parse_spec(
+        {
+            "systems": ["paper-stable"],
+            "sigma_w": [1.0],
+            "N": [20],
+            "reps": 1,
+            "estimators": ["svr"],
+            "gamma": [1e307, 0.1],
+            "loss_scale": "mean",
+            "stages": ["estimate"],
+            "seed": 0,
+        }
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        huge, fine = [r for batch in run_spec(spec) for r in batch]
+    assert np.isnan(np.array(huge["A_hat"], dtype=float)).all()
+    assert "estimate: not finite" in huge["notes"]
+    assert np.isfinite(fine["A_hat"]).all()
