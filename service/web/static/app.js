@@ -64,12 +64,17 @@
   function datasets(panel, logY, bands) {
     const out = [], colours = kit.palette();
     panel.series.forEach((s, i) => {
-      const color = colours[(s.colour ?? i) % colours.length];
+      const shade = s.colour ?? i;  // (a figure's OLS and SVR lines of one σ_w share it)
+      const color = colours[shade % colours.length];
+      // the marker goes with the colour; the dash too, where it does not tell OLS's
+      // flat line or a figure's SVR apart
+      const look = kit.style(shade);
+      const dash = s.flat ? [6, 4] : s.dash ? [3, 3] : shade === i ? look.borderDash : [];
       const meta = { series: i, estimator: s.estimator, gamma: s.gamma, line: s.line, mean: s.mean, std: s.std, count: s.count };
       const data = points(panel.x, s.mean);
       out.push({
         label: s.label, data: data, borderColor: color,
-        backgroundColor: color, borderWidth: 2, pointRadius: 3, borderDash: s.flat ? [6, 4] : (s.dash ? [3, 3] : []),
+        backgroundColor: color, borderWidth: 2, pointRadius: 4, borderDash: dash, pointStyle: look.pointStyle,
         svrobs: Object.assign({ role: "mean" }, meta), spanGaps: false,
       });
       if (bands && !s.std.every((v) => v === null)) out.push(...kit.band(s.label, data, s.mean, s.std, color, i, logY));
@@ -187,10 +192,10 @@
     };
     data.panels.filter((p) => !c.panel.value || p.key === c.panel.value).forEach((panel) => {
       const metric = kit.label(glossary, data.metric);
-      const { fig, canvas } = window.svrobsUi.chartPanel(box, panel.title,
+      const { canvas } = window.svrobsUi.chartPanel(box, panel.title,
         `${metric} (${data.metric}) against ${data.x_label}, ${panel.title}`, { panel: panel.key });
       const chart = makeChart(canvas, panel, data, opts);
-      fig.appendChild(kit.legend(chart));
+      kit.figureLegend(chart);
       registry.charts.push({ panel: panel.key, chart: chart });
     });
   }

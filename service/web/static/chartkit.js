@@ -1,8 +1,11 @@
-/* What the job page's and the compare page's charts share (window.svrobsChartKit):
- * colours of the current theme, number format, the record glossary's axis titles and
- * tooltips, and a legend of buttons (Tab to a line, Enter or Space hides or shows it,
- * with its band). A dataset's svrobs.series groups a line with its band;
- * svrobs.role is "mean" for the line (or svrobs.legend lists it). */
+/* What the charts share (window.svrobsChartKit): colours of the current theme, a
+ * dash pattern and point style per series (a second channel besides colour), number
+ * format, the record glossary's axis titles and tooltips, a legend of buttons (Tab to a
+ * line, Enter or Space hides or shows it, with its band; each swatch drawn with the
+ * line's colour, dash and marker), and the data table under a chart of a figure
+ * (window.svrobsUi.chartPanel), filled from its datasets whenever they change. A
+ * dataset's svrobs.series groups a line with its band; svrobs.role is "mean" for the
+ * line (or svrobs.legend lists it). */
 (function () {
   "use strict";
 
@@ -10,6 +13,16 @@
     "#6c757d", "#e83e8c", "#5d4037", "#20c997"];
   const DARK_PALETTE = ["#7db4f5", "#ff8a80", "#7fd49a", "#c39bf0", "#f0b860", "#5fd3e6",
     "#b8c2cc", "#f68fc0", "#c8a27c", "#5fe0b8"];
+
+  // solid, dashed, dotted, dash-dot, dash-dot-dot; and markers told apart by shape
+  const DASHES = [[], [8, 4], [2, 3], [12, 3, 2, 3], [12, 3, 2, 3, 2, 3]];
+  const POINTS = ["circle", "rect", "triangle", "rectRot", "crossRot", "star", "cross"];
+  const TABLE_ROWS = 500;  // rows of a chart's data table; the rest are left out
+
+  /* The ``i``-th series' dash pattern and point style (35 pairs before they repeat). */
+  function style(i) {
+    return { borderDash: DASHES[i % DASHES.length], pointStyle: POINTS[i % POINTS.length] };
+  }
 
   function palette() {
     return window.svrobsTheme && window.svrobsTheme() === "dark" ? DARK_PALETTE : PALETTE;
@@ -20,10 +33,11 @@
     return `rgba(${(n >> 16) & 255}, ${(n >> 8) & 255}, ${n & 255}, ${a})`;
   }
 
-  function fmt(v) {
+  /* ``v`` to ``digits`` significant digits (4 unless told). */
+  function fmt(v, digits) {
     if (v === null || v === undefined) return "–";
-    const a = Math.abs(v);
-    return a !== 0 && (a < 1e-3 || a >= 1e5) ? v.toExponential(3) : Number(v.toPrecision(4)).toString();
+    const d = digits || 4, a = Math.abs(v);
+    return a !== 0 && (a < 1e-3 || a >= 1e5) ? v.toExponential(d - 1) : Number(v.toPrecision(d)).toString();
   }
 
   /* A grid coordinate's text: the σ_w key -1 of a dataset job that estimates σ_w is
@@ -100,11 +114,7 @@
       b.type = "button";
       b.dataset.series = String(d.svrobs.series);
       b.setAttribute("aria-pressed", String(chart.isDatasetVisible(k)));
-      const sw = document.createElement("span");
-      sw.className = "swatch" + (d.borderDash && d.borderDash.length ? " dash" : "");
-      sw.style.borderTopColor = d.borderColor;
-      sw.setAttribute("aria-hidden", "true");
-      b.append(sw, document.createTextNode(typeof d.svrobs.legend === "string" ? d.svrobs.legend : d.label));
+      b.append(swatch(chart, d), document.createTextNode(typeof d.svrobs.legend === "string" ? d.svrobs.legend : d.label));
       b.addEventListener("click", () => {
         const show = b.getAttribute("aria-pressed") !== "true";
         setSeries(chart, d.svrobs.series, show);
@@ -115,6 +125,155 @@
     });
     return ul;
   }
+
+  const SVG = "http://www.w3.org/2000/svg";
+
+  function svg(tag, attrs) {
+    const el = document.createElementNS(SVG, tag);
+    Object.entries(attrs).forEach(([k, v]) => el.setAttribute(k, String(v)));
+    return el;
+  }
+
+  /* The outline of a Chart.js point style of radius r at (x, y), as an SVG element. */
+  function marker(pointStyle, x, y, r) {
+    const at = (pts) => pts.map(([dx, dy]) => `${x + dx * r},${y + dy * r}`).join(" ");
+    const lines = (pts) => pts.map(([a, b, c, e]) => `M${x + a * r} ${y + b * r}L${x + c * r} ${y + e * r}`).join("");
+    const PLUS = [[-1, 0, 1, 0], [0, -1, 0, 1]], TIMES = [[-0.7, -0.7, 0.7, 0.7], [-0.7, 0.7, 0.7, -0.7]];
+    switch (pointStyle) {
+      case "rect": return svg("rect", { x: x - 0.8 * r, y: y - 0.8 * r, width: 1.6 * r, height: 1.6 * r });
+      case "triangle": return svg("polygon", { points: at([[0, -1.1], [1, 0.7], [-1, 0.7]]) });
+      case "rectRot": return svg("polygon", { points: at([[0, -1.1], [1.1, 0], [0, 1.1], [-1.1, 0]]) });
+      case "cross": return svg("path", { d: lines(PLUS) });
+      case "crossRot": return svg("path", { d: lines(TIMES) });
+      case "star": return svg("path", { d: lines(PLUS.concat(TIMES)) });
+      default: return svg("circle", { cx: x, cy: y, r: r });
+    }
+  }
+
+  /* A legend entry's swatch: a bar's block; else the dataset's line (its colour and
+   * dash) unless it draws none (a scatter), with its marker where it draws points;
+   * data-dash and data-point say which. */
+  function swatch(chart, d) {
+    const colour = d.borderColor || d.backgroundColor;
+    const el = svg("svg", { class: "swatch", width: 30, height: 14, viewBox: "0 0 30 14", "aria-hidden": "true", focusable: "false" });
+    const kind = d.type || chart.config.type;
+    if (kind === "bar") {
+      el.appendChild(svg("rect", { x: 9, y: 1, width: 12, height: 12, fill: colour }));
+      return el;
+    }
+    const dash = (d.borderDash || []).join(" ");
+    const lined = d.showLine !== false && kind !== "scatter";
+    if (lined) {
+      el.appendChild(svg("line", { x1: 1, y1: 7, x2: 29, y2: 7, stroke: colour, "stroke-width": 2.5, "stroke-dasharray": dash || "none" }));
+      el.dataset.dash = dash;
+    }
+    const radius = d.pointRadius === undefined ? 3 : d.pointRadius;
+    if (radius > 0 || !lined) {
+      const point = d.pointStyle || "circle";
+      const m = marker(point, 15, 7, 4.5);
+      const open = point === "cross" || point === "crossRot" || point === "star";
+      m.setAttribute("fill", open ? "none" : colour);
+      m.setAttribute("stroke", colour);
+      m.setAttribute("stroke-width", open ? 1.8 : 1);
+      el.appendChild(m);
+      el.dataset.point = point;
+    }
+    return el;
+  }
+
+  /* The legend of a chart of a figure (ui.chartPanel): under the chart, above its data
+   * table. */
+  function figureLegend(chart) {
+    chart.canvas.closest(".chart-box").after(legend(chart));
+  }
+
+  /* A chart's plotted numbers as rows: the x values ascending, then for each dataset its
+   * y at that x (null where it has none); a dataset with several points at one x (a
+   * scatter) gives that x as many rows. */
+  function tableRows(datasets) {
+    const byX = datasets.map((d) => {
+      const m = new Map();
+      (d.data || []).forEach((p) => {
+        if (!p || p.x === null || p.x === undefined) return;
+        if (!m.has(p.x)) m.set(p.x, []);
+        m.get(p.x).push(p.y);
+      });
+      return m;
+    });
+    const xs = [...new Set(byX.flatMap((m) => [...m.keys()]))].sort((a, b) => a - b);
+    return xs.flatMap((x) => {
+      const n = Math.max(...byX.map((m) => (m.get(x) || []).length));
+      return Array.from({ length: n }, (_, k) => [x].concat(byX.map((m) => {
+        const y = (m.get(x) || [])[k];
+        return y === undefined ? null : y;
+      })));
+    });
+  }
+
+  /* The page's data exports (links marked data-export), as new links for a note. */
+  function exportLinks() {
+    return [...document.querySelectorAll("a[data-export]")].map((a) => {
+      const link = document.createElement("a");
+      link.setAttribute("href", a.getAttribute("href"));
+      link.textContent = a.textContent.trim();
+      if (a.hasAttribute("download")) link.setAttribute("download", "");
+      return link;
+    });
+  }
+
+  /* Fill the data table of ``chart``'s figure (details.chart-data of ui.chartPanel):
+   * its caption, the x axis and one column per dataset, the numbers as plotted (6
+   * significant digits), at most TABLE_ROWS rows with a note of those left out. Built
+   * again only when the numbers or labels differ from those shown. */
+  function fillTable(chart) {
+    const fig = chart.canvas.closest("figure");
+    const box = fig && fig.querySelector("details.chart-data");
+    if (!box) return;
+    const sets = chart.data.datasets;
+    const xTitle = ((chart.options.scales.x || {}).title || {}).text || "x";
+    const head = [xTitle].concat(sets.map((d) => d.label));
+    const rows = tableRows(sets);
+    const key = JSON.stringify([head, rows]);
+    if (box.dataset.key === key) return;
+    box.dataset.key = key;
+    const table = box.querySelector("table");
+    const caption = document.createElement("caption");
+    caption.textContent = `Data of the chart: ${chart.canvas.getAttribute("aria-label")}`;
+    const tr = document.createElement("tr");
+    head.forEach((h) => {
+      const th = document.createElement("th");
+      th.scope = "col";
+      th.textContent = h;
+      tr.appendChild(th);
+    });
+    const thead = document.createElement("thead");
+    thead.appendChild(tr);
+    const tbody = document.createElement("tbody");
+    rows.slice(0, TABLE_ROWS).forEach((row) => {
+      const r = tbody.insertRow();
+      const th = document.createElement("th");
+      th.scope = "row";
+      th.textContent = fmt(row[0], 6);
+      r.appendChild(th);
+      row.slice(1).forEach((y) => {
+        const td = r.insertCell();
+        td.className = "num";
+        td.textContent = fmt(y, 6);
+      });
+    });
+    table.replaceChildren(caption, thead, tbody);
+    const note = box.querySelector(".chart-data-note");
+    const left = rows.length - TABLE_ROWS;
+    note.hidden = left <= 0;
+    if (left <= 0) { note.replaceChildren(); return; }
+    const links = exportLinks();
+    note.replaceChildren(`The first ${TABLE_ROWS} of ${rows.length.toLocaleString("en")} rows; ` +
+      `${left.toLocaleString("en")} left out` + (links.length ? "; see the page's exports: " : "."));
+    links.forEach((a, i) => note.append(i ? ", " : "", a));
+    if (links.length) note.append(".");
+  }
+
+  if (typeof Chart !== "undefined") Chart.register({ id: "svrobsDataTable", afterUpdate: fillTable });
 
   /* The two band datasets (mean + std, then mean − std filled to it) of a line. */
   function band(label, data, mean, std, color, series, logY) {
@@ -133,7 +292,7 @@
   }
 
   window.svrobsChartKit = {
-    palette, alpha, fmt, coord, themeColours, axis, glossaryOf, label, axisTitle, describe,
-    axisTooltips, setSeries, legend, band,
+    palette, style, alpha, fmt, coord, themeColours, axis, glossaryOf, label, axisTitle, describe,
+    axisTooltips, setSeries, legend, figureLegend, band,
   };
 })();

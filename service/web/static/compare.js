@@ -92,7 +92,6 @@
   }
   const groupKeys = [...new Set([...series.values()].map((s) => JSON.stringify(s.group)))];
   const jobIndex = (id) => Math.max(0, data.jobs.indexOf(id));
-  const DASHES = [[], [6, 3], [2, 3], [10, 3, 2, 3]];
   const positive = [...series.values()].every((s) => s.rows.every((r) => r.mean > 0));
 
   const q = new URLSearchParams(location.search);
@@ -107,12 +106,14 @@
     const colours = kit.palette(), out = [];
     [...series.values()].forEach((s, i) => {
       s.rows.sort((a, b) => a[data.x] - b[data.x]);
-      const byGroup = groupKeys.length > 1;
-      const colour = colours[(byGroup ? groupKeys.indexOf(JSON.stringify(s.group)) : jobIndex(s.job)) % colours.length];
+      // a group (estimator, γ, ...) is a colour and a marker, a job a dash pattern (and,
+      // with one group, its colour and marker too)
+      const g = groupKeys.length > 1 ? groupKeys.indexOf(JSON.stringify(s.group)) : jobIndex(s.job);
+      const colour = colours[g % colours.length];
       const pts = s.rows.map((r) => ({ x: r[data.x], y: r.mean }));
       out.push({
-        label: s.label, data: pts, borderColor: colour, backgroundColor: colour, borderWidth: 2, pointRadius: 3,
-        borderDash: byGroup ? DASHES[jobIndex(s.job) % DASHES.length] : [], tension: 0,
+        label: s.label, data: pts, borderColor: colour, backgroundColor: colour, borderWidth: 2, pointRadius: 4,
+        borderDash: kit.style(jobIndex(s.job)).borderDash, pointStyle: kit.style(g).pointStyle, tension: 0,
         svrobs: { role: "mean", series: i, job: s.job, group: s.group, rows: s.rows },
       });
       if (bands) out.push(...kit.band(s.label, pts, s.rows.map((r) => r.mean), s.rows.map((r) => r.std), colour, i, logY));

@@ -2,8 +2,8 @@
  * progress bar follows the bytes sent (xhr.upload's progress events), the CSRF token in
  * the X-CSRF-Token header; a refused file's error is shown beside its field. The
  * dataset page plots its first rollouts, one Chart.js chart per channel (states,
- * then inputs), one line per rollout, from /datasets/{id}/plot-data, in the theme's
- * colours with a keyboard legend (window.svrobsChartKit), drawn again when the theme
+ * then inputs), one line per rollout (a colour and dash pattern each), from
+ * /datasets/{id}/plot-data, in the theme's colours with a keyboard legend (window.svrobsChartKit), drawn again when the theme
  * changes. What is drawn is kept in window.svrobsDataset so that tests can read it. */
 (function () {
   "use strict";
@@ -93,14 +93,14 @@
 
   function chartFor(box, title, lines, xLabel) {
     const kit = window.svrobsChartKit, palette = kit.palette();
-    const { fig, canvas } = window.svrobsUi.chartPanel(
+    const { canvas } = window.svrobsUi.chartPanel(
       box, title, `${title} against ${xLabel}, ${lines.length} rollouts`, { channel: title });
     const chart = new Chart(canvas, {
       type: "line",
       data: {
         datasets: lines.map((ln, i) => ({
           label: `rollout ${ln.rollout}`, data: ln.points, borderColor: palette[i % palette.length],
-          backgroundColor: palette[i % palette.length], borderWidth: 1.5, pointRadius: 0,
+          backgroundColor: palette[i % palette.length], borderWidth: 1.5, pointRadius: 0, borderDash: kit.style(i).borderDash,
           stepped: ln.stepped ? "before" : false, svrobs: { rollout: ln.rollout, series: i, legend: true },
         })),
       },
@@ -111,7 +111,7 @@
         plugins: { legend: { display: false } },
       },
     });
-    fig.appendChild(kit.legend(chart));
+    kit.figureLegend(chart);
     return chart;
   }
 

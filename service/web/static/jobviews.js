@@ -47,7 +47,7 @@
     const colours = kit.palette();
     const positive = groups.every((g) => mean(g, metric) === null || mean(g, metric) > 0);
     ["gamma", "N", "sigma_w"].forEach((x) => {
-      const { fig, canvas } = window.svrobsUi.chartPanel(box,
+      const { canvas } = window.svrobsUi.chartPanel(box,
         `${kit.label(glossary, metric)} against ${kit.label(glossary, x)}`,
         `${metric} of each summary group against ${x}`, { x: x });
       const datasets = cats.map((cat, i) => {
@@ -56,7 +56,7 @@
           label: `${kit.label(glossary, colourBy)} ${cat}`,
           data: members.map((g) => ({ x: g[x], y: mean(g, metric), g })),
           backgroundColor: kit.alpha(colours[i % colours.length], 0.75), borderColor: colours[i % colours.length],
-          pointRadius: 3.5, svrobs: { role: "mean", series: i },
+          pointRadius: 4.5, pointStyle: kit.style(i).pointStyle, svrobs: { role: "mean", series: i },
         };
       });
       const xs = datasets.flatMap((d) => d.data.map((p) => p.x));
@@ -86,7 +86,7 @@
         },
       });
       kit.axisTooltips(canvas, chart, { x: kit.describe(glossary, x), y: kit.describe(glossary, metric) });
-      fig.appendChild(kit.legend(chart));
+      kit.figureLegend(chart);
       views.scatter.push({ x, chart });
     });
     const note = card.querySelector("#scatter-note");

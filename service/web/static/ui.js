@@ -105,8 +105,13 @@
     });
   }
 
-  /* A chart's figure, appended to box: a heading and a canvas (role img, aria-label
-   * label) in a .chart-box; data goes into the figure's dataset. -> {fig, canvas} */
+  // the data tables open, by their chart's name: a chart drawn again keeps its table open
+  const openTables = new Set();
+
+  /* A chart's figure, appended to box: a heading, a canvas (role img, aria-label
+   * label) in a .chart-box, and a "Data table" (details.chart-data, open when the
+   * chart's table was) that the chart kit fills with the plotted numbers; data goes
+   * into the figure's dataset. -> {fig, canvas} */
   function chartPanel(box, title, label, data) {
     const fig = document.createElement("figure");
     fig.className = "chart-panel";
@@ -119,7 +124,23 @@
     canvas.setAttribute("role", "img");
     canvas.setAttribute("aria-label", label);
     wrap.appendChild(canvas);
-    fig.append(h, wrap);
+    const details = document.createElement("details");
+    details.className = "chart-data";
+    const summary = document.createElement("summary");
+    summary.textContent = "Data table";
+    const scroller = document.createElement("div");
+    scroller.className = "table-wrap";
+    scroller.tabIndex = 0;
+    scroller.appendChild(document.createElement("table")).className = "data";
+    const note = document.createElement("p");
+    note.className = "chart-note chart-data-note";
+    note.hidden = true;
+    details.append(summary, scroller, note);
+    details.open = openTables.has(label);
+    details.addEventListener("toggle", () => {
+      if (details.open) openTables.add(label); else openTables.delete(label);
+    });
+    fig.append(h, wrap, details);
     box.appendChild(fig);
     return { fig: fig, canvas: canvas };
   }

@@ -82,17 +82,19 @@
 
   /* A chart of ``config`` in a new figure of ``box``, its legend of buttons under it. */
   function chartIn(box, title, config) {
-    const { fig, canvas } = ui.chartPanel(box, title, title, { channel: title });
+    const { canvas } = ui.chartPanel(box, title, title, { channel: title });
     config.options.plugins = { legend: { display: false } };
     const chart = new Chart(canvas, config);
-    fig.appendChild(kit.legend(chart));
+    kit.figureLegend(chart);
     return chart;
   }
 
-  /* A line of the series ``name`` (listed in the legend unless svrobs says otherwise). */
+  /* A line of the series ``name``, in its colour and dash (listed in the legend unless
+   * svrobs says otherwise). */
   function line(name, points, extra) {
     return Object.assign({ label: name, data: points, borderColor: colour(name), backgroundColor: colour(name),
-      borderWidth: 1.5, pointRadius: 0, svrobs: { role: name, series: SERIES[name], legend: true } }, extra || {});
+      borderWidth: 1.5, pointRadius: 0, borderDash: kit.style(SERIES[name]).borderDash,
+      svrobs: { role: name, series: SERIES[name], legend: true } }, extra || {});
   }
 
   function draw(card) {
@@ -122,7 +124,7 @@
       const chart = chartIn(pbox, `${ch}: held-out rollout ${data.plots.rollouts[r]}`, {
         type: "line",
         data: { datasets: [line("measured", series.measured, { borderWidth: 2 }),
-          line("predicted", series.predicted, { borderDash: [4, 3] }), line("simulated", series.simulated)] },
+          line("predicted", series.predicted), line("simulated", series.simulated)] },
         options: { animation: false, responsive: true, maintainAspectRatio: false,
           interaction: { mode: "nearest", axis: "x", intersect: false },
           scales: { x: kit.axis("linear", xLabel), y: kit.axis("linear", ch) } },
@@ -138,9 +140,9 @@
         data: { datasets: [
           { type: "bar", label: "r_k", data: lags.map((k, i) => ({ x: k, y: v.autocorrelation[j][i] })),
             backgroundColor: bar, borderColor: bar, svrobs: { role: "r", series: 0, legend: true } },
-          line("band", lags.map((k) => ({ x: k, y: band })), { type: "line", label: "+99 % band", borderDash: [5, 4],
+          line("band", lags.map((k) => ({ x: k, y: band })), { type: "line", label: "+99 % band",
             svrobs: { role: "band", series: SERIES.band, legend: "±99 % band" } }),
-          line("band", lags.map((k) => ({ x: k, y: -band })), { type: "line", label: "−99 % band", borderDash: [5, 4],
+          line("band", lags.map((k) => ({ x: k, y: -band })), { type: "line", label: "−99 % band",
             svrobs: { role: "band", series: SERIES.band } }),
         ] },
         options: { animation: false, responsive: true, maintainAspectRatio: false,
