@@ -68,15 +68,7 @@ def upgrade() -> None:
 
 
 def downgrade() -> None:
-    # a job on a dataset has no systems in its spec: the schema below cannot hold it
-    on_datasets = op.get_bind().scalar(
-        sa.text("SELECT count(*) FROM jobs WHERE dataset_id IS NOT NULL")
-    )
-    if on_datasets:
-        raise RuntimeError(
-            f"{on_datasets} job(s) run on uploaded datasets, which the schema before "
-            "0008 cannot hold: delete them (`svrobs delete JOB_ID`) before downgrading"
-        )
+    # jobs on datasets are refused before any downgrade step (migrations/env.py)
     with op.batch_alter_table("jobs", schema=None) as batch_op:
         batch_op.drop_constraint("fk_jobs_dataset_id", type_="foreignkey")
         batch_op.drop_index(batch_op.f("ix_jobs_dataset_id"))

@@ -10,7 +10,7 @@ from datetime import UTC, datetime
 import pytest
 import sqlalchemy as sa
 
-from service.db.migrate import downgrade, upgrade
+from service.db.migrate import current_revision, downgrade, upgrade
 from service.db.session import create_db_engine
 from tests.service.test_service_storage_migration import url  # noqa: F401 - the fixture
 
@@ -65,10 +65,17 @@ def test_0008_keeps_the_jobs_and_goes_back(url):  # noqa: F811 - the fixture
     with pytest.raises(sa.exc.IntegrityError), engine.begin() as c:
         c.execute(sa.text("DELETE FROM datasets WHERE id = 5"))
     engine.dispose()
-    with pytest.raises(RuntimeError, match="1 job.s. run on uploaded datasets"):
-        downgrade(url, "0007")  # the older schema cannot hold job 2
+    head = current_revision(url)
+    for target in ("0007", "base", "-9"):  # -9 from 0016 is 0007
+        with pytest.raises(RuntimeError, match="1 job.s. run on uploaded datasets"):
+            downgrade(url, target)  # the older schema cannot hold job 2
+    # refused before any step: on SQLite each revision commits on its own
+    assert current_revision(url) == head
     engine = create_db_engine(url)
     with engine.begin() as c:
+        assert {"result_blocks", "sessions", "job_validations"} <= set(
+            sa.inspect(c).get_table_names()
+        )
         assert c.execute(sa.text("SELECT count(*) FROM datasets")).scalar() == 1
         c.execute(sa.text("DELETE FROM jobs WHERE id = 2"))
     engine.dispose()
