@@ -55,23 +55,38 @@ def load_secret(settings: Settings) -> bytes:
     path = secret_folder(settings) / SECRET_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
     if not path.exists():
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{SECRET_FILE}.")
-        try:
-            with os.fdopen(fd, "w") as f:
-                f.write(secrets.token_urlsafe(48))
-                f.flush()
-                os.fsync(f.fileno())
-            os.link(tmp, path)
-        except FileExistsError:
-            pass
-        else:
-            log.info("generated the web session secret in %s", path)
-        finally:
-            os.unlink(tmp)
+        _make_secret(path)
     text = path.read_text().strip()
     if not text:
         raise RuntimeError(f"{path} is empty: delete it or set SVROBS_SECRET_KEY")
     return text.encode("utf-8")
+
+
+def _make_secret(path: Path) -> None:
+    """Write a new secret to ``path`` unless another process has: whole, by a link
+    from a private temporary file; where the folder's file system has no hard links,
+    by an exclusive create (a writer killed mid-write then leaves it empty, which
+    load_secret reports)."""
+    secret = secrets.token_urlsafe(48)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{SECRET_FILE}.")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(secret)
+            f.flush()
+            os.fsync(f.fileno())
+        os.link(tmp, path)
+    except FileExistsError:
+        return
+    except OSError:  # no hard links here (EPERM, ENOTSUP, EXDEV ...)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:
+            return
+        with os.fdopen(fd, "w") as f:
+            f.write(secret)
+    finally:
+        os.unlink(tmp)
+    log.info("generated the web session secret in %s", path)
 
 
 def _b64(data: bytes) -> str:

@@ -4,6 +4,7 @@ state-changing form without this session's token is a 403; the key never shows."
 
 from __future__ import annotations
 
+import errno
 import time
 from concurrent.futures import ThreadPoolExecutor
 from datetime import timedelta
@@ -200,6 +201,21 @@ def test_a_process_killed_while_writing_the_secret_leaves_no_empty_file(tmp_path
     assert not (tmp_path / "var" / "secret_key").exists()
     assert len(load_secret(settings)) >= 32
     assert sorted(p.name for p in (tmp_path / "var").iterdir()) == ["secret_key"]
+
+
+def test_a_state_folder_without_hard_links_still_gets_its_secret(tmp_path, monkeypatch):
+    """vfat and some bind mounts refuse os.link (EPERM): the secret is created
+    exclusively instead, and kept across starts."""
+
+    def no_links(src, dst, **kwargs):
+        raise PermissionError(errno.EPERM, "Operation not permitted")
+
+    monkeypatch.setattr(sessions.os, "link", no_links)
+    settings = make_settings("sqlite://", VAR_DIR=str(tmp_path / "var"))
+    first = load_secret(settings)
+    assert len(first) >= 32 and load_secret(settings) == first
+    assert sorted(p.name for p in (tmp_path / "var").iterdir()) == ["secret_key"]
+    assert (tmp_path / "var" / "secret_key").stat().st_mode & 0o077 == 0
 
 
 def test_concurrent_first_starts_agree_on_one_secret(tmp_path):
