@@ -80,13 +80,19 @@ def test_two_ticks_at_once_make_one_job(real_sessions):
         assert s.scalar(select(func.count(Job.id)).where(Job.team_id == team_ids[0])) == 1
 
 
+def _team_with_a_job(s, team_ids: list, name: str):
+    """A new team (cleaned up by real_sessions) and a committed job of SMALL_SPEC."""
+    team = accounts.create_team(s, name)
+    team_ids.append(team.id)
+    job, _ = jobs.create_job(s, team_id=team.id, user_id=None, spec=SMALL_SPEC)
+    s.commit()
+    return team, job
+
+
 def test_units_finishing_together_finish_the_job(real_sessions):
     maker, team_ids = real_sessions
     with maker() as s:
-        team = accounts.create_team(s, "concurrent-units")
-        team_ids.append(team.id)
-        job, _ = jobs.create_job(s, team_id=team.id, user_id=None, spec=SMALL_SPEC)
-        s.commit()
+        _, job = _team_with_a_job(s, team_ids, "concurrent-units")
         ids = jobs.unit_ids_of_job(s, job.id)
         for uid in ids:
             units.start_unit(s, uid, "w", 60, max_attempts=0)
@@ -115,10 +121,7 @@ def test_a_deleted_jobs_running_unit_stores_nothing_in_the_next_job(real_session
     finds no unit and stores nothing, in either job."""
     maker, team_ids = real_sessions
     with maker() as s:
-        team = accounts.create_team(s, "deleted-while-running")
-        team_ids.append(team.id)
-        old, _ = jobs.create_job(s, team_id=team.id, user_id=None, spec=SMALL_SPEC)
-        s.commit()
+        team, old = _team_with_a_job(s, team_ids, "deleted-while-running")
         uid = jobs.unit_ids_of_job(s, old.id)[-1]
         spec, payload = units.start_unit(s, uid, "w", 60, max_attempts=0)
         s.commit()
