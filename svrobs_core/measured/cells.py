@@ -142,8 +142,7 @@ def _out_of_range(Z: FloatArray, G: FloatArray) -> BoolArray:
     """(R,) True where the data's squares leave the double range: Z Z^T overflows, or a
     regressor's largest magnitude is nonzero but its square underflows (OLS is
     scale-equivariant: such data are well posed once rescaled)."""
-    with np.errstate(over="ignore"):
-        top = np.abs(Z).max(axis=-1)  # (R, d)
+    top = np.abs(Z).max(axis=-1)  # (R, d)
     tiny = (top > 0) & (top < _SQRT_TINY)
     out: BoolArray = ~np.isfinite(G).all(axis=(-2, -1)) | tiny.any(axis=-1)
     return out
