@@ -57,12 +57,15 @@ def ridge_parameters(gammas: ArrayLike, N0: int, loss_scale: str = "sum") -> Flo
 
 
 REFINE_STEPS = 1
-# ridge_qr's refinement step, relative to the estimate: at or above REFINE_STEP_NULL
-# the iteration does not contract (the estimate is rounding: NaN); above
-# REFINE_STEP_TRUST its square, the error left, exceeds 1e-9 (reported as an
-# infinite condition number, so the estimate's certificates are withheld)
+# ridge_qr's refinement steps, relative to the estimate: a first step at or above
+# REFINE_STEP_NULL means the iteration does not contract (the estimate is rounding:
+# NaN); a second step, which measures the error the first left, above
+# REFINE_STEP_TRUST means the estimate is not trusted to 1e-9 (reported as an
+# infinite condition number, so its certificates are withheld). The second step
+# measures, it is not applied: the residual's own rounding is the floor that more
+# steps cannot pass (docs/science.md#22-the-papers-l2-loss-svr-and-its-closed-form).
 REFINE_STEP_NULL = 0.5
-REFINE_STEP_TRUST = 3e-5
+REFINE_STEP_TRUST = 1e-10
 REFINE_COND_LIMIT = 1e8  # above this cond(Z Z^T) one refinement step is not enough: use QR
 
 
@@ -335,21 +338,30 @@ def ridge_qr(
     theta = np.swapaxes(Xt + dX, -1, -2)
     # the refinement's step measures the first solve's error: a step as large as the
     # estimate itself (its iteration not contracting) leaves rounding, whatever its
-    # size, and the cell is NaN; the error after the step is about its square
-    # (docs/science.md#22-the-papers-l2-loss-svr-and-its-closed-form)
-    size = np.abs(Xt + dX).max(axis=(-2, -1), initial=0.0)  # largest entries: no overflow
-    moved = np.abs(dX).max(axis=(-2, -1), initial=0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = np.where(moved > 0, moved / size, 0.0)
-    theta = np.where(~(ratio < REFINE_STEP_NULL)[..., None, None], np.nan, theta)
+    # size, and the cell is NaN (docs/science.md#22-the-papers-l2-loss-svr-and-its-closed-form)
+    theta = np.where(~(_step_ratio(dX, Xt + dX) < REFINE_STEP_NULL)[..., None, None], np.nan, theta)
     if not return_cond:
         return theta
     finite = np.isfinite(Rg).all(axis=(-2, -1))
     s = np.linalg.svd(np.where(finite[..., None, None], Rg, 0.0), compute_uv=False)
     with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # beyond the range: inf
         cond = np.where(finite, (s[..., 0] / s[..., -1]) ** 2, np.nan)
-    # a step above REFINE_STEP_TRUST: not trusted to ~1e-9 whatever cond says
-    return theta, np.where(ratio > REFINE_STEP_TRUST, np.inf, cond)
+    # a second step measures the error the first left (it is not applied): above
+    # REFINE_STEP_TRUST the estimate is not trusted to 1e-9, whatever cond says
+    with np.errstate(invalid="ignore", over="ignore"):  # a NaN estimate: NaN steps, withheld
+        S2 = _normal_residual(Z[:, None], F[:, None], theta, g)
+        dX2 = _solve(Rg, _solve(np.swapaxes(Rg, -1, -2), np.swapaxes(S2, -1, -2)))
+    settled = _step_ratio(dX2, np.swapaxes(theta, -1, -2)) <= REFINE_STEP_TRUST
+    return theta, np.where(settled, cond, np.inf)
+
+
+def _step_ratio(step: FloatArray, estimate: FloatArray) -> FloatArray:
+    """max |step| / max |estimate| per cell (largest entries: no overflow); 0 for no
+    step, NaN for a NaN one."""
+    size = np.abs(estimate).max(axis=(-2, -1), initial=0.0)
+    moved = np.abs(step).max(axis=(-2, -1), initial=0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return cast(FloatArray, np.where(moved == 0, 0.0, moved / size))
 
 
 def shrunk_ols(theta_ols: ArrayLike, gammas: ArrayLike) -> FloatArray:

@@ -176,7 +176,8 @@ def run_dataset_variants(
         notes.add(
             unreliable,
             f"estimate: data too ill-conditioned (cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g},"
-            " or the solve's refinement step above 3e-05 of it): certificates withheld",
+            " or the error its solve's refinement measures above 1e-10 of it):"
+            " certificates withheld",
         )
         skipped = [st for st in STAGES if not s.has(st)]
         if skipped:

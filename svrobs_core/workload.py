@@ -139,7 +139,7 @@ def _dataset(
             cpu = (
                 cpu
                 + (0.0 if keeps else data_cpu)
-                + R * (QR_REP + LONG_DOUBLE * N0 * (d + n) * (2 + G))
+                + R * (QR_REP + LONG_DOUBLE * N0 * (d + n) * (2 + 2 * G))
             )
     if spec.has("bounds") and spec.bounds_method != "paper":
         # data_factor keeps Z, F and takes an R-only QR of [Z^T F^T] per repetition,

@@ -284,13 +284,15 @@ def mp_ridge(Z, F, g, digits=120):
         return np.array((Fm * Zm.T * G**-1).tolist(), dtype=float)
 
 
-def test_svr_is_accurate_or_withheld_on_ill_conditioned_data():
-    """150 datasets with rows scaled by 1e-4..1e4, some with one row a multiple of
-    another, g chosen for cond(Z Z^T + g I) of 1e10-1e18: every estimate whose
-    condition number is reported within the trusted 1e20 is within 1e-8 of the
-    120-digit ridge; the QR solve's refinement step flags the others (one was 3e-6
-    off at a reported cond of 2.8e17)."""
-    rng = np.random.default_rng(1)
+@pytest.mark.parametrize("seed", [1, 3, 4])
+def test_svr_is_accurate_or_withheld_on_ill_conditioned_data(seed):
+    """150 datasets per seed with rows scaled by 1e-4..1e4, some with one row a
+    multiple of another, g chosen for cond(Z Z^T + g I) of 1e10-1e18: every estimate
+    whose condition number is reported within the trusted 1e20 is within 1e-9 of the
+    120-digit ridge; the QR solve's second refinement step flags the others. With the
+    first step's square as the measure, seed 3 kept one 1.2e-7 off (reported cond
+    6.1e16) and seed 4 one 6.5e-8 off (2.6e14)."""
+    rng = np.random.default_rng(seed)
     flagged = 0
     for _ in range(150):
         d, n, N0 = int(rng.integers(2, 5)), int(rng.integers(1, 4)), int(rng.integers(2, 30))
@@ -310,9 +312,9 @@ def test_svr_is_accurate_or_withheld_on_ill_conditioned_data():
         exact = mp_ridge(Z, F, g)
         error = np.linalg.norm(theta[0, 0] - exact) / np.linalg.norm(exact)
         if cond[0, 0] <= 1e20:
-            assert error <= 1e-8, (error, cond[0, 0])
+            assert error <= 1e-9, (error, cond[0, 0])
         else:
-            flagged += error > 1e-8
+            flagged += error > 1e-9
     assert flagged >= 1  # the refinement's flag is what keeps those out
 
 
