@@ -20,6 +20,7 @@ from .. import bounds as _bounds
 from .. import cost as _cost
 from .. import cost_bound as _cb
 from .. import kalman as _kalman
+from .. import uncertainty as _unc
 from ..array_types import Array, BoolArray, FloatArray
 from ..bounds import BoundsResult
 from ..data_factor import GramFactor, data_factor, estimate_margin
@@ -31,7 +32,7 @@ from ..pipeline import CERTIFICATES, ESTIMATE_COND_LIMIT, _estimate
 from ..planning import EstimatorAxis
 from ..spec import STAGES, ExperimentSpec
 from ..stage_cells import StageCells  # the context the stage functions read
-from ..uncertainty_stage import bounds_from_box, sound_box
+from ..uncertainty_stage import _ridge_axis, bounds_from_box, sound_box
 from .data import StateModel
 from .noise import REASON_RANGE, noise_level, residual_error, residual_sum
 
@@ -117,7 +118,10 @@ def run_cells(
         notes.add(True, "stages not run: " + ", ".join(st for st in STAGES if st not in ran))
     # the data's factor: the noise bound's and the box's (docs/measured.md#sound-set)
     fac = data_factor(Z, _full_targets(model, Z, F))
-    sigma_box, sigma_model, sigma_err = _noise(c, fac, Z=Z, F=F, rows=rows, model=model, N0=N0)
+    theta_ols = rows[:, axis.names.index("ols")] if "ols" in axis.names else fit_ols(Z, F)
+    sigma_box, sigma_model, sigma_err = _noise(
+        c, fac, Z=Z, F=F, theta_ols=theta_ols, model=model, N0=N0
+    )
     if spec.has("bounds"):
         _bounds_and_observer(
             c,
@@ -130,6 +134,7 @@ def run_cells(
             fac=fac,
             sigma_err=sigma_err,
             scale=scale,
+            theta_ols=model.full(theta_ols),
         )
     for f in CERTIFICATES:
         if f in c.out and withheld.any():
@@ -154,18 +159,15 @@ def _noise(
     *,
     Z: FloatArray,
     F: FloatArray,
-    rows: FloatArray,
+    theta_ols: FloatArray,
     model: StateModel,
     N0: int,
 ) -> tuple[float | FloatArray, float | FloatArray, float | FloatArray]:
     """(sigma of the box, sigma of the observer model, the relative error of the
     box's sigma), each (R, 1) or a number; the notes say what was estimated
-    (docs/measured.md#sigma-w-estimate). ``fac``: the data's factor (full targets)."""
+    (docs/measured.md#sigma-w-estimate). ``fac``: the data's factor (full targets);
+    ``theta_ols`` (R, n_rows, d) the OLS estimate of the estimated rows."""
     spec, notes = c.spec, c.notes
-    if "ols" in c.axis.names:
-        theta_ols = rows[:, c.axis.names.index("ols")]
-    else:
-        theta_ols = fit_ols(Z, F)
     n_rows = F.shape[1]
     rss = residual_sum(Z, F, theta_ols)
     # the OLS estimate's distance from the exact fit, in the norm of Z Z^T
@@ -216,12 +218,15 @@ def _bounds_and_observer(
     fac: GramFactor,
     sigma_err: float | FloatArray,
     scale: BoolArray,
+    theta_ols: FloatArray,
 ) -> None:
     """The box from the data's own factor ``fac`` (of the full targets), with the
     estimate's rounding margin and the error of an estimated sigma (``sigma_err``)
     in its certificate radii (docs/uncertainty.md#certificates-on-the-boxes;
-    the known rows of the ARX state with radius 0, docs/measured.md#arx), its
-    certificates, then the observer stages on the estimate."""
+    the known rows of the ARX state with radius 0, docs/measured.md#arx), null
+    for the ridge cells where the OLS box refutes ``S`` (``theta_ols`` (R, n, d),
+    docs/measured.md#sound-set), its certificates, then the observer stages on
+    the estimate."""
     spec, out, notes, C = c.spec, c.out, c.notes, c.system.C
     estimate = spec.measured.sigma_w is None
     boxed = replace(c, spec=replace(spec, delta=spec.delta / 2) if estimate else spec)
@@ -240,6 +245,8 @@ def _bounds_and_observer(
             R_A_up=np.where(known, 0.0, box.R_A_up),
             R_B_up=np.where(known, 0.0, box.R_B_up),
         )
+    if spec.bounds_method == "self-normalized":
+        box = _ridge_premise(c, box, fac, theta_ols, model=model, N0=N0, spec=boxed.spec)
     sound = bounds_from_box(c, box)
     out.update(sound.fields)
     b = sound.result
@@ -295,6 +302,75 @@ def _bounds_and_observer(
     if spec.has("sls"):
         assert norms is not None  # computed for the sls stage above
         _sls(c, b, K, norms)
+
+
+def _ridge_premise(
+    c: MeasuredCells,
+    box: _unc.BoxResult,
+    fac: GramFactor,
+    theta_ols: FloatArray,
+    *,
+    model: StateModel,
+    N0: int,
+    spec: ExperimentSpec,
+) -> _unc.BoxResult:
+    """``box`` with its ridge (SVR) cells null where the data refute ``S``.
+
+    The ridge box needs ``||theta_i|| <= S`` for every row; the ridge estimate's own
+    norm cannot show a violation, as the ridge shrinks it. The OLS box of the same
+    data (same sigma_w and delta, no S) contains every true row with the box's
+    probability; where even its smallest norm, ``||max(|theta_ols_ij| - R_ij, 0)||``
+    over an estimated row, exceeds S, the true row's does. Where S is the default
+    (``sqrt(2) M``, not given) the other ridge boxes say that they assume it
+    (docs/measured.md#sound-set)."""
+    lam, _ = _ridge_axis(c.axis, N0, spec.loss_scale)
+    if not (lam > 0).any():
+        return box
+    sigma = np.asarray(box.sigma_w, dtype=float)[:, 0]  # (R, E): one sigma per dataset
+    ols = _unc.self_normalized_box(
+        fac,
+        theta_ols,
+        sigma_w=sigma,
+        delta=spec.delta,
+        lam=0.0,
+        S=spec.S_bound,
+        lambda0=spec.lambda0,
+    )
+    R = np.concatenate([ols.R_A, ols.R_B], axis=-1)[:, model.estimated]
+    with np.errstate(invalid="ignore", over="ignore"):  # a null OLS box: NaN, no refutation
+        floor = np.linalg.norm(
+            np.maximum(np.abs(theta_ols[:, model.estimated]) - R, 0.0), axis=-1
+        ).max(axis=-1)
+        refuted = (floor > spec.S_bound)[:, None] & (lam > 0) & box.ok
+    if spec.S is None:
+        c.notes.add(
+            (lam > 0) & box.ok & ~refuted,
+            f"bounds: the SVR box assumes every row of [A B] has norm <= S = {spec.S_bound:g}"
+            " (the default, sqrt(2) M), which the data do not confirm: set S",
+        )
+    if not refuted.any():
+        return box
+    texts = np.array(
+        [
+            f"S = {spec.S_bound:g} is refuted by the data: a row of the OLS box has norm"
+            f" >= {f:.4g} (set S to bound the rows of [A B]; the ridge box needs it)"
+            for f in floor.tolist()
+        ],
+        dtype=object,
+    )
+    reason = np.where(refuted, texts[:, None], box.reason)
+    null = refuted[..., None, None]
+    return replace(
+        box,
+        reason=reason,
+        R_A=np.where(null, np.nan, box.R_A),
+        R_B=np.where(null, np.nan, box.R_B),
+        eps_A=np.where(refuted, np.nan, box.eps_A),
+        eps_B=np.where(refuted, np.nan, box.eps_B),
+        beta=None if box.beta is None else np.where(refuted, np.nan, box.beta),
+        R_A_up=None if box.R_A_up is None else np.where(null, np.nan, box.R_A_up),
+        R_B_up=None if box.R_B_up is None else np.where(null, np.nan, box.R_B_up),
+    )
 
 
 def _full_targets(model: StateModel, Z: FloatArray, F: FloatArray) -> FloatArray:

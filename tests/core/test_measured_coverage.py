@@ -165,3 +165,75 @@ def test_arx_recovers_its_coefficients_and_its_box_covers_them():
         assert (rad[:, 2:] == 0).all() and (rad[:, :2] > 0).all()  # known rows: radius 0
         truth = np.vstack([THETA_Y, np.hstack([A[2:], B[2:]])])
         assert inside(recs, truth).mean() >= floor(1 - DELTA, D)
+
+
+# The ridge box needs every row of [A B] within S (default sqrt(2) M = 1.556)
+B_BIG = np.array([[3.0, 0.0], [0.0, 3.0]])  # rows of [A2 B_BIG] have norm about 3.1
+REFUTED = "is refuted by the data"
+DEFAULT_S = "the SVR box assumes every row of [A B] has norm <= S"
+
+
+def feedback_datasets(seed, *, count, N=10, T=100):
+    """count datasets of x+ = A x + B u + w with A = [[1.05, 0], [.1, .3]], B = [10; 0]
+    (row norm 10) under u = -0.1 x_1 + 0.001 dither: x_1 and u nearly collinear."""
+    A, B = np.array([[1.05, 0.0], [0.1, 0.3]]), np.array([[10.0], [0.0]])
+    rng = np.random.default_rng(seed)
+    x = np.empty((count, N, T + 1, 2))
+    u = np.empty((count, N, T, 1))
+    x[:, :, 0] = rng.standard_normal((count, N, 2))
+    for k in range(T):
+        u[:, :, k, 0] = -0.1 * x[:, :, k, 0] + 0.001 * rng.standard_normal((count, N))
+        x[:, :, k + 1] = (
+            x[:, :, k] @ A.T + u[:, :, k] @ B.T + 0.2 * rng.standard_normal((count, N, 2))
+        )
+    data = [MeasuredData(X=list(x[i]), U=list(u[i])) for i in range(count)]
+    return data, np.hstack([A, B])
+
+
+def test_a_ridge_box_whose_S_the_data_refute_is_null_and_one_with_S_set_covers():
+    """B = 3 I: the ridge shrinks its estimate's rows below S, so the estimate cannot
+    show the violation, and with the default S its box missed the truth in every
+    dataset while certifying. The OLS box refutes S (its smallest row norm exceeds
+    it): the SVR box is null with the reason; with S = 4 it covers at 1 - delta."""
+    datasets = [MeasuredData(X=list(x), U=list(u)) for x, u in zip(*_big_b_rollouts(6))]
+    obj = {**SPEC, "sigma_w": SIGMA, "loss_scale": "mean", "gamma": [1.0]}
+    (ols, svr, shrunk), _ = records_of(obj, datasets)
+    theta = np.hstack([A2, B_BIG])
+    assert inside(ols, theta).mean() >= floor(1 - DELTA, D)
+    refuted = np.array([REFUTED in r["notes"] for r in svr])
+    assert refuted.mean() > 0.9  # the OLS box is tight here (N0 = 500)
+    assert all(r["r_A"] is None and r["stable_certified"] is None for r in np.array(svr)[refuted])
+    assert not inside(svr, theta).any()  # the box a default S gives misses the truth
+    assert not any(REFUTED in r["notes"] for r in ols + shrunk)
+    (_, svr4, _), _ = records_of({**obj, "S": 4.0}, datasets)
+    assert not any(REFUTED in r["notes"] or DEFAULT_S in r["notes"] for r in svr4)
+    assert inside(svr4, theta).mean() >= floor(1 - DELTA, D)
+
+
+def _big_b_rollouts(seed, *, N=20, T=25):
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((D, N, T, 2))
+    x = np.empty((D, N, T + 1, 2))
+    x[:, :, 0] = rng.standard_normal((D, N, 2))
+    for k in range(T):
+        x[:, :, k + 1] = (
+            x[:, :, k] @ A2.T + u[:, :, k] @ B_BIG.T + SIGMA * rng.standard_normal((D, N, 2))
+        )
+    return x, u
+
+
+def test_the_default_S_is_named_where_the_data_cannot_refute_it():
+    """Closed-loop data of an unstable plant whose input row has norm 10: x_1 and u are
+    nearly collinear, so the data are consistent with rows within the default S and
+    no test of the data can refute it; the ridge box, true for such rows, misses the
+    plant. Every SVR record says it assumes the default S; with S = 11 the box covers
+    the plant and the note is gone."""
+    datasets, theta = feedback_datasets(7, count=60)
+    obj = {**SPEC, "sigma_w": 0.2, "estimators": ["svr"], "gamma": [1.0], "N": [10]}
+    obj["stages"] = ["estimate", "bounds"]
+    (svr,), _ = records_of(obj, datasets)
+    assert all(DEFAULT_S in r["notes"] for r in svr)
+    assert not inside(svr, theta).any()  # the default S is false for this plant
+    (svr11,), _ = records_of({**obj, "S": 11.0}, datasets)
+    assert not any(DEFAULT_S in r["notes"] for r in svr11)
+    assert inside(svr11, theta).mean() >= floor(1 - DELTA, len(datasets))
