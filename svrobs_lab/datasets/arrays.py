@@ -79,8 +79,13 @@ def whole_rollouts(X, U, *, matlab: bool = False) -> tuple[RolloutStack, Rollout
     if X.ndim != 3:
         raise BadDatasetFile(f"X: expected 3 dimensions (rollouts, T+1, n), got {X.ndim}")
     N, T1, n = X.shape
+    if N == 0:
+        raise BadDatasetFile("no rollouts")
+    if T1 < 2:
+        states = "state" if T1 == 1 else "states"
+        raise BadDatasetFile(f"X: {T1} {states} per rollout; a rollout needs at least 2 states")
     if U is None or (matlab and np.size(U) == 0):
-        U = np.zeros((N, max(T1 - 1, 0), 0))
+        U = np.zeros((N, T1 - 1, 0))
     U = numeric("U", U)
     if matlab and U.ndim == 2:
         U = U[:, :, None]
@@ -90,8 +95,6 @@ def whole_rollouts(X, U, *, matlab: bool = False) -> tuple[RolloutStack, Rollout
         raise BadDatasetFile(
             f"U: shape {U.shape} does not match X {X.shape}: expected ({N}, {T1 - 1}, m)"
         )
-    if T1 < 2:
-        raise BadDatasetFile(f"X: {T1} state per rollout; a rollout needs at least 2 states")
     return _equal(X), _equal(U)
 
 
@@ -213,6 +216,8 @@ def rollouts_of(variables: Mapping, *, matlab: bool = False) -> Rollouts:
     if whole:
         X, U = whole["X"], whole.get("U")
         if isinstance(X, list):  # a MATLAB cell array: one rollout per cell
+            if not X:
+                raise BadDatasetFile("X: an empty cell array (no rollouts)")
             per = {i: {"X": x} for i, x in enumerate(X)}
             if U is not None and not (isinstance(U, np.ndarray) and U.size == 0):
                 if not isinstance(U, list) or len(U) != len(X):

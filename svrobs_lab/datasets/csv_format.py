@@ -432,9 +432,13 @@ def _columns(header: list[str], options: DatasetOptions):
 def _chosen(columns, field: str, index: dict, shown: str) -> list[str] | None:
     if columns is None:
         return None
+    seen: set[str] = set()
     for c in columns:
         if c not in index:
             raise SpecError(field, f"no column {quoted(c)} in the file's header ({shown})")
+        if c in seen:
+            raise SpecError(field, f"{quoted(c)} given twice")
+        seen.add(c)
     return list(columns)
 
 

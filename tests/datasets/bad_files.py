@@ -95,6 +95,14 @@ def _mat_struct() -> bytes:
     return buf.getvalue()
 
 
+def _mat(**variables) -> bytes:
+    import scipy.io
+
+    buf = io.BytesIO()
+    scipy.io.savemat(buf, variables)
+    return buf.getvalue()
+
+
 def _mat73_complex() -> bytes:
     import tempfile
     from pathlib import Path
@@ -316,6 +324,15 @@ def cases() -> list[tuple]:
         ),
         ("mat-struct", "d.mat", _mat_struct(), {}, "file", r"^X: a MATLAB struct"),
         (
+            "mat-empty-cell",
+            "d.mat",
+            _mat(X=np.empty((0,), dtype=object)),
+            {},
+            "file",
+            r"^X: an empty cell array \(no rollouts\)$",
+        ),
+        ("mat-empty", "d.mat", _mat(X=np.empty((0, 0))), {}, "file", r"^no rollouts$"),
+        (
             "mat-truncated",
             "d.mat",
             files.mat5_bytes(X, U)[:300],
@@ -412,6 +429,22 @@ def cases() -> list[tuple]:
             {"state_columns": "x1,pos"},
             "state_columns",
             r"^no column 'pos' in the file's header",
+        ),
+        (
+            "field-state-columns-twice",
+            "d.csv",
+            GOOD_CSV,
+            {"state_columns": "x1,x1"},
+            "state_columns",
+            r"^'x1' given twice$",
+        ),
+        (
+            "field-input-columns-twice",
+            "d.csv",
+            GOOD_CSV,
+            {"input_columns": "u1,u2,u1"},
+            "input_columns",
+            r"^'u1' given twice$",
         ),
         (
             "field-names-on-csv",

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from service.db.datasets import array_chunks, arrays_digest
+from svrobs_core.errors import SpecError
 from svrobs_lab.datasets.csv_format import BLOCK_ROWS
 from svrobs_lab.datasets.parsed import DatasetOptions
 from svrobs_lab.datasets.reader import parse_dataset
@@ -141,6 +142,46 @@ def test_csv_column_mapping_delimiters_labels_and_long_rollouts():
     # an explicitly empty input list: m = 0
     r = parse(data, state_columns=("pos", "vel"), input_columns=())
     assert r.m == 0 and same_bits(r.X, X)
+
+
+@pytest.mark.parametrize("field", ["state_columns", "input_columns"])
+def test_a_column_chosen_twice_is_an_error_on_the_field_not_the_file(field):
+    X, U = files.rollouts(lengths=(3, 3), n=2, m=2)
+    columns = {"state_columns": ("x1", "x2"), "input_columns": ("u1", "u2")}
+    columns[field] = (*columns[field], columns[field][0])
+    with pytest.raises(SpecError) as err:
+        parse(files.csv_bytes(X, U), **columns)
+    assert (err.value.field, err.value.message) == (field, f"{columns[field][0]!r} given twice")
+
+
+@pytest.mark.parametrize(
+    ("fmt", "X", "message"),
+    [
+        ("mat", np.empty((0,), dtype=object), r"X: an empty cell array \(no rollouts\)"),
+        ("mat73", np.empty((0,), dtype=object), r"X: an empty cell array \(no rollouts\)"),
+        ("mat", np.empty((0, 0)), "no rollouts"),
+        ("mat73", np.empty((0, 0)), "no rollouts"),
+        ("npz", np.empty((0, 0, 0)), "no rollouts"),
+        ("mat", np.empty((3, 0)), "X: 0 states per rollout; a rollout needs at least 2 states"),
+    ],
+)
+def test_an_empty_x_is_a_bad_file_saying_so(tmp_path, fmt, X, message):
+    """An X without rollouts (an empty cell or matrix) or without states is named as
+    such, not as a U shape the file does not hold."""
+    import hdf5storage
+    import scipy.io
+
+    buf = io.BytesIO()
+    if fmt == "npz":
+        np.savez(buf, X=X)
+    elif fmt == "mat":
+        scipy.io.savemat(buf, {"X": X})
+    else:
+        path = tmp_path / "e.mat"
+        hdf5storage.savemat(str(path), {"X": X}, format="7.3", matlab_compatible=True)
+        buf.write(path.read_bytes())
+    with pytest.raises(BadDatasetFile, match=f"^file: {message}$"):
+        parse(buf.getvalue())
 
 
 def test_names_and_sample_time_from_the_file_or_the_upload(tmp_path):
