@@ -86,8 +86,11 @@ def schedule_out(s: Schedule) -> dict:
     }
 
 
-def team_schedule(session: Session, caller: Caller, schedule_id: int) -> Schedule:
-    s = store.team_schedule(session, caller.team_id, schedule_id)
+def team_schedule(
+    session: Session, caller: Caller, schedule_id: int, *, lock: bool = False
+) -> Schedule:
+    """The caller's schedule (``lock``: locked until the commit), or NotFound."""
+    s = store.team_schedule(session, caller.team_id, schedule_id, lock=lock)
     if s is None:
         raise NotFound(f"schedule {schedule_id} not found")
     return s
@@ -148,7 +151,7 @@ def update(
 ) -> dict:
     """Change the fields given in ``data`` (a ``ScheduleUpdate``, unset fields left out);
     a new template is admitted with no transaction open (:func:`validate_template`),
-    then the schedule read again (NotFound if it was deleted meanwhile)."""
+    then the schedule read again and locked (NotFound if it was deleted meanwhile)."""
     s = team_schedule(session, caller, schedule_id)
     for key in FIELDS:
         if key != "tags" and key in data and data[key] is None:
@@ -161,7 +164,9 @@ def update(
         )
     if "spec_template" in data:
         validate_template(data["spec_template"], settings, session, caller.team_id)
-        s = team_schedule(session, caller, schedule_id)
+    # locked to the commit: a delete that came first is a NotFound, one that comes
+    # later waits (not an update of a row that is gone)
+    s = team_schedule(session, caller, schedule_id, lock=True)
     if "tags" in data:
         data["tags"] = list(dict.fromkeys(data["tags"] or []))
     for key, value in data.items():
@@ -179,11 +184,10 @@ def run_now(submission: Submission, schedule_id: int) -> dict:
     :func:`validate_template` does). -> the job's body."""
     s = team_schedule(submission.session, submission.caller, schedule_id)
     now = utcnow().replace(microsecond=0)
-    stamp = now.strftime("%Y-%m-%dT%H:%M:%SZ")
     job = JobRequest(
         spec=store.run_spec(s.spec_template, s.seed_policy, now),
-        name=f"{s.name} @ {stamp} (run now)",
-        tags=list(s.tags or []) + [f"schedule:{s.name}"],
+        name=store.run_job_name(s.name, now, " (run now)"),
+        tags=list(s.tags or []) + [store.schedule_tag(s.name)],
         schedule_id=s.id,
     )
     submission.session.rollback()
@@ -192,8 +196,8 @@ def run_now(submission: Submission, schedule_id: int) -> dict:
 
 
 def delete(session: Session, caller: Caller, schedule_id: int) -> None:
-    """Delete a schedule (its jobs stay)."""
-    session.delete(team_schedule(session, caller, schedule_id))
+    """Delete a schedule (its jobs stay); a concurrent delete's loser is a NotFound."""
+    session.delete(team_schedule(session, caller, schedule_id, lock=True))
     session.commit()
 
 

@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session
 
 from service.config import Settings
 from service.db import shares as store
+from service.db.jobs import hold_job
 from service.db.models import SHARE_LABEL_MAX, Job, ShareLink
 from service.db.quota import lock_team_quota
 from svrobs_core.text import NOT_PRINTABLE
@@ -58,6 +59,8 @@ def create(
     if label is not None and not printable(label):
         raise Invalid(NOT_PRINTABLE, field="label")
     job = team_job(session, caller, job_id)
+    if not hold_job(session, job.id):  # deleted since it was read: none to link to
+        raise NotFound(f"job {job_id} not found")
     cap = settings.MAX_SHARES_PER_JOB
     if cap:
         lock_team_quota(session, job.team_id)

@@ -18,10 +18,16 @@ from svrobs_core import admission, workload
 from svrobs_core.parsing import parse_spec
 from svrobs_core.planning import unit_cells
 from svrobs_core.spec import ExperimentSpec
-from svrobs_lab.errors import DatasetNotFound, IdempotencyConflict, JobTooLarge, QuotaExceeded
+from svrobs_lab.errors import (
+    DatasetNotFound,
+    IdempotencyConflict,
+    JobTooLarge,
+    NotFound,
+    QuotaExceeded,
+)
 
 from .datasets import dataset_shape, spec_data
-from .models import JOB_ACTIVE, Job, JobTag, WorkUnit, utcnow
+from .models import JOB_ACTIVE, Job, JobTag, Schedule, WorkUnit, utcnow
 from .provenance import provenance
 from .quota import lock_team_quota
 
@@ -122,6 +128,9 @@ def create_job(
         # The dataset, found above, was deleted before the insert (the foreign key refused).
         if dataset_id is not None and dataset_shape(session, dataset_id, team_id) is None:
             raise DatasetNotFound(dataset_id) from None
+        # The schedule of a run made now was deleted before the insert.
+        if schedule_id is not None and not _exists(session, Schedule, schedule_id):
+            raise NotFound(f"schedule {schedule_id} not found") from None
         raise
 
     for t in tags:
@@ -261,6 +270,20 @@ def set_timing(job: Job) -> None:
     if job.finished_at and job.created_at:
         t["total_seconds"] = (job.finished_at - job.created_at).total_seconds()
     job.timings = t
+
+
+def _exists(session: Session, model: type[Schedule], row_id: int) -> bool:
+    """Whether the row is in the database now (not the session's copy of it)."""
+    return session.scalar(select(model.id).where(model.id == row_id)) is not None
+
+
+def hold_job(session: Session, job_id: int) -> bool:
+    """Whether the job still exists, its row held (FOR KEY SHARE) until the commit: a
+    row referring to it can be inserted, and a delete waits for the commit."""
+    held = session.scalar(
+        select(Job.id).where(Job.id == job_id).with_for_update(read=True, key_share=True)
+    )
+    return held is not None
 
 
 def lock_job(session: Session, job_id: int) -> Job:

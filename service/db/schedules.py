@@ -12,26 +12,55 @@ schedule keeps its rhythm), else at the first only (a daily run stays one run).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 from zoneinfo import ZoneInfo
 
 from croniter import croniter
 from sqlalchemy import func, select
+from sqlalchemy.exc import DataError, IntegrityError
 from sqlalchemy.orm import Session
 
 from svrobs_core.errors import SpecError
 from svrobs_lab.errors import IdempotencyConflict, QuotaExceeded
 
 from .jobs import create_job
-from .models import Job, Schedule, ScheduleRun, as_utc, utcnow
+from .models import Job, JobTag, Schedule, ScheduleRun, as_utc, utcnow
 
 if TYPE_CHECKING:
     from sqlalchemy.dialects import postgresql, sqlite
 
+log = logging.getLogger(__name__)
+
 SEED_POLICIES = ("fixed", "due-time")
 SEED_MODULUS = 2**31  # a derived seed stays a 32-bit integer
+
+
+def _width(column: Any) -> int:
+    """A text column's width in characters (its model declares it)."""
+    length = getattr(column.type, "length", None)
+    assert isinstance(length, int), column
+    return length
+
+
+def _fitted(name: str, prefix: str, suffix: str, width: int) -> str:
+    """prefix + name + suffix in ``width`` characters: the name cut, ending in "…"."""
+    room = width - len(prefix) - len(suffix)
+    return prefix + (name if len(name) <= room else name[: room - 1] + "…") + suffix
+
+
+def run_job_name(name: str, due: datetime, suffix: str = "") -> str:
+    """The name of a schedule's job due at ``due``: "<schedule> @ <due><suffix>", the
+    schedule's name cut to fit the job's name column."""
+    stamp = due.strftime("%Y-%m-%dT%H:%M:%SZ")
+    return _fitted(name, "", f" @ {stamp}{suffix}", _width(Job.__table__.c.name))
+
+
+def schedule_tag(name: str) -> str:
+    """The tag every job of the schedule ``name`` carries, cut to fit a tag."""
+    return _fitted(name, "schedule:", "", _width(JobTag.__table__.c.tag))
 
 
 def run_spec(template: dict, policy: str, due: datetime) -> dict:
@@ -199,63 +228,89 @@ def create_due_schedule_jobs(
         created_at = sched.created_at.replace(microsecond=0) if sched.created_at else None
         if created_at is not None and due < created_at:
             continue
-        previous = session.scalar(
-            select(func.max(ScheduleRun.due_at)).where(
-                ScheduleRun.schedule_id == sched.id,
-                ScheduleRun.due_at < due,
-                ScheduleRun.job_id.is_not(None),
-            )
-        )
-        run_id = session.execute(
-            dialect_insert(ScheduleRun)
-            .values(schedule_id=sched.id, due_at=due, created_at=utcnow())
-            .on_conflict_do_nothing(index_elements=["schedule_id", "due_at"])
-            .returning(ScheduleRun.id)
-        ).scalar()
-        if run_id is None:
-            continue  # another tick already took this due time
-        run = session.get(ScheduleRun, run_id)
-        assert run is not None  # inserted just above
-        if previous is not None and due - as_utc(previous) < min_gap:
-            run.skipped_reason = (
-                f"{(due - as_utc(previous)).total_seconds():.0f} s after the previous run; "
-                f"the minimum is {min_gap.total_seconds():.0f} s "
-                "(SVROBS_MIN_SCHEDULE_INTERVAL_SECONDS)"
-            )
-            continue
-        stamp = due.strftime("%Y-%m-%dT%H:%M:%SZ")
-        try:
+        try:  # one schedule's failure (deleted meanwhile) must not undo the others' runs
             with session.begin_nested():
-                job, created = create_job(
-                    session,
-                    team_id=sched.team_id,
-                    user_id=sched.user_id,
-                    spec=run_spec(sched.spec_template, sched.seed_policy, due),
-                    name=f"{sched.name} @ {stamp}",
-                    tags=list(sched.tags or []) + [f"schedule:{sched.name}"],
-                    idempotency_key=f"schedule:{sched.id}:{stamp}",
-                    schedule_id=sched.id,
-                    git_commit=git_commit,
-                    **(limits or {}),
-                )
-        except QuotaExceeded as exc:
-            run.skipped_reason = str(exc)
+                job = _due_run(session, sched, due, dialect_insert, min_gap, limits, git_commit)
+        except IntegrityError as exc:
+            log.warning("schedule %s: no run at %s: %s", sched.id, due, exc.orig)
             continue
-        except (SpecError, IdempotencyConflict) as exc:
-            run.error = str(exc)
-            continue
-        run.job_id = job.id
-        if created:
+        if job is not None:
             jobs.append(job)
     session.flush()
     return jobs
 
 
-def team_schedule(session: Session, team_id: int, schedule_id: int) -> Schedule | None:
-    """One of the team's schedules, or None (another team's is indistinguishable)."""
-    return session.scalar(
-        select(Schedule).where(Schedule.id == schedule_id, Schedule.team_id == team_id)
+def _due_run(
+    session: Session,
+    sched: Schedule,
+    due: datetime,
+    dialect_insert: Callable[[type[ScheduleRun]], postgresql.Insert | sqlite.Insert],
+    min_gap: timedelta,
+    limits: dict | None,
+    git_commit: str | None,
+) -> Job | None:
+    """The run of ``sched`` due at ``due``, and its job if this call made one."""
+    previous = session.scalar(
+        select(func.max(ScheduleRun.due_at)).where(
+            ScheduleRun.schedule_id == sched.id,
+            ScheduleRun.due_at < due,
+            ScheduleRun.job_id.is_not(None),
+        )
     )
+    run_id = session.execute(
+        dialect_insert(ScheduleRun)
+        .values(schedule_id=sched.id, due_at=due, created_at=utcnow())
+        .on_conflict_do_nothing(index_elements=["schedule_id", "due_at"])
+        .returning(ScheduleRun.id)
+    ).scalar()
+    if run_id is None:
+        return None  # another tick already took this due time
+    run = session.get(ScheduleRun, run_id)
+    assert run is not None  # inserted just above
+    if previous is not None and due - as_utc(previous) < min_gap:
+        run.skipped_reason = (
+            f"{(due - as_utc(previous)).total_seconds():.0f} s after the previous run; "
+            f"the minimum is {min_gap.total_seconds():.0f} s "
+            "(SVROBS_MIN_SCHEDULE_INTERVAL_SECONDS)"
+        )
+        return None
+    stamp = due.strftime("%Y-%m-%dT%H:%M:%SZ")
+    try:
+        with session.begin_nested():
+            job, created = create_job(
+                session,
+                team_id=sched.team_id,
+                user_id=sched.user_id,
+                spec=run_spec(sched.spec_template, sched.seed_policy, due),
+                name=run_job_name(sched.name, due),
+                tags=list(sched.tags or []) + [schedule_tag(sched.name)],
+                idempotency_key=f"schedule:{sched.id}:{stamp}",
+                schedule_id=sched.id,
+                git_commit=git_commit,
+                **(limits or {}),
+            )
+    except QuotaExceeded as exc:
+        run.skipped_reason = str(exc)
+        return None
+    except (SpecError, IdempotencyConflict) as exc:
+        run.error = str(exc)
+        return None
+    except DataError as exc:  # a value the database refuses: this run's error, not the tick's
+        run.error = f"the job could not be stored: {str(exc.orig).splitlines()[0]}"
+        return None
+    run.job_id = job.id
+    return job if created else None
+
+
+def team_schedule(
+    session: Session, team_id: int, schedule_id: int, *, lock: bool = False
+) -> Schedule | None:
+    """One of the team's schedules, or None (another team's is indistinguishable).
+    ``lock``: its row locked until the commit and read afresh (None if a delete won)."""
+    query = select(Schedule).where(Schedule.id == schedule_id, Schedule.team_id == team_id)
+    if lock:
+        query = query.with_for_update().execution_options(populate_existing=True)
+    return session.scalar(query)
 
 
 def count_schedules(session: Session, team_id: int) -> int:

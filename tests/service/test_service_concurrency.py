@@ -1,5 +1,6 @@
 """Real concurrent transactions (separate connections, committed data, cleaned up):
-a doubled beat tick makes one job; two units finishing together finish the job."""
+a doubled beat tick makes one job; two units finishing together finish the job; a
+row deleted between a request's read and its write is a NotFound."""
 
 from __future__ import annotations
 
@@ -15,6 +16,10 @@ from service.db import accounts, jobs, units
 from service.db.job_delete import delete_job
 from service.db.models import Job, Result, Schedule, Team
 from svrobs_lab import schedules as lab_schedules
+from svrobs_lab import shares as lab_shares
+from svrobs_lab.auth import Caller
+from svrobs_lab.errors import NotFound
+from svrobs_lab.jobs import Submission
 from tests.service.svc_fakes import fake_records
 from tests.service.svc_helpers import SMALL_SPEC
 
@@ -137,3 +142,109 @@ def test_a_deleted_jobs_running_unit_stores_nothing_in_the_next_job(real_session
         s.commit()
         stored = s.scalar(select(func.count()).select_from(Result).where(Result.job_id == new.id))
         assert stored == 0 and s.get(Job, new.id).status == "queued"
+
+
+# A row deleted by another connection between a request's read and its write: the
+# wrapped reader reads, then ``remove`` deletes and commits on a connection of its own.
+def _deleted_after_read(monkeypatch, module, name: str, maker, remove) -> None:
+    read = getattr(module, name)
+
+    def read_then_deleted(session, caller, object_id, **kwargs):
+        found = read(session, caller, object_id, **kwargs)
+        if not kwargs.get("lock"):  # the first, unlocked read only
+            session.commit()  # the request's read transaction ends (SQLite: no stale snapshot)
+            with maker() as other:
+                remove(other, object_id)
+                other.commit()
+        return found
+
+    monkeypatch.setattr(module, name, read_then_deleted)
+
+
+def _schedule(s, team_ids: list, name: str, schedule_name: str = "nightly") -> tuple:
+    team = accounts.create_team(s, name)
+    team_ids.append(team.id)
+    sched = Schedule(
+        team_id=team.id,
+        name=schedule_name,
+        cron="*/5 * * * *",
+        timezone="UTC",
+        spec_template=SMALL_SPEC,
+        tags=[],
+        created_at=datetime(2024, 1, 1, tzinfo=UTC),
+    )
+    s.add(sched)
+    s.commit()
+    return Caller(key_id=0, team_id=team.id, user_id=None, is_admin=False), sched.id
+
+
+def _submission(s, caller) -> Submission:
+    """A request's submission whose publishing after the response is not needed here."""
+    return Submission(
+        session=s,
+        caller=caller,
+        settings=get_settings(),
+        publisher=None,
+        session_factory=None,
+        later=lambda *args: None,
+    )
+
+
+def _drop_schedule(s, schedule_id):
+    s.execute(delete(Schedule).where(Schedule.id == schedule_id))
+
+
+def test_a_share_of_a_job_deleted_meanwhile_is_not_found(real_sessions, monkeypatch):
+    """The job is read, then deleted and committed elsewhere before the link is
+    inserted: NotFound (404), not the foreign key's IntegrityError (a 500 on PostgreSQL)."""
+    maker, team_ids = real_sessions
+    with maker() as s:
+        team, job = _team_with_a_job(s, team_ids, "share-vs-delete")
+        jobs.cancel_job(s, jobs.lock_job(s, job.id))
+        s.commit()
+    _deleted_after_read(
+        monkeypatch, lab_shares, "team_job", maker, lambda o, i: delete_job(o, jobs.lock_job(o, i))
+    )
+    caller = Caller(key_id=0, team_id=team.id, user_id=None, is_admin=False)
+    with maker() as s, pytest.raises(NotFound):
+        lab_shares.create(s, caller, get_settings(), job.id, days=1.0)
+
+
+@pytest.mark.parametrize("action", ["update", "run_now"])
+def test_a_schedule_deleted_meanwhile_is_not_found(real_sessions, monkeypatch, action):
+    """The schedule is read, then deleted and committed elsewhere: changing it or
+    running it now is NotFound (404), not a StaleDataError or a foreign key's
+    IntegrityError (500s on PostgreSQL)."""
+    maker, team_ids = real_sessions
+    with maker() as s:
+        caller, sid = _schedule(s, team_ids, f"schedule-{action}-vs-delete")
+    _deleted_after_read(monkeypatch, lab_schedules, "team_schedule", maker, _drop_schedule)
+    with maker() as s, pytest.raises(NotFound):
+        if action == "update":
+            lab_schedules.update(s, caller, get_settings(), sid, {"enabled": False})
+        else:
+            lab_schedules.run_now(_submission(s, caller), sid)
+    with maker() as s:
+        assert s.scalar(select(func.count(Job.id)).where(Job.team_id == caller.team_id)) == 0
+
+
+def test_a_schedule_with_the_longest_name_runs_and_others_still_run(real_sessions):
+    """A 200-character schedule name: its job's name and tag are cut to their columns'
+    200 characters (PostgreSQL refused the longer ones, and the tick's error undid
+    every team's runs); the other team's schedule runs in the same tick."""
+    maker, team_ids = real_sessions
+    with maker() as s:
+        long_caller, long_id = _schedule(s, team_ids, "long-name", "L" * 200)
+        other_caller, other_id = _schedule(s, team_ids, "short-name")
+    now = datetime(2024, 6, 1, 12, 7, tzinfo=UTC)
+    with maker() as s:
+        made = lab_schedules.create_due_jobs(get_settings(), s, now)
+        s.commit()
+        assert {j.schedule_id for j in made} == {long_id, other_id}
+        job = next(j for j in made if j.schedule_id == long_id)
+        assert len(job.name) == 200 and job.name.endswith("… @ 2024-06-01T12:05:00Z")
+        assert job.name.startswith("L" * 170)
+        tag = next(t for t in job.tags if t.startswith("schedule:"))
+        assert len(tag) == 200 and tag.endswith("L…")
+        out = lab_schedules.run_now(_submission(s, long_caller), long_id)
+        assert len(out["name"]) == 200 and out["name"].endswith(" (run now)")
