@@ -16,6 +16,7 @@ from service.db.retention import set_retention
 from svrobs_lab.report_html import job_report_html
 from tests.service.svc_fakes import run_job_units
 from tests.service.svc_helpers import SMALL_SPEC, scope_of
+from tests.web.helpers import sign_in
 from worker.tick import prune_expired
 
 API = "/api/v1"
@@ -73,6 +74,10 @@ def test_retention_prunes_due_scheduled_jobs_only_and_reads_keep_working(
         assert "retention" in r.json()["detail"] and r.headers["content-type"].startswith(
             "application/json"
         )
+    sign_in(client, acc.key)  # the results page and its grid say it too
+    for path in (f"/results?job={due}", f"/results/rows?job={due}"):
+        r = client.get(path)
+        assert r.status_code == 410 and "retention" in r.text, path
     assert get(f"/jobs/{due}/summary").json() == summary
     assert get("/compare", **by_group).json() == compared
     r = get("/compare", **{**by_group, "by": "N,rep"})

@@ -41,6 +41,7 @@ def _range_rows(q) -> list[tuple[str, str, str]]:
 
 
 def _grid(request: Request, db: Session, viewer, job: Job, page: int) -> dict:
+    results.not_pruned(job)  # Gone: the page says what is left, as the API does
     q = request.query_params
 
     def values(name, read):  # an empty field of the form is no filter
