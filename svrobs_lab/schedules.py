@@ -53,10 +53,31 @@ def validate_template(spec: dict, settings: Settings, session: Session, team_id:
     return spec
 
 
+SEED_POLICIES = store.SEED_POLICIES
+
+
 def _checked_cron(cron: str, timezone: str, settings: Settings) -> str:
     return store.check_interval(
         store.validate_cron(cron), timezone, settings.MIN_SCHEDULE_INTERVAL_SECONDS
     )
+
+
+def timing_errors(cron: str, timezone: str, settings: Settings) -> dict[str, str]:
+    """The errors of a schedule's cron and time zone, each checked on its own (a form
+    shows them all at once; :func:`create` and :func:`update` stop at the first):
+    ``{field: message}``, empty when both are valid."""
+    errors: dict[str, str] = {}
+    for field, check in (("cron", store.validate_cron), ("timezone", store.validate_timezone)):
+        try:
+            check(cron if field == "cron" else timezone)
+        except SpecError as exc:
+            errors[field] = exc.message
+    if not errors:
+        try:
+            _checked_cron(cron, timezone, settings)
+        except SpecError as exc:
+            errors["cron"] = exc.message
+    return errors
 
 
 def next_run(cron: str, tz: str) -> datetime | None:

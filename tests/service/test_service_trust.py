@@ -28,6 +28,7 @@ from tests.service.svc_helpers import BIG_MEMORY_SPEC as BIG_MEMORY
 from tests.service.svc_helpers import HEAVY_SPEC as HEAVY
 from tests.service.svc_helpers import ITEM6_SPEC as ITEM6
 from tests.service.svc_helpers import SMALL_SPEC, RecordingPublisher
+from tests.web.helpers import csrf_of, sign_in
 
 API = "/api/v1"
 MANY_UNITS = {**SMALL_SPEC, "systems": ["paper-stable"], "sigma_w": [0.1 * i for i in range(1, 11)]}
@@ -207,15 +208,25 @@ def test_units_the_broker_did_not_take_are_not_counted_in_flight(
     assert up.published == ids[:2]
 
 
-def test_cancel_frees_the_team_slots_for_its_other_jobs(build_client, make_account, session):
+@pytest.mark.parametrize("where", ["api", "page"])
+def test_cancel_frees_the_team_slots_for_its_other_jobs(build_client, make_account, session, where):
+    """The API's cancel and the job page's Cancel button alike."""
     client, pub = build_client(MAX_UNITS_IN_FLIGHT_PER_TEAM=2)
     acc = make_account()
     first = client.post(f"{API}/jobs", json=MANY_UNITS, headers=acc.headers).json()
     second = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()
     first_units = jobs.unit_ids_of_job(session, first["id"])
     assert pub.published == first_units[:2]
-    r = client.post(f"{API}/jobs/{first['id']}/cancel", headers=acc.headers)
-    assert r.status_code == 200 and r.json()["cells_done"] == 0
+    if where == "api":
+        r = client.post(f"{API}/jobs/{first['id']}/cancel", headers=acc.headers)
+        assert r.status_code == 200 and r.json()["cells_done"] == 0
+    else:
+        sign_in(client, acc.key)
+        token = csrf_of(client.get(f"/jobs/{first['id']}").text)
+        r = client.post(
+            f"/jobs/{first['id']}/cancel", data={"csrf_token": token}, follow_redirects=False
+        )
+        assert r.status_code == 303
     assert pub.published[2:] == jobs.unit_ids_of_job(session, second["id"])[:2]
 
 

@@ -246,6 +246,24 @@ def test_schedule_form_errors_at_once_edit_and_run_now(web, done):
     assert web.post(f"/schedules/{sid}/run", data={}).status_code == 403  # no CSRF
 
 
+def test_run_now_refusals_have_their_own_status(build_client, session, make_account):
+    """Run now over the team's cap on queued jobs is a 429 page (was a 422 "spec
+    refused"), and on a schedule deleted since its page was read a 404."""
+    web = build_client(SECRET_KEY="pages-secret-0123456789", MAX_QUEUED_JOBS_PER_TEAM=1)[0]
+    acc = make_account()
+    spec = {**SMALL_SPEC, "seed": 1}
+    assert web.post(f"{API}/jobs", json=spec, headers=acc.headers).status_code == 202
+    body = {"name": "s", "cron": "0 2 * * *", "spec_template": spec}
+    sid = web.post(f"{API}/schedules", json=body, headers=acc.headers).json()["id"]
+    sign_in(web, acc.key)
+    token = csrf_of(web.get(f"/schedules/{sid}").text)
+    full = web.post(f"/schedules/{sid}/run", data={"csrf_token": token})
+    assert full.status_code == 429 and "SVROBS_MAX_QUEUED_JOBS_PER_TEAM" in full.text
+    assert web.delete(f"{API}/schedules/{sid}", headers=acc.headers).status_code == 204
+    gone = web.post(f"/schedules/{sid}/run", data={"csrf_token": token})
+    assert gone.status_code == 404
+
+
 def test_share_link_lifecycle(web, done, session, make_account):
     acc, (jid, other_job) = done
     page = web.get(f"/jobs/{jid}/share")

@@ -6,14 +6,13 @@ from __future__ import annotations
 import json
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query, Request
+from fastapi import APIRouter, BackgroundTasks, Depends, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse
 from sqlalchemy.orm import Session
 
 from service.db import job_queries as queries
-from service.db.jobs import cancel_job
 from service.db.models import JOB_ACTIVE, Job
-from service.http.deps import ReportBuildsDep, SessionFactoryDep, get_db
+from service.http.deps import ReportBuildsDep, SessionFactoryDep, get_db, submission_of
 from service.web import charts, figure_charts, job_tables
 from service.web.deps import CSRF, CurrentViewer
 from service.web.render import PAGE_HEADERS, REPORT_HEADERS, WebError, render, with_back_link
@@ -148,12 +147,12 @@ def report_page(
 
 
 @router.post("/jobs/{job_id:int}/cancel", dependencies=[CSRF])
-def cancel(db: DB, viewer: CurrentViewer, job_id: int):
-    job = _job(db, viewer, job_id)
-    if job.status not in JOB_ACTIVE:
-        raise WebError(409, f"Job {job_id} is already {job.status}; there is nothing to cancel.")
-    cancel_job(db, job)
-    db.commit()
+def cancel(
+    request: Request, db: DB, viewer: CurrentViewer, job_id: int, background: BackgroundTasks
+):
+    """As ``POST /api/v1/jobs/{id}/cancel`` (the team's freed slots go to its other
+    jobs); a finished job is a 409 page."""
+    jobs.cancel(submission_of(request, db, viewer.caller, background), job_id)
     return RedirectResponse(f"/jobs/{job_id}", status_code=303)
 
 

@@ -15,7 +15,6 @@ from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
 from service.db import job_queries as queries
-from service.db.schedules import SEED_POLICIES, check_interval, validate_cron, validate_timezone
 from service.http.deps import get_db, submission_of
 from service.web.deps import CSRF, CurrentViewer
 from service.web.errors import field_message
@@ -24,7 +23,7 @@ from service.web.render import WebError, render
 from svrobs_core.errors import SpecError
 from svrobs_lab import schedules as lab
 from svrobs_lab.auth import MAX_ID
-from svrobs_lab.errors import LabError, NotFound
+from svrobs_lab.errors import Conflict, Invalid, LabError, NotFound
 from svrobs_lab.schemas import ScheduleCreate, ScheduleUpdate, SeedPolicy
 
 router = APIRouter(include_in_schema=False)
@@ -67,22 +66,15 @@ def field_errors(request: Request, values: dict) -> dict[str, str]:
     except ValidationError as exc:
         for e in exc.errors():
             errors.setdefault(str(e["loc"][0]) if e.get("loc") else "form", field_message(e))
-    for field, check in (("cron", validate_cron), ("timezone", validate_timezone)):
-        if field not in errors:
-            try:
-                check(values[field])
-            except SpecError as exc:
-                errors[field] = exc.message
-    if "cron" not in errors and "timezone" not in errors:
-        try:
-            check_interval(
-                validate_cron(values["cron"]),
-                values["timezone"],
-                _settings(request).MIN_SCHEDULE_INTERVAL_SECONDS,
-            )
-        except SpecError as exc:
-            errors["cron"] = exc.message
+    timing = lab.timing_errors(values["cron"], values["timezone"], _settings(request))
+    for field, message in timing.items():
+        errors.setdefault(field, message)
     return errors
+
+
+# the refusals a form shows beside its fields (422); any other error of the
+# application layer (not found, over a quota) is its own page, with its own status
+FORM_ERRORS = (SpecError, Invalid, Conflict)
 
 
 def _lab_error(exc: SpecError | LabError) -> dict[str, str]:
@@ -111,7 +103,7 @@ def _new_form(request, db, viewer, *, status=200, errors=None, **values):
         job=job,
         form=form,
         errors=errors or {},
-        policies=SEED_POLICIES,
+        policies=lab.SEED_POLICIES,
     )
 
 
@@ -155,7 +147,7 @@ def create_schedule(
                 tags=_tags(tags),
             )
             made = lab.create(db, viewer.caller, _settings(request), body.model_dump())
-        except (SpecError, LabError) as exc:  # the form shows it beside its field
+        except FORM_ERRORS as exc:  # the form shows it beside its field
             errors = _lab_error(exc)
     if errors:
         return _new_form(request, db, viewer, status=422, errors=errors, **values)
@@ -204,7 +196,7 @@ def edit_schedule(
         data = {**{k: v for k, v in form.items() if k != "tags"}, "tags": _tags(tags)}
         try:
             lab.update(db, viewer.caller, _settings(request), schedule_id, data)
-        except (SpecError, LabError) as exc:
+        except FORM_ERRORS as exc:
             errors = _lab_error(exc)
     if errors:
         return _schedule_page(
@@ -223,7 +215,7 @@ def run_now(
     submission = submission_of(request, db, viewer.caller, background)
     try:
         job = lab.run_now(submission, schedule_id)
-    except (SpecError, LabError) as exc:
+    except (SpecError, Invalid) as exc:  # NotFound, over a quota: their own pages
         message = "; ".join(f"{k}: {v}" for k, v in _lab_error(exc).items())
         raise WebError(422, f"The schedule's spec was refused: {message}") from None
     return RedirectResponse(f"/jobs/{job['id']}", status_code=303)
