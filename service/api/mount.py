@@ -1,7 +1,8 @@
 """The REST API under /api/v1 (and /healthz, /readyz): ``mount_api(app)`` adds its
-routers, its request rules, its error mapping (:mod:`service.api.errors`) and the
-slots of its results streams (:mod:`svrobs_lab.slots`) to the app that
-:mod:`service.app` builds."""
+routers, its request rules (query text, unknown parameters), its documentation pages
+and the slots of its results streams (:mod:`svrobs_lab.slots`) to the app that
+:mod:`service.app` builds; :mod:`service.app` installs the error mapping
+(:mod:`service.api.errors`)."""
 
 from __future__ import annotations
 
