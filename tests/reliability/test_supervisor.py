@@ -158,7 +158,7 @@ def test_the_guard_kills_a_hung_child_after_its_parent_dies(tmp_path):
 
 
 def test_a_stop_during_the_migration_starts_nothing(tmp_path, monkeypatch, capsys):
-    """SIGINT while ``svrobs serve`` migrates, with the KeyboardInterrupt it used to
+    """SIGINT while ``svrobs serve`` migrates, with the KeyboardInterrupt it would
     raise swallowed as a finalizer running at that moment would: the migration ends,
     no process starts, the new admin key is still printed, the handlers are restored."""
     from service.config import Settings

@@ -1,12 +1,12 @@
-"""Regressions for what fuzzing the API found (tests/fuzz): input that used to be a 500.
+"""What fuzzing the API found (tests/fuzz): input that must be a clear error, not a 500.
 
-* N/rep result filters beyond 32 bits overflowed the driver (SQLite and PostgreSQL).
+* N/rep result filters beyond 32 bits overflow the driver (SQLite and PostgreSQL).
 * NUL characters in query parameters and bodies: PostgreSQL text cannot hold them.
-* Lone surrogates (valid JSON escapes, not UTF-8) inside the free-form spec were stored,
-  then every response carrying the spec failed to serialise: the job or schedule
-  became a permanent 500 for the team's listings.
-* A body that is not UTF-8 was an undocumented 400 (malformed JSON is a 422).
-* An error echoing an unencodable key could not render.
+* Lone surrogates (valid JSON escapes, not UTF-8) inside the free-form spec, once
+  stored, would make every response carrying the spec fail to serialise: the job or
+  schedule a permanent 500 for the team's listings.
+* A body that is not UTF-8 is a 422, as malformed JSON is (not an undocumented 400).
+* An error echoing an unencodable key must still render.
 """
 
 from __future__ import annotations
