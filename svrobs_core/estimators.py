@@ -164,7 +164,9 @@ def _fit_ols_qr(Z: FloatArray, F: FloatArray) -> tuple[FloatArray, FloatArray]:
     return theta + dT, cond
 
 
-def fit_svr(Z: ArrayLike, F: ArrayLike, gammas: ArrayLike, loss_scale: str = "sum") -> FloatArray:
+def fit_svr(
+    Z: ArrayLike, F: ArrayLike, gammas: ArrayLike, *, loss_scale: str = "sum"
+) -> FloatArray:
     """SVR closed form Theta = F Z^T (Z Z^T + g I)^-1 for every gamma at once.
 
     ``g = gamma`` for loss_scale "sum", ``g = gamma * N0`` for "mean"
@@ -385,7 +387,7 @@ class SVRIdentifier:
         self.loss_scale = loss_scale
 
     def fit(self, Z: ArrayLike, F: ArrayLike) -> SVRIdentifier:
-        self.coef_ = fit_svr(Z, F, [self.gamma], self.loss_scale)[..., 0, :, :]
+        self.coef_ = fit_svr(Z, F, [self.gamma], loss_scale=self.loss_scale)[..., 0, :, :]
         return self
 
     def predict(self, Z: ArrayLike) -> FloatArray:

@@ -138,7 +138,7 @@ def _group(key: _Key, members: list[dict[str, Any]]) -> list[SystemSpec | None]:
 
 
 def resolve_systems(raw: Sequence[object], field: str = "systems") -> tuple[SystemSpec, ...]:
-    """``tuple(resolve_system(s, f"{field}[{i}]") for i, s in enumerate(raw))``, with
+    """``tuple(resolve_system(s, field=f"{field}[{i}]") for i, s in enumerate(raw))``, with
     the same systems and, for an invalid one, the same first :class:`SpecError`; the
     numbers of the systems of each shape checked together."""
     out: list[SystemSpec | None] = [None] * len(raw)
@@ -158,7 +158,7 @@ def resolve_systems(raw: Sequence[object], field: str = "systems") -> tuple[Syst
             else:
                 out[i] = system
     for i in sorted(alone):
-        out[i] = resolve_system(raw[i], f"{field}[{i}]")
+        out[i] = resolve_system(raw[i], field=f"{field}[{i}]")
     return tuple(s for s in out if s is not None)
 
 

@@ -112,7 +112,7 @@ def _positive_number(value: object, field: str, *, allow_zero: bool) -> float:
 _SYSTEM_KEYS = {"name", "A", "B", "C", "sigma_u", "sigma_v"}
 
 
-def resolve_system(obj: object, field: str = "systems[0]") -> SystemSpec:
+def resolve_system(obj: object, *, field: str = "systems[0]") -> SystemSpec:
     """A preset name or a ``{name, A, B, C, sigma_u, sigma_v}`` object -> SystemSpec.
 
     A spec's systems are resolved by :func:`svrobs_core.system_batch.resolve_systems`,

@@ -152,7 +152,7 @@ def job_report_html(
     by helper processes: :mod:`svrobs_lab.figure_pool`)."""
     rep = build_report(
         {name: {"spec": spec, "records": records, "title": f"Job {name}"}},
-        provenance,
+        provenance=provenance,
         title=f"svrobs report: {name}",
         render=render,
     )

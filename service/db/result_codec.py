@@ -190,7 +190,7 @@ def _dataset_codec(key: str) -> ResultCodec:
 @functools.lru_cache(maxsize=256)
 def _codec(key: str) -> ResultCodec:
     systems_raw, sigmas = json.loads(key)
-    systems = [resolve_system(s, f"systems[{i}]") for i, s in enumerate(systems_raw)]
+    systems = [resolve_system(s, field=f"systems[{i}]") for i, s in enumerate(systems_raw)]
     shapes = {
         s.name: {
             "A_hat": (s.n, s.n),

@@ -34,7 +34,7 @@ Modules, in the order a report is made:
   ``FigureJob`` (a figure function and its arguments, to build here or in another
   process), ``draw_png`` / ``draw_files`` (build and draw a job -> ``Drawn``).
 * ``column_wire``: how ``Columns`` travel to another process (narrowed, codes packed).
-* ``build``: ``build_report(experiments, provenance)``, ``ReportBuilder``, ``Report``.
+* ``build``: ``build_report(experiments, provenance=...)``, ``ReportBuilder``, ``Report``.
 * ``markdown``: ``render_markdown(report)``, ``spec_json(spec)``.
 """
 

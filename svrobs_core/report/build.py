@@ -170,9 +170,9 @@ def _choose_source(
 
 def build_report(
     experiments: dict[str, dict[str, Any]],
+    *,
     provenance: dict[str, Any] | None = None,
     title: str | None = None,
-    *,
     render: Callable[[FigureJob], Any] | None = None,
 ) -> Report:
     """``experiments``: name -> {"spec": dict, "records": list|Columns, optional

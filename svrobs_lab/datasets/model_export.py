@@ -155,7 +155,7 @@ def _output_matrix(spec: dict, system: str, n: int, dataset: dict | None):
     the spec's ``C`` or its default (I, or the rows that pick y_k of the ARX state),
     else the identity (every state measured)."""
     for i, s in enumerate(spec.get("systems") or []):
-        resolved = resolve_system(s, f"systems[{i}]")
+        resolved = resolve_system(s, field=f"systems[{i}]")
         if resolved.name == system:
             return resolved.C.tolist()
     if spec.get("dataset") is not None and dataset is not None:

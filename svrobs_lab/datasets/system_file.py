@@ -81,7 +81,7 @@ def read_system(stream: BinaryIO, *, filename: str | None = None, name: str | No
                 raise BadDatasetFile(f"{key}: expected one number, got shape {value.shape}")
             system[key] = float(value.reshape(-1)[0])
     try:
-        resolved = resolve_system(system, "system")
+        resolved = resolve_system(system, field="system")
     except SpecError as exc:
         where = exc.field.removeprefix("system").lstrip(".") or "system"
         if where == "name":

@@ -52,7 +52,7 @@ CONDS = [1e2, 1e6, 1e8, 1e11, 1e14, 1e16]
 @pytest.mark.parametrize("loss_scale", ["sum", "mean"])
 def test_svr_matches_extended_precision(cond, scale, loss_scale):
     Z, F = dataset(int(np.log10(cond)) + int(np.log10(scale)) + 100, cond, scale=scale)
-    got = fit_svr(Z, F, GAMMAS, loss_scale)
+    got = fit_svr(Z, F, GAMMAS, loss_scale=loss_scale)
     for k, gamma in enumerate(GAMMAS):
         g = gamma if loss_scale == "sum" else gamma * N0
         assert rel(got[k], oracle(Z, F, g)) < TOL, (cond, scale, gamma)

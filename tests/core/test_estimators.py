@@ -106,7 +106,7 @@ def sklearn_svr(Z, F, C):
 def test_svr_matches_constrained_primal_qp(loss_scale):
     Z, F = make_data(1)
     N0 = Z.shape[1]
-    got = fit_svr(Z, F, GAMMAS, loss_scale)
+    got = fit_svr(Z, F, GAMMAS, loss_scale=loss_scale)
     ols = fit_ols(Z, F)
     # from the sufficient statistics only (what the runner uses for svr)
     from_gram = svr_from_gram(Z @ Z.T, F @ Z.T, N0, GAMMAS, loss_scale=loss_scale)
@@ -122,7 +122,7 @@ def test_svr_matches_constrained_primal_qp(loss_scale):
 def test_svr_matches_appendix_a_dual(loss_scale):
     Z, F = make_data(2, N0=30)
     N0 = Z.shape[1]
-    got = fit_svr(Z, F, GAMMAS, loss_scale)
+    got = fit_svr(Z, F, GAMMAS, loss_scale=loss_scale)
     for k, gamma in enumerate(GAMMAS):
         g = gamma if loss_scale == "sum" else gamma * N0
         ref, alpha = dual_svr(Z, F, g)
@@ -135,19 +135,21 @@ def test_svr_matches_appendix_a_dual(loss_scale):
 def test_svr_matches_sklearn_linearsvr(loss_scale):
     Z, F = make_data(3)
     N0 = Z.shape[1]
-    got = fit_svr(Z, F, GAMMAS, loss_scale)
+    got = fit_svr(Z, F, GAMMAS, loss_scale=loss_scale)
     for k, gamma in enumerate(GAMMAS):
         C = 1 / (2 * gamma) if loss_scale == "sum" else 1 / (2 * gamma * N0)
         ref = sklearn_svr(Z, F, C)
         assert rel(got[k], ref) < RTOL
         # the oracle is sharp enough to see a 1e-4 relative change of gamma
-        assert rel(fit_svr(Z, F, gamma * (1 + 1e-4), loss_scale)[0], ref) > 10 * RTOL
+        assert rel(fit_svr(Z, F, gamma * (1 + 1e-4), loss_scale=loss_scale)[0], ref) > 10 * RTOL
 
 
 def test_mean_is_sum_with_gamma_times_n0():
     Z, F = make_data(4, N0=57, batch=(3,))
     g = np.array([0.005, 0.05])
-    np.testing.assert_array_equal(fit_svr(Z, F, g, "mean"), fit_svr(Z, F, g * 57, "sum"))
+    np.testing.assert_array_equal(
+        fit_svr(Z, F, g, loss_scale="mean"), fit_svr(Z, F, g * 57, loss_scale="sum")
+    )
     np.testing.assert_array_equal(ridge_parameters(g, 57, "mean"), g * 57)
     np.testing.assert_array_equal(ridge_parameters(g, 57, "sum"), g)
 
@@ -239,7 +241,7 @@ def test_batch_and_slice_are_bit_identical(N0):
     fits = {
         "ols": lambda z, f: fit_ols(z, f),
         "svr": lambda z, f: fit_svr(z, f, g),
-        "svr-mean": lambda z, f: fit_svr(z, f, g, "mean"),
+        "svr-mean": lambda z, f: fit_svr(z, f, g, loss_scale="mean"),
         "shrunk": lambda z, f: shrunk_ols(fit_ols(z, f), g),
     }
     for name, fit in fits.items():
@@ -261,11 +263,11 @@ def test_shapes_wrappers_and_validation():
     assert fit_ols(Z, F).shape == (2, 3, 2, 5)
     assert fit_svr(Z, F, [0.1, 0.2, 0.3]).shape == (2, 3, 3, 2, 5)
     est = SVRIdentifier(0.2, "mean").fit(Z, F)
-    assert np.array_equal(est.coef_, fit_svr(Z, F, [0.2], "mean")[..., 0, :, :])
+    assert np.array_equal(est.coef_, fit_svr(Z, F, [0.2], loss_scale="mean")[..., 0, :, :])
     assert est.predict(Z).shape == F.shape
     assert np.array_equal(OLSIdentifier().fit(Z, F).coef_, fit_ols(Z, F))
     with pytest.raises(ValueError):
-        fit_svr(Z, F, [0.1], "median")
+        fit_svr(Z, F, [0.1], loss_scale="median")
     for bad in ([-0.1], [0.0], [np.nan], []):
         with pytest.raises(ValueError):
             fit_svr(Z, F, bad)

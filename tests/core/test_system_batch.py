@@ -147,7 +147,7 @@ def _flawed(s: dict, flaw: str, n: int, rng: np.random.Generator) -> object:
 
 
 def _one_by_one(raw: list) -> tuple:
-    return tuple(resolve_system(s, f"systems[{i}]") for i, s in enumerate(raw))
+    return tuple(resolve_system(s, field=f"systems[{i}]") for i, s in enumerate(raw))
 
 
 def _outcome(resolve, raw):

@@ -16,6 +16,6 @@ def list_presets(caller: CurrentCaller) -> list[dict]:
     and noise levels."""
     out = []
     for name in sorted(PRESETS):
-        s = resolve_system(name, "systems[0]")
+        s = resolve_system(name, field="systems[0]")
         out.append({"name": name, **{k: v for k, v in s.to_dict().items() if k != "name"}})
     return out
