@@ -11,6 +11,7 @@ import io
 import json
 import math
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -736,3 +737,15 @@ def test_cli_reproduce_runs_a_subset_and_refuses_unknown_names(tmp_path):
     bad = subprocess.run([*cmd, "--draws", "bartlett"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2
     assert bad.stderr.strip().splitlines() == ["error: --draws must be one of rollouts, wishart"]
+
+
+def test_the_published_table_2_is_what_the_full_preset_writes(tmp_path):
+    """docs/table2.md and the README's Table 2 are the full preset's E1 as
+    `svrobs reproduce` writes it today (the default draws), byte for byte."""
+    rep_mod.reproduce(tmp_path, scale="full", quiet=True, n_jobs=1, only="E1")
+    written = (tmp_path / "table2.md").read_text()
+    root = Path(__file__).resolve().parents[2]
+    assert (root / "docs" / "table2.md").read_text() == written
+    readme = (root / "README.md").read_text()
+    for row in (line for line in written.splitlines() if line.startswith("| paper-")):
+        assert row in readme, row

@@ -167,7 +167,7 @@ def test_readme_tour_runs_as_written(tmp_path):
         compared = {
             int(f[0])
             for f in (ln.split("\t") for ln in run.stdout.splitlines())
-            if len(f) == 6 and f[0].isdigit() and f[2] in ("ols", "svr")
+            if len(f) == 7 and f[0].isdigit() and f[2] in ("ols", "svr")  # job, N, estimator, gamma
         }
         assert compared == {tour["id"], tour2["id"]}
 

@@ -149,7 +149,7 @@ def test_load_rollouts_reads_the_arrays_across_chunks(client, session, make_acco
         assert all(np.array_equal(a, b) for a, b in zip(Us, want_U))
 
 
-def test_a_dataset_jobs_page_has_the_validation_card(web, make_account):
+def test_a_dataset_jobs_page_has_the_validation_card_and_no_table_2(web, make_account):
     acc = make_account()
     csrf = _signed_in(web, acc)
     X, U = files.rollouts(seed=8, lengths=(10,) * 5, n=2, m=1)
@@ -164,12 +164,14 @@ def test_a_dataset_jobs_page_has_the_validation_card(web, make_account):
     assert f'data-validation-url="/api/v1/jobs/{job["id"]}/validation"' in page.text
     assert "/static/validation.js" in page.text
     assert web.get(f"{API}/jobs/{job['id']}/validation").status_code == 200  # by the session
+    assert "table2-card" not in page.text  # RMSE needs the true system: no Table 2
     sim = web.post(
         f"{API}/jobs",
         json={"systems": ["paper-stable"], "sigma_w": [1.0], "N": [10], "reps": 1},
         headers={"Authorization": f"Bearer {acc.key}"},
     ).json()
-    assert "validation-card" not in web.get(f"/jobs/{sim['id']}").text
+    sim_page = web.get(f"/jobs/{sim['id']}").text
+    assert "validation-card" not in sim_page and "table2-card" in sim_page
 
 
 def _posted(values: dict, **edits) -> dict:
