@@ -19,6 +19,10 @@ Every error prints one line and exits with status 2, never a traceback
 
 from __future__ import annotations
 
+from importlib.metadata import version
+
+import typer
+
 from svrobs_cli import admin, datasets, local, rest, schedules, serve, shares
 from svrobs_cli.errors import SvrobsTyper
 
@@ -31,6 +35,21 @@ app = SvrobsTyper(
     pretty_exceptions_enable=False,
     add_completion=False,
 )
+
+
+def _print_version(asked: bool) -> None:
+    if asked:
+        typer.echo(f"svrobs {version('svrobs')}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    _version: bool = typer.Option(
+        False, "--version", callback=_print_version, is_eager=True, help="print the version"
+    ),
+) -> None:
+    """SVR-based observer design experiments as a service."""
 
 
 def _group(name: str, help: str) -> SvrobsTyper:

@@ -202,8 +202,9 @@ def validation(
     job: int = typer.Argument(...),
     out: Path | None = typer.Option(None, "--out", help="write the JSON to this file"),
 ) -> None:
-    """A dataset job's validation: each estimator's fit on the held-out rollouts, the
-    whiteness and cross-correlation tests, the excitation of the training data."""
+    """A dataset job's validation: each estimator's fit (on the first max(N) training
+    rollouts) on the held-out rollouts, the whiteness and cross-correlation tests, the
+    excitation of the training data (the dataset's page shows that of all its rollouts)."""
     with client(timeout=120) as c:
         body = c.validation(job)
     if out is not None:
@@ -220,7 +221,10 @@ def validation(
         typer.echo(f"{m['estimator']}{gamma}: one-step fit {fits}; Ljung-Box p {lb}")
     ex = body["excitation"]
     lam = _g(ex["lambda_min"], null="none")  # none: beyond the double range (a note says so)
-    typer.echo(f"excitation: lambda_min {lam}, condition number {_g(ex['cond'])}")
+    typer.echo(
+        f"excitation of the {body['N']} training rollouts ({ex['N0']} transitions): "
+        f"lambda_min {lam}, condition number {_g(ex['cond'])}"
+    )
     for note in ex["notes"] + body["notes"]:
         typer.echo(f"note: {note}")
 

@@ -492,11 +492,19 @@ def test_a_validation_whose_eigenvalues_are_beyond_the_double_range_prints(capsy
     note that says why, not a traceback."""
     note = "eigenvalues beyond the double range (null): ..."
     body = {
+        "N": 20,
         "models": [{"estimator": "ols", "gamma": None, "validation": None}],
-        "excitation": {"lambda_min": None, "cond": 2.02, "notes": [note]},
+        "excitation": {"lambda_min": None, "cond": 2.02, "N0": 800, "notes": [note]},
         "notes": [],
     }
     run = _offline(capsys, monkeypatch, lambda r: httpx.Response(200, json=body))
     code, out, err = run("validation", "3")
     assert (code, err) == (0, "")
-    assert "excitation: lambda_min none, condition number 2.02\n" in out and f"note: {note}" in out
+    line = "excitation of the 20 training rollouts (800 transitions): lambda_min none, "
+    assert line + "condition number 2.02\n" in out and f"note: {note}" in out
+
+
+def test_version_prints_the_installed_package_version(capsys):
+    from importlib.metadata import version
+
+    assert run_cli(capsys, "--version") == (0, f"svrobs {version('svrobs')}\n", "")

@@ -259,7 +259,8 @@ def test_a_dataset_job_and_its_validation_through_the_client_and_the_cli(
     code, out, _ = run("validation", str(job.id))
     assert code == 0 and out.startswith("ols: one-step fit x1 ")
     fit = body["models"][0]["validation"]["one_step_fit"][0]
-    assert f"x1 {fit:.1f} %" in out and "excitation: lambda_min " in out
+    assert f"x1 {fit:.1f} %" in out
+    assert f"excitation of the 20 training rollouts ({body['excitation']['N0']} transitions)" in out
     code, out, _ = run("validation", str(job.id), "--out", str(tmp_path / "v.json"))
     assert code == 0 and json.loads((tmp_path / "v.json").read_text()) == body
     code, _, err = run("validation", "999999")

@@ -425,3 +425,16 @@ def test_a_ranged_grid_in_error_marks_its_range_inputs_invalid(web, sent, make_a
     assert "aria-invalid" not in listed
     assert '<a href="#field-gamma"><code>gamma.stop</code></a>' in r.text
     assert sent.published == []
+
+
+def test_the_form_hints_match_each_fields_kind(web, make_account):
+    """N's list hints integers, σ_w's decimals; an optional number says it has a default."""
+    sign_in(web, make_account().key)
+    page = web.get("/jobs/new").text
+
+    def placeholder(input_id):
+        return re.search(rf'id="{input_id}"[^>]*placeholder="([^"]*)"', page)[1]
+
+    assert placeholder("f-N") == "e.g. 10, 20, 50"
+    assert placeholder("f-sigma_w") == "e.g. 0.1, 1.0"
+    assert placeholder("f-mc_reps") == "default"

@@ -85,6 +85,12 @@ def test_compare_page_table_is_the_api_compare(web, done):
     embedded = json.loads(html.unescape(re.search(r'data-compare="([^"]+)"', page.text).group(1)))
     assert embedded["rows"] == api["rows"] and embedded["x"] == "N"
     assert page.text.count('<tr><td><a href="/jobs/') == len(api["rows"])
+    # the chart says what each mean pools: here the systems and noise levels too
+    pooled = re.search(r'id="compare-pooled">([^<]*)<', page.text)[1]
+    assert "pooled over system and σ_w" in html.unescape(pooled), pooled
+    every = "&by=".join(("system", "sigma_w", "estimator", "gamma"))
+    kept = web.get(f"/compare?jobs={ids[0]}&metric=rmse_A&by={every}").text
+    assert "pooled over" not in re.search(r'id="compare-pooled">([^<]*)<', kept)[1]
 
 
 def test_a_chosen_job_older_than_the_listed_newest_is_listed_as_chosen(web, done, session):
