@@ -11,6 +11,7 @@ exceptions of :mod:`svrobs_client.errors`; results come as pandas DataFrames (th
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -25,6 +26,7 @@ from .datasets import DatasetCalls
 from .errors import (
     ConnectionFailed,
     Unavailable,
+    ValidationError,
     WaitTimeout,
     error_from_response,
     not_the_api,
@@ -59,6 +61,45 @@ def _load_json(spec: object) -> dict[str, Any]:
             raise ValueError(f"{spec}: the spec must be a JSON object")
         return data
     raise TypeError(f"a spec is a dict or a path to a JSON file, got {type(spec).__name__}")
+
+
+def json_body(value: Any) -> bytes:
+    """A request body as JSON: numpy numbers and arrays as plain numbers and lists; a NaN
+    or infinity anywhere is a :class:`ValidationError` naming where it is (JSON has
+    none; the API refuses the same value with the same message)."""
+    try:
+        return json.dumps(value, allow_nan=False, default=_plain).encode("utf-8")
+    except ValueError:
+        where = _non_finite(json.loads(json.dumps(value, default=_plain)))
+        raise ValidationError("must be finite (no NaN or inf)", field=where) from None
+
+
+def _plain(value: Any) -> Any:
+    tolist = getattr(value, "tolist", None)  # numpy scalars and arrays
+    if callable(tolist):
+        return tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON: give numbers, text, lists or dicts")
+
+
+def _non_finite(value: Any, path: str = "") -> str | None:
+    """The path (``sigma_w[0]``, ``sls.C_bound``) of the first NaN or infinity."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else path or None
+    if isinstance(value, dict):
+        pairs = [(f"{path}.{k}" if path else str(k), v) for k, v in value.items()]
+    elif isinstance(value, list):
+        pairs = [(f"{path}[{k}]", v) for k, v in enumerate(value)]
+    else:
+        return None
+    return next((w for p, v in pairs if (w := _non_finite(v, p)) is not None), None)
+
+
+def _answers(headers: httpx.Headers, expect: str) -> bool:
+    """Whether an answer is what the API sends: a file (``"attachment"``) or a body of
+    the content type ``expect``."""
+    if expect == "attachment":
+        return str(headers.get("content-disposition", "")).startswith("attachment")
+    return expect in str(headers.get("content-type", ""))
 
 
 def _check_seed_policy(policy: object) -> None:
@@ -119,6 +160,9 @@ class Client(ResultCalls, DatasetCalls):
     def request(self, method: str, path: str, **kw: Any) -> httpx.Response:
         """One request under ``/api/v1``; a typed :class:`SvrobsError` for any HTTP error
         status or a redirect, :class:`ConnectionFailed` when the server cannot be reached."""
+        if "json" in kw:  # encoded here: numpy numbers plain, a NaN named (not httpx's)
+            kw["content"] = json_body(kw.pop("json"))
+            kw["headers"] = {**kw.get("headers", {}), "Content-Type": "application/json"}
         try:
             r = self._http.request(method, path, **kw)
         except httpx.HTTPError as exc:
@@ -138,13 +182,19 @@ class Client(ResultCalls, DatasetCalls):
             raise not_the_api(self.url, r.status_code, r.headers) from None
 
     @contextmanager
-    def _stream(self, path: str, params: dict[str, Any]) -> Iterator[httpx.Response]:
+    def _stream(
+        self, path: str, params: dict[str, Any], *, expect: str | None = None
+    ) -> Iterator[httpx.Response]:
         """A streamed GET of data (records, a file): errors as :meth:`request`'s, an HTML
-        page too; a connection lost mid-answer is :class:`ConnectionFailed` saying so."""
+        page too, and an answer whose content type lacks ``expect`` (``"attachment"``:
+        a file without the API's Content-Disposition); a connection lost mid-answer is
+        :class:`ConnectionFailed` saying so."""
         answered = False
         try:
             with self._http.stream("GET", path, params=params) as r:
                 self._check(r, data=True)
+                if expect is not None and not _answers(r.headers, expect):
+                    raise not_the_api(self.url, r.status_code, r.headers)
                 answered = True
                 yield r
         except httpx.HTTPError as exc:
@@ -173,10 +223,9 @@ class Client(ResultCalls, DatasetCalls):
         body = _load_json(spec)
         if name is not None:
             body["name"] = name
-        if tags:
-            body["tags"] = list(body.get("tags") or []) + (
-                [tags] if isinstance(tags, str) else list(tags)
-            )
+        given = body.get("tags")
+        if tags and (given is None or isinstance(given, list)):  # else the API names it
+            body["tags"] = list(given or []) + ([tags] if isinstance(tags, str) else list(tags))
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
         job = Job.from_json(self.request_json("POST", "/jobs", json=body, headers=headers))
         if wait:

@@ -180,7 +180,7 @@ class DatasetCalls:
     def _download(
         self, path: str, params: dict[str, Any], out: str | os.PathLike[str] | IO[bytes] | None
     ) -> bytes | Path | IO[bytes]:
-        with self._stream(path, params) as r:
+        with self._stream(path, params, expect="attachment") as r:
             if out is None:
                 data: bytes = r.read()
                 return data

@@ -9,6 +9,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, Self, TypeVar
 
+from .errors import SvrobsError
+
 _T = TypeVar("_T")
 
 TERMINAL = ("succeeded", "failed", "cancelled")
@@ -20,10 +22,9 @@ def ident(obj: object) -> int:
     value = getattr(obj, "id", obj)
     if isinstance(value, bool) or not isinstance(value, (int, str)):
         raise TypeError(f"expected an id or an object with one, got {type(obj).__name__}")
-    try:
-        return int(value)
-    except ValueError:
-        raise ValueError(f"{value!r} is not an id: ids are whole numbers") from None
+    if isinstance(value, str) and not (value.isascii() and value.isdigit()):
+        raise ValueError(f"{value!r} is not an id: ids are whole numbers (digits 0-9)")
+    return int(value)
 
 
 def _time(value: str | None) -> datetime | None:
@@ -36,6 +37,12 @@ def _build(cls: type[_T], data: dict[str, Any], **given: Any) -> _T:
     """``cls`` from the API's JSON: each field from the key of its name (``*_at`` parsed
     as a datetime, a missing list or dict empty), unless ``given``; ``raw`` = ``data``."""
     dataclass_: Any = cls  # every caller is a dataclass
+    names = {f.name for f in fields(dataclass_)}
+    if not isinstance(data, dict) or ("id" in names and not isinstance(data.get("id"), int)):
+        kind = cls.__name__.lower()
+        raise SvrobsError(
+            f"the answer is not a {kind} of the svrobs API (is SVROBS_URL its address?)"
+        )
     kw: dict[str, Any] = {}
     for f in fields(dataclass_):
         if f.name == "raw":

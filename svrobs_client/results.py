@@ -19,6 +19,8 @@ from .models import Job, Report, ident
 from .params import results_params
 
 FORMATS = ("csv", "jsonl", "json")
+# the content type the API streams each format as (json: built here from jsonl)
+MEDIA = {"csv": "text/csv", "jsonl": "application/x-ndjson"}
 _FIGURE = re.compile(r"<img[^>]*?alt='([^']*)'[^>]*?src='data:image/png;base64,([^']+)'")
 
 
@@ -44,7 +46,7 @@ class ResultCalls:
         (``rmse_A_lt=0.01``); ``limit`` / ``offset``. An unknown name is a TypeError,
         a bad value a ValueError, before any request (:mod:`svrobs_client.params`)."""
         params = {**results_params(filters, sort), "format": "jsonl"}
-        with self._stream(f"/jobs/{ident(job)}/results", params) as r:
+        with self._stream(f"/jobs/{ident(job)}/results", params, expect=MEDIA["jsonl"]) as r:
             for line in r.iter_lines():
                 if line.strip():
                     yield json.loads(line)
@@ -72,8 +74,8 @@ class ResultCalls:
         sort: str | Sequence[str] | None = None,
         **filters: Any,
     ) -> None:
-        """Write the job's records as ``csv``, ``jsonl`` (both streamed) or ``json`` (one
-        array) to a path or a text stream; ``sort`` and filters as in
+        """Write the job's records as ``csv``, ``jsonl`` or ``json`` (one array, written a
+        record at a time), streamed, to a path or a text stream; ``sort`` and filters as in
         :meth:`iter_results`. A path is written through a temporary file and renamed,
         so a failed download leaves no file behind."""
         if format not in FORMATS:
@@ -81,10 +83,13 @@ class ResultCalls:
         params = {**results_params(filters, sort), "format": format}  # checked first
 
         def chunks() -> Iterator[str]:
-            if format == "json":
-                yield json.dumps(self.results_records(job, sort=sort, **filters)) + "\n"
+            if format == "json":  # one array, as json.dumps writes it, a record at a time
+                yield "["
+                for k, record in enumerate(self.iter_results(job, sort=sort, **filters)):
+                    yield (", " if k else "") + json.dumps(record)
+                yield "]\n"
                 return
-            with self._stream(f"/jobs/{ident(job)}/results", params) as r:
+            with self._stream(f"/jobs/{ident(job)}/results", params, expect=MEDIA[format]) as r:
                 yield from r.iter_text()
 
         if hasattr(out, "write"):

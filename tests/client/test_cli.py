@@ -438,7 +438,7 @@ def test_files_that_cannot_be_read_or_written(capsys, monkeypatch, tmp_path):
             ("validation", 1, "--out", binary / "v.json"),
             f"cannot write {binary / 'v.json'}: {binary} is not a folder",
         ),
-        (("compare", "--jobs", "1,abc"), "'abc' is not an id: ids are whole numbers"),
+        (("compare", "--jobs", "1,abc"), "'abc' is not an id: ids are whole numbers (digits 0-9)"),
     ]:
         _fails(run(*args), f"error: {message}\n")
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["bad.yaml", "bin.json", "folder"]

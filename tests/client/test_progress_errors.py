@@ -6,11 +6,13 @@ files that cannot be read or written. No server needed (a fake API in process)."
 from __future__ import annotations
 
 import io
+import json
 import socket
 import sys
 import types
 
 import httpx
+import numpy as np
 import pytest
 
 from svrobs_client import (
@@ -19,6 +21,7 @@ from svrobs_client import (
     ConnectionFailed,
     NotFound,
     SvrobsError,
+    ValidationError,
     errors,
     progress,
 )
@@ -178,8 +181,10 @@ def test_a_connection_lost_mid_answer(monkeypatch, tmp_path):
     saying which, and no file."""
 
     def handler(request: httpx.Request) -> httpx.Response:
-        if request.url.path.endswith("/results"):
-            return httpx.Response(200, stream=_Cut(), headers={"content-type": "text/csv"})
+        if request.url.path.endswith("/results"):  # the API's type for the format asked
+            fmt = request.url.params.get("format")
+            media = "text/csv" if fmt == "csv" else "application/x-ndjson"
+            return httpx.Response(200, stream=_Cut(), headers={"content-type": media})
         if "offset" in request.url.params:
             raise httpx.ConnectError("connection refused")
         body = {"job_id": 1, "groups": [{"N": 10}], "total": 2, "partial": False}
@@ -253,13 +258,15 @@ def test_a_url_given_with_the_apis_prefix_is_the_servers_root(monkeypatch, suffi
 def test_ids_spec_files_and_output_paths_are_named(monkeypatch, tmp_path):
     """An id that is not a number, a spec file that is not JSON and an output path that
     cannot be written: errors that say so, naming the value or the path."""
-    fake_api(monkeypatch, lambda r: httpx.Response(200, text="N\n10\n"))
+    csv = {"content-type": "text/csv; charset=utf-8"}
+    fake_api(monkeypatch, lambda r: httpx.Response(200, text="N\n10\n", headers=csv))
     (tmp_path / "bin.json").write_bytes(b"\xff\xfe{")
     (tmp_path / "bad.json").write_text("{not json")
     (tmp_path / "folder").mkdir()
     with Client(URL, "svr_k") as c:
-        with pytest.raises(ValueError, match="^'abc' is not an id: ids are whole numbers$"):
-            c.job("abc")
+        for not_an_id in ("abc", "1_0", "١", " 1"):  # int() would take the last three
+            with pytest.raises(ValueError, match=rf"^{not_an_id!r} is not an id: ids are whole"):
+                c.job(not_an_id)
         with pytest.raises(ValueError, match=r"bin.json: not a JSON file \(not UTF-8 text\)$"):
             c.submit(tmp_path / "bin.json")
         with pytest.raises(ValueError, match="bad.json: not valid JSON: Expecting property"):
@@ -363,7 +370,8 @@ def test_ctrl_c_while_submit_waits_names_the_job_that_keeps_running(
 def test_results_out_dash_is_stdout(monkeypatch, capsys, tmp_path):
     """``svrobs results JOB --out -`` prints the records, as without ``--out``, and
     writes no file named ``-``."""
-    fake_api(monkeypatch, lambda r: httpx.Response(200, text="N\n10\n"))
+    csv = {"content-type": "text/csv; charset=utf-8"}
+    fake_api(monkeypatch, lambda r: httpx.Response(200, text="N\n10\n", headers=csv))
     monkeypatch.setenv("SVROBS_URL", URL)
     monkeypatch.setenv("SVROBS_API_KEY", "svr_k")
     monkeypatch.chdir(tmp_path)
@@ -389,3 +397,62 @@ def test_compare_reads_every_page_of_groups(monkeypatch):
         body = c.compare_json([1], "rmse_A", by="N", page_size=10)
     assert body["rows"] == rows and body["total"] == 25 and body["limit"] == 7  # the first page's
     assert asked == [(None, 0), ("10", 7), ("10", 17)]
+
+
+def test_a_download_that_is_not_the_apis_writes_nothing(monkeypatch, tmp_path):
+    """Results and files from a server that is not the API (plain text, JSON) are a
+    SvrobsError and leave no file; they were written as the file, exit 0."""
+    answer = {}
+    fake_api(monkeypatch, lambda r: httpx.Response(200, **answer))
+    for body in ({"text": "hello world"}, {"json": {"hello": 1}}):
+        answer.clear()
+        answer.update(body)
+        with Client(URL, "svr_k") as c:
+            for fmt in ("csv", "jsonl", "json"):
+                with pytest.raises(SvrobsError, match="is not the svrobs API's address"):
+                    c.download_results(1, tmp_path / f"r.{fmt}", format=fmt)
+            with pytest.raises(SvrobsError, match="is not the svrobs API's address"):
+                c.download_model(1, "N=10,estimator=ols,rep=0", out=tmp_path / "m.npz")
+            with pytest.raises(SvrobsError, match="not (the|a job of the) svrobs API"):
+                c.submit({"systems": ["paper-stable"]}, wait=False)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_json_results_are_streamed_as_one_array(monkeypatch, tmp_path):
+    """format="json" writes json.dumps of the records, built a record at a time."""
+    records = [{"N": 10, "x": 0.5}, {"N": 20, "x": None}]
+    lines = ["".join(json.dumps(r) + "\n" for r in records), ""]
+    nd = {"content-type": "application/x-ndjson"}
+    fake_api(monkeypatch, lambda r: httpx.Response(200, text=lines.pop(0), headers=nd))
+    with Client(URL, "svr_k") as c:
+        c.download_results(1, tmp_path / "r.json", format="json")
+        c.download_results(1, tmp_path / "empty.json", format="json")
+    assert (tmp_path / "r.json").read_text() == json.dumps(records) + "\n"
+    assert (tmp_path / "empty.json").read_text() == "[]\n"
+
+
+def test_a_request_body_is_json_numpy_plain_and_a_nan_named(monkeypatch):
+    """NaN and infinity have no JSON: the field is named before any request (httpx's
+    "Out of range float values" named none); numpy numbers go as plain numbers; a
+    spec's tags that are not a list are sent as they are, for the API to name."""
+    sent = []
+
+    def handler(request):
+        sent.append(json.loads(request.content))
+        return httpx.Response(202, json={"id": 3, "status": "queued"})
+
+    fake_api(monkeypatch, handler)
+    with Client(URL, "svr_k") as c:
+        with pytest.raises(ValidationError) as exc:
+            c.submit({"systems": ["paper-stable"], "sigma_w": [1.0, float("nan")]}, wait=False)
+        assert (exc.value.field, exc.value.message) == (
+            "sigma_w[1]",
+            "must be finite (no NaN or inf)",
+        )
+        assert sent == []
+        c.submit(
+            {"N": [np.int64(10)], "sigma_w": np.array([0.5]), "tags": "demo"},
+            tags=["x"],
+            wait=False,
+        )
+    assert sent == [{"N": [10], "sigma_w": [0.5], "tags": "demo"}]
