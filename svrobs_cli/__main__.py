@@ -11,10 +11,12 @@ def main() -> None:
     from svrobs_core.threads import single_thread_env
 
     single_thread_env()
-    if sys.argv[1:2] == ["serve"]:
-        from svrobs_cli.signals import record_early
+    from svrobs_cli.signals import exit_on_sigterm, record_early
 
+    if sys.argv[1:2] == ["serve"]:
         record_early()
+    else:
+        exit_on_sigterm()
     from svrobs_cli.app import app
 
     app()

@@ -5,6 +5,8 @@ imports before ``serve`` runs, a library's bare ``except:`` can swallow it, and 
 stack would then start as if no one had asked it to stop. :func:`record_early`, set
 first thing by the entry point, keeps SIGINT and SIGTERM in :data:`RECEIVED`, which
 ``serve`` reads once its handlers are set (docs/performance.md#restarts-and-stops).
+Every other command ends on SIGTERM as on Ctrl-C (:func:`exit_on_sigterm`): what it
+was writing is removed, not left as a temporary file.
 """
 
 from __future__ import annotations
@@ -22,3 +24,13 @@ def record_early() -> None:
     """Keep SIGINT and SIGTERM in :data:`RECEIVED` until a handler replaces this one."""
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, _record)
+
+
+def _terminated(signum: int, _frame: object) -> None:
+    raise SystemExit(128 + signum)
+
+
+def exit_on_sigterm() -> None:
+    """SIGTERM raises SystemExit(143) where the process is, so that cleanup (a file
+    written through :func:`svrobs_client.files.write_atomic`) runs, as for Ctrl-C."""
+    signal.signal(signal.SIGTERM, _terminated)

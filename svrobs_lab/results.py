@@ -304,8 +304,11 @@ def compare(
     if not all(is_int_text(j) for j in items):
         raise Invalid("must be comma-separated job ids (digits 0-9), e.g. 1,2", field="jobs")
     ids = [int(j) for j in items]
-    if len(ids) > COMPARE_MAX_JOBS or any(i < 1 or i > MAX_ID for i in ids):
-        raise Invalid(f"at most {COMPARE_MAX_JOBS} valid job ids", field="jobs")
+    if len(ids) > COMPARE_MAX_JOBS:
+        raise Invalid(f"at most {COMPARE_MAX_JOBS} job ids, got {len(ids)}", field="jobs")
+    bad = next((i for i in ids if i < 1 or i > MAX_ID), None)
+    if bad is not None:
+        raise Invalid(f"{bad} is not a job id (ids run from 1 to {MAX_ID})", field="jobs")
     ids = list(dict.fromkeys(ids))
     if metric not in NUMERIC_FIELDS:
         raise Invalid(

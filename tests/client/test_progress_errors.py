@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import socket
 import sys
 import types
@@ -456,3 +457,55 @@ def test_a_request_body_is_json_numpy_plain_and_a_nan_named(monkeypatch):
             wait=False,
         )
     assert sent == [{"N": [10], "sigma_w": [0.5], "tags": "demo"}]
+
+
+def test_a_download_stopped_by_sigterm_leaves_no_file(tmp_path):
+    """``svrobs results --out`` ended by SIGTERM (a `timeout`, a job scheduler) removes
+    its temporary file, as Ctrl-C does; it was left as ``.r.csv.*.part``."""
+    import http.server
+    import signal
+    import subprocess
+    import threading
+    import time
+
+    class Slow(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):  # a CSV that never ends
+            self.send_response(200)
+            self.send_header("Content-Type", "text/csv; charset=utf-8")
+            self.end_headers()
+            try:
+                self.wfile.write(b"N\n")
+                while True:
+                    self.wfile.write(b"10\n" * 1000)
+                    self.wfile.flush()
+                    time.sleep(0.05)
+            except OSError:
+                pass
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Slow)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    env = {
+        **os.environ,
+        "SVROBS_URL": f"http://127.0.0.1:{server.server_address[1]}",
+        "SVROBS_API_KEY": "svr_k",
+    }
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "svrobs_cli", "results", "1", "--out", str(out / "r.csv")],
+        env=env,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while not (out.exists() and any(out.iterdir())):  # the temporary file is there
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(30) == 128 + signal.SIGTERM
+    finally:
+        proc.kill()
+        server.shutdown()
+    assert list(out.iterdir()) == []

@@ -482,6 +482,13 @@ def test_compare_limit_above_cap_is_422(client, session, make_account):
         headers=acc.headers,
     )
     assert r.status_code == 422 and r.json()["field"] == "limit", r.text
+    # an id out of range is named, and so is a list that is too long
+    for jobs, said in (("0,1", "0 is not a job id"), (",".join(["1"] * 51), "at most 50 job")):
+        r = client.get(
+            f"{API}/compare", params={"jobs": jobs, "metric": "rmse_A"}, headers=acc.headers
+        )
+        assert r.status_code == 422 and r.json()["field"] == "jobs", r.text
+        assert r.json()["detail"].startswith(said), r.text
 
 
 def test_job_list_has_a_spec_summary_and_the_job_the_spec(client, session, make_account):
