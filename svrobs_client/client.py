@@ -94,6 +94,19 @@ def _non_finite(value: Any, path: str = "") -> str | None:
     return next((w for p, v in pairs if (w := _non_finite(v, p)) is not None), None)
 
 
+def _idempotency(key: str | None) -> dict[str, str]:
+    """The Idempotency-Key header; a ValidationError naming it for text no HTTP header
+    can carry (not printable ASCII)."""
+    if not key:
+        return {}
+    if not (key.isascii() and key.isprintable()):
+        raise ValidationError(
+            "must be printable ASCII (an HTTP header carries nothing else)",
+            field="Idempotency-Key",
+        )
+    return {"Idempotency-Key": key}
+
+
 def _answers(headers: httpx.Headers, expect: str) -> bool:
     """Whether an answer is what the API sends: a file (``"attachment"``) or a body of
     the content type ``expect``."""
@@ -226,7 +239,7 @@ class Client(ResultCalls, DatasetCalls):
         given = body.get("tags")
         if tags and (given is None or isinstance(given, list)):  # else the API names it
             body["tags"] = list(given or []) + ([tags] if isinstance(tags, str) else list(tags))
-        headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+        headers = _idempotency(idempotency_key)
         job = Job.from_json(self.request_json("POST", "/jobs", json=body, headers=headers))
         if wait:
             job = self.wait(job, progress=progress, timeout=timeout)
@@ -345,7 +358,7 @@ class Client(ResultCalls, DatasetCalls):
         body: dict[str, Any] = {"scale": scale}
         if experiments is not None:
             body["experiments"] = list(experiments)
-        headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+        headers = _idempotency(idempotency_key)
         out = self.request_json("POST", f"/presets/{PAPER_PRESET}/run", json=body, headers=headers)
         jobs = [Job.from_json(j) for j in out]
         if wait:

@@ -451,6 +451,8 @@ def test_a_request_body_is_json_numpy_plain_and_a_nan_named(monkeypatch):
             "must be finite (no NaN or inf)",
         )
         assert sent == []
+        with pytest.raises(ValidationError, match="^Idempotency-Key: must be printable ASCII"):
+            c.submit({"systems": ["paper-stable"]}, idempotency_key="clé", wait=False)
         c.submit(
             {"N": [np.int64(10)], "sigma_w": np.array([0.5]), "tags": "demo"},
             tags=["x"],
