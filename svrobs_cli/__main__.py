@@ -11,11 +11,11 @@ def main() -> None:
     from svrobs_core.threads import single_thread_env
 
     single_thread_env()
-    from svrobs_cli.signals import exit_on_sigterm, record_early
+    from svrobs_cli.signals import COMPUTING, exit_on_sigterm, record_early
 
     if sys.argv[1:2] == ["serve"]:
         record_early()
-    else:
+    elif sys.argv[1:2] not in ([c] for c in COMPUTING):
         exit_on_sigterm()
     from svrobs_cli.app import app
 

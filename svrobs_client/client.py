@@ -237,7 +237,7 @@ class Client(ResultCalls, DatasetCalls):
         if name is not None:
             body["name"] = name
         given = body.get("tags")
-        if tags and (given is None or isinstance(given, list)):  # else the API names it
+        if tags and (given is None or isinstance(given, (list, tuple))):  # else the API names it
             body["tags"] = list(given or []) + ([tags] if isinstance(tags, str) else list(tags))
         headers = _idempotency(idempotency_key)
         job = Job.from_json(self.request_json("POST", "/jobs", json=body, headers=headers))

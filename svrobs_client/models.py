@@ -33,16 +33,22 @@ def _time(value: str | None) -> datetime | None:
     return datetime.fromisoformat(value.replace("Z", "+00:00"))
 
 
-def _build(cls: type[_T], data: dict[str, Any], **given: Any) -> _T:
-    """``cls`` from the API's JSON: each field from the key of its name (``*_at`` parsed
-    as a datetime, a missing list or dict empty), unless ``given``; ``raw`` = ``data``."""
-    dataclass_: Any = cls  # every caller is a dataclass
-    names = {f.name for f in fields(dataclass_)}
+def _check_shape(cls: type, data: object) -> None:
+    """A SvrobsError unless ``data`` is a JSON object (with an integer ``id`` where
+    ``cls`` has one): what an answer of another server would not be."""
+    names = {f.name for f in fields(cls)}
     if not isinstance(data, dict) or ("id" in names and not isinstance(data.get("id"), int)):
         kind = cls.__name__.lower()
         raise SvrobsError(
             f"the answer is not a {kind} of the svrobs API (is SVROBS_URL its address?)"
         )
+
+
+def _build(cls: type[_T], data: dict[str, Any], **given: Any) -> _T:
+    """``cls`` from the API's JSON: each field from the key of its name (``*_at`` parsed
+    as a datetime, a missing list or dict empty), unless ``given``; ``raw`` = ``data``."""
+    dataclass_: Any = cls  # every caller is a dataclass
+    _check_shape(cls, data)
     kw: dict[str, Any] = {}
     for f in fields(dataclass_):
         if f.name == "raw":
@@ -100,7 +106,10 @@ class Job(_FromJSON):
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> Job:
+        _check_shape(cls, data)
         p = data.get("progress") or {}
+        if not isinstance(p, dict):
+            p = {}
         progress = Progress(
             done=int(p.get("done", 0)),
             total=int(p.get("total", 0)),

@@ -84,9 +84,14 @@ class ResultCalls:
 
         def chunks() -> Iterator[str]:
             if format == "json":  # one array, as json.dumps writes it, a record at a time
-                yield "["
-                for k, record in enumerate(self.iter_results(job, sort=sort, **filters)):
-                    yield (", " if k else "") + json.dumps(record)
+                records = self.iter_results(job, sort=sort, **filters)
+                first = next(records, None)  # the answer is checked before "[" is written
+                if first is None:
+                    yield "[]\n"
+                    return
+                yield "[" + json.dumps(first)
+                for record in records:
+                    yield ", " + json.dumps(record)
                 yield "]\n"
                 return
             with self._stream(f"/jobs/{ident(job)}/results", params, expect=MEDIA[format]) as r:

@@ -176,7 +176,7 @@ def run_dataset_variants(
         notes.add(
             unreliable,
             f"estimate: data too ill-conditioned (cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g},"
-            " or the error its solve's refinement measures above 1e-10 of it):"
+            f" or the error its solve's refinement measures above {_est.REFINE_STEP_TRUST:g} of it):"
             " certificates withheld",
         )
         skipped = [st for st in STAGES if not s.has(st)]

@@ -18,6 +18,7 @@ from pydantic import (
 )
 from pydantic_core import InitErrorDetails, PydanticCustomError, ValidationError
 
+from service.db.models import TAG_MAX
 from svrobs_core.spec import DATASET_KEYS, SPEC_KEYS
 from svrobs_core.text import NOT_PRINTABLE, printable
 
@@ -124,7 +125,7 @@ def _printable(text: str) -> str:
 
 TagStr = Annotated[
     str,
-    StringConstraints(strip_whitespace=True, min_length=1, max_length=100),
+    StringConstraints(strip_whitespace=True, min_length=1, max_length=TAG_MAX),
     AfterValidator(_printable),
 ]
 # a job's or a schedule's name: shown in terminals, pages and file names

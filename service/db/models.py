@@ -37,6 +37,7 @@ JOB_ACTIVE = ("queued", "running")
 UNIT_STATUSES = ("pending", "running", "done", "failed", "cancelled")
 OLS_GAMMA_KEY = -1.0
 SHARE_LABEL_MAX = 200  # characters of a share link's label
+TAG_MAX = 100  # characters of a job's tag as a request gives it (the column holds 200)
 
 
 def utcnow() -> datetime:
@@ -175,7 +176,7 @@ class JobTag(Base):
 
     __tablename__ = "job_tags"
     job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True)
-    tag: Mapped[str] = mapped_column(String(200), primary_key=True, index=True)
+    tag: Mapped[str] = mapped_column(String(200), primary_key=True, index=True)  # <= TAG_MAX
 
 
 class WorkUnit(Base):

@@ -27,7 +27,7 @@ from svrobs_core.errors import SpecError
 from svrobs_lab.errors import IdempotencyConflict, QuotaExceeded
 
 from .jobs import create_job
-from .models import Job, JobTag, Schedule, ScheduleRun, as_utc, utcnow
+from .models import TAG_MAX, Job, Schedule, ScheduleRun, as_utc, utcnow
 
 if TYPE_CHECKING:
     from sqlalchemy.dialects import postgresql, sqlite
@@ -59,8 +59,9 @@ def run_job_name(name: str, due: datetime, suffix: str = "") -> str:
 
 
 def schedule_tag(name: str) -> str:
-    """The tag every job of the schedule ``name`` carries, cut to fit a tag."""
-    return _fitted(name, "schedule:", "", _width(JobTag.__table__.c.tag))
+    """The tag every job of the schedule ``name`` carries, cut to the length a tag
+    may have (TAG_MAX: a client can filter by it)."""
+    return _fitted(name, "schedule:", "", TAG_MAX)
 
 
 def run_spec(template: dict, policy: str, due: datetime) -> dict:

@@ -24,7 +24,7 @@ from .. import uncertainty as _unc
 from ..array_types import Array, BoolArray, FloatArray
 from ..bounds import BoundsResult
 from ..data_factor import GramFactor, data_factor, estimate_margin
-from ..estimators import fit_ols
+from ..estimators import REFINE_STEP_TRUST, fit_ols
 from ..norms import spectral_radius
 from ..notes import Notes
 from ..observer_stages import design
@@ -111,8 +111,9 @@ def run_cells(
     notes.add(withheld & scale[:, None], f"estimate: certificates withheld: {REASON_RANGE}")
     notes.add(
         withheld & ~scale[:, None],
-        f"estimate: not finite or cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g} (the data do not"
-        " excite every direction): certificates withheld",
+        f"estimate: not finite, or cond(Z Z^T + g I) > {ESTIMATE_COND_LIMIT:g} or the error"
+        f" its solve's refinement measures above {REFINE_STEP_TRUST:g} of it (the data do not"
+        " excite every direction well enough): certificates withheld",
     )
     if len(ran) < len(STAGES):
         notes.add(True, "stages not run: " + ", ".join(st for st in STAGES if st not in ran))
@@ -320,9 +321,10 @@ def _ridge_premise(
     norm cannot show a violation, as the ridge shrinks it. The OLS box of the same
     data (same sigma_w and delta, no S) contains every true row with the box's
     probability; where even its smallest norm, ``||max(|theta_ols_ij| - R_ij, 0)||``
-    over an estimated row, exceeds S, the true row's does. Where S is the default
-    (``sqrt(2) M``, not given) the other ridge boxes say that they assume it
-    (docs/measured.md#sound-set)."""
+    over an estimated row, exceeds S, the true row's does; where even its largest,
+    ``||theta_ols_ij| + R_ij||``, is within S for every row, S holds. Where S is the
+    default (``sqrt(2) M``, not given) and the data neither refute nor confirm it, the
+    ridge box says that it assumes it (docs/measured.md#sound-set)."""
     lam, _ = _ridge_axis(c.axis, N0, spec.loss_scale)
     if not (lam > 0).any():
         return box
@@ -337,14 +339,15 @@ def _ridge_premise(
         lambda0=spec.lambda0,
     )
     R = np.concatenate([ols.R_A, ols.R_B], axis=-1)[:, model.estimated]
+    size = np.abs(theta_ols[:, model.estimated])
     with np.errstate(invalid="ignore", over="ignore"):  # a null OLS box: NaN, no refutation
-        floor = np.linalg.norm(
-            np.maximum(np.abs(theta_ols[:, model.estimated]) - R, 0.0), axis=-1
-        ).max(axis=-1)
+        floor = np.linalg.norm(np.maximum(size - R, 0.0), axis=-1).max(axis=-1)
+        ceiling = np.linalg.norm(size + R, axis=-1).max(axis=-1)
         refuted = (floor > spec.S_bound)[:, None] & (lam > 0) & box.ok
+        confirmed = (ceiling <= spec.S_bound)[:, None]
     if spec.S is None:
         c.notes.add(
-            (lam > 0) & box.ok & ~refuted,
+            (lam > 0) & box.ok & ~refuted & ~confirmed,
             f"bounds: the SVR box assumes every row of [A B] has norm <= S = {spec.S_bound:g}"
             " (the default, sqrt(2) M), which the data do not confirm: set S",
         )

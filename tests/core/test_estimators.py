@@ -291,9 +291,9 @@ def test_svr_is_accurate_or_withheld_on_ill_conditioned_data(seed):
     """150 datasets per seed with rows scaled by 1e-4..1e4, some with one row a
     multiple of another, g chosen for cond(Z Z^T + g I) of 1e10-1e18: every estimate
     whose condition number is reported within the trusted 1e20 is within 1e-9 of the
-    120-digit ridge; the QR solve's second refinement step flags the others. With the
-    first step's square as the measure, seed 3 kept one 1.2e-7 off (reported cond
-    6.1e16) and seed 4 one 6.5e-8 off (2.6e14)."""
+    120-digit ridge; the QR solve's second refinement step flags the others. The
+    first step's square as the measure would keep, at seed 3, one 1.2e-7 off (reported
+    cond 6.1e16) and, at seed 4, one 6.5e-8 off (2.6e14)."""
     rng = np.random.default_rng(seed)
     flagged = 0
     for _ in range(150):

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from svrobs_core import parse_spec
-from svrobs_core.measured import MeasuredData, run_datasets
+from svrobs_core.measured import MeasuredData, cells, run_datasets
 from svrobs_core.measured.noise import noise_level, residual_sum
 from svrobs_core.norms import spectral_radius
 
@@ -190,20 +190,25 @@ def feedback_datasets(seed, *, count, N=10, T=100):
     return data, np.hstack([A, B])
 
 
-def test_a_ridge_box_whose_S_the_data_refute_is_null_and_one_with_S_set_covers():
+def test_a_ridge_box_whose_S_the_data_refute_is_null_and_one_with_S_set_covers(monkeypatch):
     """B = 3 I: the ridge shrinks its estimate's rows below S, so the estimate cannot
-    show the violation, and with the default S its box missed the truth in every
-    dataset while certifying. The OLS box refutes S (its smallest row norm exceeds
-    it): the SVR box is null with the reason; with S = 4 it covers at 1 - delta."""
+    show the violation: with the default S and no test of it, the SVR box misses the
+    truth in every dataset, certifying some. The OLS box refutes S (its smallest row
+    norm exceeds it): the SVR box is null with the reason; with S = 4 it covers at
+    1 - delta."""
     datasets = [MeasuredData(X=list(x), U=list(u)) for x, u in zip(*_big_b_rollouts(6))]
     obj = {**SPEC, "sigma_w": SIGMA, "loss_scale": "mean", "gamma": [1.0]}
-    (ols, svr, shrunk), _ = records_of(obj, datasets)
     theta = np.hstack([A2, B_BIG])
+    with monkeypatch.context() as m:  # the box without the test of S
+        m.setattr(cells, "_ridge_premise", lambda c, box, *args, **kw: box)
+        (_, untested, _), _ = records_of(obj, datasets)
+    assert not inside(untested, theta).any()
+    assert any(r["certified"] is True for r in untested)
+    (ols, svr, shrunk), _ = records_of(obj, datasets)
     assert inside(ols, theta).mean() >= floor(1 - DELTA, D)
     refuted = np.array([REFUTED in r["notes"] for r in svr])
     assert refuted.mean() > 0.9  # the OLS box is tight here (N0 = 500)
     assert all(r["r_A"] is None and r["stable_certified"] is None for r in np.array(svr)[refuted])
-    assert not inside(svr, theta).any()  # the box a default S gives misses the truth
     assert not any(REFUTED in r["notes"] for r in ols + shrunk)
     (_, svr4, _), _ = records_of({**obj, "S": 4.0}, datasets)
     assert not any(REFUTED in r["notes"] or DEFAULT_S in r["notes"] for r in svr4)
@@ -228,6 +233,9 @@ def test_the_default_S_is_named_where_the_data_cannot_refute_it():
     no test of the data can refute it; the ridge box, true for such rows, misses the
     plant. Every SVR record says it assumes the default S; with S = 11 the box covers
     the plant and the note is gone."""
+    confirmed, _, _ = state_datasets(8)  # rows of norm 1.2 and 1.0 < S, well excited
+    (svr,), _ = records_of({**SPEC, "sigma_w": SIGMA, "estimators": ["svr"]}, confirmed)
+    assert np.mean([DEFAULT_S in r["notes"] for r in svr]) < 0.1  # the OLS box confirms S
     datasets, theta = feedback_datasets(7, count=60)
     obj = {**SPEC, "sigma_w": 0.2, "estimators": ["svr"], "gamma": [1.0], "N": [10]}
     obj["stages"] = ["estimate", "bounds"]

@@ -14,7 +14,7 @@ from sqlalchemy.orm import sessionmaker
 from service.config import get_settings
 from service.db import accounts, jobs, units
 from service.db.job_delete import delete_job
-from service.db.models import Job, Result, Schedule, Team
+from service.db.models import TAG_MAX, Job, Result, Schedule, Team
 from svrobs_lab import schedules as lab_schedules
 from svrobs_lab import shares as lab_shares
 from svrobs_lab.auth import Caller
@@ -229,9 +229,10 @@ def test_a_schedule_deleted_meanwhile_is_not_found(real_sessions, monkeypatch, a
 
 
 def test_a_schedule_with_the_longest_name_runs_and_others_still_run(real_sessions):
-    """A 200-character schedule name: its job's name and tag are cut to their columns'
-    200 characters (PostgreSQL refused the longer ones, and the tick's error undid
-    every team's runs); the other team's schedule runs in the same tick."""
+    """A 200-character schedule name: its job's name is cut to its column's 200
+    characters and its tag to the 100 a tag may have (PostgreSQL refuses longer ones,
+    and that error must not undo every team's runs); the other team's schedule runs in
+    the same tick."""
     maker, team_ids = real_sessions
     with maker() as s:
         long_caller, long_id = _schedule(s, team_ids, "long-name", "L" * 200)
@@ -245,6 +246,6 @@ def test_a_schedule_with_the_longest_name_runs_and_others_still_run(real_session
         assert len(job.name) == 200 and job.name.endswith("… @ 2024-06-01T12:05:00Z")
         assert job.name.startswith("L" * 170)
         tag = next(t for t in job.tags if t.startswith("schedule:"))
-        assert len(tag) == 200 and tag.endswith("L…")
+        assert len(tag) == TAG_MAX and tag.endswith("L…")
         out = lab_schedules.run_now(_submission(s, long_caller), long_id)
         assert len(out["name"]) == 200 and out["name"].endswith(" (run now)")

@@ -253,7 +253,7 @@ def test_schedule_form_errors_at_once_edit_and_run_now(web, done):
 
 
 def test_run_now_refusals_have_their_own_status(build_client, session, make_account):
-    """Run now over the team's cap on queued jobs is a 429 page (was a 422 "spec
+    """Run now over the team's cap on queued jobs is a 429 page (not a 422 "spec
     refused"), and on a schedule deleted since its page was read a 404."""
     web = build_client(SECRET_KEY="pages-secret-0123456789", MAX_QUEUED_JOBS_PER_TEAM=1)[0]
     acc = make_account()

@@ -151,7 +151,7 @@ def cancel(
     request: Request, db: DB, viewer: CurrentViewer, job_id: int, background: BackgroundTasks
 ):
     """As ``POST /api/v1/jobs/{id}/cancel`` (the team's freed slots go to its other
-    jobs); a finished job is a 409 page."""
+    jobs); a succeeded or failed job is a 409 page, a cancelled one stays as it is."""
     jobs.cancel(submission_of(request, db, viewer.caller, background), job_id)
     return RedirectResponse(f"/jobs/{job_id}", status_code=303)
 
