@@ -71,6 +71,8 @@ def json_body(value: Any) -> bytes:
         return json.dumps(value, allow_nan=False, default=_plain).encode("utf-8")
     except ValueError:
         where = _non_finite(json.loads(json.dumps(value, default=_plain)))
+        if where is None:  # not a NaN (a circular reference): the encoder's own error
+            raise
         raise ValidationError("must be finite (no NaN or inf)", field=where) from None
 
 

@@ -46,7 +46,7 @@ class SoundBounds:
     result: BoundsResult
 
 
-def _ridge_axis(axis: EstimatorAxis, N0: int, loss_scale: str) -> tuple[FloatArray, FloatArray]:
+def ridge_axis(axis: EstimatorAxis, N0: int, loss_scale: str) -> tuple[FloatArray, FloatArray]:
     """lam and shrink per estimator cell: svr -> ridge lam; ols -> 0; shrunk-ols -> shrink."""
     E = len(axis.names)
     lam = np.zeros(E)
@@ -107,7 +107,7 @@ def sound_box(
     include the estimate's rounding margin."""
     spec, system = c.spec, c.system
     theta = np.concatenate([c.A_hat, c.B_hat], axis=-1)
-    lam, shrink = _ridge_axis(c.axis, N0, spec.loss_scale)
+    lam, shrink = ridge_axis(c.axis, N0, spec.loss_scale)
     # (R, 1, ...): one factor per dataset, shared by its E cells
     if factor is None:  # ``factor``: data_factor(Z, F), when the caller has it already
         factor = (

@@ -129,7 +129,7 @@ def create_job(
         if dataset_id is not None and dataset_shape(session, dataset_id, team_id) is None:
             raise DatasetNotFound(dataset_id) from None
         # The schedule of a run made now was deleted before the insert.
-        if schedule_id is not None and not _exists(session, Schedule, schedule_id):
+        if schedule_id is not None and not _schedule_exists(session, schedule_id):
             raise NotFound(f"schedule {schedule_id} not found") from None
         raise
 
@@ -272,9 +272,9 @@ def set_timing(job: Job) -> None:
     job.timings = t
 
 
-def _exists(session: Session, model: type[Schedule], row_id: int) -> bool:
-    """Whether the row is in the database now (not the session's copy of it)."""
-    return session.scalar(select(model.id).where(model.id == row_id)) is not None
+def _schedule_exists(session: Session, schedule_id: int) -> bool:
+    """Whether the schedule is in the database now (not the session's copy of it)."""
+    return session.scalar(select(Schedule.id).where(Schedule.id == schedule_id)) is not None
 
 
 def hold_job(session: Session, job_id: int) -> bool:

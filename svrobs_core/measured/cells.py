@@ -32,7 +32,7 @@ from ..pipeline import CERTIFICATES, ESTIMATE_COND_LIMIT, _estimate
 from ..planning import EstimatorAxis
 from ..spec import STAGES, ExperimentSpec
 from ..stage_cells import StageCells  # the context the stage functions read
-from ..uncertainty_stage import _ridge_axis, bounds_from_box, sound_box
+from ..uncertainty_stage import bounds_from_box, ridge_axis, sound_box
 from .data import StateModel
 from .noise import REASON_RANGE, noise_level, residual_error, residual_sum
 
@@ -325,7 +325,7 @@ def _ridge_premise(
     ``||theta_ols_ij| + R_ij||``, is within S for every row, S holds. Where S is the
     default (``sqrt(2) M``, not given) and the data neither refute nor confirm it, the
     ridge box says that it assumes it (docs/measured.md#sound-set)."""
-    lam, _ = _ridge_axis(c.axis, N0, spec.loss_scale)
+    lam, _ = ridge_axis(c.axis, N0, spec.loss_scale)
     if not (lam > 0).any():
         return box
     sigma = np.asarray(box.sigma_w, dtype=float)[:, 0]  # (R, E): one sigma per dataset
