@@ -48,8 +48,15 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .array_types import Array, FloatArray
+from .cost_check import DoublingRounding
+from .cost_check import U as _U
 from .errors import check_matrix
-from .norms import REASON_UNSTABLE, schur_stable, spectral_radius, stability_reason, stein_solve
+from .norms import REASON_UNSTABLE, schur_stable, stability_radius, stability_reason, stein_solve
+
+REASON_STATIONARY_LOST = (
+    "not computable in doubles (its Stein equation is singular to working precision "
+    "or its covariance overflows)"
+)
 
 # Up to this state dimension the batched small products are done with the
 # batch in the last axis; above it with stacked matmul (BLAS per matrix).
@@ -209,6 +216,13 @@ class _Layout:
         """(S=1, N|1) -> batch shape."""
         return np.broadcast_to(v[0], (self.N,)).reshape(self.batch)
 
+    def norm(self, blocks: _Blocks, counts: tuple[int, ...] = (1, 2, 1)) -> Array:
+        """Frobenius norm of a block matrix from its blocks (xx, xe, ee), ``counts``
+        times each (the xe block twice in a symmetric matrix; None: a zero block). -> (S, N|1)"""
+        sq = sum(k * np.sum(b * b, axis=self._mat) for b, k in zip(blocks, counts) if b is not None)
+        out: Array = np.sqrt(sq)
+        return out
+
 
 def horizon_steps(horizon: float) -> int:
     """The horizon T as an int; ValueError unless it is a positive integer."""
@@ -263,6 +277,36 @@ def _square(ops: _Layout, P: _Blocks) -> _Blocks:
 # --------------------------------------------------------------------------
 # exact finite-horizon cost
 # --------------------------------------------------------------------------
+@overload
+def exact_cost(
+    A: ArrayLike,
+    B: ArrayLike,
+    A_tilde: ArrayLike,
+    B_tilde: ArrayLike,
+    *,
+    L: ArrayLike,
+    C: ArrayLike | None,
+    sigma_u: ArrayLike,
+    sigma_w: ArrayLike,
+    sigma_v: ArrayLike,
+    horizon: int = ...,
+    return_error: Literal[False] = ...,
+) -> FloatArray: ...
+@overload
+def exact_cost(
+    A: ArrayLike,
+    B: ArrayLike,
+    A_tilde: ArrayLike,
+    B_tilde: ArrayLike,
+    *,
+    L: ArrayLike,
+    C: ArrayLike | None,
+    sigma_u: ArrayLike,
+    sigma_w: ArrayLike,
+    sigma_v: ArrayLike,
+    horizon: int = ...,
+    return_error: Literal[True],
+) -> tuple[FloatArray, FloatArray]: ...
 @np.errstate(over="ignore", invalid="ignore")  # near the double range: inf/NaN, not warnings
 def exact_cost(
     A: ArrayLike,
@@ -276,7 +320,8 @@ def exact_cost(
     sigma_w: ArrayLike,
     sigma_v: ArrayLike,
     horizon: int = 200,
-) -> FloatArray:
+    return_error: bool = False,
+) -> FloatArray | tuple[FloatArray, FloatArray]:
     """Mean over k=1..T of E||e_k||^2 by covariance propagation. -> (...)
 
     Deterministic and exact up to rounding (binary doubling of the augmented
@@ -289,7 +334,11 @@ def exact_cost(
     A_tilde (..., n, n), B_tilde (..., n, m), L (..., n, p), C (..., p, n) or
     None, sigmas (...). Cost ~ 2 log2(T) batched products per cell: call it
     once for a whole batch of cells, not once per cell (the per-call Python
-    overhead is ~1 ms).
+    overhead is ~1 ms). ``return_error=True`` gives ``(J, err)``, ``err`` a
+    first-order bound on the rounding error of ``J``
+    (:class:`svrobs_core.cost_check.DoublingRounding`): for a
+    strongly non-normal system (entries of 1e3 and more, eigenvalues near 1) the
+    doubling, like any recursion in doubles, can lose every digit.
     """
     T = horizon_steps(horizon)
     c = CostCells(
@@ -305,23 +354,36 @@ def exact_cost(
     t_blk = 1
     acc: _Blocks | None = None
     t_acc = 0
+    rnd = DoublingRounding(ops, c.n)
+    # the inputs' own rounding: F = A~ - L C, dA, and the noise covariance
+    scale = ops.norm(P, (1, 1, 1)) + ops.norm((ops.put(c.L), None, ops.put(c.C)), (1, 0, 1)) ** 2
+    eP = rnd.g * scale
+    e_blk = np.concatenate([rnd.g * ops.norm(Q)] * 2)  # (Sigma_1, W_1) = (Q, Q)
+    e_acc = e_blk
     bits = bin(T)[2:][::-1]
     top = len(bits) - 1
     for j, bit in enumerate(bits):
         if bit == "1":
             if acc is None:
-                acc, t_acc = blk, t_blk
+                acc, t_acc, e_acc = blk, t_blk, e_blk
             else:
+                e_acc = rnd.join(P, eP, blk, e_blk, acc, e_acc, t_acc)
                 acc = _join(ops, P, blk, acc, t_b=t_acc, need_xe=(j < top))
                 t_acc += t_blk
         if j < top:
+            e_blk = rnd.join(P, eP, blk, e_blk, blk, e_blk, t_blk)
             blk = _join(ops, P, blk, blk, t_b=t_blk)
             t_blk *= 2
+            eP = rnd.square(P, eP)
             P = _square(ops, P)
     assert acc is not None  # T >= 1 has a 1 bit
     tr = ops.trace(ops.part(acc[2], 1))
     J: FloatArray = ops.get(tr) / T
-    return J
+    if not return_error:
+        return J
+    # the trace of the e block of W: at most sqrt(n) times its Frobenius error
+    err = np.sqrt(c.n) * ops.get(e_acc[1:]) / T + 2 * _U * np.abs(J)
+    return J, np.where(np.isnan(err), np.inf, err)
 
 
 def optimal_cost(
@@ -405,8 +467,9 @@ def stationary_cost(
     it is Schur stable iff ``rho(A) < 1`` and ``rho(F) < 1``; otherwise the
     value is NaN with reason ``"unstable"`` (``"non-finite input"`` for NaN
     inputs, :data:`svrobs_core.norms.REASON_BOUNDARY` for a radius within
-    UNIT_CIRCLE_TOL below 1). ``rho_F``: optional precomputed spectral radius of
-    ``F = A~ - L C`` (saves the batched eigenvalue call). ``return_reason=True``
+    UNIT_CIRCLE_TOL below 1 or one rounding could put there: stability is decided
+    on :func:`svrobs_core.norms.stability_radius`). ``rho_F``: optional precomputed
+    ``stability_radius`` of ``F = A~ - L C`` (saves the batched eigenvalue call). ``return_reason=True``
     gives ``(value, reason)``, reason an object array of None / str (a plain
     object for one cell).
     """
@@ -419,9 +482,9 @@ def stationary_cost(
         return np.swapaxes(M, -1, -2)
 
     F = c.F()
-    rho_A = spectral_radius(c.A)  # A's own batch (usually one system)
+    rho_A = stability_radius(c.A)  # A's own batch (usually one system)
     if rho_F is None:
-        rho_F = spectral_radius(F)
+        rho_F = stability_radius(F)
     rho_F = np.asarray(rho_F, dtype=float)
     okA, okF = schur_stable(rho_A), schur_stable(rho_F)
     # unstable matrices are replaced by 0 so every solve is well posed; those
@@ -441,13 +504,21 @@ def stationary_cost(
         np.nan,
         rho,
     )
-    J = np.where(schur_stable(rho), J, np.nan)
+    stable = schur_stable(rho)
+    lost = stable & ~np.isfinite(J)
+    J = np.where(stable, J, np.nan)
     if return_reason:
-        return J, stability_reason(None, rho=rho)
+        reason = stability_reason(None, rho=rho)
+        if lost.any():
+            reason = np.array(reason, dtype=object)
+            reason[lost] = REASON_STATIONARY_LOST
+            reason = reason.item() if reason.ndim == 0 else reason
+        return J, reason
     return J
 
 
 __all__ = [
+    "REASON_STATIONARY_LOST",
     "REASON_UNSTABLE",
     "exact_cost",
     "j_star",

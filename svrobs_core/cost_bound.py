@@ -47,7 +47,7 @@ from .norms import (
     h2_norm,
     hinf_norm,
     schur_stable,
-    spectral_radius,
+    stability_radius,
     stability_reason,
     stein_solve,
 )
@@ -56,7 +56,7 @@ REASON_A_UNSTABLE = "unstable: rho(A) >= 1, H-inf of [Phi_A B; I] undefined"
 REASON_F_UNSTABLE = "unstable: rho(A_tilde - L C) >= 1, H2 of Phi~_w undefined"
 REASON_CLOSED_UNSTABLE = "unstable: rho(A - K C) >= 1"
 # the same for a computed radius within UNIT_CIRCLE_TOL below 1 (norms.schur_stable)
-_NEAR = f"within {UNIT_CIRCLE_TOL:g} of 1 (the stability boundary)"
+_NEAR = f"not below 1 - {UNIT_CIRCLE_TOL:g} up to rounding (the stability boundary)"
 REASON_A_BOUNDARY = f"rho(A) {_NEAR}: H-inf of [Phi_A B; I] undefined"
 REASON_F_BOUNDARY = f"rho(A_tilde - L C) {_NEAR}: H2 of Phi~_w undefined"
 REASON_CLOSED_BOUNDARY = f"rho(A - K C) {_NEAR}"
@@ -104,7 +104,7 @@ def true_system_norms(
     C = np.asarray(C, dtype=float)
     K = np.asarray(K, dtype=float)
     n, m, p = A.shape[-1], B.shape[-1], C.shape[-2]
-    rho_A = spectral_radius(A)
+    rho_A = stability_radius(A)
 
     def stacked(G: FloatArray, q: int) -> FloatArray:
         H = np.concatenate([np.eye(n), np.zeros((q, n))], axis=0)
@@ -114,7 +114,7 @@ def true_system_norms(
     hB = stacked(B, m)
     hK = stacked(K, p)
     Fk = A - K @ C
-    rho_k = spectral_radius(Fk)
+    rho_k = stability_radius(Fk)
     I = np.eye(n)
     h2c = h2_norm(Fk, I, I, rho=rho_k)
     hic = hinf_norm(Fk, I, I, rho=rho_k, grid=grid)
@@ -165,7 +165,7 @@ def phi_w_h2_norms(
     n = At.shape[-1]
     F = At - L @ C
     if rho_F is None:
-        rho_F = spectral_radius(F)
+        rho_F = stability_radius(F)
     rho_F = np.asarray(rho_F, dtype=float)
     batch = np.broadcast_shapes(F.shape[:-2], K.shape[:-2], rho_F.shape)
     ok = schur_stable(rho_F)
@@ -206,7 +206,8 @@ def theorem3_bound(
     system's Kalman predictor gain), eps_A, eps_B (...) from Corollary 1,
     sigma_u, sigma_v scalars or (...); ``norms`` from
     :func:`true_system_norms` (A, B, C, K) of the same true system.
-    ``rho_F``: optional precomputed rho(A~ - L C).
+    ``rho_F``: optional precomputed :func:`~svrobs_core.norms.stability_radius` of
+    ``A~ - L C``.
     """
     L = np.asarray(L, dtype=float)
     K = np.asarray(K, dtype=float)

@@ -8,8 +8,9 @@ between the arguments) and returns an array of the broadcast batch shape (a
 NaN semantics: a transfer matrix whose ``F`` is not Schur stable
 (``rho(F) >= 1``) has no finite H2 / H-infinity norm here; its value is NaN and
 its reason is :data:`REASON_UNSTABLE`. Stability is decided by
-:func:`schur_stable`: a computed ``rho(F)`` within :data:`UNIT_CIRCLE_TOL` of 1
-counts as the boundary (NaN, :data:`REASON_BOUNDARY`). A non-finite ``F``
+:func:`schur_stable` of :func:`stability_radius`: a computed ``rho(F)`` within
+:data:`UNIT_CIRCLE_TOL` of 1, or one that rounding could put there, counts as the
+boundary (NaN, :data:`REASON_BOUNDARY`). A non-finite ``F``
 (e.g. a gain that could not be designed) gives NaN with
 :data:`REASON_NONFINITE`. Callers turn NaN into ``null`` and put the reason in
 ``notes``: pass ``return_reason=True`` to get ``(value, reason)``, where
@@ -28,6 +29,7 @@ from numpy.typing import ArrayLike
 from .array_types import Array, BoolArray, FloatArray
 from .errors import check_matrix
 from .linalg import solve as _solve
+from .radius_bound import radius_upper_bound
 
 # A matrix counts as Schur stable only when its computed spectral radius is below
 # 1 - UNIT_CIRCLE_TOL (docs/science.md#62-stationary-j_stationary). The computed radius of
@@ -37,7 +39,9 @@ from .linalg import solve as _solve
 # 1e-6 at 1 - 1e-10): such a matrix has no stationary covariance or system norm here.
 UNIT_CIRCLE_TOL = 1e-10
 REASON_UNSTABLE = "unstable"
-REASON_BOUNDARY = f"on the stability boundary (rho within {UNIT_CIRCLE_TOL:g} of 1)"
+REASON_BOUNDARY = (
+    f"on the stability boundary (rho not below 1 - {UNIT_CIRCLE_TOL:g} up to rounding)"
+)
 REASON_NONFINITE = "non-finite input"
 
 # Kronecker (vectorised LU) solves of the Stein equation are used while the
@@ -62,6 +66,17 @@ def spectral_radius(F: ArrayLike) -> FloatArray:
     return np.where(finite, rho, np.nan)
 
 
+def stability_radius(F: ArrayLike) -> FloatArray:
+    """The radius that decides F's stability: the computed rho(F), or ``1 -
+    UNIT_CIRCLE_TOL / 2`` (the boundary) where it is below ``1 - UNIT_CIRCLE_TOL``
+    but an upper bound on the exact radius is not (:mod:`svrobs_core.radius_bound`:
+    rounding cannot decide); NaN for a non-finite F. -> (...)"""
+    rho, hi = radius_upper_bound(F, decide=1.0 - UNIT_CIRCLE_TOL)
+    undecided = schur_stable(rho) & ~schur_stable(hi)
+    decided: FloatArray = np.where(undecided, 1.0 - UNIT_CIRCLE_TOL / 2, rho)
+    return decided
+
+
 def schur_stable(rho: ArrayLike) -> BoolArray:
     """The computed spectral radius ``rho`` is below ``1 - UNIT_CIRCLE_TOL``: the one
     stability test of every quantity that exists only for a Schur-stable matrix
@@ -72,8 +87,8 @@ def schur_stable(rho: ArrayLike) -> BoolArray:
 
 
 def is_schur(F: ArrayLike) -> BoolArray:
-    """:func:`schur_stable` of rho(F) (False for non-finite F). -> (...) bool"""
-    return schur_stable(spectral_radius(F))
+    """:func:`schur_stable` of :func:`stability_radius` (False for non-finite F). -> (...) bool"""
+    return schur_stable(stability_radius(F))
 
 
 def stability_reason(
@@ -89,7 +104,7 @@ def stability_reason(
     single system)."""
     if rho is None:
         assert F is not None, "stability_reason needs F or rho"
-        rho = spectral_radius(F)
+        rho = stability_radius(F)
     rho = np.asarray(rho, dtype=float)
     out = np.full(rho.shape, None, dtype=object)
     out[np.isnan(rho)] = REASON_NONFINITE
@@ -256,7 +271,7 @@ def h2_norm(
     """
     F, G, H, _, batch, n, _m, _p = _broadcast_sys(F, G, H)
     if rho is None:
-        rho = spectral_radius(F)
+        rho = stability_radius(F)
     rho = np.broadcast_to(np.asarray(rho, dtype=float), batch)
     stable = schur_stable(rho)
     # Replace unstable / non-finite cells by F = 0 so the solve stays harmless.
@@ -351,7 +366,7 @@ def hinf_norm(
     F, G, H, D, batch, n, m, p = _broadcast_sys(F, G, H, D)
     Nb = int(np.prod(batch, dtype=np.int64))
     if rho is None:
-        rho = spectral_radius(F)
+        rho = stability_radius(F)
     rho = np.broadcast_to(np.asarray(rho, dtype=float), batch)
     Ff = np.broadcast_to(F, batch + (n, n)).reshape(Nb, n, n)
     Gf = np.broadcast_to(G, batch + (n, m)).reshape(Nb, n, m)

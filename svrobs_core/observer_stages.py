@@ -16,6 +16,7 @@ import numpy as np
 from . import bounds as _bounds
 from . import cost as _cost
 from . import cost_bound as _cb
+from . import cost_check as _check
 from . import cost_mc as _mc
 from . import gains as _gains
 from . import kalman as _kalman
@@ -23,7 +24,7 @@ from .array_types import Array, FloatArray
 from .bounds import BoundsResult
 from .cost_bound import TrueSystemNorms
 from .gains import GainResult
-from .norms import spectral_radius
+from .norms import spectral_radius, stability_radius
 from .seeding import MC_STREAM, generators
 from .stage_cells import Cells, StageCells, SystemT
 from .systems import SystemSpec
@@ -102,7 +103,7 @@ def observer_stages(c: Cells, b: BoundsResult, designed: GainResult) -> None:
     out["L"], out["g_L"] = L, designed.g_L
     out["certified"] = _bounds.nullable(designed.certified, defined)
     out["K"] = np.broadcast_to(K, (R, E) + K.shape)
-    rho_F = spectral_radius(A_hat - L @ C)
+    rho_F = stability_radius(A_hat - L @ C)  # decides; not a field
     out["rho_true"] = spectral_radius(A - L @ C)
     if designed.feasible is not None:
         notes.add(
@@ -113,13 +114,21 @@ def observer_stages(c: Cells, b: BoundsResult, designed: GainResult) -> None:
         return
     c.stage = "cost"
     noise = dict(sigma_u=system.sigma_u, sigma_w=c.sigma_w, sigma_v=system.sigma_v)
-    J = _cost.exact_cost(A, B, A_hat, B_hat, L=L, C=C, **noise, horizon=spec.horizon)
+    J, J_err = _cost.exact_cost(
+        A, B, A_hat, B_hat, L=L, C=C, **noise, horizon=spec.horizon, return_error=True
+    )
     J_stat, stat_reason = _cost.stationary_cost(
         A, B, A_hat, B_hat, L=L, C=C, **noise, rho_F=rho_F, return_reason=True
     )
     # a huge (finite) estimate can take the cost beyond the doubles
     notes.add(defined & ~np.isfinite(J), J_EXACT_NOT_FINITE)
     notes.add_reasons(stat_reason, "J_stationary")
+    bad_J, bad_stat = _check.unconfirmed(
+        A, B, A_hat, B_hat, L=L, C=C, **noise, horizon=spec.horizon, J=J, err=J_err, J_stat=J_stat
+    )
+    notes.add(bad_J, f"J_exact: {_check.REASON_ROUNDING}")
+    notes.add(bad_stat, f"J_stationary: {_check.REASON_ROUNDING}")
+    J, J_stat = np.where(bad_J, np.nan, J), np.where(bad_stat, np.nan, J_stat)
     out["J_exact"], out["J_stationary"] = J, J_stat
     out["J_star"] = np.broadcast_to(J_star, (R, E))
     _monte_carlo(c, L)

@@ -25,7 +25,7 @@ from ..array_types import Array, BoolArray, FloatArray
 from ..bounds import BoundsResult
 from ..data_factor import GramFactor, data_factor, estimate_margin
 from ..estimators import REFINE_STEP_TRUST, fit_ols
-from ..norms import spectral_radius
+from ..norms import stability_radius
 from ..notes import Notes
 from ..observer_stages import design
 from ..pipeline import CERTIFICATES, ESTIMATE_COND_LIMIT, _estimate
@@ -296,7 +296,7 @@ def _bounds_and_observer(
             sigma_u=c.system.sigma_u,
             sigma_v=c.system.sigma_v,
             norms=norms,
-            rho_F=spectral_radius(c.A_hat - L @ C),
+            rho_F=stability_radius(c.A_hat - L @ C),
         )
         notes.add_reasons(t3.reason, "J_bound")
         out["J_bound"] = t3.J_b

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ..norms import schur_stable, spectral_radius
+from ..norms import schur_stable, spectral_radius, stability_radius
 from ..paper import PUBLISHED_CLAIMS
 from ..records import GROUP_FIELDS
 from .columns import (
@@ -287,7 +287,9 @@ def _f_stable_certified(cols: Columns, meta: Meta) -> list[str]:
         if truth is None:
             continue
         rho = float(spectral_radius(truth[0]))
-        if not schur_stable(rho):  # unstable by the one rule of the certificates
+        if not schur_stable(
+            stability_radius(truth[0])
+        ):  # unstable by the one rule of the certificates
             m = select(cols, system=system) & np.isfinite(sc)
             k = int(np.sum(sc[m] == 1))
             status = "holds" if k == 0 else "does not hold"

@@ -1,0 +1,200 @@
+"""A second evaluation of the costs where rounding could have ruined the first
+(docs/science.md#61-exact-finite-horizon-j_exact).
+
+The doubling of :func:`svrobs_core.cost.exact_cost` carries a first-order bound on
+its rounding error (:class:`DoublingRounding`). Where that bound exceeds ``SUSPECT_RTOL`` of the value (a
+strongly non-normal system: its powers grow by orders of magnitude before they
+decay, and the covariances cancel), each suspect cell is evaluated again by other
+recursions, with other rounding:
+
+* ``J_exact`` by the step-by-step recursion ``Sigma_{k+1} = Acal Sigma_k Acal^T + Q``;
+* ``J_stationary`` (the Kronecker solves of :func:`svrobs_core.cost.stationary_cost`)
+  by the squared Smith iteration ``S_2t = S_t + P_t S_t P_t^T``, ``P_2t = P_t^2``.
+
+A value that its second evaluation does not confirm to ``AGREE_RTOL`` is dropped
+with :data:`REASON_ROUNDING`. The bound is loose (norms, not the matrices), so most
+suspect cells are confirmed; the second evaluations run on those cells only.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .array_types import Array, BoolArray, FloatArray
+
+U = np.finfo(float).eps / 2  # unit roundoff
+SUSPECT_RTOL = 1e-8
+AGREE_RTOL = 1e-8
+REASON_ROUNDING = (
+    "rounding: two evaluations in doubles disagree (a strongly non-normal system, "
+    "whose covariances cancel)"
+)
+# the Smith iteration's steps: 2^60 time steps, converged for rho <= 1 - 1e-17
+_SMITH_STEPS = 60
+
+
+class DoublingRounding:
+    """First-order bounds on the absolute error (Frobenius) of each power, Sigma
+    and W that :func:`svrobs_core.cost.exact_cost` computes, from the norms of what
+    each product multiplies: a computed product ``fl(X Y)`` is within ``gamma_k |X|
+    |Y|`` of ``X Y``, whose Frobenius norm is at most ``gamma_k ||X|| ||Y||``
+    (Higham, Accuracy and Stability of Numerical Algorithms, section 3.5). ``ops``:
+    the doubling's layout (its ``norm`` of blocks). A few norms per doubling step."""
+
+    def __init__(self, ops: Any, n: int) -> None:
+        self.ops = ops
+        self.g = 2 * (2 * n + 2) * U  # two products of inner size 2n, and the sums
+
+    def square(self, P: tuple[Any, ...], eP: Array) -> Array:
+        """The error of the squared power."""
+        nP = self.ops.norm(P, (1, 1, 1))
+        out: Array = 2 * nP * eP + self.g * nP * nP
+        return out
+
+    def join(
+        self,
+        P: tuple[Any, ...],
+        eP: Array,
+        Ma: tuple[Any, ...],
+        eMa: Array,
+        Mb: tuple[Any, ...],
+        eMb: Array,
+        t_b: int,
+    ) -> Array:
+        """(S, N) errors of (Sigma, W) of segment a (power P, stacked Ma) followed by
+        segment b (Mb, length t_b): ``Ma + P Mb P^T``, and ``t_b Sigma_a`` in W."""
+        ops = self.ops
+        nP2 = ops.norm(P, (1, 1, 1)) ** 2
+        nMa, nMb = ops.norm(Ma), ops.norm(Mb)
+        prop = eMa + nP2 * eMb + (2 * np.sqrt(nP2) * eP + self.g * nP2) * nMb
+        prop = prop + 2 * U * (nMa + nP2 * nMb)
+        extra = t_b * (eMa[:1] + 2 * U * nMa[:1])
+        out: Array = np.concatenate([prop[:1], prop[1:] + extra], axis=0)
+        return out
+
+
+def suspect(J: FloatArray, err: FloatArray) -> BoolArray:
+    """The finite values whose rounding bound exceeds SUSPECT_RTOL of them."""
+    with np.errstate(invalid="ignore"):
+        out: BoolArray = np.isfinite(J) & ~(err <= SUSPECT_RTOL * np.abs(J))
+        return out
+
+
+def augmented(
+    A: FloatArray,
+    B: FloatArray,
+    A_tilde: FloatArray,
+    B_tilde: FloatArray,
+    L: FloatArray,
+    C: FloatArray,
+    sigma_u: float,
+    sigma_w: float,
+    sigma_v: float,
+) -> tuple[FloatArray, FloatArray]:
+    """(Acal, Q) of each cell: ``s = [x; e]``, ``s+ = Acal s + noise``, Cov noise = Q
+    (docs/science.md#6-observer-cost-j). Cells (k, n, n) etc.; the true A, B (n, .)."""
+    k, n = A_tilde.shape[0], A.shape[-1]
+    Ab = np.broadcast_to(A, (k, n, n))
+    Bb = np.broadcast_to(B, (k,) + B.shape[-2:])
+    top = np.concatenate([Ab, np.zeros((k, n, n))], axis=-1)
+    bottom = np.concatenate([A_tilde - Ab, A_tilde - L @ C], axis=-1)
+    Acal = np.concatenate([top, bottom], axis=-2)
+    I = np.broadcast_to(np.eye(n), (k, n, n))
+    G = np.concatenate(
+        [
+            np.concatenate([sigma_u * Bb, sigma_w * I, np.zeros((k, n, C.shape[-2]))], -1),
+            np.concatenate([-sigma_u * (Bb - B_tilde), -sigma_w * I, sigma_v * L], -1),
+        ],
+        axis=-2,
+    )
+    return Acal, G @ np.swapaxes(G, -1, -2)
+
+
+@np.errstate(over="ignore", invalid="ignore")
+def exact_by_steps(Acal: FloatArray, Q: FloatArray, n: int, horizon: int) -> FloatArray:
+    """J over ``horizon`` steps by the step-by-step recursion, per cell. -> (k,)"""
+    S = np.zeros_like(Q)
+    total = np.zeros(Q.shape[0])
+    At = np.swapaxes(Acal, -1, -2)
+    for _ in range(horizon):
+        S = Acal @ S @ At + Q
+        total += np.trace(S[:, n:, n:], axis1=-2, axis2=-1)
+    out: FloatArray = total / horizon
+    return out
+
+
+@np.errstate(over="ignore", invalid="ignore")
+def stationary_by_smith(Acal: FloatArray, Q: FloatArray, n: int) -> FloatArray:
+    """The stationary e block's trace by the squared Smith iteration, per cell. -> (k,)"""
+    S, P = Q.copy(), Acal.copy()
+    for _ in range(_SMITH_STEPS):
+        S = S + P @ S @ np.swapaxes(P, -1, -2)
+        P = P @ P
+    out: FloatArray = np.trace(S[:, n:, n:], axis1=-2, axis2=-1)
+    return out
+
+
+def unconfirmed(
+    A: FloatArray,
+    B: FloatArray,
+    A_tilde: FloatArray,
+    B_tilde: FloatArray,
+    *,
+    L: FloatArray,
+    C: FloatArray,
+    sigma_u: float,
+    sigma_w: float,
+    sigma_v: float,
+    horizon: int,
+    J: FloatArray,
+    err: FloatArray,
+    J_stat: FloatArray,
+) -> tuple[BoolArray, BoolArray]:
+    """(J_exact, J_stationary) cells, bool of J's shape, that a second evaluation
+    does not confirm: only the :func:`suspect` ones are evaluated again. The true
+    A, B (n, .); A_tilde, B_tilde, L batched as J."""
+    batch, n = J.shape, A.shape[-1]
+    bad_exact = np.zeros(batch, dtype=bool)
+    bad_stat = np.zeros(batch, dtype=bool)
+    idx = np.flatnonzero(suspect(J, err))
+    if idx.size == 0:
+        return bad_exact, bad_stat
+
+    def cells(M: FloatArray) -> FloatArray:
+        out: FloatArray = np.broadcast_to(M, batch + M.shape[-2:]).reshape((-1,) + M.shape[-2:])
+        return out[idx]
+
+    Acal, Q = augmented(
+        A, B, cells(A_tilde), cells(B_tilde), cells(L), C, sigma_u, sigma_w, sigma_v
+    )
+    flat_e, flat_s = bad_exact.reshape(-1), bad_stat.reshape(-1)
+    flat_e[idx] = ~confirmed(J.reshape(-1)[idx], exact_by_steps(Acal, Q, n, horizon))
+    stat = J_stat.reshape(-1)[idx]
+    has = np.isfinite(stat)
+    if has.any():
+        smith = stationary_by_smith(Acal[has], Q[has], n)
+        flat_s[idx[has]] = ~confirmed(stat[has], smith)
+    return bad_exact, bad_stat
+
+
+def confirmed(first: FloatArray, second: FloatArray) -> BoolArray:
+    """Whether a second evaluation confirms the first to AGREE_RTOL."""
+    with np.errstate(invalid="ignore"):
+        out: BoolArray = np.abs(first - second) <= AGREE_RTOL * np.abs(first)
+        return out
+
+
+__all__ = [
+    "AGREE_RTOL",
+    "DoublingRounding",
+    "REASON_ROUNDING",
+    "SUSPECT_RTOL",
+    "augmented",
+    "confirmed",
+    "exact_by_steps",
+    "stationary_by_smith",
+    "suspect",
+    "unconfirmed",
+]
