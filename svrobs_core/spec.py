@@ -342,7 +342,7 @@ def parse_simulation_spec(obj: dict[str, Any]) -> ExperimentSpec:
         T0=T0,
         data=_choice(obj.get("data", DEFAULTS["data"]), "data", ("all", "final")),
         mc_runs=mc_runs,
-        mc_reps=None if mc_reps is None else _int(mc_reps, "mc_reps", lo=0),
+        mc_reps=None if mc_reps is None else _int(mc_reps, "mc_reps", lo=0, hi=MAX_REPS),
         reuse_gain=reuse,
         x0_std=_float(obj.get("x0_std", DEFAULTS["x0_std"]), "x0_std", nonneg=True),
         **shared,

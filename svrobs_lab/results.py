@@ -53,7 +53,8 @@ class Selection:
 
 
 def gamma_keys(gamma: Iterable[str]) -> list[float]:
-    """``gamma`` filter values as stored keys: a finite decimal, or null/none/ols (-1)."""
+    """``gamma`` filter values as stored keys: a finite decimal >= 0, or null/none/ols
+    (stored as -1, which a number typed as -1 must not reach)."""
     keys = []
     for g in gamma:
         if g.lower() in ("null", "none", "ols"):
@@ -61,6 +62,8 @@ def gamma_keys(gamma: Iterable[str]) -> list[float]:
             continue
         if not is_float_text(g) or not math.isfinite(float(g)):
             raise Invalid("must be a finite decimal number or 'null'", field="gamma")
+        if float(g) < 0:
+            raise Invalid("must be >= 0, or 'null' for OLS", field="gamma")
         keys.append(float(g))
     return keys
 
@@ -312,12 +315,14 @@ def compare(
     ids = list(dict.fromkeys(ids))
     if metric not in NUMERIC_FIELDS:
         raise Invalid(
-            f"must be a numeric record field, one of {list(NUMERIC_FIELDS)}", field="metric"
+            "must be a numeric record field: "
+            + ", ".join(f for f in NUMERIC_FIELDS if f not in COMPARE_BY),
+            field="metric",
         )
     by_fields = list(dict.fromkeys(_csv_list(by, "by")))
     for b in by_fields:
         if b not in COMPARE_BY:
-            raise Invalid(f"{b!r} is not one of {list(COMPARE_BY)}", field="by")
+            raise Invalid(f"{b!r} is not one of {', '.join(COMPARE_BY)}", field="by")
     found = [team_job(session, caller, j) for j in ids]
     page = compare_page(session, found, metric, by_fields, limit=limit, offset=offset)
     return {

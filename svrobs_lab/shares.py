@@ -22,6 +22,7 @@ from .auth import MAX_ID, Caller
 from .datasets.parsed import printable
 from .errors import Invalid, NotFound
 from .jobs import team_job
+from .params import read_number
 
 DEFAULT_DAYS = store.DEFAULT_DAYS
 MAX_DAYS = store.MAX_DAYS
@@ -41,6 +42,18 @@ def share_out(link: ShareLink, url: str | None = None) -> dict:
         "live": store.is_live(link),
         "url": url,
     }
+
+
+def days_of(text: str) -> float:
+    """A form's number of days, checked (Invalid in plain words otherwise)."""
+    days = read_number("days", text.strip())
+    if not MIN_DAYS <= days <= MAX_DAYS:
+        raise Invalid(
+            f"a link lasts from one hour ({MIN_DAYS:.4f} days) to {MAX_DAYS:g} days, "
+            f"not {text.strip()}",
+            field="days",
+        )
+    return days
 
 
 def create(

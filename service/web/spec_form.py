@@ -29,6 +29,7 @@ from svrobs_core.spec_fields import (
     for_datasets,
 )
 from svrobs_lab import json_text
+from svrobs_lab.params import NON_FINITE, is_float_text, is_int_text
 
 GROUPS = (
     ("grid", "The grid"),
@@ -40,7 +41,6 @@ GROUPS = (
     ("sls", "SLS"),
 )
 RANGED = ("sigma_w", "N", "gamma")
-_INT = re.compile(r"[+-]?\d+")
 
 
 def _ordered() -> tuple[SpecField, ...]:
@@ -146,15 +146,19 @@ def values_of(spec: dict) -> dict[str, object]:
 
 
 def _number(token: str, name: str, *, integer: bool = False):
+    """A number written in ASCII decimal, as the browser reads it (no ``1_0``, no
+    non-ASCII digits: Python's own ``float`` would take both)."""
     token = token.strip()
-    if _INT.fullmatch(token):
-        return int(token)
+    plain = token[1:] if token.startswith("+") else token
+    if is_int_text(plain):
+        return int(plain)
     if integer:
-        raise FormError(name, f"{token!r} is not an integer")
-    try:
-        v = float(token)
-    except ValueError:
-        raise FormError(name, f"{token!r} is not a number") from None
+        raise FormError(name, f"{token!r} is not an integer (digits 0-9)")
+    if plain.lower().lstrip("-") in NON_FINITE:
+        raise FormError(name, "must be finite")
+    if not is_float_text(plain):
+        raise FormError(name, f"{token!r} is not a number (digits 0-9, a point, an exponent)")
+    v = float(plain)
     if not math.isfinite(v):
         raise FormError(name, "must be finite")
     return v

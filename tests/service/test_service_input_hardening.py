@@ -172,3 +172,30 @@ def test_preset_run_idempotency_key_reused_with_another_scale_is_409(client, ses
     r = client.post(url, json={"scale": "full", "experiments": ["E2", "E1"]}, headers=h)
     assert r.status_code == 409 and r.json()["field"] == "Idempotency-Key", r.text
     assert _count(session, Job, acc.team.id) == 1  # E2 of the failed request rolled back
+
+
+@pytest.mark.parametrize("field", ["reps", "T0", "seed", "mc_runs", "mc_reps", "horizon"])
+@pytest.mark.parametrize("value", [2**63, 10**30])
+def test_huge_integers_in_a_spec_are_422_naming_the_field(
+    client, session, make_account, field, value
+):
+    """Every integer field is bounded before it reaches numpy (a C long) or the database."""
+    acc = make_account()
+    spec = {**SMALL_SPEC, "stages": ["estimate", "bounds", "gain", "cost"], field: value}
+    r = client.post(f"{API}/jobs", json=spec, headers=acc.headers)
+    _assert_422(r, field)
+    assert "must be <=" in r.json()["detail"]
+
+
+def test_a_negative_gamma_filter_is_422_not_the_ols_rows(client, session, make_account):
+    """OLS is stored under gamma -1: a typed -1 must not select it."""
+    acc = make_account()
+    jid = client.post(f"{API}/jobs", json=SMALL_SPEC, headers=acc.headers).json()["id"]
+    run_job_units(session, jid)
+    url = f"{API}/jobs/{jid}/results"
+    ols = client.get(url, params={"gamma": "ols"}, headers=acc.headers).json()
+    assert ols["total"] > 0 and {r["estimator"] for r in ols["items"]} == {"ols"}
+    for value in ("-1", "-1.0", "-0.5"):
+        r = client.get(url, params={"gamma": value}, headers=acc.headers)
+        _assert_422(r, "gamma")
+        assert "'null' for OLS" in r.json()["detail"]

@@ -45,7 +45,11 @@ def site(stack) -> dict:
     """Two finished jobs, a schedule, a share link of the first, a dataset and the
     query of a cell's page."""
     with stack.client() as api:
-        ids = [submit(api, {**SPEC, "seed": s}, name=f"a11y seed {s}")["id"] for s in (3, 4)]
+        ids = [submit(api, {**SPEC, "seed": 3}, name="a11y seed 3")["id"]]
+        # the longest name and many tags, one of the longest: they wrap, and each tag
+        # stays a 24 px target
+        tags = [f"tag-{k}" for k in range(10)] + ["t" * 100, "ünïcødé ☃"]
+        ids.append(submit(api, {**SPEC, "seed": 4}, name="W" * 200, tags=tags)["id"])
         for i in ids:
             stack.wait_job(api, i)
         r = api.post(
@@ -107,6 +111,15 @@ def check(page, name: str, problems: list) -> None:
     box = overflow(page)
     if box["scroll"] > box["width"]:
         problems.append((name, "overflow", box))
+    # a label whose text runs out of its box (over the next one's)
+    spill = page.evaluate(
+        """() => [...document.querySelectorAll('fieldset.job-picks label, td[data-col=tags],'
+                 + ' dd a.tag')]
+             .filter(e => e.scrollHeight > e.clientHeight + 1 || e.scrollWidth > e.clientWidth + 1)
+             .map(e => e.textContent.slice(0, 40))"""
+    )
+    if spill:
+        problems.append((name, "spill", spill))
 
 
 @pytest.mark.parametrize(("width", "height", "dark"), VIEWS)

@@ -352,7 +352,7 @@ def test_the_form_shows_every_error_at_once_beside_its_field(web, sent, make_acc
     beside = dict(re.findall(r'id="err-([\w.-]+)"><p><code>[^<]*</code>: ([^<]*)</p>', r.text))
     assert beside == {
         "sigma_w": "must be &gt;= 0",
-        "reps": "&#39;ten&#39; is not an integer",
+        "reps": "&#39;ten&#39; is not an integer (digits 0-9)",
         "gamma": "must be &gt; 0",
         "delta": "must be &lt; 1",
     }

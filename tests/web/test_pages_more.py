@@ -91,6 +91,13 @@ def test_compare_page_table_is_the_api_compare(web, done):
     every = "&by=".join(("system", "sigma_w", "estimator", "gamma"))
     kept = web.get(f"/compare?jobs={ids[0]}&metric=rmse_A&by={every}").text
     assert "pooled over" not in re.search(r'id="compare-pooled">([^<]*)<', kept)[1]
+    # the API's comma form of ``by`` is the same view as its checkboxes
+    commas = web.get(f"/compare?jobs={ids[0]},{ids[1]}&metric=rmse_A&by=N,estimator,gamma")
+    same = web.get(f"/compare?jobs={ids[0]}&jobs={ids[1]}&metric=rmse_A&by=N&by=estimator&by=gamma")
+    assert commas.status_code == same.status_code == 200
+    assert commas.text == same.text
+    for name in ("N", "estimator", "gamma"):
+        assert re.search(rf'name="by" value="{name}"[^>]*checked', commas.text), name
 
 
 def test_a_chosen_job_older_than_the_listed_newest_is_listed_as_chosen(web, done, session):
@@ -358,6 +365,16 @@ def test_an_empty_field_of_a_posted_form_is_not_given(web, session, make_account
     link = session.scalars(select(ShareLink).where(ShareLink.job_id == jid)).one()
     days = (link.expires_at - link.created_at) / timedelta(days=1)
     assert link.label is None and days == pytest.approx(shares.DEFAULT_DAYS)
+    for typed, says in [
+        ("0", "a link lasts from one hour (0.0417 days) to 90 days, not 0"),
+        ("91", "a link lasts from one hour (0.0417 days) to 90 days, not 91"),
+        ("nan", "must be finite"),
+        ("inf", "must be finite"),
+        ("a week", "must be a number"),
+    ]:
+        r = web.post(f"/jobs/{jid}/share", data={**form, "days": typed}, follow_redirects=False)
+        assert r.status_code == 422 and says in html.unescape(r.text), (typed, r.text[-600:])
+    assert session.scalars(select(ShareLink).where(ShareLink.job_id == jid)).all() == [link]
     data = {"csrf_token": token, "job": jid, "name": "nightly", "cron": "0 3 * * *"}
     empty = {"timezone": "", "seed_policy": "", "tags": ""}
     made = web.post("/schedules/new", data={**data, **empty}, follow_redirects=False)

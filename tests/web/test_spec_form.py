@@ -101,11 +101,16 @@ def test_ranges_empty_and_mistyped_fields():
         },
     )
     assert errors == {
-        "reps": "'ten' is not an integer",
-        "gamma[1]": "'x' is not a number",
+        "reps": "'ten' is not an integer (digits 0-9)",
+        "gamma[1]": "'x' is not a number (digits 0-9, a point, an exponent)",
         "M": "must be finite",
-        "N.start": "'1.5' is not an integer",
+        "N.start": "'1.5' is not an integer (digits 0-9)",
     }
+    # what Python's float() and int() read but a browser's Number() does not
+    _, errors = post(values, **{"f.sigma_w": "1_0, \u0661\u0660, \uff10.5", "f.reps": "1_0"})
+    assert set(errors) == {"sigma_w[0]", "sigma_w[1]", "sigma_w[2]", "reps"}, errors
+    spec, errors = post(values, **{"f.sigma_w": "+0.5, 1e-1, .25", "f.reps": "+3"})
+    assert errors == {} and spec["sigma_w"] == [0.5, 0.1, 0.25] and spec["reps"] == 3
     _, errors = post(
         values,
         **{"m.gamma": "range", "r.gamma.start": "1", "r.gamma.stop": "0", "r.gamma.step": "0.1"},

@@ -21,8 +21,8 @@ from svrobs_lab import results
 router = APIRouter(include_in_schema=False)
 DB = Annotated[Session, Depends(get_db)]
 X_CHOICES = ("N", "sigma_w", "gamma", "N0", "rep")
-# job ids, each its own parameter (the form's checkboxes) or comma-separated (the API's
-# form: ``jobs=1,2``); results.compare reads and checks them
+# job ids and ``by`` fields, each its own parameter (the form's checkboxes) or
+# comma-separated (the API's form: ``jobs=1,2``); results.compare reads and checks them
 Ids = Annotated[list[Annotated[str, Field(max_length=2000)]], Query(max_length=50)]
 Names = Annotated[list[str], Query(max_length=20)]
 
@@ -44,7 +44,9 @@ def compare_page(
             422, f"metric: {metric} is a grid coordinate, not a metric (pick one such as rmse_A)"
         )
     ids = ",".join(part for text in jobs for part in text.split(",") if part.strip())
-    by = list(dict.fromkeys(by or ["N", "estimator", "gamma"]))
+    # each its own parameter (the form's checkboxes) or comma-separated (the API's form)
+    by = list(dict.fromkeys(p.strip() for text in by for p in text.split(",") if p.strip()))
+    by = by or ["N", "estimator", "gamma"]
     if x not in by:
         by.insert(0, x)
     data = None

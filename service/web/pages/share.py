@@ -66,13 +66,13 @@ def make_link(
     viewer: CurrentViewer,
     settings: SettingsDep,
     job_id: int,
-    days: Annotated[float, Form(ge=shares.MIN_DAYS, le=shares.MAX_DAYS)] = shares.DEFAULT_DAYS,
+    days: Annotated[str, Form(max_length=40)] = str(shares.DEFAULT_DAYS),
     label: Annotated[str, Form(max_length=shares.LABEL_MAX)] = "",
 ):
     """Make a link, then redirect (POST-redirect-GET: a reload makes no second link);
     over SVROBS_MAX_SHARES_PER_JOB live links, the 422 error page."""
     job = job_pages._job(db, viewer, job_id)
-    link, token = shares.create(db, viewer.caller, settings, job.id, days, label)
+    link, token = shares.create(db, viewer.caller, settings, job.id, shares.days_of(days), label)
     return RedirectResponse(f"/jobs/{job.id}/share?created={link.id}#new={token}", 303)
 
 

@@ -191,7 +191,7 @@ def _read_spec(text: str, upload: UploadFile | None) -> tuple[str, dict | None, 
     if upload is not None and upload.filename:
         raw = upload.file.read()
         try:
-            text = raw.decode("utf-8")
+            text = raw.decode("utf-8-sig")  # a byte-order mark, as some editors save
         except UnicodeDecodeError:
             return "", None, {"file": ("file", "the file is not UTF-8 text")}
     if not text.strip():
