@@ -89,13 +89,14 @@ def augmented(
     B_tilde: FloatArray,
     L: FloatArray,
     C: FloatArray,
-    sigma_u: float,
-    sigma_w: float,
-    sigma_v: float,
+    sigma_u: FloatArray,
+    sigma_w: FloatArray,
+    sigma_v: FloatArray,
 ) -> tuple[FloatArray, FloatArray]:
     """(Acal, Q) of each cell: ``s = [x; e]``, ``s+ = Acal s + noise``, Cov noise = Q
-    (docs/science.md#6-observer-cost-j). Cells (k, n, n) etc.; the true A, B (n, .)."""
+    (docs/science.md#6-observer-cost-j). Each matrix (k, ., .) or one (., .)."""
     k, n = A_tilde.shape[0], A.shape[-1]
+    su, sw, sv = (np.broadcast_to(s, (k,))[:, None, None] for s in (sigma_u, sigma_w, sigma_v))
     Ab = np.broadcast_to(A, (k, n, n))
     Bb = np.broadcast_to(B, (k,) + B.shape[-2:])
     top = np.concatenate([Ab, np.zeros((k, n, n))], axis=-1)
@@ -104,8 +105,8 @@ def augmented(
     I = np.broadcast_to(np.eye(n), (k, n, n))
     G = np.concatenate(
         [
-            np.concatenate([sigma_u * Bb, sigma_w * I, np.zeros((k, n, C.shape[-2]))], -1),
-            np.concatenate([-sigma_u * (Bb - B_tilde), -sigma_w * I, sigma_v * L], -1),
+            np.concatenate([su * Bb, sw * I, np.zeros((k, n, C.shape[-2]))], -1),
+            np.concatenate([-su * (Bb - B_tilde), -sw * I, sv * L], -1),
         ],
         axis=-2,
     )
@@ -144,17 +145,17 @@ def unconfirmed(
     *,
     L: FloatArray,
     C: FloatArray,
-    sigma_u: float,
-    sigma_w: float,
-    sigma_v: float,
+    sigma_u: float | FloatArray,
+    sigma_w: float | FloatArray,
+    sigma_v: float | FloatArray,
     horizon: int,
     J: FloatArray,
     err: FloatArray,
     J_stat: FloatArray,
 ) -> tuple[BoolArray, BoolArray]:
     """(J_exact, J_stationary) cells, bool of J's shape, that a second evaluation
-    does not confirm: only the :func:`suspect` ones are evaluated again. The true
-    A, B (n, .); A_tilde, B_tilde, L batched as J."""
+    does not confirm: only the :func:`suspect` ones are evaluated again. Each matrix
+    is one (n, .) or batched as J."""
     batch, n = J.shape, A.shape[-1]
     bad_exact = np.zeros(batch, dtype=bool)
     bad_stat = np.zeros(batch, dtype=bool)
@@ -163,12 +164,12 @@ def unconfirmed(
         return bad_exact, bad_stat
 
     def cells(M: FloatArray) -> FloatArray:
-        out: FloatArray = np.broadcast_to(M, batch + M.shape[-2:]).reshape((-1,) + M.shape[-2:])
+        size = (int(np.prod(batch)),) + M.shape[-2:]  # explicit: m = 0 has no -1
+        out: FloatArray = np.broadcast_to(M, batch + M.shape[-2:]).reshape(size)
         return out[idx]
 
-    Acal, Q = augmented(
-        A, B, cells(A_tilde), cells(B_tilde), cells(L), C, sigma_u, sigma_w, sigma_v
-    )
+    su, sw, sv = (np.broadcast_to(s, batch).reshape(-1)[idx] for s in (sigma_u, sigma_w, sigma_v))
+    Acal, Q = augmented(cells(A), cells(B), cells(A_tilde), cells(B_tilde), cells(L), C, su, sw, sv)
     flat_e, flat_s = bad_exact.reshape(-1), bad_stat.reshape(-1)
     flat_e[idx] = ~confirmed(J.reshape(-1)[idx], exact_by_steps(Acal, Q, n, horizon))
     stat = J_stat.reshape(-1)[idx]

@@ -29,7 +29,7 @@ from .seeding import MC_STREAM, generators
 from .stage_cells import Cells, StageCells, SystemT
 from .systems import SystemSpec
 
-Truth = tuple[FloatArray, float, TrueSystemNorms, Array | None]
+Truth = tuple[FloatArray, float, TrueSystemNorms, Any]  # K, J*, norms, the reasons (None: none)
 J_EXACT_NOT_FINITE = "J_exact: not finite (the cost leaves the double range)"
 
 
@@ -44,13 +44,19 @@ def _truth_cached(
     sigma_u, sigma_w, sigma_v = sigmas
     kal = _kalman.kalman_predictor(A, C, sigma_w, sigma_v)
     K = kal.K
-    J_star = float(
-        _cost.optimal_cost(
-            A, B, K, C, sigma_u=sigma_u, sigma_w=sigma_w, sigma_v=sigma_v, horizon=horizon
-        )
-    )
+    noise = dict(sigma_u=sigma_u, sigma_w=sigma_w, sigma_v=sigma_v)
+    J, err = _cost.exact_cost(A, B, A, B, L=K, C=C, **noise, horizon=horizon, return_error=True)
+    bad, _ = _check.unconfirmed(
+        A, B, A[None], B[None], L=K[None], C=C, **noise, horizon=horizon,
+        J=np.atleast_1d(J), err=np.atleast_1d(err), J_stat=np.array([np.nan]),
+    )  # fmt: skip
+    J_star = np.nan if bad[0] else float(J)
     norms = _cb.true_system_norms(A, B, C, K)
-    return K, J_star, norms, kal.reasons() if not kal.ok else None
+    reason: Any = kal.reasons() if not kal.ok else None
+    if bad[0]:
+        lost = f"J_star: {_check.REASON_ROUNDING}"
+        reason = lost if reason is None else f"{reason}; {lost}"
+    return K, J_star, norms, reason
 
 
 def truth(system: SystemSpec, sigma_w: float, horizon: int) -> Truth:

@@ -19,6 +19,7 @@ import numpy as np
 from .. import bounds as _bounds
 from .. import cost as _cost
 from .. import cost_bound as _cb
+from .. import cost_check as _check
 from .. import kalman as _kalman
 from .. import uncertainty as _unc
 from ..array_types import Array, BoolArray, FloatArray
@@ -274,16 +275,17 @@ def _bounds_and_observer(
         notes.add(True, PLUG_IN)
         norms = _estimate_norms(c.A_hat, c.B_hat, C, K)
     if spec.has("cost"):
-        out["J_star"] = _cost.optimal_cost(
-            c.A_hat,
-            c.B_hat,
-            K,
-            C,
-            sigma_u=c.system.sigma_u,
-            sigma_w=sigma_model,
-            sigma_v=c.system.sigma_v,
-            horizon=spec.horizon,
+        noise = dict(sigma_u=c.system.sigma_u, sigma_w=sigma_model, sigma_v=c.system.sigma_v)
+        A_hat, B_hat = c.A_hat, c.B_hat
+        J, err = _cost.exact_cost(
+            A_hat, B_hat, A_hat, B_hat, L=K, C=C, **noise, horizon=spec.horizon, return_error=True
         )
+        bad, _ = _check.unconfirmed(
+            A_hat, B_hat, A_hat, B_hat, L=K, C=C, **noise, horizon=spec.horizon,
+            J=J, err=err, J_stat=np.full(J.shape, np.nan),
+        )  # fmt: skip
+        notes.add(bad, f"J_star: {_check.REASON_ROUNDING}")
+        out["J_star"] = np.where(bad, np.nan, J)
     if spec.has("cost_bound"):
         assert L is not None and norms is not None  # cost_bound needs gain and cost
         t3 = _cb.theorem3_bound(

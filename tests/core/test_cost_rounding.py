@@ -132,3 +132,7 @@ def test_records_of_a_system_whose_costs_rounding_ruins():
     At, Bt, L = (np.array(r[k]) for k in ("A_hat", "B_hat", "L"))
     truth = mp_exact(A, B, At, Bt, L, np.eye(3))
     assert abs(r["J_mc"] - truth) <= 5 * r["J_mc_se"]
+    # J* (the true model, L = K): its e block never meets A's huge x block, so its
+    # loose bound sends it to the step recursion, which confirms it
+    K = np.array(r["K"])
+    assert r["J_star"] == pytest.approx(mp_exact(A, B, A, B, K, np.eye(3)), rel=1e-8)
