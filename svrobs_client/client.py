@@ -32,7 +32,7 @@ from .errors import (
     not_the_api,
     unreachable,
 )
-from .models import Job, JobPage, Schedule, ScheduleRun, Share, ident
+from .models import Job, JobPage, Schedule, ScheduleRun, Share, answer, ident
 from .params import RESULT_FILTERS
 from .progress import make_bar
 from .results import ResultCalls
@@ -296,8 +296,13 @@ class Client(ResultCalls, DatasetCalls):
     ) -> JobPage:
         """The team's jobs, newest first; ``owner`` is an email or ``"me"``."""
         params = {"status": status, "tag": tag, "owner": owner, "limit": limit, "offset": offset}
-        body = self.request_json(
-            "GET", "/jobs", params={k: v for k, v in params.items() if v is not None}
+        body = answer(
+            self.request_json(
+                "GET", "/jobs", params={k: v for k, v in params.items() if v is not None}
+            ),
+            "a page of jobs",
+            rows="items",
+            counts=("total", "limit", "offset"),
         )
         return JobPage(
             items=[Job.from_json(j) for j in body["items"]],
@@ -333,7 +338,8 @@ class Client(ResultCalls, DatasetCalls):
 
     def shares(self, job: Job | int) -> list[Share]:
         """The job's share links, newest first (without their URLs: tokens are not kept)."""
-        return [Share.from_json(s) for s in self.request_json("GET", f"/jobs/{ident(job)}/shares")]
+        links = answer(self.request_json("GET", f"/jobs/{ident(job)}/shares"), "a list of links")
+        return [Share.from_json(s) for s in links]
 
     def revoke_share(self, share: Share | int) -> None:
         """Revoke a link: opening it is a 404 from now on (revoking twice is harmless)."""
@@ -342,7 +348,9 @@ class Client(ResultCalls, DatasetCalls):
     # ------------------------------------------------------------------ presets
     def presets(self) -> list[dict[str, Any]]:
         """The system presets (name, matrices, noise levels) a spec may name."""
-        presets: list[dict[str, Any]] = self.request_json("GET", "/presets")
+        presets: list[dict[str, Any]] = answer(
+            self.request_json("GET", "/presets"), "a list of presets"
+        )
         return presets
 
     def run_paper_preset(
@@ -370,7 +378,8 @@ class Client(ResultCalls, DatasetCalls):
     # ------------------------------------------------------------------ schedules
     def schedules(self) -> list[Schedule]:
         """The team's schedules."""
-        return [Schedule.from_json(s) for s in self.request_json("GET", "/schedules")]
+        schedules = answer(self.request_json("GET", "/schedules"), "a list of schedules")
+        return [Schedule.from_json(s) for s in schedules]
 
     def schedule(self, schedule: Schedule | int) -> Schedule:
         return Schedule.from_json(self.request_json("GET", f"/schedules/{ident(schedule)}"))
@@ -428,5 +437,7 @@ class Client(ResultCalls, DatasetCalls):
 
     def schedule_runs(self, schedule: Schedule | int) -> list[ScheduleRun]:
         """The due times already turned into jobs, newest first (last 100)."""
-        runs = self.request_json("GET", f"/schedules/{ident(schedule)}/runs")
+        runs = answer(
+            self.request_json("GET", f"/schedules/{ident(schedule)}/runs"), "a list of runs"
+        )
         return [ScheduleRun.from_json(x) for x in runs]

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from .files import write_atomic
-from .models import Dataset, DatasetPage, ident
+from .models import Dataset, DatasetPage, answer, ident
 
 MODEL_FORMATS = ("json", "npz", "mat")
 _MATRICES = ("A_hat", "B_hat", "C", "radii_A", "radii_B", "L", "K")
@@ -154,7 +154,12 @@ class DatasetCalls:
 
     def datasets(self, *, limit: int = 50, offset: int = 0) -> DatasetPage:
         """The team's datasets, newest first (without lengths and statistics)."""
-        body = self.request_json("GET", "/datasets", params={"limit": limit, "offset": offset})
+        body = answer(
+            self.request_json("GET", "/datasets", params={"limit": limit, "offset": offset}),
+            "a page of datasets",
+            rows="items",
+            counts=("total", "limit", "offset"),
+        )
         return DatasetPage(
             items=[Dataset.from_json(d) for d in body["items"]],
             total=body["total"],

@@ -44,6 +44,27 @@ def _check_shape(cls: type, data: object) -> None:
         )
 
 
+def answer(
+    body: object, what: str, *, rows: str | None = None, counts: tuple[str, ...] = ()
+) -> Any:
+    """``body`` if it has the shape of the API's answer ``what``: a JSON list when
+    ``rows`` is None, else an object whose ``rows`` is a list and whose ``counts`` are
+    integers; a SvrobsError saying so otherwise (another server answering JSON)."""
+    if rows is None:
+        ok = isinstance(body, list)
+    else:
+        ok = (
+            isinstance(body, dict)
+            and isinstance(body.get(rows), list)
+            and all(isinstance(body.get(k), int) for k in counts)
+        )
+    if not ok:
+        raise SvrobsError(
+            f"the answer is not {what} of the svrobs API (is SVROBS_URL its address?)"
+        )
+    return body
+
+
 def _build(cls: type[_T], data: dict[str, Any], **given: Any) -> _T:
     """``cls`` from the API's JSON: each field from the key of its name (``*_at`` parsed
     as a datetime, a missing list or dict empty), unless ``given``; ``raw`` = ``data``."""

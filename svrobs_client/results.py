@@ -15,7 +15,7 @@ from typing import IO, Any
 from . import frames
 from .errors import REPORT_HEADER, not_a_report
 from .files import write_atomic, writer
-from .models import Job, Report, ident
+from .models import Job, Report, answer, ident
 from .params import results_params
 
 FORMATS = ("csv", "jsonl", "json")
@@ -107,15 +107,25 @@ class ResultCalls:
         """``GET /jobs/{id}/summary`` as the API sends it, every page's groups in one
         body (pages of ``page_size`` groups; the API sends at most 10,000 a request)."""
         path = f"/jobs/{ident(job)}/summary"
-        body: dict[str, Any] = self.request_json("GET", path, params={"limit": page_size})
+        body: dict[str, Any] = answer(
+            self.request_json("GET", path, params={"limit": page_size}),
+            "a job's summary",
+            rows="groups",
+            counts=("total",),
+        )
         groups = list(body["groups"])
         while groups and len(groups) < body["total"]:
             params = {"limit": page_size, "offset": len(groups)}
-            page = self.request_json("GET", path, params=params)
+            page = answer(
+                self.request_json("GET", path, params=params),
+                "a job's summary",
+                rows="groups",
+                counts=("total",),
+            )
             if not page["groups"]:  # a running job's groups changed meanwhile
                 break
             groups += page["groups"]
-            body["total"], body["partial"] = page["total"], page["partial"]
+            body["total"], body["partial"] = page["total"], page.get("partial")
         return {**body, "groups": groups}  # the first page's body, with every group
 
     def summary(self, job: Job | int, *, long: bool = False) -> Any:
@@ -136,11 +146,21 @@ class ResultCalls:
         by = by if isinstance(by, str) else ",".join(by)
         ids = ",".join(str(ident(j)) for j in jobs)
         params: dict[str, Any] = {"jobs": ids, "metric": metric, "by": by}
-        body: dict[str, Any] = self.request_json("GET", "/compare", params=params)
+        body: dict[str, Any] = answer(
+            self.request_json("GET", "/compare", params=params),
+            "a comparison",
+            rows="rows",
+            counts=("total",),
+        )
         rows = list(body["rows"])
         while rows and len(rows) < body["total"]:
             more = {**params, "limit": page_size, "offset": len(rows)}
-            page = self.request_json("GET", "/compare", params=more)
+            page = answer(
+                self.request_json("GET", "/compare", params=more),
+                "a comparison",
+                rows="rows",
+                counts=("total",),
+            )
             if not page["rows"]:  # a running job's groups changed meanwhile
                 break
             rows += page["rows"]

@@ -522,3 +522,36 @@ def test_a_download_stopped_by_sigterm_leaves_no_file(tmp_path):
         proc.kill()
         server.shutdown()
     assert list(out.iterdir()) == []
+
+
+def test_json_of_another_shape_is_not_the_api(monkeypatch, capsys):
+    """A server answering JSON that is not the API's (a list where a page is due, an
+    object without the rows): a SvrobsError naming what was expected, and the CLI's
+    one line says so, not the missing key."""
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        if request.url.path.endswith(("/jobs", "/datasets", "/summary", "/compare")):
+            return httpx.Response(200, json={"items": "no", "groups": 3, "rows": None})
+        return httpx.Response(200, json={"hello": "world"})  # not a list
+
+    fake_api(monkeypatch, handler)
+    with Client(URL, "svr_k") as c:
+        for ask, what in [
+            (c.jobs, "a page of jobs"),
+            (c.datasets, "a page of datasets"),
+            (lambda: c.summary_json(1), "a job's summary"),
+            (lambda: c.compare_json([1, 2], "rmse_A"), "a comparison"),
+            (lambda: c.shares(1), "a list of links"),
+            (c.schedules, "a list of schedules"),
+            (lambda: c.schedule_runs(1), "a list of runs"),
+            (c.presets, "a list of presets"),
+        ]:
+            with pytest.raises(SvrobsError, match=f"^the answer is not {what} of the svrobs API"):
+                ask()
+    monkeypatch.setenv("SVROBS_URL", URL)
+    monkeypatch.setenv("SVROBS_API_KEY", "svr_k")
+    code, out, err = run_cli(capsys, "status")
+    assert code != 0 and out == ""
+    assert err.strip().endswith(
+        "the answer is not a page of jobs of the svrobs API (is SVROBS_URL its address?)"
+    )
