@@ -32,7 +32,13 @@ REASON_RANGE = (
     "Gram beyond the double range; data of magnitude near 1e-154 or below underflow): "
     "rescale the channels"
 )
-REASON_FEW = "too few transitions to bound sigma_w (N0 <= d or the bound's denominator <= 0)"
+REASON_FEW = "too few transitions to bound sigma_w (N0 <= d)"
+REASON_DENOMINATOR = (
+    "too few transitions to bound sigma_w for data of this size: the bound's denominator "
+    "chi2 quantile - n c (log det(I + G / lambda0) + 2 log(n / delta)) is <= 0 (the "
+    "log-determinant grows with the data's magnitude over lambda0: raise lambda0 or "
+    "rescale the data)"
+)
 REASON_SINGULAR = "Z Z^T is singular: sigma_w cannot be bounded"
 REASON_INACCURATE = (
     f"the bound on sigma_w could be off by more than {RADIUS_RTOL:g} relative (the residual"
@@ -148,7 +154,7 @@ def noise_level(
     good = ok & ~singular & (D > 0)
     accurate = rel_err <= RADIUS_RTOL
     reason[good & ~accurate] = REASON_INACCURATE
-    reason[ok & ~singular & ~(D > 0)] = REASON_FEW
+    reason[ok & ~singular & ~(D > 0)] = REASON_DENOMINATOR
     reason[singular & ok] = REASON_SINGULAR
     reason[~ok] = REASON_RANGE
     good &= accurate

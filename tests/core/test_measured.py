@@ -269,7 +269,14 @@ def test_estimated_sigma_w_bound_and_its_box():
     # too few transitions: no bound, so no box, and a note says why
     _, [few], _ = run({**obj, "N": [1]}, ragged(3, 2, lo=3, hi=4))
     assert np.isnan(np.array(few["radii_A"], float)).all() and few["stable_certified"] is None
-    assert "too few transitions to bound sigma_w" in few["notes"]
+    assert "too few transitions to bound sigma_w (N0 <= d)" in few["notes"]
+    # many transitions, but of data so large that log det(I + G / lambda0) outweighs
+    # the chi2 quantile: the denominator is the reason, not N0
+    huge = MeasuredData(X=[1e150 * x for x in data.X], U=[1e150 * u for u in data.U])
+    _, [big], _ = run(obj, huge)
+    assert big["N0"] > 100 and np.isnan(np.array(big["radii_A"], float)).all()
+    assert "sigma_w for data of this size: the bound's denominator" in big["notes"]
+    assert "(N0 <= d)" not in big["notes"]
 
 
 def test_a_given_sigma_w_the_data_contradict_is_noted():
