@@ -46,7 +46,7 @@ def is_range_param(name: str) -> bool:
 def _numeric(field: str, param: str) -> None:
     if field not in NUMERIC_FIELDS:
         raise Invalid(
-            f"{field!r} is not a numeric record field; one of {list(NUMERIC_FIELDS)}",
+            f"{field!r} is not a numeric record field; one of {', '.join(NUMERIC_FIELDS)}",
             field=param,
         )
 

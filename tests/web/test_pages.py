@@ -116,6 +116,9 @@ def test_cancel_and_delete_need_the_token_and_refuse_active_jobs(web, session, m
     r = web.post(f"/jobs/{jid}/delete", data={"csrf_token": token}, follow_redirects=False)
     assert r.status_code == 303 and r.headers["location"] == f"/jobs?deleted={jid}"
     assert web.get(f"{API}/jobs/{jid}", headers=acc.headers).status_code == 404
+    assert web.get(f"/jobs?deleted={jid}").status_code == 200
+    bad = web.get("/jobs?deleted=abc")
+    assert bad.status_code == 422 and "deleted: job ids, written with the digits 0-9" in bad.text
 
 
 def test_chart_data_are_the_stored_summaries(web, session, make_account):
