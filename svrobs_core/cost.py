@@ -355,10 +355,12 @@ def exact_cost(
     acc: _Blocks | None = None
     t_acc = 0
     rnd = DoublingRounding(ops, c.n)
-    # the inputs' own rounding: F = A~ - L C, dA, and the noise covariance
-    scale = ops.norm(P, (1, 1, 1)) + ops.norm((ops.put(c.L), None, ops.put(c.C)), (1, 0, 1)) ** 2
-    eP = rnd.g * scale
-    e_blk = np.concatenate([rnd.g * ops.norm(Q)] * 2)  # (Sigma_1, W_1) = (Q, Q)
+    # the inputs' own rounding: dA = A - A~, F = A~ - L C, and the noise covariance
+    na, nr, nf = rnd.norms(P)
+    nL, nC = rnd.norms((ops.put(c.L), ops.put(c.C)))
+    eP: tuple[Any, ...] = (0.0 * na, _U * nr, rnd.g * (nf + nL * nC))
+    eQ = rnd.g * sum(rnd.norms(Q))
+    e_blk = tuple(np.concatenate([eQ, eQ]) for _ in Q)  # (Sigma_1, W_1) = (Q, Q)
     e_acc = e_blk
     bits = bin(T)[2:][::-1]
     top = len(bits) - 1
@@ -382,7 +384,7 @@ def exact_cost(
     if not return_error:
         return J
     # the trace of the e block of W: at most sqrt(n) times its Frobenius error
-    err = np.sqrt(c.n) * ops.get(e_acc[1:]) / T + 2 * _U * np.abs(J)
+    err = np.sqrt(c.n) * ops.get(e_acc[2][1:]) / T + 2 * _U * np.abs(J)
     return J, np.where(np.isnan(err), np.inf, err)
 
 

@@ -26,6 +26,7 @@ from .array_types import Array, BoolArray, FloatArray
 
 U = np.finfo(float).eps / 2  # unit roundoff
 SUSPECT_RTOL = 1e-8
+SLOW_RHO = 1e-3
 AGREE_RTOL = 1e-8
 REASON_ROUNDING = (
     "rounding: two evaluations in doubles disagree (a strongly non-normal system, "
@@ -36,43 +37,70 @@ _SMITH_STEPS = 60
 
 
 class DoublingRounding:
-    """First-order bounds on the absolute error (Frobenius) of each power, Sigma
-    and W that :func:`svrobs_core.cost.exact_cost` computes, from the norms of what
-    each product multiplies: a computed product ``fl(X Y)`` is within ``gamma_k |X|
-    |Y|`` of ``X Y``, whose Frobenius norm is at most ``gamma_k ||X|| ||Y||``
-    (Higham, Accuracy and Stability of Numerical Algorithms, section 3.5). ``ops``:
-    the doubling's layout (its ``norm`` of blocks). A few norms per doubling step."""
+    """First-order bounds on the absolute error (Frobenius) of each block of each
+    power, Sigma and W that :func:`svrobs_core.cost.exact_cost` computes, from the
+    norms of the blocks each product multiplies: a computed product ``fl(X Y)`` is
+    within ``gamma_k |X| |Y|`` of ``X Y``, whose Frobenius norm is at most ``gamma_k
+    ||X|| ||Y||`` (Higham, Accuracy and Stability of Numerical Algorithms, section
+    3.5). Block by block (power ``[[Pa, 0], [Pr, Pf]]``, covariance ``[[Mx, Mxe],
+    [Mxe^T, Me]]``), so that the e block's error is not charged with the x block's
+    size where the coupling ``Pr`` is small. ``ops``: the doubling's layout (its
+    ``norm`` of blocks). A few norms per doubling step."""
 
     def __init__(self, ops: Any, n: int) -> None:
         self.ops = ops
-        self.g = 2 * (2 * n + 2) * U  # two products of inner size 2n, and the sums
+        self.g = 2 * (2 * n + 2) * U  # two products of inner size up to 2n, and the sums
 
-    def square(self, P: tuple[Any, ...], eP: Array) -> Array:
-        """The error of the squared power."""
-        nP = self.ops.norm(P, (1, 1, 1))
-        out: Array = 2 * nP * eP + self.g * nP * nP
-        return out
+    def norms(self, blocks: tuple[Any, ...]) -> tuple[Any, ...]:
+        """Each block's Frobenius norm (0 for a block not kept). -> (S, N|1) each"""
+        return tuple(0.0 if b is None else self.ops.norm((b,), (1,)) for b in blocks)
+
+    def square(self, P: tuple[Any, ...], eP: tuple[Array, ...]) -> tuple[Array, ...]:
+        """The errors of the squared power's blocks ``(Pa^2, Pr Pa + Pf Pr, Pf^2)``."""
+        (a, r, f), (ea, er, ef), g = self.norms(P), eP, self.g
+        return (
+            2 * a * ea + g * a * a,
+            r * ea + (a + f) * er + r * ef + g * (r * a + f * r),
+            2 * f * ef + g * f * f,
+        )
 
     def join(
         self,
         P: tuple[Any, ...],
-        eP: Array,
+        eP: tuple[Array, ...],
         Ma: tuple[Any, ...],
-        eMa: Array,
+        eMa: tuple[Array, ...],
         Mb: tuple[Any, ...],
-        eMb: Array,
+        eMb: tuple[Array, ...],
         t_b: int,
-    ) -> Array:
-        """(S, N) errors of (Sigma, W) of segment a (power P, stacked Ma) followed by
-        segment b (Mb, length t_b): ``Ma + P Mb P^T``, and ``t_b Sigma_a`` in W."""
-        ops = self.ops
-        nP2 = ops.norm(P, (1, 1, 1)) ** 2
-        nMa, nMb = ops.norm(Ma), ops.norm(Mb)
-        prop = eMa + nP2 * eMb + (2 * np.sqrt(nP2) * eP + self.g * nP2) * nMb
-        prop = prop + 2 * U * (nMa + nP2 * nMb)
-        extra = t_b * (eMa[:1] + 2 * U * nMa[:1])
-        out: Array = np.concatenate([prop[:1], prop[1:] + extra], axis=0)
-        return out
+    ) -> tuple[Array, ...]:
+        """The (S, N) errors of the blocks (xx, xe, ee) of (Sigma, W) of segment a
+        (power P, stacked Ma) followed by segment b (Mb, length t_b): ``Ma + P Mb
+        P^T``, and ``t_b Sigma_a`` in W (see ``cost._join``)."""
+        (a, r, f), (ea, er, ef), g = self.norms(P), eP, self.g
+        x, xe, e = self.norms(Mb)
+        ex, exe, ee = eMb
+        # the blocks of P Mb P^T (cost._congruence) and their errors
+        c_xx = a * a * x
+        c_xe = a * (x * r + xe * f)
+        c_ee = r * r * x + 2 * r * f * xe + f * f * e
+        e_xx = 2 * a * x * ea + a * a * ex + g * c_xx
+        e_xe = ea * (x * r + xe * f) + a * (ex * r + x * er + exe * f + xe * ef) + g * c_xe
+        e_ee = (
+            2 * er * (x * r + xe * f)
+            + 2 * ef * (xe * r + e * f)
+            + r * r * ex
+            + 2 * r * f * exe
+            + f * f * ee
+            + g * c_ee
+        )
+        out = []
+        for m, em, c, ec in zip(self.norms(Ma), eMa, (c_xx, c_xe, c_ee), (e_xx, e_xe, e_ee)):
+            err = em + ec + 2 * U * (m + c)
+            # W_{a+b} also takes t_b Sigma_a, with its error (stack index 1 is W)
+            w = err[1:] + t_b * (em[:1] + 2 * U * m[:1])
+            out.append(np.concatenate([err[:1], w], axis=0))
+        return tuple(out)
 
 
 def suspect(J: FloatArray, err: FloatArray) -> BoolArray:
@@ -95,17 +123,25 @@ def augmented(
 ) -> tuple[FloatArray, FloatArray]:
     """(Acal, Q) of each cell: ``s = [x; e]``, ``s+ = Acal s + noise``, Cov noise = Q
     (docs/science.md#6-observer-cost-j). Each matrix (k, ., .) or one (., .)."""
+    # in extended precision where the platform has it (x86: 64-bit significands), so
+    # that the inputs' own rounding (A_tilde - L C) is not repeated
+    A, B, A_tilde, B_tilde, L, C = (  # type: ignore[assignment]
+        np.asarray(M, dtype=np.longdouble) for M in (A, B, A_tilde, B_tilde, L, C)
+    )
     k, n = A_tilde.shape[0], A.shape[-1]
-    su, sw, sv = (np.broadcast_to(s, (k,))[:, None, None] for s in (sigma_u, sigma_w, sigma_v))
+    su, sw, sv = (
+        np.broadcast_to(np.asarray(s, dtype=np.longdouble), (k,))[:, None, None]
+        for s in (sigma_u, sigma_w, sigma_v)
+    )
     Ab = np.broadcast_to(A, (k, n, n))
     Bb = np.broadcast_to(B, (k,) + B.shape[-2:])
-    top = np.concatenate([Ab, np.zeros((k, n, n))], axis=-1)
+    top = np.concatenate([Ab, np.zeros((k, n, n), dtype=A.dtype)], axis=-1)
     bottom = np.concatenate([A_tilde - Ab, A_tilde - L @ C], axis=-1)
     Acal = np.concatenate([top, bottom], axis=-2)
-    I = np.broadcast_to(np.eye(n), (k, n, n))
+    I = np.broadcast_to(np.eye(n, dtype=A.dtype), (k, n, n))
     G = np.concatenate(
         [
-            np.concatenate([su * Bb, sw * I, np.zeros((k, n, C.shape[-2]))], -1),
+            np.concatenate([su * Bb, sw * I, np.zeros((k, n, C.shape[-2]), dtype=A.dtype)], -1),
             np.concatenate([-su * (Bb - B_tilde), -sw * I, sv * L], -1),
         ],
         axis=-2,
@@ -117,12 +153,12 @@ def augmented(
 def exact_by_steps(Acal: FloatArray, Q: FloatArray, n: int, horizon: int) -> FloatArray:
     """J over ``horizon`` steps by the step-by-step recursion, per cell. -> (k,)"""
     S = np.zeros_like(Q)
-    total = np.zeros(Q.shape[0])
+    total = np.zeros(Q.shape[0], dtype=Q.dtype)
     At = np.swapaxes(Acal, -1, -2)
     for _ in range(horizon):
         S = Acal @ S @ At + Q
         total += np.trace(S[:, n:, n:], axis1=-2, axis2=-1)
-    out: FloatArray = total / horizon
+    out: FloatArray = (total / horizon).astype(float)
     return out
 
 
@@ -133,7 +169,7 @@ def stationary_by_smith(Acal: FloatArray, Q: FloatArray, n: int) -> FloatArray:
     for _ in range(_SMITH_STEPS):
         S = S + P @ S @ np.swapaxes(P, -1, -2)
         P = P @ P
-    out: FloatArray = np.trace(S[:, n:, n:], axis1=-2, axis2=-1)
+    out: FloatArray = np.trace(S[:, n:, n:], axis1=-2, axis2=-1).astype(float)
     return out
 
 
@@ -152,14 +188,25 @@ def unconfirmed(
     J: FloatArray,
     err: FloatArray,
     J_stat: FloatArray,
+    rho: float | FloatArray = 0.0,
 ) -> tuple[BoolArray, BoolArray]:
     """(J_exact, J_stationary) cells, bool of J's shape, that a second evaluation
-    does not confirm: only the :func:`suspect` ones are evaluated again. Each matrix
-    is one (n, .) or batched as J."""
+    does not confirm: only the :func:`suspect` ones are evaluated again, and the
+    stationary costs of those, of a decision radius ``rho`` (the larger of A's and
+    F's) within SLOW_RHO of 1, or below the finite horizon's mean. Each matrix is one
+    (n, .) or batched as J."""
     batch, n = J.shape, A.shape[-1]
     bad_exact = np.zeros(batch, dtype=bool)
     bad_stat = np.zeros(batch, dtype=bool)
-    idx = np.flatnonzero(suspect(J, err))
+    sus = suspect(J, err)
+    with np.errstate(invalid="ignore"):
+        # the stationary solve has no bound of its own: it is evaluated again with a
+        # suspect J_exact, near the boundary, or below the finite horizon's mean
+        # (Sigma_k grows to its limit, so the limit is at least the mean)
+        slow = np.broadcast_to(np.asarray(rho, dtype=float), batch) > 1.0 - SLOW_RHO
+        low = J_stat < np.abs(J) * (1.0 - AGREE_RTOL)
+        sus_stat = np.isfinite(J_stat) & (sus | slow | low | ~(J_stat >= 0))
+    idx = np.flatnonzero(sus | sus_stat)
     if idx.size == 0:
         return bad_exact, bad_stat
 
@@ -171,9 +218,12 @@ def unconfirmed(
     su, sw, sv = (np.broadcast_to(s, batch).reshape(-1)[idx] for s in (sigma_u, sigma_w, sigma_v))
     Acal, Q = augmented(cells(A), cells(B), cells(A_tilde), cells(B_tilde), cells(L), C, su, sw, sv)
     flat_e, flat_s = bad_exact.reshape(-1), bad_stat.reshape(-1)
-    flat_e[idx] = ~confirmed(J.reshape(-1)[idx], exact_by_steps(Acal, Q, n, horizon))
+    e = sus.reshape(-1)[idx]
+    if e.any():
+        first = J.reshape(-1)[idx[e]]
+        flat_e[idx[e]] = ~confirmed(first, exact_by_steps(Acal[e], Q[e], n, horizon))
     stat = J_stat.reshape(-1)[idx]
-    has = np.isfinite(stat)
+    has = sus_stat.reshape(-1)[idx]
     if has.any():
         smith = stationary_by_smith(Acal[has], Q[has], n)
         flat_s[idx[has]] = ~confirmed(stat[has], smith)

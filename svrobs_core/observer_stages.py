@@ -130,8 +130,9 @@ def observer_stages(c: Cells, b: BoundsResult, designed: GainResult) -> None:
     notes.add(defined & ~np.isfinite(J), J_EXACT_NOT_FINITE)
     notes.add_reasons(stat_reason, "J_stationary")
     bad_J, bad_stat = _check.unconfirmed(
-        A, B, A_hat, B_hat, L=L, C=C, **noise, horizon=spec.horizon, J=J, err=J_err, J_stat=J_stat
-    )
+        A, B, A_hat, B_hat, L=L, C=C, **noise, horizon=spec.horizon, J=J, err=J_err,
+        J_stat=J_stat, rho=np.fmax(stability_radius(A), rho_F),
+    )  # fmt: skip
     notes.add(bad_J, f"J_exact: {_check.REASON_ROUNDING}")
     notes.add(bad_stat, f"J_stationary: {_check.REASON_ROUNDING}")
     J, J_stat = np.where(bad_J, np.nan, J), np.where(bad_stat, np.nan, J_stat)

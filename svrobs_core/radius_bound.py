@@ -70,13 +70,18 @@ def radius_upper_bound(
 
 def _henrici(F: FloatArray, mu: np.ndarray, rho: FloatArray) -> FloatArray:
     n = F.shape[-1]
+    # scaled by a power of 2 (exact), so that no square underflows or overflows
+    top = np.max(np.abs(F), axis=(-2, -1))
+    scale = np.exp2(np.frexp(np.where(top > 0, top, 1.0))[1].astype(float))
+    F = F / scale[..., None, None]
+    mu = mu / scale[..., None]
     fro = np.sqrt(np.sum(F * F, axis=(-2, -1))) * (1 + 2 * n * _U)
     e = _BACKWARD * n * n * _U * fro
     s = np.sum(np.abs(mu) ** 2, axis=-1) * (1 - 4 * n * _U)
     d = np.sqrt(np.maximum((fro + e) ** 2 - s, 0.0) + 4 * n * _U * (fro + e) ** 2)
     theta = e * sum(d**k for k in range(n)) * (1 + 4 * n * _U)
     move = np.fmax(theta, theta ** (1.0 / n)) if n > 1 else theta
-    hi: FloatArray = rho * (1 + 2 * _U) + move
+    hi: FloatArray = rho * (1 + 2 * _U) + move * scale * (1 + 2 * _U)
     return hi
 
 
@@ -89,8 +94,13 @@ def _bauer_fike(F: FloatArray) -> FloatArray:
     Rb = np.abs(R) + _gamma(n + 2) * (aF @ aV + aV * amu[..., None, :])
     try:
         W = np.linalg.inv(V)
-    except np.linalg.LinAlgError:
-        return np.full(F.shape[0], np.inf)
+    except np.linalg.LinAlgError:  # one singular V (a defective F): the others alone
+        W = np.full(V.shape, np.nan + 0j)
+        for i in range(V.shape[0]):  # the rare matrices left open by Henrici's bound
+            try:
+                W[i] = np.linalg.inv(V[i])
+            except np.linalg.LinAlgError:
+                pass
     aW = np.abs(W)
     # ||V^-1 - W|| <= ||W|| z / (1 - z), z >= ||I - W V|| (with the product's rounding)
     Z = np.eye(n) - W @ V

@@ -287,6 +287,7 @@ SPEC_FIELDS: tuple[SpecField, ...] = (
         "Monte Carlo cost only for rep < mc_reps (empty: every rep)",
         "repetitions",
         lo=0,
+        hi=MAX_REPS,
         optional=True,
         group="cost",
     ),

@@ -11,6 +11,7 @@ import pytest
 from svrobs_core import parse_spec, run_spec
 from svrobs_core.cost import exact_cost, stationary_cost
 from svrobs_core.cost_check import REASON_ROUNDING, suspect, unconfirmed
+from svrobs_core.norms import stability_radius
 
 # rho(A) = 0.99003, powers peaking near 1e8: every J_exact in doubles is garbage
 NON_NORMAL = [
@@ -31,8 +32,15 @@ def system(rng: np.random.Generator, scale: float) -> np.ndarray:
 
 
 def mp_matrices(A, B, At, Bt, L, C):
+    """(Acal, Q) in mpmath, every difference and product formed there."""
     n = A.shape[0]
-    Acal = np.block([[A, np.zeros((n, n))], [At - A, At - L @ C]])
+    m = mp.matrix
+    F = m(At.tolist()) - m(L.tolist()) * m(C.tolist())
+    dA = m(At.tolist()) - m(A.tolist())
+    Acal = mp.zeros(2 * n)
+    for i in range(n):
+        for j in range(n):
+            Acal[i, j], Acal[n + i, j], Acal[n + i, n + j] = A[i, j], dA[i, j], F[i, j]
     G = np.block(
         [
             [NOISE["sigma_u"] * B, NOISE["sigma_w"] * np.eye(n), np.zeros((n, C.shape[0]))],
@@ -40,7 +48,7 @@ def mp_matrices(A, B, At, Bt, L, C):
         ]
     )
     Gm = mp.matrix(G.tolist())
-    return mp.matrix(Acal.tolist()), Gm * Gm.T
+    return Acal, Gm * Gm.T
 
 
 def mp_exact(A, B, At, Bt, L, C, T=200) -> float:
@@ -136,3 +144,45 @@ def test_records_of_a_system_whose_costs_rounding_ruins():
     # loose bound sends it to the step recursion, which confirms it
     K = np.array(r["K"])
     assert r["J_star"] == pytest.approx(mp_exact(A, B, A, B, K, np.eye(3)), rel=1e-8)
+
+
+def _flags(A, B, At, Bt, L, C, **noise):
+    J, err = exact_cost(A, B, At, Bt, L=L, C=C, **noise, return_error=True)
+    Js = stationary_cost(A, B, At, Bt, L=L, C=C, **noise)
+    rho = np.fmax(stability_radius(A), stability_radius(At - L @ C))
+    bad_J, bad_s = unconfirmed(
+        A, B, At[None], Bt[None], L=L[None], C=C, **noise, horizon=200,
+        J=np.atleast_1d(J), err=np.atleast_1d(err), J_stat=np.atleast_1d(Js), rho=rho,
+    )  # fmt: skip
+    return float(J), float(Js), bad_J[0], bad_s[0]
+
+
+def test_a_stationary_cost_near_the_boundary_is_evaluated_again():
+    """F nearly defective at rho = 1 - 1e-7: J_exact is accurate (its bound is tight),
+    but the stationary Stein solve is not (here even negative): it is evaluated
+    again, and dropped."""
+    A, B, At, C = np.diag([0.5, -0.2]), np.ones((2, 1)), np.zeros((2, 2)), np.eye(2)
+    Q = np.array([[0.6, -0.8], [0.8, 0.6]])
+    L = -(Q @ np.array([[1 - 1e-7, 0.03], [0, 1 - 1e-7]]) @ Q.T)
+    noise = dict(sigma_u=1.0, sigma_w=1.0, sigma_v=0.1)
+    J, Js, bad_J, bad_s = _flags(A, B, At, B, L, C, **noise)
+    assert not bad_J and J == pytest.approx(mp_exact(A, B, At, B, L, C), rel=1e-8)
+    assert bad_s  # the doubles gave -2.8e17; 60 digits give 8.2e17
+
+
+@pytest.mark.parametrize("offset", [1e-13, 1e-10])
+def test_the_second_evaluation_does_not_repeat_the_inputs_rounding(offset):
+    """L cancels A_tilde nearly exactly through an ill-conditioned C: A_tilde - L C
+    loses digits when formed in doubles, in the first evaluation and a second one in
+    doubles alike. The second is in extended precision: it disagrees, and both
+    values are dropped (they were 1.4e-3 and 2.3e-6 off)."""
+    rng = np.random.default_rng(2)
+    A, B = np.diag([0.9, 0.5]), np.array([[1.0], [0.5]])
+    At = A + 1e-3 * rng.standard_normal((2, 2))
+    C = np.array([[1, 0.7], [0.3, 0.21 + offset]])
+    L = (At - np.array([[0.99, 0.05], [-0.05, 0.98]])) @ np.linalg.inv(C)
+    noise = dict(sigma_u=1.0, sigma_w=1.0, sigma_v=1e-6)
+    J, Js, bad_J, bad_s = _flags(A, B, At, B, L, C, **noise)
+    truth = mp_exact(A, B, At, B, L, C)
+    assert abs(J - truth) > 1e-8 * truth  # the doubles are off
+    assert bad_J and bad_s

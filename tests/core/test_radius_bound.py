@@ -95,3 +95,26 @@ def test_records_of_a_system_whose_stability_rounding_cannot_decide():
     (r,) = [r for batch in run_spec(spec) for r in batch]
     assert r["J_stationary"] is None and f"J_stationary: {REASON_BOUNDARY}" in r["notes"]
     assert r["J_bound"] is None and "J_bound: rho(A) not below 1 - 1e-10 up to" in r["notes"]
+
+
+def test_tiny_and_huge_scalings_keep_the_bound():
+    """A power of 2 scales the radius exactly: the bound scales with it (its norms
+    are taken on the scaled matrix, so no square underflows)."""
+    A = np.array(NON_NORMAL)
+    exact = exact_radius(A)
+    for k in (-560, -200, 0, 100):
+        s = 2.0**k
+        rho, hi = radius_upper_bound(A * s)
+        assert hi >= exact * s, k
+
+
+def test_a_defective_matrix_leaves_the_others_of_its_batch_decided():
+    """np.linalg.inv fails for a whole batch with one singular eigenvector matrix:
+    each of the others keeps its own enclosure."""
+    M = np.array([[-14399.00676, 10800.004319999998], [-19199.995680000004, 14400.99576]])
+    N = np.array([[1.9999999850988388, -2.0], [0.5, -1.4901161193847656e-08]])
+    alone = stability_radius(M)
+    assert alone < 1 - UNIT_CIRCLE_TOL  # decided stable by its eigenvectors
+    both = stability_radius(np.stack([M, N]))
+    assert both[0] == alone
+    assert radius_upper_bound(np.stack([M, N]))[1][1] >= exact_radius(N)
