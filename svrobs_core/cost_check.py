@@ -167,8 +167,10 @@ def stationary_by_smith(Acal: FloatArray, Q: FloatArray, n: int) -> FloatArray:
     """The stationary e block's trace by the squared Smith iteration, per cell. -> (k,)"""
     S, P = Q.copy(), Acal.copy()
     for _ in range(_SMITH_STEPS):
-        S = S + P @ S @ np.swapaxes(P, -1, -2)
-        P = P @ P
+        S_next = S + P @ S @ np.swapaxes(P, -1, -2)
+        if np.array_equal(S_next, S):  # converged to the last bit (or NaN: not equal)
+            break
+        S, P = S_next, P @ P
     out: FloatArray = np.trace(S[:, n:, n:], axis1=-2, axis2=-1).astype(float)
     return out
 
