@@ -530,9 +530,9 @@ def test_json_of_another_shape_is_not_the_api(monkeypatch, capsys):
     one line says so, not the missing key."""
 
     def handler(request: httpx.Request) -> httpx.Response:
-        if request.url.path.endswith(("/jobs", "/datasets", "/summary", "/compare")):
-            return httpx.Response(200, json={"items": "no", "groups": 3, "rows": None})
-        return httpx.Response(200, json={"hello": "world"})  # not a list
+        if request.url.path.endswith("/summary"):
+            return httpx.Response(200, json={"groups": 3, "total": 1})
+        return httpx.Response(200, json={"hello": "world"})  # no rows, and not a list
 
     fake_api(monkeypatch, handler)
     with Client(URL, "svr_k") as c:
