@@ -45,18 +45,27 @@ def _truth_cached(
     kal = _kalman.kalman_predictor(A, C, sigma_w, sigma_v)
     K = kal.K
     noise = dict(sigma_u=sigma_u, sigma_w=sigma_w, sigma_v=sigma_v)
-    J, err = _cost.exact_cost(A, B, A, B, L=K, C=C, **noise, horizon=horizon, return_error=True)
-    bad, _ = _check.unconfirmed(
-        A, B, A[None], B[None], L=K[None], C=C, **noise, horizon=horizon,
-        J=np.atleast_1d(J), err=np.atleast_1d(err), J_stat=np.array([np.nan]),
-    )  # fmt: skip
-    J_star = np.nan if bad[0] else float(J)
+    J, bad = checked_j_star(A[None], B[None], K[None], C, horizon=horizon, **noise)
+    J_star = np.nan if bad[0] else float(J[0])
     norms = _cb.true_system_norms(A, B, C, K)
     reason: Any = kal.reasons() if not kal.ok else None
     if bad[0]:
         lost = f"J_star: {_check.REASON_ROUNDING}"
         reason = lost if reason is None else f"{reason}; {lost}"
     return K, J_star, norms, reason
+
+
+def checked_j_star(
+    A: FloatArray, B: FloatArray, K: FloatArray, C: FloatArray, *, horizon: int, **noise: Any
+) -> tuple[FloatArray, Array]:
+    """(J*, bad): the exact cost of the model (A, B) with its gain K, each cell, and
+    where a second evaluation does not confirm it (docs/science.md#64-j-and-the-cost-ratio)."""
+    J, err = _cost.exact_cost(A, B, A, B, L=K, C=C, **noise, horizon=horizon, return_error=True)
+    bad, _ = _check.unconfirmed(
+        A, B, A, B, L=K, C=C, **noise, horizon=horizon, J=J, err=err,
+        J_stat=np.full(J.shape, np.nan),
+    )  # fmt: skip
+    return J, bad
 
 
 def truth(system: SystemSpec, sigma_w: float, horizon: int) -> Truth:

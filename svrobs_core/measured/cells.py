@@ -17,7 +17,6 @@ from typing import TypeAlias
 import numpy as np
 
 from .. import bounds as _bounds
-from .. import cost as _cost
 from .. import cost_bound as _cb
 from .. import cost_check as _check
 from .. import kalman as _kalman
@@ -28,7 +27,7 @@ from ..data_factor import GramFactor, data_factor, estimate_margin
 from ..estimators import REFINE_STEP_TRUST, fit_ols
 from ..norms import stability_radius
 from ..notes import Notes
-from ..observer_stages import design
+from ..observer_stages import checked_j_star, design
 from ..pipeline import CERTIFICATES, ESTIMATE_COND_LIMIT, _estimate
 from ..planning import EstimatorAxis
 from ..spec import STAGES, ExperimentSpec
@@ -276,14 +275,7 @@ def _bounds_and_observer(
         norms = _estimate_norms(c.A_hat, c.B_hat, C, K)
     if spec.has("cost"):
         noise = dict(sigma_u=c.system.sigma_u, sigma_w=sigma_model, sigma_v=c.system.sigma_v)
-        A_hat, B_hat = c.A_hat, c.B_hat
-        J, err = _cost.exact_cost(
-            A_hat, B_hat, A_hat, B_hat, L=K, C=C, **noise, horizon=spec.horizon, return_error=True
-        )
-        bad, _ = _check.unconfirmed(
-            A_hat, B_hat, A_hat, B_hat, L=K, C=C, **noise, horizon=spec.horizon,
-            J=J, err=err, J_stat=np.full(J.shape, np.nan),
-        )  # fmt: skip
+        J, bad = checked_j_star(c.A_hat, c.B_hat, K, C, horizon=spec.horizon, **noise)
         notes.add(bad, f"J_star: {_check.REASON_ROUNDING}")
         out["J_star"] = np.where(bad, np.nan, J)
     if spec.has("cost_bound"):
